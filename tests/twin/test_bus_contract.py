@@ -1,0 +1,139 @@
+"""One contract, every bus: what an actor may rely on whichever bus carries it."""
+
+import asyncio
+
+import pytest
+
+from twin.bus import NoReplyError
+from twin.clock import LabClock
+
+
+def run(clock: LabClock, make_bus, body):
+    async def main():
+        bus = await make_bus(clock)
+        try:
+            return await body(bus)
+        finally:
+            await bus.close()
+
+    return clock.run(main())
+
+
+async def settle(clock: LabClock, seconds: float = 1.0) -> None:
+    await clock.sleep(seconds)
+
+
+def test_fan_out_reaches_every_subscriber(virtual_clock, make_bus):
+    async def body(bus):
+        a, b = [], []
+        bus.subscribe("lab/x", lambda k, p: a.append(p))
+        bus.subscribe("lab/x", lambda k, p: b.append(p))
+        bus.publish("lab/x", b"1")
+        await settle(virtual_clock)
+        return a, b
+
+    assert run(virtual_clock, make_bus, body) == ([b"1"], [b"1"])
+
+
+def test_wildcards_match_one_or_many_chunks(virtual_clock, make_bus):
+    async def body(bus):
+        one, many = [], []
+        bus.subscribe("lab/dev/*/evt", lambda k, p: one.append(k))
+        bus.subscribe("lab/**", lambda k, p: many.append(k))
+        for key in ["lab/dev/r1/evt", "lab/dev/r1/cmd", "lab/dev/a/b/evt", "other/dev/r1/evt"]:
+            bus.publish(key, b"")
+        await settle(virtual_clock)
+        return one, sorted(many)
+
+    one, many = run(virtual_clock, make_bus, body)
+    assert one == ["lab/dev/r1/evt"]
+    assert many == ["lab/dev/a/b/evt", "lab/dev/r1/cmd", "lab/dev/r1/evt"]
+
+
+def test_one_sender_is_delivered_in_order(virtual_clock, make_bus):
+    async def body(bus):
+        got = []
+        bus.subscribe("lab/seq", lambda k, p: got.append(int(p)))
+        for i in range(500):
+            bus.publish("lab/seq", str(i).encode())
+        await settle(virtual_clock)
+        return got
+
+    assert run(virtual_clock, make_bus, body) == list(range(500))
+
+
+def test_request_gets_the_reply(virtual_clock, make_bus):
+    async def body(bus):
+        async def echo(key, payload):
+            await virtual_clock.sleep(5)
+            return b"echo:" + payload
+
+        bus.serve("lab/svc/echo", echo)
+        await settle(virtual_clock)
+        reply = await bus.request("lab/svc/echo", b"hi", timeout=10)
+        return reply, virtual_clock.now()
+
+    reply, t = run(virtual_clock, make_bus, body)
+    assert reply == b"echo:hi"
+    assert t == pytest.approx(6.0)
+
+
+def test_request_times_out_in_lab_time(virtual_clock, make_bus):
+    async def body(bus):
+        async def slow(key, payload):
+            await virtual_clock.sleep(100)
+            return b"late"
+
+        bus.serve("lab/svc/slow", slow)
+        await settle(virtual_clock)
+        t0 = virtual_clock.now()
+        with pytest.raises(NoReplyError, match="within 3"):
+            await bus.request("lab/svc/slow", b"", timeout=3)
+        return virtual_clock.now() - t0
+
+    assert run(virtual_clock, make_bus, body) == pytest.approx(3.0)
+
+
+def test_request_without_replier_fails_clearly(virtual_clock, make_bus):
+    async def body(bus):
+        with pytest.raises(NoReplyError, match="lab/svc/none"):
+            await bus.request("lab/svc/none", b"", timeout=2)
+
+    run(virtual_clock, make_bus, body)
+
+
+def test_tokens_report_presence_and_loss(virtual_clock, make_bus):
+    async def body(bus):
+        early = bus.declare_token("lab/alive/r1")
+        seen = []
+        bus.watch_tokens("lab/alive/*", lambda k, alive: seen.append((k, alive)))
+        await settle(virtual_clock)
+        late = bus.declare_token("lab/alive/r2")
+        await settle(virtual_clock)
+        early.close()
+        await settle(virtual_clock)
+        late.close()
+        await settle(virtual_clock)
+        return seen
+
+    assert run(virtual_clock, make_bus, body) == [
+        ("lab/alive/r1", True),
+        ("lab/alive/r2", True),
+        ("lab/alive/r1", False),
+        ("lab/alive/r2", False),
+    ]
+
+
+def test_virtual_time_never_jumps_past_a_message_in_flight(virtual_clock, make_bus):
+    async def body(bus):
+        arrivals = []
+        bus.subscribe("lab/ping", lambda k, p: arrivals.append(virtual_clock.now()))
+        sleeper = asyncio.ensure_future(virtual_clock.sleep(3600))
+        for _ in range(20):
+            bus.publish("lab/ping", b"x")
+            await asyncio.sleep(0)
+        await sleeper
+        return arrivals
+
+    arrivals = run(virtual_clock, make_bus, body)
+    assert arrivals == [0.0] * 20

@@ -1,0 +1,103 @@
+"""The virtual clock jumps only when the lab is idle, in timer order."""
+
+import asyncio
+import time
+
+import pytest
+
+from twin.clock import LabClock
+from twin.errors import ClockError
+
+
+def test_sleepers_wake_in_deadline_order_at_exact_lab_times(virtual_clock):
+    async def main():
+        woke = []
+
+        async def sleeper(name, dt):
+            await virtual_clock.sleep(dt)
+            woke.append((name, virtual_clock.now()))
+
+        await asyncio.gather(sleeper("c", 30), sleeper("a", 10), sleeper("b", 20))
+        return woke
+
+    assert virtual_clock.run(main()) == [("a", 10.0), ("b", 20.0), ("c", 30.0)]
+
+
+def test_time_does_not_move_while_anything_is_runnable(virtual_clock):
+    async def main():
+        async def busy():
+            for _ in range(2000):
+                await asyncio.sleep(0)
+            return virtual_clock.now()
+
+        sleeper = asyncio.ensure_future(virtual_clock.sleep(5))
+        t_busy = await busy()
+        await sleeper
+        return t_busy, virtual_clock.now()
+
+    assert virtual_clock.run(main()) == (0.0, 5.0)
+
+
+def test_a_lab_year_passes_without_waiting(virtual_clock):
+    async def main():
+        for _ in range(365):
+            await virtual_clock.sleep(86400)
+        return virtual_clock.now()
+
+    wall0 = time.process_time()
+    assert virtual_clock.run(main()) == 365 * 86400
+    assert time.process_time() - wall0 < 5  # it jumped; it did not wait a year
+
+
+def test_timeouts_are_lab_time(virtual_clock):
+    async def main():
+        with pytest.raises(TimeoutError):
+            async with virtual_clock.timeout(7):
+                await virtual_clock.sleep(100)
+        return virtual_clock.now()
+
+    assert virtual_clock.run(main()) == 7.0
+
+
+def test_held_messages_stop_the_jump_until_released(virtual_clock):
+    async def main():
+        import threading
+
+        loop = asyncio.get_running_loop()
+        arrived_at = []
+
+        def deliver():
+            arrived_at.append(virtual_clock.now())
+            virtual_clock.release()
+
+        virtual_clock.hold()  # a message is in flight on another thread
+        threading.Timer(0.05, lambda: loop.call_soon_threadsafe(deliver)).start()
+        await virtual_clock.sleep(10)
+        return arrived_at
+
+    assert virtual_clock.run(main()) == [0.0]
+
+
+def test_scaled_clock_runs_lab_time_faster_than_wall():
+    clock = LabClock("scaled", speed=1000)
+
+    async def main():
+        w0, t0 = time.monotonic(), clock.now()
+        await clock.sleep(50)
+        return clock.now() - t0, time.monotonic() - w0
+
+    lab, wall = clock.run(main())
+    assert lab >= 50
+    assert wall < 1.0
+
+
+def test_unknown_mode_is_refused():
+    with pytest.raises(ValueError, match="virtual, scaled or wall"):
+        LabClock("sundial")
+
+
+def test_virtual_clock_refuses_a_bus_spread_over_processes(virtual_clock):
+    from twin.bus.zenoh_bus import ZenohBus, ZenohOptions
+
+    with pytest.raises(ClockError, match="--clock scaled"):
+        ZenohBus(virtual_clock, ZenohOptions(connect=["tcp/127.0.0.1:7447"]))

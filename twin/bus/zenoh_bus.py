@@ -1,0 +1,320 @@
+"""The Zenoh bus, the default. The only module that imports zenoh.
+
+Zenoh calls back on its own threads. Each callback only appends to one inbox
+and, if no drain is scheduled yet, schedules one with ``call_soon_threadsafe``:
+the loop then drains the whole batch at once, so the cost of crossing threads
+is paid per batch, not per message.
+
+On a virtual clock every message sent to a subscriber of this process is held
+on the clock until it is delivered, and a batch is delivered in publish order
+only when nothing more is in flight: time never jumps past a message, and runs
+are bit-for-bit repeatable.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import logging
+import struct
+from collections import deque
+from dataclasses import dataclass, field
+
+import zenoh
+
+from twin.bus.base import Closable, Handler, NoReplyError, Replier, TokenHandler, key_matches
+from twin.clock import LabClock
+from twin.errors import BusError, ClockError
+
+log = logging.getLogger(__name__)
+_SEQ = struct.Struct("<Q")
+_LAST = 1 << 63  # deliveries from elsewhere sort after local ones of the same batch
+
+
+@dataclass
+class ZenohOptions:
+    """Where the session listens and connects. Loopback only unless asked otherwise."""
+
+    mode: str = "peer"
+    listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:0"])
+    connect: list[str] = field(default_factory=list)
+    lease_ms: int = 1000
+    extra: dict[str, object] = field(default_factory=dict)  # other config paths, e.g. TLS
+
+    def config(self) -> zenoh.Config:
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", json.dumps(self.mode))
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
+        cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
+        cfg.insert_json5("transport/link/tx/lease", str(self.lease_ms))
+        cfg.insert_json5("transport/link/tx/keep_alive", "4")
+        for path, value in self.extra.items():
+            cfg.insert_json5(path, json.dumps(value))
+        return cfg
+
+
+class _Declared:
+    def __init__(self, bus: ZenohBus, keyexpr: str, zobj, registry: list | None) -> None:
+        self.keyexpr, self._bus, self._zobj, self._registry = keyexpr, bus, zobj, registry
+        self.closed = False
+        if registry is not None:
+            registry.append(self)
+            bus._routes.clear()
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        if self._registry is not None:
+            self._registry.remove(self)
+            self._bus._routes.clear()
+        if not self._bus._session.is_closed():
+            self._zobj.undeclare()
+
+
+class _Token:
+    def __init__(self, bus: ZenohBus, key: str) -> None:
+        self._bus, self.key, self.closed = bus, key, False
+        bus._hold_for_watchers(key, alive=True)
+        self._token = bus._session.liveliness().declare_token(key)
+        bus._local_tokens.append(key)
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        self._bus._local_tokens.remove(self.key)
+        self._bus._hold_for_watchers(self.key, alive=False)
+        if not self._bus._session.is_closed():
+            self._token.undeclare()
+
+
+class ZenohBus:
+    def __init__(self, clock: LabClock, options: ZenohOptions | None = None) -> None:
+        self.options = options or ZenohOptions()
+        if clock.is_virtual and self.options.connect:
+            raise ClockError(
+                "a virtual clock cannot see messages in flight between processes: "
+                f"this bus connects to {self.options.connect}. Use --clock scaled or wall "
+                "for a lab spread over processes, or drop the connect endpoints."
+            )
+        self._clock = clock
+        self._virtual = clock.is_virtual
+        self._session: zenoh.Session | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._inbox: deque = deque()
+        self._wake_pending = False
+        self._batch: list = []
+        self._seq = itertools.count(1)
+        self._ids = itertools.count()
+        self._subs: list[_Declared] = []
+        self._queryables: list[_Declared] = []
+        self._watchers: list[_Declared] = []
+        self._local_tokens: list[str] = []
+        self._token_seq: dict[tuple[str, bool], int] = {}
+        self._routes: dict[str, int] = {}
+        self._pending_requests: set[asyncio.Future] = set()
+
+    # -- life cycle -------------------------------------------------------
+    async def start(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        try:
+            self._session = zenoh.open(self.options.config())
+        except zenoh.ZError as exc:
+            raise BusError(
+                f"could not open a Zenoh session (listen={self.options.listen}, "
+                f"connect={self.options.connect}): {exc}. Check that the endpoints are "
+                "free and well formed, e.g. tcp/127.0.0.1:7447."
+            ) from exc
+
+    async def close(self) -> None:
+        if self._session is not None and not self._session.is_closed():
+            self._session.close()
+        for fut in self._pending_requests:
+            if not fut.done():
+                fut.set_exception(BusError("the bus closed before the reply came"))
+
+    @property
+    def session(self) -> zenoh.Session:
+        if self._session is None:
+            raise BusError("the bus is not started: call `await bus.start()` first")
+        return self._session
+
+    # -- thread hand-off --------------------------------------------------
+    def _post(self, item: tuple) -> None:
+        """Runs on Zenoh's threads: one append, at most one wake-up per batch."""
+        self._inbox.append(item)
+        if not self._wake_pending:
+            self._wake_pending = True
+            self._loop.call_soon_threadsafe(self._drain)
+
+    def _drain(self) -> None:
+        self._wake_pending = False
+        inbox, batch = self._inbox, self._batch
+        local = 0
+        while inbox:
+            item = inbox.popleft()
+            if item[0] != _LAST:
+                local += 1
+            batch.append(item)
+        if self._virtual:
+            self._clock.release(local)
+            if self._clock_in_flight():
+                return
+            batch.sort(key=lambda it: (it[0], it[1]))
+        self._batch = []
+        for _seq, _sid, entry, key, value in batch:
+            if not entry.closed:
+                try:
+                    entry.fn(key, value)
+                except Exception:
+                    log.exception("bus handler for %s failed on %s", entry.keyexpr, key)
+
+    def _clock_in_flight(self) -> int:
+        return getattr(self._clock._base, "in_flight", 0)
+
+    # -- publish / subscribe ----------------------------------------------
+    def _local_subscribers(self, key: str) -> int:
+        n = self._routes.get(key)
+        if n is None:
+            n = self._routes[key] = sum(1 for s in self._subs if key_matches(s.keyexpr, key))
+        return n
+
+    def publish(self, key: str, payload: bytes) -> None:
+        seq = next(self._seq)
+        if self._virtual:
+            self._clock.hold(self._local_subscribers(key))
+        self.session.put(
+            key,
+            payload,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            attachment=_SEQ.pack(seq),
+        )
+
+    def subscribe(self, keyexpr: str, handler: Handler) -> Closable:
+        entry_holder: list[_Declared] = []
+        sid = next(self._ids)
+        seq_of = self._seq_of
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            self._post((seq_of(sample), sid, entry_holder[0], str(sample.key_expr), sample.payload.to_bytes()))
+
+        sub = self.session.declare_subscriber(keyexpr, on_sample)
+        entry = _Declared(self, keyexpr, sub, self._subs)
+        entry.fn = handler
+        entry_holder.append(entry)
+        return entry
+
+    @staticmethod
+    def _seq_of(sample: zenoh.Sample | zenoh.Query) -> int:
+        att = sample.attachment
+        return _SEQ.unpack(att.to_bytes())[0] if att is not None else _LAST
+
+    # -- request / reply --------------------------------------------------
+    def serve(self, keyexpr: str, replier: Replier) -> Closable:
+        holder: list[_Declared] = []
+        sid = next(self._ids)
+
+        def on_query(query: zenoh.Query) -> None:
+            self._post((self._seq_of(query), sid, holder[0], str(query.key_expr), query))
+
+        async def answer(key: str, query: zenoh.Query) -> None:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                reply = await replier(key, payload)
+            except Exception as exc:  # the requester gets an error, never silence
+                log.exception("replier for %s failed", keyexpr)
+                reply, ok = str(exc).encode(), False
+            else:
+                ok = True
+            if self._virtual:
+                self._clock.hold(1)
+            with query:
+                if ok:
+                    query.reply(query.key_expr, reply)
+                else:
+                    query.reply_err(reply)
+
+        def dispatch(key: str, query: zenoh.Query) -> None:
+            asyncio.ensure_future(answer(key, query))
+
+        q = self.session.declare_queryable(keyexpr, on_query)
+        entry = _Declared(self, keyexpr, q, self._queryables)
+        entry.fn = dispatch
+        holder.append(entry)
+        return entry
+
+    async def request(self, key: str, payload: bytes, timeout: float) -> bytes:
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future = loop.create_future()
+        self._pending_requests.add(fut)
+        local = sum(1 for q in self._queryables if key_matches(q.keyexpr, key))
+        if self._virtual:
+            if not local:
+                raise NoReplyError(f"no replier serves {key!r}: is the device or service running?")
+            self._clock.hold(local)
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if reply.ok is not None:
+                value = ("ok", reply.ok.payload.to_bytes())
+            else:
+                value = ("err", reply.err.payload.to_bytes())
+            loop.call_soon_threadsafe(settle, value, True)
+
+        def on_done() -> None:
+            loop.call_soon_threadsafe(settle, ("none", b""), False)
+
+        def settle(value: tuple[str, bytes], counted: bool) -> None:
+            if counted and self._virtual:
+                self._clock.release(1)
+            if not fut.done():
+                fut.set_result(value)
+
+        self.session.get(
+            key,
+            zenoh.handlers.Callback(on_reply, on_done),
+            payload=payload,
+            attachment=_SEQ.pack(next(self._seq)),
+            timeout=max(1.0, timeout / max(self._clock.speed, 1e-9)) if not self._virtual else 60.0,
+        )
+        try:
+            async with asyncio.timeout(timeout):
+                status, body = await fut
+        except TimeoutError:
+            raise NoReplyError(f"no reply to {key!r} within {timeout} lab-seconds") from None
+        finally:
+            self._pending_requests.discard(fut)
+        if status == "ok":
+            return body
+        if status == "err":
+            raise BusError(f"the replier for {key!r} failed: {body.decode(errors='replace')}")
+        raise NoReplyError(f"no replier answered {key!r}: is the device or service running?")
+
+    # -- presence ---------------------------------------------------------
+    def _hold_for_watchers(self, key: str, alive: bool) -> None:
+        self._token_seq[(key, alive)] = next(self._seq)
+        if self._virtual:
+            self._clock.hold(sum(1 for w in self._watchers if key_matches(w.keyexpr, key)))
+
+    def declare_token(self, key: str) -> Closable:
+        return _Token(self, key)
+
+    def watch_tokens(self, keyexpr: str, handler: TokenHandler) -> Closable:
+        holder: list[_Declared] = []
+        sid = next(self._ids)
+        token_seq = self._token_seq
+
+        def on_change(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            alive = sample.kind == zenoh.SampleKind.PUT
+            self._post((token_seq.get((key, alive), _LAST), sid, holder[0], key, alive))
+
+        if self._virtual:
+            self._clock.hold(sum(1 for k in self._local_tokens if key_matches(keyexpr, k)))
+        w = self.session.liveliness().declare_subscriber(keyexpr, on_change, history=True)
+        entry = _Declared(self, keyexpr, w, self._watchers)
+        entry.fn = handler
+        holder.append(entry)
+        return entry

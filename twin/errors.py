@@ -1,0 +1,38 @@
+"""One error root, so a caller can catch everything labtwin raises on purpose.
+
+Every message says what went wrong and what to do next.
+"""
+
+
+class TwinError(Exception):
+    """Root of every error labtwin raises on purpose."""
+
+
+class ScenarioError(TwinError):
+    """A scenario file is malformed; ``problems`` lists each one with its field path."""
+
+    def __init__(self, source: str, problems: list[str]) -> None:
+        self.source = source
+        self.problems = problems
+        lines = "\n".join(f"  - {p}" for p in problems)
+        super().__init__(f"{source}: {len(problems)} problem(s)\n{lines}")
+
+
+class DriverError(TwinError):
+    """A device driver could not be found, loaded, or misbehaved."""
+
+
+class PluginError(TwinError):
+    """A planner or scheduler plugin could not be found or loaded."""
+
+
+class BusError(TwinError):
+    """The message bus could not be opened, or a request failed."""
+
+
+class ClockError(TwinError):
+    """The requested clock mode cannot work with this set-up."""
+
+
+class AccountingError(TwinError):
+    """An experiment vanished: it is neither done, abandoned with a reason, nor pending."""
