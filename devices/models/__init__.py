@@ -1,0 +1,1 @@
+"""Physical models behind the simulated devices; sources in docs/models.md."""

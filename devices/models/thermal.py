@@ -1,0 +1,52 @@
+"""The reactor's heater: first-order thermal dynamics under a PID loop with anti-windup.
+
+dT/dt = (u - (T - T_amb)) / tau, where u in [0, U_MAX] is the heater power in
+kelvin of steady-state rise. A mild exotherm above 430 K makes the plant
+nonlinear. The PID integrates only when its output is not saturated in the
+direction of the error (conditional integration), so heat-up does not wind up.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+T_AMBIENT_K = 298.15
+TAU_S = 300.0
+U_MAX_K = 400.0
+EXOTHERM_K = 6.0
+
+
+@dataclass
+class Pid:
+    kp: float = 6.0
+    ki: float = 6.0 / 150.0
+    kd: float = 0.0
+    integral: float = 0.0
+    last_error: float | None = None
+
+    def step(self, error: float, dt: float) -> float:
+        deriv = 0.0 if self.last_error is None else (error - self.last_error) / dt
+        self.last_error = error
+        u = self.kp * error + self.ki * self.integral + self.kd * deriv
+        saturated = (u >= U_MAX_K and error > 0) or (u <= 0 and error < 0)
+        if not saturated:
+            self.integral += error * dt
+        return min(max(u, 0.0), U_MAX_K)
+
+
+def simulate(setpoint_k: float, hold_s: float, dt_s: float = 5.0, t0_k: float = T_AMBIENT_K,
+             pid: Pid | None = None) -> np.ndarray:
+    """The temperature trace (one value per dt) of a heat-up and hold at ``setpoint_k``."""
+    pid = pid or Pid()
+    n = max(1, int(math.ceil(hold_s / dt_s)))
+    trace = np.empty(n)
+    t = t0_k
+    for i in range(n):
+        u = pid.step(setpoint_k - t, dt_s)
+        exo = EXOTHERM_K / (1 + math.exp(-(t - 430.0) / 10.0))
+        t += dt_s * (u + exo - (t - T_AMBIENT_K)) / TAU_S
+        trace[i] = t
+    return trace

@@ -1,0 +1,46 @@
+"""The reactor: heats a sample to a set-point under its own PID loop and holds it."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from devices.models import catalyst, thermal
+from devices.synthesiser import need
+from twin.driver import DriverSetup, StepContext, StepResult
+
+
+class Reactor:
+    capabilities = frozenset({"react"})
+
+    def __init__(self, setup: DriverSetup) -> None:
+        o = setup.options
+        self.pid = dict(kp=float(o.get("kp", 6.0)), ki=float(o.get("ki", 0.04)), kd=float(o.get("kd", 0.0)))
+        self.telemetry_s = float(o.get("telemetry_s", 600.0))
+        self.dt_s = float(o.get("dt_s", 5.0))
+        self.temperature_k = thermal.T_AMBIENT_K
+
+    async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
+        setpoint, hold = need(params, "temperature_k", "time_s")
+        trace = thermal.simulate(setpoint, hold, self.dt_s, pid=thermal.Pid(**self.pid))
+        total = ctx.draw_duration(params)
+        every = max(1, int(self.telemetry_s / self.dt_s))
+        elapsed = 0.0
+        for i in range(every - 1, len(trace), every):
+            t_i = (i + 1) * self.dt_s
+            await ctx.clock.sleep(t_i - elapsed)
+            elapsed = t_i
+            self.temperature_k = float(trace[i])
+            ctx.telemetry({"temperature_k": round(self.temperature_k, 3), "setpoint_k": setpoint})
+        await ctx.clock.sleep(max(0.0, total - elapsed))
+        result = catalyst.run(trace, self.dt_s)
+        overshoot = float(np.max(trace) - setpoint)
+        return StepResult(
+            {"max_temperature_k": round(float(np.max(trace)), 3), "overshoot_k": round(max(overshoot, 0.0), 3)},
+            {**(sample or {}), "kind": "reaction", **result},
+        )
+
+    async def safe_state(self) -> None:
+        """Heater off: the next run starts from ambient."""
+        self.temperature_k = thermal.T_AMBIENT_K

@@ -1,0 +1,53 @@
+"""The spectrometer: renders a sample's spectrum, with noise, and extracts peaks by fitting.
+
+A sample that waited degrades: its signal falls as exp(-age / stability_s)
+and its band broadens, so a late measurement reads worse.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from devices.models import spectra
+from twin.driver import DriverSetup, StepContext, StepResult
+from twin.errors import DriverError
+
+FEED_NM, PRODUCT_NM, BYPRODUCT_NM, BAND_NM = 450.0, 540.0, 640.0, 40.0
+
+
+class Spectrometer:
+    capabilities = frozenset({"measure"})
+
+    def __init__(self, setup: DriverSetup) -> None:
+        self.noise = setup.chemistry.noise
+        self.stability_s = setup.chemistry.stability_s
+
+    async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
+        if not sample:
+            raise DriverError("measure needs a sample: the workflow must make one first")
+        await ctx.clock.sleep(ctx.draw_duration(params))
+        age = ctx.clock.now() - float(sample.get("t_made", ctx.clock.now()))
+        keep = math.exp(-age / self.stability_s) if self.stability_s > 0 else 1.0
+        if sample.get("kind") == "qd":
+            bands = [(sample["peak_nm"], sample["fwhm_nm"] * (1 + 0.3 * (1 - keep)), sample["amplitude"] * keep)]
+            y = spectra.render(bands, self.noise, ctx.rng)
+            fit = spectra.fit_peak(y)
+            outputs = {"peak_nm": fit["center"], "fwhm_nm": fit["fwhm"], "intensity": fit["height"]}
+        elif sample.get("kind") == "reaction":
+            conv, sel = sample["conversion"], sample["selectivity"]
+            bands = [(FEED_NM, BAND_NM, 1 - conv), (PRODUCT_NM, BAND_NM, conv * sel * keep),
+                     (BYPRODUCT_NM, BAND_NM, conv * (1 - sel))]
+            y = spectra.render(bands, self.noise, ctx.rng)
+            product = spectra.fit_peak(y, PRODUCT_NM - 30, PRODUCT_NM + 30)["height"]
+            byproduct = max(spectra.fit_peak(y, BYPRODUCT_NM - 30, BYPRODUCT_NM + 30)["height"], 0.0)
+            outputs = {"yield": 100 * product, "selectivity": 100 * product / max(product + byproduct, 1e-9)}
+        else:
+            raise DriverError(f"cannot measure a sample of kind {sample.get('kind')!r}")
+        outputs = {k: round(v, 4) for k, v in outputs.items()}
+        outputs["spectrum"] = {"start_nm": float(spectra.GRID_NM[0]), "step_nm": 2.0, "y": [round(v, 4) for v in y]}
+        outputs["age_s"] = round(age, 1)
+        return StepResult(outputs, sample)
+
+    async def safe_state(self) -> None:
+        """Shutter closed; nothing to undo."""

@@ -1,0 +1,137 @@
+"""``twin``: a thin command line over the Python API in ``twin.lab``."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from twin import lab, plugins
+from twin.errors import TwinError
+from twin.journal import read_run
+from twin.report import render_summary
+from twin.scenario import json_schema, load
+from twin.summary import Summary
+
+app = typer.Typer(help="labtwin: a digital twin of a self-driving lab.", no_args_is_help=True,
+                  pretty_exceptions_enable=False, add_completion=False)
+device_app = typer.Typer(help="Run one device actor in this process.", no_args_is_help=True)
+app.add_typer(device_app, name="device")
+console = Console()
+err = Console(stderr=True)
+
+
+def _fail(exc: TwinError) -> None:
+    err.print(f"[bold red]error:[/] {exc}", highlight=False)
+    raise typer.Exit(2)
+
+
+@app.command()
+def run(
+    scenario: Annotated[Path, typer.Argument(help="a scenario file, e.g. scenarios/quantum_dots.yaml")],
+    seed: Annotated[Optional[int], typer.Option(help="override campaign.seed")] = None,
+    clock: Annotated[Optional[str], typer.Option(help="virtual | scaled | wall")] = None,
+    speed: Annotated[Optional[float], typer.Option(help="lab seconds per wall second (scaled clock)")] = None,
+    bus: Annotated[Optional[str], typer.Option(help="zenoh | memory")] = None,
+    budget: Annotated[Optional[int], typer.Option(help="override campaign.budget")] = None,
+    journal: Annotated[Optional[Path], typer.Option(help="where to write the SQLite journal")] = None,
+    external: Annotated[Optional[list[str]], typer.Option(help="a device served by another process")] = None,
+    quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
+    json_out: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
+) -> None:
+    """Run a campaign and print its summary."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    overrides = {"campaign.budget": budget} if budget is not None else {}
+    try:
+        s = lab.prepare(scenario, seed=seed, clock=clock, speed=speed, bus=bus, overrides=overrides)
+        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                            TextColumn("lab {task.fields[lab_h]:.1f} h"), TimeElapsedColumn(),
+                            console=err, disable=quiet or json_out, transient=False)
+        with progress:
+            bar = progress.add_task(f"{s.name} ({s.clock.mode} clock, {s.bus.kind} bus)",
+                                    total=s.campaign.budget, lab_h=0.0)
+
+            def on_progress(orch) -> None:
+                finished = sum(1 for e in orch.experiments if e.status in ("done", "abandoned"))
+                progress.update(bar, completed=finished, lab_h=orch.elapsed_s / 3600)
+
+            summary = lab.run(s, journal=journal, external_devices=set(external or ()), on_progress=on_progress)
+    except TwinError as exc:
+        _fail(exc)
+    if json_out:
+        print(json.dumps(summary.to_dict(), indent=2))
+    else:
+        render_summary(summary, console)
+
+
+@app.command()
+def validate(files: Annotated[list[Path], typer.Argument(help="scenario files")]) -> None:
+    """Check scenario files; every problem names its file, field and value."""
+    bad = 0
+    for f in files:
+        try:
+            s = load(f)
+            for dtype in s.devices:
+                lab.load_driver(s, dtype, dtype)
+            lab.make_planner(s)
+            lab.make_scheduler(s)
+        except TwinError as exc:
+            bad += 1
+            err.print(f"[red]✗[/] {exc}", highlight=False)
+        else:
+            console.print(f"[green]✓[/] {f}")
+    if bad:
+        raise typer.Exit(2)
+
+
+@app.command()
+def schema() -> None:
+    """Print the JSON Schema of scenario files (for editors)."""
+    print(json.dumps(json_schema(), indent=2))
+
+
+@app.command()
+def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<run>.db")]) -> None:
+    """Print a finished run's summary again from its journal."""
+    if not journal.exists():
+        _fail(TwinError(f"{journal}: no such journal; runs are written to runs/ by default"))
+    data = read_run(journal)
+    if "summary" not in data:
+        _fail(TwinError(f"{journal}: the run has no summary (it was killed before it could write one)"))
+    render_summary(Summary.from_dict(data["summary"]), console)
+
+
+@app.command()
+def devices() -> None:
+    """List the installed device drivers."""
+    for name, ep in sorted(plugins.installed("devices").items()):
+        try:
+            caps = ", ".join(sorted(ep.load().capabilities))
+        except Exception as exc:  # a broken plugin is listed, not fatal
+            caps = f"failed to load: {exc}"
+        dist = ep.dist.name if ep.dist else "?"
+        console.print(f"{name:14} {ep.value:40} {dist:10} {caps}")
+
+
+@device_app.command("serve")
+def device_serve(
+    scenario: Annotated[Path, typer.Argument(help="the scenario the device belongs to")],
+    name: Annotated[str, typer.Option("--id", help="the device instance, e.g. spectrometer-2")],
+    connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
+    clock: Annotated[str, typer.Option(help="scaled | wall (the lab's clock)")] = "wall",
+    speed: Annotated[float, typer.Option(help="lab seconds per wall second")] = 1.0,
+) -> None:
+    """Serve one device actor of a scenario in this process until SIGINT/SIGTERM."""
+    from twin.serve import serve_device
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        serve_device(scenario, name, connect, clock, speed)
+    except TwinError as exc:
+        _fail(exc)
+

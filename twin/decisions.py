@@ -1,0 +1,82 @@
+"""The two decisions that close the loop, as small protocols.
+
+- a ``Planner`` says which experiments to try next;
+- a ``Scheduler`` says which ready step runs on which free device, or to wait.
+
+Both see read-only views built by the orchestrator; they never touch the bus.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+
+@dataclass(frozen=True)
+class RouteStep:
+    step: str
+    device: str  # a device type
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Proposal:
+    params: dict[str, Any]
+    route: tuple[RouteStep, ...] | None = None  # None: the scenario's workflow
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """One finished experiment as a planner sees it."""
+
+    params: dict[str, Any]
+    outputs: dict[str, Any] | None  # None when abandoned
+    score: float | None  # distance to the nearest unmet target; 0 = met
+    reason: str = ""
+
+
+class Planner(Protocol):
+    def propose(self, n: int, history: list[Outcome], pending: list[dict[str, Any]]) -> list[Proposal]: ...
+
+
+@dataclass(frozen=True)
+class ReadyStep:
+    task: str
+    experiment: int
+    step: str
+    device_type: str
+    ready_since: float
+    sample_made: float | None  # lab time the experiment's sample was made, if any
+    expected_s: float
+    work_remaining_s: float
+    avoid: frozenset[str] = frozenset()  # devices that already failed this step
+
+
+@dataclass(frozen=True)
+class FreeDevice:
+    name: str
+    device_type: str
+
+
+@dataclass(frozen=True)
+class LabView:
+    now: float
+    ready: tuple[ReadyStep, ...]
+    free: tuple[FreeDevice, ...]
+
+
+@dataclass(frozen=True)
+class Assignment:
+    task: str
+    device: str
+
+
+class Scheduler(Protocol):
+    def decide(self, view: LabView) -> list[Assignment]: ...
+
+
+def capable(step: ReadyStep, free: tuple[FreeDevice, ...]) -> list[FreeDevice]:
+    """Free devices of the step's type, those that have not failed it first."""
+    fits = [d for d in free if d.device_type == step.device_type]
+    fresh = [d for d in fits if d.name not in step.avoid]
+    return fresh or fits

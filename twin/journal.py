@@ -1,0 +1,94 @@
+"""The run's journal: SQLite in WAL mode, one file per run.
+
+``events`` is append-only: every message received and every state change, in
+lab time. ``experiments`` holds one row per proposed experiment, rewritten as
+it moves. ``run`` holds the scenario, the seed and the final summary. Writes
+are buffered and committed in batches; ``close`` flushes everything.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from pathlib import Path
+from typing import Any
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS run (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS events (
+    seq INTEGER PRIMARY KEY, t_lab REAL NOT NULL, kind TEXT NOT NULL,
+    experiment INTEGER, task TEXT, attempt INTEGER, device TEXT, detail TEXT);
+CREATE TABLE IF NOT EXISTS experiments (
+    id INTEGER PRIMARY KEY, params TEXT NOT NULL, route TEXT NOT NULL, status TEXT NOT NULL,
+    reason TEXT NOT NULL, outputs TEXT, scores TEXT, attempts INTEGER NOT NULL,
+    retries INTEGER NOT NULL, degraded INTEGER NOT NULL, t_proposed REAL NOT NULL, t_done REAL);
+"""
+FLUSH_EVERY = 2000
+
+
+class Journal:
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.exists():
+            self.path.unlink()
+        self._db = sqlite3.connect(self.path)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=NORMAL")
+        self._db.executescript(SCHEMA)
+        self._events: list[tuple] = []
+        self._experiments: dict[int, tuple] = {}
+        self._seq = 0
+
+    def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
+              attempt: int | None = None, device: str | None = None, detail: Any = None) -> None:
+        self._seq += 1
+        text = detail if isinstance(detail, str) or detail is None else json.dumps(detail, sort_keys=True)
+        self._events.append((self._seq, t_lab, kind, experiment, task, attempt, device, text))
+        if len(self._events) >= FLUSH_EVERY:
+            self.flush()
+
+    def experiment(self, e: Any) -> None:
+        self._experiments[e.id] = (
+            e.id, json.dumps(e.params, sort_keys=True),
+            json.dumps([[s.step, s.device, s.params] for s in e.route]),
+            e.status, e.reason, json.dumps(e.outputs, sort_keys=True) if e.outputs else None,
+            json.dumps(e.scores, sort_keys=True) if e.scores else None,
+            e.attempts, e.retries, int(e.degraded), e.t_proposed, e.t_done,
+        )
+
+    def set(self, key: str, value: Any) -> None:
+        self._db.execute("INSERT OR REPLACE INTO run VALUES (?, ?)", (key, json.dumps(value, default=str)))
+
+    def flush(self) -> None:
+        if self._events:
+            self._db.executemany("INSERT INTO events VALUES (?,?,?,?,?,?,?,?)", self._events)
+            self._events.clear()
+        if self._experiments:
+            self._db.executemany(
+                "INSERT OR REPLACE INTO experiments VALUES (?,?,?,?,?,?,?,?,?,?,?,?)", self._experiments.values()
+            )
+            self._experiments.clear()
+        self._db.commit()
+
+    def close(self) -> None:
+        self.flush()
+        self._db.close()
+
+
+def read_run(path: str | Path) -> dict[str, Any]:
+    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+        return {k: json.loads(v) for k, v in db.execute("SELECT key, value FROM run")}
+
+
+def read_experiments(path: str | Path) -> list[dict[str, Any]]:
+    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+        db.row_factory = sqlite3.Row
+        return [dict(r) for r in db.execute("SELECT * FROM experiments ORDER BY id")]
+
+
+def read_events(path: str | Path, kind_like: str = "%") -> list[dict[str, Any]]:
+    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+        db.row_factory = sqlite3.Row
+        rows = db.execute("SELECT * FROM events WHERE kind LIKE ? ORDER BY seq", (kind_like,))
+        return [dict(r) for r in rows]

@@ -1,0 +1,29 @@
+"""Zenoh key expressions: one lab per prefix (DESIGN.md, "Messages")."""
+
+PREFIX = "labtwin"
+
+
+def cmd(lab: str, device: str) -> str:
+    return f"{PREFIX}/{lab}/dev/{device}/cmd"
+
+
+def evt(lab: str, device: str = "*") -> str:
+    return f"{PREFIX}/{lab}/dev/{device}/evt"
+
+
+def telemetry(lab: str, device: str = "*") -> str:
+    return f"{PREFIX}/{lab}/dev/{device}/telemetry"
+
+
+def alive(lab: str, device: str = "*") -> str:
+    return f"{PREFIX}/{lab}/alive/{device}"
+
+
+def campaign(lab: str, campaign_id: str, topic: str = "**") -> str:
+    return f"{PREFIX}/{lab}/campaign/{campaign_id}/{topic}"
+
+
+def device_of(key: str) -> str:
+    """The device name in a ``.../dev/<device>/...`` or ``.../alive/<device>`` key."""
+    parts = key.split("/")
+    return parts[3] if parts[2] in ("dev", "alive") else ""

@@ -1,0 +1,229 @@
+"""Scenario files: YAML validated by pydantic, one error per problem.
+
+A scenario names the lab (device types, instances, drivers, durations,
+faults), the chemistry (model, parameter box, targets), the workflow, the
+campaign (budget, planner, scheduler, seed), the orchestrator's timeouts and
+retry policy, the bus and the clock. ``twin schema`` exports the JSON Schema.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from twin.errors import ScenarioError
+
+
+class _Spec(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class Duration(_Spec):
+    """Lab seconds of one step: lognormal around ``mean_s`` plus a parameter's value."""
+
+    mean_s: float = Field(ge=0, description="mean duration of the step itself")
+    cv: float = Field(default=0.1, ge=0, le=2, description="coefficient of variation")
+    plus_param: str | None = Field(
+        default=None, description="add this experiment parameter (seconds) to the duration"
+    )
+
+
+class Faults(_Spec):
+    fail_p: float = Field(default=0.0, ge=0, le=1, description="probability a step fails")
+    hang_p: float = Field(default=0.0, ge=0, le=1, description="probability a step never ends")
+    mtbc_h: float = Field(default=0.0, ge=0, description="mean lab-hours between crashes; 0 = never")
+    restart_s: float = Field(default=1800, ge=0, description="lab seconds a crashed device stays down")
+
+
+class DeviceType(_Spec):
+    driver: str = Field(description="an installed driver name (`twin devices`) or 'package.module:Class'")
+    instances: int = Field(default=1, ge=1, le=64)
+    steps: list[str] = Field(min_length=1, description="the steps this device type runs")
+    duration: Duration
+    setup_s: float = Field(default=0, ge=0)
+    clean_s: float = Field(default=0, ge=0)
+    faults: Faults = Faults()
+    options: dict[str, Any] = Field(default_factory=dict, description="passed to the driver as is")
+
+
+class Parameter(_Spec):
+    low: float
+    high: float
+    unit: str = ""
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Parameter:
+        if not self.low < self.high:
+            raise ValueError(f"low ({self.low}) must be below high ({self.high})")
+        return self
+
+
+class Condition(_Spec):
+    value: float | None = None
+    tol: float | None = Field(default=None, gt=0)
+    min: float | None = None
+    max: float | None = None
+
+    @model_validator(mode="after")
+    def _complete(self) -> Condition:
+        if (self.value is None) != (self.tol is None):
+            raise ValueError("give value and tol together")
+        if self.value is None and self.min is None and self.max is None:
+            raise ValueError("give value+tol, min, or max")
+        return self
+
+
+class Target(_Spec):
+    name: str
+    outputs: dict[str, Condition] = Field(min_length=1)
+
+
+class Chemistry(_Spec):
+    model: str = Field(description="the physical model the simulated devices share")
+    parameters: dict[str, Parameter] = Field(default_factory=dict)
+    targets: list[Target] = Field(default_factory=list)
+    stability_s: float = Field(
+        default=0, ge=0, description="e-folding time of a waiting sample's signal; 0 = stable"
+    )
+    noise: float = Field(default=0.01, ge=0, description="relative measurement noise")
+    options: dict[str, Any] = Field(default_factory=dict)
+
+
+class WorkflowStep(_Spec):
+    step: str
+    device: str = Field(description="a device type of the lab")
+
+
+class Campaign(_Spec):
+    budget: int = Field(default=30, ge=1, description="experiments to propose at most")
+    planner: str = "random"
+    scheduler: str = "fifo"
+    seed: int = 0
+    max_in_flight: int = Field(default=4, ge=1, description="experiments in the lab at once")
+    stop_on_target: bool = True
+    max_lab_hours: float = Field(default=10_000, gt=0)
+    planner_options: dict[str, Any] = Field(default_factory=dict)
+
+
+class Retry(_Spec):
+    max_attempts: int = Field(default=3, ge=1)
+    max_delay_s: float = Field(default=24 * 3600, gt=0, description="stop retrying a step after this")
+    backoff_s: float = Field(default=60, ge=0)
+    backoff_max_s: float = Field(default=3600, ge=0)
+    jitter: float = Field(default=0.5, ge=0, le=1)
+
+
+class Orchestration(_Spec):
+    timeout_factor: float = Field(default=2.0, ge=1)
+    timeout_slack_s: float = Field(default=300, ge=0)
+    retry: Retry = Retry()
+    quarantine_after: int = Field(default=3, ge=1, description="consecutive failures")
+    probe_after_s: float = Field(default=3600, ge=0)
+    startup_s: float = Field(default=60, ge=0, description="lab seconds to wait for devices")
+
+
+class ClockSpec(_Spec):
+    mode: Literal["virtual", "scaled", "wall"] = "virtual"
+    speed: float = Field(default=3600, gt=0, description="lab seconds per wall second (scaled)")
+
+
+class BusSpec(_Spec):
+    kind: Literal["zenoh", "memory"] = "zenoh"
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"])
+    connect: list[str] = Field(default_factory=list)
+    lease_ms: int = Field(default=1000, ge=100)
+    zenoh: dict[str, Any] = Field(default_factory=dict, description="extra Zenoh config paths (TLS...)")
+
+
+class JobShop(_Spec):
+    file: str = Field(description="a job-shop instance in the standard text format, relative to the scenario")
+
+
+class Scenario(_Spec):
+    name: str
+    description: str = ""
+    lab: str = Field(default="lab", pattern=r"^[A-Za-z0-9_-]+$", description="bus prefix")
+    devices: dict[str, DeviceType] = Field(default_factory=dict)
+    chemistry: Chemistry = Chemistry(model="none")
+    workflow: list[WorkflowStep] = Field(default_factory=list)
+    campaign: Campaign = Campaign()
+    orchestrator: Orchestration = Orchestration()
+    clock: ClockSpec = ClockSpec()
+    bus: BusSpec = BusSpec()
+    jobshop: JobShop | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> Scenario:
+        problems = []
+        for i, ws in enumerate(self.workflow):
+            dev = self.devices.get(ws.device)
+            if dev is None:
+                problems.append(f"workflow.{i}.device: {ws.device!r} is not a device type of this lab ({', '.join(self.devices)})")
+            elif ws.step not in dev.steps:
+                problems.append(f"workflow.{i}.step: device type {ws.device!r} does not run {ws.step!r} (it runs {dev.steps})")
+        if not self.workflow and self.jobshop is None:
+            problems.append("workflow: empty; give the steps of an experiment, or a jobshop file")
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
+
+    def instance_names(self, device_type: str) -> list[str]:
+        n = self.devices[device_type].instances
+        return [f"{device_type}-{i + 1}" for i in range(n)] if n > 1 else [device_type]
+
+
+def load(path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
+    """Read and validate a scenario file; ``ScenarioError`` lists every problem."""
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ScenarioError(str(path), ["file not found: check the path (scenarios live in scenarios/)"]) from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        raise ScenarioError(str(path), [f"{where}not valid YAML: {getattr(exc, 'problem', exc)}"]) from None
+    if not isinstance(raw, dict):
+        raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"])
+    for dotted, value in (overrides or {}).items():
+        _set_dotted(raw, dotted, value)
+    scenario = parse(raw, str(path))
+    if scenario.jobshop is not None:
+        from twin.jobshop import expand
+
+        scenario = expand(scenario, path.parent)
+    return scenario
+
+
+def parse(raw: dict[str, Any], source: str = "<scenario>") -> Scenario:
+    try:
+        return Scenario.model_validate(raw)
+    except ValidationError as exc:
+        raise ScenarioError(source, [_describe(e, raw) for e in exc.errors()]) from None
+
+
+def _describe(err: dict[str, Any], raw: dict[str, Any]) -> str:
+    loc = ".".join(str(p) for p in err["loc"])
+    if err["type"] == "extra_forbidden":
+        return f"{loc}: unknown field (check the spelling; `twin schema` lists the fields)"
+    if err["type"] == "missing":
+        return f"{loc}: required field is missing"
+    value = err.get("input")
+    shown = "" if isinstance(value, dict) else f" (got {value!r})"
+    msg = err["msg"].removeprefix("Value error, ")
+    return f"{loc or '(top level)'}: {msg}{shown}"
+
+
+def _set_dotted(raw: dict[str, Any], dotted: str, value: Any) -> None:
+    node = raw
+    *parents, leaf = dotted.split(".")
+    for p in parents:
+        node = node.setdefault(p, {})
+    node[leaf] = value
+
+
+def json_schema() -> dict[str, Any]:
+    return Scenario.model_json_schema()

@@ -1,0 +1,75 @@
+"""The end-of-run summary: the same table ``twin run`` prints and ``twin report`` reprints."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+
+@dataclass
+class Summary:
+    scenario: str
+    seed: int
+    journal: str
+    lab_hours: float
+    proposed: int
+    done: int
+    abandoned: int
+    pending: int
+    attempts: int
+    failed_attempts: int
+    retried: int
+    timed_out: int
+    devices_lost: int
+    quarantines: int
+    invalid_messages: int
+    late_results: int
+    degraded_samples: int
+    abandoned_reasons: dict[str, int] = field(default_factory=dict)
+    utilisation: dict[str, float] = field(default_factory=dict)
+    best: dict[str, dict[str, Any]] = field(default_factory=dict)
+    targets_met_h: dict[str, float] = field(default_factory=dict)
+    stopped: str = ""
+    wall_s: float = 0.0
+    events: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Summary:
+        return cls(**data)
+
+
+def from_orchestrator(orch: Any, journal: str, wall_s: float, events: int) -> Summary:
+    exps = orch.experiments
+    status = Counter(e.status for e in exps)
+    elapsed = max(orch.elapsed_s, 1e-9)
+    reasons = Counter(_reason_kind(e.reason) for e in exps if e.status == "abandoned")
+    best = {}
+    for name, (score, exp_id) in orch.best.items():
+        outputs = {k: v for k, v in exps[exp_id].outputs.items() if isinstance(v, (int, float))}
+        best[name] = {"experiment": exp_id, "score": round(score, 4), "outputs": outputs}
+    c = orch.counts
+    return Summary(
+        scenario=orch.s.name, seed=orch.s.campaign.seed, journal=journal,
+        lab_hours=orch.elapsed_s / 3600, proposed=len(exps), done=status["done"],
+        abandoned=status["abandoned"], pending=status["pending"], attempts=c["attempts"],
+        failed_attempts=c["failed"], retried=c["retried"], timed_out=c["timed_out"],
+        devices_lost=c["device_lost"], quarantines=c["quarantined"], invalid_messages=c["invalid"],
+        late_results=c["late"], degraded_samples=c["degraded"], abandoned_reasons=dict(reasons),
+        utilisation={d.name: round(d.busy_s / elapsed, 4) for d in orch.devices.values()},
+        best=best, targets_met_h={k: v / 3600 for k, v in orch.met_at.items()},
+        stopped=orch.stopping, wall_s=wall_s, events=events,
+    )
+
+
+def _reason_kind(reason: str) -> str:
+    """'step 'measure' failed 3 time(s); last: timed_out on spec-1: ...' -> 'measure: timed_out'."""
+    try:
+        step = reason.split("'")[1]
+        code = reason.split("last: ")[1].split(" ")[0]
+        return f"{step}: {code}"
+    except IndexError:
+        return reason
