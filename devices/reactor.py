@@ -38,7 +38,7 @@ class Reactor:
         overshoot = float(np.max(trace) - setpoint)
         return StepResult(
             {"max_temperature_k": round(float(np.max(trace)), 3), "overshoot_k": round(max(overshoot, 0.0), 3)},
-            {**(sample or {}), "kind": "reaction", **result},
+            {**(sample or {}), "kind": "reaction", **result, "t_made": ctx.clock.now()},
         )
 
     async def safe_state(self) -> None:

@@ -23,7 +23,7 @@ app = typer.Typer(help="labtwin: a digital twin of a self-driving lab.", no_args
 device_app = typer.Typer(help="Run one device actor in this process.", no_args_is_help=True)
 app.add_typer(device_app, name="device")
 console = Console()
-err = Console(stderr=True)
+err = Console(stderr=True, soft_wrap=True)
 
 
 def _fail(exc: TwinError) -> None:

@@ -64,6 +64,7 @@ class _VirtualTime(_TimeBase):
     def __init__(self) -> None:
         self.now = 0.0
         self.in_flight = 0
+        self.idle_hooks: list[Callable[[], bool]] = []
 
     def time(self) -> float:
         return self.now
@@ -74,10 +75,14 @@ class _VirtualTime(_TimeBase):
         if self.in_flight > 0:
             return self._wait_for_in_flight(real_select, timeout)
         events = real_select(0)
-        if events or timeout is None:
+        if events:
+            return events
+        if [hook for hook in self.idle_hooks if hook()]:
+            return []  # a hook scheduled work at this idle point: run it before time moves
+        if timeout is None:
             # Nothing scheduled and nothing in flight: only outside I/O (a
             # signal, a watcher) can wake us, so wait for it for real.
-            return events or real_select(None)
+            return real_select(None)
         self.now += timeout
         return []
 
@@ -175,6 +180,18 @@ class LabClock:
         """Count ``n`` messages in flight: virtual time waits for them."""
         if self._base.virtual:
             self._base.in_flight += n  # type: ignore[attr-defined]
+
+    def on_idle(self, hook: Callable[[], bool]) -> Callable[[], None]:
+        """Call ``hook`` whenever the loop is idle, before virtual time jumps.
+
+        A hook that schedules work returns True, and time stays put until that
+        work is done. Returns a function that removes the hook.
+        """
+        if not self._base.virtual:
+            return lambda: None
+        hooks = self._base.idle_hooks  # type: ignore[attr-defined]
+        hooks.append(hook)
+        return lambda: hook in hooks and hooks.remove(hook)
 
     def release(self, n: int = 1) -> None:
         if self._base.virtual:

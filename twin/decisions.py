@@ -49,7 +49,7 @@ class ReadyStep:
     sample_made: float | None  # lab time the experiment's sample was made, if any
     expected_s: float
     work_remaining_s: float
-    avoid: frozenset[str] = frozenset()  # devices that already failed this step
+    avoid: frozenset[str] = frozenset()  # failed this step, and another instance can take it
 
 
 @dataclass(frozen=True)
@@ -76,7 +76,5 @@ class Scheduler(Protocol):
 
 
 def capable(step: ReadyStep, free: tuple[FreeDevice, ...]) -> list[FreeDevice]:
-    """Free devices of the step's type, those that have not failed it first."""
-    fits = [d for d in free if d.device_type == step.device_type]
-    fresh = [d for d in fits if d.name not in step.avoid]
-    return fresh or fits
+    """Free devices of the step's type that it need not avoid."""
+    return [d for d in free if d.device_type == step.device_type and d.name not in step.avoid]

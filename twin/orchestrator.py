@@ -154,11 +154,22 @@ class Orchestrator:
     def _view(self) -> LabView:
         ready = tuple(
             ReadyStep(t.id, t.experiment.id, t.step.step, t.step.device, t.ready_since,
-                      t.experiment.sample_made, t.expected_s, self._work_remaining(t), frozenset(t.avoid))
+                      t.experiment.sample_made, t.expected_s, self._work_remaining(t), self._avoid(t))
             for t in self.ready.values()
         )
         free = tuple(FreeDevice(d.name, d.type) for d in self.devices.values() if d.free)
         return LabView(self.now, ready, free)
+
+    def _avoid(self, t: Task) -> frozenset[str]:
+        """Fail over: skip devices that failed this step while another usable instance exists."""
+        if not t.failed_on:
+            return frozenset()
+        usable = {d.name for d in self.devices.values() if d.type == t.step.device and d.online and not d.quarantined}
+        avoid = frozenset(t.failed_on)
+        if usable - avoid:
+            return avoid
+        last = frozenset(t.failed_on[-1:])
+        return last if usable - last else frozenset()
 
     def _work_remaining(self, t: Task) -> float:
         e = t.experiment
@@ -191,6 +202,9 @@ class Orchestrator:
 
     def _send(self, task: Task, dev: Device) -> None:
         e = task.experiment
+        stability = self.s.chemistry.stability_s
+        if stability and e.sample_made is not None and self.now - e.sample_made > stability:
+            e.degraded = True  # the sample waited longer than it keeps
         task.attempts += 1
         e.attempts += 1
         e.status = "running"
@@ -289,13 +303,11 @@ class Orchestrator:
     def _advance(self, task: Task, result: dict) -> None:
         e = task.experiment
         e.outputs.update(result.get("outputs") or {})
-        if result.get("sample") is not None:
-            if e.sample is None:
-                e.sample_made = self.now
-            e.sample = result["sample"]
-        stability = self.s.chemistry.stability_s
-        if stability and e.sample_made is not None and task.ready_since - e.sample_made > stability:
-            e.degraded = True
+        sample = result.get("sample")
+        if sample is not None:
+            if sample is not e.sample:
+                e.sample_made = float(sample.get("t_made", self.now))
+            e.sample = sample
         e.stage += 1
         if e.stage < len(e.route):
             self._make_ready(e)
@@ -308,7 +320,7 @@ class Orchestrator:
         if code != "rejected":
             dev.failures += 1
             dev.consecutive_failures += 1
-            task.avoid.add(dev.name)
+            task.failed_on.append(dev.name)
             if dev.consecutive_failures >= o.quarantine_after and not dev.quarantined:
                 self._quarantine(dev)
         retry = o.retry

@@ -47,7 +47,7 @@ class Task:
     ready_since: float
     expected_s: float
     attempts: int = 0
-    avoid: set[str] = field(default_factory=set)
+    failed_on: list[str] = field(default_factory=list)  # devices, oldest failure first
 
 
 @dataclass

@@ -18,7 +18,7 @@ import itertools
 import json
 import logging
 import struct
-from collections import deque
+from collections import defaultdict, deque
 from dataclasses import dataclass, field
 
 import zenoh
@@ -114,12 +114,15 @@ class ZenohBus:
         self._watchers: list[_Declared] = []
         self._local_tokens: list[str] = []
         self._token_seq: dict[tuple[str, bool], int] = {}
+        self._expected_changes: dict[tuple[int, str, bool], int] = defaultdict(int)
         self._routes: dict[str, int] = {}
         self._pending_requests: set[asyncio.Future] = set()
+        self._remove_idle_hook = lambda: None
 
     # -- life cycle -------------------------------------------------------
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
+        self._remove_idle_hook = self._clock.on_idle(self._deliver_at_idle)
         try:
             self._session = zenoh.open(self.options.config())
         except zenoh.ZError as exc:
@@ -130,6 +133,7 @@ class ZenohBus:
             ) from exc
 
     async def close(self) -> None:
+        self._remove_idle_hook()
         if self._session is not None and not self._session.is_closed():
             self._session.close()
         for fut in self._pending_requests:
@@ -154,26 +158,37 @@ class ZenohBus:
         self._wake_pending = False
         inbox, batch = self._inbox, self._batch
         local = 0
+        expected = self._expected_changes
         while inbox:
             item = inbox.popleft()
-            if item[0] != _LAST:
+            counted = item[5]
+            if counted is True:
+                local += 1
+            elif counted and expected.get(counted, 0) > 0:
+                expected[counted] -= 1
                 local += 1
             batch.append(item)
         if self._virtual:
-            self._clock.release(local)
-            if self._clock_in_flight():
-                return
-            batch.sort(key=lambda it: (it[0], it[1]))
-        self._batch = []
-        for _seq, _sid, entry, key, value in batch:
+            self._clock.release(local)  # delivered when the loop is next idle
+            return
+        self._deliver()
+
+    def _deliver_at_idle(self) -> bool:
+        """On a virtual clock, all that arrived is delivered at idle points, in publish order."""
+        if not self._batch:
+            return False
+        self._batch.sort(key=lambda it: (it[0], it[1]))
+        self._loop.call_soon(self._deliver)
+        return True
+
+    def _deliver(self) -> None:
+        batch, self._batch = self._batch, []
+        for _seq, _sid, entry, key, value, _counted in batch:
             if not entry.closed:
                 try:
                     entry.fn(key, value)
                 except Exception:
                     log.exception("bus handler for %s failed on %s", entry.keyexpr, key)
-
-    def _clock_in_flight(self) -> int:
-        return getattr(self._clock._base, "in_flight", 0)
 
     # -- publish / subscribe ----------------------------------------------
     def _local_subscribers(self, key: str) -> int:
@@ -199,7 +214,8 @@ class ZenohBus:
         seq_of = self._seq_of
 
         def on_sample(sample: zenoh.Sample) -> None:
-            self._post((seq_of(sample), sid, entry_holder[0], str(sample.key_expr), sample.payload.to_bytes()))
+            seq = seq_of(sample)
+            self._post((seq, sid, entry_holder[0], str(sample.key_expr), sample.payload.to_bytes(), seq != _LAST))
 
         sub = self.session.declare_subscriber(keyexpr, on_sample)
         entry = _Declared(self, keyexpr, sub, self._subs)
@@ -218,7 +234,8 @@ class ZenohBus:
         sid = next(self._ids)
 
         def on_query(query: zenoh.Query) -> None:
-            self._post((self._seq_of(query), sid, holder[0], str(query.key_expr), query))
+            seq = self._seq_of(query)
+            self._post((seq, sid, holder[0], str(query.key_expr), query, seq != _LAST))
 
         async def answer(key: str, query: zenoh.Query) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else b""
@@ -294,9 +311,13 @@ class ZenohBus:
 
     # -- presence ---------------------------------------------------------
     def _hold_for_watchers(self, key: str, alive: bool) -> None:
+        """A token change is held on the clock until each local watcher has seen it."""
         self._token_seq[(key, alive)] = next(self._seq)
         if self._virtual:
-            self._clock.hold(sum(1 for w in self._watchers if key_matches(w.keyexpr, key)))
+            watchers = [w for w in self._watchers if key_matches(w.keyexpr, key)]
+            for w in watchers:
+                self._expected_changes[(w.sid, key, alive)] += 1
+            self._clock.hold(len(watchers))
 
     def declare_token(self, key: str) -> Closable:
         return _Token(self, key)
@@ -309,12 +330,23 @@ class ZenohBus:
         def on_change(sample: zenoh.Sample) -> None:
             key = str(sample.key_expr)
             alive = sample.kind == zenoh.SampleKind.PUT
-            self._post((token_seq.get((key, alive), _LAST), sid, holder[0], key, alive))
+            self._post((token_seq.get((key, alive), _LAST), sid, holder[0], key, alive, (sid, key, alive)))
 
-        if self._virtual:
-            self._clock.hold(sum(1 for k in self._local_tokens if key_matches(keyexpr, k)))
+        state: dict[str, bool] = {}
+
+        def deliver_changes(key: str, alive: bool) -> None:
+            if state.get(key) != alive:
+                state[key] = alive
+                handler(key, alive)
+
         w = self.session.liveliness().declare_subscriber(keyexpr, on_change, history=True)
         entry = _Declared(self, keyexpr, w, self._watchers)
-        entry.fn = handler
+        entry.sid = sid
+        entry.fn = deliver_changes
         holder.append(entry)
+        # Zenoh's history may miss a token declared an instant ago in this very
+        # session; report local tokens ourselves (repeats are filtered above).
+        for key in self._local_tokens:
+            if key_matches(keyexpr, key):
+                self._post((token_seq[(key, True)], sid, entry, key, True, False))
         return entry

@@ -1,0 +1,110 @@
+"""Faults are handled where the design says: timeouts, retries elsewhere, quarantine, late results."""
+
+import json
+
+from twin import keys
+from twin.journal import read_events
+from twin.lab import run
+from twin.messages import Kind, pack
+
+
+def attempts_of(db, task):
+    rows = read_events(db, "attempt.%")
+    return [(r["kind"], r["device"], json.loads(r["detail"]) if r["detail"] else None) for r in rows if r["task"] == task]
+
+
+def test_timeout_then_retry_on_another_instance(scenario_of, tmp_path):
+    s = scenario_of(**{"devices.spectrometer.faults": {"hang_p": 0.5}, "campaign.budget": 10})
+    db = tmp_path / "j.db"
+    summary = run(s, journal=db)
+    timed_out = [r for r in read_events(db, "attempt.failed") if json.loads(r["detail"])["code"] == "timed_out"]
+    assert timed_out, "with hang_p=0.5 some measurement must hang"
+    moved = 0
+    for r in timed_out:
+        later = [a for a in attempts_of(db, r["task"]) if a[0] == "attempt.dispatched"]
+        devices = [d for _, d, _ in later]
+        idx = devices.index(r["device"])
+        if idx + 1 < len(devices):
+            assert devices[idx + 1] != r["device"], "the retry must prefer the other instance"
+            moved += 1
+    assert moved >= 1
+    assert summary.done + summary.abandoned == summary.proposed
+
+
+def test_a_device_failing_k_times_in_a_row_is_quarantined_then_probed(scenario_of, tmp_path):
+    s = scenario_of(**{
+        "devices.synthesiser.faults": {"fail_p": 1.0},
+        "orchestrator.quarantine_after": 2,
+        "orchestrator.probe_after_s": 5000,
+        "orchestrator.retry": {"max_attempts": 3, "backoff_s": 10},
+        "campaign.budget": 3,
+    })
+    db = tmp_path / "j.db"
+    summary = run(s, journal=db)
+    assert summary.done == 0 and summary.abandoned == 3
+    events = read_events(db)
+    q = [e for e in events if e["kind"] == "device.quarantined"]
+    probe = [e for e in events if e["kind"] == "device.probe"]
+    assert q and probe
+    first_q = q[0]["t_lab"]
+    first_probe = probe[0]["t_lab"]
+    assert first_probe - first_q == 5000
+    dispatched_in_quarantine = [
+        e for e in events if e["kind"] == "attempt.dispatched" and first_q < e["t_lab"] < first_probe
+    ]
+    assert dispatched_in_quarantine == []
+    assert all("failed" in r for r in summary.abandoned_reasons)
+
+
+async def _duplicating_device(bus, clock, lab, name):
+    """A misbehaving device: answers every command with its result twice, plus one for a stranger."""
+    ids = iter(range(1, 10**6))
+
+    def on_cmd(key, payload):
+        env = json.loads(payload)
+        if env["kind"] != "command":
+            return
+        for kind, body, attempt in [
+            (Kind.ACCEPTED, {}, env["attempt"]),
+            (Kind.RESULT, {"outputs": {"x": 1}, "sample": {"kind": "raw", "t_made": clock.now()}}, env["attempt"]),
+            (Kind.RESULT, {"outputs": {"x": 2}, "sample": None}, env["attempt"]),
+            (Kind.RESULT, {"outputs": {"x": 3}}, env["attempt"] + 7),
+        ]:
+            bus.publish(keys.evt(lab, name), pack(kind, body, id=f"{name}:{next(ids)}", sender=name,
+                                                   t_lab=clock.now(), task=env["task"], attempt=attempt))
+
+    bus.subscribe(keys.cmd(lab, name), on_cmd)
+    return bus.declare_token(keys.alive(lab, name))
+
+
+def test_duplicate_and_late_results_are_recorded_never_double_counted(scenario_of, tmp_path):
+    import asyncio
+
+    from twin.bus import MemoryHub, MemoryBus
+    from twin.clock import LabClock
+    from twin.journal import Journal
+    from twin.orchestrator import Orchestrator
+    from twin.lab import make_planner, make_scheduler
+
+    s = scenario_of(**{"devices": {"dup": {"driver": "machine", "steps": ["op"], "duration": {"mean_s": 1}}},
+                       "workflow": [{"step": "op", "device": "dup"}], "campaign.budget": 5})
+    clock = LabClock("virtual")
+    db = tmp_path / "j.db"
+
+    async def main():
+        bus = MemoryBus(MemoryHub())
+        await bus.start()
+        token = await _duplicating_device(bus, clock, s.lab, "dup")
+        journal = Journal(db)
+        orch = Orchestrator(s, bus, clock, journal, make_planner(s), make_scheduler(s))
+        await orch.run()
+        token.close()
+        journal.close()
+        return orch
+
+    orch = clock.run(main())
+    assert [e.status for e in orch.experiments] == ["done"] * 5
+    assert all(e.outputs == {"x": 1} for e in orch.experiments)
+    assert orch.counts["late"] == 10  # one duplicate and one stranger per experiment
+    assert len(read_events(db, "experiment.done")) == 5
+    assert len(read_events(db, "result.late")) == 5

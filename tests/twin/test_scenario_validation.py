@@ -1,0 +1,94 @@
+"""Each class of bad scenario gets one message per problem naming file, field and value; exit 2, no traceback."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import qd_lab
+from twin.errors import DriverError, ScenarioError
+from twin.lab import load_driver
+from twin.scenario import load
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def write(tmp_path, raw, name="bad.yaml"):
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(raw) if not isinstance(raw, str) else raw)
+    return path
+
+
+def twin(*args):
+    return subprocess.run([sys.executable, "-m", "twin", *args], capture_output=True, text=True, cwd=ROOT)
+
+
+@pytest.mark.parametrize(
+    "changes, field, shown",
+    [
+        ({"campaign.budget": "lots"}, "campaign.budget", "'lots'"),
+        ({"campaign.budgett": 3}, "campaign.budgett", "unknown field"),
+        ({"devices.synthesiser.faults": {"fail_p": 1.5}}, "devices.synthesiser.faults.fail_p", "1.5"),
+        ({"chemistry.parameters.time_s": {"low": 10, "high": 5}}, "chemistry.parameters.time_s", "below high"),
+        ({"clock.mode": "sundial"}, "clock.mode", "'sundial'"),
+    ],
+)
+def test_each_bad_field_is_named_with_its_value(tmp_path, changes, field, shown):
+    path = write(tmp_path, qd_lab(**changes))
+    with pytest.raises(ScenarioError) as info:
+        load(path)
+    text = str(info.value)
+    assert str(path) in text and field in text and shown in text
+
+
+def test_every_problem_is_reported_not_just_the_first(tmp_path):
+    path = write(tmp_path, qd_lab(**{"campaign.budget": -1, "campaign.seed": "x", "clock.speed": 0}))
+    with pytest.raises(ScenarioError) as info:
+        load(path)
+    assert len(info.value.problems) == 3
+
+
+def test_unknown_driver_lists_the_installed_ones(tmp_path):
+    s = load(write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "robot9000"})))
+    with pytest.raises(DriverError) as info:
+        load_driver(s, "synthesiser", "synthesiser")
+    for name in ("robot9000", "synthesiser", "reactor", "spectrometer"):
+        assert name in str(info.value)
+
+
+def test_a_class_string_that_does_not_import_says_why(tmp_path):
+    s = load(write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "nowhere.module:Robot"})))
+    with pytest.raises(DriverError, match="could not import 'nowhere.module'"):
+        load_driver(s, "synthesiser", "synthesiser")
+
+
+def test_workflow_naming_a_missing_device_type(tmp_path):
+    path = write(tmp_path, qd_lab(workflow=[{"step": "synthesise", "device": "robot"}]))
+    with pytest.raises(ScenarioError, match="'robot' is not a device type"):
+        load(path)
+
+
+def test_cli_validate_exits_2_without_a_traceback(tmp_path):
+    bad = write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "robot9000", "campaign.budget": "x"}), "a.yaml")
+    broken = write(tmp_path, "name: [unclosed\n", "b.yaml")
+    good = ROOT / "scenarios" / "quantum_dots.yaml"
+    res = twin("validate", str(bad), str(broken), str(good))
+    assert res.returncode == 2
+    assert "Traceback" not in res.stderr
+    assert "campaign.budget" in res.stderr and "'x'" in res.stderr
+    assert "b.yaml" in res.stderr and "line 2, column 1" in res.stderr
+    assert "✓" in res.stdout and "quantum_dots.yaml" in res.stdout
+
+
+def test_cli_run_of_a_bad_scenario_exits_2(tmp_path):
+    bad = write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "robot9000"}))
+    res = twin("run", str(bad), "--quiet")
+    assert res.returncode == 2
+    assert "Traceback" not in res.stderr and "robot9000" in res.stderr and "Installed:" in res.stderr
+
+
+def test_shipped_scenarios_validate():
+    res = twin("validate", *sorted(str(p) for p in (ROOT / "scenarios").glob("*.yaml")))
+    assert res.returncode == 0, res.stderr
