@@ -363,6 +363,7 @@ class Orchestrator:
                                     min(e.scores.values()) if e.scores else None, reason))
         self.journal.event(self.now, f"experiment.{status}", e.id, detail=reason or e.outputs)
         self.journal.experiment(e)
+        self.journal.flush()  # a finished experiment is on disk before anything else happens
 
     # -- shutdown ---------------------------------------------------------
     def _shutdown(self) -> None:

@@ -29,5 +29,5 @@ def render_summary(s: Summary, console: Console) -> None:
         t.add_row(f"target {name}", f"{status} — experiment {b['experiment']}: {shown}")
     if s.stopped:
         t.add_row("stopped", s.stopped)
-    t.add_row("journal", s.journal)
     console.print(t)
+    console.print(f"journal: {s.journal}  (twin report {s.journal})", soft_wrap=True, highlight=False)

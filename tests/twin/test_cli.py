@@ -1,0 +1,69 @@
+"""`twin run`, `twin report` and Ctrl-C, as a user meets them."""
+
+import json
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+TWIN = [sys.executable, "-m", "twin"]
+
+
+def test_run_prints_the_summary_and_report_prints_it_again(tmp_path):
+    db = tmp_path / "qd.db"
+    res = subprocess.run([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "6", "--journal", str(db)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.returncode == 0, res.stderr
+    for words in ("experiments", "6 done", "spectrometer", "% busy", "target R", str(db)):
+        assert words in res.stdout
+    assert "6/6" in res.stderr  # the progress bar reached the budget
+    again = subprocess.run([*TWIN, "report", str(db)], capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert again.returncode == 0
+    assert again.stdout.split("journal")[0] == res.stdout.split("journal")[0]
+
+
+def test_report_of_a_missing_journal_is_a_clear_error(tmp_path):
+    res = subprocess.run([*TWIN, "report", str(tmp_path / "nope.db")], capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 2 and "no such journal" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.process
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_stops_cleanly_and_flushes_the_journal(tmp_path, sig):
+    db = tmp_path / "flaky.db"
+    proc = subprocess.Popen(
+        [*TWIN, "run", "scenarios/flaky_lab.yaml", "--clock", "scaled", "--speed", "3600", "--quiet",
+         "--journal", str(db), "--json"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+    )
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not _has_experiments(db):
+        time.sleep(0.1)
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    summary = json.loads(out)
+    assert summary["stopped"].startswith("interrupted")
+    assert summary["pending"] > 0 and summary["done"] + summary["abandoned"] + summary["pending"] == summary["proposed"]
+    with sqlite3.connect(db) as c:
+        statuses = [r[0] for r in c.execute("SELECT status FROM experiments")]
+        cancelled = c.execute("SELECT COUNT(*) FROM events WHERE kind='attempt.cancelled'").fetchone()[0]
+    assert len(statuses) == summary["proposed"]
+    assert cancelled >= 1, "work in the lab at shutdown is cancelled, not forgotten"
+    report = subprocess.run([*TWIN, "report", str(db)], capture_output=True, text=True, cwd=ROOT)
+    assert report.returncode == 0 and "interrupted" in report.stdout
+
+
+def _has_experiments(db: Path) -> bool:
+    if not db.exists():
+        return False
+    try:
+        with sqlite3.connect(db) as c:
+            return c.execute("SELECT COUNT(*) FROM events WHERE kind='experiment.done'").fetchone()[0] > 0
+    except sqlite3.Error:
+        return False

@@ -1,0 +1,92 @@
+"""A device actor in its own OS process, killed with SIGKILL mid-task: loss is seen, work moves on."""
+
+import asyncio
+import os
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import qd_lab
+from twin.journal import read_events
+from twin.lab import make_clock, prepare, run_async
+from twin.scenario import parse
+
+pytestmark = pytest.mark.process
+ROOT = Path(__file__).resolve().parents[2]
+SPEED = 200.0  # lab seconds per wall second
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_sigkilled_device_process_is_detected_and_its_work_moves(tmp_path):
+    port = free_port()
+    raw = qd_lab(**{
+        "campaign.budget": 6,
+        "devices.spectrometer.duration": {"mean_s": 200, "cv": 0.0},
+        "devices.synthesiser.duration": {"mean_s": 20, "cv": 0.0},
+        "clock": {"mode": "scaled", "speed": SPEED},
+        "bus": {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]},
+        "orchestrator.startup_s": 2000,
+    })
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    s = prepare(path)
+    clock = make_clock(s)
+    db = tmp_path / "j.db"
+    device = subprocess.Popen(
+        [sys.executable, "-m", "twin", "device", "serve", str(path), "--id", "spectrometer-2",
+         "--connect", f"tcp/127.0.0.1:{port}", "--clock", "scaled", "--speed", str(SPEED)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT,
+    )
+    killed = {}
+
+    async def main():
+        captured = {}
+
+        def on_progress(orch):
+            captured["orch"] = orch
+
+        campaign = asyncio.ensure_future(run_async(s, clock, db, {"spectrometer-2"}, on_progress))
+        while "t" not in killed and not campaign.done():
+            orch = captured.get("orch")
+            if orch and orch.devices["spectrometer-2"].attempt and orch.devices["spectrometer-2"].attempt.t_accepted:
+                killed["t"] = clock.now()
+                killed["task"] = orch.devices["spectrometer-2"].attempt.task.id
+                os.kill(device.pid, signal.SIGKILL)
+            await clock.sleep(1)
+        return await campaign
+
+    try:
+        summary = clock.run(main())
+    finally:
+        device.kill()
+        device.wait()
+    assert "t" in killed, "the remote spectrometer never got a step"
+    events = read_events(db)
+    lost = [e for e in events if e["kind"] == "device.lost" and e["device"] == "spectrometer-2"]
+    assert lost, "the kill must be seen through liveliness"
+    assert lost[0]["t_lab"] - killed["t"] < 0.05 * SPEED + 1  # within 50 ms of wall time
+    failed = [e for e in events if e["kind"] == "attempt.failed" and e["task"] == killed["task"]]
+    assert '"device_lost"' in failed[0]["detail"]
+    redone = [e for e in events if e["kind"] == "attempt.done" and e["task"] == killed["task"]]
+    assert redone and redone[0]["device"] == "spectrometer-1"
+    assert summary.done == 6 and summary.devices_lost >= 1
+
+
+def test_virtual_clock_refuses_devices_in_other_processes(tmp_path):
+    from twin.clock import LabClock
+    from twin.errors import ClockError
+
+    s = parse(qd_lab())
+    clock = LabClock("virtual")
+    with pytest.raises(ClockError, match="--clock scaled"):
+        clock.run(run_async(s, clock, tmp_path / "j.db", {"spectrometer-2"}))

@@ -1,0 +1,67 @@
+"""A message that fails validation is dropped and logged with its sender and reason; nothing crashes."""
+
+import asyncio
+import logging
+
+import pytest
+
+from twin import keys
+from twin.bus import MemoryBus, MemoryHub
+from twin.clock import LabClock
+from twin.journal import Journal, read_events
+from twin.lab import build_actors, load_drivers, make_planner, make_scheduler
+from twin.messages import InvalidMessage, Kind, decode, pack
+from twin.orchestrator import Orchestrator
+
+
+def test_decode_names_sender_and_reason():
+    good = pack(Kind.RESULT, {"outputs": {}}, id="a:1", sender="spec-1", t_lab=0.0, task="t", attempt=1)
+    env, body = decode(good)
+    assert env.sender == "spec-1" and body.outputs == {}
+    with pytest.raises(InvalidMessage) as info:
+        decode(b'{"v":1,"kind":"result","id":"x","sender":"spec-9","t_lab":"soon","body":{}}')
+    assert info.value.sender == "spec-9" and "t_lab" in info.value.reason
+    with pytest.raises(InvalidMessage) as info:
+        decode(pack(Kind.FAULT, {"code": 3}, id="x", sender="spec-2", t_lab=1.0))
+    assert info.value.sender == "spec-2" and "fault body" in info.value.reason
+    with pytest.raises(InvalidMessage) as info:
+        decode(b"\xff garbage", sender_hint="dev/spec-3")
+    assert info.value.sender == "dev/spec-3"
+    with pytest.raises(InvalidMessage, match="v"):
+        decode(b'{"v":2,"kind":"result","id":"x","sender":"s","t_lab":0,"body":{}}')
+
+
+def test_garbage_on_the_bus_is_dropped_and_the_campaign_goes_on(scenario_of, tmp_path, caplog):
+    s = scenario_of(**{"campaign.budget": 4})
+    clock = LabClock("virtual")
+    db = tmp_path / "j.db"
+
+    async def main():
+        bus = MemoryBus(MemoryHub())
+        await bus.start()
+        actors = build_actors(s, load_drivers(s), bus, clock)
+        for a in actors:
+            await a.start()
+        journal = Journal(db)
+        orch = Orchestrator(s, bus, clock, journal, make_planner(s), make_scheduler(s))
+        campaign = asyncio.ensure_future(orch.run())
+        await clock.sleep(1)
+        # an impostor sprays both directions during the campaign
+        bus.publish(keys.cmd(s.lab, "synthesiser"), b'{"kind":"command","sender":"impostor"}')
+        bus.publish(keys.evt(s.lab, "spectrometer-1"), b"not json at all")
+        bus.publish(keys.evt(s.lab, "spectrometer-1"),
+                    pack(Kind.RESULT, {"outputs": 5}, id="i:1", sender="impostor", t_lab=0.0, task="e0s0", attempt=1))
+        await campaign
+        for a in actors:
+            await a.stop()
+        journal.close()
+        return orch, actors
+
+    with caplog.at_level(logging.WARNING):
+        orch, actors = clock.run(main())
+    assert [e.status for e in orch.experiments] == ["done"] * 4
+    assert orch.counts["invalid"] == 2
+    assert actors[0].dropped == 1
+    invalid = read_events(db, "message.invalid")
+    assert {e["device"] for e in invalid} == {"spectrometer-1", "impostor"}
+    assert any("impostor" in r.message and "id: Field required" in r.message for r in caplog.records)
