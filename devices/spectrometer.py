@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import numpy as np
+
 from devices.models import spectra
 from twin.driver import DriverSetup, StepContext, StepResult
 from twin.errors import DriverError
@@ -45,7 +47,7 @@ class Spectrometer:
         else:
             raise DriverError(f"cannot measure a sample of kind {sample.get('kind')!r}")
         outputs = {k: round(v, 4) for k, v in outputs.items()}
-        outputs["spectrum"] = {"start_nm": float(spectra.GRID_NM[0]), "step_nm": 2.0, "y": [round(v, 4) for v in y]}
+        outputs["spectrum"] = {"start_nm": float(spectra.GRID_NM[0]), "step_nm": 2.0, "y": np.round(y, 4).tolist()}
         outputs["age_s"] = round(age, 1)
         return StepResult(outputs, sample)
 

@@ -43,7 +43,7 @@ class Journal:
     def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
               attempt: int | None = None, device: str | None = None, detail: Any = None) -> None:
         self._seq += 1
-        text = detail if isinstance(detail, str) or detail is None else json.dumps(detail, sort_keys=True)
+        text = detail if isinstance(detail, str) or detail is None else json.dumps(detail)
         self._events.append((self._seq, t_lab, kind, experiment, task, attempt, device, text))
         if len(self._events) >= FLUSH_EVERY:
             self.flush()

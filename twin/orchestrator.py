@@ -54,6 +54,7 @@ class Orchestrator:
         self.stopping = ""
         self._wake = asyncio.Event()
         self._ids = 0
+        self.active: dict[int, Experiment] = {}  # pending or running
         self._handles: list[Any] = []
         self._t0 = 0.0
 
@@ -94,8 +95,7 @@ class Orchestrator:
     def _finished(self) -> bool:
         if self.stopping:
             return True
-        active = any(e.status in ("pending", "running") for e in self.experiments)
-        return not active and not self._can_propose()
+        return not self.active and not self._can_propose()
 
     def _can_propose(self) -> bool:
         c = self.s.campaign
@@ -118,11 +118,10 @@ class Orchestrator:
     def _fill(self) -> None:
         c = self.s.campaign
         while not self.stopping and self._can_propose():
-            in_lab = sum(1 for e in self.experiments if e.status in ("pending", "running"))
-            n = min(c.max_in_flight - in_lab, c.budget - len(self.experiments))
+            n = min(c.max_in_flight - len(self.active), c.budget - len(self.experiments))
             if n <= 0:
                 return
-            pending = [e.params for e in self.experiments if e.status in ("pending", "running")]
+            pending = [e.params for e in self.active.values()]
             proposals = self.planner.propose(n, list(self.history), pending)[:n]
             if not proposals:
                 self.planner_exhausted = True
@@ -134,6 +133,7 @@ class Orchestrator:
         route = p.route or tuple(RouteStep(w.step, w.device) for w in self.s.workflow)
         e = Experiment(len(self.experiments), dict(p.params), route, self.now)
         self.experiments.append(e)
+        self.active[e.id] = e
         self.journal.event(self.now, "experiment.proposed", e.id, detail=e.params)
         self.journal.experiment(e)
         self._make_ready(e)
@@ -235,7 +235,7 @@ class Orchestrator:
             return
         att = self.attempts.get((env.task, env.attempt))
         exp = att.task.experiment.id if att else None
-        self.journal.event(self.now, f"msg.{env.kind}", exp, env.task, env.attempt, env.sender, detail=env.body)
+        self.journal.event(self.now, f"msg.{env.kind}", exp, env.task, env.attempt, env.sender, detail=payload.decode())
         if att is None or att.device != env.sender:
             self.counts["late"] += 1
             self.journal.event(self.now, "message.unknown_attempt", exp, env.task, env.attempt, env.sender)
@@ -262,7 +262,7 @@ class Orchestrator:
             self.counts["invalid"] += 1
             self.journal.event(self.now, "message.invalid", device=exc.sender, detail=exc.reason)
             return
-        self.journal.event(self.now, "msg.telemetry", task=env.task or None, device=env.sender, detail=body.readings)
+        self.journal.event(self.now, "msg.telemetry", task=env.task or None, device=env.sender, detail=payload.decode())
 
     def _on_presence(self, key: str, alive: bool) -> None:
         dev = self.devices.get(keys.device_of(key))
@@ -350,6 +350,7 @@ class Orchestrator:
 
     def _finish(self, e: Experiment, status: str, reason: str = "") -> None:
         e.status, e.reason, e.t_done = status, reason, self.now
+        del self.active[e.id]
         if status == "done":
             e.scores = scores(e.outputs, self.s.chemistry.targets)
             for name, sc in e.scores.items():
@@ -377,7 +378,7 @@ class Orchestrator:
                 dev.attempt = None
                 self.bus.publish(keys.cmd(self.s.lab, dev.name), self._pack(Kind.CANCEL, {"reason": "campaign stopped"}, att.task.id, att.n))
                 self.journal.event(self.now, "attempt.cancelled", att.task.experiment.id, att.task.id, att.n, dev.name, detail=self.stopping)
-        for e in self.experiments:
+        for e in self.active.values():
             if e.status == "running":
                 e.status = "pending"
                 e.reason = f"in the lab at shutdown ({self.stopping})" if self.stopping else "in the lab at shutdown"

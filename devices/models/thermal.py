@@ -28,13 +28,20 @@ class Pid:
     last_error: float | None = None
 
     def step(self, error: float, dt: float) -> float:
-        deriv = 0.0 if self.last_error is None else (error - self.last_error) / dt
-        self.last_error = error
-        u = self.kp * error + self.ki * self.integral + self.kd * deriv
-        saturated = (u >= U_MAX_K and error > 0) or (u <= 0 and error < 0)
-        if not saturated:
-            self.integral += error * dt
-        return min(max(u, 0.0), U_MAX_K)
+        last, self.last_error = self.last_error, error
+        u = self.kp * error + self.ki * self.integral
+        if self.kd and last is not None:
+            u += self.kd * (error - last) / dt
+        if u >= U_MAX_K:
+            if error <= 0:
+                self.integral += error * dt
+            return U_MAX_K
+        if u <= 0.0:
+            if error >= 0:
+                self.integral += error * dt
+            return 0.0
+        self.integral += error * dt
+        return u
 
 
 def simulate(setpoint_k: float, hold_s: float, dt_s: float = 5.0, t0_k: float = T_AMBIENT_K,
@@ -42,11 +49,11 @@ def simulate(setpoint_k: float, hold_s: float, dt_s: float = 5.0, t0_k: float = 
     """The temperature trace (one value per dt) of a heat-up and hold at ``setpoint_k``."""
     pid = pid or Pid()
     n = max(1, int(math.ceil(hold_s / dt_s)))
-    trace = np.empty(n)
-    t = t0_k
+    trace = [0.0] * n
+    t, step, exp, gain = t0_k, pid.step, math.exp, dt_s / TAU_S
     for i in range(n):
-        u = pid.step(setpoint_k - t, dt_s)
-        exo = EXOTHERM_K / (1 + math.exp(-(t - 430.0) / 10.0))
-        t += dt_s * (u + exo - (t - T_AMBIENT_K)) / TAU_S
+        u = step(setpoint_k - t, dt_s)
+        exo = EXOTHERM_K / (1 + exp((430.0 - t) / 10.0))
+        t += gain * (u + exo - (t - T_AMBIENT_K))
         trace[i] = t
-    return trace
+    return np.array(trace)
