@@ -18,7 +18,7 @@ class Reactor:
         o = setup.options
         self.pid = dict(kp=float(o.get("kp", 6.0)), ki=float(o.get("ki", 0.04)), kd=float(o.get("kd", 0.0)))
         self.telemetry_s = float(o.get("telemetry_s", 600.0))
-        self.dt_s = float(o.get("dt_s", 5.0))
+        self.dt_s = float(o.get("dt_s", 10.0))
         self.temperature_k = thermal.T_AMBIENT_K
 
     async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:

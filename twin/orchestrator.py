@@ -143,8 +143,8 @@ class Orchestrator:
             step = e.route[e.stage]
             dtype = self.s.devices[step.device]
             params = {**e.params, **step.params}
-            task = Task(f"e{e.id}s{e.stage}", e, step, self.now, self.now,
-                        expected_duration(dtype.duration, params, dtype.setup_s, dtype.clean_s))
+            expected = expected_duration(dtype.duration, params, dtype.setup_s, dtype.clean_s)
+            task = Task(f"e{e.id}s{e.stage}", e, step, self.now, self.now, expected, self._work_remaining(e))
         task.ready_since = self.now
         self.ready[task.id] = task
         self.journal.event(self.now, "task.ready", e.id, task.id)
@@ -154,7 +154,7 @@ class Orchestrator:
     def _view(self) -> LabView:
         ready = tuple(
             ReadyStep(t.id, t.experiment.id, t.step.step, t.step.device, t.ready_since,
-                      t.experiment.sample_made, t.expected_s, self._work_remaining(t), self._avoid(t))
+                      t.experiment.sample_made, t.expected_s, t.work_remaining_s, self._avoid(t))
             for t in self.ready.values()
         )
         free = tuple(FreeDevice(d.name, d.type) for d in self.devices.values() if d.free)
@@ -171,8 +171,7 @@ class Orchestrator:
         last = frozenset(t.failed_on[-1:])
         return last if usable - last else frozenset()
 
-    def _work_remaining(self, t: Task) -> float:
-        e = t.experiment
+    def _work_remaining(self, e: Experiment) -> float:
         rest = 0.0
         for step in e.route[e.stage:]:
             dt = self.s.devices[step.device]
@@ -364,7 +363,8 @@ class Orchestrator:
                                     min(e.scores.values()) if e.scores else None, reason))
         self.journal.event(self.now, f"experiment.{status}", e.id, detail=reason or e.outputs)
         self.journal.experiment(e)
-        self.journal.flush()  # a finished experiment is on disk before anything else happens
+        if not self.clock.is_virtual:
+            self.journal.flush()  # live runs: a finished experiment is on disk at once
 
     # -- shutdown ---------------------------------------------------------
     def _shutdown(self) -> None:

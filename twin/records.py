@@ -46,6 +46,7 @@ class Task:
     first_ready: float
     ready_since: float
     expected_s: float
+    work_remaining_s: float
     attempts: int = 0
     failed_on: list[str] = field(default_factory=list)  # devices, oldest failure first
 

@@ -44,7 +44,7 @@ class Pid:
         return u
 
 
-def simulate(setpoint_k: float, hold_s: float, dt_s: float = 5.0, t0_k: float = T_AMBIENT_K,
+def simulate(setpoint_k: float, hold_s: float, dt_s: float = 10.0, t0_k: float = T_AMBIENT_K,
              pid: Pid | None = None) -> np.ndarray:
     """The temperature trace (one value per dt) of a heat-up and hold at ``setpoint_k``."""
     pid = pid or Pid()

@@ -159,8 +159,13 @@ class ZenohBus:
         inbox, batch = self._inbox, self._batch
         local = 0
         expected = self._expected_changes
+        seq_of = self._seq_of
         while inbox:
             item = inbox.popleft()
+            if item[0] is None:  # a sample, unpacked here to keep Zenoh's threads short
+                sample = item[3]
+                seq = seq_of(sample)
+                item = (seq, item[1], item[2], str(sample.key_expr), sample.payload.to_bytes(), seq != _LAST)
             counted = item[5]
             if counted is True:
                 local += 1
@@ -211,11 +216,8 @@ class ZenohBus:
     def subscribe(self, keyexpr: str, handler: Handler) -> Closable:
         entry_holder: list[_Declared] = []
         sid = next(self._ids)
-        seq_of = self._seq_of
-
         def on_sample(sample: zenoh.Sample) -> None:
-            seq = seq_of(sample)
-            self._post((seq, sid, entry_holder[0], str(sample.key_expr), sample.payload.to_bytes(), seq != _LAST))
+            self._post((None, sid, entry_holder[0], sample, None, None))
 
         sub = self.session.declare_subscriber(keyexpr, on_sample)
         entry = _Declared(self, keyexpr, sub, self._subs)

@@ -1,0 +1,256 @@
+"""Kernel benchmarks for issue [1 of 5]; prints tables, ratios against baselines run alongside.
+
+    python bench/bench_kernel.py            # everything (about two minutes)
+    python bench/bench_kernel.py speed bus  # some sections: speed, bus, detect, scale
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import zenoh
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench import simpy_lab  # noqa: E402
+from twin.bus.zenoh_bus import ZenohBus, ZenohOptions  # noqa: E402
+from twin.clock import LabClock  # noqa: E402
+from twin.lab import prepare, run  # noqa: E402
+
+
+def table(title: str, header: list[str], rows: list[list]) -> None:
+    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
+    print(f"\n{title}")
+    print("| " + " | ".join(h.ljust(w) for h, w in zip(header, widths)) + " |")
+    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    for r in rows:
+        print("| " + " | ".join(str(x).ljust(w) for x, w in zip(r, widths)) + " |")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+# -- 1. virtual-time speed of the standard campaign vs SimPy ---------------
+STANDARD = {"campaign.budget": 400, "campaign.stop_on_target": False,
+            "devices.synthesiser.faults.mtbc_h": 0, "devices.reactor.faults.mtbc_h": 0,
+            "devices.spectrometer.faults.mtbc_h": 0}
+
+
+def bench_speed() -> None:
+    s = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides=STANDARD)
+    rows = []
+    t0 = time.perf_counter()
+    lab_h, events, done = simpy_lab.run(s)
+    wall = time.perf_counter() - t0
+    base = lab_h / wall
+    rows.append(["SimPy model (baseline)", done, f"{lab_h:.0f}", f"{wall:.2f}", f"{base:,.0f}", f"{events / wall:,.0f}", "1.00"])
+    for bus in ("memory", "zenoh"):
+        with tempfile.TemporaryDirectory() as d:
+            summ = run(s, journal=Path(d) / "j.db", bus=bus)
+        speed = summ.lab_hours / summ.wall_s
+        rows.append([f"twin, {bus} bus", summ.done, f"{summ.lab_hours:.0f}", f"{summ.wall_s:.2f}", f"{speed:,.0f}",
+                     f"{summ.events / summ.wall_s:,.0f}", f"{speed / base:.3f}"])
+    bare = s.model_copy(deep=True)
+    for spec in bare.devices.values():
+        spec.driver = "machine"
+        spec.steps = ["op"]
+    bare = bare.model_copy(update={"workflow": [w.model_copy(update={"step": "op"}) for w in bare.workflow]})
+    with tempfile.TemporaryDirectory() as d:
+        summ = run(bare, journal=Path(d) / "j.db", bus="memory")
+    speed = summ.lab_hours / summ.wall_s
+    rows.append(["twin, memory bus, no physics (machine drivers)", summ.done, f"{summ.lab_hours:.0f}",
+                 f"{summ.wall_s:.2f}", f"{speed:,.0f}", f"{summ.events / summ.wall_s:,.0f}", f"{speed / base:.3f}"])
+    rows.append(["zenoh ÷ memory", "", "", "", "", "", f"{float(rows[2][-1]) / float(rows[1][-1]):.2f}"])
+    table("Virtual-time speed, flaky_lab without crashes, 400 experiments (events: SimPy events / journal events)",
+          ["model", "done", "lab-h", "wall s", "lab-h per wall-s", "events/s", "÷ SimPy"], rows)
+
+
+# -- 2. Zenoh bus: delivery into asyncio, request/reply -------------------
+N_MESSAGES = 200_000
+
+
+def _publisher(endpoint: str, n: int, received: threading.Event) -> None:
+    cfg = ZenohOptions(listen=[], connect=[endpoint]).config()
+    with zenoh.open(cfg) as s:
+        pub = s.declare_publisher("bench/tp", congestion_control=zenoh.CongestionControl.BLOCK)
+        time.sleep(0.5)  # let the subscriber's declaration reach this session
+        for i in range(n):
+            pub.put(i.to_bytes(4, "little"))
+        received.wait(120)  # closing a session drops what it has not sent yet
+
+
+async def _throughput(batched: bool) -> float:
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    loop = asyncio.get_running_loop()
+    got = [0]
+    finished = asyncio.Event()
+    t_first = [0.0]
+
+    def handler(key, payload):
+        if got[0] == 0:
+            t_first[0] = time.perf_counter()
+        got[0] += 1
+        if got[0] == N_MESSAGES:
+            finished.set()
+
+    if batched:
+        bus = ZenohBus(LabClock("wall"), ZenohOptions(listen=[endpoint]))
+        await bus.start()
+        bus.subscribe("bench/tp", handler)
+        session = None
+    else:
+        session = zenoh.open(ZenohOptions(listen=[endpoint]).config())
+        session.declare_subscriber("bench/tp", lambda smp: loop.call_soon_threadsafe(
+            handler, str(smp.key_expr), smp.payload.to_bytes()))
+    received = threading.Event()
+    th = threading.Thread(target=_publisher, args=(endpoint, N_MESSAGES, received), daemon=True)
+    th.start()
+    await asyncio.wait_for(finished.wait(), 120)
+    elapsed = time.perf_counter() - t_first[0]
+    received.set()
+    th.join()
+    if batched:
+        await bus.close()
+    else:
+        session.close()
+    return N_MESSAGES / elapsed
+
+
+async def _request_reply(n: int = 3000) -> list[float]:
+    port = free_port()
+    clock = LabClock("wall")
+    server = ZenohBus(clock, ZenohOptions(listen=[f"tcp/127.0.0.1:{port}"]))
+    client = ZenohBus(clock, ZenohOptions(listen=[], connect=[f"tcp/127.0.0.1:{port}"]))
+    await server.start()
+    await client.start()
+
+    async def echo(key, payload):
+        return payload
+
+    server.serve("bench/echo", echo)
+    await asyncio.sleep(0.5)
+    for _ in range(200):  # warm up
+        await client.request("bench/echo", b"x", timeout=5)
+    lat = []
+    for _ in range(n):
+        t = time.perf_counter()
+        await client.request("bench/echo", b"x", timeout=5)
+        lat.append((time.perf_counter() - t) * 1000)
+    await client.close()
+    await server.close()
+    return sorted(lat)
+
+
+def bench_bus() -> None:
+    naive = asyncio.run(_throughput(batched=False))
+    batched = asyncio.run(_throughput(batched=True))
+    lat = asyncio.run(_request_reply())
+    p50, p99 = lat[len(lat) // 2], lat[int(len(lat) * 0.99)]
+    table(f"Zenoh bus over loopback, two sessions ({N_MESSAGES:,} messages of 4 bytes; 3,000 requests)",
+          ["measure", "value", "÷ baseline"],
+          [["delivered into asyncio, naive call_soon_threadsafe per message (baseline)", f"{naive:,.0f} msg/s", "1.00"],
+           ["delivered into asyncio, ZenohBus batched hand-off", f"{batched:,.0f} msg/s", f"{batched / naive:.2f}"],
+           ["request/reply p50", f"{p50:.3f} ms", ""],
+           ["request/reply p99", f"{p99:.3f} ms", ""]])
+
+
+# -- 3. detecting a killed and a hung device -------------------------------
+CHILD = """
+import sys, time, zenoh, json
+cfg = zenoh.Config()
+cfg.insert_json5("mode", '"peer"'); cfg.insert_json5("scouting/multicast/enabled", "false")
+cfg.insert_json5("listen/endpoints", "[]"); cfg.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
+cfg.insert_json5("transport/link/tx/lease", "1000"); cfg.insert_json5("transport/link/tx/keep_alive", "4")
+s = zenoh.open(cfg)
+tok = s.liveliness().declare_token("bench/alive/dev")
+print("ready", flush=True)
+time.sleep(3600)
+"""
+
+
+async def _detect(sig: int) -> float:
+    port = free_port()
+    bus = ZenohBus(LabClock("wall"), ZenohOptions(listen=[f"tcp/127.0.0.1:{port}"], lease_ms=1000))
+    await bus.start()
+    seen = {}
+    alive = asyncio.Event()
+    gone = asyncio.Event()
+
+    def on_change(key, is_alive):
+        if is_alive:
+            alive.set()
+        else:
+            seen["t"] = time.perf_counter()
+            gone.set()
+
+    bus.watch_tokens("bench/alive/*", on_change)
+    child = subprocess.Popen([sys.executable, "-c", CHILD, f"tcp/127.0.0.1:{port}"], stdout=subprocess.PIPE)
+    child.stdout.readline()
+    await asyncio.wait_for(alive.wait(), 10)
+    await asyncio.sleep(0.3)
+    t0 = time.perf_counter()
+    os.kill(child.pid, sig)
+    await asyncio.wait_for(gone.wait(), 10)
+    child.kill()
+    child.wait()
+    await bus.close()
+    return (seen["t"] - t0) * 1000
+
+
+def bench_detect() -> None:
+    killed = [asyncio.run(_detect(signal.SIGKILL)) for _ in range(5)]
+    hung = [asyncio.run(_detect(signal.SIGSTOP)) for _ in range(3)]
+    table("Detecting device loss through liveliness (link lease 1000 ms), wall milliseconds",
+          ["device", "runs", "median ms", "max ms", "target"],
+          [["killed (SIGKILL)", len(killed), f"{statistics.median(killed):.1f}", f"{max(killed):.1f}", "≤ 50"],
+           ["hung (SIGSTOP)", len(hung), f"{statistics.median(hung):.0f}", f"{max(hung):.0f}", "≤ 1500"]])
+
+
+# -- 4. memory and time of long campaigns ----------------------------------
+SCALE_CHILD = """
+import json, resource, sys, tempfile, time
+from pathlib import Path
+from twin.lab import run
+n = int(sys.argv[1])
+with tempfile.TemporaryDirectory() as d:
+    s = run("scenarios/quantum_dots.yaml", journal=Path(d) / "j.db", bus="memory",
+            overrides={"campaign.budget": n, "campaign.stop_on_target": False})
+    size = (Path(d) / "j.db").stat().st_size
+print(json.dumps({"n": n, "wall": s.wall_s, "done": s.done, "lab_h": s.lab_hours,
+                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "db_mb": size / 2**20}))
+"""
+
+
+def bench_scale() -> None:
+    rows = []
+    for n in (1000, 5000, 10000):
+        out = subprocess.run([sys.executable, "-c", SCALE_CHILD, str(n)], capture_output=True, text=True,
+                             cwd=ROOT, check=True).stdout
+        r = json.loads(out.strip().splitlines()[-1])
+        rows.append([n, r["done"], f"{r['lab_h']:.0f}", f"{r['wall']:.1f}", f"{1000 * r['wall'] / n:.2f}",
+                     f"{r['rss_mb']:.0f}", f"{r['db_mb']:.0f}"])
+    table("Long virtual campaigns (quantum_dots, memory bus): time and memory should grow linearly",
+          ["experiments", "done", "lab-h", "wall s", "ms per experiment", "peak RSS MB", "journal MB"], rows)
+
+
+SECTIONS = {"speed": bench_speed, "bus": bench_bus, "detect": bench_detect, "scale": bench_scale}
+
+if __name__ == "__main__":
+    for name in sys.argv[1:] or list(SECTIONS):
+        SECTIONS[name]()
