@@ -68,7 +68,6 @@ class MemoryBus:
         repliers = [q for q in self._hub.queryables if key_matches(q.keyexpr, key)]
         if not repliers:
             raise NoReplyError(f"no replier serves {key!r}: is the device or service running?")
-        await asyncio.sleep(0)  # the query crosses the bus like any message
         try:
             async with asyncio.timeout(timeout):
                 return await repliers[0].fn(key, payload)
