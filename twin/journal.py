@@ -42,9 +42,17 @@ class Journal:
 
     def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
               attempt: int | None = None, device: str | None = None, detail: Any = None) -> None:
+        """A state change; ``detail`` is stored as JSON."""
+        self._append(t_lab, kind, experiment, task, attempt, device, None if detail is None else json.dumps(detail))
+
+    def message(self, t_lab: float, kind: str, experiment: int | None, task: str | None, attempt: int | None,
+                device: str | None, payload: bytes) -> None:
+        """A message received, stored as the JSON it came as."""
+        self._append(t_lab, kind, experiment, task, attempt, device, payload.decode())
+
+    def _append(self, *row: Any) -> None:
         self._seq += 1
-        text = detail if isinstance(detail, str) or detail is None else json.dumps(detail)
-        self._events.append((self._seq, t_lab, kind, experiment, task, attempt, device, text))
+        self._events.append((self._seq, *row))
         if len(self._events) >= FLUSH_EVERY:
             self.flush()
 

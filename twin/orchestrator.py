@@ -57,6 +57,7 @@ class Orchestrator:
         self.active: dict[int, Experiment] = {}  # pending or running
         self._handles: list[Any] = []
         self._t0 = 0.0
+        self._decisions = keys.campaign(scenario.lab, campaign_id, "decision")
 
     # -- the main loop ----------------------------------------------------
     async def run(self) -> None:
@@ -67,6 +68,7 @@ class Orchestrator:
             self.bus.subscribe(keys.telemetry(lab), self._on_telemetry),
             self.bus.watch_tokens(keys.alive(lab), self._on_presence),
         ]
+        self._note("campaign.started", detail=self.describe())
         await self._await_devices()
         limit = self.clock.call_later(self.s.campaign.max_lab_hours * 3600, lambda: self.stop("max_lab_hours reached"))
         try:
@@ -81,11 +83,22 @@ class Orchestrator:
             limit.cancel()
             self._shutdown()
 
+    def describe(self) -> dict[str, Any]:
+        """What an observer needs to make sense of the campaign's messages."""
+        s = self.s
+        return {
+            "scenario": s.name, "lab": s.lab, "campaign": self.campaign_id, "seed": s.campaign.seed,
+            "budget": s.campaign.budget, "clock": s.clock.mode,
+            "devices": {d.name: d.type for d in self.devices.values()},
+            "parameters": {k: [p.low, p.high, p.unit] for k, p in s.chemistry.parameters.items()},
+            "targets": [t.model_dump(exclude_none=True) for t in s.chemistry.targets],
+        }
+
     def stop(self, reason: str) -> None:
         """Stop proposing and dispatching; what is in the lab is cancelled, the rest stays pending."""
         if not self.stopping:
             self.stopping = reason
-            self.journal.event(self.now, "campaign.stopping", detail=reason)
+            self._note("campaign.stopping", detail=reason)
         self._wake.set()
 
     @property
@@ -112,7 +125,7 @@ class Orchestrator:
         except TimeoutError:
             missing = [d.name for d in self.devices.values() if not d.online]
             log.warning("devices not on the bus after %.0f lab-s: %s", self.s.orchestrator.startup_s, missing)
-            self.journal.event(self.now, "devices.missing", detail=missing)
+            self._note("devices.missing", detail=missing)
 
     # -- planning ---------------------------------------------------------
     def _fill(self) -> None:
@@ -134,7 +147,7 @@ class Orchestrator:
         e = Experiment(len(self.experiments), dict(p.params), route, self.now)
         self.experiments.append(e)
         self.active[e.id] = e
-        self.journal.event(self.now, "experiment.proposed", e.id, detail=e.params)
+        self._note("experiment.proposed", e.id, detail=e.params)
         self.journal.experiment(e)
         self._make_ready(e)
 
@@ -147,7 +160,7 @@ class Orchestrator:
             task = Task(f"e{e.id}s{e.stage}", e, step, self.now, self.now, expected, self._work_remaining(e))
         task.ready_since = self.now
         self.ready[task.id] = task
-        self.journal.event(self.now, "task.ready", e.id, task.id)
+        self._note("task.ready", e.id, task.id, detail={"sample_made": e.sample_made, "step": task.step.step})
         self._wake.set()
 
     # -- scheduling -------------------------------------------------------
@@ -185,7 +198,7 @@ class Orchestrator:
             problem = self._invalid(a)
             if problem:
                 log.warning("scheduler decision ignored: %s", problem)
-                self.journal.event(self.now, "scheduler.invalid", task=a.task, device=a.device, detail=problem)
+                self._note("scheduler.invalid", task=a.task, device=a.device, detail=problem)
                 continue
             self._send(self.ready.pop(a.task), self.devices[a.device])
 
@@ -215,13 +228,23 @@ class Orchestrator:
         deadline = task.expected_s * o.timeout_factor + o.timeout_slack_s
         att.deadline = self.clock.call_later(deadline, lambda: self._resolve(att, "timed_out", {"reason": f"no result within {deadline:.0f} lab-s"}))
         body = {"step": task.step.step, "params": {**e.params, **task.step.params}, "sample": e.sample, "expected_s": task.expected_s}
-        self.journal.event(self.now, "attempt.dispatched", e.id, task.id, att.n, dev.name, detail={"deadline_s": deadline})
+        self._note("attempt.dispatched", e.id, task.id, att.n, dev.name, detail={"deadline_s": deadline})
         self.bus.publish(keys.cmd(self.s.lab, dev.name), self._pack(Kind.COMMAND, body, task.id, att.n))
 
     def _pack(self, kind: Kind, body: dict, task: str, attempt: int) -> bytes:
         self._ids += 1
         return pack(kind, body, id=f"{ORCH}:{self._ids}", sender=ORCH, t_lab=self.now,
                     campaign=self.campaign_id, task=task, attempt=attempt)
+
+    def note(self, kind: str, experiment: int | None = None, task: str | None = None, attempt: int | None = None,
+             device: str | None = None, detail: Any = None) -> None:
+        """A state change: journalled, and published as a decision for any observer on the bus."""
+        self.journal.event(self.now, kind, experiment, task, attempt, device, detail)
+        body = {"what": kind, "detail": {"experiment": experiment, "task": task, "attempt": attempt,
+                                         "device": device, "info": detail}}
+        self.bus.publish(self._decisions, self._pack(Kind.DECISION, body, task or "", attempt or 0))
+
+    _note = note
 
     # -- events from devices ---------------------------------------------
     def _on_event(self, key: str, payload: bytes) -> None:
@@ -230,23 +253,23 @@ class Orchestrator:
         except InvalidMessage as exc:
             self.counts["invalid"] += 1
             log.warning("dropped: %s", exc)
-            self.journal.event(self.now, "message.invalid", device=exc.sender, detail=exc.reason)
+            self._note("message.invalid", device=exc.sender, detail=exc.reason)
             return
         att = self.attempts.get((env.task, env.attempt))
         exp = att.task.experiment.id if att else None
-        self.journal.event(self.now, f"msg.{env.kind}", exp, env.task, env.attempt, env.sender, detail=payload.decode())
+        self.journal.message(self.now, f"msg.{env.kind}", exp, env.task, env.attempt, env.sender, payload)
         if att is None or att.device != env.sender:
             self.counts["late"] += 1
-            self.journal.event(self.now, "message.unknown_attempt", exp, env.task, env.attempt, env.sender)
+            self._note("message.unknown_attempt", exp, env.task, env.attempt, env.sender)
             return
         if att.resolved:
             if env.kind in (Kind.RESULT, Kind.FAULT):
                 self.counts["late"] += 1
-                self.journal.event(self.now, "result.late", exp, env.task, env.attempt, env.sender, detail=env.kind)
+                self._note("result.late", exp, env.task, env.attempt, env.sender, detail=env.kind)
             return
         if env.kind == Kind.ACCEPTED:
             att.t_accepted = self.now
-            self.journal.event(self.now, "attempt.running", exp, env.task, env.attempt, env.sender)
+            self._note("attempt.running", exp, env.task, env.attempt, env.sender)
         elif env.kind == Kind.RESULT:
             self._resolve(att, "ok", body.model_dump())
         elif env.kind == Kind.FAULT:
@@ -259,16 +282,16 @@ class Orchestrator:
             env, body = decode(payload, sender_hint=keys.device_of(key))
         except InvalidMessage as exc:
             self.counts["invalid"] += 1
-            self.journal.event(self.now, "message.invalid", device=exc.sender, detail=exc.reason)
+            self._note("message.invalid", device=exc.sender, detail=exc.reason)
             return
-        self.journal.event(self.now, "msg.telemetry", task=env.task or None, device=env.sender, detail=payload.decode())
+        self.journal.message(self.now, "msg.telemetry", None, env.task or None, env.attempt, env.sender, payload)
 
     def _on_presence(self, key: str, alive: bool) -> None:
         dev = self.devices.get(keys.device_of(key))
         if dev is None or dev.online == alive:
             return
         dev.online = alive
-        self.journal.event(self.now, "device.online" if alive else "device.lost", device=dev.name)
+        self._note("device.online" if alive else "device.lost", device=dev.name)
         if not alive and dev.attempt is not None:
             self.counts["device_lost"] += 1
             self._resolve(dev.attempt, "device_lost", {"reason": f"{dev.name} left the bus (liveliness lost)"})
@@ -284,7 +307,7 @@ class Orchestrator:
         dev, task, e = self.devices[att.device], att.task, att.task.experiment
         dev.attempt = None
         dev.busy_s += self.now - att.t_sent
-        self.journal.event(self.now, f"attempt.{'done' if code == 'ok' else 'failed'}", e.id, task.id, att.n, dev.name,
+        self._note(f"attempt.{'done' if code == 'ok' else 'failed'}", e.id, task.id, att.n, dev.name,
                            detail=None if code == "ok" else {"code": code, **body})
         if code == "timed_out":
             self.counts["timed_out"] += 1
@@ -328,7 +351,7 @@ class Orchestrator:
             backoff *= 1 + retry.jitter * (2 * self._rng.random() - 1)
             e.retries += 1
             self.counts["retried"] += 1
-            self.journal.event(self.now, "task.retry", e.id, task.id, task.attempts, dev.name, detail={"backoff_s": backoff, "after": code})
+            self._note("task.retry", e.id, task.id, task.attempts, dev.name, detail={"backoff_s": backoff, "after": code})
             self.clock.call_later(backoff, lambda: self._make_ready(e, task) if not self.stopping else None)
         else:
             why = f"step {task.step.step!r} failed {task.attempts} time(s); last: {code} on {dev.name}: {reason}"
@@ -338,11 +361,11 @@ class Orchestrator:
         dev.quarantined = True
         self.counts["quarantined"] += 1
         probe = self.s.orchestrator.probe_after_s
-        self.journal.event(self.now, "device.quarantined", device=dev.name, detail={"probe_after_s": probe})
+        self._note("device.quarantined", device=dev.name, detail={"probe_after_s": probe})
 
         def release() -> None:
             dev.quarantined = False
-            self.journal.event(self.now, "device.probe", device=dev.name)
+            self._note("device.probe", device=dev.name)
             self._wake.set()
 
         self.clock.call_later(probe, release)
@@ -357,11 +380,12 @@ class Orchestrator:
                     self.best[name] = (sc, e.id)
                 if sc == 0 and name not in self.met_at:
                     self.met_at[name] = self.now - self._t0
-                    self.journal.event(self.now, "target.met", e.id, detail=name)
+                    self._note("target.met", e.id, detail=name)
             self.counts["degraded"] += e.degraded
         self.history.append(Outcome(e.params, e.outputs if status == "done" else None,
                                     min(e.scores.values()) if e.scores else None, reason))
-        self.journal.event(self.now, f"experiment.{status}", e.id, detail=reason or e.outputs)
+        numeric = {k: v for k, v in e.outputs.items() if isinstance(v, (int, float))}
+        self._note(f"experiment.{status}", e.id, detail={"reason": reason, "outputs": numeric, "scores": e.scores})
         self.journal.experiment(e)
         if not self.clock.is_virtual:
             self.journal.flush()  # live runs: a finished experiment is on disk at once
@@ -377,7 +401,7 @@ class Orchestrator:
                 dev.busy_s += self.now - att.t_sent
                 dev.attempt = None
                 self.bus.publish(keys.cmd(self.s.lab, dev.name), self._pack(Kind.CANCEL, {"reason": "campaign stopped"}, att.task.id, att.n))
-                self.journal.event(self.now, "attempt.cancelled", att.task.experiment.id, att.task.id, att.n, dev.name, detail=self.stopping)
+                self._note("attempt.cancelled", att.task.experiment.id, att.task.id, att.n, dev.name, detail=self.stopping)
         for e in self.active.values():
             if e.status == "running":
                 e.status = "pending"
