@@ -1,11 +1,7 @@
-import os
+import pytest
 
-os.environ.setdefault("RERUN", "off")
-
-import pytest  # noqa: E402
-
-from twin.bus import open_bus  # noqa: E402
-from twin.clock import LabClock  # noqa: E402
+from twin.bus import open_bus
+from twin.clock import LabClock
 
 
 @pytest.fixture

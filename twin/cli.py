@@ -17,6 +17,9 @@ from twin.journal import read_run
 from twin.report import render_summary
 from twin.scenario import json_schema, load
 from twin.summary import Summary
+from twin.watch import RecordOptions, open_observer
+from twin.watch import replay as replay_journal
+from twin.watch import watch as watch_lab
 
 app = typer.Typer(help="labtwin: a digital twin of a self-driving lab.", no_args_is_help=True,
                   pretty_exceptions_enable=False, add_completion=False)
@@ -41,14 +44,29 @@ def run(
     budget: Annotated[Optional[int], typer.Option(help="override campaign.budget")] = None,
     journal: Annotated[Optional[Path], typer.Option(help="where to write the SQLite journal")] = None,
     external: Annotated[Optional[list[str]], typer.Option(help="a device served by another process")] = None,
+    listen: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447")] = None,
+    save: Annotated[Optional[Path], typer.Option(help="save a Rerun recording, e.g. run.rrd")] = None,
+    viewer: Annotated[bool, typer.Option(help="open the Rerun viewer and stream live")] = False,
+    serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1 (URL printed)")] = False,
+    serve_port: Annotated[int, typer.Option(help="gRPC port for --serve (0: any free one)")] = 0,
+    web_port: Annotated[int, typer.Option(help="web viewer port for --serve (0: any free one)")] = 0,
     quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
 ) -> None:
     """Run a campaign and print its summary."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    overrides = {"campaign.budget": budget} if budget is not None else {}
+    overrides: dict = {"campaign.budget": budget} if budget is not None else {}
+    if listen:
+        overrides["bus.listen"] = list(listen)
+    record = RecordOptions(save, viewer, serve, serve_port, web_port)
+    recording = None
     try:
         s = lab.prepare(scenario, seed=seed, clock=clock, speed=speed, bus=bus, overrides=overrides)
+        observer = None
+        if record.wanted:
+            observer, recording = open_observer(record, lab.recording_id(s))
+            for message in recording.messages:
+                err.print(message, highlight=False)
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                             TextColumn("lab {task.fields[lab_h]:.1f} h"), TimeElapsedColumn(),
                             console=err, disable=quiet or json_out, transient=False)
@@ -60,13 +78,77 @@ def run(
                 finished = sum(1 for e in orch.experiments if e.status in ("done", "abandoned"))
                 progress.update(bar, completed=finished, lab_h=orch.elapsed_s / 3600)
 
-            summary = lab.run(s, journal=journal, external_devices=set(external or ()), on_progress=on_progress)
+            summary = lab.run(s, journal=journal, external_devices=set(external or ()), on_progress=on_progress,
+                              observer=observer)
     except TwinError as exc:
+        if recording is not None:
+            recording.stop_serving()
         _fail(exc)
     if json_out:
         print(json.dumps(summary.to_dict(), indent=2))
     else:
         render_summary(summary, console)
+    if recording is not None:
+        recording.close()
+        if save:
+            err.print(f"recording saved: {save}  (open it with: rerun {save})", highlight=False)
+        _keep_serving(recording)
+
+
+def _keep_serving(recording) -> None:
+    """--serve: the recording stays up until Ctrl-C, so it can be looked at after the run."""
+    if recording.server is None:
+        return
+    err.print(f"the finished campaign is served at {recording.url} — Ctrl-C to stop", highlight=False)
+    try:
+        recording.server.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        recording.stop_serving()
+
+
+@app.command()
+def watch(
+    lab_name: Annotated[str, typer.Option("--lab", help="the lab to watch (the scenario's `lab` field)")],
+    connect: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")] = None,
+    listen: Annotated[Optional[list[str]], typer.Option(help="listen instead, for a lab that connects to us")] = None,
+    save: Annotated[Optional[Path], typer.Option(help="save the recording, e.g. watch.rrd")] = None,
+    viewer: Annotated[bool, typer.Option(help="open the Rerun viewer")] = False,
+    serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,
+    follow: Annotated[bool, typer.Option(help="keep watching after the campaign ends")] = False,
+) -> None:
+    """Attach to a lab running in another process and record what it does."""
+    if not (connect or listen):
+        _fail(TwinError("give --connect ENDPOINT (where the lab listens: twin run --listen ...) or --listen ENDPOINT"))
+    record = RecordOptions(save, viewer, serve)
+    if not record.wanted:
+        _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
+    try:
+        observer = watch_lab(lab_name, record, list(connect or []), list(listen or []), follow)
+    except TwinError as exc:
+        _fail(exc)
+    err.print(f"recorded {observer.spectra} spectra, {observer.finished} finished experiments"
+              + (f" to {save}" if save else ""), highlight=False)
+
+
+@app.command()
+def replay(
+    journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<run>.db")],
+    save: Annotated[Optional[Path], typer.Option(help="save the rebuilt recording, e.g. replay.rrd")] = None,
+    viewer: Annotated[bool, typer.Option(help="open the Rerun viewer")] = False,
+    serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,
+) -> None:
+    """Rebuild a run's Rerun recording from its journal alone."""
+    record = RecordOptions(save, viewer, serve)
+    if not record.wanted:
+        _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
+    try:
+        observer = replay_journal(journal, record)
+    except TwinError as exc:
+        _fail(exc)
+    err.print(f"replayed {observer.spectra} spectra, {observer.finished} finished experiments"
+              + (f" to {save}" if save else ""), highlight=False)
 
 
 @app.command()

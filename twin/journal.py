@@ -41,9 +41,10 @@ class Journal:
         self._seq = 0
 
     def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
-              attempt: int | None = None, device: str | None = None, detail: Any = None) -> None:
-        """A state change; ``detail`` is stored as JSON."""
+              attempt: int | None = None, device: str | None = None, detail: Any = None) -> int:
+        """A state change; ``detail`` is stored as JSON. Returns the event's sequence number."""
         self._append(t_lab, kind, experiment, task, attempt, device, None if detail is None else json.dumps(detail))
+        return self._seq
 
     def message(self, t_lab: float, kind: str, experiment: int | None, task: str | None, attempt: int | None,
                 device: str | None, payload: bytes) -> None:
@@ -79,6 +80,12 @@ class Journal:
             self._experiments.clear()
         self._db.commit()
 
+    def rows(self) -> list[dict[str, Any]]:
+        """The events written so far (flush first), as ``read_events`` returns them."""
+        cur = self._db.execute("SELECT * FROM events ORDER BY seq")
+        names = [c[0] for c in cur.description]
+        return [dict(zip(names, r)) for r in cur]
+
     def close(self) -> None:
         self.flush()
         self._db.close()
@@ -100,3 +107,22 @@ def read_events(path: str | Path, kind_like: str = "%") -> list[dict[str, Any]]:
         db.row_factory = sqlite3.Row
         rows = db.execute("SELECT * FROM events WHERE kind LIKE ? ORDER BY seq", (kind_like,))
         return [dict(r) for r in rows]
+
+
+def decision_id(seq: int) -> str:
+    """The id of the decision message published with journal event ``seq``."""
+    return f"orchestrator:j{seq}"
+
+
+def decision_payload(row: dict[str, Any]) -> str:
+    """The decision message a state-change row was published as, rebuilt from the row."""
+    detail = {"experiment": row["experiment"], "task": row["task"], "attempt": row["attempt"],
+              "device": row["device"], "info": json.loads(row["detail"]) if row["detail"] else None}
+    return json.dumps({"v": 1, "kind": "decision", "id": decision_id(row["seq"]), "campaign": "",
+                       "task": row["task"] or "", "attempt": row["attempt"] or 0, "sender": "orchestrator",
+                       "t_lab": row["t_lab"], "body": {"what": row["kind"], "detail": detail}})
+
+
+def as_messages(rows: list[dict[str, Any]]) -> list[str]:
+    """The bus messages a run's events stand for, in journal order: what an observer saw."""
+    return [r["detail"] if r["kind"].startswith("msg.") else decision_payload(r) for r in rows]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import signal
 import time
 from collections.abc import Callable
@@ -19,7 +20,11 @@ from twin.errors import ClockError, DriverError
 from twin.journal import Journal
 from twin.orchestrator import Orchestrator
 from twin.scenario import Scenario, load
+from twin.observer import LabObserver
 from twin.summary import Summary, from_orchestrator
+from twin.watch import RecordOptions, attach, open_observer
+
+log = logging.getLogger(__name__)
 
 
 def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: str | None = None,
@@ -104,21 +109,39 @@ def default_journal(s: Scenario) -> Path:
 
 def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         external_devices: set[str] = frozenset(),
-        on_progress: Callable[[Orchestrator], None] | None = None, **overrides: Any) -> Summary:
+        on_progress: Callable[[Orchestrator], None] | None = None,
+        record: RecordOptions | None = None, observer: LabObserver | None = None, **overrides: Any) -> Summary:
     """Run one campaign to its end and return its summary.
 
     ``overrides`` are ``seed``, ``clock``, ``speed``, ``bus`` or ``overrides``
     (a dict of dotted scenario paths). ``external_devices`` are device
-    instances served by other processes (``twin device serve``).
+    instances served by other processes (``twin device serve``). ``record``
+    saves, shows or serves a Rerun recording of the campaign; ``observer``
+    is an observer the caller opened (and closes) itself.
     """
     s = prepare(scenario, **overrides)
     clock = make_clock(s)
-    return clock.run(run_async(s, clock, journal or default_journal(s), external_devices, on_progress))
+    recording = None
+    if record is not None and record.wanted and observer is None:
+        observer, recording = open_observer(record, recording_id(s))
+        for message in recording.messages:
+            log.warning("%s", message)
+    try:
+        return clock.run(run_async(s, clock, journal or default_journal(s), external_devices, on_progress, observer))
+    finally:
+        if recording is not None:
+            recording.close()
+            recording.stop_serving()
+
+
+def recording_id(s: Scenario) -> str:
+    return f"{s.name}-seed{s.campaign.seed}"
 
 
 async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
                     external_devices: set[str] = frozenset(),
-                    on_progress: Callable[[Orchestrator], None] | None = None) -> Summary:
+                    on_progress: Callable[[Orchestrator], None] | None = None,
+                    observer: LabObserver | None = None) -> Summary:
     if external_devices and clock.is_virtual:
         raise ClockError(
             f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
@@ -130,6 +153,7 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
     bus = make_bus(s, clock)
     await bus.start()
     actors = build_actors(s, drivers, bus, clock)
+    watching = attach(bus, s.lab, observer.on_message) if observer is not None else []
     journal = Journal(journal_path)
     journal.set("scenario", s.model_dump())
     journal.set("seed", s.campaign.seed)
@@ -153,5 +177,18 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         orch.note("campaign.summary", detail=lab_only)  # wall-clock facts stay out of the event stream
         journal.set("summary", summary.to_dict())
         journal.close()
+        if observer is not None:
+            await _until(clock, lambda: observer.done)
+            for h in watching:
+                h.close()
         await bus.close()
     return summary
+
+
+async def _until(clock: LabClock, done: Callable[[], bool], wall_s: float = 2.0) -> None:
+    """Let the bus deliver what is in flight to a local observer, up to ``wall_s`` of wall time."""
+    step = 0.01 * (1.0 if clock.is_virtual else clock.speed)
+    for _ in range(int(wall_s / 0.01)):
+        if done():
+            return
+        await clock.sleep(step)

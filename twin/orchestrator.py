@@ -11,6 +11,7 @@ every state change goes to the journal, in lab time.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import random
 from collections.abc import Callable
@@ -21,7 +22,7 @@ from twin.bus import Bus
 from twin.clock import LabClock
 from twin.decisions import Assignment, FreeDevice, LabView, Outcome, Planner, Proposal, ReadyStep, RouteStep, Scheduler
 from twin.driver import expected_duration
-from twin.journal import Journal
+from twin.journal import Journal, as_messages, decision_id
 from twin.messages import InvalidMessage, Kind, decode, pack
 from twin.records import Attempt, Device, Experiment, Task, check_accounting
 from twin.scenario import Scenario
@@ -64,6 +65,7 @@ class Orchestrator:
         lab = self.s.lab
         self._t0 = self.clock.now()
         self._handles = [
+            self.bus.serve(keys.campaign(lab, self.campaign_id, "history"), self._history),
             self.bus.subscribe(keys.evt(lab), self._on_event),
             self.bus.subscribe(keys.telemetry(lab), self._on_telemetry),
             self.bus.watch_tokens(keys.alive(lab), self._on_presence),
@@ -93,6 +95,12 @@ class Orchestrator:
             "parameters": {k: [p.low, p.high, p.unit] for k, p in s.chemistry.parameters.items()},
             "targets": [t.model_dump(exclude_none=True) for t in s.chemistry.targets],
         }
+
+    async def _history(self, key: str, payload: bytes) -> bytes:
+        """Everything observed so far, for a watcher that joins late (``twin watch``)."""
+        self.journal.flush()
+        rows = self.journal.rows()
+        return json.dumps(as_messages(rows)).encode()
 
     def stop(self, reason: str) -> None:
         """Stop proposing and dispatching; what is in the lab is cancelled, the rest stays pending."""
@@ -239,10 +247,11 @@ class Orchestrator:
     def note(self, kind: str, experiment: int | None = None, task: str | None = None, attempt: int | None = None,
              device: str | None = None, detail: Any = None) -> None:
         """A state change: journalled, and published as a decision for any observer on the bus."""
-        self.journal.event(self.now, kind, experiment, task, attempt, device, detail)
+        seq = self.journal.event(self.now, kind, experiment, task, attempt, device, detail)
         body = {"what": kind, "detail": {"experiment": experiment, "task": task, "attempt": attempt,
                                          "device": device, "info": detail}}
-        self.bus.publish(self._decisions, self._pack(Kind.DECISION, body, task or "", attempt or 0))
+        self.bus.publish(self._decisions, pack(Kind.DECISION, body, id=decision_id(seq), sender=ORCH, t_lab=self.now,
+                                               campaign=self.campaign_id, task=task or "", attempt=attempt or 0))
 
     _note = note
 

@@ -1,0 +1,124 @@
+"""A campaign recorded to Rerun, read back with RrdReader, equals its journal; a replay equals the live run."""
+
+import json
+import math
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.rrd import read_rrd, series
+from twin.journal import read_events, read_experiments
+from twin.lab import run
+from twin.watch import RecordOptions
+
+ROOT = Path(__file__).resolve().parents[2]
+TWIN = [sys.executable, "-m", "twin"]
+
+
+@pytest.fixture(scope="module")
+def live(tmp_path_factory):
+    d = tmp_path_factory.mktemp("rec")
+    summary = run(ROOT / "scenarios" / "flaky_lab.yaml", journal=d / "j.db", seed=5,
+                  overrides={"campaign.budget": 16}, record=RecordOptions(save=d / "live.rrd"))
+    return d, summary, read_rrd(d / "live.rrd")
+
+
+def measurements(db):
+    return [e for e in read_events(db, "msg.result") if "spectrum" in json.loads(e["detail"])["body"]["outputs"]]
+
+
+def test_the_recording_has_every_panel(live):
+    d, summary, rrd = live
+    for device in summary.utilisation:
+        assert f"devices/{device}" in rrd
+        assert f"utilisation/{device}" in rrd
+    for path in ("objective/best", "objective/score", "spectra/measurement", "queue/ready_steps",
+                 "queue/waiting_samples", "queue/oldest_sample_age_h", "planner/proposals", "log", "summary",
+                 "telemetry/reactor-1/temperature_k", "telemetry/reactor-1/setpoint_k"):
+        assert path in rrd, path
+    states = {r["StateChange:state"][0] for dev in summary.utilisation for r in rrd[f"devices/{dev}"]
+              if "StateChange:state" in r}
+    assert {"idle", "busy", "failed", "offline"} <= states
+
+
+def test_one_spectrum_per_measurement_at_the_same_lab_times(live):
+    d, _, rrd = live
+    journal = measurements(d / "j.db")
+    spectra = rrd["spectra/measurement"]
+    assert len(spectra) == len(journal) > 0
+    sent = sorted(json.loads(e["detail"])["t_lab"] for e in journal)
+    assert [r["lab_time"] for r in spectra] == pytest.approx(sent, abs=1e-6)
+    assert len(spectra[0]["LineStrips2D:strips"][0]) == 176
+
+
+def test_best_so_far_is_monotone_and_ends_at_the_journals_best(live):
+    d, _, rrd = live
+    best = [v for _, v in series(rrd["objective/best"])]
+    assert best == sorted(best, reverse=True)
+    scores = [min(json.loads(e["scores"]).values()) for e in read_experiments(d / "j.db") if e["scores"]]
+    assert best[-1] == pytest.approx(min(scores))
+
+
+def test_fault_log_matches_the_journals_faults(live):
+    d, _, rrd = live
+    faults = read_events(d / "j.db", "attempt.failed")
+    logged = [r for r in rrd["log"] if r["TextLog:text"][0].startswith("attempt.failed")]
+    assert len(logged) == len(faults) > 0
+    assert {r["TextLog:level"][0] for r in logged} == {"WARN"}
+    assert sorted(r["lab_time"] for r in logged) == pytest.approx(sorted(f["t_lab"] for f in faults), abs=1e-6)
+    lost = read_events(d / "j.db", "device.lost")
+    assert len([r for r in rrd["log"] if r["TextLog:text"][0].startswith("device.lost")]) == len(lost)
+
+
+def test_the_summary_document_is_the_runs_summary(live):
+    _, summary, rrd = live
+    text = rrd["summary"][0]["TextDocument:text"][0]
+    assert f"{summary.done} done" in text and f"{summary.lab_hours:.2f} h" in text
+
+
+def test_replay_from_the_journal_equals_the_live_recording(live):
+    d, _, rrd = live
+    res = subprocess.run([*TWIN, "replay", str(d / "j.db"), "--save", str(d / "replay.rrd")],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.returncode == 0, res.stderr
+    replayed = read_rrd(d / "replay.rrd")
+    assert set(replayed) - {"__properties"} == set(rrd) - {"__properties"}
+    for path in rrd:
+        if path != "__properties":
+            assert replayed[path] == rrd[path], path
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.process
+def test_twin_watch_in_another_process_records_the_campaign(tmp_path):
+    port = free_port()
+    db = tmp_path / "j.db"
+    campaign = subprocess.Popen(
+        [*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "12", "--clock", "scaled", "--speed", "3000",
+         "--listen", f"tcp/127.0.0.1:{port}", "--journal", str(db), "--quiet"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    watcher = subprocess.Popen(
+        [*TWIN, "watch", "--lab", "qd", "--connect", f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        out, err = campaign.communicate(timeout=120)
+        assert campaign.returncode == 0, err
+        wout, werr = watcher.communicate(timeout=60)
+        assert watcher.returncode == 0, werr
+    finally:
+        campaign.kill()
+        watcher.kill()
+    rrd = read_rrd(tmp_path / "w.rrd")
+    assert len(rrd["spectra/measurement"]) == len(measurements(db)) == 12
+    assert "summary" in rrd and "12 done" in rrd["summary"][0]["TextDocument:text"][0]
+    best = [v for _, v in series(rrd["objective/best"])]
+    assert len(best) == 12 and best == sorted(best, reverse=True)
+    assert all(math.isfinite(v) for v in best)

@@ -1,0 +1,242 @@
+"""From the lab's messages to what a person watches: device states, queue, spectra, objective, log.
+
+The observer sees only what any bus subscriber sees — device events and
+telemetry, and the orchestrator's decisions — so the same code serves a
+recorder in the campaign's process, ``twin watch`` in another one, and
+``twin replay`` reading the journal. It draws on a ``Canvas`` (the Rerun
+recorder implements it) and imports nothing of Rerun itself.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any, Protocol
+
+LEVELS = ("DEBUG", "INFO", "WARN", "ERROR")
+#: A device's states, in the order the viewer lists them.
+STATES = ("offline", "idle", "failed", "quarantined", "busy")
+WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",
+              "message.unknown_attempt", "devices.missing", "campaign.stopping", "attempt.cancelled"}
+ERROR_KINDS = {"device.quarantined", "device.lost", "experiment.abandoned"}
+
+
+class Canvas(Protocol):
+    def scalar(self, path: str, t: float, value: float, seq: int | None = None) -> None: ...
+
+    def state(self, path: str, t: float, state: str) -> None: ...
+
+    def text(self, path: str, t: float, text: str, level: str) -> None: ...
+
+    def line(self, path: str, t: float, points: list[tuple[float, float]], seq: int | None = None) -> None: ...
+
+    def points(self, path: str, t: float, points: list[tuple[float, ...]], seq: int | None = None) -> None: ...
+
+    def document(self, path: str, markdown: str) -> None: ...
+
+
+def _experiment_of(task: str | None) -> int | None:
+    if task and task.startswith("e") and "s" in task:
+        try:
+            return int(task[1:].split("s")[0])
+        except ValueError:
+            return None
+    return None
+
+
+class LabObserver:
+    def __init__(self, canvas: Canvas, dedupe: bool = False) -> None:
+        self.c = canvas
+        self.info: dict[str, Any] = {}
+        self.state: dict[str, str] = {}
+        self.busy_since: dict[str, float] = {}
+        self.busy_total: dict[str, float] = {}
+        self.ready: dict[str, float | None] = {}
+        self.best = math.inf
+        self.best_by_target: dict[str, float] = {}
+        self.finished = 0
+        self.t0: float | None = None
+        self.spectra = 0
+        self.done = False
+        self._seen: set[str] | None = set() if dedupe else None
+
+    # -- input ------------------------------------------------------------
+    def on_message(self, key: str, payload: bytes | str) -> None:
+        try:
+            env = json.loads(payload)
+            kind, t = env["kind"], float(env["t_lab"])
+        except (ValueError, KeyError, TypeError):
+            return  # the orchestrator logs invalid messages; a watcher just skips them
+        if self._seen is not None:
+            if env.get("id") in self._seen:
+                return
+            self._seen.add(env.get("id"))
+        if self.t0 is None:
+            self.t0 = t
+        if kind == "decision":
+            body = env.get("body", {})
+            self.on_decision(t, body.get("what", ""), body.get("detail", {}))
+        elif kind == "telemetry":
+            for name, value in env.get("body", {}).get("readings", {}).items():
+                self.c.scalar(f"telemetry/{env['sender']}/{name}", t, float(value))
+        elif kind == "result":
+            self._spectrum(t, env)
+
+    def on_decision(self, t: float, what: str, d: dict[str, Any]) -> None:
+        info, device, task = d.get("info"), d.get("device"), d.get("task")
+        handler = getattr(self, "_" + what.replace(".", "_"), None)
+        if handler is not None:
+            handler(t, d, info)
+        level = "ERROR" if what in ERROR_KINDS else "WARN" if what in WARN_KINDS else "DEBUG" if what in (
+            "task.ready", "attempt.dispatched", "attempt.running", "attempt.done") else "INFO"
+        if what not in ("campaign.summary", "campaign.started"):
+            where = " ".join(x for x in (task or "", f"#{d['attempt']}" if d.get("attempt") else "",
+                                         f"on {device}" if device else "") if x)
+            self.c.text("log", t, f"{what} {where}{self._describe(info)}", level)
+
+    @staticmethod
+    def _describe(info: Any) -> str:
+        if info is None:
+            return ""
+        if isinstance(info, dict):
+            info = {k: v for k, v in info.items() if k not in ("outputs", "scores") or v}
+            text = ", ".join(f"{k}={v}" for k, v in info.items() if v not in (None, "", {}))
+            return f": {text}" if text else ""
+        return f": {info}"
+
+    # -- decisions ----------------------------------------------------------
+    def _campaign_started(self, t: float, d: dict, info: dict) -> None:
+        self.info = info or {}
+        for name in self.info.get("devices", {}):
+            self._set_state(t, name, "offline")
+        lines = []
+        for target in self.info.get("targets", []):
+            cond = target.get("outputs", {}).get("peak_nm")
+            if cond and cond.get("value") is not None:
+                lines.append(cond["value"])
+        for i, nm in enumerate(lines):
+            self.c.line(f"spectra/targets/{i}", t, [(nm, 0.0), (nm, 1.2)])
+        self.c.text("log", t, f"campaign {self.info.get('scenario', '?')} started: "
+                    f"{len(self.info.get('devices', {}))} devices, budget {self.info.get('budget')}", "INFO")
+
+    def _experiment_proposed(self, t: float, d: dict, params: dict) -> None:
+        box = self.info.get("parameters", {})
+        coords = []
+        for name, value in list((params or {}).items())[:3]:
+            lo, hi = (box.get(name) or [0.0, 1.0])[:2]
+            coords.append((float(value) - lo) / (hi - lo) if hi > lo else float(value))
+        coords += [0.0] * (3 - len(coords))
+        self.c.points("planner/proposals", t, [tuple(coords)], seq=d.get("experiment"))
+
+    def _task_ready(self, t: float, d: dict, info: dict) -> None:
+        self.ready[d["task"]] = (info or {}).get("sample_made")
+        self._queue(t)
+
+    def _attempt_dispatched(self, t: float, d: dict, info: Any) -> None:
+        self.ready.pop(d["task"], None)
+        self._queue(t)
+        self._set_state(t, d["device"], "busy")
+
+    def _attempt_done(self, t: float, d: dict, info: Any) -> None:
+        self._set_state(t, d["device"], "idle")
+
+    def _attempt_failed(self, t: float, d: dict, info: Any) -> None:
+        self._set_state(t, d["device"], "failed")
+
+    def _attempt_cancelled(self, t: float, d: dict, info: Any) -> None:
+        self._set_state(t, d["device"], "idle")
+
+    def _device_quarantined(self, t: float, d: dict, info: Any) -> None:
+        self._set_state(t, d["device"], "quarantined")
+
+    def _device_probe(self, t: float, d: dict, info: Any) -> None:
+        self._set_state(t, d["device"], "idle" if self.state.get(d["device"]) != "offline" else "offline")
+
+    def _device_online(self, t: float, d: dict, info: Any) -> None:
+        self._set_state(t, d["device"], "idle")
+
+    def _device_lost(self, t: float, d: dict, info: Any) -> None:
+        self._set_state(t, d["device"], "offline")
+
+    def _experiment_done(self, t: float, d: dict, info: dict) -> None:
+        self.finished += 1
+        seq = d.get("experiment")
+        scores = (info or {}).get("scores") or {}
+        finite = [s for s in scores.values() if s is not None and math.isfinite(s)]
+        if finite:
+            score = min(finite)
+            self.best = min(self.best, score)
+            self.c.scalar("objective/score", t, score, seq=seq)
+            self.c.scalar("objective/best", t, self.best, seq=seq)
+        for name, s in scores.items():
+            if s is None or not math.isfinite(s):
+                continue
+            self.best_by_target[name] = min(self.best_by_target.get(name, math.inf), s)
+            self.c.scalar(f"objective/targets/{name}/score", t, s, seq=seq)
+            self.c.scalar(f"objective/targets/{name}/best", t, self.best_by_target[name], seq=seq)
+        for name, value in ((info or {}).get("outputs") or {}).items():
+            self.c.scalar(f"objective/outputs/{name}", t, float(value), seq=seq)
+        self.c.scalar("campaign/finished", t, float(self.finished), seq=seq)
+
+    def _experiment_abandoned(self, t: float, d: dict, info: Any) -> None:
+        self.finished += 1
+        self.c.scalar("campaign/finished", t, float(self.finished), seq=d.get("experiment"))
+
+    def _campaign_summary(self, t: float, d: dict, summary: dict) -> None:
+        self.done = True
+        self.c.document("summary", summary_markdown(summary or {}))
+
+    # -- derived series -----------------------------------------------------
+    def _set_state(self, t: float, device: str | None, state: str) -> None:
+        if not device:
+            return
+        was = self.state.get(device)
+        if was == "busy":
+            self.busy_total[device] = self.busy_total.get(device, 0.0) + t - self.busy_since.pop(device, t)
+        if state == "busy":
+            self.busy_since[device] = t
+        self.state[device] = state
+        self.c.state(f"devices/{device}", t, state)
+        elapsed = t - (self.t0 or 0.0)
+        if elapsed > 0:
+            self.c.scalar(f"utilisation/{device}", t, self.busy_total.get(device, 0.0) / elapsed)
+
+    def _queue(self, t: float) -> None:
+        made = [m for m in self.ready.values() if m is not None]
+        self.c.scalar("queue/ready_steps", t, float(len(self.ready)))
+        self.c.scalar("queue/waiting_samples", t, float(len(made)))
+        self.c.scalar("queue/oldest_sample_age_h", t, (t - min(made)) / 3600 if made else 0.0)
+
+    def _spectrum(self, t: float, env: dict) -> None:
+        outputs = env.get("body", {}).get("outputs") or {}
+        spec = outputs.get("spectrum")
+        if not isinstance(spec, dict) or "y" not in spec:
+            return
+        start, step = float(spec.get("start_nm", 0.0)), float(spec.get("step_nm", 1.0))
+        seq = _experiment_of(env.get("task"))
+        self.spectra += 1
+        self.c.line("spectra/measurement", t, [(start + i * step, float(y)) for i, y in enumerate(spec["y"])], seq=seq)
+        if isinstance(outputs.get("peak_nm"), (int, float)) and isinstance(outputs.get("intensity"), (int, float)):
+            self.c.points("spectra/peak", t, [(float(outputs["peak_nm"]), float(outputs["intensity"]))], seq=seq)
+
+
+def summary_markdown(s: dict[str, Any]) -> str:
+    lines = [f"# {s.get('scenario', 'campaign')} — seed {s.get('seed', '?')}", "", "| | |", "|---|---|",
+             f"| experiments | {s.get('done')} done, {s.get('abandoned')} abandoned, {s.get('pending')} pending "
+             f"(of {s.get('proposed')}) |",
+             f"| attempts | {s.get('attempts')} ({s.get('failed_attempts')} failed, {s.get('retried')} retried, "
+             f"{s.get('timed_out')} timed out) |",
+             f"| faults | {s.get('devices_lost')} device losses, {s.get('quarantines')} quarantines |",
+             f"| samples degraded | {s.get('degraded_samples')} |",
+             f"| lab time | {s.get('lab_hours', 0):.2f} h |"]
+    for dev, u in (s.get("utilisation") or {}).items():
+        lines.append(f"| {dev} | {100 * u:.1f} % busy |")
+    for name, b in (s.get("best") or {}).items():
+        met = (s.get("targets_met_h") or {}).get(name)
+        status = f"met at {met:.2f} lab-h" if met is not None else f"best score {b.get('score')}"
+        lines.append(f"| target {name} | {status} (experiment {b.get('experiment')}) |")
+    for reason, n in (s.get("abandoned_reasons") or {}).items():
+        lines.append(f"| abandoned | {n} × {reason} |")
+    if s.get("stopped"):
+        lines.append(f"| stopped | {s['stopped']} |")
+    return "\n".join(lines)
