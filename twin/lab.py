@@ -162,11 +162,14 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
     for sig, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, orch.stop, f"interrupted ({name})")
+    flusher = asyncio.ensure_future(_flush_live(clock, observer)) if observer and not clock.is_virtual else None
     try:
         for actor in actors:
             await actor.start()
         await orch.run()
     finally:
+        if flusher is not None:
+            flusher.cancel()
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                 loop.remove_signal_handler(sig)
@@ -175,6 +178,7 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         summary = from_orchestrator(orch, str(journal_path), time.perf_counter() - wall0, journal._seq + 1)
         lab_only = {k: v for k, v in summary.to_dict().items() if k not in ("wall_s", "journal")}
         orch.note("campaign.summary", detail=lab_only)  # wall-clock facts stay out of the event stream
+        orch.publish_decisions()
         journal.set("summary", summary.to_dict())
         journal.close()
         if observer is not None:
@@ -192,3 +196,10 @@ async def _until(clock: LabClock, done: Callable[[], bool], wall_s: float = 2.0)
         if done():
             return
         await clock.sleep(step)
+
+
+async def _flush_live(clock: LabClock, observer: LabObserver, wall_s: float = 0.25) -> None:
+    """A live viewer sees the campaign at most ``wall_s`` late."""
+    while True:
+        await clock.sleep(wall_s * clock.speed)
+        observer.c.flush()

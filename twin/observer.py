@@ -19,6 +19,9 @@ STATES = ("offline", "idle", "failed", "quarantined", "busy")
 WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",
               "message.unknown_attempt", "devices.missing", "campaign.stopping", "attempt.cancelled"}
 ERROR_KINDS = {"device.quarantined", "device.lost", "experiment.abandoned"}
+#: Decisions drawn elsewhere and not repeated in the text log.
+QUIET = {"campaign.summary", "campaign.started", "task.ready", "attempt.running", "attempt.done",
+         "experiment.proposed"}
 
 
 class Canvas(Protocol):
@@ -33,6 +36,9 @@ class Canvas(Protocol):
     def points(self, path: str, t: float, points: list[tuple[float, ...]], seq: int | None = None) -> None: ...
 
     def document(self, path: str, markdown: str) -> None: ...
+
+    def flush(self) -> None:
+        """Send what is buffered: live viewers call this now and then."""
 
 
 def _experiment_of(task: str | None) -> int | None:
@@ -58,29 +64,45 @@ class LabObserver:
         self.t0: float | None = None
         self.spectra = 0
         self.done = False
+        self._last_queue: tuple | None = None
         self._seen: set[str] | None = set() if dedupe else None
 
     # -- input ------------------------------------------------------------
     def on_message(self, key: str, payload: bytes | str) -> None:
+        head = payload[:40]
+        if isinstance(head, bytes) and (b'"kind":"accepted"' in head or b'"kind":"progress"' in head):
+            return  # nothing to draw; skipping the parse keeps the recorder cheap
         try:
             env = json.loads(payload)
             kind, t = env["kind"], float(env["t_lab"])
         except (ValueError, KeyError, TypeError):
             return  # the orchestrator logs invalid messages; a watcher just skips them
-        if self._seen is not None:
-            if env.get("id") in self._seen:
-                return
-            self._seen.add(env.get("id"))
+        if env.get("body", {}).get("what") != "decisions" and not self._fresh(env.get("id")):
+            return
         if self.t0 is None:
             self.t0 = t
         if kind == "decision":
             body = env.get("body", {})
-            self.on_decision(t, body.get("what", ""), body.get("detail", {}))
+            if body.get("what") == "decisions":  # a turn's worth of decisions in one message
+                for item in body.get("detail", {}).get("items", []):
+                    if self._fresh(item.get("id")):
+                        self.on_decision(float(item["t_lab"]), item.get("what", ""), item.get("detail", {}))
+            else:
+                self.on_decision(t, body.get("what", ""), body.get("detail", {}))
         elif kind == "telemetry":
             for name, value in env.get("body", {}).get("readings", {}).items():
                 self.c.scalar(f"telemetry/{env['sender']}/{name}", t, float(value))
         elif kind == "result":
             self._spectrum(t, env)
+
+    def _fresh(self, message_id: str | None) -> bool:
+        """False for a message seen before (a watcher gets some twice: in the history and live)."""
+        if self._seen is None:
+            return True
+        if message_id in self._seen:
+            return False
+        self._seen.add(message_id)
+        return True
 
     def on_decision(self, t: float, what: str, d: dict[str, Any]) -> None:
         info, device, task = d.get("info"), d.get("device"), d.get("task")
@@ -89,7 +111,7 @@ class LabObserver:
             handler(t, d, info)
         level = "ERROR" if what in ERROR_KINDS else "WARN" if what in WARN_KINDS else "DEBUG" if what in (
             "task.ready", "attempt.dispatched", "attempt.running", "attempt.done") else "INFO"
-        if what not in ("campaign.summary", "campaign.started"):
+        if what not in QUIET:
             where = " ".join(x for x in (task or "", f"#{d['attempt']}" if d.get("attempt") else "",
                                          f"on {device}" if device else "") if x)
             self.c.text("log", t, f"{what} {where}{self._describe(info)}", level)
@@ -105,6 +127,10 @@ class LabObserver:
         return f": {info}"
 
     # -- decisions ----------------------------------------------------------
+    @property
+    def _target_outputs(self) -> set[str]:
+        return {name for target in self.info.get("targets", []) for name in target.get("outputs", {})}
+
     def _campaign_started(self, t: float, d: dict, info: dict) -> None:
         self.info = info or {}
         for name in self.info.get("devices", {}):
@@ -175,7 +201,8 @@ class LabObserver:
             self.c.scalar(f"objective/targets/{name}/score", t, s, seq=seq)
             self.c.scalar(f"objective/targets/{name}/best", t, self.best_by_target[name], seq=seq)
         for name, value in ((info or {}).get("outputs") or {}).items():
-            self.c.scalar(f"objective/outputs/{name}", t, float(value), seq=seq)
+            if name in self._target_outputs:
+                self.c.scalar(f"objective/outputs/{name}", t, float(value), seq=seq)
         self.c.scalar("campaign/finished", t, float(self.finished), seq=seq)
 
     def _experiment_abandoned(self, t: float, d: dict, info: Any) -> None:
@@ -185,6 +212,7 @@ class LabObserver:
     def _campaign_summary(self, t: float, d: dict, summary: dict) -> None:
         self.done = True
         self.c.document("summary", summary_markdown(summary or {}))
+        self.c.flush()
 
     # -- derived series -----------------------------------------------------
     def _set_state(self, t: float, device: str | None, state: str) -> None:
@@ -198,14 +226,18 @@ class LabObserver:
         self.state[device] = state
         self.c.state(f"devices/{device}", t, state)
         elapsed = t - (self.t0 or 0.0)
-        if elapsed > 0:
+        if was == "busy" and elapsed > 0:
             self.c.scalar(f"utilisation/{device}", t, self.busy_total.get(device, 0.0) / elapsed)
 
     def _queue(self, t: float) -> None:
         made = [m for m in self.ready.values() if m is not None]
-        self.c.scalar("queue/ready_steps", t, float(len(self.ready)))
-        self.c.scalar("queue/waiting_samples", t, float(len(made)))
-        self.c.scalar("queue/oldest_sample_age_h", t, (t - min(made)) / 3600 if made else 0.0)
+        now = (float(len(self.ready)), float(len(made)), min(made) if made else None)
+        if now == self._last_queue:
+            return
+        self._last_queue = now
+        self.c.scalar("queue/ready_steps", t, now[0])
+        self.c.scalar("queue/waiting_samples", t, now[1])
+        self.c.scalar("queue/oldest_sample_age_h", t, (t - now[2]) / 3600 if made else 0.0)
 
     def _spectrum(self, t: float, env: dict) -> None:
         outputs = env.get("body", {}).get("outputs") or {}

@@ -58,7 +58,8 @@ class Orchestrator:
         self.active: dict[int, Experiment] = {}  # pending or running
         self._handles: list[Any] = []
         self._t0 = 0.0
-        self._decisions = keys.campaign(scenario.lab, campaign_id, "decision")
+        self._decisions = keys.campaign(scenario.lab, campaign_id, "decisions")
+        self._outbox: list[dict[str, Any]] = []
 
     # -- the main loop ----------------------------------------------------
     async def run(self) -> None:
@@ -98,6 +99,9 @@ class Orchestrator:
 
     async def _history(self, key: str, payload: bytes) -> bytes:
         """Everything observed so far, for a watcher that joins late (``twin watch``)."""
+        # let messages already sent to us land in the journal first (~50 ms of wall time): the
+        # watcher's subscription may have missed them, and they must be in the history then
+        await self.clock.sleep(0.05 * (1.0 if self.clock.is_virtual else self.clock.speed))
         self.journal.flush()
         rows = self.journal.rows()
         return json.dumps(as_messages(rows)).encode()
@@ -246,12 +250,25 @@ class Orchestrator:
 
     def note(self, kind: str, experiment: int | None = None, task: str | None = None, attempt: int | None = None,
              device: str | None = None, detail: Any = None) -> None:
-        """A state change: journalled, and published as a decision for any observer on the bus."""
+        """A state change: journalled, and published as a decision for any observer on the bus.
+
+        Decisions made in one turn of the loop travel together, as one ``decisions`` message.
+        """
         seq = self.journal.event(self.now, kind, experiment, task, attempt, device, detail)
-        body = {"what": kind, "detail": {"experiment": experiment, "task": task, "attempt": attempt,
-                                         "device": device, "info": detail}}
-        self.bus.publish(self._decisions, pack(Kind.DECISION, body, id=decision_id(seq), sender=ORCH, t_lab=self.now,
-                                               campaign=self.campaign_id, task=task or "", attempt=attempt or 0))
+        if not self._outbox:
+            asyncio.get_running_loop().call_soon(self.publish_decisions)
+        self._outbox.append({"id": decision_id(seq), "t_lab": self.now, "what": kind, "detail": {
+            "experiment": experiment, "task": task, "attempt": attempt, "device": device, "info": detail}})
+
+    def publish_decisions(self) -> None:
+        """Send the decisions noted so far now (the loop does it at the end of each turn)."""
+        if not self._outbox:
+            return
+        items, self._outbox = self._outbox, []
+        self._ids += 1
+        body = {"what": "decisions", "detail": {"items": items}}
+        self.bus.publish(self._decisions, pack(Kind.DECISION, body, id=f"{ORCH}:b{self._ids}", sender=ORCH,
+                                               t_lab=items[0]["t_lab"], campaign=self.campaign_id))
 
     _note = note
 

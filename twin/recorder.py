@@ -27,8 +27,6 @@ import rerun.blueprint as rrb
 from twin.observer import STATES
 
 log = logging.getLogger(__name__)
-LEVELS = {"DEBUG": rr.TextLogLevel.DEBUG, "INFO": rr.TextLogLevel.INFO, "WARN": rr.TextLogLevel.WARN,
-          "ERROR": rr.TextLogLevel.ERROR}
 STATE_COLOURS = {"offline": 0x606060FF, "idle": 0x4C78A8FF, "failed": 0xE45756FF, "quarantined": 0xF58518FF,
                  "busy": 0x54A24BFF}
 
@@ -61,52 +59,81 @@ def blueprint() -> rrb.Blueprint:
 
 
 class RerunCanvas:
-    """Draws on one recording stream; every call is stamped with lab time."""
+    """Draws on one recording stream, in columns: rows are buffered per entity and sent with
+    ``send_columns`` when ``flush`` is called or ``FLUSH_ROWS`` have piled up (one ``log``
+    call per row cost more than the whole campaign)."""
+
+    FLUSH_ROWS = 5000
 
     def __init__(self, rec: rr.RecordingStream) -> None:
         self.rec = rec
-        self._configured: set[str] = set()
+        self._buffers: dict[tuple[str, str, bool], tuple[list, list, list]] = {}
+        self._rows = 0
 
-    def _at(self, t: float, seq: int | None) -> None:
-        self.rec.reset_time()
-        self.rec.set_time("lab_time", duration=t)
-        if seq is not None:
-            self.rec.set_time("experiment", sequence=seq)
+    def _add(self, kind: str, path: str, t: float, seq: int | None, value: Any) -> None:
+        key = (kind, path, seq is not None)
+        buf = self._buffers.get(key)
+        if buf is None:
+            buf = self._buffers[key] = ([], [], [])
+            if kind == "state":
+                names = list(STATES)
+                self.rec.log(path, rr.StateConfiguration(values=names, colors=[STATE_COLOURS[n] for n in names]),
+                             static=True)
+        buf[0].append(t)
+        buf[1].append(seq)
+        buf[2].append(value)
+        self._rows += 1
+        if self._rows >= self.FLUSH_ROWS:
+            self.flush()
 
     def scalar(self, path: str, t: float, value: float, seq: int | None = None) -> None:
-        self._at(t, seq)
-        self.rec.log(path, rr.Scalars(value))
+        self._add("scalar", path, t, seq, value)
 
     def state(self, path: str, t: float, state: str) -> None:
-        if path not in self._configured:
-            self._configured.add(path)
-            names = list(STATES)
-            self.rec.log(path, rr.StateConfiguration(values=names, colors=[STATE_COLOURS[n] for n in names]),
-                         static=True)
-        self._at(t, None)
-        self.rec.log(path, rr.StateChange(state=state))
+        self._add("state", path, t, None, state)
 
     def text(self, path: str, t: float, text: str, level: str) -> None:
-        self._at(t, None)
-        self.rec.log(path, rr.TextLog(text, level=LEVELS.get(level, rr.TextLogLevel.INFO)))
+        self._add("text", path, t, None, (text, level))
 
     def line(self, path: str, t: float, points: list[tuple[float, float]], seq: int | None = None) -> None:
-        self._at(t, seq)
         xy = np.asarray(points, dtype=np.float32)
         xy[:, 1] = 300.0 * (1.0 - xy[:, 1])  # screen y grows downwards; 300 px per unit of signal
-        self.rec.log(path, rr.LineStrips2D([xy]))
+        self._add("line", path, t, seq, xy)
 
     def points(self, path: str, t: float, points: list[tuple[float, ...]], seq: int | None = None) -> None:
-        self._at(t, seq)
         pts = np.asarray(points, dtype=np.float32)
         if pts.shape[1] == 2:
             pts[:, 1] = 300.0 * (1.0 - pts[:, 1])
-            self.rec.log(path, rr.Points2D(pts, radii=3.0))
-        else:
-            self.rec.log(path, rr.Points3D(pts, radii=0.01))
+        self._add("points2" if pts.shape[1] == 2 else "points3", path, t, seq, pts[0])
 
     def document(self, path: str, markdown: str) -> None:
         self.rec.log(path, rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
+
+    def flush(self) -> None:
+        for (kind, path, has_seq), (ts, seqs, values) in self._buffers.items():
+            if not ts:
+                continue
+            # nanosecond arrays take rerun's vectorised path (a list of floats is converted one by one)
+            indexes = [rr.TimeColumn("lab_time", duration=np.round(np.asarray(ts) * 1e9).astype("timedelta64[ns]"))]
+            if has_seq:
+                indexes.append(rr.TimeColumn("experiment", sequence=np.asarray(seqs, dtype=np.int64)))
+            self.rec.send_columns(path, indexes=indexes, columns=_columns(kind, values))
+            ts.clear(), seqs.clear(), values.clear()
+        self._rows = 0
+
+
+def _columns(kind: str, values: list) -> Any:
+    if kind == "scalar":
+        return rr.Scalars.columns(scalars=values)
+    if kind == "state":
+        return rr.StateChange.columns(state=values)
+    if kind == "text":
+        return rr.TextLog.columns(text=[v[0] for v in values], level=[v[1] for v in values])
+    if kind == "line":
+        return rr.LineStrips2D.columns(strips=values)
+    if kind == "points2":
+        return rr.Points2D.columns(positions=np.stack(values), radii=np.full(len(values), 3.0, np.float32))
+    return rr.Points3D.columns(positions=np.stack(values), radii=np.full(len(values), 0.01, np.float32))
 
 
 @dataclass
@@ -120,6 +147,7 @@ class Recording:
     url: str = ""
 
     def close(self) -> None:
+        self.canvas.flush()
         self.rec.flush()
         self.rec.disconnect()
 

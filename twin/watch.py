@@ -83,12 +83,13 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
     handles = attach(bus, lab, on_message)
     stop = stop or asyncio.Event()
     try:
-        await _catch_up(bus, lab, observer)
+        await _catch_up(bus, clock, lab, observer)
         for key, payload in waiting:
             observer.on_message(key, payload)  # repeats of the history are dropped by id
         waiting = None
         while not stop.is_set() and (follow or not observer.done):
-            await clock.sleep(0.05 * clock.speed)
+            await clock.sleep(0.25 * clock.speed)
+            observer.c.flush()
     finally:
         for h in handles:
             h.close()
@@ -96,15 +97,19 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
     return observer
 
 
-async def _catch_up(bus: Bus, lab: str, observer: LabObserver) -> None:
-    """Ask the running campaign for what happened before we joined."""
-    try:
-        history = json.loads(await bus.request(keys.campaign(lab, "*", "history"), b"", timeout=5.0))
-    except (NoReplyError, ValueError, TwinError) as exc:
-        log.info("no history from lab %r yet (%s): recording from now on", lab, exc)
-        history = []
-    for payload in history:
-        observer.on_message("", payload)
+async def _catch_up(bus: Bus, clock: LabClock, lab: str, observer: LabObserver, patience_s: float = 30.0) -> None:
+    """Ask the running campaign for what happened before we joined; wait for it to come up."""
+    key = keys.campaign(lab, "*", "history")
+    for _ in range(int(patience_s / 0.5)):
+        try:
+            history = json.loads(await bus.request(key, b"", timeout=2.0 * clock.speed))
+        except (NoReplyError, ValueError, TwinError):
+            await clock.sleep(0.5 * clock.speed)
+            continue
+        for payload in history:
+            observer.on_message("", payload)
+        return
+    log.warning("lab %r did not answer for its history in %.0f s: recording from now on", lab, patience_s)
 
 
 def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str], follow: bool = False) -> LabObserver:

@@ -52,9 +52,8 @@ class MemoryBus:
         subs = hub.route_cache.get(key)
         if subs is None:
             subs = hub.route_cache[key] = [s for s in hub.subs if key_matches(s.keyexpr, key)]
-        call_soon = hub.loop.call_soon
-        for sub in subs:
-            call_soon(_deliver, sub, key, payload)
+        if subs:
+            hub.loop.call_soon(_deliver_all, subs, key, payload)
 
     def subscribe(self, keyexpr: str, handler: Handler) -> Closable:
         self._hub.route_cache.clear()
@@ -99,6 +98,12 @@ class MemoryBus:
             if key_matches(keyexpr, key):
                 hub.loop.call_soon(_deliver, entry, key, True)
         return entry
+
+
+def _deliver_all(entries: list[_Entry], key: str, value) -> None:
+    for entry in entries:
+        if not entry.closed:
+            entry.fn(key, value)
 
 
 def _deliver(entry: _Entry, key: str, value) -> None:

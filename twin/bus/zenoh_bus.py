@@ -56,8 +56,12 @@ class ZenohOptions:
 
 
 class _Declared:
-    def __init__(self, bus: ZenohBus, keyexpr: str, zobj, registry: list | None) -> None:
-        self.keyexpr, self._bus, self._zobj, self._registry = keyexpr, bus, zobj, registry
+    """A queryable or token watcher. It exists before its Zenoh object, whose callbacks may
+    fire on Zenoh's threads before ``declare_*`` has even returned."""
+
+    def __init__(self, bus: ZenohBus, keyexpr: str, fn, sid: int, registry: list | None) -> None:
+        self.keyexpr, self._bus, self.fn, self.sid, self._registry = keyexpr, bus, fn, sid, registry
+        self._zobj = None
         self.closed = False
         if registry is not None:
             registry.append(self)
@@ -70,8 +74,26 @@ class _Declared:
         if self._registry is not None:
             self._registry.remove(self)
             self._bus._routes.clear()
-        if not self._bus._session.is_closed():
+        if self._zobj is not None and not self._bus._session.is_closed():
             self._zobj.undeclare()
+
+
+class _Group:
+    """One Zenoh subscriber and the local subscriptions it feeds."""
+
+    def __init__(self, keyexpr: str) -> None:
+        self.keyexpr, self.zsub, self.subs = keyexpr, None, []
+
+
+class _Subscription:
+    def __init__(self, bus: ZenohBus, group: _Group, fn: Handler, sid: int) -> None:
+        self._bus, self.group, self.fn, self.sid = bus, group, fn, sid
+        self.keyexpr, self.closed = group.keyexpr, False
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self._bus._unsubscribe(self)
 
 
 class _Token:
@@ -109,7 +131,7 @@ class ZenohBus:
         self._batch: list = []
         self._seq = itertools.count(1)
         self._ids = itertools.count()
-        self._subs: list[_Declared] = []
+        self._groups: dict[str, _Group] = {}
         self._queryables: list[_Declared] = []
         self._watchers: list[_Declared] = []
         self._local_tokens: list[str] = []
@@ -163,9 +185,12 @@ class ZenohBus:
         while inbox:
             item = inbox.popleft()
             if item[0] is None:  # a sample, unpacked here to keep Zenoh's threads short
-                sample = item[3]
+                sample = item[2]
                 seq = seq_of(sample)
-                item = (seq, item[1], item[2], str(sample.key_expr), sample.payload.to_bytes(), seq != _LAST)
+                key, payload = str(sample.key_expr), sample.payload.to_bytes()
+                local += seq != _LAST
+                batch.extend((seq, sub.sid, sub, key, payload, None) for sub in item[1].subs)
+                continue
             counted = item[5]
             if counted is True:
                 local += 1
@@ -197,9 +222,10 @@ class ZenohBus:
 
     # -- publish / subscribe ----------------------------------------------
     def _local_subscribers(self, key: str) -> int:
+        """How many Zenoh subscribers of this session a publication on ``key`` reaches."""
         n = self._routes.get(key)
         if n is None:
-            n = self._routes[key] = sum(1 for s in self._subs if key_matches(s.keyexpr, key))
+            n = self._routes[key] = sum(1 for expr in self._groups if key_matches(expr, key))
         return n
 
     def publish(self, key: str, payload: bytes) -> None:
@@ -214,16 +240,29 @@ class ZenohBus:
         )
 
     def subscribe(self, keyexpr: str, handler: Handler) -> Closable:
-        entry_holder: list[_Declared] = []
-        sid = next(self._ids)
-        def on_sample(sample: zenoh.Sample) -> None:
-            self._post((None, sid, entry_holder[0], sample, None, None))
+        """Subscribers of one key expression share one Zenoh subscriber and are fanned out here."""
+        group = self._groups.get(keyexpr)
+        if group is None:
+            group = _Group(keyexpr)
 
-        sub = self.session.declare_subscriber(keyexpr, on_sample)
-        entry = _Declared(self, keyexpr, sub, self._subs)
-        entry.fn = handler
-        entry_holder.append(entry)
-        return entry
+            def on_sample(sample: zenoh.Sample) -> None:
+                self._post((None, group, sample))
+
+            group.zsub = self.session.declare_subscriber(keyexpr, on_sample)
+            self._groups[keyexpr] = group
+            self._routes.clear()
+        sub = _Subscription(self, group, handler, next(self._ids))
+        group.subs.append(sub)
+        return sub
+
+    def _unsubscribe(self, sub: _Subscription) -> None:
+        group = sub.group
+        group.subs.remove(sub)
+        if not group.subs:
+            del self._groups[group.keyexpr]
+            self._routes.clear()
+            if not self.session.is_closed():
+                group.zsub.undeclare()
 
     @staticmethod
     def _seq_of(sample: zenoh.Sample | zenoh.Query) -> int:
@@ -232,12 +271,9 @@ class ZenohBus:
 
     # -- request / reply --------------------------------------------------
     def serve(self, keyexpr: str, replier: Replier) -> Closable:
-        holder: list[_Declared] = []
-        sid = next(self._ids)
-
         def on_query(query: zenoh.Query) -> None:
             seq = self._seq_of(query)
-            self._post((seq, sid, holder[0], str(query.key_expr), query, seq != _LAST))
+            self._post((seq, entry.sid, entry, str(query.key_expr), query, seq != _LAST))
 
         async def answer(key: str, query: zenoh.Query) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else b""
@@ -259,10 +295,8 @@ class ZenohBus:
         def dispatch(key: str, query: zenoh.Query) -> None:
             asyncio.ensure_future(answer(key, query))
 
-        q = self.session.declare_queryable(keyexpr, on_query)
-        entry = _Declared(self, keyexpr, q, self._queryables)
-        entry.fn = dispatch
-        holder.append(entry)
+        entry = _Declared(self, keyexpr, dispatch, next(self._ids), self._queryables)
+        entry._zobj = self.session.declare_queryable(keyexpr, on_query)
         return entry
 
     async def request(self, key: str, payload: bytes, timeout: float) -> bytes:
@@ -325,15 +359,7 @@ class ZenohBus:
         return _Token(self, key)
 
     def watch_tokens(self, keyexpr: str, handler: TokenHandler) -> Closable:
-        holder: list[_Declared] = []
-        sid = next(self._ids)
         token_seq = self._token_seq
-
-        def on_change(sample: zenoh.Sample) -> None:
-            key = str(sample.key_expr)
-            alive = sample.kind == zenoh.SampleKind.PUT
-            self._post((token_seq.get((key, alive), _LAST), sid, holder[0], key, alive, (sid, key, alive)))
-
         state: dict[str, bool] = {}
 
         def deliver_changes(key: str, alive: bool) -> None:
@@ -341,11 +367,14 @@ class ZenohBus:
                 state[key] = alive
                 handler(key, alive)
 
-        w = self.session.liveliness().declare_subscriber(keyexpr, on_change, history=True)
-        entry = _Declared(self, keyexpr, w, self._watchers)
-        entry.sid = sid
-        entry.fn = deliver_changes
-        holder.append(entry)
+        def on_change(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            alive = sample.kind == zenoh.SampleKind.PUT
+            self._post((token_seq.get((key, alive), _LAST), sid, entry, key, alive, (sid, key, alive)))
+
+        entry = _Declared(self, keyexpr, deliver_changes, next(self._ids), self._watchers)
+        sid = entry.sid
+        entry._zobj = self.session.liveliness().declare_subscriber(keyexpr, on_change, history=True)
         # Zenoh's history may miss a token declared an instant ago in this very
         # session; report local tokens ourselves (repeats are filtered above).
         for key in self._local_tokens:

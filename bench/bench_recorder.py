@@ -1,0 +1,72 @@
+"""Recorder benchmarks for issue [2 of 5]: campaign speed with the Rerun recorder on vs off, recording size.
+
+    python bench/bench_recorder.py
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.bench_kernel import STANDARD, table  # noqa: E402
+from twin.lab import prepare, run  # noqa: E402
+from twin.watch import RecordOptions  # noqa: E402
+
+
+def campaign(bus: str, record: bool) -> tuple[float, float, int]:
+    """(CPU seconds, campaign wall seconds, recording bytes) of one standard campaign."""
+    s = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides=STANDARD)
+    with tempfile.TemporaryDirectory() as d:
+        rrd = Path(d) / "r.rrd"
+        cpu0 = time.process_time()
+        summ = run(s, journal=Path(d) / "j.db", bus=bus, record=RecordOptions(save=rrd) if record else None)
+        cpu = time.process_time() - cpu0
+        return cpu, summ.wall_s, rrd.stat().st_size if record else 0
+
+
+def interleaved(bus: str, pairs: int = 5) -> tuple[list, list, int]:
+    """(CPU s, wall s) off and on, alternating, so that load on the shared machine hits both alike."""
+    off, on, size = [], [], 0
+    run(ROOT / "scenarios" / "quantum_dots.yaml", journal=Path(tempfile.mkdtemp()) / "w.db", bus=bus,
+        overrides={"campaign.budget": 5}, record=RecordOptions(save=Path(tempfile.mkdtemp()) / "w.rrd"))  # warm-up
+    for _ in range(pairs):
+        off.append(campaign(bus, False)[:2])
+        cpu, wall, size = campaign(bus, True)
+        on.append((cpu, wall))
+    return off, on, size
+
+
+def main() -> None:
+    rows = []
+    for bus in ("memory", "zenoh"):
+        off, on, size = interleaved(bus)
+        c_off, c_on = (statistics.median(x[0] for x in v) for v in (off, on))
+        w_off, w_on = (statistics.median(x[1] for x in v) for v in (off, on))
+        rows.append([f"{bus} bus, recorder off (baseline)", f"{w_off:.2f}", "1.00", f"{c_off:.2f}", "1.00", ""])
+        rows.append([f"{bus} bus, recorder on (--save)", f"{w_on:.2f}", f"{w_off / w_on:.2f}", f"{c_on:.2f}",
+                     f"{c_off / c_on:.2f}", f"{size / 2**20:.1f}"])
+    table("Campaign speed with the Rerun recorder (flaky_lab without crashes, 400 experiments; "
+          "medians of 5 interleaved pairs; CPU includes Rerun's own threads and the final flush)",
+          ["run", "campaign wall s", "speed ÷ off", "process CPU s", "CPU ÷ off", "recording MB"], rows)
+    sizes = []
+    for scenario in ("quantum_dots", "flaky_lab"):
+        with tempfile.TemporaryDirectory() as d:
+            rrd = Path(d) / "r.rrd"
+            summ = run(ROOT / "scenarios" / f"{scenario}.yaml", journal=Path(d) / "j.db", bus="memory",
+                       overrides={"campaign.budget": 1000, "campaign.stop_on_target": False},
+                       record=RecordOptions(save=rrd))
+            mb = rrd.stat().st_size / 2**20
+            jmb = (Path(d) / "j.db").stat().st_size / 2**20
+        sizes.append([scenario, summ.done, f"{mb:.1f}", f"{jmb:.1f}", f"{mb / jmb:.2f}"])
+    table("Recording size per 1,000 experiments (memory bus)",
+          ["scenario", "experiments", "recording MB", "journal MB", "÷ journal"], sizes)
+
+
+if __name__ == "__main__":
+    main()
