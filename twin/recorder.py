@@ -33,27 +33,35 @@ STATE_COLOURS = {"offline": 0x606060FF, "idle": 0x4C78A8FF, "failed": 0xE45756FF
 
 def blueprint() -> rrb.Blueprint:
     """Devices, objective, spectra and log: the panels a campaign is watched in."""
-    everything = rrb.VisibleTimeRange("lab_time", start=rrb.TimeRangeBoundary.infinite(),
-                                      end=rrb.TimeRangeBoundary.cursor_relative())
+    up_to_cursor = [rrb.VisibleTimeRange("lab_time", start=rrb.TimeRangeBoundary.infinite(),
+                                         end=rrb.TimeRangeBoundary.cursor_relative())]
+    whole = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
+                                                  end=rrb.TimeRangeBoundary.infinite()))
+
+    def series(origin: str, name: str, contents: Any = "$origin/**") -> rrb.TimeSeriesView:
+        return rrb.TimeSeriesView(origin=origin, contents=contents, name=name, axis_x=whole)
+
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
-                rrb.StateTimelineView(origin="/devices", name="Devices"),
-                rrb.TimeSeriesView(origin="/objective", name="Objective and best so far"),
+                rrb.StateTimelineView(origin="/devices", name="Devices", time_view=whole),
+                series("/objective", "Objective (0 = target met) and best so far",
+                       ["$origin/score", "$origin/best", "$origin/targets/**"]),
             ),
             rrb.Horizontal(
                 rrb.Spatial2DView(origin="/spectra", name="Spectra (latest, with targets)"),
-                rrb.TimeSeriesView(origin="/queue", name="Queue"),
-                rrb.Spatial3DView(origin="/planner", name="Proposals (normalised box)", time_ranges=[everything]),
+                series("/queue", "Queue"),
+                series("/objective/outputs", "Measured outputs"),
+                rrb.Spatial3DView(origin="/planner", name="Proposals (normalised box)", time_ranges=up_to_cursor),
             ),
             rrb.Horizontal(
                 rrb.TextLogView(origin="/log", name="Decisions and faults"),
-                rrb.TimeSeriesView(origin="/telemetry", name="Telemetry"),
-                rrb.TimeSeriesView(origin="/utilisation", name="Utilisation"),
+                series("/telemetry", "Telemetry"),
+                series("/utilisation", "Utilisation"),
                 rrb.TextDocumentView(origin="/summary", name="Summary"),
             ),
-            row_shares=[2, 2, 2],
         ),
+        rrb.TimePanel(timeline="lab_time", state="collapsed"),
         collapse_panels=True,
     )
 
