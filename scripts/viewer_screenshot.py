@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -79,13 +81,13 @@ def main() -> None:
         grpc, web = free_port(), free_port()
         server = subprocess.Popen([rerun, "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc),
                                    "--web-viewer-port", str(web), str(rrd)],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         try:
             wait_listening(web)
             url = f"http://127.0.0.1:{web}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc}%2Fproxy"
             asyncio.run(screenshot(url, args.out, args.wait))
-        finally:
-            server.terminate()
+        finally:  # the rerun command is a wrapper: end its whole process group
+            os.killpg(server.pid, signal.SIGTERM)
             server.wait()
     print(f"wrote {args.out}")
 

@@ -9,8 +9,10 @@ fails take the campaign down.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 import shutil
 import socket
 import subprocess
@@ -161,8 +163,7 @@ class Recording:
 
     def stop_serving(self) -> None:
         if self.server is not None:
-            self.server.terminate()
-            self.server.wait(timeout=10)
+            _stop(self.server)
             self.server = None
 
 
@@ -188,6 +189,18 @@ def open_recording(recording_id: str, save: str | Path | None = None, viewer: bo
     if sinks:
         rec.set_sinks(*sinks, default_blueprint=blueprint())
     return out
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """End a rerun process and its children (the `rerun` command is a wrapper that starts the viewer)."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
 
 
 def _rerun_cli() -> str | None:

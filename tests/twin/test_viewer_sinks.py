@@ -1,0 +1,70 @@
+"""A viewer that cannot start never costs the run; --serve binds loopback and serves until Ctrl-C."""
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+TWIN = [sys.executable, "-m", "twin"]
+
+
+def twin(*args, env=None):
+    return subprocess.run([*TWIN, *args], capture_output=True, text=True, cwd=ROOT, timeout=120, env=env)
+
+
+def test_viewer_without_a_display_is_reported_and_the_campaign_runs(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    res = twin("run", "scenarios/quantum_dots.yaml", "--budget", "3", "--viewer", "--quiet",
+               "--journal", str(tmp_path / "j.db"), env=env)
+    assert res.returncode == 0, res.stderr
+    assert "no display" in res.stderr and "--save" in res.stderr
+    assert "3 done" in res.stdout
+
+
+def test_serve_on_a_port_in_use_is_reported_and_the_campaign_runs(tmp_path):
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        res = twin("run", "scenarios/quantum_dots.yaml", "--budget", "3", "--serve", "--serve-port", str(port),
+                   "--save", str(tmp_path / "r.rrd"), "--quiet", "--journal", str(tmp_path / "j.db"))
+    assert res.returncode == 0, res.stderr
+    assert f"port {port} on 127.0.0.1 is in use" in res.stderr
+    assert "3 done" in res.stdout and (tmp_path / "r.rrd").stat().st_size > 0
+
+
+@pytest.mark.process
+def test_serve_binds_loopback_and_keeps_serving_until_ctrl_c(tmp_path):
+    proc = subprocess.Popen([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "3", "--serve", "--quiet",
+                             "--journal", str(tmp_path / "j.db")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        url = None
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and url is None:
+            line = proc.stderr.readline()
+            m = re.search(r"served at (http://\S+)", line)
+            url = m.group(1) if m else None
+        assert url and url.startswith("http://127.0.0.1:")
+        with urllib.request.urlopen(url, timeout=10) as page:
+            assert page.status == 200
+        web_port = int(url.split(":")[2].split("/")[0])
+        with socket.socket() as s:  # not reachable on other addresses of this host
+            hosts = {a[4][0] for a in socket.getaddrinfo(socket.gethostname(), None, socket.AF_INET)} - {"127.0.0.1"}
+            for host in hosts:
+                assert s.connect_ex((host, web_port)) != 0
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=30)
+        assert proc.returncode == 0
+        with socket.socket() as s:
+            assert s.connect_ex(("127.0.0.1", web_port)) != 0, "the server must stop with the command"
+    finally:
+        proc.kill()
