@@ -12,12 +12,13 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import select
 import signal
 import shutil
 import socket
 import subprocess
 import sys
-import time
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -247,7 +248,7 @@ def _serve(out: Recording, grpc_port: int, web_port: int) -> str | None:
     out.server = subprocess.Popen(
         [cli, "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc), "--web-viewer-port", str(web)],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
-    if not _wait_listening(grpc, out.server):
+    if not _wait_listening(out.server, grpc, web):
         err = out.server.stderr.read().decode(errors="replace")[-300:] if out.server.stderr else ""
         out.messages.append(f"serve: the rerun server did not start ({err.strip() or 'no reason given'}); "
                             "the campaign runs without serving")
@@ -259,12 +260,21 @@ def _serve(out: Recording, grpc_port: int, web_port: int) -> str | None:
     return grpc_url
 
 
-def _wait_listening(port: int, proc: subprocess.Popen, seconds: float = 15.0) -> bool:
-    # wall time on purpose: this waits for a server process to come up, outside the lab
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline and proc.poll() is None:
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return True
-        time.sleep(0.05)
+def _wait_listening(proc: subprocess.Popen, grpc: int, web: int, seconds: float = 15.0, lines: int = 50) -> bool:
+    """Read the server's log until it says both its gRPC and web ports listen."""
+    stream, waiting = proc.stderr, {f"127.0.0.1:{grpc}".encode(), f"127.0.0.1:{web}".encode()}
+    for _ in range(lines):
+        ready, _, _ = select.select([stream], [], [], seconds)
+        line = stream.readline() if ready else b""
+        if not line:
+            return False
+        waiting = {w for w in waiting if w not in line}
+        if not waiting:
+            threading.Thread(target=_drain, args=(stream,), daemon=True).start()  # keep its pipe from filling
+            return True
     return False
+
+
+def _drain(stream) -> None:
+    for _ in stream:
+        pass
