@@ -1,9 +1,11 @@
-"""Experiment planners. More (LHS, GP-BO, RL) come with issue [3 of 5]."""
+"""Baseline experiment planners: random, Latin hypercube, and a fixed list."""
 
 from __future__ import annotations
 
 import random
 from typing import Any
+
+from scipy.stats import qmc
 
 from twin.decisions import Outcome, Proposal, RouteStep
 
@@ -39,3 +41,21 @@ class FixedPlanner:
     def propose(self, n: int, history: list[Outcome], pending: list[dict[str, Any]]) -> list[Proposal]:
         out, self._queue = self._queue[:n], self._queue[n:]
         return out
+
+
+class LhsPlanner:
+    """A Latin-hypercube design over the budget, proposed in order: space-filling, not adaptive."""
+
+    def __init__(self, parameters: dict[str, Any], seed: int, budget: int = 30, **_: Any) -> None:
+        self._names = list(parameters)
+        box = list(parameters.values())
+        self._lo = [p.low for p in box]
+        self._hi = [p.high for p in box]
+        sampler = qmc.LatinHypercube(d=max(1, len(box)), seed=random.Random(f"lhs:{seed}").getrandbits(32))
+        self._design = qmc.scale(sampler.random(max(1, budget)), self._lo, self._hi) if box else []
+        self._next = 0
+
+    def propose(self, n: int, history: list[Outcome], pending: list[dict[str, Any]]) -> list[Proposal]:
+        rows = self._design[self._next : self._next + n]
+        self._next += len(rows)
+        return [Proposal({k: float(v) for k, v in zip(self._names, row)}) for row in rows]

@@ -14,6 +14,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from twin import lab, plugins
 from twin.errors import TwinError
 from twin.journal import read_run
+from twin.planner_bench import DEFAULT_PLANNERS
 from twin.report import render_summary
 from twin.scenario import json_schema, load
 from twin.summary import Summary
@@ -25,6 +26,8 @@ app = typer.Typer(help="labtwin: a digital twin of a self-driving lab.", no_args
                   pretty_exceptions_enable=False, add_completion=False)
 device_app = typer.Typer(help="Run one device actor in this process.", no_args_is_help=True)
 app.add_typer(device_app, name="device")
+bench_app = typer.Typer(help="Compare planners (and later schedulers) over many seeds.", no_args_is_help=True)
+app.add_typer(bench_app, name="bench")
 console = Console()
 err = Console(stderr=True, soft_wrap=True)
 
@@ -198,6 +201,41 @@ def devices() -> None:
             caps = f"failed to load: {exc}"
         dist = ep.dist.name if ep.dist else "?"
         console.print(f"{name:14} {ep.value:40} {dist:10} {caps}")
+
+
+@bench_app.command("planners")
+def bench_planners(
+    scenario: Annotated[Path, typer.Argument(help="a scenario with targets, e.g. scenarios/quantum_dots.yaml")],
+    seeds: Annotated[int, typer.Option(help="seeds per planner")] = 20,
+    planners: Annotated[str, typer.Option(help="comma-separated; name~seq runs one experiment at a time")] = ",".join(DEFAULT_PLANNERS),
+    workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
+    budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget (a larger one censors less)")] = None,
+) -> None:
+    """Experiments and lab-hours to target (median [IQR]) for each planner over many seeds, vs random."""
+    from rich.table import Table
+
+    from twin.planner_bench import HEADER, bench, rows
+
+    names = [p.strip() for p in planners.split(",") if p.strip()]
+    try:
+        s = lab.prepare(scenario)
+        for name in names:
+            lab.make_planner(s.model_copy(update={"campaign": s.campaign.model_copy(update={"planner": name.split("~")[0]})}))
+    except TwinError as exc:
+        _fail(exc)
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                        console=err)
+    with progress:
+        bar = progress.add_task(f"{s.name}: {len(names)} planners × {seeds} seeds", total=len(names) * seeds)
+        results = bench(scenario, names, seeds, workers, on_trial=lambda t: progress.advance(bar), budget=budget)
+    table = Table(title=f"{s.name} — {seeds} seeds, budget {budget or s.campaign.budget}, "
+                        f"{s.campaign.max_in_flight} in the lab; medians [IQR]; ≥: censored by the budget",
+                  title_justify="left")
+    for h in HEADER:
+        table.add_column(h)
+    for row in rows(results):
+        table.add_row(*row)
+    console.print(table)
 
 
 @device_app.command("serve")

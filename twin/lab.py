@@ -96,7 +96,8 @@ def build_actors(s: Scenario, drivers: list[tuple[str, str, Any]], bus: Bus, clo
 
 def make_planner(s: Scenario) -> Any:
     cls = plugins.load("planners", s.campaign.planner)
-    return cls(parameters=s.chemistry.parameters, seed=s.campaign.seed, **s.campaign.planner_options)
+    return cls(parameters=s.chemistry.parameters, seed=s.campaign.seed, targets=s.chemistry.targets,
+               budget=s.campaign.budget, **s.campaign.planner_options)
 
 
 def make_scheduler(s: Scenario) -> Any:

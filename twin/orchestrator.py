@@ -49,6 +49,7 @@ class Orchestrator:
         self.history: list[Outcome] = []
         self.best: dict[str, tuple[float, int]] = {}  # target -> (score, experiment)
         self.met_at: dict[str, float] = {}
+        self.met_after: dict[str, int] = {}  # target -> experiments finished when it was met
         self.counts = {"attempts": 0, "failed": 0, "timed_out": 0, "retried": 0, "invalid": 0,
                        "late": 0, "device_lost": 0, "quarantined": 0, "degraded": 0}
         self.planner_exhausted = False
@@ -406,6 +407,7 @@ class Orchestrator:
                     self.best[name] = (sc, e.id)
                 if sc == 0 and name not in self.met_at:
                     self.met_at[name] = self.now - self._t0
+                    self.met_after[name] = sum(1 for x in self.experiments if x.status in ("done", "abandoned"))
                     self._note("target.met", e.id, detail=name)
             self.counts["degraded"] += e.degraded
         self.history.append(Outcome(e.params, e.outputs if status == "done" else None,
