@@ -16,6 +16,8 @@ from twin.driver import DriverSetup, StepContext, StepResult
 from twin.errors import DriverError
 
 FEED_NM, PRODUCT_NM, BYPRODUCT_NM, BAND_NM = 450.0, 540.0, 640.0, 40.0
+HC_EV_NM = 1239.84  # photon energy (eV) × wavelength (nm)
+EDGE_WIDTH_NM = 4.0
 
 
 class Spectrometer:
@@ -36,6 +38,9 @@ class Spectrometer:
             y = spectra.render(bands, self.noise, ctx.rng)
             fit = spectra.fit_peak(y)
             outputs = {"peak_nm": fit["center"], "fwhm_nm": fit["fwhm"], "intensity": fit["height"]}
+        elif sample.get("kind") == "film":
+            y, edge_nm = self._absorption_edge(sample["band_gap_ev"], keep, ctx)
+            outputs = {"band_gap_ev": HC_EV_NM / edge_nm, "edge_nm": edge_nm}
         elif sample.get("kind") == "reaction":
             conv, sel = sample["conversion"], sample["selectivity"]
             bands = [(FEED_NM, BAND_NM, 1 - conv), (PRODUCT_NM, BAND_NM, conv * sel * keep),
@@ -47,9 +52,19 @@ class Spectrometer:
         else:
             raise DriverError(f"cannot measure a sample of kind {sample.get('kind')!r}")
         outputs = {k: round(v, 4) for k, v in outputs.items()}
-        outputs["spectrum"] = {"start_nm": float(spectra.GRID_NM[0]), "step_nm": 2.0, "y": np.round(y, 4).tolist()}
+        grid = spectra.UV_GRID_NM if sample.get("kind") == "film" else spectra.GRID_NM
+        outputs["spectrum"] = {"start_nm": float(grid[0]), "step_nm": float(grid[1] - grid[0]),
+                               "y": np.round(y, 4).tolist()}
         outputs["age_s"] = round(age, 1)
         return StepResult(outputs, sample)
+
+    def _absorption_edge(self, gap_ev: float, keep: float, ctx: StepContext) -> tuple[np.ndarray, float]:
+        """An absorption edge at the band gap; its derivative is a peak, fitted like any other."""
+        grid = spectra.UV_GRID_NM
+        edge = HC_EV_NM / gap_ev
+        y = keep / (1 + np.exp((grid - edge) / EDGE_WIDTH_NM)) + ctx.rng.normal(0.0, self.noise, grid.shape)
+        slope = -np.gradient(np.convolve(y, np.ones(5) / 5, mode="same"), grid)
+        return y, spectra.fit_peak(slope, grid=grid, lo=grid[3], hi=grid[-4])["center"]
 
     async def safe_state(self) -> None:
         """Shutter closed; nothing to undo."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from devices.models import quantum_dots
+from devices.models import bandgap, quantum_dots
 from twin.driver import DriverSetup, StepContext, StepResult
 from twin.errors import DriverError
 
@@ -26,6 +26,9 @@ class Synthesiser:
     async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
         await ctx.clock.sleep(ctx.draw_duration(params))
         made = {"t_made": ctx.clock.now()}
+        if self.model == "bandgap":
+            x, t_c = need(params, "indium_fraction", "growth_temperature_c")
+            return StepResult({}, {"kind": "film", "band_gap_ev": bandgap.film_band_gap_ev(x, t_c), **made})
         if self.model == "quantum_dots":
             c, t_c, t_s = need(params, "concentration_mm", "temperature_c", "time_s")
             qd = quantum_dots.emission(c, t_c + 273.15, t_s)

@@ -50,6 +50,8 @@ class Orchestrator:
         self.best: dict[str, tuple[float, int]] = {}  # target -> (score, experiment)
         self.met_at: dict[str, float] = {}
         self.met_after: dict[str, int] = {}  # target -> experiments finished when it was met
+        self.met_cost: dict[str, float] = {}  # target -> money spent when it was met
+        self.cost = 0.0
         self.counts = {"attempts": 0, "failed": 0, "timed_out": 0, "retried": 0, "invalid": 0,
                        "late": 0, "device_lost": 0, "quarantined": 0, "degraded": 0}
         self.planner_exhausted = False
@@ -127,6 +129,8 @@ class Orchestrator:
         c = self.s.campaign
         if self.planner_exhausted or len(self.experiments) >= c.budget:
             return False
+        if c.max_cost is not None and self.cost >= c.max_cost:
+            return False
         return not (c.stop_on_target and self.s.chemistry.targets and len(self.met_at) == len(self.s.chemistry.targets))
 
     async def _await_devices(self) -> None:
@@ -150,7 +154,8 @@ class Orchestrator:
             pending = [e.params for e in self.active.values()]
             proposals = self.planner.propose(n, list(self.history), pending)[:n]
             if not proposals:
-                self.planner_exhausted = True
+                # nothing now: ask again when something finishes, or give up if nothing will
+                self.planner_exhausted = not self.active
                 return
             for p in proposals:
                 self._add_experiment(p)
@@ -234,6 +239,7 @@ class Orchestrator:
         e.attempts += 1
         e.status = "running"
         self.counts["attempts"] += 1
+        self.cost += self.s.devices[dev.type].cost
         att = Attempt(task, task.attempts, dev.name, self.now)
         dev.attempt = att
         self.attempts[(task.id, att.n)] = att
@@ -408,6 +414,7 @@ class Orchestrator:
                 if sc == 0 and name not in self.met_at:
                     self.met_at[name] = self.now - self._t0
                     self.met_after[name] = sum(1 for x in self.experiments if x.status in ("done", "abandoned"))
+                    self.met_cost[name] = self.cost
                     self._note("target.met", e.id, detail=name)
             self.counts["degraded"] += e.degraded
         self.history.append(Outcome(e.params, e.outputs if status == "done" else None,

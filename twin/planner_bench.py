@@ -28,7 +28,8 @@ class Trial:
     reached: bool
     experiments: int  # finished when the last target was met (the budget if never)
     lab_hours: float  # lab time until then (the whole run if never)
-    cost: float  # experiments run in all
+    experiments_run: int
+    cost: float  # spent when the last target was met (all that was spent if never)
 
 
 def trial(scenario: Scenario, planner: str, seed: int) -> Trial:
@@ -43,7 +44,8 @@ def trial(scenario: Scenario, planner: str, seed: int) -> Trial:
     reached = all(t in s.targets_met_h for t in targets)
     return Trial(planner, seed, reached,
                  max(s.targets_met_after.values()) if reached else s.proposed,
-                 max(s.targets_met_h.values()) if reached else s.lab_hours, s.proposed)
+                 max(s.targets_met_h.values()) if reached else s.lab_hours, s.proposed,
+                 max(s.targets_met_cost.values()) if reached else s.cost)
 
 
 def _trial(args: tuple) -> Trial:
@@ -73,20 +75,25 @@ def quartiles(values: list[float]) -> tuple[float, float, float]:
 def rows(results: dict[str, list[Trial]], baseline: str = "random") -> list[list[str]]:
     """One row per planner: experiments and lab-hours to target (median [IQR]), success, acceleration."""
     base = results.get(baseline)
-    base_median = statistics.median(t.experiments for t in base) if base else math.nan
+    # where experiments cost money (and DFT calculations do not), acceleration is measured in cost
+    by_cost = bool(base) and statistics.median(t.cost for t in base) > 0
+    measure = (lambda t: t.cost) if by_cost else (lambda t: t.experiments)
+    base_median = statistics.median(measure(t) for t in base) if base else math.nan
     out = []
     for planner, trials in results.items():
         e = quartiles([t.experiments for t in trials])
         h = quartiles([t.lab_hours for t in trials])
         success = sum(t.reached for t in trials) / len(trials)
         censored = "≥" if success < 0.5 else ""
-        accel = base_median / e[1] if e[1] else math.nan
+        mine = statistics.median(measure(t) for t in trials)
+        accel = base_median / mine if mine else math.nan
         base_censored = "≥" if base and sum(t.reached for t in base) / len(base) < 0.5 else ""
         out.append([planner, f"{censored}{e[1]:.0f} [{e[0]:.0f}–{e[2]:.0f}]", f"{censored}{h[1]:.1f} [{h[0]:.1f}–{h[2]:.1f}]",
-                    f"{statistics.mean(t.cost for t in trials):.0f}", f"{100 * success:.0f} %",
-                    f"{base_censored}{accel:.1f}×" if planner != baseline else "1.0×"])
+                    f"{statistics.mean(t.experiments_run for t in trials):.0f}",
+                    f"{statistics.median(t.cost for t in trials):,.0f}", f"{100 * success:.0f} %",
+                    (f"{base_censored}{accel:.1f}×" if planner != baseline else "1.0×") + (" (cost)" if by_cost else "")])
     return out
 
 
-HEADER = ["planner", "experiments to target", "lab-hours to target", "experiments run", "reached",
-          "acceleration vs random"]
+HEADER = ["planner", "experiments to target", "lab-hours to target", "experiments run", "cost to target",
+          "reached", "acceleration vs random"]

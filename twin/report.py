@@ -19,6 +19,8 @@ def render_summary(s: Summary, console: Console) -> None:
     t.add_row("faults", f"{s.devices_lost} device losses, {s.quarantines} quarantines, "
                         f"{s.invalid_messages} invalid messages, {s.late_results} late results")
     t.add_row("samples degraded", str(s.degraded_samples))
+    if s.cost:
+        t.add_row("cost", f"{s.cost:,.0f}")
     t.add_row("lab time", f"{s.lab_hours:.2f} h ({s.wall_s:.2f} s wall, {s.events} journal events)")
     for dev, u in s.utilisation.items():
         t.add_row(f"  {dev}", f"{100 * u:5.1f} % busy")

@@ -46,6 +46,7 @@ class DeviceType(_Spec):
     setup_s: float = Field(default=0, ge=0)
     clean_s: float = Field(default=0, ge=0)
     faults: Faults = Faults()
+    cost: float = Field(default=0, ge=0, description="charged for every attempt dispatched to this device type")
     options: dict[str, Any] = Field(default_factory=dict, description="passed to the driver as is")
 
 
@@ -105,6 +106,7 @@ class Campaign(_Spec):
     max_in_flight: int = Field(default=4, ge=1, description="experiments in the lab at once")
     stop_on_target: bool = True
     max_lab_hours: float = Field(default=10_000, gt=0)
+    max_cost: float | None = Field(default=None, gt=0, description="stop proposing once this much is spent")
     planner_options: dict[str, Any] = Field(default_factory=dict)
 
 

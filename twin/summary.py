@@ -31,7 +31,9 @@ class Summary:
     best: dict[str, dict[str, Any]] = field(default_factory=dict)
     targets_met_h: dict[str, float] = field(default_factory=dict)
     targets_met_after: dict[str, int] = field(default_factory=dict)
+    targets_met_cost: dict[str, float] = field(default_factory=dict)
     stopped: str = ""
+    cost: float = 0.0
     wall_s: float = 0.0
     events: int = 0
 
@@ -62,8 +64,8 @@ def from_orchestrator(orch: Any, journal: str, wall_s: float, events: int) -> Su
         late_results=c["late"], degraded_samples=c["degraded"], abandoned_reasons=dict(reasons),
         utilisation={d.name: round(d.busy_s / elapsed, 4) for d in orch.devices.values()},
         best=best, targets_met_h={k: v / 3600 for k, v in orch.met_at.items()},
-        targets_met_after=dict(orch.met_after),
-        stopped=orch.stopping, wall_s=wall_s, events=events,
+        targets_met_after=dict(orch.met_after), targets_met_cost=dict(orch.met_cost),
+        stopped=orch.stopping, cost=orch.cost, wall_s=wall_s, events=events,
     )
 
 

@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 GRID_NM = np.arange(400.0, 752.0, 2.0)
+UV_GRID_NM = np.arange(300.0, 600.5, 1.0)  # band edges of wide-gap films
 
 
 def render(bands: list[tuple[float, float, float]], noise: float, rng: np.random.Generator,

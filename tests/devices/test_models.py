@@ -78,3 +78,30 @@ def test_the_peak_fit_recovers_a_noisy_band():
     assert fit["center"] == pytest.approx(523.0, abs=0.5)
     assert fit["fwhm"] == pytest.approx(30.0, rel=0.05)
     assert fit["height"] == pytest.approx(0.8, rel=0.05)
+
+
+def test_ingan_band_gap_bows_between_gan_and_inn():
+    from devices.models import bandgap
+
+    assert bandgap.band_gap_ev(0.0) == pytest.approx(3.42)
+    assert bandgap.band_gap_ev(1.0) == pytest.approx(0.77)
+    assert bandgap.band_gap_ev(0.5) < (3.42 + 0.77) / 2  # bowing pulls the middle down
+    assert bandgap.incorporated(0.3, 650) > bandgap.incorporated(0.3, 800) > bandgap.incorporated(0.3, 900)
+
+
+def test_the_spectrometer_reads_a_band_gap_off_the_absorption_edge():
+
+    from devices.spectrometer import Spectrometer
+    from twin.clock import LabClock
+    from twin.driver import DriverSetup, StepContext
+    from twin.scenario import Chemistry, Duration
+
+    clock = LabClock("virtual")
+    spec = Spectrometer(DriverSetup("s", "spectrometer", {}, Chemistry(model="bandgap", noise=0.005), Duration(mean_s=1), 0))
+
+    async def measure(gap):
+        ctx = StepContext(clock, np.random.default_rng(1), Duration(mean_s=1, cv=0), lambda *a: None, lambda r: None)
+        return (await spec.run("measure", {}, {"kind": "film", "band_gap_ev": gap, "t_made": 0.0}, ctx)).outputs
+
+    for gap in (2.6, 3.0, 3.3):
+        assert clock.run(measure(gap))["band_gap_ev"] == pytest.approx(gap, abs=0.01)
