@@ -45,6 +45,8 @@ def run(
     speed: Annotated[Optional[float], typer.Option(help="lab seconds per wall second (scaled clock)")] = None,
     bus: Annotated[Optional[str], typer.Option(help="zenoh | memory")] = None,
     budget: Annotated[Optional[int], typer.Option(help="override campaign.budget")] = None,
+    planner: Annotated[Optional[str], typer.Option(help="override campaign.planner (twin bench planners lists them)")] = None,
+    scheduler: Annotated[Optional[str], typer.Option(help="override campaign.scheduler")] = None,
     journal: Annotated[Optional[Path], typer.Option(help="where to write the SQLite journal")] = None,
     external: Annotated[Optional[list[str]], typer.Option(help="a device served by another process")] = None,
     listen: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447")] = None,
@@ -58,7 +60,8 @@ def run(
 ) -> None:
     """Run a campaign and print its summary."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    overrides: dict = {"campaign.budget": budget} if budget is not None else {}
+    overrides: dict = {f"campaign.{k}": v for k, v in (("budget", budget), ("planner", planner),
+                                                        ("scheduler", scheduler)) if v is not None}
     if listen:
         overrides["bus.listen"] = list(listen)
     record = RecordOptions(save, viewer, serve, serve_port, web_port)

@@ -249,6 +249,7 @@ def _serve(out: Recording, grpc_port: int, web_port: int) -> str | None:
         [cli, "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc), "--web-viewer-port", str(web)],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     if not _wait_listening(out.server, grpc, web):
+        _stop(out.server)
         err = out.server.stderr.read().decode(errors="replace")[-300:] if out.server.stderr else ""
         out.messages.append(f"serve: the rerun server did not start ({err.strip() or 'no reason given'}); "
                             "the campaign runs without serving")
@@ -260,21 +261,22 @@ def _serve(out: Recording, grpc_port: int, web_port: int) -> str | None:
     return grpc_url
 
 
-def _wait_listening(proc: subprocess.Popen, grpc: int, web: int, seconds: float = 15.0, lines: int = 50) -> bool:
+def _wait_listening(proc: subprocess.Popen, grpc: int, web: int, seconds: float = 15.0) -> bool:
     """Read the server's log until it says both its gRPC and web ports listen."""
-    stream, waiting = proc.stderr, {f"127.0.0.1:{grpc}".encode(), f"127.0.0.1:{web}".encode()}
-    for _ in range(lines):
-        ready, _, _ = select.select([stream], [], [], seconds)
-        line = stream.readline() if ready else b""
-        if not line:
+    fd = proc.stderr.fileno()  # raw reads: a buffered reader could hold lines select() cannot see
+    waiting, log_text = {f"127.0.0.1:{grpc}".encode(), f"127.0.0.1:{web}".encode()}, b""
+    while waiting and len(log_text) < 1 << 20:
+        ready, _, _ = select.select([fd], [], [], seconds)
+        chunk = os.read(fd, 65536) if ready else b""
+        if not chunk:
             return False
-        waiting = {w for w in waiting if w not in line}
-        if not waiting:
-            threading.Thread(target=_drain, args=(stream,), daemon=True).start()  # keep its pipe from filling
-            return True
-    return False
+        log_text += chunk
+        waiting = {w for w in waiting if w not in log_text}
+    threading.Thread(target=_drain, args=(fd,), daemon=True).start()  # keep its pipe from filling
+    return not waiting
 
 
-def _drain(stream) -> None:
-    for _ in stream:
-        pass
+def _drain(fd: int) -> None:
+    with contextlib.suppress(OSError):
+        while os.read(fd, 65536):
+            pass

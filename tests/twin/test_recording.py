@@ -102,7 +102,8 @@ def test_twin_watch_in_another_process_records_the_campaign(tmp_path):
     port = free_port()
     db = tmp_path / "j.db"
     campaign = subprocess.Popen(
-        [*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "12", "--clock", "scaled", "--speed", "3000",
+        [*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "12", "--planner", "random", "--clock", "scaled",
+         "--speed", "3000",
          "--listen", f"tcp/127.0.0.1:{port}", "--journal", str(db), "--quiet"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     watcher = subprocess.Popen(
