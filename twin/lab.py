@@ -178,8 +178,8 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
             await actor.stop()
         summary = from_orchestrator(orch, str(journal_path), time.perf_counter() - wall0, journal._seq + 1)
         lab_only = {k: v for k, v in summary.to_dict().items() if k not in ("wall_s", "journal")}
-        orch.note("campaign.summary", detail=lab_only)  # wall-clock facts stay out of the event stream
-        orch.publish_decisions()
+        orch.decisions.note("campaign.summary", detail=lab_only)  # wall-clock facts stay out of the stream
+        orch.decisions.publish()
         journal.set("summary", summary.to_dict())
         journal.close()
         if observer is not None:

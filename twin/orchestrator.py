@@ -11,7 +11,6 @@ every state change goes to the journal, in lab time.
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import random
 from collections.abc import Callable
@@ -22,7 +21,8 @@ from twin.bus import Bus
 from twin.clock import LabClock
 from twin.decisions import Assignment, FreeDevice, LabView, Outcome, Planner, Proposal, ReadyStep, RouteStep, Scheduler
 from twin.driver import expected_duration
-from twin.journal import Journal, as_messages, decision_id
+from twin.decision_log import DecisionLog
+from twin.journal import Journal
 from twin.messages import InvalidMessage, Kind, decode, pack
 from twin.records import Attempt, Device, Experiment, Task, check_accounting
 from twin.scenario import Scenario
@@ -61,15 +61,15 @@ class Orchestrator:
         self.active: dict[int, Experiment] = {}  # pending or running
         self._handles: list[Any] = []
         self._t0 = 0.0
-        self._decisions = keys.campaign(scenario.lab, campaign_id, "decisions")
-        self._outbox: list[dict[str, Any]] = []
+        self.decisions = DecisionLog(journal, bus, clock, scenario.lab, campaign_id)
+        self._note = self.decisions.note
 
     # -- the main loop ----------------------------------------------------
     async def run(self) -> None:
         lab = self.s.lab
         self._t0 = self.clock.now()
         self._handles = [
-            self.bus.serve(keys.campaign(lab, self.campaign_id, "history"), self._history),
+            self.bus.serve(self.decisions.history_key, self.decisions.history),
             self.bus.subscribe(keys.evt(lab), self._on_event),
             self.bus.subscribe(keys.telemetry(lab), self._on_telemetry),
             self.bus.watch_tokens(keys.alive(lab), self._on_presence),
@@ -99,15 +99,6 @@ class Orchestrator:
             "parameters": {k: [p.low, p.high, p.unit] for k, p in s.chemistry.parameters.items()},
             "targets": [t.model_dump(exclude_none=True) for t in s.chemistry.targets],
         }
-
-    async def _history(self, key: str, payload: bytes) -> bytes:
-        """Everything observed so far, for a watcher that joins late (``twin watch``)."""
-        # let messages already sent to us land in the journal first (~50 ms of wall time): the
-        # watcher's subscription may have missed them, and they must be in the history then
-        await self.clock.sleep(0.05 * (1.0 if self.clock.is_virtual else self.clock.speed))
-        self.journal.flush()
-        rows = self.journal.rows()
-        return json.dumps(as_messages(rows)).encode()
 
     def stop(self, reason: str) -> None:
         """Stop proposing and dispatching; what is in the lab is cancelled, the rest stays pending."""
@@ -254,30 +245,6 @@ class Orchestrator:
         self._ids += 1
         return pack(kind, body, id=f"{ORCH}:{self._ids}", sender=ORCH, t_lab=self.now,
                     campaign=self.campaign_id, task=task, attempt=attempt)
-
-    def note(self, kind: str, experiment: int | None = None, task: str | None = None, attempt: int | None = None,
-             device: str | None = None, detail: Any = None) -> None:
-        """A state change: journalled, and published as a decision for any observer on the bus.
-
-        Decisions made in one turn of the loop travel together, as one ``decisions`` message.
-        """
-        seq = self.journal.event(self.now, kind, experiment, task, attempt, device, detail)
-        if not self._outbox:
-            asyncio.get_running_loop().call_soon(self.publish_decisions)
-        self._outbox.append({"id": decision_id(seq), "t_lab": self.now, "what": kind, "detail": {
-            "experiment": experiment, "task": task, "attempt": attempt, "device": device, "info": detail}})
-
-    def publish_decisions(self) -> None:
-        """Send the decisions noted so far now (the loop does it at the end of each turn)."""
-        if not self._outbox:
-            return
-        items, self._outbox = self._outbox, []
-        self._ids += 1
-        body = {"what": "decisions", "detail": {"items": items}}
-        self.bus.publish(self._decisions, pack(Kind.DECISION, body, id=f"{ORCH}:b{self._ids}", sender=ORCH,
-                                               t_lab=items[0]["t_lab"], campaign=self.campaign_id))
-
-    _note = note
 
     # -- events from devices ---------------------------------------------
     def _on_event(self, key: str, payload: bytes) -> None:

@@ -22,7 +22,7 @@ def journal_rows(db):
 def test_same_seed_same_journal(tmp_path, bus):
     scenario = ROOT / "scenarios" / "flaky_lab.yaml"
     a = run(scenario, journal=tmp_path / "a.db", seed=3, bus=bus, overrides={"campaign.budget": 25})
-    b = run(scenario, journal=tmp_path / "b.db", seed=3, bus=bus, overrides={"campaign.budget": 25})
+    run(scenario, journal=tmp_path / "b.db", seed=3, bus=bus, overrides={"campaign.budget": 25})
     events_a, exps_a = journal_rows(tmp_path / "a.db")
     events_b, exps_b = journal_rows(tmp_path / "b.db")
     assert len(events_a) > 200

@@ -78,7 +78,6 @@ async def _duplicating_device(bus, clock, lab, name):
 
 
 def test_duplicate_and_late_results_are_recorded_never_double_counted(scenario_of, tmp_path):
-    import asyncio
 
     from twin.bus import MemoryHub, MemoryBus
     from twin.clock import LabClock

@@ -1,0 +1,57 @@
+"""The orchestrator's state changes, journalled and published for observers.
+
+Every change goes to the journal and, as a decision, onto
+``labtwin/<lab>/campaign/<id>/decisions``; the changes made in one turn of
+the loop travel together as one message. ``history`` answers a watcher that
+joins late with everything observed so far.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+from typing import Any
+
+from twin import keys
+from twin.bus import Bus
+from twin.clock import LabClock
+from twin.journal import Journal, as_messages, decision_id
+from twin.messages import Kind, pack
+
+SENDER = "orchestrator"
+
+
+class DecisionLog:
+    def __init__(self, journal: Journal, bus: Bus, clock: LabClock, lab: str, campaign_id: str) -> None:
+        self.journal, self.bus, self.clock, self.campaign_id = journal, bus, clock, campaign_id
+        self.key = keys.campaign(lab, campaign_id, "decisions")
+        self.history_key = keys.campaign(lab, campaign_id, "history")
+        self._outbox: list[dict[str, Any]] = []
+        self._batches = itertools.count(1)
+
+    def note(self, kind: str, experiment: int | None = None, task: str | None = None, attempt: int | None = None,
+             device: str | None = None, detail: Any = None) -> None:
+        now = self.clock.now()
+        seq = self.journal.event(now, kind, experiment, task, attempt, device, detail)
+        if not self._outbox:
+            asyncio.get_running_loop().call_soon(self.publish)
+        self._outbox.append({"id": decision_id(seq), "t_lab": now, "what": kind, "detail": {
+            "experiment": experiment, "task": task, "attempt": attempt, "device": device, "info": detail}})
+
+    def publish(self) -> None:
+        """Send the decisions noted so far now (the loop does it at the end of each turn)."""
+        if not self._outbox:
+            return
+        items, self._outbox = self._outbox, []
+        body = {"what": "decisions", "detail": {"items": items}}
+        self.bus.publish(self.key, pack(Kind.DECISION, body, id=f"{SENDER}:b{next(self._batches)}", sender=SENDER,
+                                        t_lab=items[0]["t_lab"], campaign=self.campaign_id))
+
+    async def history(self, key: str, payload: bytes) -> bytes:
+        """Everything observed so far, for a watcher that joins late (``twin watch``)."""
+        # let messages already sent to us land in the journal first (~50 ms of wall time): the
+        # watcher's subscription may have missed them, and they must be in the history then
+        await self.clock.sleep(0.05 * (1.0 if self.clock.is_virtual else self.clock.speed))
+        self.journal.flush()
+        return json.dumps(as_messages(self.journal.rows())).encode()
