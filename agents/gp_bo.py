@@ -29,10 +29,12 @@ from twin.decisions import Outcome, Proposal
 
 class GpBoPlanner:
     def __init__(self, parameters: dict[str, Any], seed: int, targets: list[Any] = (), n_init: int = 6,
-                 candidates: int = 2048, refit_every: int = 4, **_: Any) -> None:
+                 candidates: int = 2048, refit_every: int = 4, log_scale: bool = True, **_: Any) -> None:
         self.names = list(parameters)
         self.lo = np.array([p.low for p in parameters.values()])
         self.hi = np.array([p.high for p in parameters.values()])
+        # parameters spanning a decade or more are modelled on a log scale (concentrations, times)
+        self.log = (self.lo > 0) & (self.hi >= 10 * self.lo) if log_scale else np.zeros(len(self.lo), bool)
         self.targets = list(targets)
         self.outputs = sorted({o for t in self.targets for o in t.outputs})
         self.n_init, self.n_candidates, self.refit_every = n_init, candidates, refit_every
@@ -136,7 +138,13 @@ class GpBoPlanner:
 
     # -- scaling ------------------------------------------------------------------
     def _unit(self, params: dict[str, Any]) -> np.ndarray:
-        return (np.array([float(params[n]) for n in self.names]) - self.lo) / (self.hi - self.lo)
+        v = np.array([float(params[n]) for n in self.names])
+        lo, hi = self.lo.copy(), self.hi.copy()
+        v, lo, hi = (np.where(self.log, np.log(np.maximum(a, 1e-300)), a) for a in (v, lo, hi))
+        return (v - lo) / (hi - lo)
 
     def _params(self, u: np.ndarray) -> dict[str, float]:
-        return {n: float(v) for n, v in zip(self.names, self.lo + u * (self.hi - self.lo))}
+        lo, hi = (np.where(self.log, np.log(a), a) for a in (self.lo, self.hi))
+        v = lo + u * (hi - lo)
+        v = np.where(self.log, np.exp(v), v)
+        return {n: float(min(max(x, a), b)) for n, x, a, b in zip(self.names, v, self.lo, self.hi)}
