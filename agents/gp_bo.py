@@ -1,7 +1,8 @@
 """Asynchronous Gaussian-process Bayesian optimisation, aware of several targets at once.
 
 One GP per output a target names (anisotropic Matérn 5/2 with a noise term,
-scikit-learn), over the parameter box scaled to [0, 1]. The acquisition is the
+scikit-learn), over the parameter box scaled to [0, 1] — on a log scale for
+parameters that span a decade or more. The acquisition is the
 probability that an experiment meets a target — for ``value ± tol`` the
 posterior mass inside the window, for ``min``/``max`` the mass beyond the
 bound, multiplied over the target's conditions. A batch goes round the unmet
