@@ -2,6 +2,7 @@ import pytest
 
 from twin.bus import open_bus
 from twin.clock import LabClock
+from twin.scenario import set_dotted
 
 
 @pytest.fixture
@@ -53,11 +54,7 @@ def qd_lab(**changes) -> dict:
         "bus": {"kind": "memory"},
     }
     for dotted, value in changes.items():
-        node = raw
-        *parents, leaf = dotted.split(".")
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = value
+        set_dotted(raw, dotted, value)
     return raw
 
 

@@ -19,7 +19,7 @@ from twin.driver import DriverSetup
 from twin.errors import ClockError, DriverError
 from twin.journal import Journal
 from twin.orchestrator import Orchestrator
-from twin.scenario import Scenario, load
+from twin.scenario import Scenario, load, set_dotted
 from twin.observer import LabObserver
 from twin.summary import Summary, from_orchestrator
 from twin.watch import RecordOptions, attach, open_observer
@@ -43,11 +43,7 @@ def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: 
     if isinstance(scenario, Scenario):
         data = scenario.model_dump()
         for dotted, value in extra.items():
-            node = data
-            *parents, leaf = dotted.split(".")
-            for p in parents:
-                node = node[p]
-            node[leaf] = value
+            set_dotted(data, dotted, value)
         return Scenario.model_validate(data)
     return load(scenario, extra)
 

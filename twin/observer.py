@@ -13,7 +13,6 @@ import json
 import math
 from typing import Any, Protocol
 
-LEVELS = ("DEBUG", "INFO", "WARN", "ERROR")
 #: A device's states, in the order the viewer lists them.
 STATES = ("offline", "idle", "failed", "quarantined", "busy")
 WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",

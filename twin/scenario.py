@@ -191,7 +191,7 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
     if not isinstance(raw, dict):
         raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"])
     for dotted, value in (overrides or {}).items():
-        _set_dotted(raw, dotted, value)
+        set_dotted(raw, dotted, value)
     scenario = parse(raw, str(path))
     if scenario.jobshop is not None:
         from twin.jobshop import expand
@@ -219,7 +219,8 @@ def _describe(err: dict[str, Any], raw: dict[str, Any]) -> str:
     return f"{loc or '(top level)'}: {msg}{shown}"
 
 
-def _set_dotted(raw: dict[str, Any], dotted: str, value: Any) -> None:
+def set_dotted(raw: dict[str, Any], dotted: str, value: Any) -> None:
+    """Set ``raw["a"]["b"]["c"] = value`` for ``dotted = "a.b.c"``, creating what is missing."""
     node = raw
     *parents, leaf = dotted.split(".")
     for p in parents:
