@@ -24,6 +24,7 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
 
+from agents.box import UnitBox
 from agents.planners import LhsPlanner
 from twin.decisions import Outcome, Proposal
 
@@ -31,11 +32,8 @@ from twin.decisions import Outcome, Proposal
 class GpBoPlanner:
     def __init__(self, parameters: dict[str, Any], seed: int, targets: list[Any] = (), n_init: int = 6,
                  candidates: int = 2048, refit_every: int = 4, log_scale: bool = True, **_: Any) -> None:
-        self.names = list(parameters)
-        self.lo = np.array([p.low for p in parameters.values()])
-        self.hi = np.array([p.high for p in parameters.values()])
-        # parameters spanning a decade or more are modelled on a log scale (concentrations, times)
-        self.log = (self.lo > 0) & (self.hi >= 10 * self.lo) if log_scale else np.zeros(len(self.lo), bool)
+        self.box = UnitBox(parameters, log_scale)
+        self.names = self.box.names
         self.targets = list(targets)
         self.outputs = sorted({o for t in self.targets for o in t.outputs})
         self.n_init, self.n_candidates, self.refit_every = n_init, candidates, refit_every
@@ -139,13 +137,7 @@ class GpBoPlanner:
 
     # -- scaling ------------------------------------------------------------------
     def _unit(self, params: dict[str, Any]) -> np.ndarray:
-        v = np.array([float(params[n]) for n in self.names])
-        lo, hi = self.lo.copy(), self.hi.copy()
-        v, lo, hi = (np.where(self.log, np.log(np.maximum(a, 1e-300)), a) for a in (v, lo, hi))
-        return (v - lo) / (hi - lo)
+        return self.box.unit(params)
 
     def _params(self, u: np.ndarray) -> dict[str, float]:
-        lo, hi = (np.where(self.log, np.log(a), a) for a in (self.lo, self.hi))
-        v = lo + u * (hi - lo)
-        v = np.where(self.log, np.exp(v), v)
-        return {n: float(min(max(x, a), b)) for n, x, a, b in zip(self.names, v, self.lo, self.hi)}
+        return self.box.params(u)

@@ -22,6 +22,7 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
 
+from agents.box import UnitBox
 from twin.decisions import Outcome, Proposal, RouteStep
 
 PRIOR_CORRECTION_SD = 0.3  # eV: how far we believe DFT can be off before any experiment
@@ -31,9 +32,8 @@ class MultiFidelityPlanner:
     def __init__(self, parameters: dict[str, Any], seed: int, targets: list[Any] = (), n_dft: int = 12,
                  dft_step: str = "compute", dft_device: str = "dft", dft_output: str = "band_gap_dft_ev",
                  dft_inputs: tuple[str, ...] = ("indium_fraction",), candidates: int = 2048, **_: Any) -> None:
-        self.names = list(parameters)
-        self.lo = np.array([p.low for p in parameters.values()])
-        self.hi = np.array([p.high for p in parameters.values()])
+        self.box = UnitBox(parameters, log_scale=False)
+        self.names = self.box.names
         self.target = targets[0] if targets else None
         self.output, self.cond = next(iter(self.target.outputs.items())) if self.target else (None, None)
         self.dft_route = (RouteStep(dft_step, dft_device),)
@@ -99,7 +99,7 @@ class MultiFidelityPlanner:
                                             random_state=int(self.rng.integers(2**31))).fit(x, y)
 
     def _unit(self, params: dict[str, Any]) -> np.ndarray:
-        return (np.array([float(params[n]) for n in self.names]) - self.lo) / (self.hi - self.lo)
+        return self.box.unit(params)
 
     def _params(self, u: np.ndarray) -> dict[str, float]:
-        return {n: float(v) for n, v in zip(self.names, self.lo + u * (self.hi - self.lo))}
+        return self.box.params(u)

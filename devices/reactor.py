@@ -1,14 +1,21 @@
-"""The reactor: heats a sample to a set-point under its own PID loop and holds it."""
+"""The reactor: heats a sample to a set-point under its own control loop and holds it.
+
+The loop is the PID (``options: {kp, ki, kd}``) unless ``options.controller``
+names a trained heater policy (`twin train SCENARIO --agent controller`).
+"""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from devices.models import catalyst, thermal
+from devices.reactor_control import SIGNATURE, PolicyController
 from devices.synthesiser import need
 from twin.driver import DriverSetup, StepContext, StepResult
+from twin.policies import load_policy, read_meta
 
 
 class Reactor:
@@ -20,10 +27,17 @@ class Reactor:
         self.telemetry_s = float(o.get("telemetry_s", 600.0))
         self.dt_s = float(o.get("dt_s", 10.0))
         self.temperature_k = thermal.T_AMBIENT_K
+        self.policy = self.mode = None
+        if o.get("controller", "pid") != "pid":
+            self.policy, self.mode = load_controller(Path(o["controller"]), self.dt_s)
+
+    def controller(self, setpoint: float):
+        pid = thermal.Pid(**self.pid)
+        return pid if self.policy is None else PolicyController(self.policy, setpoint, self.mode, pid)
 
     async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
         setpoint, hold = need(params, "temperature_k", "time_s")
-        trace = thermal.simulate(setpoint, hold, self.dt_s, pid=thermal.Pid(**self.pid))
+        trace = thermal.simulate(setpoint, hold, self.dt_s, controller=self.controller(setpoint))
         total = ctx.draw_duration(params)
         every = max(1, int(self.telemetry_s / self.dt_s))
         elapsed = 0.0
@@ -44,3 +58,8 @@ class Reactor:
     async def safe_state(self) -> None:
         """Heater off: the next run starts from ambient."""
         self.temperature_k = thermal.T_AMBIENT_K
+
+
+def load_controller(path: Path, dt_s: float = 10.0) -> tuple[Any, str]:
+    """A trained heater policy (`twin train ... --agent controller`) and its mode (pure or residual)."""
+    return load_policy(path, "controller", {**SIGNATURE, "dt_s": dt_s}), read_meta(path).get("mode", "pure")

@@ -206,6 +206,41 @@ def devices() -> None:
         console.print(f"{name:14} {ep.value:40} {dist:10} {caps}")
 
 
+@app.command()
+def train(
+    scenario: Annotated[Path, typer.Argument(help="the scenario to train in, e.g. scenarios/quantum_dots.yaml")],
+    out: Annotated[Path, typer.Option(help="where to save the policy (.zip, with a .json beside it)")],
+    agent: Annotated[str, typer.Option(help="planner (the rl planner), controller or controller-residual (the reactor's heater)")] = "planner",
+    steps: Annotated[int, typer.Option(help="environment steps")] = 200_000,
+    seed: Annotated[int, typer.Option(help="training seed")] = 0,
+    envs: Annotated[int, typer.Option(help="environments stepped together")] = 4,
+    eval_every: Annotated[int, typer.Option(help="evaluate (and keep the best policy) every this many steps")] = 20_000,
+) -> None:
+    """Train an agent in the twin; the evaluation curve is printed as it goes."""
+    try:
+        s = lab.prepare(scenario)
+        trainer = plugins.load("trainers", agent)
+    except TwinError as exc:
+        _fail(exc)
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                        console=err)
+
+    def report(done: int, result: dict | None) -> None:
+        progress.update(bar, completed=done)
+        if result:
+            fields = "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
+                               for k, v in result.items() if k != "policy")
+            progress.console.print(f"{done:>9,} steps  {result['policy']:14} {fields}", highlight=False)
+
+    with progress:
+        bar = progress.add_task(f"training the {agent} on {s.name}", total=steps)
+        try:
+            path = trainer(s, steps, out, seed=seed, envs=envs, eval_every=eval_every, on_progress=report)
+        except (TwinError, ValueError) as exc:
+            _fail(TwinError(str(exc)))
+    console.print(f"saved {path} (and {path.with_suffix('.json').name})")
+
+
 @bench_app.command("planners")
 def bench_planners(
     scenario: Annotated[Path, typer.Argument(help="a scenario with targets, e.g. scenarios/quantum_dots.yaml")],

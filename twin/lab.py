@@ -91,9 +91,10 @@ def build_actors(s: Scenario, drivers: list[tuple[str, str, Any]], bus: Bus, clo
 
 
 def make_planner(s: Scenario) -> Any:
-    cls = plugins.load("planners", s.campaign.planner)
+    name, options = plugins.with_policy("planners", s.campaign.planner)
+    cls = plugins.load("planners", name)
     return cls(parameters=s.chemistry.parameters, seed=s.campaign.seed, targets=s.chemistry.targets,
-               budget=s.campaign.budget, **s.campaign.planner_options)
+               budget=s.campaign.budget, **{**options, **s.campaign.planner_options})
 
 
 def make_scheduler(s: Scenario) -> Any:

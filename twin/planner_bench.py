@@ -88,11 +88,19 @@ def rows(results: dict[str, list[Trial]], baseline: str = "random") -> list[list
         mine = statistics.median(measure(t) for t in trials)
         accel = base_median / mine if mine else math.nan
         base_censored = "≥" if base and sum(t.reached for t in base) / len(base) < 0.5 else ""
-        out.append([planner, f"{censored}{e[1]:.0f} [{e[0]:.0f}–{e[2]:.0f}]", f"{censored}{h[1]:.1f} [{h[0]:.1f}–{h[2]:.1f}]",
+        out.append([label(planner), f"{censored}{e[1]:.0f} [{e[0]:.0f}–{e[2]:.0f}]", f"{censored}{h[1]:.1f} [{h[0]:.1f}–{h[2]:.1f}]",
                     f"{statistics.mean(t.experiments_run for t in trials):.0f}",
                     f"{statistics.median(t.cost for t in trials):,.0f}", f"{100 * success:.0f} %",
                     (f"{base_censored}{accel:.1f}×" if planner != baseline else "1.0×") + (" (cost)" if by_cost else "")])
     return out
+
+
+def label(planner: str) -> str:
+    """``rl:agents/policies/quantum_dots.zip~seq`` → ``rl:quantum_dots~seq``."""
+    name, _, variant = planner.partition("~")
+    kind, sep, policy = name.partition(":")
+    short = f"{kind}:{Path(policy).stem}" if sep and policy.endswith(".zip") else name
+    return short + (f"~{variant}" if variant else "")
 
 
 HEADER = ["planner", "experiments to target", "lab-hours to target", "experiments run", "cost to target",

@@ -8,11 +8,21 @@ from typing import Any
 
 from twin.errors import DriverError, PluginError
 
-GROUPS = {"devices": "labtwin.devices", "planners": "labtwin.planners", "schedulers": "labtwin.schedulers"}
+GROUPS = {"devices": "labtwin.devices", "planners": "labtwin.planners", "schedulers": "labtwin.schedulers",
+          "trainers": "labtwin.trainers"}
 
 
 def installed(kind: str) -> dict[str, EntryPoint]:
     return {ep.name: ep for ep in entry_points(group=GROUPS[kind])}
+
+
+def with_policy(kind: str, spec: str) -> tuple[str, dict[str, Any]]:
+    """``"rl:policies/x.zip"`` → ``("rl", {"policy": "policies/x.zip"})`` when ``rl`` is installed;
+    anything else (a name, a ``package.module:Class`` string) is returned unchanged."""
+    name, sep, rest = spec.partition(":")
+    if sep and rest and name in installed(kind):
+        return name, {"policy": rest}
+    return spec, {}
 
 
 def load(kind: str, name: str) -> Any:

@@ -47,6 +47,8 @@ def fit_peak(y: np.ndarray, lo: float = -math.inf, hi: float = math.inf,
     if a >= 0:
         return {"center": float(x[i]), "fwhm": float("nan"), "height": float(top)}
     center = -b / (2 * a)
+    if not xs[0] - x[i] <= center <= xs[-1] - x[i]:  # a flat run (noise): the parabola's top is not a peak
+        return {"center": float(x[i]), "fwhm": float("nan"), "height": float(top)}
     sigma = math.sqrt(-1 / (2 * a))
     height = math.exp(c - b * b / (4 * a))
     return {"center": float(center + x[i]), "fwhm": 2.3548 * sigma, "height": height}

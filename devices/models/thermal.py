@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -44,16 +45,36 @@ class Pid:
         return u
 
 
+@dataclass(frozen=True)
+class Plant:
+    """The reactor as built; a real one differs (the bench checks controllers against a mismatched plant)."""
+
+    tau_s: float = TAU_S
+    u_max_k: float = U_MAX_K
+    exotherm_k: float = EXOTHERM_K
+
+
+NOMINAL = Plant()
+
+
+def advance(t_k: float, u: float, dt_s: float, plant: Plant = NOMINAL) -> float:
+    """The temperature one step of ``dt_s`` later under heater power ``u`` (clipped to the heater's range)."""
+    u = min(max(u, 0.0), plant.u_max_k)
+    exo = plant.exotherm_k / (1 + math.exp((430.0 - t_k) / 10.0))
+    return t_k + dt_s / plant.tau_s * (u + exo - (t_k - T_AMBIENT_K))
+
+
 def simulate(setpoint_k: float, hold_s: float, dt_s: float = 10.0, t0_k: float = T_AMBIENT_K,
-             pid: Pid | None = None) -> np.ndarray:
-    """The temperature trace (one value per dt) of a heat-up and hold at ``setpoint_k``."""
-    pid = pid or Pid()
+             controller: Any = None, plant: Plant = NOMINAL) -> np.ndarray:
+    """The temperature trace (one value per dt) of a heat-up and hold at ``setpoint_k``.
+
+    ``controller.step(error, dt)`` gives the heater power; a PID by default.
+    """
+    step = (controller or Pid()).step
     n = max(1, int(math.ceil(hold_s / dt_s)))
     trace = [0.0] * n
-    t, step, exp, gain = t0_k, pid.step, math.exp, dt_s / TAU_S
+    t = t0_k
     for i in range(n):
-        u = step(setpoint_k - t, dt_s)
-        exo = EXOTHERM_K / (1 + exp((430.0 - t) / 10.0))
-        t += gain * (u + exo - (t - T_AMBIENT_K))
+        t = advance(t, step(setpoint_k - t, dt_s), dt_s, plant)
         trace[i] = t
     return np.array(trace)

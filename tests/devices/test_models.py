@@ -68,7 +68,7 @@ def test_without_anti_windup_the_same_loop_overshoots_more():
             u = self.kp * error + self.ki * self.integral
             return min(max(u, 0.0), thermal.U_MAX_K)
 
-    assert np.max(thermal.simulate(450.0, 3600.0, pid=Naive())) > np.max(thermal.simulate(450.0, 3600.0)) + 5
+    assert np.max(thermal.simulate(450.0, 3600.0, controller=Naive())) > np.max(thermal.simulate(450.0, 3600.0)) + 5
 
 
 def test_the_peak_fit_recovers_a_noisy_band():
@@ -105,3 +105,11 @@ def test_the_spectrometer_reads_a_band_gap_off_the_absorption_edge():
 
     for gap in (2.6, 3.0, 3.3):
         assert clock.run(measure(gap))["band_gap_ev"] == pytest.approx(gap, abs=0.01)
+
+
+def test_the_peak_fit_on_noise_alone_stays_bounded():
+    rng = np.random.default_rng(1)
+    for _ in range(2000):
+        y = rng.normal(0.0, 0.005, spectra.GRID_NM.shape)
+        fit = spectra.fit_peak(y, 610, 670)
+        assert 0.0 <= fit["height"] <= float(np.max(y)) * 1.5

@@ -67,3 +67,23 @@ def _has_experiments(db: Path) -> bool:
             return c.execute("SELECT COUNT(*) FROM events WHERE kind='experiment.done'").fetchone()[0] > 0
     except sqlite3.Error:
         return False
+
+
+def test_train_prints_its_evaluation_curve_and_saves_a_policy_with_its_sidecar(tmp_path):
+    out = tmp_path / "heater.zip"
+    res = subprocess.run([*TWIN, "train", "scenarios/catalyst.yaml", "--agent", "controller", "--steps", "2880",
+                          "--eval-every", "1440", "--out", str(out)], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert res.returncode == 0, res.stderr
+    curve = [ln for ln in res.stderr.splitlines() if " steps " in ln]
+    assert [ln.split()[0] for ln in curve] == ["0", "1,440", "2,880"], res.stderr
+    assert "pid" in curve[0] and "ppo-pure" in curve[1]
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert out.exists() and meta["kind"] == "controller" and meta["scenario"] == "catalyst"
+    assert meta["versions"]["torch"].startswith("2.13.0")
+
+
+def test_train_an_unknown_agent_lists_what_is_installed(tmp_path):
+    res = subprocess.run([*TWIN, "train", "scenarios/catalyst.yaml", "--agent", "nope", "--out", str(tmp_path / "x.zip")],
+                         capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert res.returncode == 2 and "unknown trainer 'nope'" in res.stderr and "planner" in res.stderr
+    assert "Traceback" not in res.stderr

@@ -1,0 +1,154 @@
+"""`labtwin/Planning-v0`: the seed chapter's closed loop as a gymnasium environment.
+
+Each step is one experiment, run through the scenario's own drivers in a
+workcell (the same physics, noise and sample ageing as a campaign). The agent
+moves from the best experiment so far: it sees where that is and how far its
+outputs miss the target, and where the last attempt went and what it gave;
+it answers with a move in the unit box. An episode ends when the target is
+met or after ``horizon`` experiments.
+
+Goals are the scenario's targets and, for ``value ± tol`` conditions, goals
+drawn from what a random point of the box produces (so the policy learns to
+reach anything reachable, not three memorised points).
+
+Reward: the drop in log(1 + distance to target) of the best experiment,
++1 when the target is met, -0.02 per experiment: fewer experiments to target
+is better, and a step that finds nothing new costs a little.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from agents.box import UnitBox
+from twin.scenario import Scenario
+from twin.targets import score
+from twin.workcell import open_workcell
+
+STEP = 0.3  # the largest move per experiment, as a fraction of the unit box
+CLIP = 6.0
+MET_BONUS, STEP_COST = 1.0, 0.02
+
+
+def signed_errors(outputs: dict[str, Any] | None, target: Any) -> np.ndarray:
+    """Per condition, how far and which way an output misses, on a log scale of tolerances."""
+    out = []
+    for name, c in target.outputs.items():
+        y = (outputs or {}).get(name)
+        if not isinstance(y, (int, float)) or not math.isfinite(y):
+            out.append(CLIP)
+            continue
+        if c.value is not None:
+            e = (y - c.value) / c.tol
+        else:
+            scale = max(abs(c.min if c.min is not None else c.max) * 0.05, 1e-9)
+            e = (y - c.min) / scale if c.min is not None else (c.max - y) / scale
+            e = min(e, 0.0)  # a bound that holds is met; only the shortfall matters
+        out.append(float(np.clip(np.sign(e) * math.log1p(abs(e)), -CLIP, CLIP)))
+    return np.array(out, dtype=np.float32)
+
+
+def observation(box: UnitBox, target: Any, best: tuple[np.ndarray, dict | None],
+                last: tuple[np.ndarray, dict | None], used: float) -> np.ndarray:
+    """[best point, its errors, last point − best point, last errors, fraction of the horizon used]."""
+    return np.concatenate([best[0], signed_errors(best[1], target), last[0] - best[0],
+                           signed_errors(last[1], target), [used]]).astype(np.float32)
+
+
+def observation_size(dims: int, conditions: int) -> int:
+    return 2 * dims + 2 * conditions + 1
+
+
+def signature(parameters: list[str], conditions: list[str]) -> dict[str, Any]:
+    """What a planner policy is tied to: the box it moves in and the target conditions it reads."""
+    return {"observation_size": observation_size(len(parameters), len(conditions)),
+            "parameters": list(parameters), "conditions": list(conditions)}
+
+
+def move(u_best: np.ndarray, action: np.ndarray) -> np.ndarray:
+    return np.clip(u_best + STEP * np.clip(action, -1.0, 1.0), 0.0, 1.0)
+
+
+def target_shape(scenario: Scenario) -> tuple[str, ...]:
+    """The conditions every target of the scenario must share for one policy to serve them all."""
+    shapes = {tuple(t.outputs) for t in scenario.chemistry.targets}
+    if len(shapes) != 1:
+        raise ValueError(f"{scenario.name}: the rl planner needs targets on the same outputs; got {sorted(shapes)}")
+    return shapes.pop()
+
+
+@dataclass
+class _Point:
+    u: np.ndarray
+    outputs: dict | None
+    distance: float
+
+
+class PlanningEnv(gym.Env):
+    metadata = {"render_modes": []}
+
+    def __init__(self, scenario: Scenario, horizon: int = 30, random_goals: float = 0.5, seed: int = 0) -> None:
+        target_shape(scenario)
+        self.scenario, self.horizon, self.random_goals = scenario, horizon, random_goals
+        self.box = UnitBox(scenario.chemistry.parameters)
+        self.targets = list(scenario.chemistry.targets)
+        self.workcell = open_workcell(scenario, seed)
+        conditions = len(self.targets[0].outputs)
+        self.observation_space = gym.spaces.Box(-CLIP, CLIP, (observation_size(self.box.dims, conditions),), np.float32)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (self.box.dims,), np.float32)
+        self.target = self.targets[0]
+        self._best = self._last = None
+        self._n = 0
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self.workcell.reseed(seed)
+        self.target = self._goal() if (options or {}).get("target") is None else options["target"]
+        self._n = 0
+        self._best = self._last = self._experiment(self.np_random.random(self.box.dims))
+        return self._obs(), {"distance": self._best.distance}
+
+    def step(self, action):
+        before = self._best.distance
+        self._last = self._experiment(move(self._best.u, np.asarray(action, dtype=float)))
+        if self._last.distance < self._best.distance:
+            self._best = self._last
+        met = self._best.distance == 0
+        reward = math.log1p(before) - math.log1p(self._best.distance) - STEP_COST + (MET_BONUS if met else 0.0)
+        truncated = not met and self._n >= self.horizon
+        return self._obs(), float(reward), met, truncated, {"distance": self._best.distance, "experiments": self._n}
+
+    # -- internals -------------------------------------------------------------
+    def _experiment(self, u: np.ndarray) -> _Point:
+        self._n += 1
+        outputs = self.workcell.run(self.box.params(u)).outputs
+        return _Point(u, outputs, score(outputs, self.target))
+
+    def _goal(self) -> Any:
+        target = self.targets[int(self.np_random.integers(len(self.targets)))]
+        values = [n for n, c in target.outputs.items() if c.value is not None]
+        if not values or self.np_random.random() >= self.random_goals:
+            return target
+        reached = self.workcell.run(self.box.params(self.np_random.random(self.box.dims))).outputs
+        if not all(isinstance(reached.get(n), (int, float)) for n in values):
+            return target
+        conds = {n: replace_value(c, reached[n]) if n in values else c for n, c in target.outputs.items()}
+        return target.model_copy(update={"name": "random-goal", "outputs": conds})
+
+    def _obs(self) -> np.ndarray:
+        return observation(self.box, self.target, (self._best.u, self._best.outputs),
+                           (self._last.u, self._last.outputs), self._n / self.horizon)
+
+
+def replace_value(cond: Any, value: float) -> Any:
+    return cond.model_copy(update={"value": float(value)})
+
+
+if "labtwin/Planning-v0" not in gym.registry:  # gym.make("agents.planning_env:labtwin/Planning-v0", scenario=...)
+    gym.register("labtwin/Planning-v0", entry_point="agents.planning_env:PlanningEnv")

@@ -1,0 +1,73 @@
+"""Train the `rl` planner: PPO in `labtwin/Planning-v0`, evaluated on the scenario's own targets."""
+
+from __future__ import annotations
+
+import statistics
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from agents.planning_env import PlanningEnv, signature
+from twin.policies import save_policy
+from twin.scenario import Scenario
+
+# Tuned on quantum_dots (see docs/benchmarks.md): a short horizon wants a short discount.
+PPO_SETTINGS = dict(n_steps=256, batch_size=256, n_epochs=10, gamma=0.95, learning_rate=3e-4,
+                    policy_kwargs=dict(net_arch=[64, 64]))
+EVAL_EPISODES = 30
+
+
+def evaluate(scenario: Scenario, act: Callable[[np.ndarray, Any], np.ndarray], episodes: int = EVAL_EPISODES,
+             seed: int = 10_000) -> dict[str, float]:
+    """Success rate, median experiments to target and mean return on the scenario's targets (fixed seeds)."""
+    env = PlanningEnv(scenario, random_goals=0.0, seed=seed)
+    targets = scenario.chemistry.targets
+    met, used, returns = 0, [], []
+    for i in range(episodes):
+        obs, _ = env.reset(seed=seed + i, options={"target": targets[i % len(targets)]})
+        total = 0.0
+        while True:
+            obs, reward, terminated, truncated, info = env.step(act(obs, env))
+            total += reward
+            if terminated or truncated:
+                break
+        met += terminated
+        used.append(info["experiments"])
+        returns.append(total)
+    return {"success": met / episodes, "experiments": float(statistics.median(used)),
+            "return": float(statistics.mean(returns))}
+
+
+def random_moves(obs: np.ndarray, env: PlanningEnv) -> np.ndarray:
+    return env.action_space.sample()
+
+
+def train_planner(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs: int = 4,
+                  eval_every: int = 20_000, on_progress: Callable[[int, dict | None], None] | None = None) -> Path:
+    """Train, evaluating every ``eval_every`` steps; saves the best evaluated policy to ``out``."""
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    torch.set_num_threads(1)
+    venv = DummyVecEnv([lambda i=i: PlanningEnv(scenario, seed=seed * 1000 + i) for i in range(envs)])
+    model = PPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS)
+    baseline = evaluate(scenario, random_moves)
+    if on_progress:
+        on_progress(0, {"policy": "random moves", **baseline})
+    sig = signature(list(scenario.chemistry.parameters), list(scenario.chemistry.targets[0].outputs))
+    best, done, curve = None, 0, []
+    while done < steps:
+        chunk = min(eval_every, steps - done)
+        model.learn(chunk, reset_num_timesteps=False)
+        done += chunk
+        result = evaluate(scenario, lambda o, _: model.predict(o, deterministic=False)[0])
+        curve.append({"steps": done, **result})
+        if on_progress:
+            on_progress(done, {"policy": "ppo", **result})
+        if best is None or (result["success"], -result["experiments"]) >= (best["success"], -best["experiments"]):
+            best = {"steps": done, **result}
+            save_policy(model, out, "planner", scenario, sig, steps=done, baseline=baseline, curve=curve)
+    return out.with_suffix(".zip")

@@ -1,0 +1,103 @@
+"""The rl planner: its environment is a valid gymnasium env, short training improves it, and the
+shipped policy proposes valid, non-duplicate experiments in a campaign."""
+
+from pathlib import Path
+
+import gymnasium as gym
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+from agents.planning_env import PlanningEnv, signature
+from agents.rl_planner import RlPlanner
+from agents.train_planner import evaluate, train_planner
+from twin.decisions import Outcome
+from twin.errors import PluginError
+from twin.lab import prepare
+from twin.planner_bench import trial
+from twin.policies import load_policy
+from twin.targets import score
+
+ROOT = Path(__file__).resolve().parents[2]
+POLICY = ROOT / "agents" / "policies" / "quantum_dots.zip"
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def qd():
+    return prepare(ROOT / "scenarios" / "quantum_dots.yaml")
+
+
+def test_the_registered_planning_env_passes_the_gymnasium_checker(qd):
+    env = gym.make("agents.planning_env:labtwin/Planning-v0", scenario=qd)
+    check_env(env.unwrapped, skip_render_check=True)
+
+
+def test_the_same_seed_gives_the_same_episode(qd):
+    def episode(seed):
+        env = PlanningEnv(qd)
+        obs, _ = env.reset(seed=seed)
+        env.action_space.seed(seed)
+        out = [obs.tolist()]
+        for _ in range(5):
+            out.append(env.step(env.action_space.sample())[0].tolist())
+        return out
+
+    assert episode(3) == episode(3)
+    assert episode(3) != episode(4)
+
+
+def test_short_ppo_training_improves_its_own_return(qd, tmp_path):
+    from stable_baselines3 import PPO
+
+    untrained = PPO("MlpPolicy", PlanningEnv(qd), seed=0, device="cpu")
+    before = evaluate(qd, lambda o, _: untrained.predict(o, deterministic=True)[0], episodes=12)
+    path = train_planner(qd, 16_384, tmp_path / "p.zip", envs=4, eval_every=16_384)
+    model = load_policy(path, "planner", signature(list(qd.chemistry.parameters), ["peak_nm"]))
+    after = evaluate(qd, lambda o, _: model.predict(o, deterministic=True)[0], episodes=12)
+    assert after["return"] > before["return"] + 0.5, (before, after)
+    assert after["success"] > before["success"]
+
+
+def test_the_policy_proposes_inside_the_box_and_never_repeats_a_pending_point(qd):
+    box = qd.chemistry.parameters
+    planner = RlPlanner(box, seed=1, targets=qd.chemistry.targets, policy=str(POLICY))
+    history = [Outcome({"concentration_mm": 5.0 + i, "temperature_c": 250.0 + 5 * i, "time_s": 100.0 + 20 * i},
+                       {"peak_nm": 500.0 + 10 * i}, None) for i in range(5)]
+    pending = [p.params for p in planner.propose(4, history, [])]
+    batch = [p.params for p in planner.propose(6, history, pending)]
+    for p in pending + batch:
+        assert all(box[k].low <= v <= box[k].high for k, v in p.items())
+    keys = [tuple(round(v, 6) for v in p.values()) for p in pending + batch]
+    assert len(set(keys)) == len(keys)
+
+
+def test_a_failed_synthesis_gets_an_alternative_not_a_repeat(qd):
+    planner = RlPlanner(qd.chemistry.parameters, seed=2, targets=qd.chemistry.targets[:1], policy=str(POLICY))
+    history = [Outcome({"concentration_mm": 20.0, "temperature_c": 280.0, "time_s": 300.0}, {"peak_nm": 600.0}, None)]
+    history += [Outcome({"concentration_mm": 3.0 + i, "temperature_c": 240.0, "time_s": 50.0}, {"peak_nm": 480.0}, None)
+                for i in range(3)]
+    first = planner.propose(1, history, [])[0].params
+    failed = history + [Outcome(first, None, None, reason="synthesis failed")]
+    second = planner.propose(1, failed, [])[0].params
+    assert second != first
+
+
+def test_a_campaign_with_the_rl_planner_reaches_every_target(qd):
+    result = trial(qd, f"rl:{POLICY}", seed=0)
+    assert result.reached, result
+    assert result.experiments < qd.campaign.budget
+
+
+def test_a_missing_or_mismatched_policy_is_a_clear_error(qd):
+    with pytest.raises(PluginError, match="twin train"):
+        RlPlanner(qd.chemistry.parameters, seed=0, targets=qd.chemistry.targets)
+    cat = prepare(ROOT / "scenarios" / "catalyst.yaml")
+    with pytest.raises(PluginError, match="different lab.*parameters"):
+        RlPlanner(cat.chemistry.parameters, seed=0, targets=cat.chemistry.targets, policy=str(POLICY))
+
+
+def test_the_env_scores_what_the_targets_score(qd):
+    env = PlanningEnv(qd, random_goals=0.0)
+    _, info = env.reset(seed=0, options={"target": qd.chemistry.targets[0]})
+    assert info["distance"] == score(env._best.outputs, qd.chemistry.targets[0])
