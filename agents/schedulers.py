@@ -1,43 +1,82 @@
-"""Dispatching rules. The RL scheduler and CP-SAT come with issue [4 of 5]."""
+"""Dispatching rules: which ready step goes first, on which free device.
+
+Each rule orders the ready steps and gives each, in turn, a free device of its
+type (the first by name, or the least used for ``least-loaded``).
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
-from twin.decisions import Assignment, LabView, ReadyStep, capable
+from twin.decisions import Assignment, FreeDevice, LabView, ReadyStep, capable
 
 
-def _assign_in_order(order: list[ReadyStep], view: LabView) -> list[Assignment]:
+def _assign_in_order(order: list[ReadyStep], view: LabView,
+                     pick: Callable[[list[FreeDevice]], FreeDevice] = lambda options: options[0]) -> list[Assignment]:
     free = list(view.free)
     out = []
     for step in order:
         options = capable(step, tuple(free))
         if options:
-            device = options[0]
+            device = pick(options)
             free.remove(device)
             out.append(Assignment(step.task, device.name))
     return out
 
 
-class FifoScheduler:
+class _Rule:
+    """A rule is its ordering key over ready steps."""
+
+    def __init__(self, **_: Any) -> None:
+        pass
+
+    def key(self, s: ReadyStep) -> tuple:
+        raise NotImplementedError
+
+    def decide(self, view: LabView) -> list[Assignment]:
+        return _assign_in_order(sorted(view.ready, key=self.key), view)
+
+
+class FifoScheduler(_Rule):
     """First ready, first served, on the first free device of its type."""
 
-    def __init__(self, **_: Any) -> None:
-        pass
+    def key(self, s: ReadyStep) -> tuple:
+        return (s.ready_since, s.task)
+
+
+class OldestSampleScheduler(_Rule):
+    """Steps whose sample has waited longest go first, so fewer samples degrade."""
+
+    def key(self, s: ReadyStep) -> tuple:
+        made = s.sample_made if s.sample_made is not None else float("inf")
+        return (made, s.ready_since, s.task)
+
+
+class SptScheduler(_Rule):
+    """Shortest processing time first: quick steps free their devices soonest."""
+
+    def key(self, s: ReadyStep) -> tuple:
+        return (s.expected_s, s.ready_since, s.task)
+
+
+class MwkrScheduler(_Rule):
+    """Most work remaining first: the experiments furthest from done set the makespan."""
+
+    def key(self, s: ReadyStep) -> tuple:
+        return (-s.work_remaining_s, s.ready_since, s.task)
+
+
+class LeastLoadedScheduler(_Rule):
+    """First ready, first served, on the free device of its type that has been busy least."""
+
+    def key(self, s: ReadyStep) -> tuple:
+        return (s.ready_since, s.task)
 
     def decide(self, view: LabView) -> list[Assignment]:
-        return _assign_in_order(sorted(view.ready, key=lambda s: (s.ready_since, s.task)), view)
+        busy = {d.name: (d.busy_s, d.name) for d in view.devices}
+        return _assign_in_order(sorted(view.ready, key=self.key), view,
+                                pick=lambda options: min(options, key=lambda d: busy.get(d.name, (0.0, d.name))))
 
 
-class OldestSampleScheduler:
-    """Greedy: steps whose sample has waited longest go first, so fewer samples degrade."""
-
-    def __init__(self, **_: Any) -> None:
-        pass
-
-    def decide(self, view: LabView) -> list[Assignment]:
-        def key(s: ReadyStep):
-            made = s.sample_made if s.sample_made is not None else float("inf")
-            return (made, s.ready_since, s.task)
-
-        return _assign_in_order(sorted(view.ready, key=key), view)
+RULES = ("fifo", "spt", "mwkr", "least-loaded", "oldest-sample")

@@ -26,8 +26,10 @@ app = typer.Typer(help="labtwin: a digital twin of a self-driving lab.", no_args
                   pretty_exceptions_enable=False, add_completion=False)
 device_app = typer.Typer(help="Run one device actor in this process.", no_args_is_help=True)
 app.add_typer(device_app, name="device")
-bench_app = typer.Typer(help="Compare planners (and later schedulers) over many seeds.", no_args_is_help=True)
+bench_app = typer.Typer(help="Compare planners and schedulers over many seeds.", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
+scheduler_app = typer.Typer(help="Run a scheduler agent in this process.", no_args_is_help=True)
+app.add_typer(scheduler_app, name="scheduler")
 console = Console()
 err = Console(stderr=True, soft_wrap=True)
 
@@ -210,7 +212,8 @@ def devices() -> None:
 def train(
     scenario: Annotated[Path, typer.Argument(help="the scenario to train in, e.g. scenarios/quantum_dots.yaml")],
     out: Annotated[Path, typer.Option(help="where to save the policy (.zip, with a .json beside it)")],
-    agent: Annotated[str, typer.Option(help="planner (the rl planner), controller or controller-residual (the reactor's heater)")] = "planner",
+    agent: Annotated[str, typer.Option(help="scheduler (the rl scheduler), planner (the rl planner), "
+                                            "controller or controller-residual (the reactor's heater)")] = "scheduler",
     steps: Annotated[int, typer.Option(help="environment steps")] = 200_000,
     seed: Annotated[int, typer.Option(help="training seed")] = 0,
     envs: Annotated[int, typer.Option(help="environments stepped together")] = 4,
@@ -238,6 +241,12 @@ def train(
             path = trainer(s, steps, out, seed=seed, envs=envs, eval_every=eval_every, on_progress=report)
         except (TwinError, ValueError) as exc:
             _fail(TwinError(str(exc)))
+        except KeyboardInterrupt:
+            progress.stop()
+            kept = out.with_suffix(".zip")
+            err.print(f"interrupted; {'the best policy so far is ' + str(kept) if kept.exists() else 'no policy saved yet'}",
+                      highlight=False)
+            raise typer.Exit(130) from None
     console.print(f"saved {path} (and {path.with_suffix('.json').name})")
 
 
@@ -276,6 +285,47 @@ def bench_planners(
     console.print(table)
 
 
+@bench_app.command("schedulers")
+def bench_schedulers(
+    scenario: Annotated[Path, typer.Argument(help="a scenario, e.g. scenarios/flaky_lab.yaml or scenarios/jobshop.yaml")],
+    seeds: Annotated[int, typer.Option(help="seeds per scheduler (a deterministic job shop runs once)")] = 20,
+    schedulers: Annotated[str, typer.Option(help="comma-separated: rules, cp-sat, rl:POLICY.zip")] = "fifo,spt,mwkr,least-loaded,oldest-sample",
+    jobshop: Annotated[Optional[str], typer.Option(help="job-shop files to run instead of the scenario's, comma-separated "
+                                                       "(e.g. jobshop/la01.txt,jobshop/ft10.txt)")] = None,
+    workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
+    budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget")] = None,
+) -> None:
+    """Makespan, gap to the CP-SAT bound, utilisation, degraded and lost samples, decision latency per scheduler."""
+    from rich.table import Table
+
+    from twin.scheduler_bench import HEADER, bench, bound, load_variant, rows
+
+    names = [p.strip() for p in schedulers.split(",") if p.strip()]
+    files = [f.strip() for f in jobshop.split(",")] if jobshop else [None]
+    for file in files:
+        try:
+            s = load_variant(scenario, file, budget)
+            for name in names:
+                lab.make_scheduler(s, name)
+        except TwinError as exc:
+            _fail(exc)
+        optimum = bound(s)
+        title = f"{Path(file).stem if file else s.name}"
+        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                            TimeElapsedColumn(), console=err)
+        with progress:
+            bar = progress.add_task(f"{title}: {len(names)} schedulers", total=len(names) * (1 if s.jobshop else seeds))
+            results = bench(s, names, seeds, workers, on_run=lambda r: progress.advance(bar))
+        runs = len(next(iter(results.values())))
+        table = Table(title=f"{title} — {runs} run(s) per scheduler" + (f"; CP-SAT bound {optimum:.0f} lab-s" if optimum else ""),
+                      title_justify="left")
+        for h in HEADER:
+            table.add_column(h)
+        for row in rows(results, optimum, 1.0 if s.jobshop else 3600.0):
+            table.add_row(*row)
+        console.print(table)
+
+
 @device_app.command("serve")
 def device_serve(
     scenario: Annotated[Path, typer.Argument(help="the scenario the device belongs to")],
@@ -293,3 +343,21 @@ def device_serve(
     except TwinError as exc:
         _fail(exc)
 
+
+
+@scheduler_app.command("serve")
+def scheduler_serve(
+    scenario: Annotated[Path, typer.Argument(help="the scenario of the lab to schedule")],
+    scheduler: Annotated[str, typer.Option(help="rl:POLICY.zip or a rule (fifo, spt, mwkr, least-loaded, ...)")],
+    connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
+    clock: Annotated[str, typer.Option(help="scaled | wall (the lab's clock)")] = "wall",
+    speed: Annotated[float, typer.Option(help="lab seconds per wall second")] = 1.0,
+) -> None:
+    """Serve scheduling decisions to a lab whose campaign.scheduler is `remote`, until SIGINT/SIGTERM."""
+    from twin.serve import serve_scheduler
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        serve_scheduler(scenario, scheduler, connect, clock, speed)
+    except TwinError as exc:
+        _fail(exc)

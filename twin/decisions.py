@@ -50,6 +50,7 @@ class ReadyStep:
     expected_s: float
     work_remaining_s: float
     avoid: frozenset[str] = frozenset()  # failed this step, and another instance can take it
+    then: tuple[tuple[str, float], ...] = ()  # the experiment's later steps: (device type, expected s)
 
 
 @dataclass(frozen=True)
@@ -59,10 +60,29 @@ class FreeDevice:
 
 
 @dataclass(frozen=True)
+class DeviceState:
+    """Every device of the lab, free or not, as a scheduler may weigh it."""
+
+    name: str
+    device_type: str
+    free: bool
+    online: bool
+    busy_until: float | None  # expected end of its current step (lab time), if busy
+    attempts: int  # steps sent to it so far
+    failures: int
+    busy_s: float
+    then: tuple[tuple[str, float], ...] = ()  # its running experiment's later steps, if busy
+
+
+@dataclass(frozen=True)
 class LabView:
     now: float
     ready: tuple[ReadyStep, ...]
     free: tuple[FreeDevice, ...]
+    devices: tuple[DeviceState, ...] = ()
+    finished: int = 0  # experiments done or abandoned
+    budget: int = 0
+    in_lab: int = 0  # experiments proposed and not finished
 
 
 @dataclass(frozen=True)
@@ -72,7 +92,19 @@ class Assignment:
 
 
 class Scheduler(Protocol):
+    """``decide`` may also return an awaitable of the list (an agent on the bus, a training env).
+
+    The orchestrator asks again at once while it sent something and a free
+    device could still take a ready step, so a scheduler may assign one pair
+    at a time; an empty list means wait for the next event.
+    """
+
     def decide(self, view: LabView) -> list[Assignment]: ...
+
+
+def any_pair(view: LabView) -> bool:
+    """Whether some free device could take some ready step."""
+    return any(capable(step, view.free) for step in view.ready)
 
 
 def capable(step: ReadyStep, free: tuple[FreeDevice, ...]) -> list[FreeDevice]:

@@ -7,6 +7,7 @@ lab-second.
 
 from __future__ import annotations
 
+import random
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,7 +43,18 @@ def read(path: str | Path) -> Instance:
 
 def expand(scenario: Scenario, base_dir: Path) -> Scenario:
     """The lab and the fixed list of experiments (one per job) of the scenario's instance."""
-    inst = read(base_dir / scenario.jobshop.file)
+    return as_lab(scenario, read(base_dir / scenario.jobshop.file))
+
+
+def generate(jobs: int, machines: int, low: int, high: int, rng: random.Random) -> Instance:
+    """A random instance in the usual way (Taillard): each job visits every machine once, in a random
+    order, for a duration drawn uniformly from [low, high]."""
+    return Instance(f"random-{jobs}x{machines}", machines,
+                    [[(m, rng.randint(low, high)) for m in rng.sample(range(machines), machines)] for _ in range(jobs)])
+
+
+def as_lab(scenario: Scenario, inst: Instance) -> Scenario:
+    """``scenario`` with ``inst``'s machines as its devices and its jobs as its experiments."""
     devices = {
         f"m{m}": {
             "driver": "machine",

@@ -16,9 +16,10 @@ from twin.actor import DeviceActor
 from twin.bus import Bus, open_bus
 from twin.clock import LabClock
 from twin.driver import DriverSetup
-from twin.errors import ClockError, DriverError
+from twin.errors import ClockError, DriverError, PluginError, TwinError
 from twin.journal import Journal
 from twin.orchestrator import Orchestrator
+from twin.remote_scheduler import RemoteScheduler, SchedulerService
 from twin.scenario import Scenario, load, set_dotted
 from twin.observer import LabObserver
 from twin.summary import Summary, from_orchestrator
@@ -97,8 +98,38 @@ def make_planner(s: Scenario) -> Any:
                budget=s.campaign.budget, **{**options, **s.campaign.planner_options})
 
 
-def make_scheduler(s: Scenario) -> Any:
-    return plugins.load("schedulers", s.campaign.scheduler)()
+REMOTE = "remote"  # campaign.scheduler: an agent served elsewhere (`twin scheduler serve`)
+
+
+def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
+    """The scheduler named by ``spec`` (default: the scenario's); ``REMOTE`` for an agent elsewhere."""
+    spec = spec or s.campaign.scheduler
+    if spec == REMOTE:
+        return REMOTE
+    name, options = plugins.with_policy("schedulers", spec)
+    cls = plugins.load("schedulers", name)
+    try:
+        return cls(scenario=s, seed=s.campaign.seed, **options)
+    except TwinError:
+        raise
+    except Exception as exc:
+        raise PluginError(f"scheduler {spec!r} failed to start: {exc}") from exc
+
+
+def live_scheduler(s: Scenario, chosen: Any, bus: Bus, clock: LabClock) -> tuple[Any, SchedulerService | None]:
+    """An agent scheduler (``serve_on_bus``, or ``remote``) is asked over the bus, with the fallback rule."""
+    if chosen != REMOTE and not getattr(chosen, "serve_on_bus", False):
+        return chosen, None
+    service = None
+    if chosen != REMOTE:
+        service = SchedulerService(bus, s.lab, chosen)
+        service.start()
+    deadline = s.campaign.scheduler_deadline_ms / 1000 * (1.0 if clock.is_virtual else clock.speed)
+    fallback = s.campaign.fallback_scheduler
+    return RemoteScheduler(bus, s.lab, make_scheduler(s, fallback), fallback, deadline), service
+
+
+WALL_CLOCK_FIELDS = ("wall_s", "journal", "decision_ms")  # differ between identical runs
 
 
 def default_journal(s: Scenario) -> Path:
@@ -139,7 +170,13 @@ def recording_id(s: Scenario) -> str:
 async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
                     external_devices: set[str] = frozenset(),
                     on_progress: Callable[[Orchestrator], None] | None = None,
-                    observer: LabObserver | None = None) -> Summary:
+                    observer: LabObserver | None = None, scheduler: Any = None,
+                    on_start: Callable[[Orchestrator], None] | None = None, handle_signals: bool = True) -> Summary:
+    """The campaign of ``s`` on ``clock``; ``scheduler`` replaces the scenario's (a training env's, say).
+
+    ``handle_signals``: SIGINT/SIGTERM stop the campaign cleanly (off for the campaigns a training
+    loop runs, where Ctrl-C must stop the training).
+    """
     if external_devices and clock.is_virtual:
         raise ClockError(
             f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
@@ -147,34 +184,46 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         )
     wall0 = time.perf_counter()
     drivers = load_drivers(s, skip=set(external_devices))  # bad drivers fail before the bus opens
-    planner, scheduler = make_planner(s), make_scheduler(s)
+    planner, scheduler = make_planner(s), scheduler or make_scheduler(s)
     bus = make_bus(s, clock)
     await bus.start()
+    scheduler, service = live_scheduler(s, scheduler, bus, clock)
     actors = build_actors(s, drivers, bus, clock)
     watching = attach(bus, s.lab, observer.on_message) if observer is not None else []
     journal = Journal(journal_path)
     journal.set("scenario", s.model_dump())
     journal.set("seed", s.campaign.seed)
     orch = Orchestrator(s, bus, clock, journal, planner, scheduler, on_progress=on_progress)
+    if isinstance(scheduler, RemoteScheduler):
+        scheduler.on_fallback = lambda reason: orch.decisions.note("scheduler.fallback", detail=reason)
+    if on_start is not None:
+        on_start(orch)
     loop = asyncio.get_running_loop()
-    for sig, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")):
+    for sig, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")) if handle_signals else ():
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, orch.stop, f"interrupted ({name})")
     flusher = asyncio.ensure_future(_flush_live(clock, observer)) if observer and not clock.is_virtual else None
     try:
         for actor in actors:
             await actor.start()
+        if isinstance(scheduler, RemoteScheduler) and service is None:
+            await _await_agent(scheduler, s, orch)
         await orch.run()
     finally:
         if flusher is not None:
             flusher.cancel()
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in (signal.SIGINT, signal.SIGTERM) if handle_signals else ():
             with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
                 loop.remove_signal_handler(sig)
         for actor in actors:
             await actor.stop()
+        if service is not None:
+            service.stop()
         summary = from_orchestrator(orch, str(journal_path), time.perf_counter() - wall0, journal._seq + 1)
-        lab_only = {k: v for k, v in summary.to_dict().items() if k not in ("wall_s", "journal")}
+        if isinstance(scheduler, RemoteScheduler):
+            scheduler.close()
+            summary.scheduler_fallbacks = scheduler.fallbacks
+        lab_only = {k: v for k, v in summary.to_dict().items() if k not in WALL_CLOCK_FIELDS}
         orch.decisions.note("campaign.summary", detail=lab_only)  # wall-clock facts stay out of the stream
         orch.decisions.publish()
         journal.set("summary", summary.to_dict())
@@ -185,6 +234,13 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
                 h.close()
         await bus.close()
     return summary
+
+
+async def _await_agent(remote: RemoteScheduler, s: Scenario, orch: Orchestrator) -> None:
+    if not await remote.wait_present(s.orchestrator.startup_s):
+        log.warning("no scheduler agent on the bus after %.0f lab-s: %s decides", s.orchestrator.startup_s,
+                    s.campaign.fallback_scheduler)
+        orch.decisions.note("scheduler.missing", detail=s.campaign.fallback_scheduler)
 
 
 async def _until(clock: LabClock, done: Callable[[], bool], wall_s: float = 2.0) -> None:

@@ -11,15 +11,18 @@ every state change goes to the journal, in lab time.
 from __future__ import annotations
 
 import asyncio
+import inspect
 import logging
 import random
+import time
 from collections.abc import Callable
 from typing import Any
 
 from twin import keys
 from twin.bus import Bus
 from twin.clock import LabClock
-from twin.decisions import Assignment, FreeDevice, LabView, Outcome, Planner, Proposal, ReadyStep, RouteStep, Scheduler
+from twin.decisions import (Assignment, DeviceState, FreeDevice, LabView, Outcome, Planner, Proposal, ReadyStep,
+                             RouteStep, Scheduler, any_pair)
 from twin.driver import expected_duration
 from twin.decision_log import DecisionLog
 from twin.journal import Journal
@@ -55,6 +58,7 @@ class Orchestrator:
         self.counts = {"attempts": 0, "failed": 0, "timed_out": 0, "retried": 0, "invalid": 0,
                        "late": 0, "device_lost": 0, "quarantined": 0, "degraded": 0}
         self.planner_exhausted = False
+        self.decision_wall_s: list[float] = []  # how long each scheduler decision took
         self.stopping = ""
         self._wake = asyncio.Event()
         self._ids = 0
@@ -80,7 +84,7 @@ class Orchestrator:
         try:
             while True:
                 self._fill()
-                self._dispatch()
+                await self._dispatch()
                 if self._finished():
                     break
                 await self._wake.wait()
@@ -166,7 +170,9 @@ class Orchestrator:
             dtype = self.s.devices[step.device]
             params = {**e.params, **step.params}
             expected = expected_duration(dtype.duration, params, dtype.setup_s, dtype.clean_s)
-            task = Task(f"e{e.id}s{e.stage}", e, step, self.now, self.now, expected, self._work_remaining(e))
+            then = self._later_steps(e)
+            task = Task(f"e{e.id}s{e.stage}", e, step, self.now, self.now, expected,
+                        expected + sum(d for _, d in then), then)
         task.ready_since = self.now
         self.ready[task.id] = task
         self._note("task.ready", e.id, task.id, detail={"sample_made": e.sample_made, "step": task.step.step})
@@ -176,11 +182,18 @@ class Orchestrator:
     def _view(self) -> LabView:
         ready = tuple(
             ReadyStep(t.id, t.experiment.id, t.step.step, t.step.device, t.ready_since,
-                      t.experiment.sample_made, t.expected_s, t.work_remaining_s, self._avoid(t))
+                      t.experiment.sample_made, t.expected_s, t.work_remaining_s, self._avoid(t), t.then)
             for t in self.ready.values()
         )
         free = tuple(FreeDevice(d.name, d.type) for d in self.devices.values() if d.free)
-        return LabView(self.now, ready, free)
+        devices = tuple(
+            DeviceState(d.name, d.type, d.free, d.online,
+                        d.attempt.t_sent + d.attempt.task.expected_s if d.attempt else None, d.attempts, d.failures,
+                        d.busy_s, d.attempt.task.then if d.attempt else ())
+            for d in self.devices.values()
+        )
+        return LabView(self.now, ready, free, devices, len(self.experiments) - len(self.active), self.s.campaign.budget,
+                       len(self.active))
 
     def _avoid(self, t: Task) -> frozenset[str]:
         """Fail over: skip devices that failed this step while another usable instance exists."""
@@ -193,23 +206,34 @@ class Orchestrator:
         last = frozenset(t.failed_on[-1:])
         return last if usable - last else frozenset()
 
-    def _work_remaining(self, e: Experiment) -> float:
-        rest = 0.0
-        for step in e.route[e.stage:]:
+    def _later_steps(self, e: Experiment) -> tuple[tuple[str, float], ...]:
+        out = []
+        for step in e.route[e.stage + 1:]:
             dt = self.s.devices[step.device]
-            rest += expected_duration(dt.duration, {**e.params, **step.params}, dt.setup_s, dt.clean_s)
-        return rest
+            out.append((step.device, expected_duration(dt.duration, {**e.params, **step.params}, dt.setup_s, dt.clean_s)))
+        return tuple(out)
 
-    def _dispatch(self) -> None:
-        if self.stopping or not self.ready or not any(d.free for d in self.devices.values()):
-            return
-        for a in self.scheduler.decide(self._view()):
-            problem = self._invalid(a)
-            if problem:
-                log.warning("scheduler decision ignored: %s", problem)
-                self._note("scheduler.invalid", task=a.task, device=a.device, detail=problem)
-                continue
-            self._send(self.ready.pop(a.task), self.devices[a.device])
+    async def _dispatch(self) -> None:
+        while not self.stopping and self.ready and any(d.free for d in self.devices.values()):
+            view = self._view()
+            if not any_pair(view):
+                return
+            started = time.perf_counter()
+            decided = self.scheduler.decide(view)
+            if inspect.isawaitable(decided):
+                decided = await decided
+            self.decision_wall_s.append(time.perf_counter() - started)
+            sent = 0
+            for a in decided:
+                problem = self._invalid(a)
+                if problem:
+                    log.warning("scheduler decision ignored: %s", problem)
+                    self._note("scheduler.invalid", task=a.task, device=a.device, detail=problem)
+                    continue
+                self._send(self.ready.pop(a.task), self.devices[a.device])
+                sent += 1
+            if not sent:
+                return
 
     def _invalid(self, a: Assignment) -> str:
         task, dev = self.ready.get(a.task), self.devices.get(a.device)
@@ -233,6 +257,7 @@ class Orchestrator:
         self.cost += self.s.devices[dev.type].cost
         att = Attempt(task, task.attempts, dev.name, self.now)
         dev.attempt = att
+        dev.attempts += 1
         self.attempts[(task.id, att.n)] = att
         o = self.s.orchestrator
         deadline = task.expected_s * o.timeout_factor + o.timeout_slack_s

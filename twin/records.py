@@ -47,6 +47,7 @@ class Task:
     ready_since: float
     expected_s: float
     work_remaining_s: float
+    then: tuple[tuple[str, float], ...] = ()  # later steps: (device type, expected s)
     attempts: int = 0
     failed_on: list[str] = field(default_factory=list)  # devices, oldest failure first
 
@@ -73,6 +74,7 @@ class Device:
     busy_s: float = 0.0
     failures: int = 0
     steps_done: int = 0
+    attempts: int = 0
 
     @property
     def free(self) -> bool:

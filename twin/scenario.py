@@ -108,6 +108,9 @@ class Campaign(_Spec):
     max_lab_hours: float = Field(default=10_000, gt=0)
     max_cost: float | None = Field(default=None, gt=0, description="stop proposing once this much is spent")
     planner_options: dict[str, Any] = Field(default_factory=dict)
+    fallback_scheduler: str = Field(default="fifo", description="decides when a scheduler agent on the bus is "
+                                    "absent, late or wrong")
+    scheduler_deadline_ms: float = Field(default=1000, gt=0, description="wall ms a scheduler agent has per decision")
 
 
 class Retry(_Spec):
@@ -144,6 +147,29 @@ class JobShop(_Spec):
     file: str = Field(description="a job-shop instance in the standard text format, relative to the scenario")
 
 
+class Training(_Spec):
+    """Domain randomisation for training a scheduler: each episode draws a lab from these ranges."""
+
+    duration_scale: tuple[float, float] = Field(default=(1.0, 1.0), description="multiplies every mean duration")
+    fault_scale: tuple[float, float] = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")
+    instances: dict[str, tuple[int, int]] = Field(default_factory=dict, description="device type -> [min, max] instances")
+    operation_s: tuple[float, float] | None = Field(
+        default=None, description="job shops: draw every operation's duration from [low, high] lab-s")
+    shuffle_routes: bool = Field(default=False, description="job shops: draw each job's machine order afresh")
+    jobshop_sizes: list[tuple[int, int]] = Field(
+        default_factory=list, description="job shops: draw a random instance of one of these [jobs, machines] sizes")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Training:
+        ranges = {"duration_scale": self.duration_scale, "fault_scale": self.fault_scale,
+                  **({"operation_s": self.operation_s} if self.operation_s else {}),
+                  **{f"instances.{k}": v for k, v in self.instances.items()}}
+        bad = [f"{k}: [{lo}, {hi}] must be low ≤ high, both > 0" for k, (lo, hi) in ranges.items() if not 0 < lo <= hi]
+        if bad:
+            raise ValueError("; ".join(bad))
+        return self
+
+
 class Scenario(_Spec):
     name: str
     description: str = ""
@@ -156,10 +182,12 @@ class Scenario(_Spec):
     clock: ClockSpec = ClockSpec()
     bus: BusSpec = BusSpec()
     jobshop: JobShop | None = None
+    training: Training = Training()
 
     @model_validator(mode="after")
     def _consistent(self) -> Scenario:
-        problems = []
+        problems = [f"training.instances.{k}: {k!r} is not a device type of this lab"
+                    for k in self.training.instances if k not in self.devices]
         for i, ws in enumerate(self.workflow):
             dev = self.devices.get(ws.device)
             if dev is None:

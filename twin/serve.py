@@ -49,3 +49,33 @@ def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str
             await bus.close()
 
     lab_clock.run(main())
+
+
+def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: str = "wall", speed: float = 1.0) -> None:
+    """A scheduler (a rule or ``rl:PATH``) as an agent on a lab's bus, until SIGINT/SIGTERM."""
+    from twin.lab import make_bus, make_clock, make_scheduler
+    from twin.remote_scheduler import SchedulerService
+
+    s = prepare(scenario, clock=clock, speed=speed)
+    s = s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms)})
+    scheduler = make_scheduler(s, spec)
+    lab_clock = make_clock(s)
+
+    async def main() -> None:
+        bus = make_bus(s, lab_clock)
+        await bus.start()
+        service = SchedulerService(bus, s.lab, scheduler)
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        try:
+            service.start()
+            log.info("scheduler %s serving lab %s on %s", spec, s.lab, connect)
+            print(f"ready scheduler {spec}", flush=True)
+            await stop.wait()
+        finally:
+            service.stop()
+            await bus.close()
+
+    lab_clock.run(main())

@@ -36,6 +36,9 @@ class Summary:
     cost: float = 0.0
     wall_s: float = 0.0
     events: int = 0
+    decisions: int = 0
+    scheduler_fallbacks: int = 0  # decisions the fallback rule made for an absent, late or wrong agent
+    decision_ms: dict[str, float] = field(default_factory=dict)  # wall time per scheduler decision: p50, p99, max
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -66,7 +69,16 @@ def from_orchestrator(orch: Any, journal: str, wall_s: float, events: int) -> Su
         best=best, targets_met_h={k: v / 3600 for k, v in orch.met_at.items()},
         targets_met_after=dict(orch.met_after), targets_met_cost=dict(orch.met_cost),
         stopped=orch.stopping, cost=orch.cost, wall_s=wall_s, events=events,
+        decisions=len(orch.decision_wall_s), decision_ms=_percentiles(orch.decision_wall_s),
     )
+
+
+def _percentiles(seconds: list[float]) -> dict[str, float]:
+    if not seconds:
+        return {}
+    ms = sorted(1000 * x for x in seconds)
+    pick = lambda q: ms[min(len(ms) - 1, int(q * len(ms)))]  # noqa: E731
+    return {"p50": round(pick(0.5), 4), "p99": round(pick(0.99), 4), "max": round(ms[-1], 4)}
 
 
 def _reason_kind(reason: str) -> str:

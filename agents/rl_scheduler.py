@@ -1,0 +1,41 @@
+"""`rl`: a MaskablePPO policy (`twin train SCENARIO`) deciding which ready step runs on which free device.
+
+``serve_on_bus`` makes the lab run it as an agent on the bus (``twin.remote_scheduler``):
+the orchestrator asks it over Zenoh, with a deadline and the scenario's fallback rule.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from agents.scheduling_features import Encoder, signature
+from twin.decisions import Assignment, LabView
+from twin.errors import PluginError
+from twin.policies import load_policy
+
+
+class RlScheduler:
+    serve_on_bus = True
+
+    def __init__(self, scenario: Any = None, policy: str | None = None, **_: Any) -> None:
+        if not policy or scenario is None:
+            raise PluginError("the rl scheduler needs a trained policy: train one with "
+                              "`twin train SCENARIO --out P.zip`, then use --scheduler rl:P.zip")
+        torch.set_num_threads(1)
+        self.model = load_policy(Path(policy), "scheduler", signature(scenario))
+        self.encoder = Encoder(scenario)
+
+    @classmethod
+    def from_model(cls, model: Any, scenario: Any) -> RlScheduler:
+        """A policy still in training, deciding the same way."""
+        self = cls.__new__(cls)
+        self.model, self.encoder = model, Encoder(scenario)
+        return self
+
+    def decide(self, view: LabView) -> list[Assignment]:
+        obs, mask = self.encoder.encode(view)
+        action, _ = self.model.predict(obs, action_masks=mask, deterministic=True)
+        return self.encoder.decode(view, int(action))

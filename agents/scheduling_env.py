@@ -1,0 +1,134 @@
+"""`labtwin/Scheduling-v0`: the twin's scheduling decisions as a gymnasium environment.
+
+Each step is one decision of a real campaign — device actors, orchestrator,
+retries and faults on the memory bus in virtual time (``twin.stepper``) —
+from one decision point (a device freed, a step ready) to the next. The
+observation, action and mask are ``agents.scheduling_features``.
+
+Reward (the shaping, documented): −(lab time until the next decision point)
+÷ the typical step duration, so an episode's return is minus the makespan in
+those units; −0.5 for each sample that waited past its stability before a
+step (it degraded) and −2 for each experiment abandoned. ``reset(seed=)``
+reseeds the whole twin (planner, durations, faults) and, when the scenario
+declares ``training`` ranges and ``randomise`` is on, draws the lab's
+durations, fault rates and instance counts.
+"""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from agents.scheduling_features import ACTIONS, OBS_SIZE, Encoder
+from twin import jobshop
+from twin.lab import prepare
+from twin.scenario import Scenario
+from twin.stepper import SteppedCampaign
+
+DEGRADED_PENALTY, ABANDONED_PENALTY, INVALID_PENALTY = 0.5, 2.0, 1.0
+
+
+def randomised(s: Scenario, seed: int) -> Scenario:
+    """A lab drawn from the scenario's ``training`` ranges (the same seed draws the same lab)."""
+    t, rng = s.training, random.Random(f"randomise:{seed}")
+    dur, fault = rng.uniform(*t.duration_scale), rng.uniform(*t.fault_scale)
+    over: dict[str, Any] = {}
+    for name, d in s.devices.items():
+        over[f"devices.{name}.duration.mean_s"] = d.duration.mean_s * dur
+        over[f"devices.{name}.faults.fail_p"] = min(0.5, d.faults.fail_p * fault)
+        over[f"devices.{name}.faults.hang_p"] = min(0.5, d.faults.hang_p * fault)
+        over[f"devices.{name}.faults.mtbc_h"] = d.faults.mtbc_h / fault if d.faults.mtbc_h else 0.0
+        if name in t.instances:
+            over[f"devices.{name}.instances"] = rng.randint(*t.instances[name])
+    if s.jobshop is not None and t.jobshop_sizes:
+        n_jobs, n_machines = rng.choice(t.jobshop_sizes)
+        low, high = (int(x) for x in (t.operation_s or (1, 10)))
+        return jobshop.as_lab(s, jobshop.generate(n_jobs, n_machines, low, high, rng))
+    jobs = s.campaign.planner_options.get("proposals")
+    if jobs and (t.operation_s or t.shuffle_routes):
+        over["campaign.planner_options.proposals"] = [_redraw(job, t, rng) for job in jobs]
+    return prepare(s, overrides=over)
+
+
+def _redraw(job: dict, t: Any, rng: random.Random) -> dict:
+    """A job shop's job with fresh operation durations and/or machine order."""
+    route = [dict(op, params=dict(op.get("params", {}))) for op in job["route"]]
+    if t.shuffle_routes:
+        devices = [op["device"] for op in route]
+        rng.shuffle(devices)
+        for op, device in zip(route, devices):
+            op["device"] = device
+    if t.operation_s:
+        for op in route:
+            op["params"]["duration_s"] = float(rng.randint(int(t.operation_s[0]), int(t.operation_s[1])))
+    return {**job, "route": route}
+
+
+class SchedulingEnv(gym.Env):
+    metadata = {"render_modes": []}
+
+    def __init__(self, scenario: Scenario, randomise: bool = True) -> None:
+        self.base, self.randomise = scenario, randomise
+        self.encoder = Encoder(scenario)
+        self.observation_space = gym.spaces.Box(-10.0, 10.0, (OBS_SIZE,), np.float32)
+        self.action_space = gym.spaces.Discrete(ACTIONS)
+        self.campaign: SteppedCampaign | None = None
+        self._mask = np.ones(ACTIONS, bool)
+        self._episode_seed = 0
+
+    # -- gymnasium ------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self._episode_seed = int(self.np_random.integers(2**31)) if seed is None else int(seed)
+        lab = randomised(self.base, self._episode_seed) if self.randomise else self.base
+        lab = prepare(lab, seed=self._episode_seed)
+        self.close()
+        self.campaign = SteppedCampaign(lab)
+        self._marks = self._counts()
+        return self._observe(), {"lab_s": self.campaign.now}
+
+    def step(self, action):
+        c = self.campaign
+        t0, (deg0, ab0) = c.now, self._marks
+        penalty = 0.0
+        if not self._mask[int(action)]:  # unmasked sampling (a plain PPO, the env checker): never stall the lab
+            action, penalty = int(np.flatnonzero(self._mask)[0]), INVALID_PENALTY
+        c.answer(self.encoder.decode(c.view, action))
+        self._marks = self._counts()
+        deg, ab = self._marks
+        reward = (-(c.now - t0) / self.encoder.scale - DEGRADED_PENALTY * (deg - deg0)
+                  - ABANDONED_PENALTY * (ab - ab0) - penalty)
+        info = {"lab_s": c.now}
+        if c.done:
+            info["summary"] = c.summary
+        return self._observe(), float(reward), c.done, False, info
+
+    def action_masks(self) -> np.ndarray:
+        return self._mask.copy()
+
+    def close(self) -> None:
+        if self.campaign is not None:
+            self.campaign.close()
+            self.campaign = None
+
+    # -- internals ------------------------------------------------------------------
+    def _counts(self) -> tuple[int, int]:
+        orch = self.campaign.orch
+        if orch is None:
+            return 0, 0
+        return (sum(e.degraded for e in orch.experiments), sum(e.status == "abandoned" for e in orch.experiments))
+
+    def _observe(self) -> np.ndarray:
+        if self.campaign.view is None:  # the campaign is over
+            self._mask = np.zeros(ACTIONS, bool)
+            self._mask[-1] = True
+            return np.zeros(OBS_SIZE, np.float32)
+        obs, self._mask = self.encoder.encode(self.campaign.view)
+        return obs
+
+
+if "labtwin/Scheduling-v0" not in gym.registry:  # gym.make("agents.scheduling_env:labtwin/Scheduling-v0", scenario=...)
+    gym.register("labtwin/Scheduling-v0", entry_point="agents.scheduling_env:SchedulingEnv")

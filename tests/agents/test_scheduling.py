@@ -1,0 +1,140 @@
+"""The scheduling environment, the RL scheduler, the rules and CP-SAT."""
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env
+
+from agents.cpsat import jobshop as solve_jobshop
+from agents.rl_scheduler import RlScheduler
+from agents.scheduling_env import SchedulingEnv
+from agents.scheduling_features import INSTANCES, WAIT, Encoder
+from agents.train_scheduler import campaign, train_scheduler
+from twin import jobshop
+from twin.decisions import capable
+from twin.journal import read_events
+from twin.lab import prepare, run
+
+ROOT = Path(__file__).resolve().parents[2]
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def ft06():
+    return prepare(ROOT / "scenarios" / "jobshop.yaml")
+
+
+@pytest.fixture(scope="module")
+def flaky():
+    return prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"campaign.budget": 12})
+
+
+@pytest.fixture(scope="module")
+def trained(ft06, tmp_path_factory):
+    """A policy trained for a few seconds on ft06 itself (no randomisation)."""
+    fixed = prepare(ft06, overrides={"training.jobshop_sizes": []})
+    path = tmp_path_factory.mktemp("policy") / "ft06.zip"
+    train_scheduler(fixed, 6144, path, envs=2, eval_every=6144, eval_seeds=(0,))
+    return path
+
+
+@pytest.mark.parametrize("name", ["jobshop", "flaky_lab"])
+def test_the_registered_env_passes_the_gymnasium_checker(name):
+    s = prepare(ROOT / "scenarios" / f"{name}.yaml", overrides={"campaign.budget": 4} if name == "flaky_lab" else None)
+    env = gym.make("agents.scheduling_env:labtwin/Scheduling-v0", scenario=s)
+    try:
+        check_env(env.unwrapped, skip_render_check=True)
+    finally:
+        env.close()
+
+
+def test_masks_allow_exactly_the_valid_pairs_under_faults(flaky):
+    env = SchedulingEnv(flaky)
+    rng = np.random.default_rng(0)
+    checked = 0
+    for seed in range(3):
+        env.reset(seed=seed)
+        done = False
+        while not done:
+            view, mask = env.campaign.view, env.action_masks()
+            slots = env.encoder.slots(view)
+            for q, step in enumerate(slots):
+                devs = env.encoder.instances(view, step.device_type)
+                ok = {d.name for d in capable(step, view.free)}
+                for m in range(INSTANCES):
+                    assert mask[q * INSTANCES + m] == (m < len(devs) and devs[m].name in ok)
+            assert not mask[len(slots) * INSTANCES:WAIT].any()
+            assert mask[WAIT] == any(d.busy_until is not None for d in view.devices)
+            for a in np.flatnonzero(mask[:WAIT]):
+                (assignment,) = env.encoder.decode(view, a)
+                checked += 1
+            _, _, done, _, _ = env.step(rng.choice(np.flatnonzero(mask)))
+    env.close()
+    assert checked > 100
+
+
+def test_the_same_seed_gives_the_same_episode(flaky):
+    def episode(seed):
+        env = SchedulingEnv(flaky)
+        obs, _ = env.reset(seed=seed)
+        trace, done = [obs.tobytes()], False
+        while not done:
+            obs, reward, done, _, _ = env.step(int(np.flatnonzero(env.action_masks())[-1]))
+            trace.append((obs.tobytes(), reward))
+        env.close()
+        return trace
+
+    assert episode(5) == episode(5)
+    assert episode(5) != episode(6)
+
+
+def test_short_training_beats_a_random_policy_on_ft06(ft06, trained):
+    rng, encoder = np.random.default_rng(1), Encoder(ft06)
+
+    def random_choice(view):
+        _, mask = encoder.encode(view)
+        return encoder.decode(view, rng.choice(np.flatnonzero(mask)))
+
+    random_makespans = [campaign(ft06, 0, random_choice).lab_hours * 3600 for _ in range(8)]
+    policy = RlScheduler(scenario=ft06, policy=str(trained))
+    learned = campaign(ft06, 0, policy.decide).lab_hours * 3600
+    assert learned < 0.9 * np.mean(random_makespans), (learned, random_makespans)
+
+
+def test_the_live_agent_over_zenoh_schedules_as_the_policy_does_in_the_env(ft06, trained, tmp_path):
+    policy = RlScheduler(scenario=ft06, policy=str(trained))
+    in_env = []
+
+    def record(view):
+        decided = policy.decide(view)
+        in_env.extend((a.task, a.device, round(view.now, 6)) for a in decided)
+        return decided
+
+    campaign(ft06, 0, record)
+    summary = run(ft06, journal=tmp_path / "j.db", bus="zenoh", clock="virtual",
+                  overrides={"campaign.scheduler": f"rl:{trained}"})
+    live = [(e["task"], e["device"], round(e["t_lab"], 6)) for e in read_events(tmp_path / "j.db")
+            if e["kind"] == "attempt.dispatched"]
+    assert live == in_env
+    assert summary.scheduler_fallbacks == 0 and summary.decisions >= 36
+
+
+def test_cp_sat_reproduces_the_known_optima():
+    for name, optimum in (("ft06", 55), ("la01", 666), ("la05", 593)):
+        inst = jobshop.read(ROOT / "scenarios" / "jobshop" / f"{name}.txt")
+        solution = solve_jobshop(inst.jobs, inst.machines, time_limit_s=60)
+        assert solution.optimal and solution.makespan == optimum
+
+
+def test_online_cp_sat_and_the_rules_give_valid_schedules_and_cp_sat_is_optimal_on_ft06(ft06, tmp_path):
+    makespans = {}
+    for name in ("fifo", "spt", "mwkr", "least-loaded", "oldest-sample", "cp-sat"):
+        s = run(ft06, journal=tmp_path / f"{name}.db", bus="memory", overrides={"campaign.scheduler": name})
+        assert s.done == 6 and s.abandoned == 0
+        makespans[name] = s.lab_hours * 3600
+    assert makespans["cp-sat"] == 55
+    assert all(m >= 55 for m in makespans.values())
+    assert len(set(makespans.values())) > 2  # the rules really differ

@@ -1,0 +1,87 @@
+"""A scheduler agent on the bus: killed mid-campaign, or answering nonsense, the fallback rule takes over."""
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import qd_lab
+from tests.twin.test_device_process import free_port
+from twin.decisions import Assignment
+from twin.journal import read_events
+from twin.lab import make_clock, prepare, run, run_async
+
+ROOT = Path(__file__).resolve().parents[2]
+SPEED = 200.0
+
+
+@pytest.mark.process
+def test_the_fallback_takes_over_when_the_agent_process_is_killed(tmp_path):
+    port = free_port()
+    raw = qd_lab(**{
+        "campaign.budget": 10, "campaign.scheduler": "remote", "campaign.fallback_scheduler": "fifo",
+        "clock": {"mode": "scaled", "speed": SPEED},
+        "bus": {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]},
+        "orchestrator.startup_s": 4000,
+    })
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    s = prepare(path)
+    clock = make_clock(s)
+    db = tmp_path / "j.db"
+    agent = subprocess.Popen(
+        [sys.executable, "-m", "twin", "scheduler", "serve", str(path), "--scheduler", "spt",
+         "--connect", f"tcp/127.0.0.1:{port}", "--clock", "scaled", "--speed", str(SPEED)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT,
+    )
+    seen = {}
+
+    async def main():
+        campaign = asyncio.ensure_future(run_async(s, clock, db, on_start=lambda o: seen.setdefault("orch", o)))
+        while "killed_at" not in seen and not campaign.done():
+            orch = seen.get("orch")
+            if orch is not None and orch.scheduler.answered >= 3:
+                seen["answered"] = orch.scheduler.answered
+                seen["killed_at"] = clock.now()
+                os.kill(agent.pid, signal.SIGKILL)
+            await clock.sleep(1)
+        return await campaign
+
+    try:
+        summary = clock.run(main())
+    finally:
+        agent.kill()
+        agent.wait()
+    assert "killed_at" in seen, "the agent never made three decisions"
+    assert summary.done == 10 and summary.abandoned == 0
+    assert summary.scheduler_fallbacks > 0
+    notes = [e for e in read_events(db) if e["kind"] == "scheduler.fallback"]
+    assert notes and notes[0]["t_lab"] >= seen["killed_at"]
+    assert "not on the bus" in notes[-1]["detail"] or "did not answer" in notes[-1]["detail"]
+
+
+class Nonsense:
+    """An agent that answers with a device that does not exist."""
+
+    serve_on_bus = True
+
+    def __init__(self, **_):
+        pass
+
+    def decide(self, view):
+        return [Assignment(view.ready[0].task, "no-such-device")]
+
+
+def test_an_agent_that_answers_nonsense_is_overruled_by_the_fallback(tmp_path):
+    raw = qd_lab(**{"campaign.budget": 4, "campaign.scheduler": "tests.twin.test_scheduler_agent:Nonsense"})
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    summary = run(path, journal=tmp_path / "j.db")
+    assert summary.done == 4 and summary.scheduler_fallbacks == summary.decisions > 0
+    notes = [e for e in read_events(tmp_path / "j.db") if e["kind"] == "scheduler.fallback"]
+    assert len(notes) == 1 and "invalid decision" in notes[0]["detail"] and "no-such-device" in notes[0]["detail"]
