@@ -9,9 +9,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 
-from agents.scheduling_features import Encoder, signature
+from agents.scheduling_features import ACTIONS, OBS_SIZE, Encoder, signature
 from twin.decisions import Assignment, LabView
 from twin.errors import PluginError
 from twin.policies import load_policy
@@ -27,6 +28,7 @@ class RlScheduler:
         torch.set_num_threads(1)
         self.model = load_policy(Path(policy), "scheduler", signature(scenario))
         self.encoder = Encoder(scenario)
+        self.model.predict(np.zeros(OBS_SIZE, np.float32), action_masks=np.ones(ACTIONS, bool))  # warm up torch
 
     @classmethod
     def from_model(cls, model: Any, scenario: Any) -> RlScheduler:

@@ -68,18 +68,20 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
     if on_progress:
         on_progress(0, {"policy": f"best rule: {best_rule}", **rules[best_rule]})
     best, done, curve = None, 0, []
-    while done < steps:
-        chunk = min(eval_every, steps - done)
-        model.learn(chunk, reset_num_timesteps=False)
-        done += chunk
-        result = score([campaign(scenario, s, RlScheduler.from_model(model, scenario).decide) for s in eval_seeds])
-        result["vs best rule"] = result["makespan h"] / rules[best_rule]["makespan h"]
-        curve.append({"steps": done, **result})
-        if on_progress:
-            on_progress(done, {"policy": "maskable-ppo", **result})
-        if best is None or result["makespan h"] <= best:
-            best = result["makespan h"]
-            save_policy(model, out, "scheduler", scenario, signature(scenario), steps=done, rules=rules,
-                        best_rule=best_rule, curve=curve)
-    venv.close()
+    try:
+        while done < steps:
+            chunk = min(eval_every, steps - done)
+            model.learn(chunk, reset_num_timesteps=False)
+            done += chunk
+            result = score([campaign(scenario, s, RlScheduler.from_model(model, scenario).decide) for s in eval_seeds])
+            result["vs best rule"] = result["makespan h"] / rules[best_rule]["makespan h"]
+            curve.append({"steps": done, **result})
+            if on_progress:
+                on_progress(done, {"policy": "maskable-ppo", **result})
+            if best is None or result["makespan h"] <= best:
+                best = result["makespan h"]
+                save_policy(model, out, "scheduler", scenario, signature(scenario), steps=done, rules=rules,
+                            best_rule=best_rule, curve=curve)
+    finally:
+        venv.close()  # stops the campaigns in the environments, also on Ctrl-C
     return out.with_suffix(".zip")

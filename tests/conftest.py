@@ -63,3 +63,36 @@ def scenario_of():
     from twin.scenario import parse
 
     return lambda **changes: parse(qd_lab(**changes))
+
+
+@pytest.fixture(scope="session")
+def mosquitto(tmp_path_factory):
+    """A real mosquitto broker on loopback for this test session; yields "127.0.0.1:PORT"."""
+    import shutil
+    import socket
+    import subprocess
+    import time
+
+    binary = shutil.which("mosquitto") or next((p for p in ("/usr/sbin/mosquitto",) if shutil.os.path.exists(p)), None)
+    if binary is None:
+        pytest.fail("mosquitto is not installed: apt-get install -y mosquitto (.ci/run does)")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    d = tmp_path_factory.mktemp("mosquitto")
+    conf = d / "mosquitto.conf"
+    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\nlog_dest file {d / 'log'}\n")
+    proc = subprocess.Popen([binary, "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 10
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+            break
+        except OSError:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                proc.kill()
+                pytest.fail(f"mosquitto did not start: {proc.stderr.read().decode()[:500]}")
+            time.sleep(0.05)
+    yield f"127.0.0.1:{port}"
+    proc.terminate()
+    proc.wait(timeout=10)

@@ -40,7 +40,11 @@ class DeviceActor:
 
     # -- life cycle -------------------------------------------------------
     async def start(self) -> None:
-        self._online()
+        connect = getattr(self.driver, "connect", None)
+        if connect is not None:  # an instrument with presence of its own (MQTT last will, say)
+            await connect(self._instrument_presence)
+        else:
+            self._online()
         if self.spec.faults.mtbc_h > 0:
             self._crasher = asyncio.ensure_future(self._crash_loop())
 
@@ -52,6 +56,21 @@ class DeviceActor:
             await wait_cancelled(self._job)
         await self.driver.safe_state()
         self._offline()
+        disconnect = getattr(self.driver, "disconnect", None)
+        if disconnect is not None:
+            await disconnect()
+
+    def _instrument_presence(self, present: bool) -> None:
+        """The driver's instrument came or went: the device's presence on the bus follows it."""
+        if present and self._token is None:
+            log.info("%s: instrument present", self.name)
+            self._online()
+        elif not present and self._token is not None:
+            log.warning("%s: instrument gone; leaving the bus", self.name)
+            self._offline()
+            if self._job is not None:
+                self._cancel_reason = "lost"
+                self._job.cancel()
 
     def _online(self) -> None:
         self._sub = self._bus.subscribe(keys.cmd(self._lab, self.name), self._on_cmd)

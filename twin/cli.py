@@ -218,13 +218,22 @@ def train(
     seed: Annotated[int, typer.Option(help="training seed")] = 0,
     envs: Annotated[int, typer.Option(help="environments stepped together")] = 4,
     eval_every: Annotated[int, typer.Option(help="evaluate (and keep the best policy) every this many steps")] = 20_000,
+    save: Annotated[Optional[Path], typer.Option(help="also record the evaluation curve to Rerun, e.g. curve.rrd")] = None,
+    viewer: Annotated[bool, typer.Option(help="show the evaluation curve live in the Rerun viewer")] = False,
 ) -> None:
-    """Train an agent in the twin; the evaluation curve is printed as it goes."""
+    """Train an agent in the twin; the evaluation curve is printed as it goes (and recorded to Rerun if asked)."""
     try:
         s = lab.prepare(scenario)
         trainer = plugins.load("trainers", agent)
     except TwinError as exc:
         _fail(exc)
+    recording = None
+    if save or viewer:
+        from twin.recorder import log_curve, open_recording
+
+        recording = open_recording(f"train-{agent}-{s.name}", save=save, viewer=viewer, campaign_layout=False)
+        for message in recording.messages:
+            err.print(message, highlight=False)
     progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                         console=err)
 
@@ -233,6 +242,9 @@ def train(
         if result:
             fields = "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
                                for k, v in result.items() if k != "policy")
+            if recording is not None:
+                numbers = {k: v for k, v in result.items() if isinstance(v, (int, float))}
+                log_curve(recording, done, numbers, f"training/{result['policy'].split(':')[0].replace(' ', '_')}")
             progress.console.print(f"{done:>9,} steps  {result['policy']:14} {fields}", highlight=False)
 
     with progress:
@@ -247,6 +259,9 @@ def train(
             err.print(f"interrupted; {'the best policy so far is ' + str(kept) if kept.exists() else 'no policy saved yet'}",
                       highlight=False)
             raise typer.Exit(130) from None
+        finally:
+            if recording is not None:
+                recording.close()
     console.print(f"saved {path} (and {path.with_suffix('.json').name})")
 
 
@@ -294,6 +309,8 @@ def bench_schedulers(
                                                        "(e.g. jobshop/la01.txt,jobshop/ft10.txt)")] = None,
     workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
     budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", help="override a scenario field, e.g. "
+                                                      "devices.reactor.instances=1 (another lab shape); repeatable")] = None,
 ) -> None:
     """Makespan, gap to the CP-SAT bound, utilisation, degraded and lost samples, decision latency per scheduler."""
     from rich.table import Table
@@ -304,7 +321,7 @@ def bench_schedulers(
     files = [f.strip() for f in jobshop.split(",")] if jobshop else [None]
     for file in files:
         try:
-            s = load_variant(scenario, file, budget)
+            s = load_variant(scenario, file, budget, _assignments(set_ or []))
             for name in names:
                 lab.make_scheduler(s, name)
         except TwinError as exc:
@@ -324,6 +341,19 @@ def bench_schedulers(
         for row in rows(results, optimum, 1.0 if s.jobshop else 3600.0):
             table.add_row(*row)
         console.print(table)
+
+
+def _assignments(items: list[str]) -> dict:
+    """``["a.b=1", "c=x"]`` → ``{"a.b": 1, "c": "x"}`` (values read as YAML)."""
+    import yaml
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            _fail(TwinError(f"--set {item!r}: expected FIELD=VALUE, e.g. devices.reactor.instances=1"))
+        out[key.strip()] = yaml.safe_load(value)
+    return out
 
 
 @device_app.command("serve")

@@ -18,6 +18,8 @@ import numpy as np
 
 from twin.clock import Clock
 
+DRIVER_API = 1  # a driver may say which it was written for: ``labtwin_api = 1``
+
 
 @dataclass
 class DriverSetup:

@@ -15,7 +15,7 @@ from twin import plugins
 from twin.actor import DeviceActor
 from twin.bus import Bus, open_bus
 from twin.clock import LabClock
-from twin.driver import DriverSetup
+from twin.driver import DRIVER_API, DriverSetup
 from twin.errors import ClockError, DriverError, PluginError, TwinError
 from twin.journal import Journal
 from twin.orchestrator import Orchestrator
@@ -63,18 +63,23 @@ def make_bus(s: Scenario, clock: LabClock) -> Bus:
 def load_driver(s: Scenario, device_type: str, name: str) -> Any:
     spec = s.devices[device_type]
     cls = plugins.load("devices", spec.driver)
-    caps = frozenset(getattr(cls, "capabilities", frozenset()))
+    api = getattr(cls, "labtwin_api", DRIVER_API)
+    if api != DRIVER_API:
+        raise DriverError(f"devices.{device_type}.driver: {spec.driver!r} was written for driver API {api}; this "
+                          f"labtwin speaks {DRIVER_API}. Install a matching version of the driver or of labtwin.")
+    setup = DriverSetup(name, device_type, spec.options, s.chemistry, spec.duration, s.campaign.seed)
+    try:
+        driver = cls(setup)
+    except Exception as exc:
+        raise DriverError(f"driver {spec.driver!r} for {name} failed to start: {exc}") from exc
+    caps = frozenset(getattr(driver, "capabilities", None) or ())
     missing = set(spec.steps) - caps
     if missing:
         raise DriverError(
             f"devices.{device_type}.driver: {spec.driver!r} runs {sorted(caps)}, "
             f"but the scenario asks it for {sorted(missing)}"
         )
-    setup = DriverSetup(name, device_type, spec.options, s.chemistry, spec.duration, s.campaign.seed)
-    try:
-        return cls(setup)
-    except Exception as exc:
-        raise DriverError(f"driver {spec.driver!r} for {name} failed to start: {exc}") from exc
+    return driver
 
 
 def load_drivers(s: Scenario, only: set[str] | None = None, skip: set[str] = frozenset()) -> list[tuple[str, str, Any]]:
@@ -184,6 +189,10 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         )
     wall0 = time.perf_counter()
     drivers = load_drivers(s, skip=set(external_devices))  # bad drivers fail before the bus opens
+    realtime = [name for name, _, drv in drivers if getattr(drv, "realtime", False)]
+    if realtime and clock.is_virtual:
+        raise ClockError(f"devices {realtime} talk to real instruments, which keep wall time: "
+                         "use --clock scaled (or wall)")
     planner, scheduler = make_planner(s), scheduler or make_scheduler(s)
     bus = make_bus(s, clock)
     await bus.start()

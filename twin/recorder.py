@@ -168,8 +168,16 @@ class Recording:
             self.server = None
 
 
+def log_curve(out: Recording, steps: int, values: dict[str, float], prefix: str = "training") -> None:
+    """One evaluation of a training run, on its own ``training_steps`` timeline."""
+    out.rec.set_time("training_steps", sequence=steps)
+    for name, value in values.items():
+        out.rec.log(f"{prefix}/{name}", rr.Scalars(float(value)))
+
+
 def open_recording(recording_id: str, save: str | Path | None = None, viewer: bool = False,
-                   serve: bool = False, serve_port: int = 0, web_port: int = 0) -> Recording:
+                   serve: bool = False, serve_port: int = 0, web_port: int = 0,
+                   campaign_layout: bool = True) -> Recording:
     """A recording with the sinks asked for; a sink that cannot start is reported, not fatal."""
     rec = rr.RecordingStream("labtwin", recording_id=recording_id)
     rec.set_log_time_enabled(False)  # only lab time: a replay then equals the live recording
@@ -188,7 +196,7 @@ def open_recording(recording_id: str, save: str | Path | None = None, viewer: bo
         if url:
             sinks.append(rr.GrpcSink(url))
     if sinks:
-        rec.set_sinks(*sinks, default_blueprint=blueprint())
+        rec.set_sinks(*sinks, default_blueprint=blueprint() if campaign_layout else None)
     return out
 
 

@@ -102,8 +102,9 @@ def rows(results: dict[str, list[Run]], optimum: float | None, unit_s: float) ->
     return out
 
 
-def load_variant(path: str | Path, jobshop_file: str | None = None, budget: int | None = None) -> Scenario:
-    over = {}
+def load_variant(path: str | Path, jobshop_file: str | None = None, budget: int | None = None,
+                 changes: dict | None = None) -> Scenario:
+    over = dict(changes or {})
     if jobshop_file:
         over["jobshop.file"] = jobshop_file
     if budget:

@@ -71,8 +71,10 @@ def _has_experiments(db: Path) -> bool:
 
 def test_train_prints_its_evaluation_curve_and_saves_a_policy_with_its_sidecar(tmp_path):
     out = tmp_path / "heater.zip"
+    rrd = tmp_path / "curve.rrd"
     res = subprocess.run([*TWIN, "train", "scenarios/catalyst.yaml", "--agent", "controller", "--steps", "2880",
-                          "--eval-every", "1440", "--out", str(out)], capture_output=True, text=True, cwd=ROOT, timeout=300)
+                          "--eval-every", "1440", "--out", str(out), "--save", str(rrd)],
+                         capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert res.returncode == 0, res.stderr
     curve = [ln for ln in res.stderr.splitlines() if " steps " in ln]
     assert [ln.split()[0] for ln in curve] == ["0", "1,440", "2,880"], res.stderr
@@ -80,6 +82,11 @@ def test_train_prints_its_evaluation_curve_and_saves_a_policy_with_its_sidecar(t
     meta = json.loads(out.with_suffix(".json").read_text())
     assert out.exists() and meta["kind"] == "controller" and meta["scenario"] == "catalyst"
     assert meta["versions"]["torch"].startswith("2.13.0")
+    from tests.rrd import read_rrd
+
+    curve = read_rrd(rrd)
+    ppo = sorted(r["training_steps"] for r in curve["training/ppo-pure/return"])
+    assert ppo == [1440, 2880] and [r["training_steps"] for r in curve["training/pid/return"]] == [0]
 
 
 def test_train_an_unknown_agent_lists_what_is_installed(tmp_path):
@@ -87,3 +94,20 @@ def test_train_an_unknown_agent_lists_what_is_installed(tmp_path):
                          capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert res.returncode == 2 and "unknown trainer 'nope'" in res.stderr and "planner" in res.stderr
     assert "Traceback" not in res.stderr
+
+
+@pytest.mark.process
+def test_ctrl_c_stops_training_and_says_what_was_kept(tmp_path):
+    out = tmp_path / "s.zip"
+    proc = subprocess.Popen([*TWIN, "train", "scenarios/jobshop.yaml", "--steps", "1000000", "--eval-every", "512",
+                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    lines = []
+    for line in proc.stderr:  # wait for the first evaluation of the policy itself
+        lines.append(line)
+        if "maskable-ppo" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    rest = proc.communicate(timeout=60)[1]
+    assert proc.returncode == 130, "".join(lines) + rest
+    assert "interrupted; the best policy so far is" in rest and "Traceback" not in rest
+    assert out.exists() and out.with_suffix(".json").exists()

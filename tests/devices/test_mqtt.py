@@ -1,0 +1,104 @@
+"""The MQTT adapter against a real mosquitto and real instrument processes (examples/mqtt_instrument.py)."""
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+import uuid
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import qd_lab
+from twin.errors import ClockError
+from twin.journal import read_events
+from twin.lab import make_clock, prepare, run, run_async
+from twin.scenario import parse
+
+pytestmark = pytest.mark.process
+ROOT = Path(__file__).resolve().parents[2]
+SPEED = 100.0
+
+
+def mqtt_lab(broker: str, prefix: str, **changes) -> dict:
+    return qd_lab(**{
+        "devices.spectrometer": {"driver": "mqtt", "instances": 2, "steps": ["measure"],
+                                 "duration": {"mean_s": 60, "cv": 0},
+                                 "options": {"broker": broker, "topic": f"{prefix}/{{name}}", "steps": ["measure"]}},
+        "clock": {"mode": "scaled", "speed": SPEED}, "orchestrator.startup_s": 1000, **changes,
+    })
+
+
+def instrument(broker: str, topic: str, seconds: float = 0.3) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "examples/mqtt_instrument.py", "--broker", broker, "--topic", topic,
+                             "--seconds", str(seconds)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+    assert proc.stdout.readline().decode().startswith("ready"), proc.stderr.read().decode()
+    return proc
+
+
+@pytest.fixture
+def prefix():
+    return f"test/{uuid.uuid4().hex[:8]}"  # topics unique to each test
+
+
+def test_a_campaign_measures_through_mqtt_instruments(mosquitto, prefix, tmp_path):
+    procs = [instrument(mosquitto, f"{prefix}/spectrometer-{i}") for i in (1, 2)]
+    try:
+        s = run(parse(mqtt_lab(mosquitto, prefix, **{"campaign.budget": 4})), journal=tmp_path / "j.db")
+    finally:
+        for p in procs:
+            p.terminate()
+            p.wait()
+    assert s.done == 4 and s.failed_attempts == 0
+    results = [e for e in read_events(tmp_path / "j.db") if e["kind"] == "experiment.done"]
+    assert all('"peak_nm"' in e["detail"] and '"fwhm_nm"' in e["detail"] for e in results)
+
+
+def test_a_killed_instrument_leaves_the_bus_by_its_last_will_and_its_work_moves(mosquitto, prefix, tmp_path):
+    procs = {i: instrument(mosquitto, f"{prefix}/spectrometer-{i}", seconds=1.0) for i in (1, 2)}
+    s = prepare(parse(mqtt_lab(mosquitto, prefix, **{"campaign.budget": 4, "campaign.max_in_flight": 1})))
+    clock, db, seen = make_clock(s), tmp_path / "j.db", {}
+
+    async def main():
+        campaign = asyncio.ensure_future(run_async(s, clock, db, on_start=lambda o: seen.setdefault("orch", o)))
+        while "task" not in seen and not campaign.done():
+            dev = seen["orch"].devices["spectrometer-1"] if "orch" in seen else None
+            if dev is not None and dev.attempt is not None and dev.attempt.t_accepted is not None:
+                seen["task"], seen["t"] = dev.attempt.task.id, clock.now()
+                os.kill(procs[1].pid, signal.SIGKILL)
+            await clock.sleep(1)
+        return await campaign
+
+    try:
+        summary = clock.run(main())
+    finally:
+        for p in procs.values():
+            p.kill()
+            p.wait()
+    assert "task" in seen, "spectrometer-1 never got a step"
+    events = read_events(db)
+    lost = [e for e in events if e["kind"] == "device.lost" and e["device"] == "spectrometer-1"]
+    assert lost and lost[0]["t_lab"] - seen["t"] < 2.0 * SPEED  # the broker published the will at once
+    redone = [e for e in events if e["kind"] == "attempt.done" and e["task"] == seen["task"]]
+    assert redone and redone[0]["device"] == "spectrometer-2"
+    assert summary.done == 4 and summary.devices_lost >= 1
+
+
+def test_an_instrument_error_is_a_fault_with_its_reason_and_nothing_is_lost(mosquitto, prefix, tmp_path):
+    procs = [instrument(mosquitto, f"{prefix}/spectrometer-{i}", seconds=0.05) for i in (1, 2)]
+    lab = mqtt_lab(mosquitto, prefix, **{"campaign.budget": 2, "workflow": [{"step": "measure", "device": "spectrometer"}]})
+    try:
+        s = run(parse(lab), journal=tmp_path / "j.db")
+    finally:
+        for p in procs:
+            p.terminate()
+            p.wait()
+    assert s.abandoned == 2 and s.done == 0
+    faults = [e for e in read_events(tmp_path / "j.db") if e["kind"] == "attempt.failed"]
+    assert faults and all("reported: nothing to measure" in e["detail"] for e in faults)
+
+
+def test_a_virtual_clock_is_refused_for_real_instruments(mosquitto, prefix, tmp_path):
+    with pytest.raises(ClockError, match="--clock scaled"):
+        run(parse(mqtt_lab(mosquitto, prefix, clock={"mode": "virtual"})), journal=tmp_path / "j.db")
