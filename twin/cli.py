@@ -29,6 +29,8 @@ app.add_typer(device_app, name="device")
 bench_app = typer.Typer(help="Compare planners and schedulers over many seeds.", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 scheduler_app = typer.Typer(help="Run a scheduler agent in this process.", no_args_is_help=True)
+driver_app = typer.Typer(help="Write your own device drivers.", no_args_is_help=True)
+app.add_typer(driver_app, name="driver")
 app.add_typer(scheduler_app, name="scheduler")
 console = Console()
 err = Console(stderr=True, soft_wrap=True)
@@ -198,14 +200,18 @@ def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<
 
 @app.command()
 def devices() -> None:
-    """List the installed device drivers."""
+    """List the installed device drivers: name, where from, package and version, capabilities."""
+    from rich.table import Table
+
+    table = Table("driver", "class", "package", "version", "runs")
     for name, ep in sorted(plugins.installed("devices").items()):
         try:
-            caps = ", ".join(sorted(ep.load().capabilities))
+            caps = getattr(ep.load(), "capabilities", None)
+            runs = ", ".join(sorted(caps)) if isinstance(caps, (set, frozenset)) else "what options.steps says"
         except Exception as exc:  # a broken plugin is listed, not fatal
-            caps = f"failed to load: {exc}"
-        dist = ep.dist.name if ep.dist else "?"
-        console.print(f"{name:14} {ep.value:40} {dist:10} {caps}")
+            runs = f"[red]failed to load: {exc}[/]"
+        table.add_row(name, ep.value, ep.dist.name if ep.dist else "?", ep.dist.version if ep.dist else "?", runs)
+    console.print(table)
 
 
 @app.command()
@@ -373,6 +379,49 @@ def device_serve(
     except TwinError as exc:
         _fail(exc)
 
+
+
+@driver_app.command("new")
+def driver_new(
+    name: Annotated[str, typer.Argument(help="the driver's name, e.g. acme-hplc (also the package's)")],
+    directory: Annotated[Path, typer.Option("--dir", help="where to create the package")] = Path("."),
+) -> None:
+    """Scaffold a pip-installable driver package (entry point, driver, test, demo scenario)."""
+    from twin.scaffold import scaffold
+
+    try:
+        root = scaffold(name, directory)
+    except TwinError as exc:
+        _fail(exc)
+    console.print(f"created {root}\n  next: pip install -e {root}  (then `twin devices` lists {name})\n"
+                  f"        python -m pytest {root / 'tests'}", highlight=False)
+
+
+@app.command()
+def router(
+    listen: Annotated[list[str], typer.Option(help="endpoint(s) to listen on, e.g. tcp/127.0.0.1:7447")],
+    lease_ms: Annotated[int, typer.Option(help="how long a silent peer is kept, ms (a frozen process is seen after it)")] = 1000,
+    zenoh_config: Annotated[Optional[list[str]], typer.Option("--config", help="extra Zenoh config PATH=JSON5 "
+                                                                "(TLS etc.), e.g. transport/link/tls/root_ca_certificate=\"ca.pem\"")] = None,
+) -> None:
+    """A Zenoh router for a lab spread over processes or hosts (devices and labs --connect to it)."""
+    import json as _json
+
+    from twin.bus.zenoh_bus import run_router
+
+    extra = {}
+    for item in zenoh_config or []:
+        path, sep, value = item.partition("=")
+        if not sep:
+            _fail(TwinError(f"--config {item!r}: expected PATH=JSON5, e.g. transport/link/tx/lease=2000"))
+        try:
+            extra[path] = _json.loads(value)
+        except ValueError:
+            extra[path] = value
+    try:
+        run_router(listen, lease_ms, extra, ready=lambda line: print(line, flush=True))
+    except TwinError as exc:
+        _fail(exc)
 
 
 @scheduler_app.command("serve")

@@ -56,7 +56,7 @@ def make_clock(s: Scenario) -> LabClock:
 def make_bus(s: Scenario, clock: LabClock) -> Bus:
     if s.bus.kind == "memory":
         return open_bus("memory", clock)
-    return open_bus("zenoh", clock, listen=s.bus.listen, connect=s.bus.connect, lease_ms=s.bus.lease_ms,
+    return open_bus("zenoh", clock, mode=s.bus.mode, listen=s.bus.listen, connect=s.bus.connect, lease_ms=s.bus.lease_ms,
                     extra=s.bus.zenoh)
 
 

@@ -137,6 +137,8 @@ class ClockSpec(_Spec):
 
 class BusSpec(_Spec):
     kind: Literal["zenoh", "memory"] = "zenoh"
+    mode: Literal["auto", "peer", "client"] = Field(
+        default="auto", description="auto: a peer, or a client when it only connects (to a router)")
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     connect: list[str] = Field(default_factory=list)
     lease_ms: int = Field(default=1000, ge=100)

@@ -20,7 +20,8 @@ def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str
 
         raise ClockError("a device in its own process cannot follow a virtual clock: use --clock scaled or wall")
     s = prepare(scenario, clock=clock, speed=speed)
-    s = s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms)})
+    s = s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms,
+                                                zenoh=s.bus.zenoh)})
     drivers = load_drivers(s, only={name})
     if not drivers:
         known = [n for d in s.devices for n in s.instance_names(d)]
@@ -57,7 +58,8 @@ def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: 
     from twin.remote_scheduler import SchedulerService
 
     s = prepare(scenario, clock=clock, speed=speed)
-    s = s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms)})
+    s = s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms,
+                                                zenoh=s.bus.zenoh)})
     scheduler = make_scheduler(s, spec)
     lab_clock = make_clock(s)
 

@@ -17,8 +17,11 @@ import asyncio
 import itertools
 import json
 import logging
+import signal
 import struct
+import threading
 from collections import defaultdict, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import zenoh
@@ -30,13 +33,19 @@ from twin.errors import BusError, ClockError
 log = logging.getLogger(__name__)
 _SEQ = struct.Struct("<Q")
 _LAST = 1 << 63  # deliveries from elsewhere sort after local ones of the same batch
+CLIENT_CONNECT_TIMEOUT_MS = 30_000
 
 
 @dataclass
 class ZenohOptions:
-    """Where the session listens and connects. Loopback only unless asked otherwise."""
+    """Where the session listens and connects. Loopback only unless asked otherwise.
 
-    mode: str = "peer"
+    ``mode`` "auto" is a peer, except for a session that only connects (to a router, to a
+    lab): that one is a client, whose traffic the other end routes. A peer with nowhere to
+    listen would otherwise receive nothing through a router.
+    """
+
+    mode: str = "auto"
     listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     connect: list[str] = field(default_factory=list)
     lease_ms: int = 1000
@@ -44,7 +53,10 @@ class ZenohOptions:
 
     def config(self) -> zenoh.Config:
         cfg = zenoh.Config()
-        cfg.insert_json5("mode", json.dumps(self.mode))
+        mode = self.mode if self.mode != "auto" else ("client" if self.connect and not self.listen else "peer")
+        cfg.insert_json5("mode", json.dumps(mode))
+        if mode == "client":  # wait for the router or lab to come up rather than fail at once
+            cfg.insert_json5("connect/timeout_ms", str(CLIENT_CONNECT_TIMEOUT_MS))
         cfg.insert_json5("scouting/multicast/enabled", "false")
         cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
         cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
@@ -381,3 +393,23 @@ class ZenohBus:
             if key_matches(keyexpr, key):
                 self._post((token_seq[(key, True)], sid, entry, key, True, False))
         return entry
+
+
+def run_router(listen: list[str], lease_ms: int = 1000, extra: dict[str, object] | None = None,
+               ready: Callable[[str], None] = print) -> None:
+    """A Zenoh router — a session in router mode, no ``zenohd`` needed — until SIGINT or SIGTERM."""
+    options = ZenohOptions(mode="router", listen=listen, connect=[], lease_ms=lease_ms, extra=dict(extra or {}))
+    try:
+        session = zenoh.open(options.config())
+    except Exception as exc:
+        raise BusError(f"the router could not listen on {listen}: {exc}") from exc
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        ready(f"router {session.zid()} listening on {', '.join(listen)}")
+        while not stop.wait(0.2):  # a signal may land on one of Zenoh's threads: poll, do not block
+            pass
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        session.close()

@@ -1,0 +1,54 @@
+"""A driver that raises, returns garbage, or never answers is isolated and reported with its name."""
+
+import asyncio
+
+import pytest
+
+from tests.conftest import qd_lab
+from twin.driver import StepResult
+from twin.journal import read_events
+from twin.lab import run
+from twin.scenario import parse
+
+
+class Raises:
+    capabilities = frozenset({"measure"})
+
+    def __init__(self, setup):
+        pass
+
+    async def run(self, step, params, sample, ctx):
+        raise RuntimeError("lamp broken")
+
+    async def safe_state(self):
+        pass
+
+
+class Garbage(Raises):
+    async def run(self, step, params, sample, ctx):
+        return 42
+
+
+class NotJson(Raises):
+    async def run(self, step, params, sample, ctx):
+        return StepResult({"peak_nm": object()}, sample)
+
+
+class Never(Raises):
+    async def run(self, step, params, sample, ctx):
+        await asyncio.Event().wait()
+
+
+@pytest.mark.parametrize("bad, says", [("Raises", "lamp broken"), ("Garbage", "int"), ("NotJson", "object"),
+                                       ("Never", "no result within")])
+def test_a_bad_driver_is_isolated_and_reported_by_name_and_nothing_is_lost(tmp_path, bad, says):
+    lab = qd_lab(**{
+        "devices.broken": {"driver": f"tests.twin.test_bad_drivers:{bad}", "instances": 1, "steps": ["measure"],
+                           "duration": {"mean_s": 60, "cv": 0.1}},
+        "workflow": [{"step": "synthesise", "device": "synthesiser"}, {"step": "measure", "device": "broken"}],
+        "campaign.budget": 2,
+    })
+    summary = run(parse(lab), journal=tmp_path / "j.db")
+    assert summary.abandoned == 2 and summary.done == 0  # nothing lost: every experiment is accounted for
+    failed = [e for e in read_events(tmp_path / "j.db") if e["kind"] == "attempt.failed"]
+    assert failed and all(e["device"] == "broken" and says in e["detail"] for e in failed), failed[:1]

@@ -1,0 +1,103 @@
+"""A lab spread over processes through a `twin router`: kill one device, freeze another, restart the first."""
+
+import asyncio
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import qd_lab
+from tests.twin.test_device_process import free_port
+from twin.journal import read_events
+from twin.lab import make_clock, prepare, run_async
+
+pytestmark = pytest.mark.process
+ROOT = Path(__file__).resolve().parents[2]
+SPEED = 200.0
+LEASE_S = 1.0
+
+
+def start(args: list[str], ready: str | None) -> subprocess.Popen:
+    """Start ``twin ARGS``; wait for its ``ready`` line unless None (never inside the running lab's loop)."""
+    proc = subprocess.Popen([sys.executable, "-m", "twin", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+    if ready is not None:
+        line = proc.stdout.readline().decode()
+        assert line.startswith(ready), line + proc.stderr.read().decode()
+    return proc
+
+
+def test_kill_freeze_restart_through_the_router(tmp_path):
+    port = free_port()
+    router = f"tcp/127.0.0.1:{port}"
+    raw = qd_lab(**{
+        "campaign.budget": 10, "campaign.max_in_flight": 2,
+        "devices.synthesiser.duration": {"mean_s": 20, "cv": 0.0},
+        "devices.spectrometer.duration": {"mean_s": 200, "cv": 0.0},
+        "clock": {"mode": "scaled", "speed": SPEED},
+        "bus": {"kind": "zenoh", "listen": [], "connect": [router], "lease_ms": int(LEASE_S * 1000)},
+        "orchestrator.startup_s": 4000,
+    })
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    s = prepare(path)
+    clock, db = make_clock(s), tmp_path / "j.db"
+
+    def device(name: str, wait: bool = True) -> subprocess.Popen:
+        return start(["device", "serve", str(path), "--id", name, "--connect", router, "--clock", "scaled",
+                      "--speed", str(SPEED)], f"ready {name}" if wait else None)
+
+    procs = {"router": start(["router", "--listen", router], "router")}
+    procs["spec1"], procs["spec2"] = device("spectrometer-1"), device("spectrometer-2")
+    marks: dict = {}
+
+    async def main():
+        campaign = asyncio.ensure_future(run_async(s, clock, db, {"spectrometer-1", "spectrometer-2"},
+                                                   on_start=lambda o: marks.setdefault("orch", o)))
+
+        def running_on(name):
+            orch = marks.get("orch")
+            att = orch.devices[name].attempt if orch else None
+            return att.task.id if att is not None and att.t_accepted is not None else None
+
+        while not campaign.done():
+            if "killed" not in marks and running_on("spectrometer-1"):
+                marks["killed"] = (clock.now(), running_on("spectrometer-1"))
+                os.kill(procs["spec1"].pid, signal.SIGKILL)
+                procs["spec1"].wait()
+                procs["spec1"] = device("spectrometer-1", wait=False)  # restarted: it must rejoin and get work
+                marks["restarted"] = clock.now()
+            elif "killed" in marks and "frozen" not in marks and running_on("spectrometer-2"):
+                marks["frozen"] = (clock.now(), running_on("spectrometer-2"))
+                os.kill(procs["spec2"].pid, signal.SIGSTOP)
+            await clock.sleep(2)
+        return await campaign
+
+    try:
+        summary = clock.run(main())
+    finally:
+        for p in procs.values():
+            p.send_signal(signal.SIGCONT)
+            p.kill()
+            p.wait()
+    assert "killed" in marks and "frozen" in marks
+    events = read_events(db)
+
+    def first(kind, device, after):
+        return next(e for e in events if e["kind"] == kind and e["device"] == device and e["t_lab"] >= after)
+
+    t_kill, killed_task = marks["killed"]
+    assert first("device.lost", "spectrometer-1", t_kill)["t_lab"] - t_kill < 0.5 * SPEED
+    t_freeze, frozen_task = marks["frozen"]
+    detected = first("device.lost", "spectrometer-2", t_freeze)["t_lab"] - t_freeze
+    assert detected < 2.5 * LEASE_S * SPEED, f"the frozen device was seen after {detected / SPEED:.2f} s wall"
+    rejoined = first("device.online", "spectrometer-1", marks["restarted"] - 1)
+    after_restart = [e for e in events if e["kind"] == "attempt.done" and e["device"] == "spectrometer-1"
+                     and e["t_lab"] > rejoined["t_lab"]]
+    assert after_restart, "the restarted device never got work"
+    for task in (killed_task, frozen_task):
+        assert any(e["kind"] == "attempt.done" and e["task"] == task for e in events), f"{task} was never redone"
+    assert summary.done == 10 and summary.abandoned == 0 and summary.devices_lost >= 2
