@@ -65,9 +65,9 @@ def train_planner(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs
         done += chunk
         result = evaluate(scenario, lambda o, _: model.predict(o, deterministic=False)[0])
         curve.append({"steps": done, **result})
-        if on_progress:
-            on_progress(done, {"policy": "ppo", **result})
         if best is None or (result["success"], -result["experiments"]) >= (best["success"], -best["experiments"]):
             best = {"steps": done, **result}
             save_policy(model, out, "planner", scenario, sig, steps=done, baseline=baseline, curve=curve)
+        if on_progress:
+            on_progress(done, {"policy": "ppo", **result})
     return out.with_suffix(".zip")

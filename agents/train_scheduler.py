@@ -76,12 +76,12 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
             result = score([campaign(scenario, s, RlScheduler.from_model(model, scenario).decide) for s in eval_seeds])
             result["vs best rule"] = result["makespan h"] / rules[best_rule]["makespan h"]
             curve.append({"steps": done, **result})
-            if on_progress:
-                on_progress(done, {"policy": "maskable-ppo", **result})
             if best is None or result["makespan h"] <= best:
                 best = result["makespan h"]
                 save_policy(model, out, "scheduler", scenario, signature(scenario), steps=done, rules=rules,
                             best_rule=best_rule, curve=curve)
+            if on_progress:  # after saving: what the user reads is on disk
+                on_progress(done, {"policy": "maskable-ppo", **result})
     finally:
         venv.close()  # stops the campaigns in the environments, also on Ctrl-C
     return out.with_suffix(".zip")

@@ -88,11 +88,11 @@ def train_controller(scenario: Scenario, steps: int, out: Path, seed: int = 0, e
         model.learn(chunk, reset_num_timesteps=False)
         done += chunk
         result = measured(model, f"ppo-{mode}")
-        if on_progress:
-            on_progress(done, result)
         if best is None or result["return"] >= best:
             best = result["return"]
             save_policy(model, out, "controller", scenario, SIGNATURE, mode=mode, steps=done, evaluation=result)
+        if on_progress:
+            on_progress(done, result)
     return out.with_suffix(".zip")
 
 

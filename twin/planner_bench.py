@@ -14,6 +14,7 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from twin.lab import prepare, run
 from twin.scenario import Scenario
@@ -52,17 +53,23 @@ def _trial(args: tuple) -> Trial:
     return trial(*args)
 
 
+def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str], seeds: int, workers: int,
+               on_each: Callable[[Any], None] | None) -> dict[str, list[Any]]:
+    """``one((scenario, name, seed))`` for every name and seed, in parallel processes, grouped by name."""
+    results: dict[str, list[Any]] = {name: [] for name in names}
+    jobs = [(scenario, name, seed) for name in names for seed in range(seeds)]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        for (_, name, _), r in zip(jobs, pool.map(one, jobs)):
+            results[name].append(r)
+            if on_each:
+                on_each(r)
+    return results
+
+
 def bench(scenario_path: str | Path, planners: list[str], seeds: int, workers: int = 2,
           on_trial: Callable[[Trial], None] | None = None, budget: int | None = None) -> dict[str, list[Trial]]:
     scenario = prepare(scenario_path, overrides={"campaign.budget": budget} if budget else None)
-    jobs = [(scenario, p, seed) for p in planners for seed in range(seeds)]
-    results: dict[str, list[Trial]] = {p: [] for p in planners}
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        for t in pool.map(_trial, jobs):
-            results[t.planner].append(t)
-            if on_trial:
-                on_trial(t)
-    return results
+    return over_seeds(_trial, scenario, planners, seeds, workers, on_trial)
 
 
 def quartiles(values: list[float]) -> tuple[float, float, float]:

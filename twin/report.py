@@ -19,6 +19,11 @@ def render_summary(s: Summary, console: Console) -> None:
     t.add_row("faults", f"{s.devices_lost} device losses, {s.quarantines} quarantines, "
                         f"{s.invalid_messages} invalid messages, {s.late_results} late results")
     t.add_row("samples degraded", str(s.degraded_samples))
+    if s.decisions:
+        ms = s.decision_ms
+        fallback = f"; {s.scheduler_fallbacks} made by the fallback rule" if s.scheduler_fallbacks else ""
+        t.add_row("scheduling", f"{s.decisions} decisions, {ms.get('p50', 0):.2f} / {ms.get('p99', 0):.2f} ms "
+                                f"(p50 / p99 wall){fallback}")
     if s.cost:
         t.add_row("cost", f"{s.cost:,.0f}")
     t.add_row("lab time", f"{s.lab_hours:.2f} h ({s.wall_s:.2f} s wall, {s.events} journal events)")

@@ -12,13 +12,12 @@ from __future__ import annotations
 import statistics
 import tempfile
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 from twin import plugins
 from twin.lab import prepare, run
-from twin.planner_bench import label
+from twin.planner_bench import label, over_seeds
 from twin.scenario import Scenario
 
 RULES = ("fifo", "spt", "mwkr", "least-loaded", "oldest-sample")
@@ -67,15 +66,7 @@ def bound(s: Scenario) -> float | None:
 
 def bench(scenario: Scenario, schedulers: list[str], seeds: int, workers: int = 2,
           on_run: Callable[[Run], None] | None = None) -> dict[str, list[Run]]:
-    seeds = 1 if deterministic(scenario) else seeds
-    jobs = [(scenario, name, seed) for name in schedulers for seed in range(seeds)]
-    results: dict[str, list[Run]] = {name: [] for name in schedulers}
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        for r in pool.map(_one, jobs):
-            results[r.scheduler].append(r)
-            if on_run:
-                on_run(r)
-    return results
+    return over_seeds(_one, scenario, schedulers, 1 if deterministic(scenario) else seeds, workers, on_run)
 
 
 HEADER = ["scheduler", "makespan (mean)", "median", "gap to CP-SAT bound", "vs best rule", "utilisation",

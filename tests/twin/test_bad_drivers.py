@@ -1,6 +1,7 @@
 """A driver that raises, returns garbage, or never answers is isolated and reported with its name."""
 
 import asyncio
+import re
 
 import pytest
 
@@ -52,3 +53,21 @@ def test_a_bad_driver_is_isolated_and_reported_by_name_and_nothing_is_lost(tmp_p
     assert summary.abandoned == 2 and summary.done == 0  # nothing lost: every experiment is accounted for
     failed = [e for e in read_events(tmp_path / "j.db") if e["kind"] == "attempt.failed"]
     assert failed and all(e["device"] == "broken" and says in e["detail"] for e in failed), failed[:1]
+
+
+class FromTheFuture(Raises):
+    labtwin_api = 2
+
+
+class Partial(Raises):
+    capabilities = frozenset({"synthesise"})
+
+
+@pytest.mark.parametrize("cls, says", [("FromTheFuture", "driver API 2; this labtwin speaks 1"),
+                                       ("Partial", "runs ['synthesise'], but the scenario asks it for ['measure']")])
+def test_version_and_capabilities_are_checked_at_load(tmp_path, cls, says):
+    from twin.errors import DriverError
+
+    lab = qd_lab(**{"devices.spectrometer.driver": f"tests.twin.test_bad_drivers:{cls}"})
+    with pytest.raises(DriverError, match=re.escape(says)):
+        run(parse(lab), journal=tmp_path / "j.db")
