@@ -125,3 +125,7 @@ class MqttInstrument:
 
     async def safe_state(self) -> None:
         """The instrument keeps its own safe state; a cancelled step was already told to stop."""
+
+    async def health(self) -> dict[str, Any]:
+        return {"ok": self._client is not None, "broker": f"{self.host}:{self.port}", "topic": self.topic,
+                "waiting": len(self._waiting)}

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import json
 import logging
 from typing import Any
 
@@ -34,12 +35,13 @@ class DeviceActor:
         self._job: asyncio.Task | None = None
         self._current: tuple[str, int] | None = None
         self._cancel_reason = ""
-        self._sub = self._token = None
+        self._sub = self._token = self._health = None
         self._crasher: asyncio.Task | None = None
         self.dropped = 0
 
     # -- life cycle -------------------------------------------------------
     async def start(self) -> None:
+        self._health = self._bus.serve(keys.health(self._lab, self.name), self._report_health)
         connect = getattr(self.driver, "connect", None)
         if connect is not None:  # an instrument with presence of its own (MQTT last will, say)
             await connect(self._instrument_presence)
@@ -56,9 +58,23 @@ class DeviceActor:
             await wait_cancelled(self._job)
         await self.driver.safe_state()
         self._offline()
+        if self._health is not None:
+            self._health.close()
         disconnect = getattr(self.driver, "disconnect", None)
         if disconnect is not None:
             await disconnect()
+
+    async def _report_health(self, key: str, payload: bytes) -> bytes:
+        """``labtwin/<lab>/dev/<name>/health``: the actor's state and, if it has ``health()``, the driver's."""
+        report: dict = {"device": self.name, "on_bus": self._token is not None,
+                        "running": list(self._current) if self._current else None}
+        check = getattr(self.driver, "health", None)
+        if check is not None:
+            try:
+                report["driver"] = await check()
+            except Exception as exc:  # a failing health check is itself the answer
+                report["driver"] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        return json.dumps(report).encode()
 
     def _instrument_presence(self, present: bool) -> None:
         """The driver's instrument came or went: the device's presence on the bus follows it."""

@@ -15,6 +15,10 @@ def telemetry(lab: str, device: str = "*") -> str:
     return f"{PREFIX}/{lab}/dev/{device}/telemetry"
 
 
+def health(lab: str, device: str = "*") -> str:
+    return f"{PREFIX}/{lab}/dev/{device}/health"
+
+
 def alive(lab: str, device: str = "*") -> str:
     return f"{PREFIX}/{lab}/alive/{device}"
 

@@ -1,6 +1,7 @@
 """A driver that raises, returns garbage, or never answers is isolated and reported with its name."""
 
 import asyncio
+import json
 import re
 
 import pytest
@@ -71,3 +72,29 @@ def test_version_and_capabilities_are_checked_at_load(tmp_path, cls, says):
     lab = qd_lab(**{"devices.spectrometer.driver": f"tests.twin.test_bad_drivers:{cls}"})
     with pytest.raises(DriverError, match=re.escape(says)):
         run(parse(lab), journal=tmp_path / "j.db")
+
+
+class Healthy(Raises):
+    async def health(self):
+        return {"ok": True, "lamp_hours": 1234}
+
+
+async def test_a_device_answers_health_requests_with_its_drivers_report(virtual_clock):
+    from twin import keys
+    from twin.actor import DeviceActor
+    from twin.bus import open_bus
+
+    s = parse(qd_lab())
+    bus = open_bus("memory", virtual_clock)
+    await bus.start()
+    actors = [DeviceActor(name, s.devices["spectrometer"], drv, bus, virtual_clock, s.lab, 0)
+              for name, drv in (("spectrometer-1", Healthy(None)), ("spectrometer-2", Raises(None)))]
+    for a in actors:
+        await a.start()
+    one = json.loads(await bus.request(keys.health(s.lab, "spectrometer-1"), b"", timeout=5))
+    two = json.loads(await bus.request(keys.health(s.lab, "spectrometer-2"), b"", timeout=5))
+    assert one == {"device": "spectrometer-1", "on_bus": True, "running": None, "driver": {"ok": True, "lamp_hours": 1234}}
+    assert "driver" not in two and two["on_bus"]
+    for a in actors:
+        await a.stop()
+    await bus.close()
