@@ -10,7 +10,11 @@ free, capable, not-to-be-avoided pairs, and waiting only while some device is
 busy (otherwise nothing would ever happen again).
 
 Times are divided by the scenario's typical step duration, so a lab of hours
-and a job shop of seconds look alike to the network.
+and a job shop of seconds look alike to the network. A step's type is seen
+through what a policy can carry to another lab — its expected duration, the
+work left after it, and the state of the instances that can run it — not as
+a one-hot of names. (Adding per-type queued work and competing steps was
+tried and trained no better; see the issue notes.)
 """
 
 from __future__ import annotations
