@@ -12,7 +12,6 @@ from typing import Any
 import numpy as np
 
 from devices.models import catalyst, thermal
-from devices.reactor_control import SIGNATURE, PolicyController
 from devices.synthesiser import need
 from twin.driver import DriverSetup, StepContext, StepResult
 from twin.policies import load_policy, read_meta
@@ -33,7 +32,11 @@ class Reactor:
 
     def controller(self, setpoint: float):
         pid = thermal.Pid(**self.pid)
-        return pid if self.policy is None else PolicyController(self.policy, setpoint, self.mode, pid)
+        if self.policy is None:
+            return pid
+        from devices.reactor_control import PolicyController
+
+        return PolicyController(self.policy, setpoint, self.mode, pid)
 
     async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
         setpoint, hold = need(params, "temperature_k", "time_s")
@@ -62,4 +65,6 @@ class Reactor:
 
 def load_controller(path: Path, dt_s: float = 10.0) -> tuple[Any, str]:
     """A trained heater policy (`twin train ... --agent controller`) and its mode (pure or residual)."""
+    from devices.reactor_control import SIGNATURE  # gymnasium and torch only for a reactor that uses one
+
     return load_policy(path, "controller", {**SIGNATURE, "dt_s": dt_s}), read_meta(path).get("mode", "pure")
