@@ -12,6 +12,15 @@ from twin.cli import _fail, app, console, device_app, driver_app, scheduler_app
 from twin.errors import TwinError
 
 
+def _serving(serve, *args) -> None:
+    """Run a serve function with INFO logging; its errors end the command with one clear line."""
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        serve(*args)
+    except TwinError as exc:
+        _fail(exc)
+
+
 @device_app.command("serve")
 def device_serve(
     scenario: Annotated[Path, typer.Argument(help="the scenario the device belongs to")],
@@ -23,11 +32,7 @@ def device_serve(
     """Serve one device actor of a scenario in this process until SIGINT/SIGTERM."""
     from twin.serve import serve_device
 
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        serve_device(scenario, name, connect, clock, speed)
-    except TwinError as exc:
-        _fail(exc)
+    _serving(serve_device, scenario, name, connect, clock, speed)
 
 
 
@@ -85,8 +90,4 @@ def scheduler_serve(
     """Serve scheduling decisions to a lab whose campaign.scheduler is `remote`, until SIGINT/SIGTERM."""
     from twin.serve import serve_scheduler
 
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        serve_scheduler(scenario, scheduler, connect, clock, speed)
-    except TwinError as exc:
-        _fail(exc)
+    _serving(serve_scheduler, scenario, scheduler, connect, clock, speed)

@@ -102,11 +102,6 @@ class Scheduler(Protocol):
     def decide(self, view: LabView) -> list[Assignment]: ...
 
 
-def any_pair(view: LabView) -> bool:
-    """Whether some free device could take some ready step."""
-    return any(capable(step, view.free) for step in view.ready)
-
-
 def capable(step: ReadyStep, free: tuple[FreeDevice, ...]) -> list[FreeDevice]:
     """Free devices of the step's type that it need not avoid."""
     return [d for d in free if d.device_type == step.device_type and d.name not in step.avoid]

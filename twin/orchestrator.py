@@ -22,7 +22,7 @@ from twin import keys
 from twin.bus import Bus
 from twin.clock import LabClock
 from twin.decisions import (Assignment, DeviceState, FreeDevice, LabView, Outcome, Planner, Proposal, ReadyStep,
-                             RouteStep, Scheduler, any_pair)
+                             RouteStep, Scheduler)
 from twin.driver import expected_duration
 from twin.decision_log import DecisionLog
 from twin.journal import Journal
@@ -213,11 +213,17 @@ class Orchestrator:
             out.append((step.device, expected_duration(dt.duration, {**e.params, **step.params}, dt.setup_s, dt.clean_s)))
         return tuple(out)
 
+    def _pair_possible(self) -> bool:
+        """Whether some free device could take some ready step (cheaper than building the view)."""
+        free: dict[str, set[str]] = {}
+        for d in self.devices.values():
+            if d.free:
+                free.setdefault(d.type, set()).add(d.name)
+        return any(free.get(t.step.device, set()) - self._avoid(t) for t in self.ready.values())
+
     async def _dispatch(self) -> None:
-        while not self.stopping and self.ready and any(d.free for d in self.devices.values()):
-            view = self._view()
-            if not any_pair(view):
-                return
+        while not self.stopping and self._pair_possible():
+            view = self._view()  # the full view only when a decision is really needed
             started = time.perf_counter()
             decided = self.scheduler.decide(view)
             if inspect.isawaitable(decided):
