@@ -116,10 +116,8 @@ class SchedulingEnv(gym.Env):
 
     # -- internals ------------------------------------------------------------------
     def _counts(self) -> tuple[int, int]:
-        orch = self.campaign.orch
-        if orch is None:
-            return 0, 0
-        return (sum(e.degraded for e in orch.experiments), sum(e.status == "abandoned" for e in orch.experiments))
+        core = self.campaign.core
+        return sum(e.degraded for e in core.experiments), sum(e.status == "abandoned" for e in core.experiments)
 
     def _observe(self) -> np.ndarray:
         if self.campaign.view is None:  # the campaign is over

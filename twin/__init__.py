@@ -15,14 +15,15 @@ from twin.errors import (
     TwinError,
 )
 from twin.lab import prepare, run, run_async
-from twin.orchestrator import Orchestrator
+from twin.campaign import CampaignCore
+from twin.runtime import FastCampaign, LiveCampaign
 from twin.scenario import Scenario, json_schema
 from twin.scenario import load as load_scenario
 from twin.summary import Summary
 
 __all__ = [
     "AccountingError", "Assignment", "Bus", "BusError", "Clock", "ClockError", "DeviceActor", "Driver",
-    "DriverError", "DriverSetup", "FreeDevice", "LabClock", "LabView", "MemoryBus", "Orchestrator",
+    "DriverError", "DriverSetup", "FreeDevice", "LabClock", "LabView", "MemoryBus", "CampaignCore", "FastCampaign", "LiveCampaign",
     "Outcome", "Planner", "PluginError", "Proposal", "ReadyStep", "Scenario", "ScenarioError", "Scheduler",
     "StepContext", "StepResult", "Summary", "TwinError", "json_schema", "load_scenario", "open_bus",
     "prepare", "run", "run_async",

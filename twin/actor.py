@@ -18,7 +18,7 @@ from typing import Any
 from twin import keys
 from twin.bus import Bus
 from twin.clock import LabClock, wait_cancelled
-from twin.driver import Driver, StepContext, seeded
+from twin.driver import Driver, StepContext, seeded, simulated_faults
 from twin.messages import CommandBody, InvalidMessage, Kind, decode, pack
 
 log = logging.getLogger(__name__)
@@ -28,7 +28,8 @@ class DeviceActor:
     def __init__(self, name: str, spec: Any, driver: Driver, bus: Bus, clock: LabClock, lab: str, seed: int) -> None:
         self.name, self.spec, self.driver = name, spec, driver
         self._bus, self._clock, self._lab = bus, clock, lab
-        self._rng, _ = seeded(seed, "faults", name)
+        self._seed = seed
+        self._crash_rng, _ = seeded(seed, "crashes", name)
         _, self._step_rng = seeded(seed, "steps", name)
         self._ids = itertools.count(1)
         self._evt_key = keys.evt(lab, name)
@@ -101,7 +102,7 @@ class DeviceActor:
     async def _crash_loop(self) -> None:
         faults = self.spec.faults
         while True:
-            await self._clock.sleep(self._rng.expovariate(1.0 / (faults.mtbc_h * 3600)))
+            await self._clock.sleep(self._crash_rng.expovariate(1.0 / (faults.mtbc_h * 3600)))
             log.info("%s crashed at t=%.0f s", self.name, self._clock.now())
             self._offline()
             if self._job is not None:
@@ -150,8 +151,7 @@ class DeviceActor:
         )
         emit(Kind.ACCEPTED, {})
         try:
-            hang = faults.hang_p > 0 and self._rng.random() < faults.hang_p
-            fail = faults.fail_p > 0 and self._rng.random() < faults.fail_p
+            hang, fail = simulated_faults(self._seed, task, attempt, faults)
             await self._clock.sleep(spec.setup_s)
             if hang:
                 await asyncio.Event().wait()  # only a cancel (a timeout) ends a hung step

@@ -60,6 +60,7 @@ def run(
     web_port: Annotated[int, typer.Option(help="web viewer port for --serve (0: any free one)")] = 0,
     quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
     json_out: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
+    runtime: Annotated[str, typer.Option(help="fast | asyncio | auto (fast for a virtual clock on the memory bus)")] = "auto",
 ) -> None:
     """Run a campaign and print its summary."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -83,12 +84,11 @@ def run(
             bar = progress.add_task(f"{s.name} ({s.clock.mode} clock, {s.bus.kind} bus)",
                                     total=s.campaign.budget, lab_h=0.0)
 
-            def on_progress(orch) -> None:
-                finished = sum(1 for e in orch.experiments if e.status in ("done", "abandoned"))
-                progress.update(bar, completed=finished, lab_h=orch.elapsed_s / 3600)
+            def on_progress(core) -> None:
+                progress.update(bar, completed=core.finished_count, lab_h=core.elapsed_s / 3600)
 
             summary = lab.run(s, journal=journal, external_devices=set(external or ()), on_progress=on_progress,
-                              observer=observer)
+                              observer=observer, runtime=runtime)
     except TwinError as exc:
         if recording is not None:
             recording.stop_serving()

@@ -67,6 +67,7 @@ class _VirtualTime(_TimeBase):
 
     def __init__(self) -> None:
         self.now = 0.0
+        self.loop: asyncio.BaseEventLoop | None = None
         self.in_flight = 0
         self.idle_hooks: list[Callable[[], bool]] = []
         self._turns = 0
@@ -89,7 +90,10 @@ class _VirtualTime(_TimeBase):
             # Nothing scheduled and nothing in flight: only outside I/O (a
             # signal, a watcher) can wake us, so wait for it for real.
             return real_select(None)
-        self.now += timeout
+        # jump to the next timer's own time (not now + timeout, which rounds differently):
+        # the fast runtime jumps the same way, so both reach the same lab times to the bit
+        scheduled = getattr(self.loop, "_scheduled", None)
+        self.now = max(self.now, scheduled[0]._when) if scheduled else self.now + timeout
         return []
 
     def _wait_for_in_flight(self, real_select, timeout):
@@ -134,6 +138,8 @@ class LabEventLoop(asyncio.SelectorEventLoop):
     def __init__(self, base: _TimeBase) -> None:
         super().__init__(selector=_LabSelector(base))
         self._base = base
+        if isinstance(base, _VirtualTime):
+            base.loop = self
         self._clock_resolution = 1e-6
 
     def time(self) -> float:

@@ -79,3 +79,14 @@ def seeded(seed: int, *names: str) -> tuple[random.Random, np.random.Generator]:
     key = ":".join([str(seed), *names])
     r = random.Random(key)
     return r, np.random.default_rng(r.getrandbits(64))
+
+
+def simulated_faults(seed: int, task: str, attempt: int, faults: Any) -> tuple[bool, bool]:
+    """Whether this attempt hangs, and whether it fails: drawn from the (seed, task, attempt) stream,
+    so the draw does not depend on which device runs it or what ran before."""
+    if not (faults.hang_p > 0 or faults.fail_p > 0):
+        return False, False
+    r = random.Random(f"{seed}:faults:{task}:{attempt}")
+    hang = faults.hang_p > 0 and r.random() < faults.hang_p
+    fail = faults.fail_p > 0 and r.random() < faults.fail_p
+    return hang, fail

@@ -13,6 +13,8 @@ import sqlite3
 from pathlib import Path
 from typing import Any
 
+from twin.messages import to_wire
+
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS run (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS events (
@@ -39,6 +41,7 @@ class Journal:
         self._events: list[tuple] = []
         self._experiments: dict[int, tuple] = {}
         self._seq = 0
+        self.closed = False
 
     def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
               attempt: int | None = None, device: str | None = None, detail: Any = None) -> int:
@@ -47,9 +50,10 @@ class Journal:
         return self._seq
 
     def message(self, t_lab: float, kind: str, experiment: int | None, task: str | None, attempt: int | None,
-                device: str | None, payload: bytes) -> None:
-        """A message received, stored as the JSON it came as."""
-        self._append(t_lab, kind, experiment, task, attempt, device, payload.decode())
+                device: str | None, payload: bytes | dict) -> None:
+        """A message received, stored as the JSON it came as (an in-process envelope is encoded here)."""
+        text = payload.decode() if isinstance(payload, bytes) else to_wire(payload).decode()
+        self._append(t_lab, kind, experiment, task, attempt, device, text)
 
     def _append(self, *row: Any) -> None:
         self._seq += 1
@@ -87,8 +91,11 @@ class Journal:
         return [dict(zip(names, r)) for r in cur]
 
     def close(self) -> None:
+        if self.closed:
+            return
         self.flush()
         self._db.close()
+        self.closed = True
 
 
 def read_run(path: str | Path) -> dict[str, Any]:

@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import logging
 import signal
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -18,11 +19,12 @@ from twin.clock import LabClock
 from twin.driver import DRIVER_API, DriverSetup
 from twin.errors import ClockError, DriverError, PluginError, TwinError
 from twin.journal import Journal
-from twin.orchestrator import Orchestrator
+from twin.campaign import CampaignCore
+from twin.runtime import FastCampaign, LiveCampaign
 from twin.remote_scheduler import RemoteScheduler, SchedulerService
 from twin.scenario import Scenario, load, set_dotted
 from twin.observer import LabObserver
-from twin.summary import Summary, from_orchestrator
+from twin.summary import Summary, from_core
 from twin.watch import RecordOptions, attach, open_observer
 
 log = logging.getLogger(__name__)
@@ -135,6 +137,7 @@ def live_scheduler(s: Scenario, chosen: Any, bus: Bus, clock: LabClock) -> tuple
 
 
 WALL_CLOCK_FIELDS = ("wall_s", "journal", "decision_ms")  # differ between identical runs
+RUNTIMES = ("auto", "fast", "asyncio")
 
 
 def default_journal(s: Scenario) -> Path:
@@ -143,17 +146,28 @@ def default_journal(s: Scenario) -> Path:
 
 def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         external_devices: set[str] = frozenset(),
-        on_progress: Callable[[Orchestrator], None] | None = None,
-        record: RecordOptions | None = None, observer: LabObserver | None = None, **overrides: Any) -> Summary:
+        on_progress: Callable[[CampaignCore], None] | None = None,
+        record: RecordOptions | None = None, observer: LabObserver | None = None, runtime: str = "auto",
+        **overrides: Any) -> Summary:
     """Run one campaign to its end and return its summary.
 
     ``overrides`` are ``seed``, ``clock``, ``speed``, ``bus`` or ``overrides``
     (a dict of dotted scenario paths). ``external_devices`` are device
     instances served by other processes (``twin device serve``). ``record``
     saves, shows or serves a Rerun recording of the campaign; ``observer``
-    is an observer the caller opened (and closes) itself.
+    is an observer the caller opened (and closes) itself. ``runtime``:
+    ``fast`` (virtual time on the memory bus, in-process), ``asyncio``
+    (everything else), or ``auto``: fast where it can.
     """
     s = prepare(scenario, **overrides)
+    watched = observer is not None or (record is not None and record.wanted)
+    why_not = fast_refused(s, external_devices, watched)
+    if runtime not in RUNTIMES:
+        raise TwinError(f"unknown runtime {runtime!r}: use one of {', '.join(RUNTIMES)}")
+    if runtime == "fast" and why_not:
+        raise ClockError(f"the fast runtime cannot run this campaign: {why_not}. Use --runtime asyncio (or auto).")
+    if runtime == "fast" or (runtime == "auto" and not why_not):
+        return run_fast(s, journal or default_journal(s), on_progress)
     clock = make_clock(s)
     recording = None
     if record is not None and record.wanted and observer is None:
@@ -168,16 +182,87 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
             recording.stop_serving()
 
 
+def fast_refused(s: Scenario, external_devices: set[str] = frozenset(), watched: bool = False) -> str:
+    """Why the fast runtime cannot run ``s`` as asked ('' when it can)."""
+    if s.clock.mode != "virtual":
+        return f"the clock is {s.clock.mode} (the fast runtime keeps virtual time only)"
+    if s.bus.kind != "memory":
+        return f"the bus is {s.bus.kind} (the fast runtime passes messages in-process)"
+    if external_devices:
+        return f"devices {sorted(external_devices)} run in other processes"
+    if watched:
+        return "a recording or viewer watches the bus"
+    if s.campaign.scheduler == REMOTE:
+        return "the scheduler is an agent on the bus"
+    return ""
+
+
 def recording_id(s: Scenario) -> str:
     return f"{s.name}-seed{s.campaign.seed}"
 
 
+def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[CampaignCore], None] | None = None,
+             handle_signals: bool = True) -> Summary:
+    """The campaign of ``s`` on the fast runtime (virtual time, in-process devices)."""
+    wall0 = time.perf_counter()
+    drivers = load_drivers(s)
+    planner, scheduler = make_planner(s), make_scheduler(s)
+    if getattr(scheduler, "serve_on_bus", False):
+        raise ClockError(f"scheduler {s.campaign.scheduler!r} is an agent on the bus: use --runtime asyncio")
+    journal = open_journal(s, journal_path)
+    camp = FastCampaign(s, drivers, journal, planner, scheduler, on_progress=on_progress)
+    with _stop_on_signals(camp.stop, handle_signals):
+        try:
+            camp.run()
+        finally:
+            summary = finish(camp.core, journal, journal_path, wall0, camp.now)
+    return summary
+
+
+def open_journal(s: Scenario, path: str | Path) -> Journal:
+    journal = Journal(path)
+    journal.set("scenario", s.model_dump())
+    journal.set("seed", s.campaign.seed)
+    return journal
+
+
+def finish(core: CampaignCore, journal: Journal, journal_path: str | Path, wall0: float, now: float,
+           note: Callable[[str, Any], None] | None = None, fallbacks: int = 0) -> Summary:
+    """The summary, journalled (and noted for watchers) the same way by every runtime."""
+    summary = from_core(core, str(journal_path), time.perf_counter() - wall0, journal._seq + 1)
+    summary.scheduler_fallbacks = fallbacks
+    lab_only = {k: v for k, v in summary.to_dict().items() if k not in WALL_CLOCK_FIELDS}
+    if note is not None:
+        note("campaign.summary", lab_only)  # wall-clock facts stay out of the stream
+    else:
+        journal.event(now, "campaign.summary", detail=lab_only)
+    journal.set("summary", summary.to_dict())
+    journal.close()
+    return summary
+
+
+@contextlib.contextmanager
+def _stop_on_signals(stop: Callable[[str], None], enabled: bool):
+    """SIGINT/SIGTERM stop the campaign cleanly (its journal and summary are written)."""
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")):
+        signal.signal(sig, lambda *_, n=name: stop(f"interrupted ({n})"))
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
                     external_devices: set[str] = frozenset(),
-                    on_progress: Callable[[Orchestrator], None] | None = None,
+                    on_progress: Callable[[CampaignCore], None] | None = None,
                     observer: LabObserver | None = None, scheduler: Any = None,
-                    on_start: Callable[[Orchestrator], None] | None = None, handle_signals: bool = True) -> Summary:
-    """The campaign of ``s`` on ``clock``; ``scheduler`` replaces the scenario's (a training env's, say).
+                    on_start: Callable[[LiveCampaign], None] | None = None, handle_signals: bool = True) -> Summary:
+    """The campaign of ``s`` on the asyncio runtime; ``scheduler`` replaces the scenario's.
 
     ``handle_signals``: SIGINT/SIGTERM stop the campaign cleanly (off for the campaigns a training
     loop runs, where Ctrl-C must stop the training).
@@ -199,25 +284,23 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
     scheduler, service = live_scheduler(s, scheduler, bus, clock)
     actors = build_actors(s, drivers, bus, clock)
     watching = attach(bus, s.lab, observer.on_message) if observer is not None else []
-    journal = Journal(journal_path)
-    journal.set("scenario", s.model_dump())
-    journal.set("seed", s.campaign.seed)
-    orch = Orchestrator(s, bus, clock, journal, planner, scheduler, on_progress=on_progress)
+    journal = open_journal(s, journal_path)
+    camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress)
     if isinstance(scheduler, RemoteScheduler):
-        scheduler.on_fallback = lambda reason: orch.decisions.note("scheduler.fallback", detail=reason)
+        scheduler.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
     if on_start is not None:
-        on_start(orch)
+        on_start(camp)
     loop = asyncio.get_running_loop()
     for sig, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")) if handle_signals else ():
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, orch.stop, f"interrupted ({name})")
+            loop.add_signal_handler(sig, camp.stop, f"interrupted ({name})")
     flusher = asyncio.ensure_future(_flush_live(clock, observer)) if observer and not clock.is_virtual else None
     try:
         for actor in actors:
             await actor.start()
         if isinstance(scheduler, RemoteScheduler) and service is None:
-            await _await_agent(scheduler, s, orch)
-        await orch.run()
+            await _await_agent(scheduler, s, camp)
+        await camp.run()
     finally:
         if flusher is not None:
             flusher.cancel()
@@ -228,15 +311,11 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
             await actor.stop()
         if service is not None:
             service.stop()
-        summary = from_orchestrator(orch, str(journal_path), time.perf_counter() - wall0, journal._seq + 1)
+        fallbacks = 0
         if isinstance(scheduler, RemoteScheduler):
             scheduler.close()
-            summary.scheduler_fallbacks = scheduler.fallbacks
-        lab_only = {k: v for k, v in summary.to_dict().items() if k not in WALL_CLOCK_FIELDS}
-        orch.decisions.note("campaign.summary", detail=lab_only)  # wall-clock facts stay out of the stream
-        orch.decisions.publish()
-        journal.set("summary", summary.to_dict())
-        journal.close()
+            fallbacks = scheduler.fallbacks
+        summary = finish(camp.core, journal, journal_path, wall0, clock.now(), camp.note, fallbacks)
         if observer is not None:
             await _until(clock, lambda: observer.done)
             for h in watching:
@@ -245,11 +324,11 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
     return summary
 
 
-async def _await_agent(remote: RemoteScheduler, s: Scenario, orch: Orchestrator) -> None:
+async def _await_agent(remote: RemoteScheduler, s: Scenario, camp: LiveCampaign) -> None:
     if not await remote.wait_present(s.orchestrator.startup_s):
         log.warning("no scheduler agent on the bus after %.0f lab-s: %s decides", s.orchestrator.startup_s,
                     s.campaign.fallback_scheduler)
-        orch.decisions.note("scheduler.missing", detail=s.campaign.fallback_scheduler)
+        camp.note("scheduler.missing", s.campaign.fallback_scheduler)
 
 
 async def _until(clock: LabClock, done: Callable[[], bool], wall_s: float = 2.0) -> None:

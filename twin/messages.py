@@ -114,14 +114,22 @@ def encode(env: Envelope) -> bytes:
     return env.model_dump_json().encode()
 
 
+def envelope(kind: Kind, body: dict[str, Any], *, id: str, sender: str, t_lab: float,
+             campaign: str = "", task: str = "", attempt: int = 0) -> dict[str, Any]:
+    """An envelope as a plain dict, in wire order: what the fast runtime passes around in-process."""
+    return {"v": VERSION, "kind": kind, "id": id, "campaign": campaign, "task": task,
+            "attempt": attempt, "sender": sender, "t_lab": t_lab, "body": body}
+
+
+def to_wire(env: dict[str, Any]) -> bytes:
+    return json.dumps(env, separators=(",", ":")).encode()
+
+
 def pack(kind: Kind, body: dict[str, Any], *, id: str, sender: str, t_lab: float,
          campaign: str = "", task: str = "", attempt: int = 0) -> bytes:
     """The wire form of an envelope, built without a model: the receiver validates."""
-    return json.dumps(
-        {"v": VERSION, "kind": kind, "id": id, "campaign": campaign, "task": task,
-         "attempt": attempt, "sender": sender, "t_lab": t_lab, "body": body},
-        separators=(",", ":"),
-    ).encode()
+    return to_wire(envelope(kind, body, id=id, sender=sender, t_lab=t_lab, campaign=campaign, task=task,
+                            attempt=attempt))
 
 
 def decode(payload: bytes, sender_hint: str = "?") -> tuple[Envelope, _Body]:

@@ -128,6 +128,8 @@ class Orchestration(_Spec):
     quarantine_after: int = Field(default=3, ge=1, description="consecutive failures")
     probe_after_s: float = Field(default=3600, ge=0)
     startup_s: float = Field(default=60, ge=0, description="lab seconds to wait for devices")
+    cancel_grace_s: float = Field(default=60, ge=0, description="lab seconds a timed-out device has to answer the "
+                                  "cancel before it is given work again")
 
 
 class ClockSpec(_Spec):

@@ -48,28 +48,29 @@ class Summary:
         return cls(**data)
 
 
-def from_orchestrator(orch: Any, journal: str, wall_s: float, events: int) -> Summary:
-    exps = orch.experiments
-    status = Counter(e.status for e in exps)
-    elapsed = max(orch.elapsed_s, 1e-9)
+def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
+    """The summary of a campaign core's ledger (``twin.campaign.CampaignCore``)."""
+    exps = core.experiments
+    status = Counter(str(e.status) for e in exps)
+    elapsed = max(core.elapsed_s, 1e-9)
     reasons = Counter(_reason_kind(e.reason) for e in exps if e.status == "abandoned")
     best = {}
-    for name, (score, exp_id) in orch.best.items():
+    for name, (score, exp_id) in core.best.items():
         outputs = {k: v for k, v in exps[exp_id].outputs.items() if isinstance(v, (int, float))}
         best[name] = {"experiment": exp_id, "score": round(score, 4), "outputs": outputs}
-    c = orch.counts
+    c = core.counts
     return Summary(
-        scenario=orch.s.name, seed=orch.s.campaign.seed, journal=journal,
-        lab_hours=orch.elapsed_s / 3600, proposed=len(exps), done=status["done"],
-        abandoned=status["abandoned"], pending=status["pending"], attempts=c["attempts"],
-        failed_attempts=c["failed"], retried=c["retried"], timed_out=c["timed_out"],
-        devices_lost=c["device_lost"], quarantines=c["quarantined"], invalid_messages=c["invalid"],
-        late_results=c["late"], degraded_samples=c["degraded"], abandoned_reasons=dict(reasons),
-        utilisation={d.name: round(d.busy_s / elapsed, 4) for d in orch.devices.values()},
-        best=best, targets_met_h={k: v / 3600 for k, v in orch.met_at.items()},
-        targets_met_after=dict(orch.met_after), targets_met_cost=dict(orch.met_cost),
-        stopped=orch.stopping, cost=orch.cost, wall_s=wall_s, events=events,
-        decisions=len(orch.decision_wall_s), decision_ms=_percentiles(orch.decision_wall_s),
+        scenario=core.s.name, seed=core.s.campaign.seed, journal=journal,
+        lab_hours=core.elapsed_s / 3600, proposed=len(exps), done=status["done"],
+        abandoned=status["abandoned"], pending=status["pending"], attempts=c.attempts,
+        failed_attempts=c.failed, retried=c.retried, timed_out=c.timed_out,
+        devices_lost=c.device_lost, quarantines=c.quarantined, invalid_messages=c.invalid,
+        late_results=c.late, degraded_samples=c.degraded, abandoned_reasons=dict(reasons),
+        utilisation={d.name: round(d.busy_s / elapsed, 4) for d in core.devices.values()},
+        best=best, targets_met_h={k: v / 3600 for k, v in core.met_at.items()},
+        targets_met_after=dict(core.met_after), targets_met_cost=dict(core.met_cost),
+        stopped=core.stopping, cost=core.cost, wall_s=wall_s, events=events,
+        decisions=len(core.decision_wall_s), decision_ms=_percentiles(core.decision_wall_s),
     )
 
 

@@ -1,4 +1,4 @@
-"""What the orchestrator keeps about experiments, steps, attempts and devices.
+"""What the core keeps about experiments, steps, attempts and devices, and its counters.
 
 An experiment is ``pending`` until its first step is dispatched, ``running``
 while any step is in the lab or waiting to retry, then ``done`` or
@@ -7,23 +7,23 @@ while any step is in the lab or waiting to retry, then ``done`` or
 
 from __future__ import annotations
 
-import asyncio
 from dataclasses import dataclass, field
 from typing import Any
 
+from twin.campaign.events import Status
 from twin.decisions import RouteStep
 from twin.errors import AccountingError
 
-FINAL = ("done", "abandoned")
+FINAL = (Status.DONE, Status.ABANDONED)
 
 
-@dataclass
+@dataclass(slots=True)
 class Experiment:
     id: int
     params: dict[str, Any]
     route: tuple[RouteStep, ...]
     t_proposed: float
-    status: str = "pending"
+    status: Status = Status.PENDING
     reason: str = ""
     stage: int = 0
     sample: dict[str, Any] | None = None
@@ -36,7 +36,7 @@ class Experiment:
     t_done: float | None = None
 
 
-@dataclass
+@dataclass(slots=True)
 class Task:
     """One step of one experiment, across its attempts."""
 
@@ -52,24 +52,24 @@ class Task:
     failed_on: list[str] = field(default_factory=list)  # devices, oldest failure first
 
 
-@dataclass
+@dataclass(slots=True)
 class Attempt:
     task: Task
     n: int
     device: str
     t_sent: float
-    deadline: asyncio.TimerHandle | None = None
     t_accepted: float | None = None
     resolved: bool = False
 
 
-@dataclass
+@dataclass(slots=True)
 class Device:
     name: str
     type: str
     online: bool = False
     quarantined: bool = False
     attempt: Attempt | None = None
+    cancelling: Attempt | None = None  # timed out; the device is not reused before it answers the cancel
     consecutive_failures: int = 0
     busy_s: float = 0.0
     failures: int = 0
@@ -78,7 +78,7 @@ class Device:
 
     @property
     def free(self) -> bool:
-        return self.online and not self.quarantined and self.attempt is None
+        return self.online and not self.quarantined and self.attempt is None and self.cancelling is None
 
     @property
     def state(self) -> str:
@@ -86,7 +86,23 @@ class Device:
             return "offline"
         if self.quarantined:
             return "quarantined"
-        return "busy" if self.attempt else "idle"
+        return "busy" if self.attempt or self.cancelling else "idle"
+
+
+@dataclass(slots=True)
+class Counters:
+    """What happened to attempts and messages; ``Summary`` is built from these."""
+
+    attempts: int = 0
+    failed: int = 0
+    timed_out: int = 0
+    retried: int = 0
+    invalid: int = 0
+    late: int = 0
+    device_lost: int = 0
+    quarantined: int = 0
+    degraded: int = 0
+    cancels_unanswered: int = 0
 
 
 def check_accounting(experiments: list[Experiment], proposed: int) -> None:
@@ -95,11 +111,11 @@ def check_accounting(experiments: list[Experiment], proposed: int) -> None:
     if len(experiments) != proposed:
         problems.append(f"{proposed} proposed but {len(experiments)} recorded")
     for e in experiments:
-        if e.status not in (*FINAL, "pending"):
+        if e.status not in (*FINAL, Status.PENDING):
             problems.append(f"experiment {e.id} is {e.status!r} at shutdown")
-        if e.status == "abandoned" and not e.reason:
+        if e.status == Status.ABANDONED and not e.reason:
             problems.append(f"experiment {e.id} abandoned without a reason")
-        if e.status == "done" and e.stage != len(e.route):
+        if e.status == Status.DONE and e.stage != len(e.route):
             problems.append(f"experiment {e.id} done after {e.stage} of {len(e.route)} steps")
     if problems:
         raise AccountingError("accounting invariant broken: " + "; ".join(problems))

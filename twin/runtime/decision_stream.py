@@ -1,20 +1,20 @@
-"""The orchestrator's state changes, journalled and published for observers.
+"""The core's state changes as decisions on the bus, for observers.
 
-Every change goes to the journal and, as a decision, onto
-``labtwin/<lab>/campaign/<id>/decisions``; the changes made in one turn of
-the loop travel together as one message. ``history`` answers a watcher that
-joins late with everything observed so far.
+Every ``Note`` the core returns is journalled (``twin.runtime.journaling``)
+and, as a decision, sent on ``labtwin/<lab>/campaign/<id>/decisions``; the
+notes of one ``advance`` travel together as one message. ``history``
+answers a watcher that joins late with everything observed so far.
 """
 
 from __future__ import annotations
 
-import asyncio
 import itertools
 import json
 from typing import Any
 
 from twin import keys
 from twin.bus import Bus
+from twin.campaign import Note
 from twin.clock import LabClock
 from twin.journal import Journal, as_messages, decision_id
 from twin.messages import Kind, pack
@@ -22,7 +22,7 @@ from twin.messages import Kind, pack
 SENDER = "orchestrator"
 
 
-class DecisionLog:
+class DecisionStream:
     def __init__(self, journal: Journal, bus: Bus, clock: LabClock, lab: str, campaign_id: str) -> None:
         self.journal, self.bus, self.clock, self.campaign_id = journal, bus, clock, campaign_id
         self.key = keys.campaign(lab, campaign_id, "decisions")
@@ -30,17 +30,12 @@ class DecisionLog:
         self._outbox: list[dict[str, Any]] = []
         self._batches = itertools.count(1)
 
-    def note(self, kind: str, experiment: int | None = None, task: str | None = None, attempt: int | None = None,
-             device: str | None = None, detail: Any = None) -> None:
-        now = self.clock.now()
-        seq = self.journal.event(now, kind, experiment, task, attempt, device, detail)
-        if not self._outbox:
-            asyncio.get_running_loop().call_soon(self.publish)
-        self._outbox.append({"id": decision_id(seq), "t_lab": now, "what": kind, "detail": {
-            "experiment": experiment, "task": task, "attempt": attempt, "device": device, "info": detail}})
+    def add(self, n: Note, seq: int) -> None:
+        self._outbox.append({"id": decision_id(seq), "t_lab": n.t_lab, "what": n.kind, "detail": {
+            "experiment": n.experiment, "task": n.task, "attempt": n.attempt, "device": n.device, "info": n.detail}})
 
     def publish(self) -> None:
-        """Send the decisions noted so far now (the loop does it at the end of each turn)."""
+        """Send the decisions added so far as one message."""
         if not self._outbox:
             return
         items, self._outbox = self._outbox, []

@@ -1,0 +1,485 @@
+"""The campaign as a deterministic state machine: ``feed`` events, ``advance`` to get actions.
+
+``pending → dispatched → running → done | failed → retry | abandoned``
+
+Events are buffered and, at each ``advance(now)``, handled in a canonical
+order (device messages by device, then presence, timers, a stop), so the
+result does not depend on how a runtime interleaved events of the same
+instant. Then, if anything changed, one decision pass: ask the planner for
+experiments while there is room, ask the scheduler while a free device could
+take a ready step. An ``Ask`` waits for its answer (``Proposed``/``Decided``)
+before the pass goes on; events that arrive meanwhile wait in the inbox.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from twin.campaign import dispatch, policy
+from twin.campaign.events import (Action, Ask, CancelTimer, Code, Decided, DeviceMessage, Event, Finished,
+                                  InvalidInput, Note, Presence, Proposed, RecordExperiment, RecordMessage, Send,
+                                  SetTimer, Status, Stop, TimerFired, TimerKey, TimerKind)
+from twin.campaign.ledger import Attempt, Counters, Device, Experiment, Task, check_accounting
+from twin.decisions import Outcome, Proposal, RouteStep
+from twin.driver import expected_duration
+from twin.messages import Kind
+from twin.scenario import Scenario
+from twin.targets import scores
+
+_ORDER = {DeviceMessage: 0, InvalidInput: 0, Presence: 1, TimerFired: 2, Stop: 3}
+
+
+def _order(ev: Event) -> tuple[int, str]:
+    rank = _ORDER[type(ev)]
+    if rank == 0:
+        return 0, ev.device if isinstance(ev, DeviceMessage) else ev.sender  # type: ignore[union-attr]
+    if rank == 1:
+        return 1, ev.device  # type: ignore[union-attr]
+    if rank == 2:
+        return 2, f"{ev.key.kind}:{ev.key.ref}"  # type: ignore[union-attr]
+    return 3, ""
+
+
+class CampaignCore:
+    def __init__(self, scenario: Scenario, campaign_id: str = "c1") -> None:
+        self.s, self.campaign_id = scenario, campaign_id
+        self.seed = scenario.campaign.seed
+        self.devices = {
+            name: Device(name, dtype) for dtype in scenario.devices for name in scenario.instance_names(dtype)
+        }
+        self.experiments: list[Experiment] = []
+        self.active: dict[int, Experiment] = {}  # pending or running
+        self.ready: dict[str, Task] = {}
+        self.attempts: dict[tuple[str, int], Attempt] = {}
+        self.history: list[Outcome] = []
+        self.best: dict[str, tuple[float, int]] = {}  # target -> (score, experiment)
+        self.met_at: dict[str, float] = {}
+        self.met_after: dict[str, int] = {}  # target -> experiments finished when it was met
+        self.met_cost: dict[str, float] = {}  # target -> money spent when it was met
+        self.cost = 0.0
+        self.counts = Counters()
+        self.decision_wall_s: list[float] = []
+        self.planner_exhausted = False
+        self.stopping = ""
+        self.started = self.finished = False
+        self.now = self.t0 = 0.0
+        self._running = False  # past start-up
+        self._inbox: list[Event] = []
+        self._out: list[Action] = []
+        self._asking: Ask | None = None
+        self._answer: Proposed | Decided | None = None
+        self._wake = False
+        self._filled = False  # the planner had its say in this pass
+        self._retrying: dict[str, Task] = {}  # waiting out their back-off
+
+    # -- the runtime's side ---------------------------------------------------------
+    def start(self, now: float) -> list[Action]:
+        self.now = self.t0 = now
+        self.started = True
+        self._note("campaign.started", detail=self.describe())
+        if all(d.online for d in self.devices.values()):
+            self._begin()
+        else:
+            self._timer(TimerKey(TimerKind.STARTUP), self.s.orchestrator.startup_s)
+        return self.advance(now)
+
+    def feed(self, event: Event | Proposed | Decided) -> None:
+        if isinstance(event, (Proposed, Decided)):
+            self._answer = event
+        else:
+            self._inbox.append(event)
+
+    def stop(self, reason: str) -> None:
+        self.feed(Stop(reason))
+
+    def advance(self, now: float) -> list[Action]:
+        """Handle what was fed, then decide; returns the actions to perform, in order."""
+        if self.finished:
+            self._inbox.clear()
+            return []
+        self.now = now
+        if self._inbox:
+            batch, self._inbox = self._inbox, []
+            batch.sort(key=_order)
+            for ev in batch:
+                self._handle(ev)
+        if self._answer is not None:
+            answer, self._answer, asked = self._answer, None, self._asking
+            self._asking = None
+            if isinstance(answer, Proposed) and asked is not None and asked.what == "plan":
+                self._proposed(answer.proposals[:asked.n])
+            elif isinstance(answer, Decided) and asked is not None and asked.what == "schedule":
+                self._decided(answer)
+        if self._running and self._asking is None:
+            self._decide()
+        out, self._out = self._out, []
+        return out
+
+    @property
+    def waiting(self) -> Ask | None:
+        """The question the core waits on, if any."""
+        return self._asking
+
+    @property
+    def has_work(self) -> bool:
+        """Whether ``advance`` would do anything now."""
+        return bool(self._inbox) or self._answer is not None or (self._wake and self._asking is None and self._running)
+
+    @property
+    def elapsed_s(self) -> float:
+        return self.now - self.t0
+
+    @property
+    def finished_count(self) -> int:
+        return len(self.experiments) - len(self.active)
+
+    def describe(self) -> dict[str, Any]:
+        """What an observer needs to make sense of the campaign's messages."""
+        s = self.s
+        return {
+            "scenario": s.name, "lab": s.lab, "campaign": self.campaign_id, "seed": s.campaign.seed,
+            "budget": s.campaign.budget, "clock": s.clock.mode,
+            "devices": {d.name: d.type for d in self.devices.values()},
+            "parameters": {k: [p.low, p.high, p.unit] for k, p in s.chemistry.parameters.items()},
+            "targets": [t.model_dump(exclude_none=True) for t in s.chemistry.targets],
+        }
+
+    # -- actions ----------------------------------------------------------------------
+    def _note(self, kind: str, experiment: int | None = None, task: str | None = None, attempt: int | None = None,
+              device: str | None = None, detail: Any = None) -> None:
+        self._out.append(Note(self.now, kind, experiment, task, attempt, device, detail))
+
+    def _timer(self, key: TimerKey, delay: float) -> None:
+        self._out.append(SetTimer(key, max(0.0, delay)))
+
+    def _send(self, dev: str, kind: Kind, task: str, attempt: int, body: dict[str, Any]) -> None:
+        self._out.append(Send(dev, kind, task, attempt, body))
+
+    # -- events -----------------------------------------------------------------------
+    def _handle(self, ev: Event) -> None:
+        if isinstance(ev, DeviceMessage):
+            self._on_message(ev)
+        elif isinstance(ev, Presence):
+            self._on_presence(ev.device, ev.alive)
+        elif isinstance(ev, TimerFired):
+            self._on_timer(ev.key)
+        elif isinstance(ev, InvalidInput):
+            self.counts.invalid += 1
+            self._note("message.invalid", device=ev.sender, detail=ev.reason)
+        elif isinstance(ev, Stop):
+            if not self.stopping:
+                self.stopping = ev.reason
+                self._note("campaign.stopping", detail=ev.reason)
+            if not self._running:
+                self._begin()
+            self._wake = True
+
+    def _on_message(self, m: DeviceMessage) -> None:
+        if m.kind == Kind.TELEMETRY:
+            self._out.append(RecordMessage(self.now, "msg.telemetry", None, m.task or None, m.attempt, m.device,
+                                           m.payload))
+            return
+        att = self.attempts.get((m.task, m.attempt))
+        exp = att.task.experiment.id if att else None
+        self._out.append(RecordMessage(self.now, f"msg.{m.kind}", exp, m.task, m.attempt, m.device, m.payload))
+        if att is None or att.device != m.device:
+            self.counts.late += 1
+            self._note("message.unknown_attempt", exp, m.task, m.attempt, m.device)
+            return
+        if att.resolved:
+            self._after_resolved(att, m)
+            return
+        if m.kind == Kind.ACCEPTED:
+            att.t_accepted = self.now
+            self._note("attempt.running", exp, m.task, m.attempt, m.device)
+        elif m.kind == Kind.RESULT:
+            self._resolve(att, Code.OK, m.body)
+        elif m.kind == Kind.FAULT:
+            self._resolve(att, m.body.get("code", Code.FAILED), {"reason": m.body.get("reason", "")})
+        elif m.kind == Kind.REJECTED:
+            self._resolve(att, Code.REJECTED, {"reason": m.body.get("reason", "")})
+
+    def _after_resolved(self, att: Attempt, m: DeviceMessage) -> None:
+        """A message about an attempt already decided: the answer to a cancel, or late."""
+        dev = self.devices[att.device]
+        acked = dev.cancelling is att and m.kind in (Kind.FAULT, Kind.RESULT, Kind.REJECTED)
+        if acked:
+            dev.cancelling = None
+            self._out.append(CancelTimer(TimerKey(TimerKind.CANCEL_GRACE, dev.name)))
+            self._wake = True
+        if acked and m.kind == Kind.FAULT and m.body.get("code") == Code.CANCELLED:
+            self._note("attempt.cancel_acknowledged", att.task.experiment.id, att.task.id, att.n, dev.name)
+        elif m.kind in (Kind.RESULT, Kind.FAULT):
+            self.counts.late += 1
+            self._note("result.late", att.task.experiment.id, att.task.id, att.n, dev.name, detail=str(m.kind))
+
+    def _on_presence(self, name: str, alive: bool) -> None:
+        dev = self.devices.get(name)
+        if dev is None or dev.online == alive:
+            return
+        dev.online = alive
+        self._note("device.online" if alive else "device.lost", device=dev.name)
+        if not alive:
+            if dev.cancelling is not None:
+                dev.cancelling = None
+                self._out.append(CancelTimer(TimerKey(TimerKind.CANCEL_GRACE, dev.name)))
+            if dev.attempt is not None:
+                self.counts.device_lost += 1
+                self._resolve(dev.attempt, Code.DEVICE_LOST, {"reason": f"{dev.name} left the bus (liveliness lost)"})
+        if not self._running and all(d.online for d in self.devices.values()):
+            self._out.append(CancelTimer(TimerKey(TimerKind.STARTUP)))
+            self._begin()
+        self._wake = True
+
+    def _on_timer(self, key: TimerKey) -> None:
+        kind = key.kind
+        if kind == TimerKind.DEADLINE:
+            task, _, n = key.ref.rpartition("#")
+            att = self.attempts.get((task, int(n)))
+            if att is not None and not att.resolved:
+                limit = policy.deadline_s(att.task.expected_s, self.s.orchestrator)
+                self._resolve(att, Code.TIMED_OUT, {"reason": f"no result within {limit:.0f} lab-s"})
+        elif kind == TimerKind.RETRY:
+            task = self._retrying.pop(key.ref, None)
+            if task is not None and not self.stopping:
+                self._make_ready(task.experiment, task)
+        elif kind == TimerKind.PROBE:
+            dev = self.devices[key.ref]
+            dev.quarantined = False
+            self._note("device.probe", device=dev.name)
+            self._wake = True
+        elif kind == TimerKind.CANCEL_GRACE:
+            dev = self.devices[key.ref]
+            if dev.cancelling is not None:
+                att, dev.cancelling = dev.cancelling, None
+                self.counts.cancels_unanswered += 1
+                self._note("attempt.cancel_unanswered", att.task.experiment.id, att.task.id, att.n, dev.name,
+                           detail={"grace_s": self.s.orchestrator.cancel_grace_s})
+                self._wake = True
+        elif kind == TimerKind.LIMIT:
+            self._on_stop("max_lab_hours reached")
+        elif kind == TimerKind.STARTUP and not self._running:
+            missing = [d.name for d in self.devices.values() if not d.online]
+            self._note("devices.missing", detail=missing)
+            self._begin()
+
+    def _on_stop(self, reason: str) -> None:
+        self._handle(Stop(reason))
+
+    def _begin(self) -> None:
+        self._running = True
+        self._wake = True
+        self._timer(TimerKey(TimerKind.LIMIT), self.s.campaign.max_lab_hours * 3600 - (self.now - self.t0))
+
+    # -- the decision pass ----------------------------------------------------------
+    def _decide(self) -> None:
+        while self._wake:
+            if not self._filled:
+                n = self._room()
+                if n > 0:
+                    self._ask(Ask("plan", n, tuple(self.history), tuple(e.params for e in self.active.values())))
+                    return
+                self._filled = True
+            if not self.stopping and dispatch.pair_possible(self.ready.values(), self.devices):
+                c = self.s.campaign
+                self._ask(Ask("schedule", view=dispatch.view(self.now, self.ready.values(), self.devices,
+                                                             self.finished_count, c.budget, len(self.active))))
+                return
+            self._end_pass()
+        if self.stopping or (not self.active and not self._can_propose()):
+            self._shutdown()
+
+    def _ask(self, ask: Ask) -> None:
+        self._asking = ask
+        self._out.append(ask)
+
+    def _end_pass(self) -> None:
+        self._wake = self._filled = False
+
+    def _room(self) -> int:
+        if self.stopping or not self._can_propose():
+            return 0
+        c = self.s.campaign
+        return min(c.max_in_flight - len(self.active), c.budget - len(self.experiments))
+
+    def _can_propose(self) -> bool:
+        c = self.s.campaign
+        if self.planner_exhausted or len(self.experiments) >= c.budget:
+            return False
+        if c.max_cost is not None and self.cost >= c.max_cost:
+            return False
+        return not (c.stop_on_target and self.s.chemistry.targets and len(self.met_at) == len(self.s.chemistry.targets))
+
+    def _proposed(self, proposals: list[Proposal]) -> None:
+        if not proposals:
+            # nothing now: ask again when something finishes, or give up if nothing will
+            self.planner_exhausted = not self.active
+            self._filled = True
+            return
+        for p in proposals:
+            self._add_experiment(p)
+
+    def _decided(self, d: Decided) -> None:
+        self.decision_wall_s.append(d.wall_s)
+        sent = 0
+        for a in d.assignments if not self.stopping else ():
+            why = dispatch.problem(a, self.ready, self.devices)
+            if why:
+                self._note("scheduler.invalid", task=a.task, device=a.device, detail=why)
+                continue
+            self._dispatch(self.ready.pop(a.task), self.devices[a.device])
+            sent += 1
+        if not sent:
+            self._end_pass()
+
+    # -- experiments and steps ------------------------------------------------------
+    def _add_experiment(self, p: Proposal) -> None:
+        route = p.route or tuple(RouteStep(w.step, w.device) for w in self.s.workflow)
+        e = Experiment(len(self.experiments), dict(p.params), route, self.now)
+        self.experiments.append(e)
+        self.active[e.id] = e
+        self._note("experiment.proposed", e.id, detail=e.params)
+        self._out.append(RecordExperiment(e))
+        self._make_ready(e)
+
+    def _expected(self, e: Experiment, step: RouteStep) -> float:
+        dt = self.s.devices[step.device]
+        return expected_duration(dt.duration, {**e.params, **step.params}, dt.setup_s, dt.clean_s)
+
+    def _make_ready(self, e: Experiment, task: Task | None = None) -> None:
+        if task is None:
+            step = e.route[e.stage]
+            expected = self._expected(e, step)
+            then = tuple((s.device, self._expected(e, s)) for s in e.route[e.stage + 1:])
+            task = Task(f"e{e.id}s{e.stage}", e, step, self.now, self.now, expected,
+                        expected + sum(d for _, d in then), then)
+        task.ready_since = self.now
+        self.ready[task.id] = task
+        self._note("task.ready", e.id, task.id, detail={"sample_made": e.sample_made, "step": task.step.step})
+        self._wake = True
+
+    def _dispatch(self, task: Task, dev: Device) -> None:
+        e = task.experiment
+        stability = self.s.chemistry.stability_s
+        if stability and e.sample_made is not None and self.now - e.sample_made > stability:
+            e.degraded = True  # the sample waited longer than it keeps
+        task.attempts += 1
+        e.attempts += 1
+        e.status = Status.RUNNING
+        self.counts.attempts += 1
+        self.cost += self.s.devices[dev.type].cost
+        att = Attempt(task, task.attempts, dev.name, self.now)
+        dev.attempt = att
+        dev.attempts += 1
+        self.attempts[(task.id, att.n)] = att
+        deadline = policy.deadline_s(task.expected_s, self.s.orchestrator)
+        self._timer(TimerKey(TimerKind.DEADLINE, f"{task.id}#{att.n}"), deadline)
+        body = {"step": task.step.step, "params": {**e.params, **task.step.params}, "sample": e.sample,
+                "expected_s": task.expected_s}
+        self._note("attempt.dispatched", e.id, task.id, att.n, dev.name, detail={"deadline_s": deadline})
+        self._send(dev.name, Kind.COMMAND, task.id, att.n, body)
+
+    # -- outcomes ---------------------------------------------------------------------
+    def _resolve(self, att: Attempt, code: str, body: dict[str, Any]) -> None:
+        att.resolved = True
+        task, dev = att.task, self.devices[att.device]
+        e = task.experiment
+        if code != Code.TIMED_OUT:
+            self._out.append(CancelTimer(TimerKey(TimerKind.DEADLINE, f"{task.id}#{att.n}")))
+        dev.attempt = None
+        dev.busy_s += self.now - att.t_sent
+        self._note(f"attempt.{'done' if code == Code.OK else 'failed'}", e.id, task.id, att.n, dev.name,
+                   detail=None if code == Code.OK else {"code": str(code), **body})
+        if code == Code.TIMED_OUT:
+            self.counts.timed_out += 1
+            dev.cancelling = att
+            self._timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name), self.s.orchestrator.cancel_grace_s)
+            self._send(dev.name, Kind.CANCEL, task.id, att.n, {"reason": body["reason"]})
+        if code == Code.OK:
+            dev.consecutive_failures = 0
+            dev.steps_done += 1
+            self._advance_experiment(task, body)
+        else:
+            self._failed(task, dev, str(code), body.get("reason", ""))
+        self._wake = True
+
+    def _advance_experiment(self, task: Task, result: dict[str, Any]) -> None:
+        e = task.experiment
+        e.outputs.update(result.get("outputs") or {})
+        sample = result.get("sample")
+        if sample is not None:
+            e.sample_made = float(sample.get("t_made", self.now))
+            e.sample = sample
+        e.stage += 1
+        if e.stage < len(e.route):
+            self._make_ready(e)
+        else:
+            self._finish(e, Status.DONE)
+
+    def _failed(self, task: Task, dev: Device, code: str, reason: str) -> None:
+        e, o = task.experiment, self.s.orchestrator
+        self.counts.failed += 1
+        if code != Code.REJECTED:
+            dev.failures += 1
+            dev.consecutive_failures += 1
+            task.failed_on.append(dev.name)
+            if policy.should_quarantine(dev.consecutive_failures, o.quarantine_after, dev.quarantined):
+                self._quarantine(dev)
+        if policy.may_retry(task.attempts, self.now - task.first_ready, o.retry) and not self.stopping:
+            backoff = policy.backoff_s(o.retry, task.attempts, self.seed, task.id)
+            e.retries += 1
+            self.counts.retried += 1
+            self._note("task.retry", e.id, task.id, task.attempts, dev.name, detail={"backoff_s": backoff, "after": code})
+            self._retrying[task.id] = task
+            self._timer(TimerKey(TimerKind.RETRY, task.id), backoff)
+        else:
+            why = f"step {task.step.step!r} failed {task.attempts} time(s); last: {code} on {dev.name}: {reason}"
+            self._finish(e, Status.ABANDONED, why)
+
+    def _quarantine(self, dev: Device) -> None:
+        dev.quarantined = True
+        self.counts.quarantined += 1
+        probe = self.s.orchestrator.probe_after_s
+        self._note("device.quarantined", device=dev.name, detail={"probe_after_s": probe})
+        self._timer(TimerKey(TimerKind.PROBE, dev.name), probe)
+
+    def _finish(self, e: Experiment, status: Status, reason: str = "") -> None:
+        e.status, e.reason, e.t_done = status, reason, self.now
+        del self.active[e.id]
+        if status == Status.DONE:
+            e.scores = scores(e.outputs, self.s.chemistry.targets)
+            for name, sc in e.scores.items():
+                if name not in self.best or sc < self.best[name][0]:
+                    self.best[name] = (sc, e.id)
+                if sc == 0 and name not in self.met_at:
+                    self.met_at[name] = self.now - self.t0
+                    self.met_after[name] = self.finished_count
+                    self.met_cost[name] = self.cost
+                    self._note("target.met", e.id, detail=name)
+            self.counts.degraded += e.degraded
+        self.history.append(Outcome(e.params, e.outputs if status == Status.DONE else None,
+                                    min(e.scores.values()) if e.scores else None, reason))
+        numeric = {k: v for k, v in e.outputs.items() if isinstance(v, (int, float))}
+        self._note(f"experiment.{status}", e.id, detail={"reason": reason, "outputs": numeric, "scores": e.scores})
+        self._out.append(RecordExperiment(e, final=True))
+
+    # -- shutdown ---------------------------------------------------------------------
+    def _shutdown(self) -> None:
+        for dev in self.devices.values():
+            att = dev.attempt
+            if att is not None and not att.resolved:
+                att.resolved = True
+                self._out.append(CancelTimer(TimerKey(TimerKind.DEADLINE, f"{att.task.id}#{att.n}")))
+                dev.busy_s += self.now - att.t_sent
+                dev.attempt = None
+                self._send(dev.name, Kind.CANCEL, att.task.id, att.n, {"reason": "campaign stopped"})
+                self._note("attempt.cancelled", att.task.experiment.id, att.task.id, att.n, dev.name,
+                           detail=self.stopping)
+        for e in self.active.values():
+            if e.status == Status.RUNNING:
+                e.status = Status.PENDING
+                e.reason = f"in the lab at shutdown ({self.stopping})" if self.stopping else "in the lab at shutdown"
+                self._out.append(RecordExperiment(e))
+        check_accounting(self.experiments, len(self.experiments))
+        self.finished = True
+        self._out.append(Finished(self.stopping))

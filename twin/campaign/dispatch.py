@@ -1,0 +1,61 @@
+"""What a scheduler sees (``LabView``) and whether its answer can be carried out."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from twin.campaign import policy
+from twin.campaign.ledger import Device, Task
+from twin.decisions import Assignment, DeviceState, FreeDevice, LabView, ReadyStep
+
+
+def avoid_for(t: Task, devices: Iterable[Device]) -> frozenset[str]:
+    if not t.failed_on:
+        return frozenset()
+    usable = {d.name for d in devices if d.type == t.step.device and d.online and not d.quarantined}
+    return policy.avoid(t.failed_on, usable)
+
+
+def pair_possible(ready: Iterable[Task], devices: dict[str, Device]) -> bool:
+    """Whether some free device could take some ready step (cheaper than building the view)."""
+    free: dict[str, set[str]] = {}
+    for d in devices.values():
+        if d.free:
+            free.setdefault(d.type, set()).add(d.name)
+    if not free:
+        return False
+    for t in ready:
+        names = free.get(t.step.device)
+        if names and names - avoid_for(t, devices.values()):
+            return True
+    return False
+
+
+def view(now: float, ready: Iterable[Task], devices: dict[str, Device], finished: int, budget: int,
+         in_lab: int) -> LabView:
+    devs = devices.values()
+    steps = tuple(
+        ReadyStep(t.id, t.experiment.id, t.step.step, t.step.device, t.ready_since, t.experiment.sample_made,
+                  t.expected_s, t.work_remaining_s, avoid_for(t, devs), t.then)
+        for t in ready
+    )
+    free = tuple(FreeDevice(d.name, d.type) for d in devs if d.free)
+    states = tuple(
+        DeviceState(d.name, d.type, d.free, d.online,
+                    d.attempt.t_sent + d.attempt.task.expected_s if d.attempt else None, d.attempts, d.failures,
+                    d.busy_s, d.attempt.task.then if d.attempt else ())
+        for d in devs
+    )
+    return LabView(now, steps, free, states, finished, budget, in_lab)
+
+
+def problem(a: Assignment, ready: dict[str, Task], devices: dict[str, Device]) -> str:
+    """Why an assignment cannot be carried out, or ''."""
+    task, dev = ready.get(a.task), devices.get(a.device)
+    if task is None:
+        return f"task {a.task!r} is not ready"
+    if dev is None or not dev.free:
+        return f"device {a.device!r} is not free"
+    if dev.type != task.step.device:
+        return f"device {a.device!r} is a {dev.type}, task {a.task} needs a {task.step.device}"
+    return ""

@@ -1,0 +1,179 @@
+"""The core's vocabulary: the events it takes and the actions it returns.
+
+Events come from devices (through a runtime that decoded them), presence,
+timers the core set, the planner's and scheduler's answers, and a stop
+request. Actions tell the runtime what to do: send, time, ask, record.
+All are small frozen records; nothing here does I/O.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+from typing import Any
+
+from twin.decisions import Assignment, LabView, Outcome, Proposal
+from twin.messages import Kind
+
+
+class Status(StrEnum):
+    PENDING = "pending"
+    RUNNING = "running"
+    DONE = "done"
+    ABANDONED = "abandoned"
+
+
+class Code(StrEnum):
+    """How an attempt ended."""
+
+    OK = "ok"
+    FAILED = "failed"
+    TIMED_OUT = "timed_out"
+    DEVICE_LOST = "device_lost"
+    REJECTED = "rejected"
+    CANCELLED = "cancelled"
+    DRIVER_ERROR = "driver_error"
+
+
+class TimerKind(StrEnum):
+    STARTUP = "startup"
+    LIMIT = "limit"
+    DEADLINE = "deadline"
+    RETRY = "retry"
+    PROBE = "probe"
+    CANCEL_GRACE = "cancel_grace"
+
+
+@dataclass(frozen=True, slots=True)
+class TimerKey:
+    kind: TimerKind
+    ref: str = ""  # the task, "task#attempt", or device it is about
+
+
+# -- events -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceMessage:
+    """A decoded message from a device: accepted, progress, result, fault, rejected or telemetry."""
+
+    kind: Kind
+    device: str
+    task: str
+    attempt: int
+    body: dict[str, Any]
+    payload: Any  # what the journal stores: the bytes received, or an envelope dict to encode
+
+
+@dataclass(frozen=True, slots=True)
+class InvalidInput:
+    sender: str
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class Presence:
+    device: str
+    alive: bool
+
+
+@dataclass(frozen=True, slots=True)
+class TimerFired:
+    key: TimerKey
+
+
+@dataclass(frozen=True, slots=True)
+class Stop:
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class Proposed:
+    """The planner's answer to an ``Ask`` of kind ``plan``."""
+
+    proposals: list[Proposal]
+
+
+@dataclass(frozen=True, slots=True)
+class Decided:
+    """The scheduler's answer to an ``Ask`` of kind ``schedule``; ``wall_s`` is how long it took."""
+
+    assignments: list[Assignment]
+    wall_s: float = 0.0
+
+
+# -- actions ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Send:
+    device: str
+    kind: Kind  # command or cancel
+    task: str
+    attempt: int
+    body: dict[str, Any]
+
+
+@dataclass(frozen=True, slots=True)
+class SetTimer:
+    key: TimerKey
+    delay: float
+
+
+@dataclass(frozen=True, slots=True)
+class CancelTimer:
+    key: TimerKey
+
+
+@dataclass(frozen=True, slots=True)
+class Ask:
+    """Ask the planner (``plan``: n, history, pending) or the scheduler (``schedule``: view)."""
+
+    what: str
+    n: int = 0
+    history: tuple[Outcome, ...] = ()
+    pending: tuple[dict[str, Any], ...] = ()
+    view: LabView | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Note:
+    """A state change: a journal row, and a decision for watchers."""
+
+    t_lab: float
+    kind: str
+    experiment: int | None = None
+    task: str | None = None
+    attempt: int | None = None
+    device: str | None = None
+    detail: Any = None
+
+
+@dataclass(frozen=True, slots=True)
+class RecordMessage:
+    """A message received, for the journal (``msg.<kind>``)."""
+
+    t_lab: float
+    kind: str
+    experiment: int | None
+    task: str | None
+    attempt: int | None
+    device: str | None
+    payload: Any
+
+
+@dataclass(frozen=True, slots=True)
+class RecordExperiment:
+    experiment: Any  # ledger.Experiment; its row is taken when the action is performed
+    final: bool = False  # it just finished: a live runtime writes it to disk at once
+
+
+@dataclass(frozen=True, slots=True)
+class Finished:
+    """The campaign is over; the ledger holds its final state."""
+
+    reason: str
+
+
+Event = DeviceMessage | InvalidInput | Presence | TimerFired | Stop
+Action = Send | SetTimer | CancelTimer | Ask | Note | RecordMessage | RecordExperiment | Finished

@@ -1,0 +1,41 @@
+"""The orchestration policy as pure functions: deadlines, back-off, fail-over, quarantine.
+
+Random draws come from streams keyed by what they are about (seed, task,
+attempt), so a decision never depends on how events interleaved.
+"""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+
+def deadline_s(expected_s: float, o: Any) -> float:
+    """Lab seconds an attempt may take before it is cancelled (``o``: the scenario's orchestrator)."""
+    return expected_s * o.timeout_factor + o.timeout_slack_s
+
+
+def may_retry(attempts: int, waited_s: float, retry: Any) -> bool:
+    return attempts < retry.max_attempts and waited_s < retry.max_delay_s
+
+
+def backoff_s(retry: Any, attempts: int, seed: int, task: str) -> float:
+    """Exponential back-off with jitter, drawn from the (seed, task, attempt) stream."""
+    base = min(retry.backoff_max_s, retry.backoff_s * 2 ** (attempts - 1))
+    u = random.Random(f"{seed}:backoff:{task}:{attempts}").random()
+    return base * (1 + retry.jitter * (2 * u - 1))
+
+
+def avoid(failed_on: list[str], usable: set[str]) -> frozenset[str]:
+    """Fail over: skip the devices that failed this step while another usable instance exists."""
+    if not failed_on:
+        return frozenset()
+    every = frozenset(failed_on)
+    if usable - every:
+        return every
+    last = frozenset(failed_on[-1:])
+    return last if usable - last else frozenset()
+
+
+def should_quarantine(consecutive_failures: int, quarantine_after: int, already: bool) -> bool:
+    return not already and consecutive_failures >= quarantine_after

@@ -1,0 +1,151 @@
+"""The fast runtime: the campaign core, in-process devices and one event queue, in virtual time.
+
+No asyncio, no bus, no validation on the hot path: a device's message is an
+object handed to the core. The core advances at each idle point of the
+queue (everything of the current instant has happened), as the asyncio
+runtime does in virtual time, so both write the same journal.
+
+``run()`` drives a campaign to its end. With ``scheduler=None`` the caller
+is the scheduler: ``next_decision()`` runs to the next decision and returns
+its ``LabView`` (``None`` at the end), ``answer()`` gives the assignments.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Proposed, RecordExperiment,
+                           RecordMessage, Send, SetTimer, Stop, TimerFired)
+from twin.campaign.events import TimerKey
+from twin.decisions import Assignment, LabView, Planner, Scheduler
+from twin.errors import ClockError
+from twin.journal import Journal
+from twin.messages import Kind
+from twin.runtime import journaling
+from twin.runtime.fast_device import FastDevice
+from twin.runtime.queue import EventQueue, Timer
+from twin.scenario import Scenario
+
+Progress = Callable[[CampaignCore], None]
+
+
+class FastCampaign:
+    def __init__(self, scenario: Scenario, drivers: list[tuple[str, str, Any]], journal: Journal,
+                 planner: Planner, scheduler: Scheduler | None, campaign_id: str = "c1",
+                 on_progress: Progress | None = None) -> None:
+        self.s, self.journal, self.planner, self.scheduler = scenario, journal, planner, scheduler
+        self.on_progress = on_progress
+        self.queue = EventQueue()
+        self.core = CampaignCore(scenario, campaign_id)
+        feed = self.core.feed
+        self.devices = {name: FastDevice(name, dtype, scenario.devices[dtype], drv, self.queue,
+                                         scenario.campaign.seed, feed)
+                        for name, dtype, drv in drivers}
+        self._timers: dict[TimerKey, Timer] = {}
+        self._view: LabView | None = None
+        self._started = False
+
+    # -- driving ----------------------------------------------------------------------
+    def run(self) -> None:
+        if self.scheduler is None:
+            raise ClockError("FastCampaign.run() needs a scheduler; without one, use next_decision()/answer()")
+        self.next_decision()  # a scheduler answers every decision inside, so this runs to the end
+
+    def next_decision(self) -> LabView | None:
+        """Run to the next scheduling decision the caller must make, or to the end (``None``)."""
+        if not self._started:
+            self._start()
+        core, q = self.core, self.queue
+        while not core.finished:
+            if self._view is not None:
+                return self._view
+            q.run_ready()
+            if core.has_work:
+                self._perform(core.advance(q.now))
+            elif core.waiting is None and not q.jump():
+                core.feed(Stop("nothing left to happen"))
+        self._stop_devices()
+        return None
+
+    def answer(self, assignments: list[Assignment]) -> None:
+        if self._view is None:
+            raise RuntimeError("no decision is waiting: the campaign is over")
+        self._view = None
+        self.core.feed(Decided(list(assignments)))
+
+    def stop(self, reason: str) -> None:
+        self.core.feed(Stop(reason))
+
+    @property
+    def now(self) -> float:
+        return self.queue.now
+
+    @property
+    def finished(self) -> bool:
+        return self.core.finished
+
+    def _start(self) -> None:
+        self._started = True
+        self._perform(self.core.start(self.queue.now))
+        for dev in self.devices.values():
+            dev.start()
+
+    def _stop_devices(self) -> None:
+        for dev in self.devices.values():
+            dev.stop()
+
+    # -- actions ----------------------------------------------------------------------
+    def _perform(self, actions: list[Any]) -> None:
+        journal, progressed = self.journal, False
+        for a in actions:
+            t = type(a)
+            if t is Note:
+                journaling.note(journal, a)
+                progressed = progressed or a.kind.startswith(("attempt.done", "attempt.failed"))
+            elif t is RecordMessage:
+                journaling.message(journal, a)
+            elif t is Send:
+                dev = self.devices.get(a.device)
+                if dev is not None:
+                    if a.kind == Kind.COMMAND:
+                        dev.command(a.task, a.attempt, self.core.campaign_id, a.body)
+                    else:
+                        dev.cancel(a.task, a.attempt)
+            elif t is SetTimer:
+                old = self._timers.pop(a.key, None)
+                if old is not None:
+                    old.cancel()
+                self._timers[a.key] = self.queue.call_later(a.delay, self._fire, a.key)
+            elif t is CancelTimer:
+                handle = self._timers.pop(a.key, None)
+                if handle is not None:
+                    handle.cancel()
+            elif t is RecordExperiment:
+                journaling.experiment(journal, a)
+            elif t is Ask:
+                self._answer(a)
+            elif t is Finished:
+                for handle in self._timers.values():
+                    handle.cancel()
+                self._timers.clear()
+        if progressed and self.on_progress is not None:
+            self.on_progress(self.core)
+
+    def _fire(self, key: TimerKey) -> None:
+        self._timers.pop(key, None)
+        self.core.feed(TimerFired(key))
+
+    def _answer(self, ask: Ask) -> None:
+        if ask.what == "plan":
+            self.core.feed(Proposed(self.planner.propose(ask.n, list(ask.history), list(ask.pending))))
+        elif self.scheduler is None:
+            self._view = ask.view
+        else:
+            started = time.perf_counter()
+            decided = self.scheduler.decide(ask.view)
+            if hasattr(decided, "__await__"):
+                raise ClockError("the fast runtime needs a scheduler that answers at once; this one returns an "
+                                 "awaitable (an agent on the bus): run with --runtime asyncio")
+            self.core.feed(Decided(list(decided), time.perf_counter() - started))

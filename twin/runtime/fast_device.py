@@ -1,0 +1,175 @@
+"""A device in the fast runtime: the ``DeviceActor``'s behaviour without asyncio.
+
+The driver's ``async def run`` is driven by ``send()``: each ``await
+ctx.clock.sleep(s)`` yields a request, and the step resumes from a timer
+``s`` lab-seconds later. Faults are the actor's (a step that fails, one that
+hangs until cancelled, crashes with a restart), drawn from the same streams,
+and messages are the same envelopes, passed as dicts.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from twin.campaign import DeviceMessage, Presence
+from twin.driver import Driver, StepContext, seeded, simulated_faults
+from twin.errors import DriverError
+from twin.messages import Kind, envelope
+from twin.runtime.queue import EventQueue, Park, QueueClock, Sleep, Timer
+
+log = logging.getLogger(__name__)
+
+
+class FastDevice:
+    def __init__(self, name: str, device_type: str, spec: Any, driver: Driver, queue: EventQueue, seed: int,
+                 deliver: Callable[[Any], None]) -> None:
+        self.name, self.device_type, self.spec, self.driver = name, device_type, spec, driver
+        self._q, self._clock, self._deliver, self._seed = queue, QueueClock(queue), deliver, seed
+        self._crash_rng, _ = seeded(seed, "crashes", name)
+        _, self._step_rng = seeded(seed, "steps", name)
+        self._ids = itertools.count(1)
+        self._job: Any = None  # the running step's coroutine
+        self._current: tuple[str, int] | None = None
+        self._campaign = ""
+        self._cancel_reason = ""
+        self._timer: Timer | None = None
+        self.online = False
+
+    # -- life cycle -------------------------------------------------------------------
+    def start(self) -> None:
+        if getattr(self.driver, "connect", None) is not None:
+            raise DriverError(f"{self.name}: its driver connects to an instrument of its own, which the fast "
+                              "runtime cannot wait for; use --runtime asyncio")
+        self._set_online(True)
+        if self.spec.faults.mtbc_h > 0:
+            self._schedule_crash()
+
+    def stop(self) -> None:
+        if self._job is not None:
+            self._cancel_reason = "stop"
+            self._throw_cancel()
+        _complete(self.driver.safe_state(), self.name)
+        self.online = False
+
+    def _set_online(self, alive: bool) -> None:
+        self.online = alive
+        self._deliver(Presence(self.name, alive))
+
+    def _schedule_crash(self) -> None:
+        self._q.call_later(self._crash_rng.expovariate(1.0 / (self.spec.faults.mtbc_h * 3600)), self._crash)
+
+    def _crash(self) -> None:
+        log.info("%s crashed at t=%.0f s", self.name, self._q.now)
+        self._set_online(False)
+        if self._job is not None:
+            self._cancel_reason = "crash"
+            self._throw_cancel()
+        self._q.call_later(self.spec.faults.restart_s, self._restart)
+
+    def _restart(self) -> None:
+        self._set_online(True)
+        self._schedule_crash()
+
+    # -- messages ---------------------------------------------------------------------
+    def _emit(self, kind: Kind, body: dict, task: str, attempt: int) -> None:
+        env = envelope(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name, t_lab=self._q.now,
+                       campaign=self._campaign, task=task, attempt=attempt)
+        self._deliver(DeviceMessage(kind, self.name, task, attempt, body, env))
+
+    def command(self, task: str, attempt: int, campaign: str, body: dict) -> None:
+        if not self.online:
+            return  # off the bus: the command is lost, as it would be
+        self._campaign = campaign
+        if self._job is not None:
+            self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, task, attempt)
+            return
+        self._current = (task, attempt)
+        self._job = self._run(task, attempt, body)
+        self._resume()
+
+    def cancel(self, task: str, attempt: int) -> None:
+        if self.online and self._current == (task, attempt) and self._job is not None:
+            self._cancel_reason = "cancel"
+            self._throw_cancel()
+
+    # -- driving the step -------------------------------------------------------------
+    def _resume(self, exc: BaseException | None = None) -> None:
+        self._timer = None
+        job = self._job
+        while True:
+            try:
+                req = job.send(None) if exc is None else job.throw(exc)
+            except (StopIteration, asyncio.CancelledError):
+                return
+            exc = None
+            if type(req) is Sleep:
+                if req.seconds > 0:
+                    self._timer = self._q.call_later(req.seconds, self._resume)
+                    return
+                continue
+            if type(req) is Park:
+                return
+            job.close()
+            self._job = self._current = None
+            raise DriverError(
+                f"{self.name}: the {self.device_type} driver awaited {req!r}, not the lab clock; the fast runtime "
+                "can only run drivers that wait with ctx.clock.sleep. Run this scenario with --runtime asyncio.")
+
+    def _throw_cancel(self) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+        self._resume(asyncio.CancelledError())
+
+    async def _run(self, task: str, attempt: int, cmd: dict) -> None:
+        spec, faults = self.spec, self.spec.faults
+        step = cmd["step"]
+        ctx = StepContext(
+            clock=self._clock,  # type: ignore[arg-type]
+            rng=self._step_rng,
+            duration=spec.duration,
+            progress=lambda f, note="": self._emit(Kind.PROGRESS, {"fraction": f, "note": note}, task, attempt),
+            telemetry=lambda r: self._emit(Kind.TELEMETRY, {"readings": r}, task, attempt),
+        )
+        self._emit(Kind.ACCEPTED, {}, task, attempt)
+        try:
+            hang, fail = simulated_faults(self._seed, task, attempt, faults)
+            await self._clock.sleep(spec.setup_s)
+            if hang:
+                await Park()  # only a cancel (a timeout) ends a hung step
+            result = await self.driver.run(step, cmd["params"], cmd["sample"], ctx)
+            await self._clock.sleep(spec.clean_s)
+            if fail:
+                self._emit(Kind.FAULT, {"code": "failed", "reason": f"{step} failed on {self.name} (simulated)"},
+                           task, attempt)
+            else:
+                self._emit(Kind.RESULT, {"outputs": result.outputs, "sample": result.sample}, task, attempt)
+        except asyncio.CancelledError:
+            if self._cancel_reason == "cancel":
+                await self.driver.safe_state()
+                self._emit(Kind.FAULT, {"code": "cancelled", "reason": f"{step} cancelled on {self.name}"},
+                           task, attempt)
+            else:
+                raise
+        except Exception as exc:  # a driver bug must never take the lab down
+            log.warning("%s: driver raised during %s: %r", self.name, step, exc)
+            await self.driver.safe_state()
+            self._emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(exc).__name__}: {exc}"}, task, attempt)
+        finally:
+            self._job = self._current = None
+            self._cancel_reason = ""
+
+
+def _complete(coro: Any, name: str) -> Any:
+    """Run a coroutine that must not wait (``safe_state``) to its end."""
+    try:
+        while True:
+            req = coro.send(None)
+            if type(req) is not Sleep:
+                coro.close()
+                raise DriverError(f"{name}: safe_state() awaited {req!r}; in the fast runtime it may only sleep")
+    except StopIteration as done:
+        return done.value

@@ -1,0 +1,191 @@
+"""The asyncio runtime: the campaign core driven over a bus, on any clock.
+
+Device messages, presence and the core's timers become events; the core's
+actions become bus messages, loop timers, planner and scheduler calls and
+journal rows. In virtual time the core advances only when the loop is idle
+(everything of the current instant has happened), exactly as the fast
+runtime does, so both write the same journal; on a scaled or wall clock it
+advances as soon as an event arrives.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import itertools
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+from twin import keys
+from twin.bus import Bus
+from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, DeviceMessage, Finished, InvalidInput, Note,
+                           Presence, Proposed, RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
+from twin.campaign.events import TimerKey
+from twin.clock import LabClock
+from twin.decisions import Planner, Scheduler
+from twin.journal import Journal
+from twin.messages import InvalidMessage, decode, pack
+from twin.runtime import journaling
+from twin.runtime.decision_stream import SENDER, DecisionStream
+from twin.scenario import Scenario
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[CampaignCore], None]
+
+
+class LiveCampaign:
+    """One campaign of ``scenario`` on ``bus`` and ``clock``; ``await run()`` drives it to its end."""
+
+    def __init__(self, scenario: Scenario, bus: Bus, clock: LabClock, journal: Journal, planner: Planner,
+                 scheduler: Scheduler, campaign_id: str = "c1", on_progress: Progress | None = None) -> None:
+        self.s, self.bus, self.clock, self.journal = scenario, bus, clock, journal
+        self.planner, self.scheduler, self.on_progress = planner, scheduler, on_progress
+        self.core = CampaignCore(scenario, campaign_id)
+        self.decisions = DecisionStream(journal, bus, clock, scenario.lab, campaign_id)
+        self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
+        self._ids = itertools.count(1)
+        self._handles: list[Any] = []
+        self._done: asyncio.Future | None = None
+        self._kicked = False
+        self._deciding: asyncio.Future | None = None
+
+    def stop(self, reason: str) -> None:
+        """Stop proposing and dispatching; what is in the lab is cancelled, the rest stays pending."""
+        self._feed(Stop(reason))
+
+    def note(self, kind: str, detail: Any = None) -> None:
+        """A runtime's own remark (a scheduler agent missing, say): journalled and published like the core's."""
+        n = Note(self.clock.now(), kind, detail=detail)
+        self.decisions.add(n, journaling.note(self.journal, n))
+        self.decisions.publish()
+
+    async def run(self) -> None:
+        lab, loop = self.s.lab, asyncio.get_running_loop()
+        self._done = loop.create_future()
+        self._handles = [
+            self.bus.serve(self.decisions.history_key, self.decisions.history),
+            self.bus.subscribe(keys.evt(lab), self._on_event),
+            self.bus.subscribe(keys.telemetry(lab), self._on_event),
+            self.bus.watch_tokens(keys.alive(lab), self._on_presence),
+        ]
+        remove_hook = self.clock.on_idle(self._on_idle)
+        try:
+            self._perform(self.core.start(self.clock.now()))
+            await self._done
+        finally:
+            remove_hook()
+            if self._deciding is not None:
+                self._deciding.cancel()
+            self._close()
+
+    # -- events in --------------------------------------------------------------------
+    def _on_event(self, key: str, payload: bytes) -> None:
+        try:
+            env, body = decode(payload, sender_hint=keys.device_of(key))
+        except InvalidMessage as exc:
+            log.warning("dropped: %s", exc)
+            self._feed(InvalidInput(exc.sender, exc.reason))
+            return
+        self._feed(DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.model_dump(), payload))
+
+    def _on_presence(self, key: str, alive: bool) -> None:
+        self._feed(Presence(keys.device_of(key), alive))
+
+    def _on_timer(self, key: TimerKey) -> None:
+        self._timers.pop(key, None)
+        self._feed(TimerFired(key))
+
+    def _feed(self, event: Any) -> None:
+        self.core.feed(event)
+        if not self.clock.is_virtual:
+            self._kick_soon()
+
+    def _kick_soon(self) -> None:
+        if not self._kicked:
+            self._kicked = True
+            asyncio.get_running_loop().call_soon(self._kick)
+
+    def _on_idle(self) -> bool:
+        """Virtual time: everything of this instant has happened; let the core decide before time moves."""
+        if self.core.has_work and not self.core.finished:
+            self._kick_soon()
+            return True
+        return False
+
+    def _kick(self) -> None:
+        self._kicked = False
+        while self.core.has_work and not self.core.finished:
+            self._perform(self.core.advance(self.clock.now()))
+
+    # -- actions out ------------------------------------------------------------------
+    def _perform(self, actions: list[Any]) -> None:
+        progressed = False
+        for a in actions:
+            t = type(a)
+            if t is Note:
+                self.decisions.add(a, journaling.note(self.journal, a))
+                progressed = progressed or a.kind.startswith(("attempt.done", "attempt.failed"))
+            elif t is RecordMessage:
+                journaling.message(self.journal, a)
+            elif t is Send:
+                self.bus.publish(keys.cmd(self.s.lab, a.device),
+                                 pack(a.kind, a.body, id=f"{SENDER}:{next(self._ids)}", sender=SENDER,
+                                      t_lab=self.clock.now(), campaign=self.core.campaign_id, task=a.task,
+                                      attempt=a.attempt))
+            elif t is SetTimer:
+                old = self._timers.pop(a.key, None)
+                if old is not None:
+                    old.cancel()
+                self._timers[a.key] = self.clock.call_later(a.delay, lambda k=a.key: self._on_timer(k))
+            elif t is CancelTimer:
+                handle = self._timers.pop(a.key, None)
+                if handle is not None:
+                    handle.cancel()
+            elif t is RecordExperiment:
+                journaling.experiment(self.journal, a)
+                if a.final and not self.clock.is_virtual:
+                    self.journal.flush()  # live runs: a finished experiment is on disk at once
+            elif t is Ask:
+                self._answer(a)
+            elif t is Finished:
+                self._close()
+                if self._done is not None and not self._done.done():
+                    self._done.set_result(None)
+        self.decisions.publish()
+        if progressed and self.on_progress is not None:
+            self.on_progress(self.core)
+
+    def _answer(self, ask: Ask) -> None:
+        if ask.what == "plan":
+            self.core.feed(Proposed(self.planner.propose(ask.n, list(ask.history), list(ask.pending))))
+            return
+        started = time.perf_counter()
+        decided = self.scheduler.decide(ask.view)
+        if not inspect.isawaitable(decided):
+            self.core.feed(Decided(list(decided), time.perf_counter() - started))
+            return
+        self._deciding = asyncio.ensure_future(decided)
+
+        def answered(fut: asyncio.Future) -> None:
+            self._deciding = None
+            if fut.cancelled():
+                return
+            if fut.exception() is not None:
+                if self._done is not None and not self._done.done():
+                    self._done.set_exception(fut.exception())
+                return
+            self.core.feed(Decided(list(fut.result()), time.perf_counter() - started))
+            self._kick_soon()
+
+        self._deciding.add_done_callback(answered)
+
+    def _close(self) -> None:
+        for h in self._handles:
+            h.close()
+        self._handles = []
+        for handle in self._timers.values():
+            handle.cancel()
+        self._timers.clear()
