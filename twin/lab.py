@@ -21,6 +21,7 @@ from twin.errors import ClockError, DriverError, PluginError, TwinError
 from twin.journal import Journal
 from twin.campaign import CampaignCore
 from twin.runtime import FastCampaign, LiveCampaign
+from twin.runtime.fast_device import FastRuntimeRefused
 from twin.remote_scheduler import RemoteScheduler, SchedulerService
 from twin.scenario import Scenario, load, set_dotted
 from twin.observer import LabObserver
@@ -167,7 +168,12 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
     if runtime == "fast" and why_not:
         raise ClockError(f"the fast runtime cannot run this campaign: {why_not}. Use --runtime asyncio (or auto).")
     if runtime == "fast" or (runtime == "auto" and not why_not):
-        return run_fast(s, journal or default_journal(s), on_progress)
+        try:
+            return run_fast(s, journal or default_journal(s), on_progress)
+        except FastRuntimeRefused as exc:
+            if runtime == "fast":
+                raise
+            log.warning("%s — running the campaign again, from the start, on the asyncio runtime", exc)
     clock = make_clock(s)
     recording = None
     if record is not None and record.wanted and observer is None:
@@ -206,9 +212,11 @@ def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[Campa
     """The campaign of ``s`` on the fast runtime (virtual time, in-process devices)."""
     wall0 = time.perf_counter()
     drivers = load_drivers(s)
+    refuse_realtime(drivers)
     planner, scheduler = make_planner(s), make_scheduler(s)
     if getattr(scheduler, "serve_on_bus", False):
-        raise ClockError(f"scheduler {s.campaign.scheduler!r} is an agent on the bus: use --runtime asyncio")
+        raise FastRuntimeRefused(f"scheduler {s.campaign.scheduler!r} is an agent on the bus, which the fast "
+                                 "runtime does not have: use --runtime asyncio")
     journal = open_journal(s, journal_path)
     camp = FastCampaign(s, drivers, journal, planner, scheduler, on_progress=on_progress)
     with _stop_on_signals(camp.stop, handle_signals):
@@ -217,6 +225,13 @@ def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[Campa
         finally:
             summary = finish(camp.core, journal, journal_path, wall0, camp.now)
     return summary
+
+
+def refuse_realtime(drivers: list[tuple[str, str, Any]]) -> None:
+    realtime = [name for name, _, drv in drivers if getattr(drv, "realtime", False)]
+    if realtime:
+        raise ClockError(f"devices {realtime} talk to real instruments, which keep wall time: "
+                         "use --clock scaled (or wall)")
 
 
 def open_journal(s: Scenario, path: str | Path) -> Journal:
@@ -274,10 +289,8 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         )
     wall0 = time.perf_counter()
     drivers = load_drivers(s, skip=set(external_devices))  # bad drivers fail before the bus opens
-    realtime = [name for name, _, drv in drivers if getattr(drv, "realtime", False)]
-    if realtime and clock.is_virtual:
-        raise ClockError(f"devices {realtime} talk to real instruments, which keep wall time: "
-                         "use --clock scaled (or wall)")
+    if clock.is_virtual:
+        refuse_realtime(drivers)
     planner, scheduler = make_planner(s), scheduler or make_scheduler(s)
     bus = make_bus(s, clock)
     await bus.start()

@@ -61,7 +61,7 @@ def test_a_killed_instrument_leaves_the_bus_by_its_last_will_and_its_work_moves(
     clock, db, seen = make_clock(s), tmp_path / "j.db", {}
 
     async def main():
-        campaign = asyncio.ensure_future(run_async(s, clock, db, on_start=lambda o: seen.setdefault("orch", o)))
+        campaign = asyncio.ensure_future(run_async(s, clock, db, on_start=lambda o: seen.setdefault("orch", o.core)))
         while "task" not in seen and not campaign.done():
             dev = seen["orch"].devices["spectrometer-1"] if "orch" in seen else None
             if dev is not None and dev.attempt is not None and dev.attempt.t_accepted is not None:

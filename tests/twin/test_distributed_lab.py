@@ -56,7 +56,7 @@ def test_kill_freeze_restart_through_the_router(tmp_path):
 
     async def main():
         campaign = asyncio.ensure_future(run_async(s, clock, db, {"spectrometer-1", "spectrometer-2"},
-                                                   on_start=lambda o: marks.setdefault("orch", o)))
+                                                   on_start=lambda o: marks.setdefault("orch", o.core)))
 
         def running_on(name):
             orch = marks.get("orch")

@@ -14,7 +14,9 @@ def attempts_of(db, task):
 
 
 def test_timeout_then_retry_on_another_instance(scenario_of, tmp_path):
-    s = scenario_of(**{"devices.spectrometer.faults": {"hang_p": 0.5}, "campaign.budget": 10})
+    # no quarantine here: with only the failed instance usable, a retry rightly goes back to it
+    s = scenario_of(**{"devices.spectrometer.faults": {"hang_p": 0.5}, "campaign.budget": 10,
+                       "orchestrator.quarantine_after": 50})
     db = tmp_path / "j.db"
     summary = run(s, journal=db)
     timed_out = [r for r in read_events(db, "attempt.failed") if json.loads(r["detail"])["code"] == "timed_out"]
@@ -82,7 +84,7 @@ def test_duplicate_and_late_results_are_recorded_never_double_counted(scenario_o
     from twin.bus import MemoryHub, MemoryBus
     from twin.clock import LabClock
     from twin.journal import Journal
-    from twin.orchestrator import Orchestrator
+    from twin.runtime import LiveCampaign
     from twin.lab import make_planner, make_scheduler
 
     s = scenario_of(**{"devices": {"dup": {"driver": "machine", "steps": ["op"], "duration": {"mean_s": 1}}},
@@ -95,15 +97,15 @@ def test_duplicate_and_late_results_are_recorded_never_double_counted(scenario_o
         await bus.start()
         token = await _duplicating_device(bus, clock, s.lab, "dup")
         journal = Journal(db)
-        orch = Orchestrator(s, bus, clock, journal, make_planner(s), make_scheduler(s))
-        await orch.run()
+        camp = LiveCampaign(s, bus, clock, journal, make_planner(s), make_scheduler(s))
+        await camp.run()
         token.close()
         journal.close()
-        return orch
+        return camp.core
 
-    orch = clock.run(main())
-    assert [e.status for e in orch.experiments] == ["done"] * 5
-    assert all(e.outputs == {"x": 1} for e in orch.experiments)
-    assert orch.counts["late"] == 10  # one duplicate and one stranger per experiment
+    core = clock.run(main())
+    assert [e.status for e in core.experiments] == ["done"] * 5
+    assert all(e.outputs == {"x": 1} for e in core.experiments)
+    assert core.counts.late == 10  # one duplicate and one stranger per experiment
     assert len(read_events(db, "experiment.done")) == 5
     assert len(read_events(db, "result.late")) == 5

@@ -11,7 +11,7 @@ from twin.clock import LabClock
 from twin.journal import Journal, read_events
 from twin.lab import build_actors, load_drivers, make_planner, make_scheduler
 from twin.messages import InvalidMessage, Kind, decode, pack
-from twin.orchestrator import Orchestrator
+from twin.runtime import LiveCampaign
 
 
 def test_decode_names_sender_and_reason():
@@ -43,8 +43,8 @@ def test_garbage_on_the_bus_is_dropped_and_the_campaign_goes_on(scenario_of, tmp
         for a in actors:
             await a.start()
         journal = Journal(db)
-        orch = Orchestrator(s, bus, clock, journal, make_planner(s), make_scheduler(s))
-        campaign = asyncio.ensure_future(orch.run())
+        camp = LiveCampaign(s, bus, clock, journal, make_planner(s), make_scheduler(s))
+        campaign = asyncio.ensure_future(camp.run())
         await clock.sleep(1)
         # an impostor sprays both directions during the campaign
         bus.publish(keys.cmd(s.lab, "synthesiser"), b'{"kind":"command","sender":"impostor"}')
@@ -55,12 +55,12 @@ def test_garbage_on_the_bus_is_dropped_and_the_campaign_goes_on(scenario_of, tmp
         for a in actors:
             await a.stop()
         journal.close()
-        return orch, actors
+        return camp.core, actors
 
     with caplog.at_level(logging.WARNING):
-        orch, actors = clock.run(main())
-    assert [e.status for e in orch.experiments] == ["done"] * 4
-    assert orch.counts["invalid"] == 2
+        core, actors = clock.run(main())
+    assert [e.status for e in core.experiments] == ["done"] * 4
+    assert core.counts.invalid == 2
     assert actors[0].dropped == 1
     invalid = read_events(db, "message.invalid")
     assert {e["device"] for e in invalid} == {"spectrometer-1", "impostor"}

@@ -172,6 +172,7 @@ class CampaignCore:
                 self._note("campaign.stopping", detail=ev.reason)
             if not self._running:
                 self._begin()
+            self._asking = None  # a question still open is moot now; its answer will be ignored
             self._wake = True
 
     def _on_message(self, m: DeviceMessage) -> None:

@@ -12,8 +12,10 @@ its ``LabView`` (``None`` at the end), ``answer()`` gives the assignments.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Proposed, RecordExperiment,
@@ -55,18 +57,19 @@ class FastCampaign:
 
     def next_decision(self) -> LabView | None:
         """Run to the next scheduling decision the caller must make, or to the end (``None``)."""
-        if not self._started:
-            self._start()
-        core, q = self.core, self.queue
-        while not core.finished:
-            if self._view is not None:
-                return self._view
-            q.run_ready()
-            if core.has_work:
-                self._perform(core.advance(q.now))
-            elif core.waiting is None and not q.jump():
-                core.feed(Stop("nothing left to happen"))
-        self._stop_devices()
+        with _asyncio_tripwire():
+            if not self._started:
+                self._start()
+            core, q = self.core, self.queue
+            while not core.finished:
+                if self._view is not None:
+                    return self._view
+                q.run_ready()
+                if core.has_work:
+                    self._perform(core.advance(q.now))
+                elif core.waiting is None and not q.jump():
+                    core.feed(Stop("nothing left to happen"))
+            self._stop_devices()
         return None
 
     def answer(self, assignments: list[Assignment]) -> None:
@@ -149,3 +152,27 @@ class FastCampaign:
                 raise ClockError("the fast runtime needs a scheduler that answers at once; this one returns an "
                                  "awaitable (an agent on the bus): run with --runtime asyncio")
             self.core.feed(Decided(list(decided), time.perf_counter() - started))
+
+
+_TRIPWIRE: asyncio.AbstractEventLoop | None = None
+
+
+@contextlib.contextmanager
+def _asyncio_tripwire() -> Iterator[None]:
+    """A driver that awaits asyncio (an Event, asyncio.sleep) finds a loop that never runs: what it
+    awaits is yielded to the fast runtime, which names the driver, instead of failing obscurely."""
+    global _TRIPWIRE
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        pass
+    else:
+        yield  # called from a running loop: asyncio futures already reach the driver loop
+        return
+    if _TRIPWIRE is None:
+        _TRIPWIRE = asyncio.new_event_loop()
+    asyncio._set_running_loop(_TRIPWIRE)
+    try:
+        yield
+    finally:
+        asyncio._set_running_loop(None)

@@ -18,10 +18,14 @@ from typing import Any
 from twin.campaign import DeviceMessage, Presence
 from twin.driver import Driver, StepContext, seeded, simulated_faults
 from twin.errors import DriverError
-from twin.messages import Kind, envelope
+from twin.messages import Kind, envelope, to_wire
 from twin.runtime.queue import EventQueue, Park, QueueClock, Sleep, Timer
 
 log = logging.getLogger(__name__)
+
+
+class FastRuntimeRefused(DriverError):
+    """A driver does something only the asyncio runtime can serve (awaits I/O, connects to an instrument)."""
 
 
 class FastDevice:
@@ -42,8 +46,8 @@ class FastDevice:
     # -- life cycle -------------------------------------------------------------------
     def start(self) -> None:
         if getattr(self.driver, "connect", None) is not None:
-            raise DriverError(f"{self.name}: its driver connects to an instrument of its own, which the fast "
-                              "runtime cannot wait for; use --runtime asyncio")
+            raise FastRuntimeRefused(f"{self.name}: its driver connects to an instrument of its own, which the "
+                                     "fast runtime cannot wait for; use --runtime asyncio")
         self._set_online(True)
         if self.spec.faults.mtbc_h > 0:
             self._schedule_crash()
@@ -78,7 +82,8 @@ class FastDevice:
     def _emit(self, kind: Kind, body: dict, task: str, attempt: int) -> None:
         env = envelope(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name, t_lab=self._q.now,
                        campaign=self._campaign, task=task, attempt=attempt)
-        self._deliver(DeviceMessage(kind, self.name, task, attempt, body, env))
+        # encoded once, as the journal stores it; a body that cannot go on the wire fails here, as on a bus
+        self._deliver(DeviceMessage(kind, self.name, task, attempt, body, to_wire(env)))
 
     def command(self, task: str, attempt: int, campaign: str, body: dict) -> None:
         if not self.online:
@@ -115,7 +120,7 @@ class FastDevice:
                 return
             job.close()
             self._job = self._current = None
-            raise DriverError(
+            raise FastRuntimeRefused(
                 f"{self.name}: the {self.device_type} driver awaited {req!r}, not the lab clock; the fast runtime "
                 "can only run drivers that wait with ctx.clock.sleep. Run this scenario with --runtime asyncio.")
 
@@ -170,6 +175,7 @@ def _complete(coro: Any, name: str) -> Any:
             req = coro.send(None)
             if type(req) is not Sleep:
                 coro.close()
-                raise DriverError(f"{name}: safe_state() awaited {req!r}; in the fast runtime it may only sleep")
+                raise FastRuntimeRefused(f"{name}: safe_state() awaited {req!r}; in the fast runtime it may only "
+                                         "sleep. Use --runtime asyncio.")
     except StopIteration as done:
         return done.value

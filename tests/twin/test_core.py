@@ -1,0 +1,122 @@
+"""The campaign core as a specification: feed it events, read its actions. No loop, no bus, no clock."""
+
+from twin.campaign import (Ask, CampaignCore, Decided, DeviceMessage, Finished, Note, Presence, Proposed, Send,
+                           SetTimer, TimerFired)
+from twin.campaign.events import TimerKey, TimerKind
+from twin.decisions import Assignment, Proposal
+from twin.messages import Kind
+
+
+def notes(actions, kind=None):
+    return [a for a in actions if isinstance(a, Note) and (kind is None or a.kind == kind)]
+
+
+def of(actions, cls):
+    return [a for a in actions if isinstance(a, cls)]
+
+
+def started(scenario_of, **changes):
+    """A core with every device present, asked for its first experiments."""
+    core = CampaignCore(scenario_of(**changes))
+    out = core.start(0.0)
+    assert of(out, SetTimer)[0].key.kind == TimerKind.STARTUP  # nobody is on the bus yet
+    for name in core.devices:
+        core.feed(Presence(name, True))
+    out = core.advance(0.0)
+    assert [n.device for n in notes(out, "device.online")] == sorted(core.devices)
+    return core, out
+
+
+def msg(kind, device, task, attempt, **body):
+    return DeviceMessage(kind, device, task, attempt, body, b"{}")
+
+
+def test_a_step_goes_out_when_the_scheduler_assigns_it_and_finishes_with_its_result(scenario_of):
+    core, out = started(scenario_of, **{"campaign.budget": 1})
+    (ask,) = of(out, Ask)
+    assert ask.what == "plan" and ask.n == 1
+    core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
+    out = core.advance(0.0)
+    (ask,) = of(out, Ask)
+    assert ask.what == "schedule" and [r.task for r in ask.view.ready] == ["e0s0"]
+    core.feed(Decided([Assignment("e0s0", "synthesiser")]))
+    out = core.advance(0.0)
+    (send,) = of(out, Send)
+    assert (send.device, send.kind, send.task, send.attempt) == ("synthesiser", Kind.COMMAND, "e0s0", 1)
+    assert TimerKey(TimerKind.DEADLINE, "e0s0#1") in [a.key for a in of(out, SetTimer)]
+    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0}))
+    out = core.advance(60.0)
+    assert notes(out, "attempt.done") and of(out, Ask)[0].view.ready[0].task == "e0s1"
+
+
+def test_a_timed_out_device_gets_no_work_until_it_answers_the_cancel(scenario_of):
+    core, out = started(scenario_of, **{"campaign.budget": 2, "devices.spectrometer.instances": 1,
+                                        "workflow": [{"step": "measure", "device": "spectrometer"}]})
+    core.feed(Proposed([Proposal({"x": 1}), Proposal({"x": 2})]))
+    ask = of(core.advance(0.0), Ask)[0]
+    core.feed(Decided([Assignment(ask.view.ready[0].task, "spectrometer")]))
+    core.advance(0.0)
+    core.feed(TimerFired(TimerKey(TimerKind.DEADLINE, "e0s0#1")))
+    out = core.advance(500.0)
+    cancel = [s for s in of(out, Send) if s.kind == Kind.CANCEL]
+    assert cancel and cancel[0].task == "e0s0"
+    assert not of(out, Ask), "the device is still cancelling: nothing may be scheduled on it"
+    assert core.devices["spectrometer"].state == "busy"
+    core.feed(msg(Kind.FAULT, "spectrometer", "e0s0", 1, code="cancelled", reason="cancelled"))
+    out = core.advance(500.0)
+    assert notes(out, "attempt.cancel_acknowledged") and core.counts.late == 0
+    assert "spectrometer" in [d.name for d in of(out, Ask)[0].view.free]
+
+
+def test_a_cancel_never_answered_frees_the_device_after_the_grace_period(scenario_of):
+    core, _ = started(scenario_of, **{"campaign.budget": 1, "devices.spectrometer.instances": 1,
+                                      "workflow": [{"step": "measure", "device": "spectrometer"}],
+                                      "orchestrator.cancel_grace_s": 42})
+    core.feed(Proposed([Proposal({"x": 1})]))
+    core.advance(0.0)
+    core.feed(Decided([Assignment("e0s0", "spectrometer")]))
+    core.advance(0.0)
+    core.feed(TimerFired(TimerKey(TimerKind.DEADLINE, "e0s0#1")))
+    out = core.advance(500.0)
+    grace = [a for a in of(out, SetTimer) if a.key.kind == TimerKind.CANCEL_GRACE]
+    assert grace and grace[0].delay == 42
+    core.feed(TimerFired(grace[0].key))
+    out = core.advance(542.0)
+    assert notes(out, "attempt.cancel_unanswered") and core.counts.cancels_unanswered == 1
+    assert core.devices["spectrometer"].free
+
+
+def test_events_of_one_instant_give_the_same_actions_whatever_order_they_came_in(scenario_of):
+    def run(order):
+        core, _ = started(scenario_of, **{"campaign.budget": 2, "campaign.max_in_flight": 2,
+                                          "workflow": [{"step": "measure", "device": "spectrometer"}]})
+        core.feed(Proposed([Proposal({"x": 1}), Proposal({"x": 2})]))
+        core.advance(0.0)
+        core.feed(Decided([Assignment("e0s0", "spectrometer-1"), Assignment("e1s0", "spectrometer-2")]))
+        core.advance(0.0)
+        events = [msg(Kind.RESULT, "spectrometer-1", "e0s0", 1, outputs={"peak_nm": 600}, sample=None),
+                  msg(Kind.RESULT, "spectrometer-2", "e1s0", 1, outputs={"peak_nm": 630}, sample=None),
+                  Presence("synthesiser", False)]
+        for i in order:
+            core.feed(events[i])
+        return core.advance(60.0)
+
+    assert run([0, 1, 2]) == run([2, 1, 0]) == run([1, 2, 0])
+
+
+def test_the_campaign_ends_with_every_experiment_accounted_for(scenario_of):
+    core, _ = started(scenario_of, **{"campaign.budget": 1, "workflow": [{"step": "measure", "device": "spectrometer"}]})
+    core.feed(Proposed([Proposal({"x": 1})]))
+    core.advance(0.0)
+    core.feed(Decided([Assignment("e0s0", "spectrometer-2")]))
+    core.advance(0.0)
+    core.feed(msg(Kind.FAULT, "spectrometer-2", "e0s0", 1, code="failed", reason="lamp"))
+    out = core.advance(10.0)
+    retry = [a for a in of(out, SetTimer) if a.key.kind == TimerKind.RETRY]
+    assert retry, "a failed step is retried after a back-off"
+    core.feed(TimerFired(retry[0].key))
+    ask = of(core.advance(10.0 + retry[0].delay), Ask)[0]
+    assert ask.view.ready[0].avoid == frozenset({"spectrometer-2"})  # fail-over to the other instance
+    core.stop("enough")
+    out = core.advance(100.0)
+    assert of(out, Finished) and core.experiments[0].status == "pending"

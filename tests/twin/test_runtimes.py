@@ -1,0 +1,75 @@
+"""The fast runtime and the asyncio runtime drive the same core: same scenario and seed, same journal."""
+
+import sqlite3
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import qd_lab
+from twin.driver import StepResult
+from twin.errors import DriverError
+from twin.lab import run
+from twin.scenario import parse
+
+ROOT = Path(__file__).resolve().parents[2]
+SHIPPED_VIRTUAL = ["flaky_lab", "quantum_dots", "catalyst", "bandgap", "jobshop"]  # mqtt_lab keeps wall time
+
+
+def journal(db):
+    with sqlite3.connect(db) as c:
+        return (c.execute("SELECT * FROM events ORDER BY seq").fetchall(),
+                c.execute("SELECT * FROM experiments ORDER BY id").fetchall())
+
+
+def lab_facts(summary):
+    return {k: v for k, v in summary.to_dict().items() if k not in ("wall_s", "journal", "decision_ms")}
+
+
+@pytest.mark.parametrize("name, seed", [(n, 5) for n in SHIPPED_VIRTUAL] + [("flaky_lab", 11)])
+def test_both_runtimes_write_the_same_journal(tmp_path, name, seed):
+    scenario = ROOT / "scenarios" / f"{name}.yaml"
+    fast = run(scenario, journal=tmp_path / "fast.db", seed=seed, bus="memory", runtime="fast")
+    slow = run(scenario, journal=tmp_path / "asyncio.db", seed=seed, bus="memory", runtime="asyncio")
+    events_fast, exps_fast = journal(tmp_path / "fast.db")
+    events_slow, exps_slow = journal(tmp_path / "asyncio.db")
+    assert len(events_fast) > 100
+    assert events_fast == events_slow
+    assert exps_fast == exps_slow
+    assert lab_facts(fast) == lab_facts(slow)
+
+
+def test_the_flaky_lab_comparison_exercises_crashes_hangs_and_failures(tmp_path):
+    s = run(ROOT / "scenarios" / "flaky_lab.yaml", journal=tmp_path / "j.db", seed=11, bus="memory", runtime="fast")
+    assert s.devices_lost > 0 and s.timed_out > 0 and s.failed_attempts > s.timed_out + s.devices_lost
+
+
+class WaitsOnAsyncio:
+    capabilities = frozenset({"measure"})
+
+    def __init__(self, setup):
+        pass
+
+    async def run(self, step, params, sample, ctx):
+        import asyncio
+
+        await asyncio.sleep(1)
+        return StepResult({"peak_nm": 600.0}, sample)
+
+    async def safe_state(self):
+        pass
+
+
+def test_a_driver_that_awaits_asyncio_is_refused_by_the_fast_runtime_by_name(tmp_path):
+    lab = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_runtimes:WaitsOnAsyncio",
+                          "campaign.budget": 2}))
+    with pytest.raises(DriverError, match=r"spectrometer-\d: the spectrometer driver awaited .* --runtime asyncio"):
+        run(lab, journal=tmp_path / "j.db", runtime="fast")
+    summary = run(lab, journal=tmp_path / "k.db")  # auto: falls back to the asyncio runtime, which runs it
+    assert summary.done == 2
+
+
+def test_the_fast_runtime_refuses_what_only_a_bus_can_do(tmp_path):
+    from twin.errors import ClockError
+
+    with pytest.raises(ClockError, match="the clock is scaled"):
+        run(parse(qd_lab(clock={"mode": "scaled", "speed": 1e6})), journal=tmp_path / "j.db", runtime="fast")
