@@ -69,9 +69,47 @@ def run(
     if listen:
         overrides["bus.listen"] = list(listen)
     record = RecordOptions(save, viewer, serve, serve_port, web_port)
-    recording = None
     try:
         s = lab.prepare(scenario, seed=seed, clock=clock, speed=speed, bus=bus, overrides=overrides)
+    except TwinError as exc:
+        _fail(exc)
+    _campaign(s, record, quiet, json_out, lambda on_progress, observer: lab.run(
+        s, journal=journal, external_devices=set(external or ()), on_progress=on_progress, observer=observer,
+        runtime=runtime))
+
+
+@app.command()
+def resume(
+    journal: Annotated[Path, typer.Argument(help="the journal of a killed run, runs/<run>.db")],
+    save: Annotated[Optional[Path], typer.Option(help="save a Rerun recording, e.g. run.rrd")] = None,
+    viewer: Annotated[bool, typer.Option(help="open the Rerun viewer and stream live")] = False,
+    serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1 (URL printed)")] = False,
+    serve_port: Annotated[int, typer.Option(help="gRPC port for --serve (0: any free one)")] = 0,
+    web_port: Annotated[int, typer.Option(help="web viewer port for --serve (0: any free one)")] = 0,
+    quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
+    json_out: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
+    runtime: Annotated[str, typer.Option(help="fast | asyncio | auto")] = "auto",
+) -> None:
+    """Continue a killed virtual-time campaign from its journal; the journal ends as if never killed."""
+    from twin.resume import recorded
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        s, prefix = recorded(journal)
+    except TwinError as exc:
+        _fail(exc)
+    if not (quiet or json_out):
+        err.print(f"resuming {journal}: {len(prefix)} recorded events are checked as the campaign re-runs",
+                  highlight=False)
+    _campaign(s, RecordOptions(save, viewer, serve, serve_port, web_port), quiet, json_out,
+              lambda on_progress, observer: lab.resume(journal, on_progress=on_progress, observer=observer,
+                                                       runtime=runtime))
+
+
+def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> None:
+    """Run ``call(on_progress, observer)`` under a progress bar and a recording, and print its summary."""
+    recording = None
+    try:
         observer = None
         if record.wanted:
             observer, recording = open_observer(record, lab.recording_id(s))
@@ -87,8 +125,7 @@ def run(
             def on_progress(core) -> None:
                 progress.update(bar, completed=core.finished_count, lab_h=core.elapsed_s / 3600)
 
-            summary = lab.run(s, journal=journal, external_devices=set(external or ()), on_progress=on_progress,
-                              observer=observer, runtime=runtime)
+            summary = call(on_progress, observer)
     except TwinError as exc:
         if recording is not None:
             recording.stop_serving()
@@ -99,8 +136,8 @@ def run(
         render_summary(summary, console)
     if recording is not None:
         recording.close()
-        if save:
-            err.print(f"recording saved: {save}  (open it with: rerun {save})", highlight=False)
+        if record.save:
+            err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
         _keep_serving(recording)
 
 
@@ -193,7 +230,19 @@ def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<
         _fail(TwinError(f"{journal}: no such journal; runs are written to runs/ by default"))
     data = read_run(journal)
     if "summary" not in data:
-        _fail(TwinError(f"{journal}: the run has no summary (it was killed before it could write one)"))
+        from twin.resume import interrupted
+
+        got = interrupted(journal)
+        shown = {"pending": "not finished", "running": "not finished"}
+        counts: dict[str, int] = {}
+        for status, n in got["experiments"].items():
+            counts[shown.get(status, status)] = counts.get(shown.get(status, status), 0) + n
+        states = ", ".join(f"{n} {status}" for status, n in sorted(counts.items())) or "none proposed yet"
+        console.print(f"{journal}: interrupted — the run of {got['scenario']} was killed before it finished. It got "
+                      f"to {got['lab_hours']:.2f} lab-h with {got['events']} events on disk; experiments: {states}. "
+                      f"Continue it with: twin resume {journal}",
+                      highlight=False, soft_wrap=True)
+        return
     render_summary(Summary.from_dict(data["summary"]), console)
 
 

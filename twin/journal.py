@@ -9,6 +9,7 @@ are buffered and committed in batches; ``close`` flushes everything.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 from pathlib import Path
 from typing import Any
@@ -25,12 +26,16 @@ CREATE TABLE IF NOT EXISTS experiments (
     reason TEXT NOT NULL, outputs TEXT, scores TEXT, attempts INTEGER NOT NULL,
     retries INTEGER NOT NULL, degraded INTEGER NOT NULL, t_proposed REAL NOT NULL, t_done REAL);
 """
-FLUSH_EVERY = 2000
+# rows buffered before a commit; LABTWIN_FLUSH_EVERY sets it (a test that kills runs wants small batches)
+FLUSH_EVERY = int(os.environ.get("LABTWIN_FLUSH_EVERY", 2000))
 
 
 class Journal:
+    FLUSH_EVERY = FLUSH_EVERY
+
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
+        self.label = str(path)  # how summaries name it
         self.path.parent.mkdir(parents=True, exist_ok=True)
         if self.path.exists():
             self.path.unlink()
@@ -46,7 +51,7 @@ class Journal:
     def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
               attempt: int | None = None, device: str | None = None, detail: Any = None) -> int:
         """A state change; ``detail`` is stored as JSON. Returns the event's sequence number."""
-        self._append(t_lab, kind, experiment, task, attempt, device, None if detail is None else json.dumps(detail))
+        self._append(t_lab, kind, experiment, task, attempt, device, None if detail is None else to_wire(detail).decode())
         return self._seq
 
     def message(self, t_lab: float, kind: str, experiment: int | None, task: str | None, attempt: int | None,
@@ -58,7 +63,7 @@ class Journal:
     def _append(self, *row: Any) -> None:
         self._seq += 1
         self._events.append((self._seq, *row))
-        if len(self._events) >= FLUSH_EVERY:
+        if len(self._events) >= self.FLUSH_EVERY:
             self.flush()
 
     def experiment(self, e: Any) -> None:
@@ -71,7 +76,9 @@ class Journal:
         )
 
     def set(self, key: str, value: Any) -> None:
+        """A fact of the run (scenario, seed, summary), on disk at once: a run killed later can be resumed."""
         self._db.execute("INSERT OR REPLACE INTO run VALUES (?, ?)", (key, json.dumps(value, default=str)))
+        self._db.commit()
 
     def flush(self) -> None:
         if self._events:

@@ -149,7 +149,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         external_devices: set[str] = frozenset(),
         on_progress: Callable[[CampaignCore], None] | None = None,
         record: RecordOptions | None = None, observer: LabObserver | None = None, runtime: str = "auto",
-        **overrides: Any) -> Summary:
+        make_journal: JournalFactory = Journal, **overrides: Any) -> Summary:
     """Run one campaign to its end and return its summary.
 
     ``overrides`` are ``seed``, ``clock``, ``speed``, ``bus`` or ``overrides``
@@ -158,7 +158,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
     saves, shows or serves a Rerun recording of the campaign; ``observer``
     is an observer the caller opened (and closes) itself. ``runtime``:
     ``fast`` (virtual time on the memory bus, in-process), ``asyncio``
-    (everything else), or ``auto``: fast where it can.
+    (everything else), or ``auto``: fast where it can. ``make_journal`` opens the journal at a path.
     """
     s = prepare(scenario, **overrides)
     watched = observer is not None or (record is not None and record.wanted)
@@ -169,7 +169,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         raise ClockError(f"the fast runtime cannot run this campaign: {why_not}. Use --runtime asyncio (or auto).")
     if runtime == "fast" or (runtime == "auto" and not why_not):
         try:
-            return run_fast(s, journal or default_journal(s), on_progress)
+            return run_fast(s, journal or default_journal(s), on_progress, make_journal=make_journal)
         except FastRuntimeRefused as exc:
             if runtime == "fast":
                 raise
@@ -181,7 +181,8 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         for message in recording.messages:
             log.warning("%s", message)
     try:
-        return clock.run(run_async(s, clock, journal or default_journal(s), external_devices, on_progress, observer))
+        return clock.run(run_async(s, clock, journal or default_journal(s), external_devices, on_progress, observer,
+                                   make_journal=make_journal))
     finally:
         if recording is not None:
             recording.close()
@@ -208,7 +209,7 @@ def recording_id(s: Scenario) -> str:
 
 
 def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[CampaignCore], None] | None = None,
-             handle_signals: bool = True) -> Summary:
+             handle_signals: bool = True, make_journal: JournalFactory = Journal) -> Summary:
     """The campaign of ``s`` on the fast runtime (virtual time, in-process devices)."""
     wall0 = time.perf_counter()
     drivers = load_drivers(s)
@@ -217,13 +218,13 @@ def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[Campa
     if getattr(scheduler, "serve_on_bus", False):
         raise FastRuntimeRefused(f"scheduler {s.campaign.scheduler!r} is an agent on the bus, which the fast "
                                  "runtime does not have: use --runtime asyncio")
-    journal = open_journal(s, journal_path)
+    journal = open_journal(s, journal_path, make_journal)
     camp = FastCampaign(s, drivers, journal, planner, scheduler, on_progress=on_progress)
     with _stop_on_signals(camp.stop, handle_signals):
         try:
             camp.run()
         finally:
-            summary = finish(camp.core, journal, journal_path, wall0, camp.now)
+            summary = finish(camp.core, journal, wall0, camp.now)
     return summary
 
 
@@ -234,17 +235,20 @@ def refuse_realtime(drivers: list[tuple[str, str, Any]]) -> None:
                          "use --clock scaled (or wall)")
 
 
-def open_journal(s: Scenario, path: str | Path) -> Journal:
-    journal = Journal(path)
+JournalFactory = Callable[[Path], Journal]
+
+
+def open_journal(s: Scenario, path: str | Path, make_journal: JournalFactory = Journal) -> Journal:
+    journal = make_journal(Path(path))
     journal.set("scenario", s.model_dump())
     journal.set("seed", s.campaign.seed)
     return journal
 
 
-def finish(core: CampaignCore, journal: Journal, journal_path: str | Path, wall0: float, now: float,
+def finish(core: CampaignCore, journal: Journal, wall0: float, now: float,
            note: Callable[[str, Any], None] | None = None, fallbacks: int = 0) -> Summary:
     """The summary, journalled (and noted for watchers) the same way by every runtime."""
-    summary = from_core(core, str(journal_path), time.perf_counter() - wall0, journal._seq + 1)
+    summary = from_core(core, journal.label, time.perf_counter() - wall0, journal._seq + 1)
     summary.scheduler_fallbacks = fallbacks
     lab_only = {k: v for k, v in summary.to_dict().items() if k not in WALL_CLOCK_FIELDS}
     if note is not None:
@@ -276,7 +280,8 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
                     external_devices: set[str] = frozenset(),
                     on_progress: Callable[[CampaignCore], None] | None = None,
                     observer: LabObserver | None = None, scheduler: Any = None,
-                    on_start: Callable[[LiveCampaign], None] | None = None, handle_signals: bool = True) -> Summary:
+                    on_start: Callable[[LiveCampaign], None] | None = None, handle_signals: bool = True,
+                    make_journal: JournalFactory = Journal) -> Summary:
     """The campaign of ``s`` on the asyncio runtime; ``scheduler`` replaces the scenario's.
 
     ``handle_signals``: SIGINT/SIGTERM stop the campaign cleanly (off for the campaigns a training
@@ -297,7 +302,7 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
     scheduler, service = live_scheduler(s, scheduler, bus, clock)
     actors = build_actors(s, drivers, bus, clock)
     watching = attach(bus, s.lab, observer.on_message) if observer is not None else []
-    journal = open_journal(s, journal_path)
+    journal = open_journal(s, journal_path, make_journal)
     camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress)
     if isinstance(scheduler, RemoteScheduler):
         scheduler.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
@@ -328,12 +333,42 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         if isinstance(scheduler, RemoteScheduler):
             scheduler.close()
             fallbacks = scheduler.fallbacks
-        summary = finish(camp.core, journal, journal_path, wall0, clock.now(), camp.note, fallbacks)
+        summary = finish(camp.core, journal, wall0, clock.now(), camp.note, fallbacks)
         if observer is not None:
             await _until(clock, lambda: observer.done)
             for h in watching:
                 h.close()
         await bus.close()
+    return summary
+
+
+def resume(path: str | Path, *, on_progress: Callable[[CampaignCore], None] | None = None,
+           record: RecordOptions | None = None, observer: LabObserver | None = None,
+           runtime: str = "auto") -> Summary:
+    """Continue a killed virtual-time campaign from its journal (``twin resume``); see ``twin.resume``."""
+    from twin import resume as r
+
+    path = Path(path)
+    s, prefix = r.recorded(path)
+    resuming = path.with_name(path.name + ".resuming")
+    checked: list[r.CheckedJournal] = []
+
+    def make(p: Path) -> Journal:
+        checked.append(r.CheckedJournal(p, prefix, path))
+        return checked[-1]
+
+    try:
+        summary = run(s, journal=resuming, on_progress=on_progress, record=record, observer=observer,
+                      runtime=runtime, make_journal=make)
+        if checked[-1].checked < len(prefix):
+            raise r.ResumeError(f"{path}: the re-run ended after {checked[-1].checked} of the journal's "
+                                f"{len(prefix)} events; run the campaign again instead (twin run)")
+    except BaseException:
+        for suffix in ("", "-wal", "-shm"):
+            Path(f"{resuming}{suffix}").unlink(missing_ok=True)
+        raise
+    r.replace(resuming, path)
+    log.info("resumed %s: %d recorded events checked, %d in all", path, len(prefix), summary.events)
     return summary
 
 

@@ -11,6 +11,7 @@ import json
 from enum import StrEnum
 from typing import Any, Literal
 
+import msgspec
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from twin.errors import TwinError
@@ -121,8 +122,12 @@ def envelope(kind: Kind, body: dict[str, Any], *, id: str, sender: str, t_lab: f
             "attempt": attempt, "sender": sender, "t_lab": t_lab, "body": body}
 
 
+_encode = msgspec.json.Encoder().encode
+
+
 def to_wire(env: dict[str, Any]) -> bytes:
-    return json.dumps(env, separators=(",", ":")).encode()
+    """Compact JSON (msgspec: several times faster than ``json``; a NaN or infinity becomes null)."""
+    return _encode(env)
 
 
 def pack(kind: Kind, body: dict[str, Any], *, id: str, sender: str, t_lab: float,

@@ -50,4 +50,4 @@ class SteppedCampaign:
     def _next(self) -> None:
         self.view = self._run.next_decision()
         if self.view is None:
-            self.summary = finish(self.core, self._journal, ":memory:", self._wall0, self._run.now)
+            self.summary = finish(self.core, self._journal, self._wall0, self._run.now)

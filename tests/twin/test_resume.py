@@ -1,0 +1,122 @@
+"""A campaign killed at any point and resumed from its journal ends with the journal it would have had."""
+
+import multiprocessing
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from twin.journal import Journal, read_run
+from twin.lab import prepare, resume, run
+from twin.resume import ResumeError
+
+ROOT = Path(__file__).resolve().parents[2]
+CAMPAIGNS = {"flaky_lab": {"campaign.budget": 30}, "quantum_dots": {"campaign.budget": 40}}
+
+
+def tables(db):
+    with sqlite3.connect(db) as c:
+        return (c.execute("SELECT * FROM events ORDER BY seq").fetchall(),
+                c.execute("SELECT * FROM experiments ORDER BY id").fetchall())
+
+
+def scenario(name, seed):
+    return prepare(ROOT / "scenarios" / f"{name}.yaml", seed=seed, bus="memory", overrides=CAMPAIGNS[name])
+
+
+_unkilled: dict = {}
+
+
+def unkilled(name, seed, tmp):
+    if (name, seed) not in _unkilled:
+        db = tmp / f"whole-{name}-{seed}.db"
+        run(scenario(name, seed), journal=db)
+        _unkilled[(name, seed)] = tables(db)
+    return _unkilled[(name, seed)]
+
+
+def _killed_at(s, db, row, flush_every):
+    """In a child process: run the campaign and SIGKILL itself when the journal writes event ``row``."""
+    Journal.FLUSH_EVERY = flush_every
+    append = Journal._append
+
+    def dying(self, *r):
+        if self._seq + 1 == row:
+            os.kill(os.getpid(), signal.SIGKILL)
+        append(self, *r)
+
+    Journal._append = dying
+    run(s, journal=db)
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(name=st.sampled_from(sorted(CAMPAIGNS)), seed=st.integers(0, 3), at=st.floats(0.0, 1.0),
+       flush_every=st.integers(5, 400))
+def test_killed_anywhere_and_resumed_the_journal_is_the_unkilled_one(tmp_path_factory, name, seed, at, flush_every):
+    tmp = tmp_path_factory.mktemp("resume")
+    whole = unkilled(name, seed, tmp_path_factory.getbasetemp())
+    row = 1 + int(at * (len(whole[0]) - 1))
+    db = tmp / "killed.db"
+    child = multiprocessing.get_context("fork").Process(target=_killed_at, args=(scenario(name, seed), db, row,
+                                                                                    flush_every))
+    child.start()
+    child.join(60)
+    assert child.exitcode == -signal.SIGKILL
+    assert "summary" not in read_run(db)
+    summary = resume(db)
+    assert tables(db) == whole
+    assert summary.journal == str(db) and read_run(db)["summary"]["done"] == summary.done
+
+
+def test_a_resume_that_diverges_names_the_first_differing_event_and_keeps_the_journal(tmp_path):
+    db = tmp_path / "j.db"
+    run(scenario("flaky_lab", 1), journal=db)
+    with sqlite3.connect(db) as c:  # as if killed, and recorded by code that behaved differently
+        c.execute("DELETE FROM run WHERE key='summary'")
+        c.execute("UPDATE events SET kind='device.lost' WHERE seq=40")
+    before = tables(db)
+    with pytest.raises(ResumeError, match=r"event 40 differs from the journal: it recorded 'device.lost'"):
+        resume(db)
+    assert tables(db) == before
+    assert not (tmp_path / "j.db.resuming").exists()
+
+
+def test_a_finished_run_is_not_resumed(tmp_path):
+    db = tmp_path / "j.db"
+    run(scenario("quantum_dots", 0), journal=db)
+    with pytest.raises(ResumeError, match="finished; nothing to resume"):
+        resume(db)
+
+
+@pytest.mark.process
+def test_twin_report_on_a_sigkilled_run_says_how_far_it_got_and_twin_resume_finishes_it(tmp_path):
+    db = tmp_path / "j.db"
+    twin = [sys.executable, "-m", "twin"]
+    args = ["run", "scenarios/flaky_lab.yaml", "--bus", "memory", "--journal", str(db), "--quiet",
+            "--budget", "3000", "--seed", "2"]
+    env = {**os.environ, "LABTWIN_FLUSH_EVERY": "50"}
+    proc = subprocess.Popen(twin + args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    while proc.poll() is None:  # kill it once something is on disk
+        try:
+            with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as c:
+                if c.execute("SELECT COUNT(*) FROM events").fetchone()[0] > 200:
+                    break
+        except sqlite3.Error:
+            pass
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL and "summary" not in read_run(db), "it finished before it was killed"
+    report = subprocess.run(twin + ["report", str(db)], cwd=ROOT, capture_output=True, text=True)
+    assert report.returncode == 0
+    assert "interrupted" in report.stdout and f"twin resume {db}" in report.stdout.replace("\n", "")
+    resumed = subprocess.run(twin + ["resume", str(db), "--json"], cwd=ROOT, capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    fresh = tmp_path / "fresh.db"
+    subprocess.run(twin + args[:5] + [str(fresh)] + args[6:], cwd=ROOT, check=True, capture_output=True)
+    assert tables(db) == tables(fresh)
