@@ -71,6 +71,7 @@ class CampaignCore:
         self._wake = False
         self._filled = False  # the planner had its say in this pass
         self._retrying: dict[str, Task] = {}  # waiting out their back-off
+        self._workflow = tuple(RouteStep(w.step, w.device) for w in scenario.workflow)
 
     # -- the runtime's side ---------------------------------------------------------
     def start(self, now: float) -> list[Action]:
@@ -335,7 +336,7 @@ class CampaignCore:
 
     # -- experiments and steps ------------------------------------------------------
     def _add_experiment(self, p: Proposal) -> None:
-        route = p.route or tuple(RouteStep(w.step, w.device) for w in self.s.workflow)
+        route = p.route or self._workflow
         e = Experiment(len(self.experiments), dict(p.params), route, self.now)
         self.experiments.append(e)
         self.active[e.id] = e
@@ -406,7 +407,9 @@ class CampaignCore:
 
     def _advance_experiment(self, task: Task, result: dict[str, Any]) -> None:
         e = task.experiment
-        e.outputs.update(result.get("outputs") or {})
+        for k, v in (result.get("outputs") or {}).items():
+            if not isinstance(v, (list, dict)):  # a spectrum or a trace stays in the journal's msg.result row
+                e.outputs[k] = v
         sample = result.get("sample")
         if sample is not None:
             e.sample_made = float(sample.get("t_made", self.now))
