@@ -15,7 +15,7 @@ from typing import Any
 
 from agents.cpsat import Op, solve
 from agents.scheduling_features import time_scale
-from twin.decisions import Assignment, LabView, capable
+from twin import Assignment, LabView, capable
 
 
 class CpSatScheduler:

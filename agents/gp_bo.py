@@ -26,7 +26,7 @@ from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
 
 from agents.box import UnitBox
 from agents.planners import LhsPlanner
-from twin.decisions import Outcome, Proposal
+from twin import Outcome, Proposal
 
 
 class GpBoPlanner:
@@ -131,7 +131,7 @@ class GpBoPlanner:
 
     @staticmethod
     def _meets(outputs: dict[str, Any], target: Any) -> bool:
-        from twin.targets import score
+        from twin import score
 
         return score(outputs, target) == 0
 

@@ -23,7 +23,7 @@ from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
 
 from agents.box import UnitBox
-from twin.decisions import Outcome, Proposal, RouteStep
+from twin import Outcome, Proposal, RouteStep
 
 PRIOR_CORRECTION_SD = 0.3  # eV: how far we believe DFT can be off before any experiment
 

@@ -7,7 +7,7 @@ from typing import Any
 
 from scipy.stats import qmc
 
-from twin.decisions import Outcome, Proposal, RouteStep
+from twin import Outcome, Proposal, RouteStep
 
 
 class RandomPlanner:

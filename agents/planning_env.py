@@ -26,9 +26,9 @@ import gymnasium as gym
 import numpy as np
 
 from agents.box import UnitBox
-from twin.scenario import Scenario
-from twin.targets import score
-from twin.workcell import open_workcell
+from twin import Scenario
+from twin import score
+from twin import open_workcell
 
 STEP = 0.3  # the largest move per experiment, as a fraction of the unit box
 CLIP = 6.0

@@ -21,10 +21,10 @@ import torch
 from agents.box import UnitBox
 from agents.planners import LhsPlanner
 from agents.planning_env import move, observation, signature
-from twin.policies import load_policy
-from twin.decisions import Outcome, Proposal
-from twin.errors import PluginError
-from twin.targets import score
+from twin import load_policy
+from twin import Outcome, Proposal
+from twin import PluginError
+from twin import score
 
 SAME = 1e-4  # two points closer than this in the unit box are the same experiment
 

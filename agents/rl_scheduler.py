@@ -1,6 +1,6 @@
 """`rl`: a MaskablePPO policy (`twin train SCENARIO`) deciding which ready step runs on which free device.
 
-``serve_on_bus`` makes the lab run it as an agent on the bus (``twin.remote_scheduler``):
+``serve_on_bus`` makes the lab run it as an agent on the bus (``twin.runtime.remote_scheduler``):
 the orchestrator asks it over Zenoh, with a deadline and the scenario's fallback rule.
 """
 
@@ -13,9 +13,9 @@ import numpy as np
 import torch
 
 from agents.scheduling_features import ACTIONS, OBS_SIZE, Encoder, signature
-from twin.decisions import Assignment, LabView
-from twin.errors import PluginError
-from twin.policies import load_policy
+from twin import Assignment, LabView
+from twin import PluginError
+from twin import load_policy
 
 
 class RlScheduler:

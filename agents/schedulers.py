@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from twin.decisions import Assignment, FreeDevice, LabView, ReadyStep, capable
+from twin import Assignment, FreeDevice, LabView, ReadyStep, capable
 
 
 def _assign_in_order(order: list[ReadyStep], view: LabView,

@@ -1,7 +1,7 @@
 """`labtwin/Scheduling-v0`: the twin's scheduling decisions as a gymnasium environment.
 
 Each step is one decision of a real campaign — device actors, orchestrator,
-retries and faults on the memory bus in virtual time (``twin.stepper``) —
+retries and faults on the memory bus in virtual time (``twin.learning.stepper``) —
 from one decision point (a device freed, a step ready) to the next. The
 observation, action and mask are ``agents.scheduling_features``.
 
@@ -23,10 +23,10 @@ import gymnasium as gym
 import numpy as np
 
 from agents.scheduling_features import ACTIONS, OBS_SIZE, Encoder
-from twin import jobshop
-from twin.lab import prepare
-from twin.scenario import Scenario
-from twin.stepper import SteppedCampaign
+from twin import jobshop_as_lab, random_jobshop
+from twin import prepare
+from twin import Scenario
+from twin import SteppedCampaign
 
 DEGRADED_PENALTY, ABANDONED_PENALTY, INVALID_PENALTY = 0.5, 2.0, 1.0
 
@@ -46,7 +46,7 @@ def randomised(s: Scenario, seed: int) -> Scenario:
     if s.jobshop is not None and t.jobshop_sizes:
         n_jobs, n_machines = rng.choice(t.jobshop_sizes)
         low, high = (int(x) for x in (t.operation_s or (1, 10)))
-        return jobshop.as_lab(s, jobshop.generate(n_jobs, n_machines, low, high, rng))
+        return jobshop_as_lab(s, random_jobshop(n_jobs, n_machines, low, high, rng))
     jobs = s.campaign.planner_options.get("proposals")
     if jobs and (t.operation_s or t.shuffle_routes):
         over["campaign.planner_options.proposals"] = [_redraw(job, t, rng) for job in jobs]

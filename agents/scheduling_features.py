@@ -23,9 +23,9 @@ import statistics
 
 import numpy as np
 
-from twin.decisions import Assignment, DeviceState, LabView, ReadyStep
-from twin.driver import expected_duration
-from twin.scenario import Scenario
+from twin import Assignment, DeviceState, LabView, ReadyStep
+from twin import expected_duration
+from twin import Scenario
 
 SLOTS, INSTANCES = 10, 4
 STEP_FEATURES, PAIR_FEATURES, GLOBAL_FEATURES = 8, 3, 6

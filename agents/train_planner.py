@@ -11,8 +11,8 @@ import numpy as np
 import torch
 
 from agents.planning_env import PlanningEnv, signature
-from twin.policies import save_policy
-from twin.scenario import Scenario
+from twin import save_policy
+from twin import Scenario
 
 # Tuned on quantum_dots (see docs/benchmarks.md): a short horizon wants a short discount.
 PPO_SETTINGS = dict(n_steps=256, batch_size=256, n_epochs=10, gamma=0.95, learning_rate=3e-4,

@@ -19,12 +19,12 @@ from agents.scheduling_env import SchedulingEnv
 from agents.rl_scheduler import RlScheduler
 from agents.scheduling_features import signature
 from agents.schedulers import RULES
-from twin import plugins
-from twin.decisions import Assignment, LabView
-from twin.lab import prepare
-from twin.policies import save_policy
-from twin.scenario import Scenario
-from twin.stepper import SteppedCampaign
+from twin import load_plugin
+from twin import Assignment, LabView
+from twin import prepare
+from twin import save_policy
+from twin import Scenario
+from twin import SteppedCampaign
 
 EVAL_SEEDS = tuple(range(100_000, 100_005))
 PPO_SETTINGS = dict(n_steps=512, batch_size=256, n_epochs=10, gamma=0.995, gae_lambda=0.95, learning_rate=3e-4,
@@ -49,7 +49,7 @@ def score(summaries: list[Any]) -> dict[str, float]:
 
 
 def evaluate_rules(scenario: Scenario, seeds=EVAL_SEEDS) -> dict[str, dict[str, float]]:
-    return {rule: score([campaign(scenario, seed, plugins.load("schedulers", rule)().decide) for seed in seeds])
+    return {rule: score([campaign(scenario, seed, load_plugin("schedulers", rule)().decide) for seed in seeds])
             for rule in RULES}
 
 

@@ -27,17 +27,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.bench_kernel import free_port, table  # noqa: E402
-from twin import keys  # noqa: E402
-from twin.bus.zenoh_bus import ZenohBus, ZenohOptions  # noqa: E402
-from twin.clock import LabClock  # noqa: E402
-from twin.messages import Kind, decode, pack  # noqa: E402
+from twin.core import keys  # noqa: E402
+from twin.core.bus.zenoh_bus import ZenohBus, ZenohOptions  # noqa: E402
+from twin.core.clock import LabClock  # noqa: E402
+from twin.core.messages import Kind, decode, pack  # noqa: E402
 
 N_REQUESTS, N_MESSAGES, N_STEPS = 2000, 50_000, 300
 
 SERVER = """
 import asyncio, sys
-from twin.bus.zenoh_bus import ZenohBus, ZenohOptions
-from twin.clock import LabClock
+from twin.core.bus.zenoh_bus import ZenohBus, ZenohOptions
+from twin.core.clock import LabClock
 async def main():
     listen, connect = sys.argv[1].split(",") if sys.argv[1] else [], sys.argv[2].split(",") if sys.argv[2] else []
     bus = ZenohBus(LabClock("wall"), ZenohOptions(listen=listen, connect=connect))

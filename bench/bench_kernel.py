@@ -25,9 +25,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench import simpy_lab  # noqa: E402
-from twin.bus.zenoh_bus import ZenohBus, ZenohOptions  # noqa: E402
-from twin.clock import LabClock  # noqa: E402
-from twin.lab import prepare, run  # noqa: E402
+from twin.core.bus.zenoh_bus import ZenohBus, ZenohOptions  # noqa: E402
+from twin.core.clock import LabClock  # noqa: E402
+from twin.runtime.lab import prepare, run  # noqa: E402
 
 
 def table(title: str, header: list[str], rows: list[list]) -> None:
@@ -320,7 +320,7 @@ def bench_detect() -> None:
 SCALE_CHILD = """
 import json, resource, sys, tempfile, time
 from pathlib import Path
-from twin.lab import run
+from twin.runtime.lab import run
 n = int(sys.argv[1])
 with tempfile.TemporaryDirectory() as d:
     s = run("scenarios/quantum_dots.yaml", journal=Path(d) / "j.db", bus="memory",
@@ -345,7 +345,7 @@ def bench_scale() -> None:
 
 # -- 5. kill and resume -----------------------------------------------------------------
 def _killed_at(s, db, row):
-    from twin.journal import Journal
+    from twin.campaign.journal import Journal
 
     Journal.FLUSH_EVERY = 25
     append = Journal._append
@@ -364,7 +364,7 @@ def bench_resume(cycles: int = 100) -> None:
     import random
     import sqlite3
 
-    from twin.lab import resume
+    from twin.runtime.lab import resume
 
     def tables(db):
         with sqlite3.connect(db) as c:

@@ -15,8 +15,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.bench_kernel import STANDARD, table  # noqa: E402
-from twin.lab import prepare, run  # noqa: E402
-from twin.watch import RecordOptions  # noqa: E402
+from twin.runtime.lab import prepare, run  # noqa: E402
+from twin.view.watch import RecordOptions  # noqa: E402
 
 
 def campaign(bus: str, record: bool) -> tuple[float, float, int]:

@@ -20,7 +20,7 @@ sys.path.insert(0, str(ROOT))
 from bench.bench_kernel import table  # noqa: E402
 from agents.scheduling_env import SchedulingEnv  # noqa: E402
 from agents.train_scheduler import PPO_SETTINGS  # noqa: E402
-from twin.lab import prepare  # noqa: E402
+from twin.runtime.lab import prepare  # noqa: E402
 
 
 def rate(scenario, kind: str, n: int, steps: int) -> float:

@@ -29,9 +29,10 @@ class CountingEnvironment(simpy.Environment):
 
 def _physics(s, seed: int):
     """Call a step's driver on a stepped clock: its outputs, and the lab seconds it slept."""
-    from twin.driver import StepContext, seeded
-    from twin.lab import load_driver
-    from twin.workcell import SteppedClock, _complete
+    from twin.core.streams import seeded
+    from twin.device.driver import StepContext
+    from twin.runtime.lab import load_driver
+    from twin.learning.workcell import SteppedClock, _complete
 
     drivers = {d: load_driver(s, d, f"{d}-simpy") for d in s.devices}
     rngs = {d: seeded(seed, "simpy", d)[1] for d in s.devices}

@@ -6,7 +6,7 @@ from typing import Any
 
 from devices.models import bandgap
 from devices.synthesiser import need
-from twin.driver import DriverSetup, StepContext, StepResult
+from twin import DriverSetup, StepContext, StepResult
 
 
 class DftCalculator:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from twin.driver import DriverSetup, StepContext, StepResult
+from twin import DriverSetup, StepContext, StepResult
 
 
 class Machine:

@@ -28,8 +28,8 @@ from typing import Any
 
 import aiomqtt
 
-from twin.driver import DriverSetup, StepContext, StepResult
-from twin.errors import DriverError
+from twin import DriverSetup, StepContext, StepResult
+from twin import DriverError
 
 log = logging.getLogger(__name__)
 NODELAY = ((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),)  # without it p99 round trips were ~40 ms

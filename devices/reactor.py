@@ -13,8 +13,8 @@ import numpy as np
 
 from devices.models import catalyst, thermal
 from devices.synthesiser import need
-from twin.driver import DriverSetup, StepContext, StepResult
-from twin.policies import load_policy, read_meta
+from twin import DriverSetup, StepContext, StepResult
+from twin import load_policy, read_meta
 
 
 class Reactor:

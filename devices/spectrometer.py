@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 
 from devices.models import spectra
-from twin.driver import DriverSetup, StepContext, StepResult
-from twin.errors import DriverError
+from twin import DriverSetup, StepContext, StepResult
+from twin import DriverError
 
 FEED_NM, PRODUCT_NM, BYPRODUCT_NM, BAND_NM = 450.0, 540.0, 640.0, 40.0
 HC_EV_NM = 1239.84  # photon energy (eV) × wavelength (nm)

@@ -5,8 +5,8 @@ from __future__ import annotations
 from typing import Any
 
 from devices.models import bandgap, quantum_dots
-from twin.driver import DriverSetup, StepContext, StepResult
-from twin.errors import DriverError
+from twin import DriverSetup, StepContext, StepResult
+from twin import DriverError
 
 
 def need(params: dict[str, Any], *names: str) -> list[float]:

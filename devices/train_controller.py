@@ -12,8 +12,8 @@ import torch
 
 from devices.models import catalyst, thermal
 from devices.reactor_control import SIGNATURE, PolicyController, ReactorControlEnv, tracking
-from twin.policies import save_policy
-from twin.scenario import Scenario
+from twin import save_policy
+from twin import Scenario
 
 EVAL_SETPOINTS_K = (400.0, 430.0, 450.0, 480.0, 510.0)
 HOLD_S, DT_S = 3600.0, 10.0

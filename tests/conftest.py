@@ -2,8 +2,8 @@ from pathlib import Path
 
 import pytest
 
-from twin.bus import open_bus
-from twin.clock import LabClock
+from twin.core.bus import open_bus
+from twin.core.clock import LabClock
 from twin.scenario import set_dotted
 
 

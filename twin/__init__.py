@@ -1,30 +1,44 @@
-"""labtwin's kernel: a flat public API over private modules."""
+"""labtwin's kernel: a flat public API over private sub-packages.
 
-from twin.actor import DeviceActor
-from twin.bus import Bus, MemoryBus, open_bus
-from twin.clock import Clock, LabClock
-from twin.decisions import Assignment, FreeDevice, LabView, Outcome, Planner, Proposal, ReadyStep, Scheduler
-from twin.driver import Driver, DriverSetup, StepContext, StepResult
-from twin.errors import (
-    AccountingError,
-    BusError,
-    ClockError,
-    DriverError,
-    PluginError,
-    ScenarioError,
-    TwinError,
-)
-from twin.lab import prepare, run, run_async
+Drivers (``devices/``), decision makers (``agents/``), the docs and the
+driver scaffold import from here only; the layers below are private
+(``pyproject.toml``'s import-linter contracts keep it so):
+
+    cli → tools → learning → runtime → view → campaign | device → scenario → core
+"""
+
 from twin.campaign import CampaignCore
+from twin.campaign.decisions import (Assignment, DeviceState, FreeDevice, LabView, Outcome, Planner, Proposal,
+                                     ReadyStep, RouteStep, Scheduler, capable)
+from twin.campaign.summary import Summary
+from twin.core.bus import Bus, MemoryBus, open_bus
+from twin.core.clock import Clock, LabClock
+from twin.core.errors import (AccountingError, BusError, ClockError, DriverError, PluginError, ScenarioError,
+                              TwinError)
+from twin.core.plugins import load as load_plugin
+from twin.core.streams import keyed_uniforms, seeded
+from twin.device.actor import DeviceActor
+from twin.device.driver import Driver, DriverFeatures, DriverSetup, StepContext, StepResult
+from twin.learning.policies import load_policy, read_meta, save_policy
+from twin.learning.stepper import SteppedCampaign
+from twin.learning.workcell import open_workcell
 from twin.runtime import FastCampaign, LiveCampaign
-from twin.scenario import Scenario, json_schema
+from twin.runtime.lab import prepare, resume, run, run_async
+from twin.scenario import Scenario, expected_duration, json_schema
 from twin.scenario import load as load_scenario
-from twin.summary import Summary
+from twin.scenario.jobshop import as_lab as jobshop_as_lab
+from twin.scenario.jobshop import generate as random_jobshop
+from twin.scenario.targets import score
+from twin.tools.testing import driver_setup, run_scenario, run_step
+from twin.view.watch import RecordOptions
 
 __all__ = [
-    "AccountingError", "Assignment", "Bus", "BusError", "Clock", "ClockError", "DeviceActor", "Driver",
-    "DriverError", "DriverSetup", "FreeDevice", "LabClock", "LabView", "MemoryBus", "CampaignCore", "FastCampaign", "LiveCampaign",
-    "Outcome", "Planner", "PluginError", "Proposal", "ReadyStep", "Scenario", "ScenarioError", "Scheduler",
-    "StepContext", "StepResult", "Summary", "TwinError", "json_schema", "load_scenario", "open_bus",
-    "prepare", "run", "run_async",
+    "AccountingError", "Assignment", "Bus", "BusError", "CampaignCore", "Clock", "ClockError", "DeviceActor",
+    "DeviceState", "Driver", "DriverError", "DriverFeatures", "DriverSetup", "FastCampaign", "FreeDevice",
+    "LabClock", "LabView", "LiveCampaign", "MemoryBus", "Outcome", "Planner", "PluginError", "Proposal",
+    "ReadyStep", "RecordOptions", "RouteStep", "Scenario", "ScenarioError", "Scheduler", "StepContext", "StepResult",
+    "SteppedCampaign", "Summary", "TwinError", "capable", "driver_setup", "expected_duration", "jobshop_as_lab",
+    "json_schema", "keyed_uniforms", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
+    "prepare", "random_jobshop", "read_meta", "resume", "run", "run_async", "run_scenario", "run_step",
+    "save_policy", "score", "seeded",
 ]

@@ -4,9 +4,9 @@ import json
 import statistics
 from pathlib import Path
 
-from twin.journal import read_events
-from twin.lab import prepare, run
-from twin.planner_bench import trial
+from twin.campaign.journal import read_events
+from twin.runtime.lab import prepare, run
+from twin.tools.planner_bench import trial
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "scenarios" / "bandgap.yaml"

@@ -8,9 +8,9 @@ import pytest
 
 from agents.gp_bo import GpBoPlanner
 from agents.planners import LhsPlanner, RandomPlanner
-from twin.decisions import Outcome
-from twin.planner_bench import trial
-from twin.lab import prepare
+from twin.campaign.decisions import Outcome
+from twin.tools.planner_bench import trial
+from twin.runtime.lab import prepare
 from twin.scenario import Parameter, Target
 
 ROOT = Path(__file__).resolve().parents[2]

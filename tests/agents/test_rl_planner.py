@@ -11,12 +11,12 @@ from gymnasium.utils.env_checker import check_env
 from agents.planning_env import PlanningEnv, signature
 from agents.rl_planner import RlPlanner
 from agents.train_planner import evaluate, train_planner
-from twin.decisions import Outcome
-from twin.errors import PluginError
-from twin.lab import prepare
-from twin.planner_bench import trial
-from twin.policies import load_policy
-from twin.targets import score
+from twin.campaign.decisions import Outcome
+from twin.core.errors import PluginError
+from twin.runtime.lab import prepare
+from twin.tools.planner_bench import trial
+from twin.learning.policies import load_policy
+from twin.scenario.targets import score
 
 ROOT = Path(__file__).resolve().parents[2]
 POLICY = ROOT / "agents" / "policies" / "quantum_dots.zip"

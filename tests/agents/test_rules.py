@@ -2,7 +2,7 @@
 
 from agents.planners import FixedPlanner, RandomPlanner
 from agents.schedulers import FifoScheduler, OldestSampleScheduler
-from twin.decisions import FreeDevice, LabView, ReadyStep
+from twin.campaign.decisions import FreeDevice, LabView, ReadyStep
 from twin.scenario import Parameter
 
 

@@ -13,10 +13,10 @@ from agents.rl_scheduler import RlScheduler
 from agents.scheduling_env import SchedulingEnv
 from agents.scheduling_features import INSTANCES, WAIT, Encoder
 from agents.train_scheduler import campaign, train_scheduler
-from twin import jobshop
-from twin.decisions import capable
-from twin.journal import read_events
-from twin.lab import prepare, run
+from twin.scenario import jobshop
+from twin.campaign.decisions import capable
+from twin.campaign.journal import read_events
+from twin.runtime.lab import prepare, run
 
 ROOT = Path(__file__).resolve().parents[2]
 torch.set_num_threads(1)

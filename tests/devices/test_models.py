@@ -92,8 +92,8 @@ def test_ingan_band_gap_bows_between_gan_and_inn():
 def test_the_spectrometer_reads_a_band_gap_off_the_absorption_edge():
 
     from devices.spectrometer import Spectrometer
-    from twin.clock import LabClock
-    from twin.driver import DriverSetup, StepContext
+    from twin.core.clock import LabClock
+    from twin.device.driver import DriverSetup, StepContext
     from twin.scenario import Chemistry, Duration
 
     clock = LabClock("virtual")

@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import qd_lab
-from twin.errors import ClockError
-from twin.journal import read_events
-from twin.lab import make_clock, prepare, run, run_async
+from twin.core.errors import ClockError
+from twin.campaign.journal import read_events
+from twin.runtime.lab import make_clock, prepare, run, run_async
 from twin.scenario import parse
 
 pytestmark = pytest.mark.process

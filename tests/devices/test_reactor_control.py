@@ -11,8 +11,8 @@ from gymnasium.utils.env_checker import check_env
 from devices.models import thermal
 from devices.reactor import load_controller
 from devices.reactor_control import PolicyController, ReactorControlEnv, tracking
-from twin.lab import prepare
-from twin.workcell import open_workcell
+from twin.runtime.lab import prepare
+from twin.learning.workcell import open_workcell
 
 ROOT = Path(__file__).resolve().parents[2]
 POLICIES = ROOT / "devices" / "policies"
@@ -54,7 +54,7 @@ def test_the_reactor_driver_runs_a_trained_controller_in_the_workcell():
 
 
 def test_a_missing_controller_policy_names_the_file_and_the_fix():
-    from twin.errors import DriverError
+    from twin.core.errors import DriverError
 
     s = prepare(ROOT / "scenarios" / "catalyst.yaml", overrides={"devices.reactor.options.controller": "nope.zip"})
     with pytest.raises(DriverError, match="nope.zip.*twin train"):

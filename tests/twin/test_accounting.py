@@ -7,7 +7,7 @@ from pathlib import Path
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from twin.lab import run
+from twin.runtime.lab import run
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -7,9 +7,9 @@ import re
 import pytest
 
 from tests.conftest import qd_lab
-from twin.driver import StepResult
-from twin.journal import read_events
-from twin.lab import run
+from twin.device.driver import StepResult
+from twin.campaign.journal import read_events
+from twin.runtime.lab import run
 from twin.scenario import parse
 
 
@@ -67,7 +67,7 @@ class Partial(Raises):
 @pytest.mark.parametrize("cls, says", [("FromTheFuture", "driver API 2; this labtwin speaks 1"),
                                        ("Partial", "runs ['synthesise'], but the scenario asks it for ['measure']")])
 def test_version_and_capabilities_are_checked_at_load(tmp_path, cls, says):
-    from twin.errors import DriverError
+    from twin.core.errors import DriverError
 
     lab = qd_lab(**{"devices.spectrometer.driver": f"tests.twin.test_bad_drivers:{cls}"})
     with pytest.raises(DriverError, match=re.escape(says)):
@@ -80,9 +80,9 @@ class Healthy(Raises):
 
 
 async def test_a_device_answers_health_requests_with_its_drivers_report(virtual_clock):
-    from twin import keys
-    from twin.actor import DeviceActor
-    from twin.bus import open_bus
+    from twin.core import keys
+    from twin.device.actor import DeviceActor
+    from twin.core.bus import open_bus
 
     s = parse(qd_lab())
     bus = open_bus("memory", virtual_clock)

@@ -4,8 +4,8 @@ import asyncio
 
 import pytest
 
-from twin.bus import NoReplyError
-from twin.clock import LabClock
+from twin.core.bus import NoReplyError
+from twin.core.clock import LabClock
 
 
 def run(clock: LabClock, make_bus, body):

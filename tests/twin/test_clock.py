@@ -5,8 +5,8 @@ import time
 
 import pytest
 
-from twin.clock import LabClock
-from twin.errors import ClockError
+from twin.core.clock import LabClock
+from twin.core.errors import ClockError
 
 
 def test_sleepers_wake_in_deadline_order_at_exact_lab_times(virtual_clock):
@@ -97,7 +97,7 @@ def test_unknown_mode_is_refused():
 
 
 def test_virtual_clock_refuses_a_bus_spread_over_processes(virtual_clock):
-    from twin.bus.zenoh_bus import ZenohBus, ZenohOptions
+    from twin.core.bus.zenoh_bus import ZenohBus, ZenohOptions
 
     with pytest.raises(ClockError, match="--clock scaled"):
         ZenohBus(virtual_clock, ZenohOptions(connect=["tcp/127.0.0.1:7447"]))

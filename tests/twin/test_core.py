@@ -3,8 +3,8 @@
 from twin.campaign import (Ask, CampaignCore, Decided, DeviceMessage, Finished, Note, Presence, Proposed, Send,
                            SetTimer, TimerFired)
 from twin.campaign.events import TimerKey, TimerKind
-from twin.decisions import Assignment, Proposal
-from twin.messages import Kind
+from twin.campaign.decisions import Assignment, Proposal
+from twin.core.messages import Kind
 
 
 def notes(actions, kind=None):

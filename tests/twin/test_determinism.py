@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from twin.lab import run
+from twin.runtime.lab import run
 
 ROOT = Path(__file__).resolve().parents[2]
 

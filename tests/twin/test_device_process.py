@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from tests.conftest import qd_lab
-from twin.journal import read_events
-from twin.lab import make_clock, prepare, run_async
+from twin.campaign.journal import read_events
+from twin.runtime.lab import make_clock, prepare, run_async
 from twin.scenario import parse
 
 pytestmark = pytest.mark.process
@@ -83,8 +83,8 @@ def test_sigkilled_device_process_is_detected_and_its_work_moves(tmp_path):
 
 
 def test_virtual_clock_refuses_devices_in_other_processes(tmp_path):
-    from twin.clock import LabClock
-    from twin.errors import ClockError
+    from twin.core.clock import LabClock
+    from twin.core.errors import ClockError
 
     s = parse(qd_lab())
     clock = LabClock("virtual")

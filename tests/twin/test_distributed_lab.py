@@ -12,8 +12,8 @@ import yaml
 
 from tests.conftest import qd_lab
 from tests.twin.test_device_process import free_port
-from twin.journal import read_events
-from twin.lab import make_clock, prepare, run_async
+from twin.campaign.journal import read_events
+from twin.runtime.lab import make_clock, prepare, run_async
 
 pytestmark = pytest.mark.process
 ROOT = Path(__file__).resolve().parents[2]

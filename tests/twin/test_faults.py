@@ -2,10 +2,10 @@
 
 import json
 
-from twin import keys
-from twin.journal import read_events
-from twin.lab import run
-from twin.messages import Kind, pack
+from twin.core import keys
+from twin.campaign.journal import read_events
+from twin.runtime.lab import run
+from twin.core.messages import Kind, pack
 
 
 def attempts_of(db, task):
@@ -81,11 +81,11 @@ async def _duplicating_device(bus, clock, lab, name):
 
 def test_duplicate_and_late_results_are_recorded_never_double_counted(scenario_of, tmp_path):
 
-    from twin.bus import MemoryHub, MemoryBus
-    from twin.clock import LabClock
-    from twin.journal import Journal
+    from twin.core.bus import MemoryHub, MemoryBus
+    from twin.core.clock import LabClock
+    from twin.campaign.journal import Journal
     from twin.runtime import LiveCampaign
-    from twin.lab import make_planner, make_scheduler
+    from twin.runtime.lab import make_planner, make_scheduler
 
     s = scenario_of(**{"devices": {"dup": {"driver": "machine", "steps": ["op"], "duration": {"mean_s": 1}}},
                        "workflow": [{"step": "op", "device": "dup"}], "campaign.budget": 5})

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from twin.jobshop import read
-from twin.journal import read_events
-from twin.lab import run
+from twin.scenario.jobshop import read
+from twin.campaign.journal import read_events
+from twin.runtime.lab import run
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -53,7 +53,7 @@ def test_fifo_on_ft06_is_a_valid_schedule(tmp_path, bus):
 
 
 def test_a_malformed_instance_is_a_scenario_error(tmp_path):
-    from twin.errors import ScenarioError
+    from twin.core.errors import ScenarioError
 
     bad = tmp_path / "bad.txt"
     bad.write_text("2 2\n0 3 1\n")

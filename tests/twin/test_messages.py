@@ -5,12 +5,12 @@ import logging
 
 import pytest
 
-from twin import keys
-from twin.bus import MemoryBus, MemoryHub
-from twin.clock import LabClock
-from twin.journal import Journal, read_events
-from twin.lab import build_actors, load_drivers, make_planner, make_scheduler
-from twin.messages import InvalidMessage, Kind, decode, pack
+from twin.core import keys
+from twin.core.bus import MemoryBus, MemoryHub
+from twin.core.clock import LabClock
+from twin.campaign.journal import Journal, read_events
+from twin.runtime.lab import build_actors, load_drivers, make_planner, make_scheduler
+from twin.core.messages import InvalidMessage, Kind, decode, pack
 from twin.runtime import LiveCampaign
 
 

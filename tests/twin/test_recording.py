@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 
 from tests.rrd import read_rrd, series
-from twin.journal import read_events, read_experiments
-from twin.lab import run
-from twin.watch import RecordOptions
+from twin.campaign.journal import read_events, read_experiments
+from twin.runtime.lab import run
+from twin.view.watch import RecordOptions
 
 ROOT = Path(__file__).resolve().parents[2]
 TWIN = [sys.executable, "-m", "twin"]

@@ -12,9 +12,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from twin.journal import Journal, read_run
-from twin.lab import prepare, resume, run
-from twin.resume import ResumeError
+from twin.campaign.journal import Journal, read_run
+from twin.runtime.lab import prepare, resume, run
+from twin.runtime.resume import ResumeError
 
 ROOT = Path(__file__).resolve().parents[2]
 CAMPAIGNS = {"flaky_lab": {"campaign.budget": 30}, "quantum_dots": {"campaign.budget": 40}}

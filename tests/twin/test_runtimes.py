@@ -6,9 +6,9 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import qd_lab
-from twin.driver import StepResult
-from twin.errors import DriverError
-from twin.lab import run
+from twin.device.driver import StepResult
+from twin.core.errors import DriverError
+from twin.runtime.lab import run
 from twin.scenario import parse
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -69,7 +69,7 @@ def test_a_driver_that_awaits_asyncio_is_refused_by_the_fast_runtime_by_name(tmp
 
 
 def test_the_fast_runtime_refuses_what_only_a_bus_can_do(tmp_path):
-    from twin.errors import ClockError
+    from twin.core.errors import ClockError
 
     with pytest.raises(ClockError, match="the clock is scaled"):
         run(parse(qd_lab(clock={"mode": "scaled", "speed": 1e6})), journal=tmp_path / "j.db", runtime="fast")

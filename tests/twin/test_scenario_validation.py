@@ -8,8 +8,8 @@ import pytest
 import yaml
 
 from tests.conftest import qd_lab
-from twin.errors import DriverError, ScenarioError
-from twin.lab import load_driver
+from twin.core.errors import DriverError, ScenarioError
+from twin.runtime.lab import load_driver
 from twin.scenario import load
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -12,9 +12,9 @@ import yaml
 
 from tests.conftest import qd_lab
 from tests.twin.test_device_process import free_port
-from twin.decisions import Assignment
-from twin.journal import read_events
-from twin.lab import make_clock, prepare, run, run_async
+from twin.campaign.decisions import Assignment
+from twin.campaign.journal import read_events
+from twin.runtime.lab import make_clock, prepare, run, run_async
 
 ROOT = Path(__file__).resolve().parents[2]
 SPEED = 200.0

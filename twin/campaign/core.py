@@ -20,11 +20,10 @@ from twin.campaign.events import (Action, Ask, CancelTimer, Code, Decided, Devic
                                   InvalidInput, Note, Presence, Proposed, RecordExperiment, RecordMessage, Send,
                                   SetTimer, Status, Stop, TimerFired, TimerKey, TimerKind)
 from twin.campaign.ledger import Attempt, Counters, Device, Experiment, Task, check_accounting
-from twin.decisions import Outcome, Proposal, RouteStep
-from twin.driver import expected_duration
-from twin.messages import Kind
-from twin.scenario import Scenario
-from twin.targets import scores
+from twin.campaign.decisions import Outcome, Proposal, RouteStep
+from twin.core.messages import Kind
+from twin.scenario.model import Scenario, expected_duration
+from twin.scenario.targets import scores
 
 _ORDER = {DeviceMessage: 0, InvalidInput: 0, Presence: 1, TimerFired: 2, Stop: 3}
 
@@ -242,9 +241,9 @@ class CampaignCore:
                 limit = policy.deadline_s(att.task.expected_s, self.s.orchestrator)
                 self._resolve(att, Code.TIMED_OUT, {"reason": f"no result within {limit:.0f} lab-s"})
         elif kind == TimerKind.RETRY:
-            task = self._retrying.pop(key.ref, None)
-            if task is not None and not self.stopping:
-                self._make_ready(task.experiment, task)
+            waiting = self._retrying.pop(key.ref, None)
+            if waiting is not None and not self.stopping:
+                self._make_ready(waiting.experiment, waiting)
         elif kind == TimerKind.PROBE:
             dev = self.devices[key.ref]
             dev.quarantined = False

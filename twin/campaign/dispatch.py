@@ -6,7 +6,7 @@ from collections.abc import Iterable
 
 from twin.campaign import policy
 from twin.campaign.ledger import Device, Task
-from twin.decisions import Assignment, DeviceState, FreeDevice, LabView, ReadyStep
+from twin.campaign.decisions import Assignment, DeviceState, FreeDevice, LabView, ReadyStep
 
 
 def avoid_for(t: Task, devices: Iterable[Device]) -> frozenset[str]:
@@ -20,13 +20,13 @@ def pair_possible(ready: Iterable[Task], devices: dict[str, Device]) -> bool:
     """Whether some free device could take some ready step (cheaper than building the view)."""
     free: dict[str, set[str]] = {}
     for d in devices.values():
-        if d.free:
+        if d.online and not d.quarantined and d.attempt is None and d.cancelling is None:
             free.setdefault(d.type, set()).add(d.name)
     if not free:
         return False
     for t in ready:
         names = free.get(t.step.device)
-        if names and names - avoid_for(t, devices.values()):
+        if names and (not t.failed_on or names - avoid_for(t, devices.values())):
             return True
     return False
 

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
-from twin.decisions import Assignment, LabView, Outcome, Proposal
-from twin.messages import Kind
+from twin.campaign.decisions import Assignment, LabView, Outcome, Proposal
+from twin.core.messages import Kind
 
 
 class Status(StrEnum):

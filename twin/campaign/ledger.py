@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from twin.campaign.events import Status
-from twin.decisions import RouteStep
-from twin.errors import AccountingError
+from twin.campaign.decisions import RouteStep
+from twin.core.errors import AccountingError
 
 FINAL = (Status.DONE, Status.ABANDONED)
 

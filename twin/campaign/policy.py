@@ -6,8 +6,9 @@ attempt), so a decision never depends on how events interleaved.
 
 from __future__ import annotations
 
-import random
 from typing import Any
+
+from twin.core.streams import keyed_uniforms
 
 
 def deadline_s(expected_s: float, o: Any) -> float:
@@ -22,7 +23,7 @@ def may_retry(attempts: int, waited_s: float, retry: Any) -> bool:
 def backoff_s(retry: Any, attempts: int, seed: int, task: str) -> float:
     """Exponential back-off with jitter, drawn from the (seed, task, attempt) stream."""
     base = min(retry.backoff_max_s, retry.backoff_s * 2 ** (attempts - 1))
-    u = random.Random(f"{seed}:backoff:{task}:{attempts}").random()
+    u = keyed_uniforms(f"{seed}:backoff:{task}:{attempts}")[0]
     return base * (1 + retry.jitter * (2 * u - 1))
 
 

@@ -12,12 +12,12 @@ import itertools
 import json
 from typing import Any
 
-from twin import keys
-from twin.bus import Bus
+from twin.core import keys
+from twin.core.bus import Bus
 from twin.campaign import Note
-from twin.clock import LabClock
-from twin.journal import Journal, as_messages, decision_id
-from twin.messages import Kind, pack
+from twin.core.clock import LabClock
+from twin.campaign.journal import Journal, as_messages, decision_id
+from twin.core.messages import Kind, pack
 
 SENDER = "orchestrator"
 

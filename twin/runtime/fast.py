@@ -21,10 +21,10 @@ from typing import Any
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Proposed, RecordExperiment,
                            RecordMessage, Send, SetTimer, Stop, TimerFired)
 from twin.campaign.events import TimerKey
-from twin.decisions import Assignment, LabView, Planner, Scheduler
-from twin.errors import ClockError
-from twin.journal import Journal
-from twin.messages import Kind
+from twin.campaign.decisions import Assignment, LabView, Planner, Scheduler
+from twin.core.errors import ClockError
+from twin.campaign.journal import Journal
+from twin.core.messages import Kind
 from twin.runtime import journaling
 from twin.runtime.fast_device import FastDevice
 from twin.runtime.queue import EventQueue, Timer

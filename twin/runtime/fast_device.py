@@ -16,9 +16,10 @@ from collections.abc import Callable
 from typing import Any
 
 from twin.campaign import DeviceMessage, Presence
-from twin.driver import Driver, StepContext, seeded, simulated_faults
-from twin.errors import DriverError
-from twin.messages import Kind, envelope, to_wire
+from twin.core.streams import seeded
+from twin.device.driver import Driver, StepContext, feature, simulated_faults
+from twin.core.errors import DriverError
+from twin.core.messages import Kind, envelope, to_wire
 from twin.runtime.queue import EventQueue, Park, QueueClock, Sleep, Timer
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,7 @@ class FastDevice:
 
     # -- life cycle -------------------------------------------------------------------
     def start(self) -> None:
-        if getattr(self.driver, "connect", None) is not None:
+        if feature(self.driver, "connect") is not None:
             raise FastRuntimeRefused(f"{self.name}: its driver connects to an instrument of its own, which the "
                                      "fast runtime cannot wait for; use --runtime asyncio")
         self._set_online(True)
@@ -136,7 +137,7 @@ class FastDevice:
             clock=self._clock,  # type: ignore[arg-type]
             rng=self._step_rng,
             duration=spec.duration,
-            progress=lambda f, note="": self._emit(Kind.PROGRESS, {"fraction": f, "note": note}, task, attempt),
+            progress=lambda f, note: self._emit(Kind.PROGRESS, {"fraction": f, "note": note}, task, attempt),
             telemetry=lambda r: self._emit(Kind.TELEMETRY, {"readings": r}, task, attempt),
         )
         self._emit(Kind.ACCEPTED, {}, task, attempt)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from twin.campaign import Note, RecordExperiment, RecordMessage
-from twin.journal import Journal
+from twin.campaign.journal import Journal
 
 
 def note(journal: Journal, n: Note) -> int:

@@ -11,6 +11,7 @@ advances as soon as an event arrives.
 from __future__ import annotations
 
 import asyncio
+import functools
 import inspect
 import itertools
 import logging
@@ -18,15 +19,15 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from twin import keys
-from twin.bus import Bus
+from twin.core import keys
+from twin.core.bus import Bus
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, DeviceMessage, Finished, InvalidInput, Note,
                            Presence, Proposed, RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
 from twin.campaign.events import TimerKey
-from twin.clock import LabClock
-from twin.decisions import Planner, Scheduler
-from twin.journal import Journal
-from twin.messages import InvalidMessage, decode, pack
+from twin.core.clock import LabClock
+from twin.campaign.decisions import Planner, Scheduler
+from twin.campaign.journal import Journal
+from twin.core.messages import InvalidMessage, decode, pack
 from twin.runtime import journaling
 from twin.runtime.decision_stream import SENDER, DecisionStream
 from twin.scenario import Scenario
@@ -139,7 +140,7 @@ class LiveCampaign:
                 old = self._timers.pop(a.key, None)
                 if old is not None:
                     old.cancel()
-                self._timers[a.key] = self.clock.call_later(a.delay, lambda k=a.key: self._on_timer(k))
+                self._timers[a.key] = self.clock.call_later(a.delay, functools.partial(self._on_timer, a.key))
             elif t is CancelTimer:
                 handle = self._timers.pop(a.key, None)
                 if handle is not None:

@@ -110,7 +110,7 @@ class QueueClock:
         return Sleep(t_lab - self._q.now)
 
     def timeout(self, seconds: float | None) -> Any:
-        from twin.errors import ClockError
+        from twin.core.errors import ClockError
 
         raise ClockError("clock.timeout() is not available in the fast runtime: a driver takes no timeouts "
                          "(the orchestrator owns them); run with --runtime asyncio if it must")

@@ -1,0 +1,142 @@
+"""The run's journal: SQLite in WAL mode, one file per run.
+
+``events`` is append-only: every message received and every state change, in
+lab time. ``experiments`` holds one row per proposed experiment, rewritten as
+it moves. ``run`` holds the scenario, the seed and the final summary. Writes
+are buffered and committed in batches; ``close`` flushes everything.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sqlite3
+from pathlib import Path
+from typing import Any
+
+from twin.core.messages import to_wire
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS run (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS events (
+    seq INTEGER PRIMARY KEY, t_lab REAL NOT NULL, kind TEXT NOT NULL,
+    experiment INTEGER, task TEXT, attempt INTEGER, device TEXT, detail TEXT);
+CREATE TABLE IF NOT EXISTS experiments (
+    id INTEGER PRIMARY KEY, params TEXT NOT NULL, route TEXT NOT NULL, status TEXT NOT NULL,
+    reason TEXT NOT NULL, outputs TEXT, scores TEXT, attempts INTEGER NOT NULL,
+    retries INTEGER NOT NULL, degraded INTEGER NOT NULL, t_proposed REAL NOT NULL, t_done REAL);
+"""
+# rows buffered before a commit; LABTWIN_FLUSH_EVERY sets it (a test that kills runs wants small batches)
+FLUSH_EVERY = int(os.environ.get("LABTWIN_FLUSH_EVERY", 2000))
+
+
+class Journal:
+    FLUSH_EVERY = FLUSH_EVERY
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.label = str(path)  # how summaries name it
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.exists():
+            self.path.unlink()
+        self._db = sqlite3.connect(self.path)
+        self._db.execute("PRAGMA journal_mode=WAL")
+        self._db.execute("PRAGMA synchronous=NORMAL")
+        self._db.executescript(SCHEMA)
+        self._events: list[tuple] = []
+        self._experiments: dict[int, tuple] = {}
+        self._seq = 0
+        self.closed = False
+
+    def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
+              attempt: int | None = None, device: str | None = None, detail: Any = None) -> int:
+        """A state change; ``detail`` is stored as JSON. Returns the event's sequence number."""
+        self._append(t_lab, kind, experiment, task, attempt, device, None if detail is None else to_wire(detail).decode())
+        return self._seq
+
+    def message(self, t_lab: float, kind: str, experiment: int | None, task: str | None, attempt: int | None,
+                device: str | None, payload: bytes | dict) -> None:
+        """A message received, stored as the JSON it came as (an in-process envelope is encoded here)."""
+        text = payload.decode() if isinstance(payload, bytes) else to_wire(payload).decode()
+        self._append(t_lab, kind, experiment, task, attempt, device, text)
+
+    def _append(self, *row: Any) -> None:
+        self._seq += 1
+        self._events.append((self._seq, *row))
+        if len(self._events) >= self.FLUSH_EVERY:
+            self.flush()
+
+    def experiment(self, e: Any) -> None:
+        self._experiments[e.id] = (
+            e.id, json.dumps(e.params, sort_keys=True),
+            json.dumps([[s.step, s.device, s.params] for s in e.route]),
+            e.status, e.reason, json.dumps(e.outputs, sort_keys=True) if e.outputs else None,
+            json.dumps(e.scores, sort_keys=True) if e.scores else None,
+            e.attempts, e.retries, int(e.degraded), e.t_proposed, e.t_done,
+        )
+
+    def set(self, key: str, value: Any) -> None:
+        """A fact of the run (scenario, seed, summary), on disk at once: a run killed later can be resumed."""
+        self._db.execute("INSERT OR REPLACE INTO run VALUES (?, ?)", (key, json.dumps(value, default=str)))
+        self._db.commit()
+
+    def flush(self) -> None:
+        if self._events:
+            self._db.executemany("INSERT INTO events VALUES (?,?,?,?,?,?,?,?)", self._events)
+            self._events.clear()
+        if self._experiments:
+            self._db.executemany(
+                "INSERT OR REPLACE INTO experiments VALUES (?,?,?,?,?,?,?,?,?,?,?,?)", self._experiments.values()
+            )
+            self._experiments.clear()
+        self._db.commit()
+
+    def rows(self) -> list[dict[str, Any]]:
+        """The events written so far (flush first), as ``read_events`` returns them."""
+        cur = self._db.execute("SELECT * FROM events ORDER BY seq")
+        names = [c[0] for c in cur.description]
+        return [dict(zip(names, r)) for r in cur]
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.flush()
+        self._db.close()
+        self.closed = True
+
+
+def read_run(path: str | Path) -> dict[str, Any]:
+    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+        return {k: json.loads(v) for k, v in db.execute("SELECT key, value FROM run")}
+
+
+def read_experiments(path: str | Path) -> list[dict[str, Any]]:
+    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+        db.row_factory = sqlite3.Row
+        return [dict(r) for r in db.execute("SELECT * FROM experiments ORDER BY id")]
+
+
+def read_events(path: str | Path, kind_like: str = "%") -> list[dict[str, Any]]:
+    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+        db.row_factory = sqlite3.Row
+        rows = db.execute("SELECT * FROM events WHERE kind LIKE ? ORDER BY seq", (kind_like,))
+        return [dict(r) for r in rows]
+
+
+def decision_id(seq: int) -> str:
+    """The id of the decision message published with journal event ``seq``."""
+    return f"orchestrator:j{seq}"
+
+
+def decision_payload(row: dict[str, Any]) -> str:
+    """The decision message a state-change row was published as, rebuilt from the row."""
+    detail = {"experiment": row["experiment"], "task": row["task"], "attempt": row["attempt"],
+              "device": row["device"], "info": json.loads(row["detail"]) if row["detail"] else None}
+    return json.dumps({"v": 1, "kind": "decision", "id": decision_id(row["seq"]), "campaign": "",
+                       "task": row["task"] or "", "attempt": row["attempt"] or 0, "sender": "orchestrator",
+                       "t_lab": row["t_lab"], "body": {"what": row["kind"], "detail": detail}})
+
+
+def as_messages(rows: list[dict[str, Any]]) -> list[str]:
+    """The bus messages a run's events stand for, in journal order: what an observer saw."""
+    return [r["detail"] if r["kind"].startswith("msg.") else decision_payload(r) for r in rows]

@@ -1,0 +1,244 @@
+"""``twin run``, ``resume``, ``report``, ``watch``, ``replay``, ``validate``, ``schema``, ``devices``."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from twin.cli.common import _fail, app, console, err
+from twin.core import plugins
+from twin.runtime import lab
+from twin.core.errors import TwinError
+from twin.campaign.journal import read_run
+from twin.view.report import render_summary
+from twin.scenario import json_schema, load
+from twin.campaign.summary import Summary
+from twin.view.watch import RecordOptions, open_observer
+from twin.view.watch import replay as replay_journal
+from twin.view.watch import watch as watch_lab
+
+@app.command()
+def run(
+    scenario: Annotated[Path, typer.Argument(help="a scenario file, e.g. scenarios/quantum_dots.yaml")],
+    seed: Annotated[Optional[int], typer.Option(help="override campaign.seed")] = None,
+    clock: Annotated[Optional[str], typer.Option(help="virtual | scaled | wall")] = None,
+    speed: Annotated[Optional[float], typer.Option(help="lab seconds per wall second (scaled clock)")] = None,
+    bus: Annotated[Optional[str], typer.Option(help="zenoh | memory")] = None,
+    budget: Annotated[Optional[int], typer.Option(help="override campaign.budget")] = None,
+    planner: Annotated[Optional[str], typer.Option(help="override campaign.planner (twin bench planners lists them)")] = None,
+    scheduler: Annotated[Optional[str], typer.Option(help="override campaign.scheduler")] = None,
+    journal: Annotated[Optional[Path], typer.Option(help="where to write the SQLite journal")] = None,
+    external: Annotated[Optional[list[str]], typer.Option(help="a device served by another process")] = None,
+    listen: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447")] = None,
+    save: Annotated[Optional[Path], typer.Option(help="save a Rerun recording, e.g. run.rrd")] = None,
+    viewer: Annotated[bool, typer.Option(help="open the Rerun viewer and stream live")] = False,
+    serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1 (URL printed)")] = False,
+    serve_port: Annotated[int, typer.Option(help="gRPC port for --serve (0: any free one)")] = 0,
+    web_port: Annotated[int, typer.Option(help="web viewer port for --serve (0: any free one)")] = 0,
+    quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
+    json_out: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
+    runtime: Annotated[str, typer.Option(help="fast | asyncio | auto (fast for a virtual clock on the memory bus)")] = "auto",
+) -> None:
+    """Run a campaign and print its summary."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    overrides: dict = {f"campaign.{k}": v for k, v in (("budget", budget), ("planner", planner),
+                                                        ("scheduler", scheduler)) if v is not None}
+    if listen:
+        overrides["bus.listen"] = list(listen)
+    record = RecordOptions(save, viewer, serve, serve_port, web_port)
+    try:
+        s = lab.prepare(scenario, seed=seed, clock=clock, speed=speed, bus=bus, overrides=overrides)
+    except TwinError as exc:
+        _fail(exc)
+    _campaign(s, record, quiet, json_out, lambda on_progress, observer: lab.run(
+        s, journal=journal, external_devices=set(external or ()), on_progress=on_progress, observer=observer,
+        runtime=runtime))
+
+
+@app.command()
+def resume(
+    journal: Annotated[Path, typer.Argument(help="the journal of a killed run, runs/<run>.db")],
+    save: Annotated[Optional[Path], typer.Option(help="save a Rerun recording, e.g. run.rrd")] = None,
+    viewer: Annotated[bool, typer.Option(help="open the Rerun viewer and stream live")] = False,
+    serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1 (URL printed)")] = False,
+    serve_port: Annotated[int, typer.Option(help="gRPC port for --serve (0: any free one)")] = 0,
+    web_port: Annotated[int, typer.Option(help="web viewer port for --serve (0: any free one)")] = 0,
+    quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
+    json_out: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
+    runtime: Annotated[str, typer.Option(help="fast | asyncio | auto")] = "auto",
+) -> None:
+    """Continue a killed virtual-time campaign from its journal; the journal ends as if never killed."""
+    from twin.runtime.resume import recorded
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        s, prefix = recorded(journal)
+    except TwinError as exc:
+        _fail(exc)
+    if not (quiet or json_out):
+        err.print(f"resuming {journal}: {len(prefix)} recorded events are checked as the campaign re-runs",
+                  highlight=False)
+    _campaign(s, RecordOptions(save, viewer, serve, serve_port, web_port), quiet, json_out,
+              lambda on_progress, observer: lab.resume(journal, on_progress=on_progress, observer=observer,
+                                                       runtime=runtime))
+
+
+def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> None:
+    """Run ``call(on_progress, observer)`` under a progress bar and a recording, and print its summary."""
+    recording = None
+    try:
+        observer = None
+        if record.wanted:
+            observer, recording = open_observer(record, lab.recording_id(s))
+            for message in recording.messages:
+                err.print(message, highlight=False)
+        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                            TextColumn("lab {task.fields[lab_h]:.1f} h"), TimeElapsedColumn(),
+                            console=err, disable=quiet or json_out, transient=False)
+        with progress:
+            bar = progress.add_task(f"{s.name} ({s.clock.mode} clock, {s.bus.kind} bus)",
+                                    total=s.campaign.budget, lab_h=0.0)
+
+            def on_progress(core) -> None:
+                progress.update(bar, completed=core.finished_count, lab_h=core.elapsed_s / 3600)
+
+            summary = call(on_progress, observer)
+    except TwinError as exc:
+        if recording is not None:
+            recording.stop_serving()
+        _fail(exc)
+    if json_out:
+        print(json.dumps(summary.to_dict(), indent=2))
+    else:
+        render_summary(summary, console)
+    if recording is not None:
+        recording.close()
+        if record.save:
+            err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
+        _keep_serving(recording)
+
+
+def _keep_serving(recording) -> None:
+    """--serve: the recording stays up until Ctrl-C, so it can be looked at after the run."""
+    if recording.server is None:
+        return
+    err.print(f"the finished campaign is served at {recording.url} — Ctrl-C to stop", highlight=False)
+    try:
+        recording.server.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        recording.stop_serving()
+
+
+@app.command()
+def watch(
+    lab_name: Annotated[str, typer.Option("--lab", help="the lab to watch (the scenario's `lab` field)")],
+    connect: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")] = None,
+    listen: Annotated[Optional[list[str]], typer.Option(help="listen instead, for a lab that connects to us")] = None,
+    save: Annotated[Optional[Path], typer.Option(help="save the recording, e.g. watch.rrd")] = None,
+    viewer: Annotated[bool, typer.Option(help="open the Rerun viewer")] = False,
+    serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,
+    follow: Annotated[bool, typer.Option(help="keep watching after the campaign ends")] = False,
+) -> None:
+    """Attach to a lab running in another process and record what it does."""
+    if not (connect or listen):
+        _fail(TwinError("give --connect ENDPOINT (where the lab listens: twin run --listen ...) or --listen ENDPOINT"))
+    record = RecordOptions(save, viewer, serve)
+    if not record.wanted:
+        _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
+    try:
+        observer = watch_lab(lab_name, record, list(connect or []), list(listen or []), follow)
+    except TwinError as exc:
+        _fail(exc)
+    err.print(f"recorded {observer.spectra} spectra, {observer.finished} finished experiments"
+              + (f" to {save}" if save else ""), highlight=False)
+
+
+@app.command()
+def replay(
+    journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<run>.db")],
+    save: Annotated[Optional[Path], typer.Option(help="save the rebuilt recording, e.g. replay.rrd")] = None,
+    viewer: Annotated[bool, typer.Option(help="open the Rerun viewer")] = False,
+    serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,
+) -> None:
+    """Rebuild a run's Rerun recording from its journal alone."""
+    record = RecordOptions(save, viewer, serve)
+    if not record.wanted:
+        _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
+    try:
+        observer = replay_journal(journal, record)
+    except TwinError as exc:
+        _fail(exc)
+    err.print(f"replayed {observer.spectra} spectra, {observer.finished} finished experiments"
+              + (f" to {save}" if save else ""), highlight=False)
+
+
+@app.command()
+def validate(files: Annotated[list[Path], typer.Argument(help="scenario files")]) -> None:
+    """Check scenario files; every problem names its file, field and value."""
+    bad = 0
+    for f in files:
+        try:
+            s = load(f)
+            for dtype in s.devices:
+                lab.load_driver(s, dtype, dtype)
+            lab.make_planner(s)
+            lab.make_scheduler(s)
+        except TwinError as exc:
+            bad += 1
+            err.print(f"[red]✗[/] {exc}", highlight=False)
+        else:
+            console.print(f"[green]✓[/] {f}")
+    if bad:
+        raise typer.Exit(2)
+
+
+@app.command()
+def schema() -> None:
+    """Print the JSON Schema of scenario files (for editors)."""
+    print(json.dumps(json_schema(), indent=2))
+
+
+@app.command()
+def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<run>.db")]) -> None:
+    """Print a finished run's summary again from its journal."""
+    if not journal.exists():
+        _fail(TwinError(f"{journal}: no such journal; runs are written to runs/ by default"))
+    data = read_run(journal)
+    if "summary" not in data:
+        from twin.runtime.resume import interrupted
+
+        got = interrupted(journal)
+        shown = {"pending": "not finished", "running": "not finished"}
+        counts: dict[str, int] = {}
+        for status, n in got["experiments"].items():
+            counts[shown.get(status, status)] = counts.get(shown.get(status, status), 0) + n
+        states = ", ".join(f"{n} {status}" for status, n in sorted(counts.items())) or "none proposed yet"
+        console.print(f"{journal}: interrupted — the run of {got['scenario']} was killed before it finished. It got "
+                      f"to {got['lab_hours']:.2f} lab-h with {got['events']} events on disk; experiments: {states}. "
+                      f"Continue it with: twin resume {journal}",
+                      highlight=False, soft_wrap=True)
+        return
+    render_summary(Summary.from_dict(data["summary"]), console)
+
+
+@app.command()
+def devices() -> None:
+    """List the installed device drivers: name, where from, package and version, capabilities."""
+    from rich.table import Table
+
+    table = Table("driver", "class", "package", "version", "runs")
+    for name, ep in sorted(plugins.installed("devices").items()):
+        try:
+            caps = getattr(ep.load(), "capabilities", None)
+            runs = ", ".join(sorted(caps)) if isinstance(caps, (set, frozenset)) else "what options.steps says"
+        except Exception as exc:  # a broken plugin is listed, not fatal
+            runs = f"[red]failed to load: {exc}[/]"
+        table.add_row(name, ep.value, ep.dist.name if ep.dist else "?", ep.dist.version if ep.dist else "?", runs)
+    console.print(table)

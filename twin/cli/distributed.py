@@ -1,0 +1,93 @@
+"""The commands for a lab spread over processes: device and scheduler serving, the router, new drivers."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from twin.cli.common import _fail, app, console, device_app, driver_app, scheduler_app
+from twin.core.errors import TwinError
+
+
+def _serving(serve, *args) -> None:
+    """Run a serve function with INFO logging; its errors end the command with one clear line."""
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        serve(*args)
+    except TwinError as exc:
+        _fail(exc)
+
+
+@device_app.command("serve")
+def device_serve(
+    scenario: Annotated[Path, typer.Argument(help="the scenario the device belongs to")],
+    name: Annotated[str, typer.Option("--id", help="the device instance, e.g. spectrometer-2")],
+    connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
+    clock: Annotated[str, typer.Option(help="scaled | wall (the lab's clock)")] = "wall",
+    speed: Annotated[float, typer.Option(help="lab seconds per wall second")] = 1.0,
+) -> None:
+    """Serve one device actor of a scenario in this process until SIGINT/SIGTERM."""
+    from twin.runtime.serve import serve_device
+
+    _serving(serve_device, scenario, name, connect, clock, speed)
+
+
+
+@driver_app.command("new")
+def driver_new(
+    name: Annotated[str, typer.Argument(help="the driver's name, e.g. acme-hplc (also the package's)")],
+    directory: Annotated[Path, typer.Option("--dir", help="where to create the package")] = Path("."),
+) -> None:
+    """Scaffold a pip-installable driver package (entry point, driver, test, demo scenario)."""
+    from twin.tools.scaffold import scaffold
+
+    try:
+        root = scaffold(name, directory)
+    except TwinError as exc:
+        _fail(exc)
+    console.print(f"created {root}\n  next: pip install -e {root}  (then `twin devices` lists {name})\n"
+                  f"        python -m pytest {root / 'tests'}", highlight=False)
+
+
+@app.command()
+def router(
+    listen: Annotated[list[str], typer.Option(help="endpoint(s) to listen on, e.g. tcp/127.0.0.1:7447")],
+    lease_ms: Annotated[int, typer.Option(help="how long a silent peer is kept, ms (a frozen process is seen after it)")] = 1000,
+    zenoh_config: Annotated[Optional[list[str]], typer.Option("--config", help="extra Zenoh config PATH=JSON5 "
+                                                                "(TLS etc.), e.g. transport/link/tls/root_ca_certificate=\"ca.pem\"")] = None,
+) -> None:
+    """A Zenoh router for a lab spread over processes or hosts (devices and labs --connect to it)."""
+    import json as _json
+
+    from twin.core.bus.zenoh_bus import run_router
+
+    extra = {}
+    for item in zenoh_config or []:
+        path, sep, value = item.partition("=")
+        if not sep:
+            _fail(TwinError(f"--config {item!r}: expected PATH=JSON5, e.g. transport/link/tx/lease=2000"))
+        try:
+            extra[path] = _json.loads(value)
+        except ValueError:
+            extra[path] = value
+    try:
+        run_router(listen, lease_ms, extra, ready=lambda line: print(line, flush=True))
+    except TwinError as exc:
+        _fail(exc)
+
+
+@scheduler_app.command("serve")
+def scheduler_serve(
+    scenario: Annotated[Path, typer.Argument(help="the scenario of the lab to schedule")],
+    scheduler: Annotated[str, typer.Option(help="rl:POLICY.zip or a rule (fifo, spt, mwkr, least-loaded, ...)")],
+    connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
+    clock: Annotated[str, typer.Option(help="scaled | wall (the lab's clock)")] = "wall",
+    speed: Annotated[float, typer.Option(help="lab seconds per wall second")] = 1.0,
+) -> None:
+    """Serve scheduling decisions to a lab whose campaign.scheduler is `remote`, until SIGINT/SIGTERM."""
+    from twin.runtime.serve import serve_scheduler
+
+    _serving(serve_scheduler, scenario, scheduler, connect, clock, speed)

@@ -1,0 +1,163 @@
+"""`twin train` and `twin bench`: training agents in the twin and comparing them over seeds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from twin.core import plugins
+from twin.runtime import lab
+from twin.cli.common import _fail, app, bench_app, console, err
+from twin.core.errors import TwinError
+from twin.tools.planner_bench import DEFAULT_PLANNERS
+
+
+@app.command()
+def train(
+    scenario: Annotated[Path, typer.Argument(help="the scenario to train in, e.g. scenarios/quantum_dots.yaml")],
+    out: Annotated[Path, typer.Option(help="where to save the policy (.zip, with a .json beside it)")],
+    agent: Annotated[str, typer.Option(help="scheduler (the rl scheduler), planner (the rl planner), "
+                                            "controller or controller-residual (the reactor's heater)")] = "scheduler",
+    steps: Annotated[int, typer.Option(help="environment steps")] = 200_000,
+    seed: Annotated[int, typer.Option(help="training seed")] = 0,
+    envs: Annotated[int, typer.Option(help="environments stepped together")] = 4,
+    eval_every: Annotated[int, typer.Option(help="evaluate (and keep the best policy) every this many steps")] = 20_000,
+    save: Annotated[Optional[Path], typer.Option(help="also record the evaluation curve to Rerun, e.g. curve.rrd")] = None,
+    viewer: Annotated[bool, typer.Option(help="show the evaluation curve live in the Rerun viewer")] = False,
+) -> None:
+    """Train an agent in the twin; the evaluation curve is printed as it goes (and recorded to Rerun if asked)."""
+    try:
+        s = lab.prepare(scenario)
+        trainer = plugins.load("trainers", agent)
+    except TwinError as exc:
+        _fail(exc)
+    recording = None
+    if save or viewer:
+        from twin.view.recorder import log_curve, open_recording
+
+        recording = open_recording(f"train-{agent}-{s.name}", save=save, viewer=viewer, campaign_layout=False)
+        for message in recording.messages:
+            err.print(message, highlight=False)
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                        console=err)
+
+    def report(done: int, result: dict | None) -> None:
+        progress.update(bar, completed=done)
+        if result:
+            fields = "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
+                               for k, v in result.items() if k != "policy")
+            if recording is not None:
+                numbers = {k: v for k, v in result.items() if isinstance(v, (int, float))}
+                log_curve(recording, done, numbers, f"training/{result['policy'].split(':')[0].replace(' ', '_')}")
+            progress.console.print(f"{done:>9,} steps  {result['policy']:14} {fields}", highlight=False)
+
+    with progress:
+        bar = progress.add_task(f"training the {agent} on {s.name}", total=steps)
+        try:
+            path = trainer(s, steps, out, seed=seed, envs=envs, eval_every=eval_every, on_progress=report)
+        except (TwinError, ValueError) as exc:
+            _fail(TwinError(str(exc)))
+        except KeyboardInterrupt:
+            progress.stop()
+            kept = out.with_suffix(".zip")
+            err.print(f"interrupted; {'the best policy so far is ' + str(kept) if kept.exists() else 'no policy saved yet'}",
+                      highlight=False)
+            raise typer.Exit(130) from None
+        finally:
+            if recording is not None:
+                recording.close()
+    console.print(f"saved {path} (and {path.with_suffix('.json').name})")
+
+
+@bench_app.command("planners")
+def bench_planners(
+    scenario: Annotated[Path, typer.Argument(help="a scenario with targets, e.g. scenarios/quantum_dots.yaml")],
+    seeds: Annotated[int, typer.Option(help="seeds per planner")] = 20,
+    planners: Annotated[str, typer.Option(help="comma-separated; name~seq runs one experiment at a time")] = ",".join(DEFAULT_PLANNERS),
+    workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
+    budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget (a larger one censors less)")] = None,
+) -> None:
+    """Experiments and lab-hours to target (median [IQR]) for each planner over many seeds, vs random."""
+    from rich.table import Table
+
+    from twin.tools.planner_bench import HEADER, bench, rows
+
+    names = [p.strip() for p in planners.split(",") if p.strip()]
+    try:
+        s = lab.prepare(scenario)
+        for name in names:
+            lab.make_planner(s.model_copy(update={"campaign": s.campaign.model_copy(update={"planner": name.split("~")[0]})}))
+    except TwinError as exc:
+        _fail(exc)
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                        console=err)
+    with progress:
+        bar = progress.add_task(f"{s.name}: {len(names)} planners × {seeds} seeds", total=len(names) * seeds)
+        results = bench(scenario, names, seeds, workers, on_trial=lambda t: progress.advance(bar), budget=budget)
+    table = Table(title=f"{s.name} — {seeds} seeds, budget {budget or s.campaign.budget}, "
+                        f"{s.campaign.max_in_flight} in the lab; medians [IQR]; ≥: censored by the budget",
+                  title_justify="left")
+    for h in HEADER:
+        table.add_column(h)
+    for row in rows(results):
+        table.add_row(*row)
+    console.print(table)
+
+
+@bench_app.command("schedulers")
+def bench_schedulers(
+    scenario: Annotated[Path, typer.Argument(help="a scenario, e.g. scenarios/flaky_lab.yaml or scenarios/jobshop.yaml")],
+    seeds: Annotated[int, typer.Option(help="seeds per scheduler (a deterministic job shop runs once)")] = 20,
+    schedulers: Annotated[str, typer.Option(help="comma-separated: rules, cp-sat, rl:POLICY.zip")] = "fifo,spt,mwkr,least-loaded,oldest-sample",
+    jobshop: Annotated[Optional[str], typer.Option(help="job-shop files to run instead of the scenario's, comma-separated "
+                                                       "(e.g. jobshop/la01.txt,jobshop/ft10.txt)")] = None,
+    workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
+    budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", help="override a scenario field, e.g. "
+                                                      "devices.reactor.instances=1 (another lab shape); repeatable")] = None,
+) -> None:
+    """Makespan, gap to the CP-SAT bound, utilisation, degraded and lost samples, decision latency per scheduler."""
+    from rich.table import Table
+
+    from twin.tools.scheduler_bench import HEADER, bench, bound, load_variant, rows
+
+    names = [p.strip() for p in schedulers.split(",") if p.strip()]
+    files = [f.strip() for f in jobshop.split(",")] if jobshop else [None]
+    for file in files:
+        try:
+            s = load_variant(scenario, file, budget, _assignments(set_ or []))
+            for name in names:
+                lab.make_scheduler(s, name)
+        except TwinError as exc:
+            _fail(exc)
+        optimum = bound(s)
+        title = f"{Path(file).stem if file else s.name}"
+        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                            TimeElapsedColumn(), console=err)
+        with progress:
+            bar = progress.add_task(f"{title}: {len(names)} schedulers", total=len(names) * (1 if s.jobshop else seeds))
+            results = bench(s, names, seeds, workers, on_run=lambda r: progress.advance(bar))
+        runs = len(next(iter(results.values())))
+        table = Table(title=f"{title} — {runs} run(s) per scheduler" + (f"; CP-SAT bound {optimum:.0f} lab-s" if optimum else ""),
+                      title_justify="left")
+        for h in HEADER:
+            table.add_column(h)
+        for row in rows(results, optimum, 1.0 if s.jobshop else 3600.0):
+            table.add_row(*row)
+        console.print(table)
+
+
+def _assignments(items: list[str]) -> dict:
+    """``["a.b=1", "c=x"]`` → ``{"a.b": 1, "c": "x"}`` (values read as YAML)."""
+    import yaml
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            _fail(TwinError(f"--set {item!r}: expected FIELD=VALUE, e.g. devices.reactor.instances=1"))
+        out[key.strip()] = yaml.safe_load(value)
+    return out

@@ -1,0 +1,71 @@
+"""The bus contract every implementation passes (tests/twin/test_bus_contract.py).
+
+Handlers are plain functions called on the event loop's thread, one call per
+delivered message, in publish order per sender. They must not block: push the
+payload to a queue or start a task.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Awaitable, Callable
+from functools import lru_cache
+from typing import Protocol
+
+from twin.core.errors import BusError
+
+Handler = Callable[[str, bytes], None]
+#: ``alive`` is True when a token appears (or already exists), False when it goes.
+TokenHandler = Callable[[str, bool], None]
+Replier = Callable[[str, bytes], Awaitable[bytes]]
+
+
+class Closable(Protocol):
+    def close(self) -> None: ...
+
+
+class NoReplyError(BusError):
+    """A request found no replier, or none answered in time."""
+
+
+class Bus(Protocol):
+    """Publish/subscribe with wildcards, request/reply, and presence tokens."""
+
+    async def start(self) -> None: ...
+
+    async def close(self) -> None: ...
+
+    def publish(self, key: str, payload: bytes) -> None: ...
+
+    def subscribe(self, keyexpr: str, handler: Handler) -> Closable: ...
+
+    def serve(self, keyexpr: str, replier: Replier) -> Closable: ...
+
+    async def request(self, key: str, payload: bytes, timeout: float) -> bytes: ...
+
+    def declare_token(self, key: str) -> Closable: ...
+
+    def watch_tokens(self, keyexpr: str, handler: TokenHandler) -> Closable: ...
+
+
+def _chunk_matches(pattern: str, chunk: str) -> bool:
+    if pattern in ("*", chunk):
+        return True
+    if "*" not in pattern:
+        return False
+    return re.fullmatch(re.escape(pattern).replace(r"\*", ".*"), chunk) is not None
+
+
+@lru_cache(maxsize=65536)
+def key_matches(keyexpr: str, key: str) -> bool:
+    """Zenoh key-expression matching of a concrete ``key``: ``*`` is one chunk, ``**`` any number."""
+    pat, chunks = keyexpr.split("/"), key.split("/")
+
+    def match(i: int, j: int) -> bool:
+        if i == len(pat):
+            return j == len(chunks)
+        if pat[i] == "**":
+            return match(i + 1, j) or (j < len(chunks) and match(i, j + 1))
+        return j < len(chunks) and _chunk_matches(pat[i], chunks[j]) and match(i + 1, j + 1)
+
+    return match(0, 0)

@@ -1,0 +1,178 @@
+"""The device actor: a driver on the bus, with presence and simulated faults.
+
+The actor owns messaging (commands in; accepted, progress, result and fault
+out), its liveliness token, and the faults a scenario declares: a step that
+fails, a step that hangs until cancelled, and crashes (the device vanishes
+from the bus, token and all, and comes back after ``restart_s``). The driver
+only does the work.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import logging
+from typing import Any
+
+from twin.core import keys
+from twin.core.bus import Bus, Closable
+from twin.core.clock import LabClock, wait_cancelled
+from twin.core.streams import seeded
+from twin.device.driver import Driver, StepContext, feature, simulated_faults
+from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack
+
+log = logging.getLogger(__name__)
+
+
+class DeviceActor:
+    def __init__(self, name: str, spec: Any, driver: Driver, bus: Bus, clock: LabClock, lab: str, seed: int) -> None:
+        self.name, self.spec, self.driver = name, spec, driver
+        self._bus, self._clock, self._lab = bus, clock, lab
+        self._seed = seed
+        self._crash_rng, _ = seeded(seed, "crashes", name)
+        _, self._step_rng = seeded(seed, "steps", name)
+        self._ids = itertools.count(1)
+        self._evt_key = keys.evt(lab, name)
+        self._job: asyncio.Task | None = None
+        self._current: tuple[str, int] | None = None
+        self._cancel_reason = ""
+        self._sub: Closable | None = None
+        self._token: Closable | None = None
+        self._health: Closable | None = None
+        self._crasher: asyncio.Task | None = None
+        self.dropped = 0
+
+    # -- life cycle -------------------------------------------------------
+    async def start(self) -> None:
+        self._health = self._bus.serve(keys.health(self._lab, self.name), self._report_health)
+        connect = feature(self.driver, "connect")
+        if connect is not None:  # an instrument with presence of its own (MQTT last will, say)
+            await connect(self._instrument_presence)
+        else:
+            self._online()
+        if self.spec.faults.mtbc_h > 0:
+            self._crasher = asyncio.ensure_future(self._crash_loop())
+
+    async def stop(self) -> None:
+        if self._crasher:
+            await wait_cancelled(self._crasher)
+        if self._job is not None:
+            self._cancel_reason = "stop"
+            await wait_cancelled(self._job)
+        await self.driver.safe_state()
+        self._offline()
+        if self._health is not None:
+            self._health.close()
+        disconnect = feature(self.driver, "disconnect")
+        if disconnect is not None:
+            await disconnect()
+
+    async def _report_health(self, key: str, payload: bytes) -> bytes:
+        """``labtwin/<lab>/dev/<name>/health``: the actor's state and, if it has ``health()``, the driver's."""
+        report: dict = {"device": self.name, "on_bus": self._token is not None,
+                        "running": list(self._current) if self._current else None}
+        check = feature(self.driver, "health")
+        if check is not None:
+            try:
+                report["driver"] = await check()
+            except Exception as exc:  # a failing health check is itself the answer
+                report["driver"] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
+        return json.dumps(report).encode()
+
+    def _instrument_presence(self, present: bool) -> None:
+        """The driver's instrument came or went: the device's presence on the bus follows it."""
+        if present and self._token is None:
+            log.info("%s: instrument present", self.name)
+            self._online()
+        elif not present and self._token is not None:
+            log.warning("%s: instrument gone; leaving the bus", self.name)
+            self._offline()
+            if self._job is not None:
+                self._cancel_reason = "lost"
+                self._job.cancel()
+
+    def _online(self) -> None:
+        self._sub = self._bus.subscribe(keys.cmd(self._lab, self.name), self._on_cmd)
+        self._token = self._bus.declare_token(keys.alive(self._lab, self.name))
+
+    def _offline(self) -> None:
+        for handle in (self._sub, self._token):
+            if handle is not None:
+                handle.close()
+        self._sub = self._token = None
+
+    async def _crash_loop(self) -> None:
+        faults = self.spec.faults
+        while True:
+            await self._clock.sleep(self._crash_rng.expovariate(1.0 / (faults.mtbc_h * 3600)))
+            log.info("%s crashed at t=%.0f s", self.name, self._clock.now())
+            self._offline()
+            if self._job is not None:
+                self._cancel_reason = "crash"
+                await wait_cancelled(self._job)
+            await self._clock.sleep(faults.restart_s)
+            self._online()
+
+    # -- messages ---------------------------------------------------------
+    def _emit(self, kind: Kind, body: dict, task: str, attempt: int, campaign: str, key: str | None = None) -> None:
+        self._bus.publish(
+            key or self._evt_key,
+            pack(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name,
+                 t_lab=self._clock.now(), campaign=campaign, task=task, attempt=attempt),
+        )
+
+    def _on_cmd(self, key: str, payload: bytes) -> None:
+        try:
+            env, body = decode(payload, sender_hint=key)
+        except InvalidMessage as exc:
+            self.dropped += 1
+            log.warning("%s dropped a message: %s", self.name, exc)
+            return
+        if env.kind == Kind.COMMAND:
+            if self._job is not None:
+                self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, env.task, env.attempt, env.campaign)
+                return
+            self._current = (env.task, env.attempt)
+            self._job = asyncio.ensure_future(self._run(env.task, env.attempt, env.campaign, body))  # type: ignore[arg-type]
+        elif env.kind == Kind.CANCEL and self._current == (env.task, env.attempt) and self._job:
+            self._cancel_reason = "cancel"
+            self._job.cancel()
+
+    async def _run(self, task: str, attempt: int, campaign: str, cmd: CommandBody) -> None:
+        spec, faults = self.spec, self.spec.faults
+
+        def emit(kind: Kind, body: dict, key: str | None = None) -> None:
+            self._emit(kind, body, task, attempt, campaign, key)
+
+        ctx = StepContext(
+            clock=self._clock,
+            rng=self._step_rng,
+            duration=spec.duration,
+            progress=lambda f, note: emit(Kind.PROGRESS, {"fraction": f, "note": note}),
+            telemetry=lambda r: emit(Kind.TELEMETRY, {"readings": r}, keys.telemetry(self._lab, self.name)),
+        )
+        emit(Kind.ACCEPTED, {})
+        try:
+            hang, fail = simulated_faults(self._seed, task, attempt, faults)
+            await self._clock.sleep(spec.setup_s)
+            if hang:
+                await asyncio.Event().wait()  # only a cancel (a timeout) ends a hung step
+            result = await self.driver.run(cmd.step, cmd.params, cmd.sample, ctx)
+            await self._clock.sleep(spec.clean_s)
+            if fail:
+                emit(Kind.FAULT, {"code": "failed", "reason": f"{cmd.step} failed on {self.name} (simulated)"})
+            else:
+                emit(Kind.RESULT, {"outputs": result.outputs, "sample": result.sample})
+        except asyncio.CancelledError:
+            if self._cancel_reason == "cancel":
+                await self.driver.safe_state()
+                emit(Kind.FAULT, {"code": "cancelled", "reason": f"{cmd.step} cancelled on {self.name}"})
+            else:
+                raise
+        except Exception as exc:  # a driver bug must never take the actor down
+            log.warning("%s: driver raised during %s: %r", self.name, cmd.step, exc)
+            await self.driver.safe_state()
+            emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(exc).__name__}: {exc}"})
+        finally:
+            self._job, self._current, self._cancel_reason = None, None, ""

@@ -1,0 +1,105 @@
+"""The driver contract: what a device does, without its messaging, timeouts or faults.
+
+A driver runs one step at a time. It takes no ``timeout=``: the orchestrator
+owns deadlines and cancels the step (an ``asyncio.CancelledError`` inside
+``run``), after which the runtime calls ``safe_state``. Raise ``DriverError``
+(or anything) to report a failed step; the runtime turns it into a fault.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from twin.core.clock import Clock
+from twin.core.streams import keyed_uniforms
+
+DRIVER_API = 1  # a driver may say which it was written for: ``labtwin_api = 1``
+
+
+@dataclass
+class DriverSetup:
+    """What a driver is built from: its scenario entry, the chemistry, and its seeds."""
+
+    name: str
+    device_type: str
+    options: dict[str, Any]
+    chemistry: Any  # twin.scenario.Chemistry
+    duration: Any  # twin.scenario.Duration
+    seed: int
+
+
+@dataclass
+class StepResult:
+    outputs: dict[str, Any] = field(default_factory=dict)
+    sample: dict[str, Any] | None = None
+
+
+@dataclass
+class StepContext:
+    """What a running step may use: lab time, randomness, and ways to report."""
+
+    clock: Clock
+    rng: np.random.Generator
+    duration: Any  # twin.scenario.Duration
+    progress: Callable[[float, str], None]
+    telemetry: Callable[[dict[str, float]], None]
+
+    def draw_duration(self, params: dict[str, Any]) -> float:
+        """A lognormal draw around the scenario's mean, plus the parameter it names."""
+        d = self.duration
+        base = d.mean_s
+        if base > 0 and d.cv > 0:
+            sigma = math.sqrt(math.log(1 + d.cv**2))
+            base = float(self.rng.lognormal(math.log(base) - sigma**2 / 2, sigma))
+        extra = float(params.get(d.plus_param, 0.0)) if d.plus_param else 0.0
+        return base + extra
+
+
+class Driver(Protocol):
+    capabilities: frozenset[str]
+
+    async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult: ...
+
+    async def safe_state(self) -> None: ...
+
+
+class DriverFeatures(Protocol):
+    """What a driver may add to ``Driver``; each is optional, and ``feature`` finds it (or None).
+
+    ``labtwin_api``: the driver API it was written for. ``realtime``: it talks to a real instrument
+    (refuses a virtual clock). ``connect(presence)``/``disconnect()``: an instrument with a connection
+    and a presence of its own. ``health()``: what the device's health key reports about it.
+    """
+
+    labtwin_api: int
+    realtime: bool
+
+    async def connect(self, presence: Callable[[bool], None]) -> None: ...
+
+    async def disconnect(self) -> None: ...
+
+    async def health(self) -> dict[str, Any]: ...
+
+
+FEATURES = frozenset({"labtwin_api", "realtime", "connect", "disconnect", "health"})
+
+
+def feature(driver: Any, name: str) -> Any:
+    """The driver's optional feature ``name`` (one of ``DriverFeatures``), or None."""
+    if name not in FEATURES:
+        raise ValueError(f"{name!r} is not a driver feature: {sorted(FEATURES)}")
+    return getattr(driver, name, None)
+
+
+def simulated_faults(seed: int, task: str, attempt: int, faults: Any) -> tuple[bool, bool]:
+    """Whether this attempt hangs, and whether it fails: drawn from the (seed, task, attempt) stream,
+    so the draw does not depend on which device runs it or what ran before."""
+    if not (faults.hang_p > 0 or faults.fail_p > 0):
+        return False, False
+    u_hang, u_fail = keyed_uniforms(f"{seed}:faults:{task}:{attempt}")
+    return u_hang < faults.hang_p, u_fail < faults.fail_p

@@ -1,0 +1,74 @@
+"""Trained policies on disk: an SB3 ``.zip`` with a ``.json`` beside it saying what it was trained for."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+from twin.core.errors import PluginError
+from twin.scenario import Scenario
+
+PACKAGES = ("labtwin", "stable-baselines3", "sb3-contrib", "torch", "gymnasium")
+
+
+def scenario_hash(scenario: Scenario) -> str:
+    return hashlib.sha256(scenario.model_dump_json().encode()).hexdigest()[:16]
+
+
+def _versions() -> dict[str, str]:
+    out = {}
+    for p in PACKAGES:
+        try:
+            out[p] = version(p)
+        except PackageNotFoundError:
+            pass
+    return out
+
+
+def save_policy(model: Any, path: Path, kind: str, scenario: Scenario, signature: dict[str, Any], **extra: Any) -> Path:
+    """Save ``model`` with what it was trained for; ``signature`` is what a user of it must match."""
+    path = path.with_suffix(".zip")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    model.save(path)
+    meta = {"kind": kind, "algorithm": type(model).__name__, "scenario": scenario.name,
+            "scenario_hash": scenario_hash(scenario), "signature": signature,
+            "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "versions": _versions(), **extra}
+    path.with_suffix(".json").write_text(json.dumps(meta, indent=2) + "\n")
+    return path
+
+
+def read_meta(path: Path) -> dict[str, Any]:
+    side = path.with_suffix(".json")
+    if not side.exists():
+        raise PluginError(f"{path}: no {side.name} beside it; policies are saved by `twin train`")
+    return json.loads(side.read_text())
+
+
+def load_policy(path: Path, kind: str, signature: dict[str, Any]) -> Any:
+    """The policy at ``path``, checked to be a ``kind`` policy trained for a lab of this ``signature``."""
+    if not path.exists():
+        raise PluginError(f"policy {path} does not exist; train one with `twin train SCENARIO --agent {kind} --out {path}`")
+    meta = read_meta(path)
+    if meta.get("kind") != kind:
+        raise PluginError(f"{path} is a {meta.get('kind')} policy, not a {kind} policy")
+    trained = meta.get("signature", {})
+    wrong = [f"{k}: trained {trained.get(k)!r}, here {v!r}" for k, v in signature.items() if trained.get(k) != _plain(v)]
+    if wrong:
+        raise PluginError(f"{path} was trained on {meta.get('scenario')!r} for a different lab ({'; '.join(wrong)}). "
+                          f"Train one for this scenario with `twin train SCENARIO --agent {kind}`.")
+    from sb3_contrib import MaskablePPO
+    from stable_baselines3 import PPO
+
+    algorithm: Any = {"PPO": PPO, "MaskablePPO": MaskablePPO}.get(meta.get("algorithm", "PPO"))
+    if algorithm is None:
+        raise PluginError(f"{path}: unknown algorithm {meta.get('algorithm')!r}")
+    return algorithm.load(path, device="cpu")
+
+
+def _plain(value: Any) -> Any:
+    """As the value reads back from JSON (tuples become lists)."""
+    return json.loads(json.dumps(value))

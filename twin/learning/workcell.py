@@ -1,0 +1,89 @@
+"""One experiment at a time, straight through a scenario's drivers: no bus, no orchestrator.
+
+The planning environment (and anything else that needs many experiments fast)
+runs the same drivers, physics, noise and sample ageing as a campaign, but
+calls each step in turn on a *stepped clock*: ``sleep`` adds to the lab time
+and returns without suspending, so a step's coroutine finishes in one
+``send`` and no event loop is needed. Device faults, set-up and cleaning
+times are the orchestrator's and actors' business and are left out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from twin.core.clock import ClockMode
+from twin.core.streams import seeded
+from twin.device.driver import StepContext
+from twin.core.errors import DriverError
+from twin.scenario import Scenario
+
+
+class SteppedClock:
+    """Lab time that advances only when a driver sleeps."""
+
+    mode: ClockMode = "virtual"
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def now(self) -> float:
+        return self.t
+
+    async def sleep(self, seconds: float) -> None:
+        self.t += max(0.0, seconds)
+
+    async def sleep_until(self, t_lab: float) -> None:
+        self.t = max(self.t, t_lab)
+
+    def timeout(self, seconds: float | None) -> Any:
+        raise DriverError("clock.timeout() is not available to a driver in a workcell: the caller owns timeouts")
+
+
+@dataclass
+class Measured:
+    outputs: dict[str, Any]  # the last step's outputs, as a planner would see them
+    lab_s: float  # lab time the workflow took
+
+
+class Workcell:
+    """Runs ``scenario``'s workflow for given parameters on one instance of each device type."""
+
+    def __init__(self, scenario: Scenario, drivers: dict[str, Any], seed: int = 0) -> None:
+        self.scenario, self.drivers = scenario, drivers
+        self.clock = SteppedClock()
+        self.reseed(seed)
+
+    def reseed(self, seed: int) -> None:
+        self.clock.t = 0.0
+        self._rngs = {dtype: seeded(seed, "workcell", dtype)[1] for dtype in self.drivers}
+
+    def run(self, params: dict[str, Any]) -> Measured:
+        start = self.clock.t
+        sample, outputs = None, {}
+        for w in self.scenario.workflow:
+            spec = self.scenario.devices[w.device]
+            ctx = StepContext(clock=self.clock, rng=self._rngs[w.device], duration=spec.duration,
+                              progress=lambda *_: None, telemetry=lambda _: None)
+            result = _complete(self.drivers[w.device].run(w.step, params, sample, ctx), w.device)
+            sample, outputs = result.sample, result.outputs
+        return Measured({k: v for k, v in outputs.items() if k != "spectrum"}, self.clock.t - start)
+
+
+def _complete(coro: Any, device: str) -> Any:
+    try:
+        coro.send(None)
+    except StopIteration as done:
+        return done.value
+    coro.close()
+    raise DriverError(f"the {device} driver waited on something other than the lab clock; "
+                      f"it cannot run in a workcell (run it in a campaign instead)")
+
+
+def open_workcell(scenario: Scenario, seed: int = 0) -> Workcell:
+    """A workcell with one driver of each device type the workflow uses."""
+    from twin.runtime.lab import load_driver
+
+    used = dict.fromkeys(w.device for w in scenario.workflow)
+    return Workcell(scenario, {d: load_driver(scenario, d, f"{d}-workcell") for d in used}, seed)

@@ -1,0 +1,395 @@
+"""Build a lab from a scenario and run its campaign: the Python API under ``twin run``."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import signal
+import threading
+import time
+from collections.abc import Callable, Collection
+from pathlib import Path
+from typing import Any
+
+from twin.core import plugins
+from twin.device.actor import DeviceActor
+from twin.core.bus import Bus, open_bus
+from twin.core.clock import LabClock
+from twin.device.driver import DRIVER_API, DriverSetup, feature
+from twin.core.errors import ClockError, DriverError, PluginError, TwinError
+from twin.campaign.journal import Journal
+from twin.campaign import CampaignCore
+from twin.runtime import FastCampaign, LiveCampaign
+from twin.runtime.fast_device import FastRuntimeRefused
+from twin.runtime.remote_scheduler import RemoteScheduler, SchedulerService
+from twin.scenario import Scenario, load, set_dotted
+from twin.view.observer import LabObserver
+from twin.campaign.summary import Summary, from_core
+from twin.view.watch import RecordOptions, attach, open_observer
+
+log = logging.getLogger(__name__)
+
+
+def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: str | None = None,
+            speed: float | None = None, bus: str | None = None,
+            overrides: dict[str, Any] | None = None) -> Scenario:
+    """Load a scenario and apply the command line's overrides."""
+    extra = dict(overrides or {})
+    if seed is not None:
+        extra["campaign.seed"] = seed
+    if clock is not None:
+        extra["clock.mode"] = clock
+    if speed is not None:
+        extra["clock.speed"] = speed
+    if bus is not None:
+        extra["bus.kind"] = bus
+    if isinstance(scenario, Scenario):
+        data = scenario.model_dump()
+        for dotted, value in extra.items():
+            set_dotted(data, dotted, value)
+        return Scenario.model_validate(data)
+    return load(scenario, extra)
+
+
+def make_clock(s: Scenario) -> LabClock:
+    return LabClock(s.clock.mode, s.clock.speed)
+
+
+def make_bus(s: Scenario, clock: LabClock) -> Bus:
+    if s.bus.kind == "memory":
+        return open_bus("memory", clock)
+    return open_bus("zenoh", clock, mode=s.bus.mode, listen=s.bus.listen, connect=s.bus.connect, lease_ms=s.bus.lease_ms,
+                    extra=s.bus.zenoh)
+
+
+def load_driver(s: Scenario, device_type: str, name: str) -> Any:
+    spec = s.devices[device_type]
+    cls = plugins.load("devices", spec.driver)
+    api = feature(cls, "labtwin_api") or DRIVER_API
+    if api != DRIVER_API:
+        raise DriverError(f"devices.{device_type}.driver: {spec.driver!r} was written for driver API {api}; this "
+                          f"labtwin speaks {DRIVER_API}. Install a matching version of the driver or of labtwin.")
+    setup = DriverSetup(name, device_type, spec.options, s.chemistry, spec.duration, s.campaign.seed)
+    try:
+        driver = cls(setup)
+    except Exception as exc:
+        raise DriverError(f"driver {spec.driver!r} for {name} failed to start: {exc}") from exc
+    caps = frozenset(getattr(driver, "capabilities", None) or ())
+    missing = set(spec.steps) - caps
+    if missing:
+        raise DriverError(
+            f"devices.{device_type}.driver: {spec.driver!r} runs {sorted(caps)}, "
+            f"but the scenario asks it for {sorted(missing)}"
+        )
+    return driver
+
+
+def load_drivers(s: Scenario, only: set[str] | None = None, skip: Collection[str] = frozenset()) -> list[tuple[str, str, Any]]:
+    """(instance, device type, driver) for each device this process serves."""
+    return [
+        (name, dtype, load_driver(s, dtype, name))
+        for dtype in s.devices
+        for name in s.instance_names(dtype)
+        if name not in skip and (only is None or name in only)
+    ]
+
+
+def build_actors(s: Scenario, drivers: list[tuple[str, str, Any]], bus: Bus, clock: LabClock) -> list[DeviceActor]:
+    return [DeviceActor(name, s.devices[dtype], drv, bus, clock, s.lab, s.campaign.seed) for name, dtype, drv in drivers]
+
+
+def make_planner(s: Scenario) -> Any:
+    name, options = plugins.with_policy("planners", s.campaign.planner)
+    cls = plugins.load("planners", name)
+    return cls(parameters=s.chemistry.parameters, seed=s.campaign.seed, targets=s.chemistry.targets,
+               budget=s.campaign.budget, **{**options, **s.campaign.planner_options})
+
+
+REMOTE = "remote"  # campaign.scheduler: an agent served elsewhere (`twin scheduler serve`)
+
+
+def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
+    """The scheduler named by ``spec`` (default: the scenario's); ``REMOTE`` for an agent elsewhere."""
+    spec = spec or s.campaign.scheduler
+    if spec == REMOTE:
+        return REMOTE
+    name, options = plugins.with_policy("schedulers", spec)
+    cls = plugins.load("schedulers", name)
+    try:
+        return cls(scenario=s, seed=s.campaign.seed, **options)
+    except TwinError:
+        raise
+    except Exception as exc:
+        raise PluginError(f"scheduler {spec!r} failed to start: {exc}") from exc
+
+
+def live_scheduler(s: Scenario, chosen: Any, bus: Bus, clock: LabClock) -> tuple[Any, SchedulerService | None]:
+    """An agent scheduler (``serve_on_bus``, or ``remote``) is asked over the bus, with the fallback rule."""
+    if chosen != REMOTE and not getattr(chosen, "serve_on_bus", False):
+        return chosen, None
+    service = None
+    if chosen != REMOTE:
+        service = SchedulerService(bus, s.lab, chosen)
+        service.start()
+    deadline = s.campaign.scheduler_deadline_ms / 1000 * (1.0 if clock.is_virtual else clock.speed)
+    fallback = s.campaign.fallback_scheduler
+    return RemoteScheduler(bus, s.lab, make_scheduler(s, fallback), fallback, deadline), service
+
+
+WALL_CLOCK_FIELDS = ("wall_s", "journal", "decision_ms")  # differ between identical runs
+RUNTIMES = ("auto", "fast", "asyncio")
+
+
+def default_journal(s: Scenario) -> Path:
+    return Path("runs") / f"{s.name}-seed{s.campaign.seed}-{time.strftime('%Y%m%d-%H%M%S')}.db"
+
+
+def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
+        external_devices: Collection[str] = frozenset(),
+        on_progress: Callable[[CampaignCore], None] | None = None,
+        record: RecordOptions | None = None, observer: LabObserver | None = None, runtime: str = "auto",
+        make_journal: JournalFactory = Journal, **overrides: Any) -> Summary:
+    """Run one campaign to its end and return its summary.
+
+    ``overrides`` are ``seed``, ``clock``, ``speed``, ``bus`` or ``overrides``
+    (a dict of dotted scenario paths). ``external_devices`` are device
+    instances served by other processes (``twin device serve``). ``record``
+    saves, shows or serves a Rerun recording of the campaign; ``observer``
+    is an observer the caller opened (and closes) itself. ``runtime``:
+    ``fast`` (virtual time on the memory bus, in-process), ``asyncio``
+    (everything else), or ``auto``: fast where it can. ``make_journal`` opens the journal at a path.
+    """
+    s = prepare(scenario, **overrides)
+    watched = observer is not None or (record is not None and record.wanted)
+    why_not = fast_refused(s, external_devices, watched)
+    if runtime not in RUNTIMES:
+        raise TwinError(f"unknown runtime {runtime!r}: use one of {', '.join(RUNTIMES)}")
+    if runtime == "fast" and why_not:
+        raise ClockError(f"the fast runtime cannot run this campaign: {why_not}. Use --runtime asyncio (or auto).")
+    if runtime == "fast" or (runtime == "auto" and not why_not):
+        try:
+            return run_fast(s, journal or default_journal(s), on_progress, make_journal=make_journal)
+        except FastRuntimeRefused as exc:
+            if runtime == "fast":
+                raise
+            log.warning("%s — running the campaign again, from the start, on the asyncio runtime", exc)
+    clock = make_clock(s)
+    recording = None
+    if record is not None and record.wanted and observer is None:
+        observer, recording = open_observer(record, recording_id(s))
+        for message in recording.messages:
+            log.warning("%s", message)
+    try:
+        return clock.run(run_async(s, clock, journal or default_journal(s), external_devices, on_progress, observer,
+                                   make_journal=make_journal))
+    finally:
+        if recording is not None:
+            recording.close()
+            recording.stop_serving()
+
+
+def fast_refused(s: Scenario, external_devices: Collection[str] = frozenset(), watched: bool = False) -> str:
+    """Why the fast runtime cannot run ``s`` as asked ('' when it can)."""
+    if s.clock.mode != "virtual":
+        return f"the clock is {s.clock.mode} (the fast runtime keeps virtual time only)"
+    if s.bus.kind != "memory":
+        return f"the bus is {s.bus.kind} (the fast runtime passes messages in-process)"
+    if external_devices:
+        return f"devices {sorted(external_devices)} run in other processes"
+    if watched:
+        return "a recording or viewer watches the bus"
+    if s.campaign.scheduler == REMOTE:
+        return "the scheduler is an agent on the bus"
+    return ""
+
+
+def recording_id(s: Scenario) -> str:
+    return f"{s.name}-seed{s.campaign.seed}"
+
+
+def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[CampaignCore], None] | None = None,
+             handle_signals: bool = True, make_journal: JournalFactory = Journal) -> Summary:
+    """The campaign of ``s`` on the fast runtime (virtual time, in-process devices)."""
+    wall0 = time.perf_counter()
+    drivers = load_drivers(s)
+    refuse_realtime(drivers)
+    planner, scheduler = make_planner(s), make_scheduler(s)
+    if getattr(scheduler, "serve_on_bus", False):
+        raise FastRuntimeRefused(f"scheduler {s.campaign.scheduler!r} is an agent on the bus, which the fast "
+                                 "runtime does not have: use --runtime asyncio")
+    journal = open_journal(s, journal_path, make_journal)
+    camp = FastCampaign(s, drivers, journal, planner, scheduler, on_progress=on_progress)
+    with _stop_on_signals(camp.stop, handle_signals):
+        try:
+            camp.run()
+        finally:
+            summary = finish(camp.core, journal, wall0, camp.now)
+    return summary
+
+
+def refuse_realtime(drivers: list[tuple[str, str, Any]]) -> None:
+    realtime = [name for name, _, drv in drivers if feature(drv, "realtime")]
+    if realtime:
+        raise ClockError(f"devices {realtime} talk to real instruments, which keep wall time: "
+                         "use --clock scaled (or wall)")
+
+
+JournalFactory = Callable[[Path], Journal]
+
+
+def open_journal(s: Scenario, path: str | Path, make_journal: JournalFactory = Journal) -> Journal:
+    journal = make_journal(Path(path))
+    journal.set("scenario", s.model_dump())
+    journal.set("seed", s.campaign.seed)
+    return journal
+
+
+def finish(core: CampaignCore, journal: Journal, wall0: float, now: float,
+           note: Callable[[str, Any], None] | None = None, fallbacks: int = 0) -> Summary:
+    """The summary, journalled (and noted for watchers) the same way by every runtime."""
+    summary = from_core(core, journal.label, time.perf_counter() - wall0, journal._seq + 1)
+    summary.scheduler_fallbacks = fallbacks
+    lab_only = {k: v for k, v in summary.to_dict().items() if k not in WALL_CLOCK_FIELDS}
+    if note is not None:
+        note("campaign.summary", lab_only)  # wall-clock facts stay out of the stream
+    else:
+        journal.event(now, "campaign.summary", detail=lab_only)
+    journal.set("summary", summary.to_dict())
+    journal.close()
+    return summary
+
+
+@contextlib.contextmanager
+def _stop_on_signals(stop: Callable[[str], None], enabled: bool):
+    """SIGINT/SIGTERM stop the campaign cleanly (its journal and summary are written)."""
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")):
+        signal.signal(sig, lambda *_, n=name: stop(f"interrupted ({n})"))
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
+                    external_devices: Collection[str] = frozenset(),
+                    on_progress: Callable[[CampaignCore], None] | None = None,
+                    observer: LabObserver | None = None, scheduler: Any = None,
+                    on_start: Callable[[LiveCampaign], None] | None = None, handle_signals: bool = True,
+                    make_journal: JournalFactory = Journal) -> Summary:
+    """The campaign of ``s`` on the asyncio runtime; ``scheduler`` replaces the scenario's.
+
+    ``handle_signals``: SIGINT/SIGTERM stop the campaign cleanly (off for the campaigns a training
+    loop runs, where Ctrl-C must stop the training).
+    """
+    if external_devices and clock.is_virtual:
+        raise ClockError(
+            f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
+            "see messages in flight: use --clock scaled or --clock wall"
+        )
+    wall0 = time.perf_counter()
+    drivers = load_drivers(s, skip=set(external_devices))  # bad drivers fail before the bus opens
+    if clock.is_virtual:
+        refuse_realtime(drivers)
+    planner, scheduler = make_planner(s), scheduler or make_scheduler(s)
+    bus = make_bus(s, clock)
+    await bus.start()
+    scheduler, service = live_scheduler(s, scheduler, bus, clock)
+    actors = build_actors(s, drivers, bus, clock)
+    watching = attach(bus, s.lab, observer.on_message) if observer is not None else []
+    journal = open_journal(s, journal_path, make_journal)
+    camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress)
+    if isinstance(scheduler, RemoteScheduler):
+        scheduler.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
+    if on_start is not None:
+        on_start(camp)
+    loop = asyncio.get_running_loop()
+    for sig, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")) if handle_signals else ():
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, camp.stop, f"interrupted ({name})")
+    flusher = asyncio.ensure_future(_flush_live(clock, observer)) if observer and not clock.is_virtual else None
+    try:
+        for actor in actors:
+            await actor.start()
+        if isinstance(scheduler, RemoteScheduler) and service is None:
+            await _await_agent(scheduler, s, camp)
+        await camp.run()
+    finally:
+        if flusher is not None:
+            flusher.cancel()
+        for sig in (signal.SIGINT, signal.SIGTERM) if handle_signals else ():
+            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+                loop.remove_signal_handler(sig)
+        for actor in actors:
+            await actor.stop()
+        if service is not None:
+            service.stop()
+        fallbacks = 0
+        if isinstance(scheduler, RemoteScheduler):
+            scheduler.close()
+            fallbacks = scheduler.fallbacks
+        summary = finish(camp.core, journal, wall0, clock.now(), camp.note, fallbacks)
+        if observer is not None:
+            await _until(clock, lambda: observer.done)
+            for h in watching:
+                h.close()
+        await bus.close()
+    return summary
+
+
+def resume(path: str | Path, *, on_progress: Callable[[CampaignCore], None] | None = None,
+           record: RecordOptions | None = None, observer: LabObserver | None = None,
+           runtime: str = "auto") -> Summary:
+    """Continue a killed virtual-time campaign from its journal (``twin resume``); see ``twin.runtime.resume``."""
+    from twin.runtime import resume as r
+
+    path = Path(path)
+    s, prefix = r.recorded(path)
+    resuming = path.with_name(path.name + ".resuming")
+    checked: list[r.CheckedJournal] = []
+
+    def make(p: Path) -> Journal:
+        checked.append(r.CheckedJournal(p, prefix, path))
+        return checked[-1]
+
+    try:
+        summary = run(s, journal=resuming, on_progress=on_progress, record=record, observer=observer,
+                      runtime=runtime, make_journal=make)
+        if checked[-1].checked < len(prefix):
+            raise r.ResumeError(f"{path}: the re-run ended after {checked[-1].checked} of the journal's "
+                                f"{len(prefix)} events; run the campaign again instead (twin run)")
+    except BaseException:
+        for suffix in ("", "-wal", "-shm"):
+            Path(f"{resuming}{suffix}").unlink(missing_ok=True)
+        raise
+    r.replace(resuming, path)
+    log.info("resumed %s: %d recorded events checked, %d in all", path, len(prefix), summary.events)
+    return summary
+
+
+async def _await_agent(remote: RemoteScheduler, s: Scenario, camp: LiveCampaign) -> None:
+    if not await remote.wait_present(s.orchestrator.startup_s):
+        log.warning("no scheduler agent on the bus after %.0f lab-s: %s decides", s.orchestrator.startup_s,
+                    s.campaign.fallback_scheduler)
+        camp.note("scheduler.missing", s.campaign.fallback_scheduler)
+
+
+async def _until(clock: LabClock, done: Callable[[], bool], wall_s: float = 2.0) -> None:
+    """Let the bus deliver what is in flight to a local observer, up to ``wall_s`` of wall time."""
+    step = 0.01 * (1.0 if clock.is_virtual else clock.speed)
+    for _ in range(int(wall_s / 0.01)):
+        if done():
+            return
+        await clock.sleep(step)
+
+
+async def _flush_live(clock: LabClock, observer: LabObserver, wall_s: float = 0.25) -> None:
+    """A live viewer sees the campaign at most ``wall_s`` late."""
+    while True:
+        await clock.sleep(wall_s * clock.speed)
+        observer.c.flush()

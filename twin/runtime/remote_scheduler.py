@@ -1,0 +1,150 @@
+"""A scheduler that is an actor on the bus, and the orchestrator's side of it, with its fallback.
+
+The agent serves ``labtwin/<lab>/agent/scheduler/decide`` (a request carries
+the ``LabView`` as JSON, the reply the assignments) and holds a liveliness
+token at ``labtwin/<lab>/agent/scheduler/alive``. ``RemoteScheduler`` is what
+the orchestrator calls: while the agent is present it asks it, with a
+deadline; when the agent is absent, late, or answers something the view does
+not allow, the fallback rule decides instead and the reason is reported once
+per change (never a stall, never a lost step).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import inspect
+import json
+import logging
+from collections.abc import Callable
+from typing import Any
+
+from twin.core.bus import Bus
+from twin.core.bus.base import NoReplyError
+from twin.campaign.decisions import Assignment, DeviceState, FreeDevice, LabView, ReadyStep, capable
+from twin.core.keys import PREFIX
+
+log = logging.getLogger(__name__)
+
+
+def decide_key(lab: str) -> str:
+    return f"{PREFIX}/{lab}/agent/scheduler/decide"
+
+
+def alive_key(lab: str) -> str:
+    return f"{PREFIX}/{lab}/agent/scheduler/alive"
+
+
+# -- the wire -----------------------------------------------------------------------
+def encode_view(view: LabView) -> bytes:
+    data = dataclasses.asdict(view)
+    for r in data["ready"]:
+        r["avoid"] = sorted(r["avoid"])
+    return json.dumps(data).encode()
+
+
+def decode_view(payload: bytes) -> LabView:
+    d = json.loads(payload)
+    then = lambda x: tuple(tuple(step) for step in x["then"])  # noqa: E731
+    return LabView(d["now"], tuple(ReadyStep(**{**r, "avoid": frozenset(r["avoid"]), "then": then(r)}) for r in d["ready"]),
+                   tuple(FreeDevice(**f) for f in d["free"]),
+                   tuple(DeviceState(**{**x, "then": then(x)}) for x in d["devices"]),
+                   d["finished"], d["budget"], d["in_lab"])
+
+
+def check(view: LabView, reply: bytes) -> tuple[list[Assignment], str]:
+    """The assignments in ``reply``, or why they cannot be carried out on ``view``."""
+    try:
+        items = [Assignment(str(a["task"]), str(a["device"])) for a in json.loads(reply)["assign"]]
+    except (ValueError, KeyError, TypeError) as exc:
+        return [], f"unreadable decision ({exc!r})"
+    ready = {r.task: r for r in view.ready}
+    free, used = {f.name: f for f in view.free}, set()
+    for a in items:
+        step, dev = ready.get(a.task), free.get(a.device)
+        if step is None or dev is None or a.device in used or dev not in capable(step, (dev,)):
+            return [], f"invalid decision {a.task} → {a.device}"
+        used.add(a.device)
+    return items, ""
+
+
+# -- the agent's side ---------------------------------------------------------------------
+class SchedulerService:
+    """Serves any scheduler's decisions on the bus (in this process or in its own)."""
+
+    def __init__(self, bus: Bus, lab: str, scheduler: Any) -> None:
+        self.bus, self.lab, self.scheduler = bus, lab, scheduler
+        self._handles: list[Any] = []
+
+    def start(self) -> None:
+        self._handles = [self.bus.serve(decide_key(self.lab), self._reply), self.bus.declare_token(alive_key(self.lab))]
+
+    def stop(self) -> None:
+        for h in self._handles:
+            h.close()
+        self._handles = []
+
+    async def _reply(self, key: str, payload: bytes) -> bytes:
+        decided = self.scheduler.decide(decode_view(payload))
+        if inspect.isawaitable(decided):
+            decided = await decided
+        return json.dumps({"assign": [dataclasses.asdict(a) for a in decided]}).encode()
+
+
+# -- the orchestrator's side -----------------------------------------------------------
+class RemoteScheduler:
+    def __init__(self, bus: Bus, lab: str, fallback: Any, fallback_name: str, deadline_s: float) -> None:
+        self.bus, self.lab, self.fallback, self.fallback_name = bus, lab, fallback, fallback_name
+        self.deadline_s = deadline_s
+        self.present = False
+        self.fallbacks = 0
+        self.answered = 0  # decisions the agent made
+        self._arrived = asyncio.Event()
+        self.on_fallback: Callable[[str], None] = lambda reason: None
+        self._reason = ""
+        self._watch = bus.watch_tokens(alive_key(lab), self._presence)
+
+    def close(self) -> None:
+        self._watch.close()
+
+    def _presence(self, key: str, alive: bool) -> None:
+        self.present = alive
+        if alive:
+            self._arrived.set()
+
+    async def wait_present(self, timeout_s: float) -> bool:
+        """Wait (lab time) for an agent served elsewhere to join; False if it did not."""
+        try:
+            async with asyncio.timeout(timeout_s):
+                await self._arrived.wait()
+        except TimeoutError:
+            return False
+        return True
+
+    def decide(self, view: LabView):
+        return self._decide(view)
+
+    async def _decide(self, view: LabView) -> list[Assignment]:
+        if not self.present:
+            return self._fall(view, "absent", "the scheduler agent is not on the bus")
+        try:
+            reply = await self.bus.request(decide_key(self.lab), encode_view(view), self.deadline_s)
+        except NoReplyError:
+            return self._fall(view, "late", f"the scheduler agent did not answer within {self.deadline_s:g} lab-s")
+        assignments, problem = check(view, reply)
+        if problem:
+            return self._fall(view, "invalid", f"the scheduler agent sent an {problem}")
+        if self._reason:
+            log.warning("scheduler agent is back; it decides again")
+            self._reason = ""
+        self.answered += 1
+        return assignments
+
+    def _fall(self, view: LabView, kind: str, reason: str) -> list[Assignment]:
+        """The fallback decides; reported when the kind of failure (absent, late, invalid) changes."""
+        self.fallbacks += 1
+        if kind != self._reason:
+            log.warning("%s: %s decides instead", reason, self.fallback_name)
+            self.on_fallback(reason)
+            self._reason = kind
+        return self.fallback.decide(view)

@@ -1,0 +1,92 @@
+"""One actor of a lab in its own process, joined to the lab over Zenoh: a device
+(``twin device serve``) or a scheduler agent (``twin scheduler serve``)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+from twin.core.bus import Bus
+from twin.core.clock import LabClock
+from twin.core.errors import ClockError, DriverError
+from twin.runtime.lab import build_actors, load_drivers, make_bus, make_clock, make_scheduler, prepare
+from twin.scenario import BusSpec, Scenario
+
+log = logging.getLogger(__name__)
+
+
+def _joined(scenario: str | Path, connect: list[str], clock: str, speed: float) -> Scenario:
+    """The scenario as seen from a process that joins the lab at ``connect``."""
+    if clock == "virtual":
+        raise ClockError("a process joining a lab cannot follow a virtual clock: use --clock scaled or wall")
+    s = prepare(scenario, clock=clock, speed=speed)
+    return s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms,
+                                               zenoh=s.bus.zenoh)})
+
+
+def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], Awaitable[None]]]], ready: str) -> None:
+    """Open the bus, ``start`` the actor (which returns its stop), print ``ready``, run until SIGINT/SIGTERM."""
+    lab_clock = make_clock(s)
+
+    async def main() -> None:
+        bus = make_bus(s, lab_clock)
+        await bus.start()
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, stop.set)
+        finish = None
+        try:
+            finish = await start(bus, lab_clock)
+            log.info("%s on %s", ready, s.bus.connect)
+            print(ready, flush=True)
+            await stop.wait()
+        finally:
+            if finish is not None:
+                await finish()
+            await bus.close()
+
+    lab_clock.run(main())
+
+
+def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str = "wall", speed: float = 1.0) -> None:
+    s = _joined(scenario, connect, clock, speed)
+    drivers = load_drivers(s, only={name})
+    if not drivers:
+        known = [n for d in s.devices for n in s.instance_names(d)]
+        raise DriverError(f"{scenario}: no device instance {name!r}; the scenario has {known}")
+
+    async def start(bus: Bus, clock: LabClock):
+        actors = build_actors(s, drivers, bus, clock)
+        for a in actors:
+            await a.start()
+
+        async def finish() -> None:
+            for a in actors:
+                await a.stop()
+
+        return finish
+
+    _serve(s, start, f"ready {name}")
+
+
+def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: str = "wall", speed: float = 1.0) -> None:
+    """A scheduler (a rule or ``rl:PATH``) as an agent on a lab's bus."""
+    from twin.runtime.remote_scheduler import SchedulerService
+
+    s = _joined(scenario, connect, clock, speed)
+    scheduler = make_scheduler(s, spec)
+
+    async def start(bus: Bus, clock: LabClock):
+        service = SchedulerService(bus, s.lab, scheduler)
+        service.start()
+
+        async def finish() -> None:
+            service.stop()
+
+        return finish
+
+    _serve(s, start, f"ready scheduler {spec}")

@@ -1,0 +1,12 @@
+"""Scenarios: the model, reading files, job shops as labs, and targets."""
+
+from twin.scenario.loading import json_schema, load, parse, set_dotted
+from twin.scenario.model import (BusSpec, Campaign, Chemistry, ClockSpec, Condition, DeviceType, Duration, Faults,
+                                 JobShop, Orchestration, Parameter, Retry, Scenario, Target, Training, WorkflowStep,
+                                 expected_duration)
+
+__all__ = [
+    "BusSpec", "Campaign", "Chemistry", "ClockSpec", "Condition", "DeviceType", "Duration", "Faults", "JobShop",
+    "Orchestration", "Parameter", "Retry", "Scenario", "Target", "Training", "WorkflowStep", "expected_duration",
+    "json_schema", "load", "parse", "set_dotted",
+]

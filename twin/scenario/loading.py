@@ -1,0 +1,67 @@
+"""Scenario files: YAML validated by pydantic, one error per problem; ``twin schema`` exports the JSON Schema."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from twin.core.errors import ScenarioError
+from twin.scenario.model import Scenario
+
+
+def load(path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
+    """Read and validate a scenario file; ``ScenarioError`` lists every problem."""
+    path = Path(path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ScenarioError(str(path), ["file not found: check the path (scenarios live in scenarios/)"]) from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        raise ScenarioError(str(path), [f"{where}not valid YAML: {getattr(exc, 'problem', exc)}"]) from None
+    if not isinstance(raw, dict):
+        raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"])
+    for dotted, value in (overrides or {}).items():
+        set_dotted(raw, dotted, value)
+    scenario = parse(raw, str(path))
+    if scenario.jobshop is not None:
+        from twin.scenario.jobshop import expand
+
+        scenario = expand(scenario, path.parent)
+    return scenario
+
+
+def parse(raw: dict[str, Any], source: str = "<scenario>") -> Scenario:
+    try:
+        return Scenario.model_validate(raw)
+    except ValidationError as exc:
+        raise ScenarioError(source, [_describe(e, raw) for e in exc.errors()]) from None
+
+
+def _describe(err: Any, raw: dict[str, Any]) -> str:
+    loc = ".".join(str(p) for p in err["loc"])
+    if err["type"] == "extra_forbidden":
+        return f"{loc}: unknown field (check the spelling; `twin schema` lists the fields)"
+    if err["type"] == "missing":
+        return f"{loc}: required field is missing"
+    value = err.get("input")
+    shown = "" if isinstance(value, dict) else f" (got {value!r})"
+    msg = err["msg"].removeprefix("Value error, ")
+    return f"{loc or '(top level)'}: {msg}{shown}"
+
+
+def set_dotted(raw: dict[str, Any], dotted: str, value: Any) -> None:
+    """Set ``raw["a"]["b"]["c"] = value`` for ``dotted = "a.b.c"``, creating what is missing."""
+    node = raw
+    *parents, leaf = dotted.split(".")
+    for p in parents:
+        node = node.setdefault(p, {})
+    node[leaf] = value
+
+
+def json_schema() -> dict[str, Any]:
+    return Scenario.model_json_schema()

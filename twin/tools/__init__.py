@@ -1,0 +1,1 @@
+"""Tools over the kernel: planner and scheduler benches, the driver scaffold, driver test helpers."""

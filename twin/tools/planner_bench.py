@@ -1,0 +1,114 @@
+"""`twin bench planners`: how fast each planner finds a scenario's targets, over many seeds.
+
+Every run is a real campaign in virtual time over the memory bus. A planner
+name may carry ``~seq`` to run it sequentially (one experiment in the lab at a
+time, the same devices), e.g. ``gp-bo~seq`` against the asynchronous ``gp-bo``.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import tempfile
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from twin.runtime.lab import prepare, run
+from twin.scenario import Scenario
+
+DEFAULT_PLANNERS = ("random", "lhs", "gp-bo~seq", "gp-bo")
+
+
+@dataclass
+class Trial:
+    planner: str
+    seed: int
+    reached: bool
+    experiments: int  # finished when the last target was met (the budget if never)
+    lab_hours: float  # lab time until then (the whole run if never)
+    experiments_run: int
+    cost: float  # spent when the last target was met (all that was spent if never)
+
+
+def trial(scenario: Scenario, planner: str, seed: int) -> Trial:
+    """One campaign of ``planner`` on ``scenario`` with ``seed``."""
+    name, _, variant = planner.partition("~")
+    overrides = {"campaign.planner": name, "campaign.stop_on_target": True}
+    if variant == "seq":
+        overrides["campaign.max_in_flight"] = 1
+    with tempfile.TemporaryDirectory() as d:
+        s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual", overrides=overrides)
+    targets = [t.name for t in scenario.chemistry.targets]
+    reached = all(t in s.targets_met_h for t in targets)
+    return Trial(planner, seed, reached,
+                 max(s.targets_met_after.values()) if reached else s.proposed,
+                 max(s.targets_met_h.values()) if reached else s.lab_hours, s.proposed,
+                 max(s.targets_met_cost.values()) if reached else s.cost)
+
+
+def _trial(args: tuple) -> Trial:
+    return trial(*args)
+
+
+def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str], seeds: int, workers: int,
+               on_each: Callable[[Any], None] | None) -> dict[str, list[Any]]:
+    """``one((scenario, name, seed))`` for every name and seed, in parallel processes, grouped by name."""
+    results: dict[str, list[Any]] = {name: [] for name in names}
+    jobs = [(scenario, name, seed) for name in names for seed in range(seeds)]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        for (_, name, _), r in zip(jobs, pool.map(one, jobs)):
+            results[name].append(r)
+            if on_each:
+                on_each(r)
+    return results
+
+
+def bench(scenario_path: str | Path, planners: list[str], seeds: int, workers: int = 2,
+          on_trial: Callable[[Trial], None] | None = None, budget: int | None = None) -> dict[str, list[Trial]]:
+    scenario = prepare(scenario_path, overrides={"campaign.budget": budget} if budget else None)
+    return over_seeds(_trial, scenario, planners, seeds, workers, on_trial)
+
+
+def quartiles(values: list[float]) -> tuple[float, float, float]:
+    if len(values) == 1:
+        return values[0], values[0], values[0]
+    q = statistics.quantiles(values, n=4, method="inclusive")
+    return q[0], statistics.median(values), q[2]
+
+
+def rows(results: dict[str, list[Trial]], baseline: str = "random") -> list[list[str]]:
+    """One row per planner: experiments and lab-hours to target (median [IQR]), success, acceleration."""
+    base = results.get(baseline)
+    # where experiments cost money (and DFT calculations do not), acceleration is measured in cost
+    by_cost = bool(base) and statistics.median(t.cost for t in base) > 0
+    measure = (lambda t: t.cost) if by_cost else (lambda t: t.experiments)
+    base_median = statistics.median(measure(t) for t in base) if base else math.nan
+    out = []
+    for planner, trials in results.items():
+        e = quartiles([t.experiments for t in trials])
+        h = quartiles([t.lab_hours for t in trials])
+        success = sum(t.reached for t in trials) / len(trials)
+        censored = "≥" if success < 0.5 else ""
+        mine = statistics.median(measure(t) for t in trials)
+        accel = base_median / mine if mine else math.nan
+        base_censored = "≥" if base and sum(t.reached for t in base) / len(base) < 0.5 else ""
+        out.append([label(planner), f"{censored}{e[1]:.0f} [{e[0]:.0f}–{e[2]:.0f}]", f"{censored}{h[1]:.1f} [{h[0]:.1f}–{h[2]:.1f}]",
+                    f"{statistics.mean(t.experiments_run for t in trials):.0f}",
+                    f"{statistics.median(t.cost for t in trials):,.0f}", f"{100 * success:.0f} %",
+                    (f"{base_censored}{accel:.1f}×" if planner != baseline else "1.0×") + (" (cost)" if by_cost else "")])
+    return out
+
+
+def label(planner: str) -> str:
+    """``rl:agents/policies/quantum_dots.zip~seq`` → ``rl:quantum_dots~seq``."""
+    name, _, variant = planner.partition("~")
+    kind, sep, policy = name.partition(":")
+    short = f"{kind}:{Path(policy).stem}" if sep and policy.endswith(".zip") else name
+    return short + (f"~{variant}" if variant else "")
+
+
+HEADER = ["planner", "experiments to target", "lab-hours to target", "experiments run", "cost to target",
+          "reached", "acceleration vs random"]

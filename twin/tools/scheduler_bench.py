@@ -1,0 +1,103 @@
+"""`twin bench schedulers`: every scheduler on the same campaigns, over many seeds.
+
+Every run is a real campaign in virtual time over the memory bus; an agent
+scheduler (``rl:PATH``) is asked over the bus like in a live run, so its
+decision latency includes the round trip. A job shop is deterministic, so it
+runs once per scheduler, and CP-SAT's offline optimum for the instance is
+the bound each makespan is compared with.
+"""
+
+from __future__ import annotations
+
+import statistics
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from twin.core import plugins
+from twin.runtime.lab import prepare, run
+from twin.tools.planner_bench import label, over_seeds
+from twin.scenario import Scenario
+
+RULES = ("fifo", "spt", "mwkr", "least-loaded", "oldest-sample")
+
+
+@dataclass
+class Run:
+    scheduler: str
+    seed: int
+    makespan_s: float
+    utilisation: float  # mean over devices
+    degraded: int
+    lost: int  # abandoned experiments
+    fallbacks: int
+    decision_p50_ms: float
+    decision_p99_ms: float
+
+
+def one(scenario: Scenario, scheduler: str, seed: int) -> Run:
+    with tempfile.TemporaryDirectory() as d:
+        s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual",
+                overrides={"campaign.scheduler": scheduler})
+    util = statistics.mean(s.utilisation.values()) if s.utilisation else 0.0
+    return Run(scheduler, seed, s.lab_hours * 3600, util, s.degraded_samples, s.abandoned, s.scheduler_fallbacks,
+               s.decision_ms.get("p50", 0.0), s.decision_ms.get("p99", 0.0))
+
+
+def _one(args: tuple) -> Run:
+    return one(*args)
+
+
+def deterministic(s: Scenario) -> bool:
+    return s.jobshop is not None and all(
+        d.duration.cv == 0 and d.faults.fail_p == d.faults.hang_p == d.faults.mtbc_h == 0 for d in s.devices.values())
+
+
+def bound(s: Scenario) -> float | None:
+    """CP-SAT's optimum makespan (lab-s) for a deterministic job shop; None without OR-Tools or a job shop."""
+    if not deterministic(s) or "cp-sat" not in plugins.installed("schedulers"):
+        return None
+    try:
+        return float(plugins.load("schedulers", "cp-sat").offline_bound(s))
+    except ImportError:
+        return None
+
+
+def bench(scenario: Scenario, schedulers: list[str], seeds: int, workers: int = 2,
+          on_run: Callable[[Run], None] | None = None) -> dict[str, list[Run]]:
+    return over_seeds(_one, scenario, schedulers, 1 if deterministic(scenario) else seeds, workers, on_run)
+
+
+HEADER = ["scheduler", "makespan (mean)", "median", "gap to CP-SAT bound", "vs best rule", "utilisation",
+          "degraded", "lost", "fallbacks", "decision p50 / p99 ms"]
+
+
+def rows(results: dict[str, list[Run]], optimum: float | None, unit_s: float) -> list[list[str]]:
+    means = {k: statistics.mean(r.makespan_s for r in v) for k, v in results.items()}
+    rules = [means[k] for k in results if k in RULES]
+    best_rule = min(rules) if rules else None
+    unit = "h" if unit_s == 3600 else "s"
+    out = []
+    for name, runs in results.items():
+        m = means[name]
+        out.append([
+            label(name), f"{m / unit_s:.2f} {unit}", f"{statistics.median(r.makespan_s for r in runs) / unit_s:.2f} {unit}",
+            f"{100 * (m / optimum - 1):+.1f} %" if optimum else "—",
+            f"{100 * (m / best_rule - 1):+.1f} %" if best_rule else "—",
+            f"{100 * statistics.mean(r.utilisation for r in runs):.0f} %",
+            f"{statistics.mean(r.degraded for r in runs):.1f}", f"{statistics.mean(r.lost for r in runs):.1f}",
+            f"{statistics.mean(r.fallbacks for r in runs):.1f}",
+            f"{statistics.median(r.decision_p50_ms for r in runs):.2f} / {max(r.decision_p99_ms for r in runs):.2f}",
+        ])
+    return out
+
+
+def load_variant(path: str | Path, jobshop_file: str | None = None, budget: int | None = None,
+                 changes: dict | None = None) -> Scenario:
+    over = dict(changes or {})
+    if jobshop_file:
+        over["jobshop.file"] = jobshop_file
+    if budget:
+        over["campaign.budget"] = budget
+    return prepare(path, overrides=over or None)

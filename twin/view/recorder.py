@@ -1,0 +1,292 @@
+"""The Rerun recorder: the only module that imports rerun.
+
+A ``RerunCanvas`` draws what the ``LabObserver`` derives on one lab-time
+timeline (``lab_time``) plus a sequence timeline of experiment numbers
+(``experiment``); ``open_recording`` attaches the sinks a user asked for —
+a file, a spawned viewer, a loopback web viewer — and never lets a sink that
+fails take the campaign down.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import select
+import signal
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from twin.view.observer import STATES
+
+log = logging.getLogger(__name__)
+STATE_COLOURS = {"offline": 0x606060FF, "idle": 0x4C78A8FF, "failed": 0xE45756FF, "quarantined": 0xF58518FF,
+                 "busy": 0x54A24BFF}
+
+
+def blueprint() -> rrb.Blueprint:
+    """Devices, objective, spectra and log: the panels a campaign is watched in."""
+    up_to_cursor = [rrb.VisibleTimeRange("lab_time", start=rrb.TimeRangeBoundary.infinite(),
+                                         end=rrb.TimeRangeBoundary.cursor_relative())]
+    whole = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
+                                                  end=rrb.TimeRangeBoundary.infinite()))
+
+    def series(origin: str, name: str, contents: Any = "$origin/**") -> rrb.TimeSeriesView:
+        return rrb.TimeSeriesView(origin=origin, contents=contents, name=name, axis_x=whole)
+
+    return rrb.Blueprint(
+        rrb.Vertical(
+            rrb.Horizontal(
+                rrb.StateTimelineView(origin="/devices", name="Devices", time_view=whole),
+                series("/objective", "Objective (0 = target met) and best so far",
+                       ["$origin/score", "$origin/best", "$origin/targets/**"]),
+            ),
+            rrb.Horizontal(
+                rrb.Spatial2DView(origin="/spectra", name="Spectra (latest, with targets)"),
+                series("/queue", "Queue"),
+                series("/objective/outputs", "Measured outputs"),
+                rrb.Spatial3DView(origin="/planner", name="Proposals (normalised box)", time_ranges=up_to_cursor),
+            ),
+            rrb.Horizontal(
+                rrb.TextLogView(origin="/log", name="Decisions and faults"),
+                series("/telemetry", "Telemetry"),
+                series("/utilisation", "Utilisation"),
+                rrb.TextDocumentView(origin="/summary", name="Summary"),
+            ),
+        ),
+        rrb.TimePanel(timeline="lab_time", state="collapsed"),
+        collapse_panels=True,
+    )
+
+
+class RerunCanvas:
+    """Draws on one recording stream, in columns: rows are buffered per entity and sent with
+    ``send_columns`` when ``flush`` is called or ``FLUSH_ROWS`` have piled up (one ``log``
+    call per row cost more than the whole campaign)."""
+
+    FLUSH_ROWS = 5000
+
+    def __init__(self, rec: rr.RecordingStream) -> None:
+        self.rec = rec
+        self._buffers: dict[tuple[str, str, bool], tuple[list, list, list]] = {}
+        self._rows = 0
+
+    def _add(self, kind: str, path: str, t: float, seq: int | None, value: Any) -> None:
+        key = (kind, path, seq is not None)
+        buf = self._buffers.get(key)
+        if buf is None:
+            buf = self._buffers[key] = ([], [], [])
+            if kind == "state":
+                names = list(STATES)
+                self.rec.log(path, rr.StateConfiguration(values=names, colors=[STATE_COLOURS[n] for n in names]),
+                             static=True)
+        buf[0].append(t)
+        buf[1].append(seq)
+        buf[2].append(value)
+        self._rows += 1
+        if self._rows >= self.FLUSH_ROWS:
+            self.flush()
+
+    def scalar(self, path: str, t: float, value: float, seq: int | None = None) -> None:
+        self._add("scalar", path, t, seq, value)
+
+    def state(self, path: str, t: float, state: str) -> None:
+        self._add("state", path, t, None, state)
+
+    def text(self, path: str, t: float, text: str, level: str) -> None:
+        self._add("text", path, t, None, (text, level))
+
+    def line(self, path: str, t: float, points: list[tuple[float, float]], seq: int | None = None) -> None:
+        xy = np.asarray(points, dtype=np.float32)
+        xy[:, 1] = 300.0 * (1.0 - xy[:, 1])  # screen y grows downwards; 300 px per unit of signal
+        self._add("line", path, t, seq, xy)
+
+    def points(self, path: str, t: float, points: list[tuple[float, ...]], seq: int | None = None) -> None:
+        pts = np.asarray(points, dtype=np.float32)
+        if pts.shape[1] == 2:
+            pts[:, 1] = 300.0 * (1.0 - pts[:, 1])
+        self._add("points2" if pts.shape[1] == 2 else "points3", path, t, seq, pts[0])
+
+    def document(self, path: str, markdown: str) -> None:
+        self.rec.log(path, rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
+
+    def flush(self) -> None:
+        for (kind, path, has_seq), (ts, seqs, values) in self._buffers.items():
+            if not ts:
+                continue
+            # nanosecond arrays take rerun's vectorised path (a list of floats is converted one by one)
+            indexes = [rr.TimeColumn("lab_time", duration=np.round(np.asarray(ts) * 1e9).astype("timedelta64[ns]"))]
+            if has_seq:
+                indexes.append(rr.TimeColumn("experiment", sequence=np.asarray(seqs, dtype=np.int64)))
+            self.rec.send_columns(path, indexes=indexes, columns=_columns(kind, values))
+            ts.clear()
+            seqs.clear()
+            values.clear()
+        self._rows = 0
+
+
+def _columns(kind: str, values: list) -> Any:
+    if kind == "scalar":
+        return rr.Scalars.columns(scalars=values)
+    if kind == "state":
+        return rr.StateChange.columns(state=values)
+    if kind == "text":
+        return rr.TextLog.columns(text=[v[0] for v in values], level=[v[1] for v in values])
+    if kind == "line":
+        return rr.LineStrips2D.columns(strips=values)
+    if kind == "points2":
+        return rr.Points2D.columns(positions=np.stack(values), radii=np.full(len(values), 3.0, np.float32))
+    return rr.Points3D.columns(positions=np.stack(values), radii=np.full(len(values), 0.01, np.float32))
+
+
+@dataclass
+class Recording:
+    """A recording stream with its sinks; ``close`` flushes and stops them."""
+
+    rec: rr.RecordingStream
+    canvas: RerunCanvas
+    messages: list[str] = field(default_factory=list)
+    server: subprocess.Popen | None = None
+    url: str = ""
+
+    def close(self) -> None:
+        self.canvas.flush()
+        self.rec.flush()
+        self.rec.disconnect()
+
+    def stop_serving(self) -> None:
+        if self.server is not None:
+            _stop(self.server)
+            self.server = None
+
+
+def log_curve(out: Recording, steps: int, values: dict[str, float], prefix: str = "training") -> None:
+    """One evaluation of a training run, on its own ``training_steps`` timeline."""
+    out.rec.set_time("training_steps", sequence=steps)
+    for name, value in values.items():
+        out.rec.log(f"{prefix}/{name}", rr.Scalars(float(value)))
+
+
+def open_recording(recording_id: str, save: str | Path | None = None, viewer: bool = False,
+                   serve: bool = False, serve_port: int = 0, web_port: int = 0,
+                   campaign_layout: bool = True) -> Recording:
+    """A recording with the sinks asked for; a sink that cannot start is reported, not fatal."""
+    rec = rr.RecordingStream("labtwin", recording_id=recording_id)
+    rec.set_log_time_enabled(False)  # only lab time: a replay then equals the live recording
+    rec.set_log_tick_enabled(False)
+    out = Recording(rec, RerunCanvas(rec))
+    sinks: list[Any] = []
+    if save:
+        Path(save).parent.mkdir(parents=True, exist_ok=True)
+        sinks.append(rr.FileSink(str(save)))
+    if viewer:
+        url = _spawn_viewer(out)
+        if url:
+            sinks.append(rr.GrpcSink(url))
+    if serve:
+        url = _serve(out, serve_port, web_port)
+        if url:
+            sinks.append(rr.GrpcSink(url))
+    if sinks:
+        rec.set_sinks(*sinks, default_blueprint=blueprint() if campaign_layout else None)
+    return out
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """End a rerun process and its children (the `rerun` command is a wrapper that starts the viewer)."""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+def _rerun_cli() -> str | None:
+    here = Path(sys.executable).parent / "rerun"
+    return str(here) if here.exists() else shutil.which("rerun")
+
+
+def _free(port: int) -> int | None:
+    """``port`` if it can be bound on loopback (0 picks one), else None."""
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return None
+        return s.getsockname()[1]
+
+
+def _spawn_viewer(out: Recording) -> str | None:
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        out.messages.append("viewer: no display here (DISPLAY is unset); the campaign runs without it. "
+                            "Use --save run.rrd and open it with `rerun run.rrd`, or --serve for a web viewer.")
+        return None
+    cli = _rerun_cli()
+    port = _free(0)
+    if cli is None or port is None:
+        out.messages.append("viewer: the rerun command is not installed; the campaign runs without it")
+        return None
+    subprocess.Popen([cli, "--port", str(port), "--bind", "127.0.0.1"], stdout=subprocess.DEVNULL,
+                     stderr=subprocess.DEVNULL, start_new_session=True)
+    return f"rerun+http://127.0.0.1:{port}/proxy"
+
+
+def _serve(out: Recording, grpc_port: int, web_port: int) -> str | None:
+    cli = _rerun_cli()
+    grpc, web = _free(grpc_port), _free(web_port)
+    if cli is None:
+        out.messages.append("serve: the rerun command is not installed; the campaign runs without serving")
+        return None
+    if grpc is None or web is None:
+        busy = grpc_port if grpc is None else web_port
+        out.messages.append(f"serve: port {busy} on 127.0.0.1 is in use; pick another with --serve-port/--web-port. "
+                            "The campaign runs without serving.")
+        return None
+    out.server = subprocess.Popen(
+        [cli, "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc), "--web-viewer-port", str(web)],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    if not _wait_listening(out.server, grpc, web):
+        _stop(out.server)
+        err = out.server.stderr.read().decode(errors="replace")[-300:] if out.server.stderr else ""
+        out.messages.append(f"serve: the rerun server did not start ({err.strip() or 'no reason given'}); "
+                            "the campaign runs without serving")
+        out.server = None
+        return None
+    grpc_url = f"rerun+http://127.0.0.1:{grpc}/proxy"
+    out.url = f"http://127.0.0.1:{web}/?url={grpc_url}"
+    out.messages.append(f"serving the live campaign at {out.url}")
+    return grpc_url
+
+
+def _wait_listening(proc: subprocess.Popen, grpc: int, web: int, seconds: float = 15.0) -> bool:
+    """Read the server's log until it says both its gRPC and web ports listen."""
+    fd = proc.stderr.fileno()  # raw reads: a buffered reader could hold lines select() cannot see
+    waiting, log_text = {f"127.0.0.1:{grpc}".encode(), f"127.0.0.1:{web}".encode()}, b""
+    while waiting and len(log_text) < 1 << 20:
+        ready, _, _ = select.select([fd], [], [], seconds)
+        chunk = os.read(fd, 65536) if ready else b""
+        if not chunk:
+            return False
+        log_text += chunk
+        waiting = {w for w in waiting if w not in log_text}
+    threading.Thread(target=_drain, args=(fd,), daemon=True).start()  # keep its pipe from filling
+    return not waiting
+
+
+def _drain(fd: int) -> None:
+    with contextlib.suppress(OSError):
+        while os.read(fd, 65536):
+            pass

@@ -1,0 +1,40 @@
+"""The summary table, as ``twin run`` and ``twin report`` print it."""
+
+from __future__ import annotations
+
+from rich.console import Console
+from rich.table import Table
+
+from twin.campaign.summary import Summary
+
+
+def render_summary(s: Summary, console: Console) -> None:
+    t = Table(title=f"{s.scenario} — seed {s.seed}", show_header=False, title_justify="left")
+    t.add_column(style="bold")
+    t.add_column()
+    t.add_row("experiments", f"{s.done} done, {s.abandoned} abandoned, {s.pending} pending (of {s.proposed} proposed)")
+    t.add_row("attempts", f"{s.attempts} ({s.failed_attempts} failed, {s.retried} retried, {s.timed_out} timed out)")
+    for reason, n in sorted(s.abandoned_reasons.items()):
+        t.add_row("  abandoned", f"{n} × {reason}")
+    t.add_row("faults", f"{s.devices_lost} device losses, {s.quarantines} quarantines, "
+                        f"{s.invalid_messages} invalid messages, {s.late_results} late results")
+    t.add_row("samples degraded", str(s.degraded_samples))
+    if s.decisions:
+        ms = s.decision_ms
+        fallback = f"; {s.scheduler_fallbacks} made by the fallback rule" if s.scheduler_fallbacks else ""
+        t.add_row("scheduling", f"{s.decisions} decisions, {ms.get('p50', 0):.2f} / {ms.get('p99', 0):.2f} ms "
+                                f"(p50 / p99 wall){fallback}")
+    if s.cost:
+        t.add_row("cost", f"{s.cost:,.0f}")
+    t.add_row("lab time", f"{s.lab_hours:.2f} h ({s.wall_s:.2f} s wall, {s.events} journal events)")
+    for dev, u in s.utilisation.items():
+        t.add_row(f"  {dev}", f"{100 * u:5.1f} % busy")
+    for name, b in s.best.items():
+        shown = ", ".join(f"{k}={v:.4g}" for k, v in b["outputs"].items())
+        met = s.targets_met_h.get(name)
+        status = f"[green]met at {met:.2f} lab-h[/]" if met is not None else f"best score {b['score']:.3g}"
+        t.add_row(f"target {name}", f"{status} — experiment {b['experiment']}: {shown}")
+    if s.stopped:
+        t.add_row("stopped", s.stopped)
+    console.print(t)
+    console.print(f"journal: {s.journal}  (twin report {s.journal})", soft_wrap=True, highlight=False)
