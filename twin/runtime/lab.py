@@ -8,7 +8,7 @@ import logging
 import signal
 import threading
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -297,49 +297,62 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
     if clock.is_virtual:
         refuse_realtime(drivers)
     planner, scheduler = make_planner(s), scheduler or make_scheduler(s)
-    bus = make_bus(s, clock)
-    await bus.start()
-    scheduler, service = live_scheduler(s, scheduler, bus, clock)
-    actors = build_actors(s, drivers, bus, clock)
-    watching = attach(bus, s.lab, observer.on_message) if observer is not None else []
-    journal = open_journal(s, journal_path, make_journal)
-    camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress)
-    if isinstance(scheduler, RemoteScheduler):
-        scheduler.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
-    if on_start is not None:
-        on_start(camp)
-    loop = asyncio.get_running_loop()
-    for sig, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")) if handle_signals else ():
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, camp.stop, f"interrupted ({name})")
-    flusher = asyncio.ensure_future(_flush_live(clock, observer)) if observer and not clock.is_virtual else None
-    try:
-        for actor in actors:
-            await actor.start()
-        if isinstance(scheduler, RemoteScheduler) and service is None:
-            await _await_agent(scheduler, s, camp)
-        await camp.run()
-    finally:
-        if flusher is not None:
-            flusher.cancel()
-        for sig in (signal.SIGINT, signal.SIGTERM) if handle_signals else ():
-            with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-                loop.remove_signal_handler(sig)
-        for actor in actors:
-            await actor.stop()
-        if service is not None:
-            service.stop()
-        fallbacks = 0
-        if isinstance(scheduler, RemoteScheduler):
-            scheduler.close()
-            fallbacks = scheduler.fallbacks
-        summary = finish(camp.core, journal, wall0, clock.now(), camp.note, fallbacks)
+    result: dict[str, Summary] = {}
+    # each resource is released by the stack, in reverse order, however the campaign ends
+    async with contextlib.AsyncExitStack() as stack:
+        bus = make_bus(s, clock)
+        await bus.start()
+        stack.push_async_callback(bus.close)
         if observer is not None:
-            await _until(clock, lambda: observer.done)
-            for h in watching:
-                h.close()
-        await bus.close()
-    return summary
+            watching = attach(bus, s.lab, observer.on_message)
+            stack.push_async_callback(_drain, clock, observer, watching)
+        scheduler, service = live_scheduler(s, scheduler, bus, clock)
+        journal = open_journal(s, journal_path, make_journal)
+        camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress)
+        remote = scheduler if isinstance(scheduler, RemoteScheduler) else None
+        stack.callback(lambda: result.setdefault(
+            "summary", finish(camp.core, journal, wall0, clock.now(), camp.note, remote.fallbacks if remote else 0)))
+        if remote is not None:
+            remote.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
+            stack.callback(remote.close)
+        if service is not None:
+            stack.callback(service.stop)
+        for actor in build_actors(s, drivers, bus, clock):
+            await actor.start()
+            stack.push_async_callback(actor.stop)
+        if handle_signals:
+            stack.enter_context(_stop_on_loop_signals(camp.stop))
+        if observer is not None and not clock.is_virtual:
+            stack.callback(asyncio.ensure_future(_flush_live(clock, observer)).cancel)
+        if on_start is not None:
+            on_start(camp)
+        if remote is not None and service is None:
+            await _await_agent(remote, s, camp)
+        await camp.run()
+    return result["summary"]
+
+
+@contextlib.contextmanager
+def _stop_on_loop_signals(stop: Callable[[str], None]) -> Iterator[None]:
+    """SIGINT/SIGTERM stop the campaign cleanly, through the running loop."""
+    loop = asyncio.get_running_loop()
+    added = []
+    for sig, name in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")):
+        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
+            loop.add_signal_handler(sig, stop, f"interrupted ({name})")
+            added.append(sig)
+    try:
+        yield
+    finally:
+        for sig in added:
+            loop.remove_signal_handler(sig)
+
+
+async def _drain(clock: LabClock, observer: LabObserver, watching: list[Any]) -> None:
+    """Let a local observer see the campaign's last messages, then stop watching."""
+    await _until(clock, lambda: observer.done)
+    for h in watching:
+        h.close()
 
 
 def resume(path: str | Path, *, on_progress: Callable[[CampaignCore], None] | None = None,
