@@ -23,6 +23,11 @@ def alive(lab: str, device: str = "*") -> str:
     return f"{PREFIX}/{lab}/alive/{device}"
 
 
+def orchestrator(lab: str) -> str:
+    """The campaign's liveliness token: devices cancel orphaned steps when it is gone too long."""
+    return f"{PREFIX}/{lab}/orchestrator/alive"
+
+
 def campaign(lab: str, campaign_id: str, topic: str = "**") -> str:
     return f"{PREFIX}/{lab}/campaign/{campaign_id}/{topic}"
 

@@ -26,8 +26,12 @@ log = logging.getLogger(__name__)
 
 
 class DeviceActor:
-    def __init__(self, name: str, spec: Any, driver: Driver, bus: Bus, clock: LabClock, lab: str, seed: int) -> None:
+    def __init__(self, name: str, spec: Any, driver: Driver, bus: Bus, clock: LabClock, lab: str, seed: int,
+                 orphan_grace_s: float = 300.0) -> None:
         self.name, self.spec, self.driver = name, spec, driver
+        self.orphan_grace_s = orphan_grace_s
+        self._boss: Closable | None = None
+        self._orphan_timer: asyncio.TimerHandle | None = None
         self._bus, self._clock, self._lab = bus, clock, lab
         self._seed = seed
         self._crash_rng, _ = seeded(seed, "crashes", name)
@@ -46,6 +50,7 @@ class DeviceActor:
     # -- life cycle -------------------------------------------------------
     async def start(self) -> None:
         self._health = self._bus.serve(keys.health(self._lab, self.name), self._report_health)
+        self._boss = self._bus.watch_tokens(keys.orchestrator(self._lab), self._on_orchestrator)
         connect = feature(self.driver, "connect")
         if connect is not None:  # an instrument with presence of its own (MQTT last will, say)
             await connect(self._instrument_presence)
@@ -55,6 +60,10 @@ class DeviceActor:
             self._crasher = asyncio.ensure_future(self._crash_loop())
 
     async def stop(self) -> None:
+        if self._boss is not None:
+            self._boss.close()
+        if self._orphan_timer is not None:
+            self._orphan_timer.cancel()
         if self._crasher:
             await wait_cancelled(self._crasher)
         if self._job is not None:
@@ -79,6 +88,22 @@ class DeviceActor:
             except Exception as exc:  # a failing health check is itself the answer
                 report["driver"] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
         return json.dumps(report).encode()
+
+    def _on_orchestrator(self, key: str, alive: bool) -> None:
+        """The campaign came or went: a step it can no longer supervise is stopped after a grace period."""
+        if self._orphan_timer is not None:
+            self._orphan_timer.cancel()
+            self._orphan_timer = None
+        if not alive:
+            self._orphan_timer = self._clock.call_later(self.orphan_grace_s, self._orphaned)
+
+    def _orphaned(self) -> None:
+        self._orphan_timer = None
+        if self._job is not None:
+            log.warning("%s: the orchestrator has been gone %.0f lab-s; stopping %s in a safe state", self.name,
+                        self.orphan_grace_s, self._current)
+            self._cancel_reason = "orphaned"
+            self._job.cancel()
 
     def _instrument_presence(self, present: bool) -> None:
         """The driver's instrument came or went: the device's presence on the bus follows it."""
@@ -168,6 +193,10 @@ class DeviceActor:
             if self._cancel_reason == "cancel":
                 await self.driver.safe_state()
                 emit(Kind.FAULT, {"code": "cancelled", "reason": f"{cmd.step} cancelled on {self.name}"})
+            elif self._cancel_reason == "orphaned":
+                await self.driver.safe_state()
+                emit(Kind.FAULT, {"code": "cancelled", "reason": f"{cmd.step} stopped on {self.name}: the "
+                                  f"orchestrator was gone for {self.orphan_grace_s:.0f} lab-s"})
             else:
                 raise
         except Exception as exc:  # a driver bug must never take the actor down

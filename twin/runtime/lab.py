@@ -96,7 +96,8 @@ def load_drivers(s: Scenario, only: set[str] | None = None, skip: Collection[str
 
 
 def build_actors(s: Scenario, drivers: list[tuple[str, str, Any]], bus: Bus, clock: LabClock) -> list[DeviceActor]:
-    return [DeviceActor(name, s.devices[dtype], drv, bus, clock, s.lab, s.campaign.seed) for name, dtype, drv in drivers]
+    return [DeviceActor(name, s.devices[dtype], drv, bus, clock, s.lab, s.campaign.seed, s.orchestrator.orphan_grace_s)
+            for name, dtype, drv in drivers]
 
 
 def make_planner(s: Scenario) -> Any:

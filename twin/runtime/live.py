@@ -71,6 +71,7 @@ class LiveCampaign:
             self.bus.subscribe(keys.evt(lab), self._on_event),
             self.bus.subscribe(keys.telemetry(lab), self._on_event),
             self.bus.watch_tokens(keys.alive(lab), self._on_presence),
+            self.bus.declare_token(keys.orchestrator(lab)),
         ]
         remove_hook = self.clock.on_idle(self._on_idle)
         try:

@@ -126,6 +126,8 @@ class Orchestration(_Spec):
     quarantine_after: int = Field(default=3, ge=1, description="consecutive failures")
     probe_after_s: float = Field(default=3600, ge=0)
     startup_s: float = Field(default=60, ge=0, description="lab seconds to wait for devices")
+    orphan_grace_s: float = Field(default=300, ge=0, description="lab seconds a device goes on with a step after "
+                                  "the orchestrator has left the bus, before it stops it in a safe state")
     cancel_grace_s: float = Field(default=60, ge=0, description="lab seconds a timed-out device has to answer the "
                                   "cancel before it is given work again")
 
