@@ -105,6 +105,38 @@ class Journal:
         self.closed = True
 
 
+class NullJournal(Journal):
+    """Keeps nothing: the journal of a campaign nobody will read (a training episode)."""
+
+    def __init__(self, path: str | Path = ":memory:") -> None:  # noqa: D107 - no file, no database
+        self.path, self.label = Path(path), str(path)
+        self._events, self._experiments = [], {}
+        self._seq, self.closed = 0, False
+
+    def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
+              attempt: int | None = None, device: str | None = None, detail: Any = None) -> int:
+        self._seq += 1
+        return self._seq
+
+    def message(self, *args: Any) -> None:
+        self._seq += 1
+
+    def experiment(self, e: Any) -> None:
+        pass
+
+    def set(self, key: str, value: Any) -> None:
+        pass
+
+    def flush(self) -> None:
+        pass
+
+    def rows(self) -> list[dict[str, Any]]:
+        return []
+
+    def close(self) -> None:
+        self.closed = True
+
+
 def read_run(path: str | Path) -> dict[str, Any]:
     with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
         return {k: json.loads(v) for k, v in db.execute("SELECT key, value FROM run")}

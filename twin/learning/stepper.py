@@ -12,7 +12,8 @@ from __future__ import annotations
 import time
 
 from twin.campaign.decisions import Assignment, LabView
-from twin.runtime.lab import finish, load_drivers, make_planner, open_journal, prepare
+from twin.runtime.lab import finish, load_drivers, make_planner, prepare
+from twin.campaign.journal import NullJournal
 from twin.runtime import FastCampaign
 from twin.scenario import Scenario
 from twin.campaign.summary import Summary
@@ -22,7 +23,7 @@ class SteppedCampaign:
     def __init__(self, scenario: Scenario) -> None:
         self.s = prepare(scenario, clock="virtual", bus="memory")
         self._wall0 = time.perf_counter()
-        self._journal = open_journal(self.s, ":memory:")
+        self._journal = NullJournal()  # a training episode's journal is never read
         self._run = FastCampaign(self.s, load_drivers(self.s), self._journal, make_planner(self.s), None)
         self.core = self._run.core
         self.summary: Summary | None = None

@@ -34,7 +34,7 @@ class FastDevice:
                  deliver: Callable[[Any], None]) -> None:
         self.name, self.device_type, self.spec, self.driver = name, device_type, spec, driver
         self._q, self._clock, self._deliver, self._seed = queue, QueueClock(queue), deliver, seed
-        self._crash_rng, _ = seeded(seed, "crashes", name)
+        self._crash_rng = seeded(seed, "crashes", name)[0] if spec.faults.mtbc_h > 0 else None
         _, self._step_rng = seeded(seed, "steps", name)
         self._ids = itertools.count(1)
         self._job: Any = None  # the running step's coroutine
@@ -65,7 +65,9 @@ class FastDevice:
         self._deliver(Presence(self.name, alive))
 
     def _schedule_crash(self) -> None:
-        self._q.call_later(self._crash_rng.expovariate(1.0 / (self.spec.faults.mtbc_h * 3600)), self._crash)
+        rng = self._crash_rng
+        assert rng is not None  # only a device that crashes schedules crashes
+        self._q.call_later(rng.expovariate(1.0 / (self.spec.faults.mtbc_h * 3600)), self._crash)
 
     def _crash(self) -> None:
         log.info("%s crashed at t=%.0f s", self.name, self._q.now)
