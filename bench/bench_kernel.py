@@ -320,7 +320,7 @@ def bench_detect() -> None:
 SCALE_CHILD = """
 import json, resource, sys, tempfile, time
 from pathlib import Path
-from twin.runtime.lab import run
+from twin import run
 n = int(sys.argv[1])
 with tempfile.TemporaryDirectory() as d:
     s = run("scenarios/quantum_dots.yaml", journal=Path(d) / "j.db", bus="memory",
@@ -341,6 +341,8 @@ def bench_scale() -> None:
                      f"{r['rss_mb']:.0f}", f"{r['db_mb']:.0f}"])
     table("Long virtual campaigns (quantum_dots, memory bus): time and memory should grow linearly",
           ["experiments", "done", "lab-h", "wall s", "ms per experiment", "peak RSS MB", "journal MB"], rows)
+    slope = (float(rows[-1][5]) - float(rows[0][5])) * 2**20 / (int(rows[-1][0]) - int(rows[0][0]))
+    print(f"retained per experiment (peak RSS slope, 1k → 10k): {slope / 1024:.2f} KB (target ≤ 2 KB)")
 
 
 # -- 5. kill and resume -----------------------------------------------------------------

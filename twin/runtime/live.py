@@ -91,7 +91,7 @@ class LiveCampaign:
             log.warning("dropped: %s", exc)
             self._feed(InvalidInput(exc.sender, exc.reason))
             return
-        self._feed(DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.model_dump(), payload))
+        self._feed(DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.to_dict(), payload))
 
     def _on_presence(self, key: str, alive: bool) -> None:
         self._feed(Presence(keys.device_of(key), alive))
