@@ -22,6 +22,17 @@ from twin.view.watch import RecordOptions, open_observer
 from twin.view.watch import replay as replay_journal
 from twin.view.watch import watch as watch_lab
 
+# the output options `twin run` and `twin resume` share
+SaveOpt = Annotated[Optional[Path], typer.Option(help="save a Rerun recording, e.g. run.rrd")]
+ViewerOpt = Annotated[bool, typer.Option(help="open the Rerun viewer and stream live")]
+ServeOpt = Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1 (URL printed)")]
+ServePortOpt = Annotated[int, typer.Option(help="gRPC port for --serve (0: any free one)")]
+WebPortOpt = Annotated[int, typer.Option(help="web viewer port for --serve (0: any free one)")]
+QuietOpt = Annotated[bool, typer.Option(help="no progress bar")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="print the summary as JSON")]
+RuntimeOpt = Annotated[str, typer.Option(help="fast | asyncio | auto (fast for a virtual clock on the memory bus)")]
+
+
 @app.command()
 def run(
     scenario: Annotated[Path, typer.Argument(help="a scenario file, e.g. scenarios/quantum_dots.yaml")],
@@ -35,14 +46,14 @@ def run(
     journal: Annotated[Optional[Path], typer.Option(help="where to write the SQLite journal")] = None,
     external: Annotated[Optional[list[str]], typer.Option(help="a device served by another process")] = None,
     listen: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447")] = None,
-    save: Annotated[Optional[Path], typer.Option(help="save a Rerun recording, e.g. run.rrd")] = None,
-    viewer: Annotated[bool, typer.Option(help="open the Rerun viewer and stream live")] = False,
-    serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1 (URL printed)")] = False,
-    serve_port: Annotated[int, typer.Option(help="gRPC port for --serve (0: any free one)")] = 0,
-    web_port: Annotated[int, typer.Option(help="web viewer port for --serve (0: any free one)")] = 0,
-    quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
-    json_out: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
-    runtime: Annotated[str, typer.Option(help="fast | asyncio | auto (fast for a virtual clock on the memory bus)")] = "auto",
+    save: SaveOpt = None,
+    viewer: ViewerOpt = False,
+    serve: ServeOpt = False,
+    serve_port: ServePortOpt = 0,
+    web_port: WebPortOpt = 0,
+    quiet: QuietOpt = False,
+    json_out: JsonOpt = False,
+    runtime: RuntimeOpt = "auto",
 ) -> None:
     """Run a campaign and print its summary."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -63,14 +74,14 @@ def run(
 @app.command()
 def resume(
     journal: Annotated[Path, typer.Argument(help="the journal of a killed run, runs/<run>.db")],
-    save: Annotated[Optional[Path], typer.Option(help="save a Rerun recording, e.g. run.rrd")] = None,
-    viewer: Annotated[bool, typer.Option(help="open the Rerun viewer and stream live")] = False,
-    serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1 (URL printed)")] = False,
-    serve_port: Annotated[int, typer.Option(help="gRPC port for --serve (0: any free one)")] = 0,
-    web_port: Annotated[int, typer.Option(help="web viewer port for --serve (0: any free one)")] = 0,
-    quiet: Annotated[bool, typer.Option(help="no progress bar")] = False,
-    json_out: Annotated[bool, typer.Option("--json", help="print the summary as JSON")] = False,
-    runtime: Annotated[str, typer.Option(help="fast | asyncio | auto")] = "auto",
+    save: SaveOpt = None,
+    viewer: ViewerOpt = False,
+    serve: ServeOpt = False,
+    serve_port: ServePortOpt = 0,
+    web_port: WebPortOpt = 0,
+    quiet: QuietOpt = False,
+    json_out: JsonOpt = False,
+    runtime: RuntimeOpt = "auto",
 ) -> None:
     """Continue a killed virtual-time campaign from its journal; the journal ends as if never killed."""
     from twin.runtime.resume import recorded
