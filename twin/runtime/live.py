@@ -125,8 +125,15 @@ class LiveCampaign:
     # -- actions out ------------------------------------------------------------------
     def _perform(self, actions: list[Any]) -> None:
         progressed = False
+        # live runs are write-ahead: what caused a command is on disk before the command leaves
+        live, unwritten = not self.clock.is_virtual, False
         for a in actions:
             t = type(a)
+            if t is Send and unwritten:
+                self.journal.flush()
+                unwritten = False
+            elif live and t is not Send:
+                unwritten = True
             if t is Note:
                 self.decisions.add(a, journaling.note(self.journal, a))
                 progressed = progressed or a.kind.startswith(("attempt.done", "attempt.failed"))
