@@ -229,9 +229,18 @@ def fast_refused(s: Scenario, external_devices: Collection[str] = frozenset(), w
         return f"devices {sorted(external_devices)} run in other processes"
     if watched:
         return "a recording or viewer watches the bus"
-    if s.campaign.scheduler == REMOTE:
+    if s.campaign.scheduler == REMOTE or _agent_on_bus(s.campaign.scheduler):
         return "the scheduler is an agent on the bus"
     return ""
+
+
+def _agent_on_bus(spec: str) -> bool:
+    """Whether the scheduler ``spec`` names sits on the bus (the rl agent), known from its class."""
+    try:
+        return bool(getattr(plugins.load("schedulers", plugins.with_policy("schedulers", spec)[0]), "serve_on_bus",
+                            False))
+    except TwinError:
+        return False  # an unknown scheduler is reported, with the installed ones, when it is made
 
 
 def recording_id(s: Scenario) -> str:
