@@ -25,6 +25,7 @@ CREATE TABLE IF NOT EXISTS experiments (
     id INTEGER PRIMARY KEY, params TEXT NOT NULL, route TEXT NOT NULL, status TEXT NOT NULL,
     reason TEXT NOT NULL, outputs TEXT, scores TEXT, attempts INTEGER NOT NULL,
     retries INTEGER NOT NULL, degraded INTEGER NOT NULL, t_proposed REAL NOT NULL, t_done REAL);
+CREATE TABLE IF NOT EXISTS inputs (seq INTEGER PRIMARY KEY, t_lab REAL NOT NULL, batch TEXT NOT NULL);
 """
 # rows buffered before a commit; LABTWIN_FLUSH_EVERY sets it (a test that kills runs wants small batches)
 FLUSH_EVERY = int(os.environ.get("LABTWIN_FLUSH_EVERY", 2000))
@@ -33,11 +34,12 @@ FLUSH_EVERY = int(os.environ.get("LABTWIN_FLUSH_EVERY", 2000))
 class Journal:
     FLUSH_EVERY = FLUSH_EVERY
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, append: bool = False) -> None:
+        """A new journal at ``path`` (one already there is replaced), or with ``append`` the one there, continued."""
         self.path = Path(path)
         self.label = str(path)  # how summaries name it
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.path.exists():
+        if self.path.exists() and not append:
             self.path.unlink()
         self._db = sqlite3.connect(self.path)
         self._db.execute("PRAGMA journal_mode=WAL")
@@ -45,7 +47,8 @@ class Journal:
         self._db.executescript(SCHEMA)
         self._events: list[tuple] = []
         self._experiments: dict[int, tuple] = {}
-        self._seq = 0
+        self._seq = self._db.execute("SELECT COALESCE(MAX(seq), 0) FROM events").fetchone()[0]
+        self._inputs: list[tuple] = []
         self.closed = False
 
     def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
@@ -66,6 +69,10 @@ class Journal:
         if len(self._events) >= self.FLUSH_EVERY:
             self.flush()
 
+    def inputs(self, t_lab: float, batch: Any) -> None:
+        """What a live campaign's core was given at one step: what ``twin resume`` replays to rebuild it."""
+        self._inputs.append((t_lab, to_wire(batch).decode()))
+
     def experiment(self, e: Any) -> None:
         self._experiments[e.id] = (
             e.id, json.dumps(e.params, sort_keys=True),
@@ -81,6 +88,9 @@ class Journal:
         self._db.commit()
 
     def flush(self) -> None:
+        if self._inputs:
+            self._db.executemany("INSERT INTO inputs (t_lab, batch) VALUES (?,?)", self._inputs)
+            self._inputs.clear()
         if self._events:
             self._db.executemany("INSERT INTO events VALUES (?,?,?,?,?,?,?,?)", self._events)
             self._events.clear()
@@ -110,7 +120,7 @@ class NullJournal(Journal):
 
     def __init__(self, path: str | Path = ":memory:") -> None:  # noqa: D107 - no file, no database
         self.path, self.label = Path(path), str(path)
-        self._events, self._experiments = [], {}
+        self._events, self._experiments, self._inputs = [], {}, []
         self._seq, self.closed = 0, False
 
     def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
@@ -120,6 +130,9 @@ class NullJournal(Journal):
 
     def message(self, *args: Any) -> None:
         self._seq += 1
+
+    def inputs(self, t_lab: float, batch: Any) -> None:
+        pass
 
     def experiment(self, e: Any) -> None:
         pass
@@ -172,3 +185,9 @@ def decision_payload(row: dict[str, Any]) -> str:
 def as_messages(rows: list[dict[str, Any]]) -> list[str]:
     """The bus messages a run's events stand for, in journal order: what an observer saw."""
     return [r["detail"] if r["kind"].startswith("msg.") else decision_payload(r) for r in rows]
+
+
+def read_inputs(path: str | Path) -> list[tuple[float, Any]]:
+    """A live run's core inputs, batch by batch: (lab time, batch)."""
+    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+        return [(t, json.loads(b)) for t, b in db.execute("SELECT t_lab, batch FROM inputs ORDER BY seq")]

@@ -110,14 +110,14 @@ class _VirtualTime(_TimeBase):
 
 
 class _ScaledTime(_TimeBase):
-    def __init__(self, speed: float) -> None:
+    def __init__(self, speed: float, start: float = 0.0) -> None:
         if speed <= 0:
             raise ValueError(f"clock speed must be > 0, got {speed}")
-        self.speed = speed
+        self.speed, self.start = speed, start
         self._t0 = time.monotonic()
 
     def time(self) -> float:
-        return (time.monotonic() - self._t0) * self.speed
+        return self.start + (time.monotonic() - self._t0) * self.speed
 
     def select(self, real_select, timeout):
         return real_select(None if timeout is None else timeout / self.speed)
@@ -149,14 +149,16 @@ class LabEventLoop(asyncio.SelectorEventLoop):
 class LabClock:
     """The one clock of a run; create its loop with :meth:`new_loop` or :meth:`run`."""
 
-    def __init__(self, mode: ClockMode = "virtual", speed: float = 1.0) -> None:
+    def __init__(self, mode: ClockMode = "virtual", speed: float = 1.0, start: float = 0.0) -> None:
+        """``start``: the lab time the clock starts at (a resumed live campaign goes on from its journal's)."""
         self.mode: ClockMode = mode
         if mode == "virtual":
             self._base: _TimeBase = _VirtualTime()
+            self._base.now = start
         elif mode == "scaled":
-            self._base = _ScaledTime(speed)
+            self._base = _ScaledTime(speed, start)
         elif mode == "wall":
-            self._base = _ScaledTime(1.0)
+            self._base = _ScaledTime(1.0, start)
         else:
             raise ValueError(f"unknown clock mode {mode!r}: use virtual, scaled or wall")
         self.speed = 1.0 if mode == "wall" else speed

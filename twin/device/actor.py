@@ -10,6 +10,7 @@ only does the work.
 from __future__ import annotations
 
 import asyncio
+import collections
 import itertools
 import json
 import logging
@@ -45,6 +46,7 @@ class DeviceActor:
         self._token: Closable | None = None
         self._health: Closable | None = None
         self._crasher: asyncio.Task | None = None
+        self._recent: collections.deque[tuple[str, int, bytes]] = collections.deque(maxlen=16)
         self.dropped = 0
 
     # -- life cycle -------------------------------------------------------
@@ -80,7 +82,8 @@ class DeviceActor:
     async def _report_health(self, key: str, payload: bytes) -> bytes:
         """``labtwin/<lab>/dev/<name>/health``: the actor's state and, if it has ``health()``, the driver's."""
         report: dict = {"device": self.name, "on_bus": self._token is not None,
-                        "running": list(self._current) if self._current else None}
+                        "running": list(self._current) if self._current else None,
+                        "recent": [[t, n, p.decode()] for t, n, p in self._recent]}
         check = feature(self.driver, "health")
         if check is not None:
             try:
@@ -141,11 +144,11 @@ class DeviceActor:
 
     # -- messages ---------------------------------------------------------
     def _emit(self, kind: Kind, body: dict, task: str, attempt: int, campaign: str, key: str | None = None) -> None:
-        self._bus.publish(
-            key or self._evt_key,
-            pack(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name,
-                 t_lab=self._clock.now(), campaign=campaign, task=task, attempt=attempt),
-        )
+        payload = pack(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name,
+                       t_lab=self._clock.now(), campaign=campaign, task=task, attempt=attempt)
+        if kind in (Kind.RESULT, Kind.FAULT):
+            self._recent.append((task, attempt, payload))  # a campaign that died may ask for it (twin resume)
+        self._bus.publish(key or self._evt_key, payload)
 
     def _on_cmd(self, key: str, payload: bytes) -> None:
         try:

@@ -22,6 +22,8 @@ from twin.campaign.journal import Journal
 from pydantic import ValidationError
 
 from twin.campaign import CampaignCore
+from twin.campaign.journal import read_inputs, read_run
+from twin.campaign.replay import Rebuilt, rebuild
 from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.runtime.remote_scheduler import RemoteScheduler, SchedulerService
@@ -320,7 +322,7 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
                     on_progress: Callable[[CampaignCore], None] | None = None,
                     observer: LabObserver | None = None, scheduler: Any = None,
                     on_start: Callable[[LiveCampaign], None] | None = None, handle_signals: bool = True,
-                    make_journal: JournalFactory = Journal) -> Summary:
+                    make_journal: JournalFactory = Journal, rebuilt: Rebuilt | None = None) -> Summary:
     """The campaign of ``s`` on the asyncio runtime; ``scheduler`` replaces the scenario's.
 
     ``handle_signals``: SIGINT/SIGTERM stop the campaign cleanly (off for the campaigns a training
@@ -347,7 +349,8 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
             stack.push_async_callback(_drain, clock, observer, watching)
         scheduler, service = live_scheduler(s, scheduler, bus, clock)
         journal = open_journal(s, journal_path, make_journal)
-        camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress)
+        journal.set("external", sorted(external_devices))
+        camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress, rebuilt=rebuilt)
         remote = scheduler if isinstance(scheduler, RemoteScheduler) else None
         stack.callback(lambda: result.setdefault(
             "summary", finish(camp.core, journal, wall0, clock.now(), camp.note, remote.fallbacks if remote else 0)))
@@ -402,6 +405,8 @@ def resume(path: str | Path, *, on_progress: Callable[[CampaignCore], None] | No
 
     path = Path(path)
     s, prefix = r.recorded(path)
+    if s.clock.mode != "virtual":
+        return _resume_live(path, s, on_progress, observer)
     resuming = path.with_name(path.name + ".resuming")
     checked: list[r.CheckedJournal] = []
 
@@ -422,6 +427,26 @@ def resume(path: str | Path, *, on_progress: Callable[[CampaignCore], None] | No
     r.replace(resuming, path)
     log.info("resumed %s: %d recorded events checked, %d in all", path, len(prefix), summary.events)
     return summary
+
+
+def _resume_live(path: Path, s: Scenario, on_progress: Callable[[CampaignCore], None] | None,
+                 observer: LabObserver | None) -> Summary:
+    """A scaled or wall-clock campaign: its core rebuilt from the inputs it journalled; lab time goes on from there;
+    the steps it had in the lab are asked after (still running, finished, or lost and retried)."""
+    from twin.runtime.resume import ResumeError
+
+    batches = read_inputs(path)
+    if not batches:
+        raise ResumeError(f"{path}: no inputs were journalled (the campaign was killed before it began, or ran "
+                          "before live campaigns journalled them): run it again instead (twin run)")
+    rebuilt = rebuild(s, batches)
+    if rebuilt.core.finished:
+        raise ResumeError(f"{path}: the campaign had finished; nothing to resume")
+    clock = LabClock(s.clock.mode, s.clock.speed, start=rebuilt.now)
+    external = set(read_run(path).get("external") or ())
+    log.info("resuming %s at %.0f lab-s: %d input batches replayed", path, rebuilt.now, len(batches))
+    return clock.run(run_async(s, clock, path, external, on_progress, observer,
+                               make_journal=lambda p: Journal(p, append=True), rebuilt=rebuilt))
 
 
 async def _await_agent(remote: RemoteScheduler, s: Scenario, camp: LiveCampaign) -> None:

@@ -14,6 +14,7 @@ import asyncio
 import functools
 import inspect
 import itertools
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -23,11 +24,14 @@ from twin.core import keys
 from twin.core.bus import Bus
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, DeviceMessage, Finished, InvalidInput, Note,
                            Presence, Proposed, RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
+from twin.campaign import replay
 from twin.campaign.events import TimerKey
+from twin.campaign.replay import Rebuilt
 from twin.core.clock import LabClock
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
-from twin.core.messages import InvalidMessage, decode, pack
+from twin.core.bus import NoReplyError
+from twin.core.messages import InvalidMessage, Kind, decode, pack
 from twin.runtime import journaling
 from twin.runtime.decision_stream import SENDER, DecisionStream
 from twin.scenario import Scenario
@@ -41,10 +45,16 @@ class LiveCampaign:
     """One campaign of ``scenario`` on ``bus`` and ``clock``; ``await run()`` drives it to its end."""
 
     def __init__(self, scenario: Scenario, bus: Bus, clock: LabClock, journal: Journal, planner: Planner,
-                 scheduler: Scheduler, campaign_id: str = "c1", on_progress: Progress | None = None) -> None:
+                 scheduler: Scheduler, campaign_id: str = "c1", on_progress: Progress | None = None,
+                 rebuilt: Rebuilt | None = None) -> None:
+        """``rebuilt``: the core of a killed live campaign, rebuilt from its journal (``twin resume``)."""
         self.s, self.bus, self.clock, self.journal = scenario, bus, clock, journal
         self.planner, self.scheduler, self.on_progress = planner, scheduler, on_progress
-        self.core = CampaignCore(scenario, campaign_id)
+        self.core = rebuilt.core if rebuilt is not None else CampaignCore(scenario, campaign_id)
+        self._rebuilt = rebuilt
+        # a live campaign journals its core's inputs, so that a killed one can be rebuilt (virtual time re-runs)
+        self._recording = not clock.is_virtual
+        self._fed: list[Any] = []
         self.decisions = DecisionStream(journal, bus, clock, scenario.lab, campaign_id)
         self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
         self._ids = itertools.count(1)
@@ -75,7 +85,12 @@ class LiveCampaign:
         ]
         remove_hook = self.clock.on_idle(self._on_idle)
         try:
-            self._perform(self.core.start(self.clock.now()))
+            if self._rebuilt is None:
+                if self._recording:
+                    self.journal.inputs(self.clock.now(), {"start": True})
+                self._perform(self.core.start(self.clock.now()))
+            else:
+                await self._take_over(self._rebuilt)
             await self._done
         finally:
             remove_hook()
@@ -101,9 +116,14 @@ class LiveCampaign:
         self._feed(TimerFired(key))
 
     def _feed(self, event: Any) -> None:
-        self.core.feed(event)
+        self._give(event)
         if not self.clock.is_virtual:
             self._kick_soon()
+
+    def _give(self, event: Any) -> None:
+        if self._recording:
+            self._fed.append(event)
+        self.core.feed(event)
 
     def _kick_soon(self) -> None:
         if not self._kicked:
@@ -120,7 +140,46 @@ class LiveCampaign:
     def _kick(self) -> None:
         self._kicked = False
         while self.core.has_work and not self.core.finished:
-            self._perform(self.core.advance(self.clock.now()))
+            now = self.clock.now()
+            if self._recording:
+                self.journal.inputs(now, {"events": [replay.encode(e) for e in self._fed]})
+                self._fed.clear()
+            self._perform(self.core.advance(now))
+
+    # -- taking over a killed campaign --------------------------------------------------
+    async def _take_over(self, rebuilt: Rebuilt) -> None:
+        """Re-arm what the dead process left pending, then find out what became of the steps it had in the lab."""
+        now = self.clock.now()
+        self.note("campaign.resumed", {"inputs_replayed": True, "timers": len(rebuilt.timers),
+                                       "in_lab": [d.attempt.task.id for d in self.core.devices.values() if d.attempt]})
+        for key, due in rebuilt.timers.items():
+            self._timers[key] = self.clock.call_later(max(0.0, due - now), functools.partial(self._on_timer, key))
+        if rebuilt.asked is not None:
+            self._answer(rebuilt.asked)
+        for dev in list(self.core.devices.values()):
+            if dev.attempt is not None:
+                await self._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n)
+        self._kick_soon()
+
+    async def _ask_about(self, device: str, task: str, attempt: int) -> None:
+        """An attempt in the lab when the campaign died: still running, finished (its result is taken), or lost."""
+        wait = 5.0 * (1.0 if self.clock.is_virtual else self.clock.speed)
+        try:
+            report = json.loads(await self.bus.request(keys.health(self.s.lab, device), b"", wait))
+        except (NoReplyError, ValueError) as exc:
+            log.warning("resume: %s does not answer (%s); its step %s#%d is lost", device, exc, task, attempt)
+            self._give(Presence(device, False))
+            return
+        if report.get("running") == [task, attempt]:
+            return  # still at it: its result will come, or its re-armed deadline will pass
+        for t, n, payload in report.get("recent") or []:
+            if (t, n) == (task, attempt):
+                self._on_event(keys.evt(self.s.lab, device), payload.encode())
+                return
+        reason = f"{device} was not running {task}#{attempt} when the campaign resumed"
+        self._on_event(keys.evt(self.s.lab, device), pack(
+            Kind.FAULT, {"code": "device_lost", "reason": reason}, id=f"{SENDER}:resume:{task}#{attempt}",
+            sender=device, t_lab=self.clock.now(), campaign=self.core.campaign_id, task=task, attempt=attempt))
 
     # -- actions out ------------------------------------------------------------------
     def _perform(self, actions: list[Any]) -> None:
@@ -169,12 +228,12 @@ class LiveCampaign:
 
     def _answer(self, ask: Ask) -> None:
         if ask.what == "plan":
-            self.core.feed(Proposed(self.planner.propose(ask.n, list(ask.history), list(ask.pending))))
+            self._give(Proposed(self.planner.propose(ask.n, list(ask.history), list(ask.pending))))
             return
         started = time.perf_counter()
         decided = self.scheduler.decide(ask.view)
         if not inspect.isawaitable(decided):
-            self.core.feed(Decided(list(decided), time.perf_counter() - started))
+            self._give(Decided(list(decided), time.perf_counter() - started))
             return
         self._deciding = asyncio.ensure_future(decided)
 
@@ -186,7 +245,7 @@ class LiveCampaign:
                 if self._done is not None and not self._done.done():
                     self._done.set_exception(fut.exception())
                 return
-            self.core.feed(Decided(list(fut.result()), time.perf_counter() - started))
+            self._give(Decided(list(fut.result()), time.perf_counter() - started))
             self._kick_soon()
 
         self._deciding.add_done_callback(answered)

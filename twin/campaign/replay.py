@@ -1,0 +1,101 @@
+"""A live campaign's core, rebuilt from the inputs its journal recorded.
+
+A live runtime journals, before each ``advance``, what the core was given
+(``Journal.inputs``): the core is deterministic, so feeding the same batches
+again rebuilds the same state. ``rebuild`` also says what the dead process
+left pending: its timers (with their lab-time due dates) and a question it
+had asked and not had answered.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from twin.campaign.core import CampaignCore
+from twin.campaign.events import (Ask, CancelTimer, Decided, DeviceMessage, InvalidInput, Presence, Proposed,
+                                  SetTimer, Stop, TimerFired, TimerKey, TimerKind)
+from twin.core.messages import InvalidMessage, decode
+from twin.campaign.decisions import Assignment, Proposal, RouteStep
+from twin.scenario.model import Scenario
+
+
+def encode(event: Any) -> list[Any]:
+    """One input as JSON-able data."""
+    t = type(event)
+    if t is DeviceMessage:
+        payload = event.payload
+        return ["msg", payload.decode() if isinstance(payload, bytes) else payload]
+    if t is Presence:
+        return ["presence", event.device, event.alive]
+    if t is TimerFired:
+        return ["timer", str(event.key.kind), event.key.ref]
+    if t is InvalidInput:
+        return ["invalid", event.sender, event.reason]
+    if t is Stop:
+        return ["stop", event.reason]
+    if t is Proposed:
+        return ["proposed", [[p.params, None if p.route is None else [[r.step, r.device, r.params] for r in p.route]]
+                             for p in event.proposals]]
+    if t is Decided:
+        return ["decided", [[a.task, a.device] for a in event.assignments], event.wall_s]
+    raise TypeError(f"not a core input: {event!r}")
+
+
+def decode_input(data: list[Any]) -> Any:
+    kind = data[0]
+    if kind == "msg":
+        raw = data[1].encode() if isinstance(data[1], str) else data[1]
+        try:
+            env, body = decode(raw)
+        except InvalidMessage as exc:
+            return InvalidInput(exc.sender, exc.reason)
+        return DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.to_dict(), raw)
+    if kind == "presence":
+        return Presence(data[1], data[2])
+    if kind == "timer":
+        return TimerFired(TimerKey(TimerKind(data[1]), data[2]))
+    if kind == "invalid":
+        return InvalidInput(data[1], data[2])
+    if kind == "stop":
+        return Stop(data[1])
+    if kind == "proposed":
+        return Proposed([Proposal(params, None if route is None else tuple(RouteStep(*r) for r in route))
+                         for params, route in data[1]])
+    if kind == "decided":
+        return Decided([Assignment(task, device) for task, device in data[1]], data[2])
+    raise ValueError(f"unknown input {kind!r} in the journal")
+
+
+@dataclass
+class Rebuilt:
+    core: CampaignCore
+    now: float  # the lab time of the last input
+    timers: dict[TimerKey, float] = field(default_factory=dict)  # pending timers: due lab time
+    asked: Ask | None = None  # a question the core still waits on
+
+
+def rebuild(s: Scenario, batches: list[tuple[float, dict[str, Any]]], campaign_id: str = "c1") -> Rebuilt:
+    """Feed a recorded campaign's inputs to a new core, batch by batch; its actions are not performed again."""
+    out = Rebuilt(CampaignCore(s, campaign_id), 0.0)
+    for now, batch in batches:
+        out.now = now
+        if "start" in batch:
+            actions = out.core.start(now)
+        else:
+            for item in batch["events"]:
+                event = decode_input(item)
+                if type(event) is TimerFired:
+                    out.timers.pop(event.key, None)
+                if type(event) in (Proposed, Decided):
+                    out.asked = None
+                out.core.feed(event)
+            actions = out.core.advance(now)
+        for a in actions:
+            if type(a) is SetTimer:
+                out.timers[a.key] = now + a.delay
+            elif type(a) is CancelTimer:
+                out.timers.pop(a.key, None)
+            elif type(a) is Ask:
+                out.asked = a
+    return out
