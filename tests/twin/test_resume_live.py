@@ -66,3 +66,56 @@ def test_a_killed_live_campaign_resumes_where_it_was(tmp_path):
             and "when the campaign resumed" in (e["detail"] or "")]
     assert lost, "the in-process device died with the campaign: its step must be found lost and retried"
     assert all(any(x["kind"] == "attempt.done" and x["task"] == e["task"] for x in events) for e in lost)
+
+
+@pytest.mark.process
+def test_a_result_finished_while_the_campaign_was_dead_is_adopted_once(tmp_path):
+    from tests.twin.test_device_process import free_port
+    from tests.twin.test_distributed_lab import start
+
+    router = f"tcp/127.0.0.1:{free_port()}"
+    speed = 200.0
+    lab = qd_lab(**{"campaign.budget": 6, "campaign.max_in_flight": 2,
+                    "devices.synthesiser.duration": {"mean_s": 20, "cv": 0.0},
+                    "devices.spectrometer.duration": {"mean_s": 200, "cv": 0.0},
+                    "clock": {"mode": "scaled", "speed": speed},
+                    "bus": {"kind": "zenoh", "listen": [], "connect": [router], "lease_ms": 1000},
+                    "orchestrator.startup_s": 4000, "orchestrator.orphan_grace_s": 100000,
+                    "orchestrator.timeout_slack_s": 4000})
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(lab))
+    db = tmp_path / "j.db"
+    procs = {"router": start(["router", "--listen", router], "router")}
+    procs["spec2"] = start(["device", "serve", str(path), "--id", "spectrometer-2", "--connect", router,
+                            "--clock", "scaled", "--speed", str(speed)], "ready spectrometer-2")
+    try:
+        lab_run = subprocess.Popen(TWIN + ["run", str(path), "--journal", str(db), "--quiet", "--external",
+                                           "spectrometer-2"], cwd=ROOT, stdout=subprocess.DEVNULL,
+                                   stderr=subprocess.PIPE)
+        on_spec2 = "SELECT COUNT(*) FROM events WHERE kind='attempt.running' AND device='spectrometer-2'"
+        deadline = time.monotonic() + 60
+        while lab_run.poll() is None and time.monotonic() < deadline and _count(db, on_spec2) == 0:
+            time.sleep(0.01)
+        os.kill(lab_run.pid, signal.SIGKILL)  # the campaign dies with a measurement running on the remote device
+        lab_run.wait()
+        assert "summary" not in read_run(db)
+        killed_task = next(e["task"] for e in reversed(read_events(db))
+                           if e["kind"] == "attempt.running" and e["device"] == "spectrometer-2")
+        time.sleep(1.5)  # the remote measurement (1 s of wall time) finishes while nobody listens
+        resumed = subprocess.run(TWIN + ["resume", str(db), "--json"], cwd=ROOT, capture_output=True, text=True,
+                                 timeout=120)
+        assert resumed.returncode == 0, resumed.stderr[-3000:]
+    finally:
+        for p in procs.values():
+            p.kill()
+            p.wait()
+    summary = json.loads(resumed.stdout)
+    events = read_events(db)
+    done = [e for e in events if e["kind"] == "attempt.done" and e["task"] == killed_task]
+    assert len(done) == 1 and done[0]["device"] == "spectrometer-2", "the finished result is adopted, once"
+    resumed_at = next(e["t_lab"] for e in events if e["kind"] == "campaign.resumed")
+    assert done[0]["t_lab"] >= resumed_at
+    assert not [e for e in events if e["kind"] == "attempt.failed" and e["task"] == killed_task]
+    finals = [e["experiment"] for e in events if e["kind"] in ("experiment.done", "experiment.abandoned")]
+    assert len(finals) == len(set(finals))
+    assert summary["done"] + summary["abandoned"] + summary["pending"] == summary["proposed"] == 6
