@@ -83,7 +83,7 @@ def resume(
     json_out: JsonOpt = False,
     runtime: RuntimeOpt = "auto",
 ) -> None:
-    """Continue a killed virtual-time campaign from its journal; the journal ends as if never killed."""
+    """Continue a killed campaign from its journal (virtual time: re-run and checked; live: rebuilt)."""
     from twin.runtime.resume import recorded
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -92,8 +92,10 @@ def resume(
     except TwinError as exc:
         _fail(exc)
     if not (quiet or json_out):
-        err.print(f"resuming {journal}: {len(prefix)} recorded events are checked as the campaign re-runs",
-                  highlight=False)
+        how = ("its core is rebuilt from the inputs it journalled, and the devices are asked about the steps it "
+               "had in the lab" if s.clock.mode != "virtual" else
+               f"{len(prefix)} recorded events are checked as the campaign re-runs")
+        err.print(f"resuming {journal}: {how}", highlight=False)
     _campaign(s, RecordOptions(save, viewer, serve, serve_port, web_port), quiet, json_out,
               lambda on_progress, observer: lab.resume(journal, on_progress=on_progress, observer=observer,
                                                        runtime=runtime))
