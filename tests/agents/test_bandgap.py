@@ -43,7 +43,8 @@ def test_the_calculator_is_used_first_and_experiments_follow_its_map(tmp_path):
 
 def test_multi_fidelity_reaches_the_gap_for_less_money_than_random():
     s = prepare(SCENARIO)
-    mf = [trial(s, "mf-gp-bo", seed) for seed in range(4)]
-    rnd = [trial(s, "random", seed) for seed in range(4)]
+    mf = [trial(s, "mf-gp-bo", seed) for seed in range(8)]
+    rnd = [trial(s, "random", seed) for seed in range(8)]
     assert all(t.reached for t in mf)
-    assert statistics.median(t.cost for t in mf) * 1.5 <= statistics.median(t.cost for t in rnd)
+    assert statistics.median(t.cost for t in mf) < statistics.median(t.cost for t in rnd)
+    assert statistics.mean(t.cost for t in mf) * 1.5 <= statistics.mean(t.cost for t in rnd)

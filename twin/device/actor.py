@@ -19,7 +19,7 @@ from typing import Any
 from twin.core import keys
 from twin.core.bus import Bus, Closable
 from twin.core.clock import LabClock, wait_cancelled
-from twin.core.streams import seeded
+from twin.core.streams import KeyedGenerator, seeded
 from twin.device.driver import Driver, StepContext, feature, simulated_faults
 from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack
 
@@ -36,7 +36,7 @@ class DeviceActor:
         self._bus, self._clock, self._lab = bus, clock, lab
         self._seed = seed
         self._crash_rng, _ = seeded(seed, "crashes", name)
-        _, self._step_rng = seeded(seed, "steps", name)
+        self._step_rngs = KeyedGenerator()
         self._ids = itertools.count(1)
         self._evt_key = keys.evt(lab, name)
         self._job: asyncio.Task | None = None
@@ -175,7 +175,7 @@ class DeviceActor:
 
         ctx = StepContext(
             clock=self._clock,
-            rng=self._step_rng,
+            rng=self._step_rngs.keyed(f"{self._seed}:steps:{task}:{attempt}"),
             duration=spec.duration,
             progress=lambda f, note: emit(Kind.PROGRESS, {"fraction": f, "note": note}),
             telemetry=lambda r: emit(Kind.TELEMETRY, {"readings": r}, keys.telemetry(self._lab, self.name)),

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from typing import Any
 
 from twin.campaign import DeviceMessage, Presence
-from twin.core.streams import seeded
+from twin.core.streams import KeyedGenerator, seeded
 from twin.device.driver import Driver, StepContext, feature, simulated_faults
 from twin.core.errors import DriverError
 from twin.core.messages import Kind, envelope, to_wire
@@ -35,7 +35,7 @@ class FastDevice:
         self.name, self.device_type, self.spec, self.driver = name, device_type, spec, driver
         self._q, self._clock, self._deliver, self._seed = queue, QueueClock(queue), deliver, seed
         self._crash_rng = seeded(seed, "crashes", name)[0] if spec.faults.mtbc_h > 0 else None
-        _, self._step_rng = seeded(seed, "steps", name)
+        self._step_rngs = KeyedGenerator()
         self._ids = itertools.count(1)
         self._job: Any = None  # the running step's coroutine
         self._current: tuple[str, int] | None = None
@@ -137,7 +137,7 @@ class FastDevice:
         step = cmd["step"]
         ctx = StepContext(
             clock=self._clock,  # type: ignore[arg-type]
-            rng=self._step_rng,
+            rng=self._step_rngs.keyed(f"{self._seed}:steps:{task}:{attempt}"),
             duration=spec.duration,
             progress=lambda f, note: self._emit(Kind.PROGRESS, {"fraction": f, "note": note}, task, attempt),
             telemetry=lambda r: self._emit(Kind.TELEMETRY, {"readings": r}, task, attempt),
