@@ -60,7 +60,7 @@ class CampaignCore:
         self.decision_wall_s: list[float] = []
         self.planner_exhausted = False
         self.stopping = ""
-        self.started = self.finished = False
+        self.finished = False
         self.now = self.t0 = 0.0
         self._running = False  # past start-up
         self._inbox: list[Event] = []
@@ -75,7 +75,6 @@ class CampaignCore:
     # -- the runtime's side ---------------------------------------------------------
     def start(self, now: float) -> list[Action]:
         self.now = self.t0 = now
-        self.started = True
         self._note("campaign.started", detail=self.describe())
         if all(d.online for d in self.devices.values()):
             self._begin()

@@ -190,4 +190,7 @@ def as_messages(rows: list[dict[str, Any]]) -> list[str]:
 def read_inputs(path: str | Path) -> list[tuple[float, Any]]:
     """A live run's core inputs, batch by batch: (lab time, batch)."""
     with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
-        return [(t, json.loads(b)) for t, b in db.execute("SELECT t_lab, batch FROM inputs ORDER BY seq")]
+        try:
+            return [(t, json.loads(b)) for t, b in db.execute("SELECT t_lab, batch FROM inputs ORDER BY seq")]
+        except sqlite3.OperationalError:
+            return []  # a journal from before inputs were journalled

@@ -85,10 +85,6 @@ class FastCampaign:
     def now(self) -> float:
         return self.queue.now
 
-    @property
-    def finished(self) -> bool:
-        return self.core.finished
-
     def _start(self) -> None:
         self._started = True
         self._perform(self.core.start(self.queue.now))
