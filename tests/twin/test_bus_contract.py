@@ -137,3 +137,17 @@ def test_virtual_time_never_jumps_past_a_message_in_flight(virtual_clock, make_b
 
     arrivals = run(virtual_clock, make_bus, body)
     assert arrivals == [0.0] * 20
+
+
+def test_wants_is_true_whenever_a_subscriber_could_receive(virtual_clock, make_bus, bus_kind):
+    async def body(bus):
+        before = bus.wants("lab/d/decisions")
+        sub = bus.subscribe("lab/*/decisions", lambda k, p: None)
+        during = bus.wants("lab/d/decisions")
+        sub.close()
+        return before, during, bus.wants("lab/d/decisions")
+
+    before, during, after = run(virtual_clock, make_bus, body)
+    assert during is True
+    if bus_kind == "memory":  # in one process nobody else can listen: encoding can be skipped
+        assert before is False and after is False

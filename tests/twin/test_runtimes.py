@@ -4,6 +4,8 @@ import sqlite3
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from tests.conftest import qd_lab
 from twin.device.driver import StepResult
@@ -73,3 +75,16 @@ def test_the_fast_runtime_refuses_what_only_a_bus_can_do(tmp_path):
 
     with pytest.raises(ClockError, match="the clock is scaled"):
         run(parse(qd_lab(clock={"mode": "scaled", "speed": 1e6})), journal=tmp_path / "j.db", runtime="fast")
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 10**6), budget=st.integers(1, 25), instances=st.integers(1, 3),
+       restart_s=st.sampled_from([0.0, 600.0]))
+def test_the_runtimes_agree_on_any_seed_and_lab_shape(tmp_path_factory, seed, budget, instances, restart_s):
+    tmp = tmp_path_factory.mktemp("eq")
+    over = {"campaign.budget": budget, "devices.reactor.instances": instances,
+            "devices.spectrometer.faults.restart_s": restart_s}
+    scenario = ROOT / "scenarios" / "flaky_lab.yaml"
+    run(scenario, journal=tmp / "fast.db", seed=seed, bus="memory", runtime="fast", overrides=over)
+    run(scenario, journal=tmp / "asyncio.db", seed=seed, bus="memory", runtime="asyncio", overrides=over)
+    assert journal(tmp / "fast.db") == journal(tmp / "asyncio.db")

@@ -38,6 +38,9 @@ class DecisionStream:
         """Send the decisions added so far as one message."""
         if not self._outbox:
             return
+        if not self.bus.wants(self.key):  # nobody watches: the journal keeps the decisions, skip encoding them
+            self._outbox.clear()
+            return
         items, self._outbox = self._outbox, []
         body = {"what": "decisions", "detail": {"items": items}}
         self.bus.publish(self.key, pack(Kind.DECISION, body, id=f"{SENDER}:b{next(self._batches)}", sender=SENDER,

@@ -55,6 +55,13 @@ class MemoryBus:
         if subs:
             hub.loop.call_soon(_deliver_all, subs, key, payload)
 
+    def wants(self, key: str) -> bool:
+        hub = self._hub
+        subs = hub.route_cache.get(key)
+        if subs is None:
+            subs = hub.route_cache[key] = [s for s in hub.subs if key_matches(s.keyexpr, key)]
+        return bool(subs)
+
     def subscribe(self, keyexpr: str, handler: Handler) -> Closable:
         self._hub.route_cache.clear()
         entry = _Entry(keyexpr, handler, self._hub.subs)

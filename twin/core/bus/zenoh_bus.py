@@ -254,6 +254,9 @@ class ZenohBus:
             attachment=_SEQ.pack(seq),
         )
 
+    def wants(self, key: str) -> bool:
+        return True  # a subscriber in another process cannot be ruled out
+
     def subscribe(self, keyexpr: str, handler: Handler) -> Closable:
         """Subscribers of one key expression share one Zenoh subscriber and are fanned out here."""
         group = self._groups.get(keyexpr)
