@@ -54,6 +54,7 @@ class Journal:
     def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
               attempt: int | None = None, device: str | None = None, detail: Any = None) -> int:
         """A state change; ``detail`` is stored as JSON. Returns the event's sequence number."""
+        # every row goes through _append: a resume checks rows there
         self._append(t_lab, kind, experiment, task, attempt, device, None if detail is None else to_wire(detail).decode())
         return self._seq
 

@@ -97,14 +97,16 @@ class FastCampaign:
 
     # -- actions ----------------------------------------------------------------------
     def _perform(self, actions: list[Any]) -> None:
-        journal, progressed = self.journal, False
+        journal, progressed, watched = self.journal, False, self.on_progress is not None
+        event, message = journal.event, journal.message
         for a in actions:
             t = type(a)
             if t is Note:
-                journaling.note(journal, a)
-                progressed = progressed or a.kind.startswith(("attempt.done", "attempt.failed"))
+                event(a.t_lab, a.kind, a.experiment, a.task, a.attempt, a.device, a.detail)
+                if watched and not progressed:
+                    progressed = a.kind.startswith(("attempt.done", "attempt.failed"))
             elif t is RecordMessage:
-                journaling.message(journal, a)
+                message(a.t_lab, a.kind, a.experiment, a.task, a.attempt, a.device, a.payload)
             elif t is Send:
                 dev = self.devices.get(a.device)
                 if dev is not None:
