@@ -88,3 +88,31 @@ def test_the_runtimes_agree_on_any_seed_and_lab_shape(tmp_path_factory, seed, bu
     run(scenario, journal=tmp / "fast.db", seed=seed, bus="memory", runtime="fast", overrides=over)
     run(scenario, journal=tmp / "asyncio.db", seed=seed, bus="memory", runtime="asyncio", overrides=over)
     assert journal(tmp / "fast.db") == journal(tmp / "asyncio.db")
+
+
+class NumpyOutputs:
+    """A driver that returns numpy numbers and arrays, as real drivers do."""
+
+    capabilities = frozenset({"measure"})
+
+    def __init__(self, setup):
+        pass
+
+    async def run(self, step, params, sample, ctx):
+        import numpy as np
+
+        await ctx.clock.sleep(ctx.draw_duration(params))
+        return StepResult({"peak_nm": np.float64(600.0) + ctx.rng.normal(), "count": np.int64(3),
+                           "trace": np.linspace(0.0, 1.0, 5)}, sample)
+
+    async def safe_state(self):
+        pass
+
+
+def test_numpy_outputs_travel_and_both_runtimes_agree(tmp_path):
+    lab = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_runtimes:NumpyOutputs",
+                          "campaign.budget": 3}))
+    fast = run(lab, journal=tmp_path / "fast.db", runtime="fast")
+    slow = run(lab, journal=tmp_path / "asyncio.db", runtime="asyncio")
+    assert fast.done == slow.done == 3
+    assert journal(tmp_path / "fast.db") == journal(tmp_path / "asyncio.db")

@@ -14,6 +14,9 @@ import sqlite3
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
+from twin.core.messages import plain_value
 from twin.core.messages import to_wire
 
 SCHEMA = """
@@ -29,6 +32,14 @@ CREATE TABLE IF NOT EXISTS inputs (seq INTEGER PRIMARY KEY, t_lab REAL NOT NULL,
 """
 # rows buffered before a commit; LABTWIN_FLUSH_EVERY sets it (a test that kills runs wants small batches)
 FLUSH_EVERY = int(os.environ.get("LABTWIN_FLUSH_EVERY", 2000))
+
+
+_encode_sorted = msgspec.json.Encoder(enc_hook=plain_value, order="sorted").encode
+
+
+def _sorted(value: Any) -> str:
+    """JSON with sorted keys (msgspec; numpy numbers become plain ones, NaN and infinity null)."""
+    return _encode_sorted(value).decode()
 
 
 class Journal:
@@ -76,10 +87,9 @@ class Journal:
 
     def experiment(self, e: Any) -> None:
         self._experiments[e.id] = (
-            e.id, json.dumps(e.params, sort_keys=True),
-            json.dumps([[s.step, s.device, s.params] for s in e.route]),
-            e.status, e.reason, json.dumps(e.outputs, sort_keys=True) if e.outputs else None,
-            json.dumps(e.scores, sort_keys=True) if e.scores else None,
+            e.id, _sorted(e.params), _sorted([[s.step, s.device, s.params] for s in e.route]),
+            e.status, e.reason, _sorted(e.outputs) if e.outputs else None,
+            _sorted(e.scores) if e.scores else None,
             e.attempts, e.retries, int(e.degraded), e.t_proposed, e.t_done,
         )
 

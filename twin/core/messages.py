@@ -123,7 +123,17 @@ def envelope(kind: Kind, body: dict[str, Any], *, id: str, sender: str, t_lab: f
             "attempt": attempt, "sender": sender, "t_lab": t_lab, "body": body}
 
 
-_encode = msgspec.json.Encoder().encode
+def plain_value(obj: Any) -> Any:
+    """What msgspec cannot encode by itself: numpy scalars and arrays (a driver's outputs often are)."""
+    item, tolist = getattr(obj, "item", None), getattr(obj, "tolist", None)
+    if tolist is not None and callable(tolist):
+        return tolist()
+    if item is not None and callable(item):
+        return item()
+    raise TypeError(f"cannot send a {type(obj).__name__} in a message: use numbers, strings, lists and dicts")
+
+
+_encode = msgspec.json.Encoder(enc_hook=plain_value).encode
 _decode_envelope = msgspec.json.Decoder(Envelope).decode
 _decode_sender = msgspec.json.Decoder(_Sender).decode
 

@@ -15,6 +15,8 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
+import msgspec
+
 from twin.campaign import DeviceMessage, Presence
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.driver import Driver, StepContext, feature, simulated_faults
@@ -23,6 +25,7 @@ from twin.core.messages import Kind, envelope, to_wire
 from twin.runtime.queue import EventQueue, Park, QueueClock, Sleep, Timer
 
 log = logging.getLogger(__name__)
+_plain = msgspec.json.Decoder().decode
 
 
 class FastRuntimeRefused(DriverError):
@@ -86,7 +89,10 @@ class FastDevice:
         env = envelope(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name, t_lab=self._q.now,
                        campaign=self._campaign, task=task, attempt=attempt)
         # encoded once, as the journal stores it; a body that cannot go on the wire fails here, as on a bus
-        self._deliver(DeviceMessage(kind, self.name, task, attempt, body, to_wire(env)))
+        payload = to_wire(env)
+        if kind is Kind.RESULT:  # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
+            body = _plain(payload)["body"]
+        self._deliver(DeviceMessage(kind, self.name, task, attempt, body, payload))
 
     def command(self, task: str, attempt: int, campaign: str, body: dict) -> None:
         if not self.online:
