@@ -32,6 +32,14 @@ def test_report_of_a_missing_journal_is_a_clear_error(tmp_path):
     assert res.returncode == 2 and "no such journal" in res.stderr and "Traceback" not in res.stderr
 
 
+@pytest.mark.parametrize("command", ["report", "resume"])
+def test_a_file_that_is_not_a_journal_is_a_clear_error(tmp_path, command):
+    bad = tmp_path / "notes.db"
+    bad.write_text("this is not SQLite")
+    res = subprocess.run([*TWIN, command, str(bad)], capture_output=True, text=True, cwd=ROOT)
+    assert res.returncode == 2 and "not a labtwin journal" in res.stderr and "Traceback" not in res.stderr
+
+
 @pytest.mark.process
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_ctrl_c_stops_cleanly_and_flushes_the_journal(tmp_path, sig):

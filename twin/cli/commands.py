@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sqlite3
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -220,14 +221,17 @@ def schema() -> None:
 
 @app.command()
 def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<run>.db")]) -> None:
-    """Print a finished run's summary again from its journal."""
+    """Print a run's summary again from its journal (a killed run: how far it got, and how to resume it)."""
     if not journal.exists():
         _fail(TwinError(f"{journal}: no such journal; runs are written to runs/ by default"))
-    data = read_run(journal)
-    if "summary" not in data:
-        from twin.runtime.resume import interrupted
+    from twin.runtime.resume import interrupted
 
-        got = interrupted(journal)
+    try:
+        data = read_run(journal)
+        got = interrupted(journal) if "summary" not in data else {}
+    except (sqlite3.Error, ValueError, KeyError) as exc:
+        _fail(TwinError(f"{journal}: not a labtwin journal ({exc}); twin run writes them to runs/"))
+    if "summary" not in data:
         shown = {"pending": "not finished", "running": "not finished"}
         counts: dict[str, int] = {}
         for status, n in got["experiments"].items():
