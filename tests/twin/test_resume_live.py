@@ -119,3 +119,20 @@ def test_a_result_finished_while_the_campaign_was_dead_is_adopted_once(tmp_path)
     finals = [e["experiment"] for e in events if e["kind"] in ("experiment.done", "experiment.abandoned")]
     assert len(finals) == len(set(finals))
     assert summary["done"] + summary["abandoned"] + summary["pending"] == summary["proposed"] == 6
+
+
+@pytest.mark.parametrize("damage", ['{"events": [["bogus", 1]]}', '{"events": [["msg"]]}', "not json"])
+def test_damaged_inputs_are_named_and_nothing_runs(tmp_path, damage):
+    from twin.core.errors import TwinError
+    from twin.runtime.lab import resume, run
+    from twin.scenario import parse
+
+    db = tmp_path / "j.db"
+    run(parse(qd_lab(**{"campaign.budget": 2, "clock": {"mode": "scaled", "speed": 100000}})), journal=db)
+    with sqlite3.connect(db) as c:  # as if killed, then damaged
+        c.execute("DELETE FROM run WHERE key='summary'")
+        c.execute("UPDATE inputs SET batch=? WHERE seq=3", (damage,))
+        events = c.execute("SELECT COUNT(*) FROM events").fetchone()[0]
+    with pytest.raises(TwinError, match=r"input batch 3 of \d+|inputs are damaged"):
+        resume(db)
+    assert _count(db, "SELECT COUNT(*) FROM events") == events

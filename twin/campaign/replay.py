@@ -15,6 +15,7 @@ from typing import Any
 from twin.campaign.core import CampaignCore
 from twin.campaign.events import (Ask, CancelTimer, Decided, DeviceMessage, InvalidInput, Presence, Proposed,
                                   SetTimer, Stop, TimerFired, TimerKey, TimerKind)
+from twin.core.errors import TwinError
 from twin.core.messages import InvalidMessage, decode
 from twin.campaign.decisions import Assignment, Proposal, RouteStep
 from twin.scenario.model import Scenario
@@ -75,27 +76,42 @@ class Rebuilt:
     asked: Ask | None = None  # a question the core still waits on
 
 
+class ReplayError(TwinError):
+    """A journal's inputs cannot be replayed: damaged, or written by another version."""
+
+
 def rebuild(s: Scenario, batches: list[tuple[float, dict[str, Any]]], campaign_id: str = "c1") -> Rebuilt:
     """Feed a recorded campaign's inputs to a new core, batch by batch; its actions are not performed again."""
     out = Rebuilt(CampaignCore(s, campaign_id), 0.0)
-    for now, batch in batches:
-        out.now = now
-        if "start" in batch:
-            actions = out.core.start(now)
-        else:
-            for item in batch["events"]:
-                event = decode_input(item)
-                if type(event) is TimerFired:
-                    out.timers.pop(event.key, None)
-                if type(event) in (Proposed, Decided):
-                    out.asked = None
-                out.core.feed(event)
-            actions = out.core.advance(now)
-        for a in actions:
-            if type(a) is SetTimer:
-                out.timers[a.key] = now + a.delay
-            elif type(a) is CancelTimer:
-                out.timers.pop(a.key, None)
-            elif type(a) is Ask:
-                out.asked = a
+    for i, (now, batch) in enumerate(batches, 1):
+        try:
+            _replay(out, now, batch)
+        except TwinError:
+            raise
+        except Exception as exc:  # a damaged journal must say where, not crash
+            raise ReplayError(f"input batch {i} of {len(batches)} (lab time {now:.1f} s) cannot be replayed: "
+                              f"{type(exc).__name__}: {exc}. The journal is damaged or from another version; "
+                              "run the campaign again (twin run)") from None
     return out
+
+
+def _replay(out: Rebuilt, now: float, batch: dict[str, Any]) -> None:
+    out.now = now
+    if "start" in batch:
+        actions = out.core.start(now)
+    else:
+        for item in batch["events"]:
+            event = decode_input(item)
+            if type(event) is TimerFired:
+                out.timers.pop(event.key, None)
+            if type(event) in (Proposed, Decided):
+                out.asked = None
+            out.core.feed(event)
+        actions = out.core.advance(now)
+    for a in actions:
+        if type(a) is SetTimer:
+            out.timers[a.key] = now + a.delay
+        elif type(a) is CancelTimer:
+            out.timers.pop(a.key, None)
+        elif type(a) is Ask:
+            out.asked = a

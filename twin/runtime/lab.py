@@ -435,7 +435,10 @@ def _resume_live(path: Path, s: Scenario, on_progress: Callable[[CampaignCore], 
     the steps it had in the lab are asked after (still running, finished, or lost and retried)."""
     from twin.runtime.resume import ResumeError
 
-    batches = read_inputs(path)
+    try:
+        batches = read_inputs(path)
+    except ValueError as exc:
+        raise ResumeError(f"{path}: its journalled inputs are damaged ({exc}): run the campaign again (twin run)") from None
     if not batches:
         raise ResumeError(f"{path}: no inputs were journalled (the campaign was killed before it began, or ran "
                           "before live campaigns journalled them): run it again instead (twin run)")
