@@ -136,3 +136,32 @@ def test_damaged_inputs_are_named_and_nothing_runs(tmp_path, damage):
     with pytest.raises(TwinError, match=r"input batch 3 of \d+|inputs are damaged"):
         resume(db)
     assert _count(db, "SELECT COUNT(*) FROM events") == events
+
+
+@pytest.mark.process
+def test_a_campaign_still_running_is_not_resumed_a_second_time(tmp_path):
+    from tests.twin.test_device_process import free_port
+    from tests.twin.test_distributed_lab import start
+
+    router = f"tcp/127.0.0.1:{free_port()}"
+    lab = qd_lab(**{"campaign.budget": 50, "clock": {"mode": "scaled", "speed": 100},
+                    "bus": {"kind": "zenoh", "listen": [], "connect": [router], "lease_ms": 1000}})
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(lab))
+    db = tmp_path / "j.db"
+    router_proc = start(["router", "--listen", router], "router")
+    lab_run = subprocess.Popen(TWIN + ["run", str(path), "--journal", str(db), "--quiet"], cwd=ROOT,
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and _count(db, "SELECT COUNT(*) FROM events WHERE kind='attempt.done'") < 1:
+            time.sleep(0.05)
+        second = subprocess.run(TWIN + ["resume", str(db)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert lab_run.poll() is None, "the campaign ended before the second resume was tried"
+    finally:
+        lab_run.kill()
+        lab_run.wait()
+        router_proc.kill()
+        router_proc.wait()
+    assert second.returncode == 2
+    assert "still running" in second.stderr and "orchestrator/alive" in second.stderr

@@ -12,7 +12,7 @@ from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import Any
 
-from twin.core import plugins
+from twin.core import keys, plugins
 from twin.device.actor import DeviceActor
 from twin.core.bus import Bus, open_bus
 from twin.core.clock import LabClock
@@ -445,11 +445,35 @@ def _resume_live(path: Path, s: Scenario, on_progress: Callable[[CampaignCore], 
     rebuilt = rebuild(s, batches)
     if rebuilt.core.finished:
         raise ResumeError(f"{path}: the campaign had finished; nothing to resume")
+    running = LabClock("wall").run(_still_running(s))
+    if running:
+        raise ResumeError(f"{path}: the campaign is still running ({running}); a second orchestrator would "
+                          "dispatch the same steps. Stop it first, or watch it (twin watch); if it was killed just "
+                          f"now, its token lasts one link lease ({s.bus.lease_ms} ms): try again then")
     clock = LabClock(s.clock.mode, s.clock.speed, start=rebuilt.now)
     external = set(read_run(path).get("external") or ())
     log.info("resuming %s at %.0f lab-s: %d input batches replayed", path, rebuilt.now, len(batches))
     return clock.run(run_async(s, clock, path, external, on_progress, observer,
                                make_journal=lambda p: Journal(p, append=True), rebuilt=rebuilt))
+
+
+async def _still_running(s: Scenario, wait_s: float = 1.0) -> str:
+    """Why the campaign of ``s`` looks alive on its bus ('' when it does not): its token, or its endpoint taken."""
+    if s.bus.kind == "memory":
+        return ""  # one process's bus: nothing else can be on it
+    bus = make_bus(s, LabClock("wall"))
+    try:
+        await bus.start()
+    except TwinError as exc:
+        return f"its bus endpoint is in use: {exc}"
+    seen: list[str] = []
+    watch = bus.watch_tokens(keys.orchestrator(s.lab), lambda key, alive: seen.append(key) if alive else None)
+    try:
+        await asyncio.sleep(wait_s)  # a router or peer reports the tokens it knows within a few milliseconds
+    finally:
+        watch.close()
+        await bus.close()
+    return f"its token {seen[0]} is on the bus" if seen else ""
 
 
 async def _await_agent(remote: RemoteScheduler, s: Scenario, camp: LiveCampaign) -> None:
