@@ -1,6 +1,8 @@
 """One contract, every bus: what an actor may rely on whichever bus carries it."""
 
 import asyncio
+import logging
+import time
 
 import pytest
 
@@ -151,3 +153,50 @@ def test_wants_is_true_whenever_a_subscriber_could_receive(virtual_clock, make_b
     assert during is True
     if bus_kind == "memory":  # in one process nobody else can listen: encoding can be skipped
         assert before is False and after is False
+
+
+def test_a_foreign_attachment_is_delivered_not_raised(virtual_clock, caplog):
+    """A message from outside the bus with an attachment of another shape must not break the bus's drain."""
+    import json as _json
+    import socket
+
+    import zenoh
+
+    from twin.core.bus import open_bus
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    endpoint = f"tcp/127.0.0.1:{port}"
+
+    async def body():
+        bus = open_bus("zenoh", virtual_clock, listen=[endpoint])
+        await bus.start()
+        got = []
+        bus.subscribe("lab/x", lambda k, p: got.append(p))
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", '"peer"')
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        cfg.insert_json5("listen/endpoints", "[]")
+        cfg.insert_json5("connect/endpoints", _json.dumps([endpoint]))
+        outsider = zenoh.open(cfg)
+        try:
+            for _ in range(200):  # until the outsider's publications reach us (wall time, bounded)
+                outsider.put("lab/x", b"odd", attachment=b"\x01\x02\x03")
+                await asyncio.sleep(0)
+                await settle(virtual_clock, 0.01)
+                if got:
+                    break
+                time.sleep(0.01)
+            bus.publish("lab/x", b"ours")
+            await settle(virtual_clock)
+        finally:
+            outsider.close()
+            await bus.close()
+        return got
+
+    with caplog.at_level(logging.WARNING):
+        got = virtual_clock.run(body())
+    assert b"odd" in got and b"ours" in got
+    assert not [r for r in caplog.records if "Exception in callback" in r.getMessage()]
+    assert any("3-byte attachment" in r.getMessage() for r in caplog.records)

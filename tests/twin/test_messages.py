@@ -65,3 +65,53 @@ def test_garbage_on_the_bus_is_dropped_and_the_campaign_goes_on(scenario_of, tmp
     invalid = read_events(db, "message.invalid")
     assert {e["device"] for e in invalid} == {"spectrometer-1", "impostor"}
     assert any("impostor" in r.message and "id: Field required" in r.message for r in caplog.records)
+
+
+def test_a_result_on_another_devices_key_is_rejected_even_when_it_names_the_right_device(scenario_of, tmp_path):
+    import json as _json
+
+    s = scenario_of(**{"campaign.budget": 4})
+    clock = LabClock("virtual")
+    db = tmp_path / "j.db"
+    forged = []
+
+    async def main():
+        bus = MemoryBus(MemoryHub())
+        await bus.start()
+        actors = build_actors(s, load_drivers(s), bus, clock)
+        for a in actors:
+            await a.start()
+
+        def forge(key, payload):  # the moment spectrometer-2 is given a step, answer for it from another key
+            env = _json.loads(payload)
+            if env["kind"] == "command":
+                forged.append(env["task"])
+                bus.publish(keys.evt(s.lab, "spectrometer-1"), pack(
+                    Kind.RESULT, {"outputs": {"peak_nm": 999.0}, "sample": None}, id=f"x:{len(forged)}",
+                    sender="spectrometer-2", t_lab=clock.now(), task=env["task"], attempt=env["attempt"]))
+
+        bus.subscribe(keys.cmd(s.lab, "spectrometer-2"), forge)
+        journal = Journal(db)
+        camp = LiveCampaign(s, bus, clock, journal, make_planner(s), make_scheduler(s))
+        await camp.run()
+        for a in actors:
+            await a.stop()
+        journal.close()
+        return camp.core
+
+    core = clock.run(main())
+    assert forged, "spectrometer-2 must have been given a step for this to mean anything"
+    assert all(e.outputs.get("peak_nm") != 999.0 for e in core.experiments)
+    assert [e.status for e in core.experiments] == ["done"] * 4
+    assert core.counts.invalid == len(forged)
+    rejected = read_events(db, "message.invalid")
+    assert all("own key" in e["detail"] and e["device"] == "spectrometer-1" for e in rejected)
+
+
+def test_an_oversized_message_is_refused_before_it_is_decoded():
+    from twin.core.messages import MAX_MESSAGE_BYTES
+
+    big = pack(Kind.RESULT, {"outputs": {"blob": "x" * MAX_MESSAGE_BYTES}}, id="a", sender="spec-1", t_lab=0.0)
+    with pytest.raises(InvalidMessage, match="over the limit") as info:
+        decode(big, sender_hint="spec-1")
+    assert info.value.sender == "spec-1"

@@ -19,6 +19,8 @@ from msgspec import Meta, Struct
 from twin.core.errors import TwinError
 
 VERSION = 1
+#: The largest message accepted, checked before any decoding (a spectrum is ~3 KB).
+MAX_MESSAGE_BYTES = 1 << 20
 
 
 class Kind(StrEnum):
@@ -152,6 +154,9 @@ def pack(kind: Kind, body: dict[str, Any], *, id: str, sender: str, t_lab: float
 
 def decode(payload: bytes, sender_hint: str = "?") -> tuple[Envelope, _Body]:
     """Validate ``payload``; raises ``InvalidMessage`` with the sender and the reason."""
+    if len(payload) > MAX_MESSAGE_BYTES:
+        raise InvalidMessage(sender_hint, f"{len(payload):,} bytes, over the limit of {MAX_MESSAGE_BYTES:,}: "
+                                          "not decoded, not journalled")
     try:
         env = _decode_envelope(payload)
     except msgspec.DecodeError as exc:

@@ -100,11 +100,17 @@ class LiveCampaign:
 
     # -- events in --------------------------------------------------------------------
     def _on_event(self, key: str, payload: bytes) -> None:
+        on_key = keys.device_of(key)
         try:
-            env, body = decode(payload, sender_hint=keys.device_of(key))
+            env, body = decode(payload, sender_hint=on_key)
         except InvalidMessage as exc:
             log.warning("dropped: %s", exc)
             self._feed(InvalidInput(exc.sender, exc.reason))
+            return
+        if env.sender != on_key:  # a device reports only on its own key
+            reason = f"{env.kind} signed by {env.sender!r} arrived on {key}: a device speaks only on its own key"
+            log.warning("dropped: %s", reason)
+            self._feed(InvalidInput(on_key, reason))
             return
         self._feed(DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.to_dict(), payload))
 

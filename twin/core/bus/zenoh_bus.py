@@ -284,8 +284,16 @@ class ZenohBus:
 
     @staticmethod
     def _seq_of(sample: zenoh.Sample | zenoh.Query) -> int:
+        """Our publish-order stamp; a message from outside this bus (no or a foreign attachment) has none."""
         att = sample.attachment
-        return _SEQ.unpack(att.to_bytes())[0] if att is not None else _LAST
+        if att is None:
+            return _LAST
+        raw = att.to_bytes()
+        if len(raw) != _SEQ.size:
+            log.warning("a message on %s carries a %d-byte attachment that is not this bus's stamp: "
+                        "delivered as from outside", sample.key_expr, len(raw))
+            return _LAST
+        return _SEQ.unpack(raw)[0]
 
     # -- request / reply --------------------------------------------------
     def serve(self, keyexpr: str, replier: Replier) -> Closable:
