@@ -366,7 +366,7 @@ def bench_resume(cycles: int = 100) -> None:
     import random
     import sqlite3
 
-    from twin.runtime.lab import resume
+    from twin.runtime.resume import resume
 
     def tables(db):
         with sqlite3.connect(db) as c:

@@ -23,7 +23,8 @@ from twin.learning.policies import load_policy, read_meta, save_policy
 from twin.learning.stepper import SteppedCampaign
 from twin.learning.workcell import open_workcell
 from twin.runtime import FastCampaign, LiveCampaign
-from twin.runtime.lab import prepare, resume, run, run_async
+from twin.runtime.lab import prepare, run, run_async
+from twin.runtime.resume import resume
 from twin.scenario import Scenario, expected_duration, json_schema
 from twin.scenario import load as load_scenario
 from twin.scenario.jobshop import as_lab as jobshop_as_lab

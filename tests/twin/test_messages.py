@@ -31,17 +31,23 @@ def test_decode_names_sender_and_reason():
         decode(b'{"v":2,"kind":"result","id":"x","sender":"s","t_lab":0,"body":{}}')
 
 
+async def lab_on_a_memory_bus(s, clock):
+    """A started memory bus with the scenario's device actors on it."""
+    bus = MemoryBus(MemoryHub())
+    await bus.start()
+    actors = build_actors(s, load_drivers(s), bus, clock)
+    for a in actors:
+        await a.start()
+    return bus, actors
+
+
 def test_garbage_on_the_bus_is_dropped_and_the_campaign_goes_on(scenario_of, tmp_path, caplog):
     s = scenario_of(**{"campaign.budget": 4})
     clock = LabClock("virtual")
     db = tmp_path / "j.db"
 
     async def main():
-        bus = MemoryBus(MemoryHub())
-        await bus.start()
-        actors = build_actors(s, load_drivers(s), bus, clock)
-        for a in actors:
-            await a.start()
+        bus, actors = await lab_on_a_memory_bus(s, clock)
         journal = Journal(db)
         camp = LiveCampaign(s, bus, clock, journal, make_planner(s), make_scheduler(s))
         campaign = asyncio.ensure_future(camp.run())
@@ -76,11 +82,7 @@ def test_a_result_on_another_devices_key_is_rejected_even_when_it_names_the_righ
     forged = []
 
     async def main():
-        bus = MemoryBus(MemoryHub())
-        await bus.start()
-        actors = build_actors(s, load_drivers(s), bus, clock)
-        for a in actors:
-            await a.start()
+        bus, actors = await lab_on_a_memory_bus(s, clock)
 
         def forge(key, payload):  # the moment spectrometer-2 is given a step, answer for it from another key
             env = _json.loads(payload)

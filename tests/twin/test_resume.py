@@ -13,8 +13,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from twin.campaign.journal import Journal, read_run
-from twin.runtime.lab import prepare, resume, run
-from twin.runtime.resume import ResumeError
+from twin.runtime.lab import prepare, run
+from twin.runtime.resume import ResumeError, resume
 
 ROOT = Path(__file__).resolve().parents[2]
 CAMPAIGNS = {"flaky_lab": {"campaign.budget": 30}, "quantum_dots": {"campaign.budget": 40}}

@@ -124,7 +124,8 @@ def test_a_result_finished_while_the_campaign_was_dead_is_adopted_once(tmp_path)
 @pytest.mark.parametrize("damage", ['{"events": [["bogus", 1]]}', '{"events": [["msg"]]}', "not json"])
 def test_damaged_inputs_are_named_and_nothing_runs(tmp_path, damage):
     from twin.core.errors import TwinError
-    from twin.runtime.lab import resume, run
+    from twin.runtime.lab import run
+    from twin.runtime.resume import resume
     from twin.scenario import parse
 
     db = tmp_path / "j.db"

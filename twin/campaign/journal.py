@@ -81,6 +81,14 @@ class Journal:
         if len(self._events) >= self.FLUSH_EVERY:
             self.flush()
 
+    def note(self, n: Any) -> int:
+        """A ``campaign.Note`` (a state change the core made); returns its sequence number."""
+        return self.event(n.t_lab, n.kind, n.experiment, n.task, n.attempt, n.device, n.detail)
+
+    def received(self, m: Any) -> None:
+        """A ``campaign.RecordMessage`` (a message the core was given)."""
+        self.message(m.t_lab, m.kind, m.experiment, m.task, m.attempt, m.device, m.payload)
+
     def inputs(self, t_lab: float, batch: Any) -> None:
         """What a live campaign's core was given at one step: what ``twin resume`` replays to rebuild it."""
         self._inputs.append((t_lab, to_wire(batch).decode()))

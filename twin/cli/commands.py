@@ -86,6 +86,7 @@ def resume(
 ) -> None:
     """Continue a killed campaign from its journal (virtual time: re-run and checked; live: rebuilt)."""
     from twin.runtime.resume import recorded
+    from twin.runtime.resume import resume as resume_journal
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -98,7 +99,7 @@ def resume(
                f"{len(prefix)} recorded events are checked as the campaign re-runs")
         err.print(f"resuming {journal}: {how}", highlight=False)
     _campaign(s, RecordOptions(save, viewer, serve, serve_port, web_port), quiet, json_out,
-              lambda on_progress, observer: lab.resume(journal, on_progress=on_progress, observer=observer,
+              lambda on_progress, observer: resume_journal(journal, on_progress=on_progress, observer=observer,
                                                        runtime=runtime))
 
 

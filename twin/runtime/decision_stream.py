@@ -1,6 +1,6 @@
 """The core's state changes as decisions on the bus, for observers.
 
-Every ``Note`` the core returns is journalled (``twin.runtime.journaling``)
+Every ``Note`` the core returns is journalled (``Journal.note``)
 and, as a decision, sent on ``labtwin/<lab>/campaign/<id>/decisions``; the
 notes of one ``advance`` travel together as one message. ``history``
 answers a watcher that joins late with everything observed so far.

@@ -25,7 +25,6 @@ from twin.campaign.decisions import Assignment, LabView, Planner, Scheduler
 from twin.core.errors import ClockError
 from twin.campaign.journal import Journal
 from twin.core.messages import Kind
-from twin.runtime import journaling
 from twin.runtime.fast_device import FastDevice
 from twin.runtime.queue import EventQueue, Timer
 from twin.scenario import Scenario
@@ -98,15 +97,15 @@ class FastCampaign:
     # -- actions ----------------------------------------------------------------------
     def _perform(self, actions: list[Any]) -> None:
         journal, progressed, watched = self.journal, False, self.on_progress is not None
-        event, message = journal.event, journal.message
+        note, received = journal.note, journal.received
         for a in actions:
             t = type(a)
             if t is Note:
-                event(a.t_lab, a.kind, a.experiment, a.task, a.attempt, a.device, a.detail)
+                note(a)
                 if watched and not progressed:
                     progressed = a.kind.startswith(("attempt.done", "attempt.failed"))
             elif t is RecordMessage:
-                message(a.t_lab, a.kind, a.experiment, a.task, a.attempt, a.device, a.payload)
+                received(a)
             elif t is Send:
                 dev = self.devices.get(a.device)
                 if dev is not None:
@@ -124,7 +123,7 @@ class FastCampaign:
                 if handle is not None:
                     handle.cancel()
             elif t is RecordExperiment:
-                journaling.experiment(journal, a)
+                journal.experiment(a.experiment)
             elif t is Ask:
                 self._answer(a)
             elif t is Finished:

@@ -32,7 +32,6 @@ from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.bus import NoReplyError
 from twin.core.messages import InvalidMessage, Kind, decode, pack
-from twin.runtime import journaling
 from twin.runtime.decision_stream import SENDER, DecisionStream
 from twin.scenario import Scenario
 
@@ -70,7 +69,7 @@ class LiveCampaign:
     def note(self, kind: str, detail: Any = None) -> None:
         """A runtime's own remark (a scheduler agent missing, say): journalled and published like the core's."""
         n = Note(self.clock.now(), kind, detail=detail)
-        self.decisions.add(n, journaling.note(self.journal, n))
+        self.decisions.add(n, self.journal.note(n))
         self.decisions.publish()
 
     async def run(self) -> None:
@@ -200,10 +199,10 @@ class LiveCampaign:
             elif live and t is not Send:
                 unwritten = True
             if t is Note:
-                self.decisions.add(a, journaling.note(self.journal, a))
+                self.decisions.add(a, self.journal.note(a))
                 progressed = progressed or a.kind.startswith(("attempt.done", "attempt.failed"))
             elif t is RecordMessage:
-                journaling.message(self.journal, a)
+                self.journal.received(a)
             elif t is Send:
                 self.bus.publish(keys.cmd(self.s.lab, a.device),
                                  pack(a.kind, a.body, id=f"{SENDER}:{next(self._ids)}", sender=SENDER,
@@ -219,7 +218,7 @@ class LiveCampaign:
                 if handle is not None:
                     handle.cancel()
             elif t is RecordExperiment:
-                journaling.experiment(self.journal, a)
+                self.journal.experiment(a.experiment)
                 if a.final and not self.clock.is_virtual:
                     self.journal.flush()  # live runs: a finished experiment is on disk at once
             elif t is Ask:

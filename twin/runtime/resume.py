@@ -7,19 +7,35 @@ differs stops the resume with an error naming it (the code, a driver or a
 plugin changed since the run), and the killed journal is left as it was.
 The resumed journal replaces the killed one only when the campaign ends,
 and equals the journal of the same campaign never killed.
+
+A scaled or wall-clock campaign is rebuilt from the inputs it journalled
+(``twin.campaign.replay``) and taken over by the asyncio runtime.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import sqlite3
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from twin.campaign import CampaignCore
+from twin.campaign.journal import Journal, read_inputs, read_run
+from twin.campaign.replay import rebuild
+from twin.campaign.summary import Summary
+from twin.core import keys
+from twin.core.clock import LabClock
 from twin.core.errors import TwinError
-from twin.campaign.journal import Journal, read_run
+from twin.runtime.lab import make_bus, run, run_async
+from twin.view.observer import LabObserver
+from twin.view.watch import RecordOptions
 from twin.scenario import Scenario
+
+
+log = logging.getLogger(__name__)
 
 
 class ResumeError(TwinError):
@@ -87,3 +103,79 @@ def replace(resumed: Path, killed: Path) -> None:
     for suffix in ("-wal", "-shm"):
         Path(f"{killed}{suffix}").unlink(missing_ok=True)
     os.replace(resumed, killed)
+
+
+def resume(path: str | Path, *, on_progress: Callable[[CampaignCore], None] | None = None,
+           record: RecordOptions | None = None, observer: LabObserver | None = None,
+           runtime: str = "auto") -> Summary:
+    """Continue a killed virtual-time campaign from its journal (``twin resume``); see ``twin.runtime.resume``."""
+    path = Path(path)
+    s, prefix = recorded(path)
+    if s.clock.mode != "virtual":
+        return _resume_live(path, s, on_progress, observer)
+    resuming = path.with_name(path.name + ".resuming")
+    checked: list[CheckedJournal] = []
+
+    def make(p: Path) -> Journal:
+        checked.append(CheckedJournal(p, prefix, path))
+        return checked[-1]
+
+    try:
+        summary = run(s, journal=resuming, on_progress=on_progress, record=record, observer=observer,
+                      runtime=runtime, make_journal=make)
+        if checked[-1].checked < len(prefix):
+            raise ResumeError(f"{path}: the re-run ended after {checked[-1].checked} of the journal's "
+                                f"{len(prefix)} events; run the campaign again instead (twin run)")
+    except BaseException:
+        for suffix in ("", "-wal", "-shm"):
+            Path(f"{resuming}{suffix}").unlink(missing_ok=True)
+        raise
+    replace(resuming, path)
+    log.info("resumed %s: %d recorded events checked, %d in all", path, len(prefix), summary.events)
+    return summary
+
+
+def _resume_live(path: Path, s: Scenario, on_progress: Callable[[CampaignCore], None] | None,
+                 observer: LabObserver | None) -> Summary:
+    """A scaled or wall-clock campaign: its core rebuilt from the inputs it journalled; lab time goes on from there;
+    the steps it had in the lab are asked after (still running, finished, or lost and retried)."""
+    try:
+        batches = read_inputs(path)
+    except ValueError as exc:
+        raise ResumeError(f"{path}: its journalled inputs are damaged ({exc}): run the campaign again (twin run)") from None
+    if not batches:
+        raise ResumeError(f"{path}: no inputs were journalled (the campaign was killed before it began, or ran "
+                          "before live campaigns journalled them): run it again instead (twin run)")
+    rebuilt = rebuild(s, batches)
+    if rebuilt.core.finished:
+        raise ResumeError(f"{path}: the campaign had finished; nothing to resume")
+    probe = LabClock("wall")
+    running = probe.run(_still_running(s, probe))
+    if running:
+        raise ResumeError(f"{path}: the campaign is still running ({running}); a second orchestrator would "
+                          "dispatch the same steps. Stop it first, or watch it (twin watch); if it was killed just "
+                          f"now, its token lasts one link lease ({s.bus.lease_ms} ms): try again then")
+    clock = LabClock(s.clock.mode, s.clock.speed, start=rebuilt.now)
+    external = set(read_run(path).get("external") or ())
+    log.info("resuming %s at %.0f lab-s: %d input batches replayed", path, rebuilt.now, len(batches))
+    return clock.run(run_async(s, clock, path, external, on_progress, observer,
+                               make_journal=lambda p: Journal(p, append=True), rebuilt=rebuilt))
+
+
+async def _still_running(s: Scenario, clock: LabClock, wait_s: float = 1.0) -> str:
+    """Why the campaign of ``s`` looks alive on its bus ('' when it does not): its token, or its endpoint taken."""
+    if s.bus.kind == "memory":
+        return ""  # one process's bus: nothing else can be on it
+    bus = make_bus(s, clock)
+    try:
+        await bus.start()
+    except TwinError as exc:
+        return f"its bus endpoint is in use: {exc}"
+    seen: list[str] = []
+    watch = bus.watch_tokens(keys.orchestrator(s.lab), lambda key, alive: seen.append(key) if alive else None)
+    try:
+        await clock.sleep(wait_s)  # a router or peer reports the tokens it knows within a few milliseconds
+    finally:
+        watch.close()
+        await bus.close()
+    return f"its token {seen[0]} is on the bus" if seen else ""
