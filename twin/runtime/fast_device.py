@@ -129,8 +129,11 @@ class FastDevice:
                 return
             job.close()
             self._job = self._current = None
+            what = ("a bare yield (asyncio.sleep(0)?)" if req is None else
+                    f"an asyncio future (asyncio.sleep, an Event, I/O: {type(req).__name__})"
+                    if isinstance(req, asyncio.Future) else repr(req))
             raise FastRuntimeRefused(
-                f"{self.name}: the {self.device_type} driver awaited {req!r}, not the lab clock; the fast runtime "
+                f"{self.name}: the {self.device_type} driver awaited {what}, not the lab clock; the fast runtime "
                 "can only run drivers that wait with ctx.clock.sleep. Run this scenario with --runtime asyncio.")
 
     def _throw_cancel(self) -> None:
