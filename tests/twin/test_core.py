@@ -1,5 +1,7 @@
 """The campaign core as a specification: feed it events, read its actions. No loop, no bus, no clock."""
 
+from types import SimpleNamespace
+
 from twin.campaign import (Ask, CampaignCore, Decided, DeviceMessage, Finished, Note, Presence, Proposed, Send,
                            SetTimer, TimerFired)
 from twin.campaign.events import TimerKey, TimerKind
@@ -17,7 +19,7 @@ def of(actions, cls):
 
 def started(scenario_of, **changes):
     """A core with every device present, asked for its first experiments."""
-    core = CampaignCore(scenario_of(**changes))
+    core = CampaignCore(scenario_of(**changes), secret=SECRET)
     out = core.start(0.0)
     assert of(out, SetTimer)[0].key.kind == TimerKind.STARTUP  # nobody is on the bus yet
     for name in core.devices:
@@ -27,8 +29,14 @@ def started(scenario_of, **changes):
     return core, out
 
 
-def msg(kind, device, task, attempt, **body):
-    return DeviceMessage(kind, device, task, attempt, body, b"{}")
+SECRET = b"a test's secret"
+
+
+def msg(kind, device, task, attempt, token=None, key="", **body):
+    """A device's message, with the token the orchestrator gave the attempt unless ``token`` says otherwise."""
+    if token is None:
+        token = CampaignCore.token(SimpleNamespace(secret=SECRET, campaign_id="c1"), task, attempt)
+    return DeviceMessage(kind, device, task, attempt, body, b"{}", key, token)
 
 
 def test_a_step_goes_out_when_the_scheduler_assigns_it_and_finishes_with_its_result(scenario_of):
@@ -120,3 +128,82 @@ def test_the_campaign_ends_with_every_experiment_accounted_for(scenario_of):
     core.stop("enough")
     out = core.advance(100.0)
     assert of(out, Finished) and core.experiments[0].status == "pending"
+
+
+def running_step(scenario_of):
+    """A core with e0s0 dispatched to the synthesiser; returns the core and the command's token."""
+    core, _ = started(scenario_of, **{"campaign.budget": 1})
+    core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
+    core.advance(0.0)
+    core.feed(Decided([Assignment("e0s0", "synthesiser")]))
+    (send,) = of(core.advance(0.0), Send)
+    return core, send.token
+
+
+def test_the_command_carries_an_unguessable_token_that_differs_per_attempt_and_per_secret(scenario_of):
+    core, token = running_step(scenario_of)
+    assert len(token) == 32 and token == core.token("e0s0", 1)
+    assert core.token("e0s0", 2) != token
+    assert CampaignCore(core.s, secret=b"another").token("e0s0", 1) != token
+    assert CampaignCore(core.s).secret != CampaignCore(core.s).secret  # random unless given
+
+
+def test_a_message_without_the_attempts_provenance_is_rejected_and_never_touches_the_ledger(scenario_of):
+    forged = {
+        "no token": msg(Kind.RESULT, "synthesiser", "e0s0", 1, token="", outputs={"x": 1}),
+        "wrong token": msg(Kind.RESULT, "synthesiser", "e0s0", 1, token="0" * 32, outputs={"x": 1}),
+        "another key": msg(Kind.RESULT, "synthesiser", "e0s0", 1, key="spectrometer-1", outputs={"x": 1}),
+        "another device": msg(Kind.RESULT, "spectrometer-1", "e0s0", 1, outputs={"x": 1}),
+        "no such device": msg(Kind.FAULT, "intruder", "e0s0", 1, code="failed", reason="x"),
+        "no such attempt": msg(Kind.FAULT, "synthesiser", "e0s0", 7, code="failed", reason="x"),
+        "a forged cancel answer": msg(Kind.FAULT, "synthesiser", "e0s0", 1, token="f" * 32, code="cancelled",
+                                      reason="x"),
+    }
+    core, _ = running_step(scenario_of)
+    for m in forged.values():
+        core.feed(m)
+    out = core.advance(10.0)
+    rejected = notes(out, "message.rejected")
+    assert len(rejected) == len(forged) == core.counts.rejected
+    assert not notes(out, "attempt.done") and not notes(out, "attempt.failed")
+    assert core.counts.failed == 0 and core.experiments[0].outputs == {}
+    reasons = " | ".join(n.detail["reason"] for n in rejected)
+    for words in ("no attempt token", "a wrong attempt token", "own key", "dispatched to synthesiser",
+                  "not a device of this lab", "no attempt e0s0#7"):
+        assert words in reasons
+    assert all(set(n.detail) >= {"key", "sender", "kind", "reason", "excerpt"} for n in rejected)
+    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0}))
+    assert notes(core.advance(60.0), "attempt.done")  # the real one still counts
+
+
+def test_a_device_cannot_hand_back_another_experiments_sample(scenario_of):
+    core, _ = running_step(scenario_of)
+    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0, "id": "forged"}))
+    out = core.advance(60.0)
+    assert notes(out, "attempt.done")
+    assert core.experiments[0].sample["id"] == "c1/e0"  # the campaign names the sample it made
+    core.feed(Decided([Assignment("e0s1", "spectrometer-1")]))
+    (send,) = of(core.advance(60.0), Send)
+    assert send.body["sample"]["id"] == "c1/e0"
+    core.feed(msg(Kind.RESULT, "spectrometer-1", "e0s1", 1, outputs={"peak_nm": 1.0}, sample={"id": "c1/e9"}))
+    out = core.advance(70.0)
+    (rej,) = notes(out, "message.rejected")
+    assert "is not the one it was given" in rej.detail["reason"] and core.experiments[0].status == "running"
+
+
+def test_presence_that_flaps_within_a_lease_does_not_fail_a_second_attempt(scenario_of):
+    core, _ = running_step(scenario_of)
+    core.feed(Presence("synthesiser", False))
+    out = core.advance(10.0)
+    assert notes(out, "device.lost") and notes(out, "attempt.failed")  # the first loss counts
+    core.feed(Presence("synthesiser", True))
+    core.feed(TimerFired(TimerKey(TimerKind.RETRY, "e0s0")))
+    assert of(core.advance(10.2), Ask)[0].what == "schedule"
+    core.feed(Decided([Assignment("e0s0", "synthesiser")]))
+    (send,) = of(core.advance(10.3), Send)
+    assert send.attempt == 2
+    core.feed(Presence("synthesiser", False))  # again, 0.5 lab-s after the first loss: within the lease (1 s)
+    out = core.advance(10.5)
+    assert notes(out, "device.flapping") and not notes(out, "attempt.failed")
+    assert core.counts.flaps == 1 and core.counts.device_lost == 1
+    assert core.devices["synthesiser"].attempt.n == 2  # left to its deadline, or to its result

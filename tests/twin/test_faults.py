@@ -73,7 +73,8 @@ async def _duplicating_device(bus, clock, lab, name):
             (Kind.RESULT, {"outputs": {"x": 3}}, env["attempt"] + 7),
         ]:
             bus.publish(keys.evt(lab, name), pack(kind, body, id=f"{name}:{next(ids)}", sender=name,
-                                                   t_lab=clock.now(), task=env["task"], attempt=attempt))
+                                                   t_lab=clock.now(), task=env["task"], attempt=attempt,
+                                                   token=env["token"]))
 
     bus.subscribe(keys.cmd(lab, name), on_cmd)
     return bus.declare_token(keys.alive(lab, name))
@@ -106,6 +107,8 @@ def test_duplicate_and_late_results_are_recorded_never_double_counted(scenario_o
     core = clock.run(main())
     assert [e.status for e in core.experiments] == ["done"] * 5
     assert all(e.outputs == {"x": 1} for e in core.experiments)
-    assert core.counts.late == 10  # one duplicate and one stranger per experiment
+    assert core.counts.late == 5  # one duplicate per experiment
+    assert core.counts.rejected == 5  # and one about an attempt never dispatched
     assert len(read_events(db, "experiment.done")) == 5
     assert len(read_events(db, "result.late")) == 5
+    assert len(read_events(db, "message.rejected")) == 5

@@ -73,7 +73,7 @@ def test_garbage_on_the_bus_is_dropped_and_the_campaign_goes_on(scenario_of, tmp
     assert any("impostor" in r.message and "id: Field required" in r.message for r in caplog.records)
 
 
-def test_a_result_on_another_devices_key_is_rejected_even_when_it_names_the_right_device(scenario_of, tmp_path):
+def test_a_result_on_another_devices_key_is_rejected_even_with_the_right_name_and_token(scenario_of, tmp_path):
     import json as _json
 
     s = scenario_of(**{"campaign.budget": 4})
@@ -90,7 +90,8 @@ def test_a_result_on_another_devices_key_is_rejected_even_when_it_names_the_righ
                 forged.append(env["task"])
                 bus.publish(keys.evt(s.lab, "spectrometer-1"), pack(
                     Kind.RESULT, {"outputs": {"peak_nm": 999.0}, "sample": None}, id=f"x:{len(forged)}",
-                    sender="spectrometer-2", t_lab=clock.now(), task=env["task"], attempt=env["attempt"]))
+                    sender="spectrometer-2", t_lab=clock.now(), task=env["task"], attempt=env["attempt"],
+                    token=env["token"]))
 
         bus.subscribe(keys.cmd(s.lab, "spectrometer-2"), forge)
         journal = Journal(db)
@@ -105,9 +106,12 @@ def test_a_result_on_another_devices_key_is_rejected_even_when_it_names_the_righ
     assert forged, "spectrometer-2 must have been given a step for this to mean anything"
     assert all(e.outputs.get("peak_nm") != 999.0 for e in core.experiments)
     assert [e.status for e in core.experiments] == ["done"] * 4
-    assert core.counts.invalid == len(forged)
-    rejected = read_events(db, "message.invalid")
+    assert core.counts.rejected == len(forged) and core.counts.invalid == 0
+    rejected = read_events(db, "message.rejected")
+    assert len(rejected) == len(forged)
     assert all("own key" in e["detail"] and e["device"] == "spectrometer-1" for e in rejected)
+    received = read_events(db, "msg.%")
+    assert received and not any('"token"' in e["detail"] for e in received)  # tokens never reach the journal
 
 
 def test_an_oversized_message_is_refused_before_it_is_decoded():
@@ -117,3 +121,37 @@ def test_an_oversized_message_is_refused_before_it_is_decoded():
     with pytest.raises(InvalidMessage, match="over the limit") as info:
         decode(big, sender_hint="spec-1")
     assert info.value.sender == "spec-1"
+
+
+def test_a_device_obeys_a_cancel_only_with_the_attempts_token(scenario_of, tmp_path):
+    import json as _json
+
+    s = scenario_of(**{"campaign.budget": 3})
+    clock = LabClock("virtual")
+    cancels = []
+
+    async def main():
+        bus, actors = await lab_on_a_memory_bus(s, clock)
+
+        def forge(key, payload):  # every command is answered at once by a cancel that lacks (or guesses) the token
+            env = _json.loads(payload)
+            if env["kind"] == "command":
+                for token in ("", "0" * 32):
+                    cancels.append(env["task"])
+                    bus.publish(key, pack(Kind.CANCEL, {"reason": "forged"}, id=f"x:{len(cancels)}",
+                                          sender="orchestrator", t_lab=clock.now(), task=env["task"],
+                                          attempt=env["attempt"], token=token))
+
+        for dev in ("synthesiser", "spectrometer-1", "spectrometer-2"):
+            bus.subscribe(keys.cmd(s.lab, dev), forge)
+        journal = Journal(tmp_path / "j.db")
+        camp = LiveCampaign(s, bus, clock, journal, make_planner(s), make_scheduler(s))
+        await camp.run()
+        for a in actors:
+            await a.stop()
+        journal.close()
+        return camp.core
+
+    core = clock.run(main())
+    assert len(cancels) >= 12
+    assert [e.status for e in core.experiments] == ["done"] * 3 and core.counts.failed == 0

@@ -13,6 +13,8 @@ before the pass goes on; events that arrive meanwhile wait in the inbox.
 
 from __future__ import annotations
 
+import hmac
+import secrets
 from typing import Any
 
 from twin.campaign import dispatch, policy
@@ -40,8 +42,12 @@ def _order(ev: Event) -> tuple[int, str]:
 
 
 class CampaignCore:
-    def __init__(self, scenario: Scenario, campaign_id: str = "c1") -> None:
+    def __init__(self, scenario: Scenario, campaign_id: str = "c1", secret: bytes | None = None) -> None:
+        """``secret``: what attempt tokens are derived from (random by default; a resumed campaign passes
+        the dead one's, so that its devices' answers still count). Tokens never enter the journal's events."""
         self.s, self.campaign_id = scenario, campaign_id
+        self.secret = secret if secret is not None else secrets.token_bytes(32)
+        self._flap_s = scenario.bus.lease_ms / 1000 * (scenario.clock.speed if scenario.clock.mode == "scaled" else 1)
         self.seed = scenario.campaign.seed
         self.devices = {
             name: Device(name, dtype) for dtype in scenario.devices for name in scenario.instance_names(dtype)
@@ -151,8 +157,12 @@ class CampaignCore:
     def _timer(self, key: TimerKey, delay: float) -> None:
         self._out.append(SetTimer(key, max(0.0, delay)))
 
-    def _send(self, dev: str, kind: Kind, task: str, attempt: int, body: dict[str, Any]) -> None:
-        self._out.append(Send(dev, kind, task, attempt, body))
+    def _send(self, dev: str, kind: Kind, task: str, attempt: int, body: dict[str, Any], token: str) -> None:
+        self._out.append(Send(dev, kind, task, attempt, body, token))
+
+    def token(self, task: str, attempt: int) -> str:
+        """The attempt's token: unguessable without the secret, the same for the same secret (a resumed core)."""
+        return hmac.digest(self.secret, f"{self.campaign_id}|{task}|{attempt}".encode(), "sha256")[:16].hex()
 
     # -- events -----------------------------------------------------------------------
     def _handle(self, ev: Event) -> None:
@@ -164,7 +174,8 @@ class CampaignCore:
             self._on_timer(ev.key)
         elif isinstance(ev, InvalidInput):
             self.counts.invalid += 1
-            self._note("message.invalid", device=ev.sender, detail=ev.reason)
+            self._note("message.invalid", device=ev.sender,
+                       detail={"key": ev.key, "sender": ev.sender, "reason": ev.reason, "excerpt": ev.excerpt})
         elif isinstance(ev, Stop):
             if not self.stopping:
                 self.stopping = ev.reason
@@ -175,17 +186,18 @@ class CampaignCore:
             self._wake = True
 
     def _on_message(self, m: DeviceMessage) -> None:
+        att = self.attempts.get((m.task, m.attempt))
+        why = self._provenance(m, att)
+        if why:
+            self._reject(m, why)
+            return
         if m.kind == Kind.TELEMETRY:
             self._out.append(RecordMessage(self.now, "msg.telemetry", None, m.task or None, m.attempt, m.device,
                                            m.payload))
             return
-        att = self.attempts.get((m.task, m.attempt))
-        exp = att.task.experiment.id if att else None
+        assert att is not None  # _provenance vouched for it
+        exp = att.task.experiment.id
         self._out.append(RecordMessage(self.now, f"msg.{m.kind}", exp, m.task, m.attempt, m.device, m.payload))
-        if att is None or att.device != m.device:
-            self.counts.late += 1
-            self._note("message.unknown_attempt", exp, m.task, m.attempt, m.device)
-            return
         if att.resolved:
             self._after_resolved(att, m)
             return
@@ -198,6 +210,34 @@ class CampaignCore:
             self._resolve(att, m.body.get("code", Code.FAILED), {"reason": m.body.get("reason", "")})
         elif m.kind == Kind.REJECTED:
             self._resolve(att, Code.REJECTED, {"reason": m.body.get("reason", "")})
+
+    def _provenance(self, m: DeviceMessage, att: Attempt | None) -> str:
+        """Why ``m`` cannot be the device's word on the attempt it names ('' when it can)."""
+        if m.key and m.key != m.device:
+            return f"signed {m.device!r} but arrived on {m.key!r}'s key: a device speaks only on its own key"
+        if m.device not in self.devices:
+            return f"{m.device!r} is not a device of this lab"
+        if m.kind == Kind.TELEMETRY:
+            return ""
+        if att is None:
+            return f"no attempt {m.task}#{m.attempt} was dispatched"
+        if att.device != m.device:
+            return f"{m.task}#{m.attempt} was dispatched to {att.device}, not {m.device}"
+        if not hmac.compare_digest(m.token, att.token):
+            return f"{'no' if not m.token else 'a wrong'} attempt token (the command's token must be echoed)"
+        if m.kind == Kind.RESULT:
+            sample, mine = m.body.get("sample"), att.task.experiment.sample
+            if isinstance(sample, dict) and mine is not None and sample.get("id", mine["id"]) != mine["id"]:
+                return f"its sample {str(sample.get('id'))[:40]!r} is not the one it was given ({mine['id']!r})"
+        return ""
+
+    def _reject(self, m: DeviceMessage, why: str) -> None:
+        self.counts.rejected += 1
+        payload = m.payload if isinstance(m.payload, (bytes, str)) else repr(m.payload)
+        excerpt = (payload.decode(errors="replace") if isinstance(payload, bytes) else payload)[:200]
+        self._note("message.rejected", device=m.key or m.device,
+                   detail={"key": m.key or m.device, "sender": m.device, "kind": str(m.kind), "task": m.task,
+                           "attempt": m.attempt, "reason": why, "excerpt": excerpt})
 
     def _after_resolved(self, att: Attempt, m: DeviceMessage) -> None:
         """A message about an attempt already decided: the answer to a cancel, or late."""
@@ -220,6 +260,13 @@ class CampaignCore:
         dev.online = alive
         self._note("device.online" if alive else "device.lost", device=dev.name)
         if not alive:
+            flap = dev.lost_at is not None and self.now - dev.lost_at < self._flap_s
+            dev.lost_at = self.now
+            if flap:  # gone again within a lease: an impostor's token, or a bad link; the deadline still holds
+                self.counts.flaps += 1
+                self._note("device.flapping", device=dev.name, detail={"within_s": self._flap_s})
+                self._wake = True
+                return
             if dev.cancelling is not None:
                 dev.cancelling = None
                 self._out.append(CancelTimer(TimerKey(TimerKind.CANCEL_GRACE, dev.name)))
@@ -368,7 +415,7 @@ class CampaignCore:
         e.status = Status.RUNNING
         self.counts.attempts += 1
         self.cost += self.s.devices[dev.type].cost
-        att = Attempt(task, task.attempts, dev.name, self.now)
+        att = Attempt(task, task.attempts, dev.name, self.now, token=self.token(task.id, task.attempts))
         dev.attempt = att
         dev.attempts += 1
         self.attempts[(task.id, att.n)] = att
@@ -377,7 +424,7 @@ class CampaignCore:
         body = {"step": task.step.step, "params": {**e.params, **task.step.params}, "sample": e.sample,
                 "expected_s": task.expected_s}
         self._note("attempt.dispatched", e.id, task.id, att.n, dev.name, detail={"deadline_s": deadline})
-        self._send(dev.name, Kind.COMMAND, task.id, att.n, body)
+        self._send(dev.name, Kind.COMMAND, task.id, att.n, body, att.token)
 
     # -- outcomes ---------------------------------------------------------------------
     def _resolve(self, att: Attempt, code: str, body: dict[str, Any]) -> None:
@@ -394,7 +441,7 @@ class CampaignCore:
             self.counts.timed_out += 1
             dev.cancelling = att
             self._timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name), self.s.orchestrator.cancel_grace_s)
-            self._send(dev.name, Kind.CANCEL, task.id, att.n, {"reason": body["reason"]})
+            self._send(dev.name, Kind.CANCEL, task.id, att.n, {"reason": body["reason"]}, att.token)
         if code == Code.OK:
             dev.consecutive_failures = 0
             dev.steps_done += 1
@@ -411,7 +458,8 @@ class CampaignCore:
         sample = result.get("sample")
         if sample is not None:
             e.sample_made = float(sample.get("t_made", self.now))
-            e.sample = sample
+            # the sample is the campaign's: its id is given when it is made and checked on every result after
+            e.sample = {**sample, "id": e.sample["id"] if e.sample is not None else f"{self.campaign_id}/e{e.id}"}
         e.stage += 1
         if e.stage < len(e.route):
             self._make_ready(e)
@@ -474,7 +522,7 @@ class CampaignCore:
                 self._out.append(CancelTimer(TimerKey(TimerKind.DEADLINE, f"{att.task.id}#{att.n}")))
                 dev.busy_s += self.now - att.t_sent
                 dev.attempt = None
-                self._send(dev.name, Kind.CANCEL, att.task.id, att.n, {"reason": "campaign stopped"})
+                self._send(dev.name, Kind.CANCEL, att.task.id, att.n, {"reason": "campaign stopped"}, att.token)
                 self._note("attempt.cancelled", att.task.experiment.id, att.task.id, att.n, dev.name,
                            detail=self.stopping)
         for e in self.active.values():

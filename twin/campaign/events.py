@@ -55,20 +55,29 @@ class TimerKey:
 
 @dataclass(frozen=True, slots=True)
 class DeviceMessage:
-    """A decoded message from a device: accepted, progress, result, fault, rejected or telemetry."""
+    """A decoded message from a device: accepted, progress, result, fault, rejected or telemetry.
+
+    ``device`` is the sender the message names; ``key`` the device whose key it arrived on; ``token`` the
+    attempt token it carries. The core counts it only if all three agree with the attempt it is about."""
 
     kind: Kind
     device: str
     task: str
     attempt: int
     body: dict[str, Any]
-    payload: Any  # what the journal stores: the bytes received, or an envelope dict to encode
+    payload: Any  # what the journal stores (never the token): the bytes received, or an envelope dict
+    key: str = ""  # "" = the sender's own key (the fast runtime's in-process devices)
+    token: str = ""
 
 
 @dataclass(frozen=True, slots=True)
 class InvalidInput:
+    """A message that could not be decoded (oversized, not JSON, wrong fields): counted, never raised."""
+
     sender: str
     reason: str
+    key: str = ""
+    excerpt: str = ""  # the start of the payload, for the journal
 
 
 @dataclass(frozen=True, slots=True)
@@ -112,6 +121,7 @@ class Send:
     task: str
     attempt: int
     body: dict[str, Any]
+    token: str = ""  # the attempt's token: the device echoes it, and obeys a cancel only with it
 
 
 @dataclass(frozen=True, slots=True)

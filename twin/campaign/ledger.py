@@ -60,6 +60,7 @@ class Attempt:
     t_sent: float
     t_accepted: float | None = None
     resolved: bool = False
+    token: str = ""
 
 
 @dataclass(slots=True)
@@ -75,6 +76,7 @@ class Device:
     failures: int = 0
     steps_done: int = 0
     attempts: int = 0
+    lost_at: float | None = None  # when it last left the bus: a loss sooner than a lease after is a flap
 
     @property
     def free(self) -> bool:
@@ -98,6 +100,8 @@ class Counters:
     timed_out: int = 0
     retried: int = 0
     invalid: int = 0
+    rejected: int = 0  # well-formed but not from the device the attempt is with (forged, misrouted, stale token)
+    flaps: int = 0  # presence lost again within a lease: not trusted to fail an attempt
     late: int = 0
     device_lost: int = 0
     quarantined: int = 0

@@ -26,13 +26,13 @@ def encode(event: Any) -> list[Any]:
     t = type(event)
     if t is DeviceMessage:
         payload = event.payload
-        return ["msg", payload.decode() if isinstance(payload, bytes) else payload]
+        return ["msg", payload.decode() if isinstance(payload, bytes) else payload, event.key, event.token]
     if t is Presence:
         return ["presence", event.device, event.alive]
     if t is TimerFired:
         return ["timer", str(event.key.kind), event.key.ref]
     if t is InvalidInput:
-        return ["invalid", event.sender, event.reason]
+        return ["invalid", event.sender, event.reason, event.key, event.excerpt]
     if t is Stop:
         return ["stop", event.reason]
     if t is Proposed:
@@ -51,13 +51,13 @@ def decode_input(data: list[Any]) -> Any:
             env, body = decode(raw)
         except InvalidMessage as exc:
             return InvalidInput(exc.sender, exc.reason)
-        return DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.to_dict(), raw)
+        return DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.to_dict(), raw, *data[2:4])
     if kind == "presence":
         return Presence(data[1], data[2])
     if kind == "timer":
         return TimerFired(TimerKey(TimerKind(data[1]), data[2]))
     if kind == "invalid":
-        return InvalidInput(data[1], data[2])
+        return InvalidInput(*data[1:5])
     if kind == "stop":
         return Stop(data[1])
     if kind == "proposed":
@@ -80,9 +80,11 @@ class ReplayError(TwinError):
     """A journal's inputs cannot be replayed: damaged, or written by another version."""
 
 
-def rebuild(s: Scenario, batches: list[tuple[float, dict[str, Any]]], campaign_id: str = "c1") -> Rebuilt:
-    """Feed a recorded campaign's inputs to a new core, batch by batch; its actions are not performed again."""
-    out = Rebuilt(CampaignCore(s, campaign_id), 0.0)
+def rebuild(s: Scenario, batches: list[tuple[float, dict[str, Any]]], campaign_id: str = "c1",
+            secret: bytes | None = None) -> Rebuilt:
+    """Feed a recorded campaign's inputs to a new core, batch by batch; its actions are not performed again.
+    ``secret``: the one the campaign's attempt tokens came from (journalled as ``attempt_secret``)."""
+    out = Rebuilt(CampaignCore(s, campaign_id, secret), 0.0)
     for i, (now, batch) in enumerate(batches, 1):
         try:
             _replay(out, now, batch)

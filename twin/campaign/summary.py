@@ -26,6 +26,8 @@ class Summary:
     invalid_messages: int
     late_results: int
     degraded_samples: int
+    rejected_messages: int = 0  # well-formed but without the attempt's provenance: forged, misrouted, stale
+    presence_flaps: int = 0
     abandoned_reasons: dict[str, int] = field(default_factory=dict)
     utilisation: dict[str, float] = field(default_factory=dict)
     best: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -65,7 +67,8 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         abandoned=status["abandoned"], pending=status["pending"], attempts=c.attempts,
         failed_attempts=c.failed, retried=c.retried, timed_out=c.timed_out,
         devices_lost=c.device_lost, quarantines=c.quarantined, invalid_messages=c.invalid,
-        late_results=c.late, degraded_samples=c.degraded, abandoned_reasons=dict(reasons),
+        late_results=c.late, degraded_samples=c.degraded, rejected_messages=c.rejected, presence_flaps=c.flaps,
+        abandoned_reasons=dict(reasons),
         utilisation={d.name: round(d.busy_s / elapsed, 4) for d in core.devices.values()},
         best=best, targets_met_h={k: v / 3600 for k, v in core.met_at.items()},
         targets_met_after=dict(core.met_after), targets_met_cost=dict(core.met_cost),

@@ -106,6 +106,7 @@ class Envelope(Struct, forbid_unknown_fields=True, kw_only=True):
     sender: str
     t_lab: float
     body: dict[str, Any] = {}
+    token: str = ""  # the attempt's token: put in a command by the orchestrator, echoed by the device
 
 
 class _Sender(Struct):
@@ -119,10 +120,15 @@ class InvalidMessage(TwinError):
 
 
 def envelope(kind: Kind, body: dict[str, Any], *, id: str, sender: str, t_lab: float,
-             campaign: str = "", task: str = "", attempt: int = 0) -> dict[str, Any]:
-    """An envelope as a plain dict, in wire order: what the fast runtime passes around in-process."""
-    return {"v": VERSION, "kind": kind, "id": id, "campaign": campaign, "task": task,
-            "attempt": attempt, "sender": sender, "t_lab": t_lab, "body": body}
+             campaign: str = "", task: str = "", attempt: int = 0, token: str = "") -> dict[str, Any]:
+    """An envelope as a plain dict, in wire order: what the fast runtime passes around in-process.
+
+    The token is left out when empty: what the journal keeps of a message never holds it."""
+    env = {"v": VERSION, "kind": kind, "id": id, "campaign": campaign, "task": task,
+           "attempt": attempt, "sender": sender, "t_lab": t_lab, "body": body}
+    if token:
+        env["token"] = token
+    return env
 
 
 def plain_value(obj: Any) -> Any:
@@ -146,10 +152,16 @@ def to_wire(env: dict[str, Any]) -> bytes:
 
 
 def pack(kind: Kind, body: dict[str, Any], *, id: str, sender: str, t_lab: float,
-         campaign: str = "", task: str = "", attempt: int = 0) -> bytes:
+         campaign: str = "", task: str = "", attempt: int = 0, token: str = "") -> bytes:
     """The wire form of an envelope, built without a model: the receiver validates."""
     return to_wire(envelope(kind, body, id=id, sender=sender, t_lab=t_lab, campaign=campaign, task=task,
-                            attempt=attempt))
+                            attempt=attempt, token=token))
+
+
+def without_token(env: Envelope) -> bytes:
+    """The wire form of a received envelope less its token: what a journal keeps (tokens are secrets)."""
+    return to_wire(envelope(env.kind, env.body, id=env.id, sender=env.sender, t_lab=env.t_lab,
+                            campaign=env.campaign, task=env.task, attempt=env.attempt))
 
 
 def decode(payload: bytes, sender_hint: str = "?") -> tuple[Envelope, _Body]:
@@ -166,6 +178,12 @@ def decode(payload: bytes, sender_hint: str = "?") -> tuple[Envelope, _Body]:
     except msgspec.ValidationError as exc:
         raise InvalidMessage(env.sender, f"{env.kind} body: {_reason(exc)}") from None
     return env, body
+
+
+def excerpt(payload: bytes, limit: int = 200) -> str:
+    """The start of a payload as text, for a journal row about a message that was refused."""
+    text = payload[:limit].decode("utf-8", errors="replace")
+    return text + f"… ({len(payload):,} bytes)" if len(payload) > limit else text
 
 
 def _sender_of(payload: bytes, hint: str) -> str:

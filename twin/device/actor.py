@@ -41,6 +41,7 @@ class DeviceActor:
         self._evt_key = keys.evt(lab, name)
         self._job: asyncio.Task | None = None
         self._current: tuple[str, int] | None = None
+        self._token_of_current = ""
         self._cancel_reason = ""
         self._sub: Closable | None = None
         self._token: Closable | None = None
@@ -143,9 +144,10 @@ class DeviceActor:
             self._online()
 
     # -- messages ---------------------------------------------------------
-    def _emit(self, kind: Kind, body: dict, task: str, attempt: int, campaign: str, key: str | None = None) -> None:
+    def _emit(self, kind: Kind, body: dict, task: str, attempt: int, campaign: str, token: str,
+              key: str | None = None) -> None:
         payload = pack(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name,
-                       t_lab=self._clock.now(), campaign=campaign, task=task, attempt=attempt)
+                       t_lab=self._clock.now(), campaign=campaign, task=task, attempt=attempt, token=token)
         if kind in (Kind.RESULT, Kind.FAULT):
             self._recent.append((task, attempt, payload))  # a campaign that died may ask for it (twin resume)
         self._bus.publish(key or self._evt_key, payload)
@@ -159,19 +161,21 @@ class DeviceActor:
             return
         if env.kind == Kind.COMMAND:
             if self._job is not None:
-                self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, env.task, env.attempt, env.campaign)
+                self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, env.task, env.attempt,
+                           env.campaign, env.token)
                 return
-            self._current = (env.task, env.attempt)
-            self._job = asyncio.ensure_future(self._run(env.task, env.attempt, env.campaign, body))  # type: ignore[arg-type]
-        elif env.kind == Kind.CANCEL and self._current == (env.task, env.attempt) and self._job:
+            self._current, self._token_of_current = (env.task, env.attempt), env.token
+            self._job = asyncio.ensure_future(self._run(env.task, env.attempt, env.campaign, env.token, body))  # type: ignore[arg-type]
+        elif (env.kind == Kind.CANCEL and self._current == (env.task, env.attempt) and self._job
+              and env.token == self._token_of_current):  # only the orchestrator knows the token
             self._cancel_reason = "cancel"
             self._job.cancel()
 
-    async def _run(self, task: str, attempt: int, campaign: str, cmd: CommandBody) -> None:
+    async def _run(self, task: str, attempt: int, campaign: str, token: str, cmd: CommandBody) -> None:
         spec, faults = self.spec, self.spec.faults
 
         def emit(kind: Kind, body: dict, key: str | None = None) -> None:
-            self._emit(kind, body, task, attempt, campaign, key)
+            self._emit(kind, body, task, attempt, campaign, token, key)
 
         ctx = StepContext(
             clock=self._clock,

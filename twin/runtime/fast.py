@@ -110,9 +110,9 @@ class FastCampaign:
                 dev = self.devices.get(a.device)
                 if dev is not None:
                     if a.kind == Kind.COMMAND:
-                        dev.command(a.task, a.attempt, self.core.campaign_id, a.body)
+                        dev.command(a.task, a.attempt, self.core.campaign_id, a.body, a.token)
                     else:
-                        dev.cancel(a.task, a.attempt)
+                        dev.cancel(a.task, a.attempt, a.token)
             elif t is SetTimer:
                 old = self._timers.pop(a.key, None)
                 if old is not None:

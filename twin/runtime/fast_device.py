@@ -43,8 +43,10 @@ class FastDevice:
         self._job: Any = None  # the running step's coroutine
         self._current: tuple[str, int] | None = None
         self._campaign = ""
+        self._token = ""
         self._cancel_reason = ""
         self._timer: Timer | None = None
+        self._tokens: dict[tuple[str, int], str] = {}  # the token of a command refused while busy
         self.online = False
 
     # -- life cycle -------------------------------------------------------------------
@@ -92,21 +94,23 @@ class FastDevice:
         payload = to_wire(env)
         if kind is Kind.RESULT:  # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
             body = _plain(payload)["body"]
-        self._deliver(DeviceMessage(kind, self.name, task, attempt, body, payload))
+        token = self._token if (task, attempt) == self._current else self._tokens.get((task, attempt), "")
+        self._deliver(DeviceMessage(kind, self.name, task, attempt, body, payload, token=token))
 
-    def command(self, task: str, attempt: int, campaign: str, body: dict) -> None:
+    def command(self, task: str, attempt: int, campaign: str, body: dict, token: str) -> None:
         if not self.online:
             return  # off the bus: the command is lost, as it would be
         self._campaign = campaign
         if self._job is not None:
+            self._tokens = {(task, attempt): token}
             self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, task, attempt)
             return
-        self._current = (task, attempt)
+        self._current, self._token = (task, attempt), token
         self._job = self._run(task, attempt, body)
         self._resume()
 
-    def cancel(self, task: str, attempt: int) -> None:
-        if self.online and self._current == (task, attempt) and self._job is not None:
+    def cancel(self, task: str, attempt: int, token: str) -> None:
+        if self.online and self._current == (task, attempt) and self._job is not None and token == self._token:
             self._cancel_reason = "cancel"
             self._throw_cancel()
 

@@ -31,7 +31,7 @@ from twin.core.clock import LabClock
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.bus import NoReplyError
-from twin.core.messages import InvalidMessage, Kind, decode, pack
+from twin.core.messages import InvalidMessage, Kind, decode, excerpt, pack, without_token
 from twin.runtime.decision_stream import SENDER, DecisionStream
 from twin.scenario import Scenario
 
@@ -85,7 +85,8 @@ class LiveCampaign:
         remove_hook = self.clock.on_idle(self._on_idle)
         try:
             if self._rebuilt is None:
-                if self._recording:
+                if self._recording:  # a resumed campaign needs the secret its tokens came from
+                    self.journal.set("attempt_secret", self.core.secret.hex())
                     self.journal.inputs(self.clock.now(), {"start": True})
                 self._perform(self.core.start(self.clock.now()))
             else:
@@ -103,15 +104,11 @@ class LiveCampaign:
         try:
             env, body = decode(payload, sender_hint=on_key)
         except InvalidMessage as exc:
-            log.warning("dropped: %s", exc)
-            self._feed(InvalidInput(exc.sender, exc.reason))
+            log.warning("dropped a message on %s: %s", key, exc)
+            self._feed(InvalidInput(exc.sender, exc.reason, key, excerpt(payload)))
             return
-        if env.sender != on_key:  # a device reports only on its own key
-            reason = f"{env.kind} signed by {env.sender!r} arrived on {key}: a device speaks only on its own key"
-            log.warning("dropped: %s", reason)
-            self._feed(InvalidInput(on_key, reason))
-            return
-        self._feed(DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.to_dict(), payload))
+        kept = without_token(env) if env.token else payload
+        self._feed(DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.to_dict(), kept, on_key, env.token))
 
     def _on_presence(self, key: str, alive: bool) -> None:
         self._feed(Presence(keys.device_of(key), alive))
@@ -184,7 +181,8 @@ class LiveCampaign:
         reason = f"{device} was not running {task}#{attempt} when the campaign resumed"
         self._on_event(keys.evt(self.s.lab, device), pack(
             Kind.FAULT, {"code": "device_lost", "reason": reason}, id=f"{SENDER}:resume:{task}#{attempt}",
-            sender=device, t_lab=self.clock.now(), campaign=self.core.campaign_id, task=task, attempt=attempt))
+            sender=device, t_lab=self.clock.now(), campaign=self.core.campaign_id, task=task, attempt=attempt,
+            token=self.core.token(task, attempt)))
 
     # -- actions out ------------------------------------------------------------------
     def _perform(self, actions: list[Any]) -> None:
@@ -207,7 +205,7 @@ class LiveCampaign:
                 self.bus.publish(keys.cmd(self.s.lab, a.device),
                                  pack(a.kind, a.body, id=f"{SENDER}:{next(self._ids)}", sender=SENDER,
                                       t_lab=self.clock.now(), campaign=self.core.campaign_id, task=a.task,
-                                      attempt=a.attempt))
+                                      attempt=a.attempt, token=a.token))
             elif t is SetTimer:
                 old = self._timers.pop(a.key, None)
                 if old is not None:

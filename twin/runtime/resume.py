@@ -146,7 +146,8 @@ def _resume_live(path: Path, s: Scenario, on_progress: Callable[[CampaignCore], 
     if not batches:
         raise ResumeError(f"{path}: no inputs were journalled (the campaign was killed before it began, or ran "
                           "before live campaigns journalled them): run it again instead (twin run)")
-    rebuilt = rebuild(s, batches)
+    secret = read_run(path).get("attempt_secret")
+    rebuilt = rebuild(s, batches, secret=bytes.fromhex(secret) if isinstance(secret, str) else None)
     if rebuilt.core.finished:
         raise ResumeError(f"{path}: the campaign had finished; nothing to resume")
     probe = LabClock("wall")

@@ -16,8 +16,8 @@ from typing import Any, Protocol
 #: A device's states, in the order the viewer lists them.
 STATES = ("offline", "idle", "failed", "quarantined", "busy")
 WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",
-              "message.unknown_attempt", "devices.missing", "campaign.stopping", "attempt.cancelled"}
-ERROR_KINDS = {"device.quarantined", "device.lost", "experiment.abandoned"}
+              "device.flapping", "devices.missing", "campaign.stopping", "attempt.cancelled"}
+ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned"}
 #: Decisions drawn elsewhere and not repeated in the text log.
 QUIET = {"campaign.summary", "campaign.started", "task.ready", "attempt.running", "attempt.done",
          "experiment.proposed"}

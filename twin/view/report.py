@@ -18,6 +18,9 @@ def render_summary(s: Summary, console: Console) -> None:
         t.add_row("  abandoned", f"{n} × {reason}")
     t.add_row("faults", f"{s.devices_lost} device losses, {s.quarantines} quarantines, "
                         f"{s.invalid_messages} invalid messages, {s.late_results} late results")
+    if s.rejected_messages or s.presence_flaps:
+        t.add_row("refused", f"{s.rejected_messages} messages without the attempt's provenance (message.rejected), "
+                             f"{s.presence_flaps} presence flaps")
     t.add_row("samples degraded", str(s.degraded_samples))
     if s.decisions:
         ms = s.decision_ms
