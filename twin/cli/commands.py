@@ -47,6 +47,10 @@ def run(
     journal: Annotated[Optional[Path], typer.Option(help="where to write the SQLite journal")] = None,
     external: Annotated[Optional[list[str]], typer.Option(help="a device served by another process")] = None,
     listen: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447")] = None,
+    connect: Annotated[Optional[list[str]], typer.Option(help="the lab's router, e.g. tls/127.0.0.1:7447")] = None,
+    security: Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
+                                                          "join the router with the orchestrator's certificate")] = None,
+    insecure: Annotated[bool, typer.Option(help="allow --listen beyond loopback without security")] = False,
     save: SaveOpt = None,
     viewer: ViewerOpt = False,
     serve: ServeOpt = False,
@@ -62,6 +66,12 @@ def run(
                                                         ("scheduler", scheduler)) if v is not None}
     if listen:
         overrides["bus.listen"] = list(listen)
+    if connect:
+        overrides["bus.connect"] = list(connect)
+    if security:
+        overrides["bus.security"] = str(security.resolve())
+    if insecure:
+        overrides["bus.insecure"] = True
     record = RecordOptions(save, viewer, serve, serve_port, web_port)
     try:
         s = lab.prepare(scenario, seed=seed, clock=clock, speed=speed, bus=bus, overrides=overrides)
@@ -160,6 +170,8 @@ def watch(
     viewer: Annotated[bool, typer.Option(help="open the Rerun viewer")] = False,
     serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,
     follow: Annotated[bool, typer.Option(help="keep watching after the campaign ends")] = False,
+    security: Annotated[Optional[Path], typer.Option(help="the lab's security directory: watch through its "
+                                                          "router with the watcher's certificate")] = None,
 ) -> None:
     """Attach to a lab running in another process and record what it does."""
     if not (connect or listen):
@@ -168,7 +180,8 @@ def watch(
     if not record.wanted:
         _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
     try:
-        observer = watch_lab(lab_name, record, list(connect or []), list(listen or []), follow)
+        observer = watch_lab(lab_name, record, list(connect or []), list(listen or []), follow,
+                             str(security) if security else None)
     except TwinError as exc:
         _fail(exc)
     err.print(f"recorded {observer.spectra} spectra, {observer.finished} finished experiments"

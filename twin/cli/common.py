@@ -17,6 +17,8 @@ scheduler_app = typer.Typer(help="Run a scheduler agent in this process.", no_ar
 driver_app = typer.Typer(help="Write your own device drivers.", no_args_is_help=True)
 app.add_typer(driver_app, name="driver")
 app.add_typer(scheduler_app, name="scheduler")
+security_app = typer.Typer(help="Certificates and access control for a lab's bus.", no_args_is_help=True)
+app.add_typer(security_app, name="security")
 console = Console()
 err = Console(stderr=True, soft_wrap=True)
 

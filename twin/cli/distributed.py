@@ -8,8 +8,11 @@ from typing import Annotated, Optional
 
 import typer
 
-from twin.cli.common import _fail, app, console, device_app, driver_app, scheduler_app
+from twin.cli.common import _fail, app, console, device_app, driver_app, scheduler_app, security_app
 from twin.core.errors import TwinError
+
+SecurityOpt = Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
+                                                          "join through its router with this process's certificate")]
 
 
 def _serving(serve, *args) -> None:
@@ -28,12 +31,38 @@ def device_serve(
     connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
     clock: Annotated[str, typer.Option(help="scaled | wall (the lab's clock)")] = "wall",
     speed: Annotated[float, typer.Option(help="lab seconds per wall second")] = 1.0,
+    security: SecurityOpt = None,
 ) -> None:
     """Serve one device actor of a scenario in this process until SIGINT/SIGTERM."""
     from twin.runtime.serve import serve_device
 
-    _serving(serve_device, scenario, name, connect, clock, speed)
+    _serving(serve_device, scenario, name, connect, clock, speed, str(security) if security else None)
 
+
+
+@security_app.command("init")
+def security_init(
+    directory: Annotated[Path, typer.Argument(help="where to write the lab's CA, certificates and configs")],
+    lab: Annotated[str, typer.Option(help="the lab (the scenario's `lab` field)")],
+    device: Annotated[Optional[list[str]], typer.Option(help="a device instance, e.g. spectrometer-2 (repeat)")] = None,
+    host: Annotated[Optional[list[str]], typer.Option(help="a name or address the router is reached at (repeat; "
+                                                           "default localhost and 127.0.0.1)")] = None,
+    endpoint: Annotated[str, typer.Option(help="the router's endpoint, written into the configs")] = "tls/127.0.0.1:7447",
+    days: Annotated[int, typer.Option(help="how long the certificates are valid")] = 365,
+) -> None:
+    """Create (or extend) a lab's security directory: a CA, certificates, the router's access control."""
+    from twin.tools.security_init import init
+
+    try:
+        written = init(directory, lab, list(device or []), list(host or []), days, endpoint)
+    except TwinError as exc:
+        _fail(exc)
+    console.print(f"wrote {len(written)} files to {directory}\n"
+                  f"  router:  twin router --listen {endpoint} --security {directory}\n"
+                  f"  lab:     bus: {{kind: zenoh, connect: [{endpoint}], security: {directory}}} in the scenario\n"
+                  f"  device:  twin device serve SCENARIO --id ID --connect {endpoint} --security {directory}\n"
+                  f"  watcher: twin watch --lab {lab} --connect {endpoint} --security {directory} --save w.rrd\n"
+                  f"  keep {directory / 'private'} (the CA's key) off the lab's machines", highlight=False, markup=False)
 
 
 @driver_app.command("new")
@@ -57,7 +86,11 @@ def router(
     listen: Annotated[list[str], typer.Option(help="endpoint(s) to listen on, e.g. tcp/127.0.0.1:7447")],
     lease_ms: Annotated[int, typer.Option(help="how long a silent peer is kept, ms (a frozen process is seen after it)")] = 1000,
     zenoh_config: Annotated[Optional[list[str]], typer.Option("--config", help="extra Zenoh config PATH=JSON5 "
-                                                                "(TLS etc.), e.g. transport/link/tls/root_ca_certificate=\"ca.pem\"")] = None,
+                                                                "e.g. transport/link/tx/lease=2000")] = None,
+    security: Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
+                                                          "mutual TLS and the lab's access control")] = None,
+    insecure: Annotated[bool, typer.Option(help="listen beyond loopback without security (anyone who reaches "
+                                                "it can read and forge every message)")] = False,
 ) -> None:
     """A Zenoh router for a lab spread over processes or hosts (devices and labs --connect to it)."""
     import json as _json
@@ -74,7 +107,8 @@ def router(
         except ValueError:
             extra[path] = value
     try:
-        run_router(listen, lease_ms, extra, ready=lambda line: print(line, flush=True))
+        run_router(listen, lease_ms, extra, ready=lambda line: print(line, flush=True),
+                   security_dir=str(security) if security else None, insecure=insecure)
     except TwinError as exc:
         _fail(exc)
 
@@ -86,8 +120,9 @@ def scheduler_serve(
     connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
     clock: Annotated[str, typer.Option(help="scaled | wall (the lab's clock)")] = "wall",
     speed: Annotated[float, typer.Option(help="lab seconds per wall second")] = 1.0,
+    security: SecurityOpt = None,
 ) -> None:
     """Serve scheduling decisions to a lab whose campaign.scheduler is `remote`, until SIGINT/SIGTERM."""
     from twin.runtime.serve import serve_scheduler
 
-    _serving(serve_scheduler, scenario, scheduler, connect, clock, speed)
+    _serving(serve_scheduler, scenario, scheduler, connect, clock, speed, str(security) if security else None)

@@ -3,7 +3,10 @@
 Every ``Note`` the core returns is journalled (``Journal.note``)
 and, as a decision, sent on ``labtwin/<lab>/campaign/<id>/decisions``; the
 notes of one ``advance`` travel together as one message. ``history``
-answers a watcher that joins late with everything observed so far.
+answers a watcher that joins late with what was observed so far, in pages
+(``{"after": N}`` asks for the page after the first N; the answer says where
+the next one starts). Where security is on, only the lab's watcher and
+orchestrator identities may ask (``twin.core.bus.security``).
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ from twin.campaign.journal import Journal, as_messages, decision_id
 from twin.core.messages import Kind, pack
 
 SENDER = "orchestrator"
+PAGE_ROWS = 500
+PAGE_BYTES = 256 * 1024  # well under the largest message a receiver accepts
 
 
 class DecisionStream:
@@ -47,9 +52,22 @@ class DecisionStream:
                                         t_lab=items[0]["t_lab"], campaign=self.campaign_id))
 
     async def history(self, key: str, payload: bytes) -> bytes:
-        """Everything observed so far, for a watcher that joins late (``twin watch``)."""
-        # let messages already sent to us land in the journal first (~50 ms of wall time): the
-        # watcher's subscription may have missed them, and they must be in the history then
-        await self.clock.sleep(0.05 * (1.0 if self.clock.is_virtual else self.clock.speed))
-        self.journal.flush()
-        return json.dumps(as_messages(self.journal.rows())).encode()
+        """A page of what was observed so far, for a watcher that joins late (``twin watch``)."""
+        try:
+            after = int(json.loads(payload or b"{}").get("after", 0))
+        except (ValueError, TypeError, AttributeError):
+            return json.dumps({"error": 'ask with {"after": N}, N a whole number'}).encode()
+        if after == 0:
+            # let messages already sent to us land in the journal first (~50 ms of wall time): the
+            # watcher's subscription may have missed them, and they must be in the history then
+            await self.clock.sleep(0.05 * (1.0 if self.clock.is_virtual else self.clock.speed))
+            self.journal.flush()
+        rows = as_messages(self.journal.rows())
+        page, size, end = [], 0, max(0, after)
+        for item in rows[end:end + PAGE_ROWS]:
+            if page and size + len(item) > PAGE_BYTES:
+                break
+            page.append(item)
+            size += len(item)
+        end += len(page)
+        return json.dumps({"items": page, "next": end if end < len(rows) else None}).encode()

@@ -14,10 +14,11 @@ from typing import Any
 
 from twin.core import keys, plugins
 from twin.device.actor import DeviceActor
-from twin.core.bus import Bus, open_bus
+from twin.core.bus import Bus, open_bus, security
+from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
 from twin.device.driver import DRIVER_API, DriverSetup, feature
-from twin.core.errors import ClockError, DriverError, PluginError, TwinError
+from twin.core.errors import BusError, ClockError, DriverError, PluginError, TwinError
 from twin.campaign.journal import Journal
 from pydantic import ValidationError
 
@@ -87,11 +88,26 @@ def make_clock(s: Scenario) -> LabClock:
     return LabClock(s.clock.mode, s.clock.speed)
 
 
-def make_bus(s: Scenario, clock: LabClock) -> Bus:
+def make_bus(s: Scenario, clock: LabClock, who: Identity | None = None) -> Bus:
+    """The bus of ``s`` for ``who`` (the lab's orchestrator unless said otherwise): with ``bus.security``, a
+    client of the lab's router over mutual TLS with ``who``'s certificate; without it, loopback unless
+    ``bus.insecure``."""
     if s.bus.kind == "memory":
         return open_bus("memory", clock)
-    return open_bus("zenoh", clock, mode=s.bus.mode, listen=s.bus.listen, connect=s.bus.connect, lease_ms=s.bus.lease_ms,
-                    extra=s.bus.zenoh)
+    extra, mode, listen = dict(s.bus.zenoh), s.bus.mode, s.bus.listen
+    if s.bus.security:
+        who = who or Identity("orchestrator", s.lab)
+        plain = [e for e in s.bus.connect if not e.startswith(("tls/", "quic/"))]
+        if not s.bus.connect or plain:
+            raise BusError(f"bus.security is on: connect to the lab's router over TLS (bus.connect: "
+                           f"[tls/HOST:PORT], where `twin router --security DIR` listens), not {s.bus.connect}")
+        extra.update(security.session_config(s.bus.security, who))
+        mode, listen = "client", []
+    for warning in security.check_listen(listen, secure=bool(s.bus.security), insecure=s.bus.insecure,
+                                         what="bus.listen"):
+        log.warning("%s", warning)
+    return open_bus("zenoh", clock, mode=mode, listen=listen, connect=s.bus.connect, lease_ms=s.bus.lease_ms,
+                    extra=extra)
 
 
 def load_driver(s: Scenario, device_type: str, name: str) -> Any:

@@ -10,6 +10,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 from twin.core.bus import Bus
+from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
 from twin.runtime.lab import build_actors, load_drivers, make_bus, make_clock, make_scheduler, prepare
@@ -18,21 +19,25 @@ from twin.scenario import BusSpec, Scenario
 log = logging.getLogger(__name__)
 
 
-def _joined(scenario: str | Path, connect: list[str], clock: str, speed: float) -> Scenario:
-    """The scenario as seen from a process that joins the lab at ``connect``."""
+def _joined(scenario: str | Path, connect: list[str], clock: str, speed: float,
+            security_dir: str | None = None) -> Scenario:
+    """The scenario as seen from a process that joins the lab at ``connect`` (through its router, with
+    ``security_dir`` or the scenario's ``bus.security``)."""
     if clock == "virtual":
         raise ClockError("a process joining a lab cannot follow a virtual clock: use --clock scaled or wall")
     s = prepare(scenario, clock=clock, speed=speed)
     return s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms,
-                                               zenoh=s.bus.zenoh)})
+                                               zenoh=s.bus.zenoh, security=security_dir or s.bus.security)})
 
 
-def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], Awaitable[None]]]], ready: str) -> None:
-    """Open the bus, ``start`` the actor (which returns its stop), print ``ready``, run until SIGINT/SIGTERM."""
+def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], Awaitable[None]]]], ready: str,
+           who: Identity) -> None:
+    """Open the bus as ``who``, ``start`` the actor (which returns its stop), print ``ready``, run until
+    SIGINT/SIGTERM."""
     lab_clock = make_clock(s)
 
     async def main() -> None:
-        bus = make_bus(s, lab_clock)
+        bus = make_bus(s, lab_clock, who)
         await bus.start()
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
@@ -52,8 +57,9 @@ def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], 
     lab_clock.run(main())
 
 
-def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str = "wall", speed: float = 1.0) -> None:
-    s = _joined(scenario, connect, clock, speed)
+def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str = "wall", speed: float = 1.0,
+                 security_dir: str | None = None) -> None:
+    s = _joined(scenario, connect, clock, speed, security_dir)
     drivers = load_drivers(s, only={name})
     if not drivers:
         known = [n for d in s.devices for n in s.instance_names(d)]
@@ -70,14 +76,15 @@ def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str
 
         return finish
 
-    _serve(s, start, f"ready {name}")
+    _serve(s, start, f"ready {name}", Identity("device", s.lab, name))
 
 
-def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: str = "wall", speed: float = 1.0) -> None:
+def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: str = "wall", speed: float = 1.0,
+                    security_dir: str | None = None) -> None:
     """A scheduler (a rule or ``rl:PATH``) as an agent on a lab's bus."""
     from twin.runtime.remote_scheduler import SchedulerService
 
-    s = _joined(scenario, connect, clock, speed)
+    s = _joined(scenario, connect, clock, speed, security_dir)
     scheduler = make_scheduler(s, spec)
 
     async def start(bus: Bus, clock: LabClock):
@@ -89,4 +96,4 @@ def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: 
 
         return finish
 
-    _serve(s, start, f"ready scheduler {spec}")
+    _serve(s, start, f"ready scheduler {spec}", Identity("scheduler", s.lab))

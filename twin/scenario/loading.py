@@ -28,6 +28,9 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
     for dotted, value in (overrides or {}).items():
         set_dotted(raw, dotted, value)
     scenario = parse(raw, str(path))
+    if scenario.bus.security and not Path(scenario.bus.security).is_absolute():
+        bus = scenario.bus.model_copy(update={"security": str((path.parent / scenario.bus.security).resolve())})
+        scenario = scenario.model_copy(update={"bus": bus})
     if scenario.jobshop is not None:
         from twin.scenario.jobshop import expand
 

@@ -144,7 +144,11 @@ class BusSpec(_Spec):
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     connect: list[str] = Field(default_factory=list)
     lease_ms: int = Field(default=1000, ge=100)
-    zenoh: dict[str, Any] = Field(default_factory=dict, description="extra Zenoh config paths (TLS...)")
+    zenoh: dict[str, Any] = Field(default_factory=dict, description="extra Zenoh config paths")
+    security: str | None = Field(default=None, description="the lab's security directory (twin security init), "
+                                 "relative to the scenario: mutual TLS to the lab's router, with access control")
+    insecure: bool = Field(default=False, description="allow bus.listen beyond loopback without security "
+                           "(anyone who reaches it can read and forge messages)")
 
 
 class JobShop(_Spec):

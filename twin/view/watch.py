@@ -102,24 +102,34 @@ async def _catch_up(bus: Bus, clock: LabClock, lab: str, observer: LabObserver, 
     key = keys.campaign(lab, "*", "history")
     for _ in range(int(patience_s / 0.5)):
         try:
-            history = json.loads(await bus.request(key, b"", timeout=2.0 * clock.speed))
+            page = json.loads(await bus.request(key, b"", timeout=2.0 * clock.speed))
         except (NoReplyError, ValueError, TwinError):
             await clock.sleep(0.5 * clock.speed)
             continue
-        for payload in history:
-            observer.on_message("", payload)
-        return
+        while True:
+            for payload in page.get("items") or []:
+                observer.on_message("", payload)
+            if page.get("next") is None:
+                return
+            page = json.loads(await bus.request(key, json.dumps({"after": page["next"]}).encode(),
+                                                timeout=2.0 * clock.speed))
     log.warning("lab %r did not answer for its history in %.0f s: recording from now on", lab, patience_s)
 
 
-def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str], follow: bool = False) -> LabObserver:
-    """``twin watch``: a wall-clock Zenoh session that records another process's lab."""
-    from twin.core.bus import open_bus
+def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str], follow: bool = False,
+          security_dir: str | None = None) -> LabObserver:
+    """``twin watch``: a wall-clock Zenoh session that records another process's lab; with ``security_dir``,
+    a client of the lab's router with the lab's watcher certificate (which may read, nothing else)."""
+    from twin.core.bus import open_bus, security
 
     clock = LabClock("wall")
+    extra: dict = {}
+    if security_dir is not None:
+        extra = security.session_config(security_dir, security.Identity("watcher", lab))
+        listen = []
 
     async def main() -> LabObserver:
-        bus = open_bus("zenoh", clock, listen=listen, connect=connect)
+        bus = open_bus("zenoh", clock, listen=listen, connect=connect, extra=extra)
         await bus.start()
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()

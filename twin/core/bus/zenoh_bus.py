@@ -410,9 +410,20 @@ class ZenohBus:
 
 
 def run_router(listen: list[str], lease_ms: int = 1000, extra: dict[str, object] | None = None,
-               ready: Callable[[str], None] = print) -> None:
-    """A Zenoh router — a session in router mode, no ``zenohd`` needed — until SIGINT or SIGTERM."""
-    options = ZenohOptions(mode="router", listen=listen, connect=[], lease_ms=lease_ms, extra=dict(extra or {}))
+               ready: Callable[[str], None] = print, security_dir: str | None = None, insecure: bool = False) -> None:
+    """A Zenoh router — a session in router mode, no ``zenohd`` needed — until SIGINT or SIGTERM.
+
+    ``security_dir``: the lab's security directory; the router then requires a client certificate from the
+    lab's CA and enforces the lab's access control (``twin.core.bus.security``)."""
+    from twin.core.bus import security
+
+    extra = dict(extra or {})
+    if security_dir is not None:
+        extra.update(security.router_config(security_dir, security.lab_of(security_dir)))
+    for warning in security.check_listen(listen, secure=security_dir is not None, insecure=insecure,
+                                         what="twin router"):
+        log.warning("%s", warning)
+    options = ZenohOptions(mode="router", listen=listen, connect=[], lease_ms=lease_ms, extra=extra)
     try:
         session = zenoh.open(options.config())
     except Exception as exc:

@@ -1,0 +1,209 @@
+"""A real `twin router --security` with certificates from `twin security init`: who may say and read what."""
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+import zenoh
+
+from tests.conftest import qd_lab
+from tests.twin.test_device_process import free_port
+from twin.campaign.journal import read_events
+from twin.core import keys
+from twin.core.bus.security import Identity, access_control, check_listen, session_config
+from twin.core.errors import BusError
+from twin.runtime.lab import make_clock, prepare, run_async
+from twin.tools.security_init import init
+
+pytestmark = pytest.mark.process
+ROOT = Path(__file__).resolve().parents[2]
+LAB = "t"
+SPEED = 600.0
+
+
+@pytest.fixture(scope="module")
+def secured(tmp_path_factory):
+    """A security directory for lab ``t`` (and one of another CA), and a router enforcing it."""
+    tmp = tmp_path_factory.mktemp("security")
+    init(tmp / "lab", LAB, ["synthesiser", "spectrometer", "spectrometer-1", "spectrometer-2"])
+    init(tmp / "other", LAB, ["spectrometer-1"])  # the same names, signed by another CA
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    router = subprocess.Popen([sys.executable, "-m", "twin", "router", "--listen", endpoint, "--security",
+                               str(tmp / "lab")], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+    line = router.stdout.readline().decode()
+    assert line.startswith("router"), line + router.stderr.read().decode()
+    yield tmp, endpoint
+    router.terminate()
+    router.wait(10)
+
+
+def session(endpoint, config=None, timeout_ms=3000):
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    cfg.insert_json5("connect/timeout_ms", str(timeout_ms))
+    for path, value in (config or {}).items():
+        cfg.insert_json5(path, json.dumps(value))
+    return zenoh.open(cfg)
+
+
+def as_who(secured, role, name="", directory="lab"):
+    tmp, endpoint = secured
+    return session(endpoint, session_config(tmp / directory, Identity(role, LAB, name)))
+
+
+class Ears:
+    """The orchestrator's view: every message and token under the lab's prefix."""
+
+    def __init__(self, secured):
+        self.s = as_who(secured, "orchestrator")
+        self.heard, self.tokens = [], []
+        self.s.declare_subscriber(f"labtwin/{LAB}/**", lambda x: self.heard.append((str(x.key_expr),
+                                                                                    x.payload.to_bytes())))
+        self.s.liveliness().declare_subscriber(f"labtwin/{LAB}/alive/**",
+                                               lambda x: self.tokens.append(str(x.key_expr)))
+
+    def close(self):
+        self.s.close()
+
+
+def settle(seconds=0.6):
+    time.sleep(seconds)  # wall time: what crosses a real router
+
+
+def test_without_a_certificate_or_with_another_cas_there_is_no_session(secured):
+    tmp, endpoint = secured
+    with pytest.raises(Exception, match="Unable to connect"):
+        session(endpoint, {"transport/link/tls/root_ca_certificate": str(tmp / "lab" / "ca.pem")}, 1500)
+    with pytest.raises(Exception, match="Unable to connect"):
+        as_who(secured, "device", "spectrometer-1", directory="other")
+
+
+def test_a_device_says_only_its_own_words_and_hears_only_its_own_commands(secured):
+    ears = Ears(secured)
+    own, other = as_who(secured, "device", "spectrometer-1"), as_who(secured, "device", "spectrometer-2")
+    commands, overheard = [], []
+    own.declare_subscriber(keys.cmd(LAB, "spectrometer-1"), lambda x: commands.append(x.payload.to_bytes()))
+    own.declare_subscriber(f"labtwin/{LAB}/**", lambda x: overheard.append(x.payload.to_bytes()))
+    settle()
+    try:
+        own.put(keys.evt(LAB, "spectrometer-1"), b"mine")  # the control: allowed, and heard
+        other.put(keys.evt(LAB, "spectrometer-1"), b"forged by spectrometer-2")
+        other.put(keys.telemetry(LAB, "spectrometer-1"), b"forged")
+        other.put(keys.cmd(LAB, "spectrometer-1"), b"a forged command")
+        other.put(keys.campaign(LAB, "c1", "decisions"), b"a forged decision")
+        token = other.liveliness().declare_token(keys.alive(LAB, "spectrometer-1"))
+        ears.s.put(keys.cmd(LAB, "spectrometer-1"), b"a real command")
+        ears.s.put(keys.cmd(LAB, "spectrometer-2"), b"not for spectrometer-1")
+        ears.s.put(keys.evt(LAB, "synthesiser"), b"not for spectrometer-1 either")
+        settle()
+        ours = {b"a real command", b"not for spectrometer-1", b"not for spectrometer-1 either"}
+        assert [(k, p) for k, p in ears.heard if p not in ours] == [(keys.evt(LAB, "spectrometer-1"), b"mine")]
+        assert ears.tokens == []  # spectrometer-2 cannot declare spectrometer-1's presence
+        assert commands == [b"a real command"]  # not spectrometer-2's forgery
+        assert overheard == [b"mine", b"a real command"]  # what its session may receive: nothing of the rest of the lab
+        replies = list(other.get(keys.campaign(LAB, "c1", "history"), timeout=1.0))
+        assert replies == []  # the history is not a device's to read
+        token.undeclare()
+    finally:
+        for s in (own, other):
+            s.close()
+        ears.close()
+
+
+def test_a_watcher_reads_everything_and_can_do_nothing_else(secured):
+    ears = Ears(secured)
+    watcher = as_who(secured, "watcher")
+    seen = []
+    watcher.declare_subscriber(f"labtwin/{LAB}/**", lambda x: seen.append(str(x.key_expr)))
+    history = ears.s.declare_queryable(keys.campaign(LAB, "c1", "history"), lambda q: q.reply(q.key_expr, b"[]"))
+    settle()
+    try:
+        ears.s.put(keys.evt(LAB, "synthesiser"), b"a result")
+        watcher.put(keys.evt(LAB, "synthesiser"), b"forged by the watcher")
+        watcher.put(keys.cmd(LAB, "synthesiser"), b"a forged command")
+        token = watcher.liveliness().declare_token(keys.alive(LAB, "synthesiser"))
+        answers = [r.ok.payload.to_bytes() for r in watcher.get(keys.campaign(LAB, "c1", "history"), timeout=2.0)
+                   if r.ok is not None]
+        settle()
+        assert answers == [b"[]"]
+        assert keys.evt(LAB, "synthesiser") in seen
+        assert [p for _, p in ears.heard] == [b"a result"]  # its own, heard locally; nothing from the watcher
+        assert ears.tokens == []
+        token.undeclare()
+    finally:
+        history.undeclare()
+        watcher.close()
+        ears.close()
+
+
+def test_a_campaign_with_an_external_device_runs_end_to_end_over_mutual_tls(secured, tmp_path):
+    tmp, endpoint = secured
+    raw = qd_lab(**{
+        "campaign.budget": 3, "campaign.max_in_flight": 1,
+        "devices.synthesiser.duration": {"mean_s": 60, "cv": 0.0},
+        "devices.spectrometer.duration": {"mean_s": 60, "cv": 0.0},
+        "devices.spectrometer.instances": 1,
+        "clock": {"mode": "scaled", "speed": SPEED},
+        "bus": {"kind": "zenoh", "listen": [], "connect": [endpoint], "security": str(tmp / "lab")},
+        "orchestrator.startup_s": 6000,
+    })
+    raw["lab"] = LAB
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    s = prepare(path)
+    clock = make_clock(s)
+    spec = s.model_copy(update={"bus": s.bus.model_copy(update={"listen": []})})
+    device = subprocess.Popen([sys.executable, "-m", "twin", "device", "serve", str(path), "--id", "spectrometer",
+                               "--connect", endpoint, "--clock", "scaled", "--speed", str(SPEED)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+    try:
+        line = device.stdout.readline().decode()
+        assert line.startswith("ready spectrometer"), line + device.stderr.read().decode()
+        summary = clock.run(run_async(spec, clock, tmp_path / "j.db", {"spectrometer"}))
+    finally:
+        device.terminate()
+        device.wait(10)
+    assert summary.done == 3 and summary.rejected_messages == 0
+    assert len(read_events(tmp_path / "j.db", "msg.result")) == 6
+
+
+def test_the_policy_gives_each_device_only_its_own_keys():
+    acl = access_control("lab", ["a", "b"])
+    assert acl["default_permission"] == "deny"
+    rules = {r["id"]: r for r in acl["rules"]}
+    by_subject = {p["subjects"][0]: [k for r in p["rules"] for k in rules[r]["key_exprs"]] for p in acl["policies"]}
+    assert all("/b/" not in k and "/b" != k[-2:] for k in by_subject["device0"])
+    assert {s["cert_common_names"][0] for s in acl["subjects"]} >= {"device.a.lab", "device.b.lab", "watcher.lab"}
+
+
+def test_listening_beyond_loopback_needs_security_or_insecure():
+    assert check_listen(["tcp/127.0.0.1:7447", "tcp/[::1]:7447"], secure=False, insecure=False, what="x") == []
+    with pytest.raises(BusError, match=r"refusing to listen on .*0\.0\.0\.0.*`twin security init`"):
+        check_listen(["tcp/0.0.0.0:7447"], secure=False, insecure=False, what="twin router")
+    (warning,) = check_listen(["tcp/0.0.0.0:7447"], secure=False, insecure=True, what="twin router")
+    assert "WITHOUT security" in warning and "forge" in warning
+    with pytest.raises(BusError, match="tls/HOST:PORT"):
+        check_listen(["tcp/10.0.0.5:7447"], secure=True, insecure=False, what="twin router")
+    assert check_listen(["tls/0.0.0.0:7447"], secure=True, insecure=False, what="twin router") == []
+
+
+def test_twin_router_refuses_an_open_address_without_security():
+    out = subprocess.run([sys.executable, "-m", "twin", "router", "--listen", f"tcp/0.0.0.0:{free_port()}"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert out.returncode == 2 and "refusing to listen" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_a_missing_certificate_names_the_command_that_makes_it(secured, tmp_path):
+    tmp, _ = secured
+    with pytest.raises(BusError, match=r"no certificate for the device spectrometer-9 .* --device spectrometer-9"):
+        session_config(tmp / "lab", Identity("device", LAB, "spectrometer-9"))
+    with pytest.raises(BusError, match="made for lab 't', not 'elsewhere'"):
+        session_config(tmp / "lab", Identity("device", "elsewhere", "spectrometer-1"))
+    with pytest.raises(BusError, match="not a lab security directory"):
+        session_config(tmp_path, Identity("orchestrator", LAB))
