@@ -63,7 +63,8 @@ class DecisionStream:
             await self.clock.sleep(0.05 * (1.0 if self.clock.is_virtual else self.clock.speed))
             self.journal.flush()
         rows = as_messages(self.journal.rows())
-        page, size, end = [], 0, max(0, after)
+        page: list[str] = []
+        size, end = 0, max(0, after)
         for item in rows[end:end + PAGE_ROWS]:
             if page and size + len(item) > PAGE_BYTES:
                 break
