@@ -27,6 +27,8 @@ class RandomPlanner:
 class FixedPlanner:
     """Proposes a given list in order (a job shop's jobs, a replayed design)."""
 
+    needs_parameters = False  # its proposals carry their own parameters
+
     def __init__(self, parameters: dict[str, Any], seed: int, proposals: list[dict[str, Any]], **_: Any) -> None:
         self._queue = [
             Proposal(

@@ -11,6 +11,8 @@ from twin import DriverSetup, StepContext, StepResult
 
 class DftCalculator:
     capabilities = frozenset({"compute"})
+    outputs = frozenset({"band_gap_dft_ev"})
+    chemistry_models = frozenset({"bandgap"})
 
     def __init__(self, setup: DriverSetup) -> None:
         pass

@@ -9,6 +9,7 @@ from twin import DriverSetup, StepContext, StepResult
 
 class Machine:
     capabilities = frozenset({"op"})
+    outputs: frozenset[str] = frozenset()
 
     def __init__(self, setup: DriverSetup) -> None:
         pass

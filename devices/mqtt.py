@@ -49,6 +49,8 @@ class MqttInstrument:
         self.topic = str(o["topic"]).replace("{name}", setup.name).rstrip("/")
         self.qos, self.name = int(o.get("qos", 1)), setup.name
         self.capabilities = frozenset(o.get("steps") or ())
+        if o.get("outputs") is not None:  # what the instrument's results hold, when the scenario says
+            self.outputs = frozenset(str(x) for x in o["outputs"])
         self._ids = itertools.count(1)
         self._waiting: dict[str, asyncio.Future] = {}
         self._client: aiomqtt.Client | None = None

@@ -19,6 +19,8 @@ from twin import load_policy, read_meta
 
 class Reactor:
     capabilities = frozenset({"react"})
+    outputs = frozenset({"max_temperature_k", "overshoot_k"})
+    chemistry_models = frozenset({"catalyst"})
 
     def __init__(self, setup: DriverSetup) -> None:
         o = setup.options

@@ -22,6 +22,9 @@ EDGE_WIDTH_NM = 4.0
 
 class Spectrometer:
     capabilities = frozenset({"measure"})
+    outputs = frozenset({"peak_nm", "fwhm_nm", "intensity", "band_gap_ev", "edge_nm", "yield", "selectivity",
+                         "spectrum", "age_s"})
+    chemistry_models = frozenset({"quantum_dots", "bandgap", "catalyst"})
 
     def __init__(self, setup: DriverSetup) -> None:
         self.noise = setup.chemistry.noise

@@ -18,6 +18,8 @@ def need(params: dict[str, Any], *names: str) -> list[float]:
 
 class Synthesiser:
     capabilities = frozenset({"synthesise", "prepare"})
+    outputs = frozenset({"diameter_nm"})
+    chemistry_models = frozenset({"quantum_dots", "bandgap", "catalyst"})
 
     def __init__(self, setup: DriverSetup) -> None:
         self.model = setup.chemistry.model

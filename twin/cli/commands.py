@@ -213,11 +213,7 @@ def validate(files: Annotated[list[Path], typer.Argument(help="scenario files")]
     bad = 0
     for f in files:
         try:
-            s = load(f)
-            for dtype in s.devices:
-                lab.load_driver(s, dtype, dtype)
-            lab.make_planner(s)
-            lab.make_scheduler(s)
+            lab.validate_file(f)
         except TwinError as exc:
             bad += 1
             err.print(f"[red]✗[/] {exc}", highlight=False)

@@ -14,7 +14,10 @@ class ScenarioError(TwinError):
     def __init__(self, source: str, problems: list[str]) -> None:
         self.source = source
         self.problems = problems
-        lines = "\n".join(f"  - {p}" for p in problems)
+        shown = [p if len(p) <= 500 else p[:499] + "…" for p in problems[:20]]
+        if len(problems) > 20:
+            shown.append(f"… and {len(problems) - 20} more")
+        lines = "\n".join(f"  - {p}" for p in shown)
         super().__init__(f"{source}: {len(problems)} problem(s)\n{lines}")
 
 

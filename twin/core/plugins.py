@@ -11,6 +11,8 @@ from twin.core.errors import DriverError, PluginError
 
 GROUPS = {"devices": "labtwin.devices", "planners": "labtwin.planners", "schedulers": "labtwin.schedulers",
           "trainers": "labtwin.trainers"}
+#: What a plugin of each kind must have (its protocol in docs/drivers.md and docs/architecture.md).
+PROTOCOLS = {"devices": ("run", "safe_state"), "planners": ("propose",), "schedulers": ("decide",)}
 
 
 @functools.cache
@@ -29,7 +31,25 @@ def with_policy(kind: str, spec: str) -> tuple[str, dict[str, Any]]:
 
 
 def load(kind: str, name: str) -> Any:
-    """The object ``name`` refers to; a precise error says what is installed instead."""
+    """The class ``name`` refers to, checked against its kind's protocol; a precise error says what is
+    installed instead."""
+    obj = _load(kind, name)
+    missing = [m for m in PROTOCOLS.get(kind, ()) if not callable(getattr(obj, m, None))]
+    if missing or not callable(obj):
+        error = DriverError if kind == "devices" else PluginError
+        what = kind[:-1] if kind != "devices" else "driver"
+        raise error(f"{name!r} is {_what_it_is(obj)}, not a {what}: a {what} is a class with "
+                    f"{', '.join(m + '()' for m in PROTOCOLS.get(kind, ()))} (see docs/drivers.md and "
+                    "docs/architecture.md)")
+    return obj
+
+
+def _what_it_is(obj: Any) -> str:
+    kind = "class" if isinstance(obj, type) else type(obj).__name__
+    return f"the {kind} {getattr(obj, '__qualname__', repr(obj))[:60]}"
+
+
+def _load(kind: str, name: str) -> Any:
     error = DriverError if kind == "devices" else PluginError
     if ":" in name:
         return _import_string(name, error)

@@ -74,10 +74,15 @@ class DriverFeatures(Protocol):
     ``labtwin_api``: the driver API it was written for. ``realtime``: it talks to a real instrument
     (refuses a virtual clock). ``connect(presence)``/``disconnect()``: an instrument with a connection
     and a presence of its own. ``health()``: what the device's health key reports about it.
+    ``outputs``: every output name its results can hold (a target on an output no device of the
+    workflow produces is then refused by ``twin validate``). ``chemistry_models``: the scenario
+    ``chemistry.model`` values it can simulate (others are refused).
     """
 
     labtwin_api: int
     realtime: bool
+    outputs: frozenset[str]
+    chemistry_models: frozenset[str]
 
     async def connect(self, presence: Callable[[bool], None]) -> None: ...
 
@@ -86,7 +91,7 @@ class DriverFeatures(Protocol):
     async def health(self) -> dict[str, Any]: ...
 
 
-FEATURES = frozenset({"labtwin_api", "realtime", "connect", "disconnect", "health"})
+FEATURES = frozenset({"labtwin_api", "realtime", "connect", "disconnect", "health", "outputs", "chemistry_models"})
 
 
 def feature(driver: Any, name: str) -> Any:

@@ -18,7 +18,7 @@ from twin.core.bus import Bus, open_bus, security
 from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
 from twin.device.driver import DRIVER_API, DriverSetup, feature
-from twin.core.errors import BusError, ClockError, DriverError, PluginError, TwinError
+from twin.core.errors import BusError, ClockError, DriverError, PluginError, ScenarioError, TwinError
 from twin.campaign.journal import Journal
 from pydantic import ValidationError
 
@@ -117,6 +117,10 @@ def load_driver(s: Scenario, device_type: str, name: str) -> Any:
     if api != DRIVER_API:
         raise DriverError(f"devices.{device_type}.driver: {spec.driver!r} was written for driver API {api}; this "
                           f"labtwin speaks {DRIVER_API}. Install a matching version of the driver or of labtwin.")
+    models = feature(cls, "chemistry_models")
+    if models is not None and s.chemistry.model not in models:
+        raise DriverError(f"chemistry.model: the {spec.driver!r} driver of devices.{device_type} simulates "
+                          f"{sorted(models)}, not {s.chemistry.model[:64]!r}: use one of those, or a driver of yours")
     setup = DriverSetup(name, device_type, spec.options, s.chemistry, spec.duration, s.campaign.seed)
     try:
         driver = cls(setup)
@@ -150,8 +154,51 @@ def build_actors(s: Scenario, drivers: list[tuple[str, str, Any]], bus: Bus, clo
 def make_planner(s: Scenario) -> Any:
     name, options = plugins.with_policy("planners", s.campaign.planner)
     cls = plugins.load("planners", name)
-    return cls(parameters=s.chemistry.parameters, seed=s.campaign.seed, targets=s.chemistry.targets,
-               budget=s.campaign.budget, **{**options, **s.campaign.planner_options})
+    if not s.chemistry.parameters and getattr(cls, "needs_parameters", True):
+        raise PluginError(f"chemistry.parameters: empty, and planner {s.campaign.planner!r} proposes values for "
+                          "parameters: give at least one parameter with low and high")
+    try:
+        return cls(parameters=s.chemistry.parameters, seed=s.campaign.seed, targets=s.chemistry.targets,
+                   budget=s.campaign.budget, **{**options, **s.campaign.planner_options})
+    except TwinError:
+        raise
+    except Exception as exc:
+        raise PluginError(f"planner {s.campaign.planner!r} failed to start: {type(exc).__name__}: {exc}") from exc
+
+
+def check(s: Scenario) -> None:
+    """What only the installed plugins can tell about ``s`` (``twin validate`` and ``twin run`` both ask):
+    its drivers, planner, scheduler and fallback load; its targets ask for outputs the workflow produces;
+    its Zenoh settings make a config."""
+    drivers = {dtype: load_driver(s, dtype, s.instance_names(dtype)[0]) for dtype in s.devices}
+    make_planner(s)
+    make_scheduler(s)
+    make_scheduler(s, s.campaign.fallback_scheduler)
+    used = {w.device for w in s.workflow} or set(s.devices)
+    declared = [feature(drivers[d], "outputs") for d in used]
+    if s.chemistry.targets and all(o is not None for o in declared):
+        produced = set().union(*declared)
+        for i, t in enumerate(s.chemistry.targets):
+            for out in t.outputs:
+                if out not in produced:
+                    raise ScenarioError(s.name, [f"chemistry.targets.{i}.outputs.{out}: no device of the workflow "
+                                                 f"produces {out!r} (they produce {sorted(produced)})"])
+    if s.bus.zenoh:
+        from twin.core.bus.zenoh_bus import check_config
+
+        check_config(s.bus.zenoh)
+
+
+def validate_file(path: str | Path) -> Scenario:
+    """``twin validate``: the scenario file read, checked field by field, and against the installed plugins."""
+    s = load(path)
+    try:
+        check(s)
+    except ScenarioError as exc:
+        raise ScenarioError(str(path), exc.problems) from None
+    except TwinError as exc:
+        raise ScenarioError(str(path), [str(exc)]) from None
+    return s
 
 
 REMOTE = "remote"  # campaign.scheduler: an agent served elsewhere (`twin scheduler serve`)

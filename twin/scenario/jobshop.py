@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from twin.core.errors import ScenarioError
+from twin.scenario.files import read_text
 from twin.scenario.model import Scenario
 
 
@@ -22,22 +23,33 @@ class Instance:
     jobs: list[list[tuple[int, int]]]  # per job: (machine, duration) in order
 
 
+MAX_JOBS, MAX_MACHINES, MAX_DURATION = 1000, 256, 10**7
+
+
 def read(path: str | Path) -> Instance:
     path = Path(path)
-    lines = [ln.split("#")[0].strip() for ln in path.read_text().splitlines()]
+    where = str(path)
+    lines = [ln.split("#")[0].strip() for ln in read_text(path, "job-shop").splitlines()]
     lines = [ln for ln in lines if ln]
     if not lines:
-        raise ScenarioError(str(path), ["empty job-shop file: expected 'jobs machines' then one line per job"])
+        raise ScenarioError(where, ["empty job-shop file: expected 'jobs machines' then one line per job"])
     try:
         n_jobs, n_machines = (int(x) for x in lines[0].split())
         jobs = []
-        for row in lines[1 : 1 + n_jobs]:
+        for row in lines[1 : 1 + min(n_jobs, MAX_JOBS)]:
             nums = [int(x) for x in row.split()]
             jobs.append(list(zip(nums[0::2], nums[1::2], strict=True)))
     except ValueError as exc:
-        raise ScenarioError(str(path), [f"not in the standard job-shop format: {exc}"]) from None
-    if len(jobs) != n_jobs or any(not 0 <= m < n_machines for job in jobs for m, _ in job):
-        raise ScenarioError(str(path), [f"expected {n_jobs} jobs on machines 0..{n_machines - 1}"])
+        raise ScenarioError(where, [f"not in the standard job-shop format ('jobs machines', then per job "
+                                    f"'machine duration' pairs): {str(exc)[:120]}"]) from None
+    if not (1 <= n_jobs <= MAX_JOBS and 1 <= n_machines <= MAX_MACHINES):
+        raise ScenarioError(where, [f"line 1: {n_jobs} jobs on {n_machines} machines; expected 1-{MAX_JOBS} jobs "
+                                    f"on 1-{MAX_MACHINES} machines"])
+    if len(jobs) != n_jobs or any(not job for job in jobs) or any(not 0 <= m < n_machines for job in jobs for m, _ in job):
+        raise ScenarioError(where, [f"expected {n_jobs} non-empty jobs on machines 0..{n_machines - 1}"])
+    bad = [(j, d) for j, job in enumerate(jobs) for _, d in job if not 0 <= d <= MAX_DURATION]
+    if bad:
+        raise ScenarioError(where, [f"job {bad[0][0]}: duration {bad[0][1]} is outside 0..{MAX_DURATION:,}"])
     return Instance(path.stem, n_machines, jobs)
 
 

@@ -5,24 +5,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import yaml
 from pydantic import ValidationError
 
 from twin.core.errors import ScenarioError
+from twin.scenario.files import read_yaml
 from twin.scenario.model import Scenario
 
 
 def load(path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
     """Read and validate a scenario file; ``ScenarioError`` lists every problem."""
     path = Path(path)
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ScenarioError(str(path), ["file not found: check the path (scenarios live in scenarios/)"]) from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
-        raise ScenarioError(str(path), [f"{where}not valid YAML: {getattr(exc, 'problem', exc)}"]) from None
+    raw = read_yaml(path)
     if not isinstance(raw, dict):
         raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"])
     for dotted, value in (overrides or {}).items():
@@ -52,7 +45,8 @@ def _describe(err: Any, raw: dict[str, Any]) -> str:
     if err["type"] == "missing":
         return f"{loc}: required field is missing"
     value = err.get("input")
-    shown = "" if isinstance(value, dict) else f" (got {value!r})"
+    text = repr(value)
+    shown = "" if isinstance(value, dict) else f" (got {text if len(text) <= 80 else text[:79] + '…'})"
     msg = err["msg"].removeprefix("Value error, ")
     return f"{loc or '(top level)'}: {msg}{shown}"
 

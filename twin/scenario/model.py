@@ -8,21 +8,35 @@ retry policy, the bus and the clock. ``twin schema`` exports the JSON Schema.
 
 from __future__ import annotations
 
-from pathlib import Path
-from typing import Any, Literal
+import re
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, StringConstraints, field_validator, model_validator
+
+#: Labs, device types, scenario names: Zenoh key chunks and file names (no '/', '*', '$', '#', '?', '..').
+NAME = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,62}$"
+Name = Annotated[str, StringConstraints(pattern=NAME)]
+#: Steps, parameters, outputs, targets: shown and journalled; any text of sensible length.
+Label = Annotated[str, StringConstraints(min_length=1, max_length=64)]
+#: Upper bounds: far beyond any real lab, far below what overflows a clock or a timer.
+MAX_S = 1e7  # lab seconds (~116 days) for one duration
+MAX_VALUE = 1e12  # a parameter's bound, a cost
+Range = Annotated[tuple[float, float], Strict(False)]
+IntRange = Annotated[tuple[int, int], Strict(False)]
+_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9a-fA-F:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})(#.*)?$"
+                       r"|^(unixsock-stream|unixpipe|serial|vsock)/\S+$")
 
 
 
 class _Spec(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # strict: `budget: true` or `instances: "2"` is a mistake, not a number; no infinities or NaNs anywhere
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
 
 class Duration(_Spec):
     """Lab seconds of one step: lognormal around ``mean_s`` plus a parameter's value."""
 
-    mean_s: float = Field(ge=0, description="mean duration of the step itself")
+    mean_s: float = Field(ge=0, le=MAX_S, description="mean duration of the step itself")
     cv: float = Field(default=0.1, ge=0, le=2, description="coefficient of variation")
     plus_param: str | None = Field(
         default=None, description="add this experiment parameter (seconds) to the duration"
@@ -32,26 +46,35 @@ class Duration(_Spec):
 class Faults(_Spec):
     fail_p: float = Field(default=0.0, ge=0, le=1, description="probability a step fails")
     hang_p: float = Field(default=0.0, ge=0, le=1, description="probability a step never ends")
-    mtbc_h: float = Field(default=0.0, ge=0, description="mean lab-hours between crashes; 0 = never")
-    restart_s: float = Field(default=1800, ge=0, description="lab seconds a crashed device stays down")
+    mtbc_h: float = Field(default=0.0, ge=0, le=1e6, description="mean lab-hours between crashes; 0 = never")
+    restart_s: float = Field(default=1800, ge=0, le=MAX_S, description="lab seconds a crashed device stays down")
+
+    @field_validator("mtbc_h")
+    @classmethod
+    def _crashes_take_time(cls, mtbc_h: float) -> float:
+        if 0 < mtbc_h < 0.01:
+            raise ValueError(f"under 0.01 lab-h (36 s), a device would crash before it starts anything: use 0 "
+                             "for never, or at least 0.01")
+        return mtbc_h
 
 
 class DeviceType(_Spec):
     driver: str = Field(description="an installed driver name (`twin devices`) or 'package.module:Class'")
     instances: int = Field(default=1, ge=1, le=64)
-    steps: list[str] = Field(min_length=1, description="the steps this device type runs")
+    steps: list[Label] = Field(min_length=1, max_length=64, description="the steps this device type runs")
     duration: Duration
-    setup_s: float = Field(default=0, ge=0)
-    clean_s: float = Field(default=0, ge=0)
+    setup_s: float = Field(default=0, ge=0, le=MAX_S)
+    clean_s: float = Field(default=0, ge=0, le=MAX_S)
     faults: Faults = Faults()
-    cost: float = Field(default=0, ge=0, description="charged for every attempt dispatched to this device type")
+    cost: float = Field(default=0, ge=0, le=MAX_VALUE, description="charged for every attempt dispatched to "
+                        "this device type")
     options: dict[str, Any] = Field(default_factory=dict, description="passed to the driver as is")
 
 
 class Parameter(_Spec):
-    low: float
-    high: float
-    unit: str = ""
+    low: float = Field(ge=-MAX_VALUE, le=MAX_VALUE)
+    high: float = Field(ge=-MAX_VALUE, le=MAX_VALUE)
+    unit: str = Field(default="", max_length=32)
 
     @model_validator(mode="after")
     def _ordered(self) -> Parameter:
@@ -72,69 +95,82 @@ class Condition(_Spec):
             raise ValueError("give value and tol together")
         if self.value is None and self.min is None and self.max is None:
             raise ValueError("give value+tol, min, or max")
+        if self.min is not None and self.max is not None and self.min > self.max:
+            raise ValueError(f"min ({self.min}) is above max ({self.max}): no output can meet it")
         return self
 
 
 class Target(_Spec):
-    name: str
-    outputs: dict[str, Condition] = Field(min_length=1)
+    name: Label
+    outputs: dict[Label, Condition] = Field(min_length=1)
 
 
 class Chemistry(_Spec):
-    model: str = Field(description="the physical model the simulated devices share")
-    parameters: dict[str, Parameter] = Field(default_factory=dict)
-    targets: list[Target] = Field(default_factory=list)
+    model: Label = Field(description="the physical model the simulated devices share")
+    parameters: dict[Label, Parameter] = Field(default_factory=dict, max_length=64)
+    targets: list[Target] = Field(default_factory=list, max_length=64)
     stability_s: float = Field(
-        default=0, ge=0, description="e-folding time of a waiting sample's signal; 0 = stable"
+        default=0, ge=0, le=MAX_S, description="e-folding time of a waiting sample's signal; 0 = stable"
     )
-    noise: float = Field(default=0.01, ge=0, description="relative measurement noise")
+    noise: float = Field(default=0.01, ge=0, le=10, description="relative measurement noise")
     options: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("targets")
+    @classmethod
+    def _unique_targets(cls, targets: list[Target]) -> list[Target]:
+        names = [t.name for t in targets]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise ValueError(f"target names {twice} are given more than once: each needs its own name")
+        return targets
 
 
 class WorkflowStep(_Spec):
-    step: str
-    device: str = Field(description="a device type of the lab")
+    step: Label
+    device: str = Field(max_length=64, description="a device type of the lab")
 
 
 class Campaign(_Spec):
-    budget: int = Field(default=30, ge=1, description="experiments to propose at most")
-    planner: str = "random"
-    scheduler: str = "fifo"
-    seed: int = 0
-    max_in_flight: int = Field(default=4, ge=1, description="experiments in the lab at once")
+    budget: int = Field(default=30, ge=1, le=1_000_000, description="experiments to propose at most")
+    planner: str = Field(default="random", max_length=256)
+    scheduler: str = Field(default="fifo", max_length=256)
+    seed: int = Field(default=0, ge=0, lt=2**63)
+    max_in_flight: int = Field(default=4, ge=1, le=10_000, description="experiments in the lab at once")
     stop_on_target: bool = True
-    max_lab_hours: float = Field(default=10_000, gt=0)
-    max_cost: float | None = Field(default=None, gt=0, description="stop proposing once this much is spent")
+    max_lab_hours: float = Field(default=10_000, gt=0, le=1e6)
+    max_cost: float | None = Field(default=None, gt=0, le=MAX_VALUE, description="stop proposing once this much "
+                                   "is spent")
     planner_options: dict[str, Any] = Field(default_factory=dict)
-    fallback_scheduler: str = Field(default="fifo", description="decides when a scheduler agent on the bus is "
-                                    "absent, late or wrong")
-    scheduler_deadline_ms: float = Field(default=1000, gt=0, description="wall ms a scheduler agent has per decision")
+    fallback_scheduler: str = Field(default="fifo", max_length=256, description="decides when a scheduler agent "
+                                    "on the bus is absent, late or wrong")
+    scheduler_deadline_ms: float = Field(default=1000, gt=0, le=3_600_000, description="wall ms a scheduler agent "
+                                         "has per decision")
 
 
 class Retry(_Spec):
-    max_attempts: int = Field(default=3, ge=1)
-    max_delay_s: float = Field(default=24 * 3600, gt=0, description="stop retrying a step after this")
-    backoff_s: float = Field(default=60, ge=0)
-    backoff_max_s: float = Field(default=3600, ge=0)
+    max_attempts: int = Field(default=3, ge=1, le=100)
+    max_delay_s: float = Field(default=24 * 3600, gt=0, le=1e8, description="stop retrying a step after this")
+    backoff_s: float = Field(default=60, ge=0, le=MAX_S)
+    backoff_max_s: float = Field(default=3600, ge=0, le=MAX_S)
     jitter: float = Field(default=0.5, ge=0, le=1)
 
 
 class Orchestration(_Spec):
-    timeout_factor: float = Field(default=2.0, ge=1)
-    timeout_slack_s: float = Field(default=300, ge=0)
+    timeout_factor: float = Field(default=2.0, ge=1, le=1000)
+    timeout_slack_s: float = Field(default=300, ge=0, le=MAX_S)
     retry: Retry = Retry()
-    quarantine_after: int = Field(default=3, ge=1, description="consecutive failures")
-    probe_after_s: float = Field(default=3600, ge=0)
-    startup_s: float = Field(default=60, ge=0, description="lab seconds to wait for devices")
-    orphan_grace_s: float = Field(default=300, ge=0, description="lab seconds a device goes on with a step after "
-                                  "the orchestrator has left the bus, before it stops it in a safe state")
-    cancel_grace_s: float = Field(default=60, ge=0, description="lab seconds a timed-out device has to answer the "
-                                  "cancel before it is given work again")
+    quarantine_after: int = Field(default=3, ge=1, le=1000, description="consecutive failures")
+    probe_after_s: float = Field(default=3600, ge=0, le=MAX_S)
+    startup_s: float = Field(default=60, ge=0, le=MAX_S, description="lab seconds to wait for devices")
+    orphan_grace_s: float = Field(default=300, ge=0, le=MAX_S, description="lab seconds a device goes on with a "
+                                  "step after the orchestrator has left the bus, before it stops it in a safe state")
+    cancel_grace_s: float = Field(default=60, ge=0, le=MAX_S, description="lab seconds a timed-out device has to "
+                                  "answer the cancel before it is given work again")
 
 
 class ClockSpec(_Spec):
     mode: Literal["virtual", "scaled", "wall"] = "virtual"
-    speed: float = Field(default=3600, gt=0, description="lab seconds per wall second (scaled)")
+    speed: float = Field(default=3600, gt=0, le=1e9, description="lab seconds per wall second (scaled)")
 
 
 class BusSpec(_Spec):
@@ -143,28 +179,42 @@ class BusSpec(_Spec):
         default="auto", description="auto: a peer, or a client when it only connects (to a router)")
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     connect: list[str] = Field(default_factory=list)
-    lease_ms: int = Field(default=1000, ge=100)
+    lease_ms: int = Field(default=1000, ge=100, le=600_000)
     zenoh: dict[str, Any] = Field(default_factory=dict, description="extra Zenoh config paths")
     security: str | None = Field(default=None, description="the lab's security directory (twin security init), "
                                  "relative to the scenario: mutual TLS to the lab's router, with access control")
     insecure: bool = Field(default=False, description="allow bus.listen beyond loopback without security "
                            "(anyone who reaches it can read and forge messages)")
 
+    @field_validator("listen", "connect")
+    @classmethod
+    def _endpoints(cls, endpoints: list[str]) -> list[str]:
+        bad = []
+        for e in endpoints:
+            m = _ENDPOINT.match(e)
+            if m is None or (m.group(3) is not None and int(m.group(3)) > 65535):
+                bad.append(e)
+        if bad:
+            raise ValueError(f"{[e[:80] for e in bad]} are not Zenoh endpoints: write PROTOCOL/HOST:PORT, "
+                             "e.g. tcp/127.0.0.1:7447 or tls/lab.example:7447 (port 0-65535)")
+        return endpoints
+
 
 class JobShop(_Spec):
-    file: str = Field(description="a job-shop instance in the standard text format, relative to the scenario")
+    file: str = Field(max_length=1024, description="a job-shop instance in the standard text format, relative to "
+                      "the scenario")
 
 
 class Training(_Spec):
     """Domain randomisation for training a scheduler: each episode draws a lab from these ranges."""
 
-    duration_scale: tuple[float, float] = Field(default=(1.0, 1.0), description="multiplies every mean duration")
-    fault_scale: tuple[float, float] = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")
-    instances: dict[str, tuple[int, int]] = Field(default_factory=dict, description="device type -> [min, max] instances")
-    operation_s: tuple[float, float] | None = Field(
+    duration_scale: Range = Field(default=(1.0, 1.0), description="multiplies every mean duration")
+    fault_scale: Range = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")
+    instances: dict[str, IntRange] = Field(default_factory=dict, description="device type -> [min, max] instances")
+    operation_s: Range | None = Field(
         default=None, description="job shops: draw every operation's duration from [low, high] lab-s")
     shuffle_routes: bool = Field(default=False, description="job shops: draw each job's machine order afresh")
-    jobshop_sizes: list[tuple[int, int]] = Field(
+    jobshop_sizes: list[IntRange] = Field(
         default_factory=list, description="job shops: draw a random instance of one of these [jobs, machines] sizes")
 
     @model_validator(mode="after")
@@ -179,10 +229,11 @@ class Training(_Spec):
 
 
 class Scenario(_Spec):
-    name: str
-    description: str = ""
-    lab: str = Field(default="lab", pattern=r"^[A-Za-z0-9_-]+$", description="bus prefix")
-    devices: dict[str, DeviceType] = Field(default_factory=dict)
+    name: Name = Field(description="names the run's journal (runs/<name>-seed<N>-<time>.db): letters, digits, "
+                       "'_', '-', '.'")
+    description: str = Field(default="", max_length=4096)
+    lab: str = Field(default="lab", pattern=r"^[A-Za-z0-9_-]{1,64}$", description="bus prefix")
+    devices: dict[Name, DeviceType] = Field(default_factory=dict, max_length=256)
     chemistry: Chemistry = Chemistry(model="none")
     workflow: list[WorkflowStep] = Field(default_factory=list)
     campaign: Campaign = Campaign()
@@ -204,9 +255,38 @@ class Scenario(_Spec):
                 problems.append(f"workflow.{i}.step: device type {ws.device!r} does not run {ws.step!r} (it runs {dev.steps})")
         if not self.workflow and self.jobshop is None:
             problems.append("workflow: empty; give the steps of an experiment, or a jobshop file")
+        problems += self._instance_clashes() + self._plus_params()
+        if self.bus.security and self.bus.kind != "zenoh":
+            problems.append("bus.security: security is for the zenoh bus; the memory bus has no one to keep out")
         if problems:
             raise ValueError("; ".join(problems))
         return self
+
+    def _instance_clashes(self) -> list[str]:
+        owner: dict[str, str] = {}
+        problems = []
+        for dtype in self.devices:
+            for name in self.instance_names(dtype):
+                if name in owner:
+                    problems.append(f"devices.{dtype}: its instance {name!r} has the name of an instance of "
+                                    f"{owner[name]!r}; rename one of the two device types")
+                owner[name] = dtype
+        return problems
+
+    def _plus_params(self) -> list[str]:
+        if self.jobshop is not None:
+            return []  # a job shop's operations carry their own durations
+        problems = []
+        for dtype, spec in self.devices.items():
+            p = spec.duration.plus_param
+            box = self.chemistry.parameters.get(p) if p else None
+            if p and box is None:
+                problems.append(f"devices.{dtype}.duration.plus_param: {p!r} is not a parameter of "
+                                f"chemistry.parameters ({', '.join(self.chemistry.parameters) or 'none'})")
+            elif box is not None and box.low < 0:
+                problems.append(f"devices.{dtype}.duration.plus_param: {p!r} can be negative (low {box.low}), "
+                                "which would make the step's duration negative: its low must be ≥ 0")
+        return problems
 
     def instance_names(self, device_type: str) -> list[str]:
         n = self.devices[device_type].instances

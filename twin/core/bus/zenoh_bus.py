@@ -68,6 +68,16 @@ class ZenohOptions:
         return cfg
 
 
+def check_config(extra: dict[str, object]) -> None:
+    """Refuse Zenoh config paths or values Zenoh does not take (``bus.zenoh`` in a scenario), by name."""
+    for path, value in extra.items():
+        try:
+            zenoh.Config().insert_json5(path, json.dumps(value))
+        except Exception as exc:
+            raise BusError(f"bus.zenoh.{path[:80]}: Zenoh refuses {str(json.dumps(value))[:80]} there ({exc}); "
+                           "its DEFAULT_CONFIG.json5 lists the paths") from None
+
+
 class _Declared:
     """A queryable or token watcher. It exists before its Zenoh object, whose callbacks may
     fire on Zenoh's threads before ``declare_*`` has even returned."""

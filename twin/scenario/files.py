@@ -1,0 +1,138 @@
+"""Scenario and job-shop files are untrusted input: read them with bounds before any object is built.
+
+Text must be UTF-8 and at most ``MAX_BYTES``; YAML is parsed by a safe loader
+that refuses duplicate keys, nesting deeper than ``MAX_DEPTH`` and documents
+whose aliases expand to more than ``MAX_VALUES`` values (a "billion laughs"
+file is a few hundred bytes). Every refusal is a ``ScenarioError`` naming the
+file, and the line where there is one.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from twin.core.errors import ScenarioError
+
+MAX_BYTES = 1 << 20  # a scenario is a few KB; the largest public job shops are ~100 KB
+MAX_DEPTH = 32
+MAX_VALUES = 100_000
+MAX_ALIASES = 1_000
+
+
+def read_text(path: str | Path, what: str = "scenario") -> str:
+    """The file's text: refused (with what to do) if missing, a directory, too large, or not UTF-8."""
+    path = Path(path)
+    where = str(path)
+    try:
+        if path.is_dir():
+            raise ScenarioError(where, [f"is a directory: give a {what} file"])
+        with path.open("rb") as f:
+            data = f.read(MAX_BYTES + 1)
+    except FileNotFoundError:
+        raise ScenarioError(where, [f"file not found: check the path ({what} files are usually in scenarios/)"]) from None
+    except OSError as exc:
+        raise ScenarioError(where, [f"cannot be read: {exc.strerror or exc}"]) from None
+    if len(data) > MAX_BYTES:
+        raise ScenarioError(where, [f"larger than {MAX_BYTES // 1024} KiB: a {what} file is text of a few KB; "
+                                    "is this the right file?"])
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        kind = "UTF-16 text" if data[:2] in (b"\xff\xfe", b"\xfe\xff") else "binary data, or text in another encoding"
+        raise ScenarioError(where, [f"not UTF-8 text (byte {exc.start} is {data[exc.start]:#04x}; it looks like {kind}): "
+                                    "save it as UTF-8"]) from None
+
+
+def read_yaml(path: str | Path) -> Any:
+    """The YAML document in ``path``, as plain Python data, read within the bounds above."""
+    text = read_text(path)
+    try:
+        loader = _BoundedLoader(text)
+        try:
+            node = loader.get_single_node()
+            if node is None:
+                return None
+            _count_values(node, str(path))
+            return loader.construct_document(node)
+        finally:
+            loader.dispose()
+    except ScenarioError as exc:
+        raise ScenarioError(str(path), exc.problems) from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = str(getattr(exc, "problem", None) or exc)[:200]
+        raise ScenarioError(str(path), [f"{where}not valid YAML: {problem}"]) from None
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._depth = 0
+        self._aliases = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        if self.check_event(yaml.AliasEvent):
+            self._aliases += 1
+            if self._aliases > MAX_ALIASES:
+                raise _refused(self, f"more than {MAX_ALIASES} aliases (*name)")
+            return super().compose_node(parent, index)
+        self._depth += 1
+        if self._depth > MAX_DEPTH:
+            raise _refused(self, f"nested more than {MAX_DEPTH} levels deep")
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, int] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node.start_mark.line + 1)
+                except TypeError:
+                    continue  # an unhashable key: the base class says so
+                if first != key_node.start_mark.line + 1:
+                    raise ScenarioError("", [f"line {key_node.start_mark.line + 1}: key {_short(key)} is given twice "
+                                             f"(first on line {first}); YAML would keep only the last one"])
+        return super().construct_mapping(node, deep)
+
+
+def _refused(loader: _BoundedLoader, why: str) -> ScenarioError:
+    mark = loader.peek_event().start_mark
+    return ScenarioError("", [f"line {mark.line + 1}: {why}; a scenario does not need that"])
+
+
+def _count_values(root: Any, where: str) -> None:
+    """How many values the document holds once every alias is expanded: refused above ``MAX_VALUES``."""
+    sizes: dict[int, int] = {}
+
+    def size(node: Any) -> int:
+        known = sizes.get(id(node))
+        if known is not None:
+            return known
+        sizes[id(node)] = 1  # a node that contains itself counts once (PyYAML refuses it later anyway)
+        if isinstance(node, yaml.SequenceNode):
+            n = 1 + sum(size(c) for c in node.value)
+        elif isinstance(node, yaml.MappingNode):
+            n = 1 + sum(size(k) + size(v) for k, v in node.value)
+        else:
+            n = 1
+        sizes[id(node)] = min(n, MAX_VALUES + 1)
+        return sizes[id(node)]
+
+    if size(root) > MAX_VALUES:
+        raise ScenarioError(where, [f"its aliases expand to more than {MAX_VALUES:,} values (a YAML alias bomb?); "
+                                    "write the values out, or use fewer anchors"])
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
