@@ -12,7 +12,15 @@ orchestrator sees the loss as it sees any other and moves the work. Deadlines
 and retries are the orchestrator's, as for every driver. Options: ``broker``
 (``host:port``, default ``127.0.0.1:1883``), ``topic`` (``{name}`` in it is
 the device instance's name), ``steps`` (what the instrument runs), ``qos``
-(default 1).
+(default 1), ``outputs`` (what its results hold, for ``twin validate``),
+``username`` with ``password`` or ``password_env`` (the name of an environment
+variable that holds it: a password is best kept out of scenario files), and
+``tls: {ca, cert, key}`` (PEM files; ``cert``/``key`` for a client
+certificate). docs/security.md has a mosquitto configuration with an ACL.
+
+A result counts only for a command id this adapter issued (random, so it
+cannot be guessed) and only once; anything else is dropped, logged and
+counted in the device's health report.
 """
 
 from __future__ import annotations
@@ -22,11 +30,15 @@ import contextlib
 import itertools
 import json
 import logging
+import os
+import secrets
 import socket
+import ssl
 from collections.abc import Callable
 from typing import Any
 
 import aiomqtt
+from aiomqtt.exceptions import MqttConnectError
 
 from twin import DriverSetup, StepContext, StepResult
 from twin import DriverError
@@ -49,6 +61,9 @@ class MqttInstrument:
         self.topic = str(o["topic"]).replace("{name}", setup.name).rstrip("/")
         self.qos, self.name = int(o.get("qos", 1)), setup.name
         self.capabilities = frozenset(o.get("steps") or ())
+        self.username, self.password = _credentials(setup.name, o)
+        self.tls = _tls(setup.name, o.get("tls"))
+        self.dropped = 0
         if o.get("outputs") is not None:  # what the instrument's results hold, when the scenario says
             self.outputs = frozenset(str(x) for x in o["outputs"])
         self._ids = itertools.count(1)
@@ -61,12 +76,22 @@ class MqttInstrument:
     async def connect(self, presence: Callable[[bool], None]) -> None:
         self._presence = presence
         self._client = aiomqtt.Client(self.host, self.port, identifier=f"labtwin-{self.name}-{id(self):x}",
-                                      socket_options=NODELAY)
+                                      socket_options=NODELAY, username=self.username, password=self.password,
+                                      tls_params=self.tls)
+        where = f"the MQTT broker at {self.host}:{self.port}"
         try:
             await self._client.__aenter__()
+        except MqttConnectError as exc:  # it answered, and said no
+            who = f"user {self.username!r}" if self.username else "an anonymous client"
+            raise DriverError(f"{self.name}: {where} refused {who} ({getattr(exc, 'rc', exc)}): check "
+                              "options.username and the password against the broker's password file") from exc
         except aiomqtt.MqttError as exc:
-            raise DriverError(f"{self.name}: cannot reach the MQTT broker at {self.host}:{self.port} ({exc}); "
-                              f"is it running?") from exc
+            cause = f"{exc} {exc.__cause__ or ''}"
+            if self.tls is not None and ("SSL" in cause or "certificate" in cause.lower()):
+                raise DriverError(f"{self.name}: the TLS handshake with {where} failed ({exc}): check options.tls.ca "
+                                  "(the CA that signed the broker's certificate) and that this port speaks TLS") from exc
+            raise DriverError(f"{self.name}: cannot reach {where} ({exc}): is it running, and listening on that "
+                              f"port{' with TLS' if self.tls else ''}?") from exc
         await self._client.subscribe(f"{self.topic}/result", qos=self.qos)
         await self._client.subscribe(f"{self.topic}/status", qos=self.qos)
         self._pump = asyncio.ensure_future(self._receive())
@@ -97,17 +122,22 @@ class MqttInstrument:
         try:
             reply = json.loads(text)
             waiter = self._waiting.pop(str(reply["id"]), None)
-        except (ValueError, KeyError, TypeError):
+        except (ValueError, KeyError, TypeError, AttributeError):
+            self.dropped += 1
             log.warning("%s: dropped an unreadable result %.200r", self.name, text)
             return
-        if waiter is not None and not waiter.done():
-            waiter.set_result(reply)
+        if waiter is None or waiter.done():
+            self.dropped += 1
+            log.warning("%s: dropped a result for %.60r, a command id this adapter did not issue or already "
+                        "counted", self.name, str(reply.get("id")))
+            return
+        waiter.set_result(reply)
 
     # -- the driver contract -------------------------------------------------------------
     async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
         if self._client is None:
             raise DriverError(f"{self.name}: not connected to the MQTT broker")
-        job = f"{self.name}-{next(self._ids)}"
+        job = f"{self.name}-{next(self._ids)}-{secrets.token_hex(8)}"  # unguessable: only the instrument knows it
         waiter = self._waiting[job] = asyncio.get_running_loop().create_future()
         command = {"id": job, "step": step, "params": params, "sample": sample}
         try:
@@ -130,4 +160,30 @@ class MqttInstrument:
 
     async def health(self) -> dict[str, Any]:
         return {"ok": self._client is not None, "broker": f"{self.host}:{self.port}", "topic": self.topic,
-                "waiting": len(self._waiting)}
+                "waiting": len(self._waiting), "dropped": self.dropped, "tls": self.tls is not None,
+                "user": self.username}
+
+
+def _credentials(name: str, o: dict[str, Any]) -> tuple[str | None, str | None]:
+    user, password, env = o.get("username"), o.get("password"), o.get("password_env")
+    if env:
+        password = os.environ.get(str(env))
+        if password is None:
+            raise DriverError(f"{name}: options.password_env names ${env}, which is not set in this environment")
+    if password is not None and not user:
+        raise DriverError(f"{name}: a password without options.username")
+    return (str(user) if user else None), (str(password) if password is not None else None)
+
+
+def _tls(name: str, tls: Any) -> aiomqtt.TLSParameters | None:
+    if tls is None:
+        return None
+    if not isinstance(tls, dict) or not tls.get("ca"):
+        raise DriverError(f"{name}: options.tls must be {{ca: PATH[, cert: PATH, key: PATH]}} (PEM files)")
+    for field in ("ca", "cert", "key"):
+        if tls.get(field) and not os.path.isfile(tls[field]):
+            raise DriverError(f"{name}: options.tls.{field}: {tls[field]!r} is not a file")
+    if bool(tls.get("cert")) != bool(tls.get("key")):
+        raise DriverError(f"{name}: options.tls: give cert and key together (a client certificate)")
+    return aiomqtt.TLSParameters(ca_certs=tls["ca"], certfile=tls.get("cert"), keyfile=tls.get("key"),
+                                 cert_reqs=ssl.CERT_REQUIRED, tls_version=ssl.PROTOCOL_TLS_CLIENT)

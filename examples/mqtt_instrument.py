@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import random
 import signal
 import socket
@@ -43,8 +44,11 @@ async def main(args: argparse.Namespace) -> None:
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         asyncio.get_running_loop().add_signal_handler(sig, stop.set)
+    tls = aiomqtt.TLSParameters(ca_certs=args.ca) if args.ca else None
     async with aiomqtt.Client(host, int(port), identifier=f"instrument-{args.topic}", will=will,
-                              keepalive=args.keepalive,
+                              keepalive=args.keepalive, username=args.username,
+                              password=os.environ.get(args.password_env) if args.password_env else None,
+                              tls_params=tls,
                               socket_options=((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),)) as client:
         await client.subscribe(f"{args.topic}/command", qos=1)
         await client.publish(f"{args.topic}/status", "online", qos=1, retain=True)
@@ -73,4 +77,7 @@ if __name__ == "__main__":
     ap.add_argument("--seconds", type=float, default=1.0, help="wall seconds per measurement")
     ap.add_argument("--keepalive", type=int, default=2, help="seconds; a frozen instrument is declared dead after 1.5x")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--username", help="the broker's user for this instrument")
+    ap.add_argument("--password-env", help="the environment variable that holds its password")
+    ap.add_argument("--ca", help="the CA certificate (PEM) of a broker that speaks TLS")
     asyncio.run(main(ap.parse_args()))

@@ -1,0 +1,183 @@
+"""The MQTT adapter against a mosquitto with TLS, passwords and a per-instrument ACL (docs/security.md's)."""
+
+import asyncio
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from pathlib import Path
+
+import aiomqtt
+import pytest
+
+from tests.conftest import qd_lab
+from tests.devices.test_mqtt import SPEED
+from twin.campaign.journal import read_events
+from twin.core.errors import DriverError
+from twin.runtime.lab import load_driver, run
+from twin.scenario import parse
+from twin.tools.security_init import init
+
+pytestmark = pytest.mark.process
+ROOT = Path(__file__).resolve().parents[2]
+PASSWORDS = {"lab": "lab-secret", "instrument": "instrument-secret", "intruder": "intruder-secret"}
+ACL = """\
+user lab
+topic write sec/+/+/command
+topic read sec/+/+/result
+topic read sec/+/+/status
+
+user instrument
+topic read sec/+/+/command
+topic write sec/+/+/result
+topic readwrite sec/+/+/status
+
+user intruder
+topic read sec/+/+/result
+"""
+
+
+@pytest.fixture(scope="module")
+def broker(tmp_path_factory):
+    """mosquitto on loopback: TLS with a certificate from `twin security init`, passwords, the ACL above."""
+    d = tmp_path_factory.mktemp("secure-mosquitto")
+    init(d / "pki", "mq", [])
+    other = d / "other-pki"
+    init(other, "mq", [])
+    pw = d / "passwords"
+    for i, (user, secret) in enumerate(PASSWORDS.items()):
+        subprocess.run(["mosquitto_passwd", "-b", *(["-c"] if i == 0 else []), str(pw), user, secret], check=True,
+                       capture_output=True)
+    (d / "acl").write_text(ACL)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    conf = d / "mosquitto.conf"
+    # started as root, mosquitto would drop to the "mosquitto" user, which cannot read a test's private files
+    conf.write_text(f"user root\nper_listener_settings false\nlistener {port} 127.0.0.1\nallow_anonymous false\n"
+                    f"password_file {pw}\nacl_file {d / 'acl'}\npersistence false\nset_tcp_nodelay true\n"
+                    f"cafile {d / 'pki' / 'ca.pem'}\ncertfile {d / 'pki' / 'router' / 'cert.pem'}\n"
+                    f"keyfile {d / 'pki' / 'router' / 'key.pem'}\nlog_dest file {d / 'log'}\n")
+    binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
+    proc = subprocess.Popen([binary, "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 10
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+            break
+        except OSError:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                proc.kill()
+                pytest.fail(f"mosquitto did not start: {proc.stderr.read().decode()[:500]}")
+            time.sleep(0.05)
+    yield {"address": f"127.0.0.1:{port}", "ca": str(d / "pki" / "ca.pem"), "other_ca": str(other / "ca.pem")}
+    proc.terminate()
+    proc.wait(timeout=10)
+
+
+def lab(broker, prefix, **options):
+    o = {"broker": broker["address"], "topic": f"{prefix}/{{name}}", "steps": ["measure"], "username": "lab",
+         "password_env": "LAB_MQTT_PASSWORD", "tls": {"ca": broker["ca"]}, **options}
+    return parse(qd_lab(**{
+        "devices.spectrometer": {"driver": "mqtt", "instances": 1, "steps": ["measure"],
+                                 "duration": {"mean_s": 60, "cv": 0}, "options": o},
+        "clock": {"mode": "scaled", "speed": SPEED}, "orchestrator.startup_s": 1000, "campaign.budget": 3,
+    }))
+
+
+@pytest.fixture
+def prefix(monkeypatch):
+    monkeypatch.setenv("LAB_MQTT_PASSWORD", PASSWORDS["lab"])
+    return f"sec/{uuid.uuid4().hex[:8]}"
+
+
+async def _connect(driver):
+    await driver.connect(lambda present: None)
+    await driver.disconnect()
+
+
+@pytest.mark.parametrize("options, words", [
+    ({"username": "lab", "password_env": None, "password": "wrong"}, "refused user 'lab'"),
+    ({"username": None, "password_env": None}, "refused an anonymous client"),
+    ({"tls": {"ca": "OTHER"}}, "TLS handshake"),
+    ({"tls": None}, "cannot reach"),
+    ({"password_env": "NOT_SET_ANYWHERE"}, "$NOT_SET_ANYWHERE, which is not set"),
+    ({"tls": {"ca": "/no/such/ca.pem"}}, "options.tls.ca"),
+])
+def test_a_refused_connection_says_why_and_what_to_check(broker, prefix, options, words):
+    if options.get("tls") and options["tls"].get("ca") == "OTHER":
+        options = {**options, "tls": {"ca": broker["other_ca"]}}
+    s = lab(broker, prefix, **options)
+    with pytest.raises(DriverError, match=words.replace("$", r"\$").replace("(", r"\(")):
+        asyncio.run(_connect(load_driver(s, "spectrometer", "spectrometer")))
+
+
+def test_an_instrument_behind_tls_and_its_acl_measures_and_an_intruder_counts_for_nothing(broker, prefix, tmp_path):
+    topic = f"{prefix}/spectrometer"
+    env = {**os.environ, "INSTRUMENT_PASSWORD": PASSWORDS["instrument"]}
+    proc = subprocess.Popen([sys.executable, "examples/mqtt_instrument.py", "--broker", broker["address"],
+                             "--topic", topic, "--seconds", "0.2", "--username", "instrument",
+                             "--password-env", "INSTRUMENT_PASSWORD", "--ca", broker["ca"]],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, env=env)
+    assert proc.stdout.readline().decode().startswith("ready"), proc.stderr.read().decode()
+    seen: list[str] = []
+
+    async def intruder(stop):
+        host, port = broker["address"].split(":")
+        async with aiomqtt.Client(host, int(port), username="intruder", password=PASSWORDS["intruder"],
+                                  tls_params=aiomqtt.TLSParameters(ca_certs=broker["ca"])) as c:
+            await c.subscribe(f"{topic}/#")  # the ACL lets it read results, not commands
+
+            async def listen():
+                async for msg in c.messages:
+                    seen.append(str(msg.topic))
+
+            listening = asyncio.ensure_future(listen())
+            n = 0
+            while not stop.is_set():
+                n += 1
+                forged = {"id": f"spectrometer-{n % 5}", "outputs": {"peak_nm": 999.0}, "sample": {}}
+                await c.publish(f"{topic}/result", json.dumps(forged))  # the ACL drops it at the broker
+                await asyncio.sleep(0.05)
+            listening.cancel()
+
+    def campaign():
+        async def both():
+            stop = asyncio.Event()
+            spy = asyncio.ensure_future(intruder(stop))
+            try:
+                return await asyncio.to_thread(run, lab(broker, prefix), journal=tmp_path / "j.db")
+            finally:
+                stop.set()
+                await spy
+        return asyncio.run(both())
+
+    try:
+        summary = campaign()
+    finally:
+        proc.terminate()
+        proc.wait()
+    assert summary.done == 3 and summary.failed_attempts == 0
+    done = read_events(tmp_path / "j.db", "experiment.done")
+    outputs = [json.loads(e["detail"])["outputs"] for e in done]
+    assert len(outputs) == 3 and all("fwhm_nm" in o and o["peak_nm"] != 999.0 for o in outputs)
+    assert seen and not any(t.endswith("/command") for t in seen)  # it heard results, never a command id
+
+
+def test_a_result_counts_only_for_an_id_it_issued_and_only_once(broker, prefix):
+    driver = load_driver(lab(broker, prefix), "spectrometer", "spectrometer")
+
+    async def main():
+        fut = asyncio.get_running_loop().create_future()
+        driver._waiting["spectrometer-1-abc"] = fut
+        for text in ['{"id": "spectrometer-2", "outputs": {}}', '{"id": "spectrometer-1-abc", "outputs": {"a": 1}}',
+                     '{"id": "spectrometer-1-abc", "outputs": {"a": 2}}', "not json", "[1, 2]"]:
+            driver._answer(text)
+        return await fut
+
+    assert asyncio.run(main())["outputs"] == {"a": 1}
+    assert driver.dropped == 4
