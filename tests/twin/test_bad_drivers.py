@@ -93,7 +93,7 @@ async def test_a_device_answers_health_requests_with_its_drivers_report(virtual_
         await a.start()
     one = json.loads(await bus.request(keys.health(s.lab, "spectrometer-1"), b"", timeout=5))
     two = json.loads(await bus.request(keys.health(s.lab, "spectrometer-2"), b"", timeout=5))
-    assert one == {"device": "spectrometer-1", "on_bus": True, "running": None, "recent": [],
+    assert one == {"device": "spectrometer-1", "on_bus": True, "dropped": 0, "running": None, "recent": [],
                    "driver": {"ok": True, "lamp_hours": 1234}}
     assert "driver" not in two and two["on_bus"]
     for a in actors:

@@ -23,6 +23,7 @@ from twin.campaign.events import (Action, Ask, CancelTimer, Code, Decided, Devic
                                   SetTimer, Status, Stop, TimerFired, TimerKey, TimerKind)
 from twin.campaign.ledger import Attempt, Counters, Device, Experiment, Task, check_accounting
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
+from twin.core import keys
 from twin.core.messages import Kind
 from twin.scenario.model import Scenario, expected_duration
 from twin.scenario.targets import scores
@@ -235,8 +236,10 @@ class CampaignCore:
         self.counts.rejected += 1
         payload = m.payload if isinstance(m.payload, (bytes, str)) else repr(m.payload)
         excerpt = (payload.decode(errors="replace") if isinstance(payload, bytes) else payload)[:200]
-        self._note("message.rejected", device=m.key or m.device,
-                   detail={"key": m.key or m.device, "sender": m.device, "kind": str(m.kind), "task": m.task,
+        on = m.key or m.device
+        key = (keys.telemetry if m.kind == Kind.TELEMETRY else keys.evt)(self.s.lab, on)
+        self._note("message.rejected", device=on,
+                   detail={"key": key, "sender": m.device, "kind": str(m.kind), "task": m.task,
                            "attempt": m.attempt, "reason": why, "excerpt": excerpt})
 
     def _after_resolved(self, att: Attempt, m: DeviceMessage) -> None:

@@ -173,6 +173,10 @@ def decode(payload: bytes, sender_hint: str = "?") -> tuple[Envelope, _Body]:
         env = _decode_envelope(payload)
     except msgspec.DecodeError as exc:
         raise InvalidMessage(_sender_of(payload, sender_hint), _reason(exc)) from None
+    except RecursionError:
+        raise InvalidMessage(sender_hint, "JSON nested too deep") from None
+    except UnicodeDecodeError as exc:  # msgspec checks UTF-8 only where it builds a str
+        raise InvalidMessage(sender_hint, f"not UTF-8 at byte {exc.start}") from None
     try:
         body = msgspec.convert(env.body, BODIES[env.kind])
     except msgspec.ValidationError as exc:
@@ -189,7 +193,7 @@ def excerpt(payload: bytes, limit: int = 200) -> str:
 def _sender_of(payload: bytes, hint: str) -> str:
     try:
         sender = _decode_sender(payload).sender
-    except (msgspec.DecodeError, TypeError):
+    except (msgspec.DecodeError, TypeError, RecursionError, UnicodeDecodeError):
         return hint
     return str(sender) if sender is not None else hint
 

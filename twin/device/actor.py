@@ -82,7 +82,7 @@ class DeviceActor:
 
     async def _report_health(self, key: str, payload: bytes) -> bytes:
         """``labtwin/<lab>/dev/<name>/health``: the actor's state and, if it has ``health()``, the driver's."""
-        report: dict = {"device": self.name, "on_bus": self._token is not None,
+        report: dict = {"device": self.name, "on_bus": self._token is not None, "dropped": self.dropped,
                         "running": list(self._current) if self._current else None,
                         "recent": [[t, n, p.decode()] for t, n, p in self._recent]}
         check = feature(self.driver, "health")
@@ -156,8 +156,7 @@ class DeviceActor:
         try:
             env, body = decode(payload, sender_hint=key)
         except InvalidMessage as exc:
-            self.dropped += 1
-            log.warning("%s dropped a message: %s", self.name, exc)
+            self._drop(str(exc))
             return
         if env.kind == Kind.COMMAND:
             if self._job is not None:
@@ -166,10 +165,17 @@ class DeviceActor:
                 return
             self._current, self._token_of_current = (env.task, env.attempt), env.token
             self._job = asyncio.ensure_future(self._run(env.task, env.attempt, env.campaign, env.token, body))  # type: ignore[arg-type]
-        elif (env.kind == Kind.CANCEL and self._current == (env.task, env.attempt) and self._job
-              and env.token == self._token_of_current):  # only the orchestrator knows the token
-            self._cancel_reason = "cancel"
-            self._job.cancel()
+        elif env.kind == Kind.CANCEL:
+            if self._current == (env.task, env.attempt) and self._job and env.token == self._token_of_current:
+                self._cancel_reason = "cancel"  # only the orchestrator knows the token
+                self._job.cancel()
+        else:
+            self._drop(f"a {env.kind} message from {env.sender!r} on its command key")
+
+    def _drop(self, what: str) -> None:
+        self.dropped += 1  # the health report has the count
+        if self.dropped <= 10 or self.dropped % 1000 == 0:  # a flood must not flood the log too
+            log.warning("%s dropped %s (%d so far)", self.name, what, self.dropped)
 
     async def _run(self, task: str, attempt: int, campaign: str, token: str, cmd: CommandBody) -> None:
         spec, faults = self.spec, self.spec.faults

@@ -61,6 +61,7 @@ class LiveCampaign:
         self._done: asyncio.Future | None = None
         self._kicked = False
         self._deciding: asyncio.Future | None = None
+        self._invalid = 0
 
     def stop(self, reason: str) -> None:
         """Stop proposing and dispatching; what is in the lab is cancelled, the rest stays pending."""
@@ -104,7 +105,9 @@ class LiveCampaign:
         try:
             env, body = decode(payload, sender_hint=on_key)
         except InvalidMessage as exc:
-            log.warning("dropped a message on %s: %s", key, exc)
+            self._invalid += 1
+            if self._invalid <= 10 or self._invalid % 1000 == 0:  # a flood must not flood the log too
+                log.warning("dropped a message on %s: %s (%d so far; the journal has each)", key, exc, self._invalid)
             self._feed(InvalidInput(exc.sender, exc.reason, key, excerpt(payload)))
             return
         kept = without_token(env) if env.token else payload

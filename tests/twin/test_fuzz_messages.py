@@ -1,0 +1,118 @@
+"""A flood of malformed messages at a live lab over Zenoh: nothing crashes, every one is counted and journalled."""
+
+import asyncio
+import json
+import random
+
+import zenoh
+
+from tests.conftest import qd_lab
+from tests.twin.test_device_process import free_port
+from twin.campaign.journal import read_events
+from twin.core import keys
+from twin.core.messages import MAX_MESSAGE_BYTES, Kind, pack
+from twin.runtime.lab import make_clock, prepare, run_async
+from twin.scenario import parse
+
+N = 10_000
+LAB = "fuzz"
+
+
+def malformed(rng: random.Random, i: int) -> bytes:
+    """One of the shapes a hostile or broken client sends; every one must fail validation or provenance."""
+    valid = pack(Kind.RESULT, {"outputs": {"peak_nm": 600.0}, "sample": None}, id=f"f:{i}", sender="spectrometer",
+                 t_lab=1.0, task="e0s1", attempt=1, token="0" * 32)
+    shape = i % 12
+    if shape == 0:
+        return rng.randbytes(rng.randint(0, 300))
+    if shape == 1:
+        return valid[: rng.randint(0, len(valid) - 1)]
+    if shape == 2:  # the right fields with the wrong types
+        env = json.loads(valid)
+        field = rng.choice(["kind", "attempt", "t_lab", "body", "sender", "v", "id"])
+        env[field] = rng.choice([5, -1, "x", [], {}, None, 1e400 if field == "t_lab" else True])
+        return json.dumps(env).encode()
+    if shape == 3:
+        return valid.replace(b'"result"', rng.choice([b'"explode"', b'"command"', b'"RESULT"']))
+    if shape == 4:  # a body that is not the kind's
+        return pack(Kind.FAULT, {"code": 5}, id=f"f:{i}", sender="spectrometer", t_lab=0.0)
+    if shape == 5:
+        depth = rng.randint(500, 20_000)
+        return b'{"v":1,"kind":"result","id":"x","sender":"spectrometer","t_lab":0,"body":{"outputs":' + \
+            b"[" * depth + b"]" * depth + b"}}"
+    if shape == 6:
+        return valid.replace(b'"sender":"spectrometer"', b'"sender":"\xff\xfe\xfd"')
+    if shape == 7:  # well formed, but no attempt of this lab, or a guessed token
+        return valid
+    if shape == 8:
+        return b'{"v":1,"kind":"result","id":"x","sender":"spectrometer","t_lab":NaN,"body":{}}'
+    if shape == 9:
+        return valid + b"trailing"
+    if shape == 10:
+        return json.dumps({"v": 2, "kind": "result", "id": "x", "sender": "spectrometer", "t_lab": 0}).encode()
+    return b"[" + b"1," * rng.randint(0, 1000) + b"1]"
+
+
+def test_ten_thousand_malformed_messages_at_a_live_lab(tmp_path):
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    s = prepare(parse({**qd_lab(**{
+        "campaign.budget": 1000, "campaign.max_in_flight": 2,
+        "clock": {"mode": "scaled", "speed": 600.0},
+        "bus": {"kind": "zenoh", "listen": [endpoint]},
+    }), "lab": LAB}))
+    clock, db = make_clock(s), tmp_path / "j.db"
+    rng = random.Random(7)
+    sent = {"evt": 0, "cmd": 0, "oversized": 0}
+    seen = {}
+
+    def fuzz():
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", '"peer"')
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        session = zenoh.open(cfg)
+        try:
+            names = ["spectrometer-1", "spectrometer-2", "synthesiser", "ghost", "a" * 60]
+            for i in range(N):
+                payload = malformed(rng, i)
+                where = rng.random()
+                if where < 0.8:
+                    key, counted = rng.choice([keys.evt, keys.telemetry])(LAB, rng.choice(names)), "evt"
+                else:
+                    key, counted = keys.cmd(LAB, rng.choice(names[:3])), "cmd"
+                attachment = rng.randbytes(rng.randint(0, 12)) if rng.random() < 0.3 else None
+                session.put(key, payload, attachment=attachment, congestion_control=zenoh.CongestionControl.BLOCK)
+                sent[counted] += 1
+            for _ in range(3):  # oversized: refused before decoding
+                session.put(keys.evt(LAB, "spectrometer-1"), b"x" * (MAX_MESSAGE_BYTES + 1),
+                            congestion_control=zenoh.CongestionControl.BLOCK)
+                sent["oversized"] += 1
+        finally:
+            session.close()
+
+    async def main():
+        campaign = asyncio.ensure_future(run_async(s, clock, db, on_start=lambda c: seen.setdefault("camp", c)))
+        while "camp" not in seen:
+            await asyncio.sleep(0.05)
+        await asyncio.to_thread(fuzz)
+        core = seen["camp"].core
+        expected = sent["evt"] + sent["oversized"]
+        for _ in range(400):  # wall time for the last of them to cross the loopback link
+            if core.counts.invalid + core.counts.rejected >= expected:
+                break
+            await asyncio.sleep(0.05)
+        reports = [json.loads(await seen["camp"].bus.request(keys.health(LAB, d), b"", 5.0 * clock.speed))
+                   for d in ("synthesiser", "spectrometer-1", "spectrometer-2")]
+        seen["dropped"] = sum(r["dropped"] for r in reports)
+        seen["camp"].stop("fuzzing over")
+        return await campaign
+
+    summary = clock.run(main())
+    refused = read_events(db, "message.invalid") + read_events(db, "message.rejected")
+    assert summary.invalid_messages + summary.rejected_messages == sent["evt"] + sent["oversized"] == len(refused)
+    assert seen["dropped"] == sent["cmd"]  # what reached the devices' command keys: dropped and counted
+    assert summary.done > 0 and summary.abandoned == 0 and summary.failed_attempts == 0  # the lab carried on
+    oversized = [json.loads(e["detail"]) for e in read_events(db, "message.invalid") if "over the limit" in e["detail"]]
+    assert len(oversized) == 3 and all(len(o["excerpt"]) < 300 for o in oversized)
+    assert all(json.loads(e["detail"])["key"].startswith(f"labtwin/{LAB}/dev/") for e in refused)
