@@ -36,21 +36,27 @@ class NotJson(Raises):
         return StepResult({"peak_nm": object()}, sample)
 
 
+class SafeStateRaises(Raises):
+    async def safe_state(self):
+        raise RuntimeError("arm stuck")
+
+
 class Never(Raises):
     async def run(self, step, params, sample, ctx):
         await asyncio.Event().wait()
 
 
 @pytest.mark.parametrize("bad, says", [("Raises", "lamp broken"), ("Garbage", "int"), ("NotJson", "object"),
-                                       ("Never", "no result within")])
-def test_a_bad_driver_is_isolated_and_reported_by_name_and_nothing_is_lost(tmp_path, bad, says):
+                                       ("Never", "no result within"), ("SafeStateRaises", "arm stuck")])
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])  # auto: fast, unless the driver awaits asyncio
+def test_a_bad_driver_is_isolated_and_reported_by_name_and_nothing_is_lost(tmp_path, bad, says, runtime):
     lab = qd_lab(**{
         "devices.broken": {"driver": f"tests.twin.test_bad_drivers:{bad}", "instances": 1, "steps": ["measure"],
                            "duration": {"mean_s": 60, "cv": 0.1}},
         "workflow": [{"step": "synthesise", "device": "synthesiser"}, {"step": "measure", "device": "broken"}],
         "campaign.budget": 2,
     })
-    summary = run(parse(lab), journal=tmp_path / "j.db")
+    summary = run(parse(lab), journal=tmp_path / "j.db", runtime=runtime)
     assert summary.abandoned == 2 and summary.done == 0  # nothing lost: every experiment is accounted for
     failed = [e for e in read_events(tmp_path / "j.db") if e["kind"] == "attempt.failed"]
     assert failed and all(e["device"] == "broken" and says in e["detail"] for e in failed), failed[:1]

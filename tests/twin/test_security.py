@@ -207,3 +207,22 @@ def test_a_missing_certificate_names_the_command_that_makes_it(secured, tmp_path
         session_config(tmp / "lab", Identity("device", "elsewhere", "spectrometer-1"))
     with pytest.raises(BusError, match="not a lab security directory"):
         session_config(tmp_path, Identity("orchestrator", LAB))
+
+
+def test_a_scheduler_agent_answers_the_lab_and_can_do_nothing_else(secured):
+    ears = Ears(secured)
+    agent = as_who(secured, "scheduler")
+    decide = f"labtwin/{LAB}/agent/scheduler/decide"
+    q = agent.declare_queryable(decide, lambda query: query.reply(query.key_expr, b'{"assign": []}'))
+    settle()
+    try:
+        answers = [r.ok.payload.to_bytes() for r in ears.s.get(decide, timeout=2.0) if r.ok is not None]
+        agent.put(keys.evt(LAB, "synthesiser"), b"forged by the scheduler")
+        agent.put(keys.cmd(LAB, "synthesiser"), b"a command from the scheduler")
+        settle()
+        assert answers == [b'{"assign": []}']
+        assert ears.heard == []
+    finally:
+        q.undeclare()
+        agent.close()
+        ears.close()

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import functools
 import itertools
 import json
 import logging
@@ -61,6 +62,7 @@ class DeviceActor:
             self._online()
         if self.spec.faults.mtbc_h > 0:
             self._crasher = asyncio.ensure_future(self._crash_loop())
+            self._crasher.add_done_callback(self._crash_loop_ended)
 
     async def stop(self) -> None:
         if self._boss is not None:
@@ -72,7 +74,10 @@ class DeviceActor:
         if self._job is not None:
             self._cancel_reason = "stop"
             await wait_cancelled(self._job)
-        await self.driver.safe_state()
+        try:
+            await self.driver.safe_state()
+        except Exception as exc:  # stopping goes on: the token goes, the other devices stop too
+            log.error("%s: safe_state() failed at shutdown: %r; check the instrument by hand", self.name, exc)
         self._offline()
         if self._health is not None:
             self._health.close()
@@ -165,12 +170,31 @@ class DeviceActor:
                 return
             self._current, self._token_of_current = (env.task, env.attempt), env.token
             self._job = asyncio.ensure_future(self._run(env.task, env.attempt, env.campaign, env.token, body))  # type: ignore[arg-type]
+            self._job.add_done_callback(functools.partial(self._job_ended, env.task, env.attempt, env.campaign,
+                                                          env.token))
         elif env.kind == Kind.CANCEL:
             if self._current == (env.task, env.attempt) and self._job and env.token == self._token_of_current:
                 self._cancel_reason = "cancel"  # only the orchestrator knows the token
                 self._job.cancel()
         else:
             self._drop(f"a {env.kind} message from {env.sender!r} on its command key")
+
+    def _job_ended(self, task: str, attempt: int, campaign: str, token: str, job: asyncio.Future) -> None:
+        """A step that died in the actor's own handling (a safe_state() that raised, say) is reported, not lost."""
+        if job.cancelled() or job.exception() is None:
+            return
+        exc = job.exception()
+        log.error("%s: step %s#%d died in the device's own handling: %r; reported as a driver error", self.name,
+                  task, attempt, exc)
+        self._emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(exc).__name__}: {exc}"[:500]}, task,
+                   attempt, campaign, token)
+
+    def _crash_loop_ended(self, loop_task: asyncio.Future) -> None:
+        if loop_task.cancelled() or loop_task.exception() is None:
+            return
+        log.error("%s: its simulated crashes stopped with %r; the device leaves the bus, and the campaign moves "
+                  "its work", self.name, loop_task.exception())
+        self._offline()
 
     def _drop(self, what: str) -> None:
         self.dropped += 1  # the health report has the count

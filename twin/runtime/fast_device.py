@@ -62,7 +62,12 @@ class FastDevice:
         if self._job is not None:
             self._cancel_reason = "stop"
             self._throw_cancel()
-        _complete(self.driver.safe_state(), self.name)
+        try:
+            _complete(self.driver.safe_state(), self.name)
+        except FastRuntimeRefused:
+            raise
+        except Exception as exc:  # the campaign is over; say so, and let the others stop too
+            log.error("%s: safe_state() failed at shutdown: %r; check the instrument by hand", self.name, exc)
         self.online = False
 
     def _set_online(self, alive: bool) -> None:
@@ -87,14 +92,15 @@ class FastDevice:
         self._schedule_crash()
 
     # -- messages ---------------------------------------------------------------------
-    def _emit(self, kind: Kind, body: dict, task: str, attempt: int) -> None:
+    def _emit(self, kind: Kind, body: dict, task: str, attempt: int, token: str | None = None) -> None:
         env = envelope(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name, t_lab=self._q.now,
                        campaign=self._campaign, task=task, attempt=attempt)
         # encoded once, as the journal stores it; a body that cannot go on the wire fails here, as on a bus
         payload = to_wire(env)
         if kind is Kind.RESULT:  # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
             body = _plain(payload)["body"]
-        token = self._token if (task, attempt) == self._current else self._tokens.get((task, attempt), "")
+        if token is None:
+            token = self._token if (task, attempt) == self._current else self._tokens.get((task, attempt), "")
         self._deliver(DeviceMessage(kind, self.name, task, attempt, body, payload, token=token))
 
     def command(self, task: str, attempt: int, campaign: str, body: dict, token: str) -> None:
@@ -117,11 +123,18 @@ class FastDevice:
     # -- driving the step -------------------------------------------------------------
     def _resume(self, exc: BaseException | None = None) -> None:
         self._timer = None
-        job = self._job
+        job, current, token = self._job, self._current, self._token
         while True:
             try:
                 req = job.send(None) if exc is None else job.throw(exc)
             except (StopIteration, asyncio.CancelledError):
+                return
+            except Exception as err:  # the step died in the device's own handling (a safe_state that raised)
+                log.error("%s: step %s died in the device's own handling: %r; reported as a driver error",
+                          self.name, current, err)
+                if current is not None:
+                    self._emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(err).__name__}: {err}"[:500]},
+                               *current, token)
                 return
             exc = None
             if type(req) is Sleep:

@@ -144,12 +144,17 @@ class LiveCampaign:
 
     def _kick(self) -> None:
         self._kicked = False
-        while self.core.has_work and not self.core.finished:
-            now = self.clock.now()
-            if self._recording:
-                self.journal.inputs(now, {"events": [replay.encode(e) for e in self._fed]})
-                self._fed.clear()
-            self._perform(self.core.advance(now))
+        try:
+            while self.core.has_work and not self.core.finished:
+                now = self.clock.now()
+                if self._recording:
+                    self.journal.inputs(now, {"events": [replay.encode(e) for e in self._fed]})
+                    self._fed.clear()
+                self._perform(self.core.advance(now))
+        except Exception as exc:  # a bug must end the campaign with its error, never leave it waiting silently
+            log.exception("the campaign stopped on an error")
+            if self._done is not None and not self._done.done():
+                self._done.set_exception(exc)
 
     # -- taking over a killed campaign --------------------------------------------------
     async def _take_over(self, rebuilt: Rebuilt) -> None:
