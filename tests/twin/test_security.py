@@ -226,3 +226,31 @@ def test_a_scheduler_agent_answers_the_lab_and_can_do_nothing_else(secured):
         q.undeclare()
         agent.close()
         ears.close()
+
+
+def test_twin_run_and_twin_watch_with_security_flags_through_the_secure_router(secured, tmp_path):
+    from tests.rrd import read_rrd
+
+    tmp, endpoint = secured
+    # long enough (~6 s) for a watcher that asks for the history every 2.5 s to find the lab alive
+    raw = qd_lab(**{"campaign.budget": 4, "clock": {"mode": "scaled", "speed": 500.0},
+                    "bus": {"kind": "zenoh", "listen": []}})
+    raw["lab"] = LAB
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    twin = [sys.executable, "-m", "twin"]
+    watcher = subprocess.Popen([*twin, "watch", "--lab", LAB, "--connect", endpoint, "--security", str(tmp / "lab"),
+                                "--save", str(tmp_path / "w.rrd")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, cwd=ROOT)
+    try:
+        assert watcher.stdout.readline().startswith("watching"), watcher.stderr.read()
+        lab = subprocess.run([*twin, "run", str(path), "--connect", endpoint, "--security", str(tmp / "lab"),
+                              "--journal", str(tmp_path / "j.db"), "--quiet"], capture_output=True, text=True,
+                             cwd=ROOT, timeout=120)
+        assert lab.returncode == 0, lab.stderr
+        _, werr = watcher.communicate(timeout=60)
+        assert watcher.returncode == 0, werr
+    finally:
+        watcher.kill()
+    rrd = read_rrd(tmp_path / "w.rrd")
+    assert "4 done" in rrd["summary"][0]["TextDocument:text"][0]

@@ -176,6 +176,8 @@ class DeviceActor:
             if self._current == (env.task, env.attempt) and self._job and env.token == self._token_of_current:
                 self._cancel_reason = "cancel"  # only the orchestrator knows the token
                 self._job.cancel()
+            elif self._current == (env.task, env.attempt):
+                self._drop(f"a cancel of {env.task}#{env.attempt} without its token")
         else:
             self._drop(f"a {env.kind} message from {env.sender!r} on its command key")
 
