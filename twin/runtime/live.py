@@ -61,6 +61,9 @@ class LiveCampaign:
         self._done: asyncio.Future | None = None
         self._kicked = False
         self._deciding: asyncio.Future | None = None
+        self._planning: asyncio.Future | None = None  # a proposal being computed in the worker thread
+        self._spare: list[Any] | None = None  # proposals that came after the lab went on without them
+        self._late: asyncio.TimerHandle | None = None
         self._invalid = 0
 
     def stop(self, reason: str) -> None:
@@ -97,6 +100,8 @@ class LiveCampaign:
             remove_hook()
             if self._deciding is not None:
                 self._deciding.cancel()
+            if self._planning is not None:
+                self._planning.cancel()
             self._close()
 
     # -- events in --------------------------------------------------------------------
@@ -151,6 +156,8 @@ class LiveCampaign:
                     self.journal.inputs(now, {"events": [replay.encode(e) for e in self._fed]})
                     self._fed.clear()
                 self._perform(self.core.advance(now))
+                if self.clock.is_virtual:
+                    break  # the next advance waits until the loop is idle again, as in the fast runtime
         except Exception as exc:  # a bug must end the campaign with its error, never leave it waiting silently
             log.exception("the campaign stopped on an error")
             if self._done is not None and not self._done.done():
@@ -239,7 +246,7 @@ class LiveCampaign:
 
     def _answer(self, ask: Ask) -> None:
         if ask.what == "plan":
-            self._give(Proposed(self.planner.propose(ask.n, list(ask.history), list(ask.pending))))
+            self._plan(ask)
             return
         started = time.perf_counter()
         decided = self.scheduler.decide(ask.view)
@@ -260,6 +267,51 @@ class LiveCampaign:
             self._kick_soon()
 
         self._deciding.add_done_callback(answered)
+
+    def _plan(self, ask: Ask) -> None:
+        """Ask the planner. In virtual time at once (time stands still while it thinks); on a scaled or wall
+        clock in a worker thread, so that the loop goes on serving devices (a GP fit takes wall time, which
+        is lab time there). Past ``campaign.planner_deadline_s`` the lab goes on without the answer
+        (``planner.late``) if it has work in hand; the answer is used at the next question."""
+        if self.clock.is_virtual:
+            self._give(Proposed(self.planner.propose(ask.n, list(ask.history), list(ask.pending))))
+            return
+        if self._spare is not None:
+            spare, self._spare = self._spare, None
+            self._give(Proposed(spare))
+            self._kick_soon()
+            return
+        self._late = self.clock.call_later(self.s.campaign.planner_deadline_s,
+                                           functools.partial(self._planner_late, ask))
+        if self._planning is not None:
+            return  # still thinking about an earlier question (one call at a time: planners keep state)
+        self._planning = asyncio.get_running_loop().run_in_executor(
+            None, self.planner.propose, ask.n, list(ask.history), list(ask.pending))
+        self._planning.add_done_callback(self._planned)
+
+    def _planned(self, fut: asyncio.Future) -> None:
+        self._planning = None
+        if self._late is not None:
+            self._late.cancel()
+        if fut.cancelled():
+            return
+        if fut.exception() is not None:  # a planner that crashes ends the campaign with its error
+            if self._done is not None and not self._done.done():
+                self._done.set_exception(fut.exception())
+            return
+        asked = self.core.waiting
+        if asked is not None and asked.what == "plan":
+            self._give(Proposed(list(fut.result())))
+            self._kick_soon()
+        else:  # the lab went on without it: the next question gets it
+            self._spare = list(fut.result())
+
+    def _planner_late(self, ask: Ask) -> None:
+        if self.core.waiting is not ask or not self.core.active:
+            return  # nothing in hand: waiting for the planner is all the lab can do
+        self.note("planner.late", {"deadline_s": self.s.campaign.planner_deadline_s, "asked_for": ask.n})
+        self._give(Proposed([]))
+        self._kick_soon()
 
     def _close(self) -> None:
         for h in self._handles:

@@ -143,6 +143,9 @@ class Campaign(_Spec):
     planner_options: dict[str, Any] = Field(default_factory=dict)
     fallback_scheduler: str = Field(default="fifo", max_length=256, description="decides when a scheduler agent "
                                     "on the bus is absent, late or wrong")
+    planner_deadline_s: float = Field(default=300, gt=0, le=MAX_S, description="lab seconds a planner may think "
+                                      "(on a scaled or wall clock, in a worker thread) before the lab goes on "
+                                      "without its answer; it is used when it comes")
     scheduler_deadline_ms: float = Field(default=1000, gt=0, le=3_600_000, description="wall ms a scheduler agent "
                                          "has per decision")
 
