@@ -49,6 +49,9 @@ class GpBoPlanner:
         if len(done) < self.n_init or not self.targets:
             return self.design.propose(n, history, pending) or self._random(n)
         x, ys = self._data(done)
+        # where a device refused (infeasible): a candidate whose nearest tried point was refused is not proposed
+        self._refused = np.array([self._unit(h.params) for h in history if getattr(h, "infeasible", False)])
+        self._tried = np.vstack([x, self._refused]) if len(self._refused) else x
         believers = [self._unit(p) for p in pending]
         unmet = [t for t in self.targets if not any(self._meets(h.outputs, t) for h in done)] or self.targets
         out = []
@@ -102,7 +105,20 @@ class GpBoPlanner:
         uniform = self.rng.random((self.n_candidates, d))
         closest = np.argsort(self._distance(ys, target))[:8]
         local = (x[closest][:, None, :] + self.rng.normal(0, 0.05, (len(closest), 64, d))).reshape(-1, d)
-        return np.clip(np.vstack([uniform, local]), 0.0, 1.0)
+        return self._feasible(np.clip(np.vstack([uniform, local]), 0.0, 1.0))
+
+    def _feasible(self, cand: np.ndarray) -> np.ndarray:
+        """A nearest-neighbour feasibility model: keep the candidates closer to a point that ran than to one
+        that was refused (all of them while nothing was refused, or if none would be left)."""
+        refused = getattr(self, "_refused", np.empty((0, cand.shape[1])))
+        if not len(refused):
+            return cand
+        ran = self._tried[: len(self._tried) - len(refused)]
+        d_refused = np.min(np.linalg.norm(cand[:, None, :] - refused[None, :, :], axis=2), axis=1)
+        d_ran = (np.min(np.linalg.norm(cand[:, None, :] - ran[None, :, :], axis=2), axis=1) if len(ran)
+                 else np.full(len(cand), np.inf))
+        keep = cand[d_ran < d_refused]
+        return keep if len(keep) else cand
 
     def _distance(self, ys: dict[str, np.ndarray], target: Any) -> np.ndarray:
         dist = np.zeros(len(next(iter(ys.values()))))

@@ -13,8 +13,8 @@ from twin.campaign.decisions import (Assignment, DeviceState, FreeDevice, LabVie
 from twin.campaign.summary import Summary
 from twin.core.bus import Bus, MemoryBus, open_bus
 from twin.core.clock import Clock, LabClock
-from twin.core.errors import (AccountingError, BusError, ClockError, DriverError, PluginError, ScenarioError,
-                              TwinError)
+from twin.core.errors import (AccountingError, BusError, ClockError, DriverError, PluginError, Refused,
+                              ScenarioError, TwinError)
 from twin.core.plugins import load as load_plugin
 from twin.core.streams import keyed_uniforms, seeded
 from twin.device.actor import DeviceActor
@@ -37,7 +37,7 @@ __all__ = [
     "AccountingError", "Assignment", "Bus", "BusError", "CampaignCore", "Clock", "ClockError", "DeviceActor",
     "DeviceState", "Driver", "DriverError", "DriverFeatures", "DriverSetup", "FastCampaign", "FreeDevice",
     "LabClock", "LabView", "LiveCampaign", "MemoryBus", "Outcome", "Planner", "PluginError", "Proposal",
-    "ReadyStep", "RecordOptions", "RouteStep", "Scenario", "ScenarioError", "Scheduler", "StepContext", "StepResult",
+    "ReadyStep", "RecordOptions", "Refused", "RouteStep", "Scenario", "ScenarioError", "Scheduler", "StepContext", "StepResult",
     "SteppedCampaign", "Summary", "TwinError", "capable", "driver_setup", "expected_duration", "jobshop_as_lab",
     "json_schema", "keyed_uniforms", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
     "prepare", "random_jobshop", "read_meta", "resume", "run", "run_async", "run_scenario", "run_step",

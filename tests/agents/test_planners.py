@@ -64,3 +64,19 @@ def test_gp_bo_finds_the_targets_in_far_fewer_experiments_than_random():
     rnd = [trial(s, "random", seed) for seed in range(3)]
     assert all(t.reached for t in gp)
     assert statistics.median(t.experiments for t in gp) * 3 <= statistics.median(t.experiments for t in rnd)
+
+
+def test_gp_bo_does_not_propose_where_devices_refused():
+    """A target the model places in the hot corner, where every try was refused: GP-BO stays where things ran."""
+    rng = np.random.default_rng(4)
+    hist = []
+    for _ in range(40):
+        p = {k: float(rng.uniform(v.low, v.high)) for k, v in BOX.items()}
+        if p["temperature_c"] > 280:
+            hist.append(Outcome(p, None, None, "infeasible: interlock", infeasible=True))
+        else:  # the output rises with temperature: the model extrapolates the target past the interlock
+            hist.append(Outcome(p, {"peak_nm": 400 + p["temperature_c"]}, None))
+    hot = [Target.model_validate({"name": "R", "outputs": {"peak_nm": {"value": 710, "tol": 5}}})]
+    planner = GpBoPlanner(BOX, seed=1, targets=hot)
+    proposals = [p.params for p in planner.propose(8, hist, [])]
+    assert all(p["temperature_c"] <= 290 for p in proposals), [round(p["temperature_c"]) for p in proposals]

@@ -28,6 +28,8 @@ from twin.core.messages import Kind
 from twin.scenario.model import Scenario, expected_duration
 from twin.scenario.targets import scores
 
+MAX_REFUSALS = 100  # "not now" answers to one step before it is given up: a device that never says yes
+
 _ORDER = {DeviceMessage: 0, InvalidInput: 0, Presence: 1, TimerFired: 2, Stop: 3}
 
 
@@ -210,7 +212,8 @@ class CampaignCore:
         elif m.kind == Kind.FAULT:
             self._resolve(att, m.body.get("code", Code.FAILED), {"reason": m.body.get("reason", "")})
         elif m.kind == Kind.REJECTED:
-            self._resolve(att, Code.REJECTED, {"reason": m.body.get("reason", "")})
+            self._resolve(att, Code.REJECTED, {"reason": m.body.get("reason", ""),
+                                               "infeasible": bool(m.body.get("infeasible", False))})
 
     def _provenance(self, m: DeviceMessage, att: Attempt | None) -> str:
         """Why ``m`` cannot be the device's word on the attempt it names ('' when it can)."""
@@ -390,6 +393,11 @@ class CampaignCore:
         self.active[e.id] = e
         self._note("experiment.proposed", e.id, detail=e.params)
         self._out.append(RecordExperiment(e))
+        outside = self._outside_envelope(e)
+        if outside:  # refused before anything is sent: no step runs for an experiment that cannot finish
+            self.counts.infeasible += 1
+            self._finish_infeasible(e, outside)
+            return
         self._make_ready(e)
 
     def _expected(self, e: Experiment, step: RouteStep) -> float:
@@ -449,9 +457,49 @@ class CampaignCore:
             dev.consecutive_failures = 0
             dev.steps_done += 1
             self._advance_experiment(task, body)
+        elif code == Code.REJECTED:
+            self._refused(task, dev, body.get("reason", ""), bool(body.get("infeasible")))
         else:
             self._failed(task, dev, str(code), body.get("reason", ""))
         self._wake = True
+
+    def _refused(self, task: Task, dev: Device, reason: str, infeasible: bool) -> None:
+        """A refusal is not a fault: no strike against the device, no quarantine."""
+        e, o = task.experiment, self.s.orchestrator
+        if infeasible:
+            self.counts.infeasible += 1
+            self._finish_infeasible(e, f"{dev.name} refused {task.step.step!r}: {reason}")
+            return
+        self.counts.refused_now += 1
+        task.attempts -= 1  # "not now" does not use up one of the step's attempts
+        e.attempts -= 1
+        task.refusals += 1
+        if (task.refusals < MAX_REFUSALS and policy.may_retry(task.attempts, self.now - task.first_ready, o.retry)
+                and not self.stopping):
+            backoff = policy.backoff_s(o.retry, task.attempts + 1, self.seed, task.id)
+            self._note("task.refused", e.id, task.id, task.attempts + 1, dev.name,
+                       detail={"backoff_s": backoff, "reason": reason})
+            self._retrying[task.id] = task
+            self._timer(TimerKey(TimerKind.RETRY, task.id), backoff)
+        else:
+            self._finish(e, Status.ABANDONED, f"step {task.step.step!r} refused {task.refusals} time(s), last by "
+                                              f"{dev.name}: {reason}")
+
+    def _finish_infeasible(self, e: Experiment, why: str) -> None:
+        e.infeasible = True
+        self._finish(e, Status.ABANDONED, f"infeasible: {why}")
+
+    def _outside_envelope(self, e: Experiment) -> str:
+        """Why a step of ``e`` would ask a device for parameters outside its safe envelope ('' if none)."""
+        for step in e.route:
+            envelope = self.s.devices[step.device].envelope
+            values = {**e.params, **step.params}
+            for name, box in envelope.items():
+                v = values.get(name)
+                if isinstance(v, (int, float)) and not box.low <= v <= box.high:
+                    return (f"{name} {v:.6g} is outside devices.{step.device}.envelope.{name} "
+                            f"[{box.low:g}, {box.high:g}]")
+        return ""
 
     def _advance_experiment(self, task: Task, result: dict[str, Any]) -> None:
         e = task.experiment
@@ -511,7 +559,7 @@ class CampaignCore:
                     self._note("target.met", e.id, detail=name)
             self.counts.degraded += e.degraded
         self.history.append(Outcome(e.params, e.outputs if status == Status.DONE else None,
-                                    min(e.scores.values()) if e.scores else None, reason))
+                                    min(e.scores.values()) if e.scores else None, reason, e.infeasible))
         numeric = {k: v for k, v in e.outputs.items() if isinstance(v, (int, float))}
         self._note(f"experiment.{status}", e.id, detail={"reason": reason, "outputs": numeric, "scores": e.scores})
         self._out.append(RecordExperiment(e, final=True))

@@ -33,6 +33,7 @@ class Outcome:
     outputs: dict[str, Any] | None  # None when abandoned
     score: float | None  # distance to the nearest unmet target; 0 = met
     reason: str = ""
+    infeasible: bool = False  # a device refused these parameters (or they are outside its safe envelope)
 
 
 class Planner(Protocol):

@@ -33,6 +33,7 @@ class Experiment:
     attempts: int = 0
     retries: int = 0
     degraded: bool = False
+    infeasible: bool = False
     t_done: float | None = None
 
 
@@ -50,6 +51,7 @@ class Task:
     then: tuple[tuple[str, float], ...] = ()  # later steps: (device type, expected s)
     attempts: int = 0
     failed_on: list[str] = field(default_factory=list)  # devices, oldest failure first
+    refusals: int = 0  # "not now" answers, which do not count as attempts
 
 
 @dataclass(slots=True)
@@ -102,6 +104,8 @@ class Counters:
     invalid: int = 0
     rejected: int = 0  # well-formed but not from the device the attempt is with (forged, misrouted, stale token)
     flaps: int = 0  # presence lost again within a lease: not trusted to fail an attempt
+    infeasible: int = 0  # experiments a device refused, or its safe envelope excluded
+    refused_now: int = 0  # "not now" refusals: retried, not counted as attempts
     late: int = 0
     device_lost: int = 0
     quarantined: int = 0

@@ -27,6 +27,7 @@ class Summary:
     late_results: int
     degraded_samples: int
     rejected_messages: int = 0  # well-formed but without the attempt's provenance: forged, misrouted, stale
+    infeasible: int = 0  # experiments a device refused, or its safe envelope excluded
     presence_flaps: int = 0
     abandoned_reasons: dict[str, int] = field(default_factory=dict)
     utilisation: dict[str, float] = field(default_factory=dict)
@@ -68,6 +69,7 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         failed_attempts=c.failed, retried=c.retried, timed_out=c.timed_out,
         devices_lost=c.device_lost, quarantines=c.quarantined, invalid_messages=c.invalid,
         late_results=c.late, degraded_samples=c.degraded, rejected_messages=c.rejected, presence_flaps=c.flaps,
+        infeasible=c.infeasible,
         abandoned_reasons=dict(reasons),
         utilisation={d.name: round(d.busy_s / elapsed, 4) for d in core.devices.values()},
         best=best, targets_met_h={k: v / 3600 for k, v in core.met_at.items()},
@@ -87,6 +89,8 @@ def _percentiles(seconds: list[float]) -> dict[str, float]:
 
 def _reason_kind(reason: str) -> str:
     """'step 'measure' failed 3 time(s); last: timed_out on spec-1: ...' -> 'measure: timed_out'."""
+    if reason.startswith("infeasible"):
+        return "infeasible"
     try:
         step = reason.split("'")[1]
         code = reason.split("last: ")[1].split(" ")[0]

@@ -25,6 +25,17 @@ class DriverError(TwinError):
     """A device driver could not be found, loaded, or misbehaved."""
 
 
+class Refused(DriverError):
+    """A driver declines a command: ``infeasible`` — never with these parameters (an interlock, a range the
+    instrument cannot reach): the experiment is abandoned at once, the device takes no strike, the planner
+    learns the point is infeasible; otherwise only now (warming up, busy): the step is retried later and
+    the refusal does not count as one of its attempts."""
+
+    def __init__(self, reason: str, infeasible: bool = True) -> None:
+        self.reason, self.infeasible = reason, infeasible
+        super().__init__(reason)
+
+
 class PluginError(TwinError):
     """A planner or scheduler plugin could not be found or loaded."""
 

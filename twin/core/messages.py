@@ -53,6 +53,7 @@ class AcceptedBody(_Body):
 
 class RejectedBody(_Body):
     reason: str
+    infeasible: bool = False  # never with these parameters (else: only now)
 
 
 class ProgressBody(_Body):

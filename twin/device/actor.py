@@ -22,6 +22,7 @@ from twin.core.bus import Bus, Closable
 from twin.core.clock import LabClock, wait_cancelled
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.driver import Driver, StepContext, feature, simulated_faults
+from twin.core.errors import Refused
 from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack
 
 log = logging.getLogger(__name__)
@@ -238,6 +239,8 @@ class DeviceActor:
                                   f"orchestrator was gone for {self.orphan_grace_s:.0f} lab-s"})
             else:
                 raise
+        except Refused as no:
+            emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
         except Exception as exc:  # a driver bug must never take the actor down
             log.warning("%s: driver raised during %s: %r", self.name, cmd.step, exc)
             await self.driver.safe_state()

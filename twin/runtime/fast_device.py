@@ -20,7 +20,7 @@ import msgspec
 from twin.campaign import DeviceMessage, Presence
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.driver import Driver, StepContext, feature, simulated_faults
-from twin.core.errors import DriverError
+from twin.core.errors import DriverError, Refused
 from twin.core.messages import Kind, envelope, to_wire
 from twin.runtime.queue import EventQueue, Park, QueueClock, Sleep, Timer
 
@@ -188,6 +188,9 @@ class FastDevice:
                            task, attempt)
             else:
                 raise
+        except Refused as no:
+            self._emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)}, task,
+                       attempt)
         except Exception as exc:  # a driver bug must never take the lab down
             log.warning("%s: driver raised during %s: %r", self.name, step, exc)
             await self.driver.safe_state()

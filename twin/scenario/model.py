@@ -68,6 +68,9 @@ class DeviceType(_Spec):
     faults: Faults = Faults()
     cost: float = Field(default=0, ge=0, le=MAX_VALUE, description="charged for every attempt dispatched to "
                         "this device type")
+    envelope: dict[Label, Parameter] = Field(default_factory=dict, description="the safe range of parameters "
+                                             "this device accepts: an experiment outside it is refused before "
+                                             "anything is sent (abandoned as infeasible)")
     options: dict[str, Any] = Field(default_factory=dict, description="passed to the driver as is")
 
 
@@ -258,7 +261,7 @@ class Scenario(_Spec):
                 problems.append(f"workflow.{i}.step: device type {ws.device!r} does not run {ws.step!r} (it runs {dev.steps})")
         if not self.workflow and self.jobshop is None:
             problems.append("workflow: empty; give the steps of an experiment, or a jobshop file")
-        problems += self._instance_clashes() + self._plus_params()
+        problems += self._instance_clashes() + self._plus_params() + self._envelopes()
         if self.bus.security and self.bus.kind != "zenoh":
             problems.append("bus.security: security is for the zenoh bus; the memory bus has no one to keep out")
         if problems:
@@ -274,6 +277,20 @@ class Scenario(_Spec):
                     problems.append(f"devices.{dtype}: its instance {name!r} has the name of an instance of "
                                     f"{owner[name]!r}; rename one of the two device types")
                 owner[name] = dtype
+        return problems
+
+    def _envelopes(self) -> list[str]:
+        problems = []
+        for dtype, spec in self.devices.items():
+            for name, safe in spec.envelope.items():
+                box = self.chemistry.parameters.get(name)
+                where = f"devices.{dtype}.envelope.{name}"
+                if box is None:
+                    problems.append(f"{where}: {name!r} is not a parameter of chemistry.parameters "
+                                    f"({', '.join(self.chemistry.parameters) or 'none'})")
+                elif box.high < safe.low or safe.high < box.low:
+                    problems.append(f"{where}: [{safe.low:g}, {safe.high:g}] does not overlap the planner's box "
+                                    f"[{box.low:g}, {box.high:g}]: no experiment could run")
         return problems
 
     def _plus_params(self) -> list[str]:

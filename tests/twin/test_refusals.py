@@ -1,0 +1,93 @@
+"""Refusals are not faults: an infeasible request is abandoned at once, costs the device nothing, and teaches
+the planner; a scenario's safe envelope stops such requests before they reach the device."""
+
+import json
+
+import pytest
+
+from tests.conftest import qd_lab
+from twin import Refused, StepResult
+from twin.campaign.journal import read_events
+from twin.core.errors import ScenarioError
+from twin.runtime.lab import run
+from twin.scenario import parse
+
+HOT_C = 270.0  # the measuring device's interlock: no sample made above this
+
+
+class Interlocked:
+    """A spectrometer whose cell refuses samples made hotter than HOT_C: infeasible, not broken."""
+
+    capabilities = frozenset({"measure"})
+    outputs = frozenset({"peak_nm"})
+
+    def __init__(self, setup):
+        pass
+
+    async def run(self, step, params, sample, ctx):
+        if params["temperature_c"] > HOT_C:
+            raise Refused(f"temperature_c {params['temperature_c']:.0f} is over the cell's {HOT_C:.0f}",
+                          infeasible=True)
+        await ctx.clock.sleep(60)
+        return StepResult({"peak_nm": sample["peak_nm"]}, sample)
+
+    async def safe_state(self):
+        pass
+
+
+def interlock_lab(**changes):
+    return parse(qd_lab(**{"campaign.planner": "gp-bo", "campaign.budget": 30, "campaign.seed": 2,
+                           "chemistry.targets": [{"name": "G", "outputs": {"peak_nm": {"value": 560, "tol": 5}}}],
+                           **changes}))
+
+
+def feasible_share(db, last):
+    proposed = [json.loads(e["detail"]) for e in read_events(db, "experiment.proposed")][-last:]
+    return sum(p["temperature_c"] <= HOT_C for p in proposed) / len(proposed)
+
+
+@pytest.mark.parametrize("how", ["driver", "envelope"])
+def test_an_interlock_costs_no_retries_no_quarantines_and_the_planner_learns_it(tmp_path, how):
+    if how == "driver":
+        lab = interlock_lab(**{"devices.spectrometer.driver": "tests.twin.test_refusals:Interlocked"})
+    else:
+        lab = interlock_lab(**{"devices.spectrometer.envelope": {"temperature_c": {"low": 200, "high": HOT_C}}})
+    db = tmp_path / "j.db"
+    s = run(lab, journal=db)
+    infeasible = read_events(db, "experiment.abandoned")
+    assert infeasible and all("infeasible" in e["detail"] for e in infeasible)
+    assert s.quarantines == 0 and s.retried == 0
+    assert s.abandoned == len(infeasible)
+    if how == "envelope":
+        assert s.failed_attempts == 0  # stopped before anything was sent: no step ran for nothing
+        assert not [e for e in read_events(db, "attempt.dispatched") if e["device"].startswith("spectrometer")
+                    and json.loads(e["detail"] or "{}").get("temperature_c", 0) > HOT_C]
+    assert feasible_share(db, 10) >= 0.8  # GP-BO learnt where it may go
+
+
+def test_a_busy_refusal_is_retried_and_does_not_count_as_an_attempt(tmp_path):
+    class_path = "tests.twin.test_refusals:BusyOnce"
+    s = run(parse(qd_lab(**{"devices.spectrometer.driver": class_path, "devices.spectrometer.instances": 1,
+                            "campaign.budget": 3, "orchestrator.retry.max_attempts": 1})), journal=tmp_path / "j.db")
+    assert s.done == 3 and s.abandoned == 0 and s.quarantines == 0
+
+
+class BusyOnce(Interlocked):
+    """Refuses each sample once ("only now": warming up), then measures it."""
+
+    seen: set = set()
+
+    async def run(self, step, params, sample, ctx):
+        key = round(params["temperature_c"], 6)
+        if key not in BusyOnce.seen:
+            BusyOnce.seen.add(key)
+            raise Refused("warming up", infeasible=False)
+        await ctx.clock.sleep(60)
+        return StepResult({"peak_nm": sample["peak_nm"]}, sample)
+
+
+def test_a_box_that_misses_the_envelope_is_a_validation_error():
+    with pytest.raises(ScenarioError, match=r"devices.spectrometer.envelope.temperature_c: .* does not overlap"):
+        parse(qd_lab(**{"devices.spectrometer.envelope": {"temperature_c": {"low": 400, "high": 500}}}))
+    with pytest.raises(ScenarioError, match=r"devices.spectrometer.envelope.pressure_bar: .* not a parameter"):
+        parse(qd_lab(**{"devices.spectrometer.envelope": {"pressure_bar": {"low": 1, "high": 2}}}))
