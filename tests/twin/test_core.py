@@ -207,3 +207,30 @@ def test_presence_that_flaps_within_a_lease_does_not_fail_a_second_attempt(scena
     assert notes(out, "device.flapping") and not notes(out, "attempt.failed")
     assert core.counts.flaps == 1 and core.counts.device_lost == 1
     assert core.devices["synthesiser"].attempt.n == 2  # left to its deadline, or to its result
+
+
+def test_work_with_no_usable_instance_left_is_said_at_once_and_given_up_after_a_while(scenario_of):
+    core, _ = started(scenario_of, **{"campaign.budget": 1, "devices.spectrometer.instances": 1,
+                                      "campaign.give_up_after_s": 5000})
+    core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
+    core.advance(0.0)
+    core.feed(Decided([Assignment("e0s0", "synthesiser")]))
+    core.advance(0.0)
+    core.feed(Presence("spectrometer", False))  # the only spectrometer is gone
+    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0}))
+    out = core.advance(60.0)
+    (said,) = notes(out, "devices.unavailable")
+    assert said.detail == {"type": "spectrometer", "experiments": [0], "give_up_after_s": 5000}
+    assert TimerKey(TimerKind.GIVE_UP, "spectrometer") in [a.key for a in of(out, SetTimer)]
+    core.feed(Presence("spectrometer", True))  # it comes back: the work resumes
+    out = core.advance(100.0)
+    assert notes(out, "devices.available") and of(out, Ask)[0].what == "schedule"
+    core.feed(Decided([]))
+    core.advance(100.0)
+    core.feed(Presence("spectrometer", False))  # gone again, for good
+    core.advance(200.0)
+    core.feed(TimerFired(TimerKey(TimerKind.GIVE_UP, "spectrometer")))
+    out = core.advance(5200.0)
+    (gone,) = notes(out, "experiment.abandoned")
+    assert "no usable spectrometer" in gone.detail["reason"] and "give_up_after_s" in gone.detail["reason"]
+    assert of(out, Finished)  # nothing left: the campaign ends instead of waiting for max_lab_hours

@@ -91,3 +91,17 @@ def test_a_box_that_misses_the_envelope_is_a_validation_error():
         parse(qd_lab(**{"devices.spectrometer.envelope": {"temperature_c": {"low": 400, "high": 500}}}))
     with pytest.raises(ScenarioError, match=r"devices.spectrometer.envelope.pressure_bar: .* not a parameter"):
         parse(qd_lab(**{"devices.spectrometer.envelope": {"pressure_bar": {"low": 1, "high": 2}}}))
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+def test_a_lab_whose_only_spectrometer_is_gone_says_so_and_gives_up_instead_of_waiting(tmp_path, runtime):
+    lab = parse(qd_lab(**{"devices.spectrometer.instances": 1, "campaign.budget": 20,
+                          "devices.spectrometer.faults": {"mtbc_h": 0.05, "restart_s": 10_000_000},
+                          "campaign.give_up_after_s": 7200, "campaign.max_lab_hours": 1000}))
+    db = tmp_path / "j.db"
+    s = run(lab, journal=db, runtime=runtime)
+    said = read_events(db, "devices.unavailable")
+    assert said and json.loads(said[0]["detail"])["type"] == "spectrometer"
+    gone = [e for e in read_events(db, "experiment.abandoned") if "no usable spectrometer" in e["detail"]]
+    assert gone and s.pending == 0 and s.done + s.abandoned == s.proposed
+    assert s.lab_hours < 10  # not the 1000 lab-h it would have waited

@@ -79,6 +79,8 @@ class CampaignCore:
         self._wake = False
         self._filled = False  # the planner had its say in this pass
         self._retrying: dict[str, Task] = {}  # waiting out their back-off
+        self._stranded: set[str] = set()  # device types with work waiting and no usable instance
+        self._given_up: set[str] = set()  # ... for give_up_after_s: no new experiment that needs one is proposed
         self._workflow = tuple(RouteStep(w.step, w.device) for w in scenario.workflow)
 
     # -- the runtime's side ---------------------------------------------------------
@@ -309,6 +311,8 @@ class CampaignCore:
                 self._note("attempt.cancel_unanswered", att.task.experiment.id, att.task.id, att.n, dev.name,
                            detail={"grace_s": self.s.orchestrator.cancel_grace_s})
                 self._wake = True
+        elif kind == TimerKind.GIVE_UP:
+            self._give_up(key.ref)
         elif kind == TimerKind.LIMIT:
             self._on_stop("max_lab_hours reached")
         elif kind == TimerKind.STARTUP and not self._running:
@@ -333,6 +337,7 @@ class CampaignCore:
                     self._ask(Ask("plan", n, tuple(self.history), tuple(e.params for e in self.active.values())))
                     return
                 self._filled = True
+            self._check_stranded()
             if not self.stopping and dispatch.pair_possible(self.ready.values(), self.devices):
                 c = self.s.campaign
                 self._ask(Ask("schedule", view=dispatch.view(self.now, self.ready.values(), self.devices,
@@ -341,6 +346,43 @@ class CampaignCore:
             self._end_pass()
         if self.stopping or (not self.active and not self._can_propose()):
             self._shutdown()
+
+    def _check_stranded(self) -> None:
+        """Say at once when the work waiting for a device type has no usable instance left, and give it
+        ``campaign.give_up_after_s`` before abandoning it; an instance that comes back resumes it."""
+        waiting: dict[str, list[int]] = {}
+        for t in [*self.ready.values(), *self._retrying.values()]:
+            waiting.setdefault(t.step.device, []).append(t.experiment.id)
+        usable = {d.type for d in self.devices.values() if d.online and not d.quarantined}
+        for dtype in sorted(set(waiting) | self._stranded | self._given_up):
+            if dtype in waiting and dtype not in usable and dtype not in self._stranded and not self.stopping:
+                self._stranded.add(dtype)
+                after = self.s.campaign.give_up_after_s
+                self._note("devices.unavailable", device=dtype,
+                           detail={"type": dtype, "experiments": sorted(waiting[dtype]), "give_up_after_s": after})
+                self._timer(TimerKey(TimerKind.GIVE_UP, dtype), after)
+            elif dtype in self._given_up and dtype in usable:
+                self._given_up.discard(dtype)
+                self._note("devices.available", device=dtype, detail={"type": dtype})
+            elif dtype in self._stranded and (dtype in usable or dtype not in waiting):
+                self._stranded.discard(dtype)
+                self._out.append(CancelTimer(TimerKey(TimerKind.GIVE_UP, dtype)))
+                if dtype in usable:
+                    self._note("devices.available", device=dtype, detail={"type": dtype})
+
+    def _give_up(self, dtype: str) -> None:
+        if dtype not in self._stranded:
+            return
+        self._stranded.discard(dtype)
+        self._given_up.add(dtype)
+        after = self.s.campaign.give_up_after_s
+        for t in [t for t in [*self.ready.values(), *self._retrying.values()] if t.step.device == dtype]:
+            self.ready.pop(t.id, None)
+            self._retrying.pop(t.id, None)
+            self._out.append(CancelTimer(TimerKey(TimerKind.RETRY, t.id)))
+            self._finish(t.experiment, Status.ABANDONED, f"no usable {dtype} (lost or quarantined) for "
+                                                        f"{after:.0f} lab-s (campaign.give_up_after_s)")
+        self._wake = True
 
     def _ask(self, ask: Ask) -> None:
         self._asking = ask
@@ -359,6 +401,8 @@ class CampaignCore:
         c = self.s.campaign
         if self.planner_exhausted or len(self.experiments) >= c.budget:
             return False
+        if any(step.device in self._given_up for step in self._workflow):
+            return False  # an experiment would wait for a device type given up on
         if c.max_cost is not None and self.cost >= c.max_cost:
             return False
         return not (c.stop_on_target and self.s.chemistry.targets and len(self.met_at) == len(self.s.chemistry.targets))

@@ -35,6 +35,10 @@ class Code(StrEnum):
     DRIVER_ERROR = "driver_error"
 
 
+#: Notes a runtime also logs as warnings: the lab cannot go on as it is.
+ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping"})
+
+
 class TimerKind(StrEnum):
     STARTUP = "startup"
     LIMIT = "limit"
@@ -42,6 +46,7 @@ class TimerKind(StrEnum):
     RETRY = "retry"
     PROBE = "probe"
     CANCEL_GRACE = "cancel_grace"
+    GIVE_UP = "give_up"  # no usable instance of a device type: abandon what waits for it
 
 
 @dataclass(frozen=True, slots=True)

@@ -57,7 +57,7 @@ def _load(kind: str, name: str) -> Any:
     if name not in eps:
         have = ", ".join(sorted(eps)) or "none"
         raise error(
-            f"unknown {kind[:-1]} {name!r}. Installed: {have}. "
+            f"unknown {'driver' if kind == 'devices' else kind[:-1]} {name!r}. Installed: {have}. "
             f"Use one of those, or a 'package.module:Class' string; `twin devices` lists drivers."
         )
     try:

@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Proposed, RecordExperiment,
                            RecordMessage, Send, SetTimer, Stop, TimerFired)
-from twin.campaign.events import TimerKey
+from twin.campaign.events import ALERTS, TimerKey
 from twin.campaign.decisions import Assignment, LabView, Planner, Scheduler
 from twin.core.errors import ClockError
 from twin.campaign.journal import Journal
@@ -29,6 +30,7 @@ from twin.runtime.fast_device import FastDevice
 from twin.runtime.queue import EventQueue, Timer
 from twin.scenario import Scenario
 
+log = logging.getLogger(__name__)
 Progress = Callable[[CampaignCore], None]
 
 
@@ -102,6 +104,8 @@ class FastCampaign:
             t = type(a)
             if t is Note:
                 note(a)
+                if a.kind in ALERTS:
+                    log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
                 if watched and not progressed:
                     progressed = a.kind.startswith(("attempt.done", "attempt.failed"))
             elif t is RecordMessage:

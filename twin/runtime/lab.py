@@ -170,10 +170,11 @@ def check(s: Scenario) -> None:
     """What only the installed plugins can tell about ``s`` (``twin validate`` and ``twin run`` both ask):
     its drivers, planner, scheduler and fallback load; its targets ask for outputs the workflow produces;
     its Zenoh settings make a config."""
-    drivers = {dtype: load_driver(s, dtype, s.instance_names(dtype)[0]) for dtype in s.devices}
-    make_planner(s)
-    make_scheduler(s)
-    make_scheduler(s, s.campaign.fallback_scheduler)
+    drivers = {dtype: _at(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0])
+               for dtype in s.devices}
+    _at("campaign.planner", make_planner, s)
+    _at("campaign.scheduler", make_scheduler, s)
+    _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
     used = {w.device for w in s.workflow} or set(s.devices)
     declared = [feature(drivers[d], "outputs") for d in used]
     if s.chemistry.targets and all(o is not None for o in declared):
@@ -187,6 +188,17 @@ def check(s: Scenario) -> None:
         from twin.core.bus.zenoh_bus import check_config
 
         check_config(s.bus.zenoh)
+
+
+def _at(field: str, make: Callable[..., Any], *args: Any) -> Any:
+    """``make(*args)``, its error prefixed with the scenario field it is about."""
+    try:
+        return make(*args)
+    except ScenarioError:
+        raise
+    except TwinError as exc:
+        text = str(exc)
+        raise ScenarioError("", [text if text.startswith(field.split(".")[0]) else f"{field}: {text}"]) from None
 
 
 def validate_file(path: str | Path) -> Scenario:

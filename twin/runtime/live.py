@@ -25,7 +25,7 @@ from twin.core.bus import Bus
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, DeviceMessage, Finished, InvalidInput, Note,
                            Presence, Proposed, RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
 from twin.campaign import replay
-from twin.campaign.events import TimerKey
+from twin.campaign.events import ALERTS, TimerKey
 from twin.campaign.replay import Rebuilt
 from twin.core.clock import LabClock
 from twin.campaign.decisions import Planner, Scheduler
@@ -213,6 +213,8 @@ class LiveCampaign:
                 unwritten = True
             if t is Note:
                 self.decisions.add(a, self.journal.note(a))
+                if a.kind in ALERTS:
+                    log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
                 progressed = progressed or a.kind.startswith(("attempt.done", "attempt.failed"))
             elif t is RecordMessage:
                 self.journal.received(a)

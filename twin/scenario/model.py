@@ -30,7 +30,7 @@ _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9a-fA-F:.]+\]|[A-Za-z0-9_.
 
 class _Spec(BaseModel):
     # strict: `budget: true` or `instances: "2"` is a mistake, not a number; no infinities or NaNs anywhere
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, validate_default=True)
 
 
 class Duration(_Spec):
@@ -146,6 +146,9 @@ class Campaign(_Spec):
     planner_options: dict[str, Any] = Field(default_factory=dict)
     fallback_scheduler: str = Field(default="fifo", max_length=256, description="decides when a scheduler agent "
                                     "on the bus is absent, late or wrong")
+    give_up_after_s: float = Field(default=4 * 3600, gt=0, le=MAX_S, description="lab seconds the experiments "
+                                   "that need a device type wait when none of its instances is usable (lost, "
+                                   "quarantined) before they are abandoned; an instance that comes back resumes them")
     planner_deadline_s: float = Field(default=300, gt=0, le=MAX_S, description="lab seconds a planner may think "
                                       "(on a scaled or wall clock, in a worker thread) before the lab goes on "
                                       "without its answer; it is used when it comes")

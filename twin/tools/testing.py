@@ -23,10 +23,14 @@ def driver_setup(name: str = "device-1", options: dict[str, Any] | None = None, 
 
 
 def run_step(driver: Any, step: str, params: dict[str, Any], sample: dict | None = None,
-             seed: int = 0) -> tuple[StepResult, float]:
-    """Run one step of ``driver`` on a virtual clock: (its result, the lab seconds it took)."""
+             seed: int = 0, setup: DriverSetup | None = None, mean_s: float | None = None) -> tuple[StepResult, float]:
+    """Run one step of ``driver`` on a virtual clock: (its result, the lab seconds it took).
+
+    ``ctx.draw_duration`` follows ``setup``'s duration (the ``driver_setup(...)`` the driver was built
+    from), or ``mean_s`` (no spread), or 60 s."""
     clock = LabClock("virtual")
-    ctx = StepContext(clock=clock, rng=np.random.default_rng(seed), duration=Duration(mean_s=60.0, cv=0.0),
+    duration = setup.duration if setup is not None else Duration(mean_s=60.0 if mean_s is None else mean_s, cv=0.0)
+    ctx = StepContext(clock=clock, rng=np.random.default_rng(seed), duration=duration,
                       progress=lambda *_: None, telemetry=lambda _: None)
 
     async def one() -> tuple[StepResult, float]:

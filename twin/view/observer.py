@@ -16,7 +16,7 @@ from typing import Any, Protocol
 #: A device's states, in the order the viewer lists them.
 STATES = ("offline", "idle", "failed", "quarantined", "busy")
 WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",
-              "device.flapping", "devices.missing", "campaign.stopping", "attempt.cancelled"}
+              "device.flapping", "devices.unavailable", "devices.missing", "campaign.stopping", "attempt.cancelled"}
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned"}
 #: Decisions drawn elsewhere and not repeated in the text log.
 QUIET = {"campaign.summary", "campaign.started", "task.ready", "attempt.running", "attempt.done",
