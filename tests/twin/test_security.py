@@ -254,3 +254,15 @@ def test_twin_run_and_twin_watch_with_security_flags_through_the_secure_router(s
         watcher.kill()
     rrd = read_rrd(tmp_path / "w.rrd")
     assert "4 done" in rrd["summary"][0]["TextDocument:text"][0]
+
+
+def test_a_wrong_endpoint_is_named_within_seconds(tmp_path):
+    raw = qd_lab(**{"bus": {"kind": "zenoh", "listen": [], "connect": [f"tcp/127.0.0.1:{free_port()}"],
+                            "connect_timeout_ms": 1000}, "clock": {"mode": "scaled", "speed": 100.0}})
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    t0 = time.monotonic()
+    out = subprocess.run([sys.executable, "-m", "twin", "run", str(path), "--journal", str(tmp_path / "j.db")],
+                         capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert out.returncode == 2 and "nothing answered at tcp/127.0.0.1:" in out.stderr and "Traceback" not in out.stderr
+    assert time.monotonic() - t0 < 15

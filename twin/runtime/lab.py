@@ -107,7 +107,7 @@ def make_bus(s: Scenario, clock: LabClock, who: Identity | None = None) -> Bus:
                                          what="bus.listen"):
         log.warning("%s", warning)
     return open_bus("zenoh", clock, mode=mode, listen=listen, connect=s.bus.connect, lease_ms=s.bus.lease_ms,
-                    extra=extra)
+                    extra=extra, connect_timeout_ms=s.bus.connect_timeout_ms)
 
 
 def load_driver(s: Scenario, device_type: str, name: str) -> Any:

@@ -27,7 +27,8 @@ def _joined(scenario: str | Path, connect: list[str], clock: str, speed: float,
         raise ClockError("a process joining a lab cannot follow a virtual clock: use --clock scaled or wall")
     s = prepare(scenario, clock=clock, speed=speed)
     return s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms,
-                                               zenoh=s.bus.zenoh, security=security_dir or s.bus.security)})
+                                               zenoh=s.bus.zenoh, security=security_dir or s.bus.security,
+                                               connect_timeout_ms=s.bus.connect_timeout_ms)})
 
 
 def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], Awaitable[None]]]], ready: str,

@@ -189,6 +189,8 @@ class BusSpec(_Spec):
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     connect: list[str] = Field(default_factory=list)
     lease_ms: int = Field(default=1000, ge=100, le=600_000)
+    connect_timeout_ms: int = Field(default=5000, ge=100, le=600_000, description="how long a session that "
+                                    "connects waits for its router or lab before it says nothing answered")
     zenoh: dict[str, Any] = Field(default_factory=dict, description="extra Zenoh config paths")
     security: str | None = Field(default=None, description="the lab's security directory (twin security init), "
                                  "relative to the scenario: mutual TLS to the lab's router, with access control")

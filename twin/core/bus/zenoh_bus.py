@@ -34,7 +34,7 @@ from twin.core.errors import BusError, ClockError
 log = logging.getLogger(__name__)
 _SEQ = struct.Struct("<Q")
 _LAST = 1 << 63  # deliveries from elsewhere sort after local ones of the same batch
-CLIENT_CONNECT_TIMEOUT_MS = 30_000
+CONNECT_TIMEOUT_MS = 5_000  # a client waits this long for its router or lab; a typo shows in seconds
 
 
 @dataclass
@@ -51,13 +51,14 @@ class ZenohOptions:
     connect: list[str] = field(default_factory=list)
     lease_ms: int = 1000
     extra: dict[str, object] = field(default_factory=dict)  # other config paths, e.g. TLS
+    connect_timeout_ms: int = CONNECT_TIMEOUT_MS
 
     def config(self) -> zenoh.Config:
         cfg = zenoh.Config()
         mode = self.mode if self.mode != "auto" else ("client" if self.connect and not self.listen else "peer")
         cfg.insert_json5("mode", json.dumps(mode))
-        if mode == "client":  # wait for the router or lab to come up rather than fail at once
-            cfg.insert_json5("connect/timeout_ms", str(CLIENT_CONNECT_TIMEOUT_MS))
+        if mode == "client":  # wait a little for the router or lab to come up rather than fail at once
+            cfg.insert_json5("connect/timeout_ms", str(self.connect_timeout_ms))
         cfg.insert_json5("scouting/multicast/enabled", "false")
         cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
         cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
@@ -173,6 +174,12 @@ class ZenohBus:
         try:
             self._session = zenoh.open(self.options.config())
         except zenoh.ZError as exc:
+            if "Unable to connect" in str(exc):
+                raise BusError(
+                    f"nothing answered at {', '.join(self.options.connect)} within "
+                    f"{self.options.connect_timeout_ms / 1000:g} s: is the router (twin router --listen ...) or the "
+                    "lab running there, and is the endpoint right (protocol, host, port)? bus.connect_timeout_ms "
+                    "waits longer") from None
             raise BusError(
                 f"could not open a Zenoh session (listen={self.options.listen}, "
                 f"connect={self.options.connect}): {exc}. Check that the endpoints are "
