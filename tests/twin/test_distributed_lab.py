@@ -101,3 +101,29 @@ def test_kill_freeze_restart_through_the_router(tmp_path):
     for task in (killed_task, frozen_task):
         assert any(e["kind"] == "attempt.done" and e["task"] == task for e in events), f"{task} was never redone"
     assert summary.done == 10 and summary.abandoned == 0 and summary.devices_lost >= 2
+
+
+def test_twin_device_health_asks_the_devices_of_a_running_lab(tmp_path):
+    router = f"tcp/127.0.0.1:{free_port()}"
+    raw = qd_lab(**{"bus": {"kind": "zenoh", "listen": [], "connect": [router]}})
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    procs = [start(["router", "--listen", router], "router")]
+    procs.append(start(["device", "serve", str(path), "--id", "spectrometer-2", "--connect", router,
+                        "--clock", "scaled", "--speed", "100"], "ready spectrometer-2"))
+    env = {**os.environ, "COLUMNS": "80"}
+    try:
+        ask = [sys.executable, "-m", "twin", "device", "health", str(path), "--connect", router]
+        up = subprocess.run([*ask, "--id", "spectrometer-2"], capture_output=True, text=True, cwd=ROOT, env=env,
+                            timeout=60)
+        both = subprocess.run([*ask, "--id", "spectrometer-2", "--id", "spectrometer-1"], capture_output=True,
+                              text=True, cwd=ROOT, env=env, timeout=60)
+    finally:
+        for p in procs:
+            p.terminate()
+            p.wait()
+    assert up.returncode == 0, up.stderr
+    row = next(line for line in up.stdout.splitlines() if "spectrometer-2" in line)
+    assert "yes" in row and "idle" in row
+    assert both.returncode == 1
+    assert any("spectrometer-1" in line and "no" in line for line in both.stdout.splitlines())

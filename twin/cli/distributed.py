@@ -65,6 +65,35 @@ def security_init(
                   f"  keep {directory / 'private'} (the CA's key) off the lab's machines", highlight=False, markup=False)
 
 
+@device_app.command("health")
+def device_health(
+    scenario: Annotated[Path, typer.Argument(help="the scenario the devices belong to")],
+    connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
+    ids: Annotated[Optional[list[str]], typer.Option("--id", help="a device instance (repeat; default: all)")] = None,
+    security: SecurityOpt = None,
+) -> None:
+    """Ask devices of a running lab for their health: on the bus, running what, messages dropped, the driver's own."""
+    from rich.table import Table
+
+    from twin.runtime.serve import health
+
+    try:
+        answers = health(scenario, list(ids or []), connect, str(security) if security else None)
+    except TwinError as exc:
+        _fail(exc)
+    table = Table("device", "answered", "running", "dropped", "driver")
+    for a in answers:
+        r = a["report"]
+        if r is None:
+            table.add_row(a["device"], "[red]no[/]", "", "", "")
+            continue
+        running = "#".join(map(str, r["running"])) if r.get("running") else "idle"
+        table.add_row(a["device"], "yes", running, str(r.get("dropped", 0)), str(r.get("driver", ""))[:60])
+    console.print(table)
+    if any(a["report"] is None for a in answers):
+        raise typer.Exit(1)
+
+
 @driver_app.command("new")
 def driver_new(
     name: Annotated[str, typer.Argument(help="the driver's name, e.g. acme-hplc (also the package's)")],

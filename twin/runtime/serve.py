@@ -80,6 +80,40 @@ def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str
     _serve(s, start, f"ready {name}", Identity("device", s.lab, name))
 
 
+def health(scenario: str | Path, ids: list[str], connect: list[str], security_dir: str | None = None,
+           wait_s: float = 3.0) -> list[dict]:
+    """``twin device health``: each device's health report (``None`` for one that did not answer in ``wait_s``).
+    With security, asked as the lab's orchestrator (the identity that may ask devices)."""
+    import json
+
+    from twin.core.bus import NoReplyError
+    from twin.core import keys
+
+    s = _joined(scenario, connect, "wall", 1.0, security_dir)
+    known = [n for d in s.devices for n in s.instance_names(d)]
+    unknown = [i for i in ids if i not in known]
+    if unknown:
+        raise DriverError(f"{scenario}: no device instance {unknown}; the scenario has {known}")
+    clock = make_clock(s)
+
+    async def ask() -> list[dict]:
+        bus = make_bus(s, clock, Identity("orchestrator", s.lab))
+        await bus.start()
+        try:
+            out = []
+            for name in ids or known:
+                try:
+                    report = json.loads(await bus.request(keys.health(s.lab, name), b"", wait_s))
+                except (NoReplyError, ValueError):
+                    report = None
+                out.append({"device": name, "report": report})
+            return out
+        finally:
+            await bus.close()
+
+    return clock.run(ask())
+
+
 def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: str = "wall", speed: float = 1.0,
                     security_dir: str | None = None) -> None:
     """A scheduler (a rule or ``rl:PATH``) as an agent on a lab's bus."""
