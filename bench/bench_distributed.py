@@ -26,7 +26,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.bench_kernel import free_port, table  # noqa: E402
+from bench.tables import free_port, table  # noqa: E402
 from twin.core import keys  # noqa: E402
 from twin.core.bus.zenoh_bus import ZenohBus, ZenohOptions  # noqa: E402
 from twin.core.clock import LabClock  # noqa: E402

@@ -19,6 +19,7 @@ sys.path.insert(0, str(ROOT))
 from tests.twin.test_refusals import HOT_C, interlock_lab  # noqa: E402
 from twin.campaign.journal import read_events  # noqa: E402
 from twin.runtime.lab import run  # noqa: E402
+from bench.tables import table  # noqa: E402
 
 
 def main() -> None:
@@ -39,15 +40,9 @@ def main() -> None:
                 rows.append([how, planner, s.done, s.infeasible, s.retried, s.quarantines, s.failed_attempts,
                              f"{sum(p['temperature_c'] <= HOT_C for p in last)}/{len(last)}",
                              f"{met:.2f} lab-h" if met is not None else "—"])
-    header = ["interlock", "planner", "done", "infeasible", "retries", "quarantines", "failed attempts",
-              "last 10 feasible", "target met"]
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
-    print("\nAn interlock at 270 °C inside a box to 320 °C (quantum dots, 30 experiments, seed 2)")
-    print("| " + " | ".join(h.ljust(w) for h, w in zip(header, widths)) + " |")
-    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    for r in rows:
-        print("| " + " | ".join(str(x).ljust(w) for x, w in zip(r, widths)) + " |")
-
+    table("An interlock at 270 °C inside a box to 320 °C (quantum dots, 30 experiments, seed 2)",
+          ["interlock", "planner", "done", "infeasible", "retries", "quarantines", "failed attempts",
+           "last 10 feasible", "target met"], rows)
 
 if __name__ == "__main__":
     main()

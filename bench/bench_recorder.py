@@ -14,7 +14,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.bench_kernel import STANDARD, table  # noqa: E402
+from bench.bench_kernel import STANDARD  # noqa: E402
+from bench.tables import table  # noqa: E402
 from twin.runtime.lab import prepare, run  # noqa: E402
 from twin.view.watch import RecordOptions  # noqa: E402
 

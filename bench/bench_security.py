@@ -16,7 +16,6 @@ import json
 import os
 import secrets
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -31,6 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from twin.campaign.journal import read_events  # noqa: E402
+from bench.tables import free_port, table  # noqa: E402
 from twin.core import keys  # noqa: E402
 from twin.core.bus.security import Identity, session_config  # noqa: E402
 from twin.core.messages import Kind, pack  # noqa: E402
@@ -40,21 +40,6 @@ from twin.tools.security_init import init  # noqa: E402
 LAB = "bench"
 DEVICES = ["synthesiser", "spectrometer-1", "spectrometer-2"]
 MARK = 999.0  # the forged peak: an experiment that carries it took a forged result
-
-
-def table(title: str, header: list[str], rows: list[list]) -> None:
-    widths = [max(len(str(x)) for x in col) for col in zip(header, *rows)]
-    print(f"\n{title}")
-    print("| " + " | ".join(h.ljust(w) for h, w in zip(header, widths)) + " |")
-    print("|" + "|".join("-" * (w + 2) for w in widths) + "|")
-    for r in rows:
-        print("| " + " | ".join(str(x).ljust(w) for x, w in zip(r, widths)) + " |")
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def router(endpoint: str, security: Path | None) -> subprocess.Popen:

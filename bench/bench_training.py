@@ -17,7 +17,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.bench_kernel import table  # noqa: E402
+from bench.tables import table  # noqa: E402
 from agents.scheduling_env import SchedulingEnv  # noqa: E402
 from agents.train_scheduler import PPO_SETTINGS  # noqa: E402
 from twin.runtime.lab import prepare  # noqa: E402

@@ -67,9 +67,8 @@ def scenario_of():
     return lambda **changes: parse(qd_lab(**changes))
 
 
-@pytest.fixture(scope="session")
-def mosquitto(tmp_path_factory):
-    """A real mosquitto broker on loopback for this test session; yields "127.0.0.1:PORT"."""
+def start_mosquitto(directory: Path, settings: str):
+    """A real mosquitto on a free loopback port with ``settings`` added to its config; returns (process, port)."""
     import shutil
     import socket
     import subprocess
@@ -81,22 +80,28 @@ def mosquitto(tmp_path_factory):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    d = tmp_path_factory.mktemp("mosquitto")
-    conf = d / "mosquitto.conf"
-    # set_tcp_nodelay: without it the broker's Nagle delay put ~40 ms on every round trip
-    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\nset_tcp_nodelay true\n"
-                    f"log_dest file {d / 'log'}\n")
+    conf = directory / "mosquitto.conf"
+    # set_tcp_nodelay: without it the broker's Nagle delay put ~40 ms on every round trip; started as root,
+    # mosquitto drops to the "mosquitto" user, which cannot read a test's private files: stay root
+    conf.write_text(f"user root\nlistener {port} 127.0.0.1\npersistence false\nset_tcp_nodelay true\n"
+                    f"log_dest file {directory / 'log'}\n{settings}")
     proc = subprocess.Popen([binary, "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 10
     while True:
         try:
             socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
-            break
+            return proc, port
         except OSError:
             if proc.poll() is not None or time.monotonic() > deadline:
                 proc.kill()
                 pytest.fail(f"mosquitto did not start: {proc.stderr.read().decode()[:500]}")
             time.sleep(0.05)
+
+
+@pytest.fixture(scope="session")
+def mosquitto(tmp_path_factory):
+    """A real mosquitto broker on loopback for this test session; yields "127.0.0.1:PORT"."""
+    proc, port = start_mosquitto(tmp_path_factory.mktemp("mosquitto"), "allow_anonymous true\n")
     yield f"127.0.0.1:{port}"
     proc.terminate()
     proc.wait(timeout=10)

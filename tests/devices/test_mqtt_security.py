@@ -3,18 +3,15 @@
 import asyncio
 import json
 import os
-import shutil
-import socket
 import subprocess
 import sys
-import time
 import uuid
 from pathlib import Path
 
 import aiomqtt
 import pytest
 
-from tests.conftest import qd_lab
+from tests.conftest import qd_lab, start_mosquitto
 from tests.devices.test_mqtt import SPEED
 from twin.campaign.journal import read_events
 from twin.core.errors import DriverError
@@ -53,27 +50,10 @@ def broker(tmp_path_factory):
         subprocess.run(["mosquitto_passwd", "-b", *(["-c"] if i == 0 else []), str(pw), user, secret], check=True,
                        capture_output=True)
     (d / "acl").write_text(ACL)
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    conf = d / "mosquitto.conf"
-    # started as root, mosquitto would drop to the "mosquitto" user, which cannot read a test's private files
-    conf.write_text(f"user root\nper_listener_settings false\nlistener {port} 127.0.0.1\nallow_anonymous false\n"
-                    f"password_file {pw}\nacl_file {d / 'acl'}\npersistence false\nset_tcp_nodelay true\n"
-                    f"cafile {d / 'pki' / 'ca.pem'}\ncertfile {d / 'pki' / 'router' / 'cert.pem'}\n"
-                    f"keyfile {d / 'pki' / 'router' / 'key.pem'}\nlog_dest file {d / 'log'}\n")
-    binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
-    proc = subprocess.Popen([binary, "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 10
-    while True:
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
-            break
-        except OSError:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                proc.kill()
-                pytest.fail(f"mosquitto did not start: {proc.stderr.read().decode()[:500]}")
-            time.sleep(0.05)
+    d_pki = d / "pki"
+    proc, port = start_mosquitto(d, f"per_listener_settings false\nallow_anonymous false\npassword_file {pw}\n"
+                                    f"acl_file {d / 'acl'}\ncafile {d_pki / 'ca.pem'}\n"
+                                    f"certfile {d_pki / 'router' / 'cert.pem'}\nkeyfile {d_pki / 'router' / 'key.pem'}\n")
     yield {"address": f"127.0.0.1:{port}", "ca": str(d / "pki" / "ca.pem"), "other_ca": str(other / "ca.pem")}
     proc.terminate()
     proc.wait(timeout=10)

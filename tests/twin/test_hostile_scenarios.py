@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 from twin.core.errors import TwinError
-from twin.runtime.lab import validate_file
+from twin.runtime.checks import validate_file
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = ["quantum_dots", "flaky_lab", "catalyst", "bandgap", "mqtt_lab"]

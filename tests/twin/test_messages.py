@@ -81,9 +81,7 @@ def test_a_result_on_another_devices_key_is_rejected_even_with_the_right_name_an
     db = tmp_path / "j.db"
     forged = []
 
-    async def main():
-        bus, actors = await lab_on_a_memory_bus(s, clock)
-
+    def forger_on(bus):
         def forge(key, payload):  # the moment spectrometer-2 is given a step, answer for it from another key
             env = _json.loads(payload)
             if env["kind"] == "command":
@@ -94,15 +92,8 @@ def test_a_result_on_another_devices_key_is_rejected_even_with_the_right_name_an
                     token=env["token"]))
 
         bus.subscribe(keys.cmd(s.lab, "spectrometer-2"), forge)
-        journal = Journal(db)
-        camp = LiveCampaign(s, bus, clock, journal, make_planner(s), make_scheduler(s))
-        await camp.run()
-        for a in actors:
-            await a.stop()
-        journal.close()
-        return camp.core
 
-    core = clock.run(main())
+    core = campaign_with_a_forger(s, clock, db, forger_on)
     assert forged, "spectrometer-2 must have been given a step for this to mean anything"
     assert all(e.outputs.get("peak_nm") != 999.0 for e in core.experiments)
     assert [e.status for e in core.experiments] == ["done"] * 4
@@ -130,9 +121,7 @@ def test_a_device_obeys_a_cancel_only_with_the_attempts_token(scenario_of, tmp_p
     clock = LabClock("virtual")
     cancels = []
 
-    async def main():
-        bus, actors = await lab_on_a_memory_bus(s, clock)
-
+    def forger_on(bus):
         def forge(key, payload):  # every command is answered at once by a cancel that lacks (or guesses) the token
             env = _json.loads(payload)
             if env["kind"] == "command":
@@ -144,7 +133,19 @@ def test_a_device_obeys_a_cancel_only_with_the_attempts_token(scenario_of, tmp_p
 
         for dev in ("synthesiser", "spectrometer-1", "spectrometer-2"):
             bus.subscribe(keys.cmd(s.lab, dev), forge)
-        journal = Journal(tmp_path / "j.db")
+
+    core = campaign_with_a_forger(s, clock, tmp_path / "j.db", forger_on)
+    assert len(cancels) >= 12
+    assert [e.status for e in core.experiments] == ["done"] * 3 and core.counts.failed == 0
+
+
+def campaign_with_a_forger(s, clock, db, forger_on):
+    """A live campaign on a memory bus while ``forger_on(bus)`` subscribes a forger to the keys it wants."""
+
+    async def main():
+        bus, actors = await lab_on_a_memory_bus(s, clock)
+        forger_on(bus)
+        journal = Journal(db)
         camp = LiveCampaign(s, bus, clock, journal, make_planner(s), make_scheduler(s))
         await camp.run()
         for a in actors:
@@ -152,6 +153,4 @@ def test_a_device_obeys_a_cancel_only_with_the_attempts_token(scenario_of, tmp_p
         journal.close()
         return camp.core
 
-    core = clock.run(main())
-    assert len(cancels) >= 12
-    assert [e.status for e in core.experiments] == ["done"] * 3 and core.counts.failed == 0
+    return clock.run(main())

@@ -72,6 +72,13 @@ class Ears:
         self.s.close()
 
 
+def lab_file(tmp_path, **changes):
+    """The test lab (lab ``t``), with ``changes``, as a scenario file."""
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump({**qd_lab(**changes), "lab": LAB}))
+    return path
+
+
 def settle(seconds=0.6):
     time.sleep(seconds)  # wall time: what crosses a real router
 
@@ -144,7 +151,7 @@ def test_a_watcher_reads_everything_and_can_do_nothing_else(secured):
 
 def test_a_campaign_with_an_external_device_runs_end_to_end_over_mutual_tls(secured, tmp_path):
     tmp, endpoint = secured
-    raw = qd_lab(**{
+    path = lab_file(tmp_path, **{
         "campaign.budget": 3, "campaign.max_in_flight": 1,
         "devices.synthesiser.duration": {"mean_s": 60, "cv": 0.0},
         "devices.spectrometer.duration": {"mean_s": 60, "cv": 0.0},
@@ -153,9 +160,6 @@ def test_a_campaign_with_an_external_device_runs_end_to_end_over_mutual_tls(secu
         "bus": {"kind": "zenoh", "listen": [], "connect": [endpoint], "security": str(tmp / "lab")},
         "orchestrator.startup_s": 6000,
     })
-    raw["lab"] = LAB
-    path = tmp_path / "lab.yaml"
-    path.write_text(yaml.safe_dump(raw))
     s = prepare(path)
     clock = make_clock(s)
     spec = s.model_copy(update={"bus": s.bus.model_copy(update={"listen": []})})
@@ -233,11 +237,8 @@ def test_twin_run_and_twin_watch_with_security_flags_through_the_secure_router(s
 
     tmp, endpoint = secured
     # long enough (~6 s) for a watcher that asks for the history every 2.5 s to find the lab alive
-    raw = qd_lab(**{"campaign.budget": 4, "clock": {"mode": "scaled", "speed": 500.0},
-                    "bus": {"kind": "zenoh", "listen": []}})
-    raw["lab"] = LAB
-    path = tmp_path / "lab.yaml"
-    path.write_text(yaml.safe_dump(raw))
+    path = lab_file(tmp_path, **{"campaign.budget": 4, "clock": {"mode": "scaled", "speed": 500.0},
+                                 "bus": {"kind": "zenoh", "listen": []}})
     twin = [sys.executable, "-m", "twin"]
     watcher = subprocess.Popen([*twin, "watch", "--lab", LAB, "--connect", endpoint, "--security", str(tmp / "lab"),
                                 "--save", str(tmp_path / "w.rrd")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
@@ -257,10 +258,8 @@ def test_twin_run_and_twin_watch_with_security_flags_through_the_secure_router(s
 
 
 def test_a_wrong_endpoint_is_named_within_seconds(tmp_path):
-    raw = qd_lab(**{"bus": {"kind": "zenoh", "listen": [], "connect": [f"tcp/127.0.0.1:{free_port()}"],
-                            "connect_timeout_ms": 1000}, "clock": {"mode": "scaled", "speed": 100.0}})
-    path = tmp_path / "lab.yaml"
-    path.write_text(yaml.safe_dump(raw))
+    path = lab_file(tmp_path, **{"bus": {"kind": "zenoh", "listen": [], "connect": [f"tcp/127.0.0.1:{free_port()}"],
+                                         "connect_timeout_ms": 1000}, "clock": {"mode": "scaled", "speed": 100.0}})
     t0 = time.monotonic()
     out = subprocess.run([sys.executable, "-m", "twin", "run", str(path), "--journal", str(tmp_path / "j.db")],
                          capture_output=True, text=True, cwd=ROOT, timeout=60)

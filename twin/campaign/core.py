@@ -13,17 +13,16 @@ before the pass goes on; events that arrive meanwhile wait in the inbox.
 
 from __future__ import annotations
 
-import hmac
 import secrets
 from typing import Any
 
-from twin.campaign import dispatch, policy
+from twin.campaign import dispatch, policy, provenance
+from twin.campaign.availability import Availability
 from twin.campaign.events import (Action, Ask, CancelTimer, Code, Decided, DeviceMessage, Event, Finished,
                                   InvalidInput, Note, Presence, Proposed, RecordExperiment, RecordMessage, Send,
                                   SetTimer, Status, Stop, TimerFired, TimerKey, TimerKind)
 from twin.campaign.ledger import Attempt, Counters, Device, Experiment, Task, check_accounting
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
-from twin.core import keys
 from twin.core.messages import Kind
 from twin.scenario.model import Scenario, expected_duration
 from twin.scenario.targets import scores
@@ -79,8 +78,7 @@ class CampaignCore:
         self._wake = False
         self._filled = False  # the planner had its say in this pass
         self._retrying: dict[str, Task] = {}  # waiting out their back-off
-        self._stranded: set[str] = set()  # device types with work waiting and no usable instance
-        self._given_up: set[str] = set()  # ... for give_up_after_s: no new experiment that needs one is proposed
+        self._availability = Availability()
         self._workflow = tuple(RouteStep(w.step, w.device) for w in scenario.workflow)
 
     # -- the runtime's side ---------------------------------------------------------
@@ -167,7 +165,7 @@ class CampaignCore:
 
     def token(self, task: str, attempt: int) -> str:
         """The attempt's token: unguessable without the secret, the same for the same secret (a resumed core)."""
-        return hmac.digest(self.secret, f"{self.campaign_id}|{task}|{attempt}".encode(), "sha256")[:16].hex()
+        return provenance.attempt_token(self.secret, self.campaign_id, task, attempt)
 
     # -- events -----------------------------------------------------------------------
     def _handle(self, ev: Event) -> None:
@@ -192,7 +190,7 @@ class CampaignCore:
 
     def _on_message(self, m: DeviceMessage) -> None:
         att = self.attempts.get((m.task, m.attempt))
-        why = self._provenance(m, att)
+        why = provenance.problem(m, att, self.devices)
         if why:
             self._reject(m, why)
             return
@@ -200,7 +198,7 @@ class CampaignCore:
             self._out.append(RecordMessage(self.now, "msg.telemetry", None, m.task or None, m.attempt, m.device,
                                            m.payload))
             return
-        assert att is not None  # _provenance vouched for it
+        assert att is not None  # provenance vouched for it
         exp = att.task.experiment.id
         self._out.append(RecordMessage(self.now, f"msg.{m.kind}", exp, m.task, m.attempt, m.device, m.payload))
         if att.resolved:
@@ -217,35 +215,9 @@ class CampaignCore:
             self._resolve(att, Code.REJECTED, {"reason": m.body.get("reason", ""),
                                                "infeasible": bool(m.body.get("infeasible", False))})
 
-    def _provenance(self, m: DeviceMessage, att: Attempt | None) -> str:
-        """Why ``m`` cannot be the device's word on the attempt it names ('' when it can)."""
-        if m.key and m.key != m.device:
-            return f"signed {m.device!r} but arrived on {m.key!r}'s key: a device speaks only on its own key"
-        if m.device not in self.devices:
-            return f"{m.device!r} is not a device of this lab"
-        if m.kind == Kind.TELEMETRY:
-            return ""
-        if att is None:
-            return f"no attempt {m.task}#{m.attempt} was dispatched"
-        if att.device != m.device:
-            return f"{m.task}#{m.attempt} was dispatched to {att.device}, not {m.device}"
-        if not hmac.compare_digest(m.token, att.token):
-            return f"{'no' if not m.token else 'a wrong'} attempt token (the command's token must be echoed)"
-        if m.kind == Kind.RESULT:
-            sample, mine = m.body.get("sample"), att.task.experiment.sample
-            if isinstance(sample, dict) and mine is not None and sample.get("id", mine["id"]) != mine["id"]:
-                return f"its sample {str(sample.get('id'))[:40]!r} is not the one it was given ({mine['id']!r})"
-        return ""
-
     def _reject(self, m: DeviceMessage, why: str) -> None:
         self.counts.rejected += 1
-        payload = m.payload if isinstance(m.payload, (bytes, str)) else repr(m.payload)
-        excerpt = (payload.decode(errors="replace") if isinstance(payload, bytes) else payload)[:200]
-        on = m.key or m.device
-        key = (keys.telemetry if m.kind == Kind.TELEMETRY else keys.evt)(self.s.lab, on)
-        self._note("message.rejected", device=on,
-                   detail={"key": key, "sender": m.device, "kind": str(m.kind), "task": m.task,
-                           "attempt": m.attempt, "reason": why, "excerpt": excerpt})
+        self._note("message.rejected", device=m.key or m.device, detail=provenance.rejection(m, why, self.s.lab))
 
     def _after_resolved(self, att: Attempt, m: DeviceMessage) -> None:
         """A message about an attempt already decided: the answer to a cancel, or late."""
@@ -354,27 +326,20 @@ class CampaignCore:
         for t in [*self.ready.values(), *self._retrying.values()]:
             waiting.setdefault(t.step.device, []).append(t.experiment.id)
         usable = {d.type for d in self.devices.values() if d.online and not d.quarantined}
-        for dtype in sorted(set(waiting) | self._stranded | self._given_up):
-            if dtype in waiting and dtype not in usable and dtype not in self._stranded and not self.stopping:
-                self._stranded.add(dtype)
-                after = self.s.campaign.give_up_after_s
+        after = self.s.campaign.give_up_after_s
+        for what, dtype in self._availability.review(waiting, usable, bool(self.stopping)):
+            if what == "unavailable":
                 self._note("devices.unavailable", device=dtype,
                            detail={"type": dtype, "experiments": sorted(waiting[dtype]), "give_up_after_s": after})
                 self._timer(TimerKey(TimerKind.GIVE_UP, dtype), after)
-            elif dtype in self._given_up and dtype in usable:
-                self._given_up.discard(dtype)
+                continue
+            self._out.append(CancelTimer(TimerKey(TimerKind.GIVE_UP, dtype)))
+            if what == "available":
                 self._note("devices.available", device=dtype, detail={"type": dtype})
-            elif dtype in self._stranded and (dtype in usable or dtype not in waiting):
-                self._stranded.discard(dtype)
-                self._out.append(CancelTimer(TimerKey(TimerKind.GIVE_UP, dtype)))
-                if dtype in usable:
-                    self._note("devices.available", device=dtype, detail={"type": dtype})
 
     def _give_up(self, dtype: str) -> None:
-        if dtype not in self._stranded:
+        if not self._availability.give_up(dtype):
             return
-        self._stranded.discard(dtype)
-        self._given_up.add(dtype)
         after = self.s.campaign.give_up_after_s
         for t in [t for t in [*self.ready.values(), *self._retrying.values()] if t.step.device == dtype]:
             self.ready.pop(t.id, None)
@@ -401,7 +366,7 @@ class CampaignCore:
         c = self.s.campaign
         if self.planner_exhausted or len(self.experiments) >= c.budget:
             return False
-        if any(step.device in self._given_up for step in self._workflow):
+        if self._availability.blocks(step.device for step in self._workflow):
             return False  # an experiment would wait for a device type given up on
         if c.max_cost is not None and self.cost >= c.max_cost:
             return False
@@ -437,7 +402,7 @@ class CampaignCore:
         self.active[e.id] = e
         self._note("experiment.proposed", e.id, detail=e.params)
         self._out.append(RecordExperiment(e))
-        outside = self._outside_envelope(e)
+        outside = policy.outside_envelope(e.route, e.params, self.s.devices)
         if outside:  # refused before anything is sent: no step runs for an experiment that cannot finish
             self.counts.infeasible += 1
             self._finish_infeasible(e, outside)
@@ -532,18 +497,6 @@ class CampaignCore:
     def _finish_infeasible(self, e: Experiment, why: str) -> None:
         e.infeasible = True
         self._finish(e, Status.ABANDONED, f"infeasible: {why}")
-
-    def _outside_envelope(self, e: Experiment) -> str:
-        """Why a step of ``e`` would ask a device for parameters outside its safe envelope ('' if none)."""
-        for step in e.route:
-            envelope = self.s.devices[step.device].envelope
-            values = {**e.params, **step.params}
-            for name, box in envelope.items():
-                v = values.get(name)
-                if isinstance(v, (int, float)) and not box.low <= v <= box.high:
-                    return (f"{name} {v:.6g} is outside devices.{step.device}.envelope.{name} "
-                            f"[{box.low:g}, {box.high:g}]")
-        return ""
 
     def _advance_experiment(self, task: Task, result: dict[str, Any]) -> None:
         e = task.experiment

@@ -40,3 +40,15 @@ def avoid(failed_on: list[str], usable: set[str]) -> frozenset[str]:
 
 def should_quarantine(consecutive_failures: int, quarantine_after: int, already: bool) -> bool:
     return not already and consecutive_failures >= quarantine_after
+
+
+def outside_envelope(route: Any, params: dict[str, Any], devices: dict[str, Any]) -> str:
+    """Why a step of ``route`` would ask its device type for a parameter outside its safe ``envelope``
+    ('' if none): such an experiment is infeasible before anything is sent."""
+    for step in route:
+        values = {**params, **step.params}
+        for name, box in devices[step.device].envelope.items():
+            v = values.get(name)
+            if isinstance(v, (int, float)) and not box.low <= v <= box.high:
+                return f"{name} {v:.6g} is outside devices.{step.device}.envelope.{name} [{box.low:g}, {box.high:g}]"
+    return ""

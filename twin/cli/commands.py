@@ -14,6 +14,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from twin.cli.common import _fail, app, console, err
 from twin.core import plugins
 from twin.runtime import lab
+from twin.runtime.checks import validate_file
 from twin.core.errors import TwinError
 from twin.campaign.journal import read_run
 from twin.view.report import render_summary
@@ -213,7 +214,7 @@ def validate(files: Annotated[list[Path], typer.Argument(help="scenario files")]
     bad = 0
     for f in files:
         try:
-            lab.validate_file(f)
+            validate_file(f)
         except TwinError as exc:
             bad += 1
             err.print(f"[red]✗[/] {exc}", highlight=False)

@@ -124,7 +124,7 @@ def router(
     """A Zenoh router for a lab spread over processes or hosts (devices and labs --connect to it)."""
     import json as _json
 
-    from twin.core.bus.zenoh_bus import run_router
+    from twin.core.bus.router import run_router
 
     extra = {}
     for item in zenoh_config or []:

@@ -46,7 +46,6 @@ class FastDevice:
         self._token = ""
         self._cancel_reason = ""
         self._timer: Timer | None = None
-        self._tokens: dict[tuple[str, int], str] = {}  # the token of a command refused while busy
         self.online = False
 
     # -- life cycle -------------------------------------------------------------------
@@ -92,15 +91,14 @@ class FastDevice:
         self._schedule_crash()
 
     # -- messages ---------------------------------------------------------------------
-    def _emit(self, kind: Kind, body: dict, task: str, attempt: int, token: str | None = None) -> None:
+    def _emit(self, kind: Kind, body: dict, task: str, attempt: int, token: str) -> None:
+        """The message about ``task#attempt``; the attempt's token travels beside it (no bus to carry it)."""
         env = envelope(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name, t_lab=self._q.now,
                        campaign=self._campaign, task=task, attempt=attempt)
         # encoded once, as the journal stores it; a body that cannot go on the wire fails here, as on a bus
         payload = to_wire(env)
         if kind is Kind.RESULT:  # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
             body = _plain(payload)["body"]
-        if token is None:
-            token = self._token if (task, attempt) == self._current else self._tokens.get((task, attempt), "")
         self._deliver(DeviceMessage(kind, self.name, task, attempt, body, payload, token=token))
 
     def command(self, task: str, attempt: int, campaign: str, body: dict, token: str) -> None:
@@ -108,11 +106,10 @@ class FastDevice:
             return  # off the bus: the command is lost, as it would be
         self._campaign = campaign
         if self._job is not None:
-            self._tokens = {(task, attempt): token}
-            self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, task, attempt)
+            self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, task, attempt, token)
             return
         self._current, self._token = (task, attempt), token
-        self._job = self._run(task, attempt, body)
+        self._job = self._run(task, attempt, token, body)
         self._resume()
 
     def cancel(self, task: str, attempt: int, token: str) -> None:
@@ -158,17 +155,21 @@ class FastDevice:
             self._timer.cancel()
         self._resume(asyncio.CancelledError())
 
-    async def _run(self, task: str, attempt: int, cmd: dict) -> None:
+    async def _run(self, task: str, attempt: int, token: str, cmd: dict) -> None:
         spec, faults = self.spec, self.spec.faults
         step = cmd["step"]
+
+        def emit(kind: Kind, body: dict) -> None:
+            self._emit(kind, body, task, attempt, token)
+
         ctx = StepContext(
             clock=self._clock,  # type: ignore[arg-type]
             rng=self._step_rngs.keyed(f"{self._seed}:steps:{task}:{attempt}"),
             duration=spec.duration,
-            progress=lambda f, note: self._emit(Kind.PROGRESS, {"fraction": f, "note": note}, task, attempt),
-            telemetry=lambda r: self._emit(Kind.TELEMETRY, {"readings": r}, task, attempt),
+            progress=lambda f, note: emit(Kind.PROGRESS, {"fraction": f, "note": note}),
+            telemetry=lambda r: emit(Kind.TELEMETRY, {"readings": r}),
         )
-        self._emit(Kind.ACCEPTED, {}, task, attempt)
+        emit(Kind.ACCEPTED, {})
         try:
             hang, fail = simulated_faults(self._seed, task, attempt, faults)
             await self._clock.sleep(spec.setup_s)
@@ -177,24 +178,21 @@ class FastDevice:
             result = await self.driver.run(step, cmd["params"], cmd["sample"], ctx)
             await self._clock.sleep(spec.clean_s)
             if fail:
-                self._emit(Kind.FAULT, {"code": "failed", "reason": f"{step} failed on {self.name} (simulated)"},
-                           task, attempt)
+                emit(Kind.FAULT, {"code": "failed", "reason": f"{step} failed on {self.name} (simulated)"})
             else:
-                self._emit(Kind.RESULT, {"outputs": result.outputs, "sample": result.sample}, task, attempt)
+                emit(Kind.RESULT, {"outputs": result.outputs, "sample": result.sample})
         except asyncio.CancelledError:
             if self._cancel_reason == "cancel":
                 await self.driver.safe_state()
-                self._emit(Kind.FAULT, {"code": "cancelled", "reason": f"{step} cancelled on {self.name}"},
-                           task, attempt)
+                emit(Kind.FAULT, {"code": "cancelled", "reason": f"{step} cancelled on {self.name}"})
             else:
                 raise
         except Refused as no:
-            self._emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)}, task,
-                       attempt)
+            emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
         except Exception as exc:  # a driver bug must never take the lab down
             log.warning("%s: driver raised during %s: %r", self.name, step, exc)
             await self.driver.safe_state()
-            self._emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(exc).__name__}: {exc}"}, task, attempt)
+            emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(exc).__name__}: {exc}"})
         finally:
             self._job = self._current = None
             self._cancel_reason = ""

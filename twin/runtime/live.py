@@ -283,6 +283,8 @@ class LiveCampaign:
             self._give(Proposed(spare))
             self._kick_soon()
             return
+        if self._late is not None:
+            self._late.cancel()
         self._late = self.clock.call_later(self.s.campaign.planner_deadline_s,
                                            functools.partial(self._planner_late, ask))
         if self._planning is not None:

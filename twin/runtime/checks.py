@@ -1,0 +1,59 @@
+"""What `twin validate` checks beyond the scenario's own fields: what only the installed plugins can tell."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from twin.core.errors import ScenarioError, TwinError
+from twin.device.driver import feature
+from twin.runtime.lab import load_driver, make_planner, make_scheduler
+from twin.scenario import Scenario, load
+
+
+def check(s: Scenario) -> None:
+    """What only the installed plugins can tell about ``s`` (``twin validate`` and ``twin run`` both ask):
+    its drivers, planner, scheduler and fallback load; its targets ask for outputs the workflow produces;
+    its Zenoh settings make a config."""
+    drivers = {dtype: _at(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0])
+               for dtype in s.devices}
+    _at("campaign.planner", make_planner, s)
+    _at("campaign.scheduler", make_scheduler, s)
+    _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
+    used = {w.device for w in s.workflow} or set(s.devices)
+    declared = [feature(drivers[d], "outputs") for d in used]
+    if s.chemistry.targets and all(o is not None for o in declared):
+        produced = set().union(*declared)
+        for i, t in enumerate(s.chemistry.targets):
+            for out in t.outputs:
+                if out not in produced:
+                    raise ScenarioError(s.name, [f"chemistry.targets.{i}.outputs.{out}: no device of the workflow "
+                                                 f"produces {out!r} (they produce {sorted(produced)})"])
+    if s.bus.zenoh:
+        from twin.core.bus.zenoh_bus import check_config
+
+        check_config(s.bus.zenoh)
+
+
+def _at(field: str, make: Callable[..., Any], *args: Any) -> Any:
+    """``make(*args)``, its error prefixed with the scenario field it is about."""
+    try:
+        return make(*args)
+    except ScenarioError:
+        raise
+    except TwinError as exc:
+        text = str(exc)
+        raise ScenarioError("", [text if text.startswith(field.split(".")[0]) else f"{field}: {text}"]) from None
+
+
+def validate_file(path: str | Path) -> Scenario:
+    """``twin validate``: the scenario file read, checked field by field, and against the installed plugins."""
+    s = load(path)
+    try:
+        check(s)
+    except ScenarioError as exc:
+        raise ScenarioError(str(path), exc.problems) from None
+    except TwinError as exc:
+        raise ScenarioError(str(path), [str(exc)]) from None
+    return s
