@@ -276,3 +276,14 @@ def test_twin_validate_exits_2_with_no_traceback(cases):
                          text=True, cwd=ROOT, timeout=120)
     assert out.returncode == 2
     assert "Traceback" not in out.stderr and out.stderr.count("✗") == len(picked)
+
+
+def test_an_unsafe_name_is_explained_not_shown_as_a_regex(tmp_path):
+    raw = shipped("quantum_dots")
+    raw["devices"]["plate reader"] = raw["devices"].pop("spectrometer")
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    with pytest.raises(TwinError) as info:
+        validate_file(path)
+    text = str(info.value)
+    assert "devices.plate reader: 'plate reader' is not a valid name (key)" in text and "^[" not in text

@@ -65,6 +65,7 @@ class LiveCampaign:
         self._spare: list[Any] | None = None  # proposals that came after the lab went on without them
         self._late: asyncio.TimerHandle | None = None
         self._invalid = 0
+        self._rejected = 0
 
     def stop(self, reason: str) -> None:
         """Stop proposing and dispatching; what is in the lab is cancelled, the rest stays pending."""
@@ -215,6 +216,11 @@ class LiveCampaign:
                 self.decisions.add(a, self.journal.note(a))
                 if a.kind in ALERTS:
                     log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
+                elif a.kind == "message.rejected":
+                    self._rejected += 1
+                    if self._rejected <= 10 or self._rejected % 1000 == 0:  # a device of your own echoes tokens?
+                        log.warning("rejected a message on %s: %s (%d so far; the journal has each)",
+                                    a.detail["key"], a.detail["reason"], self._rejected)
                 progressed = progressed or a.kind.startswith(("attempt.done", "attempt.failed"))
             elif t is RecordMessage:
                 self.journal.received(a)

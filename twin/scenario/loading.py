@@ -44,6 +44,13 @@ def _describe(err: Any, raw: dict[str, Any]) -> str:
         return f"{loc}: unknown field (check the spelling; `twin schema` lists the fields)"
     if err["type"] == "missing":
         return f"{loc}: required field is missing"
+    if err["type"] == "string_pattern_mismatch":
+        where = loc.removesuffix(".[key]")
+        what = "key" if loc.endswith("[key]") else "value"
+        allowed = ("letters, digits, '_' or '-', at most 64" if where == "lab" else
+                   "letters, digits, '_', '-' or '.', at most 63, starting with a letter, digit or '_'")
+        return (f"{where}: {str(err.get('input'))[:80]!r} is not a valid name ({what}): use {allowed} (names "
+                "become bus keys and file names)")
     value = err.get("input")
     text = repr(value)
     shown = "" if isinstance(value, dict) else f" (got {text if len(text) <= 80 else text[:79] + '…'})"
