@@ -29,14 +29,18 @@ def device_serve(
     scenario: Annotated[Path, typer.Argument(help="the scenario the device belongs to")],
     name: Annotated[str, typer.Option("--id", help="the device instance, e.g. spectrometer-2")],
     connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
-    clock: Annotated[str, typer.Option(help="scaled | wall (the lab's clock)")] = "wall",
-    speed: Annotated[float, typer.Option(help="lab seconds per wall second")] = 1.0,
+    clock: Annotated[Optional[str], typer.Option(help="scaled | wall: insist on this clock (default: follow the "
+                                                      "lab's, whatever it is)")] = None,
+    speed: Annotated[Optional[float], typer.Option(help="insist on this many lab seconds per wall second "
+                                                        "(default: the lab's)")] = None,
     security: SecurityOpt = None,
 ) -> None:
-    """Serve one device actor of a scenario in this process until SIGINT/SIGTERM."""
+    """Serve one device actor of a scenario in this process until SIGINT/SIGTERM, on the lab's clock (commands
+    are refused until the lab's clock is heard)."""
     from twin.runtime.serve import serve_device
 
-    _serving(serve_device, scenario, name, connect, clock, speed, str(security) if security else None)
+    _serving(serve_device, scenario, name, connect, clock or ("scaled" if speed else None), speed,
+             str(security) if security else None)
 
 
 
@@ -147,11 +151,14 @@ def scheduler_serve(
     scenario: Annotated[Path, typer.Argument(help="the scenario of the lab to schedule")],
     scheduler: Annotated[str, typer.Option(help="rl:POLICY.zip or a rule (fifo, spt, mwkr, least-loaded, ...)")],
     connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
-    clock: Annotated[str, typer.Option(help="scaled | wall (the lab's clock)")] = "wall",
-    speed: Annotated[float, typer.Option(help="lab seconds per wall second")] = 1.0,
+    clock: Annotated[Optional[str], typer.Option(help="scaled | wall: insist on this clock (default: follow the "
+                                                      "lab's, whatever it is)")] = None,
+    speed: Annotated[Optional[float], typer.Option(help="insist on this many lab seconds per wall second "
+                                                        "(default: the lab's)")] = None,
     security: SecurityOpt = None,
 ) -> None:
     """Serve scheduling decisions to a lab whose campaign.scheduler is `remote`, until SIGINT/SIGTERM."""
     from twin.runtime.serve import serve_scheduler
 
-    _serving(serve_scheduler, scenario, scheduler, connect, clock, speed, str(security) if security else None)
+    _serving(serve_scheduler, scenario, scheduler, connect, clock or ("scaled" if speed else None), speed,
+             str(security) if security else None)

@@ -122,6 +122,13 @@ class _ScaledTime(_TimeBase):
     def select(self, real_select, timeout):
         return real_select(None if timeout is None else timeout / self.speed)
 
+    def follow(self, lab_s: float, wall_s: float, speed: float) -> float:
+        """Re-anchor on another process's clock: it read ``lab_s`` at Unix time ``wall_s``. Returns the jump."""
+        before = self.time()
+        mono, wall = time.monotonic(), time.time()
+        self.speed, self.start, self._t0 = speed, lab_s + (wall - wall_s) * speed, mono
+        return self.time() - before
+
 
 class _LabSelector(selectors.DefaultSelector):
     def __init__(self, base: _TimeBase) -> None:
@@ -162,6 +169,20 @@ class LabClock:
         else:
             raise ValueError(f"unknown clock mode {mode!r}: use virtual, scaled or wall")
         self.speed = 1.0 if mode == "wall" else speed
+        #: False while a process that joins a lab has not yet heard the lab's clock (twin/runtime/labtime.py)
+        self.anchored = True
+
+    def anchor(self) -> dict[str, Any]:
+        """What another process needs to keep this clock's time: mode, speed, and a lab time at a Unix time."""
+        return {"mode": self.mode, "speed": self.speed, "lab_s": self.now(), "wall_s": time.time()}
+
+    def follow(self, mode: ClockMode, speed: float, lab_s: float, wall_s: float) -> float:
+        """Keep the time of a clock whose :meth:`anchor` this is (both processes read the same Unix time: one
+        host, or hosts kept in step by NTP). Returns how far lab time jumped, in lab seconds."""
+        if not isinstance(self._base, _ScaledTime) or mode == "virtual":
+            raise ValueError("only a scaled or wall clock can follow another, and only a scaled or wall one")
+        self.mode, self.speed, self.anchored = mode, (1.0 if mode == "wall" else speed), True
+        return self._base.follow(lab_s, wall_s, self.speed)
 
     @property
     def is_virtual(self) -> bool:

@@ -28,6 +28,11 @@ def orchestrator(lab: str) -> str:
     return f"{PREFIX}/{lab}/orchestrator/alive"
 
 
+def clock(lab: str) -> str:
+    """The lab's clock: its anchor, answered and published (twin/runtime/labtime.py)."""
+    return f"{PREFIX}/{lab}/clock"
+
+
 def campaign(lab: str, campaign_id: str, topic: str = "**") -> str:
     return f"{PREFIX}/{lab}/campaign/{campaign_id}/{topic}"
 

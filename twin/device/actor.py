@@ -89,6 +89,8 @@ class DeviceActor:
     async def _report_health(self, key: str, payload: bytes) -> bytes:
         """``labtwin/<lab>/dev/<name>/health``: the actor's state and, if it has ``health()``, the driver's."""
         report: dict = {"device": self.name, "on_bus": self._token is not None, "dropped": self.dropped,
+                        "t_lab": self._clock.now(), "clock": {"mode": self._clock.mode, "speed": self._clock.speed,
+                                                              "in_lab_time": self._clock.anchored},
                         "running": list(self._current) if self._current else None,
                         "recent": [[t, n, p.decode()] for t, n, p in self._recent]}
         check = feature(self.driver, "health")
@@ -165,6 +167,10 @@ class DeviceActor:
             self._drop(str(exc))
             return
         if env.kind == Kind.COMMAND:
+            if not self._clock.anchored:  # it would stamp its samples in a time of its own
+                self._emit(Kind.REJECTED, {"reason": f"{self.name} has not heard lab {self._lab}'s clock yet"},
+                           env.task, env.attempt, env.campaign, env.token)
+                return
             if self._job is not None:
                 self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, env.task, env.attempt,
                            env.campaign, env.token)

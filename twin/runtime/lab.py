@@ -27,6 +27,7 @@ from twin.campaign.journal import read_inputs, read_run
 from twin.campaign.replay import Rebuilt, rebuild
 from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.fast_device import FastRuntimeRefused
+from twin.runtime.labtime import LabTimeSource
 from twin.runtime.remote_scheduler import RemoteScheduler, SchedulerService
 from twin.scenario import Scenario, load, set_dotted
 from twin.view.observer import LabObserver
@@ -372,6 +373,10 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         bus = make_bus(s, clock)
         await bus.start()
         stack.push_async_callback(bus.close)
+        if s.bus.kind != "memory":  # before anything is dispatched: a joined device stamps in the lab's time
+            source = LabTimeSource(bus, s.lab, clock)
+            source.start()
+            stack.callback(source.close)
         if observer is not None:
             watching = attach(bus, s.lab, observer.on_message)
             stack.push_async_callback(_drain, clock, observer, watching)

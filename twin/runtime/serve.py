@@ -13,29 +13,33 @@ from twin.core.bus import Bus
 from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
+from twin.runtime.labtime import LabTimeFollower
 from twin.runtime.lab import build_actors, load_drivers, make_bus, make_clock, make_scheduler, prepare
 from twin.scenario import BusSpec, Scenario
 
 log = logging.getLogger(__name__)
 
 
-def _joined(scenario: str | Path, connect: list[str], clock: str, speed: float,
+def _joined(scenario: str | Path, connect: list[str], clock: str | None, speed: float | None,
             security_dir: str | None = None) -> Scenario:
     """The scenario as seen from a process that joins the lab at ``connect`` (through its router, with
-    ``security_dir`` or the scenario's ``bus.security``)."""
+    ``security_dir`` or the scenario's ``bus.security``). Its clock is a wall clock until the lab's is heard."""
     if clock == "virtual":
-        raise ClockError("a process joining a lab cannot follow a virtual clock: use --clock scaled or wall")
-    s = prepare(scenario, clock=clock, speed=speed)
+        raise ClockError("a process joining a lab cannot follow a virtual clock: run the lab with --clock scaled "
+                         "or wall, and start this process without --clock to follow it")
+    s = prepare(scenario, clock=clock or "wall", speed=speed or 1.0)
     return s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms,
                                                zenoh=s.bus.zenoh, security=security_dir or s.bus.security,
                                                connect_timeout_ms=s.bus.connect_timeout_ms)})
 
 
 def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], Awaitable[None]]]], ready: str,
-           who: Identity) -> None:
-    """Open the bus as ``who``, ``start`` the actor (which returns its stop), print ``ready``, run until
-    SIGINT/SIGTERM."""
+           who: Identity, clock: str | None, speed: float | None) -> None:
+    """Open the bus as ``who``, follow the lab's clock (``clock``/``speed``: what the operator asked for, None to
+    take the lab's), ``start`` the actor (which returns its stop), print ``ready``, run until SIGINT/SIGTERM or
+    until the lab runs a clock this process may not follow."""
     lab_clock = make_clock(s)
+    problems: list[str] = []
 
     async def main() -> None:
         bus = make_bus(s, lab_clock, who)
@@ -44,21 +48,29 @@ def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], 
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
+        follower = LabTimeFollower(bus, s.lab, lab_clock, clock, speed,
+                                   on_error=lambda reason: (problems.append(reason), stop.set()))
         finish = None
         try:
+            if not await follower.start(wait_s=min(2.0, s.bus.connect_timeout_ms / 1000)):
+                log.info("lab %s is not running yet: commands are refused until its clock is heard", s.lab)
             finish = await start(bus, lab_clock)
             log.info("%s on %s", ready, s.bus.connect)
             print(ready, flush=True)
             await stop.wait()
         finally:
+            follower.close()
             if finish is not None:
                 await finish()
             await bus.close()
 
     lab_clock.run(main())
+    if problems:
+        raise ClockError(problems[0])
 
 
-def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str = "wall", speed: float = 1.0,
+def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str | None = None,
+                 speed: float | None = None,
                  security_dir: str | None = None) -> None:
     s = _joined(scenario, connect, clock, speed, security_dir)
     drivers = load_drivers(s, only={name})
@@ -77,7 +89,7 @@ def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str
 
         return finish
 
-    _serve(s, start, f"ready {name}", Identity("device", s.lab, name))
+    _serve(s, start, f"ready {name}", Identity("device", s.lab, name), clock, speed)
 
 
 def health(scenario: str | Path, ids: list[str], connect: list[str], security_dir: str | None = None,
@@ -114,7 +126,8 @@ def health(scenario: str | Path, ids: list[str], connect: list[str], security_di
     return clock.run(ask())
 
 
-def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: str = "wall", speed: float = 1.0,
+def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: str | None = None,
+                    speed: float | None = None,
                     security_dir: str | None = None) -> None:
     """A scheduler (a rule or ``rl:PATH``) as an agent on a lab's bus."""
     from twin.runtime.remote_scheduler import SchedulerService
@@ -131,4 +144,4 @@ def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: 
 
         return finish
 
-    _serve(s, start, f"ready scheduler {spec}", Identity("scheduler", s.lab))
+    _serve(s, start, f"ready scheduler {spec}", Identity("scheduler", s.lab), clock, speed)

@@ -7,9 +7,11 @@ config, whose access-control policy denies by default and allows
 
 - a device: publishing on its own ``evt``/``telemetry`` keys, subscribing to
   its own ``cmd`` key, serving its own ``health`` key, declaring its own
-  liveliness token, and watching the orchestrator's token;
+  liveliness token, watching the orchestrator's token, and hearing the lab's
+  clock (``labtwin/<lab>/clock``, which only the orchestrator may publish);
 - the orchestrator: everything under ``labtwin/<lab>/`` (it is the lab);
-- a scheduler agent: serving ``labtwin/<lab>/agent/scheduler/**``;
+- a scheduler agent: serving ``labtwin/<lab>/agent/scheduler/**`` and hearing
+  the lab's clock;
 - a watcher: reading (subscribing, watching tokens, paging the history).
 
 Subjects are matched by certificate common name, which only mutual TLS
@@ -117,6 +119,8 @@ def access_control(lab: str, devices: list[str]) -> dict[str, Any]:
         _rule("scheduler-in", ["declare_queryable", "reply", "liveliness_token"], ["ingress"],
               [f"{p}/agent/scheduler/**"]),
         _rule("scheduler-out", ["query"], ["egress"], [f"{p}/agent/scheduler/**"]),
+        _rule("clock-ask", ["declare_subscriber", "query"], ["ingress"], [keys.clock(lab)]),
+        _rule("clock-told", ["put", "reply"], ["egress"], [keys.clock(lab)]),
         _rule("watcher-in", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"], ["ingress"],
               [f"{p}/**"]),
         _rule("watcher-history", ["query"], ["ingress"], [keys.campaign(lab, "*", "history")]),
@@ -125,7 +129,7 @@ def access_control(lab: str, devices: list[str]) -> dict[str, Any]:
     subjects = [{"id": role, "cert_common_names": [Identity(role, lab).common_name]}
                 for role in ("orchestrator", "scheduler", "watcher")]
     policies = [{"rules": ["orchestrator"], "subjects": ["orchestrator"]},
-                {"rules": ["scheduler-in", "scheduler-out"], "subjects": ["scheduler"]},
+                {"rules": ["scheduler-in", "scheduler-out", "clock-ask", "clock-told"], "subjects": ["scheduler"]},
                 {"rules": ["watcher-in", "watcher-history", "watcher-out"], "subjects": ["watcher"]}]
     for i, dev in enumerate(devices):
         sid = f"device{i}"
@@ -142,7 +146,7 @@ def access_control(lab: str, devices: list[str]) -> dict[str, Any]:
         ]
         rules += own
         subjects.append({"id": sid, "cert_common_names": [Identity("device", lab, dev).common_name]})
-        policies.append({"rules": [r["id"] for r in own], "subjects": [sid]})
+        policies.append({"rules": [r["id"] for r in own] + ["clock-ask", "clock-told"], "subjects": [sid]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
 
