@@ -1,34 +1,32 @@
 """An instrument that speaks JSON over MQTT, as an ordinary device of the lab.
 
-Topics under ``options.topic`` (say ``lab/hplc-1``):
+The protocol — topics, payloads, presence, cancellation, what is done with a
+message that breaks it — is docs/mqtt.md; ``devices/mqtt_protocol.py`` checks
+the payloads. In short, under ``options.topic`` (say ``lab/hplc-1``): the lab
+sends ``command`` (run, cancel, ping); the instrument answers on ``result``,
+says ``online``/``offline`` on ``status`` (retained, with its last will),
+and may publish ``progress``, ``telemetry`` and ``health``.
 
-- ``<topic>/command`` ← ``{"id", "step", "params", "sample"}`` to run a step, ``{"id", "cancel": true}`` to stop it;
-- ``<topic>/result``  → ``{"id", "outputs": {...}, "sample": {...}}``, or ``{"id", "error": "why"}``;
-- ``<topic>/status``  → ``"online"`` (retained) when the instrument is up; its MQTT last will says ``"offline"``.
-
-The device's presence on the lab bus follows ``status``: the instrument's last
-will (it died, or lost the broker) takes the device off the bus, so the
-orchestrator sees the loss as it sees any other and moves the work. Deadlines
-and retries are the orchestrator's, as for every driver. Options: ``broker``
-(``host:port``, default ``127.0.0.1:1883``), ``topic`` (``{name}`` in it is
-the device instance's name), ``steps`` (what the instrument runs), ``qos``
-(default 1), ``outputs`` (what its results hold, for ``twin validate``),
-``username`` with ``password`` or ``password_env`` (the name of an environment
-variable that holds it: a password is best kept out of scenario files), and
-``tls: {ca, cert, key}`` (PEM files; ``cert``/``key`` for a client
-certificate). docs/security.md has a mosquitto configuration with an ACL.
-
-A result counts only for a command id this adapter issued (random, so it
-cannot be guessed) and only once; anything else is dropped, logged and
-counted in the device's health report.
+The device's presence on the lab bus follows ``status``, and a retained
+``online`` is trusted only once the instrument has answered a ping (a clean
+disconnect does not fire the last will). Deadlines and retries are the
+orchestrator's; commands carry them in wall seconds with the lab's clock speed.
+Options: ``broker`` (``host:port``, default ``127.0.0.1:1883``), ``topic``
+(``{name}`` in it is the device instance's name), ``steps`` (what the instrument
+runs), ``qos`` (default 1), ``outputs`` (what its results hold, for ``twin
+validate``), ``cancel_wait_s`` (wall seconds to wait for the instrument to
+acknowledge a cancel, default 10), ``username`` with ``password`` or
+``password_env`` (the name of an environment variable that holds it), and
+``tls: {ca, cert, key}`` (PEM files). docs/security.md has a mosquitto
+configuration with an ACL.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import itertools
-import json
 import logging
 import os
 import secrets
@@ -40,12 +38,12 @@ from typing import Any
 import aiomqtt
 from aiomqtt.exceptions import MqttConnectError
 
-from twin import DriverSetup, StepContext, StepResult
-from twin import DriverError
+from devices import mqtt_protocol as proto
+from twin import DriverError, DriverSetup, Refused, StepContext, StepResult, sleep_wall
 
 log = logging.getLogger(__name__)
 NODELAY = ((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),)  # without it p99 round trips were ~40 ms
-
+PING_EVERY_WALL_S = 2.0
 
 class MqttInstrument:
     labtwin_api = 1
@@ -60,6 +58,7 @@ class MqttInstrument:
         # "{name}" in the topic is the device instance: one instrument per instance
         self.topic = str(o["topic"]).replace("{name}", setup.name).rstrip("/")
         self.qos, self.name = int(o.get("qos", 1)), setup.name
+        self.cancel_wait_s = float(o.get("cancel_wait_s", 10.0))
         self.capabilities = frozenset(o.get("steps") or ())
         self.username, self.password = _credentials(setup.name, o)
         self.tls = _tls(setup.name, o.get("tls"))
@@ -67,10 +66,16 @@ class MqttInstrument:
         if o.get("outputs") is not None:  # what the instrument's results hold, when the scenario says
             self.outputs = frozenset(str(x) for x in o["outputs"])
         self._ids = itertools.count(1)
-        self._waiting: dict[str, asyncio.Future] = {}
+        self._job: str | None = None  # the command the instrument is running
+        self._answer: asyncio.Future | None = None
+        self._ctx: StepContext | None = None
+        self._issued: collections.deque[str] = collections.deque(maxlen=256)  # late answers are not strangers
         self._client: aiomqtt.Client | None = None
-        self._pump: asyncio.Task | None = None
+        self._tasks: list[asyncio.Task] = []
+        self._present: bool | None = None  # None: a retained "online" not yet confirmed by a ping
         self._presence: Callable[[bool], None] = lambda present: None
+        self._instrument_health: Any = None
+        self._telemetry: dict[str, float] = {}
 
     # -- life cycle (called by the device actor) -------------------------------------
     async def connect(self, presence: Callable[[bool], None]) -> None:
@@ -92,15 +97,16 @@ class MqttInstrument:
                                   "(the CA that signed the broker's certificate) and that this port speaks TLS") from exc
             raise DriverError(f"{self.name}: cannot reach {where} ({exc}): is it running, and listening on that "
                               f"port{' with TLS' if self.tls else ''}?") from exc
-        await self._client.subscribe(f"{self.topic}/result", qos=self.qos)
-        await self._client.subscribe(f"{self.topic}/status", qos=self.qos)
-        self._pump = asyncio.ensure_future(self._receive())
+        for topic, _retained in proto.TOPICS.items():
+            if topic != "command":
+                await self._client.subscribe(f"{self.topic}/{topic}", qos=self.qos)
+        self._tasks = [asyncio.ensure_future(self._receive())]
 
     async def disconnect(self) -> None:
-        if self._pump is not None:
-            self._pump.cancel()
+        for task in self._tasks:
+            task.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._pump
+                await task
         if self._client is not None:
             with contextlib.suppress(Exception):
                 await self._client.__aexit__(None, None, None)
@@ -109,59 +115,148 @@ class MqttInstrument:
     async def _receive(self) -> None:
         try:
             async for message in self._client.messages:
-                text = message.payload.decode(errors="replace") if isinstance(message.payload, bytes) else str(message.payload)
-                if message.topic.matches(f"{self.topic}/status"):
-                    self._presence(text.strip('"') == "online")
-                else:
-                    self._answer(text)
+                payload = message.payload if isinstance(message.payload, bytes) else str(message.payload).encode()
+                topic = str(message.topic)[len(self.topic) + 1:]
+                handle = getattr(self, f"_on_{topic}", None)
+                if handle is not None:
+                    handle(payload, bool(message.retain))
         except aiomqtt.MqttError as exc:
             log.warning("%s: lost the MQTT broker (%s)", self.name, exc)
-            self._presence(False)
+            self._set_present(False)
 
-    def _answer(self, text: str) -> None:
+    # -- what the instrument says ------------------------------------------------------
+    def _on_status(self, payload: bytes, retained: bool) -> None:
+        text = payload.decode(errors="replace").strip().strip('"')
+        if text == "offline":
+            self._set_present(False)
+        elif text != "online":
+            self._invalid("status", f"{text[:40]!r}, not online or offline")
+        elif not retained:
+            self._set_present(True)
+        elif not self._present:  # a retained "online" may be a dead instrument's that exited without a will
+            self._present = None
+            self._tasks.append(asyncio.ensure_future(self._ping_until_known()))
+
+    def _set_present(self, present: bool) -> None:
+        if self._present is not present:
+            self._present = present
+            self._presence(present)
+
+    async def _ping_until_known(self) -> None:
+        while self._present is None and self._client is not None:
+            with contextlib.suppress(aiomqtt.MqttError):
+                await self._client.publish(f"{self.topic}/command", proto.ping(self._new_id()), qos=self.qos)
+            await sleep_wall(PING_EVERY_WALL_S)
+
+    def _on_result(self, payload: bytes, retained: bool) -> None:
         try:
-            reply = json.loads(text)
-            waiter = self._waiting.pop(str(reply["id"]), None)
-        except (ValueError, KeyError, TypeError, AttributeError):
-            self.dropped += 1
-            log.warning("%s: dropped an unreadable result %.200r", self.name, text)
+            data = proto.parse(payload)
+            job = proto.job_of(data)
+            kind = proto.result_kind(data)
+        except proto.InvalidPayload as exc:
+            self._fail_running(f"an invalid result ({exc})")
             return
-        if waiter is None or waiter.done():
-            self.dropped += 1
-            log.warning("%s: dropped a result for %.60r, a command id this adapter did not issue or already "
-                        "counted", self.name, str(reply.get("id")))
+        if job != self._job:
+            if job in self._issued:
+                self._invalid("result", f"a late or repeated answer to {job[:60]!r}", quiet=True)
+            else:
+                self._fail_running(f"a result for {job[:60]!r}, a command id this adapter never issued")
             return
-        waiter.set_result(reply)
+        if self._answer is not None and not self._answer.done():
+            self._answer.set_result((kind, data))
+
+    def _on_progress(self, payload: bytes, retained: bool) -> None:
+        try:
+            data = proto.parse(payload)
+            fraction, note = proto.progress(data)
+        except proto.InvalidPayload as exc:
+            self._invalid("progress", str(exc))
+            return
+        if self._ctx is not None and data.get("id") == self._job:
+            self._ctx.progress(fraction, note)
+
+    def _on_telemetry(self, payload: bytes, retained: bool) -> None:
+        try:
+            self._telemetry = proto.readings(proto.parse(payload))
+        except proto.InvalidPayload as exc:
+            self._invalid("telemetry", str(exc))
+            return
+        if self._ctx is not None:
+            self._ctx.telemetry(self._telemetry)
+
+    def _on_health(self, payload: bytes, retained: bool) -> None:
+        try:
+            self._instrument_health = proto.parse(payload)
+        except proto.InvalidPayload as exc:
+            self._invalid("health", str(exc))
+
+    def _fail_running(self, what: str) -> None:
+        """A broken result fails the step it must be about (one at a time) at once, not at its deadline."""
+        self._invalid("result", what)
+        if self._answer is not None and not self._answer.done():
+            self._answer.set_exception(DriverError(f"{self.name}: the instrument sent {what}"[:500]))
+
+    def _invalid(self, topic: str, what: str, quiet: bool = False) -> None:
+        self.dropped += 1
+        if not quiet and (self.dropped <= 10 or self.dropped % 1000 == 0):
+            log.warning("%s: dropped on %s/%s: %s (%d so far)", self.name, self.topic, topic, what, self.dropped)
+
+    def _new_id(self) -> str:
+        job = f"{self.name}-{next(self._ids)}-{secrets.token_hex(8)}"  # unguessable: only the instrument knows it
+        self._issued.append(job)
+        return job
 
     # -- the driver contract -------------------------------------------------------------
     async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
         if self._client is None:
             raise DriverError(f"{self.name}: not connected to the MQTT broker")
-        job = f"{self.name}-{next(self._ids)}-{secrets.token_hex(8)}"  # unguessable: only the instrument knows it
-        waiter = self._waiting[job] = asyncio.get_running_loop().create_future()
-        command = {"id": job, "step": step, "params": params, "sample": sample}
+        speed = ctx.clock.speed if ctx.clock.speed > 0 else 1.0
+        job = self._job = self._new_id()
+        self._answer, self._ctx = asyncio.get_running_loop().create_future(), ctx
+        text = proto.command(job, step, params, sample, expected_s=ctx.expected_s / speed,
+                             deadline_s=None if ctx.deadline_s is None else ctx.deadline_s / speed, speed=speed,
+                             t_lab=ctx.clock.now())
         try:
-            await self._client.publish(f"{self.topic}/command", json.dumps(command), qos=self.qos)
-            reply = await waiter
+            await self._client.publish(f"{self.topic}/command", text, qos=self.qos)
+            kind, reply = await asyncio.shield(self._answer)  # a cancel must leave it to the instrument's answer
         except asyncio.CancelledError:
-            self._waiting.pop(job, None)
-            with contextlib.suppress(Exception):
-                await self._client.publish(f"{self.topic}/command", json.dumps({"id": job, "cancel": True}), qos=self.qos)
+            await self._cancel(job)
             raise
-        if "error" in reply:
-            raise DriverError(f"{self.name} reported: {reply['error']}")
-        outputs = reply.get("outputs")
-        if not isinstance(outputs, dict):
-            raise DriverError(f"{self.name} sent a result without an 'outputs' object: {reply!r:.200}")
-        return StepResult(outputs, reply.get("sample", sample))
+        finally:
+            self._job = self._answer = self._ctx = None
+        if kind == "done":
+            return StepResult(reply["outputs"], reply["sample"])
+        if kind == "refused":
+            raise Refused(reply["refused"], bool(reply.get("infeasible", False)))
+        if kind == "cancelled":
+            raise DriverError(f"{self.name}: the instrument cancelled {step} by itself")
+        raise DriverError(f"{self.name} reported: {reply['error']}")
+
+    async def _cancel(self, job: str) -> None:
+        """Tell the instrument, and wait (``cancel_wait_s`` of wall time) for it to say it stopped: until then
+        the device is not free for the next command."""
+        with contextlib.suppress(Exception):
+            await self._client.publish(f"{self.topic}/command", proto.cancel(job), qos=self.qos)
+        answer = self._answer
+        if answer is None:
+            return
+        waited = asyncio.ensure_future(sleep_wall(self.cancel_wait_s))
+        await asyncio.wait({answer, waited}, return_when=asyncio.FIRST_COMPLETED)
+        waited.cancel()
+        if not answer.done():
+            log.warning("%s: the instrument did not acknowledge the cancel of %s in %g s of wall time", self.name,
+                        job, self.cancel_wait_s)
+        elif answer.exception() is None and answer.result()[0] != "cancelled":
+            log.info("%s: the instrument finished %s as it was cancelled; its answer is not counted", self.name, job)
 
     async def safe_state(self) -> None:
         """The instrument keeps its own safe state; a cancelled step was already told to stop."""
 
     async def health(self) -> dict[str, Any]:
-        return {"ok": self._client is not None, "broker": f"{self.host}:{self.port}", "topic": self.topic,
-                "waiting": len(self._waiting), "dropped": self.dropped, "tls": self.tls is not None,
-                "user": self.username}
+        return {"ok": self._client is not None and self._present is True, "broker": f"{self.host}:{self.port}",
+                "topic": self.topic, "present": self._present, "running": self._job, "dropped": self.dropped,
+                "tls": self.tls is not None, "user": self.username, "instrument": self._instrument_health,
+                "telemetry": self._telemetry}
 
 
 def _credentials(name: str, o: dict[str, Any]) -> tuple[str | None, str | None]:

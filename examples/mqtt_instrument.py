@@ -1,15 +1,15 @@
 #!/usr/bin/env python3
-"""A stand-alone instrument that speaks JSON over MQTT: a plate reader measuring quantum-dot samples.
-
-It knows nothing of labtwin. It listens on ``<topic>/command``, answers on
-``<topic>/result`` and says ``online`` on ``<topic>/status`` (retained); its
-MQTT last will says ``offline``, so the broker tells the lab when it dies.
+"""A stand-alone instrument that speaks labtwin's MQTT protocol (docs/mqtt.md): a plate reader measuring
+quantum-dot samples. It knows nothing of labtwin.
 
     python examples/mqtt_instrument.py --broker 127.0.0.1:1883 --topic lab/reader-1 --seconds 1
 
-A command ``{"id", "step", "params", "sample"}`` is measured for ``--seconds``
-(wall time) and answered ``{"id", "outputs", "sample"}``: the sample's emission
-peak and line width with a little noise. ``{"id", "cancel": true}`` stops it.
+It listens on ``<topic>/command``: a run command is measured for ``--seconds`` (wall time), reporting
+``progress`` half way, and answered on ``<topic>/result`` with ``{"id", "outputs", "sample"}`` (the sample's
+emission peak and line width with a little noise); a second command while one runs is refused as busy; a cancel
+stops it (after ``--cancel-seconds``, a slow instrument) and is acknowledged ``{"id", "cancelled": true}``; a
+ping re-announces ``online``. ``<topic>/status`` is ``online`` (retained) while it runs, ``offline`` when it
+exits (explicitly) or dies (its MQTT last will); ``<topic>/health`` (retained) says how it is.
 """
 
 from __future__ import annotations
@@ -25,49 +25,65 @@ import socket
 import aiomqtt
 
 
-async def measure(client: aiomqtt.Client, topic: str, cmd: dict, seconds: float, rng: random.Random) -> None:
-    await asyncio.sleep(seconds)
+async def measure(pub, cmd: dict, seconds: float, rng: random.Random) -> None:
+    await asyncio.sleep(seconds / 2)
+    await pub("progress", {"id": cmd["id"], "fraction": 0.5, "note": "half way"})
+    await asyncio.sleep(seconds / 2)
     sample = cmd.get("sample") or {}
     if "peak_nm" not in sample:
-        reply = {"id": cmd["id"], "error": f"nothing to measure in sample {sample!r:.80}"}
-    else:
-        outputs = {"peak_nm": round(sample["peak_nm"] + rng.gauss(0, 0.5), 3),
-                   "fwhm_nm": round(sample.get("fwhm_nm", 30.0) * (1 + rng.gauss(0, 0.01)), 3)}
-        reply = {"id": cmd["id"], "outputs": outputs, "sample": sample}
-    await client.publish(f"{topic}/result", json.dumps(reply), qos=1)
+        await pub("result", {"id": cmd["id"], "error": f"nothing to measure in sample {sample!r:.80}"})
+        return
+    outputs = {"peak_nm": round(sample["peak_nm"] + rng.gauss(0, 0.5), 3),
+               "fwhm_nm": round(sample.get("fwhm_nm", 30.0) * (1 + rng.gauss(0, 0.01)), 3)}
+    await pub("result", {"id": cmd["id"], "outputs": outputs, "sample": sample})
 
 
 async def main(args: argparse.Namespace) -> None:
     host, _, port = args.broker.rpartition(":")
-    will = aiomqtt.Will(f"{args.topic}/status", "offline", qos=1, retain=True)
+    t = args.topic
+    will = aiomqtt.Will(f"{t}/status", "offline", qos=1, retain=True)
     rng, running = random.Random(args.seed), {}
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         asyncio.get_running_loop().add_signal_handler(sig, stop.set)
     tls = aiomqtt.TLSParameters(ca_certs=args.ca) if args.ca else None
-    async with aiomqtt.Client(host, int(port), identifier=f"instrument-{args.topic}", will=will,
-                              keepalive=args.keepalive, username=args.username,
+    async with aiomqtt.Client(host, int(port), identifier=f"instrument-{t}", will=will, keepalive=args.keepalive,
+                              username=args.username, tls_params=tls,
                               password=os.environ.get(args.password_env) if args.password_env else None,
-                              tls_params=tls,
                               socket_options=((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),)) as client:
-        await client.subscribe(f"{args.topic}/command", qos=1)
-        await client.publish(f"{args.topic}/status", "online", qos=1, retain=True)
-        print(f"ready {args.topic}", flush=True)
+
+        async def pub(topic: str, body, retain: bool = False) -> None:
+            await client.publish(f"{t}/{topic}", body if isinstance(body, str) else json.dumps(body), qos=1,
+                                 retain=retain)
+
+        async def cancel(cmd: dict, task: asyncio.Task) -> None:
+            await asyncio.sleep(args.cancel_seconds)
+            task.cancel()
+            running.pop(cmd["id"], None)
+            await pub("result", {"id": cmd["id"], "cancelled": True})
 
         async def serve() -> None:
             async for message in client.messages:
                 cmd = json.loads(message.payload)
-                if cmd.get("cancel"):
-                    task = running.pop(cmd["id"], None)
-                    if task:
-                        task.cancel()
-                    continue
-                running[cmd["id"]] = asyncio.ensure_future(measure(client, args.topic, cmd, args.seconds, rng))
+                if cmd.get("ping"):
+                    await pub("status", "online", retain=True)
+                elif cmd.get("cancel"):
+                    if cmd["id"] in running:
+                        asyncio.ensure_future(cancel(cmd, running[cmd["id"]]))
+                elif any(not task.done() for task in running.values()):
+                    await pub("result", {"id": cmd["id"], "refused": "busy", "infeasible": False})
+                else:
+                    running.clear()
+                    running[cmd["id"]] = asyncio.ensure_future(measure(pub, cmd, args.seconds, rng))
 
+        await client.subscribe(f"{t}/command", qos=1)
+        await pub("health", {"ok": True, "lamp_hours": 1234}, retain=True)
+        await pub("status", "online", retain=True)
+        print(f"ready {t}", flush=True)
         server = asyncio.ensure_future(serve())
         await stop.wait()
         server.cancel()
-        await client.publish(f"{args.topic}/status", "offline", qos=1, retain=True)
+        await pub("status", "offline", retain=True)  # a clean disconnect does not fire the last will
 
 
 if __name__ == "__main__":
@@ -75,6 +91,7 @@ if __name__ == "__main__":
     ap.add_argument("--broker", default="127.0.0.1:1883")
     ap.add_argument("--topic", required=True)
     ap.add_argument("--seconds", type=float, default=1.0, help="wall seconds per measurement")
+    ap.add_argument("--cancel-seconds", type=float, default=0.0, help="wall seconds it takes to stop when cancelled")
     ap.add_argument("--keepalive", type=int, default=2, help="seconds; a frozen instrument is declared dead after 1.5x")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--username", help="the broker's user for this instrument")

@@ -12,7 +12,7 @@ from twin.campaign.decisions import (Assignment, DeviceState, FreeDevice, LabVie
                                      ReadyStep, RouteStep, Scheduler, capable)
 from twin.campaign.summary import Summary
 from twin.core.bus import Bus, MemoryBus, open_bus
-from twin.core.clock import Clock, LabClock
+from twin.core.clock import Clock, LabClock, sleep_wall
 from twin.core.errors import (AccountingError, BusError, ClockError, DriverError, PluginError, Refused,
                               ScenarioError, TwinError)
 from twin.core.plugins import load as load_plugin
@@ -41,5 +41,5 @@ __all__ = [
     "SteppedCampaign", "Summary", "TwinError", "capable", "driver_setup", "expected_duration", "jobshop_as_lab",
     "json_schema", "keyed_uniforms", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
     "prepare", "random_jobshop", "read_meta", "resume", "run", "run_async", "run_scenario", "run_step",
-    "save_policy", "score", "seeded",
+    "save_policy", "score", "seeded", "sleep_wall",
 ]

@@ -30,9 +30,10 @@ def mqtt_lab(broker: str, prefix: str, **changes) -> dict:
     })
 
 
-def instrument(broker: str, topic: str, seconds: float = 0.3) -> subprocess.Popen:
+def instrument(broker: str, topic: str, seconds: float = 0.3, cancel_seconds: float = 0.0) -> subprocess.Popen:
     proc = subprocess.Popen([sys.executable, "examples/mqtt_instrument.py", "--broker", broker, "--topic", topic,
-                             "--seconds", str(seconds)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+                             "--seconds", str(seconds), "--cancel-seconds", str(cancel_seconds)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
     assert proc.stdout.readline().decode().startswith("ready"), proc.stderr.read().decode()
     return proc
 

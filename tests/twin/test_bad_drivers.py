@@ -100,6 +100,7 @@ async def test_a_device_answers_health_requests_with_its_drivers_report(virtual_
     one = json.loads(await bus.request(keys.health(s.lab, "spectrometer-1"), b"", timeout=5))
     two = json.loads(await bus.request(keys.health(s.lab, "spectrometer-2"), b"", timeout=5))
     assert one == {"device": "spectrometer-1", "on_bus": True, "dropped": 0, "running": None, "recent": [],
+                   "t_lab": virtual_clock.now(), "clock": {"mode": "virtual", "speed": 1.0, "in_lab_time": True},
                    "driver": {"ok": True, "lamp_hours": 1234}}
     assert "driver" not in two and two["on_bus"]
     for a in actors:

@@ -79,7 +79,7 @@ class CampaignCore:
         self._filled = False  # the planner had its say in this pass
         self._retrying: dict[str, Task] = {}  # waiting out their back-off
         self._availability = Availability()
-        self._workflow = tuple(RouteStep(w.step, w.device) for w in scenario.workflow)
+        self._workflow = tuple(RouteStep(w.step, w.device, dict(w.params)) for w in scenario.workflow)
 
     # -- the runtime's side ---------------------------------------------------------
     def start(self, now: float) -> list[Action]:
@@ -222,7 +222,10 @@ class CampaignCore:
     def _after_resolved(self, att: Attempt, m: DeviceMessage) -> None:
         """A message about an attempt already decided: the answer to a cancel, or late."""
         dev = self.devices[att.device]
-        acked = dev.cancelling is att and m.kind in (Kind.FAULT, Kind.RESULT, Kind.REJECTED)
+        final = m.kind in (Kind.FAULT, Kind.RESULT, Kind.REJECTED)
+        if final and dev.unanswered is att:
+            dev.unanswered = None
+        acked = dev.cancelling is att and final
         if acked:
             dev.cancelling = None
             self._out.append(CancelTimer(TimerKey(TimerKind.CANCEL_GRACE, dev.name)))
@@ -247,6 +250,7 @@ class CampaignCore:
                 self._note("device.flapping", device=dev.name, detail={"within_s": self._flap_s})
                 self._wake = True
                 return
+            dev.unanswered = None
             if dev.cancelling is not None:
                 dev.cancelling = None
                 self._out.append(CancelTimer(TimerKey(TimerKind.CANCEL_GRACE, dev.name)))
@@ -279,6 +283,7 @@ class CampaignCore:
             dev = self.devices[key.ref]
             if dev.cancelling is not None:
                 att, dev.cancelling = dev.cancelling, None
+                dev.unanswered = att
                 self.counts.cancels_unanswered += 1
                 self._note("attempt.cancel_unanswered", att.task.experiment.id, att.task.id, att.n, dev.name,
                            detail={"grace_s": self.s.orchestrator.cancel_grace_s})
@@ -442,7 +447,7 @@ class CampaignCore:
         deadline = policy.deadline_s(task.expected_s, self.s.orchestrator)
         self._timer(TimerKey(TimerKind.DEADLINE, f"{task.id}#{att.n}"), deadline)
         body = {"step": task.step.step, "params": {**e.params, **task.step.params}, "sample": e.sample,
-                "expected_s": task.expected_s}
+                "expected_s": task.expected_s, "deadline_s": deadline}
         self._note("attempt.dispatched", e.id, task.id, att.n, dev.name, detail={"deadline_s": deadline})
         self._send(dev.name, Kind.COMMAND, task.id, att.n, body, att.token)
 
@@ -480,6 +485,10 @@ class CampaignCore:
             self._finish_infeasible(e, f"{dev.name} refused {task.step.step!r}: {reason}")
             return
         self.counts.refused_now += 1
+        if dev.unanswered is not None:  # still stopping the step it was told to cancel: wait for it again
+            dev.cancelling, dev.unanswered = dev.unanswered, None
+            self._timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name), o.cancel_grace_s)
+            self._note("device.still_cancelling", device=dev.name, detail={"reason": reason})
         task.attempts -= 1  # "not now" does not use up one of the step's attempts
         e.attempts -= 1
         task.refusals += 1

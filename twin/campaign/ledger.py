@@ -73,6 +73,7 @@ class Device:
     quarantined: bool = False
     attempt: Attempt | None = None
     cancelling: Attempt | None = None  # timed out; the device is not reused before it answers the cancel
+    unanswered: Attempt | None = None  # a cancel it never answered: a "not now" from it means it is still busy
     consecutive_failures: int = 0
     busy_s: float = 0.0
     failures: int = 0

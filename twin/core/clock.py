@@ -152,6 +152,18 @@ class LabEventLoop(asyncio.SelectorEventLoop):
     def time(self) -> float:
         return self._base.time()
 
+    @property
+    def speed(self) -> float:
+        """Lab seconds per wall second (1 on a virtual clock, where wall time does not apply)."""
+        return getattr(self._base, "speed", 1.0)
+
+
+async def sleep_wall(seconds: float) -> None:
+    """Wait ``seconds`` of wall time on the running loop (lab seconds on a virtual one): for code that deals
+    with the world outside the lab, a real instrument's patience, say."""
+    loop = asyncio.get_running_loop()
+    await asyncio.sleep(max(0.0, seconds) * getattr(loop, "speed", 1.0))
+
 
 class LabClock:
     """The one clock of a run; create its loop with :meth:`new_loop` or :meth:`run`."""

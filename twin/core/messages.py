@@ -45,6 +45,7 @@ class CommandBody(_Body):
     expected_s: Annotated[float, Meta(ge=0)]
     params: dict[str, Any] = {}
     sample: dict[str, Any] | None = None
+    deadline_s: Annotated[float, Meta(ge=0)] | None = None  # lab seconds from dispatch until the lab gives up
 
 
 class AcceptedBody(_Body):

@@ -222,6 +222,8 @@ class DeviceActor:
             duration=spec.duration,
             progress=lambda f, note: emit(Kind.PROGRESS, {"fraction": f, "note": note}),
             telemetry=lambda r: emit(Kind.TELEMETRY, {"readings": r}, keys.telemetry(self._lab, self.name)),
+            expected_s=cmd.expected_s,
+            deadline_s=cmd.deadline_s,
         )
         emit(Kind.ACCEPTED, {})
         try:

@@ -48,6 +48,8 @@ class StepContext:
     duration: Any  # twin.scenario.Duration
     progress: Callable[[float, str], None]
     telemetry: Callable[[dict[str, float]], None]
+    expected_s: float = 0.0  # lab seconds the lab expects the step to take
+    deadline_s: float | None = None  # lab seconds from dispatch after which the lab cancels the step
 
     def draw_duration(self, params: dict[str, Any]) -> float:
         """A lognormal draw around the scenario's mean, plus the parameter it names."""

@@ -168,6 +168,8 @@ class FastDevice:
             duration=spec.duration,
             progress=lambda f, note: emit(Kind.PROGRESS, {"fraction": f, "note": note}),
             telemetry=lambda r: emit(Kind.TELEMETRY, {"readings": r}),
+            expected_s=cmd["expected_s"],
+            deadline_s=cmd.get("deadline_s"),
         )
         emit(Kind.ACCEPTED, {})
         try:

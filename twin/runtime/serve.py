@@ -48,8 +48,12 @@ def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], 
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
-        follower = LabTimeFollower(bus, s.lab, lab_clock, clock, speed,
-                                   on_error=lambda reason: (problems.append(reason), stop.set()))
+
+        def cannot_follow(reason: str) -> None:
+            problems.append(reason)
+            stop.set()
+
+        follower = LabTimeFollower(bus, s.lab, lab_clock, clock, speed, on_error=cannot_follow)
         finish = None
         try:
             if not await follower.start(wait_s=min(2.0, s.bus.connect_timeout_ms / 1000)):

@@ -128,9 +128,14 @@ class Chemistry(_Spec):
         return targets
 
 
+StepValue = Annotated[float, Field(ge=-MAX_VALUE, le=MAX_VALUE)] | bool | Annotated[str, StringConstraints(max_length=256)]
+
+
 class WorkflowStep(_Spec):
     step: Label
     device: str = Field(max_length=64, description="a device type of the lab")
+    params: dict[Label, StepValue] = Field(default_factory=dict, max_length=64, description="this step's own "
+                                           "parameters, sent with the experiment's (these win a clash)")
 
 
 class Campaign(_Spec):

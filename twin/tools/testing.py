@@ -31,7 +31,7 @@ def run_step(driver: Any, step: str, params: dict[str, Any], sample: dict | None
     clock = LabClock("virtual")
     duration = setup.duration if setup is not None else Duration(mean_s=60.0 if mean_s is None else mean_s, cv=0.0)
     ctx = StepContext(clock=clock, rng=np.random.default_rng(seed), duration=duration,
-                      progress=lambda *_: None, telemetry=lambda _: None)
+                      progress=lambda *_: None, telemetry=lambda _: None, expected_s=duration.mean_s)
 
     async def one() -> tuple[StepResult, float]:
         result = await driver.run(step, params, sample, ctx)
