@@ -19,6 +19,7 @@ from twin import Assignment, LabView, capable
 
 
 class CpSatScheduler:
+    runs_long = True  # a solve takes up to time_limit_s of wall time: the live lab asks it off the event loop
     def __init__(self, scenario: Any = None, time_limit_s: float = 1.0, **_: Any) -> None:
         self.time_limit_s = time_limit_s
         self.unit = max(1.0, time_scale(scenario) / 50) if scenario is not None else 1.0  # lab-s per model tick

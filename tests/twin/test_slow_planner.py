@@ -9,7 +9,7 @@ from twin.campaign.journal import read_events
 from twin.runtime.lab import run
 from twin.scenario import parse
 
-THINK_S = 0.5  # wall seconds per proposal: 1,800 lab-s at 3600x, ten times a step's deadline
+THINK_S = 1.0  # wall seconds per proposal: 3,600 lab-s at 3600x, ten times a step's deadline
 
 
 class SlowPlanner:

@@ -28,6 +28,7 @@ from twin.campaign.replay import Rebuilt, rebuild
 from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.runtime.labtime import LabTimeSource
+from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import RemoteScheduler, SchedulerService
 from twin.scenario import Scenario, load, set_dotted
 from twin.view.observer import LabObserver
@@ -187,13 +188,16 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
 
 def live_scheduler(s: Scenario, chosen: Any, bus: Bus, clock: LabClock) -> tuple[Any, SchedulerService | None]:
     """An agent scheduler (``serve_on_bus``, or ``remote``) is asked over the bus, with the fallback rule."""
+    deadline = s.campaign.scheduler_deadline_ms / 1000 * (1.0 if clock.is_virtual else clock.speed)
     if chosen != REMOTE and not getattr(chosen, "serve_on_bus", False):
-        return chosen, None
+        if clock.is_virtual:  # time stands still while it thinks
+            return chosen, None
+        fallback = s.campaign.fallback_scheduler
+        return OffLoopScheduler(chosen, make_scheduler(s, fallback), fallback, deadline), None
     service = None
     if chosen != REMOTE:
         service = SchedulerService(bus, s.lab, chosen)
         service.start()
-    deadline = s.campaign.scheduler_deadline_ms / 1000 * (1.0 if clock.is_virtual else clock.speed)
     fallback = s.campaign.fallback_scheduler
     return RemoteScheduler(bus, s.lab, make_scheduler(s, fallback), fallback, deadline), service
 
@@ -385,11 +389,12 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         journal.set("external", sorted(external_devices))
         camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress, rebuilt=rebuilt)
         remote = scheduler if isinstance(scheduler, RemoteScheduler) else None
+        guarded = scheduler if isinstance(scheduler, RemoteScheduler | OffLoopScheduler) else None
         stack.callback(lambda: result.setdefault(
-            "summary", finish(camp.core, journal, wall0, clock.now(), camp.note, remote.fallbacks if remote else 0)))
-        if remote is not None:
-            remote.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
-            stack.callback(remote.close)
+            "summary", finish(camp.core, journal, wall0, clock.now(), camp.note, guarded.fallbacks if guarded else 0)))
+        if guarded is not None:
+            guarded.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
+            stack.callback(guarded.close)
         if service is not None:
             stack.callback(service.stop)
         for actor in build_actors(s, drivers, bus, clock):

@@ -157,8 +157,9 @@ class Campaign(_Spec):
     planner_deadline_s: float = Field(default=300, gt=0, le=MAX_S, description="lab seconds a planner may think "
                                       "(on a scaled or wall clock, in a worker thread) before the lab goes on "
                                       "without its answer; it is used when it comes")
-    scheduler_deadline_ms: float = Field(default=1000, gt=0, le=3_600_000, description="wall ms a scheduler agent "
-                                         "has per decision")
+    scheduler_deadline_ms: float = Field(default=2000, gt=0, le=3_600_000, description="wall ms a scheduler has "
+                                         "per decision on a scaled or wall clock (an agent on the bus, or one in a "
+                                         "worker thread); past it the fallback scheduler decides that time")
 
 
 class Retry(_Spec):
