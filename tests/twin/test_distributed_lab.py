@@ -118,6 +118,10 @@ def test_twin_device_health_asks_the_devices_of_a_running_lab(tmp_path):
                             timeout=60)
         both = subprocess.run([*ask, "--id", "spectrometer-2", "--id", "spectrometer-1"], capture_output=True,
                               text=True, cwd=ROOT, env=env, timeout=60)
+        listed = subprocess.run([sys.executable, "-m", "twin", "devices", "--connect", router, "--lab", "t"],
+                                capture_output=True, text=True, cwd=ROOT, env=env, timeout=60)
+        other = subprocess.run([sys.executable, "-m", "twin", "devices", "--connect", router, "--lab", "elsewhere"],
+                               capture_output=True, text=True, cwd=ROOT, env=env, timeout=60)
     finally:
         for p in procs:
             p.terminate()
@@ -127,3 +131,8 @@ def test_twin_device_health_asks_the_devices_of_a_running_lab(tmp_path):
     assert "yes" in row and "idle" in row
     assert both.returncode == 1
     assert any("spectrometer-1" in line and "no" in line for line in both.stdout.splitlines())
+    # the lab's bus, without the scenario: only the device that is there, found by its presence
+    assert listed.returncode == 0, listed.stderr
+    rows = [line for line in listed.stdout.splitlines() if "spectrometer" in line]
+    assert len(rows) == 1 and "spectrometer-2" in rows[0] and "yes" in rows[0] and "idle" in rows[0]
+    assert other.returncode == 1 and "no device of lab 'elsewhere'" in other.stdout

@@ -8,6 +8,7 @@ import pytest
 from tests.conftest import qd_lab
 from twin import Refused, StepResult
 from twin.campaign.journal import read_events
+from twin.cli.commands import waiting_for
 from twin.core.errors import ScenarioError
 from twin.runtime.lab import run
 from twin.scenario import parse
@@ -99,7 +100,9 @@ def test_a_lab_whose_only_spectrometer_is_gone_says_so_and_gives_up_instead_of_w
                           "devices.spectrometer.faults": {"mtbc_h": 0.05, "restart_s": 10_000_000},
                           "campaign.give_up_after_s": 7200, "campaign.max_lab_hours": 1000}))
     db = tmp_path / "j.db"
-    s = run(lab, journal=db, runtime=runtime)
+    lines = []  # what `twin run`'s progress line says, each time it is told
+    s = run(lab, journal=db, runtime=runtime, on_progress=lambda core: lines.append(waiting_for(core.unavailable)))
+    assert "[red]waiting: no usable spectrometer[/]" in lines and lines[0] == ""
     said = read_events(db, "devices.unavailable")
     assert said and json.loads(said[0]["detail"])["type"] == "spectrometer"
     gone = [e for e in read_events(db, "experiment.abandoned") if "no usable spectrometer" in e["detail"]]

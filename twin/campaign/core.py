@@ -124,6 +124,11 @@ class CampaignCore:
         return out
 
     @property
+    def unavailable(self) -> list[str]:
+        """Device types that work waits for with no usable instance (lost or quarantined), given up on or not."""
+        return sorted(self._availability.stranded | self._availability.given_up)
+
+    @property
     def waiting(self) -> Ask | None:
         """The question the core waits on, if any."""
         return self._asking

@@ -37,6 +37,8 @@ class Code(StrEnum):
 
 #: Notes a runtime also logs as warnings: the lab cannot go on as it is.
 ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping"})
+#: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, or a device type gone
+PROGRESS_KINDS = ("attempt.done", "attempt.failed", "devices.")
 
 
 class TimerKind(StrEnum):

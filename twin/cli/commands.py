@@ -114,6 +114,11 @@ def resume(
                                                        runtime=runtime))
 
 
+def waiting_for(device_types: list[str]) -> str:
+    """The progress line's word on device types that work waits for with no usable instance."""
+    return f"[red]waiting: no usable {', '.join(device_types)}[/]" if device_types else ""
+
+
 def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> None:
     """Run ``call(on_progress, observer)`` under a progress bar and a recording, and print its summary."""
     recording = None
@@ -125,13 +130,15 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
                 err.print(message, highlight=False)
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                             TextColumn("lab {task.fields[lab_h]:.1f} h"), TimeElapsedColumn(),
+                            TextColumn("{task.fields[status]}"),
                             console=err, disable=quiet or json_out, transient=False)
         with progress:
             bar = progress.add_task(f"{s.name} ({s.clock.mode} clock, {s.bus.kind} bus)",
-                                    total=s.campaign.budget, lab_h=0.0)
+                                    total=s.campaign.budget, lab_h=0.0, status="")
 
             def on_progress(core) -> None:
-                progress.update(bar, completed=core.finished_count, lab_h=core.elapsed_s / 3600)
+                progress.update(bar, completed=core.finished_count, lab_h=core.elapsed_s / 3600,
+                                status=waiting_for(core.unavailable))
 
             summary = call(on_progress, observer)
     except TwinError as exc:
@@ -257,9 +264,34 @@ def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<
 
 
 @app.command()
-def devices() -> None:
-    """List the installed device drivers: name, where from, package and version, capabilities."""
+def devices(
+    connect: Annotated[Optional[list[str]], typer.Option(help="instead, list the devices on a running lab's bus "
+                                                              "(a Zenoh endpoint, e.g. tcp/127.0.0.1:7447), with "
+                                                              "their health")] = None,
+    lab_name: Annotated[Optional[str], typer.Option("--lab", help="the lab (the scenario's `lab`), with --connect")] = None,
+    security: Annotated[Optional[Path], typer.Option(help="the lab's security directory, with --connect")] = None,
+) -> None:
+    """List the installed device drivers (name, where from, package and version, capabilities), or with
+    --connect the devices of a running lab and their health."""
     from rich.table import Table
+
+    if connect:
+        from twin.cli.distributed import render_health
+        from twin.runtime.serve import roster
+
+        if not lab_name:
+            _fail(TwinError("--connect needs --lab: the lab whose devices to list (the scenario's `lab` field)"))
+        try:
+            answers = roster(lab_name, list(connect), str(security) if security else None)
+        except TwinError as exc:
+            _fail(exc)
+        if not answers:
+            console.print(f"no device of lab {lab_name!r} is on the bus at {', '.join(connect)}", highlight=False)
+            raise typer.Exit(1)
+        render_health(answers)
+        if any(a["report"] is None for a in answers):
+            raise typer.Exit(1)
+        return
 
     table = Table("driver", "class", "package", "version", "runs")
     for name, ep in sorted(plugins.installed("devices").items()):

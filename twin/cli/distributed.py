@@ -77,25 +77,33 @@ def device_health(
     security: SecurityOpt = None,
 ) -> None:
     """Ask devices of a running lab for their health: on the bus, running what, messages dropped, the driver's own."""
-    from rich.table import Table
-
     from twin.runtime.serve import health
 
     try:
         answers = health(scenario, list(ids or []), connect, str(security) if security else None)
     except TwinError as exc:
         _fail(exc)
-    table = Table("device", "answered", "running", "dropped", "driver")
+    render_health(answers)
+    if any(a["report"] is None for a in answers):
+        raise typer.Exit(1)
+
+
+def render_health(answers: list[dict]) -> None:
+    """One row per device: whether it answered, what it runs, what it dropped, what its driver says."""
+    from rich.table import Table
+
+    table = Table("device", "answered", "running", "dropped", "driver", caption="driver: its own health() report")
     for a in answers:
         r = a["report"]
         if r is None:
             table.add_row(a["device"], "[red]no[/]", "", "", "")
             continue
         running = "#".join(map(str, r["running"])) if r.get("running") else "idle"
-        table.add_row(a["device"], "yes", running, str(r.get("dropped", 0)), str(r.get("driver", ""))[:60])
+        driver = r.get("driver", "")
+        ok = driver.get("ok") if isinstance(driver, dict) else None
+        shown = ("[red]" if ok is False else "") + str(driver)[:60] + ("[/]" if ok is False else "")
+        table.add_row(a["device"], "yes", running, str(r.get("dropped", 0)), shown)
     console.print(table)
-    if any(a["report"] is None for a in answers):
-        raise typer.Exit(1)
 
 
 @driver_app.command("new")

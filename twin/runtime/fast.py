@@ -21,7 +21,7 @@ from typing import Any
 
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Proposed, RecordExperiment,
                            RecordMessage, Send, SetTimer, Stop, TimerFired)
-from twin.campaign.events import ALERTS, TimerKey
+from twin.campaign.events import ALERTS, PROGRESS_KINDS, TimerKey
 from twin.campaign.decisions import Assignment, LabView, Planner, Scheduler
 from twin.core.errors import ClockError
 from twin.campaign.journal import Journal
@@ -107,7 +107,7 @@ class FastCampaign:
                 if a.kind in ALERTS:
                     log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
                 if watched and not progressed:
-                    progressed = a.kind.startswith(("attempt.done", "attempt.failed"))
+                    progressed = a.kind.startswith(PROGRESS_KINDS)
             elif t is RecordMessage:
                 received(a)
             elif t is Send:

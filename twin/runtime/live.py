@@ -25,7 +25,7 @@ from twin.core.bus import Bus
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, DeviceMessage, Finished, InvalidInput, Note,
                            Presence, Proposed, RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
 from twin.campaign import replay
-from twin.campaign.events import ALERTS, TimerKey
+from twin.campaign.events import ALERTS, PROGRESS_KINDS, TimerKey
 from twin.campaign.replay import Rebuilt
 from twin.core.clock import LabClock
 from twin.campaign.decisions import Planner, Scheduler
@@ -221,7 +221,7 @@ class LiveCampaign:
                     if self._rejected <= 10 or self._rejected % 1000 == 0:  # a device of your own echoes tokens?
                         log.warning("rejected a message on %s: %s (%d so far; the journal has each)",
                                     a.detail["key"], a.detail["reason"], self._rejected)
-                progressed = progressed or a.kind.startswith(("attempt.done", "attempt.failed"))
+                progressed = progressed or a.kind.startswith(PROGRESS_KINDS)
             elif t is RecordMessage:
                 self.journal.received(a)
             elif t is Send:

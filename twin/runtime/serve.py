@@ -4,12 +4,14 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import signal
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 
-from twin.core.bus import Bus
+from twin.core import keys
+from twin.core.bus import Bus, NoReplyError, security
 from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
@@ -100,11 +102,6 @@ def health(scenario: str | Path, ids: list[str], connect: list[str], security_di
            wait_s: float = 3.0) -> list[dict]:
     """``twin device health``: each device's health report (``None`` for one that did not answer in ``wait_s``).
     With security, asked as the lab's orchestrator (the identity that may ask devices)."""
-    import json
-
-    from twin.core.bus import NoReplyError
-    from twin.core import keys
-
     s = _joined(scenario, connect, "wall", 1.0, security_dir)
     known = [n for d in s.devices for n in s.instance_names(d)]
     unknown = [i for i in ids if i not in known]
@@ -116,18 +113,47 @@ def health(scenario: str | Path, ids: list[str], connect: list[str], security_di
         bus = make_bus(s, clock, Identity("orchestrator", s.lab))
         await bus.start()
         try:
-            out = []
-            for name in ids or known:
-                try:
-                    report = json.loads(await bus.request(keys.health(s.lab, name), b"", wait_s))
-                except (NoReplyError, ValueError):
-                    report = None
-                out.append({"device": name, "report": report})
-            return out
+            return await _ask_health(bus, s.lab, ids or known, wait_s)
         finally:
             await bus.close()
 
     return clock.run(ask())
+
+
+def roster(lab: str, connect: list[str], security_dir: str | None = None, wait_s: float = 3.0,
+           connect_timeout_ms: int = 5000) -> list[dict]:
+    """``twin devices --connect``: the devices on a running lab's bus (by their presence), with their health."""
+    from twin.core.bus import open_bus
+
+    clock = LabClock("wall")
+
+    async def ask() -> list[dict]:
+        extra = security.session_config(security_dir, Identity("orchestrator", lab)) if security_dir else {}
+        bus = open_bus("zenoh", clock, mode="client", listen=[], connect=connect, extra=extra,
+                       connect_timeout_ms=connect_timeout_ms)
+        await bus.start()
+        present: set[str] = set()
+        watch = bus.watch_tokens(keys.alive(lab), lambda key, alive: (present.add if alive else present.discard)(
+            keys.device_of(key)))
+        try:
+            await clock.sleep(0.5)  # the tokens already declared arrive as history
+            return await _ask_health(bus, lab, sorted(present), wait_s)
+        finally:
+            watch.close()
+            await bus.close()
+
+    return clock.run(ask())
+
+
+async def _ask_health(bus: Bus, lab: str, names: list[str], wait_s: float) -> list[dict]:
+    out = []
+    for name in names:
+        try:
+            report = json.loads(await bus.request(keys.health(lab, name), b"", wait_s))
+        except (NoReplyError, ValueError):
+            report = None
+        out.append({"device": name, "report": report})
+    return out
 
 
 def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: str | None = None,
