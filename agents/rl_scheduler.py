@@ -12,10 +12,17 @@ from typing import Any
 import numpy as np
 import torch
 
-from agents.scheduling_features import ACTIONS, OBS_SIZE, Encoder, signature
+from agents import candidates, scheduling_features
 from twin import Assignment, LabView
 from twin import PluginError
-from twin import load_policy
+from twin import load_policy, read_meta
+
+
+def encoder_for(scenario: Any, encoding: str) -> Any:
+    """The encoder a policy of ``encoding`` reads its labs with."""
+    if encoding in ("candidates", candidates.ENCODING):
+        return candidates.CandidateEncoder(scenario)
+    return scheduling_features.Encoder(scenario)
 
 
 class RlScheduler:
@@ -26,15 +33,19 @@ class RlScheduler:
             raise PluginError("the rl scheduler needs a trained policy: train one with "
                               "`twin train SCENARIO --out P.zip`, then use --scheduler rl:P.zip")
         torch.set_num_threads(1)
-        self.model = load_policy(Path(policy), "scheduler", signature(scenario))
-        self.encoder = Encoder(scenario)
-        self.model.predict(np.zeros(OBS_SIZE, np.float32), action_masks=np.ones(ACTIONS, bool))  # warm up torch
+        path = Path(policy)
+        encoding = read_meta(path).get("signature", {}).get("encoding") if path.exists() else None
+        features = candidates if encoding == candidates.ENCODING else scheduling_features
+        self.model = load_policy(path, "scheduler", features.signature(scenario))
+        self.encoder = encoder_for(scenario, encoding or "slots")
+        # warm up torch
+        self.model.predict(np.zeros(features.OBS_SIZE, np.float32), action_masks=np.ones(features.ACTIONS, bool))
 
     @classmethod
-    def from_model(cls, model: Any, scenario: Any) -> RlScheduler:
+    def from_model(cls, model: Any, scenario: Any, encoding: str = "slots") -> RlScheduler:
         """A policy still in training, deciding the same way."""
         self = cls.__new__(cls)
-        self.model, self.encoder = model, Encoder(scenario)
+        self.model, self.encoder = model, encoder_for(scenario, encoding)
         return self
 
     def decide(self, view: LabView) -> list[Assignment]:

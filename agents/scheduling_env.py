@@ -22,13 +22,14 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from agents.scheduling_features import ACTIONS, OBS_SIZE, Encoder
+from agents import candidates, scheduling_features
 from twin import jobshop_as_lab, random_jobshop
 from twin import prepare
 from twin import Scenario
 from twin import SteppedCampaign
 
 DEGRADED_PENALTY, ABANDONED_PENALTY, INVALID_PENALTY = 0.5, 2.0, 1.0
+ENCODINGS = {"slots": scheduling_features, "candidates": candidates}
 
 
 def randomised(s: Scenario, seed: int) -> Scenario:
@@ -70,13 +71,17 @@ def _redraw(job: dict, t: Any, rng: random.Random) -> dict:
 class SchedulingEnv(gym.Env):
     metadata = {"render_modes": []}
 
-    def __init__(self, scenario: Scenario, randomise: bool = True) -> None:
+    def __init__(self, scenario: Scenario, randomise: bool = True, encoding: str = "slots") -> None:
+        """``encoding``: ``slots`` (the fixed grid of ``agents.scheduling_features``) or ``candidates`` (one row
+        per allowed pair, ``agents.candidates``)."""
         self.base, self.randomise = scenario, randomise
-        self.encoder = Encoder(scenario)
-        self.observation_space = gym.spaces.Box(-10.0, 10.0, (OBS_SIZE,), np.float32)
-        self.action_space = gym.spaces.Discrete(ACTIONS)
+        self.features = ENCODINGS[encoding]
+        self.encoder = self.features.CandidateEncoder(scenario) if encoding == "candidates" else \
+            self.features.Encoder(scenario)
+        self.observation_space = gym.spaces.Box(-10.0, 10.0, (self.features.OBS_SIZE,), np.float32)
+        self.action_space = gym.spaces.Discrete(self.features.ACTIONS)
         self.campaign: SteppedCampaign | None = None
-        self._mask = np.ones(ACTIONS, bool)
+        self._mask = np.ones(self.features.ACTIONS, bool)
         self._episode_seed = 0
 
     # -- gymnasium ------------------------------------------------------------------
@@ -121,9 +126,9 @@ class SchedulingEnv(gym.Env):
 
     def _observe(self) -> np.ndarray:
         if self.campaign.view is None:  # the campaign is over
-            self._mask = np.zeros(ACTIONS, bool)
+            self._mask = np.zeros(self.features.ACTIONS, bool)
             self._mask[-1] = True
-            return np.zeros(OBS_SIZE, np.float32)
+            return np.zeros(self.features.OBS_SIZE, np.float32)
         obs, self._mask = self.encoder.encode(self.campaign.view)
         return obs
 

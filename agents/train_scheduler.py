@@ -17,6 +17,7 @@ import torch
 
 from agents.scheduling_env import SchedulingEnv
 from agents.rl_scheduler import RlScheduler
+from agents.candidates import signature as candidate_signature
 from agents.scheduling_features import signature
 from agents.schedulers import RULES
 from twin import load_plugin
@@ -55,14 +56,23 @@ def evaluate_rules(scenario: Scenario, seeds=EVAL_SEEDS) -> dict[str, dict[str, 
 
 def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs: int = 2,
                     eval_every: int = 20_000, on_progress: Callable[[int, dict | None], None] | None = None,
-                    eval_seeds=EVAL_SEEDS) -> Path:
+                    eval_seeds=EVAL_SEEDS, encoding: str = "slots") -> Path:
+    """``encoding``: ``slots`` (an MLP over the fixed grid) or ``candidates`` (the candidate-scoring policy)."""
     from sb3_contrib import MaskablePPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     torch.set_num_threads(1)
-    venv = DummyVecEnv([lambda: SchedulingEnv(scenario) for _ in range(envs)])
+    venv = DummyVecEnv([lambda: SchedulingEnv(scenario, encoding=encoding) for _ in range(envs)])
     venv.seed(seed)
-    model = MaskablePPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS)
+    if encoding == "candidates":
+        from agents.candidate_policy import CandidatePolicy
+
+        settings = {k: v for k, v in PPO_SETTINGS.items() if k != "policy_kwargs"}
+        model = MaskablePPO(CandidatePolicy, venv, seed=seed, verbose=0, device="cpu", **settings)
+        sign = candidate_signature(scenario)
+    else:
+        model = MaskablePPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS)
+        sign = signature(scenario)
     rules = evaluate_rules(scenario, eval_seeds)
     best_rule = min(rules, key=lambda r: rules[r]["makespan h"])
     if on_progress:
@@ -73,15 +83,21 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
             chunk = min(eval_every, steps - done)
             model.learn(chunk, reset_num_timesteps=False)
             done += chunk
-            result = score([campaign(scenario, s, RlScheduler.from_model(model, scenario).decide) for s in eval_seeds])
+            result = score([campaign(scenario, s, RlScheduler.from_model(model, scenario, encoding).decide)
+                            for s in eval_seeds])
             result["vs best rule"] = result["makespan h"] / rules[best_rule]["makespan h"]
             curve.append({"steps": done, **result})
             if best is None or result["makespan h"] <= best:
                 best = result["makespan h"]
-                save_policy(model, out, "scheduler", scenario, signature(scenario), steps=done, rules=rules,
+                save_policy(model, out, "scheduler", scenario, sign, steps=done, rules=rules,
                             best_rule=best_rule, curve=curve)
             if on_progress:  # after saving: what the user reads is on disk
                 on_progress(done, {"policy": "maskable-ppo", **result})
     finally:
         venv.close()  # stops the campaigns in the environments, also on Ctrl-C
     return out.with_suffix(".zip")
+
+
+def train_candidate_scheduler(scenario: Scenario, steps: int, out: Path, **kwargs: Any) -> Path:
+    """`twin train --agent scheduler-candidates`: the candidate-scoring policy (``agents.candidate_policy``)."""
+    return train_scheduler(scenario, steps, out, encoding="candidates", **kwargs)

@@ -1,0 +1,140 @@
+"""What the candidate-scoring RL scheduler sees: every (ready step, free device) pair that may run, as a row.
+
+Unlike a fixed grid of slots, any number of ready steps, device types and instances fit: each pair that the
+lab allows (a free, capable device the step need not avoid) is one candidate row of ``FEATURES`` numbers, up to
+``MAX_CANDIDATES`` (beyond that, the pairs of the steps with the most work remaining are kept — the MWKR rule's
+order — so a very large lab is seen in part, never mis-seen). Action ``i`` starts candidate ``i``; action
+``MAX_CANDIDATES`` waits for the next event, allowed only while some device is busy. The policy
+(``agents.candidate_policy``) scores every row with one shared network, so its size does not depend on the lab.
+
+A row describes a pair in terms that carry to another lab: times divided by the scenario's typical step
+duration (``agents.scheduling_features.time_scale``), counts divided by ten, and the dispatching rules'
+own orderings (the step's rank by work remaining, by duration, by waiting time) as features, so that the
+network starts from what the rules know.
+"""
+
+from __future__ import annotations
+
+import bisect
+
+import numpy as np
+
+from agents.scheduling_features import time_scale
+from twin import Assignment, LabView, ReadyStep, Scenario
+
+ENCODING = "candidates-v1"
+MAX_CANDIDATES = 128
+FEATURES = 20
+GLOBALS = 8
+OBS_SIZE = MAX_CANDIDATES * FEATURES + GLOBALS
+ACTIONS = MAX_CANDIDATES + 1
+WAIT = MAX_CANDIDATES
+CLIP = 10.0
+
+
+def signature(s: Scenario) -> dict:
+    """What a policy must match to be used at all; the shapes it was trained on are checked separately."""
+    return {"encoding": ENCODING, "observation_size": OBS_SIZE, "actions": ACTIONS}
+
+
+def _ranks(values: list[float]) -> list[float]:
+    """Each value's rank in [0, 1] (0 = the smallest; ties share the lower rank)."""
+    if len(values) < 2:
+        return [0.0] * len(values)
+    order = sorted(values)
+    return [bisect.bisect_left(order, v) / (len(values) - 1) for v in values]
+
+
+class CandidateEncoder:
+    def __init__(self, scenario: Scenario) -> None:
+        self.scale = time_scale(scenario)
+        self.stability = scenario.chemistry.stability_s or 0.0
+        self._pairs: list[tuple[ReadyStep, str]] = []
+
+    def pairs(self, view: LabView) -> list[tuple[ReadyStep, str]]:
+        """The candidates, in row order: steps by most work remaining, then devices by name."""
+        free = sorted((f for f in view.free), key=lambda f: f.name)
+        out = []
+        for r in sorted(view.ready, key=lambda r: (-r.work_remaining_s, r.ready_since, r.task)):
+            out += [(r, f.name) for f in free if f.device_type == r.device_type and f.name not in r.avoid]
+        return out[:MAX_CANDIDATES]
+
+    def encode(self, view: LabView) -> tuple[np.ndarray, np.ndarray]:
+        """(observation, action mask)."""
+        now, k = view.now, self.scale
+        pairs = self._pairs = self.pairs(view)
+        rows = np.zeros((MAX_CANDIDATES, FEATURES), np.float32)
+        mask = np.zeros(ACTIONS, bool)
+        devices = {d.name: d for d in view.devices}
+        by_type: dict[str, list] = {}
+        for d in view.devices:
+            by_type.setdefault(d.device_type, []).append(d)
+        ready_of: dict[str, int] = {}
+        for r in view.ready:
+            ready_of[r.device_type] = ready_of.get(r.device_type, 0) + 1
+        free_of: dict[str, int] = {}
+        for f in view.free:
+            free_of[f.device_type] = free_of.get(f.device_type, 0) + 1
+        steps = sorted({r.task: r for r, _ in pairs}.values(), key=lambda r: r.task)
+        work = dict(zip((r.task for r in steps), _ranks([r.work_remaining_s for r in steps])))
+        short = dict(zip((r.task for r in steps), _ranks([r.expected_s for r in steps])))
+        waited = dict(zip((r.task for r in steps), _ranks([r.ready_since for r in steps])))
+        for i, (r, name) in enumerate(pairs):
+            d = devices.get(name)
+            kind = by_type.get(r.device_type, [])
+            nxt_type, nxt_s = r.then[0] if r.then else ("", 0.0)
+            nxt = by_type.get(nxt_type, [])
+            nxt_busy = sum(x.busy_until is not None for x in nxt) / len(nxt) if nxt else 0.0
+            nxt_wait = min((x.busy_until - now for x in nxt if x.busy_until is not None), default=0.0) if nxt and \
+                all(x.busy_until is not None for x in nxt) else 0.0
+            age = (now - r.sample_made) if r.sample_made is not None else 0.0
+            spare = (self.stability - age) / k if self.stability and r.sample_made is not None else CLIP
+            rows[i] = [
+                1.0,
+                r.expected_s / k,
+                r.work_remaining_s / k,
+                (r.work_remaining_s - r.expected_s) / k,
+                (now - r.ready_since) / k,
+                age / self.stability if self.stability else 0.0,
+                spare,
+                len(r.then) / 10,
+                nxt_s / k,
+                nxt_busy,
+                nxt_wait / k,
+                ready_of.get(r.device_type, 0) / 10,
+                free_of.get(r.device_type, 0) / 10,
+                len(kind) / 10,
+                (d.failures / (d.attempts + 1)) if d else 0.0,
+                (d.busy_s / max(now, k)) if d else 0.0,
+                1.0 - work[r.task],  # 1: the most work remaining (MWKR's pick)
+                1.0 - short[r.task],  # 1: the shortest (SPT's pick)
+                1.0 - waited[r.task],  # 1: waiting longest (FIFO's pick)
+                float(bool(r.avoid)),
+            ]
+            mask[i] = True
+        n = max(len(view.devices), 1)
+        busy = sum(d.busy_until is not None for d in view.devices)
+        glob = np.array([busy / n, len(view.ready) / 10, len(view.free) / 10, len(pairs) / MAX_CANDIDATES,
+                         view.finished / max(view.budget, 1), view.in_lab / max(view.budget, 1),
+                         sum(not d.online for d in view.devices) / n, now / (k * 100.0)], np.float32)
+        mask[WAIT] = busy > 0 or not pairs
+        obs = np.concatenate([np.clip(rows, -CLIP, CLIP).ravel(), np.clip(glob, -CLIP, CLIP)])
+        return obs.astype(np.float32), mask
+
+    def decode(self, view: LabView, action: int) -> list[Assignment]:
+        """The assignment an action means, for the view last encoded; an invalid one is raised."""
+        action = int(action)
+        if action == WAIT:
+            return []
+        if not 0 <= action < len(self._pairs):
+            raise ValueError(f"action {action}: there are {len(self._pairs)} candidates")
+        r, name = self._pairs[action]
+        return [Assignment(r.task, name)]
+
+
+def shapes(view: LabView) -> dict[str, int]:
+    """How big a decision is: what a policy's trained range is made of (``agents.candidate_policy.Range``)."""
+    per_type: dict[str, int] = {}
+    for d in view.devices:
+        per_type[d.device_type] = per_type.get(d.device_type, 0) + 1
+    return {"ready": len(view.ready), "device_types": len(per_type), "instances": max(per_type.values(), default=0)}
