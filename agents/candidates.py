@@ -132,9 +132,42 @@ class CandidateEncoder:
         return [Assignment(r.task, name)]
 
 
-def shapes(view: LabView) -> dict[str, int]:
-    """How big a decision is: what a policy's trained range is made of (``agents.candidate_policy.Range``)."""
-    per_type: dict[str, int] = {}
-    for d in view.devices:
-        per_type[d.device_type] = per_type.get(d.device_type, 0) + 1
-    return {"ready": len(view.ready), "device_types": len(per_type), "instances": max(per_type.values(), default=0)}
+def lab_shape(s: Scenario) -> dict:
+    """What a scheduler policy's fit is judged on: the step types a lab runs, how many device types it has, and
+    the most instances of one type."""
+    steps = {w.step for w in s.workflow}
+    for p in s.campaign.planner_options.get("proposals", []):  # a job shop's fixed routes
+        steps |= {str(step.get("step")) for step in p.get("route", [])}
+    counts = [d.instances for d in s.devices.values()]
+    return {"steps": sorted(steps), "device_types": len(counts), "instances": max(counts, default=0)}
+
+
+def widen(fits: dict | None, more: dict) -> dict:
+    """The range of shapes ``fits`` covers, widened to ``more`` (a ``lab_shape`` or another range)."""
+    def as_range(x: dict) -> dict:
+        n, m = x["device_types"], x["instances"]
+        return {"steps": list(x["steps"]), "device_types": list(n) if isinstance(n, list) else [n, n],
+                "instances": list(m) if isinstance(m, list) else [1, m]}
+
+    b = as_range(more)
+    if not fits:
+        return b
+    a = as_range(fits)
+    return {"steps": sorted(set(a["steps"]) | set(b["steps"])),
+            "device_types": [min(a["device_types"][0], b["device_types"][0]),
+                             max(a["device_types"][1], b["device_types"][1])],
+            "instances": [1, max(a["instances"][1], b["instances"][1])]}
+
+
+def outside(fits: dict, shape: dict) -> list[str]:
+    """Why a lab of ``shape`` is outside what a policy was trained on (empty: inside)."""
+    why = []
+    unseen = sorted(set(shape["steps"]) - set(fits["steps"]))
+    if unseen:
+        why.append(f"step type(s) {unseen} never seen in training (trained on {fits['steps']})")
+    lo, hi = fits["device_types"]
+    if not lo <= shape["device_types"] <= hi:
+        why.append(f"{shape['device_types']} device types (trained on {lo}–{hi})")
+    if shape["instances"] > fits["instances"][1]:
+        why.append(f"{shape['instances']} instances of one type (trained on at most {fits['instances'][1]})")
+    return why

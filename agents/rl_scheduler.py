@@ -6,6 +6,7 @@ the orchestrator asks it over Zenoh, with a deadline and the scenario's fallback
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -17,12 +18,31 @@ from twin import Assignment, LabView
 from twin import PluginError
 from twin import load_policy, read_meta
 
+log = logging.getLogger(__name__)
+
 
 def encoder_for(scenario: Any, encoding: str) -> Any:
     """The encoder a policy of ``encoding`` reads its labs with."""
     if encoding in ("candidates", candidates.ENCODING):
         return candidates.CandidateEncoder(scenario)
     return scheduling_features.Encoder(scenario)
+
+
+def _check_fit(path: Path, meta: dict, scenario: Any) -> str:
+    """Why ``scenario`` is outside the shapes the policy was trained on ("" if inside, or if the policy does not
+    say); per ``campaign.policy_fit`` a warning, or a refusal."""
+    fits = meta.get("fits")
+    if not fits:
+        return ""
+    why = candidates.outside(fits, candidates.lab_shape(scenario))
+    if not why:
+        return ""
+    text = (f"{path} was trained on labs unlike {scenario.name!r}: {'; '.join(why)}. It may schedule it poorly; "
+            f"train on this lab's shapes (its `training` section) to be sure")
+    if scenario.campaign.policy_fit == "refuse":
+        raise PluginError(text + " (campaign.policy_fit: refuse)")
+    log.warning("%s", text)
+    return text
 
 
 class RlScheduler:
@@ -34,9 +54,11 @@ class RlScheduler:
                               "`twin train SCENARIO --out P.zip`, then use --scheduler rl:P.zip")
         torch.set_num_threads(1)
         path = Path(policy)
-        encoding = read_meta(path).get("signature", {}).get("encoding") if path.exists() else None
+        meta = read_meta(path) if path.exists() else {}
+        encoding = meta.get("signature", {}).get("encoding")
         features = candidates if encoding == candidates.ENCODING else scheduling_features
         self.model = load_policy(path, "scheduler", features.signature(scenario))
+        self.misfit = _check_fit(path, meta, scenario)
         self.encoder = encoder_for(scenario, encoding or "slots")
         # warm up torch
         self.model.predict(np.zeros(features.OBS_SIZE, np.float32), action_masks=np.ones(features.ACTIONS, bool))

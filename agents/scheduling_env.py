@@ -83,6 +83,7 @@ class SchedulingEnv(gym.Env):
         self.campaign: SteppedCampaign | None = None
         self._mask = np.ones(self.features.ACTIONS, bool)
         self._episode_seed = 0
+        self.fits: dict | None = None
 
     # -- gymnasium ------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
@@ -90,6 +91,7 @@ class SchedulingEnv(gym.Env):
         self._episode_seed = int(self.np_random.integers(2**31)) if seed is None else int(seed)
         lab = randomised(self.base, self._episode_seed) if self.randomise else self.base
         lab = prepare(lab, seed=self._episode_seed)
+        self.fits = candidates.widen(self.fits, candidates.lab_shape(lab))  # what a policy trained here has seen
         self.close()
         self.campaign = SteppedCampaign(lab)
         self._marks = self._counts()

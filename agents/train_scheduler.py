@@ -18,6 +18,7 @@ import torch
 from agents.scheduling_env import SchedulingEnv
 from agents.rl_scheduler import RlScheduler
 from agents.candidates import signature as candidate_signature
+from agents.candidates import widen
 from agents.scheduling_features import signature
 from agents.schedulers import RULES
 from twin import load_plugin
@@ -89,7 +90,10 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
             curve.append({"steps": done, **result})
             if best is None or result["makespan h"] <= best:
                 best = result["makespan h"]
-                save_policy(model, out, "scheduler", scenario, sign, steps=done, rules=rules,
+                fits = None
+                for env in venv.envs:
+                    fits = widen(fits, env.fits) if env.fits else fits
+                save_policy(model, out, "scheduler", scenario, sign, steps=done, rules=rules, fits=fits,
                             best_rule=best_rule, curve=curve)
             if on_progress:  # after saving: what the user reads is on disk
                 on_progress(done, {"policy": "maskable-ppo", **result})

@@ -12,7 +12,7 @@ from agents.rl_scheduler import RlScheduler
 from agents.scheduling_env import SchedulingEnv
 from agents.train_scheduler import campaign, train_scheduler
 from tests.conftest import qd_lab
-from twin import jobshop_as_lab, random_jobshop
+from twin import PluginError, jobshop_as_lab, random_jobshop
 from twin.campaign.decisions import capable
 from twin.runtime.lab import prepare
 from twin.scenario import parse
@@ -92,3 +92,17 @@ def test_a_policy_trained_on_ft06_runs_a_larger_shop_and_uses_every_instance(ft0
     assert summary.done == 36
     used = [u for name, u in summary.utilisation.items() if name.startswith("spectrometer")]
     assert len(used) == 6 and min(used) > 0.3, summary.utilisation  # the bottleneck's six, all kept busy
+
+
+def test_a_policy_knows_the_labs_it_fits_and_warns_or_refuses_outside_them(ft06, trained, caplog):
+    assert RlScheduler(ft06, str(trained)).misfit == ""
+    flaky = prepare(ROOT / "scenarios" / "flaky_lab.yaml")
+    with caplog.at_level("WARNING"):
+        warned = RlScheduler(flaky, str(trained)).misfit
+    assert "step type(s) ['measure', 'prepare', 'react'] never seen" in warned and warned in caplog.text
+    assert "3 device types (trained on 6–6)" in warned
+    assert "2 instances of one type (trained on at most 1)" in warned
+    with pytest.raises(PluginError, match=r"trained on labs unlike 'flaky_lab'.*policy_fit: refuse"):
+        RlScheduler(prepare(flaky, overrides={"campaign.policy_fit": "refuse"}), str(trained))
+    bigger = jobshop_as_lab(ft06, random_jobshop(10, 8, 1, 10, __import__("random").Random(0)))
+    assert "8 device types (trained on 6–6)" in RlScheduler(bigger, str(trained)).misfit

@@ -151,6 +151,8 @@ class Campaign(_Spec):
     planner_options: dict[str, Any] = Field(default_factory=dict)
     fallback_scheduler: str = Field(default="fifo", max_length=256, description="decides when a scheduler agent "
                                     "on the bus is absent, late or wrong")
+    policy_fit: Literal["warn", "refuse"] = Field(default="warn", description="a scheduler policy used on a lab "
+                                                  "outside the shapes it was trained on: warn, or refuse to start")
     give_up_after_s: float = Field(default=4 * 3600, gt=0, le=MAX_S, description="lab seconds the experiments "
                                    "that need a device type wait when none of its instances is usable (lost, "
                                    "quarantined) before they are abandoned; an instance that comes back resumes them")
