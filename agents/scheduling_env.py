@@ -5,10 +5,12 @@ retries and faults on the memory bus in virtual time (``twin.learning.stepper``)
 from one decision point (a device freed, a step ready) to the next. The
 observation, action and mask are ``agents.scheduling_features``.
 
-Reward (the shaping, documented): −(lab time until the next decision point)
-÷ the typical step duration, so an episode's return is minus the makespan in
-those units; −0.5 for each sample that waited past its stability before a
-step (it degraded) and −2 for each experiment abandoned. ``reset(seed=)``
+Reward (the shaping, documented), weighted by the scenario's
+``training.weights``: −(lab time until the next decision point) ÷ the typical
+step duration (× ``time``, default 1), so an episode's return is minus the
+makespan in those units; −``degraded`` (0.5) for each sample that waited past
+its stability before a step and −``abandoned`` (2) for each experiment
+abandoned. ``reset(seed=)``
 reseeds the whole twin (planner, durations, faults) and, when the scenario
 declares ``training`` ranges and ``randomise`` is on, draws the lab's
 durations, fault rates and instance counts.
@@ -28,7 +30,7 @@ from twin import prepare
 from twin import Scenario
 from twin import SteppedCampaign
 
-DEGRADED_PENALTY, ABANDONED_PENALTY, INVALID_PENALTY = 0.5, 2.0, 1.0
+INVALID_PENALTY = 1.0
 ENCODINGS = {"slots": scheduling_features, "candidates": candidates}
 
 
@@ -106,8 +108,9 @@ class SchedulingEnv(gym.Env):
         c.answer(self.encoder.decode(c.view, action))
         self._marks = self._counts()
         deg, ab = self._marks
-        reward = (-(c.now - t0) / self.encoder.scale - DEGRADED_PENALTY * (deg - deg0)
-                  - ABANDONED_PENALTY * (ab - ab0) - penalty)
+        w = self.base.training.weights
+        reward = (-w.time * (c.now - t0) / self.encoder.scale - w.degraded * (deg - deg0)
+                  - w.abandoned * (ab - ab0) - penalty)
         info = {"lab_s": c.now}
         if c.done:
             info["summary"] = c.summary

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from agents.scheduling_env import SchedulingEnv
+from agents.scheduling_env import SchedulingEnv, randomised
 from agents.rl_scheduler import RlScheduler
 from agents.candidates import signature as candidate_signature
 from agents.candidates import widen
@@ -29,6 +29,7 @@ from twin import Scenario
 from twin import SteppedCampaign
 
 EVAL_SEEDS = tuple(range(100_000, 100_005))
+HELD_OUT_SEED = -1_000_000  # reset() draws seeds in [0, 2**31): negative ones are never trained on
 PPO_SETTINGS = dict(n_steps=512, batch_size=256, n_epochs=10, gamma=0.995, gae_lambda=0.95, learning_rate=3e-4,
                     ent_coef=0.01, policy_kwargs=dict(net_arch=[128, 128]))
 
@@ -55,10 +56,20 @@ def evaluate_rules(scenario: Scenario, seeds=EVAL_SEEDS) -> dict[str, dict[str, 
             for rule in RULES}
 
 
+def held_out_labs(scenario: Scenario, n: int) -> list[Scenario]:
+    """Labs drawn from the scenario's ``training`` ranges with seeds the training draws never use."""
+    t = scenario.training
+    if not (t.jobshop_sizes or t.instances or t.operation_s or t.duration_scale != (1.0, 1.0)):
+        return []
+    return [prepare(randomised(scenario, HELD_OUT_SEED + i), seed=0) for i in range(n)]
+
+
 def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs: int = 2,
                     eval_every: int = 20_000, on_progress: Callable[[int, dict | None], None] | None = None,
-                    eval_seeds=EVAL_SEEDS, encoding: str = "slots") -> Path:
-    """``encoding``: ``slots`` (an MLP over the fixed grid) or ``candidates`` (the candidate-scoring policy)."""
+                    eval_seeds=EVAL_SEEDS, encoding: str = "slots", held_out_count: int = 6) -> Path:
+    """``encoding``: ``slots`` (an MLP over the fixed grid) or ``candidates`` (the candidate-scoring policy).
+    The policy kept is the best by its makespan relative to the best rule's, averaged over the scenario as
+    written and ``held_out_count`` labs drawn from its ``training`` ranges with seeds training never uses."""
     from sb3_contrib import MaskablePPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -76,6 +87,9 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
         sign = signature(scenario)
     rules = evaluate_rules(scenario, eval_seeds)
     best_rule = min(rules, key=lambda r: rules[r]["makespan h"])
+    held_out = held_out_labs(scenario, held_out_count)
+    rule_spans = [min(campaign(lab, 0, load_plugin("schedulers", r)().decide).lab_hours for r in RULES)
+                  for lab in held_out]
     if on_progress:
         on_progress(0, {"policy": f"best rule: {best_rule}", **rules[best_rule]})
     best, done, curve = None, 0, []
@@ -84,12 +98,18 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
             chunk = min(eval_every, steps - done)
             model.learn(chunk, reset_num_timesteps=False)
             done += chunk
-            result = score([campaign(scenario, s, RlScheduler.from_model(model, scenario, encoding).decide)
-                            for s in eval_seeds])
+            decide = RlScheduler.from_model(model, scenario, encoding).decide
+            result = score([campaign(scenario, s, decide) for s in eval_seeds])
             result["vs best rule"] = result["makespan h"] / rules[best_rule]["makespan h"]
+            ratios = [result["vs best rule"]]
+            if held_out:  # labs it never trained on: each against the best rule there
+                ratios += [campaign(lab, 0, RlScheduler.from_model(model, lab, encoding).decide).lab_hours / ref
+                           for lab, ref in zip(held_out, rule_spans)]
+                result["held-out vs best rule"] = statistics.mean(ratios[1:])
+            result["score"] = statistics.mean(ratios)
             curve.append({"steps": done, **result})
-            if best is None or result["makespan h"] <= best:
-                best = result["makespan h"]
+            if best is None or result["score"] <= best:
+                best = result["score"]
                 fits = None
                 for env in venv.envs:
                     fits = widen(fits, env.fits) if env.fits else fits

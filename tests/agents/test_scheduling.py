@@ -138,3 +138,22 @@ def test_online_cp_sat_and_the_rules_give_valid_schedules_and_cp_sat_is_optimal_
     assert makespans["cp-sat"] == 55
     assert all(m >= 55 for m in makespans.values())
     assert len(set(makespans.values())) > 2  # the rules really differ
+
+
+def test_the_reward_weighs_time_degraded_samples_and_abandoned_experiments_as_the_scenario_says(flaky):
+    def episode(**weights):
+        lab = prepare(flaky, overrides={"chemistry.stability_s": 600, **{f"training.weights.{k}": v
+                                                                         for k, v in weights.items()}})
+        env = SchedulingEnv(lab, randomise=False)
+        env.reset(seed=3)
+        total, done, info = 0.0, False, {}
+        while not done:
+            _, reward, done, _, info = env.step(int(np.flatnonzero(env.action_masks())[0]))
+            total += reward
+        env.close()
+        return total, info["summary"]
+
+    base, summary = episode(time=1.0, degraded=0.0, abandoned=0.0)
+    weighted, again = episode(time=1.0, degraded=5.0, abandoned=3.0)
+    assert summary.degraded_samples > 0 and again.lab_hours == summary.lab_hours
+    assert weighted == pytest.approx(base - 5.0 * summary.degraded_samples - 3.0 * summary.abandoned)

@@ -224,8 +224,19 @@ class JobShop(_Spec):
                       "the scenario")
 
 
+class RewardWeights(_Spec):
+    """What a scheduler is trained to minimise, per episode: weighted lab time, degraded samples, abandoned
+    experiments (a policy that trades one for another says so in its training curve and the bench)."""
+
+    time: float = Field(default=1.0, ge=0, le=1000, description="per typical step duration of lab time")
+    degraded: float = Field(default=0.5, ge=0, le=1000, description="per sample that waited past its stability")
+    abandoned: float = Field(default=2.0, ge=0, le=1000, description="per experiment abandoned")
+
+
 class Training(_Spec):
     """Domain randomisation for training a scheduler: each episode draws a lab from these ranges."""
+
+    weights: RewardWeights = RewardWeights()
 
     duration_scale: Range = Field(default=(1.0, 1.0), description="multiplies every mean duration")
     fault_scale: Range = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")

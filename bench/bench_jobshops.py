@@ -1,0 +1,96 @@
+"""Schedulers on job shops they never trained on (issue [4 of 7]): gap to the known optimum per size class.
+
+    python bench/bench_jobshops.py [--schedulers fifo,spt,mwkr,rl:P.zip,...] [--random 3]
+
+Every instance in ../shared/data/jobshop/ (34, with optima from the literature) runs once per scheduler as a
+lab (one device per machine, deterministic, no faults) on the fast runtime; the gap is makespan / optimum − 1.
+Then `--random` random shops of 15×15 and 20×15 (durations 1–99), as makespan relative to MWKR's. The p99 of
+each scheduler's decision time (wall ms) is measured over every decision it made.
+"""
+
+from __future__ import annotations
+
+import argparse
+import random
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from agents.train_scheduler import campaign  # noqa: E402
+from bench.tables import table  # noqa: E402
+from twin import jobshop_as_lab, random_jobshop  # noqa: E402
+from twin.runtime.lab import make_scheduler  # noqa: E402
+from twin.tools.scheduler_bench import load_variant  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data" / "jobshop"
+OPTIMA = {"ft06": 55, "ft10": 930, "la01": 666, "la02": 655, "la03": 597, "la04": 590, "la05": 593,
+          "la16": 945, "la17": 784, "la18": 848, "la19": 842, "la20": 902, "abz5": 1234, "abz6": 943,
+          "orb01": 1059, "orb02": 888, "orb03": 1005, "orb04": 1005, "orb05": 887, "orb06": 1010, "orb07": 397,
+          "orb08": 899, "orb09": 934, "orb10": 944, "la21": 1046, "la22": 927, "la23": 1032, "la24": 935,
+          "la25": 977, "la36": 1268, "la37": 1397, "la38": 1196, "la39": 1233, "la40": 1222}
+PUBLIC = ("ft06", "la01", "la02", "la03", "la04", "la05", "ft10")
+SCENARIO = ROOT / "scenarios" / "jobshop.yaml"
+
+
+def run(s, name: str, times: list[float]) -> float:
+    scheduler = make_scheduler(s, name)
+
+    def timed(view):
+        t0 = time.perf_counter()
+        out = scheduler.decide(view)
+        times.append(time.perf_counter() - t0)
+        return out
+
+    return campaign(s, 0, timed).lab_hours * 3600
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--schedulers", default="fifo,spt,mwkr")
+    ap.add_argument("--random", type=int, default=3)
+    args = ap.parse_args()
+    names = [n.strip() for n in args.schedulers.split(",") if n.strip()]
+    short = {n: (Path(n.partition(":")[2]).stem if n.startswith("rl:") else n) for n in names}
+    times: dict[str, list[float]] = {n: [] for n in names}
+    gaps: dict[str, dict[str, float]] = {n: {} for n in names}
+    sizes: dict[str, str] = {}
+    for inst in sorted(OPTIMA):
+        s = load_variant(SCENARIO, str(DATA / f"{inst}.txt"))
+        sizes[inst] = f"{len(s.campaign.planner_options['proposals'])}×{len(s.devices)}"
+        for n in names:
+            gaps[n][inst] = run(s, n, times[n]) / OPTIMA[inst] - 1
+        print(f"{inst:6} {sizes[inst]:6} " + "  ".join(f"{short[n]} {100 * gaps[n][inst]:5.1f}%" for n in names),
+              file=sys.stderr, flush=True)
+    classes = sorted(set(sizes.values()), key=lambda c: [int(x) for x in c.split("×")])
+    rows = [["public 7 (ft06, la01–05, ft10)",
+             *[f"{100 * statistics.mean(gaps[n][i] for i in PUBLIC):.1f}" for n in names]]]
+    for c in classes:
+        members = [i for i in OPTIMA if sizes[i] == c]
+        rows.append([f"{c} ({len(members)})", *[f"{100 * statistics.mean(gaps[n][i] for i in members):.1f}"
+                                                 for n in names]])
+    rows.append(["all 34", *[f"{100 * statistics.mean(gaps[n].values()):.1f}" for n in names]])
+    table("Mean gap to the optimum, % (one run per instance; never trained on)", ["instances", *map(short.get, names)],
+          rows)
+    base = load_variant(SCENARIO)
+    rand_rows = []
+    for jobs, machines in ((15, 15), (20, 15)):
+        ratios: dict[str, list[float]] = {n: [] for n in names}
+        for k in range(args.random):
+            s = jobshop_as_lab(base, random_jobshop(jobs, machines, 1, 99, random.Random(f"bench:{jobs}x{machines}:{k}")))
+            spans = {n: run(s, n, times[n]) for n in names}
+            ref = spans.get("mwkr") or min(spans.values())
+            for n in names:
+                ratios[n].append(spans[n] / ref)
+        rand_rows.append([f"{jobs}×{machines} ({args.random})", *[f"{statistics.mean(ratios[n]):.3f}" for n in names]])
+    table("Random shops: makespan relative to MWKR's (mean)", ["shops", *map(short.get, names)], rand_rows)
+    table("Decision time, wall ms", ["scheduler", "p50", "p99", "decisions"],
+          [[short[n], f"{1000 * statistics.median(times[n]):.2f}",
+            f"{1000 * sorted(times[n])[int(0.99 * (len(times[n]) - 1))]:.2f}", len(times[n])] for n in names])
+
+
+if __name__ == "__main__":
+    main()
