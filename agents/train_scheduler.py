@@ -29,6 +29,8 @@ from twin import Scenario
 from twin import SteppedCampaign
 
 EVAL_SEEDS = tuple(range(100_000, 100_005))
+CANDIDATE_SETTINGS = dict(n_steps=1024, batch_size=512, n_epochs=8, gamma=0.995, gae_lambda=0.95, learning_rate=2e-4,
+                          ent_coef=0.01)
 HELD_OUT_SEED = -1_000_000  # reset() draws seeds in [0, 2**31): negative ones are never trained on
 PPO_SETTINGS = dict(n_steps=512, batch_size=256, n_epochs=10, gamma=0.995, gae_lambda=0.95, learning_rate=3e-4,
                     ent_coef=0.01, policy_kwargs=dict(net_arch=[128, 128]))
@@ -77,10 +79,14 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
     venv = DummyVecEnv([lambda: SchedulingEnv(scenario, encoding=encoding) for _ in range(envs)])
     venv.seed(seed)
     if encoding == "candidates":
+        from stable_baselines3.common.vec_env import VecNormalize
+
         from agents.candidate_policy import CandidatePolicy
 
-        settings = {k: v for k, v in PPO_SETTINGS.items() if k != "policy_kwargs"}
-        model = MaskablePPO(CandidatePolicy, venv, seed=seed, verbose=0, device="cpu", **settings)
+        # labs of 36 and of 300 operations in one training: returns differ tenfold, so rewards are scaled by
+        # a running estimate of the returns' spread (training only: the policy never sees rewards)
+        venv = VecNormalize(venv, norm_obs=False, norm_reward=True, gamma=CANDIDATE_SETTINGS["gamma"])
+        model = MaskablePPO(CandidatePolicy, venv, seed=seed, verbose=0, device="cpu", **CANDIDATE_SETTINGS)
         sign = candidate_signature(scenario)
     else:
         model = MaskablePPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS)
@@ -111,7 +117,7 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
             if best is None or result["score"] <= best:
                 best = result["score"]
                 fits = None
-                for env in venv.envs:
+                for env in venv.unwrapped.envs:
                     fits = widen(fits, env.fits) if env.fits else fits
                 save_policy(model, out, "scheduler", scenario, sign, steps=done, rules=rules, fits=fits,
                             best_rule=best_rule, curve=curve)

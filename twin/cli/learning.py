@@ -118,6 +118,10 @@ def bench_schedulers(
     budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", help="override a scenario field, e.g. "
                                                       "devices.reactor.instances=1 (another lab shape); repeatable")] = None,
+    shapes: Annotated[bool, typer.Option("--shapes", help="run a family of variants of the lab (instances ×2, "
+                                                          "a bottleneck, a flaky stage, fast-degrading samples) "
+                                                          "and compare each scheduler with the best rule, "
+                                                          "paired seeds, 95 % CI")] = False,
 ) -> None:
     """Makespan, gap to the CP-SAT bound, utilisation, degraded and lost samples, decision latency per scheduler."""
     from rich.table import Table
@@ -125,6 +129,9 @@ def bench_schedulers(
     from twin.tools.scheduler_bench import HEADER, bench, bound, load_variant, rows
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
+    if shapes:
+        _bench_shapes(scenario, names, seeds, workers, budget, _assignments(set_ or []))
+        return
     files = [f.strip() for f in jobshop.split(",")] if jobshop else [None]
     for file in files:
         try:
@@ -148,6 +155,41 @@ def bench_schedulers(
         for row in rows(results, optimum, 1.0 if s.jobshop else 3600.0):
             table.add_row(*row)
         console.print(table)
+
+
+def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, budget: int | None,
+                  changes: dict) -> None:
+    from rich.table import Table
+
+    from twin.tools.planner_bench import label
+    from twin.tools.scheduler_bench import load_variant
+    from twin.tools.shape_bench import shapes, variants, verdict
+
+    try:
+        s = load_variant(scenario, None, budget, changes)
+        for name in names:
+            lab.make_scheduler(s, name)
+    except TwinError as exc:
+        _fail(exc)
+    if s.jobshop is not None:
+        _fail(TwinError("--shapes varies a lab's devices and samples; for job shops use --jobshop FILES"))
+    others = list(names)
+    table = Table(title=f"{s.name}: each scheduler minus the shape's best rule, makespan lab-h "
+                        f"(mean of {seeds} paired seeds ± 95 % CI)", title_justify="left")
+    for h in ["shape", "best rule", "its mean h", *[label(n) for n in others]]:
+        table.add_column(h)
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                        TimeElapsedColumn(), console=err)
+    with progress:
+        bar = progress.add_task(f"{s.name}: shapes", total=len(variants(s)))
+        results = shapes(s, names, seeds, workers, on_shape=lambda c: progress.advance(bar))
+    for c in results:
+        cells = []
+        for n in others:
+            diff, half = c.diffs[n]
+            cells.append("—" if n == c.best_rule else f"{diff / 3600:+.2f} ± {half / 3600:.2f} {verdict(diff, half)}")
+        table.add_row(c.shape, label(c.best_rule), f"{c.best_mean_s / 3600:.2f}", *cells)
+    console.print(table)
 
 
 def _assignments(items: list[str]) -> dict:

@@ -1,0 +1,34 @@
+"""`twin bench schedulers --shapes`: a family of lab variants, each scheduler against the shape's best rule."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+from tests.conftest import qd_lab
+from twin.scenario import parse
+from twin.tools.shape_bench import shapes, variants, verdict
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_each_shape_compares_every_scheduler_with_its_best_rule_on_paired_seeds():
+    s = parse(qd_lab(**{"campaign.budget": 4, "chemistry.stability_s": 3600}))
+    names = [n for n, _ in variants(s)]
+    assert names[0] == "as written" and "spectrometer bottleneck (×2 duration)" in names
+    assert "samples keep ¼ as long" in names and len(names) == 1 + 3 * 2 + 1
+    bottleneck = dict(variants(s))["spectrometer bottleneck (×2 duration)"]
+    assert bottleneck.devices["spectrometer"].duration.mean_s == 2 * s.devices["spectrometer"].duration.mean_s
+    results = shapes(s, ["fifo", "spt"], seeds=3)
+    assert [c.shape for c in results] == names
+    for c in results:
+        assert c.diffs[c.best_rule] == (0.0, 0.0)
+        other = "spt" if c.best_rule == "fifo" else "fifo"
+        assert c.diffs[other][0] >= 0 and c.diffs[other][1] >= 0  # the best rule has the lowest mean
+    assert (verdict(-1.0, 0.5), verdict(1.0, 0.5), verdict(0.2, 0.5)) == ("better", "worse", "same")
+
+
+def test_the_cli_refuses_shapes_of_a_job_shop_and_says_what_to_use(tmp_path):
+    env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
+    out = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/jobshop.yaml", "--shapes",
+                          "--schedulers", "mwkr"], capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
+    assert out.returncode == 2 and "--jobshop" in out.stderr

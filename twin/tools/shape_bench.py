@@ -1,0 +1,79 @@
+"""`twin bench schedulers --shapes`: schedulers on a family of variants of one lab, with paired seeds.
+
+The family: the lab as written; for each device type, twice its instances, a bottleneck (its steps twice as
+long) and a flaky stage (a fifth of its steps fail); and, when samples degrade, samples that keep a quarter as
+long. Every scheduler runs the same seeds on every variant; each one is compared with the variant's best rule
+(the rule with the lowest mean makespan there) seed by seed, as a mean difference with a 95 % confidence
+interval — so "better" and "worse" mean outside the noise, not a lucky seed.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from twin.runtime.lab import prepare
+from twin.scenario import Scenario
+from twin.tools.scheduler_bench import RULES, Run, bench
+
+#: two-sided 95 % quantiles of Student's t for n − 1 degrees of freedom (n paired seeds), then the normal's
+_T95 = {1: 12.71, 2: 4.30, 3: 3.18, 4: 2.78, 5: 2.57, 6: 2.45, 7: 2.36, 8: 2.31, 9: 2.26, 10: 2.23, 15: 2.13,
+        20: 2.09, 30: 2.04}
+
+
+def _t95(dof: int) -> float:
+    return next((v for k, v in sorted(_T95.items()) if dof <= k), 1.96)
+
+
+def variants(s: Scenario) -> list[tuple[str, Scenario]]:
+    out = [("as written", s)]
+    for name, d in s.devices.items():
+        out.append((f"{name} ×2 instances", prepare(s, overrides={f"devices.{name}.instances": d.instances * 2})))
+        out.append((f"{name} bottleneck (×2 duration)",
+                    prepare(s, overrides={f"devices.{name}.duration.mean_s": d.duration.mean_s * 2})))
+        out.append((f"{name} flaky (20 % fail)",
+                    prepare(s, overrides={f"devices.{name}.faults.fail_p": max(d.faults.fail_p, 0.2)})))
+    if s.chemistry.stability_s:
+        out.append(("samples keep ¼ as long", prepare(s, overrides={"chemistry.stability_s": s.chemistry.stability_s / 4})))
+    return out
+
+
+@dataclass
+class Comparison:
+    shape: str
+    best_rule: str
+    best_mean_s: float
+    diffs: dict[str, tuple[float, float]]  # scheduler -> (mean difference to the best rule, 95 % half-width), s
+
+
+def compare(results: dict[str, list[Run]], shape: str) -> Comparison:
+    means = {k: statistics.mean(r.makespan_s for r in v) for k, v in results.items()}
+    rules = [k for k in results if k in RULES] or list(results)
+    best = min(rules, key=means.get)
+    ref = {r.seed: r.makespan_s for r in results[best]}
+    diffs = {}
+    for name, runs in results.items():
+        d = [r.makespan_s - ref[r.seed] for r in runs]
+        half = _t95(len(d) - 1) * statistics.stdev(d) / math.sqrt(len(d)) if len(d) > 1 else float("inf")
+        diffs[name] = (statistics.mean(d), half)
+    return Comparison(shape, best, means[best], diffs)
+
+
+def shapes(s: Scenario, schedulers: list[str], seeds: int, workers: int = 2,
+           on_shape: Callable[[Comparison], None] | None = None) -> list[Comparison]:
+    out = []
+    for shape, variant in variants(s):
+        out.append(compare(bench(variant, schedulers, seeds, workers), shape))
+        if on_shape is not None:
+            on_shape(out[-1])
+    return out
+
+
+def verdict(diff: float, half: float) -> str:
+    if diff + half < 0:
+        return "better"
+    if diff - half > 0:
+        return "worse"
+    return "same"
