@@ -29,7 +29,7 @@ from twin import Scenario
 from twin import SteppedCampaign
 
 EVAL_SEEDS = tuple(range(100_000, 100_005))
-CANDIDATE_SETTINGS = dict(n_steps=1024, batch_size=512, n_epochs=8, gamma=0.995, gae_lambda=0.95, learning_rate=2e-4,
+CANDIDATE_SETTINGS = dict(n_steps=1024, batch_size=512, n_epochs=8, gamma=0.995, gae_lambda=0.95, learning_rate=1e-4,
                           ent_coef=0.01)
 HELD_OUT_SEED = -1_000_000  # reset() draws seeds in [0, 2**31): negative ones are never trained on
 PPO_SETTINGS = dict(n_steps=512, batch_size=256, n_epochs=10, gamma=0.995, gae_lambda=0.95, learning_rate=3e-4,
