@@ -47,6 +47,7 @@ def _check_fit(path: Path, meta: dict, scenario: Any) -> str:
 
 class RlScheduler:
     serve_on_bus = True
+    greedy = True  # False: sample from the policy (several rollouts of a deterministic lab, keeping the best)
 
     def __init__(self, scenario: Any = None, policy: str | None = None, **_: Any) -> None:
         if not policy or scenario is None:
@@ -72,5 +73,5 @@ class RlScheduler:
 
     def decide(self, view: LabView) -> list[Assignment]:
         obs, mask = self.encoder.encode(view)
-        action, _ = self.model.predict(obs, action_masks=mask, deterministic=True)
+        action, _ = self.model.predict(obs, action_masks=mask, deterministic=self.greedy)
         return self.encoder.decode(view, int(action))
