@@ -24,7 +24,8 @@ class SteppedCampaign:
         self.s = prepare(scenario, clock="virtual", bus="memory")
         self._wall0 = time.perf_counter()
         self._journal = NullJournal()  # a training episode's journal is never read
-        self._run = FastCampaign(self.s, load_drivers(self.s), self._journal, make_planner(self.s), None)
+        self._run = FastCampaign(self.s, load_drivers(self.s), self._journal, make_planner(self.s), None,
+                                 alerts=False)
         self.core = self._run.core
         self.summary: Summary | None = None
         self.view: LabView | None = None  # the decision waiting for an answer, if any

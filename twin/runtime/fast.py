@@ -37,8 +37,11 @@ Progress = Callable[[CampaignCore], None]
 class FastCampaign:
     def __init__(self, scenario: Scenario, drivers: list[tuple[str, str, Any]], journal: Journal,
                  planner: Planner, scheduler: Scheduler | None, campaign_id: str = "c1",
-                 on_progress: Progress | None = None) -> None:
+                 on_progress: Progress | None = None, alerts: bool = True) -> None:
+        """``alerts``: log the campaign's alerts (a device type gone, say) as warnings; a training run's
+        thousands of campaigns keep them in their journals only."""
         self.s, self.journal, self.planner, self.scheduler = scenario, journal, planner, scheduler
+        self.alerts = ALERTS if alerts else frozenset()
         self.on_progress = on_progress
         self.queue = EventQueue()
         self.core = CampaignCore(scenario, campaign_id)
@@ -104,7 +107,7 @@ class FastCampaign:
             t = type(a)
             if t is Note:
                 note(a)
-                if a.kind in ALERTS:
+                if a.kind in self.alerts:
                     log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
                 if watched and not progressed:
                     progressed = a.kind.startswith(PROGRESS_KINDS)
