@@ -73,9 +73,9 @@ def _redraw(job: dict, t: Any, rng: random.Random) -> dict:
 class SchedulingEnv(gym.Env):
     metadata = {"render_modes": []}
 
-    def __init__(self, scenario: Scenario, randomise: bool = True, encoding: str = "slots") -> None:
-        """``encoding``: ``slots`` (the fixed grid of ``agents.scheduling_features``) or ``candidates`` (one row
-        per allowed pair, ``agents.candidates``)."""
+    def __init__(self, scenario: Scenario, randomise: bool = True, encoding: str = "candidates") -> None:
+        """``encoding``: ``candidates`` (one row per allowed pair, ``agents.candidates``) or ``slots`` (the
+        fixed grid of ``agents.scheduling_features``, kept as a baseline)."""
         self.base, self.randomise = scenario, randomise
         self.features = ENCODINGS[encoding]
         self.encoder = self.features.CandidateEncoder(scenario) if encoding == "candidates" else \

@@ -79,8 +79,9 @@ def held_out_labs(scenario: Scenario, n: int) -> list[Scenario]:
 
 def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs: int = 2,
                     eval_every: int = 20_000, on_progress: Callable[[int, dict | None], None] | None = None,
-                    eval_seeds=EVAL_SEEDS, encoding: str = "slots", held_out_count: int = 6) -> Path:
-    """``encoding``: ``slots`` (an MLP over the fixed grid) or ``candidates`` (the candidate-scoring policy).
+                    eval_seeds=EVAL_SEEDS, encoding: str = "candidates", held_out_count: int = 6) -> Path:
+    """``encoding``: ``candidates`` (the candidate-scoring policy) or ``slots`` (an MLP over the fixed grid,
+    the baseline).
     The policy kept is the best by its objective (what the reward sums to: makespan, degraded samples and
     abandoned experiments, weighted by ``training.weights``) relative to the best rule's, averaged over the
     scenario as written and ``held_out_count`` labs drawn from its ``training`` ranges with seeds training
@@ -142,6 +143,6 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
     return out.with_suffix(".zip")
 
 
-def train_candidate_scheduler(scenario: Scenario, steps: int, out: Path, **kwargs: Any) -> Path:
-    """`twin train --agent scheduler-candidates`: the candidate-scoring policy (``agents.candidate_policy``)."""
-    return train_scheduler(scenario, steps, out, encoding="candidates", **kwargs)
+def train_slot_scheduler(scenario: Scenario, steps: int, out: Path, **kwargs: Any) -> Path:
+    """`twin train --agent scheduler-slots`: the fixed-grid policy, kept as a baseline."""
+    return train_scheduler(scenario, steps, out, encoding="slots", **kwargs)

@@ -92,7 +92,7 @@ def bench_env(seconds: float = 4.0) -> None:
 
     rows = []
     for name in ("jobshop", "flaky_lab"):
-        env = SchedulingEnv(prepare(ROOT / "scenarios" / f"{name}.yaml"), randomise=False)
+        env = SchedulingEnv(prepare(ROOT / "scenarios" / f"{name}.yaml"), randomise=False, encoding="slots")
         rng = np.random.default_rng(0)
         env.reset(seed=0)
         steps = resets = 0
@@ -123,7 +123,7 @@ def _ppo_steps_per_s(steps: int = 4096) -> float:
 
     torch.set_num_threads(1)
     s = prepare(ROOT / "scenarios" / "flaky_lab.yaml")
-    venv = DummyVecEnv([lambda: SchedulingEnv(s) for _ in range(2)])
+    venv = DummyVecEnv([lambda: SchedulingEnv(s, encoding="slots") for _ in range(2)])
     model = MaskablePPO("MlpPolicy", venv, seed=0, verbose=0, **PPO_SETTINGS)
     model.learn(1024)  # warm up
     t0 = time.perf_counter()

@@ -27,7 +27,7 @@ def rate(scenario, kind: str, n: int, steps: int) -> float:
     from sb3_contrib import MaskablePPO
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
-    make = [lambda: SchedulingEnv(scenario) for _ in range(n)]
+    make = [lambda: SchedulingEnv(scenario, encoding="slots") for _ in range(n)]  # the figures in docs
     venv = DummyVecEnv(make) if kind == "dummy" else SubprocVecEnv(make, start_method="fork")
     venv.seed(0)
     model = MaskablePPO("MlpPolicy", venv, seed=0, verbose=0, device="cpu", **PPO_SETTINGS)

@@ -39,7 +39,7 @@ def ft06():
 def trained(ft06, tmp_path_factory):
     """A candidate policy trained for a few seconds on ft06 alone."""
     path = tmp_path_factory.mktemp("policy") / "ft06-candidates.zip"
-    train_scheduler(ft06, 8192, path, envs=2, eval_every=8192, eval_seeds=(0,), encoding="candidates")
+    train_scheduler(ft06, 8192, path, envs=2, eval_every=8192, eval_seeds=(0,))
     return path
 
 

@@ -34,10 +34,10 @@ def flaky():
 
 @pytest.fixture(scope="module")
 def trained(ft06, tmp_path_factory):
-    """A policy trained for a few seconds on ft06 itself (no randomisation)."""
+    """A fixed-grid (baseline) policy trained for a few seconds on ft06 itself (no randomisation)."""
     fixed = prepare(ft06, overrides={"training.jobshop_sizes": []})
     path = tmp_path_factory.mktemp("policy") / "ft06.zip"
-    train_scheduler(fixed, 6144, path, envs=2, eval_every=6144, eval_seeds=(0,))
+    train_scheduler(fixed, 6144, path, envs=2, eval_every=6144, eval_seeds=(0,), encoding="slots")
     return path
 
 
@@ -52,7 +52,7 @@ def test_the_registered_env_passes_the_gymnasium_checker(name):
 
 
 def test_masks_allow_exactly_the_valid_pairs_under_faults(flaky):
-    env = SchedulingEnv(flaky)
+    env = SchedulingEnv(flaky, encoding="slots")
     rng = np.random.default_rng(0)
     checked = 0
     for seed in range(3):
