@@ -4,7 +4,7 @@
 
 Every instance in ../shared/data/jobshop/ (34, with optima from the literature) runs once per scheduler as a
 lab (one device per machine, deterministic, no faults) on the fast runtime; the gap is makespan / optimum − 1.
-Then `--random` random shops of 15×15 and 20×15 (durations 1–99), as makespan relative to MWKR's. The p99 of
+Then `--random` random shops each of 10×10, 15×15 and 20×15 (durations 1–99), as makespan relative to MWKR's. The p99 of
 each scheduler's decision time (wall ms) is measured over every decision it made. `--samples K` adds, for each
 rl policy, the best of K rollouts (greedy + K−1 sampled from the policy): an improvement at decision time that
 only a deterministic lab allows, reported apart from the greedy policy.
@@ -97,7 +97,7 @@ def main() -> None:
           rows)
     base = load_variant(SCENARIO)
     rand_rows = []
-    for jobs, machines in ((15, 15), (20, 15)):
+    for jobs, machines in ((10, 10), (15, 15), (20, 15)):
         ratios: dict[str, list[float]] = {n: [] for n in names}
         for k in range(args.random):
             s = jobshop_as_lab(base, random_jobshop(jobs, machines, 1, 99, random.Random(f"bench:{jobs}x{machines}:{k}")))
