@@ -11,11 +11,11 @@ from agents.candidates import MAX_CANDIDATES, WAIT, CandidateEncoder
 from agents.rl_scheduler import RlScheduler
 from agents.scheduling_env import SchedulingEnv
 from agents.train_scheduler import campaign, train_scheduler
+from tests.agents.test_scheduling import live_and_env
 from tests.conftest import qd_lab
 from twin import PluginError, jobshop_as_lab, random_jobshop
 from twin.campaign.decisions import capable
-from twin.campaign.journal import read_events
-from twin.runtime.lab import prepare, run
+from twin.runtime.lab import prepare
 from twin.scenario import parse
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -110,18 +110,6 @@ def test_a_policy_knows_the_labs_it_fits_and_warns_or_refuses_outside_them(ft06,
 
 
 def test_the_live_agent_over_zenoh_dispatches_what_the_env_does(ft06, trained, tmp_path):
-    policy = RlScheduler(scenario=ft06, policy=str(trained))
-    in_env = []
-
-    def record(view):
-        decided = policy.decide(view)
-        in_env.extend((a.task, a.device, round(view.now, 6)) for a in decided)
-        return decided
-
-    campaign(ft06, 0, record)
-    summary = run(ft06, journal=tmp_path / "j.db", bus="zenoh", clock="virtual",
-                  overrides={"campaign.scheduler": f"rl:{trained}"})
-    live = [(e["task"], e["device"], round(e["t_lab"], 6)) for e in read_events(tmp_path / "j.db")
-            if e["kind"] == "attempt.dispatched"]
+    live, in_env, summary = live_and_env(ft06, trained, tmp_path)
     assert live == in_env and len(live) == 36
     assert summary.scheduler_fallbacks == 0

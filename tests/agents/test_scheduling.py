@@ -104,8 +104,9 @@ def test_short_training_beats_a_random_policy_on_ft06(ft06, trained):
     assert learned < 0.9 * np.mean(random_makespans), (learned, random_makespans)
 
 
-def test_the_live_agent_over_zenoh_schedules_as_the_policy_does_in_the_env(ft06, trained, tmp_path):
-    policy = RlScheduler(scenario=ft06, policy=str(trained))
+def live_and_env(scenario, policy_path, tmp_path):
+    """What a policy dispatches in the env, and as an agent over Zenoh in a live (virtual-time) campaign."""
+    policy = RlScheduler(scenario=scenario, policy=str(policy_path))
     in_env = []
 
     def record(view):
@@ -113,11 +114,16 @@ def test_the_live_agent_over_zenoh_schedules_as_the_policy_does_in_the_env(ft06,
         in_env.extend((a.task, a.device, round(view.now, 6)) for a in decided)
         return decided
 
-    campaign(ft06, 0, record)
-    summary = run(ft06, journal=tmp_path / "j.db", bus="zenoh", clock="virtual",
-                  overrides={"campaign.scheduler": f"rl:{trained}"})
+    campaign(scenario, 0, record)
+    summary = run(scenario, journal=tmp_path / "j.db", bus="zenoh", clock="virtual",
+                  overrides={"campaign.scheduler": f"rl:{policy_path}"})
     live = [(e["task"], e["device"], round(e["t_lab"], 6)) for e in read_events(tmp_path / "j.db")
             if e["kind"] == "attempt.dispatched"]
+    return live, in_env, summary
+
+
+def test_the_live_agent_over_zenoh_schedules_as_the_policy_does_in_the_env(ft06, trained, tmp_path):
+    live, in_env, summary = live_and_env(ft06, trained, tmp_path)
     assert live == in_env
     assert summary.scheduler_fallbacks == 0 and summary.decisions >= 36
 

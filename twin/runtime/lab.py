@@ -29,7 +29,7 @@ from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.off_loop import OffLoopScheduler
-from twin.runtime.remote_scheduler import RemoteScheduler, SchedulerService
+from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
 from twin.scenario import Scenario, load, set_dotted
 from twin.view.observer import LabObserver
 from twin.campaign.summary import Summary, from_core
@@ -192,14 +192,16 @@ def live_scheduler(s: Scenario, chosen: Any, bus: Bus, clock: LabClock) -> tuple
     if chosen != REMOTE and not getattr(chosen, "serve_on_bus", False):
         if clock.is_virtual:  # time stands still while it thinks
             return chosen, None
-        fallback = s.campaign.fallback_scheduler
-        return OffLoopScheduler(chosen, make_scheduler(s, fallback), fallback, deadline), None
+        return OffLoopScheduler(chosen, _fallback(s), deadline), None
     service = None
     if chosen != REMOTE:
         service = SchedulerService(bus, s.lab, chosen)
         service.start()
-    fallback = s.campaign.fallback_scheduler
-    return RemoteScheduler(bus, s.lab, make_scheduler(s, fallback), fallback, deadline), service
+    return RemoteScheduler(bus, s.lab, _fallback(s), deadline), service
+
+
+def _fallback(s: Scenario) -> Fallback:
+    return Fallback(make_scheduler(s, s.campaign.fallback_scheduler), s.campaign.fallback_scheduler)
 
 
 WALL_CLOCK_FIELDS = ("wall_s", "journal", "decision_ms")  # differ between identical runs
@@ -391,9 +393,9 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         remote = scheduler if isinstance(scheduler, RemoteScheduler) else None
         guarded = scheduler if isinstance(scheduler, RemoteScheduler | OffLoopScheduler) else None
         stack.callback(lambda: result.setdefault(
-            "summary", finish(camp.core, journal, wall0, clock.now(), camp.note, guarded.fallbacks if guarded else 0)))
+            "summary", finish(camp.core, journal, wall0, clock.now(), camp.note, guarded.fallback.count if guarded else 0)))
         if guarded is not None:
-            guarded.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
+            guarded.fallback.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
             stack.callback(guarded.close)
         if service is not None:
             stack.callback(service.stop)

@@ -16,10 +16,10 @@ import asyncio
 import concurrent.futures
 import logging
 import time
-from collections.abc import Callable
 from typing import Any
 
 from twin.campaign.decisions import Assignment, LabView
+from twin.runtime.remote_scheduler import Fallback
 
 log = logging.getLogger(__name__)
 
@@ -28,15 +28,12 @@ ON_LOOP_LIMIT_S = 0.005
 
 
 class OffLoopScheduler:
-    def __init__(self, inner: Any, fallback: Any, fallback_name: str, deadline_s: float) -> None:
+    def __init__(self, inner: Any, fallback: Fallback, deadline_s: float) -> None:
         """``deadline_s``: lab seconds a decision in the worker may take."""
-        self.inner, self.fallback, self.fallback_name, self.deadline_s = inner, fallback, fallback_name, deadline_s
+        self.inner, self.fallback, self.deadline_s = inner, fallback, deadline_s
         self.offloaded = bool(getattr(inner, "runs_long", False))
-        self.fallbacks = 0
-        self.on_fallback: Callable[[str], None] = lambda reason: None
         self._pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="labtwin-scheduler")
         self._busy: asyncio.Future | None = None
-        self._reason = ""
 
     def close(self) -> None:
         self._pool.shutdown(wait=False, cancel_futures=True)
@@ -55,27 +52,17 @@ class OffLoopScheduler:
 
     async def _in_worker(self, view: LabView) -> list[Assignment]:
         if self._busy is not None:
-            return self._fall(view, "busy", "the scheduler is still deciding an earlier question")
+            return self.fallback.decide(view, "busy", "the scheduler is still deciding an earlier question")
         fut = asyncio.get_running_loop().run_in_executor(self._pool, self.inner.decide, view)
         done, _ = await asyncio.wait({fut}, timeout=self.deadline_s)
         if not done:
             self._busy = fut
             fut.add_done_callback(self._late_answer)
-            return self._fall(view, "late", f"the scheduler did not decide within {self.deadline_s:g} lab-s")
-        if self._reason:
-            log.warning("the scheduler decides in time again")
-            self._reason = ""
+            return self.fallback.decide(view, "late", f"the scheduler did not decide within {self.deadline_s:g} lab-s")
+        self.fallback.recovered("the scheduler decides in time again")
         return list(fut.result())
 
     def _late_answer(self, fut: asyncio.Future) -> None:
         self._busy = None
         if not fut.cancelled() and fut.exception() is not None:
             log.error("the scheduler failed on a question it answered late: %r", fut.exception())
-
-    def _fall(self, view: LabView, kind: str, reason: str) -> list[Assignment]:
-        self.fallbacks += 1
-        if kind != self._reason:
-            log.warning("%s: %s decides instead", reason, self.fallback_name)
-            self.on_fallback(reason)
-            self._reason = kind
-        return list(self.fallback.decide(view))

@@ -92,16 +92,37 @@ class SchedulerService:
 
 
 # -- the orchestrator's side -----------------------------------------------------------
+class Fallback:
+    """The rule that decides when the chosen scheduler cannot (absent, late, wrong): it counts its decisions
+    and says why once per change of reason, through ``on_fallback`` (the campaign journals it)."""
+
+    def __init__(self, rule: Any, name: str) -> None:
+        self.rule, self.name, self.count = rule, name, 0
+        self.on_fallback: Callable[[str], None] = lambda reason: None
+        self._kind = ""
+
+    def decide(self, view: LabView, kind: str, reason: str) -> list[Assignment]:
+        self.count += 1
+        if kind != self._kind:
+            log.warning("%s: %s decides instead", reason, self.name)
+            self.on_fallback(reason)
+            self._kind = kind
+        return list(self.rule.decide(view))
+
+    def recovered(self, message: str) -> None:
+        """The chosen scheduler answered properly again."""
+        if self._kind:
+            log.warning("%s", message)
+            self._kind = ""
+
+
 class RemoteScheduler:
-    def __init__(self, bus: Bus, lab: str, fallback: Any, fallback_name: str, deadline_s: float) -> None:
-        self.bus, self.lab, self.fallback, self.fallback_name = bus, lab, fallback, fallback_name
+    def __init__(self, bus: Bus, lab: str, fallback: Fallback, deadline_s: float) -> None:
+        self.bus, self.lab, self.fallback = bus, lab, fallback
         self.deadline_s = deadline_s
         self.present = False
-        self.fallbacks = 0
         self.answered = 0  # decisions the agent made
         self._arrived = asyncio.Event()
-        self.on_fallback: Callable[[str], None] = lambda reason: None
-        self._reason = ""
         self._watch = bus.watch_tokens(alive_key(lab), self._presence)
 
     def close(self) -> None:
@@ -126,25 +147,15 @@ class RemoteScheduler:
 
     async def _decide(self, view: LabView) -> list[Assignment]:
         if not self.present:
-            return self._fall(view, "absent", "the scheduler agent is not on the bus")
+            return self.fallback.decide(view, "absent", "the scheduler agent is not on the bus")
         try:
             reply = await self.bus.request(decide_key(self.lab), encode_view(view), self.deadline_s)
         except NoReplyError:
-            return self._fall(view, "late", f"the scheduler agent did not answer within {self.deadline_s:g} lab-s")
+            return self.fallback.decide(view, "late",
+                                        f"the scheduler agent did not answer within {self.deadline_s:g} lab-s")
         assignments, problem = check(view, reply)
         if problem:
-            return self._fall(view, "invalid", f"the scheduler agent sent an {problem}")
-        if self._reason:
-            log.warning("scheduler agent is back; it decides again")
-            self._reason = ""
+            return self.fallback.decide(view, "invalid", f"the scheduler agent sent an {problem}")
+        self.fallback.recovered("scheduler agent is back; it decides again")
         self.answered += 1
         return assignments
-
-    def _fall(self, view: LabView, kind: str, reason: str) -> list[Assignment]:
-        """The fallback decides; reported when the kind of failure (absent, late, invalid) changes."""
-        self.fallbacks += 1
-        if kind != self._reason:
-            log.warning("%s: %s decides instead", reason, self.fallback_name)
-            self.on_fallback(reason)
-            self._reason = kind
-        return self.fallback.decide(view)
