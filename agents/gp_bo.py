@@ -46,9 +46,10 @@ class GpBoPlanner:
     # -- proposals ----------------------------------------------------------
     def propose(self, n: int, history: list[Outcome], pending: list[dict[str, Any]]) -> list[Proposal]:
         done = [h for h in history if h.outputs]
-        if len(done) < self.n_init or not self.targets:
+        x, ys = self._data(done) if self.targets else (np.empty((0, 0)), {})
+        # too few experiments that measured what the targets name (none, if no device outputs it): keep exploring
+        if len(x) < self.n_init:
             return self.design.propose(n, history, pending) or self._random(n)
-        x, ys = self._data(done)
         # where a device refused (infeasible): a candidate whose nearest tried point was refused is not proposed
         self._refused = np.array([self._unit(h.params) for h in history if getattr(h, "infeasible", False)])
         self._tried = np.vstack([x, self._refused]) if len(self._refused) else x

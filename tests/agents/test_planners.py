@@ -80,3 +80,16 @@ def test_gp_bo_does_not_propose_where_devices_refused():
     planner = GpBoPlanner(BOX, seed=1, targets=hot)
     proposals = [p.params for p in planner.propose(8, hist, [])]
     assert all(p["temperature_c"] <= 290 for p in proposals), [round(p["temperature_c"]) for p in proposals]
+
+
+def test_gp_bo_keeps_exploring_when_no_device_measures_what_the_targets_name():
+    from agents.gp_bo import GpBoPlanner
+    from tests.conftest import qd_lab
+    from twin import Outcome
+    from twin.scenario import parse
+
+    s = parse(qd_lab())
+    planner = GpBoPlanner(s.chemistry.parameters, 0, s.chemistry.targets)
+    history = [Outcome(p.params, {"purity": 90.0}, None) for p in planner.propose(10, [], [])]
+    proposals = planner.propose(3, history, [])  # a lab whose devices output "purity", targets "peak_nm"
+    assert len(proposals) == 3 and all(set(p.params) == set(s.chemistry.parameters) for p in proposals)
