@@ -10,7 +10,9 @@ order — so a very large lab is seen in part, never mis-seen). Action ``i`` sta
 A row describes a pair in terms that carry to another lab: times divided by the scenario's typical step
 duration (``agents.scheduling_features.time_scale``), counts divided by ten, and the dispatching rules'
 own orderings (the step's rank by work remaining, by duration, by waiting time) as features, so that the
-network starts from what the rules know.
+network starts from what the rules know; and the lab's critical path as the job-shop heuristics weigh it (the
+known work left per device type and per job against a lower bound of what remains, what arrives next from a
+running step, and the step against the others the same device could take).
 """
 
 from __future__ import annotations
@@ -22,9 +24,9 @@ import numpy as np
 from agents.scheduling_features import time_scale
 from twin import Assignment, LabView, ReadyStep, Scenario
 
-ENCODING = "candidates-v1"
+ENCODING = "candidates-v2"
 MAX_CANDIDATES = 128
-FEATURES = 20
+FEATURES = 29
 GLOBALS = 8
 OBS_SIZE = MAX_CANDIDATES * FEATURES + GLOBALS
 ACTIONS = MAX_CANDIDATES + 1
@@ -49,7 +51,7 @@ class CandidateEncoder:
     def __init__(self, scenario: Scenario) -> None:
         self.scale = time_scale(scenario)
         self.stability = scenario.chemistry.stability_s or 0.0
-        self._pairs: list[tuple[ReadyStep, str]] = []
+        self.encoded: list[tuple[ReadyStep, str]] = []  # the candidates of the view last encoded, in row order
 
     def pairs(self, view: LabView) -> list[tuple[ReadyStep, str]]:
         """The candidates, in row order: steps by most work remaining, then devices by name."""
@@ -62,7 +64,7 @@ class CandidateEncoder:
     def encode(self, view: LabView) -> tuple[np.ndarray, np.ndarray]:
         """(observation, action mask)."""
         now, k = view.now, self.scale
-        pairs = self._pairs = self.pairs(view)
+        pairs = self.encoded = self.pairs(view)
         rows = np.zeros((MAX_CANDIDATES, FEATURES), np.float32)
         mask = np.zeros(ACTIONS, bool)
         devices = {d.name: d for d in view.devices}
@@ -75,10 +77,25 @@ class CandidateEncoder:
         free_of: dict[str, int] = {}
         for f in view.free:
             free_of[f.device_type] = free_of.get(f.device_type, 0) + 1
+        load, arriving = self._loads(view)
+        ops_of: dict[str, int] = {}
+        for r in view.ready:
+            for t in (r.device_type, *(t for t, _ in r.then)):
+                ops_of[t] = ops_of.get(t, 0) + 1
+        lb = max([r.work_remaining_s for r in view.ready]
+                 + [(d.busy_until - now) + sum(s for _, s in d.then) for d in view.devices if d.busy_until is not None]
+                 + [w / max(len(by_type.get(t, ())), 1) for t, w in load.items()] + [k])
         steps = sorted({r.task: r for r, _ in pairs}.values(), key=lambda r: r.task)
         work = dict(zip((r.task for r in steps), _ranks([r.work_remaining_s for r in steps])))
         short = dict(zip((r.task for r in steps), _ranks([r.expected_s for r in steps])))
         waited = dict(zip((r.task for r in steps), _ranks([r.ready_since for r in steps])))
+        group: dict[str, list[float]] = {}  # per free device, the most of each among the steps it could take
+        for r, name in pairs:
+            nt = r.then[0][0] if r.then else ""
+            g = group.setdefault(name, [1e-9, 1e-9, 1e-9])
+            g[0] = max(g[0], r.work_remaining_s)
+            g[1] = max(g[1], r.expected_s)
+            g[2] = max(g[2], load.get(nt, 0.0) / max(len(by_type.get(nt, ())), 1) if nt else 0.0)
         for i, (r, name) in enumerate(pairs):
             d = devices.get(name)
             kind = by_type.get(r.device_type, [])
@@ -110,6 +127,17 @@ class CandidateEncoder:
                 1.0 - short[r.task],  # 1: the shortest (SPT's pick)
                 1.0 - waited[r.task],  # 1: waiting longest (FIFO's pick)
                 float(bool(r.avoid)),
+                # the lab's critical path, as the job-shop heuristics weigh it (loads per instance ÷ the bound)
+                load.get(r.device_type, 0.0) / max(len(kind), 1) / lb,
+                load.get(nxt_type, 0.0) / max(len(nxt), 1) / lb if nxt_type else 0.0,
+                r.work_remaining_s / lb,
+                ops_of.get(r.device_type, 0) / 10,
+                arriving.get(r.device_type, (CLIP * k, 0.0))[0] / k,
+                arriving.get(r.device_type, (0.0, 0.0))[1] / lb,
+                # against the other steps this device could take instead
+                r.work_remaining_s / group[name][0],
+                r.expected_s / group[name][1],
+                (load.get(nxt_type, 0.0) / max(len(nxt), 1) if nxt_type else 0.0) / group[name][2],
             ]
             mask[i] = True
         n = max(len(view.devices), 1)
@@ -121,14 +149,38 @@ class CandidateEncoder:
         obs = np.concatenate([np.clip(rows, -CLIP, CLIP).ravel(), np.clip(glob, -CLIP, CLIP)])
         return obs.astype(np.float32), mask
 
+    @staticmethod
+    def _loads(view: LabView) -> tuple[dict[str, float], dict[str, tuple[float, float]]]:
+        """The known work still to do per device type, and per type the soonest step to arrive from a running one
+        (lab-s until then, its experiment's work remaining after that)."""
+        load: dict[str, float] = {}
+        for r in view.ready:
+            load[r.device_type] = load.get(r.device_type, 0.0) + r.expected_s
+            for t, s in r.then:
+                load[t] = load.get(t, 0.0) + s
+        arriving: dict[str, tuple[float, float]] = {}
+        for d in view.devices:
+            if d.busy_until is None:
+                continue
+            left = max(0.0, d.busy_until - view.now)
+            load[d.device_type] = load.get(d.device_type, 0.0) + left
+            for t, s in d.then:
+                load[t] = load.get(t, 0.0) + s
+            if d.then:
+                t = d.then[0][0]
+                rest = sum(s for _, s in d.then)
+                if t not in arriving or left < arriving[t][0]:
+                    arriving[t] = (left, rest)
+        return load, arriving
+
     def decode(self, view: LabView, action: int) -> list[Assignment]:
         """The assignment an action means, for the view last encoded; an invalid one is raised."""
         action = int(action)
         if action == WAIT:
             return []
-        if not 0 <= action < len(self._pairs):
-            raise ValueError(f"action {action}: there are {len(self._pairs)} candidates")
-        r, name = self._pairs[action]
+        if not 0 <= action < len(self.encoded):
+            raise ValueError(f"action {action}: there are {len(self.encoded)} candidates")
+        r, name = self.encoded[action]
         return [Assignment(r.task, name)]
 
 

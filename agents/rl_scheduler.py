@@ -57,6 +57,9 @@ class RlScheduler:
         path = Path(policy)
         meta = read_meta(path) if path.exists() else {}
         encoding = meta.get("signature", {}).get("encoding")
+        if str(encoding).startswith("candidates") and encoding != candidates.ENCODING:
+            raise PluginError(f"{path} reads labs as {encoding}; this labtwin encodes them as {candidates.ENCODING} "
+                              f"(more features per candidate): retrain it with `twin train SCENARIO --agent scheduler`")
         features = candidates if encoding == candidates.ENCODING else scheduling_features
         self.model = load_policy(path, "scheduler", features.signature(scenario))
         self.misfit = _check_fit(path, meta, scenario)

@@ -1,9 +1,9 @@
-"""Train the RL scheduler: MaskablePPO in `labtwin/Scheduling-v0`, evaluated against every rule.
+"""Train the RL scheduler in `labtwin/Scheduling-v0`, evaluated against every rule.
 
-Evaluation runs whole campaigns of the scenario as written (no randomisation)
-on fixed seeds the training never uses, for the policy and for each
-dispatching rule, and reports the mean makespan (lab-hours), degraded and
-abandoned samples; the policy is kept when it beats its best evaluation so far.
+By the scenario's ``training.method``: MaskablePPO on the reward (``ppo``, any lab), or DAgger from CP-SAT's
+schedules (``imitate``, job shops: ``agents.imitation``). Either way ``Judge`` evaluates the policy on the
+scenario as written (fixed seeds the training never uses) and on held-out labs drawn from its ``training``
+ranges, against every dispatching rule, and keeps the best.
 """
 
 from __future__ import annotations
@@ -77,15 +77,61 @@ def held_out_labs(scenario: Scenario, n: int) -> list[Scenario]:
     return [prepare(randomised(scenario, HELD_OUT_SEED + i), seed=0) for i in range(n)]
 
 
+class Judge:
+    """Evaluates a policy in training and keeps the best: its objective (what the reward sums to: makespan,
+    degraded samples and abandoned experiments, weighted by ``training.weights``) relative to the best rule's,
+    averaged over the scenario as written and ``held_out_count`` labs drawn from its ``training`` ranges with
+    seeds training never uses. The curve reports makespan against the best rule too, so a trade is visible."""
+
+    def __init__(self, scenario: Scenario, out: Path, encoding: str, eval_seeds=EVAL_SEEDS, held_out_count: int = 6,
+                 on_progress: Callable[[int, dict | None], None] | None = None, **extra: Any) -> None:
+        self.scenario, self.out, self.encoding, self.eval_seeds = scenario, out, encoding, eval_seeds
+        self.on_progress, self.extra = on_progress, extra
+        self.sign = candidate_signature(scenario) if encoding == "candidates" else signature(scenario)
+        self.rules = evaluate_rules(scenario, eval_seeds)
+        self.best_rule = min(self.rules, key=lambda r: self.rules[r]["objective"])
+        self.held_out = held_out_labs(scenario, held_out_count)
+        self.rule_spans = [min(objective(campaign(lab, 0, load_plugin("schedulers", r)().decide), lab) for r in RULES)
+                           for lab in self.held_out]
+        self.best: float | None = None
+        self.curve: list[dict] = []
+        if on_progress:
+            on_progress(0, {"policy": f"best rule: {self.best_rule}", **self.rules[self.best_rule]})
+
+    def __call__(self, model: Any, done: int, fits: dict | None, policy: str, seen: dict | None = None) -> dict:
+        """``seen``: what training itself measured, reported first."""
+        s, rules, best_rule = self.scenario, self.rules, self.best_rule
+        decide = RlScheduler.from_model(model, s, self.encoding).decide
+        result = {**(seen or {}), **score([campaign(s, seed, decide) for seed in self.eval_seeds], s)}
+        result["vs best rule"] = result["makespan h"] / rules[best_rule]["makespan h"]
+        ratios = [result["objective"] / rules[best_rule]["objective"]]
+        result["objective vs best rule"] = ratios[0]
+        if self.held_out:  # labs it never trained on: each against the best rule there
+            ratios += [objective(campaign(lab, 0, RlScheduler.from_model(model, lab, self.encoding).decide), lab) / ref
+                       for lab, ref in zip(self.held_out, self.rule_spans)]
+            result["held-out vs best rule"] = statistics.mean(ratios[1:])
+        result["score"] = statistics.mean(ratios)
+        self.curve.append({"steps": done, **result})
+        if self.best is None or result["score"] <= self.best:
+            self.best = result["score"]
+            save_policy(model, self.out, "scheduler", s, self.sign, steps=done, rules=rules, fits=fits,
+                        best_rule=best_rule, curve=self.curve, **self.extra)
+        if self.on_progress:  # after saving: what the user reads is on disk
+            self.on_progress(done, {"policy": policy, **result})
+        return result
+
+
 def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs: int = 2,
                     eval_every: int = 20_000, on_progress: Callable[[int, dict | None], None] | None = None,
                     eval_seeds=EVAL_SEEDS, encoding: str = "candidates", held_out_count: int = 6) -> Path:
-    """``encoding``: ``candidates`` (the candidate-scoring policy) or ``slots`` (an MLP over the fixed grid,
-    the baseline).
-    The policy kept is the best by its objective (what the reward sums to: makespan, degraded samples and
-    abandoned experiments, weighted by ``training.weights``) relative to the best rule's, averaged over the
-    scenario as written and ``held_out_count`` labs drawn from its ``training`` ranges with seeds training
-    never uses. The curve reports makespan against the best rule too, so a trade is visible."""
+    """Train by the scenario's ``training.method``: ``ppo`` (MaskablePPO in the environment) or ``imitate``
+    (DAgger with a CP-SAT teacher, ``agents.imitation``; job shops). ``encoding``: ``candidates`` (the
+    candidate-scoring policy) or ``slots`` (an MLP over the fixed grid, the baseline; PPO only)."""
+    if scenario.training.method == "imitate" and encoding == "candidates":
+        from agents.imitation import train_by_imitation
+
+        return train_by_imitation(scenario, steps, out, seed=seed, workers=envs, eval_every=eval_every,
+                                  on_progress=on_progress, eval_seeds=eval_seeds, held_out_count=held_out_count)
     from sb3_contrib import MaskablePPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -101,43 +147,19 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
         # a running estimate of the returns' spread (training only: the policy never sees rewards)
         venv = VecNormalize(venv, norm_obs=False, norm_reward=True, gamma=CANDIDATE_SETTINGS["gamma"])
         model = MaskablePPO(CandidatePolicy, venv, seed=seed, verbose=0, device="cpu", **CANDIDATE_SETTINGS)
-        sign = candidate_signature(scenario)
     else:
         model = MaskablePPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS)
-        sign = signature(scenario)
-    rules = evaluate_rules(scenario, eval_seeds)
-    best_rule = min(rules, key=lambda r: rules[r]["objective"])
-    held_out = held_out_labs(scenario, held_out_count)
-    rule_spans = [min(objective(campaign(lab, 0, load_plugin("schedulers", r)().decide), lab) for r in RULES)
-                  for lab in held_out]
-    if on_progress:
-        on_progress(0, {"policy": f"best rule: {best_rule}", **rules[best_rule]})
-    best, done, curve = None, 0, []
+    judge = Judge(scenario, out, encoding, eval_seeds, held_out_count, on_progress, method="ppo")
+    done = 0
     try:
         while done < steps:
             chunk = min(eval_every, steps - done)
             model.learn(chunk, reset_num_timesteps=False)
             done += chunk
-            decide = RlScheduler.from_model(model, scenario, encoding).decide
-            result = score([campaign(scenario, s, decide) for s in eval_seeds], scenario)
-            result["vs best rule"] = result["makespan h"] / rules[best_rule]["makespan h"]
-            ratios = [result["objective"] / rules[best_rule]["objective"]]
-            result["objective vs best rule"] = ratios[0]
-            if held_out:  # labs it never trained on: each against the best rule there
-                ratios += [objective(campaign(lab, 0, RlScheduler.from_model(model, lab, encoding).decide), lab) / ref
-                           for lab, ref in zip(held_out, rule_spans)]
-                result["held-out vs best rule"] = statistics.mean(ratios[1:])
-            result["score"] = statistics.mean(ratios)
-            curve.append({"steps": done, **result})
-            if best is None or result["score"] <= best:
-                best = result["score"]
-                fits = None
-                for env in venv.unwrapped.envs:
-                    fits = widen(fits, env.fits) if env.fits else fits
-                save_policy(model, out, "scheduler", scenario, sign, steps=done, rules=rules, fits=fits,
-                            best_rule=best_rule, curve=curve)
-            if on_progress:  # after saving: what the user reads is on disk
-                on_progress(done, {"policy": "maskable-ppo", **result})
+            fits = None
+            for env in venv.unwrapped.envs:
+                fits = widen(fits, env.fits) if env.fits else fits
+            judge(model, done, fits, "maskable-ppo")
     finally:
         venv.close()  # stops the campaigns in the environments, also on Ctrl-C
     return out.with_suffix(".zip")

@@ -97,7 +97,7 @@ def main() -> None:
           rows)
     base = load_variant(SCENARIO)
     rand_rows = []
-    for jobs, machines in ((10, 10), (15, 15), (20, 15)):
+    for jobs, machines in ((10, 10), (15, 15), (20, 15)) if args.random > 0 else ():
         ratios: dict[str, list[float]] = {n: [] for n in names}
         for k in range(args.random):
             s = jobshop_as_lab(base, random_jobshop(jobs, machines, 1, 99, random.Random(f"bench:{jobs}x{machines}:{k}")))
@@ -106,7 +106,8 @@ def main() -> None:
             for n in names:
                 ratios[n].append(spans[n] / ref)
         rand_rows.append([f"{jobs}×{machines} ({args.random})", *[f"{statistics.mean(ratios[n]):.3f}" for n in names]])
-    table("Random shops: makespan relative to MWKR's (mean)", ["shops", *map(short.get, names)], rand_rows)
+    if rand_rows and args.random:
+        table("Random shops: makespan relative to MWKR's (mean)", ["shops", *map(short.get, names)], rand_rows)
     table("Decision time, wall ms", ["scheduler", "p50", "p99", "decisions"],
           [[short[n], f"{1000 * statistics.median(times[n]):.2f}",
             f"{1000 * sorted(times[n])[int(0.99 * (len(times[n]) - 1))]:.2f}", len(times[n])] for n in names])

@@ -1,6 +1,7 @@
 """The candidate-scoring scheduler (issue [4 of 7], first part): every allowed pair is a candidate in labs of
 any size, a short training beats a random policy, and a policy trained on ft06 runs labs far larger."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +33,7 @@ def wide_lab(**changes):
 
 @pytest.fixture(scope="module")
 def ft06():
-    return prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={"training.jobshop_sizes": []})
+    return prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={"training.jobshop_sizes": [], "training.method": "ppo"})
 
 
 @pytest.fixture(scope="module")
@@ -107,6 +108,16 @@ def test_a_policy_knows_the_labs_it_fits_and_warns_or_refuses_outside_them(ft06,
         RlScheduler(prepare(flaky, overrides={"campaign.policy_fit": "refuse"}), str(trained))
     bigger = jobshop_as_lab(ft06, random_jobshop(10, 8, 1, 10, __import__("random").Random(0)))
     assert "8 device types (trained on 6–6)" in RlScheduler(bigger, str(trained)).misfit
+
+
+def test_a_policy_of_an_older_encoding_is_refused_with_what_to_do(ft06, trained, tmp_path):
+    old = tmp_path / "old.zip"
+    old.write_bytes(trained.read_bytes())
+    meta = json.loads(trained.with_suffix(".json").read_text())
+    meta["signature"]["encoding"] = "candidates-v1"
+    old.with_suffix(".json").write_text(json.dumps(meta))
+    with pytest.raises(PluginError, match=r"old.zip reads labs as candidates-v1.*retrain it with `twin train"):
+        RlScheduler(ft06, str(old))
 
 
 def test_the_live_agent_over_zenoh_dispatches_what_the_env_does(ft06, trained, tmp_path):

@@ -237,6 +237,9 @@ class Training(_Spec):
     """Domain randomisation for training a scheduler: each episode draws a lab from these ranges."""
 
     weights: RewardWeights = RewardWeights()
+    method: Literal["ppo", "imitate"] = Field(
+        default="ppo", description="how `twin train --agent scheduler` learns: ppo (from the reward, any lab) or "
+        "imitate (DAgger from CP-SAT's schedules of random shops; job shops with jobshop_sizes)")
 
     duration_scale: Range = Field(default=(1.0, 1.0), description="multiplies every mean duration")
     fault_scale: Range = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")

@@ -1,0 +1,296 @@
+"""Learning to dispatch from a solver's schedules: DAgger with a CP-SAT teacher, for labs whose work is all known.
+
+PPO learns a job shop from its makespan alone, one number per episode; a solver knows, for a whole shop,
+a schedule within a few percent of the optimum. So for deterministic labs whose experiments are known in
+advance (a job shop) the candidate policy can learn from a teacher instead:
+
+- the teacher solves each training shop once with CP-SAT and keeps each machine's order of operations;
+- in any state of that shop — also one its plan never reaches, after the learner chose differently — the
+  teacher's choices are the candidates that are next in their machine's order (or waiting, when no free
+  machine's next operation is ready yet);
+- DAgger (Ross et al., 2011): round 0 follows the teacher; later rounds follow the learner (greedy and sampled,
+  mixed with the teacher's choices with a probability that halves every round) and label every state it
+  visits with the teacher's choices, so the learner is taught where its own mistakes take it;
+- the learner is trained by cross-entropy on every label so far: minus the log of the probability it gives to
+  the teacher's set of choices.
+
+Rollouts and solves run in worker processes (``spawn``); each returns compact samples (only the rows that
+exist). ``agents.train_scheduler`` evaluates and keeps the best policy exactly as for PPO.
+"""
+
+from __future__ import annotations
+
+import random
+import statistics
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from agents.candidates import FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder
+from agents.cpsat import jobshop
+from twin import Scenario, SteppedCampaign, jobshop_as_lab, prepare, random_jobshop
+
+
+@dataclass
+class Sample:
+    rows: np.ndarray  # (n, FEATURES)
+    glob: np.ndarray  # (GLOBALS,)
+    allowed: np.ndarray  # (n + 1,) bool: the candidates, then waiting
+    taught: np.ndarray  # (n + 1,) bool: the teacher's choices among them
+
+
+def solve_time(jobs: int, machines: int) -> float:
+    """CP-SAT's time for one training shop: enough to be near the optimum on these sizes (one worker)."""
+    return min(6.0, 0.2 + jobs * machines / 60)
+
+
+class PlanTeacher:
+    """Each machine's order of operations in a solved shop; labels any state of that shop by it."""
+
+    def __init__(self, jobs: list[list[tuple[int, int]]], starts: list[list[int]]) -> None:
+        self.durations = [[d for _, d in job] for job in jobs]
+        order: dict[str, list[tuple[float, int, int]]] = {}
+        for j, job in enumerate(jobs):
+            for k, (m, _) in enumerate(job):
+                order.setdefault(f"m{m}", []).append((starts[j][k], j, k))
+        self.order = {m: [(j, k) for _, j, k in sorted(ops)] for m, ops in order.items()}
+        self.position = {m: {op: n for n, op in enumerate(ops)} for m, ops in self.order.items()}
+        self.reset()
+
+    def reset(self) -> None:
+        self.ends: dict[tuple[int, int], float] = {}  # started operations: when each ends
+
+    def start(self, campaign: SteppedCampaign, ready) -> None:
+        """Note that ``ready`` was started (by whoever chose it)."""
+        self.ends[self.op(campaign, ready)] = campaign.now + ready.expected_s
+
+    def op(self, campaign: SteppedCampaign, ready) -> tuple[int, int]:
+        j = int(campaign.core.experiments[ready.experiment].params["job"])
+        return j, len(self.durations[j]) - 1 - len(ready.then)
+
+    def next_on(self, machine: str) -> tuple[int, int] | None:
+        return next((op for op in self.order.get(machine, ()) if op not in self.ends), None)
+
+    def earliest(self, op: tuple[int, int], now: float) -> float:
+        """The soonest ``op`` could start: after what of its job is running and still to come before it."""
+        j, k = op
+        q = max((i for i in range(k) if (j, i) in self.ends), default=-1)
+        at = max(now, self.ends[(j, q)]) if q >= 0 else now
+        return at + sum(self.durations[j][q + 1:k])
+
+    def labels(self, campaign: SteppedCampaign, pairs, wait_allowed: bool) -> np.ndarray:
+        """Per free machine, the candidate its plan runs first, unless the plan's next operation there is not
+        ready and that candidate would still be running when it could be: then keep the machine for it (wait)."""
+        taught = np.zeros(len(pairs) + 1, bool)
+        first: dict[str, tuple[int, int]] = {}
+        for i, (r, _) in enumerate(pairs):
+            pos = self.position[r.device_type].get(self.op(campaign, r), 10**9)
+            if r.device_type not in first or pos < first[r.device_type][0]:
+                first[r.device_type] = (pos, i)
+        now = campaign.now
+        for machine, (pos, i) in first.items():
+            nxt = self.next_on(machine)
+            if (wait_allowed and nxt is not None and self.position[machine][nxt] < pos
+                    and now + pairs[i][0].expected_s > self.earliest(nxt, now)):
+                continue
+            taught[i] = True
+        if not taught.any():
+            if wait_allowed:
+                taught[-1] = True
+            else:
+                taught[min(i for _, i in first.values())] = True
+        return taught
+
+
+def rollout(lab: Scenario, teacher: PlanTeacher, choose, rng: random.Random) -> tuple[list[Sample], float]:
+    """One campaign of ``lab``, every state labelled by ``teacher``; ``choose(obs, mask, taught, rng)`` acts.
+    Returns the samples and the makespan."""
+    encoder = CandidateEncoder(lab)
+    c = SteppedCampaign(lab)
+    out: list[Sample] = []
+    teacher.reset()
+    try:
+        while not c.done:
+            obs, mask = encoder.encode(c.view)
+            pairs = encoder.encoded
+            n = len(pairs)
+            taught = teacher.labels(c, pairs, bool(mask[WAIT]))
+            allowed = np.append(mask[:n], mask[WAIT])
+            rows = obs[:MAX_CANDIDATES * FEATURES].reshape(MAX_CANDIDATES, FEATURES)[:n].copy()
+            out.append(Sample(rows, obs[MAX_CANDIDATES * FEATURES:].copy(), allowed, taught & allowed))
+            action = choose(obs, mask, taught, rng)
+            if action != WAIT:
+                teacher.start(c, pairs[action][0])
+            c.answer(encoder.decode(c.view, action))
+        return out, c.summary.lab_hours * 3600
+    finally:
+        c.close()
+
+
+def follow_teacher(obs, mask, taught, rng) -> int:
+    options = [i for i in np.flatnonzero(taught[:-1])] or [WAIT]
+    return int(rng.choice(options))
+
+
+def learner(scorer: torch.nn.Module, greedy: bool, beta: float):
+    """Acts by the policy's scores (its best, or a sample), or with probability ``beta`` by the teacher."""
+    def choose(obs, mask, taught, rng) -> int:
+        if rng.random() < beta:
+            return follow_teacher(obs, mask, taught, rng)
+        with torch.no_grad():
+            logits = scorer(torch.as_tensor(obs).unsqueeze(0))[0]
+            logits[~torch.as_tensor(mask)] = -torch.inf
+            if greedy:
+                return int(logits.argmax())
+            return int(torch.distributions.Categorical(logits=logits).sample())
+    return choose
+
+
+def shop_task(args: tuple) -> tuple[list[Sample], dict]:
+    """Worker: draw a shop from ``seed``, solve it, and roll it out ``len(modes)`` times; ``modes`` are
+    ``teacher``, ``greedy`` or ``sample``. Returns the samples and what the runs measured."""
+    base, seed, modes, state, beta = args
+    torch.set_num_threads(1)
+    rng = random.Random(f"imitate:{seed}")
+    n_jobs, n_machines = rng.choice(base.training.jobshop_sizes)
+    low, high = (int(x) for x in (base.training.operation_s or (1, 10)))
+    inst = random_jobshop(n_jobs, n_machines, low, high, rng)
+    lab = prepare(jobshop_as_lab(base, inst), seed=0)
+    plan = jobshop(inst.jobs, inst.machines, time_limit_s=solve_time(n_jobs, n_machines))
+    teacher = PlanTeacher(inst.jobs, plan.starts)
+    scorer = None
+    if state is not None:
+        from agents.candidate_policy import CandidateScorer
+
+        scorer = CandidateScorer()
+        scorer.load_state_dict(state)
+        scorer.eval()
+        torch.manual_seed(seed)
+    samples, spans = [], {}
+    for mode in modes:
+        choose = follow_teacher if mode == "teacher" or scorer is None else learner(scorer, mode == "greedy", beta)
+        got, span = rollout(lab, teacher, choose, rng)
+        samples += got
+        spans[mode] = span / plan.makespan
+    return samples, {"size": f"{n_jobs}x{n_machines}", "plan": plan.makespan, "optimal": plan.optimal, **spans}
+
+
+def batch(samples: list[Sample]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(observations, allowed, taught) padded to the most candidates in the batch, laid out as the policy
+    reads them (rows from the first, WAIT last)."""
+    obs = np.zeros((len(samples), MAX_CANDIDATES * FEATURES + GLOBALS), np.float32)
+    allowed = np.zeros((len(samples), MAX_CANDIDATES + 1), bool)
+    taught = np.zeros_like(allowed)
+    for b, s in enumerate(samples):
+        k = len(s.rows)
+        obs[b, :k * FEATURES] = s.rows.ravel()
+        obs[b, MAX_CANDIDATES * FEATURES:] = s.glob
+        allowed[b, :k], allowed[b, WAIT] = s.allowed[:k], s.allowed[k]
+        taught[b, :k], taught[b, WAIT] = s.taught[:k], s.taught[k]
+    return torch.as_tensor(obs), torch.as_tensor(allowed), torch.as_tensor(taught)
+
+
+def imitation_loss(logits: torch.Tensor, allowed: torch.Tensor, taught: torch.Tensor) -> torch.Tensor:
+    """−log P(the teacher's set of choices), the softmax taken over what is allowed."""
+    masked = logits.masked_fill(~allowed, -1e9)
+    return (torch.logsumexp(masked, 1) - torch.logsumexp(logits.masked_fill(~taught, -1e9), 1)).mean()
+
+
+def fit(net: torch.nn.Module, data: list[Sample], epochs: int, optimizer: torch.optim.Optimizer,
+        batch_size: int = 256, seed: int = 0) -> float:
+    """Cross-entropy epochs over ``data``; the last epoch's mean loss."""
+    rng = random.Random(seed)
+    order = list(range(len(data)))
+    last = 0.0
+    for _ in range(epochs):
+        rng.shuffle(order)
+        losses = []
+        for i in range(0, len(order), batch_size):
+            obs, allowed, taught = batch([data[k] for k in order[i:i + batch_size]])
+            loss = imitation_loss(net(obs), allowed, taught)
+            optimizer.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+            optimizer.step()
+            losses.append(float(loss.detach()))
+        last = sum(losses) / max(len(losses), 1)
+    return last
+
+
+def _quiet_worker() -> None:
+    """Ctrl-C reaches the whole process group: the trainer stops the workers and says what it kept."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def training_fits(scenario: Scenario) -> dict:
+    """The shapes a policy trained on ``scenario``'s random shops has seen."""
+    machines = [m for _, m in scenario.training.jobshop_sizes]
+    return {"steps": ["op"], "device_types": [min(machines), max(machines)], "instances": [1, 1]}
+
+
+def check_imitable(scenario: Scenario) -> None:
+    if scenario.jobshop is None or not scenario.training.jobshop_sizes:
+        raise ValueError(
+            f"{scenario.name}: training.method 'imitate' learns from CP-SAT's schedules of random job shops, so it "
+            f"needs a job-shop scenario (jobshop: file) with training.jobshop_sizes; for any other lab use "
+            f"training.method: ppo")
+
+
+def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, workers: int = 2,
+                       eval_every: int = 20_000, on_progress=None, eval_seeds=None, held_out_count: int = 6,
+                       max_samples: int = 400_000, epochs: int = 3, learning_rate: float = 1e-3):
+    """DAgger rounds of about ``eval_every`` labelled decisions each, ``steps`` in all; the policy is evaluated
+    after every round and the best kept (``agents.train_scheduler.Judge``). The most recent ``max_samples``
+    labels are trained on."""
+    import multiprocessing
+
+    from sb3_contrib import MaskablePPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.candidate_policy import CandidatePolicy
+    from agents.scheduling_env import SchedulingEnv
+    from agents.train_scheduler import EVAL_SEEDS, Judge
+
+    check_imitable(scenario)
+    torch.set_num_threads(1)
+    torch.manual_seed(seed)
+    host = DummyVecEnv([lambda: SchedulingEnv(scenario, randomise=False)])  # only holds the spaces for SB3
+    model = MaskablePPO(CandidatePolicy, host, seed=seed, verbose=0, device="cpu")
+    host.close()
+    net = model.policy.action_net
+    optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
+    judge = Judge(scenario, out, "candidates", eval_seeds or EVAL_SEEDS, held_out_count, on_progress,
+                  method="imitate", teacher="cp-sat")
+    data: list[Sample] = []
+    done, rnd, shop, per_shop = 0, 0, seed * 1_000_000, 150.0
+    with multiprocessing.get_context("spawn").Pool(max(1, workers), initializer=_quiet_worker) as pool:
+        while done < steps:
+            want = min(eval_every, steps - done)
+            state = None if rnd == 0 else {k: v.detach().clone() for k, v in net.state_dict().items()}
+            modes = ("teacher",) if rnd == 0 else ("greedy", "sample", "sample")
+            beta = 0.0 if rnd == 0 else 0.5 ** rnd
+            count = max(workers, round(want / (per_shop * len(modes))))
+            got, measured = 0, []
+            for samples, info in pool.imap_unordered(
+                    shop_task, [(scenario, shop + i, modes, state, beta) for i in range(count)]):
+                data += samples
+                got += len(samples)
+                measured.append(info)
+                if on_progress:
+                    on_progress(min(steps, done + got), None)
+            shop += count
+            per_shop = got / (count * len(modes))
+            data = data[-max_samples:]
+            done += got
+            net.train()
+            loss = fit(net, data, epochs, optimizer, seed=seed + rnd)
+            net.eval()
+            policy = "cp-sat teacher" if rnd == 0 else "imitation"
+            mode = "teacher" if rnd == 0 else "greedy"  # how the shops of this round went, against their plans
+            judge(model, done, training_fits(scenario), f"{policy} (loss {loss:.3f})",
+                  {f"{mode} ÷ plan": statistics.mean(m[mode] for m in measured)})
+            rnd += 1
+    return out.with_suffix(".zip")
