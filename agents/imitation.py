@@ -1,21 +1,25 @@
-"""Learning to dispatch from a solver's schedules: DAgger with a CP-SAT teacher, for labs whose work is all known.
+"""Learning to dispatch from a teacher: DAgger with CP-SAT's schedules (job shops) or the best rule (any lab).
 
 PPO learns a job shop from its makespan alone, one number per episode; a solver knows, for a whole shop,
-a schedule within a few percent of the optimum. So for deterministic labs whose experiments are known in
-advance (a job shop) the candidate policy can learn from a teacher instead:
+a schedule within a few percent of the optimum. So the candidate policy can learn from a teacher instead
+(``training.method: imitate``):
 
-- the teacher solves each training shop once with CP-SAT and keeps each machine's order of operations;
-- in any state of that shop — also one its plan never reaches, after the learner chose differently — the
-  teacher's choices are the candidates that are next in their machine's order (or waiting, when no free
-  machine's next operation is ready yet);
+- ``cp-sat`` (job shops, whose work is all known and durations hold): the teacher solves each random training
+  shop once and keeps each machine's order of operations; in any state of that shop — also one its plan never
+  reaches, after the learner chose differently — it chooses, per free machine, the candidate that machine's
+  order runs first, unless the order's next operation there is not ready yet and that candidate would still be
+  running when it could start (then: wait). Following it reproduces the plan;
+- ``best-rule`` (any lab, faults and all): in each lab drawn from the ``training`` ranges, the dispatching rule
+  with the best objective there (makespan, degraded, abandoned, weighted) is the teacher, so the policy learns
+  which rule's choice fits which state and lab;
 - DAgger (Ross et al., 2011): round 0 follows the teacher; later rounds follow the learner (greedy and sampled,
   mixed with the teacher's choices with a probability that halves every round) and label every state it
   visits with the teacher's choices, so the learner is taught where its own mistakes take it;
 - the learner is trained by cross-entropy on every label so far: minus the log of the probability it gives to
   the teacher's set of choices.
 
-Rollouts and solves run in worker processes (``spawn``); each returns compact samples (only the rows that
-exist). ``agents.train_scheduler`` evaluates and keeps the best policy exactly as for PPO.
+Solves and rollouts run in worker processes (``spawn``); each returns compact samples (only the rows that
+exist). ``agents.train_scheduler.Judge`` evaluates and keeps the best policy exactly as for PPO.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from agents.candidates import FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder
+from agents.candidates import FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, widen
 from agents.cpsat import jobshop
 from twin import Scenario, SteppedCampaign, jobshop_as_lab, prepare, random_jobshop
 
@@ -103,9 +107,36 @@ class PlanTeacher:
         return taught
 
 
-def rollout(lab: Scenario, teacher: PlanTeacher, choose, rng: random.Random) -> tuple[list[Sample], float]:
+class RuleTeacher:
+    """A dispatching rule as the teacher (any lab): the step of its first assignment in each state, on any free
+    instance that may take it (which of several identical free instances a rule names is its arbitrary
+    tie-break, and learning it cost the policy more than it taught: docs/benchmarks.md)."""
+
+    def __init__(self, rule: str) -> None:
+        from twin import load_plugin
+
+        self.rule = load_plugin("schedulers", rule)()
+
+    def reset(self) -> None:
+        pass
+
+    def start(self, campaign: SteppedCampaign, ready) -> None:
+        pass
+
+    def labels(self, campaign: SteppedCampaign, pairs, wait_allowed: bool) -> np.ndarray:
+        taught = np.zeros(len(pairs) + 1, bool)
+        out = self.rule.decide(campaign.view)
+        if out:
+            for i, (r, _) in enumerate(pairs):
+                taught[i] = r.task == out[0].task
+        if not taught.any():
+            taught[-1 if wait_allowed or not pairs else 0] = True
+        return taught
+
+
+def rollout(lab: Scenario, teacher: PlanTeacher | RuleTeacher, choose, rng: random.Random) -> tuple[list[Sample], float]:
     """One campaign of ``lab``, every state labelled by ``teacher``; ``choose(obs, mask, taught, rng)`` acts.
-    Returns the samples and the makespan."""
+    Returns the samples and the campaign's summary."""
     encoder = CandidateEncoder(lab)
     c = SteppedCampaign(lab)
     out: list[Sample] = []
@@ -123,7 +154,7 @@ def rollout(lab: Scenario, teacher: PlanTeacher, choose, rng: random.Random) -> 
             if action != WAIT:
                 teacher.start(c, pairs[action][0])
             c.answer(encoder.decode(c.view, action))
-        return out, c.summary.lab_hours * 3600
+        return out, c.summary
     finally:
         c.close()
 
@@ -159,21 +190,52 @@ def shop_task(args: tuple) -> tuple[list[Sample], dict]:
     lab = prepare(jobshop_as_lab(base, inst), seed=0)
     plan = jobshop(inst.jobs, inst.machines, time_limit_s=solve_time(n_jobs, n_machines))
     teacher = PlanTeacher(inst.jobs, plan.starts)
-    scorer = None
-    if state is not None:
-        from agents.candidate_policy import CandidateScorer
-
-        scorer = CandidateScorer()
-        scorer.load_state_dict(state)
-        scorer.eval()
-        torch.manual_seed(seed)
+    scorer = _scorer(state, seed)
     samples, spans = [], {}
     for mode in modes:
         choose = follow_teacher if mode == "teacher" or scorer is None else learner(scorer, mode == "greedy", beta)
-        got, span = rollout(lab, teacher, choose, rng)
+        got, summary = rollout(lab, teacher, choose, rng)
         samples += got
-        spans[mode] = span / plan.makespan
+        spans[mode] = summary.lab_hours * 3600 / plan.makespan
     return samples, {"size": f"{n_jobs}x{n_machines}", "plan": plan.makespan, "optimal": plan.optimal, **spans}
+
+
+def lab_task(args: tuple) -> tuple[list[Sample], dict]:
+    """Worker: draw a lab from the scenario's ``training`` ranges with ``seed``, find the rule that does best
+    there, and roll the lab out ``len(modes)`` times with that rule as the teacher."""
+    from agents.candidates import lab_shape
+    from agents.scheduling_env import randomised
+    from agents.schedulers import RULES
+    from agents.train_scheduler import campaign, objective
+    from twin import load_plugin
+
+    base, seed, modes, state, beta = args
+    torch.set_num_threads(1)
+    rng = random.Random(f"imitate:{seed}")
+    lab = prepare(randomised(base, seed), seed=seed)
+    scores = {r: objective(campaign(lab, seed, load_plugin("schedulers", r)().decide), lab) for r in RULES}
+    rule = min(scores, key=scores.get)
+    teacher = RuleTeacher(rule)
+    scorer = _scorer(state, seed)
+    samples, ratios = [], {}
+    for mode in modes:
+        choose = follow_teacher if mode == "teacher" or scorer is None else learner(scorer, mode == "greedy", beta)
+        got, summary = rollout(lab, teacher, choose, rng)
+        samples += got
+        ratios[mode] = objective(summary, lab) / scores[rule]
+    return samples, {"rule": rule, "shape": lab_shape(lab), **ratios}
+
+
+def _scorer(state: dict | None, seed: int) -> torch.nn.Module | None:
+    if state is None:
+        return None
+    from agents.candidate_policy import CandidateScorer
+
+    scorer = CandidateScorer()
+    scorer.load_state_dict(state)
+    scorer.eval()
+    torch.manual_seed(seed)
+    return scorer
 
 
 def batch(samples: list[Sample]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -232,11 +294,11 @@ def training_fits(scenario: Scenario) -> dict:
 
 
 def check_imitable(scenario: Scenario) -> None:
-    if scenario.jobshop is None or not scenario.training.jobshop_sizes:
+    if scenario.training.teacher == "cp-sat" and (scenario.jobshop is None or not scenario.training.jobshop_sizes):
         raise ValueError(
-            f"{scenario.name}: training.method 'imitate' learns from CP-SAT's schedules of random job shops, so it "
+            f"{scenario.name}: training.teacher 'cp-sat' learns from CP-SAT's schedules of random job shops, so it "
             f"needs a job-shop scenario (jobshop: file) with training.jobshop_sizes; for any other lab use "
-            f"training.method: ppo")
+            f"training.teacher: best-rule, or training.method: ppo")
 
 
 def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, workers: int = 2,
@@ -263,7 +325,10 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     net = model.policy.action_net
     optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
     judge = Judge(scenario, out, "candidates", eval_seeds or EVAL_SEEDS, held_out_count, on_progress,
-                  method="imitate", teacher="cp-sat")
+                  method="imitate", teacher=scenario.training.teacher)
+    jobshop = scenario.training.teacher == "cp-sat"
+    task = shop_task if jobshop else lab_task
+    fits = training_fits(scenario) if jobshop else None
     data: list[Sample] = []
     done, rnd, shop, per_shop = 0, 0, seed * 1_000_000, 150.0
     with multiprocessing.get_context("spawn").Pool(max(1, workers), initializer=_quiet_worker) as pool:
@@ -275,10 +340,12 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
             count = max(workers, round(want / (per_shop * len(modes))))
             got, measured = 0, []
             for samples, info in pool.imap_unordered(
-                    shop_task, [(scenario, shop + i, modes, state, beta) for i in range(count)]):
+                    task, [(scenario, shop + i, modes, state, beta) for i in range(count)]):
                 data += samples
                 got += len(samples)
                 measured.append(info)
+                if "shape" in info:
+                    fits = widen(fits, info["shape"])
                 if on_progress:
                     on_progress(min(steps, done + got), None)
             shop += count
@@ -288,9 +355,9 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
             net.train()
             loss = fit(net, data, epochs, optimizer, seed=seed + rnd)
             net.eval()
-            policy = "cp-sat teacher" if rnd == 0 else "imitation"
-            mode = "teacher" if rnd == 0 else "greedy"  # how the shops of this round went, against their plans
-            judge(model, done, training_fits(scenario), f"{policy} (loss {loss:.3f})",
-                  {f"{mode} ÷ plan": statistics.mean(m[mode] for m in measured)})
+            policy = f"{scenario.training.teacher} teacher" if rnd == 0 else "imitation"
+            mode = "teacher" if rnd == 0 else "greedy"  # how this round's labs went, against the teacher's plan/rule
+            judge(model, done, fits, f"{policy} (loss {loss:.3f})",
+                  {f"{mode} ÷ {'plan' if jobshop else 'rule'}": statistics.mean(m[mode] for m in measured)})
             rnd += 1
     return out.with_suffix(".zip")

@@ -1,5 +1,6 @@
-"""Learning job shops from CP-SAT's schedules (agents.imitation): the teacher's labels hold in any state, the
-teacher reproduces its plan, and a short DAgger training beats random dispatching."""
+"""Learning from a teacher (agents.imitation) — CP-SAT's schedules of job shops, or the rule that does best in
+a lab: the labels hold in any state, following the teacher reproduces its plan or rule, and a short DAgger
+training beats random dispatching."""
 
 import json
 import random
@@ -11,10 +12,11 @@ import torch
 
 from agents.candidates import WAIT, CandidateEncoder
 from agents.cpsat import jobshop
-from agents.imitation import PlanTeacher, follow_teacher, rollout
+from agents.imitation import PlanTeacher, RuleTeacher, follow_teacher, lab_task, rollout
+from agents.schedulers import RULES
 from agents.rl_scheduler import RlScheduler
 from agents.train_scheduler import campaign, train_scheduler
-from twin import SteppedCampaign, jobshop_as_lab, random_jobshop
+from twin import SteppedCampaign, jobshop_as_lab, load_plugin, random_jobshop
 from twin.runtime.lab import prepare
 from twin.scenario.jobshop import read
 
@@ -35,8 +37,8 @@ def teacher_for(lab, inst, limit=5.0):
 def test_following_the_teacher_reproduces_its_plan(ft06):
     inst = read(ROOT / "scenarios" / "jobshop" / "ft06.txt")
     teacher, plan = teacher_for(ft06, inst)
-    samples, span = rollout(ft06, teacher, follow_teacher, random.Random(0))
-    assert plan.makespan == 55 and span == pytest.approx(55)
+    samples, summary = rollout(ft06, teacher, follow_teacher, random.Random(0))
+    assert plan.makespan == 55 and summary.lab_hours * 3600 == pytest.approx(55)
     assert len(samples) >= 36 and all(s.taught.any() and not (s.taught & ~s.allowed).any() for s in samples)
 
 
@@ -88,7 +90,46 @@ def test_a_short_imitation_beats_random_dispatching_and_says_how_it_learnt(ft06,
     assert rl < min(randoms), (rl, randoms)
 
 
-def test_imitation_outside_a_job_shop_is_refused_with_what_to_use_instead(tmp_path):
-    flaky = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"training.method": "imitate"})
-    with pytest.raises(ValueError, match="training.method: ppo"):
+def test_the_cp_sat_teacher_outside_a_job_shop_is_refused_with_what_to_use_instead(tmp_path):
+    flaky = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"training.teacher": "cp-sat"})
+    with pytest.raises(ValueError, match="training.teacher: best-rule, or training.method: ppo"):
         train_scheduler(flaky, 100, tmp_path / "x.zip")
+
+
+def test_the_best_rule_teacher_chooses_its_rules_step_in_a_flaky_lab():
+    flaky = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"campaign.budget": 10})
+    samples, info = lab_task((flaky, 5, ("teacher",), None, 0.0))
+    assert info["rule"] in RULES and 0.7 < info["teacher"] < 1.3  # its objective ÷ the rule's own run
+    assert samples and all(s.taught.sum() >= 1 and not (s.taught & ~s.allowed).any() for s in samples)
+    assert set(info["shape"]) == {"steps", "device_types", "instances"}
+    teacher, rule = RuleTeacher(info["rule"]), load_plugin("schedulers", info["rule"])()
+    enc, c, checked = CandidateEncoder(flaky), SteppedCampaign(flaky), 0
+    try:
+        while not c.done:
+            _, mask = enc.encode(c.view)
+            taught = teacher.labels(c, enc.encoded, bool(mask[WAIT]))
+            out = rule.decide(c.view)
+            if out:  # the rule's step on every instance that may take it, its own device among them
+                chosen = {enc.encoded[i] for i in np.flatnonzero(taught[:-1])}
+                assert {r.task for r, _ in chosen} == {out[0].task}
+                assert out[0].device in {name for _, name in chosen}
+                checked += 1
+            else:
+                assert taught[-1]
+            c.answer(out[:1])
+    finally:
+        c.close()
+    assert checked > 20
+
+
+@pytest.mark.parametrize("scenario,policy", [("jobshop", "jobshop_scheduler"), ("flaky_lab", "flaky_scheduler")])
+def test_the_shipped_policies_fit_their_labs_and_name_what_they_do_not(scenario, policy):
+    path = str(ROOT / "agents" / "policies" / f"{policy}.zip")
+    lab = prepare(ROOT / "scenarios" / f"{scenario}.yaml")
+    meta = json.loads((ROOT / "agents" / "policies" / f"{policy}.json").read_text())
+    assert meta["method"] == "imitate" and RlScheduler(lab, path).misfit == ""
+    most = meta["fits"]["instances"][1]
+    wider = prepare(lab, overrides={f"devices.{next(iter(lab.devices))}.instances": most + 2})
+    assert f"{most + 2} instances of one type (trained on at most {most})" in RlScheduler(wider, path).misfit
+    summary = campaign(lab, 0, RlScheduler(lab, path).decide)
+    assert summary.abandoned <= 1 and summary.done + summary.abandoned == lab.campaign.budget

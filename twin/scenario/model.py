@@ -239,7 +239,10 @@ class Training(_Spec):
     weights: RewardWeights = RewardWeights()
     method: Literal["ppo", "imitate"] = Field(
         default="ppo", description="how `twin train --agent scheduler` learns: ppo (from the reward, any lab) or "
-        "imitate (DAgger from CP-SAT's schedules of random shops; job shops with jobshop_sizes)")
+        "imitate (DAgger from a teacher)")
+    teacher: Literal["cp-sat", "best-rule"] = Field(
+        default="cp-sat", description="method imitate: cp-sat (its schedules of random shops; job shops with "
+        "jobshop_sizes) or best-rule (in each lab drawn from these ranges, the dispatching rule that does best there)")
 
     duration_scale: Range = Field(default=(1.0, 1.0), description="multiplies every mean duration")
     fault_scale: Range = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")
