@@ -82,20 +82,20 @@ class CandidateEncoder:
         for r in view.ready:
             for t in (r.device_type, *(t for t, _ in r.then)):
                 ops_of[t] = ops_of.get(t, 0) + 1
+        per_unit = {t: w / max(len(by_type.get(t, ())), 1) for t, w in load.items()}  # known work per instance
         lb = max([r.work_remaining_s for r in view.ready]
                  + [(d.busy_until - now) + sum(s for _, s in d.then) for d in view.devices if d.busy_until is not None]
-                 + [w / max(len(by_type.get(t, ())), 1) for t, w in load.items()] + [k])
+                 + list(per_unit.values()) + [k])
         steps = sorted({r.task: r for r, _ in pairs}.values(), key=lambda r: r.task)
         work = dict(zip((r.task for r in steps), _ranks([r.work_remaining_s for r in steps])))
         short = dict(zip((r.task for r in steps), _ranks([r.expected_s for r in steps])))
         waited = dict(zip((r.task for r in steps), _ranks([r.ready_since for r in steps])))
         group: dict[str, list[float]] = {}  # per free device, the most of each among the steps it could take
         for r, name in pairs:
-            nt = r.then[0][0] if r.then else ""
             g = group.setdefault(name, [1e-9, 1e-9, 1e-9])
             g[0] = max(g[0], r.work_remaining_s)
             g[1] = max(g[1], r.expected_s)
-            g[2] = max(g[2], load.get(nt, 0.0) / max(len(by_type.get(nt, ())), 1) if nt else 0.0)
+            g[2] = max(g[2], per_unit.get(r.then[0][0], 0.0) if r.then else 0.0)
         for i, (r, name) in enumerate(pairs):
             d = devices.get(name)
             kind = by_type.get(r.device_type, [])
@@ -128,8 +128,8 @@ class CandidateEncoder:
                 1.0 - waited[r.task],  # 1: waiting longest (FIFO's pick)
                 float(bool(r.avoid)),
                 # the lab's critical path, as the job-shop heuristics weigh it (loads per instance ÷ the bound)
-                load.get(r.device_type, 0.0) / max(len(kind), 1) / lb,
-                load.get(nxt_type, 0.0) / max(len(nxt), 1) / lb if nxt_type else 0.0,
+                per_unit.get(r.device_type, 0.0) / lb,
+                per_unit.get(nxt_type, 0.0) / lb,
                 r.work_remaining_s / lb,
                 ops_of.get(r.device_type, 0) / 10,
                 arriving.get(r.device_type, (CLIP * k, 0.0))[0] / k,
@@ -137,7 +137,7 @@ class CandidateEncoder:
                 # against the other steps this device could take instead
                 r.work_remaining_s / group[name][0],
                 r.expected_s / group[name][1],
-                (load.get(nxt_type, 0.0) / max(len(nxt), 1) if nxt_type else 0.0) / group[name][2],
+                per_unit.get(nxt_type, 0.0) / group[name][2],
             ]
             mask[i] = True
         n = max(len(view.devices), 1)

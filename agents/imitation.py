@@ -27,13 +27,17 @@ from __future__ import annotations
 import random
 import statistics
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
-from agents.candidates import FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, widen
+from agents.candidates import FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, lab_shape, widen
 from agents.cpsat import jobshop
-from twin import Scenario, SteppedCampaign, jobshop_as_lab, prepare, random_jobshop
+from agents.scheduling_env import randomised
+from agents.schedulers import RULES
+from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, objective
+from twin import Scenario, SteppedCampaign, jobshop_as_lab, load_plugin, prepare, random_jobshop
 
 
 @dataclass
@@ -113,8 +117,6 @@ class RuleTeacher:
     tie-break, and learning it cost the policy more than it taught: docs/benchmarks.md)."""
 
     def __init__(self, rule: str) -> None:
-        from twin import load_plugin
-
         self.rule = load_plugin("schedulers", rule)()
 
     def reset(self) -> None:
@@ -134,7 +136,7 @@ class RuleTeacher:
         return taught
 
 
-def rollout(lab: Scenario, teacher: PlanTeacher | RuleTeacher, choose, rng: random.Random) -> tuple[list[Sample], float]:
+def rollout(lab: Scenario, teacher: PlanTeacher | RuleTeacher, choose, rng: random.Random) -> tuple[list[Sample], Any]:
     """One campaign of ``lab``, every state labelled by ``teacher``; ``choose(obs, mask, taught, rng)`` acts.
     Returns the samples and the campaign's summary."""
     encoder = CandidateEncoder(lab)
@@ -189,41 +191,35 @@ def shop_task(args: tuple) -> tuple[list[Sample], dict]:
     inst = random_jobshop(n_jobs, n_machines, low, high, rng)
     lab = prepare(jobshop_as_lab(base, inst), seed=0)
     plan = jobshop(inst.jobs, inst.machines, time_limit_s=solve_time(n_jobs, n_machines))
-    teacher = PlanTeacher(inst.jobs, plan.starts)
-    scorer = _scorer(state, seed)
-    samples, spans = [], {}
-    for mode in modes:
-        choose = follow_teacher if mode == "teacher" or scorer is None else learner(scorer, mode == "greedy", beta)
-        got, summary = rollout(lab, teacher, choose, rng)
-        samples += got
-        spans[mode] = summary.lab_hours * 3600 / plan.makespan
+    samples, spans = _rollouts(lab, PlanTeacher(inst.jobs, plan.starts), modes, _scorer(state, seed), beta, rng,
+                               lambda summary: summary.lab_hours * 3600 / plan.makespan)
     return samples, {"size": f"{n_jobs}x{n_machines}", "plan": plan.makespan, "optimal": plan.optimal, **spans}
 
 
 def lab_task(args: tuple) -> tuple[list[Sample], dict]:
     """Worker: draw a lab from the scenario's ``training`` ranges with ``seed``, find the rule that does best
     there, and roll the lab out ``len(modes)`` times with that rule as the teacher."""
-    from agents.candidates import lab_shape
-    from agents.scheduling_env import randomised
-    from agents.schedulers import RULES
-    from agents.train_scheduler import campaign, objective
-    from twin import load_plugin
-
     base, seed, modes, state, beta = args
     torch.set_num_threads(1)
     rng = random.Random(f"imitate:{seed}")
     lab = prepare(randomised(base, seed), seed=seed)
     scores = {r: objective(campaign(lab, seed, load_plugin("schedulers", r)().decide), lab) for r in RULES}
     rule = min(scores, key=scores.get)
-    teacher = RuleTeacher(rule)
-    scorer = _scorer(state, seed)
-    samples, ratios = [], {}
+    samples, ratios = _rollouts(lab, RuleTeacher(rule), modes, _scorer(state, seed), beta, rng,
+                                lambda summary: objective(summary, lab) / scores[rule])
+    return samples, {"rule": rule, "shape": lab_shape(lab), **ratios}
+
+
+def _rollouts(lab: Scenario, teacher, modes, scorer, beta: float, rng: random.Random, measure):
+    """``lab`` rolled out once per mode (``teacher``, ``greedy``, ``sample``), every state labelled; the samples,
+    and ``measure(summary)`` per mode."""
+    samples, measured = [], {}
     for mode in modes:
         choose = follow_teacher if mode == "teacher" or scorer is None else learner(scorer, mode == "greedy", beta)
         got, summary = rollout(lab, teacher, choose, rng)
         samples += got
-        ratios[mode] = objective(summary, lab) / scores[rule]
-    return samples, {"rule": rule, "shape": lab_shape(lab), **ratios}
+        measured[mode] = measure(summary)
+    return samples, measured
 
 
 def _scorer(state: dict | None, seed: int) -> torch.nn.Module | None:
@@ -314,7 +310,6 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
 
     from agents.candidate_policy import CandidatePolicy
     from agents.scheduling_env import SchedulingEnv
-    from agents.train_scheduler import EVAL_SEEDS, Judge
 
     check_imitable(scenario)
     torch.set_num_threads(1)

@@ -1,7 +1,7 @@
 """Train the RL scheduler in `labtwin/Scheduling-v0`, evaluated against every rule.
 
-By the scenario's ``training.method``: MaskablePPO on the reward (``ppo``, any lab), or DAgger from CP-SAT's
-schedules (``imitate``, job shops: ``agents.imitation``). Either way ``Judge`` evaluates the policy on the
+By the scenario's ``training.method``: MaskablePPO on the reward (``ppo``), or DAgger from a teacher
+(``imitate``, ``agents.imitation``: CP-SAT's schedules of job shops, or the best rule of each lab drawn). Either way ``Judge`` evaluates the policy on the
 scenario as written (fixed seeds the training never uses) and on held-out labs drawn from its ``training``
 ranges, against every dispatching rule, and keeps the best.
 """
@@ -125,7 +125,7 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
                     eval_every: int = 20_000, on_progress: Callable[[int, dict | None], None] | None = None,
                     eval_seeds=EVAL_SEEDS, encoding: str = "candidates", held_out_count: int = 6) -> Path:
     """Train by the scenario's ``training.method``: ``ppo`` (MaskablePPO in the environment) or ``imitate``
-    (DAgger with a CP-SAT teacher, ``agents.imitation``; job shops). ``encoding``: ``candidates`` (the
+    (DAgger from ``training.teacher``, ``agents.imitation``). ``encoding``: ``candidates`` (the
     candidate-scoring policy) or ``slots`` (an MLP over the fixed grid, the baseline; PPO only)."""
     if scenario.training.method == "imitate" and encoding == "candidates":
         from agents.imitation import train_by_imitation

@@ -31,6 +31,17 @@ def wide_lab(**changes):
                            "campaign.budget": 36, "campaign.max_in_flight": 36, **changes}))
 
 
+def random_makespans(lab, runs=5):
+    """Lab-hours of ``runs`` campaigns of ``lab`` by a policy that picks uniformly among the allowed actions."""
+    enc, rng = CandidateEncoder(lab), np.random.default_rng(1)
+
+    def random_decide(view):
+        _, mask = enc.encode(view)
+        return enc.decode(view, int(rng.choice(np.flatnonzero(mask))))
+
+    return [campaign(lab, 0, random_decide).lab_hours for _ in range(runs)]
+
+
 @pytest.fixture(scope="module")
 def ft06():
     return prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={"training.jobshop_sizes": [], "training.method": "ppo"})
@@ -75,13 +86,7 @@ def test_every_allowed_pair_is_one_candidate_however_many_steps_and_instances():
 
 def test_a_short_training_beats_a_random_policy(ft06, trained):
     rl = campaign(ft06, 0, RlScheduler(ft06, str(trained)).decide).lab_hours
-    enc, rng = CandidateEncoder(ft06), np.random.default_rng(1)
-
-    def random_decide(view):
-        _, mask = enc.encode(view)
-        return enc.decode(view, int(rng.choice(np.flatnonzero(mask))))
-
-    randoms = [campaign(ft06, 0, random_decide).lab_hours for _ in range(5)]
+    randoms = random_makespans(ft06)
     assert rl < min(randoms), (rl, randoms)
 
 

@@ -16,6 +16,7 @@ from agents.imitation import PlanTeacher, RuleTeacher, follow_teacher, lab_task,
 from agents.schedulers import RULES
 from agents.rl_scheduler import RlScheduler
 from agents.train_scheduler import campaign, train_scheduler
+from tests.agents.test_candidates import random_makespans
 from twin import SteppedCampaign, jobshop_as_lab, load_plugin, random_jobshop
 from twin.runtime.lab import prepare
 from twin.scenario.jobshop import read
@@ -80,13 +81,7 @@ def test_a_short_imitation_beats_random_dispatching_and_says_how_it_learnt(ft06,
     assert meta["fits"] == {"steps": ["op"], "device_types": [5, 6], "instances": [1, 1]}
     assert any("imitation" in r["policy"] for r in seen)
     rl = campaign(ft06, 0, RlScheduler(ft06, str(out)).decide).lab_hours
-    enc, rng = CandidateEncoder(ft06), np.random.default_rng(1)
-
-    def random_decide(view):
-        _, mask = enc.encode(view)
-        return enc.decode(view, int(rng.choice(np.flatnonzero(mask))))
-
-    randoms = [campaign(ft06, 0, random_decide).lab_hours for _ in range(5)]
+    randoms = random_makespans(ft06)
     assert rl < min(randoms), (rl, randoms)
 
 
