@@ -22,7 +22,7 @@ import bisect
 import numpy as np
 
 from agents.scheduling_features import time_scale
-from twin import Assignment, LabView, ReadyStep, Scenario
+from twin import ANY_WORKFLOW, Assignment, LabView, ReadyStep, Scenario, drawn_at_random
 
 ENCODING = "candidates-v2"
 MAX_CANDIDATES = 128
@@ -186,8 +186,8 @@ class CandidateEncoder:
 
 def lab_shape(s: Scenario) -> dict:
     """What a scheduler policy's fit is judged on: the step types a lab runs, how many device types it has, and
-    the most instances of one type."""
-    steps = {w.step for w in s.workflow}
+    the most instances of one type (a lab drawn by ``twin.scenario.random_labs`` stands for any workflow)."""
+    steps = {ANY_WORKFLOW} if drawn_at_random(s) else {w.step for w in s.workflow}
     for p in s.campaign.planner_options.get("proposals", []):  # a job shop's fixed routes
         steps |= {str(step.get("step")) for step in p.get("route", [])}
     counts = [d.instances for d in s.devices.values()]
@@ -214,7 +214,7 @@ def widen(fits: dict | None, more: dict) -> dict:
 def outside(fits: dict, shape: dict) -> list[str]:
     """Why a lab of ``shape`` is outside what a policy was trained on (empty: inside)."""
     why = []
-    unseen = sorted(set(shape["steps"]) - set(fits["steps"]))
+    unseen = [] if ANY_WORKFLOW in fits["steps"] else sorted(set(shape["steps"]) - set(fits["steps"]))
     if unseen:
         why.append(f"step type(s) {unseen} never seen in training (trained on {fits['steps']})")
     lo, hi = fits["device_types"]

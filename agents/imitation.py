@@ -298,7 +298,7 @@ def check_imitable(scenario: Scenario) -> None:
 
 
 def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, workers: int = 2,
-                       eval_every: int = 20_000, on_progress=None, eval_seeds=None, held_out_count: int = 6,
+                       eval_every: int = 20_000, on_progress=None, eval_seeds=None, held_out_count: int | None = None,
                        max_samples: int = 400_000, epochs: int = 3, learning_rate: float = 1e-3):
     """DAgger rounds of about ``eval_every`` labelled decisions each, ``steps`` in all; the policy is evaluated
     after every round and the best kept (``agents.train_scheduler.Judge``). The most recent ``max_samples``
@@ -328,7 +328,10 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     done, rnd, shop, per_shop = 0, 0, seed * 1_000_000, 150.0
     with multiprocessing.get_context("spawn").Pool(max(1, workers), initializer=_quiet_worker) as pool:
         while done < steps:
-            want = min(eval_every, steps - done)
+            left = steps - done
+            if rnd > 0 and left < eval_every / 4:
+                break  # rounds gather about as many labels as asked: a last round of a few would cost a whole fit
+            want = left if left < 1.5 * eval_every else eval_every
             state = None if rnd == 0 else {k: v.detach().clone() for k, v in net.state_dict().items()}
             modes = ("teacher",) if rnd == 0 else ("greedy", "sample", "sample")
             beta = 0.0 if rnd == 0 else 0.5 ** rnd

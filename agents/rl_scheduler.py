@@ -19,6 +19,7 @@ from twin import PluginError
 from twin import load_policy, read_meta
 
 log = logging.getLogger(__name__)
+_warned: set[str] = set()  # one warning per text: the CLI checks a scheduler before the lab builds its own
 
 
 def encoder_for(scenario: Any, encoding: str) -> Any:
@@ -41,7 +42,9 @@ def _check_fit(path: Path, meta: dict, scenario: Any) -> str:
             f"train on this lab's shapes (its `training` section) to be sure")
     if scenario.campaign.policy_fit == "refuse":
         raise PluginError(text + " (campaign.policy_fit: refuse)")
-    log.warning("%s", text)
+    if text not in _warned:
+        _warned.add(text)
+        log.warning("%s", text)
     return text
 
 
@@ -59,7 +62,7 @@ class RlScheduler:
         encoding = meta.get("signature", {}).get("encoding")
         if str(encoding).startswith("candidates") and encoding != candidates.ENCODING:
             raise PluginError(f"{path} reads labs as {encoding}; this labtwin encodes them as {candidates.ENCODING} "
-                              f"(more features per candidate): retrain it with `twin train SCENARIO --agent scheduler`")
+                              f"(other features or another network): retrain it with `twin train SCENARIO --agent scheduler`")
         features = candidates if encoding == candidates.ENCODING else scheduling_features
         self.model = load_policy(path, "scheduler", features.signature(scenario))
         self.misfit = _check_fit(path, meta, scenario)

@@ -13,7 +13,8 @@ its stability before a step and −``abandoned`` (2) for each experiment
 abandoned. ``reset(seed=)``
 reseeds the whole twin (planner, durations, faults) and, when the scenario
 declares ``training`` ranges and ``randomise`` is on, draws the lab's
-durations, fault rates and instance counts.
+durations, fault rates and instance counts — or, with ``training.random_labs``,
+a whole other lab (``twin.scenario.random_labs``).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import gymnasium as gym
 import numpy as np
 
 from agents import candidates, scheduling_features
-from twin import jobshop_as_lab, random_jobshop
+from twin import jobshop_as_lab, random_jobshop, random_lab
 from twin import prepare
 from twin import Scenario
 from twin import SteppedCampaign
@@ -38,6 +39,8 @@ def randomised(s: Scenario, seed: int) -> Scenario:
     """A lab drawn from the scenario's ``training`` ranges (the same seed draws the same lab)."""
     t, rng = s.training, random.Random(f"randomise:{seed}")
     dur, fault = rng.uniform(*t.duration_scale), rng.uniform(*t.fault_scale)
+    if t.random_labs is not None and rng.random() < t.random_labs.share:
+        return prepare(random_lab(s, rng, dur, fault))
     over: dict[str, Any] = {}
     for name, d in s.devices.items():
         over[f"devices.{name}.duration.mean_s"] = d.duration.mean_s * dur

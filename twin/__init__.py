@@ -29,17 +29,18 @@ from twin.scenario import Scenario, expected_duration, json_schema
 from twin.scenario import load as load_scenario
 from twin.scenario.jobshop import as_lab as jobshop_as_lab
 from twin.scenario.jobshop import generate as random_jobshop
+from twin.scenario.random_labs import ANY_WORKFLOW, drawn_at_random, random_lab
 from twin.scenario.targets import score
 from twin.tools.testing import driver_setup, run_scenario, run_step
 from twin.view.watch import RecordOptions
 
 __all__ = [
-    "AccountingError", "Assignment", "Bus", "BusError", "CampaignCore", "Clock", "ClockError", "DeviceActor",
+    "ANY_WORKFLOW", "AccountingError", "Assignment", "Bus", "BusError", "CampaignCore", "Clock", "ClockError", "DeviceActor",
     "DeviceState", "Driver", "DriverError", "DriverFeatures", "DriverSetup", "FastCampaign", "FreeDevice",
     "LabClock", "LabView", "LiveCampaign", "MemoryBus", "Outcome", "Planner", "PluginError", "Proposal",
     "ReadyStep", "RecordOptions", "Refused", "RouteStep", "Scenario", "ScenarioError", "Scheduler", "StepContext", "StepResult",
-    "SteppedCampaign", "Summary", "TwinError", "capable", "driver_setup", "expected_duration", "jobshop_as_lab",
+    "SteppedCampaign", "Summary", "TwinError", "capable", "drawn_at_random", "driver_setup", "expected_duration", "jobshop_as_lab",
     "json_schema", "keyed_uniforms", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
-    "prepare", "random_jobshop", "read_meta", "resume", "run", "run_async", "run_scenario", "run_step",
+    "prepare", "random_jobshop", "random_lab", "read_meta", "resume", "run", "run_async", "run_scenario", "run_step",
     "save_policy", "score", "seeded", "sleep_wall",
 ]

@@ -93,3 +93,21 @@ def test_gp_bo_keeps_exploring_when_no_device_measures_what_the_targets_name():
     history = [Outcome(p.params, {"purity": 90.0}, None) for p in planner.propose(10, [], [])]
     proposals = planner.propose(3, history, [])  # a lab whose devices output "purity", targets "peak_nm"
     assert len(proposals) == 3 and all(set(p.params) == set(s.chemistry.parameters) for p in proposals)
+
+
+def test_bench_planners_runs_a_row_with_another_scheduler_and_names_an_unknown_one():
+    import subprocess
+    import sys
+
+    twin = [sys.executable, "-m", "twin", "bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "1",
+            "--budget", "3", "--workers", "1"]
+    env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
+    res = subprocess.run([*twin, "--planners", "lhs@fifo,lhs@spt~seq"], capture_output=True, text=True, cwd=ROOT,
+                         timeout=120, env=env)
+    assert res.returncode == 0, res.stderr
+    rows = {line.split("│")[1].strip(): line for line in res.stdout.splitlines() if line.startswith("│")}
+    assert set(rows) == {"lhs@fifo", "lhs@spt~seq"}
+    assert all(line.rstrip("│ ").endswith("—") for line in rows.values())  # no random row to compare with
+    bad = subprocess.run([*twin, "--planners", "lhs@no-such-rule"], capture_output=True, text=True, cwd=ROOT,
+                         timeout=60, env=env)
+    assert bad.returncode != 0 and "no-such-rule" in bad.stderr and "Traceback" not in bad.stderr

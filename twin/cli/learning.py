@@ -76,20 +76,24 @@ def train(
 def bench_planners(
     scenario: Annotated[Path, typer.Argument(help="a scenario with targets, e.g. scenarios/quantum_dots.yaml")],
     seeds: Annotated[int, typer.Option(help="seeds per planner")] = 20,
-    planners: Annotated[str, typer.Option(help="comma-separated; name~seq runs one experiment at a time")] = ",".join(DEFAULT_PLANNERS),
+    planners: Annotated[str, typer.Option(help="comma-separated; name~seq runs one experiment at a time, "
+                                                "name@SCHEDULER with another scheduler (gp-bo@fifo~seq)")] = ",".join(DEFAULT_PLANNERS),
     workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
     budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget (a larger one censors less)")] = None,
 ) -> None:
     """Experiments and lab-hours to target (median [IQR]) for each planner over many seeds, vs random."""
     from rich.table import Table
 
-    from twin.tools.planner_bench import HEADER, bench, rows
+    from twin.tools.planner_bench import HEADER, bench, parse, rows
 
     names = [p.strip() for p in planners.split(",") if p.strip()]
     try:
         s = lab.prepare(scenario)
         for name in names:
-            lab.make_planner(s.model_copy(update={"campaign": s.campaign.model_copy(update={"planner": name.split("~")[0]})}))
+            planner, scheduler, _ = parse(name)
+            lab.make_planner(s.model_copy(update={"campaign": s.campaign.model_copy(update={"planner": planner})}))
+            if scheduler:
+                lab.make_scheduler(s, scheduler)
     except TwinError as exc:
         _fail(exc)
     progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
@@ -122,6 +126,8 @@ def bench_schedulers(
                                                           "a bottleneck, a flaky stage, fast-degrading samples) "
                                                           "and compare each scheduler with the best rule, "
                                                           "paired seeds, 95 % CI")] = False,
+    random_labs: Annotated[int, typer.Option(help="with --shapes: also N whole other labs drawn at random "
+                                                  "(2–5 device types; training.random_labs)")] = 0,
 ) -> None:
     """Makespan, gap to the CP-SAT bound, utilisation, degraded and lost samples, decision latency per scheduler."""
     from rich.table import Table
@@ -130,7 +136,7 @@ def bench_schedulers(
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if shapes:
-        _bench_shapes(scenario, names, seeds, workers, budget, _assignments(set_ or []))
+        _bench_shapes(scenario, names, seeds, workers, budget, _assignments(set_ or []), random_labs)
         return
     files = [f.strip() for f in jobshop.split(",")] if jobshop else [None]
     for file in files:
@@ -158,7 +164,7 @@ def bench_schedulers(
 
 
 def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, budget: int | None,
-                  changes: dict) -> None:
+                  changes: dict, random_labs: int = 0) -> None:
     from rich.table import Table
 
     from twin.tools.planner_bench import label
@@ -181,8 +187,8 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                         TimeElapsedColumn(), console=err)
     with progress:
-        bar = progress.add_task(f"{s.name}: shapes", total=len(variants(s)))
-        results = shapes(s, names, seeds, workers, on_shape=lambda c: progress.advance(bar))
+        bar = progress.add_task(f"{s.name}: shapes", total=len(variants(s, random_labs)))
+        results = shapes(s, names, seeds, workers, on_shape=lambda c: progress.advance(bar), random_labs=random_labs)
     for c in results:
         cells = []
         for n in others:

@@ -233,6 +233,31 @@ class RewardWeights(_Spec):
     abandoned: float = Field(default=2.0, ge=0, le=1000, description="per experiment abandoned")
 
 
+class RandomLabs(_Spec):
+    """Whole labs drawn at random for training a scheduler (``twin.scenario.random_labs``): each has its own device types,
+    instance counts and workflow, its devices copied from this scenario's (durations, faults) and scaled."""
+
+    share: float = Field(default=0.5, ge=0, le=1, description="the fraction of training labs drawn this way; "
+                         "the rest come from the scenario's own devices and the ranges above")
+    device_types: IntRange = Field(default=(2, 5), description="[min, max] device types in a lab")
+    instances: IntRange = Field(default=(1, 6), description="[min, max] instances of each type")
+    duration_scale: Range = Field(default=(0.5, 2.0), description="multiplies each type's mean duration, so "
+                                  "bottlenecks move from type to type")
+    revisit_p: float = Field(default=0.3, ge=0, le=1, description="probability that the workflow visits one type "
+                             "a second time (re-entrant: measure before and after)")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> RandomLabs:
+        (a, b), (c, d), (e, f) = self.device_types, self.instances, self.duration_scale
+        bad = [f"{k}: [{lo}, {hi}] must be low ≤ high, both > 0" for k, (lo, hi) in
+               {"device_types": (a, b), "instances": (c, d), "duration_scale": (e, f)}.items() if not 0 < lo <= hi]
+        if b > 16 or d > 64:
+            bad.append("at most 16 device types and 64 instances of each")
+        if bad:
+            raise ValueError("random_labs: " + "; ".join(bad))
+        return self
+
+
 class Training(_Spec):
     """Domain randomisation for training a scheduler: each episode draws a lab from these ranges."""
 
@@ -252,6 +277,9 @@ class Training(_Spec):
     shuffle_routes: bool = Field(default=False, description="job shops: draw each job's machine order afresh")
     jobshop_sizes: list[IntRange] = Field(
         default_factory=list, description="job shops: draw a random instance of one of these [jobs, machines] sizes")
+    random_labs: RandomLabs | None = Field(
+        default=None, description="also train on whole labs drawn at random (other device types, counts and "
+        "workflows), so the policy is not tied to this lab's shape")
 
     @model_validator(mode="after")
     def _ordered(self) -> Training:

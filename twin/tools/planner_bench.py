@@ -2,7 +2,9 @@
 
 Every run is a real campaign in virtual time over the memory bus. A planner
 name may carry ``~seq`` to run it sequentially (one experiment in the lab at a
-time, the same devices), e.g. ``gp-bo~seq`` against the asynchronous ``gp-bo``.
+time, the same devices), e.g. ``gp-bo~seq`` against the asynchronous ``gp-bo``,
+and ``@SCHEDULER`` to run it with another scheduler than the scenario's, e.g.
+``gp-bo@fifo~seq`` against ``gp-bo@rl:P.zip``.
 """
 
 from __future__ import annotations
@@ -33,10 +35,19 @@ class Trial:
     cost: float  # spent when the last target was met (all that was spent if never)
 
 
+def parse(planner: str) -> tuple[str, str | None, str]:
+    """``gp-bo@fifo~seq`` → (planner, scheduler or None, variant)."""
+    name, _, variant = planner.partition("~")
+    name, at, scheduler = name.partition("@")
+    return name, scheduler if at else None, variant
+
+
 def trial(scenario: Scenario, planner: str, seed: int) -> Trial:
     """One campaign of ``planner`` on ``scenario`` with ``seed``."""
-    name, _, variant = planner.partition("~")
+    name, scheduler, variant = parse(planner)
     overrides = {"campaign.planner": name, "campaign.stop_on_target": True}
+    if scheduler:
+        overrides["campaign.scheduler"] = scheduler
     if variant == "seq":
         overrides["campaign.max_in_flight"] = 1
     with tempfile.TemporaryDirectory() as d:
@@ -95,19 +106,29 @@ def rows(results: dict[str, list[Trial]], baseline: str = "random") -> list[list
         mine = statistics.median(measure(t) for t in trials)
         accel = base_median / mine if mine else math.nan
         base_censored = "≥" if base and sum(t.reached for t in base) / len(base) < 0.5 else ""
+        if planner == baseline:
+            speedup = "1.0×"
+        elif math.isnan(accel):
+            speedup = "—"  # no baseline row (or no experiment to divide by)
+        else:
+            speedup = f"{base_censored}{accel:.1f}×"
         out.append([label(planner), f"{censored}{e[1]:.0f} [{e[0]:.0f}–{e[2]:.0f}]", f"{censored}{h[1]:.1f} [{h[0]:.1f}–{h[2]:.1f}]",
                     f"{statistics.mean(t.experiments_run for t in trials):.0f}",
                     f"{statistics.median(t.cost for t in trials):,.0f}", f"{100 * success:.0f} %",
-                    (f"{base_censored}{accel:.1f}×" if planner != baseline else "1.0×") + (" (cost)" if by_cost else "")])
+                    speedup + (" (cost)" if by_cost and speedup != "—" else "")])
     return out
 
 
 def label(planner: str) -> str:
-    """``rl:agents/policies/quantum_dots.zip~seq`` → ``rl:quantum_dots~seq``."""
-    name, _, variant = planner.partition("~")
-    kind, sep, policy = name.partition(":")
-    short = f"{kind}:{Path(policy).stem}" if sep and policy.endswith(".zip") else name
-    return short + (f"~{variant}" if variant else "")
+    """``rl:agents/policies/quantum_dots.zip@rl:P.zip~seq`` → ``rl:quantum_dots@rl:P~seq``."""
+    name, scheduler, variant = parse(planner)
+    return short(name) + (f"@{short(scheduler)}" if scheduler else "") + (f"~{variant}" if variant else "")
+
+
+def short(spec: str) -> str:
+    """``rl:agents/policies/quantum_dots.zip`` → ``rl:quantum_dots``."""
+    kind, sep, policy = spec.partition(":")
+    return f"{kind}:{Path(policy).stem}" if sep and policy.endswith(".zip") else spec
 
 
 HEADER = ["planner", "experiments to target", "lab-hours to target", "experiments run", "cost to target",

@@ -2,7 +2,8 @@
 
 The family: the lab as written; for each device type, twice its instances, a bottleneck (its steps twice as
 long) and a flaky stage (a fifth of its steps fail); and, when samples degrade, samples that keep a quarter as
-long. Every scheduler runs the same seeds on every variant; each one is compared with the variant's best rule
+long; with ``random_labs``, that many whole other labs drawn as ``training.random_labs`` draws them (on seeds
+no training run draws: ``twin.scenario.random_labs.held_out``). Every scheduler runs the same seeds on every variant; each one is compared with the variant's best rule
 (the rule with the lowest mean makespan there) seed by seed, as a mean difference with a 95 % confidence
 interval — so "better" and "worse" mean outside the noise, not a lucky seed.
 """
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 
 from twin.runtime.lab import prepare
 from twin.scenario import Scenario
+from twin.scenario.random_labs import held_out
 from twin.tools.scheduler_bench import RULES, Run, bench
 
 #: two-sided 95 % quantiles of Student's t for n − 1 degrees of freedom (n paired seeds), then the normal's
@@ -27,7 +29,7 @@ def _t95(dof: int) -> float:
     return next((v for k, v in sorted(_T95.items()) if dof <= k), 1.96)
 
 
-def variants(s: Scenario) -> list[tuple[str, Scenario]]:
+def variants(s: Scenario, random_labs: int = 0) -> list[tuple[str, Scenario]]:
     out = [("as written", s)]
     for name, d in s.devices.items():
         out.append((f"{name} ×2 instances", prepare(s, overrides={f"devices.{name}.instances": d.instances * 2})))
@@ -37,6 +39,8 @@ def variants(s: Scenario) -> list[tuple[str, Scenario]]:
                     prepare(s, overrides={f"devices.{name}.faults.fail_p": max(d.faults.fail_p, 0.2)})))
     if s.chemistry.stability_s:
         out.append(("samples keep ¼ as long", prepare(s, overrides={"chemistry.stability_s": s.chemistry.stability_s / 4})))
+    if random_labs:
+        out += [(name, prepare(lab)) for name, lab in held_out(s, random_labs)]
     return out
 
 
@@ -62,9 +66,9 @@ def compare(results: dict[str, list[Run]], shape: str) -> Comparison:
 
 
 def shapes(s: Scenario, schedulers: list[str], seeds: int, workers: int = 2,
-           on_shape: Callable[[Comparison], None] | None = None) -> list[Comparison]:
+           on_shape: Callable[[Comparison], None] | None = None, random_labs: int = 0) -> list[Comparison]:
     out = []
-    for shape, variant in variants(s):
+    for shape, variant in variants(s, random_labs):
         out.append(compare(bench(variant, schedulers, seeds, workers), shape))
         if on_shape is not None:
             on_shape(out[-1])
