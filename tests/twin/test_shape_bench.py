@@ -32,3 +32,20 @@ def test_the_cli_refuses_shapes_of_a_job_shop_and_says_what_to_use(tmp_path):
     out = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/jobshop.yaml", "--shapes",
                           "--schedulers", "mwkr"], capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
     assert out.returncode == 2 and "--jobshop" in out.stderr
+
+
+def test_a_bench_keeps_device_alerts_out_of_its_output_that_a_single_run_prints(tmp_path, caplog):
+    crashing = ["devices.spectrometer.instances=1", "devices.spectrometer.faults.mtbc_h=0.5"]
+    from twin import run
+
+    with caplog.at_level("WARNING"):
+        run(ROOT / "scenarios" / "flaky_lab.yaml", journal=tmp_path / "j.db", seed=0, bus="memory", clock="virtual",
+            overrides={"campaign.budget": 8, "devices.spectrometer.instances": 1,
+                       "devices.spectrometer.faults.mtbc_h": 0.5})
+    assert "devices.unavailable spectrometer" in caplog.text  # one campaign alone says so
+    res = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/flaky_lab.yaml",
+                          "--seeds", "2", "--budget", "8", "--workers", "1", "--schedulers", "fifo",
+                          *[x for c in crashing for x in ("--set", c)]],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120, env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
+    assert res.returncode == 0, res.stderr
+    assert "devices.unavailable" not in res.stderr and "│ fifo" in res.stdout

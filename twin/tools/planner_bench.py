@@ -9,6 +9,7 @@ and ``@SCHEDULER`` to run it with another scheduler than the scenario's, e.g.
 
 from __future__ import annotations
 
+import logging
 import math
 import statistics
 import tempfile
@@ -64,12 +65,18 @@ def _trial(args: tuple) -> Trial:
     return trial(*args)
 
 
+def _quiet_alerts() -> None:
+    """A bench runs hundreds of campaigns and its table counts what they lost: a warning for every device type
+    gone in every campaign would bury the progress bar under hundreds of lines."""
+    logging.getLogger("twin.runtime.fast").setLevel(logging.ERROR)
+
+
 def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str], seeds: int, workers: int,
                on_each: Callable[[Any], None] | None) -> dict[str, list[Any]]:
     """``one((scenario, name, seed))`` for every name and seed, in parallel processes, grouped by name."""
     results: dict[str, list[Any]] = {name: [] for name in names}
     jobs = [(scenario, name, seed) for name in names for seed in range(seeds)]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    with ProcessPoolExecutor(max_workers=workers, initializer=_quiet_alerts) as pool:
         for (_, name, _), r in zip(jobs, pool.map(one, jobs)):
             results[name].append(r)
             if on_each:
