@@ -37,6 +37,10 @@ def test_random_labs_stay_in_their_ranges_and_visit_every_type(flaky):
         assert all(a != b for a, b in zip(route, route[1:]))  # a revisit is never the step just done
         revisits += len(route) > k
         assert lab.chemistry.stability_s == flaky.chemistry.stability_s
+        for d in lab.devices.values():  # each type is one of the scenario's, its mean duration scaled ×0.5–2
+            assert any((t.duration.cv, t.setup_s, t.clean_s, t.faults.fail_p) ==
+                       (d.duration.cv, d.setup_s, d.clean_s, d.faults.fail_p)
+                       and 0.5 <= d.duration.mean_s / t.duration.mean_s <= 2.0 for t in flaky.devices.values())
         assert k <= lab.campaign.max_in_flight <= k + sum(d.instances for d in lab.devices.values())
     assert seen_types == {2, 3, 4, 5} and 0 < revisits < 40
     a, b = random_lab(flaky, random.Random(7)), random_lab(flaky, random.Random(7))

@@ -33,10 +33,9 @@ def random_lab(s: Scenario, rng: random.Random, duration: float = 1.0, fault: fl
     k = rng.randint(*spec.device_types)
     templates = [s.devices[name] for name in sorted(s.devices)]
     devices, total = {}, 0
-    means = [(t.duration.mean_s or 60.0) * rng.uniform(*spec.duration_scale) * duration
-             for t in (rng.choice(templates) for _ in range(k))]
-    for i in range(k):
-        t = rng.choice(templates)
+    copied = [rng.choice(templates) for _ in range(k)]
+    means = [(t.duration.mean_s or 60.0) * rng.uniform(*spec.duration_scale) * duration for t in copied]
+    for i, t in enumerate(copied):
         n = rng.randint(*spec.instances)
         total += n
         devices[f"station{i}"] = {
