@@ -12,6 +12,10 @@ a schedule within a few percent of the optimum. So the candidate policy can lear
 - ``best-rule`` (any lab, faults and all): in each lab drawn from the ``training`` ranges, the dispatching rule
   with the best objective there (makespan, degraded, abandoned, weighted) is the teacher, so the policy learns
   which rule's choice fits which state and lab;
+- ``self`` (any lab; self-labelling, Corsini et al., 2024): each lab drawn is rolled out ``training.samples``
+  times by the policy itself in lockstep (one greedy, the rest sampled) and the best run's choices are the
+  labels, so the greedy policy learns what its own best samples do; it starts from a policy (``--init``), such
+  as one taught by CP-SAT, and improves on it without a teacher of its own;
 - DAgger (Ross et al., 2011): round 0 follows the teacher; later rounds follow the learner (greedy and sampled,
   mixed with the teacher's choices with a probability that halves every round) and label every state it
   visits with the teacher's choices, so the learner is taught where its own mistakes take it;
@@ -27,6 +31,7 @@ from __future__ import annotations
 import random
 import statistics
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -210,6 +215,61 @@ def lab_task(args: tuple) -> tuple[list[Sample], dict]:
     return samples, {"rule": rule, "shape": lab_shape(lab), **ratios}
 
 
+SAMPLE_TEMPERATURE = 0.5  # best of 16 ÷ greedy on 8 random shops: 0.993 at 1, 0.962 at ½, 0.967 at ¼
+
+
+def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
+                 temperature: float = SAMPLE_TEMPERATURE) -> list[tuple[list[Sample], Any]]:
+    """``k`` campaigns of ``lab`` stepped in lockstep, one forward pass for all: the first takes the policy's best
+    candidate, the others sample from its scores ÷ ``temperature`` (at 1, a sample strays so far from the greedy
+    run that the best of 16 is hardly better than it); each state is labelled with the choice the run made there.
+    The samples and the summary of each run."""
+    runs = [(CandidateEncoder(lab), SteppedCampaign(lab), []) for _ in range(k)]
+    try:
+        live = list(range(k))
+        while live:
+            encoded = [runs[i][0].encode(runs[i][1].view) for i in live]
+            mask = torch.as_tensor(np.stack([m for _, m in encoded]))
+            with torch.no_grad():
+                logits = scorer(torch.as_tensor(np.stack([o for o, _ in encoded]))).masked_fill(~mask, -torch.inf)
+            best, drawn = logits.argmax(1), torch.distributions.Categorical(logits=logits / temperature).sample()
+            for j, i in enumerate(live):
+                encoder, c, out = runs[i]
+                (obs, m), n = encoded[j], len(encoder.encoded)
+                action = int(best[j] if i == 0 else drawn[j])
+                taught = np.zeros(n + 1, bool)
+                taught[n if action == WAIT else action] = True
+                rows = obs[:MAX_CANDIDATES * FEATURES].reshape(MAX_CANDIDATES, FEATURES)[:n].copy()
+                out.append(Sample(rows, obs[MAX_CANDIDATES * FEATURES:].copy(), np.append(m[:n], m[WAIT]), taught))
+                c.answer(encoder.decode(c.view, action))
+            live = [i for i in live if not runs[i][1].done]
+        return [(out, c.summary) for _, c, out in runs]
+    finally:
+        for _, c, _ in runs:
+            c.close()
+
+
+def self_task(args: tuple) -> tuple[list[Sample], dict]:
+    """Worker: draw a job shop (``training.jobshop_sizes``) or a lab (the ``training`` ranges) from ``seed``, roll
+    it out ``training.samples`` times with the policy, and return the best run's samples."""
+    base, seed, _modes, state, _beta = args
+    torch.set_num_threads(1)
+    if base.training.jobshop_sizes:
+        rng = random.Random(f"imitate:{seed}")
+        n_jobs, n_machines = rng.choice(base.training.jobshop_sizes)
+        low, high = (int(x) for x in (base.training.operation_s or (1, 10)))
+        lab = prepare(jobshop_as_lab(base, random_jobshop(n_jobs, n_machines, low, high, rng)), seed=0)
+        shape = None
+    else:
+        lab = prepare(randomised(base, seed), seed=seed)
+        shape = lab_shape(lab)
+    runs = sampled_runs(lab, _scorer(state, seed), base.training.samples)
+    scores = [objective(summary, lab) for _, summary in runs]
+    best = min(range(len(runs)), key=scores.__getitem__)
+    info = {"greedy ÷ best": scores[0] / scores[best], "sampled ÷ best": statistics.mean(scores[1:]) / scores[best]}
+    return runs[best][0], {**info, **({"shape": shape} if shape else {})}
+
+
 def _rollouts(lab: Scenario, teacher, modes, scorer, beta: float, rng: random.Random, measure):
     """``lab`` rolled out once per mode (``teacher``, ``greedy``, ``sample``), every state labelled; the samples,
     and ``measure(summary)`` per mode."""
@@ -289,7 +349,11 @@ def training_fits(scenario: Scenario) -> dict:
     return {"steps": ["op"], "device_types": [min(machines), max(machines)], "instances": [1, 1]}
 
 
-def check_imitable(scenario: Scenario) -> None:
+def check_imitable(scenario: Scenario, init) -> None:
+    if scenario.training.teacher == "self" and init is None:
+        raise ValueError(
+            f"{scenario.name}: training.teacher 'self' improves a policy by imitating its own best rollouts, so it "
+            f"starts from one: pass --init POLICY.zip (e.g. one trained with training.teacher: cp-sat or best-rule)")
     if scenario.training.teacher == "cp-sat" and (scenario.jobshop is None or not scenario.training.jobshop_sizes):
         raise ValueError(
             f"{scenario.name}: training.teacher 'cp-sat' learns from CP-SAT's schedules of random job shops, so it "
@@ -299,31 +363,46 @@ def check_imitable(scenario: Scenario) -> None:
 
 def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, workers: int = 2,
                        eval_every: int = 20_000, on_progress=None, eval_seeds=None, held_out_count: int | None = None,
-                       max_samples: int = 400_000, epochs: int = 3, learning_rate: float = 1e-3):
-    """DAgger rounds of about ``eval_every`` labelled decisions each, ``steps`` in all; the policy is evaluated
-    after every round and the best kept (``agents.train_scheduler.Judge``). The most recent ``max_samples``
-    labels are trained on."""
+                       max_samples: int | None = None, epochs: int = 3, learning_rate: float | None = None,
+                       init=None):
+    """Rounds of about ``eval_every`` labelled decisions each, ``steps`` in all; the policy is evaluated after every
+    round and the best kept (``agents.train_scheduler.Judge``). ``init``: a policy file to start from. The most
+    recent ``max_samples`` labels are trained on (by default 400,000 from a teacher; from the policy itself, the
+    last three rounds', as older ones are an older policy's best)."""
     import multiprocessing
 
     from sb3_contrib import MaskablePPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     from agents.candidate_policy import CandidatePolicy
+    from agents.candidates import signature
     from agents.scheduling_env import SchedulingEnv
+    from twin import load_policy, read_meta
 
-    check_imitable(scenario)
+    check_imitable(scenario, init)
+    itself = scenario.training.teacher == "self"
+    max_samples = max_samples or (3 * eval_every if itself else 400_000)
+    learning_rate = learning_rate or (2e-4 if init is not None else 1e-3)  # a trained policy is tuned, not retaught
     torch.set_num_threads(1)
     torch.manual_seed(seed)
     host = DummyVecEnv([lambda: SchedulingEnv(scenario, randomise=False)])  # only holds the spaces for SB3
     model = MaskablePPO(CandidatePolicy, host, seed=seed, verbose=0, device="cpu")
     host.close()
     net = model.policy.action_net
+    fits = None
+    if init is not None:
+        start = load_policy(Path(init), "scheduler", signature(scenario))
+        net.load_state_dict(start.policy.action_net.state_dict())
+        fits = read_meta(Path(init)).get("fits")
     optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
     judge = Judge(scenario, out, "candidates", eval_seeds or EVAL_SEEDS, held_out_count, on_progress,
-                  method="imitate", teacher=scenario.training.teacher)
-    jobshop = scenario.training.teacher == "cp-sat"
-    task = shop_task if jobshop else lab_task
-    fits = training_fits(scenario) if jobshop else None
+                  method="imitate", teacher=scenario.training.teacher, **({"init": str(init)} if init else {}))
+    jobshop = bool(scenario.training.jobshop_sizes) if itself else scenario.training.teacher == "cp-sat"
+    task = self_task if itself else shop_task if jobshop else lab_task
+    if jobshop:
+        fits = widen(fits, training_fits(scenario))
+    if init is not None:
+        judge(model, 0, fits, "start (--init)")
     data: list[Sample] = []
     done, rnd, shop, per_shop = 0, 0, seed * 1_000_000, 150.0
     with multiprocessing.get_context("spawn").Pool(max(1, workers), initializer=_quiet_worker) as pool:
@@ -332,8 +411,8 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
             if rnd > 0 and left < eval_every / 4:
                 break  # rounds gather about as many labels as asked: a last round of a few would cost a whole fit
             want = left if left < 1.5 * eval_every else eval_every
-            state = None if rnd == 0 else {k: v.detach().clone() for k, v in net.state_dict().items()}
-            modes = ("teacher",) if rnd == 0 else ("greedy", "sample", "sample")
+            state = None if rnd == 0 and init is None else {k: v.detach().clone() for k, v in net.state_dict().items()}
+            modes = ("self",) if itself else ("teacher",) if rnd == 0 else ("greedy", "sample", "sample")
             beta = 0.0 if rnd == 0 else 0.5 ** rnd
             count = max(workers, round(want / (per_shop * len(modes))))
             got, measured = 0, []
@@ -353,9 +432,13 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
             net.train()
             loss = fit(net, data, epochs, optimizer, seed=seed + rnd)
             net.eval()
-            policy = f"{scenario.training.teacher} teacher" if rnd == 0 else "imitation"
-            mode = "teacher" if rnd == 0 else "greedy"  # how this round's labs went, against the teacher's plan/rule
-            judge(model, done, fits, f"{policy} (loss {loss:.3f})",
-                  {f"{mode} ÷ {'plan' if jobshop else 'rule'}": statistics.mean(m[mode] for m in measured)})
+            if itself:
+                policy, seen = "self-labelled", {k: statistics.mean(m[k] for m in measured)
+                                                 for k in ("greedy ÷ best", "sampled ÷ best")}
+            else:
+                policy = f"{scenario.training.teacher} teacher" if rnd == 0 else "imitation"
+                mode = "teacher" if rnd == 0 else "greedy"  # how this round's labs went, against the plan/rule
+                seen = {f"{mode} ÷ {'plan' if jobshop else 'rule'}": statistics.mean(m[mode] for m in measured)}
+            judge(model, done, fits, f"{policy} (loss {loss:.3f})", seen)
             rnd += 1
     return out.with_suffix(".zip")

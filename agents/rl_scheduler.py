@@ -51,6 +51,7 @@ def _check_fit(path: Path, meta: dict, scenario: Any) -> str:
 class RlScheduler:
     serve_on_bus = True
     greedy = True  # False: sample from the policy (several rollouts of a deterministic lab, keeping the best)
+    temperature = 1.0  # when sampling a candidate policy: its scores are divided by this (½ keeps closer to greedy)
 
     def __init__(self, scenario: Any = None, policy: str | None = None, **_: Any) -> None:
         if not policy or scenario is None:
@@ -79,5 +80,10 @@ class RlScheduler:
 
     def decide(self, view: LabView) -> list[Assignment]:
         obs, mask = self.encoder.encode(view)
+        if not self.greedy and self.temperature != 1.0 and isinstance(self.encoder, candidates.CandidateEncoder):
+            with torch.no_grad():
+                logits = self.model.policy.action_net(torch.as_tensor(obs).unsqueeze(0))[0]
+            logits = logits.masked_fill(~torch.as_tensor(mask), -torch.inf) / self.temperature
+            return self.encoder.decode(view, int(torch.distributions.Categorical(logits=logits).sample()))
         action, _ = self.model.predict(obs, action_masks=mask, deterministic=self.greedy)
         return self.encoder.decode(view, int(action))

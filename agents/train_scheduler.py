@@ -21,7 +21,7 @@ from agents.candidates import signature as candidate_signature
 from agents.candidates import widen
 from agents.scheduling_features import signature, time_scale
 from agents.schedulers import RULES
-from twin import load_plugin
+from twin import load_plugin, load_policy
 from twin import Assignment, LabView
 from twin import prepare
 from twin import save_policy
@@ -77,20 +77,37 @@ def held_out_labs(scenario: Scenario, n: int) -> list[Scenario]:
     return [prepare(randomised(scenario, HELD_OUT_SEED + i), seed=0) for i in range(n)]
 
 
+def solver_reference(scenario: Scenario, seeds, held_out: list[Scenario]) -> dict[str, Any]:
+    """What CP-SAT does on the labs a policy is judged on, for the curve (the score stays rule-relative): a job
+    shop's plan (lab-h, the scenario and each held-out shop; CP-SAT's offline solve, 1 s each), or, in a lab whose
+    work is not all known, the online ``cp-sat`` scheduler's objective on the scenario as written (0.2 s a
+    decision)."""
+    from agents.cpsat_scheduler import CpSatScheduler
+
+    if scenario.jobshop is not None:
+        return {"plans": [CpSatScheduler.offline_bound(lab, 1.0) / 3600 for lab in [scenario, *held_out]]}
+    online = CpSatScheduler(scenario, time_limit_s=0.2)
+    return {"online": score([campaign(scenario, seed, online.decide) for seed in seeds], scenario)["objective"]}
+
+
+def judge_signature(scenario: Scenario, encoding: str) -> dict:
+    return candidate_signature(scenario) if encoding == "candidates" else signature(scenario)
+
+
 class Judge:
     """Evaluates a policy in training and keeps the best: its objective (what the reward sums to: makespan,
     degraded samples and abandoned experiments, weighted by ``training.weights``) relative to the best rule's,
     averaged over the scenario as written and ``held_out_count`` labs drawn from its ``training`` ranges with
     seeds training never uses (by default 6, or for random job shops 4 per size listed — 24 for six sizes: with 6
     shops, which round was kept depended more on the shops drawn than on the policy). The curve reports makespan
-    against the best rule too, so a trade is visible."""
+    against the best rule too, so a trade is visible, and against CP-SAT (``solver_reference``)."""
 
     def __init__(self, scenario: Scenario, out: Path, encoding: str, eval_seeds=EVAL_SEEDS,
                  held_out_count: int | None = None, on_progress: Callable[[int, dict | None], None] | None = None,
                  **extra: Any) -> None:
         self.scenario, self.out, self.encoding, self.eval_seeds = scenario, out, encoding, eval_seeds
         self.on_progress, self.extra = on_progress, extra
-        self.sign = candidate_signature(scenario) if encoding == "candidates" else signature(scenario)
+        self.sign = judge_signature(scenario, encoding)
         self.rules = evaluate_rules(scenario, eval_seeds)
         self.best_rule = min(self.rules, key=lambda r: self.rules[r]["objective"])
         if held_out_count is None:
@@ -98,6 +115,7 @@ class Judge:
         self.held_out = held_out_labs(scenario, held_out_count)
         self.rule_spans = [min(objective(campaign(lab, 0, load_plugin("schedulers", r)().decide), lab) for r in RULES)
                            for lab in self.held_out]
+        self.solver = solver_reference(scenario, eval_seeds, self.held_out)
         self.best: float | None = None
         self.curve: list[dict] = []
         if on_progress:
@@ -111,11 +129,16 @@ class Judge:
         result["vs best rule"] = result["makespan h"] / rules[best_rule]["makespan h"]
         ratios = [result["objective"] / rules[best_rule]["objective"]]
         result["objective vs best rule"] = ratios[0]
-        if self.held_out:  # labs it never trained on: each against the best rule there
-            ratios += [objective(campaign(lab, 0, RlScheduler.from_model(model, lab, self.encoding).decide), lab) / ref
-                       for lab, ref in zip(self.held_out, self.rule_spans)]
+        held = [campaign(lab, 0, RlScheduler.from_model(model, lab, self.encoding).decide) for lab in self.held_out]
+        if held:  # labs it never trained on: each against the best rule there
+            ratios += [objective(summary, lab) / ref for summary, lab, ref in zip(held, self.held_out, self.rule_spans)]
             result["held-out vs best rule"] = statistics.mean(ratios[1:])
         result["score"] = statistics.mean(ratios)
+        if "plans" in self.solver:  # job shops: makespan ÷ CP-SAT's plan, the scenario and every held-out shop
+            spans = [result["makespan h"]] + [summary.lab_hours for summary in held]
+            result["vs cp-sat plan"] = statistics.mean(a / b for a, b in zip(spans, self.solver["plans"]))
+        elif "online" in self.solver:
+            result["vs cp-sat"] = result["objective"] / self.solver["online"]
         self.curve.append({"steps": done, **result})
         if self.best is None or result["score"] <= self.best:
             self.best = result["score"]
@@ -128,15 +151,18 @@ class Judge:
 
 def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs: int = 2,
                     eval_every: int = 20_000, on_progress: Callable[[int, dict | None], None] | None = None,
-                    eval_seeds=EVAL_SEEDS, encoding: str = "candidates", held_out_count: int | None = None) -> Path:
+                    eval_seeds=EVAL_SEEDS, encoding: str = "candidates", held_out_count: int | None = None,
+                    init: Path | None = None) -> Path:
     """Train by the scenario's ``training.method``: ``ppo`` (MaskablePPO in the environment) or ``imitate``
     (DAgger from ``training.teacher``, ``agents.imitation``). ``encoding``: ``candidates`` (the
-    candidate-scoring policy) or ``slots`` (an MLP over the fixed grid, the baseline; PPO only)."""
+    candidate-scoring policy) or ``slots`` (an MLP over the fixed grid, the baseline; PPO only). ``init``: a policy
+    of the same encoding to start from."""
     if scenario.training.method == "imitate" and encoding == "candidates":
         from agents.imitation import train_by_imitation
 
         return train_by_imitation(scenario, steps, out, seed=seed, workers=envs, eval_every=eval_every,
-                                  on_progress=on_progress, eval_seeds=eval_seeds, held_out_count=held_out_count)
+                                  on_progress=on_progress, eval_seeds=eval_seeds, held_out_count=held_out_count,
+                                  init=init)
     from sb3_contrib import MaskablePPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -154,7 +180,11 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
         model = MaskablePPO(CandidatePolicy, venv, seed=seed, verbose=0, device="cpu", **CANDIDATE_SETTINGS)
     else:
         model = MaskablePPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS)
-    judge = Judge(scenario, out, encoding, eval_seeds, held_out_count, on_progress, method="ppo")
+    if init is not None:
+        model.policy.load_state_dict(load_policy(Path(init), "scheduler", judge_signature(scenario, encoding))
+                                     .policy.state_dict())
+    judge = Judge(scenario, out, encoding, eval_seeds, held_out_count, on_progress, method="ppo",
+                  **({"init": str(init)} if init else {}))
     done = 0
     try:
         while done < steps:

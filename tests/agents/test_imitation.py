@@ -15,7 +15,7 @@ from agents.cpsat import jobshop
 from agents.imitation import PlanTeacher, RuleTeacher, follow_teacher, lab_task, rollout
 from agents.schedulers import RULES
 from agents.rl_scheduler import RlScheduler
-from agents.train_scheduler import campaign, train_scheduler
+from agents.train_scheduler import campaign, score, solver_reference, train_scheduler
 from tests.agents.test_candidates import random_makespans
 from twin import SteppedCampaign, jobshop_as_lab, load_plugin, random_jobshop
 from twin.runtime.lab import prepare
@@ -80,9 +80,18 @@ def test_a_short_imitation_beats_random_dispatching_and_says_how_it_learnt(ft06,
     assert meta["method"] == "imitate" and meta["teacher"] == "cp-sat" and len(meta["curve"]) >= 2
     assert meta["fits"] == {"steps": ["op"], "device_types": [5, 6], "instances": [1, 1]}
     assert any("imitation" in r["policy"] for r in seen)
+    # against CP-SAT's plans of ft06 and the two held-out shops: no schedule is shorter than an optimal one
+    assert all(r["vs cp-sat plan"] >= 1 - 1e-9 for r in seen[1:]) and meta["curve"][0]["vs cp-sat plan"] < 1.5
     rl = campaign(ft06, 0, RlScheduler(ft06, str(out)).decide).lab_hours
     randoms = random_makespans(ft06)
     assert rl < min(randoms), (rl, randoms)
+
+
+def test_outside_a_job_shop_the_judge_measures_the_online_solver_on_the_lab_as_written():
+    flaky = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"campaign.budget": 6})
+    ref = solver_reference(flaky, (0, 1), [])
+    fifo = score([campaign(flaky, seed, load_plugin("schedulers", "fifo")().decide) for seed in (0, 1)], flaky)
+    assert set(ref) == {"online"} and 0.5 * fifo["objective"] < ref["online"] < 1.5 * fifo["objective"]
 
 
 def test_the_cp_sat_teacher_outside_a_job_shop_is_refused_with_what_to_use_instead(tmp_path):

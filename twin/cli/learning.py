@@ -27,11 +27,20 @@ def train(
     eval_every: Annotated[int, typer.Option(help="evaluate (and keep the best policy) every this many steps")] = 20_000,
     save: Annotated[Optional[Path], typer.Option(help="also record the evaluation curve to Rerun, e.g. curve.rrd")] = None,
     viewer: Annotated[bool, typer.Option(help="show the evaluation curve live in the Rerun viewer")] = False,
+    init: Annotated[Optional[Path], typer.Option(help="start from this policy (the scheduler; needed by "
+                                                     "training.teacher: self)")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", help="override a scenario field, e.g. "
+                                                      "training.teacher=self; repeatable")] = None,
 ) -> None:
     """Train an agent in the twin; the evaluation curve is printed as it goes (and recorded to Rerun if asked)."""
     try:
-        s = lab.prepare(scenario)
+        s = lab.prepare(scenario, overrides=_assignments(set_ or []))
         trainer = plugins.load("trainers", agent)
+        if init is not None and agent != "scheduler":
+            raise TwinError(f"--init starts the scheduler's training from a policy; the {agent} trainer has no such "
+                            f"option (leave --init out)")
+        if init is not None and not init.exists():
+            raise TwinError(f"--init {init}: no such policy file")
     except TwinError as exc:
         _fail(exc)
     recording = None
@@ -57,7 +66,8 @@ def train(
     with progress:
         bar = progress.add_task(f"training the {agent} on {s.name}", total=steps)
         try:
-            path = trainer(s, steps, out, seed=seed, envs=envs, eval_every=eval_every, on_progress=report)
+            path = trainer(s, steps, out, seed=seed, envs=envs, eval_every=eval_every, on_progress=report,
+                           **({"init": init} if init is not None else {}))
         except (TwinError, ValueError) as exc:
             _fail(TwinError(str(exc)))
         except KeyboardInterrupt:

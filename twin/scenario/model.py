@@ -265,9 +265,12 @@ class Training(_Spec):
     method: Literal["ppo", "imitate"] = Field(
         default="ppo", description="how `twin train --agent scheduler` learns: ppo (from the reward, any lab) or "
         "imitate (DAgger from a teacher)")
-    teacher: Literal["cp-sat", "best-rule"] = Field(
+    teacher: Literal["cp-sat", "best-rule", "self"] = Field(
         default="cp-sat", description="method imitate: cp-sat (its schedules of random shops; job shops with "
-        "jobshop_sizes) or best-rule (in each lab drawn from these ranges, the dispatching rule that does best there)")
+        "jobshop_sizes), best-rule (in each lab drawn from these ranges, the dispatching rule that does best there) "
+        "or self (the policy's own best of `samples` rollouts of each lab; start it from a policy with --init)")
+    samples: int = Field(default=16, ge=2, le=256, description="teacher self: rollouts of each lab (one greedy, the "
+                         "rest sampled), the best of which is imitated")
 
     duration_scale: Range = Field(default=(1.0, 1.0), description="multiplies every mean duration")
     fault_scale: Range = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")
