@@ -1,0 +1,1 @@
+"""Synthesis routes: reaction templates (RDKit), a stock of building blocks, and the search for routes."""

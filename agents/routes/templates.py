@@ -1,0 +1,229 @@
+"""Reaction templates: read from a YAML file, applied forwards (reactants → product) and backwards (a molecule →
+the reactants that make it), with RDKit.
+
+A template is written forwards (``agents/routes/data/templates.yaml`` says how); backwards it is the same
+reaction with its sides swapped, and a disconnection is kept only if the forward reaction, run on the reactants
+proposed, gives the molecule back — a retro match the forward chemistry would not make is never proposed.
+"""
+
+from __future__ import annotations
+
+import itertools
+import re
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import yaml
+from rdkit import Chem, RDLogger
+from rdkit.Chem import AllChem, rdChemReactions
+
+RDLogger.DisableLog("rdApp.*")  # a failed sanitisation of a proposal is expected, and filtered, not news
+
+DATA = Path(__file__).resolve().parent / "data"
+TEMPLATES = DATA / "templates.yaml"
+FIELDS = ("name", "class", "smarts", "yield_pct", "hours", "conditions", "source", "example")
+
+
+class TemplateError(ValueError):
+    """A template file that cannot be used; the message names the file, the template and what is wrong."""
+
+
+@dataclass(frozen=True)
+class Template:
+    name: str
+    reaction_class: str
+    smarts: str
+    yield_pct: tuple[float, float]
+    hours: tuple[float, float]
+    conditions: str
+    source: str
+    example: dict[str, Any]
+    forward: Any = field(repr=False, compare=False)
+    retro: Any = field(repr=False, compare=False)
+
+    @property
+    def arity(self) -> int:
+        return self.forward.GetNumReactantTemplates()
+
+
+def canonical(smiles: str) -> str | None:
+    """RDKit's canonical SMILES of ``smiles`` (None if it does not parse)."""
+    mol = Chem.MolFromSmiles(smiles)
+    return Chem.MolToSmiles(mol) if mol is not None else None
+
+
+def _mol(smiles: str) -> Chem.Mol:
+    mol = Chem.MolFromSmiles(smiles)
+    if mol is None:
+        raise ValueError(f"not a valid SMILES: {smiles!r}")
+    return mol
+
+
+def _products(reaction: Any, reactants: tuple[Chem.Mol, ...]) -> list[tuple[str, ...]]:
+    """Every outcome of ``reaction`` on ``reactants`` that sanitises, as canonical SMILES per product template."""
+    out = []
+    for outcome in reaction.RunReactants(reactants):
+        smiles = []
+        for mol in outcome:
+            try:
+                Chem.SanitizeMol(mol)
+            except (Chem.rdchem.MolSanitizeException, ValueError, RuntimeError):
+                break
+            smiles.append(Chem.MolToSmiles(mol))
+        else:
+            if all(canonical(s) for s in smiles):
+                out.append(tuple(canonical(s) for s in smiles))
+    return out
+
+
+def forward(template: Template, reactants: tuple[str, ...]) -> set[str]:
+    """The products ``template`` makes from ``reactants`` (in any order), canonical SMILES."""
+    mols = [_mol(s) for s in reactants]
+    made: set[str] = set()
+    for order in itertools.permutations(mols, template.arity) if len(mols) >= template.arity else ():
+        for outcome in _products(template.forward, tuple(order)):
+            made.add(outcome[0])
+    return made
+
+
+def retro(template: Template, product: str) -> list[tuple[str, ...]]:
+    """The sets of reactants (canonical SMILES, sorted) that ``template`` makes ``product`` from, each checked by
+    running the template forwards on them."""
+    target = canonical(product)
+    if target is None:
+        raise ValueError(f"not a valid SMILES: {product!r}")
+    found: list[tuple[str, ...]] = []
+    for outcome in _products(template.retro, (_mol(target),)):
+        key = tuple(sorted(outcome))
+        if key in found or target in outcome:
+            continue
+        if any(target == made[0] for made in _products(template.forward, tuple(_mol(s) for s in outcome))):
+            found.append(key)
+    return found
+
+
+def _expand(smarts: str, atoms: dict[str, str], where: str) -> str:
+    def one(match: re.Match) -> str:
+        name = match.group(1)
+        if name not in atoms:
+            raise TemplateError(f"{where}: {{{name}}} is not one of the atom queries defined under `atoms:` "
+                                f"({', '.join(sorted(atoms)) or 'none'})")
+        return atoms[name]
+
+    return re.sub(r"\{([A-Za-z_][A-Za-z0-9_]*)\}", one, smarts)
+
+
+def _backwards(smarts: str, reaction: Any) -> str:
+    """The reaction with its sides swapped, each mapped reactant atom reduced to its element (and aromaticity):
+    run backwards, a query such as ``N;H2,H1`` would make RDKit give the atom that many hydrogens whatever its
+    bonds (the forward check of every proposal applies the queries instead)."""
+    plain = {}
+    for mol in reaction.GetReactants():
+        for a in mol.GetAtoms():
+            if a.GetAtomMapNum():
+                z, n = a.GetAtomicNum(), a.GetAtomMapNum()
+                symbol = Chem.GetPeriodicTable().GetElementSymbol(z).lower() if a.GetIsAromatic() and z else f"#{z}"
+                plain[n] = f"[{symbol}:{n}]" if z else f"[*:{n}]"
+    reactants, product = smarts.split(">>")
+    out, i = [], 0
+    while i < len(reactants):  # bracket atoms, whose recursive queries ($(...)) hold brackets of their own
+        if reactants[i] != "[":
+            out.append(reactants[i])
+            i += 1
+            continue
+        j, level = i, 0
+        while True:
+            level += {"[": 1, "]": -1}.get(reactants[j], 0)
+            if level == 0:
+                break
+            j += 1
+        mapped = re.search(r":(\d+)$", reactants[i + 1:j])
+        out.append(plain[int(mapped.group(1))] if mapped else reactants[i:j + 1])
+        i = j + 1
+    return product + ">>" + "".join(out)
+
+
+def _range(value: Any, where: str, what: str) -> tuple[float, float]:
+    if (not isinstance(value, (list, tuple)) or len(value) != 2
+            or not all(isinstance(x, (int, float)) for x in value) or not 0 <= value[0] <= value[1]):
+        raise TemplateError(f"{where}: {what} must be [low, high] with 0 ≤ low ≤ high, got {value!r}")
+    return float(value[0]), float(value[1])
+
+
+def parse(text: str, source: str = "<templates>") -> list[Template]:
+    """Templates from the YAML text of a template file (``source`` names it in errors)."""
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise TemplateError(f"{source}: not valid YAML ({exc})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("templates"), list):
+        raise TemplateError(f"{source}: expected a mapping with a `templates:` list")
+    sources = doc.get("sources") or {}
+    if not isinstance(sources, dict):
+        raise TemplateError(f"{source}: `sources:` must map keys to references")
+    atoms = doc.get("atoms") or {}
+    if not isinstance(atoms, dict) or not all(isinstance(v, str) for v in atoms.values()):
+        raise TemplateError(f"{source}: `atoms:` must map names to SMARTS atom queries (text)")
+    out, names = [], set()
+    for i, raw in enumerate(doc["templates"]):
+        where = f"{source}: templates[{i}]" + (f" ({raw.get('name')!r})" if isinstance(raw, dict) else "")
+        if not isinstance(raw, dict):
+            raise TemplateError(f"{where}: expected a mapping with {', '.join(FIELDS)}")
+        missing = [f for f in FIELDS if f not in raw]
+        if missing:
+            raise TemplateError(f"{where}: missing {', '.join(missing)}")
+        if raw["name"] in names:
+            raise TemplateError(f"{where}: a second template named {raw['name']!r}; names must be unique")
+        names.add(raw["name"])
+        cited = [k.strip() for k in str(raw["source"]).split(";") if k.strip()]
+        unknown = [k for k in cited if k not in sources]
+        if unknown or not cited:
+            raise TemplateError(f"{where}: source {raw['source']!r} must name keys of `sources:` "
+                                f"({', '.join(sorted(sources)) or 'none defined'}), separated by ';'")
+        smarts = _expand(str(raw["smarts"]), atoms, where)
+        try:
+            fwd = AllChem.ReactionFromSmarts(smarts)
+            fwd.Initialize()
+            back = AllChem.ReactionFromSmarts(_backwards(smarts, fwd))
+            back.Initialize()
+        except (ValueError, RuntimeError) as exc:
+            raise TemplateError(f"{where}: smarts is not a reaction SMARTS RDKit reads ({exc})") from None
+        if fwd.GetNumProductTemplates() != 1 or not 1 <= fwd.GetNumReactantTemplates() <= 3:
+            raise TemplateError(f"{where}: smarts must make one product from one to three reactants "
+                                f"(reactant.reactant>>product)")
+        example = raw["example"]
+        if (not isinstance(example, dict) or not isinstance(example.get("reactants"), list)
+                or not isinstance(example.get("product"), str)):
+            raise TemplateError(f"{where}: example must be {{reactants: [SMILES, ...], product: SMILES}}")
+        out.append(Template(str(raw["name"]), str(raw["class"]), smarts, _range(raw["yield_pct"], where, "yield_pct"),
+                            _range(raw["hours"], where, "hours"), str(raw["conditions"]),
+                            "; ".join(sources[k] for k in cited), example, fwd, back))
+    return out
+
+
+@lru_cache(maxsize=8)
+def load(path: Path = TEMPLATES) -> tuple[Template, ...]:
+    """The templates of a file (by default the shipped set), parsed once."""
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise TemplateError(f"{path}: cannot read the template file ({exc.strerror})") from None
+    return tuple(parse(text, str(path)))
+
+
+def check_example(template: Template) -> list[str]:
+    """What is wrong with a template against its own example (empty: forwards it makes the product from the
+    reactants, and backwards it proposes exactly those reactants)."""
+    problems = []
+    reactants = [canonical(s) for s in template.example["reactants"]]
+    product = canonical(template.example["product"])
+    if None in reactants or product is None:
+        return [f"{template.name}: the example has a SMILES RDKit cannot read"]
+    if product not in forward(template, tuple(reactants)):
+        problems.append(f"{template.name}: forwards, {'.'.join(reactants)} does not give {product}")
+    if tuple(sorted(reactants)) not in retro(template, product):
+        problems.append(f"{template.name}: backwards, {product} does not give {'.'.join(sorted(reactants))} "
+                        f"(gives {retro(template, product)})")
+    return problems
