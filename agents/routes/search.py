@@ -1,0 +1,158 @@
+"""Retrosynthesis search over an AND/OR tree: a molecule is solved when it is in stock or one of its reactions
+is; a reaction is solved when all its reactants are.
+
+``breadth_first`` expands molecules in order of depth, so the first route it solves is a shortest one (fewest
+reactions on the longest branch). Expansions (one molecule: every template applied backwards) are cached per
+search and counted against a budget of expansions and of wall time.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+from agents.routes.stock import Stock
+from agents.routes.templates import Template, canonical, retro
+
+
+@dataclass(frozen=True)
+class Reaction:
+    template: Template
+    product: str
+    reactants: tuple[str, ...]
+
+
+@dataclass
+class Route:
+    """A solved tree: for each molecule made, the reaction that makes it (stock molecules have none)."""
+
+    target: str
+    made_by: dict[str, Reaction]
+    stock: Stock
+
+    @property
+    def steps(self) -> int:
+        return len(self.made_by)
+
+    @property
+    def depth(self) -> int:
+        def depth(m: str) -> int:
+            r = self.made_by.get(m)
+            return 0 if r is None else 1 + max(depth(x) for x in r.reactants)
+        return depth(self.target)
+
+    def order(self) -> list[Reaction]:
+        """The reactions in an order the lab can run them (every reactant made before it is used)."""
+        out: list[Reaction] = []
+
+        def visit(m: str) -> None:
+            r = self.made_by.get(m)
+            if r is not None and r not in out:
+                for x in r.reactants:
+                    visit(x)
+                out.append(r)
+        visit(self.target)
+        return out
+
+    def bought(self) -> list[str]:
+        used = {x for r in self.made_by.values() for x in r.reactants} | {self.target}
+        return sorted(m for m in used if m not in self.made_by)
+
+
+@dataclass
+class Result:
+    target: str
+    route: Route | None
+    expansions: int
+    seconds: float
+    why: str = ""  # when there is no route: what stopped the search
+    routes: list[Route] = field(default_factory=list)
+
+
+class Expander:
+    """A molecule's reactions (every template backwards), computed once per molecule."""
+
+    def __init__(self, templates: tuple[Template, ...]) -> None:
+        self.templates, self.cache, self.count = templates, {}, 0
+
+    def __call__(self, molecule: str) -> list[Reaction]:
+        if molecule not in self.cache:
+            self.count += 1
+            self.cache[molecule] = [Reaction(t, molecule, r) for t in self.templates for r in retro(t, molecule)]
+        return self.cache[molecule]
+
+
+def breadth_first(target: str, templates: tuple[Template, ...], stock: Stock, max_depth: int = 6,
+                  max_expansions: int = 2000, max_seconds: float = 10.0) -> Result:
+    """The shortest route to ``target`` (fewest reactions on its longest branch), by expanding molecules in order
+    of depth; ``Result.why`` says what stopped it when there is none."""
+    smiles = canonical(target)
+    if smiles is None:
+        raise ValueError(f"not a valid SMILES: {target!r}")
+    t0 = time.perf_counter()
+    if smiles in stock:
+        return Result(smiles, Route(smiles, {}, stock), 0, 0.0, "the target is in stock")
+    expand = Expander(templates)
+    depth_of = {smiles: 0}
+    queue = deque([smiles])
+    why = f"no route within {max_depth} steps from this stock and these templates"
+    while queue:
+        if expand.count >= max_expansions:
+            why = f"stopped after {max_expansions} expansions"
+            break
+        if time.perf_counter() - t0 > max_seconds:
+            why = f"stopped after {max_seconds:g} s"
+            break
+        m = queue.popleft()
+        if depth_of[m] >= max_depth:
+            continue
+        for reaction in expand(m):
+            for x in reaction.reactants:
+                if x not in depth_of and x not in stock:
+                    depth_of[x] = depth_of[m] + 1
+                    queue.append(x)
+        route = _solve(smiles, expand.cache, stock)
+        if route is not None:
+            return Result(smiles, route, expand.count, time.perf_counter() - t0)
+    return Result(smiles, None, expand.count, time.perf_counter() - t0, why)
+
+
+def _solve(target: str, reactions: dict[str, list[Reaction]], stock: Stock) -> Route | None:
+    """The best solved tree in what has been expanded: per molecule, the reaction whose deepest reactant is
+    shallowest (then the fewest reactions), by fixed-point iteration over the expanded molecules."""
+    best: dict[str, tuple[int, int, Reaction | None]] = {}  # molecule -> (depth, steps, reaction)
+
+    def cost(m: str) -> tuple[int, int] | None:
+        if m in stock:
+            return (0, 0)
+        b = best.get(m)
+        return (b[0], b[1]) if b else None
+
+    changed = True
+    while changed:
+        changed = False
+        for m, options in reactions.items():
+            if m in stock:
+                continue
+            for r in options:
+                parts = [cost(x) for x in r.reactants]
+                if any(p is None for p in parts):
+                    continue
+                c = (1 + max(p[0] for p in parts), 1 + sum(p[1] for p in parts))
+                if m not in best or c < best[m][:2]:
+                    best[m] = (*c, r)
+                    changed = True
+    if target not in best:
+        return None
+    made_by: dict[str, Reaction] = {}
+
+    def take(m: str) -> None:
+        if m in stock or m in made_by:
+            return
+        r = best[m][2]
+        made_by[m] = r
+        for x in r.reactants:
+            take(x)
+    take(target)
+    return Route(target, made_by, stock)

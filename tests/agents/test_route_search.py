@@ -1,0 +1,59 @@
+"""Breadth-first retrosynthesis (agents.routes.search): named drugs from the shipped stock, shortest routes
+first, routes the lab can run in order, and a clear answer when there is nothing to do or no route."""
+
+import pytest
+
+from agents.routes import stock as stock_file
+from agents.routes import templates as template_file
+from agents.routes.search import breadth_first
+from agents.routes.templates import canonical, forward
+
+TEMPLATES, STOCK = template_file.load(), stock_file.load()
+
+
+@pytest.mark.parametrize("name,smiles,steps", [
+    ("aspirin", "CC(=O)Oc1ccccc1C(=O)O", 1),
+    ("paracetamol", "CC(=O)Nc1ccc(O)cc1", 1),
+    ("benzocaine", "CCOC(=O)c1ccc(N)cc1", 1),
+    ("procaine", "CCN(CC)CCOC(=O)c1ccc(N)cc1", 1),
+    ("lidocaine", "CCN(CC)CC(=O)Nc1c(C)cccc1C", 2),
+])
+def test_named_drugs_have_routes_from_the_stock_that_run_in_order(name, smiles, steps):
+    result = breadth_first(smiles, TEMPLATES, STOCK)
+    route = result.route
+    assert route is not None and route.steps == steps, result.why
+    have = set(route.bought())
+    assert all(m in STOCK for m in have)
+    for reaction in route.order():  # each reaction's reactants are bought or made before it, and it makes its product
+        assert set(reaction.reactants) <= have
+        assert reaction.product in forward(reaction.template, reaction.reactants)
+        have.add(reaction.product)
+    assert canonical(smiles) in have
+
+
+def test_aspirin_comes_from_salicylic_acid_and_acetic_anhydride():
+    route = breadth_first("CC(=O)Oc1ccccc1C(=O)O", TEMPLATES, STOCK).route
+    (only,) = route.order()
+    assert set(only.reactants) == {canonical("OC(=O)c1ccccc1O"), canonical("CC(=O)OC(C)=O")}
+
+
+def test_the_shortest_route_is_found_first():
+    # 4-aminobenzoic acid is in stock, so benzocaine is one esterification; without it (and without the nitro
+    # ester) the route goes through the nitro ester: esterify 4-nitrobenzoic acid, then reduce — two steps
+    gone = {canonical("Nc1ccc(C(=O)O)cc1"), canonical("CCOC(=O)c1ccc([N+](=O)[O-])cc1")}
+    without = stock_file.parse("smiles\n" + "\n".join(s for s in STOCK.items if s not in gone), "fewer.csv")
+    short = breadth_first("CCOC(=O)c1ccc(N)cc1", TEMPLATES, STOCK).route
+    longer = breadth_first("CCOC(=O)c1ccc(N)cc1", TEMPLATES, without).route
+    assert short.steps == 1 and longer.steps == 2 and longer.depth == 2
+    assert {r.template.name for r in longer.order()} & {"nitro reduction"}
+
+
+def test_a_target_in_stock_needs_no_route_and_an_unreachable_one_says_why():
+    bought = breadth_first("OC(=O)c1ccccc1O", TEMPLATES, STOCK)
+    assert bought.route.steps == 0 and bought.why == "the target is in stock" and bought.expansions == 0
+    nothing = breadth_first("C1CC2CCC1C2", TEMPLATES, STOCK)  # norbornane: no template touches it
+    assert nothing.route is None and "no route within 6 steps" in nothing.why
+    tight = breadth_first("CCN(CC)CC(=O)Nc1c(C)cccc1C", TEMPLATES, STOCK, max_expansions=1)
+    assert tight.route is None and tight.why == "stopped after 1 expansions"
+    with pytest.raises(ValueError, match="not a valid SMILES: 'C1CC'"):
+        breadth_first("C1CC", TEMPLATES, STOCK)
