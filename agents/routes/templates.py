@@ -30,7 +30,7 @@ class TemplateError(ValueError):
     """A template file that cannot be used; the message names the file, the template and what is wrong."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # one object per template read: equal by identity, hashable
 class Template:
     name: str
     reaction_class: str
