@@ -62,8 +62,10 @@ def _mol(smiles: str) -> Chem.Mol:
 
 
 def _products(reaction: Any, reactants: tuple[Chem.Mol, ...]) -> list[tuple[str, ...]]:
-    """Every outcome of ``reaction`` on ``reactants`` that sanitises, as canonical SMILES per product template."""
-    out = []
+    """Every distinct outcome of ``reaction`` on ``reactants`` that sanitises, as canonical SMILES per product
+    template (symmetric matches — three phenyls of an ylide — give the same outcome many times: each is
+    written once, and only new ones are checked to read back)."""
+    out, seen = [], set()
     for outcome in reaction.RunReactants(reactants):
         smiles = []
         for mol in outcome:
@@ -73,8 +75,13 @@ def _products(reaction: Any, reactants: tuple[Chem.Mol, ...]) -> list[tuple[str,
                 break
             smiles.append(Chem.MolToSmiles(mol))
         else:
-            if all(canonical(s) for s in smiles):
-                out.append(tuple(canonical(s) for s in smiles))
+            key = tuple(smiles)
+            if key in seen:
+                continue
+            seen.add(key)
+            again = tuple(canonical(s) for s in smiles)
+            if None not in again and again not in out:
+                out.append(again)
     return out
 
 
