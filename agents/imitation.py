@@ -1,4 +1,4 @@
-"""Learning to dispatch from a teacher: DAgger with CP-SAT's schedules (job shops) or the best rule (any lab).
+"""Learning to dispatch from a teacher: CP-SAT's schedules (job shops), the best rule, or the policy's own best runs.
 
 PPO learns a job shop from its makespan alone, one number per episode; a solver knows, for a whole shop,
 a schedule within a few percent of the optimum. So the candidate policy can learn from a teacher instead
@@ -15,7 +15,8 @@ a schedule within a few percent of the optimum. So the candidate policy can lear
 - ``self`` (any lab; self-labelling, Corsini et al., 2024): each lab drawn is rolled out ``training.samples``
   times by the policy itself in lockstep (one greedy, the rest sampled) and the best run's choices are the
   labels, so the greedy policy learns what its own best samples do; it starts from a policy (``--init``), such
-  as one taught by CP-SAT, and improves on it without a teacher of its own;
+  as one taught by CP-SAT, and improves on it without a teacher of its own. (In a lab with faults the best run
+  may be the luckiest rather than the best decided: the runs share the lab's seed, not its faults' timing.)
 - DAgger (Ross et al., 2011): round 0 follows the teacher; later rounds follow the learner (greedy and sampled,
   mixed with the teacher's choices with a probability that halves every round) and label every state it
   visits with the teacher's choices, so the learner is taught where its own mistakes take it;
@@ -41,7 +42,7 @@ from agents.candidates import FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, Candidate
 from agents.cpsat import jobshop
 from agents.scheduling_env import randomised
 from agents.schedulers import RULES
-from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, objective
+from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, objective, started_from
 from twin import Scenario, SteppedCampaign, jobshop_as_lab, load_plugin, prepare, random_jobshop
 
 
@@ -215,15 +216,19 @@ def lab_task(args: tuple) -> tuple[list[Sample], dict]:
     return samples, {"rule": rule, "shape": lab_shape(lab), **ratios}
 
 
-SAMPLE_TEMPERATURE = 0.5  # best of 16 ÷ greedy on 8 random shops: 0.993 at 1, 0.962 at ½, 0.967 at ¼
+# `python bench/bench_sampling.py P.zip` (best of 16 ÷ greedy, 8 random shops): the CP-SAT-taught policy does best
+# at temperature ¼ (0.958; 0.976 at 1), the self-labelled ones, sharper, at 1 (0.961; 0.978 at ¼): the sampled
+# runs take turns at ½ and 1, good for both.
+SAMPLE_TEMPERATURES = (0.5, 1.0)
 
 
 def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
-                 temperature: float = SAMPLE_TEMPERATURE) -> list[tuple[list[Sample], Any]]:
+                 temperatures: tuple[float, ...] = SAMPLE_TEMPERATURES) -> list[tuple[list[Sample], Any]]:
     """``k`` campaigns of ``lab`` stepped in lockstep, one forward pass for all: the first takes the policy's best
-    candidate, the others sample from its scores ÷ ``temperature`` (at 1, a sample strays so far from the greedy
-    run that the best of 16 is hardly better than it); each state is labelled with the choice the run made there.
-    The samples and the summary of each run."""
+    candidate, the others sample from its scores ÷ a temperature, each in turn from ``temperatures`` (too high for
+    the policy, a sample strays so far from the greedy run that the best of 16 is hardly better than it; too low,
+    it seldom leaves it); each state is labelled with the choice the run made there. The samples and the summary
+    of each run."""
     runs = [(CandidateEncoder(lab), SteppedCampaign(lab), []) for _ in range(k)]
     try:
         live = list(range(k))
@@ -232,7 +237,8 @@ def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
             mask = torch.as_tensor(np.stack([m for _, m in encoded]))
             with torch.no_grad():
                 logits = scorer(torch.as_tensor(np.stack([o for o, _ in encoded]))).masked_fill(~mask, -torch.inf)
-            best, drawn = logits.argmax(1), torch.distributions.Categorical(logits=logits / temperature).sample()
+            heat = torch.tensor([temperatures[(i - 1) % len(temperatures)] for i in live]).unsqueeze(1)
+            best, drawn = logits.argmax(1), torch.distributions.Categorical(logits=logits / heat).sample()
             for j, i in enumerate(live):
                 encoder, c, out = runs[i]
                 (obs, m), n = encoded[j], len(encoder.encoded)
@@ -396,7 +402,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
         fits = read_meta(Path(init)).get("fits")
     optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
     judge = Judge(scenario, out, "candidates", eval_seeds or EVAL_SEEDS, held_out_count, on_progress,
-                  method="imitate", teacher=scenario.training.teacher, **({"init": str(init)} if init else {}))
+                  method="imitate", teacher=scenario.training.teacher, **started_from(init))
     jobshop = bool(scenario.training.jobshop_sizes) if itself else scenario.training.teacher == "cp-sat"
     task = self_task if itself else shop_task if jobshop else lab_task
     if jobshop:

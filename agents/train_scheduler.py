@@ -90,6 +90,18 @@ def solver_reference(scenario: Scenario, seeds, held_out: list[Scenario]) -> dic
     return {"online": score([campaign(scenario, seed, online.decide) for seed in seeds], scenario)["objective"]}
 
 
+def started_from(init: Path | None) -> dict[str, Any]:
+    """What a policy file records of the policy it was trained from: the file, and ``lineage``, every stage of
+    training before this one (oldest first: method, teacher, steps, when saved)."""
+    if init is None:
+        return {}
+    from twin import read_meta
+
+    meta = read_meta(Path(init))
+    stage = {k: meta[k] for k in ("method", "teacher", "steps", "saved") if k in meta}
+    return {"init": str(init), "lineage": [*meta.get("lineage", []), stage]}
+
+
 def judge_signature(scenario: Scenario, encoding: str) -> dict:
     return candidate_signature(scenario) if encoding == "candidates" else signature(scenario)
 
@@ -184,7 +196,7 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
         model.policy.load_state_dict(load_policy(Path(init), "scheduler", judge_signature(scenario, encoding))
                                      .policy.state_dict())
     judge = Judge(scenario, out, encoding, eval_seeds, held_out_count, on_progress, method="ppo",
-                  **({"init": str(init)} if init else {}))
+                  **started_from(init))
     done = 0
     try:
         while done < steps:

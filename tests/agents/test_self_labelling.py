@@ -88,6 +88,9 @@ def test_a_training_starts_where_init_left_off(ft06, tmp_path):
     meta = json.loads(out.with_suffix(".json").read_text())
     shipped = campaign(ft06, 0, RlScheduler(ft06, str(SHIPPED)).decide).lab_hours
     assert meta["teacher"] == "self" and meta["init"] == str(SHIPPED) and meta["curve"][0]["steps"] == 0
+    before = json.loads(SHIPPED.with_suffix(".json").read_text())
+    assert meta["lineage"][-1] == {k: before[k] for k in ("method", "teacher", "steps", "saved")}
+    assert meta["lineage"][:-1] == before.get("lineage", [])
     assert meta["curve"][0]["makespan h"] == pytest.approx(shipped)  # evaluated before any step: the shipped policy
     assert meta["fits"]["steps"] == ["op"]
     assert [r["policy"].split(" (")[0] for r in seen[1:]][:2] == ["start", "self-labelled"]
