@@ -57,3 +57,33 @@ def test_a_target_in_stock_needs_no_route_and_an_unreachable_one_says_why():
     assert tight.route is None and tight.why == "stopped after 1 expansions"
     with pytest.raises(ValueError, match="not a valid SMILES: 'C1CC'"):
         breadth_first("C1CC", TEMPLATES, STOCK)
+
+
+def test_mcts_and_random_search_find_the_named_routes():
+    from agents.routes.mcts import mcts, random_search
+
+    for search in (mcts, random_search):
+        aspirin = search("CC(=O)Oc1ccccc1C(=O)O", TEMPLATES, STOCK).route
+        lidocaine = search("CCN(CC)CC(=O)Nc1c(C)cccc1C", TEMPLATES, STOCK).route
+        assert aspirin.steps == 1 and lidocaine is not None and lidocaine.steps <= 3, search.__name__
+        assert all(m in STOCK for m in lidocaine.bought())
+
+
+def test_the_expansion_prior_steers_mcts():
+    from agents.routes.mcts import mcts
+
+    def likes(name):
+        return lambda molecule, reactions: [10.0 if r.template.name == name else 0.01 for r in reactions]
+
+    for name in ("amide from acyl chloride", "amide coupling (acid + amine)"):
+        route = mcts("CCN(CC)CC(=O)Nc1c(C)cccc1C", TEMPLATES, STOCK, prior=likes(name), extra=0).route
+        assert name in {r.template.name for r in route.order()}, [r.template.name for r in route.order()]
+
+
+def test_mcts_says_why_it_found_nothing():
+    from agents.routes.mcts import mcts
+
+    assert "no route within the depth" in mcts("C1CC2CCC1C2", TEMPLATES, STOCK).why
+    assert mcts("OC(=O)c1ccccc1O", TEMPLATES, STOCK).why == "the target is in stock"
+    tight = mcts("CCN(CC)CC(=O)Nc1c(C)cccc1C", TEMPLATES, STOCK, max_expansions=1)
+    assert tight.route is None and tight.why == "stopped after 1 expansions"

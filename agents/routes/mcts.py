@@ -1,0 +1,156 @@
+"""Monte Carlo tree search for routes, in AiZynthFinder's manner, and random search as a baseline.
+
+A node of the tree is a partial route: the molecules still to make (not in stock) and the reactions chosen so
+far. Its actions are the reactions (templates applied backwards) of its first open molecule, each with a prior
+from an expansion policy — uniform when unguided, a learned one (``Prior``) otherwise. Selection is PUCT
+(AlphaZero's rule); a node reached for the first time is expanded (one expansion: every template on one molecule,
+cached) and valued by the share of its route's leaves already in stock; a route whose molecules are all in stock
+is solved and worth 1, less 0.05 per reaction beyond the first, so shorter ones win. The search stops at its
+budget (expansions, seconds), or ``extra`` iterations after the first route it solves, and returns the shortest
+solved route.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+from agents.routes.search import Expander, Reaction, Result, Route
+from agents.routes.stock import Stock
+from agents.routes.templates import Template, canonical
+
+Prior = Callable[[str, Sequence[Reaction]], Sequence[float]]  # (molecule, its reactions) -> a weight each
+
+
+def uniform(molecule: str, reactions: Sequence[Reaction]) -> list[float]:
+    return [1.0 / len(reactions)] * len(reactions) if reactions else []
+
+
+@dataclass(eq=False)
+class Node:
+    open: tuple[str, ...]  # molecules still to make, the next to expand first
+    made_by: dict[str, Reaction]
+    visits: int = 0
+    value: float = 0.0
+    children: list[Node] | None = None
+    priors: list[float] = field(default_factory=list)
+
+    @property
+    def solved(self) -> bool:
+        return not self.open
+
+
+def _child(node: Node, reaction: Reaction, stock: Stock) -> Node | None:
+    """The partial route with ``reaction`` making ``node``'s first open molecule (None if it goes round in a
+    circle: a reactant the route is already making)."""
+    if any(x in node.made_by or x == reaction.product for x in reaction.reactants):
+        return None
+    new = [x for x in reaction.reactants if x not in stock and x not in node.open]
+    return Node(tuple(node.open[1:]) + tuple(new), {**node.made_by, reaction.product: reaction})
+
+
+def _estimate(node: Node, stock: Stock) -> float:
+    if node.solved:
+        return 1.0 - 0.05 * max(0, len(node.made_by) - 1)
+    leaves = {x for r in node.made_by.values() for x in r.reactants if x not in node.made_by}
+    return 0.5 * sum(x in stock for x in leaves) / max(len(leaves), 1)
+
+
+def mcts(target: str, templates: tuple[Template, ...], stock: Stock, prior: Prior = uniform, max_depth: int = 6,
+         max_expansions: int = 2000, max_seconds: float = 10.0, extra: int = 50, c_puct: float = 1.4,
+         seed: int = 0) -> Result:
+    smiles = canonical(target)
+    if smiles is None:
+        raise ValueError(f"not a valid SMILES: {target!r}")
+    t0 = time.perf_counter()
+    if smiles in stock:
+        return Result(smiles, Route(smiles, {}, stock), 0, 0.0, "the target is in stock")
+    expand, rng = Expander(templates), random.Random(seed)
+    root = Node((smiles,), {})
+    best: Node | None = None
+    after = 0
+    why = "the tree was searched to the end: no route within the depth"
+    while True:
+        if expand.count >= max_expansions:
+            why = f"stopped after {max_expansions} expansions"
+            break
+        if time.perf_counter() - t0 > max_seconds:
+            why = f"stopped after {max_seconds:g} s"
+            break
+        if best is not None:
+            after += 1
+            if after > extra:
+                break
+        path, node = [root], root
+        while node.children:  # select
+            total = math.sqrt(node.visits)
+            scores = [(c.value / c.visits if c.visits else 0.0) + c_puct * p * total / (1 + c.visits)
+                      for c, p in zip(node.children, node.priors)]
+            top = max(scores)
+            node = node.children[rng.choice([i for i, s in enumerate(scores) if s == top])]
+            path.append(node)
+        if node.children is None and not node.solved and len(node.made_by) < max_depth:  # expand
+            reactions = expand(node.open[0])
+            pairs = [(c, w) for c, w in zip((_child(node, r, stock) for r in reactions), prior(node.open[0], reactions))
+                     if c is not None]
+            node.children = [c for c, _ in pairs]
+            weight = sum(w for _, w in pairs) or 1.0
+            node.priors = [w / weight for _, w in pairs]
+        value = _estimate(node, stock)
+        if node.solved and (best is None or len(node.made_by) < len(best.made_by)):
+            best = node
+        if not node.solved and (node.children == [] or len(node.made_by) >= max_depth):
+            value = 0.0  # a dead end: nothing makes its next molecule, or the route is as long as allowed
+            node.children = []
+        for n in path:  # back up
+            n.visits += 1
+            n.value += value
+        if root.children == [] or (root.children is not None and all(_dead(c) for c in root.children)):
+            break
+    seconds = time.perf_counter() - t0
+    if best is None:
+        return Result(smiles, None, expand.count, seconds, why)
+    return Result(smiles, Route(smiles, dict(best.made_by), stock), expand.count, seconds)
+
+
+def _dead(node: Node) -> bool:
+    return node.children == [] and not node.solved
+
+
+def random_search(target: str, templates: tuple[Template, ...], stock: Stock, max_depth: int = 6,
+                  max_expansions: int = 2000, max_seconds: float = 10.0, extra: int = 50, seed: int = 0) -> Result:
+    """Random rollouts: each picks a random reaction for the next open molecule until the route is solved or
+    stuck; the shortest solved route is kept (after ``extra`` more rollouts than the first solution)."""
+    smiles = canonical(target)
+    if smiles is None:
+        raise ValueError(f"not a valid SMILES: {target!r}")
+    t0 = time.perf_counter()
+    if smiles in stock:
+        return Result(smiles, Route(smiles, {}, stock), 0, 0.0, "the target is in stock")
+    expand, rng = Expander(templates), random.Random(seed)
+    best: Node | None = None
+    after, why = 0, ""
+    while True:
+        if expand.count >= max_expansions:
+            why = f"stopped after {max_expansions} expansions"
+            break
+        if time.perf_counter() - t0 > max_seconds:
+            why = f"stopped after {max_seconds:g} s"
+            break
+        if best is not None:
+            after += 1
+            if after > extra:
+                break
+        node: Node | None = Node((smiles,), {})
+        while node is not None and not node.solved and len(node.made_by) < max_depth:
+            options = [c for c in (_child(node, r, stock) for r in expand(node.open[0])) if c is not None]
+            node = rng.choice(options) if options else None
+        if node is not None and node.solved and (best is None or len(node.made_by) < len(best.made_by)):
+            best = node
+    seconds = time.perf_counter() - t0
+    if best is None:
+        return Result(smiles, None, expand.count, seconds, why)
+    return Result(smiles, Route(smiles, dict(best.made_by), stock), expand.count, seconds)
