@@ -70,6 +70,7 @@ def solve(jobs: list[list[Op]], capacity: dict[str, int], time_limit_s: float = 
     solver = cp_model.CpSolver()
     solver.parameters.max_time_in_seconds = time_limit_s
     solver.parameters.num_workers = workers
+    solver.parameters.catch_sigint_signal = False  # its own handler left Ctrl-C killing `twin train` unannounced
     status = solver.solve(model)
     if status not in (cp_model.OPTIMAL, cp_model.FEASIBLE):
         raise RuntimeError(f"CP-SAT found no schedule within {time_limit_s} s")
