@@ -17,7 +17,7 @@ from typing import Any
 
 import yaml
 from rdkit import Chem, RDLogger
-from rdkit.Chem import AllChem, rdChemReactions
+from rdkit.Chem import AllChem
 
 RDLogger.DisableLog("rdApp.*")  # a failed sanitisation of a proposal is expected, and filtered, not news
 
