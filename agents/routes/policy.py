@@ -114,7 +114,7 @@ def load_prior(path: Path, templates: tuple[Template, ...]) -> LearnedPrior:
     meta_file = path.with_suffix(".json")
     if not meta_file.exists() or not path.with_suffix(".pt").exists():
         raise FileNotFoundError(f"{path}: a route prior is a .pt file with a .json beside it; train one with "
-                                f"`twin train SCENARIO --agent route`")
+                                f"`python -m agents.routes.train --out {path}`")
     meta = json.loads(meta_file.read_text())
     names = meta.get("templates", [])
     missing = sorted(set(t.name for t in templates) - set(names))

@@ -10,8 +10,9 @@ from typing import Any
 from twin.core.errors import DriverError, PluginError
 
 GROUPS = {"devices": "labtwin.devices", "planners": "labtwin.planners", "schedulers": "labtwin.schedulers",
-          "trainers": "labtwin.trainers"}
+          "trainers": "labtwin.trainers", "routes": "labtwin.routes"}
 #: What a plugin of each kind must have (its protocol in docs/drivers.md and docs/architecture.md).
+_NAMES = {"devices": "driver", "routes": "route planner"}  # what one plugin of a kind is called in errors
 PROTOCOLS = {"devices": ("run", "safe_state"), "planners": ("propose",), "schedulers": ("decide",)}
 
 
@@ -57,13 +58,14 @@ def _load(kind: str, name: str) -> Any:
     if name not in eps:
         have = ", ".join(sorted(eps)) or "none"
         raise error(
-            f"unknown {'driver' if kind == 'devices' else kind[:-1]} {name!r}. Installed: {have}. "
-            f"Use one of those, or a 'package.module:Class' string; `twin devices` lists drivers."
+            f"unknown {_NAMES.get(kind, kind[:-1])} {name!r}. Installed: {have}. "
+            f"Use one of those, or a 'package.module:{'function' if kind == 'routes' else 'Class'}' string"
+            + ("; `twin devices` lists drivers." if kind == "devices" else ".")
         )
     try:
         return eps[name].load()
     except Exception as exc:
-        raise error(f"{kind[:-1]} {name!r} ({eps[name].value}) failed to load: {exc}") from exc
+        raise error(f"{_NAMES.get(kind, kind[:-1])} {name!r} ({eps[name].value}) failed to load: {exc}") from exc
 
 
 def _import_string(spec: str, error: type[Exception]) -> Any:

@@ -1,0 +1,68 @@
+"""Route planners as the kernel loads them (entry points ``labtwin.routes``): ``plan(target, stock=None,
+templates=None, prior=None, seconds=10.0)`` → the route as plain data (``summary``: JSON-able, what `twin route`
+prints). ``stock`` and ``templates`` are
+files (default: the shipped ones); ``prior`` (MCTS only) a route prior (default: the shipped one; ``"none"``:
+uniform). Bad input raises ``ValueError`` (a SMILES RDKit cannot read, a broken file) or ``FileNotFoundError``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from agents.routes import stock as stock_file
+from agents.routes import templates as template_file
+from agents.routes.mcts import mcts, random_search, uniform
+from agents.routes.policy import load_prior
+from agents.routes.search import Result, breadth_first
+
+SHIPPED_PRIOR = Path(__file__).resolve().parents[1] / "policies" / "route_prior"
+
+
+def _inputs(stock: str | Path | None, templates: str | Path | None):
+    return (template_file.load(Path(templates) if templates else template_file.TEMPLATES),
+            stock_file.load(Path(stock) if stock else stock_file.STOCK))
+
+
+def plan_mcts(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0) -> dict:
+    t, s = _inputs(stock, templates)
+    weights = uniform if prior == "none" else load_prior(Path(prior) if prior else SHIPPED_PRIOR, t)
+    return summary(mcts(target, t, s, prior=weights, max_seconds=seconds))
+
+
+def plan_breadth_first(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0) -> dict:
+    t, s = _inputs(stock, templates)
+    return summary(breadth_first(target, t, s, max_seconds=seconds))
+
+
+def plan_random(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0) -> dict:
+    t, s = _inputs(stock, templates)
+    return summary(random_search(target, t, s, max_seconds=seconds))
+
+
+def summary(result: Result) -> dict:
+    """A route as plain data: its steps in the order the lab runs them, the stock it buys, and estimates."""
+    route = result.route
+    out: dict = {"target": result.target, "solved": route is not None, "expansions": result.expansions,
+                 "seconds": round(result.seconds, 3), "why": result.why}
+    if route is None:
+        return out
+    steps = []
+    for n, r in enumerate(route.order(), 1):
+        steps.append({"step": n, "reaction": r.template.name, "class": r.template.reaction_class,
+                      "reactants": list(r.reactants), "product": r.product,
+                      "yield_pct": list(r.template.yield_pct), "hours": list(r.template.hours),
+                      "conditions": r.template.conditions})
+    bought = []
+    for m in route.bought():
+        item = route.stock.get(m)
+        bought.append({"smiles": m, "name": item.name if item else m, "eur_per_g": item.eur_per_g if item else None})
+    mean = lambda lo_hi: (lo_hi[0] + lo_hi[1]) / 2  # noqa: E731
+    overall = 1.0
+    for r in route.order():
+        overall *= mean(r.template.yield_pct) / 100
+    prices = [b["eur_per_g"] for b in bought]
+    out.update(steps=steps, bought=bought, depth=route.depth,
+               hours=[sum(r.template.hours[0] for r in route.order()), sum(r.template.hours[1] for r in route.order())],
+               overall_yield_pct=round(100 * overall, 1),
+               stock_eur_per_g=None if None in prices else round(sum(prices), 2))
+    return out

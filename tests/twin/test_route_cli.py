@@ -1,0 +1,51 @@
+"""`twin route` as a user meets it: a route from the shipped stock, JSON for machines, and exit codes 0 / 1 / 2
+for a route, no route, and bad input."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def twin_route(*args):
+    env = {**os.environ, "COLUMNS": "200"}
+    return subprocess.run([sys.executable, "-m", "twin", "route", *args], capture_output=True, text=True, cwd=ROOT,
+                          env=env, timeout=120)
+
+
+def test_aspirin_is_one_acetylation_of_salicylic_acid():
+    res = twin_route("CC(=O)OC1=CC=CC=C1C(=O)O")
+    assert res.returncode == 0, res.stderr
+    assert "O-acetylation with acetic anhydride" in res.stdout
+    assert "acetic anhydride + salicylic acid" in res.stdout and "buys:" in res.stdout
+
+
+def test_json_gives_the_steps_in_the_order_the_lab_runs_them():
+    res = twin_route("CCN(CC)CC(=O)Nc1c(C)cccc1C", "--method", "breadth-first", "--json")
+    assert res.returncode == 0, res.stderr
+    data = json.loads(res.stdout)
+    assert data["solved"] and [s["step"] for s in data["steps"]] == [1, 2]
+    made = {b["smiles"] for b in data["bought"]}
+    for step in data["steps"]:
+        assert set(step["reactants"]) <= made
+        made.add(step["product"])
+    assert data["steps"][-1]["product"] == data["target"] and 0 < data["overall_yield_pct"] < 100
+
+
+@pytest.mark.parametrize("args,code,says", [
+    (["C1CC"], 2, "not a valid SMILES: 'C1CC'"),
+    (["CCO", "--method", "nope"], 2, "unknown route planner 'nope'. Installed: breadth-first, mcts, random"),
+    (["CCO", "--stock", "missing.csv"], 2, "missing.csv: cannot read the stock file"),
+    (["CCO", "--prior", "missing"], 2, "python -m agents.routes.train --out missing"),
+    (["C1CC2CCC1C2", "--seconds", "5"], 1, "no route to C1CC2CCC1C2"),
+    (["OC(=O)c1ccccc1O"], 0, "the target is in stock; nothing to make"),
+])
+def test_exit_codes_and_what_they_say(args, code, says):
+    res = twin_route(*args)
+    out = " ".join((res.stdout + res.stderr).split())
+    assert res.returncode == code and says in out and "Traceback" not in out, out

@@ -1,0 +1,68 @@
+"""`twin route`: a synthesis route to a molecule, from the route planners installed (``labtwin.routes``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+
+from twin.cli.common import _fail, app, console
+from twin.core import plugins
+from twin.core.errors import TwinError
+
+
+@app.command()
+def route(
+    smiles: Annotated[str, typer.Argument(help="the target molecule as SMILES, e.g. aspirin: CC(=O)OC1=CC=CC=C1C(=O)O")],
+    method: Annotated[str, typer.Option(help="mcts (guided by the learned prior), breadth-first or random")] = "mcts",
+    stock: Annotated[Optional[Path], typer.Option(help="a stock file (smiles[,name,eur_per_g]); default: the shipped one")] = None,
+    templates: Annotated[Optional[Path], typer.Option(help="a template file; default: the shipped one")] = None,
+    prior: Annotated[Optional[str], typer.Option(help="mcts: a route prior (P for P.pt + P.json), or none (uniform)")] = None,
+    seconds: Annotated[float, typer.Option(help="search budget, wall seconds")] = 10.0,
+    as_json: Annotated[bool, typer.Option("--json", help="print the route as JSON")] = False,
+) -> None:
+    """A route to SMILES from the stock: its steps in the order the lab runs them, what it buys, estimates.
+    Exit 0: a route (or the target is in stock); 1: no route within the budget; 2: bad input."""
+    try:
+        planner = plugins.load("routes", method)
+    except TwinError as exc:
+        _fail(exc)
+    try:
+        data = planner(smiles, stock=stock, templates=templates, prior=prior, seconds=seconds)
+    except (ValueError, FileNotFoundError) as exc:
+        _fail(TwinError(str(exc)))
+    if as_json:
+        console.print_json(json.dumps(data))
+    else:
+        _show(data, method)
+    if not data["solved"]:
+        raise typer.Exit(1)
+
+
+def _show(data: dict, method: str) -> None:
+    searched = f"{method}, {data['expansions']} expansions, {data['seconds']:.2f} s"
+    if not data["solved"]:
+        console.print(f"no route to {data['target']} ({searched}): {data['why']}", highlight=False)
+        return
+    if not data["steps"]:
+        console.print(f"{data['target']}: {data['why'] or 'in stock'}; nothing to make", highlight=False)
+        return
+    names = {b["smiles"]: b["name"] for b in data["bought"]}
+    made = {s["product"]: f"({s['step']})" for s in data["steps"]}
+    table = Table(title=f"{data['target']}: {len(data['steps'])} steps, depth {data['depth']} ({searched})",
+                  title_justify="left")
+    for h in ("#", "reaction", "from", "yield %", "hours"):
+        table.add_column(h)
+    for s in data["steps"]:
+        table.add_row(str(s["step"]), s["reaction"], " + ".join(names.get(r) or made.get(r) or r for r in s["reactants"]),
+                      "{:.0f}–{:.0f}".format(*s["yield_pct"]), "{:g}–{:g}".format(*s["hours"]))
+    console.print(table)
+    prices = ", ".join(f"{b['name']} ({b['eur_per_g']:g} €/g)" if b["eur_per_g"] is not None else b["name"]
+                       for b in data["bought"])
+    console.print(f"buys: {prices}", highlight=False)
+    cost = f"; stock {data['stock_eur_per_g']:g} € for 1 g of each" if data["stock_eur_per_g"] is not None else ""
+    console.print(f"estimates: {data['hours'][0]:g}–{data['hours'][1]:g} h of reactions in series, overall yield "
+                  f"≈ {data['overall_yield_pct']:g} % (mean yields multiplied){cost}", highlight=False)
