@@ -2,12 +2,13 @@
 templates=None, prior=None, seconds=10.0)`` → the route as plain data (``summary``: JSON-able, what `twin route`
 prints). ``stock`` and ``templates`` are
 files (default: the shipped ones); ``prior`` (MCTS only) a route prior (default: the shipped one; ``"none"``:
-uniform). Bad input raises ``ValueError`` (a SMILES RDKit cannot read, a broken file) or ``FileNotFoundError``.
+uniform); ``save`` an .svg file to draw a route found into. Bad input raises ``ValueError`` (a SMILES RDKit cannot read, a broken file) or ``FileNotFoundError``.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from xml.sax.saxutils import escape
 
 from agents.routes import stock as stock_file
 from agents.routes import templates as template_file
@@ -18,25 +19,64 @@ from agents.routes.search import Result, breadth_first
 SHIPPED_PRIOR = Path(__file__).resolve().parents[1] / "policies" / "route_prior"
 
 
+def draw(data: dict, path: Path) -> None:
+    """The route as an SVG grid drawn by RDKit: a row per step — what it takes (bought, or made by an earlier
+    step), then what it makes — in the order the lab runs them."""
+    from rdkit import Chem
+    from rdkit.Chem import Draw
+
+    if Path(path).suffix.lower() != ".svg":
+        raise ValueError(f"{path}: a route is drawn as SVG; give a file name ending in .svg")
+    names = {b["smiles"]: b["name"] for b in data.get("bought", [])}
+    made = {s["product"]: s["step"] for s in data.get("steps", [])}
+    width = max([len(s["reactants"]) for s in data.get("steps", [])] or [0]) + 1
+    mols, legends = [], []
+    for s in data.get("steps", []):
+        row = [(r, f"{names[r]}" if r in names else f"from step {made.get(r, '?')}") for r in s["reactants"]]
+        row += [("", "")] * (width - 1 - len(row)) + [(s["product"], f"step {s['step']}: {s['reaction']}"[:48])]
+        for smiles, legend in row:
+            mols.append(Chem.MolFromSmiles(smiles) if smiles else Chem.Mol())
+            legends.append(legend)
+    if not mols:  # the target is in stock
+        mols, legends = [Chem.MolFromSmiles(data["target"])], ["in stock"]
+    svg = Draw.MolsToGridImage(mols, molsPerRow=max(width, 1), subImgSize=(260, 200), legends=legends, useSVG=True)
+    # RDKit draws the legends as glyph outlines: the route in words too, for search, screen readers and tests
+    words = "; ".join(f"step {s['step']}: {s['reaction']}: "
+                      f"{' + '.join(names.get(r) or f'from step {made.get(r)}' for r in s['reactants'])} -> {s['product']}"
+                      for s in data.get("steps", [])) or "in stock"
+    head = svg.index(">", svg.index("<svg")) + 1
+    svg = (svg[:head] + f"<title>route to {escape(data['target'])}</title><desc>{escape(words)}</desc>" + svg[head:])
+    Path(path).write_text(svg)
+
+
 def _inputs(stock: str | Path | None, templates: str | Path | None):
     return (template_file.load(Path(templates) if templates else template_file.TEMPLATES),
             stock_file.load(Path(stock) if stock else stock_file.STOCK))
 
 
-def plan_mcts(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0) -> dict:
+def plan_mcts(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0,
+              save: Path | None = None) -> dict:
     t, s = _inputs(stock, templates)
     weights = uniform if prior == "none" else load_prior(Path(prior) if prior else SHIPPED_PRIOR, t)
-    return summary(mcts(target, t, s, prior=weights, max_seconds=seconds))
+    return _saved(summary(mcts(target, t, s, prior=weights, max_seconds=seconds)), save)
 
 
-def plan_breadth_first(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0) -> dict:
+def plan_breadth_first(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0,
+                       save: Path | None = None) -> dict:
     t, s = _inputs(stock, templates)
-    return summary(breadth_first(target, t, s, max_seconds=seconds))
+    return _saved(summary(breadth_first(target, t, s, max_seconds=seconds)), save)
 
 
-def plan_random(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0) -> dict:
+def plan_random(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0,
+                save: Path | None = None) -> dict:
     t, s = _inputs(stock, templates)
-    return summary(random_search(target, t, s, max_seconds=seconds))
+    return _saved(summary(random_search(target, t, s, max_seconds=seconds)), save)
+
+
+def _saved(data: dict, save: Path | None) -> dict:
+    if save is not None and data["solved"]:
+        draw(data, save)
+    return data
 
 
 def summary(result: Result) -> dict:

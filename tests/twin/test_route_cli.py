@@ -49,3 +49,15 @@ def test_exit_codes_and_what_they_say(args, code, says):
     res = twin_route(*args)
     out = " ".join((res.stdout + res.stderr).split())
     assert res.returncode == code and says in out and "Traceback" not in out, out
+
+
+def test_save_draws_the_route_as_svg(tmp_path):
+    out = tmp_path / "lidocaine.svg"
+    res = twin_route("CCN(CC)CC(=O)Nc1c(C)cccc1C", "--method", "breadth-first", "--save", str(out))
+    assert res.returncode == 0 and f"drawn: {out}" in " ".join(res.stdout.split()), res.stderr
+    svg = out.read_text()
+    desc = svg[svg.index("<desc>"):svg.index("</desc>")]
+    assert "<svg" in svg and svg.count("<path") > 50  # molecules drawn
+    assert "step 1: " in desc and "2,6-dimethylaniline" in desc and "step 2: " in desc and "from step 1" in desc
+    bad = twin_route("CCO", "--save", str(tmp_path / "x.png"))
+    assert bad.returncode == 2 and "give a file name ending in .svg" in bad.stderr and not (tmp_path / "x.png").exists()

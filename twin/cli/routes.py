@@ -23,6 +23,7 @@ def route(
     prior: Annotated[Optional[str], typer.Option(help="mcts: a route prior (P for P.pt + P.json), or none (uniform)")] = None,
     seconds: Annotated[float, typer.Option(help="search budget, wall seconds")] = 10.0,
     as_json: Annotated[bool, typer.Option("--json", help="print the route as JSON")] = False,
+    save: Annotated[Optional[Path], typer.Option(help="also draw the route (RDKit) into this .svg file")] = None,
 ) -> None:
     """A route to SMILES from the stock: its steps in the order the lab runs them, what it buys, estimates.
     Exit 0: a route (or the target is in stock); 1: no route within the budget; 2: bad input."""
@@ -31,13 +32,18 @@ def route(
     except TwinError as exc:
         _fail(exc)
     try:
-        data = planner(smiles, stock=stock, templates=templates, prior=prior, seconds=seconds)
+        if save is not None and save.suffix.lower() != ".svg":
+            raise ValueError(f"--save {save}: a route is drawn as SVG; give a file name ending in .svg")
+        data = planner(smiles, stock=stock, templates=templates, prior=prior, seconds=seconds,
+                       **({"save": save} if save is not None else {}))
     except (ValueError, FileNotFoundError) as exc:
         _fail(TwinError(str(exc)))
     if as_json:
         console.print_json(json.dumps(data))
     else:
         _show(data, method)
+        if save is not None and data["solved"]:
+            console.print(f"drawn: {save}", highlight=False)
     if not data["solved"]:
         raise typer.Exit(1)
 
