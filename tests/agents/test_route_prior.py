@@ -20,7 +20,7 @@ torch.set_num_threads(1)
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    scorer = train_prior(TEMPLATES, examples(target_set(TEMPLATES, STOCK, 240)), epochs=15)
+    scorer = train_prior(TEMPLATES, examples(target_set(TEMPLATES, STOCK, 120)), epochs=20)
     path = tmp_path_factory.mktemp("prior") / "prior"
     save_prior(scorer, TEMPLATES, path)
     return path
@@ -34,9 +34,9 @@ def test_the_prior_ranks_the_right_template_far_above_chance(trained):
 
 def test_guided_mcts_needs_fewer_expansions_than_uniform(trained):
     prior = load_prior(trained, TEMPLATES)
-    held = target_set(TEMPLATES, STOCK, 8, depths=range(2, 5), held_out=True)
-    uniform = [mcts(t.smiles, TEMPLATES, STOCK, max_expansions=300) for t in held]
-    guided = [mcts(t.smiles, TEMPLATES, STOCK, prior=prior, max_expansions=300) for t in held]
+    held = target_set(TEMPLATES, STOCK, 6, depths=range(2, 5), held_out=True)
+    uniform = [mcts(t.smiles, TEMPLATES, STOCK, max_expansions=120) for t in held]
+    guided = [mcts(t.smiles, TEMPLATES, STOCK, prior=prior, max_expansions=120) for t in held]
     assert sum(r.route is not None for r in guided) >= sum(r.route is not None for r in uniform)
     assert sum(r.expansions for r in guided) < sum(r.expansions for r in uniform)
 

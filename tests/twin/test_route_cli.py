@@ -37,6 +37,21 @@ def test_json_gives_the_steps_in_the_order_the_lab_runs_them():
     assert data["steps"][-1]["product"] == data["target"] and 0 < data["overall_yield_pct"] < 100
 
 
+def in_process(*args):
+    """`twin route` run by typer's test runner: the same command, without a Python start-up per case."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    res = CliRunner().invoke(app, ["route", *args], env={"COLUMNS": "200"})
+    return res.exit_code, " ".join(res.output.split())
+
+
+def test_a_bad_smiles_exits_2_from_a_real_process():
+    res = twin_route("C1CC")
+    assert res.returncode == 2 and "not a valid SMILES: 'C1CC'" in res.stderr and "Traceback" not in res.stderr
+
+
 @pytest.mark.parametrize("args,code,says", [
     (["C1CC"], 2, "not a valid SMILES: 'C1CC'"),
     (["CCO", "--method", "nope"], 2, "unknown route planner 'nope'. Installed: breadth-first, mcts, random"),
@@ -46,9 +61,8 @@ def test_json_gives_the_steps_in_the_order_the_lab_runs_them():
     (["OC(=O)c1ccccc1O"], 0, "the target is in stock; nothing to make"),
 ])
 def test_exit_codes_and_what_they_say(args, code, says):
-    res = twin_route(*args)
-    out = " ".join((res.stdout + res.stderr).split())
-    assert res.returncode == code and says in out and "Traceback" not in out, out
+    exit_code, out = in_process(*args)
+    assert exit_code == code and says in out and "Traceback" not in out, out
 
 
 def test_save_draws_the_route_as_svg(tmp_path):
@@ -59,5 +73,5 @@ def test_save_draws_the_route_as_svg(tmp_path):
     desc = svg[svg.index("<desc>"):svg.index("</desc>")]
     assert "<svg" in svg and svg.count("<path") > 50  # molecules drawn
     assert "step 1: " in desc and "2,6-dimethylaniline" in desc and "step 2: " in desc and "from step 1" in desc
-    bad = twin_route("CCO", "--save", str(tmp_path / "x.png"))
-    assert bad.returncode == 2 and "give a file name ending in .svg" in bad.stderr and not (tmp_path / "x.png").exists()
+    code, said = in_process("CCO", "--save", str(tmp_path / "x.png"))
+    assert code == 2 and "give a file name ending in .svg" in said and not (tmp_path / "x.png").exists()
