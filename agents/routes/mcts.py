@@ -14,13 +14,12 @@ from __future__ import annotations
 
 import math
 import random
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
-from agents.routes.search import Expander, Reaction, Result, Route
+from agents.routes.search import Budget, Expander, Reaction, Result, Route, start
 from agents.routes.stock import Stock
-from agents.routes.templates import Template, canonical
+from agents.routes.templates import Template
 
 Prior = Callable[[str, Sequence[Reaction]], Sequence[float]]  # (molecule, its reactions) -> a weight each
 
@@ -62,24 +61,16 @@ def _estimate(node: Node, stock: Stock) -> float:
 def mcts(target: str, templates: tuple[Template, ...], stock: Stock, prior: Prior = uniform, max_depth: int = 6,
          max_expansions: int = 2000, max_seconds: float = 10.0, extra: int = 50, c_puct: float = 1.4,
          seed: int = 0) -> Result:
-    smiles = canonical(target)
-    if smiles is None:
-        raise ValueError(f"not a valid SMILES: {target!r}")
-    t0 = time.perf_counter()
-    if smiles in stock:
-        return Result(smiles, Route(smiles, {}, stock), 0, 0.0, "the target is in stock")
+    smiles, done = start(target, stock)
+    if done:
+        return done
     expand, rng = Expander(templates), random.Random(seed)
+    budget = Budget(expand, max_expansions, max_seconds)
     root = Node((smiles,), {})
     best: Node | None = None
     after = 0
     why = "the tree was searched to the end: no route within the depth"
-    while True:
-        if expand.count >= max_expansions:
-            why = f"stopped after {max_expansions} expansions"
-            break
-        if time.perf_counter() - t0 > max_seconds:
-            why = f"stopped after {max_seconds:g} s"
-            break
+    while not budget.spent():
         if best is not None:
             after += 1
             if after > extra:
@@ -110,10 +101,13 @@ def mcts(target: str, templates: tuple[Template, ...], stock: Stock, prior: Prio
             n.value += value
         if root.children == [] or (root.children is not None and all(_dead(c) for c in root.children)):
             break
-    seconds = time.perf_counter() - t0
+    return _result(smiles, best, stock, budget, budget.spent() or why)
+
+
+def _result(smiles: str, best: Node | None, stock: Stock, budget: Budget, why: str) -> Result:
     if best is None:
-        return Result(smiles, None, expand.count, seconds, why)
-    return Result(smiles, Route(smiles, dict(best.made_by), stock), expand.count, seconds)
+        return Result(smiles, None, budget.expand.count, budget.seconds, why)
+    return Result(smiles, Route(smiles, dict(best.made_by), stock), budget.expand.count, budget.seconds)
 
 
 def _dead(node: Node) -> bool:
@@ -124,22 +118,14 @@ def random_search(target: str, templates: tuple[Template, ...], stock: Stock, ma
                   max_expansions: int = 2000, max_seconds: float = 10.0, extra: int = 50, seed: int = 0) -> Result:
     """Random rollouts: each picks a random reaction for the next open molecule until the route is solved or
     stuck; the shortest solved route is kept (after ``extra`` more rollouts than the first solution)."""
-    smiles = canonical(target)
-    if smiles is None:
-        raise ValueError(f"not a valid SMILES: {target!r}")
-    t0 = time.perf_counter()
-    if smiles in stock:
-        return Result(smiles, Route(smiles, {}, stock), 0, 0.0, "the target is in stock")
+    smiles, done = start(target, stock)
+    if done:
+        return done
     expand, rng = Expander(templates), random.Random(seed)
+    budget = Budget(expand, max_expansions, max_seconds)
     best: Node | None = None
-    after, why = 0, ""
-    while True:
-        if expand.count >= max_expansions:
-            why = f"stopped after {max_expansions} expansions"
-            break
-        if time.perf_counter() - t0 > max_seconds:
-            why = f"stopped after {max_seconds:g} s"
-            break
+    after = 0
+    while not budget.spent():
         if best is not None:
             after += 1
             if after > extra:
@@ -150,7 +136,4 @@ def random_search(target: str, templates: tuple[Template, ...], stock: Stock, ma
             node = rng.choice(options) if options else None
         if node is not None and node.solved and (best is None or len(node.made_by) < len(best.made_by)):
             best = node
-    seconds = time.perf_counter() - t0
-    if best is None:
-        return Result(smiles, None, expand.count, seconds, why)
-    return Result(smiles, Route(smiles, dict(best.made_by), stock), expand.count, seconds)
+    return _result(smiles, best, stock, budget, budget.spent())

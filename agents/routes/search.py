@@ -83,26 +83,49 @@ class Expander:
         return self.cache[molecule]
 
 
+def start(target: str, stock: Stock) -> tuple[str, Result | None]:
+    """The target's canonical SMILES, and the search's answer already if it is in stock."""
+    smiles = canonical(target)
+    if smiles is None:
+        raise ValueError(f"not a valid SMILES: {target!r}")
+    return smiles, (Result(smiles, Route(smiles, {}, stock), 0, 0.0, "the target is in stock") if smiles in stock
+                    else None)
+
+
+class Budget:
+    """A search's budget in expansions and wall seconds; ``spent()`` says which ran out ("" while neither)."""
+
+    def __init__(self, expand: Expander, max_expansions: int, max_seconds: float) -> None:
+        self.expand, self.max_expansions, self.max_seconds = expand, max_expansions, max_seconds
+        self.t0 = time.perf_counter()
+
+    @property
+    def seconds(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def spent(self) -> str:
+        if self.expand.count >= self.max_expansions:
+            return f"stopped after {self.max_expansions} expansions"
+        if self.seconds > self.max_seconds:
+            return f"stopped after {self.max_seconds:g} s"
+        return ""
+
+
 def breadth_first(target: str, templates: tuple[Template, ...], stock: Stock, max_depth: int = 6,
                   max_expansions: int = 2000, max_seconds: float = 10.0) -> Result:
     """The shortest route to ``target`` (fewest reactions on its longest branch), by expanding molecules in order
     of depth; ``Result.why`` says what stopped it when there is none."""
-    smiles = canonical(target)
-    if smiles is None:
-        raise ValueError(f"not a valid SMILES: {target!r}")
-    t0 = time.perf_counter()
-    if smiles in stock:
-        return Result(smiles, Route(smiles, {}, stock), 0, 0.0, "the target is in stock")
+    smiles, done = start(target, stock)
+    if done:
+        return done
     expand = Expander(templates)
+    budget = Budget(expand, max_expansions, max_seconds)
     depth_of = {smiles: 0}
     queue = deque([smiles])
     why = f"no route within {max_depth} steps from this stock and these templates"
     while queue:
-        if expand.count >= max_expansions:
-            why = f"stopped after {max_expansions} expansions"
-            break
-        if time.perf_counter() - t0 > max_seconds:
-            why = f"stopped after {max_seconds:g} s"
+        if budget.spent():
+            why = budget.spent()
             break
         m = queue.popleft()
         if depth_of[m] >= max_depth:
@@ -114,8 +137,8 @@ def breadth_first(target: str, templates: tuple[Template, ...], stock: Stock, ma
                     queue.append(x)
         route = _solve(smiles, expand.cache, stock)
         if route is not None:
-            return Result(smiles, route, expand.count, time.perf_counter() - t0)
-    return Result(smiles, None, expand.count, time.perf_counter() - t0, why)
+            return Result(smiles, route, expand.count, budget.seconds)
+    return Result(smiles, None, expand.count, budget.seconds, why)
 
 
 def _solve(target: str, reactions: dict[str, list[Reaction]], stock: Stock) -> Route | None:
