@@ -122,7 +122,8 @@ def load_prior(path: Path, templates: tuple[Template, ...]) -> LearnedPrior:
         raise ValueError(f"{path} is not a route prior of this labtwin ({meta.get('kind')}, {meta.get('bits')} bits)")
     if missing:
         raise ValueError(f"{path} was trained on other templates: it does not know {missing[:3]}"
-                         f"{' …' if len(missing) > 3 else ''}; retrain it on this template file")
+                         f"{' …' if len(missing) > 3 else ''}; retrain it on this template file (python -m "
+                         f"agents.routes.train --templates FILE --out P) or search without one (--prior none)")
     scorer = TemplateScorer(len(names))
     scorer.load_state_dict(torch.load(path.with_suffix(".pt"), weights_only=True))
     return LearnedPrior(scorer, names)
