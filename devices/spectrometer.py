@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from devices.models import spectra
+from devices.models import spectra, synthesis
 from twin import DriverSetup, StepContext, StepResult
 from twin import DriverError
 
@@ -21,10 +21,10 @@ EDGE_WIDTH_NM = 4.0
 
 
 class Spectrometer:
-    capabilities = frozenset({"measure"})
+    capabilities = frozenset({"measure", "lcms"})
     outputs = frozenset({"peak_nm", "fwhm_nm", "intensity", "band_gap_ev", "edge_nm", "yield", "selectivity",
-                         "spectrum", "age_s"})
-    chemistry_models = frozenset({"quantum_dots", "bandgap", "catalyst"})
+                         "spectrum", "age_s", *synthesis.LCMS_OUTPUTS})
+    chemistry_models = frozenset({"quantum_dots", "bandgap", "catalyst", "synthesis"})
 
     def __init__(self, setup: DriverSetup) -> None:
         self.noise = setup.chemistry.noise
@@ -34,6 +34,9 @@ class Spectrometer:
         if not sample:
             raise DriverError("measure needs a sample: the workflow must make one first")
         await ctx.clock.sleep(ctx.draw_duration(params))
+        if sample.get("kind") in ("crude", "purified"):  # a route's reaction: LC-MS
+            return StepResult(synthesis.lcms(sample, params, ctx.clock.now(), self.stability_s, self.noise, ctx.rng),
+                              sample)
         age = ctx.clock.now() - float(sample.get("t_made", ctx.clock.now()))
         keep = math.exp(-age / self.stability_s) if self.stability_s > 0 else 1.0
         if sample.get("kind") == "qd":

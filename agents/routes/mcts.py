@@ -60,11 +60,11 @@ def _estimate(node: Node, stock: Stock) -> float:
 
 def mcts(target: str, templates: tuple[Template, ...], stock: Stock, prior: Prior = uniform, max_depth: int = 6,
          max_expansions: int = 2000, max_seconds: float = 10.0, extra: int = 50, c_puct: float = 1.4,
-         seed: int = 0) -> Result:
+         seed: int = 0, avoid: frozenset[tuple[str, str]] = frozenset()) -> Result:
     smiles, done = start(target, stock)
     if done:
         return done
-    expand, rng = Expander(templates), random.Random(seed)
+    expand, rng = Expander(templates, avoid), random.Random(seed)
     budget = Budget(expand, max_expansions, max_seconds)
     root = Node((smiles,), {})
     best: Node | None = None
@@ -115,13 +115,14 @@ def _dead(node: Node) -> bool:
 
 
 def random_search(target: str, templates: tuple[Template, ...], stock: Stock, max_depth: int = 6,
-                  max_expansions: int = 2000, max_seconds: float = 10.0, extra: int = 50, seed: int = 0) -> Result:
+                  max_expansions: int = 2000, max_seconds: float = 10.0, extra: int = 50, seed: int = 0,
+                  avoid: frozenset[tuple[str, str]] = frozenset()) -> Result:
     """Random rollouts: each picks a random reaction for the next open molecule until the route is solved or
     stuck; the shortest solved route is kept (after ``extra`` more rollouts than the first solution)."""
     smiles, done = start(target, stock)
     if done:
         return done
-    expand, rng = Expander(templates), random.Random(seed)
+    expand, rng = Expander(templates, avoid), random.Random(seed)
     budget = Budget(expand, max_expansions, max_seconds)
     best: Node | None = None
     after = 0

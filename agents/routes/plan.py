@@ -49,28 +49,41 @@ def draw(data: dict, path: Path) -> None:
     Path(path).write_text(svg)
 
 
-def _inputs(stock: str | Path | None, templates: str | Path | None):
+def inputs(stock: str | Path | None, templates: str | Path | None):
     return (template_file.load(Path(templates) if templates else template_file.TEMPLATES),
             stock_file.load(Path(stock) if stock else stock_file.STOCK))
 
 
+METHODS = ("mcts", "breadth-first", "random")
+
+
+def search(method: str, target: str, templates, stock, prior=None, seconds: float = 10.0,
+           avoid: frozenset[tuple[str, str]] = frozenset()) -> Result:
+    """One search by name (``METHODS``); ``prior`` as for ``plan_mcts`` (a path, None: the shipped one,
+    "none": uniform), loaded only for MCTS."""
+    if method == "mcts":
+        weights = uniform if prior == "none" else load_prior(Path(prior) if prior else SHIPPED_PRIOR, templates)
+        return mcts(target, templates, stock, prior=weights, max_seconds=seconds, avoid=avoid)
+    if method == "breadth-first":
+        return breadth_first(target, templates, stock, max_seconds=seconds, avoid=avoid)
+    if method == "random":
+        return random_search(target, templates, stock, max_seconds=seconds, avoid=avoid)
+    raise ValueError(f"unknown route search {method!r}: use one of {', '.join(METHODS)}")
+
+
 def plan_mcts(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0,
               save: Path | None = None) -> dict:
-    t, s = _inputs(stock, templates)
-    weights = uniform if prior == "none" else load_prior(Path(prior) if prior else SHIPPED_PRIOR, t)
-    return _saved(summary(mcts(target, t, s, prior=weights, max_seconds=seconds)), save)
+    return _saved(summary(search("mcts", target, *inputs(stock, templates), prior, seconds)), save)
 
 
 def plan_breadth_first(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0,
                        save: Path | None = None) -> dict:
-    t, s = _inputs(stock, templates)
-    return _saved(summary(breadth_first(target, t, s, max_seconds=seconds)), save)
+    return _saved(summary(search("breadth-first", target, *inputs(stock, templates), prior, seconds)), save)
 
 
 def plan_random(target: str, stock=None, templates=None, prior=None, seconds: float = 10.0,
                 save: Path | None = None) -> dict:
-    t, s = _inputs(stock, templates)
-    return _saved(summary(random_search(target, t, s, max_seconds=seconds)), save)
+    return _saved(summary(search("random", target, *inputs(stock, templates), prior, seconds)), save)
 
 
 def _saved(data: dict, save: Path | None) -> dict:

@@ -71,15 +71,17 @@ class Result:
 
 
 class Expander:
-    """A molecule's reactions (every template backwards), computed once per molecule."""
+    """A molecule's reactions (every template backwards), computed once per molecule; ``avoid`` holds
+    (template name, product) pairs never to propose (reactions that failed in the lab)."""
 
-    def __init__(self, templates: tuple[Template, ...]) -> None:
-        self.templates, self.cache, self.count = templates, {}, 0
+    def __init__(self, templates: tuple[Template, ...], avoid: frozenset[tuple[str, str]] = frozenset()) -> None:
+        self.templates, self.cache, self.count, self.avoid = templates, {}, 0, avoid
 
     def __call__(self, molecule: str) -> list[Reaction]:
         if molecule not in self.cache:
             self.count += 1
-            self.cache[molecule] = [Reaction(t, molecule, r) for t in self.templates for r in retro(t, molecule)]
+            self.cache[molecule] = [Reaction(t, molecule, r) for t in self.templates
+                                    if (t.name, molecule) not in self.avoid for r in retro(t, molecule)]
         return self.cache[molecule]
 
 
@@ -112,13 +114,14 @@ class Budget:
 
 
 def breadth_first(target: str, templates: tuple[Template, ...], stock: Stock, max_depth: int = 6,
-                  max_expansions: int = 2000, max_seconds: float = 10.0) -> Result:
+                  max_expansions: int = 2000, max_seconds: float = 10.0,
+                  avoid: frozenset[tuple[str, str]] = frozenset()) -> Result:
     """The shortest route to ``target`` (fewest reactions on its longest branch), by expanding molecules in order
     of depth; ``Result.why`` says what stopped it when there is none."""
     smiles, done = start(target, stock)
     if done:
         return done
-    expand = Expander(templates)
+    expand = Expander(templates, avoid)
     budget = Budget(expand, max_expansions, max_seconds)
     depth_of = {smiles: 0}
     queue = deque([smiles])

@@ -34,7 +34,10 @@ class Canvas(Protocol):
 
     def points(self, path: str, t: float, points: list[tuple[float, ...]], seq: int | None = None) -> None: ...
 
-    def document(self, path: str, markdown: str) -> None: ...
+    def document(self, path: str, markdown: str, t: float | None = None) -> None:
+        """A markdown panel; with ``t``, this version of it from lab time ``t`` on."""
+
+    def image(self, path: str, t: float, png: bytes) -> None: ...
 
     def flush(self) -> None:
         """Send what is buffered: live viewers call this now and then."""
@@ -65,6 +68,7 @@ class LabObserver:
         self.done = False
         self._last_queue: tuple | None = None
         self._seen: set[str] | None = set() if dedupe else None
+        self._route: Any = None  # a RouteView, once a synthesis route runs
 
     # -- input ------------------------------------------------------------
     def on_message(self, key: str, payload: bytes | str) -> None:
@@ -145,9 +149,17 @@ class LabObserver:
                     f"{len(self.info.get('devices', {}))} devices, budget {self.info.get('budget')}", "INFO")
 
     def _experiment_proposed(self, t: float, d: dict, params: dict) -> None:
+        if isinstance(params, dict) and "reaction" in params:  # a synthesis route's reaction
+            if self._route is None:
+                from twin.view.route_view import RouteView
+
+                self._route = RouteView(self.c)
+            self._route.proposed(t, d.get("experiment"), params)
+            return
         box = self.info.get("parameters", {})
         coords = []
-        for name, value in list((params or {}).items())[:3]:
+        numbers = [(k, v) for k, v in (params or {}).items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
+        for name, value in numbers[:3]:
             lo, hi = (box.get(name) or [0.0, 1.0])[:2]
             coords.append((float(value) - lo) / (hi - lo) if hi > lo else float(value))
         coords += [0.0] * (3 - len(coords))
@@ -158,6 +170,8 @@ class LabObserver:
         self._queue(t)
 
     def _attempt_dispatched(self, t: float, d: dict, info: Any) -> None:
+        if self._route is not None:
+            self._route.running(t, d.get("experiment"), d.get("device"))
         self.ready.pop(d["task"], None)
         self._queue(t)
         self._set_state(t, d["device"], "busy")
@@ -184,6 +198,8 @@ class LabObserver:
         self._set_state(t, d["device"], "offline")
 
     def _experiment_done(self, t: float, d: dict, info: dict) -> None:
+        if self._route is not None:
+            self._route.finished(t, d.get("experiment"), (info or {}).get("outputs") or {})
         self.finished += 1
         seq = d.get("experiment")
         scores = (info or {}).get("scores") or {}
@@ -205,6 +221,8 @@ class LabObserver:
         self.c.scalar("campaign/finished", t, float(self.finished), seq=seq)
 
     def _experiment_abandoned(self, t: float, d: dict, info: Any) -> None:
+        if self._route is not None:
+            self._route.finished(t, d.get("experiment"), None, str((info or {}).get("reason", "")))
         self.finished += 1
         self.c.scalar("campaign/finished", t, float(self.finished), seq=d.get("experiment"))
 

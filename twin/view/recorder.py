@@ -52,7 +52,9 @@ def blueprint() -> rrb.Blueprint:
                        ["$origin/score", "$origin/best", "$origin/targets/**"]),
             ),
             rrb.Horizontal(
-                rrb.Spatial2DView(origin="/spectra", name="Spectra (latest, with targets)"),
+                rrb.Tabs(rrb.Spatial2DView(origin="/spectra", name="Spectra (latest, with targets)"),
+                         rrb.Spatial2DView(origin="/route/plan", name="Route"),
+                         rrb.TextDocumentView(origin="/route/steps", name="Route steps")),
                 series("/queue", "Queue"),
                 series("/objective/outputs", "Measured outputs"),
                 rrb.Spatial3DView(origin="/planner", name="Proposals (normalised box)", time_ranges=up_to_cursor),
@@ -117,8 +119,14 @@ class RerunCanvas:
             pts[:, 1] = 300.0 * (1.0 - pts[:, 1])
         self._add("points2" if pts.shape[1] == 2 else "points3", path, t, seq, pts[0])
 
-    def document(self, path: str, markdown: str) -> None:
-        self.rec.log(path, rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=True)
+    def document(self, path: str, markdown: str, t: float | None = None) -> None:
+        if t is not None:
+            self.rec.set_time("lab_time", duration=t)
+        self.rec.log(path, rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN), static=t is None)
+
+    def image(self, path: str, t: float, png: bytes) -> None:
+        self.rec.set_time("lab_time", duration=t)
+        self.rec.log(path, rr.EncodedImage(contents=png, media_type="image/png"))
 
     def flush(self) -> None:
         for (kind, path, has_seq), (ts, seqs, values) in self._buffers.items():

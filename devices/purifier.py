@@ -1,0 +1,27 @@
+"""A purification station (flash chromatography or recrystallisation): keeps most of a crude product and
+little of its impurities."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from devices.models import synthesis
+from twin import DriverError, DriverSetup, StepContext, StepResult
+
+
+class Purifier:
+    capabilities = frozenset({"purify"})
+    outputs: frozenset[str] = frozenset()
+    chemistry_models = frozenset({"synthesis"})
+
+    def __init__(self, setup: DriverSetup) -> None:
+        pass
+
+    async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
+        if not sample or sample.get("kind") not in ("crude", "purified"):
+            raise DriverError("purify needs a reaction's crude product: the route must react first")
+        await ctx.clock.sleep(ctx.draw_duration(params))
+        return StepResult({}, synthesis.purify(sample, ctx.rng))
+
+    async def safe_state(self) -> None:
+        """Column flow stopped, fractions kept."""
