@@ -60,11 +60,11 @@ def _estimate(node: Node, stock: Stock) -> float:
 
 def mcts(target: str, templates: tuple[Template, ...], stock: Stock, prior: Prior = uniform, max_depth: int = 6,
          max_expansions: int = 2000, max_seconds: float = 10.0, extra: int = 50, c_puct: float = 1.4,
-         seed: int = 0, avoid: frozenset[tuple[str, str]] = frozenset()) -> Result:
+         seed: int = 0, avoid: frozenset[tuple[str, str]] = frozenset(), shared: dict | None = None) -> Result:
     smiles, done = start(target, stock)
     if done:
         return done
-    expand, rng = Expander(templates, avoid), random.Random(seed)
+    expand, rng = Expander(templates, avoid, shared), random.Random(seed)
     budget = Budget(expand, max_expansions, max_seconds)
     root = Node((smiles,), {})
     best: Node | None = None

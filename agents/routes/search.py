@@ -71,17 +71,23 @@ class Result:
 
 
 class Expander:
-    """A molecule's reactions (every template backwards), computed once per molecule; ``avoid`` holds
-    (template name, product) pairs never to propose (reactions that failed in the lab)."""
+    """A molecule's reactions (every template backwards), computed once per molecule; ``count`` is the molecules
+    this search expanded. ``avoid`` holds (template name, product) pairs never to propose (reactions that
+    failed in the lab); ``shared``, a dict kept across searches of the same templates, saves recomputing a
+    molecule another search expanded (it still counts as this search's expansion)."""
 
-    def __init__(self, templates: tuple[Template, ...], avoid: frozenset[tuple[str, str]] = frozenset()) -> None:
-        self.templates, self.cache, self.count, self.avoid = templates, {}, 0, avoid
+    def __init__(self, templates: tuple[Template, ...], avoid: frozenset[tuple[str, str]] = frozenset(),
+                 shared: dict[str, list[Reaction]] | None = None) -> None:
+        self.templates, self.avoid, self.count = templates, avoid, 0
+        self.cache: dict[str, list[Reaction]] = {}
+        self.shared = shared if shared is not None else {}
 
     def __call__(self, molecule: str) -> list[Reaction]:
         if molecule not in self.cache:
             self.count += 1
-            self.cache[molecule] = [Reaction(t, molecule, r) for t in self.templates
-                                    if (t.name, molecule) not in self.avoid for r in retro(t, molecule)]
+            if molecule not in self.shared:
+                self.shared[molecule] = [Reaction(t, molecule, r) for t in self.templates for r in retro(t, molecule)]
+            self.cache[molecule] = [r for r in self.shared[molecule] if (r.template.name, molecule) not in self.avoid]
         return self.cache[molecule]
 
 

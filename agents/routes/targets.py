@@ -86,3 +86,31 @@ def target_set(templates: tuple[Template, ...], stock: Stock, count: int, depths
         if target is not None and all(target.smiles != t.smiles for t in out):
             out.append(target)
     return out
+
+
+#: Real drugs and intermediates the shipped stock and templates reach: (name, SMILES, steps of the shortest route).
+NAMED = (
+    ("aspirin", "CC(=O)Oc1ccccc1C(=O)O", 1),
+    ("paracetamol", "CC(=O)Nc1ccc(O)cc1", 1),
+    ("phenacetin", "CCOc1ccc(NC(C)=O)cc1", 1),
+    ("benzocaine", "CCOC(=O)c1ccc(N)cc1", 1),
+    ("procaine", "CCN(CC)CCOC(=O)c1ccc(N)cc1", 1),
+    ("DEET", "CCN(CC)C(=O)c1cccc(C)c1", 1),
+    ("methyl salicylate", "COC(=O)c1ccccc1O", 1),
+    ("lidocaine", "CCN(CC)CC(=O)Nc1c(C)cccc1C", 2),
+)
+
+
+def held_out(count: int = 100) -> list[dict]:
+    """Benchmark targets (entry point ``labtwin.route_targets``: held-out): ``count`` held-out forward-made
+    targets of the shipped templates and stock, depths 1–6 in turn; ``steps`` is their known route's length."""
+    from agents.routes import stock as stock_file
+    from agents.routes import templates as template_file
+
+    return [{"name": f"held-out {t.seed}", "smiles": t.smiles, "steps": t.steps}
+            for t in target_set(template_file.load(), stock_file.load(), count, held_out=True)]
+
+
+def named(count: int = len(NAMED)) -> list[dict]:
+    """Benchmark targets (``labtwin.route_targets``: drugs): the named drugs, with their shortest routes' lengths."""
+    return [{"name": n, "smiles": s, "steps": k} for n, s, k in NAMED[:count]]

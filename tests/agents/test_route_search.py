@@ -6,18 +6,13 @@ import pytest
 from agents.routes import stock as stock_file
 from agents.routes import templates as template_file
 from agents.routes.search import breadth_first
+from agents.routes.targets import NAMED
 from agents.routes.templates import canonical, forward
 
 TEMPLATES, STOCK = template_file.load(), stock_file.load()
 
 
-@pytest.mark.parametrize("name,smiles,steps", [
-    ("aspirin", "CC(=O)Oc1ccccc1C(=O)O", 1),
-    ("paracetamol", "CC(=O)Nc1ccc(O)cc1", 1),
-    ("benzocaine", "CCOC(=O)c1ccc(N)cc1", 1),
-    ("procaine", "CCN(CC)CCOC(=O)c1ccc(N)cc1", 1),
-    ("lidocaine", "CCN(CC)CC(=O)Nc1c(C)cccc1C", 2),
-])
+@pytest.mark.parametrize("name,smiles,steps", NAMED)
 def test_named_drugs_have_routes_from_the_stock_that_run_in_order(name, smiles, steps):
     result = breadth_first(smiles, TEMPLATES, STOCK)
     route = result.route

@@ -75,3 +75,36 @@ def test_save_draws_the_route_as_svg(tmp_path):
     assert "step 1: " in desc and "2,6-dimethylaniline" in desc and "step 2: " in desc and "from step 1" in desc
     code, said = in_process("CCO", "--save", str(tmp_path / "x.png"))
     assert code == 2 and "give a file name ending in .svg" in said and not (tmp_path / "x.png").exists()
+
+
+def bench_in_process(*args):
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    res = CliRunner().invoke(app, ["bench", "routes", *args], env={"COLUMNS": "80"})
+    return res.exit_code, res.output
+
+
+def test_bench_routes_compares_methods_on_targets_of_known_length():
+    code, out = bench_in_process("--set", "drugs", "--targets", "3", "--seconds", "5", "--workers", "1",
+                                 "--methods", "breadth-first,mcts:none", "--json")
+    assert code == 0, out
+    results = json.loads(out)
+    assert {r["method"] for r in results} == {"breadth-first", "mcts:none"} and len(results) == 6
+    assert all(r["solved"] and r["steps"] == r["known"] == 1 and r["expansions"] >= 1 for r in results)
+    code, out = bench_in_process("--set", "drugs", "--targets", "2", "--seconds", "5", "--workers", "2",
+                                 "--methods", "breadth-first")
+    lines = out.splitlines()
+    assert code == 0 and max(len(line) for line in lines) <= 80
+    assert any(line.split("│")[1:4] == [" breadth-first ", " 100      ", " 100        "] for line in lines), out
+
+
+@pytest.mark.parametrize("args,says", [
+    (["--methods", "nope"], "unknown route planner 'nope'"),
+    (["--set", "nope"], "unknown route target set 'nope'. Installed: drugs, held-out"),
+    (["--targets", "0"], "give at least 1 target"),
+])
+def test_bench_routes_refuses_what_it_cannot_run(args, says):
+    code, out = bench_in_process(*args)
+    assert code == 2 and says in " ".join(out.split()) and "Traceback" not in out, out

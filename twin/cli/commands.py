@@ -18,7 +18,7 @@ from twin.runtime.checks import validate_file
 from twin.core.errors import TwinError
 from twin.campaign.journal import read_run
 from twin.view.report import render_summary
-from twin.scenario import json_schema, load
+from twin.scenario import json_schema
 from twin.campaign.summary import Summary
 from twin.view.watch import RecordOptions, open_observer
 from twin.view.watch import replay as replay_journal

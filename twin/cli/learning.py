@@ -20,15 +20,16 @@ def train(
     scenario: Annotated[Path, typer.Argument(help="the scenario to train in, e.g. scenarios/quantum_dots.yaml")],
     out: Annotated[Path, typer.Option(help="where to save the policy (.zip, with a .json beside it)")],
     agent: Annotated[str, typer.Option(help="scheduler (the rl scheduler), planner (the rl planner), "
-                                            "controller or controller-residual (the reactor's heater)")] = "scheduler",
+                                            "controller or controller-residual (the reactor's heater), route "
+                                            "(the route search's expansion prior)")] = "scheduler",
     steps: Annotated[int, typer.Option(help="environment steps")] = 200_000,
     seed: Annotated[int, typer.Option(help="training seed")] = 0,
     envs: Annotated[int, typer.Option(help="environments stepped together")] = 4,
     eval_every: Annotated[int, typer.Option(help="evaluate (and keep the best policy) every this many steps")] = 20_000,
     save: Annotated[Optional[Path], typer.Option(help="also record the evaluation curve to Rerun, e.g. curve.rrd")] = None,
     viewer: Annotated[bool, typer.Option(help="show the evaluation curve live in the Rerun viewer")] = False,
-    init: Annotated[Optional[Path], typer.Option(help="start from this policy (the scheduler; needed by "
-                                                     "training.teacher: self)")] = None,
+    init: Annotated[Optional[Path], typer.Option(help="start from this policy (the scheduler, needed by "
+                                                     "training.teacher: self; or a route prior, P.pt)")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", help="override a scenario field, e.g. "
                                                       "training.teacher=self; repeatable")] = None,
 ) -> None:
@@ -36,9 +37,9 @@ def train(
     try:
         s = lab.prepare(scenario, overrides=_assignments(set_ or []))
         trainer = plugins.load("trainers", agent)
-        if init is not None and agent != "scheduler":
-            raise TwinError(f"--init starts the scheduler's training from a policy; the {agent} trainer has no such "
-                            f"option (leave --init out)")
+        if init is not None and agent not in ("scheduler", "route"):
+            raise TwinError(f"--init starts the scheduler's or the route prior's training from a policy; the {agent} "
+                            f"trainer has no such option (leave --init out)")
         if init is not None and not init.exists():
             raise TwinError(f"--init {init}: no such policy file")
     except TwinError as exc:

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import _fail, app, console
+from twin.cli.common import _fail, app, bench_app, console, err
 from twin.core import plugins
 from twin.core.errors import TwinError
 
@@ -72,3 +72,50 @@ def _show(data: dict, method: str) -> None:
     cost = f"; stock {data['stock_eur_per_g']:g} € for 1 g of each" if data["stock_eur_per_g"] is not None else ""
     console.print(f"estimates: {data['hours'][0]:g}–{data['hours'][1]:g} h of reactions in series, overall yield "
                   f"≈ {data['overall_yield_pct']:g} % (mean yields multiplied){cost}", highlight=False)
+
+
+@bench_app.command("routes")
+def bench_routes(
+    targets: Annotated[int, typer.Option(help="how many targets of the set")] = 100,
+    target_set: Annotated[str, typer.Option("--set", help="held-out (made forwards from the stock, depths 1–6) "
+                                                         "or drugs (named drugs)")] = "held-out",
+    methods: Annotated[Optional[str], typer.Option(help="comma-separated route planners; mcts:none is MCTS "
+                                                        "with a uniform prior, mcts:P with prior P; default: all, "
+                                                        "and mcts:none")] = None,
+    seconds: Annotated[float, typer.Option(help="search budget per target, wall seconds")] = 10.0,
+    workers: Annotated[int, typer.Option(help="searches run in parallel")] = 2,
+    as_json: Annotated[bool, typer.Option("--json", help="print every search's result as JSON")] = False,
+) -> None:
+    """Solved rate, route length against the known one, expansions and time per target, for every search method."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from twin.tools.route_bench import CAPTION, HEADER, bench, default_methods, rows, split
+    from twin.tools.route_bench import targets as make_targets
+
+    try:
+        if targets < 1 or seconds <= 0:
+            raise TwinError(f"--targets {targets} --seconds {seconds:g}: give at least 1 target and a positive budget")
+        names = [m.strip() for m in methods.split(",") if m.strip()] if methods else default_methods()
+        for m in names:
+            plugins.load("routes", split(m)[0])
+        chosen = make_targets(target_set, targets)
+    except TwinError as exc:
+        _fail(exc)
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                        console=err, transient=as_json)
+    with progress:
+        bar = progress.add_task(f"{len(names)} methods × {len(chosen)} targets", total=len(names) * len(chosen))
+        try:
+            results = bench(names, chosen, seconds, workers, on_done=lambda r: progress.advance(bar))
+        except (ValueError, FileNotFoundError) as exc:
+            _fail(TwinError(str(exc)))
+    if as_json:
+        console.print_json(json.dumps(results))
+        return
+    table = Table(title=f"{len(chosen)} {target_set} targets, {seconds:g} s each", title_justify="left",
+                  caption=CAPTION, caption_justify="left")
+    for h in HEADER:
+        table.add_column(h, overflow="fold")
+    for row in rows(results, names):
+        table.add_row(*row)
+    console.print(table)

@@ -10,9 +10,9 @@ from typing import Any
 from twin.core.errors import DriverError, PluginError
 
 GROUPS = {"devices": "labtwin.devices", "planners": "labtwin.planners", "schedulers": "labtwin.schedulers",
-          "trainers": "labtwin.trainers", "routes": "labtwin.routes"}
+          "trainers": "labtwin.trainers", "routes": "labtwin.routes", "route_targets": "labtwin.route_targets"}
 #: What a plugin of each kind must have (its protocol in docs/drivers.md and docs/architecture.md).
-_NAMES = {"devices": "driver", "routes": "route planner"}  # what one plugin of a kind is called in errors
+_NAMES = {"devices": "driver", "routes": "route planner", "route_targets": "route target set"}  # in errors
 PROTOCOLS = {"devices": ("run", "safe_state"), "planners": ("propose",), "schedulers": ("decide",)}
 
 
@@ -59,7 +59,7 @@ def _load(kind: str, name: str) -> Any:
         have = ", ".join(sorted(eps)) or "none"
         raise error(
             f"unknown {_NAMES.get(kind, kind[:-1])} {name!r}. Installed: {have}. "
-            f"Use one of those, or a 'package.module:{'function' if kind == 'routes' else 'Class'}' string"
+            f"Use one of those, or a 'package.module:{'function' if kind in ('routes', 'route_targets') else 'Class'}' string"
             + ("; `twin devices` lists drivers." if kind == "devices" else ".")
         )
     try:
