@@ -2,7 +2,7 @@
 templates=None, prior=None, seconds=10.0)`` → the route as plain data (``summary``: JSON-able, what `twin route`
 prints). ``stock`` and ``templates`` are
 files (default: the shipped ones); ``prior`` (MCTS only) a route prior (default: the shipped one; ``"none"``:
-uniform); ``save`` an .svg file to draw a route found into. Bad input raises ``ValueError`` (a SMILES RDKit cannot read, a broken file) or ``FileNotFoundError``.
+uniform); ``save`` an .svg or .png file to draw a route found into. Bad input raises ``ValueError`` (a SMILES RDKit cannot read, a broken file) or ``FileNotFoundError``.
 """
 
 from __future__ import annotations
@@ -20,13 +20,14 @@ SHIPPED_PRIOR = Path(__file__).resolve().parents[1] / "policies" / "route_prior"
 
 
 def draw(data: dict, path: Path) -> None:
-    """The route as an SVG grid drawn by RDKit: a row per step — what it takes (bought, or made by an earlier
+    """The route as an SVG or PNG grid drawn by RDKit: a row per step — what it takes (bought, or made by an earlier
     step), then what it makes — in the order the lab runs them."""
     from rdkit import Chem
     from rdkit.Chem import Draw
 
-    if Path(path).suffix.lower() != ".svg":
-        raise ValueError(f"{path}: a route is drawn as SVG; give a file name ending in .svg")
+    kind = Path(path).suffix.lower()
+    if kind not in (".svg", ".png"):
+        raise ValueError(f"{path}: a route is drawn as SVG or PNG; give a file name ending in .svg or .png")
     names = {b["smiles"]: b["name"] for b in data.get("bought", [])}
     made = {s["product"]: s["step"] for s in data.get("steps", [])}
     width = max([len(s["reactants"]) for s in data.get("steps", [])] or [0]) + 1
@@ -39,6 +40,10 @@ def draw(data: dict, path: Path) -> None:
             legends.append(legend)
     if not mols:  # the target is in stock
         mols, legends = [Chem.MolFromSmiles(data["target"])], ["in stock"]
+    if kind == ".png":
+        image = Draw.MolsToGridImage(mols, molsPerRow=max(width, 1), subImgSize=(260, 200), legends=legends)
+        image.save(path, format="PNG")
+        return
     svg = Draw.MolsToGridImage(mols, molsPerRow=max(width, 1), subImgSize=(260, 200), legends=legends, useSVG=True)
     # RDKit draws the legends as glyph outlines: the route in words too, for search, screen readers and tests
     words = "; ".join(f"step {s['step']}: {s['reaction']}: "

@@ -73,8 +73,11 @@ def test_save_draws_the_route_as_svg(tmp_path):
     desc = svg[svg.index("<desc>"):svg.index("</desc>")]
     assert "<svg" in svg and svg.count("<path") > 50  # molecules drawn
     assert "step 1: " in desc and "2,6-dimethylaniline" in desc and "step 2: " in desc and "from step 1" in desc
-    code, said = in_process("CCO", "--save", str(tmp_path / "x.png"))
-    assert code == 2 and "give a file name ending in .svg" in said and not (tmp_path / "x.png").exists()
+    code, said = in_process("CCO", "--save", str(tmp_path / "x.gif"))
+    assert code == 2 and "give a file name ending in .svg or .png" in said and not (tmp_path / "x.gif").exists()
+    code, said = in_process("CC(=O)Nc1ccc(O)cc1", "--method", "breadth-first", "--policy", "none",
+                            "--save", str(tmp_path / "p.png"))
+    assert code == 0 and (tmp_path / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def bench_in_process(*args):

@@ -20,10 +20,11 @@ def route(
     method: Annotated[str, typer.Option(help="mcts (guided by the learned prior), breadth-first or random")] = "mcts",
     stock: Annotated[Optional[Path], typer.Option(help="a stock file (smiles[,name,eur_per_g]); default: the shipped one")] = None,
     templates: Annotated[Optional[Path], typer.Option(help="a template file; default: the shipped one")] = None,
-    prior: Annotated[Optional[str], typer.Option(help="mcts: a route prior (P for P.pt + P.json), or none (uniform)")] = None,
+    prior: Annotated[Optional[str], typer.Option("--prior", "--policy", help="mcts: a route prior (P for P.pt + "
+                                                 "P.json, as `twin train --agent route` writes), or none (uniform)")] = None,
     seconds: Annotated[float, typer.Option(help="search budget, wall seconds")] = 10.0,
     as_json: Annotated[bool, typer.Option("--json", help="print the route as JSON")] = False,
-    save: Annotated[Optional[Path], typer.Option(help="also draw the route (RDKit) into this .svg file")] = None,
+    save: Annotated[Optional[Path], typer.Option(help="also draw the route (RDKit) into this .svg or .png file")] = None,
 ) -> None:
     """A route to SMILES from the stock: its steps in the order the lab runs them, what it buys, estimates.
     Exit 0: a route (or the target is in stock); 1: no route within the budget; 2: bad input."""
@@ -32,8 +33,8 @@ def route(
     except TwinError as exc:
         _fail(exc)
     try:
-        if save is not None and save.suffix.lower() != ".svg":
-            raise ValueError(f"--save {save}: a route is drawn as SVG; give a file name ending in .svg")
+        if save is not None and save.suffix.lower() not in (".svg", ".png"):
+            raise ValueError(f"--save {save}: a route is drawn as SVG or PNG; give a file name ending in .svg or .png")
         data = planner(smiles, stock=stock, templates=templates, prior=prior, seconds=seconds,
                        **({"save": save} if save is not None else {}))
     except (ValueError, FileNotFoundError) as exc:
