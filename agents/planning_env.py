@@ -20,11 +20,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
+from agents import default_scenario
 from agents.box import UnitBox
 from twin import Scenario
 from twin import score
@@ -92,7 +94,10 @@ class _Point:
 class PlanningEnv(gym.Env):
     metadata = {"render_modes": []}
 
-    def __init__(self, scenario: Scenario, horizon: int = 30, random_goals: float = 0.5, seed: int = 0) -> None:
+    def __init__(self, scenario: Scenario | str | Path | None = None, horizon: int = 30, random_goals: float = 0.5,
+                 seed: int = 0) -> None:
+        """``scenario``: a Scenario or a file (default: ``scenarios/quantum_dots.yaml``)."""
+        scenario = default_scenario(scenario, "quantum_dots.yaml")
         target_shape(scenario)
         self.scenario, self.horizon, self.random_goals = scenario, horizon, random_goals
         self.box = UnitBox(scenario.chemistry.parameters)
@@ -149,6 +154,3 @@ class PlanningEnv(gym.Env):
 def replace_value(cond: Any, value: float) -> Any:
     return cond.model_copy(update={"value": float(value)})
 
-
-if "labtwin/Planning-v0" not in gym.registry:  # gym.make("agents.planning_env:labtwin/Planning-v0", scenario=...)
-    gym.register("labtwin/Planning-v0", entry_point="agents.planning_env:PlanningEnv")

@@ -20,12 +20,13 @@ a whole other lab (``twin.scenario.random_labs``).
 from __future__ import annotations
 
 import random
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from agents import candidates, scheduling_features
+from agents import candidates, default_scenario, scheduling_features
 from twin import jobshop_as_lab, random_jobshop, random_lab
 from twin import prepare
 from twin import Scenario
@@ -76,9 +77,12 @@ def _redraw(job: dict, t: Any, rng: random.Random) -> dict:
 class SchedulingEnv(gym.Env):
     metadata = {"render_modes": []}
 
-    def __init__(self, scenario: Scenario, randomise: bool = True, encoding: str = "candidates") -> None:
-        """``encoding``: ``candidates`` (one row per allowed pair, ``agents.candidates``) or ``slots`` (the
-        fixed grid of ``agents.scheduling_features``, kept as a baseline)."""
+    def __init__(self, scenario: Scenario | str | Path | None = None, randomise: bool = True,
+                 encoding: str = "candidates") -> None:
+        """``scenario``: a Scenario or a file (default: ``scenarios/flaky_lab.yaml``). ``encoding``:
+        ``candidates`` (one row per allowed pair, ``agents.candidates``) or ``slots`` (the fixed grid of
+        ``agents.scheduling_features``, kept as a baseline)."""
+        scenario = default_scenario(scenario, "flaky_lab.yaml")
         self.base, self.randomise = scenario, randomise
         self.features = ENCODINGS[encoding]
         self.encoder = self.features.CandidateEncoder(scenario) if encoding == "candidates" else \
@@ -140,6 +144,3 @@ class SchedulingEnv(gym.Env):
         obs, self._mask = self.encoder.encode(self.campaign.view)
         return obs
 
-
-if "labtwin/Scheduling-v0" not in gym.registry:  # gym.make("agents.scheduling_env:labtwin/Scheduling-v0", scenario=...)
-    gym.register("labtwin/Scheduling-v0", entry_point="agents.scheduling_env:SchedulingEnv")

@@ -99,6 +99,3 @@ def tracking(trace: np.ndarray, setpoint: float, dt_s: float, band_k: float = 2.
             "overshoot_k": max(0.0, float(np.max(trace) - setpoint)),
             "rms_k": float(np.sqrt(np.mean(after**2))) if len(after) else float("inf")}
 
-
-if "labtwin/ReactorControl-v0" not in gym.registry:  # gym.make("devices.reactor_control:labtwin/ReactorControl-v0")
-    gym.register("labtwin/ReactorControl-v0", entry_point="devices.reactor_control:ReactorControlEnv")

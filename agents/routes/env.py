@@ -106,5 +106,3 @@ class SynthesisRouteEnv(gym.Env):
         return {"target": self.target, "reactions": len(self.route), "solved": not self.open, "why": why,
                 "route": list(self.route), "bought": sorted(self.bought)}
 
-
-gym.register(ENV_ID, entry_point=SynthesisRouteEnv)

@@ -41,7 +41,8 @@ def test_serve_on_a_port_in_use_is_reported_and_the_campaign_runs(tmp_path):
 
 
 @pytest.mark.process
-def test_serve_binds_loopback_and_keeps_serving_until_ctrl_c(tmp_path):
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM])
+def test_serve_binds_loopback_and_keeps_serving_until_ctrl_c_or_sigterm(tmp_path, stop):
     proc = subprocess.Popen([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "3", "--serve", "--quiet",
                              "--journal", str(tmp_path / "j.db")],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
@@ -59,7 +60,7 @@ def test_serve_binds_loopback_and_keeps_serving_until_ctrl_c(tmp_path):
             hosts = {a[4][0] for a in socket.getaddrinfo(socket.gethostname(), None, socket.AF_INET)} - {"127.0.0.1"}
             for host in hosts:
                 assert s.connect_ex((host, web_port)) != 0
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(stop)
         proc.wait(timeout=30)
         assert proc.returncode == 0
         with socket.socket() as s:

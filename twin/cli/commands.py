@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import logging
 import sqlite3
 from pathlib import Path
@@ -153,20 +154,30 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
         recording.close()
         if record.save:
             err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
-        _keep_serving(recording)
+        _keep_serving(recording, summary.stopped)
 
 
-def _keep_serving(recording) -> None:
-    """--serve: the recording stays up until Ctrl-C, so it can be looked at after the run."""
+def _keep_serving(recording, stopped: str) -> None:
+    """--serve: the recording stays up until Ctrl-C or SIGTERM, so it can be looked at after the run; a campaign
+    stopped by SIGTERM does not wait. Either way the Rerun server (its own process group) stops with us."""
     if recording.server is None:
         return
+    if "SIGTERM" in stopped:
+        recording.stop_serving()
+        return
     err.print(f"the finished campaign is served at {recording.url} — Ctrl-C to stop", highlight=False)
+    previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
         recording.server.wait()
     except KeyboardInterrupt:
         pass
     finally:
+        signal.signal(signal.SIGTERM, previous)
         recording.stop_serving()
+
+
+def _interrupt(*_) -> None:
+    raise KeyboardInterrupt
 
 
 @app.command()

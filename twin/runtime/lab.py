@@ -30,7 +30,7 @@ from twin.runtime.fast_device import FastRuntimeRefused
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
-from twin.scenario import Scenario, load, set_dotted
+from twin.scenario import Scenario, load, parse, set_dotted
 from twin.view.observer import LabObserver
 from twin.campaign.summary import Summary, from_core
 from twin.view.watch import RecordOptions, attach, open_observer
@@ -60,7 +60,7 @@ def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: 
         data = scenario.model_dump()
         for dotted, value in extra.items():
             set_dotted(data, dotted, value)
-        return Scenario.model_validate(data)
+        return parse(data, f"{scenario.name} with {', '.join(extra)}")
     return load(scenario, extra)
 
 

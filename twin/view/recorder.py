@@ -298,3 +298,37 @@ def _drain(fd: int) -> None:
     with contextlib.suppress(OSError):
         while os.read(fd, 65536):
             pass
+
+
+def save_whatif(path: str | Path, scenario: str, summary: list[dict[str, Any]]) -> None:
+    """`twin whatif --save`: lab-hours against cost per variant (a labelled point each; up is more lab-hours),
+    lab-hours, cost and each device type's utilisation as bar charts over the variants (in table order), and
+    the variants' table."""
+    rec = rr.RecordingStream("labtwin", recording_id=f"whatif-{scenario}")
+    rec.set_log_time_enabled(False)
+    rec.set_log_tick_enabled(False)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    rec.set_sinks(rr.FileSink(str(path)), default_blueprint=rrb.Blueprint(rrb.Vertical(
+        rrb.Horizontal(rrb.Spatial2DView(origin="/whatif/tradeoff", name="lab-hours (up) against cost (right)"),
+                       rrb.TextDocumentView(origin="/whatif/variants", name="Variants")),
+        rrb.Horizontal(rrb.BarChartView(origin="/whatif/lab_hours", name="lab-hours, median"),
+                       rrb.BarChartView(origin="/whatif/cost", name="cost, median"),
+                       *[rrb.BarChartView(origin=f"/whatif/utilisation/{t}", name=f"{t} busy, mean")
+                         for t in sorted(summary[0]["utilisation"]) if summary]),
+    )))
+    hours = [row["lab_hours"][1] for row in summary]
+    costs = [row["cost"][1] for row in summary]
+    rec.log("whatif/tradeoff", rr.Points2D(positions=[(c, -h) for c, h in zip(costs, hours)], radii=4.0,
+                                           labels=[f"{i}: {row['variant']}" for i, row in enumerate(summary)]),
+            static=True)
+    rec.log("whatif/lab_hours", rr.BarChart(np.asarray(hours, dtype=np.float64)), static=True)
+    rec.log("whatif/cost", rr.BarChart(np.asarray(costs, dtype=np.float64)), static=True)
+    for t in sorted(summary[0]["utilisation"]) if summary else []:
+        values = [100 * row["utilisation"].get(t, 0.0) for row in summary]
+        rec.log(f"whatif/utilisation/{t}", rr.BarChart(np.asarray(values, dtype=np.float64)), static=True)
+    lines = [f"# {scenario}: what if", "", "| # | variant | lab-h (median) | cost (median) | busiest |", "|---|---|---|---|---|"]
+    lines += [f"| {i} | {row['variant']} | {row['lab_hours'][1]:.2f} | {row['cost'][1]:,.0f} | {row['bottleneck']} |"
+              for i, row in enumerate(summary)]
+    rec.log("whatif/variants", rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True)
+    rec.flush()
+    rec.disconnect()

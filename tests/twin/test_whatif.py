@@ -1,0 +1,81 @@
+"""`twin whatif` as a user meets it: variants of a lab over paired seeds, the bottleneck named, files for machines
+and for the viewer, and clear refusals of what cannot run."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from twin.cli import app
+from twin.tools.whatif import cheapest_within
+
+ROOT = Path(__file__).resolve().parents[2]
+FLAKY = str(ROOT / "scenarios" / "flaky_lab.yaml")
+
+
+def whatif(*args):
+    res = CliRunner().invoke(app, ["whatif", *args], env={"COLUMNS": "80"})
+    return res.exit_code, res.output
+
+
+def test_more_of_the_bottleneck_saves_lab_hours_and_more_of_another_type_does_not(tmp_path):
+    code, out = whatif(FLAKY, "--vary", "devices.reactor.instances=3", "--vary", "devices.spectrometer.instances=2,3",
+                       "--seeds", "3", "--json", "--csv", str(tmp_path / "w.csv"), "--save", str(tmp_path / "w.rrd"))
+    assert code == 0, out
+    data = json.loads(out)
+    rows = {r["variant"]: r for r in data["variants"]}
+    assert list(rows)[0] == "as written" and len(rows) == 3  # reactor=3 with spectrometer=2 (as written) or 3
+    base = rows["as written"]
+    assert base["bottleneck"] == "reactor" and base["utilisation"]["reactor"] > base["utilisation"]["spectrometer"]
+    more = rows["devices.reactor.instances=3, devices.spectrometer.instances=2"]
+    assert more["lab_hours_change"][1] < 0 and more["lab_hours"][1] < base["lab_hours"][1]
+    both = rows["devices.reactor.instances=3, devices.spectrometer.instances=3"]
+    assert abs(both["lab_hours"][1] - more["lab_hours"][1]) < 0.1 * more["lab_hours"][1]
+    assert sorted((r["variant"], r["seed"]) for r in data["runs"]) == sorted((v, s) for v in rows for s in range(3))
+    with open(tmp_path / "w.csv") as f:
+        table = list(csv.DictReader(f))
+    assert [r["variant"] for r in table] == list(rows) and float(table[0]["utilisation_reactor"]) > 0.5
+
+    from tests.rrd import read_rrd
+
+    rrd = read_rrd(tmp_path / "w.rrd")
+    labels = rrd["whatif/tradeoff"][0]["Points2D:labels"]
+    assert len(labels) == 3 and labels[0] == "0: as written"
+    assert len(rrd["whatif/utilisation/reactor"][0]["BarChart:values"][0]["buffer"]) == 3
+
+
+def test_the_table_fits_80_columns_and_names_the_busiest_device():
+    code, out = whatif(FLAKY, "--vary", "devices.reactor.instances=1,3", "--seeds", "2")
+    assert code == 0, out
+    assert max(len(line) for line in out.splitlines()) <= 80
+    assert "as written, the busiest device type is reactor" in " ".join(out.split())
+    assert any(line.split()[:1] == ["2*"] for line in out.splitlines())  # the scenario's own value, marked
+
+
+@pytest.mark.parametrize("args,says", [
+    (["--vary", "devices.nope.instances=1,2"], "devices.nope"),
+    (["--vary", "devices.reactor.instances"], "expected FIELD=V1,V2"),
+    (["--vary", "devices.reactor.instances=0"], "devices.reactor.instances"),
+    (["--vary", "devices.reactor.instances=2"], "nothing to compare"),
+    (["--schedulers", "nope"], "nope"),
+    (["--vary", "devices.reactor.instances=3", "--seeds", "0"], "--seeds 0"),
+])
+def test_what_cannot_run_is_refused_before_anything_runs(args, says):
+    code, out = whatif(FLAKY, *args)
+    assert code == 2 and says in " ".join(out.split()) and "Traceback" not in out, out
+
+
+def test_the_cheapest_variant_within_the_hours_must_meet_every_target_in_every_run():
+    def row(name, hours, cost, reached=5):
+        return {"variant": name, "runs": 5, "reached": reached, "lab_hours": (hours, hours, hours),
+                "cost": (cost, cost, cost)}
+
+    summary = [row("as written", 10, 500), row("fast, dear", 6, 900), row("slow, cheap", 12, 100),
+               row("quick, cheap, unreliable", 5, 50, reached=4), row("fast, cheaper", 7, 800)]
+    assert cheapest_within(summary, 8)["variant"] == "fast, cheaper"
+    assert cheapest_within(summary, 12)["variant"] == "slow, cheap"
+    assert cheapest_within(summary, 4) is None

@@ -1,0 +1,114 @@
+"""`twin whatif`: what a change to the lab (instances, durations, faults, scheduler, planner, budget) does to
+lab-hours and cost to target, over paired seeds."""
+
+from __future__ import annotations
+
+import csv
+import json
+import sys
+from dataclasses import asdict
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from twin.cli.common import _fail, app, console, err
+from twin.core.errors import TwinError
+from twin.runtime import lab
+
+
+@app.command()
+def whatif(
+    scenario: Annotated[Path, typer.Argument(help="the scenario as written, e.g. scenarios/flaky_lab.yaml")],
+    vary: Annotated[Optional[list[str]], typer.Option(help="FIELD=V1,V2,... e.g. devices.spectrometer.instances=1,2,3 "
+                                                           "or devices.reactor.faults.fail_p=0,0.1; repeatable: "
+                                                           "every combination runs")] = None,
+    schedulers: Annotated[Optional[str], typer.Option(help="comma-separated schedulers to vary too")] = None,
+    planners: Annotated[Optional[str], typer.Option(help="comma-separated planners to vary too")] = None,
+    seeds: Annotated[int, typer.Option(help="paired seeds per variant")] = 20,
+    workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
+    budget_hours: Annotated[Optional[float], typer.Option(help="also name the cheapest variant that meets every "
+                                                               "target within this many lab-hours")] = None,
+    csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write a row per variant to this CSV file")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print every variant and run as JSON instead of the table")] = False,
+    save: Annotated[Optional[Path], typer.Option(help="draw the trade-offs into a Rerun recording, e.g. whatif.rrd")] = None,
+) -> None:
+    """The scenario as written and each variant, over the same seeds: lab-hours and cost to target, experiments,
+    abandoned, the busiest device type, and the change against the scenario as written."""
+    from rich import box
+
+    from twin.tools.whatif import (AS_WRITTEN, axes_of, caption, cheapest_within, costs_anything, header,
+                                   parse_vary, rows, summarise, variants, written_values)
+    from twin.tools.whatif import whatif as run_whatif
+
+    split = lambda text: [x.strip() for x in text.split(",") if x.strip()] if text else None  # noqa: E731
+    try:
+        if seeds < 1:
+            raise TwinError(f"--seeds {seeds}: give at least 1")
+        s = lab.prepare(scenario)
+        varied = parse_vary(vary or [])
+        chosen = variants(s, varied, split(schedulers), split(planners))
+        axes = [name for name, _ in axes_of(varied, split(schedulers), split(planners))]
+        for name in split(schedulers) or []:
+            lab.make_scheduler(s, name)
+        if len(chosen) == 1:
+            raise TwinError("nothing to compare: give --vary FIELD=V1,V2 (or --schedulers / --planners) with a value "
+                            "other than the scenario's")
+    except TwinError as exc:
+        _fail(exc)
+    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                        console=err, transient=as_json)
+    with progress:
+        bar = progress.add_task(f"{s.name}: {len(chosen)} variants × {seeds} seeds", total=len(chosen) * seeds)
+        results = run_whatif(s, chosen, seeds, workers, on_run=lambda o: progress.advance(bar))
+    summary = summarise(results, chosen)
+    best = cheapest_within(summary, budget_hours) if budget_hours is not None else None
+    if csv_out is not None:
+        _write_csv(csv_out, summary)
+    if save is not None:
+        from twin.view.recorder import save_whatif
+
+        save_whatif(save, s.name, summary)
+    if as_json:
+        console.print_json(json.dumps({"scenario": s.name, "seeds": seeds, "variants": summary,
+                                       "cheapest_within": best and best["variant"],
+                                       "runs": [asdict(o) for o in results]}))
+        return
+    has_targets, with_cost = bool(s.chemistry.targets), costs_anything(summary)
+    table = Table(title=f"{s.name}: what if — {len(chosen)} variants × {seeds} seeds", title_justify="left",
+                  caption=caption(has_targets, seeds, with_cost), caption_justify="left", box=box.SIMPLE_HEAD, collapse_padding=True,
+                  pad_edge=False)
+    for i, h in enumerate(header(axes, with_cost)):
+        table.add_column(h, overflow="fold", no_wrap=i >= len(axes) and h != "busiest",
+                         min_width=max(len(part) for part in h.split("\n")) if i < len(axes) else None)
+    for row in rows(summary, axes, written_values(s, axes), has_targets, with_cost):
+        table.add_row(*row)
+    console.print(table)
+    base = next(r for r in summary if r["variant"] == AS_WRITTEN)
+    console.print(f"as written, the busiest device type is {base['bottleneck']} "
+                  f"({100 * base['utilisation'].get(base['bottleneck'], 0):.0f} % busy)", highlight=False)
+    if budget_hours is not None:
+        console.print(f"cheapest within {budget_hours:g} lab-h: " + (
+            f"{best['variant']} (cost {best['cost'][1]:,.0f}, {best['lab_hours'][1]:.1f} lab-h)" if best else
+            "none of these variants meets every target within that in every run"), highlight=False)
+    for path in (csv_out, save):
+        if path is not None:
+            console.print(f"wrote {path}", highlight=False)
+
+
+def _write_csv(path: Path, summary: list[dict]) -> None:
+    types = sorted({t for row in summary for t in row["utilisation"]})
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["variant", "runs", "reached", "lab_h_q1", "lab_h_median", "lab_h_q3", "lab_h_change_median",
+                    "cost_median", "cost_change_median", "experiments_median", "abandoned_mean", "degraded_mean",
+                    *[f"utilisation_{t}" for t in types], "busiest"])
+        for row in summary:
+            change, cost_change = row["lab_hours_change"], row["cost_change"]
+            w.writerow([row["variant"], row["runs"], row["reached"], *[round(x, 4) for x in row["lab_hours"]],
+                        round(change[1], 4) if change else "", round(row["cost"][1], 2),
+                        round(cost_change[1], 2) if cost_change else "", row["experiments"],
+                        round(row["abandoned"], 3), round(row["degraded"], 3),
+                        *[round(row["utilisation"].get(t, 0.0), 4) for t in types], row["bottleneck"]])

@@ -1,0 +1,229 @@
+"""`twin whatif`: the same campaign under variants of the lab, paired over seeds.
+
+A variant is a set of scenario changes (dotted fields, as ``--set`` takes them): the cross product of every
+``--vary FIELD=V1,V2,...``, ``--schedulers`` and ``--planners``. Each variant runs the same seeds in virtual
+time on the memory bus (the fast runtime), so seed k of one variant meets the same draws as seed k of
+another as far as the lab lets it; a change is the median of the per-seed differences against the scenario
+as written, which always runs too.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import statistics
+import tempfile
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from twin.core.errors import ScenarioError
+from twin.runtime.lab import prepare, run
+from twin.scenario import Scenario
+
+AS_WRITTEN = "as written"
+
+
+@dataclass(frozen=True)
+class Variant:
+    label: str
+    changes: tuple[tuple[str, Any], ...]  # (dotted field, value)
+
+
+@dataclass
+class Outcome:
+    """One campaign of one variant: what the table and the files report."""
+
+    variant: str
+    seed: int
+    reached: bool  # every target met
+    lab_hours: float  # to the last target if reached, else the whole campaign's
+    campaign_hours: float
+    cost: float  # at the last target if reached, else all that was spent
+    experiments: int
+    abandoned: int
+    degraded: int
+    utilisation: dict[str, float] = field(default_factory=dict)  # per device type: mean over its instances
+
+
+def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
+    """``["devices.spectrometer.instances=1,2,3"]`` → ``[("devices.spectrometer.instances", [1, 2, 3])]``; values
+    are read as YAML scalars (``2`` an int, ``0.1`` a float, ``true`` a bool, else text)."""
+    out = []
+    for item in items:
+        name, eq, values = item.partition("=")
+        name = name.strip()
+        if not eq or not name or not values.strip():
+            raise ScenarioError("--vary", [f"{item!r}: expected FIELD=V1,V2,... (e.g. devices.spectrometer.instances=1,2,3)"])
+        parsed = []
+        for v in values.split(","):
+            try:
+                parsed.append(yaml.safe_load(v.strip()))
+            except yaml.YAMLError:
+                parsed.append(v.strip())
+        if any(name == n for n, _ in out):
+            raise ScenarioError("--vary", [f"{name} is varied twice: give all its values in one --vary"])
+        out.append((name, parsed))
+    return out
+
+
+def axes_of(vary: list[tuple[str, list[Any]]], schedulers: list[str] | None, planners: list[str] | None
+            ) -> list[tuple[str, list[Any]]]:
+    out = list(vary)
+    if schedulers:
+        out.append(("campaign.scheduler", schedulers))
+    if planners:
+        out.append(("campaign.planner", planners))
+    return out
+
+
+def written_values(scenario: Scenario, names: list[str]) -> dict[str, Any]:
+    """What the scenario as written says for each dotted field."""
+    data = scenario.model_dump()
+    out = {}
+    for name in names:
+        node: Any = data
+        for part in name.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        out[name] = node
+    return out
+
+
+def variants(scenario: Scenario, vary: list[tuple[str, list[Any]]], schedulers: list[str] | None = None,
+             planners: list[str] | None = None) -> list[Variant]:
+    """The scenario as written, then every combination; each checked now, so a bad field or value is named
+    before anything runs. A combination equal to the scenario as written is not run twice."""
+    axes = axes_of(vary, schedulers, planners)
+    written = written_values(scenario, [name for name, _ in axes])
+    out = [Variant(AS_WRITTEN, ())]
+    for combo in itertools.product(*[[(name, v) for v in values] for name, values in axes]):
+        if all(written.get(name) == v for name, v in combo):
+            continue
+        label = ", ".join(f"{name}={v}" for name, v in combo)
+        prepare(scenario, overrides=dict(combo))  # a field that does not exist or a value it refuses: said now
+        out.append(Variant(label, tuple(combo)))
+    return out
+
+
+def one(scenario: Scenario, variant: Variant, seed: int) -> Outcome:
+    with tempfile.TemporaryDirectory() as d:
+        s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual",
+                overrides=dict(variant.changes) or None)
+    targets = [t.name for t in scenario.chemistry.targets]
+    reached = bool(targets) and all(t in s.targets_met_h for t in targets)
+    lab = prepare(scenario, overrides=dict(variant.changes) or None)
+    per_type = {}
+    for dtype in lab.devices:
+        values = [s.utilisation.get(name, 0.0) for name in lab.instance_names(dtype)]
+        per_type[dtype] = statistics.mean(values) if values else 0.0
+    return Outcome(variant.label, seed, reached,
+                   max(s.targets_met_h.values()) if reached else s.lab_hours, s.lab_hours,
+                   max(s.targets_met_cost.values()) if reached else s.cost,
+                   max(s.targets_met_after.values()) if reached else s.proposed,
+                   s.abandoned, s.degraded_samples, per_type)
+
+
+def _one(job: tuple[Scenario, Variant, int]) -> Outcome:
+    return one(*job)
+
+
+def _quiet() -> None:
+    logging.disable(logging.WARNING)  # each campaign's faults are in its numbers; sixty campaigns' warnings are noise
+
+
+def whatif(scenario: Scenario, chosen: list[Variant], seeds: int, workers: int = 2,
+           on_run: Callable[[Outcome], None] = lambda o: None) -> list[Outcome]:
+    jobs = [(scenario, v, seed) for v in chosen for seed in range(seeds)]
+    results = []
+    with ProcessPoolExecutor(max(1, workers), initializer=_quiet) as pool:
+        for fut in as_completed([pool.submit(_one, job) for job in jobs]):
+            results.append(fut.result())
+            on_run(results[-1])
+    order = {v.label: i for i, v in enumerate(chosen)}
+    return sorted(results, key=lambda o: (order[o.variant], o.seed))
+
+
+def _quartiles(xs: list[float]) -> tuple[float, float, float]:
+    if len(xs) == 1:
+        return xs[0], xs[0], xs[0]
+    q = statistics.quantiles(xs, n=4, method="inclusive")
+    return q[0], statistics.median(xs), q[2]
+
+
+def summarise(results: list[Outcome], chosen: list[Variant]) -> list[dict[str, Any]]:
+    """Per variant: medians and IQRs, the paired change against the scenario as written, and the bottleneck."""
+    base = {o.seed: o for o in results if o.variant == AS_WRITTEN}
+    out = []
+    for v in chosen:
+        mine = [o for o in results if o.variant == v.label]
+        if not mine:
+            continue
+        util = {t: statistics.mean(o.utilisation.get(t, 0.0) for o in mine) for t in mine[0].utilisation}
+        deltas = [o.lab_hours - base[o.seed].lab_hours for o in mine if o.seed in base]
+        cost_deltas = [o.cost - base[o.seed].cost for o in mine if o.seed in base]
+        out.append({
+            "variant": v.label, "changes": dict(v.changes), "runs": len(mine),
+            "reached": sum(o.reached for o in mine),
+            "lab_hours": _quartiles([o.lab_hours for o in mine]),
+            "lab_hours_change": _quartiles(deltas) if deltas else None,
+            "cost": _quartiles([o.cost for o in mine]),
+            "cost_change": _quartiles(cost_deltas) if cost_deltas else None,
+            "experiments": statistics.median(o.experiments for o in mine),
+            "abandoned": statistics.mean(o.abandoned for o in mine),
+            "degraded": statistics.mean(o.degraded for o in mine),
+            "utilisation": util,
+            "bottleneck": max(util, key=util.get) if util else "",
+        })
+    return out
+
+
+def cheapest_within(summary: list[dict[str, Any]], hours: float) -> dict[str, Any] | None:
+    """The variant of least median cost whose median lab-hours to target are within ``hours`` and that reached
+    the targets in every run; None if none does."""
+    fits = [row for row in summary if row["reached"] == row["runs"] and row["lab_hours"][1] <= hours]
+    return min(fits, key=lambda row: (row["cost"][1], row["lab_hours"][1])) if fits else None
+
+
+def header(axes: list[str], with_cost: bool = True) -> list[str]:
+    """The table's columns: one per varied field (a device's field on lines of its own), then the measures
+    (the cost ones only if something costs)."""
+    return ["\n".join(name.split(".")[1:]) if name.startswith("devices.") else name.split(".")[-1] for name in axes] + \
+        ["lab-h", "IQR", "Δ lab-h", *(["cost", "Δ cost"] if with_cost else []), "aband.", "busiest", "busy"]
+
+
+def costs_anything(summary: list[dict[str, Any]]) -> bool:
+    return any(row["cost"][2] > 0 for row in summary)
+
+
+def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any], targets: bool,
+         with_cost: bool = True) -> list[list[str]]:
+    out = []
+    for row in summary:
+        lo, mid, hi = row["lab_hours"]
+        censored = "≥" if targets and row["reached"] < row["runs"] else ""
+        change, cost_change = row["lab_hours_change"], row["cost_change"]
+        base = row["variant"] == AS_WRITTEN
+        busiest = row["bottleneck"]
+        out.append([
+            *[f"{written.get(name)}*" if base else str(row["changes"].get(name, written.get(name))) for name in axes],
+            f"{censored}{mid:.1f}", f"{lo:.1f}–{hi:.1f}" if hi < 10 else f"{lo:.0f}–{hi:.0f}",
+            "—" if base or change is None else f"{change[1]:+.1f}",
+            *([f"{row['cost'][1]:,.0f}", "—" if base or cost_change is None else f"{cost_change[1]:+,.0f}"]
+              if with_cost else []),
+            f"{row['abandoned']:.1f}",
+            busiest, f"{100 * row['utilisation'].get(busiest, 0):.0f}%" if busiest else "",
+        ])
+    return out
+
+
+def caption(targets: bool, seeds: int, with_cost: bool = True) -> str:
+    what = ("lab-h: lab-hours until every target was met (≥: not met in every run, the whole campaign counted)"
+            if targets else "lab-h: lab-hours of the whole campaign (the scenario has no targets)")
+    return (f"*: the scenario as written. Medians and IQR over {seeds} paired seeds. {what}; Δ: median of the per-seed "
+            "change against the scenario as written; " + ("cost: at the last target (else all spent); " if with_cost else
+            "no device costs anything (devices.*.cost), so no cost columns; ") + "aband.: experiments "
+            "abandoned (mean); busiest: the device type with the highest mean utilisation. --json or --csv: all of it")
