@@ -53,7 +53,7 @@ class Outcome:
 def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
     """``["devices.spectrometer.instances=1,2,3"]`` → ``[("devices.spectrometer.instances", [1, 2, 3])]``; values
     are read as YAML scalars (``2`` an int, ``0.1`` a float, ``true`` a bool, else text)."""
-    out = []
+    out: list[tuple[str, list[Any]]] = []
     for item in items:
         name, eq, values = item.partition("=")
         name = name.strip()

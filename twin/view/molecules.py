@@ -9,12 +9,12 @@ def route_png(reactions: tuple[str, ...], width: int = 720, row: int = 180) -> b
     """A route's reactions (``reactants>>product`` SMILES, in the order they run), one row each, as a PNG;
     None without RDKit or if it cannot read one of them (a hostile journal, say)."""
     try:
-        from rdkit import RDLogger
+        from rdkit import rdBase
         from rdkit.Chem import rdChemReactions
         from rdkit.Chem.Draw import rdMolDraw2D
     except ImportError:  # the viewer works without RDKit; it just draws no molecules
         return None
-    RDLogger.DisableLog("rdApp.*")
+    rdBase.DisableLog("rdApp.*")
     rows = []
     for reaction in reactions[:MAX_ROWS]:
         try:
