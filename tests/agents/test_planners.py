@@ -102,12 +102,32 @@ def test_bench_planners_runs_a_row_with_another_scheduler_and_names_an_unknown_o
     twin = [sys.executable, "-m", "twin", "bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "1",
             "--budget", "3", "--workers", "1"]
     env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
-    res = subprocess.run([*twin, "--planners", "lhs@fifo,lhs@spt~seq"], capture_output=True, text=True, cwd=ROOT,
-                         timeout=120, env=env)
+    res = subprocess.run([*twin, "--planners", "lhs@fifo,lhs@spt~seq", "--json", "--csv", "runs.csv"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120, env=env)
     assert res.returncode == 0, res.stderr
-    rows = {line.split("│")[1].strip(): line for line in res.stdout.splitlines() if line.startswith("│")}
+    import csv
+    import json
+
+    rows = {r["planner"]: r for r in json.loads(res.stdout)["rows"]}
     assert set(rows) == {"lhs@fifo", "lhs@spt~seq"}
-    assert all(line.rstrip("│ ").endswith("—") for line in rows.values())  # no random row to compare with
+    assert all(r["accel."] == "—" for r in rows.values())  # no random row to compare with
+    with open(ROOT / "runs.csv") as f:
+        runs = list(csv.DictReader(f))
+    (ROOT / "runs.csv").unlink()
+    assert sorted(r["planner"] for r in runs) == ["lhs@fifo", "lhs@spt~seq"] and all(int(r["experiments_run"]) == 3 for r in runs)
     bad = subprocess.run([*twin, "--planners", "lhs@no-such-rule"], capture_output=True, text=True, cwd=ROOT,
                          timeout=60, env=env)
     assert bad.returncode != 0 and "no-such-rule" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_bench_tables_read_at_80_columns():
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    res = CliRunner().invoke(app, ["bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "1", "--budget", "3",
+                                   "--workers", "1", "--planners", "random,lhs"], env={"COLUMNS": "80"})
+    assert res.exit_code == 0, res.output
+    lines = res.output.splitlines()
+    assert max(len(line) for line in lines) <= 80 and "…" not in res.output
+    assert any(line.split()[:1] == ["random"] for line in lines) and "accel.: random's median" in " ".join(res.output.split())

@@ -89,6 +89,16 @@ def test_replay_from_the_journal_equals_the_live_recording(live):
     for path in rrd:
         if path != "__properties":
             assert replayed[path] == rrd[path], path
+    # and the way Rerun itself compares recordings; another seed's recording does not pass
+    def compare(a, b):
+        return subprocess.run([str(Path(sys.executable).parent / "rerun"), "rrd", "compare", "--unordered", str(a),
+                               str(b)], capture_output=True, text=True, timeout=120)
+
+    same = compare(d / "live.rrd", d / "replay.rrd")
+    assert same.returncode == 0, same.stdout[-2000:] + same.stderr[-2000:]
+    run(ROOT / "scenarios" / "flaky_lab.yaml", journal=d / "other.db", seed=6, overrides={"campaign.budget": 16},
+        record=RecordOptions(save=d / "other.rrd"))
+    assert compare(d / "live.rrd", d / "other.rrd").returncode != 0
 
 
 def free_port() -> int:
@@ -123,3 +133,16 @@ def test_twin_watch_in_another_process_records_the_campaign(tmp_path):
     best = [v for _, v in series(rrd["objective/best"])]
     assert len(best) == 12 and best == sorted(best, reverse=True)
     assert all(math.isfinite(v) for v in best)
+
+
+def test_the_fast_runtime_records_in_process_and_its_recording_equals_the_replay(tmp_path):
+    # runtime="fast" is refused for anything the fast runtime cannot do: recording is no longer one of them
+    run(ROOT / "scenarios" / "flaky_lab.yaml", journal=tmp_path / "j.db", seed=5, bus="memory", runtime="fast",
+        overrides={"campaign.budget": 16}, record=RecordOptions(save=tmp_path / "live.rrd"))
+    res = subprocess.run([*TWIN, "replay", str(tmp_path / "j.db"), "--save", str(tmp_path / "replay.rrd")],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.returncode == 0, res.stderr
+    live, replayed = read_rrd(tmp_path / "live.rrd"), read_rrd(tmp_path / "replay.rrd")
+    assert len(live["log"]) > 10 and len([p for p in live if p.startswith("devices/")]) == 6
+    assert {p: rows for p, rows in live.items() if p != "__properties"} == \
+        {p: rows for p, rows in replayed.items() if p != "__properties"}

@@ -93,14 +93,14 @@ def test_bench_routes_compares_methods_on_targets_of_known_length():
     code, out = bench_in_process("--set", "drugs", "--targets", "3", "--seconds", "5", "--workers", "1",
                                  "--methods", "breadth-first,mcts:none", "--json")
     assert code == 0, out
-    results = json.loads(out)
+    results = json.loads(out)["runs"]
     assert {r["method"] for r in results} == {"breadth-first", "mcts:none"} and len(results) == 6
     assert all(r["solved"] and r["steps"] == r["known"] == 1 and r["expansions"] >= 1 for r in results)
     code, out = bench_in_process("--set", "drugs", "--targets", "2", "--seconds", "5", "--workers", "2",
                                  "--methods", "breadth-first")
     lines = out.splitlines()
     assert code == 0 and max(len(line) for line in lines) <= 80
-    assert any(line.split("│")[1:4] == [" breadth-first ", " 100      ", " 100        "] for line in lines), out
+    assert any(line.split()[:3] == ["breadth-first", "100", "100"] for line in lines), out
 
 
 @pytest.mark.parametrize("args,says", [

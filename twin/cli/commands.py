@@ -12,7 +12,9 @@ from typing import Annotated, Optional
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from twin.cli.common import _fail, app, console, err
+from rich.markup import escape
+
+from twin.cli.common import _fail, app, console, err, machine_output, narrow_table
 from twin.core import plugins
 from twin.runtime import lab
 from twin.runtime.checks import validate_file
@@ -281,10 +283,11 @@ def devices(
                                                               "their health")] = None,
     lab_name: Annotated[Optional[str], typer.Option("--lab", help="the lab (the scenario's `lab`), with --connect")] = None,
     security: Annotated[Optional[Path], typer.Option(help="the lab's security directory, with --connect")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="the installed drivers as JSON")] = False,
+    csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write the installed drivers to this CSV file")] = None,
 ) -> None:
     """List the installed device drivers (name, where from, package and version, capabilities), or with
     --connect the devices of a running lab and their health."""
-    from rich.table import Table
 
     if connect:
         from twin.cli.distributed import render_health
@@ -304,12 +307,23 @@ def devices(
             raise typer.Exit(1)
         return
 
-    table = Table("driver", "class", "package", "version", "runs")
+    header = ["driver", "class", "package", "version", "runs"]
+    drivers = []
     for name, ep in sorted(plugins.installed("devices").items()):
         try:
             caps = getattr(ep.load(), "capabilities", None)
             runs = ", ".join(sorted(caps)) if isinstance(caps, (set, frozenset)) else "what options.steps says"
         except Exception as exc:  # a broken plugin is listed, not fatal
-            runs = f"[red]failed to load: {exc}[/]"
-        table.add_row(name, ep.value, ep.dist.name if ep.dist else "?", ep.dist.version if ep.dist else "?", runs)
-    console.print(table)
+            runs = f"failed to load: {exc}"
+        drivers.append([name, ep.value, ep.dist.name if ep.dist else "?", ep.dist.version if ep.dist else "?", runs])
+    if machine_output(as_json, csv_out, header, drivers, [dict(zip(header, d)) for d in drivers]):
+        return
+    table = narrow_table(header)  # on a terminal cells wrap, never cut; piped, each driver is one whole line
+    for row in drivers:
+        table.add_row(*row[:4], f"[red]{escape(row[4])}[/]" if row[4].startswith("failed to load") else row[4])
+    if console.is_terminal:
+        console.print(table)
+    else:
+        from rich.console import Console
+
+        Console(width=1000, no_color=True).print(table)

@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import TYPE_CHECKING
+
 import typer
 from rich.console import Console
 
 from twin.core.errors import TwinError
+
+if TYPE_CHECKING:
+    from rich.table import Table
 
 app = typer.Typer(help="labtwin: a digital twin of a self-driving lab.", no_args_is_help=True,
                   pretty_exceptions_enable=False, add_completion=False)
@@ -26,3 +32,36 @@ err = Console(stderr=True, soft_wrap=True)
 def _fail(exc: TwinError) -> None:
     err.print(f"[bold red]error:[/] {exc}", highlight=False)
     raise typer.Exit(2)
+
+
+def narrow_table(header: list[str], title: str = "", caption: str = "") -> Table:
+    """A table that reads at 80 columns: light rules, no padding at the edges, and cells (headers too) that
+    wrap rather than end in '…'."""
+    from rich import box
+    from rich.table import Table
+
+    table = Table(title=title or None, title_justify="left", caption=caption or None, caption_justify="left",
+                  box=box.SIMPLE_HEAD, collapse_padding=True, pad_edge=False)
+    for h in header:
+        table.add_column(h, overflow="fold")
+    return table
+
+
+def machine_output(as_json: bool, csv_path: Path | None, header: list[str], rows: list[list[str]],
+                   runs: list[dict], **extra) -> bool:
+    """``--csv FILE``: one line per run (the raw numbers); ``--json``: the table's rows and every run, printed
+    instead of the table. True when the table should not be printed."""
+    import csv
+    import json
+
+    if csv_path is not None:
+        fields = list(runs[0]) if runs else []
+        with open(csv_path, "w", newline="") as f:
+            w = csv.DictWriter(f, fields)
+            w.writeheader()
+            w.writerows(runs)
+        err.print(f"wrote {csv_path} ({len(runs)} runs)", highlight=False)
+    if as_json:
+        console.print_json(json.dumps({**extra, "columns": header, "rows": [dict(zip(header, r)) for r in rows],
+                                       "runs": runs}, default=str))
+    return as_json

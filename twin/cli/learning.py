@@ -10,7 +10,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from twin.core import plugins
 from twin.runtime import lab
-from twin.cli.common import _fail, app, bench_app, console, err
+from twin.cli.common import _fail, app, bench_app, console, err, machine_output, narrow_table
 from twin.core.errors import TwinError
 from twin.tools.planner_bench import DEFAULT_PLANNERS
 
@@ -91,11 +91,13 @@ def bench_planners(
                                                 "name@SCHEDULER with another scheduler (gp-bo@fifo~seq)")] = ",".join(DEFAULT_PLANNERS),
     workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
     budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget (a larger one censors less)")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print the rows and every run as JSON instead")] = False,
+    csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every run to this CSV file")] = None,
 ) -> None:
     """Experiments and lab-hours to target (median [IQR]) for each planner over many seeds, vs random."""
-    from rich.table import Table
+    from dataclasses import asdict
 
-    from twin.tools.planner_bench import HEADER, bench, parse, rows
+    from twin.tools.planner_bench import CAPTION, HEADER, bench, parse, rows
 
     names = [p.strip() for p in planners.split(",") if p.strip()]
     try:
@@ -108,16 +110,17 @@ def bench_planners(
     except TwinError as exc:
         _fail(exc)
     progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                        console=err)
+                        console=err, transient=as_json)
     with progress:
         bar = progress.add_task(f"{s.name}: {len(names)} planners × {seeds} seeds", total=len(names) * seeds)
         results = bench(scenario, names, seeds, workers, on_trial=lambda t: progress.advance(bar), budget=budget)
-    table = Table(title=f"{s.name} — {seeds} seeds, budget {budget or s.campaign.budget}, "
-                        f"{s.campaign.max_in_flight} in the lab; medians [IQR]; ≥: censored by the budget",
-                  title_justify="left")
-    for h in HEADER:
-        table.add_column(h)
-    for row in rows(results):
+    table_rows = rows(results)
+    runs = [asdict(t) for trials in results.values() for t in trials]
+    if machine_output(as_json, csv_out, HEADER, table_rows, runs, scenario=s.name, seeds=seeds):
+        return
+    table = narrow_table(HEADER, f"{s.name} — {seeds} seeds, budget {budget or s.campaign.budget}, "
+                                 f"{s.campaign.max_in_flight} in the lab", CAPTION)
+    for row in table_rows:
         table.add_row(*row)
     console.print(table)
 
@@ -139,16 +142,20 @@ def bench_schedulers(
                                                           "paired seeds, 95 % CI")] = False,
     random_labs: Annotated[int, typer.Option(help="with --shapes: also N whole other labs drawn at random "
                                                   "(2–5 device types; training.random_labs)")] = 0,
+    as_json: Annotated[bool, typer.Option("--json", help="print the rows and every run as JSON instead")] = False,
+    csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every run to this CSV file")] = None,
 ) -> None:
     """Makespan, gap to the CP-SAT bound, utilisation, degraded and lost samples, decision latency per scheduler."""
-    from rich.table import Table
+    from dataclasses import asdict
 
-    from twin.tools.scheduler_bench import HEADER, bench, bound, load_variant, rows
+    from twin.tools.scheduler_bench import HEADER, bench, bound, caption, load_variant, rows
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if shapes:
-        _bench_shapes(scenario, names, seeds, workers, budget, _assignments(set_ or []), random_labs)
+        _bench_shapes(scenario, names, seeds, workers, budget, _assignments(set_ or []), random_labs, as_json, csv_out)
         return
+    tables: list[dict] = []
+    all_runs: list[dict] = []
     files = [f.strip() for f in jobshop.split(",")] if jobshop else [None]
     for file in files:
         try:
@@ -160,24 +167,27 @@ def bench_schedulers(
         optimum = bound(s)
         title = f"{Path(file).stem if file else s.name}"
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                            TimeElapsedColumn(), console=err)
+                            TimeElapsedColumn(), console=err, transient=as_json)
         with progress:
             bar = progress.add_task(f"{title}: {len(names)} schedulers", total=len(names) * (1 if s.jobshop else seeds))
             results = bench(s, names, seeds, workers, on_run=lambda r: progress.advance(bar))
         runs = len(next(iter(results.values())))
-        table = Table(title=f"{title} — {runs} run(s) per scheduler" + (f"; CP-SAT bound {optimum:.0f} lab-s" if optimum else ""),
-                      title_justify="left")
-        for h in HEADER:
-            table.add_column(h)
-        for row in rows(results, optimum, 1.0 if s.jobshop else 3600.0):
+        table_rows = rows(results, optimum, 1.0 if s.jobshop else 3600.0)
+        all_runs += [{"lab": title, **asdict(r)} for v in results.values() for r in v]
+        tables.append({"lab": title, "bound_s": optimum, "rows": [dict(zip(HEADER, r)) for r in table_rows]})
+        if as_json:
+            continue
+        table = narrow_table(HEADER, f"{title} — {runs} run(s) per scheduler" +
+                             (f"; CP-SAT bound {optimum:.0f} lab-s" if optimum else ""),
+                             caption("lab-s" if s.jobshop else "lab-h"))
+        for row in table_rows:
             table.add_row(*row)
         console.print(table)
+    machine_output(as_json, csv_out, HEADER, [], all_runs, labs=tables)
 
 
 def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, budget: int | None,
-                  changes: dict, random_labs: int = 0) -> None:
-    from rich.table import Table
-
+                  changes: dict, random_labs: int = 0, as_json: bool = False, csv_out: Path | None = None) -> None:
     from twin.tools.planner_bench import label
     from twin.tools.scheduler_bench import load_variant
     from twin.tools.shape_bench import shapes, variants, verdict
@@ -191,21 +201,28 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     if s.jobshop is not None:
         _fail(TwinError("--shapes varies a lab's devices and samples; for job shops use --jobshop FILES"))
     others = list(names)
-    table = Table(title=f"{s.name}: each scheduler minus the shape's best rule, makespan lab-h "
-                        f"(mean of {seeds} paired seeds ± 95 % CI)", title_justify="left")
-    for h in ["shape", "best rule", "its mean h", *[label(n) for n in others]]:
-        table.add_column(h)
+    header = ["shape", "best rule", "its mean h", *[label(n) for n in others]]
+    table = narrow_table(header, f"{s.name}: each scheduler minus the shape's best rule, makespan lab-h "
+                                 f"(mean of {seeds} paired seeds ± 95 % CI)")
     progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                        TimeElapsedColumn(), console=err)
+                        TimeElapsedColumn(), console=err, transient=as_json)
     with progress:
         bar = progress.add_task(f"{s.name}: shapes", total=len(variants(s, random_labs)))
         results = shapes(s, names, seeds, workers, on_shape=lambda c: progress.advance(bar), random_labs=random_labs)
+    table_rows, records = [], []
     for c in results:
         cells = []
         for n in others:
             diff, half = c.diffs[n]
             cells.append("—" if n == c.best_rule else f"{diff / 3600:+.2f} ± {half / 3600:.2f} {verdict(diff, half)}")
-        table.add_row(c.shape, label(c.best_rule), f"{c.best_mean_s / 3600:.2f}", *cells)
+            records.append({"shape": c.shape, "scheduler": n, "best_rule": c.best_rule,
+                            "best_rule_mean_h": c.best_mean_s / 3600, "diff_h": diff / 3600, "ci95_h": half / 3600,
+                            "verdict": verdict(diff, half)})
+        table_rows.append([c.shape, label(c.best_rule), f"{c.best_mean_s / 3600:.2f}", *cells])
+    if machine_output(as_json, csv_out, header, table_rows, records, scenario=s.name, seeds=seeds):
+        return
+    for row in table_rows:
+        table.add_row(*row)
     console.print(table)
 
 

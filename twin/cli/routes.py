@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import _fail, app, bench_app, console, err
+from twin.cli.common import _fail, app, bench_app, console, err, machine_output, narrow_table
 from twin.core import plugins
 from twin.core.errors import TwinError
 
@@ -85,7 +85,8 @@ def bench_routes(
                                                         "and mcts:none")] = None,
     seconds: Annotated[float, typer.Option(help="search budget per target, wall seconds")] = 10.0,
     workers: Annotated[int, typer.Option(help="searches run in parallel")] = 2,
-    as_json: Annotated[bool, typer.Option("--json", help="print every search's result as JSON")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="print the rows and every search's result as JSON")] = False,
+    csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every search's result to this CSV file")] = None,
 ) -> None:
     """Solved rate, route length against the known one, expansions and time per target, for every search method."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -110,13 +111,10 @@ def bench_routes(
             results = bench(names, chosen, seconds, workers, on_done=lambda r: progress.advance(bar))
         except (ValueError, FileNotFoundError) as exc:
             _fail(TwinError(str(exc)))
-    if as_json:
-        console.print_json(json.dumps(results))
+    table_rows = rows(results, names)
+    if machine_output(as_json, csv_out, list(HEADER), table_rows, results, target_set=target_set, seconds=seconds):
         return
-    table = Table(title=f"{len(chosen)} {target_set} targets, {seconds:g} s each", title_justify="left",
-                  caption=CAPTION, caption_justify="left")
-    for h in HEADER:
-        table.add_column(h, overflow="fold")
-    for row in rows(results, names):
+    table = narrow_table(list(HEADER), f"{len(chosen)} {target_set} targets, {seconds:g} s each", CAPTION)
+    for row in table_rows:
         table.add_row(*row)
     console.print(table)

@@ -37,17 +37,21 @@ Progress = Callable[[CampaignCore], None]
 class FastCampaign:
     def __init__(self, scenario: Scenario, drivers: list[tuple[str, str, Any]], journal: Journal,
                  planner: Planner, scheduler: Scheduler | None, campaign_id: str = "c1",
-                 on_progress: Progress | None = None, alerts: bool = True) -> None:
+                 on_progress: Progress | None = None, alerts: bool = True, observer: Any = None) -> None:
         """``alerts``: log the campaign's alerts (a device type gone, say) as warnings; a training run's
-        thousands of campaigns keep them in their journals only."""
+        thousands of campaigns keep them in their journals only. ``observer``: a ``LabObserver`` in this
+        process, handed the core's notes and the devices' results and telemetry as they happen (no bus, no
+        second parse)."""
+        self.observer = observer
         self.s, self.journal, self.planner, self.scheduler = scenario, journal, planner, scheduler
         self.alerts = ALERTS if alerts else frozenset()
         self.on_progress = on_progress
         self.queue = EventQueue()
         self.core = CampaignCore(scenario, campaign_id)
         feed = self.core.feed
+        watch = observer.on_envelope if observer is not None else None
         self.devices = {name: FastDevice(name, dtype, scenario.devices[dtype], drv, self.queue,
-                                         scenario.campaign.seed, feed)
+                                         scenario.campaign.seed, feed, watch)
                         for name, dtype, drv in drivers}
         self._timers: dict[TimerKey, Timer] = {}
         self._view: LabView | None = None
@@ -102,11 +106,14 @@ class FastCampaign:
     # -- actions ----------------------------------------------------------------------
     def _perform(self, actions: list[Any]) -> None:
         journal, progressed, watched = self.journal, False, self.on_progress is not None
-        note, received = journal.note, journal.received
+        note, received, observer = journal.note, journal.received, self.observer
         for a in actions:
             t = type(a)
             if t is Note:
                 note(a)
+                if observer is not None:
+                    observer.on_decision(a.t_lab, a.kind, {"experiment": a.experiment, "task": a.task,
+                                                          "attempt": a.attempt, "device": a.device, "info": a.detail})
                 if a.kind in self.alerts:
                     log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
                 if watched and not progressed:

@@ -22,6 +22,7 @@ from twin.core.streams import KeyedGenerator, seeded
 from twin.device.driver import Driver, StepContext, feature, simulated_faults
 from twin.core.errors import DriverError, Refused
 from twin.core.messages import Kind, envelope, to_wire
+from twin.view.observer import WATCHED
 from twin.runtime.queue import EventQueue, Park, QueueClock, Sleep, Timer
 
 log = logging.getLogger(__name__)
@@ -34,8 +35,10 @@ class FastRuntimeRefused(DriverError):
 
 class FastDevice:
     def __init__(self, name: str, device_type: str, spec: Any, driver: Driver, queue: EventQueue, seed: int,
-                 deliver: Callable[[Any], None]) -> None:
+                 deliver: Callable[[Any], None], watch: Callable[[dict], None] | None = None) -> None:
+        """``watch``: given the envelope of each result and telemetry message, decoded (an in-process observer)."""
         self.name, self.device_type, self.spec, self.driver = name, device_type, spec, driver
+        self._watch = watch
         self._q, self._clock, self._deliver, self._seed = queue, QueueClock(queue), deliver, seed
         self._crash_rng = seeded(seed, "crashes", name)[0] if spec.faults.mtbc_h > 0 else None
         self._step_rngs = KeyedGenerator()
@@ -99,6 +102,8 @@ class FastDevice:
         payload = to_wire(env)
         if kind is Kind.RESULT:  # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
             body = _plain(payload)["body"]
+        if self._watch is not None and kind in WATCHED:
+            self._watch({**env, "body": body})
         self._deliver(DeviceMessage(kind, self.name, task, attempt, body, payload, token=token))
 
     def command(self, task: str, attempt: int, campaign: str, body: dict, token: str) -> None:

@@ -12,7 +12,7 @@ from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import Any
 
-from twin.core import keys, plugins
+from twin.core import plugins
 from twin.device.actor import DeviceActor
 from twin.core.bus import Bus, open_bus, security
 from twin.core.bus.security import Identity
@@ -23,8 +23,7 @@ from twin.campaign.journal import Journal
 from pydantic import ValidationError
 
 from twin.campaign import CampaignCore
-from twin.campaign.journal import read_inputs, read_run
-from twin.campaign.replay import Rebuilt, rebuild
+from twin.campaign.replay import Rebuilt
 from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.runtime.labtime import LabTimeSource
@@ -33,7 +32,7 @@ from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerSe
 from twin.scenario import Scenario, load, parse, set_dotted
 from twin.view.observer import LabObserver
 from twin.campaign.summary import Summary, from_core
-from twin.view.watch import RecordOptions, attach, open_observer
+from twin.view.watch import RecordOptions, open_observer
 
 log = logging.getLogger(__name__)
 
@@ -228,26 +227,30 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
     (everything else), or ``auto``: fast where it can. ``make_journal`` opens the journal at a path.
     """
     s = prepare(scenario, **overrides)
-    watched = observer is not None or (record is not None and record.wanted)
-    why_not = fast_refused(s, external_devices, watched)
+    why_not = fast_refused(s, external_devices)
     if runtime not in RUNTIMES:
         raise TwinError(f"unknown runtime {runtime!r}: use one of {', '.join(RUNTIMES)}")
     if runtime == "fast" and why_not:
         raise ClockError(f"the fast runtime cannot run this campaign: {why_not}. Use --runtime asyncio (or auto).")
-    if runtime == "fast" or (runtime == "auto" and not why_not):
-        try:
-            return run_fast(s, journal or default_journal(s), on_progress, make_journal=make_journal)
-        except FastRuntimeRefused as exc:
-            if runtime == "fast":
-                raise
-            log.warning("%s — running the campaign again, from the start, on the asyncio runtime", exc)
-    clock = make_clock(s)
     recording = None
     if record is not None and record.wanted and observer is None:
         observer, recording = open_observer(record, recording_id(s))
         for message in recording.messages:
             log.warning("%s", message)
     try:
+        if runtime == "fast" or (runtime == "auto" and not why_not):
+            try:
+                return run_fast(s, journal or default_journal(s), on_progress, make_journal=make_journal,
+                                observer=observer)
+            except FastRuntimeRefused as exc:
+                if runtime == "fast":
+                    raise
+                log.warning("%s — running the campaign again, from the start, on the asyncio runtime", exc)
+                if recording is not None:  # the recording starts again with the campaign
+                    recording.close()
+                    recording.stop_serving()
+                    observer, recording = open_observer(record, recording_id(s))
+        clock = make_clock(s)
         return clock.run(run_async(s, clock, journal or default_journal(s), external_devices, on_progress, observer,
                                    make_journal=make_journal))
     finally:
@@ -256,7 +259,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
             recording.stop_serving()
 
 
-def fast_refused(s: Scenario, external_devices: Collection[str] = frozenset(), watched: bool = False) -> str:
+def fast_refused(s: Scenario, external_devices: Collection[str] = frozenset()) -> str:
     """Why the fast runtime cannot run ``s`` as asked ('' when it can)."""
     if s.clock.mode != "virtual":
         return f"the clock is {s.clock.mode} (the fast runtime keeps virtual time only)"
@@ -264,8 +267,6 @@ def fast_refused(s: Scenario, external_devices: Collection[str] = frozenset(), w
         return f"the bus is {s.bus.kind} (the fast runtime passes messages in-process)"
     if external_devices:
         return f"devices {sorted(external_devices)} run in other processes"
-    if watched:
-        return "a recording or viewer watches the bus"
     if s.campaign.scheduler == REMOTE or _agent_on_bus(s.campaign.scheduler):
         return "the scheduler is an agent on the bus"
     return ""
@@ -285,8 +286,10 @@ def recording_id(s: Scenario) -> str:
 
 
 def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[CampaignCore], None] | None = None,
-             handle_signals: bool = True, make_journal: JournalFactory = Journal) -> Summary:
-    """The campaign of ``s`` on the fast runtime (virtual time, in-process devices)."""
+             handle_signals: bool = True, make_journal: JournalFactory = Journal,
+             observer: LabObserver | None = None) -> Summary:
+    """The campaign of ``s`` on the fast runtime (virtual time, in-process devices); ``observer`` is handed
+    what the campaign does as it happens."""
     wall0 = time.perf_counter()
     drivers = load_drivers(s)
     refuse_realtime(drivers)
@@ -295,13 +298,25 @@ def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[Campa
         raise FastRuntimeRefused(f"scheduler {s.campaign.scheduler!r} is an agent on the bus, which the fast "
                                  "runtime does not have: use --runtime asyncio")
     journal = open_journal(s, journal_path, make_journal)
-    camp = FastCampaign(s, drivers, journal, planner, scheduler, on_progress=on_progress)
+    camp = FastCampaign(s, drivers, journal, planner, scheduler, on_progress=on_progress, observer=observer)
     with _stop_on_signals(camp.stop, handle_signals):
         try:
             camp.run()
         finally:
-            summary = finish(camp.core, journal, wall0, camp.now)
+            summary = finish(camp.core, journal, wall0, camp.now, _noted(journal, observer, camp.now))
     return summary
+
+
+def _noted(journal: Journal, observer: LabObserver | None, now: float) -> Callable[[str, Any], None] | None:
+    """How the fast runtime notes the summary: journalled, and shown to an in-process observer."""
+    if observer is None:
+        return None
+
+    def note(kind: str, detail: Any) -> None:
+        journal.event(now, kind, detail=detail)
+        observer.on_decision(now, kind, {"info": detail})
+        observer.c.flush()
+    return note
 
 
 def refuse_realtime(drivers: list[tuple[str, str, Any]]) -> None:
@@ -383,13 +398,11 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
             source = LabTimeSource(bus, s.lab, clock)
             source.start()
             stack.callback(source.close)
-        if observer is not None:
-            watching = attach(bus, s.lab, observer.on_message)
-            stack.push_async_callback(_drain, clock, observer, watching)
         scheduler, service = live_scheduler(s, scheduler, bus, clock)
         journal = open_journal(s, journal_path, make_journal)
         journal.set("external", sorted(external_devices))
-        camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress, rebuilt=rebuilt)
+        camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress, rebuilt=rebuilt,
+                            observer=observer)
         remote = scheduler if isinstance(scheduler, RemoteScheduler) else None
         guarded = scheduler if isinstance(scheduler, RemoteScheduler | OffLoopScheduler) else None
         stack.callback(lambda: result.setdefault(
@@ -430,27 +443,11 @@ def _stop_on_loop_signals(stop: Callable[[str], None]) -> Iterator[None]:
             loop.remove_signal_handler(sig)
 
 
-async def _drain(clock: LabClock, observer: LabObserver, watching: list[Any]) -> None:
-    """Let a local observer see the campaign's last messages, then stop watching."""
-    await _until(clock, lambda: observer.done)
-    for h in watching:
-        h.close()
-
-
 async def _await_agent(remote: RemoteScheduler, s: Scenario, camp: LiveCampaign) -> None:
     if not await remote.wait_present(s.orchestrator.startup_s):
         log.warning("no scheduler agent on the bus after %.0f lab-s: %s decides", s.orchestrator.startup_s,
                     s.campaign.fallback_scheduler)
         camp.note("scheduler.missing", s.campaign.fallback_scheduler)
-
-
-async def _until(clock: LabClock, done: Callable[[], bool], wall_s: float = 2.0) -> None:
-    """Let the bus deliver what is in flight to a local observer, up to ``wall_s`` of wall time."""
-    step = 0.01 * (1.0 if clock.is_virtual else clock.speed)
-    for _ in range(int(wall_s / 0.01)):
-        if done():
-            return
-        await clock.sleep(step)
 
 
 async def _flush_live(clock: LabClock, observer: LabObserver, wall_s: float = 0.25) -> None:

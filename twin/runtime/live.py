@@ -33,6 +33,7 @@ from twin.campaign.journal import Journal
 from twin.core.bus import NoReplyError
 from twin.core.messages import InvalidMessage, Kind, decode, excerpt, pack, without_token
 from twin.runtime.decision_stream import SENDER, DecisionStream
+from twin.view.observer import WATCHED
 from twin.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -45,8 +46,11 @@ class LiveCampaign:
 
     def __init__(self, scenario: Scenario, bus: Bus, clock: LabClock, journal: Journal, planner: Planner,
                  scheduler: Scheduler, campaign_id: str = "c1", on_progress: Progress | None = None,
-                 rebuilt: Rebuilt | None = None) -> None:
-        """``rebuilt``: the core of a killed live campaign, rebuilt from its journal (``twin resume``)."""
+                 rebuilt: Rebuilt | None = None, observer: Any = None) -> None:
+        """``rebuilt``: the core of a killed live campaign, rebuilt from its journal (``twin resume``).
+        ``observer``: a ``LabObserver`` in this process, handed the core's notes and the devices' results and
+        telemetry as they are decoded here (not a second subscription that parses them again)."""
+        self.observer = observer
         self.s, self.bus, self.clock, self.journal = scenario, bus, clock, journal
         self.planner, self.scheduler, self.on_progress = planner, scheduler, on_progress
         self.core = rebuilt.core if rebuilt is not None else CampaignCore(scenario, campaign_id)
@@ -74,8 +78,14 @@ class LiveCampaign:
     def note(self, kind: str, detail: Any = None) -> None:
         """A runtime's own remark (a scheduler agent missing, say): journalled and published like the core's."""
         n = Note(self.clock.now(), kind, detail=detail)
-        self.decisions.add(n, self.journal.note(n))
+        self._decided(n)
         self.decisions.publish()
+
+    def _decided(self, n: Note) -> None:
+        self.decisions.add(n, self.journal.note(n))
+        if self.observer is not None:
+            self.observer.on_decision(n.t_lab, n.kind, {"experiment": n.experiment, "task": n.task,
+                                                        "attempt": n.attempt, "device": n.device, "info": n.detail})
 
     async def run(self) -> None:
         lab, loop = self.s.lab, asyncio.get_running_loop()
@@ -117,7 +127,11 @@ class LiveCampaign:
             self._feed(InvalidInput(exc.sender, exc.reason, key, excerpt(payload)))
             return
         kept = without_token(env) if env.token else payload
-        self._feed(DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.to_dict(), kept, on_key, env.token))
+        plain = body.to_dict()
+        if self.observer is not None and env.kind in WATCHED:
+            self.observer.on_envelope({"kind": env.kind, "id": env.id, "sender": env.sender, "task": env.task,
+                                       "t_lab": env.t_lab, "body": plain})
+        self._feed(DeviceMessage(env.kind, env.sender, env.task, env.attempt, plain, kept, on_key, env.token))
 
     def _on_presence(self, key: str, alive: bool) -> None:
         self._feed(Presence(keys.device_of(key), alive))
@@ -213,7 +227,7 @@ class LiveCampaign:
             elif live and t is not Send:
                 unwritten = True
             if t is Note:
-                self.decisions.add(a, self.journal.note(a))
+                self._decided(a)
                 if a.kind in ALERTS:
                     log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
                 elif a.kind == "message.rejected":

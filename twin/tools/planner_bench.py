@@ -138,5 +138,8 @@ def short(spec: str) -> str:
     return f"{kind}:{Path(policy).stem}" if sep and policy.endswith(".zip") else spec
 
 
-HEADER = ["planner", "experiments to target", "lab-hours to target", "experiments run", "cost to target",
-          "reached", "acceleration vs random"]
+HEADER = ["planner", "exp. to target", "lab-h to target", "exp. run", "cost", "reached", "accel."]
+CAPTION = ("medians [IQR]; ≥: censored by the budget (reached in under half the runs, where the budget or the "
+           "run's end is counted); exp. run: experiments run in all (mean); cost: at the last target (median); "
+           "reached: runs that met every target; accel.: random's median experiments (cost, where experiments "
+           "cost) ÷ this planner's")

@@ -69,26 +69,31 @@ def bench(scenario: Scenario, schedulers: list[str], seeds: int, workers: int = 
     return over_seeds(_one, scenario, schedulers, 1 if deterministic(scenario) else seeds, workers, on_run)
 
 
-HEADER = ["scheduler", "makespan (mean)", "median", "gap to CP-SAT bound", "vs best rule", "utilisation",
-          "degraded", "lost", "fallbacks", "decision p50 / p99 ms"]
+HEADER = ["scheduler", "mean", "median", "vs bound", "vs best rule", "busy", "degr.", "lost", "fallb.", "ms p50/p99"]
+
+
+def caption(unit: str) -> str:
+    return (f"mean, median: makespan ({unit}); vs bound: gap to CP-SAT's optimum (a deterministic job shop); vs best "
+            "rule: against the rule with the lowest mean; busy: mean utilisation; degr.: degraded samples; lost: "
+            "abandoned experiments; fallb.: decisions the fallback rule made (an agent absent or late); ms: wall "
+            "time per decision, median p50 / worst p99")
 
 
 def rows(results: dict[str, list[Run]], optimum: float | None, unit_s: float) -> list[list[str]]:
     means = {k: statistics.mean(r.makespan_s for r in v) for k, v in results.items()}
     rules = [means[k] for k in results if k in RULES]
     best_rule = min(rules) if rules else None
-    unit = "h" if unit_s == 3600 else "s"
     out = []
     for name, runs in results.items():
         m = means[name]
         out.append([
-            label(name), f"{m / unit_s:.2f} {unit}", f"{statistics.median(r.makespan_s for r in runs) / unit_s:.2f} {unit}",
-            f"{100 * (m / optimum - 1):+.1f} %" if optimum else "—",
-            f"{100 * (m / best_rule - 1):+.1f} %" if best_rule else "—",
-            f"{100 * statistics.mean(r.utilisation for r in runs):.0f} %",
+            label(name), f"{m / unit_s:.2f}", f"{statistics.median(r.makespan_s for r in runs) / unit_s:.2f}",
+            f"{100 * (m / optimum - 1):+.1f}%" if optimum else "—",
+            f"{100 * (m / best_rule - 1):+.1f}%" if best_rule else "—",
+            f"{100 * statistics.mean(r.utilisation for r in runs):.0f}%",
             f"{statistics.mean(r.degraded for r in runs):.1f}", f"{statistics.mean(r.lost for r in runs):.1f}",
             f"{statistics.mean(r.fallbacks for r in runs):.1f}",
-            f"{statistics.median(r.decision_p50_ms for r in runs):.2f} / {max(r.decision_p99_ms for r in runs):.2f}",
+            f"{statistics.median(r.decision_p50_ms for r in runs):.2f}/{max(r.decision_p99_ms for r in runs):.2f}",
         ])
     return out
 

@@ -18,6 +18,8 @@ STATES = ("offline", "idle", "failed", "quarantined", "busy")
 WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",
               "device.flapping", "devices.unavailable", "devices.missing", "campaign.stopping", "attempt.cancelled"}
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned"}
+#: What an observer draws of a device's messages (an in-process runtime hands it only these).
+WATCHED = frozenset({"result", "telemetry"})
 #: Decisions drawn elsewhere and not repeated in the text log.
 QUIET = {"campaign.summary", "campaign.started", "task.ready", "attempt.running", "attempt.done",
          "experiment.proposed"}
@@ -77,11 +79,16 @@ class LabObserver:
             return  # nothing to draw; skipping the parse keeps the recorder cheap
         try:
             env = json.loads(payload)
-            kind, t = env["kind"], float(env["t_lab"])
+            float(env["t_lab"])
         except (ValueError, KeyError, TypeError):
             return  # the orchestrator logs invalid messages; a watcher just skips them
         if env.get("body", {}).get("what") != "decisions" and not self._fresh(env.get("id")):
             return
+        self.on_envelope(env)
+
+    def on_envelope(self, env: dict[str, Any]) -> None:
+        """A message already decoded: what an in-process runtime hands over, without a second parse."""
+        kind, t = env["kind"], float(env["t_lab"])
         if self.t0 is None:
             self.t0 = t
         if kind == "decision":
@@ -108,6 +115,8 @@ class LabObserver:
         return True
 
     def on_decision(self, t: float, what: str, d: dict[str, Any]) -> None:
+        if self.t0 is None:
+            self.t0 = t
         info, device, task = d.get("info"), d.get("device"), d.get("task")
         handler = getattr(self, "_" + what.replace(".", "_"), None)
         if handler is not None:
