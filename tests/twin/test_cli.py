@@ -110,12 +110,14 @@ def test_ctrl_c_stops_training_and_says_what_was_kept(tmp_path):
     proc = subprocess.Popen([*TWIN, "train", "scenarios/jobshop.yaml", "--steps", "1000000", "--eval-every", "512",
                              "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     lines = []
-    for line in proc.stderr:  # wait for the first evaluation of the policy itself
+    for line in proc.stderr:  # wait for the first evaluation (the rules'; CP-SAT has planned the Judge's shops)
         lines.append(line)
-        if " steps " in line and "best rule:" not in line:
+        if " steps " in line:
             break
     proc.send_signal(signal.SIGINT)
     rest = proc.communicate(timeout=60)[1]
     assert proc.returncode == 130, "".join(lines) + rest
-    assert "interrupted; the best policy so far is" in rest and "Traceback" not in rest
-    assert out.exists() and out.with_suffix(".json").exists()
+    # before its first evaluation nothing is kept yet, and it says so (CP-SAT has run in this process by then,
+    # so its own SIGINT handler, were it installed, would have killed the command without a word)
+    assert "interrupted; no policy saved yet" in rest and "Traceback" not in rest
+    assert not out.exists()
