@@ -13,11 +13,14 @@ import json
 import math
 from typing import Any, Protocol
 
+import numpy as np
+
 #: A device's states, in the order the viewer lists them.
 STATES = ("offline", "idle", "failed", "quarantined", "busy")
 WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",
               "device.flapping", "devices.unavailable", "devices.missing", "campaign.stopping", "attempt.cancelled"}
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned"}
+MISSING = object()
 #: What an observer draws of a device's messages (an in-process runtime hands it only these).
 WATCHED = frozenset({"result", "telemetry"})
 #: Decisions drawn elsewhere and not repeated in the text log.
@@ -32,7 +35,8 @@ class Canvas(Protocol):
 
     def text(self, path: str, t: float, text: str, level: str) -> None: ...
 
-    def line(self, path: str, t: float, points: list[tuple[float, float]], seq: int | None = None) -> None: ...
+    def line(self, path: str, t: float, points: Any, seq: int | None = None) -> None:
+        """A polyline: a list of (x, y) or an (N, 2) array."""
 
     def points(self, path: str, t: float, points: list[tuple[float, ...]], seq: int | None = None) -> None: ...
 
@@ -71,6 +75,7 @@ class LabObserver:
         self._last_queue: tuple | None = None
         self._seen: set[str] | None = set() if dedupe else None
         self._route: Any = None  # a RouteView, once a synthesis route runs
+        self._handlers: dict[str, Any] = {}
 
     # -- input ------------------------------------------------------------
     def on_message(self, key: str, payload: bytes | str) -> None:
@@ -118,12 +123,14 @@ class LabObserver:
         if self.t0 is None:
             self.t0 = t
         info, device, task = d.get("info"), d.get("device"), d.get("task")
-        handler = getattr(self, "_" + what.replace(".", "_"), None)
+        handler = self._handlers.get(what, MISSING)
+        if handler is MISSING:  # looked up once per kind of decision: thousands of decisions, a dozen kinds
+            handler = self._handlers[what] = getattr(self, "_" + what.replace(".", "_"), None)
         if handler is not None:
             handler(t, d, info)
-        level = "ERROR" if what in ERROR_KINDS else "WARN" if what in WARN_KINDS else "DEBUG" if what in (
-            "task.ready", "attempt.dispatched", "attempt.running", "attempt.done") else "INFO"
         if what not in QUIET:
+            level = "ERROR" if what in ERROR_KINDS else "WARN" if what in WARN_KINDS else "DEBUG" if what in (
+                "task.ready", "attempt.dispatched", "attempt.running", "attempt.done") else "INFO"
             where = " ".join(x for x in (task or "", f"#{d['attempt']}" if d.get("attempt") else "",
                                          f"on {device}" if device else "") if x)
             self.c.text("log", t, f"{what} {where}{self._describe(info)}", level)
@@ -273,7 +280,8 @@ class LabObserver:
         start, step = float(spec.get("start_nm", 0.0)), float(spec.get("step_nm", 1.0))
         seq = _experiment_of(env.get("task"))
         self.spectra += 1
-        self.c.line("spectra/measurement", t, [(start + i * step, float(y)) for i, y in enumerate(spec["y"])], seq=seq)
+        y = np.asarray(spec["y"], dtype=np.float64)
+        self.c.line("spectra/measurement", t, np.column_stack((start + step * np.arange(len(y)), y)), seq=seq)
         if isinstance(outputs.get("peak_nm"), (int, float)) and isinstance(outputs.get("intensity"), (int, float)):
             self.c.points("spectra/peak", t, [(float(outputs["peak_nm"]), float(outputs["intensity"]))], seq=seq)
 

@@ -108,8 +108,8 @@ class RerunCanvas:
     def text(self, path: str, t: float, text: str, level: str) -> None:
         self._add("text", path, t, None, (text, level))
 
-    def line(self, path: str, t: float, points: list[tuple[float, float]], seq: int | None = None) -> None:
-        xy = np.asarray(points, dtype=np.float32)
+    def line(self, path: str, t: float, points: Any, seq: int | None = None) -> None:
+        xy = np.array(points, dtype=np.float32)  # a copy: y is flipped in place below
         xy[:, 1] = 300.0 * (1.0 - xy[:, 1])  # screen y grows downwards; 300 px per unit of signal
         self._add("line", path, t, seq, xy)
 
