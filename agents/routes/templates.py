@@ -210,13 +210,67 @@ def parse(text: str, source: str = "<templates>") -> list[Template]:
     return out
 
 
+#: What an imported template (AiZynthFinder-style, no ranges given) is assumed to take and give.
+IMPORTED_YIELD_PCT, IMPORTED_HOURS = (50.0, 90.0), (1.0, 12.0)
+
+
+def parse_retro_table(text: str, source: str = "<templates>") -> list[Template]:
+    """Templates from an AiZynthFinder-style table: a header, then a row per template with its retro SMARTS
+    (``retro_template``: product>>reactants, mapped) and optionally ``classification``, ``template_code``,
+    ``template_hash``; comma- or tab-separated (``.csv``, ``.csv.gz``). Run forwards as well (the sides swapped)
+    for the search's round-trip check; yields and hours are ``IMPORTED_YIELD_PCT`` / ``IMPORTED_HOURS``."""
+    import csv
+
+    lines = text.splitlines()
+    if not lines:
+        raise TemplateError(f"{source}: empty; expected a header with a retro_template column, then a row each")
+    dialect = "excel-tab" if lines[0].count("\t") > lines[0].count(",") else "excel"
+    rows = list(csv.DictReader(lines, dialect=dialect))
+    if not rows or "retro_template" not in (rows[0].keys() if rows else ()):
+        raise TemplateError(f"{source}: no retro_template column (header: {lines[0][:120]!r}); an AiZynthFinder "
+                            "template table has one, with product>>reactants SMARTS")
+    out, names = [], set()
+    for i, row in enumerate(rows):
+        where = f"{source}: row {i + 2}"
+        retro_smarts = (row.get("retro_template") or "").strip()
+        product, sep, reactants = retro_smarts.partition(">>")
+        if not sep or not product or not reactants:
+            raise TemplateError(f"{where}: retro_template {retro_smarts[:80]!r} is not product>>reactants SMARTS")
+        try:
+            back = AllChem.ReactionFromSmarts(retro_smarts)
+            back.Initialize()
+            fwd = AllChem.ReactionFromSmarts(reactants + ">>" + product)
+            fwd.Initialize()
+        except (ValueError, RuntimeError) as exc:
+            raise TemplateError(f"{where}: retro_template is not a reaction SMARTS RDKit reads ({exc})") from None
+        if back.GetNumReactantTemplates() != 1 or not 1 <= back.GetNumProductTemplates() <= 3:
+            raise TemplateError(f"{where}: retro_template must take one product to one to three reactants")
+        label = (row.get("classification") or "").strip() or "imported"
+        name = f"{label} #{(row.get('template_code') or row.get('template_hash') or str(i)).strip()[:16]}"
+        if name in names:
+            name = f"{name} ({i})"
+        names.add(name)
+        out.append(Template(name, label[:64], reactants + ">>" + product, IMPORTED_YIELD_PCT, IMPORTED_HOURS, "",
+                            source, {}, fwd, back))
+    return out
+
+
 @lru_cache(maxsize=8)
 def load(path: Path = TEMPLATES) -> tuple[Template, ...]:
-    """The templates of a file (by default the shipped set), parsed once."""
+    """The templates of a file (by default the shipped set), parsed once: this package's YAML, or an
+    AiZynthFinder-style table (``.csv``, ``.tsv``, ``.csv.gz``)."""
+    path = Path(path)
     try:
-        text = Path(path).read_text()
-    except OSError as exc:
-        raise TemplateError(f"{path}: cannot read the template file ({exc.strerror})") from None
+        if path.name.endswith(".gz"):
+            import gzip
+
+            text = gzip.decompress(path.read_bytes()).decode()
+        else:
+            text = path.read_text()
+    except (OSError, EOFError) as exc:
+        raise TemplateError(f"{path}: cannot read the template file ({getattr(exc, 'strerror', None) or exc})") from None
+    if path.name.endswith((".csv", ".tsv", ".csv.gz", ".tsv.gz")):
+        return tuple(parse_retro_table(text, str(path)))
     return tuple(parse(text, str(path)))
 
 

@@ -83,3 +83,25 @@ def test_a_broken_stock_file_is_refused_naming_the_line(text, says):
 def test_a_stock_of_your_own_needs_only_smiles():
     mine = stock_file.parse("# my shelf\nsmiles\nCCO\nc1ccccc1N\n", "shelf.csv")
     assert len(mine) == 2 and "Nc1ccccc1" in mine and mine.get("CCO").eur_per_g is None
+
+
+def test_an_aizynthfinder_style_template_table_is_searched_like_our_own(tmp_path):
+    import gzip
+
+    from agents.routes.plan import plan_breadth_first
+    from agents.routes.templates import TemplateError, load
+
+    rows = ["\t".join(["", "template_hash", "classification", "retro_template", "template_code"]),
+            "\t".join(["0", "ab12", "1.2.1 Amide coupling",
+                       "[C:1](=[O:2])-[NH;D2;+0:3]>>[C:1](=[O:2])-[OH].[NH2;D1;+0:3]", "17"])]
+    table = tmp_path / "uspto_templates.csv.gz"
+    table.write_bytes(gzip.compress("\n".join(rows).encode()))
+    (only,) = load(table)
+    assert only.name == "1.2.1 Amide coupling #17" and only.yield_pct == (50.0, 90.0)
+    route = plan_breadth_first("CC(=O)Nc1ccc(O)cc1", templates=table)
+    assert route["solved"] and route["steps"][0]["reaction"] == only.name
+    assert sorted(route["steps"][0]["reactants"]) == sorted(["CC(=O)O", "Nc1ccc(O)cc1"])
+    bad = tmp_path / "bad.csv"
+    bad.write_text("smiles,name\nCCO,ethanol\n")
+    with pytest.raises(TemplateError, match="no retro_template column"):
+        load(bad)
