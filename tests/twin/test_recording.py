@@ -35,13 +35,14 @@ def test_the_recording_has_every_panel(live):
     for device in summary.utilisation:
         assert f"devices/{device}" in rrd
         assert f"utilisation/{device}" in rrd
-    for path in ("objective/best", "objective/score", "spectra/measurement", "queue/ready_steps",
-                 "queue/waiting_samples", "queue/oldest_sample_age_h", "planner/proposals", "log", "summary",
+    for path in ("objective/best", "objective/score", "spectra/measurement", "queue", "planner/proposals", "log", "summary",
                  "telemetry/reactor-1/temperature_k", "telemetry/reactor-1/setpoint_k"):
         assert path in rrd, path
     states = {r["StateChange:state"][0] for dev in summary.utilisation for r in rrd[f"devices/{dev}"]
               if "StateChange:state" in r}
     assert {"idle", "busy", "failed", "offline"} <= states
+    queue = [r["Scalars:scalars"] for r in rrd["queue"] if "Scalars:scalars" in r]
+    assert queue and all(len(row) == 3 and row[0] >= row[1] >= 0 for row in queue)  # ready steps ≥ samples waiting
 
 
 def test_one_spectrum_per_measurement_at_the_same_lab_times(live):

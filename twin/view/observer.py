@@ -21,6 +21,7 @@ WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.inva
               "device.flapping", "devices.unavailable", "devices.missing", "campaign.stopping", "attempt.cancelled"}
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned"}
 MISSING = object()
+QUEUE_SERIES = ("ready steps", "samples waiting", "oldest sample's age (h)")
 #: What an observer draws of a device's messages (an in-process runtime hands it only these).
 WATCHED = frozenset({"result", "telemetry"})
 #: Decisions drawn elsewhere and not repeated in the text log.
@@ -30,6 +31,9 @@ QUIET = {"campaign.summary", "campaign.started", "task.ready", "attempt.running"
 
 class Canvas(Protocol):
     def scalar(self, path: str, t: float, value: float, seq: int | None = None) -> None: ...
+
+    def scalars(self, path: str, t: float, values: tuple[float, ...], names: tuple[str, ...]) -> None:
+        """Several series of one panel in one row (``names`` label them)."""
 
     def state(self, path: str, t: float, state: str) -> None: ...
 
@@ -268,9 +272,7 @@ class LabObserver:
         if now == self._last_queue:
             return
         self._last_queue = now
-        self.c.scalar("queue/ready_steps", t, now[0])
-        self.c.scalar("queue/waiting_samples", t, now[1])
-        self.c.scalar("queue/oldest_sample_age_h", t, (t - now[2]) / 3600 if made else 0.0)
+        self.c.scalars("queue", t, (now[0], now[1], (t - now[2]) / 3600 if made else 0.0), QUEUE_SERIES)
 
     def _spectrum(self, t: float, env: dict) -> None:
         outputs = env.get("body", {}).get("outputs") or {}

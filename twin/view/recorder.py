@@ -102,6 +102,11 @@ class RerunCanvas:
     def scalar(self, path: str, t: float, value: float, seq: int | None = None) -> None:
         self._add("scalar", path, t, seq, value)
 
+    def scalars(self, path: str, t: float, values: tuple[float, ...], names: tuple[str, ...]) -> None:
+        if ("scalars", path, False) not in self._buffers:
+            self.rec.log(path, rr.SeriesLines(names=list(names)), static=True)
+        self._add("scalars", path, t, None, values)
+
     def state(self, path: str, t: float, state: str) -> None:
         self._add("state", path, t, None, state)
 
@@ -146,6 +151,9 @@ class RerunCanvas:
 def _columns(kind: str, values: list) -> Any:
     if kind == "scalar":
         return rr.Scalars.columns(scalars=values)
+    if kind == "scalars":  # one row of several series each
+        return rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64).ravel()).partition(
+            [len(v) for v in values])
     if kind == "state":
         return rr.StateChange.columns(state=values)
     if kind == "text":
