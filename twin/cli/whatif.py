@@ -77,14 +77,15 @@ def whatif(
         return
     has_targets, with_cost = bool(s.chemistry.targets), costs_anything(summary)
     table = Table(title=f"{s.name}: what if — {len(chosen)} variants × {seeds} seeds", title_justify="left",
-                  caption=caption(has_targets, seeds, with_cost), caption_justify="left", box=box.SIMPLE_HEAD, collapse_padding=True,
+                  box=box.SIMPLE_HEAD, collapse_padding=True,
                   pad_edge=False)
     for i, h in enumerate(header(axes, with_cost)):
-        table.add_column(h, overflow="fold", no_wrap=i >= len(axes) and h != "busiest",
+        table.add_column(h, overflow="fold", no_wrap=i >= len(axes) and h not in ("busiest", "IQR"),
                          min_width=max(len(part) for part in h.split("\n")) if i < len(axes) else None)
     for row in rows(summary, axes, written_values(s, axes), has_targets, with_cost):
         table.add_row(*row)
     console.print(table)
+    console.print(caption(has_targets, seeds, with_cost), highlight=False)  # wrapped at the terminal, not the table
     base = next(r for r in summary if r["variant"] == AS_WRITTEN)
     console.print(f"as written, the busiest device type is {base['bottleneck']} "
                   f"({100 * base['utilisation'].get(base['bottleneck'], 0):.0f} % busy)", highlight=False)

@@ -192,7 +192,7 @@ def header(axes: list[str], with_cost: bool = True) -> list[str]:
     """The table's columns: one per varied field (a device's field on lines of its own), then the measures
     (the cost ones only if something costs)."""
     return ["\n".join(name.split(".")[1:]) if name.startswith("devices.") else name.split(".")[-1] for name in axes] + \
-        ["lab-h", "IQR", "Δ lab-h", *(["cost", "Δ cost"] if with_cost else []), "aband.", "busiest", "busy"]
+        ["lab-h", "IQR", "Δ lab-h", *(["cost", "Δ cost"] if with_cost else []), "aband.", "busiest"]
 
 
 def costs_anything(summary: list[dict[str, Any]]) -> bool:
@@ -215,7 +215,7 @@ def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any]
             *([f"{row['cost'][1]:,.0f}", "—" if base or cost_change is None else f"{cost_change[1]:+,.0f}"]
               if with_cost else []),
             f"{row['abandoned']:.1f}",
-            busiest, f"{100 * row['utilisation'].get(busiest, 0):.0f}%" if busiest else "",
+            f"{busiest} {100 * row['utilisation'].get(busiest, 0):.0f}%" if busiest else "",
         ])
     return out
 
