@@ -202,7 +202,7 @@ class RoutePlanner:
         if self._announce:  # the whole route, once per route, for the viewer and the journal
             params["plan"] = [".".join(r.reactants) + ">>" + r.product for r in order]
             self._announce = False
-        return Proposal(params)
+        return Proposal(params, cost=params["reagents_eur"])
 
 
 def _wanted_mg(targets: list[Any]) -> float | None:

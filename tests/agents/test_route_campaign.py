@@ -139,3 +139,22 @@ def test_the_recording_shows_the_route_drawn_and_each_step_state(tmp_path):
     assert any("running on synthesiser" in t for t in tables)
     last = tables[-1]
     assert "O-acetylation" in last and "done:" in last and last.count("| 1 |") >= 2
+
+
+def test_the_reagents_bought_are_part_of_the_campaigns_cost(tmp_path):
+    free = {f"devices.{d}.cost": 0 for d in ("synthesiser", "purifier", "spectrometer")}
+    summary, rows = campaign(tmp_path, **free, **{"chemistry.targets": [
+        {"name": "aspirin", "outputs": {"target_mg": {"min": 50000}}}], "campaign.budget": 3})
+    spent = sum(p["reagents_eur"] for p, _, _ in rows)
+    assert spent > 0 and summary.cost == pytest.approx(spent)
+
+
+def test_a_proposals_cost_survives_the_journal_a_resumed_core_is_rebuilt_from():
+    from twin import Proposal
+    from twin.campaign.events import Proposed
+    from twin.campaign.replay import decode_input, encode
+    from twin.core.messages import to_wire
+
+    written = to_wire({"events": [encode(Proposed([Proposal({"x": 1.0}, None, 2.5), Proposal({"x": 2.0})]))]})
+    back = decode_input(json.loads(written)["events"][0])
+    assert [p.cost for p in back.proposals] == [2.5, 0.0] and back.proposals[0].params == {"x": 1.0}

@@ -411,6 +411,8 @@ class CampaignCore:
         self.experiments.append(e)
         self.active[e.id] = e
         self._note("experiment.proposed", e.id, detail=e.params)
+        if isinstance(p.cost, (int, float)) and 0 < p.cost < float("inf"):  # a planner's nonsense costs nothing
+            self.cost += float(p.cost)
         self._out.append(RecordExperiment(e))
         outside = policy.outside_envelope(e.route, e.params, self.s.devices)
         if outside:  # refused before anything is sent: no step runs for an experiment that cannot finish

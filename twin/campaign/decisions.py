@@ -23,6 +23,7 @@ class RouteStep:
 class Proposal:
     params: dict[str, Any]
     route: tuple[RouteStep, ...] | None = None  # None: the scenario's workflow
+    cost: float = 0.0  # what the experiment's materials cost (reagents bought): added to the campaign's cost
 
 
 @dataclass(frozen=True)

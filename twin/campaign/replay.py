@@ -36,8 +36,8 @@ def encode(event: Any) -> list[Any]:
     if t is Stop:
         return ["stop", event.reason]
     if t is Proposed:
-        return ["proposed", [[p.params, None if p.route is None else [[r.step, r.device, r.params] for r in p.route]]
-                             for p in event.proposals]]
+        return ["proposed", [[p.params, None if p.route is None else [[r.step, r.device, r.params] for r in p.route],
+                              *([p.cost] if p.cost else [])] for p in event.proposals]]
     if t is Decided:
         return ["decided", [[a.task, a.device] for a in event.assignments], event.wall_s]
     raise TypeError(f"not a core input: {event!r}")
@@ -61,8 +61,8 @@ def decode_input(data: list[Any]) -> Any:
     if kind == "stop":
         return Stop(data[1])
     if kind == "proposed":
-        return Proposed([Proposal(params, None if route is None else tuple(RouteStep(*r) for r in route))
-                         for params, route in data[1]])
+        return Proposed([Proposal(item[0], None if item[1] is None else tuple(RouteStep(*r) for r in item[1]),
+                                  *item[2:3]) for item in data[1]])
     if kind == "decided":
         return Decided([Assignment(task, device) for task, device in data[1]], data[2])
     raise ValueError(f"unknown input {kind!r} in the journal")
