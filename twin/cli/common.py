@@ -34,6 +34,14 @@ def _fail(exc: TwinError) -> None:
     raise typer.Exit(2)
 
 
+def bar_progress(transient: bool = False):
+    """The progress bar every long command shows on stderr: what it does, the bar, done of total, time taken."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                    console=err, transient=transient)
+
+
 def narrow_table(header: list[str], title: str = "", caption: str = "") -> Table:
     """A table that reads at 80 columns: light rules, no padding at the edges, and cells (headers too) that
     wrap rather than end in '…'."""

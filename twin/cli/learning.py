@@ -6,11 +6,10 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from twin.core import plugins
 from twin.runtime import lab
-from twin.cli.common import _fail, app, bench_app, console, err, machine_output, narrow_table
+from twin.cli.common import _fail, app, bar_progress, bench_app, console, err, machine_output, narrow_table
 from twin.core.errors import TwinError
 from twin.tools.planner_bench import DEFAULT_PLANNERS
 
@@ -51,8 +50,7 @@ def train(
         recording = open_recording(f"train-{agent}-{s.name}", save=save, viewer=viewer, campaign_layout=False)
         for message in recording.messages:
             err.print(message, highlight=False)
-    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                        console=err)
+    progress = bar_progress()
 
     def report(done: int, result: dict | None) -> None:
         progress.update(bar, completed=done)
@@ -109,8 +107,7 @@ def bench_planners(
                 lab.make_scheduler(s, scheduler)
     except TwinError as exc:
         _fail(exc)
-    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                        console=err, transient=as_json)
+    progress = bar_progress(as_json)
     with progress:
         bar = progress.add_task(f"{s.name}: {len(names)} planners × {seeds} seeds", total=len(names) * seeds)
         results = bench(scenario, names, seeds, workers, on_trial=lambda t: progress.advance(bar), budget=budget)
@@ -166,8 +163,7 @@ def bench_schedulers(
             _fail(exc)
         optimum = bound(s)
         title = f"{Path(file).stem if file else s.name}"
-        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                            TimeElapsedColumn(), console=err, transient=as_json)
+        progress = bar_progress(as_json)
         with progress:
             bar = progress.add_task(f"{title}: {len(names)} schedulers", total=len(names) * (1 if s.jobshop else seeds))
             results = bench(s, names, seeds, workers, on_run=lambda r: progress.advance(bar))
@@ -204,8 +200,7 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     header = ["shape", "best rule", "its mean h", *[label(n) for n in others]]
     table = narrow_table(header, f"{s.name}: each scheduler minus the shape's best rule, makespan lab-h "
                                  f"(mean of {seeds} paired seeds ± 95 % CI)")
-    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                        TimeElapsedColumn(), console=err, transient=as_json)
+    progress = bar_progress(as_json)
     with progress:
         bar = progress.add_task(f"{s.name}: shapes", total=len(variants(s, random_labs)))
         results = shapes(s, names, seeds, workers, on_shape=lambda c: progress.advance(bar), random_labs=random_labs)

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import _fail, app, bench_app, console, err, machine_output, narrow_table
+from twin.cli.common import _fail, app, bar_progress, bench_app, console, machine_output, narrow_table
 from twin.core import plugins
 from twin.core.errors import TwinError
 
@@ -89,8 +89,6 @@ def bench_routes(
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every search's result to this CSV file")] = None,
 ) -> None:
     """Solved rate, route length against the known one, expansions and time per target, for every search method."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
     from twin.tools.route_bench import CAPTION, HEADER, bench, default_methods, rows, split
     from twin.tools.route_bench import targets as make_targets
 
@@ -103,8 +101,7 @@ def bench_routes(
         chosen = make_targets(target_set, targets)
     except TwinError as exc:
         _fail(exc)
-    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                        console=err, transient=as_json)
+    progress = bar_progress(as_json)
     with progress:
         bar = progress.add_task(f"{len(names)} methods × {len(chosen)} targets", total=len(names) * len(chosen))
         try:

@@ -10,10 +10,9 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from twin.cli.common import _fail, app, console, err
+from twin.cli.common import _fail, app, bar_progress, console
 from twin.core.errors import TwinError
 from twin.runtime import lab
 
@@ -57,8 +56,7 @@ def whatif(
                             "other than the scenario's")
     except TwinError as exc:
         _fail(exc)
-    progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                        console=err, transient=as_json)
+    progress = bar_progress(as_json)
     with progress:
         bar = progress.add_task(f"{s.name}: {len(chosen)} variants × {seeds} seeds", total=len(chosen) * seeds)
         results = run_whatif(s, chosen, seeds, workers, on_run=lambda o: progress.advance(bar))

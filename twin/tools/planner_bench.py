@@ -65,7 +65,7 @@ def _trial(args: tuple) -> Trial:
     return trial(*args)
 
 
-def _quiet_alerts() -> None:
+def quiet_alerts() -> None:
     """A bench runs hundreds of campaigns and its table counts what they lost: a warning for every device type
     gone in every campaign would bury the progress bar under hundreds of lines."""
     logging.getLogger("twin.runtime.fast").setLevel(logging.ERROR)
@@ -76,7 +76,7 @@ def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str]
     """``one((scenario, name, seed))`` for every name and seed, in parallel processes, grouped by name."""
     results: dict[str, list[Any]] = {name: [] for name in names}
     jobs = [(scenario, name, seed) for name in names for seed in range(seeds)]
-    with ProcessPoolExecutor(max_workers=workers, initializer=_quiet_alerts) as pool:
+    with ProcessPoolExecutor(max_workers=workers, initializer=quiet_alerts) as pool:
         for (_, name, _), r in zip(jobs, pool.map(one, jobs)):
             results[name].append(r)
             if on_each:

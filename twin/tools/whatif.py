@@ -10,7 +10,6 @@ as written, which always runs too.
 from __future__ import annotations
 
 import itertools
-import logging
 import statistics
 import tempfile
 from collections.abc import Callable
@@ -23,6 +22,7 @@ import yaml
 
 from twin.core.errors import ScenarioError
 from twin.runtime.lab import prepare, run
+from twin.tools.planner_bench import quartiles, quiet_alerts
 from twin.scenario import Scenario
 
 AS_WRITTEN = "as written"
@@ -110,12 +110,11 @@ def variants(scenario: Scenario, vary: list[tuple[str, list[Any]]], schedulers: 
 
 
 def one(scenario: Scenario, variant: Variant, seed: int) -> Outcome:
-    with tempfile.TemporaryDirectory() as d:
-        s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual",
-                overrides=dict(variant.changes) or None)
-    targets = [t.name for t in scenario.chemistry.targets]
-    reached = bool(targets) and all(t in s.targets_met_h for t in targets)
     lab = prepare(scenario, overrides=dict(variant.changes) or None)
+    with tempfile.TemporaryDirectory() as d:
+        s = run(lab, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual")
+    targets = [t.name for t in lab.chemistry.targets]
+    reached = bool(targets) and all(t in s.targets_met_h for t in targets)
     per_type = {}
     for dtype in lab.devices:
         values = [s.utilisation.get(name, 0.0) for name in lab.instance_names(dtype)]
@@ -131,27 +130,16 @@ def _one(job: tuple[Scenario, Variant, int]) -> Outcome:
     return one(*job)
 
 
-def _quiet() -> None:
-    logging.disable(logging.WARNING)  # each campaign's faults are in its numbers; sixty campaigns' warnings are noise
-
-
 def whatif(scenario: Scenario, chosen: list[Variant], seeds: int, workers: int = 2,
            on_run: Callable[[Outcome], None] = lambda o: None) -> list[Outcome]:
     jobs = [(scenario, v, seed) for v in chosen for seed in range(seeds)]
     results = []
-    with ProcessPoolExecutor(max(1, workers), initializer=_quiet) as pool:
+    with ProcessPoolExecutor(max(1, workers), initializer=quiet_alerts) as pool:
         for fut in as_completed([pool.submit(_one, job) for job in jobs]):
             results.append(fut.result())
             on_run(results[-1])
     order = {v.label: i for i, v in enumerate(chosen)}
     return sorted(results, key=lambda o: (order[o.variant], o.seed))
-
-
-def _quartiles(xs: list[float]) -> tuple[float, float, float]:
-    if len(xs) == 1:
-        return xs[0], xs[0], xs[0]
-    q = statistics.quantiles(xs, n=4, method="inclusive")
-    return q[0], statistics.median(xs), q[2]
 
 
 def summarise(results: list[Outcome], chosen: list[Variant]) -> list[dict[str, Any]]:
@@ -168,10 +156,10 @@ def summarise(results: list[Outcome], chosen: list[Variant]) -> list[dict[str, A
         out.append({
             "variant": v.label, "changes": dict(v.changes), "runs": len(mine),
             "reached": sum(o.reached for o in mine),
-            "lab_hours": _quartiles([o.lab_hours for o in mine]),
-            "lab_hours_change": _quartiles(deltas) if deltas else None,
-            "cost": _quartiles([o.cost for o in mine]),
-            "cost_change": _quartiles(cost_deltas) if cost_deltas else None,
+            "lab_hours": quartiles([o.lab_hours for o in mine]),
+            "lab_hours_change": quartiles(deltas) if deltas else None,
+            "cost": quartiles([o.cost for o in mine]),
+            "cost_change": quartiles(cost_deltas) if cost_deltas else None,
             "experiments": statistics.median(o.experiments for o in mine),
             "abandoned": statistics.mean(o.abandoned for o in mine),
             "degraded": statistics.mean(o.degraded for o in mine),
