@@ -66,6 +66,11 @@ class RoutePlanner:
             raise ValueError(f"campaign.planner_options.molecule: {molecule!r} is not a SMILES RDKit can read; "
                              "give the molecule to make, e.g. molecule: 'CC(=O)Oc1ccccc1C(=O)O'")
         self.target, self.method, self.prior, self.seconds = target, method, prior, float(seconds)
+        for option, value in (("templates", templates), ("stock", stock)):
+            try:  # a file that cannot be used is named with the option that named it
+                inputs(**{option: value})
+            except ValueError as exc:
+                raise ValueError(f"campaign.planner_options.{option}: {exc}") from None
         self.templates, self.stock = inputs(stock, templates)
         self.amount_mg = float(amount_mg or _wanted_mg(targets) or DEFAULT_MG)
         self.max_failures, self.min_yield_pct, self.margin = int(max_failures), float(min_yield_pct), float(margin)

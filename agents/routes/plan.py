@@ -54,7 +54,7 @@ def draw(data: dict, path: Path) -> None:
     Path(path).write_text(svg)
 
 
-def inputs(stock: str | Path | None, templates: str | Path | None):
+def inputs(stock: str | Path | None = None, templates: str | Path | None = None):
     return (template_file.load(Path(templates) if templates else template_file.TEMPLATES),
             stock_file.load(Path(stock) if stock else stock_file.STOCK))
 

@@ -89,6 +89,9 @@ def test_a_molecule_rdkit_cannot_read_is_refused_naming_the_field():
     with pytest.raises(ScenarioError) as err:
         check(s)
     assert "campaign.planner_options.molecule" in str(err.value) and "SMILES" in str(err.value)
+    s.campaign.planner_options.update(molecule="CCO", stock="no/such/stock.csv")
+    with pytest.raises(ScenarioError, match=r"campaign.planner_options.stock: no/such/stock.csv: cannot read"):
+        check(s)
 
 
 def test_lcms_reports_the_exact_mass_and_purification_trades_mass_for_purity():
