@@ -14,7 +14,9 @@ orchestrator's; commands carry them in wall seconds with the lab's clock speed.
 Options: ``broker`` (``host:port``, default ``127.0.0.1:1883``), ``topic``
 (``{name}`` in it is the device instance's name), ``steps`` (what the instrument
 runs), ``qos`` (default 1), ``outputs`` (what its results hold, for ``twin
-validate``), ``cancel_wait_s`` (wall seconds to wait for the instrument to
+validate``), ``connect_timeout_s`` (wall seconds to wait for the broker to answer a connect, subscribe or
+publish, default 10),
+``cancel_wait_s`` (wall seconds to wait for the instrument to
 acknowledge a cancel, default 10), ``username`` with ``password`` or
 ``password_env`` (the name of an environment variable that holds it), and
 ``tls: {ca, cert, key}`` (PEM files). docs/security.md has a mosquitto
@@ -59,6 +61,7 @@ class MqttInstrument:
         self.topic = str(o["topic"]).replace("{name}", setup.name).rstrip("/")
         self.qos, self.name = int(o.get("qos", 1)), setup.name
         self.cancel_wait_s = float(o.get("cancel_wait_s", 10.0))
+        self.connect_timeout_s = float(o.get("connect_timeout_s", 10.0))
         self.capabilities = frozenset(o.get("steps") or ())
         self.username, self.password = _credentials(setup.name, o)
         self.tls = _tls(setup.name, o.get("tls"))
@@ -82,7 +85,7 @@ class MqttInstrument:
         self._presence = presence
         self._client = aiomqtt.Client(self.host, self.port, identifier=f"labtwin-{self.name}-{id(self):x}",
                                       socket_options=NODELAY, username=self.username, password=self.password,
-                                      tls_params=self.tls)
+                                      tls_params=self.tls, timeout=self.connect_timeout_s)
         where = f"the MQTT broker at {self.host}:{self.port}"
         try:
             await self._client.__aenter__()

@@ -51,7 +51,7 @@ def ft06():
 def trained(ft06, tmp_path_factory):
     """A candidate policy trained for a few seconds on ft06 alone."""
     path = tmp_path_factory.mktemp("policy") / "ft06-candidates.zip"
-    train_scheduler(ft06, 8192, path, envs=2, eval_every=8192, eval_seeds=(0,))
+    train_scheduler(ft06, 4096, path, envs=2, eval_every=4096, eval_seeds=(0,))
     return path
 
 

@@ -147,7 +147,7 @@ def test_a_slow_instrument_is_given_nothing_until_it_has_acknowledged_the_cancel
     topic = f"{prefix}/spectrometer"
     proc = instrument(mosquitto, topic, seconds=3.0, cancel_seconds=1.0)
     s = prepare(parse(mqtt_lab(mosquitto, prefix, **{
-        "devices.spectrometer.instances": 1, "campaign.budget": 3, "campaign.max_in_flight": 3,
+        "devices.spectrometer.instances": 1, "campaign.budget": 2, "campaign.max_in_flight": 2,
         "devices.synthesiser.duration": {"mean_s": 60, "cv": 0},
         "orchestrator.timeout_factor": 1, "orchestrator.timeout_slack_s": 10, "orchestrator.cancel_grace_s": 60,
         "orchestrator.retry": {"max_attempts": 2, "backoff_s": 0, "jitter": 0},
@@ -165,9 +165,9 @@ def test_a_slow_instrument_is_given_nothing_until_it_has_acknowledged_the_cancel
               if e["kind"] == "attempt.failed"]
     timed_out = [f for f in failed if f[2] == "timed_out"]
     # every experiment had its two attempts, both timed out: a "busy" answer used up none of them
-    assert summary.abandoned == 3 and summary.timed_out == 6
-    assert sorted((t, n) for t, n, _ in timed_out) == sorted((f"e{i}s1", n) for i in range(3) for n in (1, 2))
+    assert summary.abandoned == 2 and summary.timed_out == 4
+    assert sorted((t, n) for t, n, _ in timed_out) == sorted((f"e{i}s1", n) for i in range(2) for n in (1, 2))
     # the adapter waited for each of the instrument's acknowledgements (the campaign may end before the last)
-    assert kinds.count("attempt.cancel_acknowledged") >= 5
+    assert kinds.count("attempt.cancel_acknowledged") >= 3
     assert len(busy) <= kinds.count("attempt.cancel_unanswered")  # one "busy" per grace overrun, no retry storm
     assert kinds.count("device.still_cancelling") == len(busy)

@@ -108,7 +108,8 @@ def test_train_an_unknown_agent_lists_what_is_installed(tmp_path):
 def test_ctrl_c_stops_training_and_says_what_was_kept(tmp_path):
     out = tmp_path / "s.zip"
     proc = subprocess.Popen([*TWIN, "train", "scenarios/jobshop.yaml", "--steps", "1000000", "--eval-every", "512",
-                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+                             "--out", str(out), "--set", "training.jobshop_sizes=[[6,6]]"],  # small shops: CP-SAT is quick
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     lines = []
     for line in proc.stderr:  # wait for the first evaluation (the rules'; CP-SAT has planned the Judge's shops)
         lines.append(line)

@@ -6,6 +6,7 @@ import signal
 import sqlite3
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -96,12 +97,16 @@ def test_a_finished_run_is_not_resumed(tmp_path):
 
 @pytest.mark.process
 def test_twin_report_on_a_sigkilled_run_says_how_far_it_got_and_twin_resume_finishes_it(tmp_path):
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
     db = tmp_path / "j.db"
-    twin = [sys.executable, "-m", "twin"]
     args = ["run", "scenarios/flaky_lab.yaml", "--bus", "memory", "--journal", str(db), "--quiet",
-            "--budget", "3000", "--seed", "2"]
+            "--budget", "1000", "--seed", "2"]
     env = {**os.environ, "LABTWIN_FLUSH_EVERY": "50"}
-    proc = subprocess.Popen(twin + args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen([sys.executable, "-m", "twin", *args], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
     while proc.poll() is None:  # kill it once something is on disk
         try:
             with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as c:
@@ -109,14 +114,16 @@ def test_twin_report_on_a_sigkilled_run_says_how_far_it_got_and_twin_resume_fini
                     break
         except sqlite3.Error:
             pass
+        time.sleep(0.01)  # a poll, not a wait for something: leave the CPU to the campaign
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert proc.returncode == -signal.SIGKILL and "summary" not in read_run(db), "it finished before it was killed"
-    report = subprocess.run(twin + ["report", str(db)], cwd=ROOT, capture_output=True, text=True)
-    assert report.returncode == 0
-    assert "interrupted" in report.stdout and f"twin resume {db}" in report.stdout.replace("\n", "")
-    resumed = subprocess.run(twin + ["resume", str(db), "--json"], cwd=ROOT, capture_output=True, text=True)
-    assert resumed.returncode == 0, resumed.stderr
+    cli = CliRunner()
+    report = cli.invoke(app, ["report", str(db)], env={"COLUMNS": "200"})
+    assert report.exit_code == 0, report.output
+    assert "interrupted" in report.output and f"twin resume {db}" in report.output.replace("\n", "")
+    resumed = cli.invoke(app, ["resume", str(db), "--json"])
+    assert resumed.exit_code == 0, resumed.output
     fresh = tmp_path / "fresh.db"
-    subprocess.run(twin + args[:5] + [str(fresh)] + args[6:], cwd=ROOT, check=True, capture_output=True)
+    assert cli.invoke(app, args[:5] + [str(fresh)] + args[6:]).exit_code == 0
     assert tables(db) == tables(fresh)
