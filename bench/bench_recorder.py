@@ -1,6 +1,8 @@
 """Recorder benchmarks for issue [2 of 5]: campaign speed with the Rerun recorder on vs off, recording size.
 
-    python bench/bench_recorder.py
+    python bench/bench_recorder.py [--pairs 15] [--sizes]
+
+``--sizes`` adds the recording size of 1,000-experiment campaigns (minutes: GP-BO fits dominate).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ def campaign(bus: str, record: bool) -> tuple[float, float, int]:
         return cpu, summ.wall_s, rrd.stat().st_size if record else 0
 
 
-def interleaved(bus: str, pairs: int = 5) -> tuple[list, list, int]:
+def interleaved(bus: str, pairs: int) -> tuple[list, list, int]:
     """(CPU s, wall s) off and on, alternating, so that load on the shared machine hits both alike."""
     off, on, size = [], [], 0
     run(ROOT / "scenarios" / "quantum_dots.yaml", journal=Path(tempfile.mkdtemp()) / "w.db", bus=bus,
@@ -43,18 +45,30 @@ def interleaved(bus: str, pairs: int = 5) -> tuple[list, list, int]:
     return off, on, size
 
 
+def paired(off: list[float], on: list[float]) -> str:
+    """The median of the pairs' ratios off ÷ on, with its interquartile range: the machine's load drifts
+    between pairs more than within one, so pairs are compared, not medians of each side."""
+    q = statistics.quantiles([a / b for a, b in zip(off, on)], n=4)
+    return f"{q[1]:.2f} [{q[0]:.2f}–{q[2]:.2f}]"
+
+
 def main() -> None:
+    pairs = int(sys.argv[sys.argv.index("--pairs") + 1]) if "--pairs" in sys.argv else 15
     rows = []
     for bus in ("memory", "zenoh"):
-        off, on, size = interleaved(bus)
-        c_off, c_on = (statistics.median(x[0] for x in v) for v in (off, on))
-        w_off, w_on = (statistics.median(x[1] for x in v) for v in (off, on))
-        rows.append([f"{bus} bus, recorder off (baseline)", f"{w_off:.2f}", "1.00", f"{c_off:.2f}", "1.00", ""])
-        rows.append([f"{bus} bus, recorder on (--save)", f"{w_on:.2f}", f"{w_off / w_on:.2f}", f"{c_on:.2f}",
-                     f"{c_off / c_on:.2f}", f"{size / 2**20:.1f}"])
-    table("Campaign speed with the Rerun recorder (flaky_lab without crashes, 400 experiments; "
-          "medians of 5 interleaved pairs; CPU includes Rerun's own threads and the final flush)",
-          ["run", "campaign wall s", "speed ÷ off", "process CPU s", "CPU ÷ off", "recording MB"], rows)
+        off, on, size = interleaved(bus, pairs)
+        c_off, c_on = ([x[0] for x in v] for v in (off, on))
+        w_off, w_on = ([x[1] for x in v] for v in (off, on))
+        rows.append([f"{bus}, off", f"{statistics.median(w_off):.2f}", "1.00", f"{statistics.median(c_off):.2f}",
+                     "1.00", ""])
+        rows.append([f"{bus}, --save", f"{statistics.median(w_on):.2f}", paired(w_off, w_on),
+                     f"{statistics.median(c_on):.2f}", paired(c_off, c_on), f"{size / 2**20:.1f}"])
+    table(f"Campaign speed with the Rerun recorder: flaky_lab without crashes, 400 experiments, {pairs} "
+          "interleaved pairs; wall and CPU s are medians, 'speed' and 'CPU' the median of each pair's off ÷ on "
+          "[IQR]; CPU includes Rerun's threads and the final flush",
+          ["run", "wall s", "speed", "CPU s", "CPU", "MB"], rows)
+    if "--sizes" not in sys.argv:
+        return
     sizes = []
     for scenario in ("quantum_dots", "flaky_lab"):
         with tempfile.TemporaryDirectory() as d:

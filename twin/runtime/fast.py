@@ -29,6 +29,7 @@ from twin.core.messages import Kind
 from twin.runtime.fast_device import FastDevice
 from twin.runtime.queue import EventQueue, Timer
 from twin.scenario import Scenario
+from twin.view.observer import UNDRAWN
 
 log = logging.getLogger(__name__)
 Progress = Callable[[CampaignCore], None]
@@ -111,7 +112,7 @@ class FastCampaign:
             t = type(a)
             if t is Note:
                 note(a)
-                if observer is not None:
+                if observer is not None and a.kind not in UNDRAWN:
                     observer.on_decision(a.t_lab, a.kind, {"experiment": a.experiment, "task": a.task,
                                                           "attempt": a.attempt, "device": a.device, "info": a.detail})
                 if a.kind in self.alerts:

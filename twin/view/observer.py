@@ -27,6 +27,9 @@ WATCHED = frozenset({"result", "telemetry"})
 #: Decisions drawn elsewhere and not repeated in the text log.
 QUIET = {"campaign.summary", "campaign.started", "task.ready", "attempt.running", "attempt.done",
          "experiment.proposed"}
+#: Decisions an observer neither draws nor logs: an in-process runtime need not hand them over.
+UNDRAWN = frozenset({"attempt.running"})
+DEBUG_KINDS = {"task.ready", "attempt.dispatched", "attempt.running", "attempt.done"}
 
 
 class Canvas(Protocol):
@@ -69,7 +72,7 @@ class LabObserver:
         self.state: dict[str, str] = {}
         self.busy_since: dict[str, float] = {}
         self.busy_total: dict[str, float] = {}
-        self.ready: dict[str, float | None] = {}
+        self.ready: set[str] = set()  # the ready steps' tasks
         self.best = math.inf
         self.best_by_target: dict[str, float] = {}
         self.finished = 0
@@ -77,6 +80,8 @@ class LabObserver:
         self.spectra = 0
         self.done = False
         self._last_queue: tuple | None = None
+        self._queue_at: float | None = None  # the queue changed at this lab time; drawn when time moves on
+        self._made: dict[str, float] = {}  # ready steps whose sample exists: when it was made
         self._seen: set[str] | None = set() if dedupe else None
         self._route: Any = None  # a RouteView, once a synthesis route runs
         self._handlers: dict[str, Any] = {}
@@ -126,18 +131,28 @@ class LabObserver:
     def on_decision(self, t: float, what: str, d: dict[str, Any]) -> None:
         if self.t0 is None:
             self.t0 = t
-        info, device, task = d.get("info"), d.get("device"), d.get("task")
+        if self._queue_at is not None and t != self._queue_at:
+            self._draw_queue()
+        if what in UNDRAWN:
+            return
+        info = d.get("info")
         handler = self._handlers.get(what, MISSING)
         if handler is MISSING:  # looked up once per kind of decision: thousands of decisions, a dozen kinds
             handler = self._handlers[what] = getattr(self, "_" + what.replace(".", "_"), None)
         if handler is not None:
             handler(t, d, info)
         if what not in QUIET:
-            level = "ERROR" if what in ERROR_KINDS else "WARN" if what in WARN_KINDS else "DEBUG" if what in (
-                "task.ready", "attempt.dispatched", "attempt.running", "attempt.done") else "INFO"
-            where = " ".join(x for x in (task or "", f"#{d['attempt']}" if d.get("attempt") else "",
+            level = "ERROR" if what in ERROR_KINDS else "WARN" if what in WARN_KINDS else "DEBUG" if (
+                what in DEBUG_KINDS) else "INFO"
+            task, attempt, device = d.get("task"), d.get("attempt"), d.get("device")
+            where = " ".join(x for x in (task or "", f"#{attempt}" if attempt else "",
                                          f"on {device}" if device else "") if x)
-            self.c.text("log", t, f"{what} {where}{self._describe(info)}", level)
+            self.c.text("log", t, f"{what} {where}{self._describe(info) if info is not None else ''}", level)
+
+    def finish(self) -> None:
+        """Draw what waits for lab time to move on (the queue's last change); a recording calls this on close."""
+        if self._queue_at is not None:
+            self._draw_queue()
 
     @staticmethod
     def _describe(info: Any) -> str:
@@ -186,14 +201,18 @@ class LabObserver:
         self.c.points("planner/proposals", t, [tuple(coords)], seq=d.get("experiment"))
 
     def _task_ready(self, t: float, d: dict, info: dict) -> None:
-        self.ready[d["task"]] = (info or {}).get("sample_made")
-        self._queue(t)
+        made = (info or {}).get("sample_made")
+        self.ready.add(d["task"])
+        if made is not None:
+            self._made[d["task"]] = made
+        self._queue_at = t
 
     def _attempt_dispatched(self, t: float, d: dict, info: Any) -> None:
         if self._route is not None:
             self._route.running(t, d.get("experiment"), d.get("device"))
-        self.ready.pop(d["task"], None)
-        self._queue(t)
+        self.ready.discard(d["task"])
+        self._made.pop(d["task"], None)
+        self._queue_at = t
         self._set_state(t, d["device"], "busy")
 
     def _attempt_done(self, t: float, d: dict, info: Any) -> None:
@@ -248,6 +267,7 @@ class LabObserver:
 
     def _campaign_summary(self, t: float, d: dict, summary: dict) -> None:
         self.done = True
+        self.finish()
         self.c.document("summary", summary_markdown(summary or {}))
         self.c.flush()
 
@@ -266,9 +286,11 @@ class LabObserver:
         if was == "busy" and elapsed > 0:
             self.c.scalar(f"utilisation/{device}", t, self.busy_total.get(device, 0.0) / elapsed)
 
-    def _queue(self, t: float) -> None:
-        made = [m for m in self.ready.values() if m is not None]
-        now = (float(len(self.ready)), float(len(made)), min(made) if made else None)
+    def _draw_queue(self) -> None:
+        """One row per lab time at which the queue changed (several changes at one instant show as the last)."""
+        t, made = self._queue_at, self._made
+        self._queue_at = None
+        now = (float(len(self.ready)), float(len(made)), min(made.values()) if made else None)
         if now == self._last_queue:
             return
         self._last_queue = now

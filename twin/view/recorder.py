@@ -21,7 +21,7 @@ import sys
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import rerun as rr
@@ -174,8 +174,11 @@ class Recording:
     messages: list[str] = field(default_factory=list)
     server: subprocess.Popen | None = None
     url: str = ""
+    before_close: list[Callable[[], None]] = field(default_factory=list)  # what draws its last rows first
 
     def close(self) -> None:
+        for draw in self.before_close:
+            draw()
         self.canvas.flush()
         self.rec.flush()
         self.rec.disconnect()

@@ -44,7 +44,9 @@ def open_observer(options: RecordOptions, recording_id: str, dedupe: bool = Fals
 
     recording = open_recording(recording_id, options.save, options.viewer, options.serve,
                                options.serve_port, options.web_port)
-    return LabObserver(recording.canvas, dedupe=dedupe), recording
+    observer = LabObserver(recording.canvas, dedupe=dedupe)
+    recording.before_close.append(observer.finish)
+    return observer, recording
 
 
 def attach(bus: Bus, lab: str, on_message) -> list[Closable]:
