@@ -265,3 +265,27 @@ def test_a_wrong_endpoint_is_named_within_seconds(tmp_path):
                          capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert out.returncode == 2 and "nothing answered at tcp/127.0.0.1:" in out.stderr and "Traceback" not in out.stderr
     assert time.monotonic() - t0 < 15
+
+
+def test_only_the_operator_may_ask_the_control_desk_and_it_can_do_nothing_else(secured):
+    ears = Ears(secured)
+    desk = ears.s.declare_queryable(keys.control(LAB, "*"), lambda q: q.reply(q.key_expr, b'{"ok": true}'))
+    operator, watcher = as_who(secured, "operator"), as_who(secured, "watcher")
+    device = as_who(secured, "device", "spectrometer-1")
+    settle()
+    try:
+        def ask(session):
+            return [r.ok.payload.to_bytes() for r in session.get(keys.control(LAB, "pause"), payload=b"{}",
+                                                                 timeout=1.5) if r.ok is not None]
+
+        assert ask(operator) == [b'{"ok": true}']
+        assert ask(watcher) == [] and ask(device) == []  # reading the lab is not operating it
+        operator.put(keys.cmd(LAB, "synthesiser"), b"a command from the operator")
+        operator.put(keys.evt(LAB, "synthesiser"), b"forged by the operator")
+        settle()
+        assert ears.heard == []
+    finally:
+        desk.undeclare()
+        for s in (operator, watcher, device):
+            s.close()
+        ears.close()

@@ -5,11 +5,11 @@ it fast in virtual time or live over a bus.
 """
 
 from twin.campaign.core import CampaignCore
-from twin.campaign.events import (Ask, CancelTimer, DeviceMessage, Finished, InvalidInput, Note, Presence,
-                                  Proposed, Decided, RecordExperiment, RecordMessage, Send, SetTimer, Stop,
+from twin.campaign.events import (Ask, CancelTimer, DeviceMessage, Finished, InvalidInput, Note, Operator,
+                                  Presence, Proposed, Decided, RecordExperiment, RecordMessage, Send, SetTimer, Stop,
                                   TimerFired)
 
 __all__ = [
     "Ask", "CampaignCore", "CancelTimer", "Decided", "DeviceMessage", "Finished", "InvalidInput", "Note",
-    "Presence", "Proposed", "RecordExperiment", "RecordMessage", "Send", "SetTimer", "Stop", "TimerFired",
+    "Operator", "Presence", "Proposed", "RecordExperiment", "RecordMessage", "Send", "SetTimer", "Stop", "TimerFired",
 ]

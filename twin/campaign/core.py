@@ -16,11 +16,11 @@ from __future__ import annotations
 import secrets
 from typing import Any
 
-from twin.campaign import dispatch, policy, provenance
+from twin.campaign import dispatch, operator, policy, provenance, questions
 from twin.campaign.availability import Availability
 from twin.campaign.events import (Action, Ask, CancelTimer, Code, Decided, DeviceMessage, Event, Finished,
-                                  InvalidInput, Note, Presence, Proposed, RecordExperiment, RecordMessage, Send,
-                                  SetTimer, Status, Stop, TimerFired, TimerKey, TimerKind)
+                                  InvalidInput, Note, Operator, Presence, Proposed, RecordExperiment, RecordMessage,
+                                  Send, SetTimer, Status, Stop, TimerFired, TimerKey, TimerKind)
 from twin.campaign.ledger import Attempt, Counters, Device, Experiment, Task, check_accounting
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
 from twin.core.messages import Kind
@@ -29,7 +29,7 @@ from twin.scenario.targets import scores
 
 MAX_REFUSALS = 100  # "not now" answers to one step before it is given up: a device that never says yes
 
-_ORDER = {DeviceMessage: 0, InvalidInput: 0, Presence: 1, TimerFired: 2, Stop: 3}
+_ORDER = {DeviceMessage: 0, InvalidInput: 0, Presence: 1, TimerFired: 2, Operator: 3, Stop: 4}
 
 
 def _order(ev: Event) -> tuple[int, str]:
@@ -40,7 +40,9 @@ def _order(ev: Event) -> tuple[int, str]:
         return 1, ev.device  # type: ignore[union-attr]
     if rank == 2:
         return 2, f"{ev.key.kind}:{ev.key.ref}"  # type: ignore[union-attr]
-    return 3, ""
+    if rank == 3:
+        return 3, ev.ref  # type: ignore[union-attr]
+    return 4, ""
 
 
 class CampaignCore:
@@ -68,6 +70,9 @@ class CampaignCore:
         self.decision_wall_s: list[float] = []
         self.planner_exhausted = False
         self.stopping = ""
+        self.paused_by = ""  # an operator paused the campaign: nothing new is proposed or dispatched
+        self.questions: dict[str, questions.Question] = {}  # failed steps an operator is asked about
+        self._question_seq = 0
         self.finished = False
         self.now = self.t0 = 0.0
         self._running = False  # past start-up
@@ -180,6 +185,8 @@ class CampaignCore:
             self._on_presence(ev.device, ev.alive)
         elif isinstance(ev, TimerFired):
             self._on_timer(ev.key)
+        elif isinstance(ev, Operator):
+            operator.act(self, ev)
         elif isinstance(ev, InvalidInput):
             self.counts.invalid += 1
             self._note("message.invalid", device=ev.sender,
@@ -295,6 +302,8 @@ class CampaignCore:
                 self._wake = True
         elif kind == TimerKind.GIVE_UP:
             self._give_up(key.ref)
+        elif kind in (TimerKind.QUESTION, TimerKind.ANSWER):
+            questions.on_timer(self, kind, key.ref)
         elif kind == TimerKind.LIMIT:
             self._on_stop("max_lab_hours reached")
         elif kind == TimerKind.STARTUP and not self._running:
@@ -320,7 +329,7 @@ class CampaignCore:
                     return
                 self._filled = True
             self._check_stranded()
-            if not self.stopping and dispatch.pair_possible(self.ready.values(), self.devices):
+            if not (self.stopping or self.paused_by) and dispatch.pair_possible(self.ready.values(), self.devices):
                 c = self.s.campaign
                 self._ask(Ask("schedule", view=dispatch.view(self.now, self.ready.values(), self.devices,
                                                              self.finished_count, c.budget, len(self.active))))
@@ -367,7 +376,7 @@ class CampaignCore:
         self._wake = self._filled = False
 
     def _room(self) -> int:
-        if self.stopping or not self._can_propose():
+        if self.stopping or self.paused_by or not self._can_propose():
             return 0
         c = self.s.campaign
         return min(c.max_in_flight - len(self.active), c.budget - len(self.experiments))
@@ -499,8 +508,8 @@ class CampaignCore:
         task.attempts -= 1  # "not now" does not use up one of the step's attempts
         e.attempts -= 1
         task.refusals += 1
-        if (task.refusals < MAX_REFUSALS and policy.may_retry(task.attempts, self.now - task.first_ready, o.retry)
-                and not self.stopping):
+        if (task.refusals < MAX_REFUSALS and not self.stopping
+                and policy.may_retry(task.attempts - task.excused, self.now - task.first_ready, o.retry)):
             backoff = policy.backoff_s(o.retry, task.attempts + 1, self.seed, task.id)
             self._note("task.refused", e.id, task.id, task.attempts + 1, dev.name,
                        detail={"backoff_s": backoff, "reason": reason})
@@ -539,8 +548,14 @@ class CampaignCore:
             task.failed_on.append(dev.name)
             if policy.should_quarantine(dev.consecutive_failures, o.quarantine_after, dev.quarantined):
                 self._quarantine(dev)
-        if policy.may_retry(task.attempts, self.now - task.first_ready, o.retry) and not self.stopping:
-            backoff = policy.backoff_s(o.retry, task.attempts, self.seed, task.id)
+        counted = task.attempts - task.excused
+        retries_left = policy.may_retry(counted, self.now - task.first_ready, o.retry) and not self.stopping
+        rule = None if self.stopping else questions.rule_for(self, task, dev.type, code, retries_left)
+        if rule is not None:
+            why = f"step {task.step.step!r} failed {task.attempts} time(s); last: {code} on {dev.name}: {reason}"
+            questions.ask(self, task, dev.name, code, why, rule)
+        elif retries_left:
+            backoff = policy.backoff_s(o.retry, counted, self.seed, task.id)
             e.retries += 1
             self.counts.retried += 1
             self._note("task.retry", e.id, task.id, task.attempts, dev.name, detail={"backoff_s": backoff, "after": code})
@@ -589,6 +604,10 @@ class CampaignCore:
                 self._send(dev.name, Kind.CANCEL, att.task.id, att.n, {"reason": "campaign stopped"}, att.token)
                 self._note("attempt.cancelled", att.task.experiment.id, att.task.id, att.n, dev.name,
                            detail=self.stopping)
+        for q in list(self.questions.values()):  # moot: its experiment stays pending in the journal
+            self._note("question.withdrawn", q.task.experiment.id, q.task.id, q.task.attempts, q.device,
+                       detail={"id": q.id, "why": self.stopping or "the campaign ended"})
+        self.questions.clear()
         for e in self.active.values():
             if e.status == Status.RUNNING:
                 e.status = Status.PENDING

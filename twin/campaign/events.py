@@ -1,8 +1,8 @@
 """The core's vocabulary: the events it takes and the actions it returns.
 
 Events come from devices (through a runtime that decoded them), presence,
-timers the core set, the planner's and scheduler's answers, and a stop
-request. Actions tell the runtime what to do: send, time, ask, record.
+timers the core set, the planner's and scheduler's answers, an operator's
+acts and a stop request. Actions tell the runtime what to do: send, time, ask, record.
 All are small frozen records; nothing here does I/O.
 """
 
@@ -37,8 +37,9 @@ class Code(StrEnum):
 
 #: Notes a runtime also logs as warnings: the lab cannot go on as it is.
 ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping"})
-#: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, or a device type gone
-PROGRESS_KINDS = ("attempt.done", "attempt.failed", "devices.")
+#: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, a device type gone, an
+#: operator's act
+PROGRESS_KINDS = ("attempt.done", "attempt.failed", "devices.", "operator.")
 
 
 class TimerKind(StrEnum):
@@ -49,6 +50,8 @@ class TimerKind(StrEnum):
     PROBE = "probe"
     CANCEL_GRACE = "cancel_grace"
     GIVE_UP = "give_up"  # no usable instance of a device type: abandon what waits for it
+    QUESTION = "question"  # an operator's question unanswered: its default applies
+    ANSWER = "answer"  # virtual time: the scenario's simulated operator answers
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,6 +104,25 @@ class TimerFired:
 @dataclass(frozen=True, slots=True)
 class Stop:
     reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class Operator:
+    """An operator's act (``twin ctl``): ``pause`` (``now``: cancel what is in the lab to a safe state too),
+    ``resume``, ``abort`` or ``retry`` an ``experiment``, ``stop``, ``answer`` a ``question`` with an ``option``. ``ref`` names the request (the runtime
+    answers the operator with the note that carries it) and orders acts of one instant as they arrived."""
+
+    command: str
+    who: str
+    ref: str = ""
+    experiment: int | None = None
+    now: bool = False
+    reason: str = ""
+    question: str = ""  # answer: the question's id
+    option: str = ""  # answer: the option chosen
+
+
+OPERATOR_COMMANDS = ("pause", "resume", "abort", "retry", "stop", "answer")
 
 
 @dataclass(frozen=True, slots=True)
@@ -192,5 +214,5 @@ class Finished:
     reason: str
 
 
-Event = DeviceMessage | InvalidInput | Presence | TimerFired | Stop
+Event = DeviceMessage | InvalidInput | Presence | TimerFired | Operator | Stop
 Action = Send | SetTimer | CancelTimer | Ask | Note | RecordMessage | RecordExperiment | Finished

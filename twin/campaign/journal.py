@@ -106,6 +106,11 @@ class Journal:
         self._db.execute("INSERT OR REPLACE INTO run VALUES (?, ?)", (key, json.dumps(value, default=str)))
         self._db.commit()
 
+    def get(self, key: str) -> Any:
+        """A fact of the run set before (None if it was not)."""
+        row = self._db.execute("SELECT value FROM run WHERE key = ?", (key,)).fetchone()
+        return json.loads(row[0]) if row else None
+
     def flush(self) -> None:
         if self._inputs:
             self._db.executemany("INSERT INTO inputs (t_lab, batch) VALUES (?,?)", self._inputs)
@@ -158,6 +163,9 @@ class NullJournal(Journal):
 
     def set(self, key: str, value: Any) -> None:
         pass
+
+    def get(self, key: str) -> Any:
+        return None
 
     def flush(self) -> None:
         pass

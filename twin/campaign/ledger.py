@@ -52,6 +52,7 @@ class Task:
     attempts: int = 0
     failed_on: list[str] = field(default_factory=list)  # devices, oldest failure first
     refusals: int = 0  # "not now" answers, which do not count as attempts
+    excused: int = 0  # attempts an operator stopped (pause --now): numbered, but not counted against retries
 
 
 @dataclass(slots=True)

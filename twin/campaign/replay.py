@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from twin.campaign.core import CampaignCore
-from twin.campaign.events import (Ask, CancelTimer, Decided, DeviceMessage, InvalidInput, Presence, Proposed,
-                                  SetTimer, Stop, TimerFired, TimerKey, TimerKind)
+from twin.campaign.events import (Ask, CancelTimer, Decided, DeviceMessage, InvalidInput, Operator, Presence,
+                                  Proposed, SetTimer, Stop, TimerFired, TimerKey, TimerKind)
 from twin.core.errors import TwinError
 from twin.core.messages import InvalidMessage, decode
 from twin.campaign.decisions import Assignment, Proposal, RouteStep
@@ -35,6 +35,9 @@ def encode(event: Any) -> list[Any]:
         return ["invalid", event.sender, event.reason, event.key, event.excerpt]
     if t is Stop:
         return ["stop", event.reason]
+    if t is Operator:
+        return ["operator", event.command, event.who, event.ref, event.experiment, event.now, event.reason,
+                event.question, event.option]
     if t is Proposed:
         return ["proposed", [[p.params, None if p.route is None else [[r.step, r.device, r.params] for r in p.route],
                               *([p.cost] if p.cost else [])] for p in event.proposals]]
@@ -60,6 +63,8 @@ def decode_input(data: list[Any]) -> Any:
         return InvalidInput(*data[1:5])
     if kind == "stop":
         return Stop(data[1])
+    if kind == "operator":
+        return Operator(*data[1:9])
     if kind == "proposed":
         return Proposed([Proposal(item[0], None if item[1] is None else tuple(RouteStep(*r) for r in item[1]),
                                   *item[2:3]) for item in data[1]])

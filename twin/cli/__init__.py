@@ -3,7 +3,7 @@
 Each command group is a module that registers its commands on the apps in ``common``.
 """
 
-from twin.cli import commands, distributed, learning, routes, whatif  # noqa: F401  (they register their commands)
+from twin.cli import commands, control, distributed, export, learning, routes, whatif  # noqa: F401  (they register their commands)
 from twin.cli.common import app
 
 __all__ = ["app"]

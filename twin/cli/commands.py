@@ -117,9 +117,13 @@ def resume(
                                                        runtime=runtime))
 
 
-def waiting_for(device_types: list[str]) -> str:
-    """The progress line's word on device types that work waits for with no usable instance."""
-    return f"[red]waiting: no usable {', '.join(device_types)}[/]" if device_types else ""
+def waiting_for(device_types: list[str], paused_by: str = "") -> str:
+    """The progress line's word on an operator's pause and on device types that work waits for with no usable
+    instance."""
+    words = [f"[yellow]paused by {escape(paused_by)} (twin ctl resume)[/]"] if paused_by else []
+    if device_types:
+        words.append(f"[red]waiting: no usable {', '.join(device_types)}[/]")
+    return "  ".join(words)
 
 
 def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> None:
@@ -141,7 +145,7 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
 
             def on_progress(core) -> None:
                 progress.update(bar, completed=core.finished_count, lab_h=core.elapsed_s / 3600,
-                                status=waiting_for(core.unavailable))
+                                status=waiting_for(core.unavailable, core.paused_by))
 
             summary = call(on_progress, observer)
     except TwinError as exc:

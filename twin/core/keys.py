@@ -33,6 +33,11 @@ def clock(lab: str) -> str:
     return f"{PREFIX}/{lab}/clock"
 
 
+def control(lab: str, command: str = "*") -> str:
+    """An operator's requests to the lab's campaign (``twin ctl``): status, pause, resume, abort, retry, stop."""
+    return f"{PREFIX}/{lab}/control/{command}"
+
+
 def campaign(lab: str, campaign_id: str, topic: str = "**") -> str:
     return f"{PREFIX}/{lab}/campaign/{campaign_id}/{topic}"
 

@@ -29,6 +29,7 @@ from twin.runtime.fast_device import FastRuntimeRefused
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
+from twin.runtime.run_record import provenance
 from twin.scenario import Scenario, load, parse, set_dotted
 from twin.view.observer import LabObserver
 from twin.campaign.summary import Summary, from_core
@@ -333,6 +334,12 @@ def open_journal(s: Scenario, path: str | Path, make_journal: JournalFactory = J
     journal = make_journal(Path(path))
     journal.set("scenario", s.model_dump())
     journal.set("seed", s.campaign.seed)
+    first, now = journal.get("provenance"), provenance(s)
+    if first is None:
+        journal.set("provenance", now)
+    else:  # a live campaign resumed: where it came from stays; each resume is added
+        resumed = {k: now[k] for k in ("started_utc", "versions", "command")}
+        journal.set("provenance", {**first, "resumed": [*first.get("resumed", []), resumed]})
     return journal
 
 

@@ -32,6 +32,7 @@ from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.bus import NoReplyError
 from twin.core.messages import InvalidMessage, Kind, decode, excerpt, pack, without_token
+from twin.runtime.control import ControlDesk
 from twin.runtime.decision_stream import SENDER, DecisionStream
 from twin.view.observer import WATCHED
 from twin.scenario import Scenario
@@ -59,6 +60,7 @@ class LiveCampaign:
         self._recording = not clock.is_virtual
         self._fed: list[Any] = []
         self.decisions = DecisionStream(journal, bus, clock, scenario.lab, campaign_id)
+        self.desk = ControlDesk(self.core, clock, self._feed, journal.flush)
         self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
         self._ids = itertools.count(1)
         self._handles: list[Any] = []
@@ -92,6 +94,7 @@ class LiveCampaign:
         self._done = loop.create_future()
         self._handles = [
             self.bus.serve(self.decisions.history_key, self.decisions.history),
+            self.bus.serve(keys.control(lab), self.desk.serve),
             self.bus.subscribe(keys.evt(lab), self._on_event),
             self.bus.subscribe(keys.telemetry(lab), self._on_event),
             self.bus.watch_tokens(keys.alive(lab), self._on_presence),
@@ -107,6 +110,7 @@ class LiveCampaign:
             else:
                 await self._take_over(self._rebuilt)
             await self._done
+            await self.desk.drain()
         finally:
             remove_hook()
             if self._deciding is not None:
@@ -228,6 +232,8 @@ class LiveCampaign:
                 unwritten = True
             if t is Note:
                 self._decided(a)
+                if a.kind.startswith("operator."):
+                    self.desk.noted(a)
                 if a.kind in ALERTS:
                     log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
                 elif a.kind == "message.rejected":

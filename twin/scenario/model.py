@@ -172,6 +172,48 @@ class Retry(_Spec):
     jitter: float = Field(default=0.5, ge=0, le=1)
 
 
+RecoveryOption = Literal["retry", "skip", "abandon"]
+
+
+def _every_option() -> list[RecoveryOption]:
+    return ["retry", "skip", "abandon"]
+
+
+class SimulatedOperator(_Spec):
+    """Virtual time: the operator a what-if assumes — who answers after ``after_s`` lab seconds with ``answer``."""
+
+    after_s: float = Field(ge=0, le=MAX_S)
+    answer: RecoveryOption
+
+
+class Recovery(_Spec):
+    """Ask the operator what to do with a failed step instead of abandoning its experiment: when the step's
+    automatic retries are spent, or at once for a fault in ``faults``. The answer is one of ``options``
+    (`twin ctl answer`); ``default`` applies after ``timeout_s`` lab seconds without one."""
+
+    step: str | None = Field(default=None, description="the step type it covers (default: every step)")
+    device: str | None = Field(default=None, description="the device type it covers (default: every type)")
+    faults: list[Literal["failed", "timed_out", "device_lost", "driver_error"]] = Field(
+        default_factory=list, description="faults that ask at once, before any automatic retry")
+    options: list[RecoveryOption] = Field(default_factory=_every_option, min_length=1,
+                                          description="retry (fresh attempts), skip (the step, the experiment goes "
+                                          "on without its outputs), abandon (the experiment)")
+    default: RecoveryOption = Field(default="abandon", description="what happens when nobody answers in time")
+    timeout_s: float = Field(default=3600, gt=0, le=MAX_S, description="lab seconds to wait for an answer")
+    simulate: SimulatedOperator | None = Field(default=None, description="virtual time: a simulated operator's "
+                                               "delay and answer")
+
+    @model_validator(mode="after")
+    def _answerable(self) -> Recovery:
+        if len(set(self.options)) != len(self.options):
+            raise ValueError(f"options {self.options}: each at most once")
+        if self.default not in self.options:
+            raise ValueError(f"default {self.default!r} is not one of the options {self.options}")
+        if self.simulate is not None and self.simulate.answer not in self.options:
+            raise ValueError(f"simulate.answer {self.simulate.answer!r} is not one of the options {self.options}")
+        return self
+
+
 class Orchestration(_Spec):
     timeout_factor: float = Field(default=2.0, ge=1, le=1000)
     timeout_slack_s: float = Field(default=300, ge=0, le=MAX_S)
@@ -183,6 +225,8 @@ class Orchestration(_Spec):
                                   "step after the orchestrator has left the bus, before it stops it in a safe state")
     cancel_grace_s: float = Field(default=60, ge=0, le=MAX_S, description="lab seconds a timed-out device has to "
                                   "answer the cancel before it is given work again")
+    recovery: list[Recovery] = Field(default_factory=list, max_length=64, description="failed steps to ask an "
+                                     "operator about (the first rule that covers a step applies)")
 
 
 class ClockSpec(_Spec):
@@ -314,6 +358,14 @@ class Scenario(_Spec):
     def _consistent(self) -> Scenario:
         problems = [f"training.instances.{k}: {k!r} is not a device type of this lab"
                     for k in self.training.instances if k not in self.devices]
+        steps = {st for dev in self.devices.values() for st in dev.steps}
+        for i, rule in enumerate(self.orchestrator.recovery):
+            if rule.device is not None and rule.device not in self.devices:
+                problems.append(f"orchestrator.recovery.{i}.device: {rule.device!r} is not a device type of this "
+                                f"lab ({', '.join(self.devices)})")
+            if rule.step is not None and rule.step not in steps:
+                problems.append(f"orchestrator.recovery.{i}.step: {rule.step!r} is no device's step "
+                                f"({', '.join(sorted(steps))})")
         for i, ws in enumerate(self.workflow):
             dev = self.devices.get(ws.device)
             if dev is None:

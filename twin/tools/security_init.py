@@ -43,7 +43,7 @@ def init(root: str | Path, lab: str, devices: list[str], hosts: list[str] | None
     os.chmod(root / "private", 0o700)
     ca_key, ca_cert = _ca(root, lab, days, written)
     people = [Identity("router", lab), Identity("orchestrator", lab), Identity("scheduler", lab),
-              Identity("watcher", lab)] + [Identity("device", lab, d) for d in devices]
+              Identity("watcher", lab), Identity("operator", lab)] + [Identity("device", lab, d) for d in devices]
     for who in people:
         folder = who.folder(root)
         if (folder / "cert.pem").is_file() and (folder / "key.pem").is_file():

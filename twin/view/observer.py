@@ -18,7 +18,9 @@ import numpy as np
 #: A device's states, in the order the viewer lists them.
 STATES = ("offline", "idle", "failed", "quarantined", "busy")
 WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",
-              "device.flapping", "devices.unavailable", "devices.missing", "campaign.stopping", "attempt.cancelled"}
+              "device.flapping", "devices.unavailable", "devices.missing", "campaign.stopping", "attempt.cancelled",
+              "operator.pause", "operator.abort", "operator.stop", "operator.refused", "question.asked",
+              "question.withdrawn"}
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned"}
 MISSING = object()
 QUEUE_SERIES = ("ready steps", "samples waiting", "oldest sample's age (h)")
@@ -248,7 +250,7 @@ class LabObserver:
             self.best = min(self.best, score)
             self.c.scalar("objective/score", t, score, seq=seq)
             self.c.scalar("objective/best", t, self.best, seq=seq)
-        for name, s in scores.items():
+        for name, s in scores.items() if len(scores) > 1 else ():  # one target: its series would be the above
             if s is None or not math.isfinite(s):
                 continue
             self.best_by_target[name] = min(self.best_by_target.get(name, math.inf), s)
@@ -263,6 +265,10 @@ class LabObserver:
         if self._route is not None:
             self._route.finished(t, d.get("experiment"), None, str((info or {}).get("reason", "")))
         self.finished += 1
+        self.c.scalar("campaign/finished", t, float(self.finished), seq=d.get("experiment"))
+
+    def _experiment_reopened(self, t: float, d: dict, info: Any) -> None:
+        self.finished -= 1  # an operator's retry: abandoned, and now in the lab again
         self.c.scalar("campaign/finished", t, float(self.finished), seq=d.get("experiment"))
 
     def _campaign_summary(self, t: float, d: dict, summary: dict) -> None:

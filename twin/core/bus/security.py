@@ -12,7 +12,9 @@ config, whose access-control policy denies by default and allows
 - the orchestrator: everything under ``labtwin/<lab>/`` (it is the lab);
 - a scheduler agent: serving ``labtwin/<lab>/agent/scheduler/**`` and hearing
   the lab's clock;
-- a watcher: reading (subscribing, watching tokens, paging the history).
+- a watcher: reading (subscribing, watching tokens, paging the history);
+- an operator: asking the campaign's control desk (``labtwin/<lab>/control/**``:
+  ``twin ctl``), and nothing else.
 
 Subjects are matched by certificate common name, which only mutual TLS
 proves: the router requires a client certificate signed by the lab's CA.
@@ -30,7 +32,7 @@ from twin.core import keys
 from twin.core.errors import BusError
 
 MANIFEST = "labtwin-security.json"
-ROLES = ("router", "orchestrator", "scheduler", "watcher", "device")
+ROLES = ("router", "orchestrator", "scheduler", "watcher", "operator", "device")
 _ALL = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
         "liveliness_query", "declare_liveliness_subscriber"]
 
@@ -125,12 +127,15 @@ def access_control(lab: str, devices: list[str]) -> dict[str, Any]:
               [f"{p}/**"]),
         _rule("watcher-history", ["query"], ["ingress"], [keys.campaign(lab, "*", "history")]),
         _rule("watcher-out", ["put", "reply", "liveliness_token"], ["egress"], [f"{p}/**"]),
+        _rule("operator-ask", ["query"], ["ingress"], [keys.control(lab, "**")]),
+        _rule("operator-answered", ["reply"], ["egress"], [keys.control(lab, "**")]),
     ]
     subjects = [{"id": role, "cert_common_names": [Identity(role, lab).common_name]}
-                for role in ("orchestrator", "scheduler", "watcher")]
+                for role in ("orchestrator", "scheduler", "watcher", "operator")]
     policies = [{"rules": ["orchestrator"], "subjects": ["orchestrator"]},
                 {"rules": ["scheduler-in", "scheduler-out", "clock-ask", "clock-told"], "subjects": ["scheduler"]},
-                {"rules": ["watcher-in", "watcher-history", "watcher-out"], "subjects": ["watcher"]}]
+                {"rules": ["watcher-in", "watcher-history", "watcher-out"], "subjects": ["watcher"]},
+                {"rules": ["operator-ask", "operator-answered"], "subjects": ["operator"]}]
     for i, dev in enumerate(devices):
         sid = f"device{i}"
         own = [

@@ -1,0 +1,274 @@
+"""`twin ctl` against a live campaign in another process, over Zenoh on loopback: a pause takes effect at once and
+holds (no dispatch until resume), survives SIGKILL + `twin resume`, and hostile requests are refused by field."""
+
+import asyncio
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import qd_lab
+from tests.twin.test_device_process import free_port
+from twin.campaign.journal import read_events, read_run
+from twin.core import keys
+from twin.core.bus import NoReplyError, open_bus
+from twin.core.clock import LabClock
+
+ROOT = Path(__file__).resolve().parents[2]
+TWIN = [sys.executable, "-m", "twin"]
+
+
+def live_lab(tmp_path, endpoint, **changes):
+    lab = qd_lab(**{"campaign.budget": 12, "campaign.max_in_flight": 3, "clock": {"mode": "scaled", "speed": 300},
+                    "bus": {"kind": "zenoh", "listen": [endpoint]}, "devices.spectrometer.instances": 2,
+                    "devices.synthesiser.duration": {"mean_s": 30, "cv": 0.0},
+                    "devices.spectrometer.duration": {"mean_s": 60, "cv": 0.0}, **changes})
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(lab))
+    return path
+
+
+class Operator:
+    """One Zenoh client session of an operator, as `twin ctl` opens it."""
+
+    def __init__(self, endpoint):
+        self.endpoint = endpoint
+
+    async def __aenter__(self):
+        host, port = self.endpoint.split("/")[1].split(":")
+        deadline = time.monotonic() + 60
+        while True:  # the campaign's process is starting: wait until its session listens
+            try:
+                socket.create_connection((host, int(port)), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline, f"nothing ever listened at {self.endpoint}"
+                await asyncio.sleep(0.05)
+        self.bus = open_bus("zenoh", LabClock("wall"), mode="client", listen=[], connect=[self.endpoint])
+        await self.bus.start()
+        return self
+
+    async def __aexit__(self, *exc):
+        await self.bus.close()
+
+    async def ask(self, command, body=b"{}", wait=5.0):
+        payload = body if isinstance(body, bytes) else json.dumps(body).encode()
+        return json.loads(await self.bus.request(keys.control("t", command), payload, wait))
+
+    async def until(self, predicate, seconds=60.0):
+        """Poll the campaign's status until ``predicate(status)`` holds (the campaign may not be up yet)."""
+        deadline, st = time.monotonic() + seconds, None
+        while time.monotonic() < deadline:
+            try:
+                st = (await self.ask("status", wait=1.0))["status"]
+                if predicate(st):
+                    return st
+            except NoReplyError:
+                pass
+            await asyncio.sleep(0.05)
+        raise AssertionError(f"the campaign never got there: {st}")
+
+
+def kinds_between(events, first, last=None):
+    """Event kinds after the first ``first`` note and before the first ``last`` one after it."""
+    i = next(n for n, e in enumerate(events) if e["kind"] == first)
+    rest = events[i + 1:]
+    j = next((n for n, e in enumerate(rest) if e["kind"] == last), len(rest)) if last else len(rest)
+    return [e["kind"] for e in rest[:j]]
+
+
+@pytest.mark.process
+async def test_a_pause_takes_effect_at_once_and_holds_until_resume(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    db = tmp_path / "j.db"
+    proc = subprocess.Popen(TWIN + ["run", str(live_lab(tmp_path, endpoint)), "--journal", str(db), "--quiet"],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        async with Operator(endpoint) as op:
+            await op.until(lambda st: st["experiments"]["done"] >= 1)
+            t0 = time.perf_counter()
+            answer = await op.ask("pause", {"who": "alice", "reason": "reagent rack"})
+            took = time.perf_counter() - t0
+            assert answer["ok"] and answer["done"] == "operator.pause" and answer["status"]["state"] == "paused"
+            assert took < 0.1, f"the pause took {took * 1000:.0f} ms to take effect"
+            refused = await op.ask("pause", {"who": "bob"})
+            assert refused == {"ok": False, "error": "already paused by alice", "lab_hours": refused["lab_hours"]}
+            # steps in the lab finish; nothing new starts (at 300x, 3 lab-minutes pass per 0.6 s)
+            st = await op.until(lambda st: not st["in_lab"], seconds=30)
+            await asyncio.sleep(0.6)
+            later = (await op.ask("status"))["status"]
+            assert later["state"] == "paused" and later["paused_by"] == "alice" and not later["in_lab"]
+            assert later["experiments"] == st["experiments"] and later["ready"] == st["ready"]
+            answer = await op.ask("resume", {"who": "bob"})
+            assert answer["ok"] and answer["status"]["state"] == "running"
+        assert proc.wait(timeout=60) == 0, proc.stderr.read().decode()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    events = read_events(db)
+    paused = kinds_between(events, "operator.pause", "operator.resume")
+    assert "attempt.dispatched" not in paused and "attempt.done" in paused
+    pause = next(e for e in events if e["kind"] == "operator.pause")
+    assert json.loads(pause["detail"]) == {"who": "alice", "ref": json.loads(pause["detail"])["ref"],
+                                           "reason": "reagent rack"}
+    assert read_run(db)["summary"]["done"] == 12
+
+
+@pytest.mark.process
+async def test_a_paused_campaign_stays_paused_after_sigkill_and_twin_resume(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    db = tmp_path / "j.db"
+    path = live_lab(tmp_path, endpoint)
+    proc = subprocess.Popen(TWIN + ["run", str(path), "--journal", str(db), "--quiet"], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    resumed = None
+    try:
+        async with Operator(endpoint) as op:
+            await op.until(lambda st: st["experiments"]["done"] >= 1)
+            assert (await op.ask("pause", {"who": "alice", "now": True}))["ok"]
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        assert "summary" not in read_run(db)
+        resumed = subprocess.Popen(TWIN + ["resume", str(db), "--quiet", "--json"], cwd=ROOT,
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        async with Operator(endpoint) as op:  # the resumed campaign listens where the scenario says, as before
+            st = await op.until(lambda st: st["state"] in ("paused", "running", "finished"))
+            assert st["state"] == "paused" and st["paused_by"] == "alice"
+            await asyncio.sleep(0.5)  # 2.5 lab-minutes: long enough for a step to be dispatched, were it allowed
+            st = (await op.ask("status"))["status"]
+            assert st["state"] == "paused" and not st["in_lab"]
+            assert (await op.ask("resume", {"who": "alice"}))["ok"]
+        out, errs = resumed.communicate(timeout=120)
+        assert resumed.returncode == 0, errs.decode()[-2000:]
+    finally:
+        for p in (proc, resumed):
+            if p is not None and p.poll() is None:
+                p.kill()
+                p.wait()
+    summary = json.loads(out)
+    assert summary["done"] == 12 and summary["proposed"] == 12
+    record = read_run(db)["provenance"]
+    assert record["seed"] == 0 and len(record["resumed"]) == 1 and record["resumed"][0]["command"][1] == "resume"
+    events = read_events(db)
+    after = kinds_between(events, "campaign.resumed", "operator.resume")
+    assert "attempt.dispatched" not in after
+
+
+@pytest.mark.process
+async def test_hostile_requests_are_refused_by_field_and_never_reach_the_journal(tmp_path):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    db = tmp_path / "j.db"
+    proc = subprocess.Popen(TWIN + ["run", str(live_lab(tmp_path, endpoint, **{"campaign.budget": 4})),
+                                    "--journal", str(db), "--quiet"],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        async with Operator(endpoint) as op:
+            await op.until(lambda st: st["state"] == "running")
+            bad = {b"not json": "not JSON", b"[1, 2]": "JSON object", b'{"who": "x; rm -rf /"}': "who:",
+                   b'{"who": "a", "experiment": true}': "experiment:", b'{"who": "a", "now": "yes"}': "now:",
+                   b'{"who": "a", "sudo": 1}': "unknown field", b"{" + b" " * 5000 + b"}": "at most 4096",
+                   b'{"who": "a", "reason": "' + b"x" * 600 + b'"}': "reason:"}
+            for payload, words in bad.items():
+                answer = await op.ask("pause", payload)
+                assert not answer["ok"] and words in answer["error"], (payload[:40], answer)
+            answer = await op.ask("explode", {"who": "a"})
+            assert not answer["ok"] and "unknown command 'explode'" in answer["error"]
+            answer = await op.ask("abort", {"who": "a", "experiment": 999})
+            assert not answer["ok"] and "there is no experiment 999" in answer["error"]
+            assert (await op.ask("stop", {"who": "carol", "reason": "test over"}))["ok"]
+        assert proc.wait(timeout=60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    events = read_events(db)
+    ops = [(e["kind"], json.loads(e["detail"]).get("who")) for e in events if e["kind"].startswith("operator.")]
+    assert ops == [("operator.refused", "a"), ("operator.stop", "carol")]  # the rest never got past the desk
+    assert read_run(db)["summary"]["stopped"] == "stopped by carol: test over"
+
+
+@pytest.mark.process
+def test_the_ctl_commands_say_what_they_did_and_a_refusal_exits_1(tmp_path):
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    db = tmp_path / "j.db"
+    proc = subprocess.Popen(TWIN + ["run", str(live_lab(tmp_path, endpoint)), "--journal", str(db), "--quiet"],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    cli, where = CliRunner(), ["--lab", "t", "--connect", endpoint]
+    try:
+        asyncio.run(_up(endpoint))
+        res = cli.invoke(app, ["ctl", "pause", *where, "--as", "alice", "--reason", "refill"], env={"COLUMNS": "200"})
+        assert res.exit_code == 0 and "operator.pause by alice at lab" in res.output and "paused" in res.output
+        res = cli.invoke(app, ["ctl", "status", *where], env={"COLUMNS": "200"})
+        assert res.exit_code == 0, res.output
+        assert "test_lab (campaign c1, lab t): paused by alice" in res.output and "spectrometer-1" in res.output
+        res = cli.invoke(app, ["ctl", "abort", "999", *where])
+        assert res.exit_code == 1 and "refused: there is no experiment 999" in res.output
+        res = cli.invoke(app, ["ctl", "status", *where, "--json"])
+        assert json.loads(res.output)["status"]["paused_by"] == "alice"
+        res = cli.invoke(app, ["ctl", "stop", *where, "--as", "alice"])
+        assert res.exit_code == 0 and "operator.stop by alice" in res.output, res.output
+        assert proc.wait(timeout=60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+async def _up(endpoint):
+    async with Operator(endpoint) as op:
+        await op.until(lambda st: st["state"] == "running")
+
+
+@pytest.mark.process
+def test_an_operator_lists_the_pending_question_and_answers_it(tmp_path):
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    db = tmp_path / "j.db"
+    lab = live_lab(tmp_path, endpoint, **{
+        "campaign.budget": 2, "devices.synthesiser.faults": {"fail_p": 1.0}, "orchestrator.retry.max_attempts": 1,
+        "orchestrator.recovery": [{"device": "synthesiser", "options": ["retry", "abandon"], "default": "abandon",
+                                   "timeout_s": 100000}]})
+    proc = subprocess.Popen(TWIN + ["run", str(lab), "--journal", str(db), "--quiet"],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    cli, where = CliRunner(), ["--lab", "t", "--connect", endpoint]
+    try:
+        asyncio.run(_until_asked(endpoint))
+        res = cli.invoke(app, ["ctl", "pending", *where], env={"COLUMNS": "200"})
+        assert res.exit_code == 0 and "q1: experiment" in res.output and "options: retry, abandon" in res.output
+        assert "twin ctl answer q1 OPTION" in res.output
+        res = cli.invoke(app, ["ctl", "answer", "q1", "skip", *where])
+        assert res.exit_code == 1 and "'skip' is not an option of q1: choose one of retry, abandon" in res.output
+        res = cli.invoke(app, ["ctl", "answer", "q1", "abandon", *where, "--as", "alice"])
+        assert res.exit_code == 0 and "operator.answer by alice" in res.output, res.output
+        res = cli.invoke(app, ["ctl", "stop", *where, "--as", "alice"])
+        assert res.exit_code == 0, res.output
+        assert proc.wait(timeout=60) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    events = read_events(db)
+    answered = [json.loads(e["detail"]) for e in events if e["kind"] == "question.answered"]
+    assert answered[0] == {"id": "q1", "option": "abandon", "who": "alice"}
+    gone = next(e for e in events if e["kind"] == "experiment.abandoned")
+    assert json.loads(gone["detail"])["reason"].endswith("alice chose to abandon it")
+
+
+async def _until_asked(endpoint):
+    async with Operator(endpoint) as op:
+        await op.until(lambda st: st["questions"])

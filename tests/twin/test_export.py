@@ -1,0 +1,101 @@
+"""`twin export`: the journal's rows come out as they went in (Parquet read back equals the journal), every attempt
+is a row, the provenance names the scenario's hash and the operators' acts, and bad requests say what to do."""
+
+import csv
+import json
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+from typer.testing import CliRunner
+
+from twin.campaign.journal import Journal, read_events, read_experiments, read_run
+from twin.cli import app
+from twin.core.errors import TwinError
+from twin.runtime.lab import prepare, run
+from twin.runtime.run_record import scenario_hash
+from twin.scenario import parse
+from twin.tools.export import WHAT, export
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def flaky(tmp_path_factory):
+    """A flaky_lab run with failures, retries and abandoned experiments."""
+    db = tmp_path_factory.mktemp("run") / "flaky.db"
+    summary = run(prepare(ROOT / "scenarios" / "flaky_lab.yaml", seed=7, bus="memory",
+                          overrides={"campaign.budget": 40, "orchestrator.retry.max_attempts": 1}), journal=db)
+    assert summary.abandoned > 0 and summary.failed_attempts > 0
+    return db
+
+
+def test_experiments_in_parquet_equal_the_journal_rows(flaky, tmp_path):
+    export(flaky, tmp_path, "parquet")
+    table = pq.read_table(tmp_path / "experiments.parquet").to_pylist()
+    journal = read_experiments(flaky)
+    assert len(table) == len(journal) == 40
+    for row, e in zip(table, journal):
+        assert (row["experiment"], row["status"], row["reason"], row["attempts"], row["retries"]) == \
+            (e["id"], e["status"], e["reason"], e["attempts"], e["retries"])
+        assert row["degraded"] == bool(e["degraded"]) and row["t_proposed_s"] == e["t_proposed"]
+        assert row["t_done_s"] == e["t_done"]
+        assert {k[6:]: v for k, v in row.items() if k.startswith("param.")} == json.loads(e["params"])
+        outputs = json.loads(e["outputs"] or "{}")
+        assert {k[7:]: v for k, v in row.items() if k.startswith("output.") and v is not None} == outputs
+        assert {k[6:]: v for k, v in row.items() if k.startswith("score.") and v is not None} == \
+            json.loads(e["scores"] or "{}")
+
+
+def test_every_attempt_is_one_row_and_the_formats_agree(flaky, tmp_path):
+    events = read_events(flaky)
+    sent = [(e["task"], e["attempt"]) for e in events if e["kind"] == "attempt.dispatched"]
+    for fmt in ("csv", "jsonl", "parquet"):
+        export(flaky, tmp_path / fmt, fmt, ["attempts", "devices"])
+    with open(tmp_path / "csv" / "attempts.csv") as f:
+        rows = list(csv.DictReader(f))
+    lines = [json.loads(x) for x in (tmp_path / "jsonl" / "attempts.jsonl").read_text().splitlines()]
+    parquet = pq.read_table(tmp_path / "parquet" / "attempts.parquet").to_pylist()
+    assert [(r["task"], int(r["attempt"])) for r in rows] == sent == [(r["task"], r["attempt"]) for r in lines]
+    assert lines == parquet
+    failed = sum(e["kind"] == "attempt.failed" for e in events)
+    assert sum(r["outcome"] == "failed" for r in lines) == failed > 0
+    assert all(r["t_end_s"] >= r["t_sent_s"] for r in lines if r["t_end_s"] is not None)
+    devices = [json.loads(x) for x in (tmp_path / "jsonl" / "devices.jsonl").read_text().splitlines()]
+    assert sum(d["attempts"] for d in devices) == len(sent) and len(devices) == 6
+    assert {d["device"]: d["busy_share"] for d in devices} == read_run(flaky)["summary"]["utilisation"]
+
+
+def test_provenance_names_the_scenario_hash_versions_and_operator_acts(flaky, tmp_path):
+    export(flaky, tmp_path, "csv", ["operator"])
+    record = json.loads((tmp_path / "provenance.json").read_text())
+    scenario = parse(read_run(flaky)["scenario"], "journal")
+    assert record["scenario_sha256"] == scenario_hash(scenario) and record["seed"] == 7
+    assert {"labtwin", "numpy", "python"} <= set(record["versions"]) and record["operator_acts"] == []
+    # a journal with an operator's acts (as a live campaign writes them)
+    j = Journal(tmp_path / "ops.db")
+    j.set("scenario", read_run(flaky)["scenario"])
+    j.event(10.0, "operator.pause", detail={"who": "alice", "ref": "1", "reason": "refill", "now": True})
+    j.event(20.0, "operator.refused", 3, detail={"who": "bob", "ref": "2", "command": "abort", "why": "no such"})
+    j.event(30.0, "operator.resume", detail={"who": "alice", "ref": "3"})
+    j.close()
+    export(tmp_path / "ops.db", tmp_path / "ops", "jsonl", ["operator"])
+    acts = [json.loads(x) for x in (tmp_path / "ops" / "operator.jsonl").read_text().splitlines()]
+    assert [(a["act"], a["who"], a["now"], a["refused"]) for a in acts] == [
+        ("pause", "alice", True, None), ("abort", "bob", False, "no such"), ("resume", "alice", False, None)]
+    assert json.loads((tmp_path / "ops" / "provenance.json").read_text())["operator_acts"] == acts
+
+
+def test_bad_requests_name_what_to_do(flaky, tmp_path):
+    with pytest.raises(TwinError, match="the tables are " + ", ".join(WHAT)):
+        export(flaky, tmp_path, "csv", ["experiments", "gossip"])
+    with pytest.raises(TwinError, match="use one of csv, parquet, jsonl"):
+        export(flaky, tmp_path, "xlsx")
+    (tmp_path / "notes.db").write_text("not a database")
+    with pytest.raises(TwinError, match="is not a labtwin journal"):
+        export(tmp_path / "notes.db", tmp_path / "x")
+    res = CliRunner().invoke(app, ["export", str(tmp_path / "none.db")])
+    assert res.exit_code == 2 and "no such journal" in res.output
+    res = CliRunner().invoke(app, ["export", str(flaky), "--format", "parquet", "--out", str(tmp_path / "cli")])
+    assert res.exit_code == 0 and (tmp_path / "cli" / "experiments.parquet").exists()
+    assert len(res.output.splitlines()) == len(WHAT) + 1

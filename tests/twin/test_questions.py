@@ -1,0 +1,129 @@
+"""Recovery the operator chooses: a failed step covered by an ``orchestrator.recovery`` rule is asked about, the
+answer (or the default at the timeout, or a simulated operator in virtual time) decides, and it is journalled."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from twin.campaign import Decided, Operator, TimerFired
+from twin.campaign.decisions import Assignment
+from twin.campaign.events import TimerKey, TimerKind
+from twin.campaign.journal import read_events
+from twin.core.errors import ScenarioError
+from twin.core.messages import Kind
+from twin.runtime.lab import prepare, run
+from twin.scenario import parse
+
+from tests.conftest import qd_lab
+from tests.twin.test_core import msg, notes
+from tests.twin.test_operator import running
+
+ROOT = Path(__file__).resolve().parents[2]
+ASK = {"orchestrator.retry.max_attempts": 1,
+       "orchestrator.recovery": [{"device": "synthesiser", "options": ["retry", "skip", "abandon"],
+                                  "default": "abandon", "timeout_s": 600}]}
+
+
+def failed(core, attempt=1, t=10.0, code="failed"):
+    core.feed(msg(Kind.FAULT, "synthesiser", "e0s0", attempt, code=code, reason="clogged"))
+    return core.advance(t)
+
+
+def answer(core, qid, option, t, who="alice"):
+    core.feed(Operator("answer", who, f"r{t}", question=qid, option=option))
+    return core.advance(t)
+
+
+def test_spent_retries_ask_the_operator_instead_of_abandoning(scenario_of):
+    core = running(scenario_of, **ASK)
+    out = failed(core)
+    (asked,) = notes(out, "question.asked")
+    assert not notes(out, "experiment.abandoned") and 0 in core.active
+    assert asked.detail == {"id": "q1", "step": "synthesise", "fault": "failed", "reason":
+                            "step 'synthesise' failed 1 time(s); last: failed on synthesiser: clogged",
+                            "options": ["retry", "skip", "abandon"], "default": "abandon", "timeout_s": 600}
+    assert TimerKey(TimerKind.QUESTION, "q1") in [a.key for a in out if hasattr(a, "delay")]
+    out = answer(core, "q1", "retry", 20.0)
+    (answered,) = notes(out, "question.answered")
+    assert answered.detail == {"id": "q1", "option": "retry", "who": "alice"} and "e0s0" in core.ready
+    core.feed(Decided([Assignment("e0s0", "synthesiser")]))
+    core.advance(20.0)
+    assert core.attempts[("e0s0", 2)].device == "synthesiser"  # numbering goes on: a late first answer matches nothing
+    out = failed(core, attempt=2, t=30.0)
+    assert notes(out, "question.asked")[0].detail["id"] == "q2", "a retried step that fails again asks again"
+    out = answer(core, "q2", "abandon", 40.0, who="bob")
+    (gone,) = notes(out, "experiment.abandoned")
+    assert gone.detail["reason"].endswith("; bob chose to abandon it") and not core.questions
+
+
+def test_skip_moves_the_experiment_on_without_the_steps_outputs(scenario_of):
+    core = running(scenario_of, **ASK)
+    failed(core)
+    out = answer(core, "q1", "skip", 15.0)
+    assert notes(out, "task.skipped")[0].detail == {"by": "alice"} and "e0s1" in core.ready
+
+
+def test_nobody_answers_and_the_default_applies_at_the_timeout(scenario_of):
+    core = running(scenario_of, **ASK)
+    failed(core)
+    core.feed(TimerFired(TimerKey(TimerKind.QUESTION, "q1")))
+    out = core.advance(610.0)
+    assert notes(out, "question.answered")[0].detail == {"id": "q1", "option": "abandon", "who": "nobody",
+                                                         "default": True}
+    assert notes(out, "experiment.abandoned")[0].detail["reason"].endswith("the default chose to abandon it")
+    out = answer(core, "q1", "retry", 620.0)
+    why = notes(out, "operator.refused")[0].detail["why"]
+    assert "there is no open question 'q1' (open: none" in why
+
+
+def test_a_listed_fault_asks_at_once_and_a_wrong_option_is_refused(scenario_of):
+    rules = [{"step": "synthesise", "faults": ["timed_out"], "options": ["retry", "abandon"], "default": "retry"}]
+    core = running(scenario_of, **{"orchestrator.recovery": rules})  # three attempts, but a timeout asks at once
+    core.feed(TimerFired(TimerKey(TimerKind.DEADLINE, "e0s0#1")))
+    out = core.advance(500.0)
+    assert notes(out, "question.asked")[0].detail["fault"] == "timed_out" and not notes(out, "task.retry")
+    out = answer(core, "q1", "skip", 510.0)
+    assert "'skip' is not an option of q1: choose one of retry, abandon" in notes(out, "operator.refused")[0].detail["why"]
+    core.feed(msg(Kind.FAULT, "synthesiser", "e0s0", 1, code="failed", reason="plain failure"))  # late: no question
+    assert not notes(core.advance(520.0), "question.asked")
+
+
+def test_an_abort_withdraws_the_open_question(scenario_of):
+    core = running(scenario_of, **ASK)
+    failed(core)
+    core.feed(Operator("abort", "alice", "r1", 0))
+    out = core.advance(20.0)
+    assert notes(out, "question.withdrawn")[0].detail["id"] == "q1" and not core.questions
+    assert notes(out, "experiment.abandoned")
+
+
+def test_a_simulated_operator_answers_in_virtual_time_and_nothing_is_lost(tmp_path):
+    rules = [{"device": "reactor", "options": ["retry", "abandon"], "default": "abandon", "timeout_s": 7200,
+              "simulate": {"after_s": 900, "answer": "retry"}}]
+    db = tmp_path / "j.db"
+    summary = run(prepare(ROOT / "scenarios" / "flaky_lab.yaml", seed=3, bus="memory",
+                          overrides={"campaign.budget": 40, "orchestrator.retry.max_attempts": 1,
+                                     "orchestrator.recovery": rules}), journal=db)
+    events = read_events(db)
+    asked = [e for e in events if e["kind"] == "question.asked"]
+    answered = [json.loads(e["detail"]) for e in events if e["kind"] == "question.answered"]
+    assert asked and all(a["who"] == "simulated operator" and a["option"] == "retry" for a in answered)
+    assert len(answered) + sum(e["kind"] == "question.withdrawn" for e in events) == len(asked)
+    gaps = [b["t_lab"] - a["t_lab"] for a, b in zip(asked, [e for e in events if e["kind"] == "question.answered"])]
+    assert all(abs(g - 900) < 1e-6 for g in gaps)
+    assert summary.done + summary.abandoned + summary.pending == 40
+    reactor_abandoned = [r for r in summary.abandoned_reasons if "'react'" in r]
+    assert reactor_abandoned == [], "a reactor failure is retried on the simulated answer, never abandoned"
+
+
+@pytest.mark.parametrize("rule, words", [
+    ({"options": ["retry"], "default": "abandon"}, "default 'abandon' is not one of the options ['retry']"),
+    ({"device": "oven"}, "orchestrator.recovery.0.device: 'oven' is not a device type"),
+    ({"step": "bake"}, "orchestrator.recovery.0.step: 'bake' is no device's step"),
+    ({"simulate": {"after_s": 5, "answer": "skip"}, "options": ["retry", "abandon"]}, "simulate.answer 'skip'"),
+    ({"options": ["retry", "retry", "abandon"]}, "each at most once"),
+])
+def test_a_recovery_rule_that_cannot_work_is_refused_with_its_field(rule, words):
+    with pytest.raises(ScenarioError, match=words.replace("[", r"\[").replace("]", r"\]")):
+        parse(qd_lab(**{"orchestrator.recovery": [rule]}), "lab.yaml")

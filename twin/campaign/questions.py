@@ -1,0 +1,105 @@
+"""Recovery the operator chooses: a step whose automatic retries are spent (or that failed with a fault the
+scenario names) is not abandoned at once when an ``orchestrator.recovery`` rule covers it; the operator is
+asked, with the options the rule gives, and the rule's default applies when nobody answers in time.
+
+A question is a note (``question.asked``: its id, the experiment, step, device, fault, options, default and
+timeout) and a timer; the answer is an ``Operator`` act (``answer``, ``twin ctl answer ID OPTION``) or, in
+virtual time, the scenario's simulated operator. Either way the outcome is a ``question.answered`` note
+naming who chose (or that the default applied). While a question is open its experiment stays in the lab's
+books as running: nothing is lost, and the campaign does not end under it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from twin.campaign.events import CancelTimer, Operator, Status, TimerKey, TimerKind
+from twin.campaign.ledger import Task
+
+CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
+
+
+@dataclass(slots=True)
+class Question:
+    id: str
+    task: Task
+    device: str
+    fault: str
+    why: str
+    options: tuple[str, ...]
+    default: str
+    deadline: float  # lab time at which the default applies
+    simulated: str = ""  # virtual time: what the scenario's simulated operator answers
+
+
+def rule_for(core: CampaignCore, task: Task, device_type: str, code: str, retries_left: bool) -> Any:
+    """The recovery rule that asks about this failure now, or None: a rule covers the step and device type, and
+    either the step's retries are spent or the fault is one the rule asks about at once."""
+    for rule in core.s.orchestrator.recovery:
+        if rule.step not in (None, task.step.step) or rule.device not in (None, device_type):
+            continue
+        if not retries_left or code in rule.faults:
+            return rule
+    return None
+
+
+def ask(core: CampaignCore, task: Task, device: str, code: str, why: str, rule: Any) -> None:
+    core._question_seq += 1
+    q = Question(f"q{core._question_seq}", task, device, code, why, tuple(rule.options), rule.default,
+                 core.now + rule.timeout_s, rule.simulate.answer if rule.simulate is not None else "")
+    core.questions[q.id] = q
+    e = task.experiment
+    core._note("question.asked", e.id, task.id, task.attempts, device,
+               detail={"id": q.id, "step": task.step.step, "fault": code, "reason": why, "options": list(q.options),
+                       "default": q.default, "timeout_s": rule.timeout_s})
+    core._timer(TimerKey(TimerKind.QUESTION, q.id), rule.timeout_s)
+    sim = rule.simulate
+    if sim is not None and core.s.clock.mode == "virtual" and sim.after_s < rule.timeout_s:
+        core._timer(TimerKey(TimerKind.ANSWER, q.id), sim.after_s)
+
+
+def answer(core: CampaignCore, op: Operator) -> str:
+    """An operator's answer (``op.question``, ``op.option``); '' when it applied, else why not."""
+    q = core.questions.get(op.question)
+    if q is None:
+        open_ = ", ".join(core.questions) or "none"
+        return f"there is no open question {op.question!r} (open: {open_}; `twin ctl pending` lists them)"
+    if op.option not in q.options:
+        return f"{op.option!r} is not an option of {q.id}: choose one of {', '.join(q.options)}"
+    settle(core, q, op.option, op.who)
+    return ""
+
+
+def on_timer(core: CampaignCore, kind: TimerKind, qid: str) -> None:
+    """The question's timeout (its default applies) or the simulated operator's answer."""
+    q = core.questions.get(qid)
+    if q is None:
+        return
+    if kind == TimerKind.QUESTION:
+        settle(core, q, q.default, "", timed_out=True)
+    else:
+        settle(core, q, q.simulated, "simulated operator")
+
+
+def settle(core: CampaignCore, q: Question, option: str, who: str, timed_out: bool = False) -> None:
+    del core.questions[q.id]
+    core._out.append(CancelTimer(TimerKey(TimerKind.QUESTION, q.id)))
+    core._out.append(CancelTimer(TimerKey(TimerKind.ANSWER, q.id)))
+    task, e = q.task, q.task.experiment
+    detail: dict[str, Any] = {"id": q.id, "option": option, "who": who or "nobody"}
+    if timed_out:
+        detail["default"] = True  # nobody answered in time
+    core._note("question.answered", e.id, task.id, task.attempts, q.device, detail=detail)
+    if e.status not in (Status.RUNNING, Status.PENDING) or e.id not in core.active:
+        return  # aborted meanwhile
+    chooser = who or "the default"
+    if option == "retry":
+        task.excused = task.attempts  # fresh retries: the spent ones were the question's reason
+        core._make_ready(e, task)
+    elif option == "skip":
+        core._note("task.skipped", e.id, task.id, task.attempts, q.device, detail={"by": chooser})
+        core._advance_experiment(task, {})
+    else:
+        core._finish(e, Status.ABANDONED, f"{q.why}; {chooser} chose to abandon it")
+    core._wake = True

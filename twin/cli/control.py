@@ -1,0 +1,151 @@
+"""``twin ctl``: an operator's commands to a running campaign, over the lab's bus."""
+
+from __future__ import annotations
+
+import getpass
+import json
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import typer
+from rich.markup import escape
+
+from twin.cli.common import _fail, app, console, err, narrow_table
+from twin.core.errors import TwinError
+
+ctl_app = typer.Typer(help="Operate a running campaign: status, pause, resume, abort, retry, stop, and answer "
+                           "its questions (pending, answer).",
+                      no_args_is_help=True)
+app.add_typer(ctl_app, name="ctl")
+
+Lab = Annotated[str, typer.Option("--lab", help="the lab (the scenario's `lab` field)")]
+Connect = Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447 (the "
+                                                 "campaign's --listen, or the lab's router)")]
+Security = Annotated[Optional[Path], typer.Option(help="the lab's security directory: ask as its operator")]
+Who = Annotated[Optional[str], typer.Option("--as", help="the name the journal records (default: your login)")]
+Reason = Annotated[str, typer.Option(help="why, for the journal")]
+AsJson = Annotated[bool, typer.Option("--json", help="print the campaign's answer as JSON")]
+
+
+def _who(name: str | None) -> str:
+    if name:
+        return name
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):
+        return "operator"
+
+
+def _send(command: str, lab: str, connect: list[str], security: Path | None, as_json: bool, **body: Any) -> dict:
+    from twin.tools.control import request
+
+    try:
+        answer = request(lab, command, body, list(connect), str(security) if security else None)
+    except TwinError as exc:
+        _fail(exc)
+    if as_json:
+        print(json.dumps(answer, indent=2))
+    if not answer.get("ok"):
+        if not as_json:
+            err.print(f"[bold red]refused:[/] {escape(str(answer.get('error')))}", highlight=False)
+        raise typer.Exit(1)
+    return answer
+
+
+def _acted(answer: dict, as_json: bool) -> None:
+    if not as_json:
+        st = answer["status"]
+        console.print(f"{answer['done']} by {answer['who']} at lab {answer['lab_hours']:.2f} h — the campaign is "
+                      f"{st['state']}", highlight=False, markup=False)
+
+
+@ctl_app.command("status")
+def ctl_status(lab: Lab, connect: Connect, security: Security = None, as_json: AsJson = False) -> None:
+    """The campaign's state (running / paused by whom / stopping), its experiments, what is in the lab."""
+    answer = _send("status", lab, connect, security, as_json)
+    if as_json:
+        return
+    st = answer["status"]
+    paused = f" by {st['paused_by']}" if st["paused_by"] else ""
+    console.print(f"{st['scenario']} (campaign {st['campaign']}, lab {st['lab']}): {st['state']}{paused} at lab "
+                  f"{st['lab_hours']:.2f} h", highlight=False, markup=False)
+    counts = st["experiments"]
+    console.print(f"experiments: {counts['done']} done, {counts['abandoned']} abandoned, "
+                  f"{counts['pending'] + counts['running']} in progress, of a budget of {st['budget']}",
+                  highlight=False, markup=False)
+    table = narrow_table(["device", "state", "step", "for lab-s"])
+    running = {r["device"]: r for r in st["in_lab"]}
+    for name, state in st["devices"].items():
+        r = running.get(name)
+        table.add_row(name, state, f"{r['task']} #{r['attempt']}" if r else "", f"{r['for_s']:.0f}" if r else "")
+    console.print(table)
+    if st["ready"] or st["retrying"]:
+        console.print(f"waiting for a device: {', '.join(st['ready']) or '-'}; waiting to retry: "
+                      f"{', '.join(st['retrying']) or '-'}", highlight=False, markup=False)
+    for n, reason in st["abandoned"].items():
+        console.print(f"abandoned {n}: {reason}  (twin ctl retry {n})", highlight=False, markup=False)
+
+
+@ctl_app.command("pause")
+def ctl_pause(lab: Lab, connect: Connect, now: Annotated[bool, typer.Option(
+        help="also take the steps in the lab out, to a safe state (they run again after resume)")] = False,
+        reason: Reason = "", who: Who = None, security: Security = None, as_json: AsJson = False) -> None:
+    """Stop new dispatch: steps in the lab finish (or, with --now, are cancelled), nothing new starts until resume.
+    A paused campaign stays paused across `twin resume`."""
+    _acted(_send("pause", lab, connect, security, as_json, who=_who(who), now=now, reason=reason), as_json)
+
+
+@ctl_app.command("resume")
+def ctl_resume(lab: Lab, connect: Connect, who: Who = None, security: Security = None,
+               as_json: AsJson = False) -> None:
+    """Let a paused campaign dispatch again."""
+    _acted(_send("resume", lab, connect, security, as_json, who=_who(who)), as_json)
+
+
+@ctl_app.command("abort")
+def ctl_abort(experiment: Annotated[int, typer.Argument(help="the experiment's number (twin ctl status)")],
+              lab: Lab, connect: Connect, reason: Reason = "", who: Who = None, security: Security = None,
+              as_json: AsJson = False) -> None:
+    """Abandon one experiment: its step in the lab is cancelled, the journal says who aborted it and why."""
+    _acted(_send("abort", lab, connect, security, as_json, who=_who(who), experiment=experiment, reason=reason),
+           as_json)
+
+
+@ctl_app.command("retry")
+def ctl_retry(experiment: Annotated[int, typer.Argument(help="the experiment's number (twin ctl status)")],
+              lab: Lab, connect: Connect, who: Who = None, security: Security = None, as_json: AsJson = False) -> None:
+    """Retry one experiment now: a step waiting out its back-off goes at once; an abandoned experiment runs again
+    from the step that failed, with fresh attempts."""
+    _acted(_send("retry", lab, connect, security, as_json, who=_who(who), experiment=experiment), as_json)
+
+
+@ctl_app.command("stop")
+def ctl_stop(lab: Lab, connect: Connect, reason: Reason = "", who: Who = None, security: Security = None,
+             as_json: AsJson = False) -> None:
+    """End the campaign as Ctrl-C would: steps in the lab are cancelled, the rest stays pending in the journal."""
+    _acted(_send("stop", lab, connect, security, as_json, who=_who(who), reason=reason), as_json)
+
+
+@ctl_app.command("pending")
+def ctl_pending(lab: Lab, connect: Connect, security: Security = None, as_json: AsJson = False) -> None:
+    """The questions waiting for an operator: a failed step, the options, and the default that applies when."""
+    answer = _send("status", lab, connect, security, as_json)
+    if as_json:
+        return
+    pending = answer["status"]["questions"]
+    if not pending:
+        console.print("no question is waiting", highlight=False, markup=False)
+        return
+    for q in pending:
+        console.print(f"{q['id']}: experiment {q['experiment']}, {q['why']}\n"
+                      f"  options: {', '.join(q['options'])}; {q['default']} in {q['default_in_s']:.0f} lab-s unless "
+                      f"answered (twin ctl answer {q['id']} OPTION)", highlight=False, markup=False)
+
+
+@ctl_app.command("answer")
+def ctl_answer(question: Annotated[str, typer.Argument(help="the question's id (twin ctl pending), e.g. q3")],
+               option: Annotated[str, typer.Argument(help="one of the question's options: retry, skip, abandon")],
+               lab: Lab, connect: Connect, who: Who = None, security: Security = None,
+               as_json: AsJson = False) -> None:
+    """Answer a question: the failed step is retried (with fresh attempts) or skipped, or its experiment abandoned."""
+    _acted(_send("answer", lab, connect, security, as_json, who=_who(who), question=question, option=option), as_json)

@@ -1,0 +1,33 @@
+"""``twin export``: a run's journal as CSV, Parquet or JSON-lines tables, with its provenance."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+from twin.cli.common import _fail, app
+from twin.core.errors import TwinError
+
+
+@app.command("export")
+def export_run(
+    journal: Annotated[Path, typer.Argument(help="the run's journal, e.g. runs/quantum_dots-seed0-….db")],
+    fmt: Annotated[str, typer.Option("--format", help="csv | parquet | jsonl")] = "csv",
+    what: Annotated[str, typer.Option(help="the tables, comma-separated: experiments, attempts, devices, "
+                                           "decisions, operator")] = "experiments,attempts,devices,decisions,operator",
+    out: Annotated[Optional[Path], typer.Option(help="the directory to write (default: beside the journal, "
+                                                     "<journal>-export)")] = None,
+) -> None:
+    """Write a run's experiments, attempts, devices, decisions and operator acts as tables (one file each) and its
+    provenance (scenario hash, seed, versions, files and their hashes, operator acts) as provenance.json."""
+    from twin.tools.export import export
+
+    target = out or journal.with_name(f"{journal.stem}-export")
+    try:
+        written = export(journal, target, fmt, [w.strip() for w in what.split(",") if w.strip()])
+    except TwinError as exc:
+        _fail(exc)
+    for path in written:
+        print(path)  # whole paths, for scripts: never wrapped to the terminal
