@@ -272,3 +272,41 @@ def test_an_operator_lists_the_pending_question_and_answers_it(tmp_path):
 async def _until_asked(endpoint):
     async with Operator(endpoint) as op:
         await op.until(lambda st: st["questions"])
+
+
+@pytest.mark.process
+def test_a_short_consumable_waits_for_the_operators_refill(tmp_path):
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    db = tmp_path / "j.db"
+    lab = live_lab(tmp_path, endpoint, **{"campaign.budget": 3, "consumables": {
+        "vials": {"unit": "vials", "level": 1, "used_by": {"measure": 1}}}})
+    proc = subprocess.Popen(TWIN + ["run", str(lab), "--journal", str(db), "--quiet", "--json"],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    cli, where = CliRunner(), ["--lab", "t", "--connect", endpoint]
+    try:
+        asyncio.run(_until_short(endpoint))
+        res = cli.invoke(app, ["ctl", "pending", *where], env={"COLUMNS": "200"})
+        assert res.exit_code == 0 and "vials is short (0 vials left)" in res.output
+        assert "twin ctl refill vials" in res.output
+        res = cli.invoke(app, ["ctl", "refill", "vials", "--amount", "5", *where, "--as", "alice"])
+        assert res.exit_code == 0 and "operator.refill by alice" in res.output, res.output
+        out, errs = proc.communicate(timeout=60)
+        assert proc.returncode == 0, errs.decode()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    summary = json.loads(out)
+    assert summary["done"] == 3 and summary["consumables"]["vials"] == {"left": 3.0, "used": 3.0, "unit": "vials",
+                                                                        "short": False}
+    kinds = [e["kind"] for e in read_events(db)]
+    assert kinds.count("consumable.depleted") == 1 and kinds.count("consumable.refilled") == 1
+
+
+async def _until_short(endpoint):
+    async with Operator(endpoint) as op:
+        await op.until(lambda st: st["consumables"]["vials"]["depleted"])

@@ -16,7 +16,8 @@ from __future__ import annotations
 import secrets
 from typing import Any
 
-from twin.campaign import dispatch, operator, policy, provenance, questions
+from twin.campaign import consumables, dispatch, operator, policy, provenance, questions
+from twin.campaign.consumables import Stocks
 from twin.campaign.availability import Availability
 from twin.campaign.events import (Action, Ask, CancelTimer, Code, Decided, DeviceMessage, Event, Finished,
                                   InvalidInput, Note, Operator, Presence, Proposed, RecordExperiment, RecordMessage,
@@ -72,6 +73,8 @@ class CampaignCore:
         self.stopping = ""
         self.paused_by = ""  # an operator paused the campaign: nothing new is proposed or dispatched
         self.questions: dict[str, questions.Question] = {}  # failed steps an operator is asked about
+        self.stocks = Stocks(scenario.consumables)
+        self.starved: dict[str, Task] = {}  # ready steps waiting for a consumable to be refilled
         self._question_seq = 0
         self.finished = False
         self.now = self.t0 = 0.0
@@ -304,6 +307,8 @@ class CampaignCore:
             self._give_up(key.ref)
         elif kind in (TimerKind.QUESTION, TimerKind.ANSWER):
             questions.on_timer(self, kind, key.ref)
+        elif kind == TimerKind.REFILL:
+            consumables.refill(self, key.ref, None, "simulated operator")
         elif kind == TimerKind.LIMIT:
             self._on_stop("max_lab_hours reached")
         elif kind == TimerKind.STARTUP and not self._running:
@@ -335,6 +340,10 @@ class CampaignCore:
                                                              self.finished_count, c.budget, len(self.active))))
                 return
             self._end_pass()
+        if not self.stopping and self.starved:
+            stalled = consumables.stalled(self)
+            if stalled:
+                self._on_stop(stalled)
         if self.stopping or (not self.active and not self._can_propose()):
             self._shutdown()
 
@@ -408,7 +417,12 @@ class CampaignCore:
             if why:
                 self._note("scheduler.invalid", task=a.task, device=a.device, detail=why)
                 continue
-            self._dispatch(self.ready.pop(a.task), self.devices[a.device])
+            task = self.ready.pop(a.task)
+            short = self.stocks.short(self._needs(task)) if self.stocks else []
+            if short:  # an assignment earlier in this answer used up what this one needs
+                self._starve(task, short)
+                continue
+            self._dispatch(task, self.devices[a.device])
             sent += 1
         if not sent:
             self._end_pass()
@@ -442,6 +456,11 @@ class CampaignCore:
             task = Task(f"e{e.id}s{e.stage}", e, step, self.now, self.now, expected,
                         expected + sum(d for _, d in then), then)
         task.ready_since = self.now
+        if self.stocks:
+            short = self.stocks.short(self._needs(task))
+            if short:
+                self._starve(task, short)
+                return
         self.ready[task.id] = task
         self._note("task.ready", e.id, task.id, detail={"sample_made": e.sample_made, "step": task.step.step})
         self._wake = True
@@ -464,8 +483,15 @@ class CampaignCore:
         self._timer(TimerKey(TimerKind.DEADLINE, f"{task.id}#{att.n}"), deadline)
         body = {"step": task.step.step, "params": {**e.params, **task.step.params}, "sample": e.sample,
                 "expected_s": task.expected_s, "deadline_s": deadline}
-        self._note("attempt.dispatched", e.id, task.id, att.n, dev.name, detail={"deadline_s": deadline})
+        detail: dict[str, Any] = {"deadline_s": deadline, **(consumables.take(self, task) if self.stocks else {})}
+        self._note("attempt.dispatched", e.id, task.id, att.n, dev.name, detail=detail)
         self._send(dev.name, Kind.COMMAND, task.id, att.n, body, att.token)
+
+    def _needs(self, task: Task) -> dict[str, float]:
+        return self.stocks.needs(task.step.step, {**task.experiment.params, **task.step.params})
+
+    def _starve(self, task: Task, short: list[str]) -> None:
+        consumables.starve(self, task, short)
 
     # -- outcomes ---------------------------------------------------------------------
     def _resolve(self, att: Attempt, code: str, body: dict[str, Any]) -> None:

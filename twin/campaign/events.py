@@ -52,6 +52,7 @@ class TimerKind(StrEnum):
     GIVE_UP = "give_up"  # no usable instance of a device type: abandon what waits for it
     QUESTION = "question"  # an operator's question unanswered: its default applies
     ANSWER = "answer"  # virtual time: the scenario's simulated operator answers
+    REFILL = "refill"  # virtual time: the scenario's simulated operator refills a consumable
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,7 +110,8 @@ class Stop:
 @dataclass(frozen=True, slots=True)
 class Operator:
     """An operator's act (``twin ctl``): ``pause`` (``now``: cancel what is in the lab to a safe state too),
-    ``resume``, ``abort`` or ``retry`` an ``experiment``, ``stop``, ``answer`` a ``question`` with an ``option``. ``ref`` names the request (the runtime
+    ``resume``, ``abort`` or ``retry`` an ``experiment``, ``stop``, ``answer`` a ``question`` with an ``option``,
+    ``refill`` a consumable ``item`` (by ``amount``, or to its starting level). ``ref`` names the request (the runtime
     answers the operator with the note that carries it) and orders acts of one instant as they arrived."""
 
     command: str
@@ -120,9 +122,11 @@ class Operator:
     reason: str = ""
     question: str = ""  # answer: the question's id
     option: str = ""  # answer: the option chosen
+    item: str = ""  # refill: the consumable
+    amount: float | None = None  # refill: how much (None: to its starting level)
 
 
-OPERATOR_COMMANDS = ("pause", "resume", "abort", "retry", "stop", "answer")
+OPERATOR_COMMANDS = ("pause", "resume", "abort", "retry", "stop", "answer", "refill")
 
 
 @dataclass(frozen=True, slots=True)

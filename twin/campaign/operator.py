@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from twin.campaign import questions
+from twin.campaign import consumables, questions
 from twin.campaign.events import CancelTimer, Operator, Status, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt
 from twin.core.messages import Kind
@@ -27,6 +27,8 @@ def act(core: CampaignCore, op: Operator) -> None:
         detail["reason"] = op.reason
     if op.question:
         detail.update(question=op.question, option=op.option)
+    if op.item:
+        detail.update(item=op.item, amount=op.amount)
     if why:
         core._note("operator.refused", op.experiment, detail={**detail, "command": op.command, "why": why})
         return
@@ -74,6 +76,8 @@ def _abort(core: CampaignCore, op: Operator) -> str:
                    detail={"id": q.id, "why": f"experiment {e.id} aborted by {op.who}"})
     for task_id in [t for t, task in core.ready.items() if task.experiment is e]:
         del core.ready[task_id]
+    for task_id in [t for t, task in core.starved.items() if task.experiment is e]:
+        del core.starved[task_id]
     for task_id in [t for t, task in core._retrying.items() if task.experiment is e]:
         del core._retrying[task_id]
         core._out.append(CancelTimer(TimerKey(TimerKind.RETRY, task_id)))
@@ -123,7 +127,18 @@ def _answer(core: CampaignCore, op: Operator) -> str:
     return questions.answer(core, op)
 
 
-_ACTS = {"pause": _pause, "resume": _resume, "abort": _abort, "retry": _retry, "stop": _stop, "answer": _answer}
+def _refill(core: CampaignCore, op: Operator) -> str:
+    if op.item not in core.stocks.items:
+        have = ", ".join(core.stocks.items) or "none"
+        return f"there is no consumable {op.item!r} (this lab's: {have})"
+    if op.amount is not None and not 0 < op.amount < 1e15:
+        return f"amount {op.amount}: a refill adds a positive amount (or, without one, fills to the starting level)"
+    consumables.refill(core, op.item, op.amount, op.who)
+    return ""
+
+
+_ACTS = {"pause": _pause, "resume": _resume, "abort": _abort, "retry": _retry, "stop": _stop, "answer": _answer,
+         "refill": _refill}
 
 
 def _not_active(core: CampaignCore, n: int | None) -> str:
@@ -164,6 +179,12 @@ def status(core: CampaignCore, now: float | None = None) -> dict[str, Any]:
             "paused_by": core.paused_by, "stopping": core.stopping, "lab_hours": round((now - core.t0) / 3600, 4),
             "budget": core.s.campaign.budget, "experiments": counts, "in_lab": in_lab,
             "ready": sorted(core.ready), "retrying": sorted(core._retrying),
+            "consumables": {name: {"level": round(st.level, 6), "unit": st.unit, "reorder_at": st.reorder_at,
+                                   "used": round(st.used, 6), "depleted": st.depleted,
+                                   "runs_out_in_s": core.stocks.runs_out_in_s(st, now - core.t0),
+                                   "waiting": sorted(t.id for t in core.starved.values()
+                                                     if name in core.stocks.short(core._needs(t)))}
+                            for name, st in core.stocks.items.items()},
             "abandoned": {e.id: e.reason for e in core.experiments if e.status == Status.ABANDONED},
             "questions": [{"id": q.id, "experiment": q.task.experiment.id, "task": q.task.id, "device": q.device,
                            "fault": q.fault, "why": q.why, "options": list(q.options), "default": q.default,

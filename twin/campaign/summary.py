@@ -42,6 +42,7 @@ class Summary:
     decisions: int = 0
     scheduler_fallbacks: int = 0  # decisions the fallback rule made for an absent, late or wrong agent
     decision_ms: dict[str, float] = field(default_factory=dict)  # wall time per scheduler decision: p50, p99, max
+    consumables: dict[str, dict[str, Any]] = field(default_factory=dict)  # item -> left, used, unit, short
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -76,6 +77,8 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         targets_met_after=dict(core.met_after), targets_met_cost=dict(core.met_cost),
         stopped=core.stopping, cost=core.cost, wall_s=wall_s, events=events,
         decisions=len(core.decision_wall_s), decision_ms=_percentiles(core.decision_wall_s),
+        consumables={name: {"left": round(st.level, 6), "used": round(st.used, 6), "unit": st.unit,
+                            "short": st.depleted} for name, st in core.stocks.items.items()},
     )
 
 

@@ -13,8 +13,8 @@ from rich.markup import escape
 from twin.cli.common import _fail, app, console, err, narrow_table
 from twin.core.errors import TwinError
 
-ctl_app = typer.Typer(help="Operate a running campaign: status, pause, resume, abort, retry, stop, and answer "
-                           "its questions (pending, answer).",
+ctl_app = typer.Typer(help="Operate a running campaign: status, pause, resume, abort, retry, stop; answer "
+                           "its questions and refill its consumables (pending, answer, refill).",
                       no_args_is_help=True)
 app.add_typer(ctl_app, name="ctl")
 
@@ -133,9 +133,13 @@ def ctl_pending(lab: Lab, connect: Connect, security: Security = None, as_json: 
     if as_json:
         return
     pending = answer["status"]["questions"]
-    if not pending:
+    short = {k: v for k, v in answer["status"]["consumables"].items() if v["depleted"]}
+    if not pending and not short:
         console.print("no question is waiting", highlight=False, markup=False)
         return
+    for name, c in short.items():
+        console.print(f"{name} is short ({c['level']:g} {c['unit']} left): {', '.join(c['waiting']) or 'nothing'} "
+                      f"waits for it (twin ctl refill {name} [--amount X])", highlight=False, markup=False)
     for q in pending:
         console.print(f"{q['id']}: experiment {q['experiment']}, {q['why']}\n"
                       f"  options: {', '.join(q['options'])}; {q['default']} in {q['default_in_s']:.0f} lab-s unless "
@@ -149,3 +153,13 @@ def ctl_answer(question: Annotated[str, typer.Argument(help="the question's id (
                as_json: AsJson = False) -> None:
     """Answer a question: the failed step is retried (with fresh attempts) or skipped, or its experiment abandoned."""
     _acted(_send("answer", lab, connect, security, as_json, who=_who(who), question=question, option=option), as_json)
+
+
+@ctl_app.command("refill")
+def ctl_refill(item: Annotated[str, typer.Argument(help="the consumable, as the scenario names it")],
+               lab: Lab, connect: Connect,
+               amount: Annotated[Optional[float], typer.Option(help="how much is added (default: fill to the "
+                                                                     "starting level)")] = None,
+               who: Who = None, security: Security = None, as_json: AsJson = False) -> None:
+    """Say a consumable was refilled: the steps that waited for it go on."""
+    _acted(_send("refill", lab, connect, security, as_json, who=_who(who), item=item, amount=amount), as_json)

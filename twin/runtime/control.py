@@ -72,7 +72,7 @@ class ControlDesk:
         fut = asyncio.get_running_loop().create_future()
         self._waiting[ref] = fut
         self._feed(Operator(command, request["who"], ref, request["experiment"], request["now"], request["reason"],
-                            request["question"], request["option"]))
+                            request["question"], request["option"], request["item"], request["amount"]))
         try:
             note = await asyncio.wait_for(fut, ANSWER_S)
         except asyncio.TimeoutError:
@@ -97,9 +97,10 @@ def _request(payload: bytes) -> dict[str, Any]:
         raise ValueError(f"the request is not JSON ({exc})") from None
     if not isinstance(data, dict):
         raise ValueError("the request must be a JSON object")
-    unknown = sorted(set(data) - {"who", "experiment", "now", "reason", "question", "option"})
+    fields = ("who", "experiment", "now", "reason", "question", "option", "item", "amount")
+    unknown = sorted(set(data) - set(fields))
     if unknown:
-        raise ValueError(f"unknown field(s) {unknown}: a request has who, experiment, now, reason, question, option")
+        raise ValueError(f"unknown field(s) {unknown}: a request has {', '.join(fields)}")
     who = data.get("who", "operator")
     if not isinstance(who, str) or not WHO.match(who):
         raise ValueError(f"who: {who!r} is not a name (1-64 letters, digits, '_', '.', '@', '-')")
@@ -113,9 +114,13 @@ def _request(payload: bytes) -> dict[str, Any]:
     if not isinstance(reason, str) or len(reason) > 500:
         raise ValueError("reason: a text of at most 500 characters")
     words = {}
-    for name in ("question", "option"):
+    amount = data.get("amount")
+    if amount is not None and (isinstance(amount, bool) or not isinstance(amount, (int, float))
+                               or not 0 < amount < 1e15):
+        raise ValueError(f"amount: {str(amount)[:80]!r} is not a positive number")
+    for name in ("question", "option", "item"):
         value = data.get(name, "")
         if not isinstance(value, str) or len(value) > 64:
             raise ValueError(f"{name}: {str(value)[:80]!r} is not a short text")
         words[name] = value
-    return {"who": who, "experiment": experiment, "now": now, "reason": reason, **words}
+    return {"who": who, "experiment": experiment, "now": now, "reason": reason, "amount": amount, **words}

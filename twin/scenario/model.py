@@ -214,6 +214,31 @@ class Recovery(_Spec):
         return self
 
 
+class Usage(_Spec):
+    """How much of an item one step uses: ``fixed`` plus, for each experiment parameter in ``per``, that much per
+    unit of the parameter (never below 0)."""
+
+    fixed: float = Field(default=0.0, ge=0, le=MAX_VALUE)
+    per: dict[Label, float] = Field(default_factory=dict, max_length=64)
+
+
+class SimulatedRefill(_Spec):
+    """Virtual time: the operator refills the item (to its starting level) this long after it runs short."""
+
+    after_s: float = Field(ge=0, le=MAX_S)
+
+
+class Consumable(_Spec):
+    unit: str = Field(default="units", max_length=32, description="what the levels count: mL, g, vials, tips, ...")
+    level: float = Field(gt=0, le=MAX_VALUE, description="the starting level (a refill without an amount fills to it)")
+    reorder_at: float = Field(default=0.0, ge=0, le=MAX_VALUE, description="below this, a consumable.low note says "
+                              "when it will run out at the rate so far")
+    used_by: dict[Label, float | Usage] = Field(min_length=1, max_length=64, description="step type -> what one step "
+                                                "uses: an amount, or {fixed, per: {parameter: amount per unit}}")
+    simulate_refill: SimulatedRefill | None = Field(default=None, description="virtual time: a simulated operator's "
+                                                    "refill")
+
+
 class Orchestration(_Spec):
     timeout_factor: float = Field(default=2.0, ge=1, le=1000)
     timeout_slack_s: float = Field(default=300, ge=0, le=MAX_S)
@@ -352,6 +377,8 @@ class Scenario(_Spec):
     clock: ClockSpec = ClockSpec()
     bus: BusSpec = BusSpec()
     jobshop: JobShop | None = None
+    consumables: dict[Name, Consumable] = Field(default_factory=dict, max_length=256, description="reagents, vials, "
+                                                "tips: what the lab holds and what its steps use up")
     training: Training = Training()
 
     @model_validator(mode="after")
@@ -359,6 +386,9 @@ class Scenario(_Spec):
         problems = [f"training.instances.{k}: {k!r} is not a device type of this lab"
                     for k in self.training.instances if k not in self.devices]
         steps = {st for dev in self.devices.values() for st in dev.steps}
+        for name, c in self.consumables.items():
+            problems += [f"consumables.{name}.used_by.{st}: {st!r} is no device's step ({', '.join(sorted(steps))})"
+                         for st in c.used_by if st not in steps]
         for i, rule in enumerate(self.orchestrator.recovery):
             if rule.device is not None and rule.device not in self.devices:
                 problems.append(f"orchestrator.recovery.{i}.device: {rule.device!r} is not a device type of this "

@@ -20,8 +20,9 @@ STATES = ("offline", "idle", "failed", "quarantined", "busy")
 WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",
               "device.flapping", "devices.unavailable", "devices.missing", "campaign.stopping", "attempt.cancelled",
               "operator.pause", "operator.abort", "operator.stop", "operator.refused", "question.asked",
-              "question.withdrawn"}
-ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned"}
+              "question.withdrawn", "consumable.low"}
+ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned",
+               "consumable.depleted"}
 MISSING = object()
 QUEUE_SERIES = ("ready steps", "samples waiting", "oldest sample's age (h)")
 #: What an observer draws of a device's messages (an in-process runtime hands it only these).
@@ -209,9 +210,14 @@ class LabObserver:
             self._made[d["task"]] = made
         self._queue_at = t
 
+    def _consumable_refilled(self, t: float, d: dict, info: dict) -> None:
+        self.c.scalar(f"consumables/{info['item']}", t, float(info["level"]))
+
     def _attempt_dispatched(self, t: float, d: dict, info: Any) -> None:
         if self._route is not None:
             self._route.running(t, d.get("experiment"), d.get("device"))
+        for item, level in ((info or {}).get("left") or {}).items():
+            self.c.scalar(f"consumables/{item}", t, float(level))
         self.ready.discard(d["task"])
         self._made.pop(d["task"], None)
         self._queue_at = t

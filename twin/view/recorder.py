@@ -62,7 +62,7 @@ def blueprint() -> rrb.Blueprint:
             rrb.Horizontal(
                 rrb.TextLogView(origin="/log", name="Decisions and faults"),
                 series("/telemetry", "Telemetry"),
-                series("/utilisation", "Utilisation"),
+                rrb.Tabs(series("/utilisation", "Utilisation"), series("/consumables", "Consumables")),
                 rrb.TextDocumentView(origin="/summary", name="Summary"),
             ),
         ),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from twin.campaign.summary import Summary
@@ -32,6 +33,9 @@ def render_summary(s: Summary, console: Console) -> None:
     t.add_row("lab time", f"{s.lab_hours:.2f} h ({s.wall_s:.2f} s wall, {s.events} journal events)")
     for dev, u in s.utilisation.items():
         t.add_row(f"  {dev}", f"{100 * u:5.1f} % busy")
+    for name, c in s.consumables.items():
+        short = " [red](short: work waits for a refill)[/]" if c.get("short") else ""
+        t.add_row(f"  {escape(name)}", f"{c['left']:g} {escape(c['unit'])} left, {c['used']:g} used{short}")
     for name, b in s.best.items():
         shown = ", ".join(f"{k}={v:.4g}" for k, v in b["outputs"].items())
         met = s.targets_met_h.get(name)

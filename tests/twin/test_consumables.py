@@ -1,0 +1,123 @@
+"""Consumables: levels never go negative, a step that needs more than is left waits (one depletion note per item
+until a refill), a refill — an operator's, or a simulated one in virtual time — lets it go on, and nothing is lost."""
+
+import json
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from tests.conftest import qd_lab
+from tests.twin.test_core import msg, notes
+from tests.twin.test_operator import running
+from twin.campaign import Decided, Operator
+from twin.campaign.decisions import Assignment
+from twin.campaign.journal import read_events
+from twin.core.errors import ScenarioError
+from twin.core.messages import Kind
+from twin.runtime.lab import run
+from twin.scenario import parse
+
+P = {"concentration_mm": 5, "temperature_c": 250, "time_s": 60}
+
+
+def stocked(precursor, vials, refill_after=None, per=0.1, fixed=1.0):
+    c = {"precursor": {"unit": "mL", "level": precursor, "reorder_at": precursor / 2,
+                       "used_by": {"synthesise": {"fixed": fixed, "per": {"concentration_mm": per}}}},
+         "vials": {"unit": "vials", "level": vials, "used_by": {"measure": 1}}}
+    if refill_after is not None:
+        for item in c.values():
+            item["simulate_refill"] = {"after_s": refill_after}
+    return c
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(precursor=st.floats(0.5, 30), vials=st.integers(1, 10), fixed=st.floats(0, 4), per=st.floats(0, 0.4),
+       refill_after=st.one_of(st.none(), st.floats(0, 5000)), seed=st.integers(0, 1000))
+def test_levels_never_go_negative_and_every_depletion_pauses_its_work_once(tmp_path, precursor, vials, fixed, per,
+                                                                            refill_after, seed):
+    s = parse(qd_lab(**{"campaign.budget": 10, "campaign.seed": seed,
+                        "consumables": stocked(precursor, vials, refill_after, per, fixed)}), "lab.yaml")
+    db = tmp_path / f"c{seed}.db"
+    summary = run(s, journal=db)
+    assert summary.done + summary.abandoned + summary.pending == summary.proposed  # nothing lost
+    events = read_events(db)
+    level = {"precursor": precursor, "vials": float(vials)}
+    depleted: dict[str, set[str]] = {"precursor": set(), "vials": set()}  # an episode's waiting tasks
+    episodes = {"precursor": 0, "vials": 0}
+    for e in events:
+        d = json.loads(e["detail"]) if e["detail"] else {}
+        if e["kind"] == "attempt.dispatched":
+            for item, n in d.get("used", {}).items():
+                assert n <= level[item] + 1e-6, f"{e['task']} took {n} of {item} with {level[item]} left"
+                level[item] -= n
+                assert abs(d["left"][item] - max(level[item], 0)) < 1e-5 and d["left"][item] >= 0
+            assert not any(e["task"] in waiting for waiting in depleted.values()), \
+                f"{e['task']} was dispatched while the item it waits for was short"
+        elif e["kind"] == "consumable.depleted":
+            item = d["item"]
+            assert not depleted[item], f"a second depletion note for {item} before a refill"
+            assert d["needed"] > d["level"]
+            depleted[item].add(e["task"])
+            episodes[item] += 1
+        elif e["kind"] == "consumable.refilled":
+            item = d["item"]
+            level[item] = {"precursor": precursor, "vials": float(vials)}[item] if d["amount"] is None else \
+                level[item] + d["amount"]
+            assert d["who"] == "simulated operator" and refill_after is not None
+            depleted[item] = set()
+    assert summary.consumables["precursor"]["left"] >= 0 and summary.consumables["vials"]["left"] >= 0
+    if refill_after is None and sum(episodes.values()):
+        assert summary.pending > 0 and any(c["short"] for c in summary.consumables.values())
+
+
+def test_a_short_step_waits_for_the_operators_refill_and_the_lab_goes_on(scenario_of):
+    core = running(scenario_of, **{"consumables": stocked(100, 1), "campaign.budget": 3})
+    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0}))
+    core.advance(60.0)
+    core.feed(Decided([Assignment("e0s1", "spectrometer-1"), Assignment("e1s0", "synthesiser")]))
+    core.advance(60.0)
+    assert core.stocks.items["vials"].level == 0
+    core.feed(msg(Kind.RESULT, "synthesiser", "e1s0", 1, outputs={}, sample={"t_made": 120.0}))
+    out = core.advance(120.0)
+    (short,) = notes(out, "consumable.depleted")
+    assert short.detail == {"item": "vials", "level": 0, "unit": "vials", "needed": 1.0} and short.task == "e1s1"
+    assert "e1s1" in core.starved and "e1s1" not in core.ready
+    core.feed(Operator("refill", "alice", "r1", item="gold"))
+    out = core.advance(130.0)
+    assert "there is no consumable 'gold' (this lab's: precursor, vials)" in notes(out, "operator.refused")[0].detail["why"]
+    core.feed(Operator("refill", "alice", "r2", item="vials", amount=5))
+    out = core.advance(140.0)
+    assert notes(out, "consumable.refilled")[0].detail == {"item": "vials", "amount": 5, "level": 5.0,
+                                                           "unit": "vials", "who": "alice"}
+    assert "e1s1" in core.ready and not core.starved and not core.stocks.items["vials"].depleted
+
+
+def test_crossing_the_reorder_point_says_when_it_runs_out(scenario_of):
+    core, _ = __import__("tests.twin.test_core", fromlist=["started"]).started(
+        scenario_of, **{"campaign.budget": 2, "consumables": stocked(10, 5, fixed=3, per=0)})
+    from twin.campaign import Proposed
+    from twin.campaign.decisions import Proposal
+
+    core.feed(Proposed([Proposal(P), Proposal(P)]))
+    core.advance(0.0)
+    core.feed(Decided([Assignment("e0s0", "synthesiser")]))
+    core.advance(0.0)
+    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 600.0}))
+    core.advance(600.0)
+    core.feed(Decided([Assignment("e1s0", "synthesiser")]))
+    out = core.advance(600.0)
+    (low,) = notes(out, "consumable.low")
+    assert low.detail["item"] == "precursor" and low.detail["level"] == 4.0
+    assert low.detail["runs_out_in_s"] == pytest.approx(4.0 / (6.0 / 600.0))
+
+
+@pytest.mark.parametrize("change, words", [
+    ({"consumables": {"x": {"level": 5, "used_by": {"bake": 1}}}}, "consumables.x.used_by.bake: 'bake' is no device"),
+    ({"consumables": {"x": {"level": -1, "used_by": {"measure": 1}}}}, "consumables.x.level"),
+    ({"consumables": {"x": {"level": 5, "used_by": {}}}}, "consumables.x.used_by"),
+    ({"consumables": {"x": {"level": 5, "used_by": {"measure": {"fixed": -2}}}}}, "fixed"),
+])
+def test_a_consumable_that_cannot_work_is_refused_with_its_field(change, words):
+    with pytest.raises(ScenarioError, match=words):
+        parse(qd_lab(**change), "lab.yaml")
