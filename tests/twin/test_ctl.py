@@ -310,3 +310,38 @@ def test_a_short_consumable_waits_for_the_operators_refill(tmp_path):
 async def _until_short(endpoint):
     async with Operator(endpoint) as op:
         await op.until(lambda st: st["consumables"]["vials"]["depleted"])
+
+
+@pytest.mark.process
+def test_a_human_step_waits_for_twin_ctl_confirm(tmp_path):
+    from typer.testing import CliRunner
+
+    from tests.twin.test_human_steps import HUMAN
+    from twin.cli import app
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    db = tmp_path / "j.db"
+    lab = live_lab(tmp_path, endpoint, **{**HUMAN, "campaign.budget": 1})
+    proc = subprocess.Popen(TWIN + ["run", str(lab), "--journal", str(db), "--quiet", "--json"],
+                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    cli, where = CliRunner(), ["--lab", "t", "--connect", endpoint]
+    try:
+        asyncio.run(_until_human(endpoint))
+        res = cli.invoke(app, ["ctl", "pending", *where], env={"COLUMNS": "200"})
+        assert res.exit_code == 0 and "e0s0: load_rack on operator — load the precursor rack into bay 2" in res.output
+        res = cli.invoke(app, ["ctl", "confirm", "e0s0", *where, "--as", "alice"])
+        assert res.exit_code == 0 and "operator.confirm by alice" in res.output, res.output
+        out, errs = proc.communicate(timeout=60)
+        assert proc.returncode == 0, errs.decode()[-2000:]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert json.loads(out)["done"] == 1
+    confirmed = [json.loads(e["detail"]) for e in read_events(db) if e["kind"] == "attempt.confirmed"]
+    assert confirmed == [{"who": "alice"}]
+
+
+async def _until_human(endpoint):
+    async with Operator(endpoint) as op:
+        await op.until(lambda st: st["human_steps"])

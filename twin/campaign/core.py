@@ -16,7 +16,7 @@ from __future__ import annotations
 import secrets
 from typing import Any
 
-from twin.campaign import consumables, dispatch, operator, policy, provenance, questions
+from twin.campaign import consumables, dispatch, human, operator, policy, provenance, questions
 from twin.campaign.consumables import Stocks
 from twin.campaign.availability import Availability
 from twin.campaign.events import (Action, Ask, CancelTimer, Code, Decided, DeviceMessage, Event, Finished,
@@ -57,6 +57,9 @@ class CampaignCore:
         self.devices = {
             name: Device(name, dtype) for dtype in scenario.devices for name in scenario.instance_names(dtype)
         }
+        self.people = human.people(scenario)  # device instances that are people: always present
+        for name in self.people:
+            self.devices[name].online = True
         self.experiments: list[Experiment] = []
         self.active: dict[int, Experiment] = {}  # pending or running
         self.ready: dict[str, Task] = {}
@@ -307,6 +310,8 @@ class CampaignCore:
             self._give_up(key.ref)
         elif kind in (TimerKind.QUESTION, TimerKind.ANSWER):
             questions.on_timer(self, kind, key.ref)
+        elif kind == TimerKind.CONFIRM:
+            human.on_timer(self, key.ref)
         elif kind == TimerKind.REFILL:
             consumables.refill(self, key.ref, None, "simulated operator")
         elif kind == TimerKind.LIMIT:
@@ -485,7 +490,10 @@ class CampaignCore:
                 "expected_s": task.expected_s, "deadline_s": deadline}
         detail: dict[str, Any] = {"deadline_s": deadline, **(consumables.take(self, task) if self.stocks else {})}
         self._note("attempt.dispatched", e.id, task.id, att.n, dev.name, detail=detail)
-        self._send(dev.name, Kind.COMMAND, task.id, att.n, body, att.token)
+        if dev.name in self.people:
+            human.dispatched(self, att, body)
+        else:
+            self._send(dev.name, Kind.COMMAND, task.id, att.n, body, att.token)
 
     def _needs(self, task: Task) -> dict[str, float]:
         return self.stocks.needs(task.step.step, {**task.experiment.params, **task.step.params})
@@ -504,7 +512,9 @@ class CampaignCore:
         dev.busy_s += self.now - att.t_sent
         self._note(f"attempt.{'done' if code == Code.OK else 'failed'}", e.id, task.id, att.n, dev.name,
                    detail=None if code == Code.OK else {"code": str(code), **body})
-        if code == Code.TIMED_OUT:
+        if code == Code.TIMED_OUT and dev.name in self.people:
+            self.counts.timed_out += 1  # nobody to tell to stop: the person sees the step is gone (twin ctl status)
+        elif code == Code.TIMED_OUT:
             self.counts.timed_out += 1
             dev.cancelling = att
             self._timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name), self.s.orchestrator.cancel_grace_s)
@@ -627,7 +637,8 @@ class CampaignCore:
                 self._out.append(CancelTimer(TimerKey(TimerKind.DEADLINE, f"{att.task.id}#{att.n}")))
                 dev.busy_s += self.now - att.t_sent
                 dev.attempt = None
-                self._send(dev.name, Kind.CANCEL, att.task.id, att.n, {"reason": "campaign stopped"}, att.token)
+                if dev.name not in self.people:
+                    self._send(dev.name, Kind.CANCEL, att.task.id, att.n, {"reason": "campaign stopped"}, att.token)
                 self._note("attempt.cancelled", att.task.experiment.id, att.task.id, att.n, dev.name,
                            detail=self.stopping)
         for q in list(self.questions.values()):  # moot: its experiment stays pending in the journal

@@ -53,6 +53,7 @@ class TimerKind(StrEnum):
     QUESTION = "question"  # an operator's question unanswered: its default applies
     ANSWER = "answer"  # virtual time: the scenario's simulated operator answers
     REFILL = "refill"  # virtual time: the scenario's simulated operator refills a consumable
+    CONFIRM = "confirm"  # virtual time: the scenario's simulated operator confirms a human step
 
 
 @dataclass(frozen=True, slots=True)
@@ -111,7 +112,7 @@ class Stop:
 class Operator:
     """An operator's act (``twin ctl``): ``pause`` (``now``: cancel what is in the lab to a safe state too),
     ``resume``, ``abort`` or ``retry`` an ``experiment``, ``stop``, ``answer`` a ``question`` with an ``option``,
-    ``refill`` a consumable ``item`` (by ``amount``, or to its starting level). ``ref`` names the request (the runtime
+    ``refill`` a consumable ``item`` (by ``amount``, or to its starting level), ``confirm`` a human step's ``task``. ``ref`` names the request (the runtime
     answers the operator with the note that carries it) and orders acts of one instant as they arrived."""
 
     command: str
@@ -124,9 +125,10 @@ class Operator:
     option: str = ""  # answer: the option chosen
     item: str = ""  # refill: the consumable
     amount: float | None = None  # refill: how much (None: to its starting level)
+    task: str = ""  # confirm: the human step done
 
 
-OPERATOR_COMMANDS = ("pause", "resume", "abort", "retry", "stop", "answer", "refill")
+OPERATOR_COMMANDS = ("pause", "resume", "abort", "retry", "stop", "answer", "refill", "confirm")
 
 
 @dataclass(frozen=True, slots=True)

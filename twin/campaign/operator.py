@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from twin.campaign import consumables, questions
+from twin.campaign import consumables, human, questions
 from twin.campaign.events import CancelTimer, Operator, Status, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt
 from twin.core.messages import Kind
@@ -29,6 +29,8 @@ def act(core: CampaignCore, op: Operator) -> None:
         detail.update(question=op.question, option=op.option)
     if op.item:
         detail.update(item=op.item, amount=op.amount)
+    if op.task:
+        detail["task"] = op.task
     if why:
         core._note("operator.refused", op.experiment, detail={**detail, "command": op.command, "why": why})
         return
@@ -138,7 +140,7 @@ def _refill(core: CampaignCore, op: Operator) -> str:
 
 
 _ACTS = {"pause": _pause, "resume": _resume, "abort": _abort, "retry": _retry, "stop": _stop, "answer": _answer,
-         "refill": _refill}
+         "refill": _refill, "confirm": human.confirm}
 
 
 def _not_active(core: CampaignCore, n: int | None) -> str:
@@ -186,6 +188,10 @@ def status(core: CampaignCore, now: float | None = None) -> dict[str, Any]:
                                                      if name in core.stocks.short(core._needs(t)))}
                             for name, st in core.stocks.items.items()},
             "abandoned": {e.id: e.reason for e in core.experiments if e.status == Status.ABANDONED},
+            "human_steps": [{"task": d.attempt.task.id, "device": d.name, "step": d.attempt.task.step.step,
+                             "for_s": round(now - d.attempt.t_sent, 1),
+                             "instructions": str(core.s.devices[d.type].options.get("instructions", ""))[:500]}
+                            for d in core.devices.values() if d.name in core.people and d.attempt is not None],
             "questions": [{"id": q.id, "experiment": q.task.experiment.id, "task": q.task.id, "device": q.device,
                            "fault": q.fault, "why": q.why, "options": list(q.options), "default": q.default,
                            "default_in_s": round(q.deadline - now, 1)} for q in core.questions.values()],

@@ -37,7 +37,7 @@ def encode(event: Any) -> list[Any]:
         return ["stop", event.reason]
     if t is Operator:
         return ["operator", event.command, event.who, event.ref, event.experiment, event.now, event.reason,
-                event.question, event.option, event.item, event.amount]
+                event.question, event.option, event.item, event.amount, event.task]
     if t is Proposed:
         return ["proposed", [[p.params, None if p.route is None else [[r.step, r.device, r.params] for r in p.route],
                               *([p.cost] if p.cost else [])] for p in event.proposals]]
@@ -64,7 +64,7 @@ def decode_input(data: list[Any]) -> Any:
     if kind == "stop":
         return Stop(data[1])
     if kind == "operator":
-        return Operator(*data[1:11])
+        return Operator(*data[1:12])
     if kind == "proposed":
         return Proposed([Proposal(item[0], None if item[1] is None else tuple(RouteStep(*r) for r in item[1]),
                                   *item[2:3]) for item in data[1]])

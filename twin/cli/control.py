@@ -14,7 +14,8 @@ from twin.cli.common import _fail, app, console, err, narrow_table
 from twin.core.errors import TwinError
 
 ctl_app = typer.Typer(help="Operate a running campaign: status, pause, resume, abort, retry, stop; answer "
-                           "its questions and refill its consumables (pending, answer, refill).",
+                           "its questions, refill its consumables, confirm human steps (pending, answer, refill, "
+                           "confirm).",
                       no_args_is_help=True)
 app.add_typer(ctl_app, name="ctl")
 
@@ -134,9 +135,13 @@ def ctl_pending(lab: Lab, connect: Connect, security: Security = None, as_json: 
         return
     pending = answer["status"]["questions"]
     short = {k: v for k, v in answer["status"]["consumables"].items() if v["depleted"]}
-    if not pending and not short:
+    if not pending and not short and not answer["status"]["human_steps"]:
         console.print("no question is waiting", highlight=False, markup=False)
         return
+    for h in answer["status"]["human_steps"]:
+        how = f" — {h['instructions']}" if h["instructions"] else ""
+        console.print(f"{h['task']}: {h['step']} on {h['device']}{how}, waiting {h['for_s']:.0f} lab-s "
+                      f"(twin ctl confirm {h['task']})", highlight=False, markup=False)
     for name, c in short.items():
         console.print(f"{name} is short ({c['level']:g} {c['unit']} left): {', '.join(c['waiting']) or 'nothing'} "
                       f"waits for it (twin ctl refill {name} [--amount X])", highlight=False, markup=False)
@@ -163,3 +168,10 @@ def ctl_refill(item: Annotated[str, typer.Argument(help="the consumable, as the 
                who: Who = None, security: Security = None, as_json: AsJson = False) -> None:
     """Say a consumable was refilled: the steps that waited for it go on."""
     _acted(_send("refill", lab, connect, security, as_json, who=_who(who), item=item, amount=amount), as_json)
+
+
+@ctl_app.command("confirm")
+def ctl_confirm(task: Annotated[str, typer.Argument(help="the human step done, e.g. e3s1 (twin ctl pending)")],
+                lab: Lab, connect: Connect, who: Who = None, security: Security = None, as_json: AsJson = False) -> None:
+    """Confirm a human step (a device type whose driver is `operator`) is done: the experiment goes on."""
+    _acted(_send("confirm", lab, connect, security, as_json, who=_who(who), task=task), as_json)

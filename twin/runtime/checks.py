@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.core.errors import ScenarioError, TwinError
+from twin.campaign.human import DRIVER as HUMAN
 from twin.device.driver import feature
 from twin.runtime.lab import load_driver, make_planner, make_scheduler
 from twin.scenario import Scenario, load
@@ -17,12 +18,12 @@ def check(s: Scenario) -> None:
     its drivers, planner, scheduler and fallback load; its targets ask for outputs the workflow produces;
     its Zenoh settings make a config."""
     drivers = {dtype: _at(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0])
-               for dtype in s.devices}
+               for dtype in s.devices if s.devices[dtype].driver != HUMAN}
     _at("campaign.planner", make_planner, s)
     _at("campaign.scheduler", make_scheduler, s)
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
     used = {w.device for w in s.workflow} or set(s.devices)
-    declared = [feature(drivers[d], "outputs") for d in used]
+    declared = [feature(drivers[d], "outputs") if d in drivers else set() for d in used]
     if s.chemistry.targets and all(o is not None for o in declared):
         produced = set().union(*declared)
         for i, t in enumerate(s.chemistry.targets):

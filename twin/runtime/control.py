@@ -72,7 +72,8 @@ class ControlDesk:
         fut = asyncio.get_running_loop().create_future()
         self._waiting[ref] = fut
         self._feed(Operator(command, request["who"], ref, request["experiment"], request["now"], request["reason"],
-                            request["question"], request["option"], request["item"], request["amount"]))
+                            request["question"], request["option"], request["item"], request["amount"],
+                            request["task"]))
         try:
             note = await asyncio.wait_for(fut, ANSWER_S)
         except asyncio.TimeoutError:
@@ -97,7 +98,7 @@ def _request(payload: bytes) -> dict[str, Any]:
         raise ValueError(f"the request is not JSON ({exc})") from None
     if not isinstance(data, dict):
         raise ValueError("the request must be a JSON object")
-    fields = ("who", "experiment", "now", "reason", "question", "option", "item", "amount")
+    fields = ("who", "experiment", "now", "reason", "question", "option", "item", "amount", "task")
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ValueError(f"unknown field(s) {unknown}: a request has {', '.join(fields)}")
@@ -118,7 +119,7 @@ def _request(payload: bytes) -> dict[str, Any]:
     if amount is not None and (isinstance(amount, bool) or not isinstance(amount, (int, float))
                                or not 0 < amount < 1e15):
         raise ValueError(f"amount: {str(amount)[:80]!r} is not a positive number")
-    for name in ("question", "option", "item"):
+    for name in ("question", "option", "item", "task"):
         value = data.get(name, "")
         if not isinstance(value, str) or len(value) > 64:
             raise ValueError(f"{name}: {str(value)[:80]!r} is not a short text")

@@ -30,6 +30,7 @@ from twin.runtime.labtime import LabTimeSource
 from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
 from twin.runtime.run_record import provenance
+from twin.campaign.human import DRIVER as HUMAN
 from twin.scenario import Scenario, load, parse, set_dotted
 from twin.view.observer import LabObserver
 from twin.campaign.summary import Summary, from_core
@@ -139,12 +140,13 @@ def load_driver(s: Scenario, device_type: str, name: str) -> Any:
 
 
 def load_drivers(s: Scenario, only: set[str] | None = None, skip: Collection[str] = frozenset()) -> list[tuple[str, str, Any]]:
-    """(instance, device type, driver) for each device this process serves."""
+    """(instance, device type, driver) for each device this process serves (people, ``driver: operator``, are
+    served by the campaign itself: twin/campaign/human.py)."""
     return [
         (name, dtype, load_driver(s, dtype, name))
         for dtype in s.devices
         for name in s.instance_names(dtype)
-        if name not in skip and (only is None or name in only)
+        if name not in skip and (only is None or name in only) and s.devices[dtype].driver != HUMAN
     ]
 
 

@@ -1,0 +1,84 @@
+"""Human steps: a device type whose driver is `operator` gets no command; its step waits for a confirmation (an
+operator's, or in virtual time the simulated operator's after the step's expected time), with a deadline."""
+
+import json
+
+from tests.conftest import qd_lab
+from tests.twin.test_core import notes, of
+from twin.campaign import CampaignCore, Decided, Operator, Proposed, Send, TimerFired
+from twin.campaign.decisions import Assignment, Proposal
+from twin.campaign.events import TimerKey, TimerKind
+from twin.campaign.journal import read_events
+from twin.runtime.checks import check
+from twin.runtime.lab import run
+from twin.scenario import parse
+
+HUMAN = {"devices.operator": {"driver": "operator", "instances": 1, "steps": ["load_rack"],
+                              "duration": {"mean_s": 300, "cv": 0},
+                              "options": {"instructions": "load the precursor rack into bay 2"}},
+         "workflow": [{"step": "load_rack", "device": "operator"}, {"step": "synthesise", "device": "synthesiser"},
+                      {"step": "measure", "device": "spectrometer"}]}
+
+
+def test_a_human_step_is_announced_not_sent_and_done_when_confirmed():
+    s = parse(qd_lab(**{**HUMAN, "campaign.budget": 1, "clock": {"mode": "wall"}}), "lab.yaml")
+    core = CampaignCore(s, secret=b"x")
+    core.start(0.0)
+    assert core.devices["operator"].online, "people have no presence token to wait for"
+    from twin.campaign import Presence
+
+    for name in ("synthesiser", "spectrometer-1", "spectrometer-2"):
+        core.feed(Presence(name, True))
+    core.advance(0.0)
+    core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
+    core.advance(0.0)
+    core.feed(Decided([Assignment("e0s0", "operator")]))
+    out = core.advance(0.0)
+    assert not of(out, Send), "nothing is sent to people"
+    (step,) = notes(out, "operator.step")
+    assert step.detail["instructions"] == "load the precursor rack into bay 2" and step.detail["step"] == "load_rack"
+    assert TimerKey(TimerKind.DEADLINE, "e0s0#1") in [a.key for a in out if hasattr(a, "delay")]
+    assert not [a for a in out if getattr(a, "key", None) == TimerKey(TimerKind.CONFIRM, "e0s0#1")], \
+        "on a wall clock only a person confirms"
+    core.feed(Operator("confirm", "alice", "r1", task="e9s9"))
+    assert "'e9s9' is not a human step waiting" in notes(core.advance(10.0), "operator.refused")[0].detail["why"]
+    core.feed(Operator("confirm", "alice", "r2", task="e0s0"))
+    out = core.advance(200.0)
+    assert notes(out, "attempt.confirmed")[0].detail == {"who": "alice"} and notes(out, "attempt.done")
+    assert "e0s1" in core.ready
+
+
+def test_an_unconfirmed_human_step_times_out_like_any_step():
+    s = parse(qd_lab(**{**HUMAN, "campaign.budget": 1, "clock": {"mode": "wall"},
+                        "orchestrator.retry.max_attempts": 1}), "lab.yaml")
+    core = CampaignCore(s, secret=b"x")
+    core.start(0.0)
+    from twin.campaign import Presence
+
+    for name in ("synthesiser", "spectrometer-1", "spectrometer-2"):
+        core.feed(Presence(name, True))
+    core.advance(0.0)
+    core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
+    core.advance(0.0)
+    core.feed(Decided([Assignment("e0s0", "operator")]))
+    core.advance(0.0)
+    core.feed(TimerFired(TimerKey(TimerKind.DEADLINE, "e0s0#1")))
+    out = core.advance(2000.0)
+    assert notes(out, "attempt.failed")[0].detail["code"] == "timed_out" and not of(out, Send)
+    assert notes(out, "experiment.abandoned") and core.devices["operator"].state == "idle"
+
+
+def test_in_virtual_time_the_simulated_operator_confirms_after_the_expected_time(tmp_path):
+    s = parse(qd_lab(**{**HUMAN, "campaign.budget": 3}), "lab.yaml")
+    check(s)  # `twin validate`: the operator needs no installed driver and produces no outputs
+    db = tmp_path / "j.db"
+    summary = run(s, journal=db)
+    assert summary.done == 3
+    events = read_events(db)
+    asked = {e["task"]: e["t_lab"] for e in events if e["kind"] == "operator.step"}
+    confirmed = {e["task"]: (e["t_lab"], json.loads(e["detail"])["who"]) for e in events
+                 if e["kind"] == "attempt.confirmed"}
+    assert set(asked) == set(confirmed) == {"e0s0", "e1s0", "e2s0"}
+    assert all(abs(confirmed[t][0] - asked[t] - 300) < 1e-6 and confirmed[t][1] == "simulated operator"
+               for t in asked)
+    assert summary.utilisation["operator"] > 0
