@@ -195,153 +195,113 @@ async def test_hostile_requests_are_refused_by_field_and_never_reach_the_journal
     assert read_run(db)["summary"]["stopped"] == "stopped by carol: test over"
 
 
+class Lab:
+    """A live campaign in another process, driven by `twin ctl` in this one (in-process, through typer)."""
+
+    def __init__(self, tmp_path, **changes):
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.db = tmp_path / "j.db"
+        path = live_lab(tmp_path, self.endpoint, **changes)
+        self.proc = subprocess.Popen(TWIN + ["run", str(path), "--journal", str(self.db), "--quiet", "--json"],
+                                     cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+
+    def until(self, predicate):
+        async def wait():
+            async with Operator(self.endpoint) as op:
+                await op.until(predicate)
+
+        asyncio.run(wait())
+
+    def ctl(self, *args):
+        from typer.testing import CliRunner
+
+        from twin.cli import app
+
+        command, rest = args[0], list(args[1:])
+        return CliRunner().invoke(app, ["ctl", command, "--lab", "t", "--connect", self.endpoint, *rest],
+                                  env={"COLUMNS": "200"})
+
+    def finished(self) -> dict:
+        out, errs = self.proc.communicate(timeout=60)
+        assert self.proc.returncode == 0, errs.decode()[-2000:]
+        return json.loads(out)
+
+
 @pytest.mark.process
 def test_the_ctl_commands_say_what_they_did_and_a_refusal_exits_1(tmp_path):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    db = tmp_path / "j.db"
-    proc = subprocess.Popen(TWIN + ["run", str(live_lab(tmp_path, endpoint)), "--journal", str(db), "--quiet"],
-                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    cli, where = CliRunner(), ["--lab", "t", "--connect", endpoint]
-    try:
-        asyncio.run(_up(endpoint))
-        res = cli.invoke(app, ["ctl", "pause", *where, "--as", "alice", "--reason", "refill"], env={"COLUMNS": "200"})
+    with Lab(tmp_path) as lab:
+        lab.until(lambda st: st["state"] == "running")
+        res = lab.ctl("pause", "--as", "alice", "--reason", "refill")
         assert res.exit_code == 0 and "operator.pause by alice at lab" in res.output and "paused" in res.output
-        res = cli.invoke(app, ["ctl", "status", *where], env={"COLUMNS": "200"})
+        res = lab.ctl("status")
         assert res.exit_code == 0, res.output
         assert "test_lab (campaign c1, lab t): paused by alice" in res.output and "spectrometer-1" in res.output
-        res = cli.invoke(app, ["ctl", "abort", "999", *where])
+        res = lab.ctl("abort", "999")
         assert res.exit_code == 1 and "refused: there is no experiment 999" in res.output
-        res = cli.invoke(app, ["ctl", "status", *where, "--json"])
-        assert json.loads(res.output)["status"]["paused_by"] == "alice"
-        res = cli.invoke(app, ["ctl", "stop", *where, "--as", "alice"])
+        assert json.loads(lab.ctl("status", "--json").output)["status"]["paused_by"] == "alice"
+        res = lab.ctl("stop", "--as", "alice")
         assert res.exit_code == 0 and "operator.stop by alice" in res.output, res.output
-        assert proc.wait(timeout=60) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-
-
-async def _up(endpoint):
-    async with Operator(endpoint) as op:
-        await op.until(lambda st: st["state"] == "running")
+        assert lab.finished()["stopped"] == "stopped by alice"
 
 
 @pytest.mark.process
 def test_an_operator_lists_the_pending_question_and_answers_it(tmp_path):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    db = tmp_path / "j.db"
-    lab = live_lab(tmp_path, endpoint, **{
-        "campaign.budget": 2, "devices.synthesiser.faults": {"fail_p": 1.0}, "orchestrator.retry.max_attempts": 1,
-        "orchestrator.recovery": [{"device": "synthesiser", "options": ["retry", "abandon"], "default": "abandon",
-                                   "timeout_s": 100000}]})
-    proc = subprocess.Popen(TWIN + ["run", str(lab), "--journal", str(db), "--quiet"],
-                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    cli, where = CliRunner(), ["--lab", "t", "--connect", endpoint]
-    try:
-        asyncio.run(_until_asked(endpoint))
-        res = cli.invoke(app, ["ctl", "pending", *where], env={"COLUMNS": "200"})
+    with Lab(tmp_path, **{"campaign.budget": 2, "devices.synthesiser.faults": {"fail_p": 1.0},
+                          "orchestrator.retry.max_attempts": 1,
+                          "orchestrator.recovery": [{"device": "synthesiser", "options": ["retry", "abandon"],
+                                                     "default": "abandon", "timeout_s": 100000}]}) as lab:
+        lab.until(lambda st: st["questions"])
+        res = lab.ctl("pending")
         assert res.exit_code == 0 and "q1: experiment" in res.output and "options: retry, abandon" in res.output
         assert "twin ctl answer q1 OPTION" in res.output
-        res = cli.invoke(app, ["ctl", "answer", "q1", "skip", *where])
+        res = lab.ctl("answer", "q1", "skip")
         assert res.exit_code == 1 and "'skip' is not an option of q1: choose one of retry, abandon" in res.output
-        res = cli.invoke(app, ["ctl", "answer", "q1", "abandon", *where, "--as", "alice"])
+        res = lab.ctl("answer", "q1", "abandon", "--as", "alice")
         assert res.exit_code == 0 and "operator.answer by alice" in res.output, res.output
-        res = cli.invoke(app, ["ctl", "stop", *where, "--as", "alice"])
-        assert res.exit_code == 0, res.output
-        assert proc.wait(timeout=60) == 0
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    events = read_events(db)
+        assert lab.ctl("stop", "--as", "alice").exit_code == 0
+        lab.finished()
+    events = read_events(lab.db)
     answered = [json.loads(e["detail"]) for e in events if e["kind"] == "question.answered"]
     assert answered[0] == {"id": "q1", "option": "abandon", "who": "alice"}
     gone = next(e for e in events if e["kind"] == "experiment.abandoned")
     assert json.loads(gone["detail"])["reason"].endswith("alice chose to abandon it")
 
 
-async def _until_asked(endpoint):
-    async with Operator(endpoint) as op:
-        await op.until(lambda st: st["questions"])
-
-
 @pytest.mark.process
 def test_a_short_consumable_waits_for_the_operators_refill(tmp_path):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    db = tmp_path / "j.db"
-    lab = live_lab(tmp_path, endpoint, **{"campaign.budget": 3, "consumables": {
-        "vials": {"unit": "vials", "level": 1, "used_by": {"measure": 1}}}})
-    proc = subprocess.Popen(TWIN + ["run", str(lab), "--journal", str(db), "--quiet", "--json"],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    cli, where = CliRunner(), ["--lab", "t", "--connect", endpoint]
-    try:
-        asyncio.run(_until_short(endpoint))
-        res = cli.invoke(app, ["ctl", "pending", *where], env={"COLUMNS": "200"})
+    with Lab(tmp_path, **{"campaign.budget": 3, "consumables": {
+            "vials": {"unit": "vials", "level": 1, "used_by": {"measure": 1}}}}) as lab:
+        lab.until(lambda st: st["consumables"]["vials"]["depleted"])
+        res = lab.ctl("pending")
         assert res.exit_code == 0 and "vials is short (0 vials left)" in res.output
         assert "twin ctl refill vials" in res.output
-        res = cli.invoke(app, ["ctl", "refill", "vials", "--amount", "5", *where, "--as", "alice"])
+        res = lab.ctl("refill", "vials", "--amount", "5", "--as", "alice")
         assert res.exit_code == 0 and "operator.refill by alice" in res.output, res.output
-        out, errs = proc.communicate(timeout=60)
-        assert proc.returncode == 0, errs.decode()[-2000:]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    summary = json.loads(out)
+        summary = lab.finished()
     assert summary["done"] == 3 and summary["consumables"]["vials"] == {"left": 3.0, "used": 3.0, "unit": "vials",
                                                                         "short": False}
-    kinds = [e["kind"] for e in read_events(db)]
+    kinds = [e["kind"] for e in read_events(lab.db)]
     assert kinds.count("consumable.depleted") == 1 and kinds.count("consumable.refilled") == 1
-
-
-async def _until_short(endpoint):
-    async with Operator(endpoint) as op:
-        await op.until(lambda st: st["consumables"]["vials"]["depleted"])
 
 
 @pytest.mark.process
 def test_a_human_step_waits_for_twin_ctl_confirm(tmp_path):
-    from typer.testing import CliRunner
-
     from tests.twin.test_human_steps import HUMAN
-    from twin.cli import app
 
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    db = tmp_path / "j.db"
-    lab = live_lab(tmp_path, endpoint, **{**HUMAN, "campaign.budget": 1})
-    proc = subprocess.Popen(TWIN + ["run", str(lab), "--journal", str(db), "--quiet", "--json"],
-                            cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    cli, where = CliRunner(), ["--lab", "t", "--connect", endpoint]
-    try:
-        asyncio.run(_until_human(endpoint))
-        res = cli.invoke(app, ["ctl", "pending", *where], env={"COLUMNS": "200"})
+    with Lab(tmp_path, **{**HUMAN, "campaign.budget": 1}) as lab:
+        lab.until(lambda st: st["human_steps"])
+        res = lab.ctl("pending")
         assert res.exit_code == 0 and "e0s0: load_rack on operator — load the precursor rack into bay 2" in res.output
-        res = cli.invoke(app, ["ctl", "confirm", "e0s0", *where, "--as", "alice"])
+        res = lab.ctl("confirm", "e0s0", "--as", "alice")
         assert res.exit_code == 0 and "operator.confirm by alice" in res.output, res.output
-        out, errs = proc.communicate(timeout=60)
-        assert proc.returncode == 0, errs.decode()[-2000:]
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert json.loads(out)["done"] == 1
-    confirmed = [json.loads(e["detail"]) for e in read_events(db) if e["kind"] == "attempt.confirmed"]
+        assert lab.finished()["done"] == 1
+    confirmed = [json.loads(e["detail"]) for e in read_events(lab.db) if e["kind"] == "attempt.confirmed"]
     assert confirmed == [{"who": "alice"}]
-
-
-async def _until_human(endpoint):
-    async with Operator(endpoint) as op:
-        await op.until(lambda st: st["human_steps"])

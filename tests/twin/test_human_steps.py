@@ -5,7 +5,7 @@ import json
 
 from tests.conftest import qd_lab
 from tests.twin.test_core import notes, of
-from twin.campaign import CampaignCore, Decided, Operator, Proposed, Send, TimerFired
+from twin.campaign import CampaignCore, Decided, Operator, Presence, Proposed, Send, TimerFired
 from twin.campaign.decisions import Assignment, Proposal
 from twin.campaign.events import TimerKey, TimerKind
 from twin.campaign.journal import read_events
@@ -20,20 +20,23 @@ HUMAN = {"devices.operator": {"driver": "operator", "instances": 1, "steps": ["l
                       {"step": "measure", "device": "spectrometer"}]}
 
 
-def test_a_human_step_is_announced_not_sent_and_done_when_confirmed():
-    s = parse(qd_lab(**{**HUMAN, "campaign.budget": 1, "clock": {"mode": "wall"}}), "lab.yaml")
+def dispatched_to_people(**changes):
+    """A wall-clock core whose first experiment's first step was just given to the operator; and its actions."""
+    s = parse(qd_lab(**{**HUMAN, "campaign.budget": 1, "clock": {"mode": "wall"}, **changes}), "lab.yaml")
     core = CampaignCore(s, secret=b"x")
     core.start(0.0)
     assert core.devices["operator"].online, "people have no presence token to wait for"
-    from twin.campaign import Presence
-
     for name in ("synthesiser", "spectrometer-1", "spectrometer-2"):
         core.feed(Presence(name, True))
     core.advance(0.0)
     core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
     core.advance(0.0)
     core.feed(Decided([Assignment("e0s0", "operator")]))
-    out = core.advance(0.0)
+    return core, core.advance(0.0)
+
+
+def test_a_human_step_is_announced_not_sent_and_done_when_confirmed():
+    core, out = dispatched_to_people()
     assert not of(out, Send), "nothing is sent to people"
     (step,) = notes(out, "operator.step")
     assert step.detail["instructions"] == "load the precursor rack into bay 2" and step.detail["step"] == "load_rack"
@@ -49,19 +52,7 @@ def test_a_human_step_is_announced_not_sent_and_done_when_confirmed():
 
 
 def test_an_unconfirmed_human_step_times_out_like_any_step():
-    s = parse(qd_lab(**{**HUMAN, "campaign.budget": 1, "clock": {"mode": "wall"},
-                        "orchestrator.retry.max_attempts": 1}), "lab.yaml")
-    core = CampaignCore(s, secret=b"x")
-    core.start(0.0)
-    from twin.campaign import Presence
-
-    for name in ("synthesiser", "spectrometer-1", "spectrometer-2"):
-        core.feed(Presence(name, True))
-    core.advance(0.0)
-    core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
-    core.advance(0.0)
-    core.feed(Decided([Assignment("e0s0", "operator")]))
-    core.advance(0.0)
+    core, _ = dispatched_to_people(**{"orchestrator.retry.max_attempts": 1})
     core.feed(TimerFired(TimerKey(TimerKind.DEADLINE, "e0s0#1")))
     out = core.advance(2000.0)
     assert notes(out, "attempt.failed")[0].detail["code"] == "timed_out" and not of(out, Send)

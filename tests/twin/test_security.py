@@ -15,7 +15,7 @@ from tests.twin.test_device_process import free_port
 from twin.campaign.journal import read_events
 from twin.core import keys
 from twin.core.bus.security import Identity, access_control, check_listen, session_config
-from twin.core.errors import BusError
+from twin.core.errors import BusError, TwinError
 from twin.runtime.lab import make_clock, prepare, run_async
 from twin.tools.security_init import init
 
@@ -289,3 +289,31 @@ def test_only_the_operator_may_ask_the_control_desk_and_it_can_do_nothing_else(s
         for s in (operator, watcher, device):
             s.close()
         ears.close()
+
+
+def test_twin_ctl_as_the_operator_pauses_and_stops_a_campaign_through_the_secure_router(secured, tmp_path):
+    from twin.tools.control import request
+
+    tmp, endpoint = secured
+    path = lab_file(tmp_path, **{"campaign.budget": 50, "clock": {"mode": "scaled", "speed": 100.0},
+                                 "bus": {"kind": "zenoh", "listen": []}})
+    db = tmp_path / "j.db"
+    lab = subprocess.Popen([sys.executable, "-m", "twin", "run", str(path), "--connect", endpoint, "--security",
+                            str(tmp / "lab"), "--journal", str(db), "--quiet"], stdout=subprocess.DEVNULL,
+                           stderr=subprocess.PIPE, cwd=ROOT)
+    try:
+        deadline, answer = time.monotonic() + 60, None
+        while answer is None:  # the campaign is starting: until its desk answers
+            try:
+                answer = request(LAB, "pause", {"who": "alice"}, [endpoint], str(tmp / "lab"), wait_s=1.0)
+            except TwinError:
+                assert time.monotonic() < deadline, "the campaign's desk never answered through the router"
+        assert answer["ok"] and answer["status"]["paused_by"] == "alice"
+        assert request(LAB, "stop", {"who": "alice"}, [endpoint], str(tmp / "lab"))["ok"]
+        assert lab.wait(timeout=60) == 0, lab.stderr.read().decode()[-2000:]
+    finally:
+        if lab.poll() is None:
+            lab.kill()
+            lab.wait()
+    assert [e["kind"] for e in read_events(db) if e["kind"].startswith("operator.")] == ["operator.pause",
+                                                                                         "operator.stop"]

@@ -79,3 +79,19 @@ def test_the_cheapest_variant_within_the_hours_must_meet_every_target_in_every_r
     assert cheapest_within(summary, 8)["variant"] == "fast, cheaper"
     assert cheapest_within(summary, 12)["variant"] == "slow, cheap"
     assert cheapest_within(summary, 4) is None
+
+
+def test_fields_in_lists_vary_and_columns_say_which_field_they_are(tmp_path):
+    from twin.runtime.lab import prepare
+    from twin.tools.whatif import header, variants, written_values
+
+    s = prepare("scenarios/staffed_lab.yaml")
+    axes = ["consumables.vials.simulate_refill.after_s", "orchestrator.recovery.0.simulate.after_s",
+            "devices.synthesiser.instances"]
+    assert header(axes)[:3] == ["simulate_refill\nafter_s", "simulate\nafter_s", "synthesiser\ninstances"]
+    assert written_values(s, axes) == dict(zip(axes, [3600.0, 600.0, 2]))
+    chosen = variants(s, [(axes[1], [60.0])])
+    assert prepare(s, overrides=dict(chosen[-1].changes)).orchestrator.recovery[0].simulate.after_s == 60.0
+    res = CliRunner().invoke(app, ["whatif", "scenarios/staffed_lab.yaml", "--vary",
+                                   "orchestrator.recovery.3.timeout_s=60", "--seeds", "2"])
+    assert res.exit_code == 2 and "'3' is not an index of it (0-0)" in res.output

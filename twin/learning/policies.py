@@ -5,28 +5,15 @@ from __future__ import annotations
 import hashlib
 import json
 import time
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
 from twin.core.errors import PluginError
+from twin.runtime.run_record import versions
 from twin.scenario import Scenario
-
-PACKAGES = ("labtwin", "stable-baselines3", "sb3-contrib", "torch", "gymnasium")
-
 
 def scenario_hash(scenario: Scenario) -> str:
     return hashlib.sha256(scenario.model_dump_json().encode()).hexdigest()[:16]
-
-
-def _versions() -> dict[str, str]:
-    out = {}
-    for p in PACKAGES:
-        try:
-            out[p] = version(p)
-        except PackageNotFoundError:
-            pass
-    return out
 
 
 def save_policy(model: Any, path: Path, kind: str, scenario: Scenario, signature: dict[str, Any], **extra: Any) -> Path:
@@ -36,7 +23,7 @@ def save_policy(model: Any, path: Path, kind: str, scenario: Scenario, signature
     model.save(path)
     meta = {"kind": kind, "algorithm": type(model).__name__, "scenario": scenario.name,
             "scenario_hash": scenario_hash(scenario), "signature": signature,
-            "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "versions": _versions(), **extra}
+            "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "versions": versions(), **extra}
     path.with_suffix(".json").write_text(json.dumps(meta, indent=2) + "\n")
     return path
 

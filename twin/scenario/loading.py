@@ -59,12 +59,28 @@ def _describe(err: Any, raw: dict[str, Any]) -> str:
 
 
 def set_dotted(raw: dict[str, Any], dotted: str, value: Any) -> None:
-    """Set ``raw["a"]["b"]["c"] = value`` for ``dotted = "a.b.c"``, creating what is missing."""
-    node = raw
+    """Set ``raw["a"]["b"]["c"] = value`` for ``dotted = "a.b.c"``, creating the mappings that are missing; a
+    number indexes a list (``orchestrator.recovery.0.timeout_s``). A path through something that is neither is a
+    ScenarioError that names it."""
+    node: Any = raw
     *parents, leaf = dotted.split(".")
-    for p in parents:
-        node = node.setdefault(p, {})
-    node[leaf] = value
+    for i, p in enumerate([*parents, leaf]):
+        last = i == len(parents)
+        if isinstance(node, list):
+            if not p.isdigit() or int(p) >= len(node):
+                raise ScenarioError(dotted, [f"{'.'.join(parents[:i]) or '(top)'}: a list of {len(node)}: "
+                                             f"{p!r} is not an index of it (0-{len(node) - 1})"])
+            if last:
+                node[int(p)] = value
+            else:
+                node = node[int(p)]
+        elif isinstance(node, dict):
+            if last:
+                node[p] = value
+            else:
+                node = node.setdefault(p, {})
+        else:
+            raise ScenarioError(dotted, [f"{'.'.join(parents[:i])}: {str(node)[:60]!r} has no field {p!r}"])
 
 
 def json_schema() -> dict[str, Any]:

@@ -88,7 +88,10 @@ def written_values(scenario: Scenario, names: list[str]) -> dict[str, Any]:
     for name in names:
         node: Any = data
         for part in name.split("."):
-            node = node.get(part) if isinstance(node, dict) else None
+            if isinstance(node, list):
+                node = node[int(part)] if part.isdigit() and int(part) < len(node) else None
+            else:
+                node = node.get(part) if isinstance(node, dict) else None
         out[name] = node
     return out
 
@@ -179,8 +182,21 @@ def cheapest_within(summary: list[dict[str, Any]], hours: float) -> dict[str, An
 def header(axes: list[str], with_cost: bool = True) -> list[str]:
     """The table's columns: one per varied field (a device's field on lines of its own), then the measures
     (the cost ones only if something costs)."""
-    return ["\n".join(name.split(".")[1:]) if name.startswith("devices.") else name.split(".")[-1] for name in axes] + \
+    return [_short(name, axes) for name in axes] + \
         ["lab-h", "IQR", "Δ lab-h", *(["cost", "Δ cost"] if with_cost else []), "aband.", "busiest"]
+
+
+def _short(name: str, axes: list[str]) -> str:
+    """A varied field's column header: a device's field whole (bar "devices."), any other field by as many of its
+    last parts as tell it from the other axes, a part a line."""
+    parts = name.split(".")
+    if parts[0] == "devices":
+        return "\n".join(parts[1:])
+    for n in range(1, len(parts) + 1):
+        tail = parts[-n:]
+        if not any(other != name and other.split(".")[-n:] == tail for other in axes):
+            return "\n".join(tail)
+    return "\n".join(parts)
 
 
 def costs_anything(summary: list[dict[str, Any]]) -> bool:
