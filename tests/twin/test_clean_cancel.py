@@ -56,8 +56,12 @@ def _check(db, summary) -> None:
     busy = [e for e in events if e["kind"] == "msg.rejected" and "busy" in e["detail"]]
     timed_out = sorted((e["task"], e["attempt"]) for e in events if e["kind"] == "attempt.failed"
                        and json.loads(e["detail"])["code"] == "timed_out")
-    # each experiment had its two attempts, both timed out: no "busy" answer used one up
-    assert timed_out == sorted((f"e{i}s1", n) for i in range(3) for n in (1, 2))
+    # each experiment had its two attempts, both timed out: no "busy" answer used one up (a busy answer's attempt
+    # number is not used again, so the timed-out ones are not numbered 1 and 2)
+    per_step: dict = {}
+    for task, n in timed_out:
+        per_step.setdefault(task, set()).add(n)
+    assert {t: len(ns) for t, ns in per_step.items()} == {f"e{i}s1": 2 for i in range(3)}
     assert summary.abandoned == 3 and summary.timed_out == 6
     assert busy, "the device was never asked while stopping: the grace is longer than the test means"
     assert len(busy) <= kinds.count("attempt.cancel_unanswered") == kinds.count("device.still_cancelling")

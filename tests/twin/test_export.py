@@ -99,3 +99,22 @@ def test_bad_requests_name_what_to_do(flaky, tmp_path):
     res = CliRunner().invoke(app, ["export", str(flaky), "--format", "parquet", "--out", str(tmp_path / "cli")])
     assert res.exit_code == 0 and (tmp_path / "cli" / "experiments.parquet").exists()
     assert len(res.output.splitlines()) == len(WHAT) + 1
+
+
+def test_consumables_come_out_as_levels_over_time(tmp_path):
+    from tests.conftest import qd_lab
+    from tests.twin.test_consumables import stocked
+
+    db = tmp_path / "c.db"
+    run(parse(qd_lab(**{"campaign.budget": 6, "consumables": stocked(30, 2, refill_after=600)}), "lab.yaml"),
+        journal=db)
+    export(db, tmp_path / "out", "jsonl", ["consumables"])
+    rows = [json.loads(x) for x in (tmp_path / "out" / "consumables.jsonl").read_text().splitlines()]
+    for item, start in (("vials", 2.0), ("precursor", 30.0)):
+        mine = [r for r in rows if r["item"] == item]
+        assert mine[0]["why"] == "start" and mine[0]["level"] == start
+        level = start
+        for r in mine[1:]:  # each row's level follows from the one before and its change
+            level = start if r["why"] == "refilled" and r["change"] is None else level + r["change"]
+            assert r["level"] == pytest.approx(level) and r["level"] >= 0
+    assert any(r["why"] == "refilled" and r["who"] == "simulated operator" for r in rows)

@@ -12,12 +12,12 @@ from tests.twin.test_core import SECRET, msg, notes, of, started
 P = {"concentration_mm": 5, "temperature_c": 250, "time_s": 60}
 
 
-def running(scenario_of, **changes):
-    """A core with experiment 0's first step on the synthesiser and experiment 1's waiting for it."""
+def running(scenario_of, device="synthesiser", **changes):
+    """A core with experiment 0's first step on ``device`` (a synthesiser) and experiment 1's waiting for one."""
     core, _ = started(scenario_of, **{"campaign.budget": 2, **changes})
     core.feed(Proposed([Proposal(P), Proposal(P)]))
     core.advance(0.0)
-    core.feed(Decided([Assignment("e0s0", "synthesiser")]))
+    core.feed(Decided([Assignment("e0s0", device)]))
     out = core.advance(0.0)
     assert [s.task for s in of(out, Send)] == ["e0s0"]
     return core

@@ -127,3 +127,24 @@ def test_a_simulated_operator_answers_in_virtual_time_and_nothing_is_lost(tmp_pa
 def test_a_recovery_rule_that_cannot_work_is_refused_with_its_field(rule, words):
     with pytest.raises(ScenarioError, match=words.replace("[", r"\[").replace("]", r"\]")):
         parse(qd_lab(**{"orchestrator.recovery": [rule]}), "lab.yaml")
+
+
+def test_another_device_bars_the_one_that_failed_and_is_offered_only_where_there_is_another(scenario_of):
+    rules = [{"device": "synthesiser", "options": ["another_device", "abandon"], "default": "abandon"}]
+    core = running(scenario_of, **{"orchestrator.retry.max_attempts": 1, "orchestrator.recovery": rules})
+    out = failed(core)
+    assert notes(out, "question.asked")[0].detail["options"] == ["abandon"]  # the only synthesiser failed it
+    two = running(scenario_of, device="synthesiser-1", **{"orchestrator.retry.max_attempts": 1,
+                                                          "orchestrator.recovery": rules,
+                                                          "devices.synthesiser.instances": 2})
+    two.feed(msg(Kind.FAULT, "synthesiser-1", "e0s0", 1, code="failed", reason="clogged"))
+    out = two.advance(10.0)
+    assert notes(out, "question.asked")[0].detail["options"] == ["another_device", "abandon"]
+    answer(two, "q1", "another_device", 20.0)
+    from twin.campaign import dispatch
+
+    view = dispatch.view(20.0, two.ready.values(), two.devices, 0, 2, 2)
+    assert "synthesiser-1" in next(r for r in view.ready if r.task == "e0s0").avoid
+    two.feed(Decided([Assignment("e0s0", "synthesiser-1")]))
+    out = two.advance(20.0)
+    assert "an operator chose another device" in notes(out, "scheduler.invalid")[0].detail

@@ -108,3 +108,28 @@ def test_a_lab_whose_only_spectrometer_is_gone_says_so_and_gives_up_instead_of_w
     gone = [e for e in read_events(db, "experiment.abandoned") if "no usable spectrometer" in e["detail"]]
     assert gone and s.pending == 0 and s.done + s.abandoned == s.proposed
     assert s.lab_hours < 10  # not the 1000 lab-h it would have waited
+
+
+def test_an_answer_to_a_refused_attempt_never_counts_for_the_next_one(scenario_of):
+    from tests.twin.test_core import msg, notes
+    from tests.twin.test_operator import running
+    from twin.campaign import Decided, TimerFired
+    from twin.campaign.decisions import Assignment
+    from twin.campaign.events import TimerKey, TimerKind
+    from twin.core.messages import Kind
+
+    core = running(scenario_of, **{"orchestrator.retry.max_attempts": 1})
+    core.feed(msg(Kind.REJECTED, "synthesiser", "e0s0", 1, reason="warming up", infeasible=False))
+    out = core.advance(5.0)
+    assert notes(out, "task.refused")[0].attempt == 2  # the next attempt's number: the refused one is not reused
+    core.feed(TimerFired(TimerKey(TimerKind.RETRY, "e0s0")))
+    core.advance(70.0)
+    core.feed(Decided([Assignment("e0s0", "synthesiser")]))
+    core.advance(70.0)
+    assert ("e0s0", 2) in core.attempts and core.attempts[("e0s0", 2)].device == "synthesiser"
+    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 80.0}))  # the refused one
+    out = core.advance(80.0)
+    assert not notes(out, "attempt.done") and "e0s1" not in core.ready
+    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 2, outputs={}, sample={"t_made": 90.0}))
+    out = core.advance(90.0)
+    assert notes(out, "attempt.done") and "e0s1" in core.ready  # and one attempt allowed: the refusal did not count

@@ -541,12 +541,14 @@ class CampaignCore:
             dev.cancelling, dev.unanswered = dev.unanswered, None
             self._timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name), o.cancel_grace_s)
             self._note("device.still_cancelling", device=dev.name, detail={"reason": reason})
-        task.attempts -= 1  # "not now" does not use up one of the step's attempts
-        e.attempts -= 1
+        # "not now" does not use up one of the step's attempts; its number is not used again, so an answer that
+        # comes later for the refused attempt can never count for the next one
+        task.excused += 1
         task.refusals += 1
+        counted = task.attempts - task.excused
         if (task.refusals < MAX_REFUSALS and not self.stopping
-                and policy.may_retry(task.attempts - task.excused, self.now - task.first_ready, o.retry)):
-            backoff = policy.backoff_s(o.retry, task.attempts + 1, self.seed, task.id)
+                and policy.may_retry(counted, self.now - task.first_ready, o.retry)):
+            backoff = policy.backoff_s(o.retry, counted + 1, self.seed, task.id)
             self._note("task.refused", e.id, task.id, task.attempts + 1, dev.name,
                        detail={"backoff_s": backoff, "reason": reason})
             self._retrying[task.id] = task

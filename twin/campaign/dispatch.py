@@ -11,9 +11,9 @@ from twin.campaign.decisions import Assignment, DeviceState, FreeDevice, LabView
 
 def avoid_for(t: Task, devices: Iterable[Device]) -> frozenset[str]:
     if not t.failed_on:
-        return frozenset()
+        return t.barred
     usable = {d.name for d in devices if d.type == t.step.device and d.online and not d.quarantined}
-    return policy.avoid(t.failed_on, usable)
+    return policy.avoid(t.failed_on, usable) | t.barred
 
 
 def pair_possible(ready: Iterable[Task], devices: dict[str, Device]) -> bool:
@@ -26,7 +26,7 @@ def pair_possible(ready: Iterable[Task], devices: dict[str, Device]) -> bool:
         return False
     for t in ready:
         names = free.get(t.step.device)
-        if names and (not t.failed_on or names - avoid_for(t, devices.values())):
+        if names and (not (t.failed_on or t.barred) or names - avoid_for(t, devices.values())):
             return True
     return False
 
@@ -58,4 +58,6 @@ def problem(a: Assignment, ready: dict[str, Task], devices: dict[str, Device]) -
         return f"device {a.device!r} is not free"
     if dev.type != task.step.device:
         return f"device {a.device!r} is a {dev.type}, task {a.task} needs a {task.step.device}"
+    if a.device in task.barred:
+        return f"an operator chose another device than {a.device!r} for task {a.task}"
     return ""

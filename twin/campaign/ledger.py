@@ -52,7 +52,8 @@ class Task:
     attempts: int = 0
     failed_on: list[str] = field(default_factory=list)  # devices, oldest failure first
     refusals: int = 0  # "not now" answers, which do not count as attempts
-    excused: int = 0  # attempts an operator stopped (pause --now): numbered, but not counted against retries
+    excused: int = 0  # attempts refused "not now" or stopped by an operator: numbered, not counted against retries
+    barred: frozenset[str] = frozenset()  # devices it may not go to (an operator chose another device)
 
 
 @dataclass(slots=True)

@@ -46,8 +46,12 @@ def rule_for(core: CampaignCore, task: Task, device_type: str, code: str, retrie
 
 def ask(core: CampaignCore, task: Task, device: str, code: str, why: str, rule: Any) -> None:
     core._question_seq += 1
-    q = Question(f"q{core._question_seq}", task, device, code, why, tuple(rule.options), rule.default,
-                 core.now + rule.timeout_s, rule.simulate.answer if rule.simulate is not None else "")
+    others = [d for d in core.devices.values() if d.type == task.step.device and d.name not in task.failed_on]
+    options = tuple(o for o in rule.options if o != "another_device" or others) or ("abandon",)  # what makes sense
+    default = rule.default if rule.default in options else "abandon" if "abandon" in options else options[0]
+    answer_ = rule.simulate.answer if rule.simulate is not None else ""
+    q = Question(f"q{core._question_seq}", task, device, code, why, options, default, core.now + rule.timeout_s,
+                 answer_ if answer_ in options else default)
     core.questions[q.id] = q
     e = task.experiment
     core._note("question.asked", e.id, task.id, task.attempts, device,
@@ -94,8 +98,10 @@ def settle(core: CampaignCore, q: Question, option: str, who: str, timed_out: bo
     if e.status not in (Status.RUNNING, Status.PENDING) or e.id not in core.active:
         return  # aborted meanwhile
     chooser = who or "the default"
-    if option == "retry":
+    if option in ("retry", "another_device"):
         task.excused = task.attempts  # fresh retries: the spent ones were the question's reason
+        if option == "another_device":
+            task.barred = frozenset(task.failed_on)
         core._make_ready(e, task)
     elif option == "skip":
         core._note("task.skipped", e.id, task.id, task.attempts, q.device, detail={"by": chooser})

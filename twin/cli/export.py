@@ -9,6 +9,7 @@ import typer
 
 from twin.cli.common import _fail, app
 from twin.core.errors import TwinError
+from twin.tools.export import WHAT
 
 
 @app.command("export")
@@ -16,12 +17,13 @@ def export_run(
     journal: Annotated[Path, typer.Argument(help="the run's journal, e.g. runs/quantum_dots-seed0-….db")],
     fmt: Annotated[str, typer.Option("--format", help="csv | parquet | jsonl")] = "csv",
     what: Annotated[str, typer.Option(help="the tables, comma-separated: experiments, attempts, devices, "
-                                           "decisions, operator")] = "experiments,attempts,devices,decisions,operator",
+                                           "consumables, decisions, operator")] = ",".join(WHAT),
     out: Annotated[Optional[Path], typer.Option(help="the directory to write (default: beside the journal, "
                                                      "<journal>-export)")] = None,
 ) -> None:
-    """Write a run's experiments, attempts, devices, decisions and operator acts as tables (one file each) and its
-    provenance (scenario hash, seed, versions, files and their hashes, operator acts) as provenance.json."""
+    """Write a run's experiments, attempts, devices, consumables, decisions and operator acts as tables (one file
+    each) and its provenance (scenario hash, seed, versions, files and their hashes, operator acts) as
+    provenance.json."""
     from twin.tools.export import export
 
     target = out or journal.with_name(f"{journal.stem}-export")

@@ -172,11 +172,11 @@ class Retry(_Spec):
     jitter: float = Field(default=0.5, ge=0, le=1)
 
 
-RecoveryOption = Literal["retry", "skip", "abandon"]
+RecoveryOption = Literal["retry", "another_device", "skip", "abandon"]
 
 
 def _every_option() -> list[RecoveryOption]:
-    return ["retry", "skip", "abandon"]
+    return ["retry", "another_device", "skip", "abandon"]
 
 
 class SimulatedOperator(_Spec):
@@ -196,8 +196,10 @@ class Recovery(_Spec):
     faults: list[Literal["failed", "timed_out", "device_lost", "driver_error"]] = Field(
         default_factory=list, description="faults that ask at once, before any automatic retry")
     options: list[RecoveryOption] = Field(default_factory=_every_option, min_length=1,
-                                          description="retry (fresh attempts), skip (the step, the experiment goes "
-                                          "on without its outputs), abandon (the experiment)")
+                                          description="retry (fresh attempts), another_device (fresh attempts, "
+                                          "never on the devices that failed it; offered only where the type has "
+                                          "another instance), skip (the step: the experiment goes on without its "
+                                          "outputs), abandon (the experiment)")
     default: RecoveryOption = Field(default="abandon", description="what happens when nobody answers in time")
     timeout_s: float = Field(default=3600, gt=0, le=MAX_S, description="lab seconds to wait for an answer")
     simulate: SimulatedOperator | None = Field(default=None, description="virtual time: a simulated operator's "

@@ -6,6 +6,7 @@ One file per table, in a directory:
   columns spread out (``param.<name>``, ``output.<name>``, ``score.<target>``; a nested value stays JSON text);
 - ``attempts``: one row per attempt of a step: device, when it was sent, accepted and ended, how it ended;
 - ``devices``: one row per device: type, attempts, failures, busy share;
+- ``consumables``: each item's level over time: its start, every step that used some, every refill;
 - ``decisions``: every state change the campaign journalled (``detail`` as JSON text);
 - ``operator``: every act of an operator (who, what, when, why, and a refusal's reason);
 - ``provenance.json`` beside them: the run's provenance record with the operators' acts.
@@ -21,7 +22,7 @@ from typing import Any
 from twin.campaign.journal import read_events, read_experiments, read_run
 from twin.core.errors import TwinError
 
-WHAT = ("experiments", "attempts", "devices", "decisions", "operator")
+WHAT = ("experiments", "attempts", "devices", "consumables", "decisions", "operator")
 FORMATS = ("csv", "parquet", "jsonl")
 _ENDS = {"attempt.done": "done", "attempt.failed": "failed", "attempt.cancelled": "cancelled"}
 
@@ -44,7 +45,8 @@ def export(journal: str | Path, out: str | Path, fmt: str = "csv", what: list[st
     except Exception as exc:  # not SQLite, or not a journal
         raise TwinError(f"{path} is not a labtwin journal ({type(exc).__name__}: {exc})") from None
     tables = {"experiments": lambda: experiment_rows(experiments), "attempts": lambda: attempt_rows(events),
-              "devices": lambda: device_rows(run, events), "decisions": lambda: decision_rows(events),
+              "devices": lambda: device_rows(run, events), "consumables": lambda: consumable_rows(run, events),
+              "decisions": lambda: decision_rows(events),
               "operator": lambda: operator_rows(events)}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -123,6 +125,23 @@ def device_rows(run: dict[str, Any], events: list[dict[str, Any]]) -> list[dict[
     busy = summary.get("utilisation") or {}
     return [{"device": name, "type": dtype, **counts[name], "busy_share": busy.get(name)}
             for name, dtype in types.items()]
+
+
+def consumable_rows(run: dict[str, Any], events: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    stocks = (run.get("scenario") or {}).get("consumables") or {}
+    rows = [{"t_lab_s": 0.0, "item": name, "unit": c.get("unit", ""), "level": c["level"], "change": None,
+             "why": "start", "task": None, "who": None} for name, c in stocks.items()]
+    for e in events:
+        d = _json(e["detail"]) if e["kind"] in ("attempt.dispatched", "consumable.refilled") else None
+        if e["kind"] == "attempt.dispatched" and isinstance(d, dict):
+            for item, used in (d.get("used") or {}).items():
+                rows.append({"t_lab_s": e["t_lab"], "item": item, "unit": stocks.get(item, {}).get("unit", ""),
+                             "level": d["left"][item], "change": -used, "why": "used", "task": e["task"],
+                             "who": e["device"]})
+        elif e["kind"] == "consumable.refilled" and isinstance(d, dict):
+            rows.append({"t_lab_s": e["t_lab"], "item": d["item"], "unit": d.get("unit", ""), "level": d["level"],
+                         "change": d["amount"], "why": "refilled", "task": None, "who": d.get("who")})
+    return rows
 
 
 def decision_rows(events: list[dict[str, Any]]) -> list[dict[str, Any]]:
