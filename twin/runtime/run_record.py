@@ -12,6 +12,7 @@ import hashlib
 import platform
 import sys
 import time
+from functools import lru_cache
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
@@ -28,14 +29,26 @@ def scenario_hash(s: Scenario) -> str:
     return hashlib.sha256(s.model_dump_json().encode()).hexdigest()
 
 
-def versions() -> dict[str, str]:
+@lru_cache(maxsize=1)
+def _versions() -> tuple[tuple[str, str], ...]:
     out = {"python": platform.python_version()}
     for p in PACKAGES:
         try:
             out[p] = version(p)
         except PackageNotFoundError:
             pass
-    return out
+    return tuple(out.items())
+
+
+def versions() -> dict[str, str]:
+    """Python's and the packages' versions (looked up once per process: each lookup reads the installed
+    metadata, and a what-if or a test suite starts thousands of runs)."""
+    return dict(_versions())
+
+
+@lru_cache(maxsize=256)
+def _sha256(path: str, size: int, mtime_ns: int) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def named_files(s: Scenario) -> dict[str, str]:
@@ -55,8 +68,9 @@ def named_files(s: Scenario) -> dict[str, str]:
                 p = Path(path)
                 candidates = [p, p.with_suffix(".zip")] if p.suffix == ".json" else [p]
                 for c in candidates:
-                    if c.is_file() and c.stat().st_size < 1 << 30:
-                        found[str(c)] = hashlib.sha256(c.read_bytes()).hexdigest()
+                    st = c.stat() if c.is_file() else None
+                    if st is not None and st.st_size < 1 << 30:
+                        found[str(c)] = _sha256(str(c), st.st_size, st.st_mtime_ns)
 
     visit(s.model_dump())
     return found
