@@ -155,3 +155,13 @@ def test_the_progress_line_says_who_paused_the_campaign():
 
     assert "paused by alice (twin ctl resume)" in waiting_for([], "alice")
     assert "waiting: no usable reactor" in waiting_for(["reactor"], "alice") and waiting_for([]) == ""
+
+
+def test_retry_of_an_experiment_whose_step_is_short_of_stock_reopens_it_waiting(scenario_of):
+    stock = {"precursor": {"level": 4, "used_by": {"synthesise": 3}}}
+    core = running(scenario_of, **{"orchestrator.retry.max_attempts": 1, "consumables": stock})
+    core.feed(msg(Kind.FAULT, "synthesiser", "e0s0", 1, code="failed", reason="clogged"))
+    core.advance(10.0)
+    out = op(core, "retry", 11.0, experiment=0)
+    assert notes(out, "operator.retry") and core.experiments[0].status == "pending"
+    assert "e0s0" in core.starved and core.starved["e0s0"].attempts == 1  # numbered on, waiting for a refill

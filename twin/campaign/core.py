@@ -643,10 +643,7 @@ class CampaignCore:
                     self._send(dev.name, Kind.CANCEL, att.task.id, att.n, {"reason": "campaign stopped"}, att.token)
                 self._note("attempt.cancelled", att.task.experiment.id, att.task.id, att.n, dev.name,
                            detail=self.stopping)
-        for q in list(self.questions.values()):  # moot: its experiment stays pending in the journal
-            self._note("question.withdrawn", q.task.experiment.id, q.task.id, q.task.attempts, q.device,
-                       detail={"id": q.id, "why": self.stopping or "the campaign ended"})
-        self.questions.clear()
+        questions.withdraw(self, self.stopping or "the campaign ended")
         for e in self.active.values():
             if e.status == Status.RUNNING:
                 e.status = Status.PENDING

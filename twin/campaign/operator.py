@@ -70,12 +70,7 @@ def _abort(core: CampaignCore, op: Operator) -> str:
     for dev in core.devices.values():
         if dev.attempt is not None and not dev.attempt.resolved and dev.attempt.task.experiment is e:
             _cancel(core, dev.attempt, f"experiment {e.id} aborted by {op.who}")
-    for q in [q for q in core.questions.values() if q.task.experiment is e]:
-        del core.questions[q.id]
-        core._out.append(CancelTimer(TimerKey(TimerKind.QUESTION, q.id)))
-        core._out.append(CancelTimer(TimerKey(TimerKind.ANSWER, q.id)))
-        core._note("question.withdrawn", e.id, q.task.id, q.task.attempts, q.device,
-                   detail={"id": q.id, "why": f"experiment {e.id} aborted by {op.who}"})
+    questions.withdraw(core, f"experiment {e.id} aborted by {op.who}", e)
     for task_id in [t for t, task in core.ready.items() if task.experiment is e]:
         del core.ready[task_id]
     for task_id in [t for t, task in core.starved.items() if task.experiment is e]:
@@ -111,10 +106,12 @@ def _retry(core: CampaignCore, op: Operator) -> str:
     core.active[e.id] = e
     core._note("experiment.reopened", e.id, detail={"who": op.who, "stage": e.stage})
     core._make_ready(e)
-    task = core.ready[f"e{e.id}s{e.stage}"]
-    # its attempts go on being numbered where they stopped (a late answer to an old one matches nothing),
-    # and none of those counts against the fresh retries
-    task.attempts = task.excused = max((n for t, n in core.attempts if t == task.id), default=0)
+    task_id = f"e{e.id}s{e.stage}"
+    task = core.ready.get(task_id) or core.starved.get(task_id)  # a step short of stock waits, reopened all the same
+    if task is not None:
+        # its attempts go on being numbered where they stopped (a late answer to an old one matches nothing),
+        # and none of those counts against the fresh retries
+        task.attempts = task.excused = max((n for t, n in core.attempts if t == task.id), default=0)
     return ""
 
 
@@ -123,10 +120,6 @@ def _stop(core: CampaignCore, op: Operator) -> str:
         return f"the campaign is already stopping ({core.stopping})"
     core._on_stop(f"stopped by {op.who}" + (f": {op.reason}" if op.reason else ""))
     return ""
-
-
-def _answer(core: CampaignCore, op: Operator) -> str:
-    return questions.answer(core, op)
 
 
 def _refill(core: CampaignCore, op: Operator) -> str:
@@ -139,7 +132,7 @@ def _refill(core: CampaignCore, op: Operator) -> str:
     return ""
 
 
-_ACTS = {"pause": _pause, "resume": _resume, "abort": _abort, "retry": _retry, "stop": _stop, "answer": _answer,
+_ACTS = {"pause": _pause, "resume": _resume, "abort": _abort, "retry": _retry, "stop": _stop, "answer": questions.answer,
          "refill": _refill, "confirm": human.confirm}
 
 

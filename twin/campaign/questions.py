@@ -86,10 +86,23 @@ def on_timer(core: CampaignCore, kind: TimerKind, qid: str) -> None:
         settle(core, q, q.simulated, "simulated operator")
 
 
-def settle(core: CampaignCore, q: Question, option: str, who: str, timed_out: bool = False) -> None:
+def _close(core: CampaignCore, q: Question) -> None:
     del core.questions[q.id]
     core._out.append(CancelTimer(TimerKey(TimerKind.QUESTION, q.id)))
     core._out.append(CancelTimer(TimerKey(TimerKind.ANSWER, q.id)))
+
+
+def withdraw(core: CampaignCore, why: str, experiment: Any = None) -> None:
+    """Close the open questions (about ``experiment``, or all) unanswered: their experiment was aborted, or the
+    campaign ends (it then stays pending in the journal)."""
+    for q in [q for q in core.questions.values() if experiment is None or q.task.experiment is experiment]:
+        _close(core, q)
+        core._note("question.withdrawn", q.task.experiment.id, q.task.id, q.task.attempts, q.device,
+                   detail={"id": q.id, "why": why})
+
+
+def settle(core: CampaignCore, q: Question, option: str, who: str, timed_out: bool = False) -> None:
+    _close(core, q)
     task, e = q.task, q.task.experiment
     detail: dict[str, Any] = {"id": q.id, "option": option, "who": who or "nobody"}
     if timed_out:

@@ -9,6 +9,7 @@ the field named, and never reaches the core.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import re
 import time
@@ -31,6 +32,7 @@ class ControlDesk:
         self.core, self.clock, self._feed, self._flush = core, clock, feed, flush
         self._waiting: dict[str, asyncio.Future] = {}
         self._answering = 0
+        self._quiet: asyncio.Event | None = None  # set while no answer is being written
 
     async def serve(self, key: str, payload: bytes) -> bytes:
         command = key.rsplit("/", 1)[-1]
@@ -41,14 +43,20 @@ class ControlDesk:
             answer = {"ok": False, "error": str(exc)}
         finally:
             self._answering -= 1
+            if not self._answering and self._quiet is not None:
+                self._quiet.set()
         return json.dumps(answer).encode()
 
     async def drain(self, seconds: float = 2.0) -> None:
         """Before the campaign closes its bus: let the answers being written go out (a ``stop`` ends the
-        campaign before its own answer has left)."""
-        deadline = time.monotonic() + seconds
-        while self._answering and time.monotonic() < deadline:
-            await asyncio.sleep(0.005)
+        campaign before its own answer has left). Each is a reply once its coroutine returns, so this waits for
+        the count of them to reach 0, at most ``seconds`` of the loop's time."""
+        if not self._answering:
+            return
+        self._quiet = asyncio.Event()
+        with contextlib.suppress(asyncio.TimeoutError):
+            await asyncio.wait_for(self._quiet.wait(), seconds)
+        await asyncio.sleep(0)  # the last reply is sent as its coroutine returns: one more turn of the loop
 
     def noted(self, note: Note) -> None:
         """The runtime's hook for the core's notes: an operator's act has ended in ``note``."""
