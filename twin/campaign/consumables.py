@@ -143,6 +143,12 @@ def refill(core: CampaignCore, item: str, amount_: float | None, who: str) -> No
     core._out.append(CancelTimer(TimerKey(TimerKind.REFILL, item)))
     core._note("consumable.refilled", detail={"item": item, "amount": amount_, "level": round(stock.level, 6),
                                               "unit": stock.unit, "who": who})
+    requeue(core)
+
+
+def requeue(core: CampaignCore) -> None:
+    """The steps that waited for a consumable go back in the queue (after a refill, here or by another campaign
+    of a shared lab)."""
     waiting, core.starved = list(core.starved.values()), {}
     for task in waiting:
         if task.experiment.id in core.active:

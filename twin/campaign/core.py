@@ -111,8 +111,9 @@ class CampaignCore:
     def stop(self, reason: str) -> None:
         self.feed(Stop(reason))
 
-    def advance(self, now: float) -> list[Action]:
-        """Handle what was fed, then decide; returns the actions to perform, in order."""
+    def advance(self, now: float, decide: bool = True) -> list[Action]:
+        """Handle what was fed, then decide; returns the actions to perform, in order. ``decide=False``: only
+        handle the events (a shared lab lets its campaigns decide one at a time, in its order)."""
         if self.finished:
             self._inbox.clear()
             return []
@@ -122,6 +123,9 @@ class CampaignCore:
             batch.sort(key=_order)
             for ev in batch:
                 self._handle(ev)
+        if not decide:
+            out, self._out = self._out, []
+            return out
         if self._answer is not None:
             answer, self._answer, asked = self._answer, None, self._asking
             self._asking = None
@@ -147,7 +151,22 @@ class CampaignCore:
     @property
     def has_work(self) -> bool:
         """Whether ``advance`` would do anything now."""
+        if self.finished:
+            return False
         return bool(self._inbox) or self._answer is not None or (self._wake and self._asking is None and self._running)
+
+    def wake(self) -> None:
+        """Something outside changed what could be dispatched (a shared lab released a device): decide again."""
+        self._wake = True
+
+    @property
+    def has_events(self) -> bool:
+        return bool(self._inbox)
+
+    @property
+    def wants_to_decide(self) -> bool:
+        """Whether ``advance`` would start or go on with a decision pass."""
+        return not self.finished and (self._answer is not None or (self._wake and self._asking is None and self._running))
 
     @property
     def elapsed_s(self) -> float:

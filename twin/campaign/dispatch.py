@@ -20,7 +20,7 @@ def pair_possible(ready: Iterable[Task], devices: dict[str, Device]) -> bool:
     """Whether some free device could take some ready step (cheaper than building the view)."""
     free: dict[str, set[str]] = {}
     for d in devices.values():
-        if d.online and not d.quarantined and d.attempt is None and d.cancelling is None:
+        if d.free:
             free.setdefault(d.type, set()).add(d.name)
     if not free:
         return False

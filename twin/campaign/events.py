@@ -54,6 +54,7 @@ class TimerKind(StrEnum):
     ANSWER = "answer"  # virtual time: the scenario's simulated operator answers
     REFILL = "refill"  # virtual time: the scenario's simulated operator refills a consumable
     CONFIRM = "confirm"  # virtual time: the scenario's simulated operator confirms a human step
+    SUBMIT = "submit"  # a shared lab: a campaign's start_h has come
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,6 +81,7 @@ class DeviceMessage:
     payload: Any  # what the journal stores (never the token): the bytes received, or an envelope dict
     key: str = ""  # "" = the sender's own key (the fast runtime's in-process devices)
     token: str = ""
+    campaign: str = ""  # the campaign the envelope names: which campaign of a shared lab it is for
 
 
 @dataclass(frozen=True, slots=True)

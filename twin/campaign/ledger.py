@@ -82,10 +82,12 @@ class Device:
     steps_done: int = 0
     attempts: int = 0
     lost_at: float | None = None  # when it last left the bus: a loss sooner than a lease after is a flap
+    held_by: str = ""  # another campaign of a shared lab has a step on it
 
     @property
     def free(self) -> bool:
-        return self.online and not self.quarantined and self.attempt is None and self.cancelling is None
+        return (self.online and not self.quarantined and self.attempt is None and self.cancelling is None
+                and not self.held_by)
 
     @property
     def state(self) -> str:
@@ -93,7 +95,7 @@ class Device:
             return "offline"
         if self.quarantined:
             return "quarantined"
-        return "busy" if self.attempt or self.cancelling else "idle"
+        return "busy" if self.attempt or self.cancelling or self.held_by else "idle"
 
 
 @dataclass(slots=True)

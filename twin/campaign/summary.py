@@ -100,3 +100,30 @@ def _reason_kind(reason: str) -> str:
         return f"{step}: {code}"
     except IndexError:
         return reason
+
+
+@dataclass
+class LabSummary:
+    """A lab that served several campaigns: each campaign's own summary, and the lab's."""
+
+    lab: str
+    seed: int
+    journals: str  # the directory of the campaigns' journals
+    lab_hours: float  # from the lab's start until its last campaign ended
+    campaigns: dict[str, Summary]
+    submitted_h: dict[str, float]  # lab hours after the lab's start
+    ended_h: dict[str, float]
+    priority: dict[str, int]
+    owner: dict[str, str]
+    not_started: dict[str, str] = field(default_factory=dict)  # campaign -> why (the lab stopped first)
+    utilisation: dict[str, float] = field(default_factory=dict)  # device -> busy share of the lab's hours
+    wall_s: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> LabSummary:
+        data = dict(data)
+        data["campaigns"] = {k: Summary.from_dict(v) for k, v in data["campaigns"].items()}
+        return cls(**data)

@@ -15,6 +15,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.markup import escape
 
 from twin.cli.common import _fail, app, console, err, machine_output, narrow_table
+from twin.cli.sharing import shared_lab
 from twin.core import plugins
 from twin.runtime import lab
 from twin.runtime.checks import validate_file
@@ -81,6 +82,9 @@ def run(
         s = lab.prepare(scenario, seed=seed, clock=clock, speed=speed, bus=bus, overrides=overrides)
     except TwinError as exc:
         _fail(exc)
+    if s.campaigns:
+        shared_lab(s, journal, record, quiet, json_out, external, runtime)
+        return
     _campaign(s, record, quiet, json_out, lambda on_progress, observer: lab.run(
         s, journal=journal, external_devices=set(external or ()), on_progress=on_progress, observer=observer,
         runtime=runtime))

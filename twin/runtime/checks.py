@@ -11,14 +11,27 @@ from twin.campaign.human import DRIVER as HUMAN
 from twin.device.driver import feature
 from twin.runtime.lab import load_driver, make_planner, make_scheduler
 from twin.scenario import Scenario, load
+from twin.scenario.sharing import campaign_scenarios
 
 
 def check(s: Scenario) -> None:
     """What only the installed plugins can tell about ``s`` (``twin validate`` and ``twin run`` both ask):
     its drivers, planner, scheduler and fallback load; its targets ask for outputs the workflow produces;
-    its Zenoh settings make a config."""
+    its Zenoh settings make a config. A lab of several campaigns: each campaign's, on the device types its
+    workflow uses."""
+    if not s.campaigns:
+        _check(s)
+        return
+    for i, (name, cs) in enumerate(campaign_scenarios(s, s.name).items()):
+        try:
+            _check(cs, {w.device for w in cs.workflow})
+        except ScenarioError as exc:
+            raise ScenarioError("", [f"campaigns.{i} ({name}): {p}" for p in exc.problems]) from None
+
+
+def _check(s: Scenario, types: set[str] | None = None) -> None:
     drivers = {dtype: _at(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0])
-               for dtype in s.devices if s.devices[dtype].driver != HUMAN}
+               for dtype in s.devices if s.devices[dtype].driver != HUMAN and (types is None or dtype in types)}
     _at("campaign.planner", make_planner, s)
     _at("campaign.scheduler", make_scheduler, s)
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)

@@ -35,77 +35,20 @@ log = logging.getLogger(__name__)
 Progress = Callable[[CampaignCore], None]
 
 
-class FastCampaign:
-    def __init__(self, scenario: Scenario, drivers: list[tuple[str, str, Any]], journal: Journal,
-                 planner: Planner, scheduler: Scheduler | None, campaign_id: str = "c1",
-                 on_progress: Progress | None = None, alerts: bool = True, observer: Any = None) -> None:
-        """``alerts``: log the campaign's alerts (a device type gone, say) as warnings; a training run's
-        thousands of campaigns keep them in their journals only. ``observer``: a ``LabObserver`` in this
-        process, handed the core's notes and the devices' results and telemetry as they happen (no bus, no
-        second parse)."""
-        self.observer = observer
-        self.s, self.journal, self.planner, self.scheduler = scenario, journal, planner, scheduler
+class Seat:
+    """One campaign's side of the fast runtime: its core's actions go to its journal, planner, scheduler and
+    timers, and its commands to the lab's devices."""
+
+    def __init__(self, core: CampaignCore, journal: Journal, planner: Planner, scheduler: Scheduler | None,
+                 queue: EventQueue, devices: dict[str, FastDevice], on_progress: Progress | None = None,
+                 alerts: bool = True, observer: Any = None) -> None:
+        self.core, self.journal, self.planner, self.scheduler = core, journal, planner, scheduler
+        self.queue, self.devices, self.on_progress, self.observer = queue, devices, on_progress, observer
         self.alerts = ALERTS if alerts else frozenset()
-        self.on_progress = on_progress
-        self.queue = EventQueue()
-        self.core = CampaignCore(scenario, campaign_id)
-        feed = self.core.feed
-        watch = observer.on_envelope if observer is not None else None
-        self.devices = {name: FastDevice(name, dtype, scenario.devices[dtype], drv, self.queue,
-                                         scenario.campaign.seed, feed, watch)
-                        for name, dtype, drv in drivers}
-        self._timers: dict[TimerKey, Timer] = {}
-        self._view: LabView | None = None
-        self._started = False
+        self.timers: dict[TimerKey, Timer] = {}
+        self.view: LabView | None = None  # a decision the caller of next_decision() is to make
 
-    # -- driving ----------------------------------------------------------------------
-    def run(self) -> None:
-        if self.scheduler is None:
-            raise ClockError("FastCampaign.run() needs a scheduler; without one, use next_decision()/answer()")
-        self.next_decision()  # a scheduler answers every decision inside, so this runs to the end
-
-    def next_decision(self) -> LabView | None:
-        """Run to the next scheduling decision the caller must make, or to the end (``None``)."""
-        with _asyncio_tripwire():
-            if not self._started:
-                self._start()
-            core, q = self.core, self.queue
-            while not core.finished:
-                if self._view is not None:
-                    return self._view
-                q.run_ready()
-                if core.has_work:
-                    self._perform(core.advance(q.now))
-                elif core.waiting is None and not q.jump():
-                    core.feed(Stop("nothing left to happen"))
-            self._stop_devices()
-        return None
-
-    def answer(self, assignments: list[Assignment]) -> None:
-        if self._view is None:
-            raise RuntimeError("no decision is waiting: the campaign is over")
-        self._view = None
-        self.core.feed(Decided(list(assignments)))
-
-    def stop(self, reason: str) -> None:
-        self.core.feed(Stop(reason))
-
-    @property
-    def now(self) -> float:
-        return self.queue.now
-
-    def _start(self) -> None:
-        self._started = True
-        self._perform(self.core.start(self.queue.now))
-        for dev in self.devices.values():
-            dev.start()
-
-    def _stop_devices(self) -> None:
-        for dev in self.devices.values():
-            dev.stop()
-
-    # -- actions ----------------------------------------------------------------------
-    def _perform(self, actions: list[Any]) -> None:
+    def perform(self, actions: list[Any]) -> None:
         journal, progressed, watched = self.journal, False, self.on_progress is not None
         note, received, observer = journal.note, journal.received, self.observer
         for a in actions:
@@ -129,12 +72,12 @@ class FastCampaign:
                     else:
                         dev.cancel(a.task, a.attempt, a.token)
             elif t is SetTimer:
-                old = self._timers.pop(a.key, None)
+                old = self.timers.pop(a.key, None)
                 if old is not None:
                     old.cancel()
-                self._timers[a.key] = self.queue.call_later(a.delay, self._fire, a.key)
+                self.timers[a.key] = self.queue.call_later(a.delay, self._fire, a.key)
             elif t is CancelTimer:
-                handle = self._timers.pop(a.key, None)
+                handle = self.timers.pop(a.key, None)
                 if handle is not None:
                     handle.cancel()
             elif t is RecordExperiment:
@@ -142,21 +85,21 @@ class FastCampaign:
             elif t is Ask:
                 self._answer(a)
             elif t is Finished:
-                for handle in self._timers.values():
+                for handle in self.timers.values():
                     handle.cancel()
-                self._timers.clear()
+                self.timers.clear()
         if progressed and self.on_progress is not None:
             self.on_progress(self.core)
 
     def _fire(self, key: TimerKey) -> None:
-        self._timers.pop(key, None)
+        self.timers.pop(key, None)
         self.core.feed(TimerFired(key))
 
     def _answer(self, ask: Ask) -> None:
         if ask.what == "plan":
             self.core.feed(Proposed(self.planner.propose(ask.n, list(ask.history), list(ask.pending))))
         elif self.scheduler is None:
-            self._view = ask.view
+            self.view = ask.view
         else:
             started = time.perf_counter()
             decided = self.scheduler.decide(ask.view)
@@ -166,11 +109,77 @@ class FastCampaign:
             self.core.feed(Decided(list(decided), time.perf_counter() - started))
 
 
+class FastCampaign:
+    def __init__(self, scenario: Scenario, drivers: list[tuple[str, str, Any]], journal: Journal,
+                 planner: Planner, scheduler: Scheduler | None, campaign_id: str = "c1",
+                 on_progress: Progress | None = None, alerts: bool = True, observer: Any = None) -> None:
+        """``alerts``: log the campaign's alerts (a device type gone, say) as warnings; a training run's
+        thousands of campaigns keep them in their journals only. ``observer``: a ``LabObserver`` in this
+        process, handed the core's notes and the devices' results and telemetry as they happen (no bus, no
+        second parse)."""
+        self.s, self.journal, self.planner, self.scheduler = scenario, journal, planner, scheduler
+        self.queue = EventQueue()
+        self.core = CampaignCore(scenario, campaign_id)
+        watch = observer.on_envelope if observer is not None else None
+        self.devices = {name: FastDevice(name, dtype, scenario.devices[dtype], drv, self.queue,
+                                         scenario.campaign.seed, self.core.feed, watch)
+                        for name, dtype, drv in drivers}
+        self.seat = Seat(self.core, journal, planner, scheduler, self.queue, self.devices, on_progress, alerts,
+                         observer)
+        self._started = False
+
+    # -- driving ----------------------------------------------------------------------
+    def run(self) -> None:
+        if self.scheduler is None:
+            raise ClockError("FastCampaign.run() needs a scheduler; without one, use next_decision()/answer()")
+        self.next_decision()  # a scheduler answers every decision inside, so this runs to the end
+
+    def next_decision(self) -> LabView | None:
+        """Run to the next scheduling decision the caller must make, or to the end (``None``)."""
+        with asyncio_tripwire():
+            if not self._started:
+                self._start()
+            core, q, seat = self.core, self.queue, self.seat
+            while not core.finished:
+                if seat.view is not None:
+                    return seat.view
+                q.run_ready()
+                if core.has_work:
+                    seat.perform(core.advance(q.now))
+                elif core.waiting is None and not q.jump():
+                    core.feed(Stop("nothing left to happen"))
+            self._stop_devices()
+        return None
+
+    def answer(self, assignments: list[Assignment]) -> None:
+        if self.seat.view is None:
+            raise RuntimeError("no decision is waiting: the campaign is over")
+        self.seat.view = None
+        self.core.feed(Decided(list(assignments)))
+
+    def stop(self, reason: str) -> None:
+        self.core.feed(Stop(reason))
+
+    @property
+    def now(self) -> float:
+        return self.queue.now
+
+    def _start(self) -> None:
+        self._started = True
+        self.seat.perform(self.core.start(self.queue.now))
+        for dev in self.devices.values():
+            dev.start()
+
+    def _stop_devices(self) -> None:
+        for dev in self.devices.values():
+            dev.stop()
+
+
 _TRIPWIRE: asyncio.AbstractEventLoop | None = None
 
 
 @contextlib.contextmanager
-def _asyncio_tripwire() -> Iterator[None]:
+def asyncio_tripwire() -> Iterator[None]:
     """A driver that awaits asyncio (an Event, asyncio.sleep) finds a loop that never runs: what it
     awaits is yielded to the fast runtime, which names the driver, instead of failing obscurely."""
     global _TRIPWIRE

@@ -35,8 +35,11 @@ class FastRuntimeRefused(DriverError):
 
 class FastDevice:
     def __init__(self, name: str, device_type: str, spec: Any, driver: Driver, queue: EventQueue, seed: int,
-                 deliver: Callable[[Any], None], watch: Callable[[dict], None] | None = None) -> None:
-        """``watch``: given the envelope of each result and telemetry message, decoded (an in-process observer)."""
+                 deliver: Callable[[Any], None], watch: Callable[[dict], None] | None = None,
+                 shared: dict[str, Driver] | None = None) -> None:
+        """``watch``: given the envelope of each result and telemetry message, decoded (an in-process observer).
+        ``shared``: the device serves several campaigns — campaign -> the driver that simulates its chemistry;
+        their steps draw faults and durations by campaign too (their task ids repeat)."""
         self.name, self.device_type, self.spec, self.driver = name, device_type, spec, driver
         self._watch = watch
         self._q, self._clock, self._deliver, self._seed = queue, QueueClock(queue), deliver, seed
@@ -49,6 +52,7 @@ class FastDevice:
         self._token = ""
         self._cancel_reason = ""
         self._timer: Timer | None = None
+        self._shared = shared or {}
         self.online = False
 
     # -- life cycle -------------------------------------------------------------------
@@ -94,25 +98,26 @@ class FastDevice:
         self._schedule_crash()
 
     # -- messages ---------------------------------------------------------------------
-    def _emit(self, kind: Kind, body: dict, task: str, attempt: int, token: str) -> None:
+    def _emit(self, kind: Kind, body: dict, task: str, attempt: int, token: str, campaign: str | None = None) -> None:
         """The message about ``task#attempt``; the attempt's token travels beside it (no bus to carry it)."""
+        campaign = self._campaign if campaign is None else campaign
         env = envelope(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name, t_lab=self._q.now,
-                       campaign=self._campaign, task=task, attempt=attempt)
+                       campaign=campaign, task=task, attempt=attempt)
         # encoded once, as the journal stores it; a body that cannot go on the wire fails here, as on a bus
         payload = to_wire(env)
         if kind is Kind.RESULT:  # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
             body = _plain(payload)["body"]
         if self._watch is not None and kind in WATCHED:
             self._watch({**env, "body": body})
-        self._deliver(DeviceMessage(kind, self.name, task, attempt, body, payload, token=token))
+        self._deliver(DeviceMessage(kind, self.name, task, attempt, body, payload, token=token, campaign=campaign))
 
     def command(self, task: str, attempt: int, campaign: str, body: dict, token: str) -> None:
         if not self.online:
             return  # off the bus: the command is lost, as it would be
-        self._campaign = campaign
         if self._job is not None:
-            self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, task, attempt, token)
+            self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, task, attempt, token, campaign)
             return
+        self._campaign = campaign
         self._current, self._token = (task, attempt), token
         self._job = self._run(task, attempt, token, body)
         self._resume()
@@ -167,9 +172,10 @@ class FastDevice:
         def emit(kind: Kind, body: dict) -> None:
             self._emit(kind, body, task, attempt, token)
 
+        key = f"{self._campaign}/{task}" if self._shared else task
         ctx = StepContext(
             clock=self._clock,  # type: ignore[arg-type]
-            rng=self._step_rngs.keyed(f"{self._seed}:steps:{task}:{attempt}"),
+            rng=self._step_rngs.keyed(f"{self._seed}:steps:{key}:{attempt}"),
             duration=spec.duration,
             progress=lambda f, note: emit(Kind.PROGRESS, {"fraction": f, "note": note}),
             telemetry=lambda r: emit(Kind.TELEMETRY, {"readings": r}),
@@ -178,11 +184,12 @@ class FastDevice:
         )
         emit(Kind.ACCEPTED, {})
         try:
-            hang, fail = simulated_faults(self._seed, task, attempt, faults)
+            hang, fail = simulated_faults(self._seed, key, attempt, faults)
             await self._clock.sleep(spec.setup_s)
             if hang:
                 await Park()  # only a cancel (a timeout) ends a hung step
-            result = await self.driver.run(step, cmd["params"], cmd["sample"], ctx)
+            driver = self._shared.get(self._campaign, self.driver)
+            result = await driver.run(step, cmd["params"], cmd["sample"], ctx)
             await self._clock.sleep(spec.clean_s)
             if fail:
                 emit(Kind.FAULT, {"code": "failed", "reason": f"{step} failed on {self.name} (simulated)"})

@@ -366,6 +366,24 @@ class Training(_Spec):
         return self
 
 
+class SharedCampaign(_Spec):
+    """One of several campaigns a lab serves at once: its own chemistry, workflow, planner and budget on the
+    lab's devices and consumables. A section it leaves out is the lab file's."""
+
+    name: Name = Field(description="the campaign's id: its journal, its samples' ids, `twin ctl --campaign`")
+    owner: str = Field(default="", max_length=128, description="who it is for (shown by twin ctl status)")
+    priority: int = Field(default=0, ge=-1000, le=1000, description="higher picks free devices first")
+    share: float = Field(default=1.0, gt=0, le=1000, description="among campaigns of equal priority, the one "
+                         "furthest below its share of the device time used so far picks first")
+    start_h: float = Field(default=0.0, ge=0, le=MAX_S / 3600, description="lab hours after the lab starts at "
+                           "which it is submitted")
+    after: Name | None = Field(default=None, description="submitted when this other campaign has ended (one "
+                               "after the other), instead of at start_h")
+    chemistry: Chemistry | None = None
+    workflow: list[WorkflowStep] | None = None
+    campaign: Campaign | None = None
+
+
 class Scenario(_Spec):
     name: Name = Field(description="names the run's journal (runs/<name>-seed<N>-<time>.db): letters, digits, "
                        "'_', '-', '.'")
@@ -382,6 +400,9 @@ class Scenario(_Spec):
     consumables: dict[Name, Consumable] = Field(default_factory=dict, max_length=256, description="reagents, vials, "
                                                 "tips: what the lab holds and what its steps use up")
     training: Training = Training()
+    campaigns: list[SharedCampaign] = Field(default_factory=list, max_length=64, description="several campaigns "
+                                            "sharing this lab's devices (each with its own ledger and journal); "
+                                            "empty: the one campaign of this file")
 
     @model_validator(mode="after")
     def _consistent(self) -> Scenario:
@@ -404,14 +425,35 @@ class Scenario(_Spec):
                 problems.append(f"workflow.{i}.device: {ws.device!r} is not a device type of this lab ({', '.join(self.devices)})")
             elif ws.step not in dev.steps:
                 problems.append(f"workflow.{i}.step: device type {ws.device!r} does not run {ws.step!r} (it runs {dev.steps})")
-        if not self.workflow and self.jobshop is None:
+        if not self.workflow and self.jobshop is None and not self.campaigns:
             problems.append("workflow: empty; give the steps of an experiment, or a jobshop file")
-        problems += self._instance_clashes() + self._plus_params() + self._envelopes()
+        problems += self._instance_clashes() + self._sharing()
+        if not self.campaigns:  # a lab of several campaigns: checked with each campaign's chemistry
+            problems += self._plus_params() + self._envelopes()
         if self.bus.security and self.bus.kind != "zenoh":
             problems.append("bus.security: security is for the zenoh bus; the memory bus has no one to keep out")
         if problems:
             raise ValueError("; ".join(problems))
         return self
+
+    def _sharing(self) -> list[str]:
+        names = [c.name for c in self.campaigns]
+        problems = [f"campaigns.{i}.name: {c.name!r} is the name of campaigns.{names.index(c.name)} too"
+                    for i, c in enumerate(self.campaigns) if names.index(c.name) != i]
+        for i, c in enumerate(self.campaigns):
+            if c.after is not None and (c.after not in names or c.after == c.name):
+                problems.append(f"campaigns.{i}.after: {c.after!r} is not another campaign of this lab "
+                                f"({', '.join(n for n in names if n != c.name) or 'none'})")
+        after = {c.name: c.after for c in self.campaigns}
+        for c in self.campaigns:  # a chain of `after` that comes back to where it started never starts
+            chain = [c.name]
+            while after.get(chain[-1]) in after and len(chain) <= len(after):
+                chain.append(after[chain[-1]])
+                if chain[-1] == c.name:
+                    if c.name == min(chain):  # said once per cycle
+                            problems.append(f"campaigns: {' -> '.join(chain)} waits for itself (after)")
+                    break
+        return problems
 
     def _instance_clashes(self) -> list[str]:
         owner: dict[str, str] = {}

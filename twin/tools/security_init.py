@@ -75,7 +75,7 @@ def _ca(root: Path, lab: str, days: int, written: list[Path]) -> tuple[ec.Ellipt
     key_path, cert_path = root / "private" / "ca.key", root / "ca.pem"
     if key_path.is_file() and cert_path.is_file():
         key = serialization.load_pem_private_key(key_path.read_bytes(), password=None)
-        return key, x509.load_pem_x509_certificate(cert_path.read_bytes())  # type: ignore[return-value]
+        return key, x509.load_pem_x509_certificate(cert_path.read_bytes())
     key = ec.generate_private_key(ec.SECP256R1())
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"labtwin CA of lab {lab}")])
     now = datetime.datetime.now(datetime.timezone.utc)

@@ -6,7 +6,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from twin.campaign.summary import Summary
+from twin.campaign.summary import LabSummary, Summary
 
 
 def render_summary(s: Summary, console: Console) -> None:
@@ -45,3 +45,26 @@ def render_summary(s: Summary, console: Console) -> None:
         t.add_row("stopped", s.stopped)
     console.print(t)
     console.print(f"journal: {s.journal}  (twin report {s.journal})", soft_wrap=True, highlight=False)
+
+
+def render_lab_summary(s: LabSummary, console: Console) -> None:
+    """A lab that served several campaigns: one row per campaign (times are lab hours from the lab's start),
+    then the lab's devices."""
+    t = Table(title=f"{s.lab} — seed {s.seed}: {len(s.campaigns)} campaign(s) sharing the lab", title_justify="left",
+              caption="times in lab hours from the lab's start; targets: when met", caption_justify="left")
+    for header in ("campaign", "prio", "from", "to", "done", "aband.", "pend.", "targets met"):
+        t.add_column(header, overflow="fold", justify="right" if header not in ("campaign", "targets met") else "left")
+    for name, c in s.campaigns.items():
+        start = s.submitted_h.get(name, 0.0)
+        met = ", ".join(f"{k} {start + h:.2f}" for k, h in sorted(c.targets_met_h.items(), key=lambda kv: kv[1]))
+        owner = f" ({escape(s.owner[name])})" if s.owner.get(name) else ""
+        t.add_row(f"{escape(name)}{owner}", str(s.priority.get(name, 0)), f"{start:.2f}",
+                  f"{s.ended_h.get(name, 0.0):.2f}", str(c.done), str(c.abandoned), str(c.pending), met or "—")
+    for name, why in s.not_started.items():
+        t.add_row(escape(name), str(s.priority.get(name, 0)), "—", "—", "", "", "", f"not started: {escape(why)}")
+    console.print(t)
+    busy = ", ".join(f"{d} {100 * u:.0f} %" for d, u in s.utilisation.items())
+    console.print(f"lab time {s.lab_hours:.2f} h ({s.wall_s:.2f} s wall); devices busy: {busy}", highlight=False,
+                  soft_wrap=True)
+    console.print(f"journals: {s.journals}/<campaign>.db  (twin report {s.journals}/<campaign>.db)", highlight=False,
+                  soft_wrap=True)

@@ -1,0 +1,189 @@
+"""Several campaigns sharing one lab (scenario ``campaigns:``), in virtual time on the fast runtime."""
+
+import json
+import sqlite3
+from pathlib import Path
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from twin.core.errors import ScenarioError
+from twin.runtime.lab import prepare
+from twin.runtime.shared_run import run_shared
+from twin.scenario import load
+
+ROOT = Path(__file__).resolve().parents[2]
+LAB = ROOT / "scenarios" / "shared_lab.yaml"
+NO_FAULTS = {f"devices.{d}.faults": {} for d in ("synthesiser", "reactor", "spectrometer")}
+
+
+def events(db: Path, *kinds: str) -> list[tuple]:
+    con = sqlite3.connect(db)
+    try:
+        marks = ",".join("?" * len(kinds))
+        return con.execute(f"SELECT t_lab, kind, experiment, task, attempt, device, detail, seq FROM events "
+                           f"WHERE kind IN ({marks}) ORDER BY seq", kinds).fetchall()
+    finally:
+        con.close()
+
+
+def device_jobs(journals: Path) -> dict[str, list[tuple[float, float, str]]]:
+    """Per device, (accepted at, ended at, campaign) of every step it ran, from every campaign's journal: a step
+    ends with its result or fault, when its device leaves the bus, or when its campaign cancels it (at the end,
+    or at its deadline: an in-process device stops at once, and a campaign that ends then journals no answer)."""
+    jobs: dict[str, list[tuple[float, float, str]]] = {}
+    for db in journals.glob("*.db"):
+        started: dict[tuple, tuple[float, str]] = {}
+        for t, kind, _, task, attempt, device, detail, _ in events(
+                db, "msg.accepted", "msg.result", "msg.fault", "device.lost", "attempt.cancelled", "attempt.failed"):
+            if kind == "attempt.failed" and "timed_out" not in detail:
+                continue
+            if kind == "msg.accepted":
+                started[(task, attempt)] = (t, device)
+            elif kind == "device.lost":
+                for key in [k for k, (_, d) in started.items() if d == device]:
+                    jobs.setdefault(device, []).append((started.pop(key)[0], t, db.stem))
+            elif (task, attempt) in started:
+                jobs.setdefault(device, []).append((started.pop((task, attempt))[0], t, db.stem))
+        assert not started, f"{db.stem}: steps accepted and never ended: {started}"
+    return jobs
+
+
+def assert_one_step_at_a_time(journals: Path) -> None:
+    for device, runs in device_jobs(journals).items():
+        runs.sort()
+        for (s0, e0, c0), (s1, e1, c1) in zip(runs, runs[1:]):
+            assert s1 >= e0 - 1e-9, f"{device} ran {c0}'s step [{s0}, {e0}] and {c1}'s [{s1}, {e1}] at once"
+
+
+def assert_accounted(summary) -> None:
+    for name, c in summary.campaigns.items():
+        assert c.done + c.abandoned + c.pending == c.proposed, name
+        assert c.proposed > 0, f"{name} proposed nothing"
+        if not c.stopped:
+            assert c.pending == 0, name
+
+
+def test_two_campaigns_share_the_lab_each_with_its_own_ledger(tmp_path):
+    s = prepare(LAB, seed=1)
+    out = run_shared(s, tmp_path, handle_signals=False)
+    assert set(out.campaigns) == {"dots", "catalyst"} and not out.not_started
+    assert_accounted(out)
+    assert_one_step_at_a_time(tmp_path)
+    # each journal holds its own campaign: its own scenario, and samples named by the campaign
+    for name in ("dots", "catalyst"):
+        con = sqlite3.connect(tmp_path / f"{name}.db")
+        scenario = json.loads(con.execute("SELECT value FROM run WHERE key='scenario'").fetchone()[0])
+        routes = {r[0] for r in con.execute("SELECT route FROM experiments")}
+        con.close()
+        assert scenario["campaigns"] == [] and scenario["chemistry"]["model"] == ("quantum_dots" if name == "dots"
+                                                                                   else "catalyst")
+        assert all(("prepare" in r) == (name == "catalyst") for r in routes)
+    # both used the shared devices; the lab's busy shares add up both campaigns' steps
+    assert out.campaigns["dots"].utilisation["spectrometer"] > 0 < out.campaigns["catalyst"].utilisation["spectrometer"]
+    assert out.lab_hours == pytest.approx(max(out.ended_h.values()))
+
+
+def test_the_higher_priority_campaign_picks_free_devices_first(tmp_path):
+    s = prepare(LAB, seed=2, overrides=NO_FAULTS)
+    run_shared(s, tmp_path, handle_signals=False)
+    high, low = tmp_path / "catalyst.db", tmp_path / "dots.db"
+    device_of = {"prepare": "synthesiser", "react": "reactor", "measure": "spectrometer", "synthesise": "synthesiser"}
+    # when each of the high-priority campaign's steps waited: ready -> dispatched
+    waiting: list[tuple[float, float, str]] = []
+    ready: dict[str, tuple[float, str]] = {}
+    for t, kind, _, task, _, _, detail, _ in events(high, "task.ready", "attempt.dispatched"):
+        if kind == "task.ready":
+            ready[task] = (t, device_of[json.loads(detail)["step"]])
+        elif task in ready:
+            t0, dtype = ready.pop(task)
+            waiting.append((t0, t, dtype))
+    taken = [(t, device.rsplit("-", 1)[0] if device[-1].isdigit() else device)
+             for t, _, _, _, _, device, _, _ in events(low, "attempt.dispatched")]
+    assert waiting and taken
+    overtaken = [(t, dtype, w) for t, dtype in taken for w in waiting if w[2] == dtype and w[0] <= t < w[1]]
+    assert not overtaken, f"the low-priority campaign took a device a higher-priority step waited for: {overtaken[:3]}"
+
+
+def test_fair_share_gives_device_time_in_proportion(tmp_path):
+    # two campaigns of the same chemistry and priority, one spectrometer for both; shares 3 : 1
+    dots = load(LAB).campaigns[0].model_dump(exclude_none=True)
+    dots["campaign"].update(budget=40, stop_on_target=False, planner="random")
+    s = prepare(LAB, seed=3, overrides={
+        **NO_FAULTS, "campaigns": [{**dots, "share": 3}, {**dots, "name": "twin", "share": 1}],
+        "devices.spectrometer.duration.mean_s": 1500})
+    out = run_shared(s, tmp_path, handle_signals=False)
+    spec = {n: c.utilisation["spectrometer"] * c.lab_hours for n, c in out.campaigns.items()}
+    both = min(out.ended_h.values())  # while both campaigns ran
+    assert both > 5
+    used = {n: sum(min(e, both * 3600) - s0 for s0, e, c in device_jobs(tmp_path)["spectrometer"] if c == n and s0 <
+                   both * 3600) for n in out.campaigns}
+    assert used["dots"] > 2 * used["twin"], (used, spec)
+
+
+def test_one_after_the_other_starts_the_second_when_the_first_ends(tmp_path):
+    s = prepare(LAB, seed=1, overrides={"campaigns.1.after": "dots"})
+    out = run_shared(s, tmp_path, handle_signals=False)
+    assert out.submitted_h["catalyst"] == pytest.approx(out.ended_h["dots"])
+    first = min(t for t, *_ in events(tmp_path / "catalyst.db", "attempt.dispatched"))
+    assert first >= out.ended_h["dots"] * 3600
+    assert_accounted(out)
+
+
+def test_a_campaign_submitted_later_starts_at_its_hour(tmp_path):
+    s = prepare(LAB, seed=1, overrides={"campaigns.0.start_h": 5.0})
+    out = run_shared(s, tmp_path, handle_signals=False)
+    assert out.submitted_h["dots"] == 5.0
+    assert min(t for t, *_ in events(tmp_path / "dots.db", "attempt.dispatched")) >= 5 * 3600
+    assert_one_step_at_a_time(tmp_path)
+
+
+@pytest.mark.parametrize("change, named", [
+    ({"campaigns.1.after": "nobody"}, "campaigns.1.after: 'nobody' is not another campaign"),
+    ({"campaigns.1.name": "dots"}, "campaigns.1.name: 'dots' is the name of campaigns.0 too"),
+    ({"campaigns.0.after": "catalyst", "campaigns.1.after": "dots"}, "waits for itself"),
+    ({"campaigns.0.workflow": [{"step": "synthesise", "device": "robot"}]}, "campaigns.0 (dots)"),
+])
+def test_a_bad_lab_file_names_the_campaign_and_field(change, named):
+    with pytest.raises(ScenarioError) as err:
+        s = load(LAB, change)
+        run_shared(s, "/nonexistent", handle_signals=False)
+    assert named in str(err.value)
+
+
+lab_shapes = st.fixed_dictionaries({
+    "spectrometers": st.integers(1, 2), "synthesisers": st.integers(1, 3),
+    "fail_p": st.sampled_from([0.0, 0.1, 0.3]), "hang_p": st.sampled_from([0.0, 0.05]),
+    "mtbc_h": st.sampled_from([0, 3]),
+    "priorities": st.lists(st.integers(-1, 1), min_size=2, max_size=3),
+    "budgets": st.lists(st.integers(2, 8), min_size=3, max_size=3),
+    "seed": st.integers(0, 1000),
+})
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(shape=lab_shapes)
+def test_any_shared_lab_runs_one_step_per_device_and_accounts_for_everything(tmp_path_factory, shape):
+    """Random labs, faults, crashes and priorities: every campaign ends with its accounting invariant, no
+    device ever runs two steps at once."""
+    n = len(shape["priorities"])
+    base = load(LAB)
+    campaigns = []
+    for i in range(n):
+        c = base.campaigns[i % 2].model_dump(exclude_none=True)
+        c.update(name=f"c{i}", priority=shape["priorities"][i])
+        c["campaign"] = {**c["campaign"], "budget": shape["budgets"][i], "planner": "random"}
+        campaigns.append(c)
+    faults = {"fail_p": shape["fail_p"], "hang_p": shape["hang_p"], "mtbc_h": shape["mtbc_h"], "restart_s": 600}
+    s = prepare(base, seed=shape["seed"], overrides={
+        "campaigns": campaigns, "devices.spectrometer.instances": shape["spectrometers"],
+        "devices.synthesiser.instances": shape["synthesisers"],
+        **{f"devices.{d}.faults": faults for d in ("synthesiser", "reactor", "spectrometer")}})
+    where = tmp_path_factory.mktemp("lab")
+    out = run_shared(s, where, handle_signals=False)
+    assert len(out.campaigns) == n
+    assert_accounted(out)
+    assert_one_step_at_a_time(where)
+    busy = [r for db in where.glob("*.db") for r in events(db, "msg.rejected") if "busy" in (r[6] or "")]
+    assert not busy, f"a device was sent a step while it ran another: {busy[:2]}"

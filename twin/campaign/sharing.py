@@ -1,0 +1,223 @@
+"""Several campaigns on one lab: each campaign's core, one set of devices and consumables, one order of turns.
+
+Every campaign keeps its own core — experiments, attempts, retries, ledger and accounting invariant — and sees
+the lab's devices through its own ``Device`` records. The shared lab keeps them telling one story:
+
+- **holds**: a device with a step of one campaign on it (or a cancel it has not answered) is ``held_by`` that
+  campaign in every other campaign's records, so no campaign dispatches to it until it is released;
+- **turns**: at each instant every campaign first takes in its events (results, presence, timers), then the
+  campaigns make their decision passes one at a time, the highest ``priority`` first and, among equals, the one
+  furthest below its ``share`` of the device time used so far (the fair-share rule); a campaign's own
+  scheduler chooses among its ready steps and the devices still free;
+- **presence** goes to every campaign; a device's message goes to the campaign its envelope names (or, if that
+  names none of them, to the campaign holding the device, which rejects what it cannot vouch for);
+- **consumables** are the lab's: one stock that every campaign takes from; a refill by any campaign puts back in
+  the queue the steps of every campaign that waited for it;
+- **submissions**: a campaign starts at its ``start_h`` or when the campaign it comes ``after`` has ended.
+
+Actions come out tagged with their campaign ("" for the lab's own timers), so a runtime sends each to that
+campaign's journal, planner and scheduler.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from twin.campaign import consumables
+from twin.campaign.consumables import Stocks
+from twin.campaign.core import CampaignCore
+from twin.campaign.events import (Action, DeviceMessage, Event, InvalidInput, Presence, SetTimer, Stop, TimerFired,
+                                  TimerKey, TimerKind)
+from twin.scenario.model import Scenario, SharedCampaign
+
+Tagged = tuple[str, Action]
+LAB = ""  # the tag of the lab's own actions
+
+
+class SharedLab:
+    def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], secrets: dict[str, bytes] | None = None) -> None:
+        """``scenarios``: each campaign's scenario (``twin.scenario.sharing.campaign_scenarios``), in the lab
+        file's order."""
+        self.lab = lab
+        self.entries: dict[str, SharedCampaign] = {c.name: c for c in lab.campaigns}
+        self.cores = {name: CampaignCore(s, name, (secrets or {}).get(name)) for name, s in scenarios.items()}
+        self.stocks = Stocks(lab.consumables)
+        for core in self.cores.values():
+            core.stocks = self.stocks
+        self.online = {name: False for dtype in lab.devices for name in lab.instance_names(dtype)}
+        self.started: list[str] = []  # in the order they were submitted
+        self.submitted_at: dict[str, float] = {}
+        self.unsubmitted: dict[str, str] = {}  # campaigns never started, and why (the lab stopped first)
+        self._due: list[str] = []  # submitted, waiting for a turn to start
+        self._deciding = ""  # the campaign whose decision pass waits on an answer: one at a time
+        self._stopping = ""
+        self._out: list[Tagged] = []
+        self.now = 0.0
+
+    # -- the runtime's side ---------------------------------------------------------
+    def start(self, now: float) -> list[Tagged]:
+        self.now = now
+        for name, entry in self.entries.items():
+            if entry.after is None:
+                if entry.start_h <= 0:
+                    self._submit(name)
+                else:
+                    self._out.append((LAB, SetTimer(TimerKey(TimerKind.SUBMIT, name), entry.start_h * 3600)))
+        return self.advance(now)
+
+    def feed(self, campaign: str, event: Any) -> None:
+        """An event for one campaign (its timer, its planner's or scheduler's answer), or the lab's own timer."""
+        if campaign == LAB:
+            if isinstance(event, TimerFired) and event.key.kind == TimerKind.SUBMIT and not self._stopping:
+                self._submit(event.key.ref)
+            return
+        self.cores[campaign].feed(event)
+
+    def feed_device(self, event: Event) -> None:
+        """Presence, or a device's message (routed by the campaign it names)."""
+        if isinstance(event, Presence):
+            if event.device in self.online:
+                self.online[event.device] = event.alive
+            for name in self.started:
+                self.cores[name].feed(event)
+            return
+        core = self._owner(event)
+        if core is not None:
+            core.feed(event)
+
+    def stop(self, reason: str) -> None:
+        if not self._stopping:
+            self._stopping = reason
+            for name in self.entries:
+                if name not in self.started and name not in self._due:
+                    self.unsubmitted[name] = reason
+        for name in self.started:
+            self.cores[name].feed(Stop(reason))
+        for name in self._due:
+            self.unsubmitted[name] = reason
+        self._due.clear()
+
+    def advance(self, now: float) -> list[Tagged]:
+        """Every campaign takes in its events; then one campaign, in turn order, gets its decision pass."""
+        self.now = now
+        cores = self.cores
+        for name in self._due:
+            self.submitted_at.setdefault(name, now)
+        for name in self.started:
+            if cores[name].has_events:
+                self._take(name, cores[name].advance(now, decide=False))
+        if self._due and not self._deciding:
+            for name in self._due:
+                self._begin(name)
+            self._due.clear()
+        self._sync_holds()
+        if self._deciding:
+            core = cores[self._deciding]
+            if core.wants_to_decide:
+                self._take(self._deciding, core.advance(now))
+        else:
+            for name in self._turns():
+                if cores[name].wants_to_decide:
+                    self._take(name, cores[name].advance(now))
+                    if cores[name].waiting is not None:
+                        self._deciding = name
+                    break
+        if self._deciding and cores[self._deciding].waiting is None:
+            self._deciding = ""
+        self._sync_holds()
+        out, self._out = self._out, []
+        return out
+
+    @property
+    def has_work(self) -> bool:
+        return (bool(self._due) and not self._deciding) or any(self.cores[n].has_work for n in self.started)
+
+    @property
+    def waiting(self) -> Any:
+        """The question a campaign waits on, if any."""
+        return self.cores[self._deciding].waiting if self._deciding else None
+
+    @property
+    def finished(self) -> bool:
+        return (not self._due and all(self.cores[n].finished for n in self.started)
+                and len(self.started) + len(self.unsubmitted) == len(self.entries))
+
+    def used_s(self, name: str) -> float:
+        """Device time campaign ``name`` has had: its steps done and failed, and those on a device now."""
+        core = self.cores[name]
+        running = sum(self.now - d.attempt.t_sent for d in core.devices.values() if d.attempt is not None)
+        return sum(d.busy_s for d in core.devices.values()) + running
+
+    # -- inside ---------------------------------------------------------------------
+    def _take(self, name: str, actions: list[Action]) -> None:
+        refilled = False
+        for a in actions:
+            self._out.append((name, a))
+            refilled = refilled or getattr(a, "kind", None) == "consumable.refilled"
+        if refilled:
+            for other in self.started:
+                if other != name and self.cores[other].starved:
+                    consumables.requeue(self.cores[other])
+        if self.cores[name].finished:
+            self._ended(name)
+
+    def _submit(self, name: str) -> None:
+        if name not in self.started and name not in self._due:
+            self._due.append(name)
+
+    def _begin(self, name: str) -> None:
+        core = self.cores[name]
+        for dev_name, alive in self.online.items():
+            if dev_name not in core.people:
+                core.devices[dev_name].online = alive
+        self.started.append(name)
+        self._sync_holds()
+        self._take(name, core.start(self.now))
+        if core.waiting is not None:
+            self._deciding = name
+
+    def _ended(self, name: str) -> None:
+        for other, entry in self.entries.items():
+            if entry.after == name:
+                if self._stopping:
+                    self.unsubmitted.setdefault(other, self._stopping)
+                else:
+                    self._submit(other)
+
+    def _turns(self) -> list[str]:
+        """The started campaigns in the order they pick: priority, then furthest below their share."""
+        used = {n: self.used_s(n) for n in self.started}
+        total = sum(used.values()) or 1.0
+        weights = {n: self.entries[n].share for n in self.started}
+        wsum = sum(weights.values())
+        return sorted(self.started, key=lambda n: (-self.entries[n].priority,
+                                                   used[n] / total - weights[n] / wsum, self.started.index(n)))
+
+    def _sync_holds(self) -> None:
+        holder: dict[str, str] = {}
+        for name in self.started:
+            if self.cores[name].finished:
+                continue  # it cancelled what it ran as it ended: it holds nothing
+            for dev in self.cores[name].devices.values():
+                if dev.attempt is not None or dev.cancelling is not None:
+                    holder[dev.name] = name
+        for name in self.started:
+            core = self.cores[name]
+            for dev in core.devices.values():
+                h = holder.get(dev.name, "")
+                h = h if h != name else ""
+                if dev.held_by and not h:
+                    core.wake()  # released: this campaign may want it
+                dev.held_by = h
+
+    def _owner(self, event: Event) -> CampaignCore | None:
+        """The campaign a device's message is for."""
+        if isinstance(event, DeviceMessage) and event.campaign in self.cores and event.campaign in self.started:
+            return self.cores[event.campaign]
+        sender = event.device if isinstance(event, DeviceMessage) else event.sender if isinstance(
+            event, InvalidInput) else ""
+        for name in self.started:
+            dev = self.cores[name].devices.get(sender)
+            if dev is not None and (dev.attempt is not None or dev.cancelling is not None):
+                return self.cores[name]
+        return self.cores[self.started[0]] if self.started else None

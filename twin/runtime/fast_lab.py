@@ -1,0 +1,88 @@
+"""Several campaigns sharing one lab on the fast runtime: one event queue, one set of in-process devices, a seat
+(journal, planner, scheduler, timers) per campaign, and the ``SharedLab`` deciding whose turn it is."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from twin.campaign.events import TimerFired, TimerKey
+from twin.campaign.decisions import Planner, Scheduler
+from twin.campaign.journal import Journal
+from twin.campaign.sharing import LAB, SharedLab
+from twin.runtime.fast import Progress, Seat, asyncio_tripwire
+from twin.runtime.fast_device import FastDevice
+from twin.runtime.queue import EventQueue, Timer
+from twin.scenario import Scenario
+
+SeatParts = tuple[Journal, Planner, Scheduler]
+
+
+class FastLab:
+    def __init__(self, lab: Scenario, scenarios: dict[str, Scenario],
+                 drivers: dict[str, list[tuple[str, str, Any]]], parts: dict[str, SeatParts],
+                 on_progress: Callable[[str], Progress | None] | None = None) -> None:
+        """``scenarios``: each campaign's; ``drivers``: each campaign's (a simulated device simulates the
+        chemistry of the campaign whose step it runs); ``parts``: each campaign's journal, planner and scheduler."""
+        self.lab, self.queue = lab, EventQueue()
+        self.shared = SharedLab(lab, scenarios)
+        per_device: dict[str, dict[str, Any]] = {}
+        for campaign, loaded in drivers.items():
+            for name, _, drv in loaded:
+                per_device.setdefault(name, {})[campaign] = drv
+        first = {name: (dtype, drv) for loaded in reversed(list(drivers.values())) for name, dtype, drv in loaded}
+        self.devices = {name: FastDevice(name, dtype, lab.devices[dtype], drv, self.queue, lab.campaign.seed,
+                                         self.shared.feed_device, shared=per_device[name])
+                        for name, (dtype, drv) in sorted(first.items())}
+        self.seats = {name: Seat(self.shared.cores[name], *parts[name], self.queue, self.devices,
+                                 on_progress(name) if on_progress else None)
+                      for name in scenarios}
+        self._lab_timers: dict[TimerKey, Timer] = {}
+
+    @property
+    def now(self) -> float:
+        return self.queue.now
+
+    def run(self) -> None:
+        shared, q = self.shared, self.queue
+        with asyncio_tripwire():
+            self._perform(shared.start(q.now))
+            for dev in self.devices.values():
+                dev.start()
+            while not shared.finished:
+                q.run_ready()
+                if shared.has_work:
+                    self._perform(shared.advance(q.now))
+                elif shared.waiting is None and not q.jump():
+                    shared.stop("nothing left to happen")
+                    if not shared.has_work:  # nothing started, nothing to stop
+                        break
+            for dev in self.devices.values():
+                dev.stop()
+
+    def stop(self, reason: str) -> None:
+        self.shared.stop(reason)
+
+    def _perform(self, tagged: list[tuple[str, Any]]) -> None:
+        # consecutive actions of one campaign go to its seat together (its progress line is drawn once)
+        run: list[Any] = []
+        who = None
+        for name, action in tagged:
+            if name != who and run:
+                self._to(who, run)
+                run = []
+            who = name
+            run.append(action)
+        if run:
+            self._to(who, run)
+
+    def _to(self, name: str, actions: list[Any]) -> None:
+        if name != LAB:
+            self.seats[name].perform(actions)
+            return
+        for a in actions:  # the lab's own: submission timers
+            self._lab_timers[a.key] = self.queue.call_later(a.delay, self._fire, a.key)
+
+    def _fire(self, key: TimerKey) -> None:
+        self._lab_timers.pop(key, None)
+        self.shared.feed(LAB, TimerFired(key))

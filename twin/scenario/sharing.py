@@ -1,0 +1,61 @@
+"""A lab that serves several campaigns: each campaign's scenario is the lab file with the campaign's sections.
+
+The lab file gives the devices, consumables, clock, bus and orchestrator; a campaign (``campaigns:`` in the lab
+file, or a campaign file given to ``twin submit``) gives its own chemistry, workflow and campaign section, and
+takes the lab's for any it leaves out. A campaign that gives no seed of its own runs on the lab's seed plus its
+place in the list, so two campaigns of the same chemistry do not propose the same experiments.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from twin.core.errors import ScenarioError
+from twin.scenario.files import read_yaml
+from twin.scenario.loading import parse
+from twin.scenario.model import Scenario, SharedCampaign
+
+_OWN = ("chemistry", "workflow", "campaign")
+
+
+def campaign_scenario(lab: Scenario, c: SharedCampaign, index: int, source: str = "<lab>") -> Scenario:
+    """The scenario campaign ``c`` (the ``index``-th of the lab) runs: the lab's, with ``c``'s own sections."""
+    data = lab.model_dump(exclude={"campaigns"})
+    own = c.model_dump(include=set(_OWN), exclude_none=True)
+    data.update(own)
+    used = {w["device"] for w in data["workflow"]}
+    for dtype, spec in data["devices"].items():
+        if used and dtype not in used:  # never sent this campaign's steps: its chemistry need not fit them
+            spec["duration"]["plus_param"] = None
+            spec["envelope"] = {}
+    seeded = c.campaign is not None and "seed" in c.campaign.model_fields_set
+    data["campaign"]["seed"] = data["campaign"]["seed"] if seeded else (lab.campaign.seed + index) % 2**63
+    return parse(data, f"{source}: campaigns.{index} ({c.name})")
+
+
+def campaign_scenarios(lab: Scenario, source: str = "<lab>") -> dict[str, Scenario]:
+    """Every campaign's scenario, by name; a ScenarioError names the campaign and the field."""
+    return {c.name: campaign_scenario(lab, c, i, source) for i, c in enumerate(lab.campaigns)}
+
+
+def load_campaign(path: str | Path) -> SharedCampaign:
+    """A campaign file (``twin submit``): a name and the sections of a campaign (priority, owner, chemistry,
+    workflow, campaign)."""
+    raw = read_yaml(Path(path))
+    if not isinstance(raw, dict):
+        raise ScenarioError(str(path), ["a campaign file is a mapping: name, and any of owner, priority, share, "
+                                        "chemistry, workflow, campaign"])
+    try:
+        return SharedCampaign.model_validate(raw)
+    except ValidationError as exc:
+        raise ScenarioError(str(path), [_where(e) for e in exc.errors()]) from None
+
+
+def _where(err: Any) -> str:
+    loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    if err["type"] == "extra_forbidden":
+        return f"{loc}: unknown field (a campaign file has name, owner, priority, share, chemistry, workflow, campaign)"
+    return f"{loc}: {err['msg'].removeprefix('Value error, ')}"
