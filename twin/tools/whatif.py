@@ -22,8 +22,10 @@ import yaml
 
 from twin.core.errors import ScenarioError
 from twin.runtime.lab import prepare, run
+from twin.runtime.shared_run import run_shared
 from twin.tools.planner_bench import quartiles, quiet_alerts
 from twin.scenario import Scenario
+from twin.scenario.sharing import campaign_scenario
 
 AS_WRITTEN = "as written"
 
@@ -114,6 +116,8 @@ def variants(scenario: Scenario, vary: list[tuple[str, list[Any]]], schedulers: 
 
 def one(scenario: Scenario, variant: Variant, seed: int) -> Outcome:
     lab = prepare(scenario, overrides=dict(variant.changes) or None)
+    if lab.campaigns:
+        return _shared(lab, variant, seed)
     with tempfile.TemporaryDirectory() as d:
         s = run(lab, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual")
     targets = [t.name for t in lab.chemistry.targets]
@@ -127,6 +131,28 @@ def one(scenario: Scenario, variant: Variant, seed: int) -> Outcome:
                    max(s.targets_met_cost.values()) if reached else s.cost,
                    max(s.targets_met_after.values()) if reached else s.proposed,
                    s.abandoned, s.degraded_samples, per_type)
+
+
+def _shared(lab: Scenario, variant: Variant, seed: int) -> Outcome:
+    """A lab of several campaigns: reached when every campaign met every target; lab-hours (from the lab's
+    start) until the last of them, else until the last campaign ended; cost, experiments and losses summed."""
+    with tempfile.TemporaryDirectory() as d:
+        out = run_shared(prepare(lab, seed=seed), Path(d), handle_signals=False)
+    reached, last = True, 0.0
+    for c in lab.campaigns:
+        summary = out.campaigns.get(c.name)
+        scenario = campaign_scenario(lab, c, 0)
+        names = [t.name for t in scenario.chemistry.targets]
+        if summary is None or not names or not all(t in summary.targets_met_h for t in names):
+            reached = False
+            continue
+        last = max(last, out.submitted_h[c.name] + max(summary.targets_met_h.values()))
+    runs = list(out.campaigns.values())
+    per_type = {dtype: statistics.mean(out.utilisation.get(n, 0.0) for n in lab.instance_names(dtype))
+                for dtype in lab.devices}
+    return Outcome(variant.label, seed, reached, last if reached else out.lab_hours, out.lab_hours,
+                   sum(r.cost for r in runs), sum(r.proposed for r in runs), sum(r.abandoned for r in runs),
+                   sum(r.degraded_samples for r in runs), per_type)
 
 
 def _one(job: tuple[Scenario, Variant, int]) -> Outcome:
@@ -213,7 +239,8 @@ def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any]
         base = row["variant"] == AS_WRITTEN
         busiest = row["bottleneck"]
         out.append([
-            *[f"{written.get(name)}*" if base else str(row["changes"].get(name, written.get(name))) for name in axes],
+            *[f"{_shown(written.get(name))}*" if base else _shown(row["changes"].get(name, written.get(name)))
+              for name in axes],
             f"{censored}{mid:.1f}", f"{lo:.1f}–{hi:.1f}" if hi < 10 else f"{lo:.0f}–{hi:.0f}",
             "—" if base or change is None else f"{change[1]:+.1f}",
             *([f"{row['cost'][1]:,.0f}", "—" if base or cost_change is None else f"{cost_change[1]:+,.0f}"]
@@ -224,8 +251,18 @@ def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any]
     return out
 
 
+def _shown(value: Any) -> str:
+    return "none" if value is None else str(value)
+
+
+def has_targets(s: Scenario) -> bool:
+    """Whether the scenario (or, for a lab of several campaigns, any of them) has targets to reach."""
+    return bool(s.chemistry.targets) or any(c.chemistry is not None and c.chemistry.targets for c in s.campaigns)
+
+
 def caption(targets: bool, seeds: int, with_cost: bool = True) -> str:
-    what = ("lab-h: lab-hours until every target was met (≥: not met in every run, the whole campaign counted)"
+    what = ("lab-h: lab-hours until every target (of every campaign) was met (≥: not met in every run, the whole "
+            "campaign counted)"
             if targets else "lab-h: lab-hours of the whole campaign (the scenario has no targets)")
     return (f"*: the scenario as written. Medians and IQR over {seeds} paired seeds. {what}; Δ: median of the per-seed "
             "change against the scenario as written; " + ("cost: at the last target (else all spent); " if with_cost else
