@@ -221,3 +221,44 @@ def test_a_campaign_journal_is_a_journal_like_any_other(tmp_path):
     assert out.exit_code == 0, out.output
     rows = [json.loads(line) for line in (tmp_path / "x" / "experiments.jsonl").read_text().splitlines()]
     assert len(rows) == 6 and all("param.concentration_mm" in r and "param.temperature_k" not in r for r in rows)
+
+
+@pytest.mark.process
+def test_two_campaigns_on_a_scaled_clock_over_zenoh_with_a_device_in_another_process(tmp_path):
+    import socket
+    import subprocess
+    import sys
+
+    import yaml
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    raw = yaml.safe_load(LAB.read_text())
+    raw["clock"] = {"mode": "scaled", "speed": 3000}
+    raw["bus"] = {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]}
+    raw["orchestrator"]["startup_s"] = 3000
+    for c, budget in zip(raw["campaigns"], (5, 3)):
+        c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
+    raw["campaigns"][1]["chemistry"]["parameters"]["time_s"] = {"low": 600, "high": 900, "unit": "s"}
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    device = subprocess.Popen([sys.executable, "-m", "twin", "device", "serve", str(path), "--id", "spectrometer",
+                               "--connect", f"tcp/127.0.0.1:{port}", "--clock", "scaled", "--speed", "3000"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, cwd=ROOT)
+    try:
+        out = run_shared(load(path), tmp_path / "runs", handle_signals=False, external_devices={"spectrometer"})
+    finally:
+        device.terminate()
+        _, err = device.communicate(timeout=30)
+    assert out.campaigns["dots"].done + out.campaigns["dots"].abandoned == 5, err.decode()[-2000:]
+    assert out.campaigns["catalyst"].done + out.campaigns["catalyst"].abandoned == 3
+    assert_accounted(out)
+    assert_one_step_at_a_time(tmp_path / "runs")
+    # the spectrometer in the other process measured both campaigns' samples, each with its own chemistry
+    for name, output in (("dots", "output.peak_nm"), ("catalyst", "output.yield")):
+        con = sqlite3.connect(tmp_path / "runs" / f"{name}.db")
+        results = con.execute("SELECT detail FROM events WHERE kind='msg.result' AND device='spectrometer'").fetchall()
+        con.close()
+        assert results and all(json.loads(r[0])["campaign"] == name for r in results)
+        assert all(output.split(".")[1] in json.loads(r[0])["body"]["outputs"] for r in results)

@@ -130,7 +130,14 @@ class SharedLab:
 
     @property
     def has_work(self) -> bool:
-        return (bool(self._due) and not self._deciding) or any(self.cores[n].has_work for n in self.started)
+        """Whether ``advance`` would do anything now: events to take in, or a decision pass that may go on (while
+        one campaign waits for its planner or scheduler, the others' passes wait their turn)."""
+        cores = [self.cores[n] for n in self.started]
+        if any(c.has_events for c in cores):
+            return True
+        if self._deciding:
+            return self.cores[self._deciding].wants_to_decide
+        return bool(self._due) or any(c.wants_to_decide for c in cores)
 
     @property
     def waiting(self) -> Any:

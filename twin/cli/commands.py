@@ -83,7 +83,7 @@ def run(
     except TwinError as exc:
         _fail(exc)
     if s.campaigns:
-        shared_lab(s, journal, record, quiet, json_out, external, runtime)
+        shared_lab(s, journal, record, quiet, json_out, external)
         return
     _campaign(s, record, quiet, json_out, lambda on_progress, observer: lab.run(
         s, journal=journal, external_devices=set(external or ()), on_progress=on_progress, observer=observer,

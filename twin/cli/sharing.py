@@ -16,19 +16,17 @@ from twin.view.watch import RecordOptions
 
 
 def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: bool, json_out: bool,
-               external: list[str] | None, runtime: str) -> None:
+               external: list[str] | None) -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    unsupported = [flag for flag, given in (("--save/--viewer/--serve", record.wanted), ("--external", external),
-                                            ("--runtime asyncio", runtime == "asyncio")) if given]
-    if unsupported:
-        _fail(TwinError(f"{s.name}: a lab of several campaigns runs on the fast runtime in virtual time, without "
-                        f"{', '.join(unsupported)} (yet): run each campaign's own scenario for those"))
+    if record.wanted:
+        _fail(TwinError(f"{s.name}: --save/--viewer/--serve do not record a lab of several campaigns yet; each "
+                        "campaign's journal can be replayed (twin replay <journals>/<campaign>.db --save x.rrd)"))
     try:
         check(s)
         if not quiet and not json_out:
             err.print(f"{s.name}: {len(s.campaigns)} campaigns sharing the lab "
-                      f"({', '.join(c.name for c in s.campaigns)}), virtual time …", highlight=False)
-        summary = run_shared(s, journal)
+                      f"({', '.join(c.name for c in s.campaigns)}), {s.clock.mode} clock …", highlight=False)
+        summary = run_shared(s, journal, external_devices=set(external or ()))
     except TwinError as exc:
         _fail(exc)
     if json_out:

@@ -37,7 +37,7 @@ def whatif(
     abandoned, the busiest device type, and the change against the scenario as written."""
     from rich import box
 
-    from twin.tools.whatif import (AS_WRITTEN, axes_of, caption, cheapest_within, costs_anything, has_targets, header,
+    from twin.tools.whatif import (AS_WRITTEN, axes_of, caption, cheapest_within, costs_anything, has_targets as any_targets, header,
                                    parse_vary, rows, summarise, variants, written_values)
     from twin.tools.whatif import whatif as run_whatif
 
@@ -73,7 +73,7 @@ def whatif(
                                        "cheapest_within": best and best["variant"],
                                        "runs": [asdict(o) for o in results]}))
         return
-    has_targets, with_cost = has_targets(s), costs_anything(summary)
+    has_targets, with_cost = any_targets(s), costs_anything(summary)
     table = Table(title=f"{s.name}: what if — {len(chosen)} variants × {seeds} seeds", title_justify="left",
                   box=box.SIMPLE_HEAD, collapse_padding=True,
                   pad_edge=False)

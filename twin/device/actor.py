@@ -30,8 +30,11 @@ log = logging.getLogger(__name__)
 
 class DeviceActor:
     def __init__(self, name: str, spec: Any, driver: Driver, bus: Bus, clock: LabClock, lab: str, seed: int,
-                 orphan_grace_s: float = 300.0) -> None:
+                 orphan_grace_s: float = 300.0, shared: dict[str, Driver] | None = None) -> None:
+        """``shared``: the device serves several campaigns — campaign -> the driver that simulates its chemistry;
+        their steps draw faults and durations by campaign too (their task ids repeat)."""
         self.name, self.spec, self.driver = name, spec, driver
+        self._shared = shared or {}
         self.orphan_grace_s = orphan_grace_s
         self._boss: Closable | None = None
         self._orphan_timer: asyncio.TimerHandle | None = None
@@ -216,9 +219,10 @@ class DeviceActor:
         def emit(kind: Kind, body: dict, key: str | None = None) -> None:
             self._emit(kind, body, task, attempt, campaign, token, key)
 
+        drawn_by = f"{campaign}/{task}" if self._shared else task
         ctx = StepContext(
             clock=self._clock,
-            rng=self._step_rngs.keyed(f"{self._seed}:steps:{task}:{attempt}"),
+            rng=self._step_rngs.keyed(f"{self._seed}:steps:{drawn_by}:{attempt}"),
             duration=spec.duration,
             progress=lambda f, note: emit(Kind.PROGRESS, {"fraction": f, "note": note}),
             telemetry=lambda r: emit(Kind.TELEMETRY, {"readings": r}, keys.telemetry(self._lab, self.name)),
@@ -227,11 +231,12 @@ class DeviceActor:
         )
         emit(Kind.ACCEPTED, {})
         try:
-            hang, fail = simulated_faults(self._seed, task, attempt, faults)
+            hang, fail = simulated_faults(self._seed, drawn_by, attempt, faults)
             await self._clock.sleep(spec.setup_s)
             if hang:
                 await asyncio.Event().wait()  # only a cancel (a timeout) ends a hung step
-            result = await self.driver.run(cmd.step, cmd.params, cmd.sample, ctx)
+            driver = self._shared.get(campaign, self.driver)
+            result = await driver.run(cmd.step, cmd.params, cmd.sample, ctx)
             await self._clock.sleep(spec.clean_s)
             if fail:
                 emit(Kind.FAULT, {"code": "failed", "reason": f"{cmd.step} failed on {self.name} (simulated)"})

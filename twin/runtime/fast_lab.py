@@ -19,21 +19,17 @@ SeatParts = tuple[Journal, Planner, Scheduler]
 
 
 class FastLab:
-    def __init__(self, lab: Scenario, scenarios: dict[str, Scenario],
-                 drivers: dict[str, list[tuple[str, str, Any]]], parts: dict[str, SeatParts],
+    def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], drivers: list[tuple[str, str, Any]],
+                 per_device: dict[str, dict[str, Any]], parts: dict[str, SeatParts],
                  on_progress: Callable[[str], Progress | None] | None = None) -> None:
-        """``scenarios``: each campaign's; ``drivers``: each campaign's (a simulated device simulates the
-        chemistry of the campaign whose step it runs); ``parts``: each campaign's journal, planner and scheduler."""
+        """``scenarios``: each campaign's; ``per_device``: each instance's driver for each campaign (a simulated
+        device simulates the chemistry of the campaign whose step it runs); ``parts``: each campaign's journal,
+        planner and scheduler."""
         self.lab, self.queue = lab, EventQueue()
         self.shared = SharedLab(lab, scenarios)
-        per_device: dict[str, dict[str, Any]] = {}
-        for campaign, loaded in drivers.items():
-            for name, _, drv in loaded:
-                per_device.setdefault(name, {})[campaign] = drv
-        first = {name: (dtype, drv) for loaded in reversed(list(drivers.values())) for name, dtype, drv in loaded}
         self.devices = {name: FastDevice(name, dtype, lab.devices[dtype], drv, self.queue, lab.campaign.seed,
                                          self.shared.feed_device, shared=per_device[name])
-                        for name, (dtype, drv) in sorted(first.items())}
+                        for name, dtype, drv in sorted(drivers)}
         self.seats = {name: Seat(self.shared.cores[name], *parts[name], self.queue, self.devices,
                                  on_progress(name) if on_progress else None)
                       for name in scenarios}

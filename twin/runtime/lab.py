@@ -150,8 +150,11 @@ def load_drivers(s: Scenario, only: set[str] | None = None, skip: Collection[str
     ]
 
 
-def build_actors(s: Scenario, drivers: list[tuple[str, str, Any]], bus: Bus, clock: LabClock) -> list[DeviceActor]:
-    return [DeviceActor(name, s.devices[dtype], drv, bus, clock, s.lab, s.campaign.seed, s.orchestrator.orphan_grace_s)
+def build_actors(s: Scenario, drivers: list[tuple[str, str, Any]], bus: Bus, clock: LabClock,
+                 per_campaign: dict[str, dict[str, Any]] | None = None) -> list[DeviceActor]:
+    """``per_campaign``: a lab of several campaigns — each instance's driver for each campaign's chemistry."""
+    return [DeviceActor(name, s.devices[dtype], drv, bus, clock, s.lab, s.campaign.seed, s.orchestrator.orphan_grace_s,
+                        (per_campaign or {}).get(name))
             for name, dtype, drv in drivers]
 
 

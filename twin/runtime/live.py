@@ -42,22 +42,50 @@ log = logging.getLogger(__name__)
 Progress = Callable[[CampaignCore], None]
 
 
+class EventDecoder:
+    """A device's message off the bus: a ``DeviceMessage`` (shown to an in-process observer as it is decoded),
+    or an ``InvalidInput`` that names the sender and the reason."""
+
+    def __init__(self, observer: Any = None) -> None:
+        self.observer = observer
+        self.invalid = 0
+
+    def event(self, key: str, payload: bytes) -> DeviceMessage | InvalidInput:
+        on_key = keys.device_of(key)
+        try:
+            env, body = decode(payload, sender_hint=on_key)
+        except InvalidMessage as exc:
+            self.invalid += 1
+            if self.invalid <= 10 or self.invalid % 1000 == 0:  # a flood must not flood the log too
+                log.warning("dropped a message on %s: %s (%d so far; the journal has each)", key, exc, self.invalid)
+            return InvalidInput(exc.sender, exc.reason, key, excerpt(payload))
+        kept = without_token(env) if env.token else payload
+        plain = body.to_dict()
+        if self.observer is not None and env.kind in WATCHED:
+            self.observer.on_envelope({"kind": env.kind, "id": env.id, "sender": env.sender, "task": env.task,
+                                       "t_lab": env.t_lab, "body": plain})
+        return DeviceMessage(env.kind, env.sender, env.task, env.attempt, plain, kept, on_key, env.token,
+                             env.campaign or "")
+
+
 class LiveCampaign:
     """One campaign of ``scenario`` on ``bus`` and ``clock``; ``await run()`` drives it to its end."""
 
     def __init__(self, scenario: Scenario, bus: Bus, clock: LabClock, journal: Journal, planner: Planner,
                  scheduler: Scheduler, campaign_id: str = "c1", on_progress: Progress | None = None,
-                 rebuilt: Rebuilt | None = None, observer: Any = None) -> None:
-        """``rebuilt``: the core of a killed live campaign, rebuilt from its journal (``twin resume``).
+                 rebuilt: Rebuilt | None = None, observer: Any = None, core: CampaignCore | None = None) -> None:
+        """``rebuilt``: the core of a killed live campaign, rebuilt from its journal (``twin resume``). ``core``:
+        one made elsewhere (a campaign of a shared lab, which the lab drives: its inputs are not journalled).
         ``observer``: a ``LabObserver`` in this process, handed the core's notes and the devices' results and
         telemetry as they are decoded here (not a second subscription that parses them again)."""
         self.observer = observer
         self.s, self.bus, self.clock, self.journal = scenario, bus, clock, journal
         self.planner, self.scheduler, self.on_progress = planner, scheduler, on_progress
-        self.core = rebuilt.core if rebuilt is not None else CampaignCore(scenario, campaign_id)
+        self.core = rebuilt.core if rebuilt is not None else core or CampaignCore(scenario, campaign_id)
         self._rebuilt = rebuilt
         # a live campaign journals its core's inputs, so that a killed one can be rebuilt (virtual time re-runs)
-        self._recording = not clock.is_virtual
+        self._recording = not clock.is_virtual and core is None
+        self._decoder = EventDecoder(observer)
         self._fed: list[Any] = []
         self.decisions = DecisionStream(journal, bus, clock, scenario.lab, campaign_id)
         self.desk = ControlDesk(self.core, clock, self._feed, journal.flush)
@@ -70,7 +98,6 @@ class LiveCampaign:
         self._planning: asyncio.Future | None = None  # a proposal being computed in the worker thread
         self._spare: list[Any] | None = None  # proposals that came after the lab went on without them
         self._late: asyncio.TimerHandle | None = None
-        self._invalid = 0
         self._rejected = 0
 
     def stop(self, reason: str) -> None:
@@ -121,21 +148,7 @@ class LiveCampaign:
 
     # -- events in --------------------------------------------------------------------
     def _on_event(self, key: str, payload: bytes) -> None:
-        on_key = keys.device_of(key)
-        try:
-            env, body = decode(payload, sender_hint=on_key)
-        except InvalidMessage as exc:
-            self._invalid += 1
-            if self._invalid <= 10 or self._invalid % 1000 == 0:  # a flood must not flood the log too
-                log.warning("dropped a message on %s: %s (%d so far; the journal has each)", key, exc, self._invalid)
-            self._feed(InvalidInput(exc.sender, exc.reason, key, excerpt(payload)))
-            return
-        kept = without_token(env) if env.token else payload
-        plain = body.to_dict()
-        if self.observer is not None and env.kind in WATCHED:
-            self.observer.on_envelope({"kind": env.kind, "id": env.id, "sender": env.sender, "task": env.task,
-                                       "t_lab": env.t_lab, "body": plain})
-        self._feed(DeviceMessage(env.kind, env.sender, env.task, env.attempt, plain, kept, on_key, env.token))
+        self._feed(self._decoder.event(key, payload))
 
     def _on_presence(self, key: str, alive: bool) -> None:
         self._feed(Presence(keys.device_of(key), alive))
@@ -265,12 +278,15 @@ class LiveCampaign:
             elif t is Ask:
                 self._answer(a)
             elif t is Finished:
-                self._close()
-                if self._done is not None and not self._done.done():
-                    self._done.set_result(None)
+                self._ended()
         self.decisions.publish()
         if progressed and self.on_progress is not None:
             self.on_progress(self.core)
+
+    def _ended(self) -> None:
+        self._close()
+        if self._done is not None and not self._done.done():
+            self._done.set_result(None)
 
     def _answer(self, ask: Ask) -> None:
         if ask.what == "plan":

@@ -9,6 +9,7 @@ import logging
 import signal
 from collections.abc import Awaitable, Callable
 from pathlib import Path
+from typing import Any
 
 from twin.core import keys
 from twin.core.bus import Bus, NoReplyError, security
@@ -17,7 +18,9 @@ from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
 from twin.runtime.labtime import LabTimeFollower
 from twin.runtime.lab import build_actors, load_drivers, make_bus, make_clock, make_scheduler, prepare
+from twin.runtime.shared_run import shared_drivers
 from twin.scenario import BusSpec, Scenario
+from twin.scenario.sharing import campaign_scenarios
 
 log = logging.getLogger(__name__)
 
@@ -79,13 +82,17 @@ def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str
                  speed: float | None = None,
                  security_dir: str | None = None) -> None:
     s = _joined(scenario, connect, clock, speed, security_dir)
-    drivers = load_drivers(s, only={name})
+    per_device: dict[str, dict[str, Any]] = {}
+    if s.campaigns:  # a lab of several campaigns: a driver for each campaign's chemistry
+        drivers, per_device = shared_drivers(campaign_scenarios(s, str(scenario)), only={name})
+    else:
+        drivers = load_drivers(s, only={name})
     if not drivers:
         known = [n for d in s.devices for n in s.instance_names(d)]
         raise DriverError(f"{scenario}: no device instance {name!r}; the scenario has {known}")
 
     async def start(bus: Bus, clock: LabClock):
-        actors = build_actors(s, drivers, bus, clock)
+        actors = build_actors(s, drivers, bus, clock, per_device)
         for a in actors:
             await a.start()
 

@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import Callable, Collection
 from typing import Any
 from pathlib import Path
 
-from twin.campaign.summary import LabSummary
+from twin.campaign.sharing import SharedLab
+from twin.campaign.summary import LabSummary, Summary
+from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
 from twin.runtime.fast_lab import FastLab
-from twin.runtime.lab import (_stop_on_signals, finish, load_drivers, make_planner, make_scheduler, open_journal,
-                              refuse_realtime)
+from twin.runtime.lab import (_agent_on_bus, _stop_on_loop_signals, _stop_on_signals, build_actors, finish,
+                              live_scheduler, load_drivers, make_bus, make_clock, make_planner, make_scheduler,
+                              open_journal, refuse_realtime)
+from twin.runtime.labtime import LabTimeSource
+from twin.runtime.live_lab import LiveLab
 from twin.scenario import Scenario
 from twin.scenario.sharing import campaign_scenarios
 
@@ -19,51 +26,110 @@ def default_journals(s: Scenario) -> Path:
     return Path("runs") / f"{s.name}-seed{s.campaign.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: bool = True) -> LabSummary:
-    """Every campaign of ``s`` on its shared lab, in virtual time; each writes ``<journals>/<campaign>.db``."""
-    if s.clock.mode != "virtual":
-        raise ClockError(f"{s.name}: a lab of several campaigns runs in virtual time (clock.mode: virtual, "
-                         f"or --clock virtual); on a {s.clock.mode} clock, serve the lab with `twin lab serve`")
+def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: bool = True,
+               external_devices: Collection[str] = frozenset()) -> LabSummary:
+    """Every campaign of ``s`` on its shared lab; each writes ``<journals>/<campaign>.db``. Virtual time on the
+    fast runtime; a scaled or wall clock on the asyncio runtime, over the scenario's bus, with
+    ``external_devices`` served by other processes (``twin device serve``)."""
+    if external_devices and s.clock.mode == "virtual":
+        raise ClockError(f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
+                         "see messages in flight: use --clock scaled or --clock wall")
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
-    drivers = {name: _drivers(name, cs) for name, cs in scenarios.items()}
+    agents = [n for n, cs in scenarios.items() if _agent_on_bus(cs.campaign.scheduler)]
+    if agents:
+        raise ClockError(f"campaigns {agents}: a scheduler agent on the bus serves one campaign; in a lab of "
+                         "several, give each campaign an in-process scheduler")
+    drivers, per_device = shared_drivers(scenarios, skip=external_devices)
+    if s.clock.mode == "virtual":
+        refuse_realtime(drivers)
     where = Path(journals) if journals is not None else default_journals(s)
     where.mkdir(parents=True, exist_ok=True)
     parts = {name: (open_journal(cs, where / f"{name}.db"), make_planner(cs), make_scheduler(cs))
              for name, cs in scenarios.items()}
-    lab = FastLab(s, scenarios, drivers, parts)
-    with _stop_on_signals(lab.stop, handle_signals):
+    for journal, _, _ in parts.values():
+        journal.set("external", sorted(external_devices))
+    if s.clock.mode == "virtual":
+        lab: Any = FastLab(s, scenarios, drivers, per_device, parts)
+        with _stop_on_signals(lab.stop, handle_signals):
+            try:
+                lab.run()
+            finally:
+                summaries = _finish(lab.shared, parts, wall0, lab.now)
+        return _summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
+    clock = make_clock(s)
+    return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals))
+
+
+async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], drivers: list, per_device: dict,
+                parts: dict, where: Path, wall0: float, handle_signals: bool) -> LabSummary:
+    async with contextlib.AsyncExitStack() as stack:
+        bus = make_bus(s, clock)
+        await bus.start()
+        stack.push_async_callback(bus.close)
+        if s.bus.kind != "memory":
+            source = LabTimeSource(bus, s.lab, clock)
+            source.start()
+            stack.callback(source.close)
+        wrapped = {}
+        for name, (journal, planner, scheduler) in parts.items():
+            wrapped[name] = (journal, planner, live_scheduler(scenarios[name], scheduler, bus, clock)[0])
+        lab = LiveLab(s, scenarios, bus, clock, wrapped)
+        for actor in build_actors(s, drivers, bus, clock, per_device):
+            await actor.start()
+            stack.push_async_callback(actor.stop)
+        if handle_signals:
+            stack.enter_context(_stop_on_loop_signals(lab.stop))
         try:
-            lab.run()
+            await lab.run()
         finally:
-            summaries = {}
-            for name, (journal, _, _) in parts.items():
-                if name in lab.shared.started:
-                    summaries[name] = finish(lab.shared.cores[name], journal, wall0, lab.now)
-                else:
-                    why = lab.shared.unsubmitted.get(name, "the lab ended first")
-                    journal.event(lab.now, "campaign.not_started", detail=why)
-                    journal.close()
-    return _summary(s, lab, summaries, where, time.perf_counter() - wall0)
+            summaries = _finish(lab.shared, parts, wall0, clock.now(),
+                                {n: seat.note for n, seat in lab.seats.items()})
+    return _summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
 
 
-def _drivers(name: str, s: Scenario) -> list[tuple[str, str, Any]]:
-    """Campaign ``name``'s drivers: those of its workflow's device types must simulate its chemistry; another
-    type's driver that cannot is left out (the campaign sends it nothing)."""
-    used = {w.device for w in s.workflow}
-    out = []
-    for dtype in s.devices:
-        try:
-            out += load_drivers(s, only=set(s.instance_names(dtype)))
-        except DriverError as exc:
-            if dtype in used:
-                raise DriverError(f"campaigns.{name}: {exc}") from None
-    refuse_realtime(out)
-    return out
+def _finish(shared: SharedLab, parts: dict, wall0: float, now: float,
+            notes: dict[str, Callable[[str, Any], None]] | None = None) -> dict[str, Summary]:
+    """Each started campaign's summary, journalled; a campaign that never started says why in its journal."""
+    summaries = {}
+    for name, (journal, _, _) in parts.items():
+        if name in shared.started:
+            summaries[name] = finish(shared.cores[name], journal, wall0, now, (notes or {}).get(name))
+        else:
+            journal.event(now, "campaign.not_started", detail=shared.unsubmitted.get(name, "the lab ended first"))
+            journal.close()
+    return summaries
 
 
-def _summary(s: Scenario, lab: FastLab, summaries: dict, where: Path, wall_s: float) -> LabSummary:
-    shared = lab.shared
+Drivers = tuple[list[tuple[str, str, Any]], dict[str, dict[str, Any]]]
+
+
+def shared_drivers(scenarios: dict[str, Scenario], only: set[str] | None = None,
+                   skip: Collection[str] = frozenset()) -> Drivers:
+    """The drivers of a lab's devices (instance, type, driver), and for each instance the driver that simulates
+    each campaign's chemistry. A campaign's workflow types must have one; another type's driver that cannot
+    simulate its chemistry is left out (the campaign sends it nothing)."""
+    per_device: dict[str, dict[str, Any]] = {}
+    first: dict[str, tuple[str, Any]] = {}
+    for name, s in scenarios.items():
+        used = {w.device for w in s.workflow}
+        for dtype in s.devices:
+            wanted = {n for n in s.instance_names(dtype) if (only is None or n in only) and n not in skip}
+            if not wanted:
+                continue
+            try:
+                loaded = load_drivers(s, only=wanted)
+            except DriverError as exc:
+                if dtype in used:
+                    raise DriverError(f"campaigns.{name}: {exc}") from None
+                continue
+            for inst, dt, drv in loaded:
+                per_device.setdefault(inst, {})[name] = drv
+                first.setdefault(inst, (dt, drv))
+    return [(inst, dt, drv) for inst, (dt, drv) in first.items()], per_device
+
+
+def _summary(s: Scenario, shared: SharedLab, summaries: dict, where: Path, wall_s: float) -> LabSummary:
     ended = {n: shared.cores[n].now / 3600 for n in shared.started}
     hours = max(ended.values(), default=0.0)
     busy: dict[str, float] = {}

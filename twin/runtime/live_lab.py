@@ -1,0 +1,148 @@
+"""Several campaigns sharing one lab on the asyncio runtime: one set of subscriptions for the lab's devices, a
+seat per campaign (its journal, planner, scheduler, timers and decision stream — a ``LiveCampaign`` the lab
+drives), and the ``SharedLab`` deciding whose turn it is. Any clock; devices in this process or others."""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+from typing import Any
+
+from twin.campaign.events import TimerFired, TimerKey
+from twin.campaign.journal import Journal
+from twin.campaign.decisions import Planner, Scheduler
+from twin.campaign.sharing import LAB, SharedLab
+from twin.core import keys
+from twin.core.bus import Bus
+from twin.core.clock import LabClock
+from twin.campaign import Presence
+from twin.runtime.live import EventDecoder, LiveCampaign
+from twin.scenario import Scenario
+
+SeatParts = tuple[Journal, Planner, Scheduler]
+
+
+class LiveSeat(LiveCampaign):
+    """One campaign of a shared lab: the lab feeds and advances its core; the seat performs its actions."""
+
+    def __init__(self, lab: LiveLab, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._lab = lab
+
+    def _kick_soon(self) -> None:
+        self._lab.kick_soon()
+
+    def _ended(self) -> None:
+        self._close()  # the lab ends when its last campaign has
+
+
+class LiveLab:
+    def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], bus: Bus, clock: LabClock,
+                 parts: dict[str, SeatParts]) -> None:
+        self.lab, self.bus, self.clock = lab, bus, clock
+        self.shared = SharedLab(lab, scenarios)
+        self.seats = {name: LiveSeat(self, scenarios[name], bus, clock, *parts[name], campaign_id=name,
+                                     core=self.shared.cores[name])
+                      for name in scenarios}
+        self._decoder = EventDecoder()
+        self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
+        self._handles: list[Any] = []
+        self._done: asyncio.Future | None = None
+        self._kicked = False
+
+    def stop(self, reason: str) -> None:
+        self.shared.stop(reason)
+        self.kick_soon()
+
+    async def run(self) -> None:
+        lab = self.lab.lab
+        self._done = asyncio.get_running_loop().create_future()
+        for seat in self.seats.values():
+            seat._done = self._done  # a seat's planner or scheduler that fails ends the lab with its error
+        self._handles = [
+            self.bus.subscribe(keys.evt(lab), self._on_event),
+            self.bus.subscribe(keys.telemetry(lab), self._on_event),
+            self.bus.watch_tokens(keys.alive(lab), self._on_presence),
+            self.bus.declare_token(keys.orchestrator(lab)),
+        ]
+        remove_hook = self.clock.on_idle(self._on_idle)
+        try:
+            self._perform(self.shared.start(self.clock.now()))
+            self._check_done()
+            await self._done
+        finally:
+            remove_hook()
+            for seat in self.seats.values():
+                for fut in (seat._deciding, seat._planning):
+                    if fut is not None:
+                        fut.cancel()
+                seat._close()
+            for h in self._handles:
+                h.close()
+            for handle in self._timers.values():
+                handle.cancel()
+
+    # -- events in --------------------------------------------------------------------
+    def _on_event(self, key: str, payload: bytes) -> None:
+        self.shared.feed_device(self._decoder.event(key, payload))
+        self._after_event()
+
+    def _on_presence(self, key: str, alive: bool) -> None:
+        self.shared.feed_device(Presence(keys.device_of(key), alive))
+        self._after_event()
+
+    def _after_event(self) -> None:
+        if not self.clock.is_virtual:
+            self.kick_soon()
+
+    def _on_idle(self) -> bool:
+        if self.shared.has_work and not self.shared.finished:
+            self.kick_soon()
+            return True
+        return False
+
+    def kick_soon(self) -> None:
+        if not self._kicked:
+            self._kicked = True
+            asyncio.get_running_loop().call_soon(self._kick)
+
+    def _kick(self) -> None:
+        self._kicked = False
+        try:
+            while self.shared.has_work and not self.shared.finished:
+                self._perform(self.shared.advance(self.clock.now()))
+                if self.clock.is_virtual:
+                    break
+            self._check_done()
+        except Exception as exc:  # a bug must end the lab with its error, never leave it waiting silently
+            if self._done is not None and not self._done.done():
+                self._done.set_exception(exc)
+
+    def _check_done(self) -> None:
+        if self.shared.finished and self._done is not None and not self._done.done():
+            self._done.set_result(None)
+
+    # -- actions out --------------------------------------------------------------------
+    def _perform(self, tagged: list[tuple[str, Any]]) -> None:
+        run: list[Any] = []
+        who = None
+        for name, action in tagged:
+            if name != who and run:
+                self._to(who, run)
+                run = []
+            who = name
+            run.append(action)
+        if run:
+            self._to(who, run)
+
+    def _to(self, name: str | None, actions: list[Any]) -> None:
+        if name != LAB:
+            self.seats[name]._perform(actions)
+            return
+        for a in actions:  # the lab's own: submission timers
+            self._timers[a.key] = self.clock.call_later(a.delay, functools.partial(self._on_timer, a.key))
+
+    def _on_timer(self, key: TimerKey) -> None:
+        self._timers.pop(key, None)
+        self.shared.feed(LAB, TimerFired(key))
+        self.kick_soon()
