@@ -262,3 +262,76 @@ def test_two_campaigns_on_a_scaled_clock_over_zenoh_with_a_device_in_another_pro
         con.close()
         assert results and all(json.loads(r[0])["campaign"] == name for r in results)
         assert all(output.split(".")[1] in json.loads(r[0])["body"]["outputs"] for r in results)
+
+
+@pytest.mark.process
+def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path):
+    """A served lab starts empty; two campaigns are submitted over Zenoh, `twin ctl status` lists them, one is
+    paused by name; SIGTERM ends the lab with each campaign's summary and journal."""
+    import signal
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    import yaml
+    from typer.testing import CliRunner
+
+    from twin.campaign.journal import read_run
+    from twin.cli import app
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    raw = yaml.safe_load(LAB.read_text())
+    campaigns = raw.pop("campaigns")
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
+    for c, budget in zip(campaigns, (4, 3)):
+        c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
+        (tmp_path / f"{c['name']}.yaml").write_text(yaml.safe_dump(c))
+    lab = subprocess.Popen([sys.executable, "-m", "twin", "lab", "serve", str(tmp_path / "lab.yaml"), "--listen",
+                            f"tcp/127.0.0.1:{port}", "--speed", "3000", "--journal", str(tmp_path / "runs")],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
+    runner, connect = CliRunner(), ["--lab", "shared", "--connect", f"tcp/127.0.0.1:{port}"]
+
+    def ctl(*args):
+        return runner.invoke(app, [*args, *connect], env={"COLUMNS": "100"})
+
+    try:
+        line = lab.stderr.readline()
+        assert "serving lab shared" in line, line + lab.stderr.read() if lab.poll() is not None else line
+        assert ctl("submit", str(tmp_path / "dots.yaml"), "--as", "qd-group").exit_code == 0
+        sub = ctl("submit", str(tmp_path / "catalyst.yaml"))
+        assert sub.exit_code == 0 and "campaign catalyst started on lab shared" in sub.output, sub.output
+        again = ctl("submit", str(tmp_path / "dots.yaml"))
+        assert again.exit_code == 1 and "has a campaign 'dots' already" in again.output
+        listed = ctl("ctl", "status")
+        assert listed.exit_code == 0 and "dots" in listed.output and "catalyst" in listed.output, listed.output
+        both = ctl("ctl", "pause")
+        assert both.exit_code == 1 and "name one with --campaign" in both.output
+        paused = ctl("ctl", "pause", "--campaign", "catalyst", "--as", "alice")
+        assert paused.exit_code == 0 and "paused" in paused.output, paused.output
+        assert ctl("ctl", "resume", "--campaign", "catalyst").exit_code == 0
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
+            status = json.loads(ctl("ctl", "status", "--json").output)
+            if all(c["state"] == "ended" for c in status["campaigns"]) and len(status["campaigns"]) == 2:
+                break
+            time.sleep(0.5)
+        else:
+            pytest.fail(f"the campaigns did not end: {status}")
+        lab.send_signal(signal.SIGTERM)
+        out, err = lab.communicate(timeout=60)
+    finally:
+        if lab.poll() is None:
+            lab.kill()
+            lab.communicate()
+    assert lab.returncode == 0, err[-2000:]
+    assert "dots (quantum-dot" in out and "catalyst" in out
+    runs = tmp_path / "runs"
+    for name, budget in (("dots", 4), ("catalyst", 3)):
+        summary = read_run(runs / f"{name}.db")["summary"]
+        assert summary["done"] + summary["abandoned"] == budget == summary["proposed"]
+    events_ = [e[1] for e in events(runs / "catalyst.db", "operator.pause", "operator.resume", "campaign.submitted")]
+    assert events_[0] == "campaign.submitted" and "operator.pause" in events_ and "operator.resume" in events_
+    assert_one_step_at_a_time(runs)

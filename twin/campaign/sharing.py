@@ -34,10 +34,24 @@ Tagged = tuple[str, Action]
 LAB = ""  # the tag of the lab's own actions
 
 
+def by_campaign(tagged: list[Tagged]) -> list[tuple[str, list[Action]]]:
+    """Consecutive actions of one campaign together, in order (a runtime hands each run to that campaign's seat)."""
+    out: list[tuple[str, list[Action]]] = []
+    for name, action in tagged:
+        if out and out[-1][0] == name:
+            out[-1][1].append(action)
+        else:
+            out.append((name, [action]))
+    return out
+
+
 class SharedLab:
-    def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], secrets: dict[str, bytes] | None = None) -> None:
+    def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], secrets: dict[str, bytes] | None = None,
+                 serving: bool = False) -> None:
         """``scenarios``: each campaign's scenario (``twin.scenario.sharing.campaign_scenarios``), in the lab
-        file's order."""
+        file's order. ``serving``: the lab goes on when its campaigns have ended, taking more (``add``), until
+        it is stopped."""
+        self.serving = serving
         self.lab = lab
         self.entries: dict[str, SharedCampaign] = {c.name: c for c in lab.campaigns}
         self.cores = {name: CampaignCore(s, name, (secrets or {}).get(name)) for name, s in scenarios.items()}
@@ -84,6 +98,19 @@ class SharedLab:
         core = self._owner(event)
         if core is not None:
             core.feed(event)
+
+    def add(self, entry: SharedCampaign, scenario: Scenario) -> CampaignCore:
+        """A campaign submitted now (``twin submit``); it starts at the next turn."""
+        if entry.name in self.entries:
+            raise ValueError(f"the lab has a campaign {entry.name!r} already: give the new one another name")
+        if self._stopping:
+            raise ValueError(f"the lab is stopping ({self._stopping}): it takes no more campaigns")
+        core = CampaignCore(scenario, entry.name)
+        core.stocks = self.stocks
+        self.entries[entry.name] = entry
+        self.cores[entry.name] = core
+        self._submit(entry.name)
+        return core
 
     def stop(self, reason: str) -> None:
         if not self._stopping:
@@ -146,6 +173,8 @@ class SharedLab:
 
     @property
     def finished(self) -> bool:
+        if self.serving and not self._stopping:
+            return False
         return (not self._due and all(self.cores[n].finished for n in self.started)
                 and len(self.started) + len(self.unsubmitted) == len(self.entries))
 

@@ -175,9 +175,9 @@ def _keep_serving(recording, stopped: str) -> None:
     if "SIGTERM" in stopped:
         recording.stop_serving()
         return
-    err.print(f"the finished campaign is served at {recording.url} — Ctrl-C to stop", highlight=False)
     previous = signal.signal(signal.SIGTERM, _interrupt)
-    try:
+    try:  # said inside: a Ctrl-C or SIGTERM the moment it is read must still stop the server and exit cleanly
+        err.print(f"the finished campaign is served at {recording.url} — Ctrl-C to stop", highlight=False)
         recording.server.wait()
     except KeyboardInterrupt:
         pass

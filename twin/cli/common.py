@@ -16,7 +16,9 @@ if TYPE_CHECKING:
 app = typer.Typer(help="labtwin: a digital twin of a self-driving lab.", no_args_is_help=True,
                   pretty_exceptions_enable=False, add_completion=False)
 device_app = typer.Typer(help="Run one device actor in this process.", no_args_is_help=True)
+lab_app = typer.Typer(help="Serve a lab that several campaigns share.", no_args_is_help=True)
 app.add_typer(device_app, name="device")
+app.add_typer(lab_app, name="lab")
 bench_app = typer.Typer(help="Compare planners and schedulers over many seeds.", no_args_is_help=True)
 app.add_typer(bench_app, name="bench")
 scheduler_app = typer.Typer(help="Run a scheduler agent in this process.", no_args_is_help=True)

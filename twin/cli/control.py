@@ -26,6 +26,8 @@ Security = Annotated[Optional[Path], typer.Option(help="the lab's security direc
 Who = Annotated[Optional[str], typer.Option("--as", help="the name the journal records (default: your login)")]
 Reason = Annotated[str, typer.Option(help="why, for the journal")]
 AsJson = Annotated[bool, typer.Option("--json", help="print the campaign's answer as JSON")]
+CampaignOpt = Annotated[Optional[str], typer.Option(help="a lab that several campaigns share (twin lab serve): "
+                                                         "which campaign")]
 
 
 def _who(name: str | None) -> str:
@@ -37,9 +39,12 @@ def _who(name: str | None) -> str:
         return "operator"
 
 
-def _send(command: str, lab: str, connect: list[str], security: Path | None, as_json: bool, **body: Any) -> dict:
+def _send(command: str, lab: str, connect: list[str], security: Path | None, as_json: bool,
+          campaign: str | None = None, **body: Any) -> dict:
     from twin.tools.control import request
 
+    if campaign is not None:
+        body["campaign"] = campaign
     try:
         answer = request(lab, command, body, list(connect), str(security) if security else None)
     except TwinError as exc:
@@ -60,11 +65,27 @@ def _acted(answer: dict, as_json: bool) -> None:
                       f"{st['state']}", highlight=False, markup=False)
 
 
+def _lab_status(answer: dict) -> None:
+    """A lab that several campaigns share: a row per campaign."""
+    console.print(f"lab {answer['lab']} at lab {answer['lab_hours']:.2f} h: {len(answer['campaigns'])} campaign(s)"
+                  f"{'; it takes more (twin submit)' if answer['serving'] else ''}", highlight=False, markup=False)
+    table = narrow_table(["campaign", "owner", "prio", "state", "done", "aband.", "in lab", "budget"],
+                         caption="twin ctl status --campaign NAME: one campaign in full")
+    for c in answer["campaigns"]:
+        table.add_row(escape(c["campaign"]), escape(c["owner"]), str(c["priority"]), escape(c["state"]),
+                      str(c["done"]), str(c["abandoned"]), str(c["in_progress"]), str(c["budget"]))
+    console.print(table)
+
+
 @ctl_app.command("status")
-def ctl_status(lab: Lab, connect: Connect, security: Security = None, as_json: AsJson = False) -> None:
+def ctl_status(lab: Lab, connect: Connect, security: Security = None,
+               campaign: CampaignOpt = None, as_json: AsJson = False) -> None:
     """The campaign's state (running / paused by whom / stopping), its experiments, what is in the lab."""
-    answer = _send("status", lab, connect, security, as_json)
+    answer = _send("status", lab, connect, security, as_json, campaign=campaign)
     if as_json:
+        return
+    if "campaigns" in answer:
+        _lab_status(answer)
         return
     st = answer["status"]
     paused = f" by {st['paused_by']}" if st["paused_by"] else ""
@@ -90,49 +111,60 @@ def ctl_status(lab: Lab, connect: Connect, security: Security = None, as_json: A
 @ctl_app.command("pause")
 def ctl_pause(lab: Lab, connect: Connect, now: Annotated[bool, typer.Option(
         help="also take the steps in the lab out, to a safe state (they run again after resume)")] = False,
-        reason: Reason = "", who: Who = None, security: Security = None, as_json: AsJson = False) -> None:
+        reason: Reason = "", who: Who = None, security: Security = None,
+              campaign: CampaignOpt = None, as_json: AsJson = False) -> None:
     """Stop new dispatch: steps in the lab finish (or, with --now, are cancelled), nothing new starts until resume.
     A paused campaign stays paused across `twin resume`."""
-    _acted(_send("pause", lab, connect, security, as_json, who=_who(who), now=now, reason=reason), as_json)
+    _acted(_send("pause", lab, connect, security, as_json,
+                 campaign=campaign, who=_who(who), now=now, reason=reason), as_json)
 
 
 @ctl_app.command("resume")
-def ctl_resume(lab: Lab, connect: Connect, who: Who = None, security: Security = None,
+def ctl_resume(lab: Lab, connect: Connect, who: Who = None, security: Security = None, campaign: CampaignOpt = None,
                as_json: AsJson = False) -> None:
     """Let a paused campaign dispatch again."""
-    _acted(_send("resume", lab, connect, security, as_json, who=_who(who)), as_json)
+    _acted(_send("resume", lab, connect, security, as_json, campaign=campaign, who=_who(who)), as_json)
 
 
 @ctl_app.command("abort")
 def ctl_abort(experiment: Annotated[int, typer.Argument(help="the experiment's number (twin ctl status)")],
               lab: Lab, connect: Connect, reason: Reason = "", who: Who = None, security: Security = None,
+              campaign: CampaignOpt = None,
               as_json: AsJson = False) -> None:
     """Abandon one experiment: its step in the lab is cancelled, the journal says who aborted it and why."""
-    _acted(_send("abort", lab, connect, security, as_json, who=_who(who), experiment=experiment, reason=reason),
+    _acted(_send("abort", lab, connect, security, as_json,
+                 campaign=campaign, who=_who(who), experiment=experiment, reason=reason),
            as_json)
 
 
 @ctl_app.command("retry")
 def ctl_retry(experiment: Annotated[int, typer.Argument(help="the experiment's number (twin ctl status)")],
-              lab: Lab, connect: Connect, who: Who = None, security: Security = None, as_json: AsJson = False) -> None:
+              lab: Lab, connect: Connect, who: Who = None, security: Security = None,
+              campaign: CampaignOpt = None, as_json: AsJson = False) -> None:
     """Retry one experiment now: a step waiting out its back-off goes at once; an abandoned experiment runs again
     from the step that failed, with fresh attempts."""
-    _acted(_send("retry", lab, connect, security, as_json, who=_who(who), experiment=experiment), as_json)
+    _acted(_send("retry", lab, connect, security, as_json,
+                 campaign=campaign, who=_who(who), experiment=experiment), as_json)
 
 
 @ctl_app.command("stop")
 def ctl_stop(lab: Lab, connect: Connect, reason: Reason = "", who: Who = None, security: Security = None,
+             campaign: CampaignOpt = None,
              as_json: AsJson = False) -> None:
     """End the campaign as Ctrl-C would: steps in the lab are cancelled, the rest stays pending in the journal."""
-    _acted(_send("stop", lab, connect, security, as_json, who=_who(who), reason=reason), as_json)
+    _acted(_send("stop", lab, connect, security, as_json, campaign=campaign, who=_who(who), reason=reason), as_json)
 
 
 @ctl_app.command("pending")
-def ctl_pending(lab: Lab, connect: Connect, security: Security = None, as_json: AsJson = False) -> None:
+def ctl_pending(lab: Lab, connect: Connect, security: Security = None, campaign: CampaignOpt = None,
+                as_json: AsJson = False) -> None:
     """The questions waiting for an operator: a failed step, the options, and the default that applies when."""
-    answer = _send("status", lab, connect, security, as_json)
+    answer = _send("status", lab, connect, security, as_json, campaign=campaign)
     if as_json:
         return
+    if "campaigns" in answer:
+        _fail(TwinError(f"lab {lab} runs {len(answer['campaigns'])} campaigns: name one with --campaign "
+                        f"({', '.join(c['campaign'] for c in answer['campaigns'])})"))
     pending = answer["status"]["questions"]
     short = {k: v for k, v in answer["status"]["consumables"].items() if v["depleted"]}
     if not pending and not short and not answer["status"]["human_steps"]:
@@ -154,10 +186,11 @@ def ctl_pending(lab: Lab, connect: Connect, security: Security = None, as_json: 
 @ctl_app.command("answer")
 def ctl_answer(question: Annotated[str, typer.Argument(help="the question's id (twin ctl pending), e.g. q3")],
                option: Annotated[str, typer.Argument(help="one of the question's options: retry, skip, abandon")],
-               lab: Lab, connect: Connect, who: Who = None, security: Security = None,
+               lab: Lab, connect: Connect, who: Who = None, security: Security = None, campaign: CampaignOpt = None,
                as_json: AsJson = False) -> None:
     """Answer a question: the failed step is retried (with fresh attempts) or skipped, or its experiment abandoned."""
-    _acted(_send("answer", lab, connect, security, as_json, who=_who(who), question=question, option=option), as_json)
+    _acted(_send("answer", lab, connect, security, as_json,
+                 campaign=campaign, who=_who(who), question=question, option=option), as_json)
 
 
 @ctl_app.command("refill")
@@ -165,13 +198,16 @@ def ctl_refill(item: Annotated[str, typer.Argument(help="the consumable, as the 
                lab: Lab, connect: Connect,
                amount: Annotated[Optional[float], typer.Option(help="how much is added (default: fill to the "
                                                                      "starting level)")] = None,
-               who: Who = None, security: Security = None, as_json: AsJson = False) -> None:
+               who: Who = None, security: Security = None,
+               campaign: CampaignOpt = None, as_json: AsJson = False) -> None:
     """Say a consumable was refilled: the steps that waited for it go on."""
-    _acted(_send("refill", lab, connect, security, as_json, who=_who(who), item=item, amount=amount), as_json)
+    _acted(_send("refill", lab, connect, security, as_json,
+                 campaign=campaign, who=_who(who), item=item, amount=amount), as_json)
 
 
 @ctl_app.command("confirm")
 def ctl_confirm(task: Annotated[str, typer.Argument(help="the human step done, e.g. e3s1 (twin ctl pending)")],
-                lab: Lab, connect: Connect, who: Who = None, security: Security = None, as_json: AsJson = False) -> None:
+                lab: Lab, connect: Connect, who: Who = None, security: Security = None,
+                campaign: CampaignOpt = None, as_json: AsJson = False) -> None:
     """Confirm a human step (a device type whose driver is `operator`) is done: the experiment goes on."""
-    _acted(_send("confirm", lab, connect, security, as_json, who=_who(who), task=task), as_json)
+    _acted(_send("confirm", lab, connect, security, as_json, campaign=campaign, who=_who(who), task=task), as_json)

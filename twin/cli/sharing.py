@@ -1,12 +1,17 @@
-"""``twin run`` of a lab that serves several campaigns (a scenario with ``campaigns:``)."""
+"""A lab that several campaigns share: ``twin run`` of a lab file with ``campaigns:``, ``twin lab serve`` and
+``twin submit``."""
 
 from __future__ import annotations
 
 import json
 import logging
 from pathlib import Path
+from typing import Annotated, Optional
 
-from twin.cli.common import _fail, console, err
+import typer
+from rich.markup import escape
+
+from twin.cli.common import _fail, app, console, err, lab_app
 from twin.core.errors import TwinError
 from twin.runtime.checks import check
 from twin.runtime.shared_run import run_shared
@@ -29,7 +34,79 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
         summary = run_shared(s, journal, external_devices=set(external or ()))
     except TwinError as exc:
         _fail(exc)
+    _show(summary, json_out)
+
+
+def _show(summary, json_out: bool) -> None:
     if json_out:
         print(json.dumps(summary.to_dict(), indent=2))
     else:
         render_lab_summary(summary, console)
+
+
+@lab_app.command("serve")
+def lab_serve(
+    lab_file: Annotated[Path, typer.Argument(help="the lab: its devices, and any campaigns to start with")],
+    listen: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to listen on, e.g. "
+                                                             "tcp/127.0.0.1:7447")] = None,
+    connect: Annotated[Optional[list[str]], typer.Option(help="the lab's router, e.g. tls/127.0.0.1:7447")] = None,
+    clock: Annotated[str, typer.Option(help="scaled | wall")] = "scaled",
+    speed: Annotated[Optional[float], typer.Option(help="lab seconds per wall second (scaled clock)")] = None,
+    journal: Annotated[Optional[Path], typer.Option(help="the directory of the campaigns' journals")] = None,
+    external: Annotated[Optional[list[str]], typer.Option(help="a device served by another process")] = None,
+    json_out: Annotated[bool, typer.Option("--json", help="at the end, print the summary as JSON")] = False,
+) -> None:
+    """Serve a lab that several campaigns share, until Ctrl-C or SIGTERM: its devices, the campaigns of its file,
+    and those submitted with `twin submit`; then print each campaign's summary."""
+    from twin.runtime import lab
+    from twin.runtime.shared_run import serve_lab
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    overrides: dict = {}
+    if listen:
+        overrides["bus.listen"] = list(listen)
+    if connect:
+        overrides["bus.connect"] = list(connect)
+    try:
+        s = lab.prepare(lab_file, clock=clock, speed=speed, bus="zenoh", overrides=overrides, lab_only=True)
+        if s.campaigns:
+            check(s)
+
+        def started(live) -> None:
+            err.print(f"serving lab {s.lab} ({s.clock.mode} clock"
+                      f"{f', {s.clock.speed:g}x' if s.clock.mode == 'scaled' else ''}) with "
+                      f"{len(s.campaigns)} campaign(s); `twin submit CAMPAIGN.yaml --lab {s.lab} --connect ...` adds "
+                      "one, Ctrl-C stops", highlight=False)
+        summary = serve_lab(s, journal, set(external or ()), on_start=started)
+    except TwinError as exc:
+        _fail(exc)
+    _show(summary, json_out)
+
+
+@app.command()
+def submit(
+    campaign_file: Annotated[Path, typer.Argument(help="a campaign: name, and any of owner, priority, share, "
+                                                       "chemistry, workflow, campaign")],
+    lab_name: Annotated[str, typer.Option("--lab", help="the lab (its file's `lab` field)")],
+    connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
+    security: Annotated[Optional[Path], typer.Option(help="the lab's security directory: submit as its "
+                                                          "operator")] = None,
+    who: Annotated[Optional[str], typer.Option("--as", help="the name the journal records")] = None,
+) -> None:
+    """Add a campaign to a lab served with `twin lab serve`; it starts at once, sharing the lab's devices."""
+    from twin.cli.control import _who
+    from twin.scenario.files import read_text
+    from twin.scenario.sharing import load_campaign
+    from twin.tools.control import request
+
+    try:
+        entry = load_campaign(campaign_file)  # a bad file is named here, before anything is sent
+        answer = request(lab_name, "submit", {"file": read_text(campaign_file), "who": _who(who)}, list(connect),
+                         str(security) if security else None)
+    except TwinError as exc:
+        _fail(exc)
+    if not answer.get("ok"):
+        err.print(f"[bold red]refused:[/] {escape(str(answer.get('error')))}", highlight=False)
+        raise typer.Exit(1)
+    console.print(f"campaign {entry.name} started on lab {lab_name} at lab {answer['lab_hours']:.2f} h; its journal: "
+                  f"{answer['journal']}", highlight=False, markup=False)

@@ -55,6 +55,10 @@ class DeviceActor:
         self._recent: collections.deque[tuple[str, int, bytes]] = collections.deque(maxlen=16)
         self.dropped = 0
 
+    def add_campaign(self, campaign: str, driver: Driver) -> None:
+        """A campaign submitted to the shared lab it serves: ``driver`` simulates that campaign's chemistry."""
+        self._shared[campaign] = driver
+
     # -- life cycle -------------------------------------------------------
     async def start(self) -> None:
         self._health = self._bus.serve(keys.health(self._lab, self.name), self._report_health)

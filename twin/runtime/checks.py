@@ -24,9 +24,14 @@ def check(s: Scenario) -> None:
         return
     for i, (name, cs) in enumerate(campaign_scenarios(s, s.name).items()):
         try:
-            _check(cs, {w.device for w in cs.workflow})
+            check_campaign(cs)
         except ScenarioError as exc:
             raise ScenarioError("", [f"campaigns.{i} ({name}): {p}" for p in exc.problems]) from None
+
+
+def check_campaign(s: Scenario) -> None:
+    """What the installed plugins tell about one campaign of a shared lab, on the device types it uses."""
+    _check(s, {w.device for w in s.workflow})
 
 
 def _check(s: Scenario, types: set[str] | None = None) -> None:

@@ -9,7 +9,7 @@ from typing import Any
 from twin.campaign.events import TimerFired, TimerKey
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
-from twin.campaign.sharing import LAB, SharedLab
+from twin.campaign.sharing import LAB, SharedLab, by_campaign
 from twin.runtime.fast import Progress, Seat, asyncio_tripwire
 from twin.runtime.fast_device import FastDevice
 from twin.runtime.queue import EventQueue, Timer
@@ -60,17 +60,8 @@ class FastLab:
         self.shared.stop(reason)
 
     def _perform(self, tagged: list[tuple[str, Any]]) -> None:
-        # consecutive actions of one campaign go to its seat together (its progress line is drawn once)
-        run: list[Any] = []
-        who = None
-        for name, action in tagged:
-            if name != who and run:
-                self._to(who, run)
-                run = []
-            who = name
-            run.append(action)
-        if run:
-            self._to(who, run)
+        for name, actions in by_campaign(tagged):
+            self._to(name, actions)
 
     def _to(self, name: str, actions: list[Any]) -> None:
         if name != LAB:

@@ -41,8 +41,9 @@ log = logging.getLogger(__name__)
 
 def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: str | None = None,
             speed: float | None = None, bus: str | None = None,
-            overrides: dict[str, Any] | None = None) -> Scenario:
-    """Load a scenario and apply the command line's overrides."""
+            overrides: dict[str, Any] | None = None, lab_only: bool = False) -> Scenario:
+    """Load a scenario and apply the command line's overrides. ``lab_only``: a lab whose campaigns come later
+    (``twin lab serve``), or a device of it, needs no workflow."""
     extra = dict(overrides or {})
     if seed is not None:
         extra["campaign.seed"] = seed
@@ -61,8 +62,8 @@ def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: 
         data = scenario.model_dump()
         for dotted, value in extra.items():
             set_dotted(data, dotted, value)
-        return parse(data, f"{scenario.name} with {', '.join(extra)}")
-    return load(scenario, extra)
+        return parse(data, f"{scenario.name} with {', '.join(extra)}", lab_only)
+    return load(scenario, extra, lab_only)
 
 
 _SIMPLE = ("campaign", "clock", "bus")  # sections whose fields no cross-field check of Scenario reads

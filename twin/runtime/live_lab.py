@@ -6,18 +6,23 @@ from __future__ import annotations
 
 import asyncio
 import functools
+from collections.abc import Callable
 from typing import Any
 
 from twin.campaign.events import TimerFired, TimerKey
 from twin.campaign.journal import Journal
 from twin.campaign.decisions import Planner, Scheduler
-from twin.campaign.sharing import LAB, SharedLab
+from twin.campaign.sharing import LAB, SharedLab, by_campaign
 from twin.core import keys
 from twin.core.bus import Bus
 from twin.core.clock import LabClock
 from twin.campaign import Presence
+from twin.core.errors import ScenarioError, TwinError
+from twin.runtime.lab_desk import LabDesk
 from twin.runtime.live import EventDecoder, LiveCampaign
 from twin.scenario import Scenario
+from twin.scenario.files import parse_yaml
+from twin.scenario.sharing import campaign_scenario, parse_campaign
 
 SeatParts = tuple[Journal, Planner, Scheduler]
 
@@ -38,12 +43,18 @@ class LiveSeat(LiveCampaign):
 
 class LiveLab:
     def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], bus: Bus, clock: LabClock,
-                 parts: dict[str, SeatParts]) -> None:
+                 parts: dict[str, SeatParts], adopt: Callable[[str, Scenario], SeatParts] | None = None) -> None:
+        """``adopt``: a lab that serves (``twin lab serve``) takes campaigns as they are submitted; ``adopt(name,
+        scenario)`` readies one (its drivers, journal, planner and scheduler) or raises a TwinError that says
+        why not."""
         self.lab, self.bus, self.clock = lab, bus, clock
-        self.shared = SharedLab(lab, scenarios)
+        self.shared = SharedLab(lab, scenarios, serving=adopt is not None)
+        self.parts = dict(parts)
+        self._adopt = adopt
         self.seats = {name: LiveSeat(self, scenarios[name], bus, clock, *parts[name], campaign_id=name,
                                      core=self.shared.cores[name])
                       for name in scenarios}
+        self.desk = LabDesk(self)
         self._decoder = EventDecoder()
         self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
         self._handles: list[Any] = []
@@ -64,6 +75,7 @@ class LiveLab:
             self.bus.subscribe(keys.telemetry(lab), self._on_event),
             self.bus.watch_tokens(keys.alive(lab), self._on_presence),
             self.bus.declare_token(keys.orchestrator(lab)),
+            self.bus.serve(keys.control(lab), self.desk.serve),
         ]
         remove_hook = self.clock.on_idle(self._on_idle)
         try:
@@ -81,6 +93,51 @@ class LiveLab:
                 h.close()
             for handle in self._timers.values():
                 handle.cancel()
+
+    # -- the desk's side ------------------------------------------------------------------
+    def submit(self, body: dict[str, Any]) -> dict[str, Any]:
+        """``twin submit``: a campaign file's text in ``file``; the answer names its journal, or why not."""
+        if self._adopt is None:
+            raise ValueError(f"lab {self.lab.lab} runs the campaigns of its file; to take more, serve it with "
+                             "`twin lab serve`")
+        text, who = body.get("file"), str(body.get("who", ""))[:64]
+        if not isinstance(text, str):
+            raise ValueError("submit: give the text of a campaign file in 'file'")
+        try:
+            entry = parse_campaign(parse_yaml(text, f"the campaign {who} submitted"), f"the campaign {who} submitted")
+            if entry.after is not None or entry.start_h:
+                raise ScenarioError(entry.name, ["after / start_h: a submitted campaign starts when it is "
+                                                 "submitted; leave them out"])
+            if entry.name in self.shared.entries:
+                raise ScenarioError(entry.name, [f"name: the lab has a campaign {entry.name!r} already: give the "
+                                                 "new one another name"])
+            scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), f"campaign {entry.name}")
+            parts = self._adopt(entry.name, scenario)
+        except TwinError as exc:
+            return {"ok": False, "error": str(exc)}
+        core = self.shared.add(entry, scenario)
+        self.parts[entry.name] = parts
+        seat = LiveSeat(self, scenario, self.bus, self.clock, *parts, campaign_id=entry.name, core=core)
+        seat._done = self._done
+        self.seats[entry.name] = seat
+        seat.note("campaign.submitted", {"who": who, "priority": entry.priority, "owner": entry.owner})
+        self.kick_soon()
+        return {"ok": True, "campaign": entry.name, "journal": parts[0].label, "lab_hours": self.clock.now() / 3600}
+
+    def status(self) -> dict[str, Any]:
+        """The lab's campaigns: each one's state, experiments and priority."""
+        shared, rows = self.shared, []
+        for name, entry in shared.entries.items():
+            core = shared.cores[name]
+            state = ("ended" if core.finished else "queued" if name not in shared.started else
+                     f"paused by {core.paused_by}" if core.paused_by else "stopping" if core.stopping else "running")
+            counts = {k: sum(1 for e in core.experiments if e.status == k) for k in ("done", "abandoned")}
+            rows.append({"campaign": name, "owner": entry.owner, "priority": entry.priority, "state": state,
+                         "submitted_h": shared.submitted_at.get(name, 0.0) / 3600, **counts,
+                         "in_progress": len(core.active), "budget": core.s.campaign.budget,
+                         "targets_met": sorted(core.met_at)})
+        return {"ok": True, "lab": self.lab.lab, "lab_hours": self.clock.now() / 3600, "serving": shared.serving,
+                "campaigns": rows}
 
     # -- events in --------------------------------------------------------------------
     def _on_event(self, key: str, payload: bytes) -> None:
@@ -124,18 +181,10 @@ class LiveLab:
 
     # -- actions out --------------------------------------------------------------------
     def _perform(self, tagged: list[tuple[str, Any]]) -> None:
-        run: list[Any] = []
-        who = None
-        for name, action in tagged:
-            if name != who and run:
-                self._to(who, run)
-                run = []
-            who = name
-            run.append(action)
-        if run:
-            self._to(who, run)
+        for name, actions in by_campaign(tagged):
+            self._to(name, actions)
 
-    def _to(self, name: str | None, actions: list[Any]) -> None:
+    def _to(self, name: str, actions: list[Any]) -> None:
         if name != LAB:
             self.seats[name]._perform(actions)
             return

@@ -32,7 +32,7 @@ def _joined(scenario: str | Path, connect: list[str], clock: str | None, speed: 
     if clock == "virtual":
         raise ClockError("a process joining a lab cannot follow a virtual clock: run the lab with --clock scaled "
                          "or wall, and start this process without --clock to follow it")
-    s = prepare(scenario, clock=clock or "wall", speed=speed or 1.0)
+    s = prepare(scenario, clock=clock or "wall", speed=speed or 1.0, lab_only=True)
     return s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms,
                                                zenoh=s.bus.zenoh, security=security_dir or s.bus.security,
                                                connect_timeout_ms=s.bus.connect_timeout_ms)})

@@ -14,11 +14,15 @@ from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
 from twin.runtime.fast_lab import FastLab
 from twin.runtime.lab import (_agent_on_bus, _stop_on_loop_signals, _stop_on_signals, build_actors, finish,
-                              live_scheduler, load_drivers, make_bus, make_clock, make_planner, make_scheduler,
-                              open_journal, refuse_realtime)
+                              live_scheduler, load_driver, load_drivers, make_bus, make_clock, make_planner,
+                              make_scheduler, open_journal, refuse_realtime)
+from twin.runtime.checks import check_campaign
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.live_lab import LiveLab
-from twin.scenario import Scenario
+from twin.campaign.human import DRIVER as HUMAN
+from twin.core import plugins
+from twin.device.driver import feature
+from twin.scenario import Chemistry, Scenario
 from twin.scenario.sharing import campaign_scenarios
 
 
@@ -61,8 +65,56 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
     return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals))
 
 
+def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices: Collection[str] = frozenset(),
+              handle_signals: bool = True, on_start: Callable[[Any], None] | None = None) -> LabSummary:
+    """``twin lab serve``: the lab's devices and the campaigns of its file, taking more as they are submitted
+    (``twin submit``), until it is stopped (Ctrl-C, SIGTERM). A lab file without campaigns gives the chemistry
+    its simulated devices simulate by default."""
+    if s.clock.mode == "virtual":
+        raise ClockError(f"{s.name}: a lab that serves waits for campaigns in real time: use --clock scaled or wall")
+    wall0 = time.perf_counter()
+    scenarios = campaign_scenarios(s, s.name)
+    if scenarios:
+        drivers, per_device = shared_drivers(scenarios, skip=external_devices)
+    else:
+        drivers, per_device = _standby_drivers(s, external_devices), {}
+    where = Path(journals) if journals is not None else default_journals(s)
+    where.mkdir(parents=True, exist_ok=True)
+    parts = {name: _parts(cs, where / f"{name}.db", external_devices) for name, cs in scenarios.items()}
+    clock = make_clock(s)
+    return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals,
+                           serving=external_devices, on_start=on_start))
+
+
+def _standby_drivers(s: Scenario, skip: Collection[str]) -> list[tuple[str, str, Any]]:
+    """A lab that serves with no campaign yet: each device's driver for the lab file's chemistry, or else for the
+    first one it simulates (it answers health checks; each campaign submitted brings its own)."""
+    out = []
+    for dtype, spec in s.devices.items():
+        for name in s.instance_names(dtype):
+            if name in skip or spec.driver == HUMAN:
+                continue
+            try:
+                out.append((name, dtype, load_driver(s, dtype, name)))
+            except DriverError:
+                models = feature(plugins.load("devices", spec.driver), "chemistry_models")
+                if not models:
+                    raise
+                alt = s.model_copy(update={"chemistry": Chemistry(model=sorted(models)[0])})
+                out.append((name, dtype, load_driver(alt, dtype, name)))
+    return out
+
+
+def _parts(s: Scenario, path: Path, external: Collection[str]) -> tuple:
+    journal = open_journal(s, path)
+    journal.set("external", sorted(external))
+    return journal, make_planner(s), make_scheduler(s)
+
+
 async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], drivers: list, per_device: dict,
-                parts: dict, where: Path, wall0: float, handle_signals: bool) -> LabSummary:
+                parts: dict, where: Path, wall0: float, handle_signals: bool,
+                serving: Collection[str] | None = None, on_start: Callable[[Any], None] | None = None) -> LabSummary:
+    """``serving``: None, or the external devices of a lab that takes campaigns as they are submitted."""
     async with contextlib.AsyncExitStack() as stack:
         bus = make_bus(s, clock)
         await bus.start()
@@ -71,19 +123,33 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
             source = LabTimeSource(bus, s.lab, clock)
             source.start()
             stack.callback(source.close)
-        wrapped = {}
-        for name, (journal, planner, scheduler) in parts.items():
-            wrapped[name] = (journal, planner, live_scheduler(scenarios[name], scheduler, bus, clock)[0])
-        lab = LiveLab(s, scenarios, bus, clock, wrapped)
-        for actor in build_actors(s, drivers, bus, clock, per_device):
+        actors = build_actors(s, drivers, bus, clock, per_device)
+
+        def seat_parts(name: str, cs: Scenario, made: tuple) -> tuple:
+            return made[0], made[1], live_scheduler(cs, made[2], bus, clock)[0]
+
+        def adopt(name: str, cs: Scenario) -> tuple:
+            check_campaign(cs)
+            mine = {a.name for a in actors}
+            _, per = shared_drivers({name: cs}, only=mine) if mine else ([], {})
+            for actor in actors:
+                if name in per.get(actor.name, {}):
+                    actor.add_campaign(name, per[actor.name][name])
+            return seat_parts(name, cs, _parts(cs, where / f"{name}.db", serving or ()))
+
+        lab = LiveLab(s, scenarios, bus, clock, {n: seat_parts(n, scenarios[n], p) for n, p in parts.items()},
+                      adopt if serving is not None else None)
+        for actor in actors:
             await actor.start()
             stack.push_async_callback(actor.stop)
         if handle_signals:
             stack.enter_context(_stop_on_loop_signals(lab.stop))
+        if on_start is not None:
+            on_start(lab)
         try:
             await lab.run()
         finally:
-            summaries = _finish(lab.shared, parts, wall0, clock.now(),
+            summaries = _finish(lab.shared, lab.parts, wall0, clock.now(),
                                 {n: seat.note for n, seat in lab.seats.items()})
     return _summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
 
@@ -139,6 +205,6 @@ def _summary(s: Scenario, shared: SharedLab, summaries: dict, where: Path, wall_
     return LabSummary(
         lab=s.name, seed=s.campaign.seed, journals=str(where), lab_hours=hours, campaigns=summaries,
         submitted_h={n: t / 3600 for n, t in shared.submitted_at.items() if n in shared.started},
-        ended_h=ended, priority={c.name: c.priority for c in s.campaigns},
-        owner={c.name: c.owner for c in s.campaigns}, not_started=dict(shared.unsubmitted),
+        ended_h=ended, priority={n: c.priority for n, c in shared.entries.items()},
+        owner={n: c.owner for n, c in shared.entries.items()}, not_started=dict(shared.unsubmitted),
         utilisation={d: round(b / max(hours * 3600, 1e-9), 4) for d, b in busy.items()}, wall_s=wall_s)

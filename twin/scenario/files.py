@@ -48,7 +48,13 @@ def read_text(path: str | Path, what: str = "scenario") -> str:
 
 def read_yaml(path: str | Path) -> Any:
     """The YAML document in ``path``, as plain Python data, read within the bounds above."""
-    text = read_text(path)
+    return parse_yaml(read_text(path), str(path))
+
+
+def parse_yaml(text: str, path: str = "<text>") -> Any:
+    """The YAML document ``text`` (a file's, or one sent over the bus), within the bounds above."""
+    if len(text.encode()) > MAX_BYTES:
+        raise ScenarioError(path, [f"larger than {MAX_BYTES // 1024} KiB: a scenario or campaign is a few KB"])
     try:
         loader = _BoundedLoader(text)
         try:

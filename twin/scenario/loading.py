@@ -12,15 +12,16 @@ from twin.scenario.files import read_yaml
 from twin.scenario.model import Scenario
 
 
-def load(path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
-    """Read and validate a scenario file; ``ScenarioError`` lists every problem."""
+def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bool = False) -> Scenario:
+    """Read and validate a scenario file; ``ScenarioError`` lists every problem. ``lab_only``: a lab that takes
+    its campaigns later (``twin lab serve``) may have no workflow."""
     path = Path(path)
     raw = read_yaml(path)
     if not isinstance(raw, dict):
         raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"])
     for dotted, value in (overrides or {}).items():
         set_dotted(raw, dotted, value)
-    scenario = parse(raw, str(path))
+    scenario = parse(raw, str(path), lab_only)
     if scenario.bus.security and not Path(scenario.bus.security).is_absolute():
         bus = scenario.bus.model_copy(update={"security": str((path.parent / scenario.bus.security).resolve())})
         scenario = scenario.model_copy(update={"bus": bus})
@@ -31,9 +32,9 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
     return scenario
 
 
-def parse(raw: dict[str, Any], source: str = "<scenario>") -> Scenario:
+def parse(raw: dict[str, Any], source: str = "<scenario>", lab_only: bool = False) -> Scenario:
     try:
-        return Scenario.model_validate(raw)
+        return Scenario.model_validate(raw, context={"lab_only": lab_only})
     except ValidationError as exc:
         raise ScenarioError(source, [_describe(e, raw) for e in exc.errors()]) from None
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, StringConstraints, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, Strict, StringConstraints, field_validator, model_validator, ValidationInfo
 
 #: Labs, device types, scenario names: Zenoh key chunks and file names (no '/', '*', '$', '#', '?', '..').
 NAME = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,62}$"
@@ -405,7 +405,7 @@ class Scenario(_Spec):
                                             "empty: the one campaign of this file")
 
     @model_validator(mode="after")
-    def _consistent(self) -> Scenario:
+    def _consistent(self, info: ValidationInfo) -> Scenario:
         problems = [f"training.instances.{k}: {k!r} is not a device type of this lab"
                     for k in self.training.instances if k not in self.devices]
         steps = {st for dev in self.devices.values() for st in dev.steps}
@@ -425,10 +425,11 @@ class Scenario(_Spec):
                 problems.append(f"workflow.{i}.device: {ws.device!r} is not a device type of this lab ({', '.join(self.devices)})")
             elif ws.step not in dev.steps:
                 problems.append(f"workflow.{i}.step: device type {ws.device!r} does not run {ws.step!r} (it runs {dev.steps})")
-        if not self.workflow and self.jobshop is None and not self.campaigns:
+        lab_only = bool(info.context and info.context.get("lab_only"))  # `twin lab serve`: campaigns come later
+        if not self.workflow and self.jobshop is None and not self.campaigns and not lab_only:
             problems.append("workflow: empty; give the steps of an experiment, or a jobshop file")
         problems += self._instance_clashes() + self._sharing()
-        if not self.campaigns:  # a lab of several campaigns: checked with each campaign's chemistry
+        if not self.campaigns and not lab_only:  # a lab of several campaigns: checked with each one's chemistry
             problems += self._plus_params() + self._envelopes()
         if self.bus.security and self.bus.kind != "zenoh":
             problems.append("bus.security: security is for the zenoh bus; the memory bus has no one to keep out")

@@ -44,14 +44,17 @@ def campaign_scenarios(lab: Scenario, source: str = "<lab>") -> dict[str, Scenar
 def load_campaign(path: str | Path) -> SharedCampaign:
     """A campaign file (``twin submit``): a name and the sections of a campaign (priority, owner, chemistry,
     workflow, campaign)."""
-    raw = read_yaml(Path(path))
+    return parse_campaign(read_yaml(Path(path)), str(path))
+
+
+def parse_campaign(raw: Any, source: str = "<campaign>") -> SharedCampaign:
     if not isinstance(raw, dict):
-        raise ScenarioError(str(path), ["a campaign file is a mapping: name, and any of owner, priority, share, "
-                                        "chemistry, workflow, campaign"])
+        raise ScenarioError(source, ["a campaign file is a mapping: name, and any of owner, priority, share, "
+                                     "chemistry, workflow, campaign"])
     try:
         return SharedCampaign.model_validate(raw)
     except ValidationError as exc:
-        raise ScenarioError(str(path), [_where(e) for e in exc.errors()]) from None
+        raise ScenarioError(source, [_where(e) for e in exc.errors()]) from None
 
 
 def _where(err: Any) -> str:
