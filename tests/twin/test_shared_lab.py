@@ -335,3 +335,44 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
     events_ = [e[1] for e in events(runs / "catalyst.db", "operator.pause", "operator.resume", "campaign.submitted")]
     assert events_[0] == "campaign.submitted" and "operator.pause" in events_ and "operator.resume" in events_
     assert_one_step_at_a_time(runs)
+
+
+def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp_path):
+    """What `twin submit` could be sent by anyone with the operator's key: every bad one is answered with why,
+    and the lab keeps serving the campaign it has."""
+    import asyncio
+
+    from twin.runtime.shared_run import serve_lab
+
+    s = prepare(LAB, clock="scaled", speed=50_000, bus="memory",
+                overrides={"campaigns.0.campaign.budget": 2, "campaigns.0.campaign.planner": "random",
+                           "campaigns": [load(LAB).campaigns[0].model_dump(exclude_none=True)]}, lab_only=True)
+    bomb = "a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
+        f"{k}: &{k} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
+        for p, k in zip("abcdefg", "bcdefgh"))
+    hostile = {
+        b"not json": "not JSON",
+        b"[1, 2]": "not a JSON object",
+        json.dumps({"file": 42}).encode(): "give the text of a campaign file",
+        json.dumps({"file": "name: [unclosed"}).encode(): "not valid YAML",
+        json.dumps({"file": bomb}).encode(): "values",
+        json.dumps({"file": "name: x\nbudget: 3\n"}).encode(): "budget: unknown field",
+        json.dumps({"file": "name: dots\n"}).encode(): "has a campaign 'dots' already",
+        json.dumps({"file": "name: y\nafter: dots\n"}).encode(): "after / start_h",
+        json.dumps({"file": "name: z\nworkflow: [{step: melt, device: furnace}]\n"}).encode(): "furnace",
+        b"{" + b" " * (1 << 21) + b"}": "bytes; at most",
+    }
+    answers: dict = {}
+
+    def started(lab) -> None:
+        async def ask() -> None:
+            for payload in hostile:
+                answers[payload] = json.loads(await lab.desk.serve("labtwin/shared/control/submit", payload))
+            lab.stop("test over")
+        asyncio.ensure_future(ask())
+
+    out = serve_lab(s, tmp_path, handle_signals=False, on_start=started)
+    for payload, words in hostile.items():
+        answer = answers[payload]
+        assert answer["ok"] is False and words in answer["error"], (payload[:60], answer)
+    assert list(out.campaigns) == ["dots"] and sorted(p.stem for p in tmp_path.glob("*.db")) == ["dots"]

@@ -36,10 +36,10 @@ def parse(raw: dict[str, Any], source: str = "<scenario>", lab_only: bool = Fals
     try:
         return Scenario.model_validate(raw, context={"lab_only": lab_only})
     except ValidationError as exc:
-        raise ScenarioError(source, [_describe(e, raw) for e in exc.errors()]) from None
+        raise ScenarioError(source, [describe(e, raw) for e in exc.errors()]) from None
 
 
-def _describe(err: Any, raw: dict[str, Any]) -> str:
+def describe(err: Any, raw: dict[str, Any]) -> str:
     loc = ".".join(str(p) for p in err["loc"])
     if err["type"] == "extra_forbidden":
         return f"{loc}: unknown field (check the spelling; `twin schema` lists the fields)"

@@ -53,7 +53,7 @@ class Faults(_Spec):
     @classmethod
     def _crashes_take_time(cls, mtbc_h: float) -> float:
         if 0 < mtbc_h < 0.01:
-            raise ValueError(f"under 0.01 lab-h (36 s), a device would crash before it starts anything: use 0 "
+            raise ValueError("under 0.01 lab-h (36 s), a device would crash before it starts anything: use 0 "
                              "for never, or at least 0.01")
         return mtbc_h
 

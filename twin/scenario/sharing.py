@@ -15,7 +15,7 @@ from pydantic import ValidationError
 
 from twin.core.errors import ScenarioError
 from twin.scenario.files import read_yaml
-from twin.scenario.loading import parse
+from twin.scenario.loading import describe, parse
 from twin.scenario.model import Scenario, SharedCampaign
 
 _OWN = ("chemistry", "workflow", "campaign")
@@ -54,11 +54,4 @@ def parse_campaign(raw: Any, source: str = "<campaign>") -> SharedCampaign:
     try:
         return SharedCampaign.model_validate(raw)
     except ValidationError as exc:
-        raise ScenarioError(source, [_where(e) for e in exc.errors()]) from None
-
-
-def _where(err: Any) -> str:
-    loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
-    if err["type"] == "extra_forbidden":
-        return f"{loc}: unknown field (a campaign file has name, owner, priority, share, chemistry, workflow, campaign)"
-    return f"{loc}: {err['msg'].removeprefix('Value error, ')}"
+        raise ScenarioError(source, [describe(e, raw) for e in exc.errors()]) from None
