@@ -376,3 +376,31 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
         answer = answers[payload]
         assert answer["ok"] is False and words in answer["error"], (payload[:60], answer)
     assert list(out.campaigns) == ["dots"] and sorted(p.stem for p in tmp_path.glob("*.db")) == ["dots"]
+
+
+def test_a_device_one_campaign_quarantined_is_kept_from_the_others_until_its_probe(tmp_path):
+    s = prepare(LAB, seed=5, overrides={
+        **NO_FAULTS, "devices.spectrometer.instances": 2, "devices.spectrometer.faults": {"fail_p": 0.5},
+        "orchestrator.quarantine_after": 2, "orchestrator.probe_after_s": 7200,
+        "campaigns.0.campaign.planner": "random", "campaigns.1.campaign.planner": "random"})
+    run_shared(s, tmp_path, handle_signals=False)
+    dbs = {db.stem: db for db in tmp_path.glob("*.db")}
+    spells = []  # (campaign, device, from, to): quarantined by that campaign until its probe
+    for name, db in dbs.items():
+        opened = {}
+        for t, kind, _, _, _, device, _, _ in events(db, "device.quarantined", "device.probe"):
+            if kind == "device.quarantined":
+                opened[device] = t
+            elif device in opened:
+                spells.append((name, device, opened.pop(device), t))
+        con = sqlite3.connect(db)
+        ended = con.execute("SELECT max(t_lab) FROM events WHERE kind != 'campaign.summary'").fetchone()[0]
+        con.close()
+        spells += [(name, d, t0, ended) for d, t0 in opened.items()]  # a campaign that ended holds nothing
+    assert spells, "no device was quarantined: the test needs a flakier spectrometer"
+    for name, device, t0, t1 in spells:
+        for other, db in dbs.items():
+            if other == name:
+                continue
+            inside = [r[0] for r in events(db, "attempt.dispatched") if r[5] == device and t0 <= r[0] < t1]
+            assert not inside, f"{other} sent {device} work at {inside[:3]} while {name} had it quarantined"

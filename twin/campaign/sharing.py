@@ -3,8 +3,9 @@
 Every campaign keeps its own core — experiments, attempts, retries, ledger and accounting invariant — and sees
 the lab's devices through its own ``Device`` records. The shared lab keeps them telling one story:
 
-- **holds**: a device with a step of one campaign on it (or a cancel it has not answered) is ``held_by`` that
-  campaign in every other campaign's records, so no campaign dispatches to it until it is released;
+- **holds**: a device with a step of one campaign on it (or a cancel it has not answered, or that it has
+  quarantined until its probe) is ``held_by`` that campaign in every other campaign's records, so no campaign
+  dispatches to it until it is released;
 - **turns**: at each instant every campaign first takes in its events (results, presence, timers), then the
   campaigns make their decision passes one at a time, the highest ``priority`` first and, among equals, the one
   furthest below its ``share`` of the device time used so far (the fair-share rule); a campaign's own
@@ -235,8 +236,8 @@ class SharedLab:
             if self.cores[name].finished:
                 continue  # it cancelled what it ran as it ended: it holds nothing
             for dev in self.cores[name].devices.values():
-                if dev.attempt is not None or dev.cancelling is not None:
-                    holder[dev.name] = name
+                if dev.attempt is not None or dev.cancelling is not None or dev.quarantined:
+                    holder[dev.name] = name  # a device one campaign quarantined is kept from the others too
         for name in self.started:
             core = self.cores[name]
             for dev in core.devices.values():
