@@ -151,7 +151,8 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
         finally:
             summaries = _finish(lab.shared, lab.parts, wall0, clock.now(),
                                 {n: seat.note for n, seat in lab.seats.items()})
-    return _summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
+            until = clock.now() if serving is not None else 0.0
+    return _summary(s, lab.shared, summaries, where, time.perf_counter() - wall0, until)
 
 
 def _finish(shared: SharedLab, parts: dict, wall0: float, now: float,
@@ -195,9 +196,11 @@ def shared_drivers(scenarios: dict[str, Scenario], only: set[str] | None = None,
     return [(inst, dt, drv) for inst, (dt, drv) in first.items()], per_device
 
 
-def _summary(s: Scenario, shared: SharedLab, summaries: dict, where: Path, wall_s: float) -> LabSummary:
+def _summary(s: Scenario, shared: SharedLab, summaries: dict, where: Path, wall_s: float,
+             served_until: float = 0.0) -> LabSummary:
+    """``served_until``: a lab that served (``twin lab serve``) counts its hours until it was stopped."""
     ended = {n: shared.cores[n].now / 3600 for n in shared.started}
-    hours = max(ended.values(), default=0.0)
+    hours = max([*ended.values(), served_until / 3600])
     busy: dict[str, float] = {}
     for name in shared.started:
         for dev in shared.cores[name].devices.values():
