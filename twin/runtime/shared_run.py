@@ -13,8 +13,8 @@ from twin.campaign.summary import LabSummary, Summary
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
 from twin.runtime.fast_lab import FastLab
-from twin.runtime.lab import (_agent_on_bus, _stop_on_loop_signals, _stop_on_signals, build_actors, finish,
-                              live_scheduler, load_driver, load_drivers, make_bus, make_clock, make_planner,
+from twin.runtime.lab import (_agent_on_bus, _stop_on_loop_signals, _stop_on_signals, build_actors, default_journal,
+                              finish, live_scheduler, load_driver, load_drivers, make_bus, make_clock, make_planner,
                               make_scheduler, open_journal, refuse_realtime)
 from twin.runtime.checks import check_campaign
 from twin.runtime.labtime import LabTimeSource
@@ -27,7 +27,7 @@ from twin.scenario.sharing import campaign_scenarios
 
 
 def default_journals(s: Scenario) -> Path:
-    return Path("runs") / f"{s.name}-seed{s.campaign.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+    return default_journal(s).with_suffix("")  # a directory named as a run's journal would be
 
 
 def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: bool = True,
@@ -40,19 +40,13 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
                          "see messages in flight: use --clock scaled or --clock wall")
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
-    agents = [n for n, cs in scenarios.items() if _agent_on_bus(cs.campaign.scheduler)]
-    if agents:
-        raise ClockError(f"campaigns {agents}: a scheduler agent on the bus serves one campaign; in a lab of "
-                         "several, give each campaign an in-process scheduler")
+    _refuse_agents(scenarios)
     drivers, per_device = shared_drivers(scenarios, skip=external_devices)
     if s.clock.mode == "virtual":
         refuse_realtime(drivers)
     where = Path(journals) if journals is not None else default_journals(s)
     where.mkdir(parents=True, exist_ok=True)
-    parts = {name: (open_journal(cs, where / f"{name}.db"), make_planner(cs), make_scheduler(cs))
-             for name, cs in scenarios.items()}
-    for journal, _, _ in parts.values():
-        journal.set("external", sorted(external_devices))
+    parts = {name: _parts(cs, where / f"{name}.db", external_devices) for name, cs in scenarios.items()}
     if s.clock.mode == "virtual":
         lab: Any = FastLab(s, scenarios, drivers, per_device, parts)
         with _stop_on_signals(lab.stop, handle_signals):
@@ -74,6 +68,7 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
         raise ClockError(f"{s.name}: a lab that serves waits for campaigns in real time: use --clock scaled or wall")
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
+    _refuse_agents(scenarios)
     if scenarios:
         drivers, per_device = shared_drivers(scenarios, skip=external_devices)
     else:
@@ -105,6 +100,13 @@ def _standby_drivers(s: Scenario, skip: Collection[str]) -> list[tuple[str, str,
     return out
 
 
+def _refuse_agents(scenarios: dict[str, Scenario]) -> None:
+    agents = [n for n, cs in scenarios.items() if _agent_on_bus(cs.campaign.scheduler)]
+    if agents:
+        raise ClockError(f"campaigns {agents}: a scheduler agent on the bus serves one campaign; in a lab of "
+                         "several, give each campaign an in-process scheduler")
+
+
 def _parts(s: Scenario, path: Path, external: Collection[str]) -> tuple:
     journal = open_journal(s, path)
     journal.set("external", sorted(external))
@@ -129,6 +131,7 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
             return made[0], made[1], live_scheduler(cs, made[2], bus, clock)[0]
 
         def adopt(name: str, cs: Scenario) -> tuple:
+            _refuse_agents({name: cs})
             check_campaign(cs)
             mine = {a.name for a in actors}
             _, per = shared_drivers({name: cs}, only=mine) if mine else ([], {})
