@@ -56,8 +56,7 @@ class Seat:
             if t is Note:
                 note(a)
                 if observer is not None and a.kind not in UNDRAWN:
-                    observer.on_decision(a.t_lab, a.kind, {"experiment": a.experiment, "task": a.task,
-                                                          "attempt": a.attempt, "device": a.device, "info": a.detail})
+                    observer.on_note(a)
                 if a.kind in self.alerts:
                     log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
                 if watched and not progressed:

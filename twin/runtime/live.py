@@ -113,8 +113,7 @@ class LiveCampaign:
     def _decided(self, n: Note) -> None:
         self.decisions.add(n, self.journal.note(n))
         if self.observer is not None:
-            self.observer.on_decision(n.t_lab, n.kind, {"experiment": n.experiment, "task": n.task,
-                                                        "attempt": n.attempt, "device": n.device, "info": n.detail})
+            self.observer.on_note(n)
 
     async def run(self) -> None:
         lab, loop = self.s.lab, asyncio.get_running_loop()

@@ -15,6 +15,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from twin.campaign.events import Note
+
 #: A device's states, in the order the viewer lists them.
 STATES = ("offline", "idle", "failed", "quarantined", "busy")
 WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",
@@ -59,6 +61,11 @@ class Canvas(Protocol):
         """Send what is buffered: live viewers call this now and then."""
 
 
+def _level(what: str) -> str:
+    return "ERROR" if what in ERROR_KINDS else "WARN" if what in WARN_KINDS else "DEBUG" if (
+        what in DEBUG_KINDS) else "INFO"
+
+
 def _experiment_of(task: str | None) -> int | None:
     if task and task.startswith("e") and "s" in task:
         try:
@@ -88,6 +95,9 @@ class LabObserver:
         self._seen: set[str] | None = set() if dedupe else None
         self._route: Any = None  # a RouteView, once a synthesis route runs
         self._handlers: dict[str, Any] = {}
+        self._paths: dict[str, tuple[str, str]] = {}  # a device's state and utilisation entities
+        self._target_outputs: set[str] = set()
+        self._telemetry_paths: dict[tuple[str, str], str] = {}
 
     # -- input ------------------------------------------------------------
     def on_message(self, key: str, payload: bytes | str) -> None:
@@ -117,8 +127,12 @@ class LabObserver:
             else:
                 self.on_decision(t, body.get("what", ""), body.get("detail", {}))
         elif kind == "telemetry":
+            sender, paths = env["sender"], self._telemetry_paths
             for name, value in env.get("body", {}).get("readings", {}).items():
-                self.c.scalar(f"telemetry/{env['sender']}/{name}", t, float(value))
+                path = paths.get((sender, name))
+                if path is None:
+                    path = paths[sender, name] = f"telemetry/{sender}/{name}"
+                self.c.scalar(path, t, float(value))
         elif kind == "result":
             self._spectrum(t, env)
 
@@ -132,25 +146,34 @@ class LabObserver:
         return True
 
     def on_decision(self, t: float, what: str, d: dict[str, Any]) -> None:
+        """A decision as the bus carries it: ``d`` holds experiment, task, attempt, device and info."""
+        self.on_note(Note(t, what, d.get("experiment"), d.get("task"), d.get("attempt"), d.get("device"),
+                          d.get("info")))
+
+    def on_note(self, n: Note) -> None:
+        """A decision as the core noted it: what an in-process runtime hands over, without building a message."""
+        t, what = n.t_lab, n.kind
         if self.t0 is None:
             self.t0 = t
         if self._queue_at is not None and t != self._queue_at:
             self._draw_queue()
         if what in UNDRAWN:
             return
-        info = d.get("info")
+        info = n.detail
         handler = self._handlers.get(what, MISSING)
         if handler is MISSING:  # looked up once per kind of decision: thousands of decisions, a dozen kinds
             handler = self._handlers[what] = getattr(self, "_" + what.replace(".", "_"), None)
         if handler is not None:
-            handler(t, d, info)
+            handler(t, n, info)
         if what not in QUIET:
-            level = "ERROR" if what in ERROR_KINDS else "WARN" if what in WARN_KINDS else "DEBUG" if (
-                what in DEBUG_KINDS) else "INFO"
-            task, attempt, device = d.get("task"), d.get("attempt"), d.get("device")
-            where = " ".join(x for x in (task or "", f"#{attempt}" if attempt else "",
-                                         f"on {device}" if device else "") if x)
-            self.c.text("log", t, f"{what} {where}{self._describe(info) if info is not None else ''}", level)
+            text = what
+            if n.task:
+                text = f"{text} {n.task}"
+            if n.attempt:
+                text = f"{text} #{n.attempt}"
+            if n.device:
+                text = f"{text} on {n.device}"
+            self.c.text("log", t, text + self._describe(info) if info is not None else text, _level(what))
 
     def finish(self) -> None:
         """Draw what waits for lab time to move on (the queue's last change); a recording calls this on close."""
@@ -162,18 +185,15 @@ class LabObserver:
         if info is None:
             return ""
         if isinstance(info, dict):
-            info = {k: v for k, v in info.items() if k not in ("outputs", "scores") or v}
-            text = ", ".join(f"{k}={v}" for k, v in info.items() if v not in (None, "", {}))
+            text = ", ".join([f"{k}={v}" for k, v in info.items()
+                              if v not in (None, "", {}) and (v or k not in ("outputs", "scores"))])
             return f": {text}" if text else ""
         return f": {info}"
 
     # -- decisions ----------------------------------------------------------
-    @property
-    def _target_outputs(self) -> set[str]:
-        return {name for target in self.info.get("targets", []) for name in target.get("outputs", {})}
-
-    def _campaign_started(self, t: float, d: dict, info: dict) -> None:
+    def _campaign_started(self, t: float, n: Note, info: dict) -> None:
         self.info = info or {}
+        self._target_outputs = {name for target in self.info.get("targets", []) for name in target.get("outputs", {})}
         for name in self.info.get("devices", {}):
             self._set_state(t, name, "offline")
         lines = []
@@ -186,13 +206,13 @@ class LabObserver:
         self.c.text("log", t, f"campaign {self.info.get('scenario', '?')} started: "
                     f"{len(self.info.get('devices', {}))} devices, budget {self.info.get('budget')}", "INFO")
 
-    def _experiment_proposed(self, t: float, d: dict, params: dict) -> None:
+    def _experiment_proposed(self, t: float, n: Note, params: dict) -> None:
         if isinstance(params, dict) and "reaction" in params:  # a synthesis route's reaction
             if self._route is None:
                 from twin.view.route_view import RouteView
 
                 self._route = RouteView(self.c)
-            self._route.proposed(t, d.get("experiment"), params)
+            self._route.proposed(t, n.experiment, params)
             return
         box = self.info.get("parameters", {})
         coords = []
@@ -201,54 +221,54 @@ class LabObserver:
             lo, hi = (box.get(name) or [0.0, 1.0])[:2]
             coords.append((float(value) - lo) / (hi - lo) if hi > lo else float(value))
         coords += [0.0] * (3 - len(coords))
-        self.c.points("planner/proposals", t, [tuple(coords)], seq=d.get("experiment"))
+        self.c.points("planner/proposals", t, [tuple(coords)], seq=n.experiment)
 
-    def _task_ready(self, t: float, d: dict, info: dict) -> None:
+    def _task_ready(self, t: float, n: Note, info: dict) -> None:
         made = (info or {}).get("sample_made")
-        self.ready.add(d["task"])
+        self.ready.add(n.task)
         if made is not None:
-            self._made[d["task"]] = made
+            self._made[n.task] = made
         self._queue_at = t
 
-    def _consumable_refilled(self, t: float, d: dict, info: dict) -> None:
+    def _consumable_refilled(self, t: float, n: Note, info: dict) -> None:
         self.c.scalar(f"consumables/{info['item']}", t, float(info["level"]))
 
-    def _attempt_dispatched(self, t: float, d: dict, info: Any) -> None:
+    def _attempt_dispatched(self, t: float, n: Note, info: Any) -> None:
         if self._route is not None:
-            self._route.running(t, d.get("experiment"), d.get("device"))
+            self._route.running(t, n.experiment, n.device)
         for item, level in ((info or {}).get("left") or {}).items():
             self.c.scalar(f"consumables/{item}", t, float(level))
-        self.ready.discard(d["task"])
-        self._made.pop(d["task"], None)
+        self.ready.discard(n.task)
+        self._made.pop(n.task, None)
         self._queue_at = t
-        self._set_state(t, d["device"], "busy")
+        self._set_state(t, n.device, "busy")
 
-    def _attempt_done(self, t: float, d: dict, info: Any) -> None:
-        self._set_state(t, d["device"], "idle")
+    def _attempt_done(self, t: float, n: Note, info: Any) -> None:
+        self._set_state(t, n.device, "idle")
 
-    def _attempt_failed(self, t: float, d: dict, info: Any) -> None:
-        self._set_state(t, d["device"], "failed")
+    def _attempt_failed(self, t: float, n: Note, info: Any) -> None:
+        self._set_state(t, n.device, "failed")
 
-    def _attempt_cancelled(self, t: float, d: dict, info: Any) -> None:
-        self._set_state(t, d["device"], "idle")
+    def _attempt_cancelled(self, t: float, n: Note, info: Any) -> None:
+        self._set_state(t, n.device, "idle")
 
-    def _device_quarantined(self, t: float, d: dict, info: Any) -> None:
-        self._set_state(t, d["device"], "quarantined")
+    def _device_quarantined(self, t: float, n: Note, info: Any) -> None:
+        self._set_state(t, n.device, "quarantined")
 
-    def _device_probe(self, t: float, d: dict, info: Any) -> None:
-        self._set_state(t, d["device"], "idle" if self.state.get(d["device"]) != "offline" else "offline")
+    def _device_probe(self, t: float, n: Note, info: Any) -> None:
+        self._set_state(t, n.device, "idle" if self.state.get(n.device) != "offline" else "offline")
 
-    def _device_online(self, t: float, d: dict, info: Any) -> None:
-        self._set_state(t, d["device"], "idle")
+    def _device_online(self, t: float, n: Note, info: Any) -> None:
+        self._set_state(t, n.device, "idle")
 
-    def _device_lost(self, t: float, d: dict, info: Any) -> None:
-        self._set_state(t, d["device"], "offline")
+    def _device_lost(self, t: float, n: Note, info: Any) -> None:
+        self._set_state(t, n.device, "offline")
 
-    def _experiment_done(self, t: float, d: dict, info: dict) -> None:
+    def _experiment_done(self, t: float, n: Note, info: dict) -> None:
         if self._route is not None:
-            self._route.finished(t, d.get("experiment"), (info or {}).get("outputs") or {})
+            self._route.finished(t, n.experiment, (info or {}).get("outputs") or {})
         self.finished += 1
-        seq = d.get("experiment")
+        seq = n.experiment
         scores = (info or {}).get("scores") or {}
         finite = [s for s in scores.values() if s is not None and math.isfinite(s)]
         if finite:
@@ -267,17 +287,17 @@ class LabObserver:
                 self.c.scalar(f"objective/outputs/{name}", t, float(value), seq=seq)
         self.c.scalar("campaign/finished", t, float(self.finished), seq=seq)
 
-    def _experiment_abandoned(self, t: float, d: dict, info: Any) -> None:
+    def _experiment_abandoned(self, t: float, n: Note, info: Any) -> None:
         if self._route is not None:
-            self._route.finished(t, d.get("experiment"), None, str((info or {}).get("reason", "")))
+            self._route.finished(t, n.experiment, None, str((info or {}).get("reason", "")))
         self.finished += 1
-        self.c.scalar("campaign/finished", t, float(self.finished), seq=d.get("experiment"))
+        self.c.scalar("campaign/finished", t, float(self.finished), seq=n.experiment)
 
-    def _experiment_reopened(self, t: float, d: dict, info: Any) -> None:
+    def _experiment_reopened(self, t: float, n: Note, info: Any) -> None:
         self.finished -= 1  # an operator's retry: abandoned, and now in the lab again
-        self.c.scalar("campaign/finished", t, float(self.finished), seq=d.get("experiment"))
+        self.c.scalar("campaign/finished", t, float(self.finished), seq=n.experiment)
 
-    def _campaign_summary(self, t: float, d: dict, summary: dict) -> None:
+    def _campaign_summary(self, t: float, n: Note, summary: dict) -> None:
         self.done = True
         self.finish()
         self.c.document("summary", summary_markdown(summary or {}))
@@ -293,10 +313,13 @@ class LabObserver:
         if state == "busy":
             self.busy_since[device] = t
         self.state[device] = state
-        self.c.state(f"devices/{device}", t, state)
+        paths = self._paths.get(device)
+        if paths is None:
+            paths = self._paths[device] = (f"devices/{device}", f"utilisation/{device}")
+        self.c.state(paths[0], t, state)
         elapsed = t - (self.t0 or 0.0)
         if was == "busy" and elapsed > 0:
-            self.c.scalar(f"utilisation/{device}", t, self.busy_total.get(device, 0.0) / elapsed)
+            self.c.scalar(paths[1], t, self.busy_total.get(device, 0.0) / elapsed)
 
     def _draw_queue(self) -> None:
         """One row per lab time at which the queue changed (several changes at one instant show as the last)."""
