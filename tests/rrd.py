@@ -21,15 +21,19 @@ def _column(col: pa.Array) -> list:
     return col.to_pylist()
 
 
-def read_rrd(path: str | Path) -> dict[str, list[dict]]:
-    """entity path -> rows sorted by (lab_time, experiment, content); each row maps column -> value."""
+def read_rrd(path: str | Path, row_ids: bool = False) -> dict[str, list[dict]]:
+    """entity path -> rows sorted by (lab_time, experiment, content); each row maps column -> value. ``row_ids``:
+    each row also has its ``row_id`` (bytes that sort as the rows were logged: what orders rows of one instant)."""
     out: dict[str, list[dict]] = defaultdict(list)
     for chunk in RrdReader(path).store().stream():
         rb = chunk.to_record_batch()
         names = [n for n in rb.schema.names if n not in ("rerun.controls.RowId", "log_time", "log_tick")]
         cols = {n: _column(rb.column(n)) for n in names}
+        ids = rb.column("rerun.controls.RowId").to_pylist() if row_ids else None
         for i in range(rb.num_rows):
             row = {n: _plain(cols[n][i]) for n in names if cols[n][i] is not None}
+            if ids is not None:
+                row["row_id"] = ids[i]
             out[chunk.entity_path.lstrip("/")].append(row)
     for rows in out.values():
         rows.sort(key=lambda r: (r.get("lab_time", -1), r.get("experiment", -1), repr(sorted(r.items()))))

@@ -404,3 +404,73 @@ def test_a_device_one_campaign_quarantined_is_kept_from_the_others_until_its_pro
                 continue
             inside = [r[0] for r in events(db, "attempt.dispatched") if r[5] == device and t0 <= r[0] < t1]
             assert not inside, f"{other} sent {device} work at {inside[:3]} while {name} had it quarantined"
+
+
+def recorded_lab(s, where: Path):
+    """Run ``s`` with its recording saved, and read the recording back."""
+    from tests.rrd import read_rrd
+    from twin.view.watch import RecordOptions, open_lab_observer
+
+    devices = {name: dtype for dtype in s.devices for name in s.instance_names(dtype)}
+    observer, recording = open_lab_observer(RecordOptions(save=where / "lab.rrd"), "t",
+                                            [c.name for c in s.campaigns], devices)
+    try:
+        out = run_shared(s, where / "runs", handle_signals=False, observer=observer)
+    finally:
+        recording.close()
+    return out, read_rrd(where / "lab.rrd", row_ids=True)
+
+
+def states(rows: list[dict]) -> list[tuple[float, str]]:
+    """A device's (lab time, state) changes in the order they were drawn."""
+    changes = [r for r in rows if "StateChange:state" in r]
+    return [(r["lab_time"], r["StateChange:state"][0]) for r in sorted(changes, key=lambda r: (r["lab_time"],
+                                                                                               r["row_id"]))]
+
+
+def busy_spells(rows: list[dict]) -> list[tuple[float, float]]:
+    """(from, to) of each busy spell of a device's state rows; a second 'busy' before the first ended fails."""
+    spells, since = [], None
+    for t, state in states(rows):
+        if state == "busy":
+            assert since is None, f"busy again at {t} while busy since {since}: two steps at once"
+            since = t
+        elif since is not None:
+            spells.append((since, t))
+            since = None
+    return spells
+
+
+def test_a_shared_lab_is_recorded_with_its_devices_once_and_a_panel_per_campaign(tmp_path):
+    """`twin run LAB.yaml --save`: the devices' states at the top come from every campaign's steps (each step
+    once, never two at a time, adding up to the lab's utilisation); each campaign's objective, log and summary
+    are under campaigns/<name>/. The second campaign comes while the first has steps in the lab."""
+    s = prepare(LAB, seed=2, overrides={"campaigns.1.start_h": 1.5})
+    out, rrd = recorded_lab(s, tmp_path)
+    lab_s = out.lab_hours * 3600
+    for device, share in out.utilisation.items():
+        lab_spells = busy_spells(rrd[f"devices/{device}"])
+        mine = [sp for c in out.campaigns for sp in busy_spells(rrd.get(f"campaigns/{c}/devices/{device}", []))]
+        assert sorted(lab_spells) == sorted(mine), device  # the lab's row is the campaigns' steps, each once
+        assert sum(b - a for a, b in lab_spells) / lab_s == pytest.approx(share, abs=0.01), device
+    for name, c in out.campaigns.items():
+        finished = rrd[f"campaigns/{name}/campaign/finished"]
+        assert finished[-1]["Scalars:scalars"][0] == c.done + c.abandoned, name
+        assert len(rrd[f"campaigns/{name}/summary"]) == 1 and len(rrd[f"campaigns/{name}/log"]) > 5
+        assert any(p.startswith(f"campaigns/{name}/objective/") for p in rrd)
+    assert "log" not in rrd and "objective/score" not in rrd  # nothing of a campaign's drawn at the lab's level
+    for device in out.utilisation:  # the campaign that came later found the devices there, not offline
+        at_start = [state for t, state in states(rrd[f"campaigns/catalyst/devices/{device}"]) if t == 5400.0]
+        assert at_start[-1] != "offline", (device, at_start)
+    assert any(p.startswith("telemetry/") for p in rrd)
+
+
+def test_a_shared_lab_on_a_scaled_clock_is_recorded_too(tmp_path):
+    s = prepare(LAB, clock="scaled", speed=50_000, bus="memory", seed=3,
+                overrides={"campaigns.0.campaign.budget": 4, "campaigns.1.campaign.budget": 3})
+    out, rrd = recorded_lab(s, tmp_path)
+    for name, c in out.campaigns.items():
+        assert rrd[f"campaigns/{name}/campaign/finished"][-1]["Scalars:scalars"][0] == c.done + c.abandoned
+        assert rrd[f"campaigns/{name}/spectra/measurement"], name  # results reach their campaign's panel
+    for device in out.utilisation:
+        busy_spells(rrd[f"devices/{device}"])

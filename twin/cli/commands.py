@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import signal
 import logging
 import sqlite3
 from pathlib import Path
@@ -14,7 +13,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from rich.markup import escape
 
-from twin.cli.common import _fail, app, console, err, machine_output, narrow_table
+from twin.cli.common import _fail, app, console, err, keep_serving, machine_output, narrow_table
 from twin.cli.sharing import shared_lab
 from twin.core import plugins
 from twin.runtime import lab
@@ -164,30 +163,7 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
         recording.close()
         if record.save:
             err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
-        _keep_serving(recording, summary.stopped)
-
-
-def _keep_serving(recording, stopped: str) -> None:
-    """--serve: the recording stays up until Ctrl-C or SIGTERM, so it can be looked at after the run; a campaign
-    stopped by SIGTERM does not wait. Either way the Rerun server (its own process group) stops with us."""
-    if recording.server is None:
-        return
-    if "SIGTERM" in stopped:
-        recording.stop_serving()
-        return
-    previous = signal.signal(signal.SIGTERM, _interrupt)
-    try:  # said inside: a Ctrl-C or SIGTERM the moment it is read must still stop the server and exit cleanly
-        err.print(f"the finished campaign is served at {recording.url} — Ctrl-C to stop", highlight=False)
-        recording.server.wait()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-        recording.stop_serving()
-
-
-def _interrupt(*_) -> None:
-    raise KeyboardInterrupt
+        keep_serving(recording, summary.stopped)
 
 
 @app.command()

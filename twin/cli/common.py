@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -75,3 +76,26 @@ def machine_output(as_json: bool, csv_path: Path | None, header: list[str], rows
         console.print_json(json.dumps({**extra, "columns": header, "rows": [dict(zip(header, r)) for r in rows],
                                        "runs": runs}, default=str))
     return as_json
+
+
+def keep_serving(recording, stopped: str) -> None:
+    """--serve: the recording stays up until Ctrl-C or SIGTERM, so it can be looked at after the run; a campaign
+    stopped by SIGTERM does not wait. Either way the Rerun server (its own process group) stops with us."""
+    if recording.server is None:
+        return
+    if "SIGTERM" in stopped:
+        recording.stop_serving()
+        return
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:  # said inside: a Ctrl-C or SIGTERM the moment it is read must still stop the server and exit cleanly
+        err.print(f"the finished campaign is served at {recording.url} — Ctrl-C to stop", highlight=False)
+        recording.server.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        recording.stop_serving()
+
+
+def _interrupt(*_) -> None:
+    raise KeyboardInterrupt

@@ -11,30 +11,43 @@ from typing import Annotated, Optional
 import typer
 from rich.markup import escape
 
-from twin.cli.common import _fail, app, console, err, lab_app
+from twin.cli.common import _fail, app, console, err, keep_serving, lab_app
 from twin.core.errors import TwinError
 from twin.runtime.checks import check
+from twin.runtime.lab import recording_id
 from twin.runtime.shared_run import run_shared
 from twin.scenario import Scenario
 from twin.view.report import render_lab_summary
-from twin.view.watch import RecordOptions
+from twin.view.watch import RecordOptions, open_lab_observer
 
 
 def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: bool, json_out: bool,
                external: list[str] | None) -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if record.wanted:
-        _fail(TwinError(f"{s.name}: --save/--viewer/--serve do not record a lab of several campaigns yet; each "
-                        "campaign's journal can be replayed (twin replay <journals>/<campaign>.db --save x.rrd)"))
+    recording = None
     try:
         check(s)
+        observer = None
+        if record.wanted:
+            devices = {name: dtype for dtype in s.devices for name in s.instance_names(dtype)}
+            observer, recording = open_lab_observer(record, recording_id(s), [c.name for c in s.campaigns],
+                                                    devices)
+            for message in recording.messages:
+                err.print(message, highlight=False)
         if not quiet and not json_out:
             err.print(f"{s.name}: {len(s.campaigns)} campaigns sharing the lab "
                       f"({', '.join(c.name for c in s.campaigns)}), {s.clock.mode} clock …", highlight=False)
-        summary = run_shared(s, journal, external_devices=set(external or ()))
+        summary = run_shared(s, journal, external_devices=set(external or ()), observer=observer)
     except TwinError as exc:
+        if recording is not None:
+            recording.stop_serving()
         _fail(exc)
     _show(summary, json_out)
+    if recording is not None:
+        recording.close()
+        if record.save:
+            err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
+        keep_serving(recording, " ".join(c.stopped for c in summary.campaigns.values()))
 
 
 def _show(summary, json_out: bool) -> None:

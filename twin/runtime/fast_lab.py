@@ -14,6 +14,7 @@ from twin.runtime.fast import Progress, Seat, asyncio_tripwire
 from twin.runtime.fast_device import FastDevice
 from twin.runtime.queue import EventQueue, Timer
 from twin.scenario import Scenario
+from twin.view.lab_observer import SharedLabObserver
 
 SeatParts = tuple[Journal, Planner, Scheduler]
 
@@ -21,17 +22,21 @@ SeatParts = tuple[Journal, Planner, Scheduler]
 class FastLab:
     def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], drivers: list[tuple[str, str, Any]],
                  per_device: dict[str, dict[str, Any]], parts: dict[str, SeatParts],
-                 on_progress: Callable[[str], Progress | None] | None = None) -> None:
+                 on_progress: Callable[[str], Progress | None] | None = None,
+                 observer: SharedLabObserver | None = None) -> None:
         """``scenarios``: each campaign's; ``per_device``: each instance's driver for each campaign (a simulated
         device simulates the chemistry of the campaign whose step it runs); ``parts``: each campaign's journal,
-        planner and scheduler."""
+        planner and scheduler; ``observer``: handed the lab's devices' results and telemetry and each campaign's
+        notes as they happen (a recording)."""
         self.lab, self.queue = lab, EventQueue()
         self.shared = SharedLab(lab, scenarios)
+        watch = observer.on_envelope if observer is not None else None
         self.devices = {name: FastDevice(name, dtype, lab.devices[dtype], drv, self.queue, lab.campaign.seed,
-                                         self.shared.feed_device, shared=per_device[name])
+                                         self.shared.feed_device, watch, shared=per_device[name])
                         for name, dtype, drv in sorted(drivers)}
         self.seats = {name: Seat(self.shared.cores[name], *parts[name], self.queue, self.devices,
-                                 on_progress(name) if on_progress else None)
+                                 on_progress(name) if on_progress else None,
+                                 observer=observer.campaign(name) if observer is not None else None)
                       for name in scenarios}
         self._lab_timers: dict[TimerKey, Timer] = {}
 

@@ -63,7 +63,7 @@ class EventDecoder:
         plain = body.to_dict()
         if self.observer is not None and env.kind in WATCHED:
             self.observer.on_envelope({"kind": env.kind, "id": env.id, "sender": env.sender, "task": env.task,
-                                       "t_lab": env.t_lab, "body": plain})
+                                       "campaign": env.campaign or "", "t_lab": env.t_lab, "body": plain})
         return DeviceMessage(env.kind, env.sender, env.task, env.attempt, plain, kept, on_key, env.token,
                              env.campaign or "")
 

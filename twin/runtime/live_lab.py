@@ -23,6 +23,7 @@ from twin.runtime.live import EventDecoder, LiveCampaign
 from twin.scenario import Scenario
 from twin.scenario.files import parse_yaml
 from twin.scenario.sharing import campaign_scenario, parse_campaign
+from twin.view.lab_observer import SharedLabObserver
 
 SeatParts = tuple[Journal, Planner, Scheduler]
 
@@ -43,23 +44,29 @@ class LiveSeat(LiveCampaign):
 
 class LiveLab:
     def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], bus: Bus, clock: LabClock,
-                 parts: dict[str, SeatParts], adopt: Callable[[str, Scenario], SeatParts] | None = None) -> None:
+                 parts: dict[str, SeatParts], adopt: Callable[[str, Scenario], SeatParts] | None = None,
+                 observer: SharedLabObserver | None = None) -> None:
         """``adopt``: a lab that serves (``twin lab serve``) takes campaigns as they are submitted; ``adopt(name,
         scenario)`` readies one (its drivers, journal, planner and scheduler) or raises a TwinError that says
-        why not."""
+        why not. ``observer``: handed each campaign's notes and the devices' results and telemetry (a
+        recording)."""
         self.lab, self.bus, self.clock = lab, bus, clock
         self.shared = SharedLab(lab, scenarios, serving=adopt is not None)
         self.parts = dict(parts)
         self._adopt = adopt
+        self.observer = observer
         self.seats = {name: LiveSeat(self, scenarios[name], bus, clock, *parts[name], campaign_id=name,
-                                     core=self.shared.cores[name])
+                                     core=self.shared.cores[name], observer=self._feed(name))
                       for name in scenarios}
         self.desk = LabDesk(self)
-        self._decoder = EventDecoder()
+        self._decoder = EventDecoder(observer)
         self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
         self._handles: list[Any] = []
         self._done: asyncio.Future | None = None
         self._kicked = False
+
+    def _feed(self, name: str) -> Any:
+        return self.observer.campaign(name) if self.observer is not None else None
 
     def stop(self, reason: str) -> None:
         self.shared.stop(reason)
@@ -117,7 +124,8 @@ class LiveLab:
             return {"ok": False, "error": str(exc)}
         core = self.shared.add(entry, scenario)
         self.parts[entry.name] = parts
-        seat = LiveSeat(self, scenario, self.bus, self.clock, *parts, campaign_id=entry.name, core=core)
+        seat = LiveSeat(self, scenario, self.bus, self.clock, *parts, campaign_id=entry.name, core=core,
+                        observer=self._feed(entry.name))
         seat._done = self._done
         self.seats[entry.name] = seat
         seat.note("campaign.submitted", {"who": who, "priority": entry.priority, "owner": entry.owner})

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import time
 from collections.abc import Callable, Collection
@@ -13,9 +14,9 @@ from twin.campaign.summary import LabSummary, Summary
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
 from twin.runtime.fast_lab import FastLab
-from twin.runtime.lab import (_agent_on_bus, _stop_on_loop_signals, _stop_on_signals, build_actors, default_journal,
-                              finish, live_scheduler, load_driver, load_drivers, make_bus, make_clock, make_planner,
-                              make_scheduler, open_journal, refuse_realtime)
+from twin.runtime.lab import (_agent_on_bus, _flush_live, _noted, _stop_on_loop_signals, _stop_on_signals,
+                              build_actors, default_journal, finish, live_scheduler, load_driver, load_drivers,
+                              make_bus, make_clock, make_planner, make_scheduler, open_journal, refuse_realtime)
 from twin.runtime.checks import check_campaign
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.live_lab import LiveLab
@@ -24,6 +25,7 @@ from twin.core import plugins
 from twin.device.driver import feature
 from twin.scenario import Chemistry, Scenario
 from twin.scenario.sharing import campaign_scenarios
+from twin.view.lab_observer import SharedLabObserver
 
 
 def default_journals(s: Scenario) -> Path:
@@ -31,10 +33,12 @@ def default_journals(s: Scenario) -> Path:
 
 
 def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: bool = True,
-               external_devices: Collection[str] = frozenset()) -> LabSummary:
+               external_devices: Collection[str] = frozenset(),
+               observer: SharedLabObserver | None = None) -> LabSummary:
     """Every campaign of ``s`` on its shared lab; each writes ``<journals>/<campaign>.db``. Virtual time on the
     fast runtime; a scaled or wall clock on the asyncio runtime, over the scenario's bus, with
-    ``external_devices`` served by other processes (``twin device serve``)."""
+    ``external_devices`` served by other processes (``twin device serve``). ``observer`` (``open_lab_observer``)
+    is handed what the lab and each campaign do as it happens."""
     if external_devices and s.clock.mode == "virtual":
         raise ClockError(f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
                          "see messages in flight: use --clock scaled or --clock wall")
@@ -48,15 +52,17 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
     where.mkdir(parents=True, exist_ok=True)
     parts = {name: _parts(cs, where / f"{name}.db", external_devices) for name, cs in scenarios.items()}
     if s.clock.mode == "virtual":
-        lab: Any = FastLab(s, scenarios, drivers, per_device, parts)
+        lab: Any = FastLab(s, scenarios, drivers, per_device, parts, observer=observer)
         with _stop_on_signals(lab.stop, handle_signals):
             try:
                 lab.run()
             finally:
-                summaries = _finish(lab.shared, parts, wall0, lab.now)
+                notes = {n: _noted(parts[n][0], observer.campaign(n), lab.now) for n in parts} if observer else None
+                summaries = _finish(lab.shared, parts, wall0, lab.now, notes)
         return _summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
     clock = make_clock(s)
-    return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals))
+    return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals,
+                           observer=observer))
 
 
 def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices: Collection[str] = frozenset(),
@@ -115,7 +121,8 @@ def _parts(s: Scenario, path: Path, external: Collection[str]) -> tuple:
 
 async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], drivers: list, per_device: dict,
                 parts: dict, where: Path, wall0: float, handle_signals: bool,
-                serving: Collection[str] | None = None, on_start: Callable[[Any], None] | None = None) -> LabSummary:
+                serving: Collection[str] | None = None, on_start: Callable[[Any], None] | None = None,
+                observer: SharedLabObserver | None = None) -> LabSummary:
     """``serving``: None, or the external devices of a lab that takes campaigns as they are submitted."""
     async with contextlib.AsyncExitStack() as stack:
         bus = make_bus(s, clock)
@@ -141,7 +148,9 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
             return seat_parts(name, cs, _parts(cs, where / f"{name}.db", serving or ()))
 
         lab = LiveLab(s, scenarios, bus, clock, {n: seat_parts(n, scenarios[n], p) for n, p in parts.items()},
-                      adopt if serving is not None else None)
+                      adopt if serving is not None else None, observer)
+        if observer is not None:
+            stack.callback(asyncio.ensure_future(_flush_live(clock, observer)).cancel)
         for actor in actors:
             await actor.start()
             stack.push_async_callback(actor.stop)

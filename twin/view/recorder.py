@@ -72,6 +72,39 @@ def blueprint() -> rrb.Blueprint:
     )
 
 
+def lab_blueprint(campaigns: list[str]) -> rrb.Blueprint:
+    """A lab of several campaigns: its devices and their use at the top, a tab per campaign below."""
+    whole = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
+                                                  end=rrb.TimeRangeBoundary.infinite()))
+
+    def series(origin: str, name: str, contents: Any = "$origin/**") -> rrb.TimeSeriesView:
+        return rrb.TimeSeriesView(origin=origin, contents=contents, name=name, axis_x=whole)
+
+    def campaign(c: str) -> rrb.Container:
+        at = f"/campaigns/{c}"
+        return rrb.Vertical(
+            rrb.Horizontal(series(f"{at}/objective", "Objective (0 = target met) and best so far",
+                                  ["$origin/score", "$origin/best", "$origin/targets/**"]),
+                           series(f"{at}/queue", "Queue"),
+                           rrb.StateTimelineView(origin=f"{at}/devices", name=f"Devices running {c}'s steps",
+                                                 time_view=whole)),
+            rrb.Horizontal(rrb.TextLogView(origin=f"{at}/log", name="Decisions and faults"),
+                           rrb.Spatial2DView(origin=f"{at}/spectra", name="Spectra (latest, with targets)"),
+                           rrb.TextDocumentView(origin=f"{at}/summary", name="Summary")),
+            name=c)
+
+    return rrb.Blueprint(
+        rrb.Vertical(
+            rrb.Horizontal(rrb.StateTimelineView(origin="/devices", name="Devices (every campaign)", time_view=whole),
+                           rrb.Tabs(series("/utilisation", "Utilisation"), series("/consumables", "Consumables"),
+                                    series("/telemetry", "Telemetry"))),
+            rrb.Tabs(*[campaign(c) for c in campaigns]),
+        ),
+        rrb.TimePanel(timeline="lab_time", state="collapsed"),
+        collapse_panels=True,
+    )
+
+
 class _Series:
     """The rows of one entity waiting to be sent: lab times, experiment numbers (or none) and values."""
 
@@ -231,8 +264,9 @@ def log_curve(out: Recording, steps: int, values: dict[str, float], prefix: str 
 
 def open_recording(recording_id: str, save: str | Path | None = None, viewer: bool = False,
                    serve: bool = False, serve_port: int = 0, web_port: int = 0,
-                   campaign_layout: bool = True) -> Recording:
-    """A recording with the sinks asked for; a sink that cannot start is reported, not fatal."""
+                   campaign_layout: bool = True, campaigns: list[str] | None = None) -> Recording:
+    """A recording with the sinks asked for; a sink that cannot start is reported, not fatal. ``campaigns``: the
+    recording is of a lab these campaigns share (its layout has a tab for each)."""
     rec = rr.RecordingStream("labtwin", recording_id=recording_id)
     rec.set_log_time_enabled(False)  # only lab time: a replay then equals the live recording
     rec.set_log_tick_enabled(False)
@@ -250,7 +284,8 @@ def open_recording(recording_id: str, save: str | Path | None = None, viewer: bo
         if url:
             sinks.append(rr.GrpcSink(url))
     if sinks:
-        rec.set_sinks(*sinks, default_blueprint=blueprint() if campaign_layout else None)
+        layout = lab_blueprint(campaigns) if campaigns else blueprint() if campaign_layout else None
+        rec.set_sinks(*sinks, default_blueprint=layout)
     return out
 
 

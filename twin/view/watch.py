@@ -49,6 +49,18 @@ def open_observer(options: RecordOptions, recording_id: str, dedupe: bool = Fals
     return observer, recording
 
 
+def open_lab_observer(options: RecordOptions, recording_id: str, campaigns: list[str], devices: dict[str, str]):
+    """A ``SharedLabObserver`` of a lab these campaigns share, drawing on a new recording (returned to be closed)."""
+    from twin.view.lab_observer import SharedLabObserver
+    from twin.view.recorder import open_recording
+
+    recording = open_recording(recording_id, options.save, options.viewer, options.serve,
+                               options.serve_port, options.web_port, campaigns=campaigns)
+    observer = SharedLabObserver(recording.canvas, devices)
+    recording.before_close.append(observer.finish)
+    return observer, recording
+
+
 def attach(bus: Bus, lab: str, on_message) -> list[Closable]:
     """Subscribe ``on_message`` to everything an observer of ``lab`` needs."""
     return [bus.subscribe(k, on_message) for k in (keys.evt(lab), keys.telemetry(lab), keys.campaign(lab, "*"))]
