@@ -80,6 +80,22 @@ def test_request_gets_the_reply(virtual_clock, make_bus):
     assert t == pytest.approx(6.0)
 
 
+def test_a_request_with_a_wildcard_reaches_a_replier_of_a_key_it_covers(virtual_clock, make_bus):
+    """How a watcher finds a lab's campaign: it asks ``campaign/*/history`` of a replier on ``campaign/c1/...``."""
+    async def body(bus):
+        async def page(key, payload):
+            return b"c1's history"
+
+        bus.serve("lab/campaign/c1/history", page)
+        await settle(virtual_clock)
+        reply = await bus.request("lab/campaign/*/history", b"", timeout=10)
+        with pytest.raises(NoReplyError):
+            await bus.request("lab/campaign/*/decisions", b"", timeout=2)
+        return reply
+
+    assert run(virtual_clock, make_bus, body) == b"c1's history"
+
+
 def test_request_times_out_in_lab_time(virtual_clock, make_bus):
     async def body(bus):
         async def slow(key, payload):

@@ -277,6 +277,7 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
     import yaml
     from typer.testing import CliRunner
 
+    from tests.rrd import read_rrd
     from twin.campaign.journal import read_run
     from twin.cli import app
 
@@ -293,6 +294,7 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
                             f"tcp/127.0.0.1:{port}", "--speed", "3000", "--journal", str(tmp_path / "runs")],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
     runner, connect = CliRunner(), ["--lab", "shared", "--connect", f"tcp/127.0.0.1:{port}"]
+    watcher = None
 
     def ctl(*args):
         return runner.invoke(app, [*args, *connect], env={"COLUMNS": "100"})
@@ -301,6 +303,10 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         line = lab.stderr.readline()
         assert "serving lab shared" in line, line + lab.stderr.read() if lab.poll() is not None else line
         assert ctl("submit", str(tmp_path / "dots.yaml"), "--as", "qd-group").exit_code == 0
+        watcher = subprocess.Popen([sys.executable, "-m", "twin", "watch", "--lab", "shared", "--connect",
+                                    f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd"), "--follow"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
+        assert "watching lab" in watcher.stdout.readline()
         sub = ctl("submit", str(tmp_path / "catalyst.yaml"))
         assert sub.exit_code == 0 and "campaign catalyst started on lab shared" in sub.output, sub.output
         again = ctl("submit", str(tmp_path / "dots.yaml"))
@@ -322,11 +328,22 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
             pytest.fail(f"the campaigns did not end: {status}")
         lab.send_signal(signal.SIGTERM)
         out, err = lab.communicate(timeout=60)
+        time.sleep(1.0)  # the campaigns' summaries reach the watcher
+        watcher.send_signal(signal.SIGTERM)
+        _, watch_err = watcher.communicate(timeout=60)
     finally:
-        if lab.poll() is None:
-            lab.kill()
-            lab.communicate()
+        for proc in (lab, watcher):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.communicate()
     assert lab.returncode == 0, err[-2000:]
+    assert watcher.returncode == 0, watch_err[-2000:]
+    drawn = read_rrd(tmp_path / "w.rrd")  # a campaign submitted after the watcher joined has its tab too
+    for name, budget in (("dots", 4), ("catalyst", 3)):
+        assert drawn[f"campaigns/{name}/campaign/finished"][-1]["Scalars:scalars"][0] == budget, name
+        assert len(drawn[f"campaigns/{name}/summary"]) == 1, name
+    assert {p.split("/")[1] for p in drawn if p.startswith("devices/")} == {
+        "synthesiser-1", "synthesiser-2", "reactor", "spectrometer"}
     assert "dots (quantum-dot" in out and "catalyst" in out
     runs = tmp_path / "runs"
     for name, budget in (("dots", 4), ("catalyst", 3)):
@@ -474,3 +491,62 @@ def test_a_shared_lab_on_a_scaled_clock_is_recorded_too(tmp_path):
         assert rrd[f"campaigns/{name}/spectra/measurement"], name  # results reach their campaign's panel
     for device in out.utilisation:
         busy_spells(rrd[f"devices/{device}"])
+
+
+def test_twin_watch_of_a_served_lab_draws_each_campaign_even_one_submitted_after_it_joined(tmp_path):
+    """A watcher joins a served lab late (it reads each campaign's history), and a campaign submitted after it
+    joined gets its own tab; what it draws agrees with the campaigns' summaries and never shows a device
+    running two steps."""
+    import asyncio
+
+    import yaml
+
+    from tests.rrd import read_rrd
+    from twin.runtime.shared_run import serve_lab
+    from twin.view.watch import RecordOptions, watch_async
+
+    raw = yaml.safe_load(LAB.read_text())
+    late = {**raw["campaigns"][0], "name": "late"}
+    late["campaign"] = {**late["campaign"], "budget": 2, "planner": "random", "stop_on_target": False}
+    s = prepare(LAB, clock="scaled", speed=50_000, bus="memory", seed=6, overrides={
+        "campaigns.0.campaign.budget": 4, "campaigns.1.campaign.budget": 3,
+        "campaigns.0.campaign.planner": "random", "campaigns.1.campaign.planner": "random"})
+    rrd = tmp_path / "watch.rrd"
+    watched: dict = {}
+
+    def started(lab) -> None:
+        async def go() -> None:
+            try:
+                await watch_and_submit()
+            finally:
+                lab.stop("test over")
+
+        async def watch_and_submit() -> None:
+            await lab.clock.sleep(2 * 3600)  # join late: the campaigns' first steps come from their histories
+            stop = asyncio.Event()
+            watcher = asyncio.ensure_future(watch_async(lab.bus, lab.clock, "shared", RecordOptions(save=rrd),
+                                                        follow=True, stop=stop))
+            await lab.clock.sleep(1800)
+            answer = json.loads(await lab.desk.serve("labtwin/shared/control/submit",
+                                                     json.dumps({"file": yaml.safe_dump(late)}).encode()))
+            assert answer["ok"], answer
+            while not all(c.finished for c in lab.shared.cores.values()):
+                await lab.clock.sleep(600)
+            await lab.clock.sleep(1200)
+            stop.set()
+            watched["observer"] = await watcher
+        watched["task"] = asyncio.ensure_future(go())
+
+    out = serve_lab(s, tmp_path / "runs", handle_signals=False, on_start=started)
+    assert watched["task"].exception() is None
+    assert set(out.campaigns) == {"dots", "catalyst", "late"}
+    drawn = read_rrd(rrd, row_ids=True)
+    for name, c in out.campaigns.items():
+        finished = drawn[f"campaigns/{name}/campaign/finished"]
+        assert finished[-1]["Scalars:scalars"][0] == c.done + c.abandoned, name
+        assert drawn[f"campaigns/{name}/log"] and drawn[f"campaigns/{name}/objective/score"], name
+    for device in out.utilisation:
+        lab_spells = busy_spells(drawn[f"devices/{device}"])
+        mine = [sp for c in out.campaigns for sp in busy_spells(drawn.get(f"campaigns/{c}/devices/{device}", []))]
+        assert sorted(lab_spells) == sorted(mine), device
+    assert set(watched["observer"].campaigns) == {"dots", "catalyst", "late"}

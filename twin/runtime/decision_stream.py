@@ -5,7 +5,7 @@ and, as a decision, sent on ``labtwin/<lab>/campaign/<id>/decisions``; the
 notes of one ``advance`` travel together as one message. ``history``
 answers a watcher that joins late with what was observed so far, in pages
 (``{"after": N}`` asks for the page after the first N; the answer says where
-the next one starts). Where security is on, only the lab's watcher and
+the next one starts, which campaign it is, and whether it shares its lab). Where security is on, only the lab's watcher and
 orchestrator identities may ask (``twin.core.bus.security``).
 """
 
@@ -34,6 +34,7 @@ class DecisionStream:
         self.history_key = keys.campaign(lab, campaign_id, "history")
         self._outbox: list[dict[str, Any]] = []
         self._batches = itertools.count(1)
+        self.shared = False  # one campaign of a lab several share (a watcher then draws each on its own)
 
     def add(self, n: Note, seq: int) -> None:
         self._outbox.append({"id": decision_id(seq), "t_lab": n.t_lab, "what": n.kind, "detail": {
@@ -71,4 +72,5 @@ class DecisionStream:
             page.append(item)
             size += len(item)
         end += len(page)
-        return json.dumps({"items": page, "next": end if end < len(rows) else None}).encode()
+        return json.dumps({"items": page, "next": end if end < len(rows) else None, "campaign": self.campaign_id,
+                           "shared": self.shared}).encode()

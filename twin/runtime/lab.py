@@ -34,7 +34,7 @@ from twin.campaign.human import DRIVER as HUMAN
 from twin.scenario import Scenario, load, parse, set_dotted
 from twin.view.observer import LabObserver
 from twin.campaign.summary import Summary, from_core
-from twin.view.lab_observer import CampaignFeed, SharedLabObserver
+from twin.view.lab_observer import SharedLabObserver
 from twin.view.watch import RecordOptions, open_observer
 
 log = logging.getLogger(__name__)
@@ -315,7 +315,7 @@ def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[Campa
     return summary
 
 
-def _noted(journal: Journal, observer: LabObserver | CampaignFeed | None, now: float) -> Callable[[str, Any], None] | None:
+def _noted(journal: Journal, observer: LabObserver | None, now: float) -> Callable[[str, Any], None] | None:
     """How the fast runtime notes the summary: journalled, and shown to an in-process observer."""
     if observer is None:
         return None

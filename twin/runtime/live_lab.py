@@ -34,6 +34,12 @@ class LiveSeat(LiveCampaign):
     def __init__(self, lab: LiveLab, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._lab = lab
+        self.decisions.shared = True
+
+    def on_bus(self) -> list[Any]:
+        """Its history for watchers, and its token: how a watcher finds the lab's campaigns."""
+        return [self.bus.serve(self.decisions.history_key, self.decisions.history),
+                self.bus.declare_token(keys.campaign(self._lab.lab.lab, self.core.campaign_id, "seat"))]
 
     def _kick_soon(self) -> None:
         self._lab.kick_soon()
@@ -83,6 +89,7 @@ class LiveLab:
             self.bus.watch_tokens(keys.alive(lab), self._on_presence),
             self.bus.declare_token(keys.orchestrator(lab)),
             self.bus.serve(keys.control(lab), self.desk.serve),
+            *(h for seat in self.seats.values() for h in seat.on_bus()),
         ]
         remove_hook = self.clock.on_idle(self._on_idle)
         try:
@@ -128,6 +135,7 @@ class LiveLab:
                         observer=self._feed(entry.name))
         seat._done = self._done
         self.seats[entry.name] = seat
+        self._handles += seat.on_bus()
         seat.note("campaign.submitted", {"who": who, "priority": entry.priority, "owner": entry.owner})
         self.kick_soon()
         return {"ok": True, "campaign": entry.name, "journal": parts[0].label, "lab_hours": self.clock.now() / 3600}

@@ -5,11 +5,15 @@ The lab's devices are drawn once, at the top (``devices/``, ``utilisation/``,
 one campaign's step at a time, so their notes tell one story. Each campaign's
 own panels — objective, queue, spectra, proposals, log, summary, and its own
 use of the devices — go under ``campaigns/<name>/``, drawn by a
-``LabObserver`` of its own.
+``CampaignObserver`` of its own. The same observer serves the recorder in the
+lab's process (handed notes and decoded messages) and ``twin watch`` in another
+one (handed the bus's messages).
 """
 
 from __future__ import annotations
 
+import json
+from collections.abc import Callable
 from typing import Any
 
 from twin.campaign.events import Note
@@ -70,62 +74,100 @@ class LabDevices(LabObserver):
         self._queue_at = None
 
 
-class CampaignFeed:
-    """What a runtime hands one campaign's seat as its observer: the campaign's notes and results to its own
-    panels, device notes and telemetry to the lab's."""
+class CampaignObserver(LabObserver):
+    """One campaign of a shared lab: its panels under ``campaigns/<name>/``; its device notes and the devices'
+    telemetry also go to the lab's panels."""
 
-    def __init__(self, lab: SharedLabObserver, name: str) -> None:
+    def __init__(self, lab: SharedLabObserver, name: str, dedupe: bool = False) -> None:
+        super().__init__(PrefixedCanvas(lab.c, f"campaigns/{name}/"), dedupe)
         self.lab = lab
-        self.mine = LabObserver(PrefixedCanvas(lab.c, f"campaigns/{name}/"))
-        self.c = self.mine.c
 
     def on_note(self, n: Note) -> None:
-        self.mine.on_note(n)
+        super().on_note(n)
         if n.kind in DEVICE_KINDS:
             self.lab.devices.on_note(n)
-        elif n.kind == "campaign.started":  # a campaign that comes later finds the devices already there
-            for device, state in self.lab.devices.state.items():
+        elif n.kind == "campaign.started":
+            self.lab.meet(n.t_lab, (n.detail or {}).get("devices") or {})
+            for device, state in self.lab.devices.state.items():  # a campaign that comes later finds them there
                 if state != "offline":
-                    self.mine._set_state(n.t_lab, device, "idle")
-
-    def on_decision(self, t: float, what: str, d: dict[str, Any]) -> None:
-        self.mine.on_decision(t, what, d)
+                    self._set_state(n.t_lab, device, "idle")
 
     def on_envelope(self, env: dict[str, Any]) -> None:
-        if env.get("kind") == "telemetry":
+        if env.get("kind") != "telemetry":
+            super().on_envelope(env)
+        elif self.lab.devices._fresh(env.get("id")):  # a watcher hears it live and in a campaign's history
             self.lab.devices.on_envelope(env)
-        else:
-            self.mine.on_envelope(env)
-
-    def finish(self) -> None:
-        self.mine.finish()
 
 
 class SharedLabObserver:
-    def __init__(self, canvas: Canvas, devices: dict[str, str], t0: float = 0.0) -> None:
-        """``devices``: instance name → device type, every device of the lab."""
+    def __init__(self, canvas: Canvas, devices: dict[str, str] | None = None, t0: float = 0.0,
+                 dedupe: bool = False, on_campaign: Callable[[list[str]], None] | None = None) -> None:
+        """``devices``: instance name → device type, every device of the lab (a watcher learns them from the
+        campaigns as they start). ``dedupe``: drop messages seen before (a watcher gets some twice).
+        ``on_campaign``: told the campaigns so far when one more appears (the recording's layout follows)."""
         self.c = canvas
-        self.devices = LabDevices(canvas)
-        self.devices.t0 = t0
-        for name in devices:
-            self.devices._set_state(t0, name, "offline")
-        self.feeds: dict[str, CampaignFeed] = {}
+        self.devices = LabDevices(canvas, dedupe=dedupe)
+        self.campaigns: dict[str, CampaignObserver] = {}
+        self._dedupe, self._on_campaign = dedupe, on_campaign
+        if devices:
+            self.meet(t0, devices)
 
-    def campaign(self, name: str) -> CampaignFeed:
-        feed = self.feeds.get(name)
-        if feed is None:
-            feed = self.feeds[name] = CampaignFeed(self, name)
-        return feed
+    def meet(self, t: float, devices: dict[str, str]) -> None:
+        """Devices of the lab seen for the first time: offline until they are heard from."""
+        for name in devices:
+            if name not in self.devices.state:
+                if self.devices.t0 is None:
+                    self.devices.t0 = t
+                self.devices._set_state(t, name, "offline")
+
+    def campaign(self, name: str) -> CampaignObserver:
+        seen = self.campaigns.get(name)
+        if seen is None:
+            seen = self.campaigns[name] = CampaignObserver(self, name, self._dedupe)
+            if self._on_campaign is not None:
+                self._on_campaign(list(self.campaigns))
+        return seen
 
     def on_envelope(self, env: dict[str, Any]) -> None:
         """A device's message the lab decoded: telemetry to the lab's panels, a result to its campaign's."""
         if env.get("kind") == "telemetry":
             self.devices.on_envelope(env)
             return
-        feed = self.feeds.get(env.get("campaign") or "")
-        if feed is not None:  # a result for none of the campaigns: the campaign it names rejects it
-            feed.on_envelope(env)
+        seen = self.campaigns.get(env.get("campaign") or "")
+        if seen is not None:  # a result for none of the campaigns: the campaign it names rejects it
+            seen.on_envelope(env)
+
+    def on_message(self, key: str, payload: bytes | str) -> None:
+        """A device's message off the bus (``twin watch``); campaigns' decisions go to ``campaign(name)``."""
+        head = payload[:40]
+        if isinstance(head, bytes) and (b'"kind":"accepted"' in head or b'"kind":"progress"' in head):
+            return
+        try:
+            env = json.loads(payload)
+            float(env["t_lab"])
+        except (ValueError, KeyError, TypeError):
+            return
+        if env.get("kind") == "telemetry":
+            if self.devices._fresh(env.get("id")):
+                self.devices.on_envelope(env)
+            return
+        seen = self.campaigns.get(env.get("campaign") or "")
+        if seen is not None:
+            seen.on_message(key, payload)
+
+    @property
+    def spectra(self) -> int:
+        return sum(c.spectra for c in self.campaigns.values())
+
+    @property
+    def finished(self) -> int:
+        return sum(c.finished for c in self.campaigns.values())
+
+    @property
+    def done(self) -> bool:
+        """Every campaign seen so far has ended."""
+        return bool(self.campaigns) and all(c.done for c in self.campaigns.values())
 
     def finish(self) -> None:
-        for feed in self.feeds.values():
-            feed.finish()
+        for seen in self.campaigns.values():
+            seen.finish()

@@ -249,6 +249,10 @@ class Recording:
         self.rec.flush()
         self.rec.disconnect()
 
+    def lay_out(self, campaigns: list[str]) -> None:
+        """The layout of a lab these campaigns share (sent again as campaigns come)."""
+        self.rec.send_blueprint(lab_blueprint(campaigns))
+
     def stop_serving(self) -> None:
         if self.server is not None:
             _stop(self.server)
@@ -284,7 +288,7 @@ def open_recording(recording_id: str, save: str | Path | None = None, viewer: bo
         if url:
             sinks.append(rr.GrpcSink(url))
     if sinks:
-        layout = lab_blueprint(campaigns) if campaigns else blueprint() if campaign_layout else None
+        layout = lab_blueprint(campaigns) if campaigns is not None else blueprint() if campaign_layout else None
         rec.set_sinks(*sinks, default_blueprint=layout)
     return out
 

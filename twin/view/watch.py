@@ -18,6 +18,7 @@ from twin.core.bus import Bus, Closable, NoReplyError
 from twin.core.clock import LabClock
 from twin.core.errors import TwinError
 from twin.campaign.journal import as_messages, read_events, read_run
+from twin.view.lab_observer import SharedLabObserver
 from twin.view.observer import LabObserver
 
 log = logging.getLogger(__name__)
@@ -49,14 +50,15 @@ def open_observer(options: RecordOptions, recording_id: str, dedupe: bool = Fals
     return observer, recording
 
 
-def open_lab_observer(options: RecordOptions, recording_id: str, campaigns: list[str], devices: dict[str, str]):
-    """A ``SharedLabObserver`` of a lab these campaigns share, drawing on a new recording (returned to be closed)."""
-    from twin.view.lab_observer import SharedLabObserver
+def open_lab_observer(options: RecordOptions, recording_id: str, campaigns: list[str], devices: dict[str, str],
+                      dedupe: bool = False):
+    """A ``SharedLabObserver`` of a lab these campaigns share, drawing on a new recording (returned to be closed);
+    the recording's layout gains a tab for each campaign that comes later."""
     from twin.view.recorder import open_recording
 
     recording = open_recording(recording_id, options.save, options.viewer, options.serve,
                                options.serve_port, options.web_port, campaigns=campaigns)
-    observer = SharedLabObserver(recording.canvas, devices)
+    observer = SharedLabObserver(recording.canvas, devices, dedupe=dedupe, on_campaign=recording.lay_out)
     recording.before_close.append(observer.finish)
     return observer, recording
 
@@ -83,55 +85,119 @@ def replay(journal: str | Path, options: RecordOptions) -> LabObserver:
 
 
 async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOptions, follow: bool = False,
-                      stop: asyncio.Event | None = None) -> LabObserver:
-    """Record a lab that runs elsewhere until its campaign ends (or ``stop`` is set)."""
-    observer, recording = open_observer(options, f"watch-{lab}", dedupe=True)
+                      stop: asyncio.Event | None = None) -> LabObserver | SharedLabObserver:
+    """Record a lab that runs elsewhere until its campaign ends (or ``stop`` is set). A lab several campaigns
+    share is drawn as ``twin run LAB.yaml --save`` draws it, each campaign found by its token as it comes."""
     waiting: list | None = []  # live messages wait here until the history is read
+    seats: list[str] = []  # the campaigns of a shared lab, as their tokens appear
 
     def on_message(key: str, payload: bytes) -> None:
         if waiting is not None:
             waiting.append((key, payload))
         else:
-            observer.on_message(key, payload)
+            feed(key, payload)
 
-    handles = attach(bus, lab, on_message)
+    def on_seat(key: str, alive: bool) -> None:
+        if alive:
+            seats.append(key.split("/")[3])
+
+    handles = [*attach(bus, lab, on_message), bus.watch_tokens(keys.campaign(lab, "*", "seat"), on_seat)]
     stop = stop or asyncio.Event()
+    recording = None
     try:
-        await _catch_up(bus, clock, lab, observer)
+        first = await _first_page(bus, clock, lab)
+        if first is not None and first.get("shared"):
+            observer, recording = open_lab_observer(options, f"watch-{lab}", [], {}, dedupe=True)
+            shared = _SharedWatch(bus, clock, lab, observer)
+            await shared.catch_up(str(first.get("campaign")), first)
+            feed = shared.on_message
+        else:
+            observer, recording = open_observer(options, f"watch-{lab}", dedupe=True)
+            if first is not None:
+                await _pages(bus, clock, keys.campaign(lab, "*", "history"), first, observer.on_message)
+            feed = observer.on_message
         for key, payload in waiting:
-            observer.on_message(key, payload)  # repeats of the history are dropped by id
+            feed(key, payload)  # repeats of the history are dropped by id
         waiting = None
         while not stop.is_set() and (follow or not observer.done):
+            if isinstance(observer, SharedLabObserver):
+                while seats:
+                    await shared.catch_up(seats.pop(0))
             await clock.sleep(0.25 * clock.speed)
             observer.c.flush()
     finally:
         for h in handles:
             h.close()
-        recording.close()
+        if recording is not None:
+            recording.close()
     return observer
 
 
-async def _catch_up(bus: Bus, clock: LabClock, lab: str, observer: LabObserver, patience_s: float = 30.0) -> None:
-    """Ask the running campaign for what happened before we joined; wait for it to come up."""
+class _SharedWatch:
+    """A watcher's side of a shared lab: each campaign's history read once, in order, before its live messages."""
+
+    def __init__(self, bus: Bus, clock: LabClock, lab: str, observer: SharedLabObserver) -> None:
+        self.bus, self.clock, self.lab, self.observer = bus, clock, lab, observer
+        self.read: set[str] = set()
+        self.held: dict[str, list] = {}  # a campaign's live decisions while its history is read
+
+    async def catch_up(self, name: str, first: dict | None = None) -> None:
+        if name in self.read:
+            return
+        self.read.add(name)
+        self.held.setdefault(name, [])
+        key = keys.campaign(self.lab, name, "history")
+        try:
+            if first is None:
+                first = json.loads(await self.bus.request(key, b"", timeout=2.0 * self.clock.speed))
+            await _pages(self.bus, self.clock, key, first, self.observer.campaign(name).on_message)
+        except (NoReplyError, ValueError, TwinError) as exc:
+            log.warning("campaign %r of lab %r did not give its history (%s): recording it from now on", name,
+                        self.lab, exc)
+        for key_, payload in self.held.pop(name):
+            self.observer.campaign(name).on_message(key_, payload)
+
+    def on_message(self, key: str, payload: bytes) -> None:
+        parts = key.split("/")
+        if len(parts) > 3 and parts[2] == "campaign":
+            name = parts[3]
+            if name in self.held:
+                self.held[name].append((key, payload))
+            elif name in self.read:
+                self.observer.campaign(name).on_message(key, payload)
+            else:  # a campaign whose token has not come yet: its history first, then this
+                self.held[name] = [(key, payload)]
+                asyncio.ensure_future(self.catch_up(name))
+        else:
+            self.observer.on_message(key, payload)
+
+
+async def _first_page(bus: Bus, clock: LabClock, lab: str, patience_s: float = 30.0) -> dict | None:
+    """The first page of the running campaign's history (of one of them, in a shared lab); waits for it to come
+    up, and gives up after ``patience_s``."""
     key = keys.campaign(lab, "*", "history")
     for _ in range(int(patience_s / 0.5)):
         try:
-            page = json.loads(await bus.request(key, b"", timeout=2.0 * clock.speed))
+            return json.loads(await bus.request(key, b"", timeout=2.0 * clock.speed))
         except (NoReplyError, ValueError, TwinError):
             await clock.sleep(0.5 * clock.speed)
-            continue
-        while True:
-            for payload in page.get("items") or []:
-                observer.on_message("", payload)
-            if page.get("next") is None:
-                return
-            page = json.loads(await bus.request(key, json.dumps({"after": page["next"]}).encode(),
-                                                timeout=2.0 * clock.speed))
     log.warning("lab %r did not answer for its history in %.0f s: recording from now on", lab, patience_s)
+    return None
+
+
+async def _pages(bus: Bus, clock: LabClock, key: str, page: dict, on_message) -> None:
+    """Feed a history's items, page after page, from ``page`` on."""
+    while True:
+        for payload in page.get("items") or []:
+            on_message("", payload)
+        if page.get("next") is None:
+            return
+        page = json.loads(await bus.request(key, json.dumps({"after": page["next"]}).encode(),
+                                            timeout=2.0 * clock.speed))
 
 
 def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str], follow: bool = False,
-          security_dir: str | None = None) -> LabObserver:
+          security_dir: str | None = None) -> LabObserver | SharedLabObserver:
     """``twin watch``: a wall-clock Zenoh session that records another process's lab; with ``security_dir``,
     a client of the lab's router with the lab's watcher certificate (which may read, nothing else)."""
     from twin.core.bus import open_bus, security
@@ -142,7 +208,7 @@ def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str
         extra = security.session_config(security_dir, security.Identity("watcher", lab))
         listen = []
 
-    async def main() -> LabObserver:
+    async def main() -> LabObserver | SharedLabObserver:
         bus = open_bus("zenoh", clock, listen=listen, connect=connect, extra=extra)
         await bus.start()
         stop = asyncio.Event()

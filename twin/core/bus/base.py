@@ -73,3 +73,21 @@ def key_matches(keyexpr: str, key: str) -> bool:
         return j < len(chunks) and _chunk_matches(pat[i], chunks[j]) and match(i + 1, j + 1)
 
     return match(0, 0)
+
+
+@lru_cache(maxsize=4096)
+def keys_intersect(a: str, b: str) -> bool:
+    """Whether two key expressions (either may hold ``*`` or ``**``) have a key in common: a request with a
+    wildcard (``campaign/*/history``) reaches each queryable of a concrete key it covers."""
+    pa, pb = a.split("/"), b.split("/")
+
+    def match(i: int, j: int) -> bool:
+        if i < len(pa) and pa[i] == "**":
+            return match(i + 1, j) or (j < len(pb) and match(i, j + 1))
+        if j < len(pb) and pb[j] == "**":
+            return match(i, j + 1) or (i < len(pa) and match(i + 1, j))
+        if i == len(pa) or j == len(pb):
+            return i == len(pa) and j == len(pb)
+        return (_chunk_matches(pa[i], pb[j]) or _chunk_matches(pb[j], pa[i])) and match(i + 1, j + 1)
+
+    return match(0, 0)

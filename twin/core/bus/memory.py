@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 from collections import defaultdict
 
-from twin.core.bus.base import Closable, Handler, NoReplyError, Replier, TokenHandler, key_matches
+from twin.core.bus.base import Closable, Handler, NoReplyError, Replier, TokenHandler, key_matches, keys_intersect
 
 
 class _Entry:
@@ -71,7 +71,7 @@ class MemoryBus:
         return _Entry(keyexpr, replier, self._hub.queryables)
 
     async def request(self, key: str, payload: bytes, timeout: float) -> bytes:
-        repliers = [q for q in self._hub.queryables if key_matches(q.keyexpr, key)]
+        repliers = [q for q in self._hub.queryables if keys_intersect(q.keyexpr, key)]
         if not repliers:
             raise NoReplyError(f"no replier serves {key!r}: is the device or service running?")
         try:

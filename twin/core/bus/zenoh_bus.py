@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-from twin.core.bus.base import Closable, Handler, NoReplyError, Replier, TokenHandler, key_matches
+from twin.core.bus.base import Closable, Handler, NoReplyError, Replier, TokenHandler, key_matches, keys_intersect
 from twin.core.clock import LabClock
 from twin.core.errors import BusError, ClockError
 
@@ -344,7 +344,7 @@ class ZenohBus:
         loop = asyncio.get_running_loop()
         fut: asyncio.Future = loop.create_future()
         self._pending_requests.add(fut)
-        local = sum(1 for q in self._queryables if key_matches(q.keyexpr, key))
+        local = sum(1 for q in self._queryables if keys_intersect(q.keyexpr, key))
         if self._virtual:
             if not local:
                 raise NoReplyError(f"no replier serves {key!r}: is the device or service running?")
