@@ -61,3 +61,46 @@ async def _campaign_dies(virtual_clock, back_after, heard, driver):
     await virtual_clock.sleep(2000)
     await actor.stop()
     await bus.close()
+
+
+class Simulator(Slow):
+    chemistry_models = frozenset({"quantum_dots"})
+
+
+@pytest.mark.parametrize("driver_class", [Simulator, Slow])
+def test_a_simulator_of_a_shared_lab_refuses_a_campaign_it_has_no_chemistry_for(virtual_clock, driver_class):
+    """`twin device serve` of a shared lab simulates the campaigns its lab file lists; a campaign submitted later
+    is told why its step cannot run there (and retries later), never given another campaign's chemistry. A real
+    instrument (no simulated chemistry) runs any campaign's step."""
+    heard: list = []
+
+    async def main():
+        s = parse(qd_lab())
+        bus = open_bus("memory", virtual_clock)
+        await bus.start()
+        listed = driver_class()
+        actor = DeviceActor("spectrometer-1", s.devices["spectrometer"], driver_class(), bus, virtual_clock, s.lab,
+                            0, shared={"dots": listed})
+        bus.subscribe(keys.evt(s.lab), lambda key, payload: heard.append(json.loads(payload)))
+        await actor.start()
+        for n, campaign in enumerate(("dots", "late")):
+            bus.publish(keys.cmd(s.lab, "spectrometer-1"),
+                        pack(Kind.COMMAND, {"step": "measure", "params": {}, "sample": None, "expected_s": 1000},
+                             id=f"o:{n}", sender="orchestrator", t_lab=0.0, task="e0s0", attempt=1,
+                             campaign=campaign))
+            await virtual_clock.sleep(2000)
+        await actor.stop()
+        await bus.close()
+
+    virtual_clock.run(main())
+    by_campaign = {}
+    for m in heard:
+        by_campaign.setdefault(m["campaign"], []).append(m)
+    assert [m["kind"] for m in by_campaign["dots"]] == ["accepted", "result"]
+    late = [m for m in by_campaign["late"] if m["kind"] != "progress"]
+    if driver_class is Simulator:
+        assert [m["kind"] for m in late] == ["rejected"]
+        assert late[0]["body"]["infeasible"] is False and "not campaign 'late'" in late[0]["body"]["reason"]
+        assert "twin device serve" in late[0]["body"]["reason"]
+    else:
+        assert [m["kind"] for m in late] == ["accepted", "result"]

@@ -217,6 +217,16 @@ class DeviceActor:
         if self.dropped <= 10 or self.dropped % 1000 == 0:  # a flood must not flood the log too
             log.warning("%s dropped %s (%d so far)", self.name, what, self.dropped)
 
+    def _driver_for(self, campaign: str) -> Driver:
+        """The driver for a step of ``campaign``: in a shared lab, the one that simulates its chemistry. A
+        simulator has none for a campaign its lab file did not list (one submitted later): it says so, and the
+        step is retried later, when the device may have been served again with a lab file that lists it."""
+        if not self._shared or campaign in self._shared or not feature(self.driver, "chemistry_models"):
+            return self._shared.get(campaign, self.driver)  # a real instrument runs any campaign's steps
+        raise Refused(f"{self.name} simulates the chemistry of campaigns {', '.join(sorted(self._shared))} (its "
+                      f"lab file's), not campaign {campaign!r}'s: serve it again with a lab file that lists "
+                      f"{campaign!r} (twin device serve LAB.yaml --id {self.name})", infeasible=False)
+
     async def _run(self, task: str, attempt: int, campaign: str, token: str, cmd: CommandBody) -> None:
         spec, faults = self.spec, self.spec.faults
 
@@ -233,13 +243,13 @@ class DeviceActor:
             expected_s=cmd.expected_s,
             deadline_s=cmd.deadline_s,
         )
-        emit(Kind.ACCEPTED, {})
         try:
+            driver = self._driver_for(campaign)
+            emit(Kind.ACCEPTED, {})
             hang, fail = simulated_faults(self._seed, drawn_by, attempt, faults)
             await self._clock.sleep(spec.setup_s)
             if hang:
                 await asyncio.Event().wait()  # only a cancel (a timeout) ends a hung step
-            driver = self._shared.get(campaign, self.driver)
             result = await driver.run(cmd.step, cmd.params, cmd.sample, ctx)
             await self._clock.sleep(spec.clean_s)
             if fail:
