@@ -8,6 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from twin.campaign.journal import read_run
 from twin.core.errors import ScenarioError
 from twin.runtime.lab import prepare
 from twin.runtime.shared_run import run_shared
@@ -550,3 +551,85 @@ def test_twin_watch_of_a_served_lab_draws_each_campaign_even_one_submitted_after
         mine = [sp for c in out.campaigns for sp in busy_spells(drawn.get(f"campaigns/{c}/devices/{device}", []))]
         assert sorted(lab_spells) == sorted(mine), device
     assert set(watched["observer"].campaigns) == {"dots", "catalyst", "late"}
+
+
+SMALL = {"campaigns.0.campaign.budget": 6, "campaigns.1.campaign.budget": 4, "campaigns.1.start_h": 1.0}
+
+
+def journal_tables(journals: Path) -> dict[str, tuple]:
+    out = {}
+    for db in sorted(journals.glob("*.db")):
+        with sqlite3.connect(db) as c:
+            out[db.stem] = (c.execute("SELECT * FROM events ORDER BY seq").fetchall(),
+                            c.execute("SELECT * FROM experiments ORDER BY id").fetchall())
+    return out
+
+
+def _lab_killed_at(s, where: Path, row: int) -> None:
+    """In a child process: run the lab and SIGKILL itself when its campaigns have written ``row`` events."""
+    import os
+    import signal
+
+    from twin.campaign.journal import Journal
+
+    written = [0]
+    append = Journal._append
+
+    def dying(self, *r):
+        written[0] += 1
+        if written[0] == row:
+            os.kill(os.getpid(), signal.SIGKILL)
+        append(self, *r)
+
+    Journal._append = dying
+    run_shared(s, where, handle_signals=False)
+
+
+@pytest.mark.parametrize("at", [0.1, 0.5, 0.9])
+def test_a_lab_killed_anywhere_and_resumed_ends_with_the_journals_of_the_unkilled_one(tmp_path, at):
+    import multiprocessing
+    import signal
+
+    from twin.runtime.resume_lab import resume_lab
+
+    s = prepare(LAB, seed=3, overrides=SMALL)
+    run_shared(s, tmp_path / "whole", handle_signals=False)
+    whole = journal_tables(tmp_path / "whole")
+    row = max(1, int(at * sum(len(t[0]) for t in whole.values())))
+    child = multiprocessing.get_context("fork").Process(target=_lab_killed_at, args=(s, tmp_path / "killed", row))
+    child.start()
+    child.join(60)
+    assert child.exitcode == -signal.SIGKILL
+    assert any("summary" not in read_run(db) for db in (tmp_path / "killed").glob("*.db"))
+    out = resume_lab(tmp_path / "killed", handle_signals=False)
+    assert journal_tables(tmp_path / "killed") == whole
+    assert out.journals == str(tmp_path / "killed") and set(out.campaigns) == {"dots", "catalyst"}
+    assert not (tmp_path / "killed.resuming").exists()
+
+
+def test_twin_resume_of_a_lab_that_diverges_names_the_campaign_and_event_and_keeps_the_journals(tmp_path):
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    run_shared(prepare(LAB, seed=3, overrides=SMALL), tmp_path, handle_signals=False)
+    for db in tmp_path.glob("*.db"):
+        with sqlite3.connect(db) as c:
+            c.execute("DELETE FROM run WHERE key='summary'")
+    with sqlite3.connect(tmp_path / "catalyst.db") as c:
+        c.execute("UPDATE events SET kind='device.lost' WHERE seq=12")
+    before = journal_tables(tmp_path)
+    result = CliRunner().invoke(app, ["resume", str(tmp_path)], env={"COLUMNS": "200"})
+    assert result.exit_code == 2
+    assert "catalyst.db: event 12 differs from the journal: it recorded 'device.lost'" in " ".join(result.output.split())
+    assert journal_tables(tmp_path) == before
+
+
+def test_twin_resume_of_a_finished_lab_says_so(tmp_path):
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    run_shared(prepare(LAB, seed=3, overrides=SMALL), tmp_path, handle_signals=False)
+    result = CliRunner().invoke(app, ["resume", str(tmp_path)], env={"COLUMNS": "200"})
+    assert result.exit_code == 2 and "every campaign of the lab finished" in " ".join(result.output.split())

@@ -91,7 +91,8 @@ def run(
 
 @app.command()
 def resume(
-    journal: Annotated[Path, typer.Argument(help="the journal of a killed run, runs/<run>.db")],
+    journal: Annotated[Path, typer.Argument(help="the journal of a killed run, runs/<run>.db (or the directory of "
+                                                 "a lab's journals, runs/<lab>-seed<N>-<time>/)")],
     save: SaveOpt = None,
     viewer: ViewerOpt = False,
     serve: ServeOpt = False,
@@ -104,8 +105,17 @@ def resume(
     """Continue a killed campaign from its journal (virtual time: re-run and checked; live: rebuilt)."""
     from twin.runtime.resume import recorded
     from twin.runtime.resume import resume as resume_journal
+    from twin.runtime.resume_lab import recorded_lab
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if journal.is_dir():  # the journals of a lab several campaigns share
+        try:
+            s = recorded_lab(journal)[0]
+        except TwinError as exc:
+            _fail(exc)
+        shared_lab(s, None, RecordOptions(save, viewer, serve, serve_port, web_port), quiet, json_out, None,
+                   resuming=journal)
+        return
     try:
         s, prefix = recorded(journal)
     except TwinError as exc:

@@ -15,6 +15,7 @@ from twin.cli.common import _fail, app, console, err, keep_serving, lab_app
 from twin.core.errors import TwinError
 from twin.runtime.checks import check
 from twin.runtime.lab import recording_id
+from twin.runtime.resume_lab import resume_lab
 from twin.runtime.shared_run import run_shared
 from twin.scenario import Scenario
 from twin.view.report import render_lab_summary
@@ -22,7 +23,8 @@ from twin.view.watch import RecordOptions, open_lab_observer
 
 
 def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: bool, json_out: bool,
-               external: list[str] | None) -> None:
+               external: list[str] | None, resuming: Path | None = None) -> None:
+    """``twin run LAB.yaml`` (or, with ``resuming``, ``twin resume`` of its journals' directory)."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     recording = None
     try:
@@ -35,9 +37,13 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
             for message in recording.messages:
                 err.print(message, highlight=False)
         if not quiet and not json_out:
-            err.print(f"{s.name}: {len(s.campaigns)} campaigns sharing the lab "
-                      f"({', '.join(c.name for c in s.campaigns)}), {s.clock.mode} clock …", highlight=False)
-        summary = run_shared(s, journal, external_devices=set(external or ()), observer=observer)
+            how = (f"resuming {resuming}: the lab re-runs and each campaign's recorded events are checked"
+                   if resuming else f"{s.name}: {len(s.campaigns)} campaigns sharing the lab")
+            err.print(f"{how} ({', '.join(c.name for c in s.campaigns)}), {s.clock.mode} clock …", highlight=False)
+        if resuming is not None:
+            summary = resume_lab(resuming, observer=observer)
+        else:
+            summary = run_shared(s, journal, external_devices=set(external or ()), observer=observer)
     except TwinError as exc:
         if recording is not None:
             recording.stop_serving()

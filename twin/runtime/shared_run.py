@@ -14,9 +14,11 @@ from twin.campaign.summary import LabSummary, Summary
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
 from twin.runtime.fast_lab import FastLab
-from twin.runtime.lab import (_agent_on_bus, _flush_live, _noted, _stop_on_loop_signals, _stop_on_signals,
-                              build_actors, default_journal, finish, live_scheduler, load_driver, load_drivers,
-                              make_bus, make_clock, make_planner, make_scheduler, open_journal, refuse_realtime)
+from twin.campaign.journal import Journal
+from twin.runtime.lab import (JournalFactory, _agent_on_bus, _flush_live, _noted, _stop_on_loop_signals,
+                              _stop_on_signals, build_actors, default_journal, finish, live_scheduler, load_driver,
+                              load_drivers, make_bus, make_clock, make_planner, make_scheduler, open_journal,
+                              refuse_realtime)
 from twin.runtime.checks import check_campaign
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.live_lab import LiveLab
@@ -34,7 +36,7 @@ def default_journals(s: Scenario) -> Path:
 
 def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: bool = True,
                external_devices: Collection[str] = frozenset(),
-               observer: SharedLabObserver | None = None) -> LabSummary:
+               observer: SharedLabObserver | None = None, make_journal: JournalFactory = Journal) -> LabSummary:
     """Every campaign of ``s`` on its shared lab; each writes ``<journals>/<campaign>.db``. Virtual time on the
     fast runtime; a scaled or wall clock on the asyncio runtime, over the scenario's bus, with
     ``external_devices`` served by other processes (``twin device serve``). ``observer`` (``open_lab_observer``)
@@ -50,7 +52,8 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
         refuse_realtime(drivers)
     where = Path(journals) if journals is not None else default_journals(s)
     where.mkdir(parents=True, exist_ok=True)
-    parts = {name: _parts(cs, where / f"{name}.db", external_devices) for name, cs in scenarios.items()}
+    parts = {name: _parts(cs, where / f"{name}.db", external_devices, s, make_journal)
+             for name, cs in scenarios.items()}
     if s.clock.mode == "virtual":
         lab: Any = FastLab(s, scenarios, drivers, per_device, parts, observer=observer)
         with _stop_on_signals(lab.stop, handle_signals):
@@ -81,7 +84,7 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
         drivers, per_device = _standby_drivers(s, external_devices), {}
     where = Path(journals) if journals is not None else default_journals(s)
     where.mkdir(parents=True, exist_ok=True)
-    parts = {name: _parts(cs, where / f"{name}.db", external_devices) for name, cs in scenarios.items()}
+    parts = {name: _parts(cs, where / f"{name}.db", external_devices, s) for name, cs in scenarios.items()}
     clock = make_clock(s)
     return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals,
                            serving=external_devices, on_start=on_start))
@@ -113,9 +116,14 @@ def _refuse_agents(scenarios: dict[str, Scenario]) -> None:
                          "several, give each campaign an in-process scheduler")
 
 
-def _parts(s: Scenario, path: Path, external: Collection[str]) -> tuple:
-    journal = open_journal(s, path)
+def _parts(s: Scenario, path: Path, external: Collection[str], lab: Scenario | None = None,
+           make_journal: JournalFactory = Journal) -> tuple:
+    """A campaign's journal (with the lab file it ran in, for ``twin resume`` of the lab), planner and
+    scheduler."""
+    journal = open_journal(s, path, make_journal)
     journal.set("external", sorted(external))
+    if lab is not None:  # what was set only: each campaign's seed is then the lab's plus its place, as it was
+        journal.set("lab", lab.model_dump(exclude_unset=True))
     return journal, make_planner(s), make_scheduler(s)
 
 
@@ -145,7 +153,7 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
             for actor in actors:
                 if name in per.get(actor.name, {}):
                     actor.add_campaign(name, per[actor.name][name])
-            return seat_parts(name, cs, _parts(cs, where / f"{name}.db", serving or ()))
+            return seat_parts(name, cs, _parts(cs, where / f"{name}.db", serving or (), s))
 
         lab = LiveLab(s, scenarios, bus, clock, {n: seat_parts(n, scenarios[n], p) for n, p in parts.items()},
                       adopt if serving is not None else None, observer)
