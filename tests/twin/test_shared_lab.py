@@ -633,3 +633,141 @@ def test_twin_resume_of_a_finished_lab_says_so(tmp_path):
     run_shared(prepare(LAB, seed=3, overrides=SMALL), tmp_path, handle_signals=False)
     result = CliRunner().invoke(app, ["resume", str(tmp_path)], env={"COLUMNS": "200"})
     assert result.exit_code == 2 and "every campaign of the lab finished" in " ".join(result.output.split())
+
+
+@pytest.mark.process
+def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what_its_journals_held(tmp_path):
+    """A lab on a scaled clock, SIGKILLed once experiments have finished, is rebuilt by `twin resume` from the
+    inputs it journalled: every campaign's journal keeps what it held, the steps it had in the lab are asked
+    after (here its in-process devices died with it: the steps are retried), and every campaign ends with its
+    accounting invariant and no device running two steps."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import yaml
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    raw = yaml.safe_load(LAB.read_text())
+    for c, budget in zip(raw["campaigns"], (4, 3)):
+        c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
+    where = tmp_path / "j"
+    lab = subprocess.Popen([sys.executable, "-m", "twin", "run", str(tmp_path / "lab.yaml"), "--clock", "scaled",
+                            "--speed", "4000", "--bus", "memory", "--journal", str(where), "--quiet"],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
+
+    def finished() -> int:
+        n = 0
+        for db in where.glob("*.db"):
+            try:
+                with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as con:
+                    n += con.execute("SELECT COUNT(*) FROM experiments WHERE status='done'").fetchone()[0]
+            except sqlite3.Error:
+                pass
+        return n
+
+    try:
+        deadline = time.monotonic() + 60
+        while finished() < 2 and time.monotonic() < deadline and lab.poll() is None:
+            time.sleep(0.05)
+        assert lab.poll() is None, "the lab ended before it could be killed: " + lab.stderr.read()[-1000:]
+        lab.send_signal(signal.SIGKILL)
+        lab.communicate(timeout=30)
+    finally:
+        if lab.poll() is None:
+            lab.kill()
+            lab.communicate()
+    held = journal_tables(where)
+    assert all("summary" not in read_run(db) for db in where.glob("*.db"))
+    result = CliRunner().invoke(app, ["resume", str(where), "--json"], env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.output[result.output.index("{"):])
+    for name, budget in (("dots", 4), ("catalyst", 3)):
+        c = out["campaigns"][name]
+        assert c["done"] + c["abandoned"] == budget == c["proposed"] and c["pending"] == 0, (name, c)
+        events_now = journal_tables(where)[name][0]
+        assert events_now[:len(held[name][0])] == held[name][0], name  # what the journal held is kept
+        assert [e for e in events_now if e[2] == "campaign.resumed"], name
+    assert_one_step_at_a_time(where)
+
+
+@pytest.mark.process
+def test_a_shared_lab_killed_with_a_step_on_a_device_of_another_process_adopts_its_result_once(tmp_path):
+    """Over Zenoh, a router and the spectrometer in other processes: the lab is SIGKILLed while the spectrometer
+    measures one campaign's sample; the measurement finishes while nobody listens; `twin resume` asks the device
+    and takes that result, once, for the campaign it was for."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import yaml
+
+    from twin.campaign.journal import read_events
+    from tests.twin.test_device_process import free_port
+    from tests.twin.test_distributed_lab import start
+
+    router, speed = f"tcp/127.0.0.1:{free_port()}", 1000.0
+    raw = yaml.safe_load(LAB.read_text())
+    for c, budget in zip(raw["campaigns"], (3, 2)):
+        c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
+    raw["devices"]["spectrometer"]["duration"] = {"mean_s": 1500, "cv": 0.0}
+    raw["devices"]["synthesiser"]["duration"] = {"mean_s": 200, "cv": 0.0}
+    for d in raw["devices"].values():
+        d["faults"] = {}
+    raw.update(clock={"mode": "scaled", "speed": speed},
+               bus={"kind": "zenoh", "listen": [], "connect": [router], "lease_ms": 1000},
+               orchestrator={**raw["orchestrator"], "startup_s": 40000, "orphan_grace_s": 10 ** 6,
+                             "timeout_slack_s": 40000})
+    path, where = tmp_path / "lab.yaml", tmp_path / "j"
+    path.write_text(yaml.safe_dump(raw))
+    procs = {"router": start(["router", "--listen", router], "router")}
+    procs["spec"] = start(["device", "serve", str(path), "--id", "spectrometer", "--connect", router, "--clock",
+                           "scaled", "--speed", str(speed)], "ready spectrometer")
+    # what is dispatched is on disk before the command leaves (write-ahead); a measurement takes 1.5 s of wall time
+    running = ("SELECT COUNT(*) FROM events d WHERE d.kind='attempt.dispatched' AND d.device='spectrometer' AND NOT "
+               "EXISTS (SELECT 1 FROM events e WHERE e.task=d.task AND e.attempt=d.attempt AND e.seq>d.seq)")
+    try:
+        lab = subprocess.Popen([sys.executable, "-m", "twin", "run", str(path), "--journal", str(where), "--quiet",
+                                "--external", "spectrometer"], cwd=ROOT, stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE)
+        deadline, on_spec = time.monotonic() + 90, []
+        while lab.poll() is None and time.monotonic() < deadline and not on_spec:
+            for db in where.glob("*.db"):
+                try:
+                    with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as con:
+                        if con.execute(running).fetchone()[0]:
+                            on_spec.append(db.stem)
+                except sqlite3.Error:
+                    pass
+            time.sleep(0.01)
+        time.sleep(0.4)  # the spectrometer has the command and measures
+        os.kill(lab.pid, signal.SIGKILL)  # the lab dies with a measurement running on the remote spectrometer
+        lab.wait()
+        assert on_spec, "no measurement ran before the deadline: " + lab.stderr.read().decode()[-1000:]
+        campaign = on_spec[0]
+        killed = next(e["task"] for e in reversed(read_events(where / f"{campaign}.db"))
+                      if e["kind"] == "attempt.dispatched" and e["device"] == "spectrometer")
+        time.sleep(2.0)  # the measurement (1.5 s of wall time) finishes while nobody listens
+        resumed = subprocess.run([sys.executable, "-m", "twin", "resume", str(where), "--json"], cwd=ROOT,
+                                 capture_output=True, text=True, timeout=180)
+        assert resumed.returncode == 0, resumed.stderr[-3000:]
+    finally:
+        for p in procs.values():
+            p.kill()
+            p.wait()
+    out = json.loads(resumed.stdout)
+    events_ = read_events(where / f"{campaign}.db")
+    done = [e for e in events_ if e["kind"] == "attempt.done" and e["task"] == killed]
+    assert len(done) == 1 and done[0]["device"] == "spectrometer", "the finished result is adopted, once"
+    assert done[0]["t_lab"] >= next(e["t_lab"] for e in events_ if e["kind"] == "campaign.resumed")
+    assert not [e for e in events_ if e["kind"] == "attempt.failed" and e["task"] == killed]
+    for name, budget in (("dots", 3), ("catalyst", 2)):
+        c = out["campaigns"][name]
+        assert c["done"] + c["abandoned"] == budget == c["proposed"] and c["pending"] == 0, (name, c)
+    assert_one_step_at_a_time(where)

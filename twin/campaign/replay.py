@@ -54,7 +54,8 @@ def decode_input(data: list[Any]) -> Any:
             env, body = decode(raw)
         except InvalidMessage as exc:
             return InvalidInput(exc.sender, exc.reason)
-        return DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.to_dict(), raw, *data[2:4])
+        return DeviceMessage(env.kind, env.sender, env.task, env.attempt, body.to_dict(), raw, data[2], data[3],
+                             env.campaign or "")
     if kind == "presence":
         return Presence(data[1], data[2])
     if kind == "timer":

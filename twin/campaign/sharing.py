@@ -100,13 +100,14 @@ class SharedLab:
         if core is not None:
             core.feed(event)
 
-    def add(self, entry: SharedCampaign, scenario: Scenario) -> CampaignCore:
-        """A campaign submitted now (``twin submit``); it starts at the next turn."""
+    def add(self, entry: SharedCampaign, scenario: Scenario, secret: bytes | None = None) -> CampaignCore:
+        """A campaign submitted now (``twin submit``); it starts at the next turn. ``secret``: what its attempt
+        tokens come from (random by default; a rebuilt lab passes the one it had)."""
         if entry.name in self.entries:
             raise ValueError(f"the lab has a campaign {entry.name!r} already: give the new one another name")
         if self._stopping:
             raise ValueError(f"the lab is stopping ({self._stopping}): it takes no more campaigns")
-        core = CampaignCore(scenario, entry.name)
+        core = CampaignCore(scenario, entry.name, secret)
         core.stocks = self.stocks
         self.entries[entry.name] = entry
         self.cores[entry.name] = core

@@ -37,8 +37,10 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
             for message in recording.messages:
                 err.print(message, highlight=False)
         if not quiet and not json_out:
-            how = (f"resuming {resuming}: the lab re-runs and each campaign's recorded events are checked"
-                   if resuming else f"{s.name}: {len(s.campaigns)} campaigns sharing the lab")
+            how = (f"{s.name}: {len(s.campaigns)} campaigns sharing the lab" if resuming is None else
+                   f"resuming {resuming}: the lab re-runs and each campaign's recorded events are checked"
+                   if s.clock.mode == "virtual" else f"resuming {resuming}: the lab is rebuilt from the inputs it "
+                   "journalled, and the devices are asked about the steps it had in the lab")
             err.print(f"{how} ({', '.join(c.name for c in s.campaigns)}), {s.clock.mode} clock …", highlight=False)
         if resuming is not None:
             summary = resume_lab(resuming, observer=observer)

@@ -106,7 +106,9 @@ class LiveCampaign:
 
     def note(self, kind: str, detail: Any = None) -> None:
         """A runtime's own remark (a scheduler agent missing, say): journalled and published like the core's."""
-        n = Note(self.clock.now(), kind, detail=detail)
+        self._remark(Note(self.clock.now(), kind, detail=detail))
+
+    def _remark(self, n: Note) -> None:
         self._decided(n)
         self.decisions.publish()
 

@@ -9,7 +9,8 @@ import functools
 from collections.abc import Callable
 from typing import Any
 
-from twin.campaign.events import TimerFired, TimerKey
+from twin.campaign.events import Note, TimerFired, TimerKey
+from twin.campaign.lab_replay import RebuiltLab, encode
 from twin.campaign.journal import Journal
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.sharing import LAB, SharedLab, by_campaign
@@ -44,6 +45,23 @@ class LiveSeat(LiveCampaign):
     def _kick_soon(self) -> None:
         self._lab.kick_soon()
 
+    def _give(self, event: Any) -> None:
+        """What this campaign's timers, planner, scheduler and operators give it, journalled by the lab; presence
+        (a device that did not answer when the lab resumed) is the lab's."""
+        if type(event) is Presence:
+            self._lab.feed_device(event)
+            return
+        self._lab.record(["seat", self.core.campaign_id, encode(event)])
+        self.core.feed(event)
+
+    def _on_event(self, key: str, payload: bytes) -> None:
+        self._lab._on_event(key, payload)  # a device's message is routed by the lab (a resumed seat's reports)
+
+    def _remark(self, n: Note) -> None:
+        self._lab.record(["note", self.core.campaign_id, n.kind, n.detail, n.t_lab])
+        self._lab.write_ahead()  # on disk before the campaign's journal can have it
+        super()._remark(n)
+
     def _ended(self) -> None:
         self._close()  # the lab ends when its last campaign has
 
@@ -51,13 +69,18 @@ class LiveSeat(LiveCampaign):
 class LiveLab:
     def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], bus: Bus, clock: LabClock,
                  parts: dict[str, SeatParts], adopt: Callable[[str, Scenario], SeatParts] | None = None,
-                 observer: SharedLabObserver | None = None) -> None:
+                 observer: SharedLabObserver | None = None, inputs: Journal | None = None,
+                 rebuilt: RebuiltLab | None = None) -> None:
         """``adopt``: a lab that serves (``twin lab serve``) takes campaigns as they are submitted; ``adopt(name,
         scenario)`` readies one (its drivers, journal, planner and scheduler) or raises a TwinError that says
         why not. ``observer``: handed each campaign's notes and the devices' results and telemetry (a
-        recording)."""
+        recording). ``inputs``: where the lab journals what it is given, write-ahead (``twin resume`` rebuilds
+        it from them: ``twin.campaign.lab_replay``); ``rebuilt``: such a lab, to take over (``scenarios`` then
+        holds every campaign it had, those submitted included)."""
         self.lab, self.bus, self.clock = lab, bus, clock
-        self.shared = SharedLab(lab, scenarios, serving=adopt is not None)
+        self.shared = rebuilt.shared if rebuilt is not None else SharedLab(lab, scenarios, serving=adopt is not None)
+        self._rebuilt, self._inputs = rebuilt, inputs
+        self._fed: list[Any] = []
         self.parts = dict(parts)
         self._adopt = adopt
         self.observer = observer
@@ -74,7 +97,32 @@ class LiveLab:
     def _feed(self, name: str) -> Any:
         return self.observer.campaign(name) if self.observer is not None else None
 
+    def record(self, item: list[Any]) -> None:
+        """An input for the lab's journal, written before the next advance."""
+        if self._inputs is not None:
+            self._fed.append(item)
+
+    def _advance(self, now: float) -> list[tuple[str, Any]]:
+        self.write_ahead(now)  # on disk before any command of this advance leaves
+        return self.shared.advance(now)
+
+    def write_ahead(self, advancing_at: float | None = None) -> None:
+        """Journal the inputs given since the last batch — and, with ``advancing_at``, that the lab advances on
+        them at that lab time — and flush."""
+        if self._inputs is not None and (self._fed or advancing_at is not None):
+            if advancing_at is None:
+                self._inputs.inputs(self.clock.now(), {"items": self._fed, "advance": False})
+            else:
+                self._inputs.inputs(advancing_at, {"items": self._fed})
+            self._inputs.flush()
+            self._fed = []
+
+    def feed_device(self, event: Any) -> None:
+        self.record(["dev", encode(event)])
+        self.shared.feed_device(event)
+
     def stop(self, reason: str) -> None:
+        self.record(["stop", reason])
         self.shared.stop(reason)
         self.kick_soon()
 
@@ -93,7 +141,15 @@ class LiveLab:
         ]
         remove_hook = self.clock.on_idle(self._on_idle)
         try:
-            self._perform(self.shared.start(self.clock.now()))
+            if self._rebuilt is not None:
+                await self._take_over(self._rebuilt)
+            else:
+                now = self.clock.now()
+                if self._inputs is not None:
+                    self._inputs.inputs(now, {"start": True, "secrets": {
+                        n: c.secret.hex() for n, c in self.shared.cores.items()}})
+                    self._inputs.flush()
+                self._perform(self.shared.start(now))
             self._check_done()
             await self._done
         finally:
@@ -130,6 +186,7 @@ class LiveLab:
         except TwinError as exc:
             return {"ok": False, "error": str(exc)}
         core = self.shared.add(entry, scenario)
+        self.record(["add", entry.model_dump(exclude_unset=True), scenario.model_dump(), core.secret.hex()])
         self.parts[entry.name] = parts
         seat = LiveSeat(self, scenario, self.bus, self.clock, *parts, campaign_id=entry.name, core=core,
                         observer=self._feed(entry.name))
@@ -157,11 +214,11 @@ class LiveLab:
 
     # -- events in --------------------------------------------------------------------
     def _on_event(self, key: str, payload: bytes) -> None:
-        self.shared.feed_device(self._decoder.event(key, payload))
+        self.feed_device(self._decoder.event(key, payload))
         self._after_event()
 
     def _on_presence(self, key: str, alive: bool) -> None:
-        self.shared.feed_device(Presence(keys.device_of(key), alive))
+        self.feed_device(Presence(keys.device_of(key), alive))
         self._after_event()
 
     def _after_event(self) -> None:
@@ -183,7 +240,7 @@ class LiveLab:
         self._kicked = False
         try:
             while self.shared.has_work and not self.shared.finished:
-                self._perform(self.shared.advance(self.clock.now()))
+                self._perform(self._advance(self.clock.now()))
                 if self.clock.is_virtual:
                     break
             self._check_done()
@@ -209,5 +266,28 @@ class LiveLab:
 
     def _on_timer(self, key: TimerKey) -> None:
         self._timers.pop(key, None)
+        self.record(["lab", encode(TimerFired(key))])
         self.shared.feed(LAB, TimerFired(key))
+        self.kick_soon()
+
+    # -- taking over a killed lab -----------------------------------------------------------
+    async def _take_over(self, rebuilt: RebuiltLab) -> None:
+        """Re-arm what the dead process left pending, then find out what became of the steps it had in the lab
+        (still running, finished — its result is taken — or lost, and retried)."""
+        now = self.clock.now()
+        for (name, key), due in rebuilt.timers.items():
+            if name == LAB:
+                self._timers[key] = self.clock.call_later(max(0.0, due - now), functools.partial(self._on_timer, key))
+            else:
+                seat = self.seats[name]
+                seat._timers[key] = self.clock.call_later(max(0.0, due - now), functools.partial(seat._on_timer, key))
+        for name, seat in self.seats.items():
+            in_lab = [d.attempt.task.id for d in seat.core.devices.values() if d.attempt is not None]
+            seat.note("campaign.resumed", {"inputs_replayed": True, "in_lab": in_lab})
+        for name, ask in rebuilt.asked.items():
+            self.seats[name]._answer(ask)
+        for seat in self.seats.values():
+            for dev in list(seat.core.devices.values()):
+                if dev.attempt is not None:
+                    await seat._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n)
         self.kick_soon()

@@ -12,9 +12,11 @@ import dataclasses
 import logging
 import shutil
 import sqlite3
+import time
 from pathlib import Path
 
-from twin.campaign.journal import Journal, read_run
+from twin.campaign.journal import Journal, read_inputs, read_run
+from twin.campaign.lab_replay import rebuild_lab
 from twin.campaign.summary import LabSummary
 from twin.runtime.resume import CheckedJournal, ResumeError, replace
 from twin.scenario import Scenario
@@ -64,9 +66,7 @@ def resume_lab(path: str | Path, handle_signals: bool = True, observer: SharedLa
     where = Path(path)
     s, prefixes = recorded_lab(where)
     if s.clock.mode != "virtual":
-        raise ResumeError(f"{where}: a lab on a {s.clock.mode} clock cannot be resumed yet (its journals hold each "
-                          "campaign's events, not the lab's turns); each campaign's journal is intact: twin report "
-                          f"{where}/<campaign>.db")
+        return _resume_live(where, s, prefixes, handle_signals, observer)
     resuming = where.with_name(where.name + ".resuming")
     shutil.rmtree(resuming, ignore_errors=True)
     checked: dict[str, CheckedJournal] = {}
@@ -96,3 +96,70 @@ def resume_lab(path: str | Path, handle_signals: bool = True, observer: SharedLa
     shutil.rmtree(resuming, ignore_errors=True)
     log.info("resumed %s: %d recorded events checked", where, sum(len(p) for p in prefixes.values()))
     return dataclasses.replace(summary, journals=str(where))
+
+
+def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], handle_signals: bool,
+                 observer: SharedLabObserver | None) -> LabSummary:
+    """A lab on a scaled or wall clock: rebuilt from the inputs it journalled (``twin.campaign.lab_replay``), every
+    campaign's journal written again from the rebuild and checked against what it held; lab time goes on from
+    there, and the steps it had in the lab are asked after."""
+    from twin.core.clock import LabClock
+    from twin.runtime.resume import _still_running
+    from twin.runtime.shared_run import LAB_INPUTS, _live, _parts, shared_drivers
+
+    inputs = where / LAB_INPUTS
+    if not inputs.exists():
+        raise ResumeError(f"{where}: no {LAB_INPUTS} here: the lab ran before live labs journalled their inputs; "
+                          "run it again (twin run)")
+    run_data = read_run(inputs)
+    try:
+        batches = read_inputs(inputs)
+    except ValueError as exc:
+        raise ResumeError(f"{inputs}: damaged ({exc}): run the lab again (twin run)") from None
+    serving, external = bool(run_data.get("serving")), set(run_data.get("external") or ())
+    resuming = where.with_name(where.name + ".resuming")
+    shutil.rmtree(resuming, ignore_errors=True)
+    resuming.mkdir(parents=True)
+    checked: dict[str, CheckedJournal] = {}
+
+    def journal_for(name: str, cs: Scenario) -> Journal:
+        def make(p: Path) -> Journal:
+            checked[name] = CheckedJournal(p, prefixes.get(name, []), where / p.name)
+            return checked[name]
+        return _parts(cs, resuming / f"{name}.db", external, s, make)[0]
+
+    try:
+        rebuilt = rebuild_lab(s, campaign_scenarios(s, s.name), batches, journal_for, serving)
+        for name, prefix in prefixes.items():
+            done = checked[name].checked if name in checked else 0
+            if done < len(prefix):
+                raise ResumeError(f"{where / (name + '.db')}: the lab's inputs rebuild {done} of the journal's "
+                                  f"{len(prefix)} events; run the lab again instead (twin run)")
+        for journal in checked.values():
+            journal.close()
+    except BaseException:
+        shutil.rmtree(resuming, ignore_errors=True)
+        raise
+    probe = LabClock("wall")
+    running = probe.run(_still_running(s, probe))
+    if running:
+        shutil.rmtree(resuming, ignore_errors=True)
+        raise ResumeError(f"{where}: the lab is still running ({running}); a second one would dispatch the same "
+                          "steps. Stop it first, or watch it (twin watch)")
+    for db in resuming.glob("*.db"):
+        replace(db, where / db.name)
+    shutil.rmtree(resuming, ignore_errors=True)
+    log.info("resuming lab %s at %.0f lab-s: %d input batches replayed", where, rebuilt.now, len(batches))
+    scenarios = rebuilt.scenarios
+    drivers, per_device = shared_drivers(scenarios, skip=external)
+    parts = {n: (Journal(where / f"{n}.db", append=True), *_parts_of(cs)) for n, cs in scenarios.items()}
+    clock = LabClock(s.clock.mode, s.clock.speed, start=rebuilt.now)
+    return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, time.perf_counter(),
+                           handle_signals, serving=external if serving else None, observer=observer,
+                           rebuilt=rebuilt, external=external))
+
+
+def _parts_of(cs: Scenario) -> tuple:
+    from twin.runtime.lab import make_planner, make_scheduler
+
+    return make_planner(cs), make_scheduler(cs)

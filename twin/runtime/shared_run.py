@@ -15,6 +15,7 @@ from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
 from twin.runtime.fast_lab import FastLab
 from twin.campaign.journal import Journal
+from twin.campaign.lab_replay import RebuiltLab
 from twin.runtime.lab import (JournalFactory, _agent_on_bus, _flush_live, _noted, _stop_on_loop_signals,
                               _stop_on_signals, build_actors, default_journal, finish, live_scheduler, load_driver,
                               load_drivers, make_bus, make_clock, make_planner, make_scheduler, open_journal,
@@ -28,6 +29,9 @@ from twin.device.driver import feature
 from twin.scenario import Chemistry, Scenario
 from twin.scenario.sharing import campaign_scenarios
 from twin.view.lab_observer import SharedLabObserver
+
+
+LAB_INPUTS = "lab.inputs"  # beside the campaigns' journals: what a live lab was given (twin.campaign.lab_replay)
 
 
 def default_journals(s: Scenario) -> Path:
@@ -65,7 +69,7 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
         return _summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
     clock = make_clock(s)
     return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals,
-                           observer=observer))
+                           observer=observer, external=external_devices))
 
 
 def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices: Collection[str] = frozenset(),
@@ -130,9 +134,17 @@ def _parts(s: Scenario, path: Path, external: Collection[str], lab: Scenario | N
 async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], drivers: list, per_device: dict,
                 parts: dict, where: Path, wall0: float, handle_signals: bool,
                 serving: Collection[str] | None = None, on_start: Callable[[Any], None] | None = None,
-                observer: SharedLabObserver | None = None) -> LabSummary:
-    """``serving``: None, or the external devices of a lab that takes campaigns as they are submitted."""
+                observer: SharedLabObserver | None = None, rebuilt: RebuiltLab | None = None,
+                external: Collection[str] = ()) -> LabSummary:
+    """``serving``: None, or the external devices of a lab that takes campaigns as they are submitted;
+    ``rebuilt``: a killed lab to take over (``twin resume``)."""
     async with contextlib.AsyncExitStack() as stack:
+        inputs = Journal(where / LAB_INPUTS, append=rebuilt is not None)
+        stack.callback(inputs.close)
+        if rebuilt is None:
+            inputs.set("lab", s.model_dump(exclude_unset=True))
+            inputs.set("serving", serving is not None)
+            inputs.set("external", sorted(serving if serving is not None else external))
         bus = make_bus(s, clock)
         await bus.start()
         stack.push_async_callback(bus.close)
@@ -156,7 +168,7 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
             return seat_parts(name, cs, _parts(cs, where / f"{name}.db", serving or (), s))
 
         lab = LiveLab(s, scenarios, bus, clock, {n: seat_parts(n, scenarios[n], p) for n, p in parts.items()},
-                      adopt if serving is not None else None, observer)
+                      adopt if serving is not None else None, observer, inputs, rebuilt)
         if observer is not None:
             stack.callback(asyncio.ensure_future(_flush_live(clock, observer)).cancel)
         for actor in actors:
