@@ -771,3 +771,71 @@ def test_a_shared_lab_killed_with_a_step_on_a_device_of_another_process_adopts_i
         c = out["campaigns"][name]
         assert c["done"] + c["abandoned"] == budget == c["proposed"] and c["pending"] == 0, (name, c)
     assert_one_step_at_a_time(where)
+
+
+@pytest.mark.process
+def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submissions(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import yaml
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+    from tests.twin.test_device_process import free_port
+
+    port = free_port()
+    raw = yaml.safe_load(LAB.read_text())
+    for c, budget in zip(raw["campaigns"], (3, 2)):
+        c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
+    late = {**raw["campaigns"][0], "name": "late"}
+    late["campaign"] = {**late["campaign"], "budget": 2}
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
+    (tmp_path / "late.yaml").write_text(yaml.safe_dump(late))
+    where = tmp_path / "runs"
+    serve = [sys.executable, "-m", "twin", "lab", "serve", str(tmp_path / "lab.yaml"), "--listen",
+             f"tcp/127.0.0.1:{port}", "--speed", "3000", "--journal", str(where)]
+    runner, connect = CliRunner(), ["--lab", "shared", "--connect", f"tcp/127.0.0.1:{port}"]
+    first = subprocess.Popen(serve, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
+    again = None
+    try:
+        assert "serving lab shared" in first.stderr.readline()
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            with sqlite3.connect(f"file:{where / 'dots.db'}?mode=ro", uri=True) as con:
+                if con.execute("SELECT COUNT(*) FROM experiments WHERE status='done'").fetchone()[0]:
+                    break
+            time.sleep(0.05)
+        first.send_signal(signal.SIGKILL)
+        first.communicate(timeout=30)
+        again = subprocess.Popen([sys.executable, "-m", "twin", "resume", str(where), "--json"],
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
+        line = again.stderr.readline()
+        while line and "resumed lab shared" not in line:
+            line = again.stderr.readline()
+        assert "serving again" in line, line + again.stderr.read()[-2000:] if again.poll() is not None else line
+        sub = runner.invoke(app, ["submit", str(tmp_path / "late.yaml"), *connect])
+        assert sub.exit_code == 0 and "campaign late started" in sub.output, sub.output
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
+            status = json.loads(runner.invoke(app, ["ctl", "status", "--json", *connect]).output)
+            if len(status["campaigns"]) == 3 and all(c["state"] == "ended" for c in status["campaigns"]):
+                break
+            time.sleep(0.5)
+        else:
+            pytest.fail(f"the campaigns did not end: {status}")
+        again.send_signal(signal.SIGTERM)
+        out, err = again.communicate(timeout=60)
+    finally:
+        for proc in (first, again):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert again.returncode == 0, err[-2000:]
+    summary = json.loads(out)
+    for name, budget in (("dots", 3), ("catalyst", 2), ("late", 2)):
+        c = summary["campaigns"][name]
+        assert c["done"] + c["abandoned"] == budget == c["proposed"], (name, c)
+    assert_one_step_at_a_time(where)

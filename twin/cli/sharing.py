@@ -43,7 +43,7 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
                    "journalled, and the devices are asked about the steps it had in the lab")
             err.print(f"{how} ({', '.join(c.name for c in s.campaigns)}), {s.clock.mode} clock …", highlight=False)
         if resuming is not None:
-            summary = resume_lab(resuming, observer=observer)
+            summary = resume_lab(resuming, observer=observer, on_start=_resumed)
         else:
             summary = run_shared(s, journal, external_devices=set(external or ()), observer=observer)
     except TwinError as exc:
@@ -56,6 +56,12 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
         if record.save:
             err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
         keep_serving(recording, " ".join(c.stopped for c in summary.campaigns.values()))
+
+
+def _resumed(live) -> None:
+    """A live lab taken over again: said once it runs (a served lab goes on serving until Ctrl-C or SIGTERM)."""
+    what = "serving again; `twin submit` adds campaigns, Ctrl-C stops" if live.shared.serving else "running again"
+    err.print(f"resumed lab {live.lab.lab} at {live.clock.now() / 3600:.2f} lab-h: {what}", highlight=False)
 
 
 def _show(summary, json_out: bool) -> None:

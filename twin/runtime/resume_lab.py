@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable
+from typing import Any
 import shutil
 import sqlite3
 import time
@@ -59,14 +61,15 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
     return s, prefixes
 
 
-def resume_lab(path: str | Path, handle_signals: bool = True, observer: SharedLabObserver | None = None) -> LabSummary:
+def resume_lab(path: str | Path, handle_signals: bool = True, observer: SharedLabObserver | None = None,
+               on_start: Callable[[Any], None] | None = None) -> LabSummary:
     """Continue a killed virtual-time lab from its journals (``twin resume JOURNALS/``); see the module."""
     from twin.runtime.shared_run import run_shared
 
     where = Path(path)
     s, prefixes = recorded_lab(where)
     if s.clock.mode != "virtual":
-        return _resume_live(where, s, prefixes, handle_signals, observer)
+        return _resume_live(where, s, prefixes, handle_signals, observer, on_start)
     resuming = where.with_name(where.name + ".resuming")
     shutil.rmtree(resuming, ignore_errors=True)
     checked: dict[str, CheckedJournal] = {}
@@ -99,7 +102,7 @@ def resume_lab(path: str | Path, handle_signals: bool = True, observer: SharedLa
 
 
 def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], handle_signals: bool,
-                 observer: SharedLabObserver | None) -> LabSummary:
+                 observer: SharedLabObserver | None, on_start: Callable[[Any], None] | None) -> LabSummary:
     """A lab on a scaled or wall clock: rebuilt from the inputs it journalled (``twin.campaign.lab_replay``), every
     campaign's journal written again from the rebuild and checked against what it held; lab time goes on from
     there, and the steps it had in the lab are asked after."""
@@ -155,8 +158,8 @@ def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], han
     parts = {n: (Journal(where / f"{n}.db", append=True), *_parts_of(cs)) for n, cs in scenarios.items()}
     clock = LabClock(s.clock.mode, s.clock.speed, start=rebuilt.now)
     return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, time.perf_counter(),
-                           handle_signals, serving=external if serving else None, observer=observer,
-                           rebuilt=rebuilt, external=external))
+                           handle_signals, serving=external if serving else None, on_start=on_start,
+                           observer=observer, rebuilt=rebuilt, external=external))
 
 
 def _parts_of(cs: Scenario) -> tuple:
