@@ -66,6 +66,26 @@ def assert_accounted(summary) -> None:
             assert c.pending == 0, name
 
 
+def wait_until_ended(status, campaigns: int, seconds: float = 90) -> dict:
+    """Poll ``status()`` (a lab's `twin ctl status --json`) until ``campaigns`` campaigns have all ended."""
+    import time
+
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        now = status()
+        if len(now["campaigns"]) == campaigns and all(c["state"] == "ended" for c in now["campaigns"]):
+            return now
+        time.sleep(0.5)
+    pytest.fail(f"the campaigns did not end: {now}")
+
+
+def kill_all(*procs) -> None:
+    for proc in procs:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
 def test_two_campaigns_share_the_lab_each_with_its_own_ledger(tmp_path):
     s = prepare(LAB, seed=1)
     out = run_shared(s, tmp_path, handle_signals=False)
@@ -319,24 +339,14 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         paused = ctl("ctl", "pause", "--campaign", "catalyst", "--as", "alice")
         assert paused.exit_code == 0 and "paused" in paused.output, paused.output
         assert ctl("ctl", "resume", "--campaign", "catalyst").exit_code == 0
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            status = json.loads(ctl("ctl", "status", "--json").output)
-            if all(c["state"] == "ended" for c in status["campaigns"]) and len(status["campaigns"]) == 2:
-                break
-            time.sleep(0.5)
-        else:
-            pytest.fail(f"the campaigns did not end: {status}")
+        wait_until_ended(lambda: json.loads(ctl("ctl", "status", "--json").output), 2)
         lab.send_signal(signal.SIGTERM)
         out, err = lab.communicate(timeout=60)
         time.sleep(1.0)  # the campaigns' summaries reach the watcher
         watcher.send_signal(signal.SIGTERM)
         _, watch_err = watcher.communicate(timeout=60)
     finally:
-        for proc in (lab, watcher):
-            if proc is not None and proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+        kill_all(lab, watcher)
     assert lab.returncode == 0, err[-2000:]
     assert watcher.returncode == 0, watch_err[-2000:]
     drawn = read_rrd(tmp_path / "w.rrd")  # a campaign submitted after the watcher joined has its tab too
@@ -818,24 +828,30 @@ def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submission
         assert "serving again" in line, line + again.stderr.read()[-2000:] if again.poll() is not None else line
         sub = runner.invoke(app, ["submit", str(tmp_path / "late.yaml"), *connect])
         assert sub.exit_code == 0 and "campaign late started" in sub.output, sub.output
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            status = json.loads(runner.invoke(app, ["ctl", "status", "--json", *connect]).output)
-            if len(status["campaigns"]) == 3 and all(c["state"] == "ended" for c in status["campaigns"]):
-                break
-            time.sleep(0.5)
-        else:
-            pytest.fail(f"the campaigns did not end: {status}")
+        wait_until_ended(lambda: json.loads(runner.invoke(app, ["ctl", "status", "--json", *connect]).output), 3)
         again.send_signal(signal.SIGTERM)
         out, err = again.communicate(timeout=60)
     finally:
-        for proc in (first, again):
-            if proc is not None and proc.poll() is None:
-                proc.kill()
-                proc.communicate()
+        kill_all(first, again)
     assert again.returncode == 0, err[-2000:]
     summary = json.loads(out)
     for name, budget in (("dots", 3), ("catalyst", 2), ("late", 2)):
         c = summary["campaigns"][name]
         assert c["done"] + c["abandoned"] == budget == c["proposed"], (name, c)
     assert_one_step_at_a_time(where)
+
+
+@pytest.mark.parametrize("batches, words", [
+    ([], "do not begin with its start"),
+    ([(0.0, {"start": True, "secrets": {}}), (5.0, {"items": [["bogus", 1]]})], "lab input batch 2 of 2"),
+    ([(0.0, {"start": True, "secrets": {}}), (5.0, {"items": [["seat", "dots"]]})], "lab input batch 2 of 2"),
+])
+def test_damaged_lab_inputs_are_named(batches, words):
+    from twin.campaign.journal import NullJournal
+    from twin.campaign.lab_replay import rebuild_lab
+    from twin.campaign.replay import ReplayError
+    from twin.scenario.sharing import campaign_scenarios
+
+    s = prepare(LAB, clock="scaled", bus="memory")
+    with pytest.raises(ReplayError, match=words):
+        rebuild_lab(s, campaign_scenarios(s, s.name), batches, lambda name, cs: NullJournal())

@@ -24,9 +24,8 @@ from typing import Any
 from twin.campaign.events import (Ask, CancelTimer, Decided, Note, Proposed, RecordExperiment, RecordMessage,
                                   SetTimer, TimerFired, TimerKey)
 from twin.campaign.journal import Journal
-from twin.campaign.replay import ReplayError, decode_input, encode
+from twin.campaign.replay import ReplayError, decode_input, encode, replay_batches
 from twin.campaign.sharing import LAB, SharedLab
-from twin.core.errors import TwinError
 from twin.scenario.model import Scenario, SharedCampaign
 
 __all__ = ["RebuiltLab", "encode", "rebuild_lab"]
@@ -50,15 +49,8 @@ def rebuild_lab(lab: Scenario, scenarios: dict[str, Scenario], batches: list[tup
     secrets = {n: bytes.fromhex(h) for n, h in (batches[0][1].get("secrets") or {}).items()}
     out = RebuiltLab(SharedLab(lab, scenarios, secrets, serving), 0.0, dict(scenarios))
     journals = {name: journal_for(name, s) for name, s in scenarios.items()}
-    for i, (now, batch) in enumerate(batches, 1):
-        try:
-            _replay(out, journals, journal_for, now, batch)
-        except TwinError:
-            raise
-        except Exception as exc:  # a damaged journal must say where, not crash
-            raise ReplayError(f"lab input batch {i} of {len(batches)} (lab time {now:.1f} s) cannot be replayed: "
-                              f"{type(exc).__name__}: {exc}. The lab's inputs are damaged or from another version; "
-                              "run the lab again (twin run)") from None
+    replay_batches(batches, lambda now, batch: _replay(out, journals, journal_for, now, batch), "lab input batch",
+                   "the lab")
     return out
 
 

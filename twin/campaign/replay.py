@@ -91,16 +91,22 @@ def rebuild(s: Scenario, batches: list[tuple[float, dict[str, Any]]], campaign_i
     """Feed a recorded campaign's inputs to a new core, batch by batch; its actions are not performed again.
     ``secret``: the one the campaign's attempt tokens came from (journalled as ``attempt_secret``)."""
     out = Rebuilt(CampaignCore(s, campaign_id, secret), 0.0)
+    replay_batches(batches, lambda now, batch: _replay(out, now, batch), "input batch", "the campaign")
+    return out
+
+
+def replay_batches(batches: list[tuple[float, Any]], replay: Any, what: str, who: str) -> None:
+    """``replay(now, batch)`` for each batch in turn; a batch that cannot be replayed is named, with its lab time,
+    instead of crashing (a damaged journal, or one from another version)."""
     for i, (now, batch) in enumerate(batches, 1):
         try:
-            _replay(out, now, batch)
+            replay(now, batch)
         except TwinError:
             raise
-        except Exception as exc:  # a damaged journal must say where, not crash
-            raise ReplayError(f"input batch {i} of {len(batches)} (lab time {now:.1f} s) cannot be replayed: "
+        except Exception as exc:
+            raise ReplayError(f"{what} {i} of {len(batches)} (lab time {now:.1f} s) cannot be replayed: "
                               f"{type(exc).__name__}: {exc}. The journal is damaged or from another version; "
-                              "run the campaign again (twin run)") from None
-    return out
+                              f"run {who} again (twin run)") from None
 
 
 def _replay(out: Rebuilt, now: float, batch: dict[str, Any]) -> None:
