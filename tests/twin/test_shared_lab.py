@@ -784,7 +784,10 @@ def test_a_shared_lab_killed_with_a_step_on_a_device_of_another_process_adopts_i
 
 
 @pytest.mark.process
-def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submissions(tmp_path):
+@pytest.mark.parametrize("with_campaigns", [True, False])
+def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submissions(tmp_path, with_campaigns):
+    """A served lab killed with campaigns under way (or before any came) is resumed by `twin resume` of its
+    journals' directory, serves again, and takes a submission; SIGTERM ends it with every campaign accounted."""
     import signal
     import subprocess
     import sys
@@ -802,6 +805,9 @@ def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submission
         c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
     late = {**raw["campaigns"][0], "name": "late"}
     late["campaign"] = {**late["campaign"], "budget": 2}
+    budgets = {"dots": 3, "catalyst": 2, "late": 2} if with_campaigns else {"late": 2}
+    if not with_campaigns:
+        del raw["campaigns"]
     (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
     (tmp_path / "late.yaml").write_text(yaml.safe_dump(late))
     where = tmp_path / "runs"
@@ -813,10 +819,15 @@ def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submission
     try:
         assert "serving lab shared" in first.stderr.readline()
         deadline = time.monotonic() + 60
+        what = ((where / "dots.db", "SELECT COUNT(*) FROM experiments WHERE status='done'") if with_campaigns else
+                (where / "lab.inputs", "SELECT COUNT(*) FROM inputs"))  # killed once it did something
         while time.monotonic() < deadline:
-            with sqlite3.connect(f"file:{where / 'dots.db'}?mode=ro", uri=True) as con:
-                if con.execute("SELECT COUNT(*) FROM experiments WHERE status='done'").fetchone()[0]:
-                    break
+            try:
+                with sqlite3.connect(f"file:{what[0]}?mode=ro", uri=True) as con:
+                    if con.execute(what[1]).fetchone()[0]:
+                        break
+            except sqlite3.Error:
+                pass
             time.sleep(0.05)
         first.send_signal(signal.SIGKILL)
         first.communicate(timeout=30)
@@ -825,17 +836,19 @@ def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submission
         line = again.stderr.readline()
         while line and "resumed lab shared" not in line:
             line = again.stderr.readline()
-        assert "serving again" in line, line + again.stderr.read()[-2000:] if again.poll() is not None else line
+        assert "serving again" in line, again.stderr.read()[-2000:] if again.poll() is not None else line
         sub = runner.invoke(app, ["submit", str(tmp_path / "late.yaml"), *connect])
         assert sub.exit_code == 0 and "campaign late started" in sub.output, sub.output
-        wait_until_ended(lambda: json.loads(runner.invoke(app, ["ctl", "status", "--json", *connect]).output), 3)
+        wait_until_ended(lambda: json.loads(runner.invoke(app, ["ctl", "status", "--json", *connect]).output),
+                         len(budgets))
         again.send_signal(signal.SIGTERM)
         out, err = again.communicate(timeout=60)
     finally:
         kill_all(first, again)
     assert again.returncode == 0, err[-2000:]
     summary = json.loads(out)
-    for name, budget in (("dots", 3), ("catalyst", 2), ("late", 2)):
+    assert set(summary["campaigns"]) == set(budgets)
+    for name, budget in budgets.items():
         c = summary["campaigns"][name]
         assert c["done"] + c["abandoned"] == budget == c["proposed"], (name, c)
     assert_one_step_at_a_time(where)

@@ -28,7 +28,8 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     recording = None
     try:
-        check(s)
+        if s.campaigns or resuming is None:  # a served lab resumed may have had none yet
+            check(s)
         observer = None
         if record.wanted:
             devices = {name: dtype for dtype in s.devices for name in s.instance_names(dtype)}
@@ -41,7 +42,8 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
                    f"resuming {resuming}: the lab re-runs and each campaign's recorded events are checked"
                    if s.clock.mode == "virtual" else f"resuming {resuming}: the lab is rebuilt from the inputs it "
                    "journalled, and the devices are asked about the steps it had in the lab")
-            err.print(f"{how} ({', '.join(c.name for c in s.campaigns)}), {s.clock.mode} clock …", highlight=False)
+            names = ", ".join(c.name for c in s.campaigns) or "no campaign of its file"
+            err.print(f"{how} ({names}), {s.clock.mode} clock …", highlight=False)
         if resuming is not None:
             summary = resume_lab(resuming, observer=observer, on_start=_resumed)
         else:

@@ -30,8 +30,15 @@ log = logging.getLogger(__name__)
 
 def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
     """The lab file a killed lab ran, and each campaign's journalled events."""
+    from twin.runtime.shared_run import LAB_INPUTS
+
     where = Path(path)
     dbs = sorted(where.glob("*.db"))
+    if not dbs and (where / LAB_INPUTS).exists():  # a served lab that had no campaign yet
+        lab = read_run(where / LAB_INPUTS).get("lab")
+        if lab is None:
+            raise ResumeError(f"{where / LAB_INPUTS}: it does not say which lab file it ran; serve the lab again")
+        return Scenario.model_validate(lab, context={"lab_only": True}), {}
     if not dbs:
         raise ResumeError(f"{where}: no campaign journals (<campaign>.db) here; a lab's journals are written to "
                           "runs/<lab>-seed<N>-<time>/ by default")
@@ -53,7 +60,7 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
     if len(ended) == len(dbs):
         raise ResumeError(f"{where}: every campaign of the lab finished; nothing to resume (twin report "
                           f"{dbs[0]} shows one)")
-    s = Scenario.model_validate(lab)
+    s = Scenario.model_validate(lab, context={"lab_only": True})  # a served lab's file may have no workflow
     for name, cs in campaign_scenarios(s, s.name).items():
         if name in scenarios and Scenario.model_validate(scenarios[name]).model_dump() != cs.model_dump():
             raise ResumeError(f"{where / (name + '.db')}: the campaign's scenario differs from what its lab file "
@@ -108,7 +115,7 @@ def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], han
     there, and the steps it had in the lab are asked after."""
     from twin.core.clock import LabClock
     from twin.runtime.resume import _still_running
-    from twin.runtime.shared_run import LAB_INPUTS, _live, _parts, shared_drivers
+    from twin.runtime.shared_run import LAB_INPUTS, _live, _parts, _standby_drivers, shared_drivers
 
     inputs = where / LAB_INPUTS
     if not inputs.exists():
@@ -154,7 +161,8 @@ def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], han
     shutil.rmtree(resuming, ignore_errors=True)
     log.info("resuming lab %s at %.0f lab-s: %d input batches replayed", where, rebuilt.now, len(batches))
     scenarios = rebuilt.scenarios
-    drivers, per_device = shared_drivers(scenarios, skip=external)
+    drivers, per_device = shared_drivers(scenarios, skip=external) if scenarios else (
+        _standby_drivers(s, external), {})
     parts = {n: (Journal(where / f"{n}.db", append=True), *_parts_of(cs)) for n, cs in scenarios.items()}
     clock = LabClock(s.clock.mode, s.clock.speed, start=rebuilt.now)
     return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, time.perf_counter(),
