@@ -818,6 +818,9 @@ def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submission
     again = None
     try:
         assert "serving lab shared" in first.stderr.readline()
+        if with_campaigns:  # a campaign paused by an operator is still paused after the lab is resumed
+            paused = runner.invoke(app, ["ctl", "pause", "--campaign", "catalyst", "--as", "alice", *connect])
+            assert paused.exit_code == 0, paused.output
         deadline = time.monotonic() + 60
         what = ((where / "dots.db", "SELECT COUNT(*) FROM experiments WHERE status='done'") if with_campaigns else
                 (where / "lab.inputs", "SELECT COUNT(*) FROM inputs"))  # killed once it did something
@@ -837,6 +840,11 @@ def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submission
         while line and "resumed lab shared" not in line:
             line = again.stderr.readline()
         assert "serving again" in line, again.stderr.read()[-2000:] if again.poll() is not None else line
+        if with_campaigns:
+            states = {c["campaign"]: c["state"] for c in json.loads(
+                runner.invoke(app, ["ctl", "status", "--json", *connect]).output)["campaigns"]}
+            assert states["catalyst"] == "paused by alice", states
+            assert runner.invoke(app, ["ctl", "resume", "--campaign", "catalyst", *connect]).exit_code == 0
         sub = runner.invoke(app, ["submit", str(tmp_path / "late.yaml"), *connect])
         assert sub.exit_code == 0 and "campaign late started" in sub.output, sub.output
         wait_until_ended(lambda: json.loads(runner.invoke(app, ["ctl", "status", "--json", *connect]).output),
