@@ -646,11 +646,13 @@ def test_twin_resume_of_a_finished_lab_says_so(tmp_path):
 
 
 @pytest.mark.process
-def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what_its_journals_held(tmp_path):
-    """A lab on a scaled clock, SIGKILLed once experiments have finished, is rebuilt by `twin resume` from the
-    inputs it journalled: every campaign's journal keeps what it held, the steps it had in the lab are asked
-    after (here its in-process devices died with it: the steps are retried), and every campaign ends with its
-    accounting invariant and no device running two steps."""
+@pytest.mark.parametrize("kills", [1, 2])
+def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what_its_journals_held(tmp_path, kills):
+    """A lab on a scaled clock, SIGKILLed once experiments have finished (and, the second time, its resumed
+    process SIGKILLed too), is rebuilt by `twin resume` from the inputs it journalled: every campaign's journal
+    keeps what it held, the steps it had in the lab are asked after (here its in-process devices died with it:
+    the steps are retried), and every campaign ends with its accounting invariant and no device running two
+    steps."""
     import signal
     import subprocess
     import sys
@@ -681,16 +683,18 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
         return n
 
     try:
-        deadline = time.monotonic() + 60
-        while finished() < 2 and time.monotonic() < deadline and lab.poll() is None:
-            time.sleep(0.05)
-        assert lab.poll() is None, "the lab ended before it could be killed: " + lab.stderr.read()[-1000:]
-        lab.send_signal(signal.SIGKILL)
-        lab.communicate(timeout=30)
+        for kill in range(kills):
+            if kill:  # the resumed lab dies too, once it finished more
+                lab = subprocess.Popen([sys.executable, "-m", "twin", "resume", str(where), "--quiet"],
+                                       stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
+            deadline, wanted = time.monotonic() + 60, 2 + 2 * kill
+            while finished() < wanted and time.monotonic() < deadline and lab.poll() is None:
+                time.sleep(0.05)
+            assert lab.poll() is None, "the lab ended before it could be killed: " + lab.stderr.read()[-1000:]
+            lab.send_signal(signal.SIGKILL)
+            lab.communicate(timeout=30)
     finally:
-        if lab.poll() is None:
-            lab.kill()
-            lab.communicate()
+        kill_all(lab)
     held = journal_tables(where)
     assert all("summary" not in read_run(db) for db in where.glob("*.db"))
     result = CliRunner().invoke(app, ["resume", str(where), "--json"], env={"COLUMNS": "200"})
@@ -701,7 +705,7 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
         assert c["done"] + c["abandoned"] == budget == c["proposed"] and c["pending"] == 0, (name, c)
         events_now = journal_tables(where)[name][0]
         assert events_now[:len(held[name][0])] == held[name][0], name  # what the journal held is kept
-        assert [e for e in events_now if e[2] == "campaign.resumed"], name
+        assert len([e for e in events_now if e[2] == "campaign.resumed"]) == kills, name
     assert_one_step_at_a_time(where)
 
 
