@@ -611,6 +611,12 @@ def test_a_lab_killed_anywhere_and_resumed_ends_with_the_journals_of_the_unkille
     child.join(60)
     assert child.exitcode == -signal.SIGKILL
     assert any("summary" not in read_run(db) for db in (tmp_path / "killed").glob("*.db"))
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    told = CliRunner().invoke(app, ["report", str(tmp_path / "killed")], env={"COLUMNS": "300"})
+    assert told.exit_code == 0 and f"Continue it with: twin resume {tmp_path / 'killed'}" in told.output
     out = resume_lab(tmp_path / "killed", handle_signals=False)
     assert journal_tables(tmp_path / "killed") == whole
     assert out.journals == str(tmp_path / "killed") and set(out.campaigns) == {"dots", "catalyst"}

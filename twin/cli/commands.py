@@ -245,10 +245,23 @@ def schema() -> None:
 
 
 @app.command()
-def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<run>.db")]) -> None:
+def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<run>.db (or a lab's directory of "
+                                                     "journals: each campaign's)")]) -> None:
     """Print a run's summary again from its journal (a killed run: how far it got, and how to resume it)."""
     if not journal.exists():
         _fail(TwinError(f"{journal}: no such journal; runs are written to runs/ by default"))
+    if journal.is_dir():  # a lab of several campaigns: each campaign's journal, and how to resume the lab
+        dbs = sorted(journal.glob("*.db"))
+        if not dbs:
+            _fail(TwinError(f"{journal}: no journals (<campaign>.db) here"))
+        for db in dbs:
+            console.print(f"[bold]{db.stem}[/] ({db})", highlight=False)
+            _report(db, resume_with=journal)
+        return
+    _report(journal)
+
+
+def _report(journal: Path, resume_with: Path | None = None) -> None:
     from twin.runtime.resume import interrupted
 
     try:
@@ -264,7 +277,7 @@ def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<
         states = ", ".join(f"{n} {status}" for status, n in sorted(counts.items())) or "none proposed yet"
         console.print(f"{journal}: interrupted — the run of {got['scenario']} was killed before it finished. It got "
                       f"to {got['lab_hours']:.2f} lab-h with {got['events']} events on disk; experiments: {states}. "
-                      f"Continue it with: twin resume {journal}",
+                      f"Continue it with: twin resume {resume_with or journal}",
                       highlight=False, soft_wrap=True)
         return
     render_summary(Summary.from_dict(data["summary"]), console)

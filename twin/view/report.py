@@ -66,5 +66,5 @@ def render_lab_summary(s: LabSummary, console: Console) -> None:
     busy = ", ".join(f"{d} {100 * u:.0f} %" for d, u in s.utilisation.items())
     console.print(f"lab time {s.lab_hours:.2f} h ({s.wall_s:.2f} s wall); devices busy: {busy}", highlight=False,
                   soft_wrap=True)
-    console.print(f"journals: {s.journals}/<campaign>.db  (twin report {s.journals}/<campaign>.db)", highlight=False,
+    console.print(f"journals: {s.journals}/<campaign>.db  (twin report {s.journals})", highlight=False,
                   soft_wrap=True)
