@@ -886,3 +886,26 @@ def test_damaged_lab_inputs_are_named(batches, words):
     s = prepare(LAB, clock="scaled", bus="memory")
     with pytest.raises(ReplayError, match=words):
         rebuild_lab(s, campaign_scenarios(s, s.name), batches, lambda name, cs: NullJournal())
+
+
+@pytest.mark.parametrize("seed, overrides", [(1, {}), (3, {"campaigns.1.start_h": 1.5}),
+                                             (4, {"campaigns.1.after": "dots"})])
+def test_twin_replay_of_a_labs_journals_equals_its_live_recording_as_rerun_compares_them(tmp_path, seed, overrides):
+    import subprocess
+    import sys
+
+    from twin.view.watch import RecordOptions, replay
+
+    s = prepare(LAB, seed=seed, overrides={**SMALL, **overrides})
+    recorded_lab(s, tmp_path)
+    replay(tmp_path / "runs", RecordOptions(save=tmp_path / "replay.rrd"))
+
+    def compare(a, b):
+        return subprocess.run([str(Path(sys.executable).parent / "rerun"), "rrd", "compare", "--unordered", str(a),
+                               str(b)], capture_output=True, text=True, timeout=120)
+
+    same = compare(tmp_path / "lab.rrd", tmp_path / "replay.rrd")
+    assert same.returncode == 0, same.stdout[-2000:] + same.stderr[-2000:]
+    other = prepare(LAB, seed=seed + 1, overrides={**SMALL, **overrides})
+    recorded_lab(other, tmp_path / "other")
+    assert compare(tmp_path / "lab.rrd", tmp_path / "other" / "lab.rrd").returncode != 0

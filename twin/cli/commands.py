@@ -205,7 +205,8 @@ def watch(
 
 @app.command()
 def replay(
-    journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<run>.db")],
+    journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<run>.db (or a lab's directory of "
+                                                 "journals: the lab's recording)")],
     save: Annotated[Optional[Path], typer.Option(help="save the rebuilt recording, e.g. replay.rrd")] = None,
     viewer: Annotated[bool, typer.Option(help="open the Rerun viewer")] = False,
     serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,

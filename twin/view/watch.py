@@ -7,6 +7,7 @@ or rebuilt from the journal, so a replay draws what the live recorder drew.
 from __future__ import annotations
 
 import asyncio
+import heapq
 import json
 import logging
 import signal
@@ -68,17 +69,47 @@ def attach(bus: Bus, lab: str, on_message) -> list[Closable]:
     return [bus.subscribe(k, on_message) for k in (keys.evt(lab), keys.telemetry(lab), keys.campaign(lab, "*"))]
 
 
-def replay(journal: str | Path, options: RecordOptions) -> LabObserver:
-    """Rebuild a run's recording from its journal alone."""
+def replay(journal: str | Path, options: RecordOptions) -> LabObserver | SharedLabObserver:
+    """Rebuild a run's recording from its journal alone (a lab of several campaigns: from its directory of
+    journals, drawn as the lab's recorder draws it)."""
     path = Path(journal)
     if not path.exists():
         raise TwinError(f"{path}: no such journal; runs are written to runs/ by default")
+    if path.is_dir():
+        return _replay_lab(path, options)
     run = read_run(path)
     scenario = run.get("scenario", {})
     observer, recording = open_observer(options, f"{scenario.get('name', 'run')}-seed{run.get('seed', 0)}")
     try:
         for payload in as_messages(read_events(path)):
             observer.on_message("", payload)
+    finally:
+        recording.close()
+    return observer
+
+
+def _replay_lab(where: Path, options: RecordOptions) -> SharedLabObserver:
+    """Every campaign's journal, merged by lab time, through one ``SharedLabObserver``."""
+    dbs = sorted(where.glob("*.db"))
+    if not dbs:
+        raise TwinError(f"{where}: no journals (<campaign>.db) here")
+    lab = read_run(dbs[0]).get("lab") or {}
+    names = [c["name"] for c in lab.get("campaigns", []) if c.get("name")]
+    names += [db.stem for db in dbs if db.stem not in names]  # submitted to a served lab
+    observer, recording = open_lab_observer(options, f"{lab.get('name', where.name)}-seed"
+                                            f"{(lab.get('campaign') or {}).get('seed', 0)}", names, {})
+    try:
+        # at one lab time the lab takes in events, then dispatches (a device freed, then taken), and its
+        # summaries come last; among equals, the journals in step (campaigns that start together start
+        # before their devices come), then in the lab file's order
+        phase = {"attempt.dispatched": 1, "campaign.summary": 2}
+        streams = []
+        for db in dbs:
+            rows, turn = read_events(db), names.index(db.stem)
+            streams.append([(r["t_lab"], phase.get(r["kind"], 0), i, turn, db.stem, payload)
+                            for i, (r, payload) in enumerate(zip(rows, as_messages(rows)))])
+        for *_, name, payload in heapq.merge(*streams):  # each journal's own order is kept
+            observer.campaign(name).on_message("", payload)
     finally:
         recording.close()
     return observer
