@@ -909,3 +909,38 @@ def test_twin_replay_of_a_labs_journals_equals_its_live_recording_as_rerun_compa
     other = prepare(LAB, seed=seed + 1, overrides={**SMALL, **overrides})
     recorded_lab(other, tmp_path / "other")
     assert compare(tmp_path / "lab.rrd", tmp_path / "other" / "lab.rrd").returncode != 0
+
+
+
+@pytest.mark.process
+def test_twin_watch_without_follow_ends_by_itself_when_every_campaign_has_ended(tmp_path):
+    import subprocess
+    import sys
+
+    import yaml
+
+    from tests.rrd import read_rrd
+    from tests.twin.test_device_process import free_port
+
+    port = free_port()
+    raw = yaml.safe_load(LAB.read_text())
+    for c, budget in zip(raw["campaigns"], (3, 2)):
+        c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
+    lab = subprocess.Popen([sys.executable, "-m", "twin", "run", str(tmp_path / "lab.yaml"), "--clock", "scaled",
+                            "--speed", "2000", "--listen", f"tcp/127.0.0.1:{port}", "--journal",
+                            str(tmp_path / "runs"), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           cwd=ROOT, text=True)
+    watcher = subprocess.Popen([sys.executable, "-m", "twin", "watch", "--lab", "shared", "--connect",
+                                f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd")],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
+    try:
+        lab.communicate(timeout=120)
+        _, err = watcher.communicate(timeout=60)  # it ends without being told to
+    finally:
+        kill_all(lab, watcher)
+    assert lab.returncode == 0 and watcher.returncode == 0, err[-2000:]
+    assert "recorded" in err
+    drawn = read_rrd(tmp_path / "w.rrd")
+    for name in ("dots", "catalyst"):
+        assert len(drawn[f"campaigns/{name}/summary"]) == 1, name
