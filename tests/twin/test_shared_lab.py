@@ -106,8 +106,9 @@ def test_two_campaigns_share_the_lab_each_with_its_own_ledger(tmp_path):
     assert out.lab_hours == pytest.approx(max(out.ended_h.values()))
 
 
-def test_the_higher_priority_campaign_picks_free_devices_first(tmp_path):
-    s = prepare(LAB, seed=2, overrides=NO_FAULTS)
+@pytest.mark.parametrize("lab_scheduler", [None, "mwkr", "rl:agents/policies/flaky_scheduler.zip"])
+def test_the_higher_priority_campaign_picks_free_devices_first(tmp_path, lab_scheduler):
+    s = prepare(LAB, seed=2, overrides={**NO_FAULTS, "orchestrator.lab_scheduler": lab_scheduler})
     run_shared(s, tmp_path, handle_signals=False)
     high, low = tmp_path / "catalyst.db", tmp_path / "dots.db"
     device_of = {"prepare": "synthesiser", "react": "reactor", "measure": "spectrometer", "synthesise": "synthesiser"}
@@ -180,14 +181,15 @@ lab_shapes = st.fixed_dictionaries({
     "priorities": st.lists(st.integers(-1, 1), min_size=2, max_size=3),
     "budgets": st.lists(st.integers(2, 8), min_size=3, max_size=3),
     "seed": st.integers(0, 1000),
+    "lab_scheduler": st.sampled_from([None, "mwkr", "spt"]),  # None: each campaign's own, in turns
 })
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(shape=lab_shapes)
 def test_any_shared_lab_runs_one_step_per_device_and_accounts_for_everything(tmp_path_factory, shape):
-    """Random labs, faults, crashes and priorities: every campaign ends with its accounting invariant, no
-    device ever runs two steps at once."""
+    """Random labs, faults, crashes and priorities, the campaigns in turns or one scheduler for the lab: every
+    campaign ends with its accounting invariant, no device ever runs two steps at once."""
     n = len(shape["priorities"])
     base = load(LAB)
     campaigns = []
@@ -199,7 +201,7 @@ def test_any_shared_lab_runs_one_step_per_device_and_accounts_for_everything(tmp
     faults = {"fail_p": shape["fail_p"], "hang_p": shape["hang_p"], "mtbc_h": shape["mtbc_h"], "restart_s": 600}
     s = prepare(base, seed=shape["seed"], overrides={
         "campaigns": campaigns, "devices.spectrometer.instances": shape["spectrometers"],
-        "devices.synthesiser.instances": shape["synthesisers"],
+        "devices.synthesiser.instances": shape["synthesisers"], "orchestrator.lab_scheduler": shape["lab_scheduler"],
         **{f"devices.{d}.faults": faults for d in ("synthesiser", "reactor", "spectrometer")}})
     where = tmp_path_factory.mktemp("lab")
     out = run_shared(s, where, handle_signals=False)
@@ -944,3 +946,57 @@ def test_twin_watch_without_follow_ends_by_itself_when_every_campaign_has_ended(
     drawn = read_rrd(tmp_path / "w.rrd")
     for name in ("dots", "catalyst"):
         assert len(drawn[f"campaigns/{name}/summary"]) == 1, name
+
+
+@pytest.mark.parametrize("spec", ["mwkr", "rl:agents/policies/flaky_scheduler.zip"])
+def test_one_scheduler_for_the_lab_chooses_among_every_campaigns_steps(tmp_path, monkeypatch, spec):
+    """orchestrator.lab_scheduler: the rule or policy is asked once per pass with the ready steps of every
+    campaign that asked (named campaign/task), and what it picks is dispatched by the campaign it belongs to."""
+    from twin.runtime import shared_run
+
+    views: list = []
+    made = shared_run._lab_scheduler
+
+    def spied(s, scenarios):
+        chosen = made(s, scenarios)
+        decide = chosen.decide
+
+        def watching(view):
+            views.append(view)
+            return decide(view)
+        chosen.decide = watching
+        return chosen
+
+    monkeypatch.setattr(shared_run, "_lab_scheduler", spied)
+    s = prepare(LAB, seed=1, overrides={**SMALL, "campaigns.1.start_h": 0.0, "orchestrator.lab_scheduler": spec})
+    out = run_shared(s, tmp_path, handle_signals=False)
+    assert_accounted(out)
+    assert_one_step_at_a_time(tmp_path)
+    owners = [{r.task.split("/")[0] for r in v.ready} for v in views]
+    assert any(o == {"dots", "catalyst"} for o in owners), "never saw both campaigns' steps at once"
+    for db in tmp_path.glob("*.db"):
+        assert events(db, "attempt.dispatched") and not events(db, "scheduler.invalid"), db.stem
+
+
+def test_one_scheduler_for_the_lab_is_refused_on_a_live_clock_with_the_reason(tmp_path):
+    from twin.core.errors import ClockError
+
+    s = prepare(LAB, clock="scaled", bus="memory", overrides={"orchestrator.lab_scheduler": "mwkr"})
+    with pytest.raises(ClockError, match="lab_scheduler runs in virtual time"):
+        run_shared(s, tmp_path, handle_signals=False)
+    assert not list(tmp_path.glob("*.db"))
+
+
+def test_an_override_keeps_each_campaigns_seed_the_labs_plus_its_place():
+    """`twin whatif --vary` on a lab: each variant is prepared with overrides, then given the run's seed; a
+    campaign that has no seed of its own must still run on the lab's seed plus its place (a full re-dump once
+    pinned every variant's campaigns to seed 0)."""
+    from twin.scenario.sharing import campaign_scenarios
+
+    for overrides in ({"orchestrator.lab_scheduler": "mwkr"}, {"campaigns.1.after": "dots"},
+                      {"devices.spectrometer.instances": 2}):
+        lab = prepare(prepare(load(LAB), overrides=overrides), seed=3)
+        assert {n: c.campaign.seed for n, c in campaign_scenarios(lab, lab.name).items()} == {"dots": 3,
+                                                                                             "catalyst": 4}
+    pinned = prepare(prepare(load(LAB), overrides={"campaigns.1.campaign.seed": 9}), seed=3)
+    assert campaign_scenarios(pinned, pinned.name)["catalyst"].campaign.seed == 9

@@ -22,13 +22,15 @@ campaign's journal, planner and scheduler.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
-from twin.campaign import consumables
+from twin.campaign import consumables, dispatch
 from twin.campaign.consumables import Stocks
 from twin.campaign.core import CampaignCore
-from twin.campaign.events import (Action, DeviceMessage, Event, InvalidInput, Presence, SetTimer, Stop, TimerFired,
-                                  TimerKey, TimerKind)
+from twin.campaign.decisions import Assignment, DeviceState, LabView
+from twin.campaign.events import (Action, Ask, Decided, DeviceMessage, Event, InvalidInput, Presence, SetTimer, Stop,
+                                  TimerFired, TimerKey, TimerKind)
 from twin.scenario.model import Scenario, SharedCampaign
 
 Tagged = tuple[str, Action]
@@ -65,6 +67,9 @@ class SharedLab:
         self.unsubmitted: dict[str, str] = {}  # campaigns never started, and why (the lab stopped first)
         self._due: list[str] = []  # submitted, waiting for a turn to start
         self._deciding = ""  # the campaign whose decision pass waits on an answer: one at a time
+        self.one_scheduler = bool(lab.orchestrator.lab_scheduler)  # the lab's scheduler sees every campaign's steps
+        self._asks: dict[str, Ask] = {}  # with one scheduler: the campaigns that asked it, this pass
+        self._lab_ask: Ask | None = None  # ... and the lab's question to it, until it answers
         self._stopping = ""
         self._out: list[Tagged] = []
         self.now = 0.0
@@ -81,10 +86,13 @@ class SharedLab:
         return self.advance(now)
 
     def feed(self, campaign: str, event: Any) -> None:
-        """An event for one campaign (its timer, its planner's or scheduler's answer), or the lab's own timer."""
+        """An event for one campaign (its timer, its planner's or scheduler's answer), or the lab's own: a timer,
+        or the answer of the lab's one scheduler."""
         if campaign == LAB:
             if isinstance(event, TimerFired) and event.key.kind == TimerKind.SUBMIT and not self._stopping:
                 self._submit(event.key.ref)
+            elif isinstance(event, Decided) and self._lab_ask is not None:
+                self._answered(event)
             return
         self.cores[campaign].feed(event)
 
@@ -140,7 +148,9 @@ class SharedLab:
                 self._begin(name)
             self._due.clear()
         self._sync_holds()
-        if self._deciding:
+        if self.one_scheduler:
+            self._lab_pass(now)
+        elif self._deciding:
             core = cores[self._deciding]
             if core.wants_to_decide:
                 self._take(self._deciding, core.advance(now))
@@ -164,13 +174,19 @@ class SharedLab:
         cores = [self.cores[n] for n in self.started]
         if any(c.has_events for c in cores):
             return True
+        if self._lab_ask is not None:
+            return False  # the lab's scheduler answers first
+        if self._asks and not self._deciding:
+            return True  # the lab's scheduler is to be asked
         if self._deciding:
             return self.cores[self._deciding].wants_to_decide
         return bool(self._due) or any(c.wants_to_decide for c in cores)
 
     @property
     def waiting(self) -> Any:
-        """The question a campaign waits on, if any."""
+        """The question a campaign (or, with one scheduler, the lab) waits on, if any."""
+        if self._lab_ask is not None:
+            return self._lab_ask
         return self.cores[self._deciding].waiting if self._deciding else None
 
     @property
@@ -190,6 +206,9 @@ class SharedLab:
     def _take(self, name: str, actions: list[Action]) -> None:
         refilled = False
         for a in actions:
+            if self.one_scheduler and type(a) is Ask and a.what == "schedule":
+                self._asks[name] = a  # the lab's scheduler answers it, with the other campaigns' steps in view
+                continue
             self._out.append((name, a))
             refilled = refilled or getattr(a, "kind", None) == "consumable.refilled"
         if refilled:
@@ -230,6 +249,93 @@ class SharedLab:
         wsum = sum(weights.values())
         return sorted(self.started, key=lambda n: (-self.entries[n].priority,
                                                    used[n] / total - weights[n] / wsum, self.started.index(n)))
+
+    # -- one scheduler for the lab --------------------------------------------------------
+    def _lab_pass(self, now: float) -> None:
+        """Every campaign's decision pass, in turn order, up to its question to the scheduler; then one question
+        to the lab's scheduler with every campaign's ready steps (a campaign waiting on its planner goes alone)."""
+        cores = self.cores
+        if self._lab_ask is not None:
+            return
+        if self._deciding:  # its planner answered: its pass goes on, up to its question to the scheduler
+            name = self._deciding
+            if cores[name].wants_to_decide:
+                self._take(name, cores[name].advance(now))
+                self._sync_holds()
+            if cores[name].waiting is None or name in self._asks:
+                self._deciding = ""
+        if not self._deciding:
+            for name in self._turns():
+                core = cores[name]
+                if name in self._asks or not core.wants_to_decide:
+                    continue
+                self._take(name, core.advance(now))
+                self._sync_holds()  # what it dispatched is held from the next campaign at once
+                if core.waiting is not None and name not in self._asks:  # its planner was asked
+                    self._deciding = name
+                    break
+        if not self._deciding and self._asks:
+            self._lab_ask = Ask("schedule", view=self._merged(now))
+            self._out.append((LAB, self._lab_ask))
+
+    def _merged(self, now: float) -> LabView:
+        """What the lab's scheduler sees: every asking campaign's ready steps (tasks named ``campaign/task``)
+        that no higher-priority campaign's steps compete with for a free device, and the lab's devices."""
+        views = {n: self._view(n, now) for n in self._asks}  # as they are now: a campaign may have waited
+        free_names = set.intersection(*({f.name for f in v.free} for v in views.values()))
+        first = next(iter(views.values()))
+        free = tuple(f for f in first.free if f.name in free_names)
+        priority = {n: self.entries[n].priority for n in views}
+        top: dict[str, int] = {}
+        for n, v in views.items():
+            for r in v.ready:
+                if any(f.device_type == r.device_type and f.name not in r.avoid for f in free):
+                    top[r.device_type] = max(top.get(r.device_type, priority[n]), priority[n])
+        ready = tuple(dataclasses.replace(r, task=f"{n}/{r.task}") for n, v in views.items() for r in v.ready
+                      if priority[n] >= top.get(r.device_type, priority[n]))
+        return LabView(now, ready, free, self._device_states(free_names), sum(v.finished for v in views.values()),
+                       sum(v.budget for v in views.values()), sum(v.in_lab for v in views.values()))
+
+    def _view(self, name: str, now: float) -> LabView:
+        core = self.cores[name]
+        return dispatch.view(now, core.ready.values(), core.devices, core.finished_count, core.s.campaign.budget,
+                             len(core.active))
+
+    def _device_states(self, free: set[str]) -> tuple[DeviceState, ...]:
+        """Each device as the lab sees it: its attempts, failures and busy time over every campaign, and the step
+        on it now, whichever campaign's."""
+        states: dict[str, DeviceState] = {}
+        for name in self.started:
+            for d in self.cores[name].devices.values():
+                until = d.attempt.t_sent + d.attempt.task.expected_s if d.attempt else None
+                then = d.attempt.task.then if d.attempt else ()
+                seen = states.get(d.name)
+                if seen is None:
+                    states[d.name] = DeviceState(d.name, d.type, d.name in free, d.online, until, d.attempts,
+                                                 d.failures, d.busy_s, then)
+                else:
+                    states[d.name] = dataclasses.replace(
+                        seen, attempts=seen.attempts + d.attempts, failures=seen.failures + d.failures,
+                        busy_s=seen.busy_s + d.busy_s, busy_until=seen.busy_until if until is None else until,
+                        then=seen.then or then)
+        return tuple(states.values())
+
+    def _answered(self, d: Decided) -> None:
+        """The lab's scheduler's answer, to each campaign it gave steps to (a device given twice: the first only);
+        the others keep waiting and are in the next question (a scheduler may give one pair at a time). Only an
+        answer with nothing in it ends every campaign's pass."""
+        mine: dict[str, list[Assignment]] = {n: [] for n in self._asks}
+        taken: set[str] = set()
+        for a in d.assignments:
+            name, _, task = a.task.partition("/")
+            if name in mine and a.device not in taken:
+                mine[name].append(Assignment(task, a.device))
+                taken.add(a.device)
+        for name, assignments in mine.items():
+            if assignments or not taken:
+                self.cores[name].feed(Decided(assignments, d.wall_s))
+                del self._asks[name]
+        self._lab_ask = None
 
     def _sync_holds(self) -> None:
         holder: dict[str, str] = {}

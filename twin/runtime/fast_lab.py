@@ -3,10 +3,11 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import Any
 
-from twin.campaign.events import TimerFired, TimerKey
+from twin.campaign.events import Ask, Decided, TimerFired, TimerKey
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.campaign.sharing import LAB, SharedLab, by_campaign
@@ -23,12 +24,13 @@ class FastLab:
     def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], drivers: list[tuple[str, str, Any]],
                  per_device: dict[str, dict[str, Any]], parts: dict[str, SeatParts],
                  on_progress: Callable[[str], Progress | None] | None = None,
-                 observer: SharedLabObserver | None = None) -> None:
+                 observer: SharedLabObserver | None = None, lab_scheduler: Scheduler | None = None) -> None:
         """``scenarios``: each campaign's; ``per_device``: each instance's driver for each campaign (a simulated
         device simulates the chemistry of the campaign whose step it runs); ``parts``: each campaign's journal,
         planner and scheduler; ``observer``: handed the lab's devices' results and telemetry and each campaign's
-        notes as they happen (a recording)."""
-        self.lab, self.queue = lab, EventQueue()
+        notes as they happen (a recording); ``lab_scheduler``: the one scheduler of a lab whose
+        ``orchestrator.lab_scheduler`` is set (it answers the lab's questions, with every campaign's steps)."""
+        self.lab, self.queue, self.lab_scheduler = lab, EventQueue(), lab_scheduler
         self.shared = SharedLab(lab, scenarios)
         watch = observer.on_envelope if observer is not None else None
         self.devices = {name: FastDevice(name, dtype, lab.devices[dtype], drv, self.queue, lab.campaign.seed,
@@ -72,8 +74,14 @@ class FastLab:
         if name != LAB:
             self.seats[name].perform(actions)
             return
-        for a in actions:  # the lab's own: submission timers
-            self._lab_timers[a.key] = self.queue.call_later(a.delay, self._fire, a.key)
+        for a in actions:  # the lab's own: submission timers, and questions to its one scheduler
+            if type(a) is Ask:
+                assert self.lab_scheduler is not None and a.view is not None
+                started = time.perf_counter()
+                decided = list(self.lab_scheduler.decide(a.view))
+                self.shared.feed(LAB, Decided(decided, time.perf_counter() - started))
+            else:
+                self._lab_timers[a.key] = self.queue.call_later(a.delay, self._fire, a.key)
 
     def _fire(self, key: TimerKey) -> None:
         self._lab_timers.pop(key, None)

@@ -60,7 +60,9 @@ def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: 
         quick = _with_fields(scenario, extra)
         if quick is not None:
             return quick
-        data = scenario.model_dump()
+        # what was set only: a campaign of a lab that never gave its own seed must still run on the lab's plus
+        # its place (a full dump made every default look given, and every variant's campaigns ran on seed 0)
+        data = scenario.model_dump(exclude_unset=True)
         for dotted, value in extra.items():
             set_dotted(data, dotted, value)
         return parse(data, f"{scenario.name} with {', '.join(extra)}", lab_only)

@@ -16,7 +16,7 @@ from twin.core.errors import ClockError, DriverError
 from twin.runtime.fast_lab import FastLab
 from twin.campaign.journal import Journal
 from twin.campaign.lab_replay import RebuiltLab
-from twin.runtime.lab import (JournalFactory, _agent_on_bus, _flush_live, _noted, _stop_on_loop_signals,
+from twin.runtime.lab import (REMOTE, JournalFactory, _agent_on_bus, _flush_live, _noted, _stop_on_loop_signals,
                               _stop_on_signals, build_actors, default_journal, finish, live_scheduler, load_driver,
                               load_drivers, make_bus, make_clock, make_planner, make_scheduler, open_journal,
                               refuse_realtime)
@@ -48,6 +48,8 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
     if external_devices and s.clock.mode == "virtual":
         raise ClockError(f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
                          "see messages in flight: use --clock scaled or --clock wall")
+    if s.clock.mode != "virtual":
+        _refuse_lab_scheduler(s)
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
     _refuse_agents(scenarios)
@@ -59,7 +61,8 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
     parts = {name: _parts(cs, where / f"{name}.db", external_devices, s, make_journal)
              for name, cs in scenarios.items()}
     if s.clock.mode == "virtual":
-        lab: Any = FastLab(s, scenarios, drivers, per_device, parts, observer=observer)
+        lab: Any = FastLab(s, scenarios, drivers, per_device, parts, observer=observer,
+                           lab_scheduler=_lab_scheduler(s, scenarios))
         with _stop_on_signals(lab.stop, handle_signals):
             try:
                 lab.run()
@@ -79,6 +82,7 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
     its simulated devices simulate by default."""
     if s.clock.mode == "virtual":
         raise ClockError(f"{s.name}: a lab that serves waits for campaigns in real time: use --clock scaled or wall")
+    _refuse_lab_scheduler(s)
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
     _refuse_agents(scenarios)
@@ -111,6 +115,28 @@ def _standby_drivers(s: Scenario, skip: Collection[str]) -> list[tuple[str, str,
                 alt = s.model_copy(update={"chemistry": Chemistry(model=sorted(models)[0])})
                 out.append((name, dtype, load_driver(alt, dtype, name)))
     return out
+
+
+def _lab_scheduler(s: Scenario, scenarios: dict[str, Scenario]) -> Any:
+    """The one scheduler of a lab whose ``orchestrator.lab_scheduler`` is set (made for its first campaign's
+    scenario: a policy checks that it fits the lab), or None."""
+    spec = s.orchestrator.lab_scheduler
+    if not spec:
+        return None
+    if not scenarios:
+        raise ClockError(f"{s.name}: orchestrator.lab_scheduler chooses among campaigns' steps; the lab has none")
+    chosen = make_scheduler(next(iter(scenarios.values())), spec)
+    if chosen == REMOTE:
+        raise ClockError(f"{s.name}: orchestrator.lab_scheduler {spec!r} is an agent elsewhere; the lab's one "
+                         "scheduler runs in its process (a rule, or rl:POLICY)")
+    return chosen  # an rl policy is asked in-process here, as the fast runtime's benches ask it
+
+
+def _refuse_lab_scheduler(s: Scenario) -> None:
+    if s.orchestrator.lab_scheduler:
+        raise ClockError(f"{s.name}: orchestrator.lab_scheduler runs in virtual time (the fast runtime) for now; on "
+                         f"a {s.clock.mode} clock each campaign's own scheduler decides, the campaigns in turns: "
+                         "leave it out, or run with --clock virtual")
 
 
 def _refuse_agents(scenarios: dict[str, Scenario]) -> None:

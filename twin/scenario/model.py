@@ -254,6 +254,10 @@ class Orchestration(_Spec):
                                   "answer the cancel before it is given work again")
     recovery: list[Recovery] = Field(default_factory=list, max_length=64, description="failed steps to ask an "
                                      "operator about (the first rule that covers a step applies)")
+    lab_scheduler: str | None = Field(default=None, max_length=4096, description="a lab of several campaigns: one "
+                                      "scheduler (a rule, or rl:POLICY) choosing among every campaign's ready steps "
+                                      "at once, priorities first (virtual time); none: each campaign's own "
+                                      "scheduler, the campaigns in turns")
 
 
 class ClockSpec(_Spec):
