@@ -12,12 +12,11 @@ one (handed the bus's messages).
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from typing import Any
 
 from twin.campaign.events import Note
-from twin.view.observer import Canvas, LabObserver
+from twin.view.observer import Canvas, LabObserver, drawable
 
 #: The decisions that change what a device is doing, whichever campaign notes them.
 DEVICE_KINDS = frozenset({"attempt.dispatched", "attempt.done", "attempt.failed", "attempt.cancelled",
@@ -139,13 +138,8 @@ class SharedLabObserver:
 
     def on_message(self, key: str, payload: bytes | str) -> None:
         """A device's message off the bus (``twin watch``); campaigns' decisions go to ``campaign(name)``."""
-        head = payload[:40]
-        if isinstance(head, bytes) and (b'"kind":"accepted"' in head or b'"kind":"progress"' in head):
-            return
-        try:
-            env = json.loads(payload)
-            float(env["t_lab"])
-        except (ValueError, KeyError, TypeError):
+        env = drawable(payload)
+        if env is None:
             return
         if env.get("kind") == "telemetry":
             if self.devices._fresh(env.get("id")):
@@ -153,7 +147,7 @@ class SharedLabObserver:
             return
         seen = self.campaigns.get(env.get("campaign") or "")
         if seen is not None:
-            seen.on_message(key, payload)
+            seen.on_decoded(env)
 
     @property
     def spectra(self) -> int:

@@ -61,6 +61,20 @@ class Canvas(Protocol):
         """Send what is buffered: live viewers call this now and then."""
 
 
+def drawable(payload: bytes | str) -> dict[str, Any] | None:
+    """A bus message parsed, or None for one with nothing to draw (accepted, progress — skipped before the parse
+    to keep watching cheap) or one that is not a message (the orchestrator logs those; a watcher skips them)."""
+    head = payload[:40]
+    if isinstance(head, bytes) and (b'"kind":"accepted"' in head or b'"kind":"progress"' in head):
+        return None
+    try:
+        env = json.loads(payload)
+        float(env["t_lab"])
+    except (ValueError, KeyError, TypeError):
+        return None
+    return env if isinstance(env, dict) else None
+
+
 def _level(what: str) -> str:
     return "ERROR" if what in ERROR_KINDS else "WARN" if what in WARN_KINDS else "DEBUG" if (
         what in DEBUG_KINDS) else "INFO"
@@ -101,14 +115,12 @@ class LabObserver:
 
     # -- input ------------------------------------------------------------
     def on_message(self, key: str, payload: bytes | str) -> None:
-        head = payload[:40]
-        if isinstance(head, bytes) and (b'"kind":"accepted"' in head or b'"kind":"progress"' in head):
-            return  # nothing to draw; skipping the parse keeps the recorder cheap
-        try:
-            env = json.loads(payload)
-            float(env["t_lab"])
-        except (ValueError, KeyError, TypeError):
-            return  # the orchestrator logs invalid messages; a watcher just skips them
+        env = drawable(payload)
+        if env is not None:
+            self.on_decoded(env)
+
+    def on_decoded(self, env: dict[str, Any]) -> None:
+        """A message off the bus, parsed: drawn unless seen before."""
         if env.get("body", {}).get("what") != "decisions" and not self._fresh(env.get("id")):
             return
         self.on_envelope(env)

@@ -35,16 +35,21 @@ STATE_COLOURS = {"offline": 0x606060FF, "idle": 0x4C78A8FF, "failed": 0xE45756FF
                  "busy": 0x54A24BFF}
 
 
+def _whole_time() -> rrb.TimeAxis:
+    return rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
+                                                 end=rrb.TimeRangeBoundary.infinite()))
+
+
+def series(origin: str, name: str, contents: Any = "$origin/**") -> rrb.TimeSeriesView:
+    """A time-series panel over the whole of lab time."""
+    return rrb.TimeSeriesView(origin=origin, contents=contents, name=name, axis_x=_whole_time())
+
+
 def blueprint() -> rrb.Blueprint:
     """Devices, objective, spectra and log: the panels a campaign is watched in."""
     up_to_cursor = [rrb.VisibleTimeRange("lab_time", start=rrb.TimeRangeBoundary.infinite(),
                                          end=rrb.TimeRangeBoundary.cursor_relative())]
-    whole = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
-                                                  end=rrb.TimeRangeBoundary.infinite()))
-
-    def series(origin: str, name: str, contents: Any = "$origin/**") -> rrb.TimeSeriesView:
-        return rrb.TimeSeriesView(origin=origin, contents=contents, name=name, axis_x=whole)
-
+    whole = _whole_time()
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
@@ -74,11 +79,7 @@ def blueprint() -> rrb.Blueprint:
 
 def lab_blueprint(campaigns: list[str]) -> rrb.Blueprint:
     """A lab of several campaigns: its devices and their use at the top, a tab per campaign below."""
-    whole = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
-                                                  end=rrb.TimeRangeBoundary.infinite()))
-
-    def series(origin: str, name: str, contents: Any = "$origin/**") -> rrb.TimeSeriesView:
-        return rrb.TimeSeriesView(origin=origin, contents=contents, name=name, axis_x=whole)
+    whole = _whole_time()
 
     def campaign(c: str) -> rrb.Container:
         at = f"/campaigns/{c}"
