@@ -26,7 +26,7 @@ def check(s: Scenario) -> None:
         try:
             check_campaign(cs)
         except ScenarioError as exc:
-            raise ScenarioError("", [f"campaigns.{i} ({name}): {p}" for p in exc.problems]) from None
+            raise ScenarioError(exc.source or s.name, [f"campaigns.{i} ({name}): {p}" for p in exc.problems]) from None
 
 
 def check_campaign(s: Scenario) -> None:
