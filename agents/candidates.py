@@ -13,6 +13,12 @@ own orderings (the step's rank by work remaining, by duration, by waiting time) 
 network starts from what the rules know; and the lab's critical path as the job-shop heuristics weigh it (the
 known work left per device type and per job against a lower bound of what remains, what arrives next from a
 running step, and the step against the others the same device could take).
+
+In a lab of several campaigns with one scheduler (``orchestrator.lab_scheduler``) a row also says whose step it
+is (``LabView.campaigns``): whether its campaign has the top priority, how far it is above or below its share of
+the device time, its progress, and how many steps and how much work of other campaigns queue for the same device
+type. These are the last five columns (``candidates-v3``); a policy trained on ``candidates-v2`` reads a row
+without them, and is blind to campaigns (``agents.candidate_policy.widened`` starts a v3 policy from it).
 """
 
 from __future__ import annotations
@@ -24,19 +30,22 @@ import numpy as np
 from agents.scheduling_features import time_scale
 from twin import ANY_WORKFLOW, Assignment, LabView, ReadyStep, Scenario, drawn_at_random
 
-ENCODING = "candidates-v2"
+ENCODING = "candidates-v3"
 MAX_CANDIDATES = 128
-FEATURES = 29
+FEATURES = 34
 GLOBALS = 8
 OBS_SIZE = MAX_CANDIDATES * FEATURES + GLOBALS
 ACTIONS = MAX_CANDIDATES + 1
 WAIT = MAX_CANDIDATES
 CLIP = 10.0
+# earlier encodings a policy file may have been trained with, and the row width each reads: v2 is v3 without the
+# campaign columns (the last five), so a v2 policy reads the first 29 of every row and is blind to campaigns
+WIDTHS = {"candidates-v2": 29, ENCODING: FEATURES}
 
 
-def signature(s: Scenario) -> dict:
+def signature(s: Scenario | None = None, encoding: str = ENCODING) -> dict:
     """What a policy must match to be used at all; the shapes it was trained on are checked separately."""
-    return {"encoding": ENCODING, "observation_size": OBS_SIZE, "actions": ACTIONS}
+    return {"encoding": encoding, "observation_size": MAX_CANDIDATES * WIDTHS[encoding] + GLOBALS, "actions": ACTIONS}
 
 
 def _ranks(values: list[float]) -> list[float]:
@@ -48,7 +57,8 @@ def _ranks(values: list[float]) -> list[float]:
 
 
 class CandidateEncoder:
-    def __init__(self, scenario: Scenario) -> None:
+    def __init__(self, scenario: Scenario, encoding: str = ENCODING) -> None:
+        self.width = WIDTHS[encoding]  # a policy of an earlier encoding reads the first columns only
         self.scale = time_scale(scenario)
         self.stability = scenario.chemistry.stability_s or 0.0
         self.encoded: list[tuple[ReadyStep, str]] = []  # the candidates of the view last encoded, in row order
@@ -78,6 +88,7 @@ class CandidateEncoder:
         for f in view.free:
             free_of[f.device_type] = free_of.get(f.device_type, 0) + 1
         load, arriving = self._loads(view)
+        campaign_columns = self._campaigns(view, ready_of)
         ops_of: dict[str, int] = {}
         for r in view.ready:
             for t in (r.device_type, *(t for t, _ in r.then)):
@@ -138,6 +149,7 @@ class CandidateEncoder:
                 r.work_remaining_s / group[name][0],
                 r.expected_s / group[name][1],
                 per_unit.get(nxt_type, 0.0) / group[name][2],
+                *campaign_columns(r),
             ]
             mask[i] = True
         n = max(len(view.devices), 1)
@@ -146,8 +158,38 @@ class CandidateEncoder:
                          view.finished / max(view.budget, 1), view.in_lab / max(view.budget, 1),
                          sum(not d.online for d in view.devices) / n, now / (k * 100.0)], np.float32)
         mask[WAIT] = busy > 0 or not pairs
-        obs = np.concatenate([np.clip(rows, -CLIP, CLIP).ravel(), np.clip(glob, -CLIP, CLIP)])
+        obs = np.concatenate([np.clip(rows[:, :self.width], -CLIP, CLIP).ravel(), np.clip(glob, -CLIP, CLIP)])
         return obs.astype(np.float32), mask
+
+    @staticmethod
+    def _campaigns(view: LabView, ready_of: dict[str, int]):
+        """The columns that say whose a candidate is, in a lab of several campaigns (``LabView.campaigns``): its
+        campaign has the highest priority of those running (1/0), its share of the device time used so
+        far less the share it is due, its progress through its budget, the other campaigns' ready steps for the
+        same device type, and their part of the known work queued for that type. One campaign: 1, 0, its
+        progress, 0, 0."""
+        states = {c.name: c for c in view.campaigns}
+        top = max((c.priority for c in view.campaigns), default=0)
+        count: dict[tuple[str, str], int] = {}
+        work: dict[tuple[str, str], float] = {}
+        for r in view.ready:
+            count[r.campaign, r.device_type] = count.get((r.campaign, r.device_type), 0) + 1
+            for t, s in ((r.device_type, r.expected_s), *r.then):
+                work[r.campaign, t] = work.get((r.campaign, t), 0.0) + s
+        total: dict[str, float] = {}
+        for (_, t), w in work.items():
+            total[t] = total.get(t, 0.0) + w
+        alone = view.finished / max(view.budget, 1)
+
+        def columns(r: ReadyStep) -> tuple[float, ...]:
+            c = states.get(r.campaign)
+            if c is None:
+                return 1.0, 0.0, alone, 0.0, 0.0
+            others = total.get(r.device_type, 0.0) - work.get((r.campaign, r.device_type), 0.0)
+            return (float(c.priority >= top), c.used - c.share, c.finished / max(c.budget, 1),
+                    (ready_of.get(r.device_type, 0) - count.get((r.campaign, r.device_type), 0)) / 10,
+                    others / total[r.device_type] if total.get(r.device_type) else 0.0)
+        return columns
 
     @staticmethod
     def _loads(view: LabView) -> tuple[dict[str, float], dict[str, tuple[float, float]]]:

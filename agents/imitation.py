@@ -42,7 +42,7 @@ from agents.candidates import FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, Candidate
 from agents.cpsat import jobshop
 from agents.scheduling_env import randomised
 from agents.schedulers import RULES
-from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, objective, started_from
+from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, initial_state, objective, started_from
 from twin import Scenario, SteppedCampaign, jobshop_as_lab, load_plugin, prepare, random_jobshop
 
 
@@ -381,9 +381,8 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     from agents.candidate_policy import CandidatePolicy
-    from agents.candidates import signature
     from agents.scheduling_env import SchedulingEnv
-    from twin import load_policy, read_meta
+    from twin import read_meta
 
     check_imitable(scenario, init)
     itself = scenario.training.teacher == "self"
@@ -397,8 +396,8 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     net = model.policy.action_net
     fits = None
     if init is not None:
-        start = load_policy(Path(init), "scheduler", signature(scenario))
-        net.load_state_dict(start.policy.action_net.state_dict())
+        state = initial_state(Path(init), scenario, "candidates")
+        net.load_state_dict({k.removeprefix("action_net."): v for k, v in state.items() if k.startswith("action_net.")})
         fits = read_meta(Path(init)).get("fits")
     optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
     judge = Judge(scenario, out, "candidates", eval_seeds or EVAL_SEEDS, held_out_count, on_progress,

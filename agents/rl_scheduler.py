@@ -24,8 +24,10 @@ _warned: set[str] = set()  # one warning per text: the CLI checks a scheduler be
 
 def encoder_for(scenario: Any, encoding: str) -> Any:
     """The encoder a policy of ``encoding`` reads its labs with."""
-    if encoding in ("candidates", candidates.ENCODING):
+    if encoding == "candidates":
         return candidates.CandidateEncoder(scenario)
+    if encoding in candidates.WIDTHS:
+        return candidates.CandidateEncoder(scenario, encoding)
     return scheduling_features.Encoder(scenario)
 
 
@@ -61,15 +63,19 @@ class RlScheduler:
         path = Path(policy)
         meta = read_meta(path) if path.exists() else {}
         encoding = meta.get("signature", {}).get("encoding")
-        if str(encoding).startswith("candidates") and encoding != candidates.ENCODING:
+        if str(encoding).startswith("candidates") and encoding not in candidates.WIDTHS:
             raise PluginError(f"{path} reads labs as {encoding}; this labtwin encodes them as {candidates.ENCODING} "
                               f"(other features or another network): retrain it with `twin train SCENARIO --agent scheduler`")
-        features = candidates if encoding == candidates.ENCODING else scheduling_features
-        self.model = load_policy(path, "scheduler", features.signature(scenario))
+        if encoding in candidates.WIDTHS:
+            sign = candidates.signature(scenario, encoding)
+        else:
+            sign = scheduling_features.signature(scenario)
+        self.model = load_policy(path, "scheduler", sign)
         self.misfit = _check_fit(path, meta, scenario)
         self.encoder = encoder_for(scenario, encoding or "slots")
+        self.sees_campaigns = encoding == candidates.ENCODING
         # warm up torch
-        self.model.predict(np.zeros(features.OBS_SIZE, np.float32), action_masks=np.ones(features.ACTIONS, bool))
+        self.model.predict(np.zeros(sign["observation_size"], np.float32), action_masks=np.ones(sign["actions"], bool))
 
     @classmethod
     def from_model(cls, model: Any, scenario: Any, encoding: str = "slots") -> RlScheduler:

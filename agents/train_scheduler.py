@@ -106,6 +106,20 @@ def judge_signature(scenario: Scenario, encoding: str) -> dict:
     return candidate_signature(scenario) if encoding == "candidates" else signature(scenario)
 
 
+def initial_state(init: Path, scenario: Scenario, encoding: str) -> dict[str, torch.Tensor]:
+    """The policy state in ``init`` to start training from; a candidate policy of an earlier encoding
+    (``agents.candidates.WIDTHS``) widened to this one, deciding as it did until trained further."""
+    from twin import read_meta
+
+    from agents.candidate_policy import widened
+    from agents.candidates import WIDTHS
+
+    trained = read_meta(Path(init)).get("signature", {}).get("encoding")
+    if encoding == "candidates" and trained in WIDTHS:
+        return widened(load_policy(Path(init), "scheduler", candidate_signature(scenario, trained)).policy.state_dict())
+    return load_policy(Path(init), "scheduler", judge_signature(scenario, encoding)).policy.state_dict()
+
+
 class Judge:
     """Evaluates a policy in training and keeps the best: its objective (what the reward sums to: makespan,
     degraded samples and abandoned experiments, weighted by ``training.weights``) relative to the best rule's,
@@ -193,8 +207,7 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
     else:
         model = MaskablePPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS)
     if init is not None:
-        model.policy.load_state_dict(load_policy(Path(init), "scheduler", judge_signature(scenario, encoding))
-                                     .policy.state_dict())
+        model.policy.load_state_dict(initial_state(init, scenario, encoding))
     judge = Judge(scenario, out, encoding, eval_seeds, held_out_count, on_progress, method="ppo",
                   **started_from(init))
     done = 0

@@ -24,10 +24,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from agents.candidates import signature  # noqa: E402
+from agents.train_scheduler import initial_state  # noqa: E402
 from agents.imitation import _scorer, sampled_runs  # noqa: E402
 from bench.tables import table  # noqa: E402
-from twin import jobshop_as_lab, load_policy, prepare, random_jobshop  # noqa: E402
+from twin import jobshop_as_lab, prepare, random_jobshop  # noqa: E402
 
 
 def main() -> None:
@@ -40,7 +40,8 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     s = prepare(args.scenario)
-    state = load_policy(args.policy, "scheduler", signature(s)).policy.action_net.state_dict()
+    state = {k.removeprefix("action_net."): v for k, v in initial_state(args.policy, s, "candidates").items()
+             if k.startswith("action_net.")}
     sizes = s.training.jobshop_sizes or [[10, 10]]
     low, high = (int(x) for x in (s.training.operation_s or (1, 99)))
     shops = []

@@ -8,8 +8,8 @@ driver scaffold import from here only; the layers below are private
 """
 
 from twin.campaign import CampaignCore
-from twin.campaign.decisions import (Assignment, DeviceState, FreeDevice, LabView, Outcome, Planner, Proposal,
-                                     ReadyStep, RouteStep, Scheduler, capable)
+from twin.campaign.decisions import (Assignment, CampaignState, DeviceState, FreeDevice, LabView, Outcome, Planner,
+                                     Proposal, ReadyStep, RouteStep, Scheduler, capable)
 from twin.campaign.summary import Summary
 from twin.core.bus import Bus, MemoryBus, open_bus
 from twin.core.clock import Clock, LabClock, sleep_wall
@@ -35,7 +35,7 @@ from twin.tools.testing import driver_setup, run_scenario, run_step
 from twin.view.watch import RecordOptions
 
 __all__ = [
-    "ANY_WORKFLOW", "AccountingError", "Assignment", "Bus", "BusError", "CampaignCore", "Clock", "ClockError", "DeviceActor",
+    "ANY_WORKFLOW", "AccountingError", "Assignment", "Bus", "BusError", "CampaignCore", "CampaignState", "Clock", "ClockError", "DeviceActor",
     "DeviceState", "Driver", "DriverError", "DriverFeatures", "DriverSetup", "FastCampaign", "FreeDevice",
     "LabClock", "LabView", "LiveCampaign", "MemoryBus", "Outcome", "Planner", "PluginError", "Proposal",
     "ReadyStep", "RecordOptions", "Refused", "RouteStep", "Scenario", "ScenarioError", "Scheduler", "StepContext", "StepResult",

@@ -14,7 +14,7 @@ from agents.candidates import WAIT, CandidateEncoder
 from agents.imitation import _scorer, sampled_runs, self_task
 from agents.rl_scheduler import RlScheduler
 from agents.train_scheduler import campaign, objective, train_scheduler
-from twin import SteppedCampaign, jobshop_as_lab, load_policy, random_jobshop
+from twin import SteppedCampaign, jobshop_as_lab, random_jobshop
 from twin.runtime.lab import prepare
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -29,9 +29,10 @@ def ft06():
 
 @pytest.fixture(scope="module")
 def state(ft06):
-    from agents.candidates import signature
+    from agents.train_scheduler import initial_state
 
-    return load_policy(SHIPPED, "scheduler", signature(ft06)).policy.action_net.state_dict()
+    return {k.removeprefix("action_net."): v for k, v in initial_state(SHIPPED, ft06, "candidates").items()
+            if k.startswith("action_net.")}  # a shipped v2 policy, widened
 
 
 def replay(lab, samples) -> float:

@@ -53,6 +53,7 @@ class ReadyStep:
     work_remaining_s: float
     avoid: frozenset[str] = frozenset()  # failed this step, and another instance can take it
     then: tuple[tuple[str, float], ...] = ()  # the experiment's later steps: (device type, expected s)
+    campaign: str = ""  # in a lab of several campaigns with one scheduler: whose step (``LabView.campaigns``)
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,18 @@ class DeviceState:
 
 
 @dataclass(frozen=True)
+class CampaignState:
+    """One campaign of a shared lab, as the lab's one scheduler may weigh its steps."""
+
+    name: str
+    priority: int
+    share: float  # the part of the device time it is due, among the campaigns running (they sum to 1)
+    used: float  # the part of the device time it has had so far
+    finished: int  # its experiments done or abandoned
+    budget: int
+
+
+@dataclass(frozen=True)
 class LabView:
     now: float
     ready: tuple[ReadyStep, ...]
@@ -85,6 +98,7 @@ class LabView:
     finished: int = 0  # experiments done or abandoned
     budget: int = 0
     in_lab: int = 0  # experiments proposed and not finished
+    campaigns: tuple[CampaignState, ...] = ()  # a lab of several campaigns with one scheduler: each running one
 
 
 @dataclass(frozen=True)

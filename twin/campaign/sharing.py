@@ -28,7 +28,7 @@ from typing import Any
 from twin.campaign import consumables, dispatch
 from twin.campaign.consumables import Stocks
 from twin.campaign.core import CampaignCore
-from twin.campaign.decisions import Assignment, DeviceState, LabView
+from twin.campaign.decisions import Assignment, CampaignState, DeviceState, LabView
 from twin.campaign.events import (Action, Ask, Decided, DeviceMessage, Event, InvalidInput, Presence, SetTimer, Stop,
                                   TimerFired, TimerKey, TimerKind)
 from twin.scenario.model import Scenario, SharedCampaign
@@ -291,10 +291,20 @@ class SharedLab:
             for r in v.ready:
                 if any(f.device_type == r.device_type and f.name not in r.avoid for f in free):
                     top[r.device_type] = max(top.get(r.device_type, priority[n]), priority[n])
-        ready = tuple(dataclasses.replace(r, task=f"{n}/{r.task}") for n, v in views.items() for r in v.ready
-                      if priority[n] >= top.get(r.device_type, priority[n]))
+        ready = tuple(dataclasses.replace(r, task=f"{n}/{r.task}", campaign=n) for n, v in views.items()
+                      for r in v.ready if priority[n] >= top.get(r.device_type, priority[n]))
         return LabView(now, ready, free, self._device_states(free_names), sum(v.finished for v in views.values()),
-                       sum(v.budget for v in views.values()), sum(v.in_lab for v in views.values()))
+                       sum(v.budget for v in views.values()), sum(v.in_lab for v in views.values()),
+                       self._campaign_states())
+
+    def _campaign_states(self) -> tuple[CampaignState, ...]:
+        """Every running campaign: its priority, the share of device time it is due and the share it has had."""
+        running = [n for n in self.started if not self.cores[n].finished]
+        used = {n: self.used_s(n) for n in running}
+        total, due = sum(used.values()), sum(self.entries[n].share for n in running)
+        return tuple(CampaignState(n, self.entries[n].priority, self.entries[n].share / due,
+                                   used[n] / total if total else 0.0, self.cores[n].finished_count,
+                                   self.cores[n].s.campaign.budget) for n in running)
 
     def _view(self, name: str, now: float) -> LabView:
         core = self.cores[name]

@@ -10,13 +10,17 @@ decision point (a device freed, a step ready) or to the end of the campaign.
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 from twin.campaign.decisions import Assignment, LabView
-from twin.runtime.lab import finish, load_drivers, make_planner, prepare
+from twin.runtime.fast_lab import FastLab, SeatParts
+from twin.runtime.lab import finish, load_drivers, make_planner, make_scheduler, prepare
 from twin.campaign.journal import NullJournal
 from twin.runtime import FastCampaign
+from twin.runtime.shared_run import lab_summaries, lab_summary, shared_drivers
 from twin.scenario import Scenario
-from twin.campaign.summary import Summary
+from twin.scenario.sharing import campaign_scenarios
+from twin.campaign.summary import LabSummary, Summary
 
 
 class SteppedCampaign:
@@ -53,3 +57,50 @@ class SteppedCampaign:
         self.view = self._run.next_decision()
         if self.view is None:
             self.summary = finish(self.core, self._journal, self._wall0, self._run.now)
+
+
+class SteppedLab:
+    """A lab of several campaigns (a scenario with ``campaigns:``) run one decision of its one scheduler at a time:
+    every campaign's ready steps in one ``LabView`` (tasks ``campaign/task``, ``LabView.campaigns``), as
+    ``orchestrator.lab_scheduler`` sees them, whether or not the lab file sets one; each campaign's planner as its
+    file says, journals in memory. The same interface as ``SteppedCampaign``; ``summary`` is a ``LabSummary``."""
+
+    def __init__(self, lab: Scenario) -> None:
+        s = prepare(lab, clock="virtual", bus="memory")
+        if not s.campaigns:
+            raise ValueError(f"{s.name}: a stepped lab has several campaigns (campaigns:); a lab of one is a "
+                             "SteppedCampaign")
+        self.s = s.model_copy(update={"orchestrator": s.orchestrator.model_copy(update={"lab_scheduler": "(stepped)"})})
+        self._wall0 = time.perf_counter()
+        scenarios = campaign_scenarios(self.s, self.s.name)
+        drivers, per_device = shared_drivers(scenarios)
+        self._parts: dict[str, SeatParts] = {n: (NullJournal(), make_planner(cs), make_scheduler(cs))
+                                             for n, cs in scenarios.items()}
+        self._run = FastLab(self.s, scenarios, drivers, per_device, self._parts)
+        self.summary: LabSummary | None = None
+        self.view: LabView | None = None
+        self._next()
+
+    @property
+    def done(self) -> bool:
+        return self.summary is not None
+
+    @property
+    def now(self) -> float:
+        return self._run.now
+
+    def answer(self, assignments: list[Assignment]) -> None:
+        """Answer the waiting decision and run the lab to the next one (or the end)."""
+        self._run.answer(assignments)
+        self._next()
+
+    def close(self) -> None:
+        for journal, _, _ in self._parts.values():
+            journal.close()
+
+    def _next(self) -> None:
+        self.view = self._run.next_decision()
+        if self.view is None:
+            shared = self._run.shared
+            summaries = lab_summaries(shared, self._parts, self._wall0, self.now)
+            self.summary = lab_summary(self.s, shared, summaries, Path("(memory)"), time.perf_counter() - self._wall0)

@@ -8,7 +8,7 @@ from collections.abc import Callable
 from typing import Any
 
 from twin.campaign.events import Ask, Decided, TimerFired, TimerKey
-from twin.campaign.decisions import Planner, Scheduler
+from twin.campaign.decisions import Assignment, LabView, Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.campaign.sharing import LAB, SharedLab, by_campaign
 from twin.runtime.fast import Progress, Seat, asyncio_tripwire
@@ -41,18 +41,33 @@ class FastLab:
                                  observer=observer.campaign(name) if observer is not None else None)
                       for name in scenarios}
         self._lab_timers: dict[TimerKey, Timer] = {}
+        self._started = False
+        self.view: LabView | None = None  # the lab's one scheduler's question, until answered
 
     @property
     def now(self) -> float:
         return self.queue.now
 
     def run(self) -> None:
+        while (view := self.next_decision()) is not None:
+            assert self.lab_scheduler is not None
+            started = time.perf_counter()
+            decided = list(self.lab_scheduler.decide(view))
+            self.answer(decided, time.perf_counter() - started)
+
+    def next_decision(self) -> LabView | None:
+        """Run to the next question for the lab's one scheduler (``orchestrator.lab_scheduler``), or to the end
+        (``None``); a lab without one runs to the end."""
         shared, q = self.shared, self.queue
         with asyncio_tripwire():
-            self._perform(shared.start(q.now))
-            for dev in self.devices.values():
-                dev.start()
+            if not self._started:
+                self._started = True
+                self._perform(shared.start(q.now))
+                for dev in self.devices.values():
+                    dev.start()
             while not shared.finished:
+                if self.view is not None:
+                    return self.view
                 q.run_ready()
                 if shared.has_work:
                     self._perform(shared.advance(q.now))
@@ -62,6 +77,14 @@ class FastLab:
                         break
             for dev in self.devices.values():
                 dev.stop()
+        return None
+
+    def answer(self, assignments: list[Assignment], wall_s: float = 0.0) -> None:
+        """The lab's one scheduler's answer to the question ``next_decision`` returned."""
+        if self.view is None:
+            raise RuntimeError("no decision is waiting: the lab is over")
+        self.view = None
+        self.shared.feed(LAB, Decided(list(assignments), wall_s))
 
     def stop(self, reason: str) -> None:
         self.shared.stop(reason)
@@ -76,10 +99,7 @@ class FastLab:
             return
         for a in actions:  # the lab's own: submission timers, and questions to its one scheduler
             if type(a) is Ask:
-                assert self.lab_scheduler is not None and a.view is not None
-                started = time.perf_counter()
-                decided = list(self.lab_scheduler.decide(a.view))
-                self.shared.feed(LAB, Decided(decided, time.perf_counter() - started))
+                self.view = a.view  # for the lab's one scheduler: ``next_decision`` hands it out
             else:
                 self._lab_timers[a.key] = self.queue.call_later(a.delay, self._fire, a.key)
 

@@ -21,7 +21,7 @@ from typing import Any
 
 from twin.core.bus import Bus
 from twin.core.bus.base import NoReplyError
-from twin.campaign.decisions import Assignment, DeviceState, FreeDevice, LabView, ReadyStep, capable
+from twin.campaign.decisions import Assignment, CampaignState, DeviceState, FreeDevice, LabView, ReadyStep, capable
 from twin.core.keys import PREFIX
 
 log = logging.getLogger(__name__)
@@ -49,7 +49,7 @@ def decode_view(payload: bytes) -> LabView:
     return LabView(d["now"], tuple(ReadyStep(**{**r, "avoid": frozenset(r["avoid"]), "then": then(r)}) for r in d["ready"]),
                    tuple(FreeDevice(**f) for f in d["free"]),
                    tuple(DeviceState(**{**x, "then": then(x)}) for x in d["devices"]),
-                   d["finished"], d["budget"], d["in_lab"])
+                   d["finished"], d["budget"], d["in_lab"], tuple(CampaignState(**c) for c in d.get("campaigns", ())))
 
 
 def check(view: LabView, reply: bytes) -> tuple[list[Assignment], str]:

@@ -68,8 +68,8 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
                 lab.run()
             finally:
                 notes = {n: _noted(parts[n][0], observer.campaign(n), lab.now) for n in parts} if observer else None
-                summaries = _finish(lab.shared, parts, wall0, lab.now, notes)
-        return _summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
+                summaries = lab_summaries(lab.shared, parts, wall0, lab.now, notes)
+        return lab_summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
     clock = make_clock(s)
     return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals,
                            observer=observer, external=external_devices))
@@ -207,13 +207,13 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
         try:
             await lab.run()
         finally:
-            summaries = _finish(lab.shared, lab.parts, wall0, clock.now(),
+            summaries = lab_summaries(lab.shared, lab.parts, wall0, clock.now(),
                                 {n: seat.note for n, seat in lab.seats.items()})
             until = clock.now() if serving is not None else 0.0
-    return _summary(s, lab.shared, summaries, where, time.perf_counter() - wall0, until)
+    return lab_summary(s, lab.shared, summaries, where, time.perf_counter() - wall0, until)
 
 
-def _finish(shared: SharedLab, parts: dict, wall0: float, now: float,
+def lab_summaries(shared: SharedLab, parts: dict, wall0: float, now: float,
             notes: dict[str, Callable[[str, Any], None]] | None = None) -> dict[str, Summary]:
     """Each started campaign's summary, journalled; a campaign that never started says why in its journal."""
     summaries = {}
@@ -254,7 +254,7 @@ def shared_drivers(scenarios: dict[str, Scenario], only: set[str] | None = None,
     return [(inst, dt, drv) for inst, (dt, drv) in first.items()], per_device
 
 
-def _summary(s: Scenario, shared: SharedLab, summaries: dict, where: Path, wall_s: float,
+def lab_summary(s: Scenario, shared: SharedLab, summaries: dict, where: Path, wall_s: float,
              served_until: float = 0.0) -> LabSummary:
     """``served_until``: a lab that served (``twin lab serve``) counts its hours until it was stopped."""
     ended = {n: shared.cores[n].now / 3600 for n in shared.started}

@@ -1,0 +1,116 @@
+"""The RL scheduler of a lab of several campaigns (issue [7 of 7]): it sees whose step each candidate is, a lab is
+stepped one decision of its one scheduler at a time, and a policy of the earlier encoding still decides as it did."""
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from agents.candidates import FEATURES, MAX_CANDIDATES, WIDTHS, CandidateEncoder
+from agents.rl_scheduler import RlScheduler
+from agents.train_scheduler import initial_state
+from twin import load_plugin, prepare
+from twin.campaign.decisions import CampaignState, DeviceState, FreeDevice, LabView, ReadyStep
+from twin.learning.stepper import SteppedLab
+from twin.runtime.shared_run import run_shared
+from twin.scenario.sharing import campaign_scenarios
+
+ROOT = Path(__file__).resolve().parents[2]
+LAB = ROOT / "scenarios" / "shared_lab.yaml"
+SHIPPED = ROOT / "agents" / "policies" / "flaky_scheduler.zip"
+torch.set_num_threads(1)
+CONTENDED = {"campaigns.1.priority": 0, "devices.spectrometer.duration.mean_s": 1500}  # both queue at one device
+
+
+def columns(view: LabView, lab) -> dict[str, tuple]:
+    """The campaign columns of each candidate, by task."""
+    enc = CandidateEncoder(lab)
+    obs, _ = enc.encode(view)
+    rows = obs[:MAX_CANDIDATES * FEATURES].reshape(MAX_CANDIDATES, FEATURES)
+    return {r.task: tuple(float(x) for x in row[WIDTHS["candidates-v2"]:]) for (r, _), row in zip(enc.encoded, rows)}
+
+
+def step(task, campaign, dtype="spectrometer", expected=100.0, then=()):
+    return ReadyStep(task, 0, "measure", dtype, 0.0, None, expected, expected + sum(s for _, s in then),
+                     then=then, campaign=campaign)
+
+
+def test_each_candidate_says_whose_step_it_is():
+    lab = prepare(LAB)
+    view = LabView(
+        50.0, (step("a/t1", "a"), step("a/t2", "a", then=(("reactor", 300.0),)), step("b/t1", "b", expected=200.0)),
+        (FreeDevice("spectrometer", "spectrometer"),),
+        (DeviceState("spectrometer", "spectrometer", True, True, None, 3, 0, 40.0),),
+        finished=5, budget=100, campaigns=(CampaignState("a", 2, 0.25, 0.5, 4, 40), CampaignState("b", 0, 0.75, 0.5, 1, 60)))
+    got = columns(view, lab)
+    # a: top priority, has had 0.5 of the device time against 0.25 due, 4 of 40 done, 1 rival step, whose
+    # 200 s of the 400 s queued for the spectrometer
+    assert got["a/t1"] == pytest.approx((1.0, 0.25, 0.1, 0.1, 0.5), abs=1e-6)
+    assert got["a/t2"] == got["a/t1"]
+    assert got["b/t1"] == pytest.approx((0.0, -0.25, 1 / 60, 0.2, 0.5), abs=1e-6)
+    alone = LabView(50.0, (step("t1", ""),), view.free, view.devices, finished=5, budget=100)
+    assert columns(alone, lab)["t1"] == pytest.approx((1.0, 0.0, 0.05, 0.0, 0.0), abs=1e-6)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_lab_stepped_decision_by_decision_is_the_lab_run_with_that_scheduler(tmp_path, seed):
+    lab = prepare(LAB, seed=seed, overrides=CONTENDED)
+    stepped, mwkr, views = SteppedLab(lab), load_plugin("schedulers", "mwkr")(), []
+    try:
+        while not stepped.done:
+            views.append(stepped.view)
+            stepped.answer(mwkr.decide(stepped.view))
+    finally:
+        stepped.close()
+    ran = run_shared(prepare(LAB, seed=seed, overrides={**CONTENDED, "orchestrator.lab_scheduler": "mwkr"}),
+                     tmp_path, handle_signals=False)
+    assert stepped.summary.ended_h == pytest.approx(ran.ended_h)
+    assert {n: c.done for n, c in stepped.summary.campaigns.items()} == {n: c.done for n, c in ran.campaigns.items()}
+    assert any({r.campaign for r in v.ready} == {"dots", "catalyst"} for v in views), "no question had both's steps"
+    assert all(r.task.startswith(r.campaign + "/") for v in views for r in v.ready)
+    assert all({c.name for c in v.campaigns} <= {"dots", "catalyst"} and
+               sum(c.share for c in v.campaigns) == pytest.approx(1.0) for v in views)
+
+
+def test_a_policy_of_the_earlier_encoding_decides_as_before_and_widened_the_same():
+    from sb3_contrib import MaskablePPO
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from agents.candidate_policy import CandidatePolicy
+    from agents.scheduling_env import SchedulingEnv
+
+    lab = prepare(LAB, seed=1, overrides=CONTENDED)
+    first = campaign_scenarios(lab)["dots"]  # as a lab's one scheduler is made
+    old = RlScheduler(first, str(SHIPPED))
+    assert not old.sees_campaigns and old.encoder.width == WIDTHS["candidates-v2"]
+    host = DummyVecEnv([lambda: SchedulingEnv(first, randomise=False)])
+    model = MaskablePPO(CandidatePolicy, host, device="cpu")
+    host.close()
+    model.policy.load_state_dict(initial_state(SHIPPED, first, "candidates"))
+    widened = RlScheduler.from_model(model, first, "candidates")
+    assert widened.encoder.width == FEATURES
+    stepped, decisions = SteppedLab(lab), 0
+    try:
+        while not stepped.done:
+            chosen = old.decide(stepped.view)
+            assert widened.decide(stepped.view) == chosen
+            stepped.answer(chosen)
+            decisions += 1
+    finally:
+        stepped.close()
+    assert decisions > 20
+    obs = torch.as_tensor(widened.encoder.encode(stepped.view if stepped.view else _last(lab, old))[0]).unsqueeze(0)
+    before = model.policy.action_net(obs)
+    model.policy.action_net.sets.embed[0].weight.data[:, -5:] += 1.0  # the campaign columns now count
+    assert not torch.allclose(model.policy.action_net(obs), before), "the campaign columns are not read"
+
+
+def _last(lab, scheduler) -> LabView:
+    """A question of the lab to its one scheduler with both campaigns' steps in it."""
+    stepped = SteppedLab(lab)
+    try:
+        while {r.campaign for r in stepped.view.ready} != {"dots", "catalyst"}:
+            stepped.answer(scheduler.decide(stepped.view))
+        return stepped.view
+    finally:
+        stepped.close()
