@@ -28,7 +28,7 @@ import bisect
 import numpy as np
 
 from agents.scheduling_features import time_scale
-from twin import ANY_WORKFLOW, Assignment, LabView, ReadyStep, Scenario, drawn_at_random
+from twin import ANY_WORKFLOW, Assignment, LabView, ReadyStep, Scenario, campaign_scenarios, drawn_at_random
 
 ENCODING = "candidates-v3"
 MAX_CANDIDATES = 128
@@ -61,6 +61,9 @@ class CandidateEncoder:
         self.width = WIDTHS[encoding]  # a policy of an earlier encoding reads the first columns only
         self.scale = time_scale(scenario)
         self.stability = scenario.chemistry.stability_s or 0.0
+        # a lab of several campaigns: each campaign's samples keep as its chemistry says
+        self.stability_of = {n: c.chemistry.stability_s or 0.0
+                             for n, c in campaign_scenarios(scenario, scenario.name).items()}
         self.encoded: list[tuple[ReadyStep, str]] = []  # the candidates of the view last encoded, in row order
 
     def pairs(self, view: LabView) -> list[tuple[ReadyStep, str]]:
@@ -115,15 +118,16 @@ class CandidateEncoder:
             nxt_busy = sum(x.busy_until is not None for x in nxt) / len(nxt) if nxt else 0.0
             nxt_wait = min((x.busy_until - now for x in nxt if x.busy_until is not None), default=0.0) if nxt and \
                 all(x.busy_until is not None for x in nxt) else 0.0
+            stability = self.stability_of.get(r.campaign, self.stability)
             age = (now - r.sample_made) if r.sample_made is not None else 0.0
-            spare = (self.stability - age) / k if self.stability and r.sample_made is not None else CLIP
+            spare = (stability - age) / k if stability and r.sample_made is not None else CLIP
             rows[i] = [
                 1.0,
                 r.expected_s / k,
                 r.work_remaining_s / k,
                 (r.work_remaining_s - r.expected_s) / k,
                 (now - r.ready_since) / k,
-                age / self.stability if self.stability else 0.0,
+                age / stability if stability else 0.0,
                 spare,
                 len(r.then) / 10,
                 nxt_s / k,
@@ -230,6 +234,8 @@ def lab_shape(s: Scenario) -> dict:
     """What a scheduler policy's fit is judged on: the step types a lab runs, how many device types it has, and
     the most instances of one type (a lab drawn by ``twin.scenario.random_labs`` stands for any workflow)."""
     steps = {ANY_WORKFLOW} if drawn_at_random(s) else {w.step for w in s.workflow}
+    for c in campaign_scenarios(s, s.name).values():  # a lab of several campaigns: every campaign's steps
+        steps |= {w.step for w in c.workflow}
     for p in s.campaign.planner_options.get("proposals", []):  # a job shop's fixed routes
         steps |= {str(step.get("step")) for step in p.get("route", [])}
     counts = [d.instances for d in s.devices.values()]

@@ -41,9 +41,9 @@ import torch
 from agents.candidates import FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, lab_shape, widen
 from agents.cpsat import jobshop
 from agents.scheduling_env import randomised
-from agents.schedulers import RULES
+from agents.schedulers import LAB_RULES, RULES
 from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, initial_state, objective, started_from
-from twin import Scenario, SteppedCampaign, jobshop_as_lab, load_plugin, prepare, random_jobshop
+from twin import Scenario, SteppedCampaign, SteppedLab, jobshop_as_lab, load_plugin, prepare, random_jobshop
 
 
 @dataclass
@@ -146,7 +146,7 @@ def rollout(lab: Scenario, teacher: PlanTeacher | RuleTeacher, choose, rng: rand
     """One campaign of ``lab``, every state labelled by ``teacher``; ``choose(obs, mask, taught, rng)`` acts.
     Returns the samples and the campaign's summary."""
     encoder = CandidateEncoder(lab)
-    c = SteppedCampaign(lab)
+    c: Any = SteppedLab(lab) if lab.campaigns else SteppedCampaign(lab)
     out: list[Sample] = []
     teacher.reset()
     try:
@@ -209,7 +209,8 @@ def lab_task(args: tuple) -> tuple[list[Sample], dict]:
     torch.set_num_threads(1)
     rng = random.Random(f"imitate:{seed}")
     lab = prepare(randomised(base, seed), seed=seed)
-    scores = {r: objective(campaign(lab, seed, load_plugin("schedulers", r)().decide), lab) for r in RULES}
+    rules = (*RULES, *LAB_RULES) if lab.campaigns else RULES  # a lab of several campaigns: as its one scheduler
+    scores = {r: objective(campaign(lab, seed, load_plugin("schedulers", r)().decide), lab) for r in rules}
     rule = min(scores, key=scores.get)
     samples, ratios = _rollouts(lab, RuleTeacher(rule), modes, _scorer(state, seed), beta, rng,
                                 lambda summary: objective(summary, lab) / scores[rule])
@@ -229,7 +230,8 @@ def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
     the policy, a sample strays so far from the greedy run that the best of 16 is hardly better than it; too low,
     it seldom leaves it); each state is labelled with the choice the run made there. The samples and the summary
     of each run."""
-    runs = [(CandidateEncoder(lab), SteppedCampaign(lab), []) for _ in range(k)]
+    stepped: Any = SteppedLab if lab.campaigns else SteppedCampaign  # a lab of several: its one scheduler's questions
+    runs = [(CandidateEncoder(lab), stepped(lab), []) for _ in range(k)]
     try:
         live = list(range(k))
         while live:
@@ -260,7 +262,7 @@ def self_task(args: tuple) -> tuple[list[Sample], dict]:
     it out ``training.samples`` times with the policy, and return the best run's samples."""
     base, seed, _modes, state, _beta = args
     torch.set_num_threads(1)
-    if base.training.jobshop_sizes:
+    if base.training.jobshop_sizes and not base.campaigns:
         rng = random.Random(f"imitate:{seed}")
         n_jobs, n_machines = rng.choice(base.training.jobshop_sizes)
         low, high = (int(x) for x in (base.training.operation_s or (1, 10)))
@@ -390,7 +392,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     learning_rate = learning_rate or (2e-4 if init is not None else 1e-3)  # a trained policy is tuned, not retaught
     torch.set_num_threads(1)
     torch.manual_seed(seed)
-    host = DummyVecEnv([lambda: SchedulingEnv(scenario, randomise=False)])  # only holds the spaces for SB3
+    host = DummyVecEnv([lambda: SchedulingEnv(scenario, randomise=False)])  # SB3's spaces
     model = MaskablePPO(CandidatePolicy, host, seed=seed, verbose=0, device="cpu")
     host.close()
     net = model.policy.action_net
@@ -402,7 +404,8 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
     judge = Judge(scenario, out, "candidates", eval_seeds or EVAL_SEEDS, held_out_count, on_progress,
                   method="imitate", teacher=scenario.training.teacher, **started_from(init))
-    jobshop = bool(scenario.training.jobshop_sizes) if itself else scenario.training.teacher == "cp-sat"
+    jobshop = bool(scenario.training.jobshop_sizes and not scenario.campaigns) if itself else \
+        scenario.training.teacher == "cp-sat"
     task = self_task if itself else shop_task if jobshop else lab_task
     if jobshop:
         fits = widen(fits, training_fits(scenario))

@@ -79,4 +79,16 @@ class LeastLoadedScheduler(_Rule):
                                 pick=lambda options: min(options, key=lambda d: busy.get(d.name, (0.0, d.name))))
 
 
+class FairShareScheduler(_Rule):
+    """A lab of several campaigns (``orchestrator.lab_scheduler``): the campaign of top priority first, then the
+    one furthest below its share of the device time so far, first ready first within it — the lab's turns as one
+    rule over every campaign's steps. One campaign: first ready, first served."""
+
+    def decide(self, view: LabView) -> list[Assignment]:
+        states = {c.name: (-c.priority, c.used - c.share) for c in view.campaigns}
+        return _assign_in_order(sorted(view.ready, key=lambda s: (*states.get(s.campaign, (0, 0.0)), s.ready_since,
+                                                                  s.task)), view)
+
+
 RULES = ("fifo", "spt", "mwkr", "least-loaded", "oldest-sample")
+LAB_RULES = ("fair-share",)  # rules that read whose step each is: a lab's one scheduler's baselines and teachers

@@ -26,7 +26,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from agents import candidates, default_scenario, scheduling_features
+from agents import candidates, default_scenario, lab_scheduling, scheduling_features
 from twin import jobshop_as_lab, random_jobshop, random_lab
 from twin import prepare
 from twin import Scenario
@@ -40,7 +40,7 @@ def randomised(s: Scenario, seed: int) -> Scenario:
     """A lab drawn from the scenario's ``training`` ranges (the same seed draws the same lab)."""
     t, rng = s.training, random.Random(f"randomise:{seed}")
     dur, fault = rng.uniform(*t.duration_scale), rng.uniform(*t.fault_scale)
-    if t.random_labs is not None and rng.random() < t.random_labs.share:
+    if t.random_labs is not None and not s.campaigns and rng.random() < t.random_labs.share:
         return prepare(random_lab(s, rng, dur, fault))
     over: dict[str, Any] = {}
     for name, d in s.devices.items():
@@ -57,6 +57,8 @@ def randomised(s: Scenario, seed: int) -> Scenario:
     jobs = s.campaign.planner_options.get("proposals")
     if jobs and (t.operation_s or t.shuffle_routes):
         over["campaign.planner_options.proposals"] = [_redraw(job, t, rng) for job in jobs]
+    if s.campaigns:  # a lab of several: its campaigns' priorities and shares too
+        over = lab_scheduling.variant(s, over, rng)
     return prepare(s, overrides=over)
 
 

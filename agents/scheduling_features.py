@@ -25,7 +25,7 @@ import numpy as np
 
 from twin import Assignment, DeviceState, LabView, ReadyStep
 from twin import expected_duration
-from twin import Scenario
+from twin import Scenario, campaign_scenarios
 
 SLOTS, INSTANCES = 10, 4
 STEP_FEATURES, PAIR_FEATURES, GLOBAL_FEATURES = 8, 3, 6
@@ -36,7 +36,10 @@ CLIP = 10.0
 
 
 def time_scale(s: Scenario) -> float:
-    """The scenario's typical step duration (lab seconds): the unit of every time feature."""
+    """The scenario's typical step duration (lab seconds): the unit of every time feature (a lab of several
+    campaigns: the mean of theirs)."""
+    if s.campaigns:
+        return statistics.mean(time_scale(c) for c in campaign_scenarios(s, s.name).values())
     durations = []
     for p in s.campaign.planner_options.get("proposals", []):  # a job shop's fixed routes
         durations += [float(step.get("params", {}).get("duration_s", 0.0)) for step in p.get("route", [])]

@@ -20,13 +20,14 @@ from agents.rl_scheduler import RlScheduler
 from agents.candidates import signature as candidate_signature
 from agents.candidates import widen
 from agents.scheduling_features import signature, time_scale
-from agents.schedulers import RULES
+from agents.schedulers import LAB_RULES, RULES
 from twin import load_plugin, load_policy
 from twin import Assignment, LabView
 from twin import prepare
 from twin import save_policy
 from twin import Scenario
-from twin import SteppedCampaign
+from twin import LabSummary, SteppedCampaign, SteppedLab
+from agents.lab_scheduling import lab_objective
 
 EVAL_SEEDS = tuple(range(100_000, 100_005))
 CANDIDATE_SETTINGS = dict(n_steps=1024, batch_size=512, n_epochs=8, gamma=0.995, gae_lambda=0.95, learning_rate=1e-4,
@@ -36,11 +37,17 @@ PPO_SETTINGS = dict(n_steps=512, batch_size=256, n_epochs=10, gamma=0.995, gae_l
                     ent_coef=0.01, policy_kwargs=dict(net_arch=[128, 128]))
 
 
-def campaign(scenario: Scenario, seed: int, decide: Callable[[LabView], list[Assignment]]) -> Any:
-    """One whole campaign, scheduled by ``decide``; its summary."""
-    c = SteppedCampaign(prepare(scenario, seed=seed))
+TURNS = "turns"  # a lab of several campaigns without one scheduler: each campaign's own, in turns
+
+
+def campaign(scenario: Scenario, seed: int, decide: Callable[[LabView], list[Assignment]] | None) -> Any:
+    """One whole campaign, scheduled by ``decide``; its summary. A lab of several campaigns: every campaign,
+    ``decide`` the lab's one scheduler (None: each campaign's own, in turns); a ``LabSummary``."""
+    lab = prepare(scenario, seed=seed)
+    c: Any = SteppedLab(lab, one_scheduler=decide is not None) if lab.campaigns else SteppedCampaign(lab)
     try:
         while not c.done:
+            assert decide is not None
             c.answer(decide(c.view))
         return c.summary
     finally:
@@ -49,30 +56,51 @@ def campaign(scenario: Scenario, seed: int, decide: Callable[[LabView], list[Ass
 
 def objective(summary: Any, scenario: Scenario) -> float:
     """What the environment's reward sums to (negated): lab time in typical steps, degraded samples and
-    abandoned experiments, weighted by ``training.weights``."""
+    abandoned experiments, weighted by ``training.weights``; a lab of several campaigns, their weighted mean
+    (``agents.lab_scheduling.lab_objective``)."""
+    if isinstance(summary, LabSummary):
+        return lab_objective(summary, scenario, time_scale(scenario))
     w = scenario.training.weights
     return (w.time * summary.lab_hours * 3600 / time_scale(scenario) + w.degraded * summary.degraded_samples
             + w.abandoned * summary.abandoned)
 
 
+def _count(summary: Any, what: str) -> int:
+    if isinstance(summary, LabSummary):
+        return sum(getattr(c, what) for c in summary.campaigns.values())
+    return getattr(summary, what)
+
+
 def score(summaries: list[Any], scenario: Scenario | None = None) -> dict[str, float]:
     out = {"makespan h": statistics.mean(s.lab_hours for s in summaries),
-           "degraded": statistics.mean(s.degraded_samples for s in summaries),
-           "abandoned": statistics.mean(s.abandoned for s in summaries)}
+           "degraded": statistics.mean(_count(s, "degraded_samples") for s in summaries),
+           "abandoned": statistics.mean(_count(s, "abandoned") for s in summaries)}
     if scenario is not None:
         out["objective"] = statistics.mean(objective(s, scenario) for s in summaries)
     return out
 
 
+def baselines(scenario: Scenario) -> dict[str, Callable[[LabView], list[Assignment]] | None]:
+    """What a policy is judged against: every dispatching rule (in a lab of several campaigns, as its one
+    scheduler, with ``fair-share``), and there also the campaigns' own schedulers in turns."""
+    rules = (*RULES, *LAB_RULES) if scenario.campaigns else RULES
+    out: dict[str, Any] = {rule: load_plugin("schedulers", rule)().decide for rule in rules}
+    if scenario.campaigns:
+        out[TURNS] = None
+    return out
+
+
 def evaluate_rules(scenario: Scenario, seeds=EVAL_SEEDS) -> dict[str, dict[str, float]]:
-    return {rule: score([campaign(scenario, seed, load_plugin("schedulers", rule)().decide) for seed in seeds],
-                        scenario) for rule in RULES}
+    return {rule: score([campaign(scenario, seed, decide) for seed in seeds], scenario)
+            for rule, decide in baselines(scenario).items()}
 
 
 def held_out_labs(scenario: Scenario, n: int) -> list[Scenario]:
-    """Labs drawn from the scenario's ``training`` ranges with seeds the training draws never use."""
+    """Labs drawn from the scenario's ``training`` ranges with seeds the training draws never use (a lab of
+    several campaigns: always, its campaigns' priorities and shares drawn)."""
     t = scenario.training
-    if not (t.jobshop_sizes or t.instances or t.operation_s or t.random_labs or t.duration_scale != (1.0, 1.0)):
+    if not (t.jobshop_sizes or t.instances or t.operation_s or t.random_labs or t.duration_scale != (1.0, 1.0)
+            or scenario.campaigns):
         return []
     return [prepare(randomised(scenario, HELD_OUT_SEED + i), seed=0) for i in range(n)]
 
@@ -84,6 +112,8 @@ def solver_reference(scenario: Scenario, seeds, held_out: list[Scenario]) -> dic
     decision)."""
     from agents.cpsat_scheduler import CpSatScheduler
 
+    if scenario.campaigns:
+        return {}  # CP-SAT schedules one campaign's steps
     if scenario.jobshop is not None:
         return {"plans": [CpSatScheduler.offline_bound(lab, 1.0) / 3600 for lab in [scenario, *held_out]]}
     online = CpSatScheduler(scenario, time_limit_s=0.2)
@@ -139,7 +169,7 @@ class Judge:
         if held_out_count is None:
             held_out_count = max(6, 4 * len(scenario.training.jobshop_sizes))
         self.held_out = held_out_labs(scenario, held_out_count)
-        self.rule_spans = [min(objective(campaign(lab, 0, load_plugin("schedulers", r)().decide), lab) for r in RULES)
+        self.rule_spans = [min(objective(campaign(lab, 0, decide), lab) for decide in baselines(lab).values())
                            for lab in self.held_out]
         self.solver = solver_reference(scenario, eval_seeds, self.held_out)
         self.best: float | None = None
@@ -183,6 +213,8 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
     (DAgger from ``training.teacher``, ``agents.imitation``). ``encoding``: ``candidates`` (the
     candidate-scoring policy) or ``slots`` (an MLP over the fixed grid, the baseline; PPO only). ``init``: a policy
     of the same encoding to start from."""
+    if scenario.campaigns:
+        scenario = lab_training(scenario, encoding, init)
     if scenario.training.method == "imitate" and encoding == "candidates":
         from agents.imitation import train_by_imitation
 
@@ -223,6 +255,25 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
     finally:
         venv.close()  # stops the campaigns in the environments, also on Ctrl-C
     return out.with_suffix(".zip")
+
+
+def lab_training(lab: Scenario, encoding: str, init: Path | None) -> Scenario:
+    """A lab of several campaigns trains its one scheduler by imitation: of the best rule in each variant of the
+    lab (``training.teacher: best-rule``), or of the policy's own best of ``training.samples`` runs (``self``, the
+    default, from a policy: ``--init``). Its campaigns' steps are candidates of one question, which PPO's
+    environment of one campaign does not pose."""
+    t = lab.training
+    fix = ("train it from a policy with --init P.zip (e.g. agents/policies/flaky_scheduler.zip), or with --set "
+           "training.teacher=best-rule")
+    if encoding != "candidates" or t.method == "ppo" and "method" in t.model_fields_set or t.teacher == "cp-sat" \
+            and "teacher" in t.model_fields_set:
+        raise ValueError(f"{lab.name}: the scheduler of a lab of several campaigns learns by imitation "
+                         f"(training.teacher self or best-rule; here {encoding}, {t.method}, {t.teacher}): {fix}")
+    teacher = t.teacher if "teacher" in t.model_fields_set else "self"
+    if teacher == "self" and init is None:
+        raise ValueError(f"{lab.name}: the scheduler of a lab of several campaigns improves on a policy's own best "
+                         f"runs (training.teacher self): {fix}")
+    return lab.model_copy(update={"training": t.model_copy(update={"method": "imitate", "teacher": teacher})})
 
 
 def train_slot_scheduler(scenario: Scenario, steps: int, out: Path, **kwargs: Any) -> Path:

@@ -10,7 +10,7 @@ driver scaffold import from here only; the layers below are private
 from twin.campaign import CampaignCore
 from twin.campaign.decisions import (Assignment, CampaignState, DeviceState, FreeDevice, LabView, Outcome, Planner,
                                      Proposal, ReadyStep, RouteStep, Scheduler, capable)
-from twin.campaign.summary import Summary
+from twin.campaign.summary import LabSummary, Summary
 from twin.core.bus import Bus, MemoryBus, open_bus
 from twin.core.clock import Clock, LabClock, sleep_wall
 from twin.core.errors import (AccountingError, BusError, ClockError, DriverError, PluginError, Refused,
@@ -20,7 +20,7 @@ from twin.core.streams import keyed_uniforms, seeded
 from twin.device.actor import DeviceActor
 from twin.device.driver import Driver, DriverFeatures, DriverSetup, StepContext, StepResult
 from twin.learning.policies import load_policy, read_meta, save_policy
-from twin.learning.stepper import SteppedCampaign
+from twin.learning.stepper import SteppedCampaign, SteppedLab
 from twin.learning.workcell import open_workcell
 from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.lab import prepare, run, run_async
@@ -29,6 +29,7 @@ from twin.scenario import Scenario, expected_duration, json_schema
 from twin.scenario import load as load_scenario
 from twin.scenario.jobshop import as_lab as jobshop_as_lab
 from twin.scenario.jobshop import generate as random_jobshop
+from twin.scenario.sharing import campaign_scenarios
 from twin.scenario.random_labs import ANY_WORKFLOW, drawn_at_random, random_lab
 from twin.scenario.targets import score
 from twin.tools.testing import driver_setup, run_scenario, run_step
@@ -37,9 +38,9 @@ from twin.view.watch import RecordOptions
 __all__ = [
     "ANY_WORKFLOW", "AccountingError", "Assignment", "Bus", "BusError", "CampaignCore", "CampaignState", "Clock", "ClockError", "DeviceActor",
     "DeviceState", "Driver", "DriverError", "DriverFeatures", "DriverSetup", "FastCampaign", "FreeDevice",
-    "LabClock", "LabView", "LiveCampaign", "MemoryBus", "Outcome", "Planner", "PluginError", "Proposal",
+    "LabClock", "LabSummary", "LabView", "LiveCampaign", "MemoryBus", "Outcome", "Planner", "PluginError", "Proposal",
     "ReadyStep", "RecordOptions", "Refused", "RouteStep", "Scenario", "ScenarioError", "Scheduler", "StepContext", "StepResult",
-    "SteppedCampaign", "Summary", "TwinError", "capable", "drawn_at_random", "driver_setup", "expected_duration", "jobshop_as_lab",
+    "SteppedCampaign", "SteppedLab", "Summary", "TwinError", "campaign_scenarios", "capable", "drawn_at_random", "driver_setup", "expected_duration", "jobshop_as_lab",
     "json_schema", "keyed_uniforms", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
     "prepare", "random_jobshop", "random_lab", "read_meta", "resume", "run", "run_async", "run_scenario", "run_step",
     "save_policy", "score", "seeded", "sleep_wall",

@@ -3,6 +3,7 @@ stepped one decision of its one scheduler at a time, and a policy of the earlier
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -13,7 +14,6 @@ from twin import load_plugin, prepare
 from twin.campaign.decisions import CampaignState, DeviceState, FreeDevice, LabView, ReadyStep
 from twin.learning.stepper import SteppedLab
 from twin.runtime.shared_run import run_shared
-from twin.scenario.sharing import campaign_scenarios
 
 ROOT = Path(__file__).resolve().parents[2]
 LAB = ROOT / "scenarios" / "shared_lab.yaml"
@@ -80,14 +80,13 @@ def test_a_policy_of_the_earlier_encoding_decides_as_before_and_widened_the_same
     from agents.scheduling_env import SchedulingEnv
 
     lab = prepare(LAB, seed=1, overrides=CONTENDED)
-    first = campaign_scenarios(lab)["dots"]  # as a lab's one scheduler is made
-    old = RlScheduler(first, str(SHIPPED))
+    old = RlScheduler(lab, str(SHIPPED))
     assert not old.sees_campaigns and old.encoder.width == WIDTHS["candidates-v2"]
-    host = DummyVecEnv([lambda: SchedulingEnv(first, randomise=False)])
+    host = DummyVecEnv([lambda: SchedulingEnv(lab, randomise=False)])
     model = MaskablePPO(CandidatePolicy, host, device="cpu")
     host.close()
-    model.policy.load_state_dict(initial_state(SHIPPED, first, "candidates"))
-    widened = RlScheduler.from_model(model, first, "candidates")
+    model.policy.load_state_dict(initial_state(SHIPPED, lab, "candidates"))
+    widened = RlScheduler.from_model(model, lab, "candidates")
     assert widened.encoder.width == FEATURES
     stepped, decisions = SteppedLab(lab), 0
     try:
@@ -114,3 +113,59 @@ def _last(lab, scheduler) -> LabView:
         return stepped.view
     finally:
         stepped.close()
+
+
+BUSY = ROOT / "scenarios" / "busy_lab.yaml"
+
+
+def test_a_campaigns_weight_doubles_per_lower_priority_and_follows_its_share():
+    from agents.lab_scheduling import weights
+
+    lab = prepare(BUSY, overrides={"campaigns.0.priority": 2, "campaigns.1.priority": 1, "campaigns.2.priority": 0,
+                                   "campaigns.2.share": 0.5})
+    assert weights(lab) == {"dots": 4.0, "catalyst": 4.0, "bandgap": 0.5}  # catalyst: share 2
+
+
+def test_a_lab_is_trained_from_a_policy_by_its_own_best_runs_and_says_so_when_it_cannot_be(tmp_path):
+    from agents.imitation import self_task
+    from agents.train_scheduler import train_scheduler
+    from twin import read_meta
+
+    lab = prepare(BUSY, overrides={"training.samples": 4})
+    with pytest.raises(ValueError, match=r"busy_lab: .*own best runs.*--init P.zip"):
+        train_scheduler(lab, 100, tmp_path / "p.zip")
+    with pytest.raises(ValueError, match=r"here candidates, ppo, "):
+        train_scheduler(prepare(BUSY, overrides={"training.method": "ppo"}), 100, tmp_path / "p.zip", init=SHIPPED)
+    # a worker's labels: variants of the lab, whose questions hold several campaigns' steps
+    state = {k.removeprefix("action_net."): v for k, v in initial_state(SHIPPED, lab, "candidates").items()
+             if k.startswith("action_net.")}
+    labelled = []
+    for seed in (1, 2):
+        samples, info = self_task((lab, seed, ("self",), state, 0.0))
+        labelled += samples
+        assert info["greedy ÷ best"] >= 1.0 and {"prepare", "react", "synthesise", "measure"} <= set(info["shape"]["steps"])
+    top, rivals = np.concatenate([s.rows[:, -5] for s in labelled]), np.concatenate([s.rows[:, -2] for s in labelled])
+    assert (top == 0).any() and (top == 1).any(), "no label had candidates of a campaign below the top priority"
+    assert (rivals > 0).any(), "no label had two campaigns' steps queued for one device type"
+    out = train_scheduler(lab, 300, tmp_path / "lab.zip", envs=1, eval_every=300, init=SHIPPED, held_out_count=2,
+                          eval_seeds=(0, 1))
+    meta = read_meta(out)
+    assert meta["signature"]["encoding"] == "candidates-v3" and meta["method"] == "imitate"
+    assert "turns" in meta["rules"] and meta["lineage"][-1]["steps"] == read_meta(SHIPPED)["steps"]
+    ran = run_shared(prepare(BUSY, seed=3, overrides={"orchestrator.lab_scheduler": f"rl:{out}"}), tmp_path / "j",
+                     handle_signals=False)
+    assert all(c.done + c.abandoned == c.proposed > 0 for c in ran.campaigns.values())
+
+
+def test_fair_share_serves_the_top_priority_then_the_campaign_furthest_below_its_share():
+    fair = load_plugin("schedulers", "fair-share")()
+    free = (FreeDevice("spectrometer", "spectrometer"),)
+    ready = (step("a/t1", "a"), step("b/t1", "b"), step("c/t1", "c"))
+
+    def given(*states):
+        return fair.decide(LabView(0.0, ready, free, campaigns=states))[0].task
+
+    a, c = CampaignState("a", 0, 0.5, 0.6, 0, 9), CampaignState("c", 0, 0.2, 0.25, 0, 9)
+    assert given(a, CampaignState("b", 0, 0.3, 0.1, 0, 9), c) == "b/t1"  # 0.2 below its share
+    assert given(a, CampaignState("b", 0, 0.3, 0.5, 0, 9), c) == "c/t1"  # 0.05 above it; a 0.1, b 0.2
+    assert given(a, CampaignState("b", 0, 0.3, 0.1, 0, 9), CampaignState("c", 1, 0.2, 0.3, 0, 9)) == "c/t1"

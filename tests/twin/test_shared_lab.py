@@ -375,8 +375,8 @@ def test_one_scheduler_for_the_lab_chooses_among_every_campaigns_steps(tmp_path,
     views: list = []
     made = shared_run._lab_scheduler
 
-    def spied(s, scenarios):
-        chosen = made(s, scenarios)
+    def spied(s):
+        chosen = made(s)
         decide = chosen.decide
 
         def watching(view):
@@ -396,13 +396,25 @@ def test_one_scheduler_for_the_lab_chooses_among_every_campaigns_steps(tmp_path,
         assert events(db, "attempt.dispatched") and not events(db, "scheduler.invalid"), db.stem
 
 
-def test_one_scheduler_for_the_lab_is_refused_on_a_live_clock_with_the_reason(tmp_path):
-    from twin.core.errors import ClockError
+def test_one_scheduler_for_the_lab_on_a_live_clock_answers_every_campaign_and_is_journalled(tmp_path):
+    """On a scaled clock the lab's one scheduler (the RL policy) is asked in-process with every campaign's steps;
+    its answers are the lab's inputs, journalled before anything they dispatch (`twin resume` replays them)."""
+    from twin.campaign.journal import read_inputs
+    from twin.campaign.replay import decode_input
+    from twin.campaign.events import Decided
 
-    s = prepare(LAB, clock="scaled", bus="memory", overrides={"orchestrator.lab_scheduler": "mwkr"})
-    with pytest.raises(ClockError, match="lab_scheduler runs in virtual time"):
-        run_shared(s, tmp_path, handle_signals=False)
-    assert not list(tmp_path.glob("*.db"))
+    s = prepare(LAB, seed=1, clock="scaled", speed=50_000, bus="memory",
+                overrides={**SMALL, "campaigns.1.start_h": 0.0,
+                           "orchestrator.lab_scheduler": "rl:agents/policies/flaky_scheduler.zip"})
+    out = run_shared(s, tmp_path, handle_signals=False)
+    assert_accounted(out)
+    assert_one_step_at_a_time(tmp_path)
+    answers = [decode_input(item[1]) for _, batch in read_inputs(tmp_path / "lab.inputs")
+               for item in batch.get("items", []) if item[0] == "lab"]
+    given = {a.task.split("/")[0] for d in answers if type(d) is Decided for a in d.assignments}
+    assert given == {"dots", "catalyst"}, "the lab's scheduler did not answer both campaigns"
+    for db in tmp_path.glob("*.db"):
+        assert events(db, "attempt.dispatched") and not events(db, "scheduler.invalid"), db.stem
 
 
 def test_an_override_keeps_each_campaigns_seed_the_labs_plus_its_place():

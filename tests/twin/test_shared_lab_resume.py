@@ -90,13 +90,14 @@ def test_twin_resume_of_a_finished_lab_says_so(tmp_path):
 
 
 @pytest.mark.process
-@pytest.mark.parametrize("kills", [1, 2])
-def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what_its_journals_held(tmp_path, kills):
+@pytest.mark.parametrize("kills, one", [(1, None), (2, "rl:agents/policies/flaky_scheduler.zip")])
+def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what_its_journals_held(tmp_path, kills,
+                                                                                                  one):
     """A lab on a scaled clock, SIGKILLed once experiments have finished (and, the second time, its resumed
     process SIGKILLed too), is rebuilt by `twin resume` from the inputs it journalled: every campaign's journal
     keeps what it held, the steps it had in the lab are asked after (here its in-process devices died with it:
     the steps are retried), and every campaign ends with its accounting invariant and no device running two
-    steps."""
+    steps. ``one``: the lab's one scheduler (``orchestrator.lab_scheduler``), whose answers are replayed too."""
     import signal
     import subprocess
     import sys
@@ -110,6 +111,8 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
     raw = yaml.safe_load(LAB.read_text())
     for c, budget in zip(raw["campaigns"], (4, 3)):
         c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
+    if one:
+        raw["orchestrator"]["lab_scheduler"] = f"rl:{ROOT / one.removeprefix('rl:')}"
     (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
     where = tmp_path / "j"
     lab = subprocess.Popen([sys.executable, "-m", "twin", "run", str(tmp_path / "lab.yaml"), "--clock", "scaled",

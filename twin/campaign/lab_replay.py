@@ -2,7 +2,7 @@
 
 A live ``LiveLab`` writes, before each ``SharedLab.advance`` and before any command that advance sends leaves,
 what the lab was given since the last one (``<journals>/lab.inputs``): device messages and presence, the lab's
-own timers, each campaign's timers, planner and scheduler answers and operator commands, campaigns submitted
+own timers and its one scheduler's answers (``orchestrator.lab_scheduler``), each campaign's timers, planner and scheduler answers and operator commands, campaigns submitted
 (with their scenario and token secret), a stop, and the runtime's own remarks in a campaign's journal. The lab
 is deterministic, so feeding the same batches to a new ``SharedLab`` rebuilds the same state — and the same
 journal of every campaign, which is written again from the rebuild (a campaign journal may have lost its last
@@ -65,9 +65,12 @@ def _replay(out: RebuiltLab, journals: dict[str, Journal], journal_for: Callable
         what = item[0]
         if what == "dev":
             shared.feed_device(decode_input(item[1]))
-        elif what == "lab":
+        elif what == "lab":  # its timer, or its one scheduler's answer
             event = decode_input(item[1])
-            out.timers.pop((LAB, event.key), None)
+            if type(event) is TimerFired:
+                out.timers.pop((LAB, event.key), None)
+            else:
+                out.asked.pop(LAB, None)
             shared.feed(LAB, event)
         elif what == "seat":
             name, event = item[1], decode_input(item[2])

@@ -63,14 +63,17 @@ class SteppedLab:
     """A lab of several campaigns (a scenario with ``campaigns:``) run one decision of its one scheduler at a time:
     every campaign's ready steps in one ``LabView`` (tasks ``campaign/task``, ``LabView.campaigns``), as
     ``orchestrator.lab_scheduler`` sees them, whether or not the lab file sets one; each campaign's planner as its
-    file says, journals in memory. The same interface as ``SteppedCampaign``; ``summary`` is a ``LabSummary``."""
+    file says, journals in memory. The same interface as ``SteppedCampaign``; ``summary`` is a ``LabSummary``.
+    ``one_scheduler=False``: each campaign's own scheduler decides, the campaigns in turns, and the lab runs to its
+    end at once (the baseline a lab's one scheduler is judged against)."""
 
-    def __init__(self, lab: Scenario) -> None:
+    def __init__(self, lab: Scenario, one_scheduler: bool = True) -> None:
         s = prepare(lab, clock="virtual", bus="memory")
         if not s.campaigns:
             raise ValueError(f"{s.name}: a stepped lab has several campaigns (campaigns:); a lab of one is a "
                              "SteppedCampaign")
-        self.s = s.model_copy(update={"orchestrator": s.orchestrator.model_copy(update={"lab_scheduler": "(stepped)"})})
+        spec = "(stepped)" if one_scheduler else None
+        self.s = s.model_copy(update={"orchestrator": s.orchestrator.model_copy(update={"lab_scheduler": spec})})
         self._wall0 = time.perf_counter()
         scenarios = campaign_scenarios(self.s, self.s.name)
         drivers, per_device = shared_drivers(scenarios)

@@ -195,10 +195,12 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
         raise PluginError(f"scheduler {spec!r} failed to start: {exc}") from exc
 
 
-def live_scheduler(s: Scenario, chosen: Any, bus: Bus, clock: LabClock) -> tuple[Any, SchedulerService | None]:
-    """An agent scheduler (``serve_on_bus``, or ``remote``) is asked over the bus, with the fallback rule."""
+def live_scheduler(s: Scenario, chosen: Any, bus: Bus, clock: LabClock,
+                   in_process: bool = False) -> tuple[Any, SchedulerService | None]:
+    """An agent scheduler (``serve_on_bus``, or ``remote``) is asked over the bus, with the fallback rule;
+    ``in_process``: asked here even so (a lab's one scheduler), in a worker thread past its deadline."""
     deadline = s.campaign.scheduler_deadline_ms / 1000 * (1.0 if clock.is_virtual else clock.speed)
-    if chosen != REMOTE and not getattr(chosen, "serve_on_bus", False):
+    if chosen != REMOTE and (in_process or not getattr(chosen, "serve_on_bus", False)):
         if clock.is_virtual:  # time stands still while it thinks
             return chosen, None
         return OffLoopScheduler(chosen, _fallback(s), deadline), None

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import inspect
+import time
 from collections.abc import Callable
 from typing import Any
 
-from twin.campaign.events import Note, TimerFired, TimerKey
+from twin.campaign.events import Ask, Decided, Note, TimerFired, TimerKey
 from twin.campaign.lab_replay import RebuiltLab, encode
 from twin.campaign.journal import Journal
 from twin.campaign.decisions import Planner, Scheduler
@@ -70,13 +72,14 @@ class LiveLab:
     def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], bus: Bus, clock: LabClock,
                  parts: dict[str, SeatParts], adopt: Callable[[str, Scenario], SeatParts] | None = None,
                  observer: SharedLabObserver | None = None, inputs: Journal | None = None,
-                 rebuilt: RebuiltLab | None = None) -> None:
+                 rebuilt: RebuiltLab | None = None, lab_scheduler: Any = None) -> None:
         """``adopt``: a lab that serves (``twin lab serve``) takes campaigns as they are submitted; ``adopt(name,
         scenario)`` readies one (its drivers, journal, planner and scheduler) or raises a TwinError that says
         why not. ``observer``: handed each campaign's notes and the devices' results and telemetry (a
         recording). ``inputs``: where the lab journals what it is given, write-ahead (``twin resume`` rebuilds
         it from them: ``twin.campaign.lab_replay``); ``rebuilt``: such a lab, to take over (``scenarios`` then
-        holds every campaign it had, those submitted included)."""
+        holds every campaign it had, those submitted included). ``lab_scheduler``: the lab's one scheduler
+        (``orchestrator.lab_scheduler``), asked the lab's questions with every campaign's ready steps."""
         self.lab, self.bus, self.clock = lab, bus, clock
         self.shared = rebuilt.shared if rebuilt is not None else SharedLab(lab, scenarios, serving=adopt is not None)
         self._rebuilt, self._inputs = rebuilt, inputs
@@ -93,6 +96,8 @@ class LiveLab:
         self._handles: list[Any] = []
         self._done: asyncio.Future | None = None
         self._kicked = False
+        self.lab_scheduler = lab_scheduler
+        self._lab_deciding: asyncio.Future | None = None
 
     def _feed(self, name: str) -> Any:
         return self.observer.campaign(name) if self.observer is not None else None
@@ -159,6 +164,8 @@ class LiveLab:
                     if fut is not None:
                         fut.cancel()
                 seat._close()
+            if self._lab_deciding is not None:
+                self._lab_deciding.cancel()
             for h in self._handles:
                 h.close()
             for handle in self._timers.values():
@@ -261,8 +268,40 @@ class LiveLab:
         if name != LAB:
             self.seats[name]._perform(actions)
             return
-        for a in actions:  # the lab's own: submission timers
-            self._timers[a.key] = self.clock.call_later(a.delay, functools.partial(self._on_timer, a.key))
+        for a in actions:  # the lab's own: submission timers, and questions to its one scheduler
+            if type(a) is Ask:
+                self._ask_lab(a)
+            else:
+                self._timers[a.key] = self.clock.call_later(a.delay, functools.partial(self._on_timer, a.key))
+
+    def _ask_lab(self, ask: Ask) -> None:
+        """The lab's one scheduler: at once, or (past its deadline on a live clock: ``OffLoopScheduler``) when its
+        worker answers; the answer is journalled with the lab's inputs."""
+        if self.lab_scheduler is None:
+            raise RuntimeError(f"{self.lab.name}: the lab asked its one scheduler, and it has none")
+        started = time.perf_counter()
+        decided = self.lab_scheduler.decide(ask.view)
+        if not inspect.isawaitable(decided):
+            self._lab_decided(Decided(list(decided), time.perf_counter() - started))
+            return
+        self._lab_deciding = asyncio.ensure_future(decided)
+
+        def answered(fut: asyncio.Future) -> None:
+            self._lab_deciding = None
+            if fut.cancelled():
+                return
+            if fut.exception() is not None:
+                if self._done is not None and not self._done.done():
+                    self._done.set_exception(fut.exception())
+                return
+            self._lab_decided(Decided(list(fut.result()), time.perf_counter() - started))
+            self.kick_soon()
+
+        self._lab_deciding.add_done_callback(answered)
+
+    def _lab_decided(self, decided: Decided) -> None:
+        self.record(["lab", encode(decided)])
+        self.shared.feed(LAB, decided)
 
     def _on_timer(self, key: TimerKey) -> None:
         self._timers.pop(key, None)
@@ -285,7 +324,10 @@ class LiveLab:
             in_lab = [d.attempt.task.id for d in seat.core.devices.values() if d.attempt is not None]
             seat.note("campaign.resumed", {"inputs_replayed": True, "in_lab": in_lab})
         for name, ask in rebuilt.asked.items():
-            self.seats[name]._answer(ask)
+            if name == LAB:
+                self._ask_lab(ask)
+            else:
+                self.seats[name]._answer(ask)
         for seat in self.seats.values():
             for dev in list(seat.core.devices.values()):
                 if dev.attempt is not None:

@@ -48,8 +48,6 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
     if external_devices and s.clock.mode == "virtual":
         raise ClockError(f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
                          "see messages in flight: use --clock scaled or --clock wall")
-    if s.clock.mode != "virtual":
-        _refuse_lab_scheduler(s)
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
     _refuse_agents(scenarios)
@@ -62,7 +60,7 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
              for name, cs in scenarios.items()}
     if s.clock.mode == "virtual":
         lab: Any = FastLab(s, scenarios, drivers, per_device, parts, observer=observer,
-                           lab_scheduler=_lab_scheduler(s, scenarios))
+                           lab_scheduler=_lab_scheduler(s))
         with _stop_on_signals(lab.stop, handle_signals):
             try:
                 lab.run()
@@ -82,7 +80,7 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
     its simulated devices simulate by default."""
     if s.clock.mode == "virtual":
         raise ClockError(f"{s.name}: a lab that serves waits for campaigns in real time: use --clock scaled or wall")
-    _refuse_lab_scheduler(s)
+    _lab_scheduler(s)  # a scheduler that cannot start is said before anything does
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
     _refuse_agents(scenarios)
@@ -117,26 +115,17 @@ def _standby_drivers(s: Scenario, skip: Collection[str]) -> list[tuple[str, str,
     return out
 
 
-def _lab_scheduler(s: Scenario, scenarios: dict[str, Scenario]) -> Any:
-    """The one scheduler of a lab whose ``orchestrator.lab_scheduler`` is set (made for its first campaign's
-    scenario: a policy checks that it fits the lab), or None."""
+def _lab_scheduler(s: Scenario) -> Any:
+    """The one scheduler of a lab whose ``orchestrator.lab_scheduler`` is set (made for the lab file: a policy
+    checks that it fits every campaign's steps), or None."""
     spec = s.orchestrator.lab_scheduler
     if not spec:
         return None
-    if not scenarios:
-        raise ClockError(f"{s.name}: orchestrator.lab_scheduler chooses among campaigns' steps; the lab has none")
-    chosen = make_scheduler(next(iter(scenarios.values())), spec)
+    chosen = make_scheduler(s, spec)
     if chosen == REMOTE:
         raise ClockError(f"{s.name}: orchestrator.lab_scheduler {spec!r} is an agent elsewhere; the lab's one "
                          "scheduler runs in its process (a rule, or rl:POLICY)")
-    return chosen  # an rl policy is asked in-process here, as the fast runtime's benches ask it
-
-
-def _refuse_lab_scheduler(s: Scenario) -> None:
-    if s.orchestrator.lab_scheduler:
-        raise ClockError(f"{s.name}: orchestrator.lab_scheduler runs in virtual time (the fast runtime) for now; on "
-                         f"a {s.clock.mode} clock each campaign's own scheduler decides, the campaigns in turns: "
-                         "leave it out, or run with --clock virtual")
+    return chosen  # an rl policy is asked in-process, as the fast runtime's benches ask it
 
 
 def _refuse_agents(scenarios: dict[str, Scenario]) -> None:
@@ -193,8 +182,13 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
                     actor.add_campaign(name, per[actor.name][name])
             return seat_parts(name, cs, _parts(cs, where / f"{name}.db", serving or (), s))
 
+        one = _lab_scheduler(s)
+        if one is not None:
+            one = live_scheduler(s, one, bus, clock, in_process=True)[0]
+            if hasattr(one, "close"):
+                stack.callback(one.close)
         lab = LiveLab(s, scenarios, bus, clock, {n: seat_parts(n, scenarios[n], p) for n, p in parts.items()},
-                      adopt if serving is not None else None, observer, inputs, rebuilt)
+                      adopt if serving is not None else None, observer, inputs, rebuilt, one)
         if observer is not None:
             stack.callback(asyncio.ensure_future(_flush_live(clock, observer)).cancel)
         for actor in actors:
