@@ -405,7 +405,7 @@ def test_one_scheduler_for_the_lab_on_a_live_clock_answers_every_campaign_and_is
 
     s = prepare(LAB, seed=1, clock="scaled", speed=50_000, bus="memory",
                 overrides={**SMALL, "campaigns.1.start_h": 0.0,
-                           "orchestrator.lab_scheduler": "rl:agents/policies/flaky_scheduler.zip"})
+                           "orchestrator.lab_scheduler": "rl:agents/policies/lab_scheduler.zip"})
     out = run_shared(s, tmp_path, handle_signals=False)
     assert_accounted(out)
     assert_one_step_at_a_time(tmp_path)

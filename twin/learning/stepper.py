@@ -79,7 +79,7 @@ class SteppedLab:
         drivers, per_device = shared_drivers(scenarios)
         self._parts: dict[str, SeatParts] = {n: (NullJournal(), make_planner(cs), make_scheduler(cs))
                                              for n, cs in scenarios.items()}
-        self._run = FastLab(self.s, scenarios, drivers, per_device, self._parts)
+        self._run = FastLab(self.s, scenarios, drivers, per_device, self._parts, alerts=False)
         self.summary: LabSummary | None = None
         self.view: LabView | None = None
         self._next()

@@ -24,12 +24,14 @@ class FastLab:
     def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], drivers: list[tuple[str, str, Any]],
                  per_device: dict[str, dict[str, Any]], parts: dict[str, SeatParts],
                  on_progress: Callable[[str], Progress | None] | None = None,
-                 observer: SharedLabObserver | None = None, lab_scheduler: Scheduler | None = None) -> None:
+                 observer: SharedLabObserver | None = None, lab_scheduler: Scheduler | None = None,
+                 alerts: bool = True) -> None:
         """``scenarios``: each campaign's; ``per_device``: each instance's driver for each campaign (a simulated
         device simulates the chemistry of the campaign whose step it runs); ``parts``: each campaign's journal,
         planner and scheduler; ``observer``: handed the lab's devices' results and telemetry and each campaign's
         notes as they happen (a recording); ``lab_scheduler``: the one scheduler of a lab whose
-        ``orchestrator.lab_scheduler`` is set (it answers the lab's questions, with every campaign's steps)."""
+        ``orchestrator.lab_scheduler`` is set (it answers the lab's questions, with every campaign's steps);
+        ``alerts``: log the campaigns' alerts as warnings (a training episode's are never read)."""
         self.lab, self.queue, self.lab_scheduler = lab, EventQueue(), lab_scheduler
         self.shared = SharedLab(lab, scenarios)
         watch = observer.on_envelope if observer is not None else None
@@ -37,7 +39,7 @@ class FastLab:
                                          self.shared.feed_device, watch, shared=per_device[name])
                         for name, dtype, drv in sorted(drivers)}
         self.seats = {name: Seat(self.shared.cores[name], *parts[name], self.queue, self.devices,
-                                 on_progress(name) if on_progress else None,
+                                 on_progress(name) if on_progress else None, alerts,
                                  observer=observer.campaign(name) if observer is not None else None)
                       for name in scenarios}
         self._lab_timers: dict[TimerKey, Timer] = {}
