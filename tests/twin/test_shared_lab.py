@@ -177,7 +177,9 @@ def test_a_campaign_journal_is_a_journal_like_any_other(tmp_path):
 
 
 @pytest.mark.process
-def test_two_campaigns_on_a_scaled_clock_over_zenoh_with_a_device_in_another_process(tmp_path):
+@pytest.mark.parametrize("one", [None, "agents/policies/lab_scheduler.zip"])
+def test_two_campaigns_on_a_scaled_clock_over_zenoh_with_a_device_in_another_process(tmp_path, one):
+    """``one``: the lab's one scheduler, the RL policy that sees whose step each candidate is."""
     import socket
     import subprocess
     import sys
@@ -194,6 +196,8 @@ def test_two_campaigns_on_a_scaled_clock_over_zenoh_with_a_device_in_another_pro
     for c, budget in zip(raw["campaigns"], (5, 3)):
         c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
     raw["campaigns"][1]["chemistry"]["parameters"]["time_s"] = {"low": 600, "high": 900, "unit": "s"}
+    if one:
+        raw["orchestrator"]["lab_scheduler"] = f"rl:{ROOT / one}"
     path = tmp_path / "lab.yaml"
     path.write_text(yaml.safe_dump(raw))
     device = subprocess.Popen([sys.executable, "-m", "twin", "device", "serve", str(path), "--id", "spectrometer",

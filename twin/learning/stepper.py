@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import Any
 
 from twin.campaign.decisions import Assignment, LabView
 from twin.runtime.fast_lab import FastLab, SeatParts
@@ -23,17 +24,13 @@ from twin.scenario.sharing import campaign_scenarios
 from twin.campaign.summary import LabSummary, Summary
 
 
-class SteppedCampaign:
-    def __init__(self, scenario: Scenario) -> None:
-        self.s = prepare(scenario, clock="virtual", bus="memory")
-        self._wall0 = time.perf_counter()
-        self._journal = NullJournal()  # a training episode's journal is never read
-        self._run = FastCampaign(self.s, load_drivers(self.s), self._journal, make_planner(self.s), None,
-                                 alerts=False)
-        self.core = self._run.core
-        self.summary: Summary | None = None
-        self.view: LabView | None = None  # the decision waiting for an answer, if any
-        self._next()
+class _Stepped:
+    """What both steppers share: ``_run`` (a fast runtime with ``next_decision``, ``answer`` and ``now``) and
+    ``_next``, which takes its next question or, at the end, makes ``summary``."""
+
+    _run: Any
+    summary: Any
+    view: LabView | None
 
     @property
     def done(self) -> bool:
@@ -50,6 +47,22 @@ class SteppedCampaign:
         self._run.answer(assignments)
         self._next()
 
+    def _next(self) -> None:
+        raise NotImplementedError
+
+
+class SteppedCampaign(_Stepped):
+    def __init__(self, scenario: Scenario) -> None:
+        self.s = prepare(scenario, clock="virtual", bus="memory")
+        self._wall0 = time.perf_counter()
+        self._journal = NullJournal()  # a training episode's journal is never read
+        self._run = FastCampaign(self.s, load_drivers(self.s), self._journal, make_planner(self.s), None,
+                                 alerts=False)
+        self.core = self._run.core
+        self.summary: Summary | None = None
+        self.view = None  # the decision waiting for an answer, if any
+        self._next()
+
     def close(self) -> None:
         self._journal.close()
 
@@ -59,7 +72,7 @@ class SteppedCampaign:
             self.summary = finish(self.core, self._journal, self._wall0, self._run.now)
 
 
-class SteppedLab:
+class SteppedLab(_Stepped):
     """A lab of several campaigns (a scenario with ``campaigns:``) run one decision of its one scheduler at a time:
     every campaign's ready steps in one ``LabView`` (tasks ``campaign/task``, ``LabView.campaigns``), as
     ``orchestrator.lab_scheduler`` sees them, whether or not the lab file sets one; each campaign's planner as its
@@ -81,20 +94,7 @@ class SteppedLab:
                                              for n, cs in scenarios.items()}
         self._run = FastLab(self.s, scenarios, drivers, per_device, self._parts, alerts=False)
         self.summary: LabSummary | None = None
-        self.view: LabView | None = None
-        self._next()
-
-    @property
-    def done(self) -> bool:
-        return self.summary is not None
-
-    @property
-    def now(self) -> float:
-        return self._run.now
-
-    def answer(self, assignments: list[Assignment]) -> None:
-        """Answer the waiting decision and run the lab to the next one (or the end)."""
-        self._run.answer(assignments)
+        self.view = None
         self._next()
 
     def close(self) -> None:

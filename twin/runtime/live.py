@@ -42,6 +42,30 @@ log = logging.getLogger(__name__)
 Progress = Callable[[CampaignCore], None]
 
 
+def ask_scheduler(scheduler: Any, ask: Ask, answer: Callable[[Decided, bool], None],
+                  fail: Callable[[BaseException], None]) -> asyncio.Future | None:
+    """Ask ``scheduler`` the question: ``answer(decided, later)`` gets its answer — at once, or (``later``) when
+    an awaitable answer resolves — and ``fail(exc)`` its error. Returns the pending answer's future (cancel it to
+    drop the answer), or None."""
+    started = time.perf_counter()
+    decided = scheduler.decide(ask.view)
+    if not inspect.isawaitable(decided):
+        answer(Decided(list(decided), time.perf_counter() - started), False)
+        return None
+    pending = asyncio.ensure_future(decided)
+
+    def answered(fut: asyncio.Future) -> None:
+        if fut.cancelled():
+            return
+        if fut.exception() is not None:
+            fail(fut.exception())
+        else:
+            answer(Decided(list(fut.result()), time.perf_counter() - started), True)
+
+    pending.add_done_callback(answered)
+    return pending
+
+
 class EventDecoder:
     """A device's message off the bus: a ``DeviceMessage`` (shown to an in-process observer as it is decoded),
     or an ``InvalidInput`` that names the sender and the reason."""
@@ -293,25 +317,19 @@ class LiveCampaign:
         if ask.what == "plan":
             self._plan(ask)
             return
-        started = time.perf_counter()
-        decided = self.scheduler.decide(ask.view)
-        if not inspect.isawaitable(decided):
-            self._give(Decided(list(decided), time.perf_counter() - started))
-            return
-        self._deciding = asyncio.ensure_future(decided)
+        self._deciding = ask_scheduler(self.scheduler, ask, self._scheduled, self._failed)
 
-        def answered(fut: asyncio.Future) -> None:
-            self._deciding = None
-            if fut.cancelled():
-                return
-            if fut.exception() is not None:
-                if self._done is not None and not self._done.done():
-                    self._done.set_exception(fut.exception())
-                return
-            self._give(Decided(list(fut.result()), time.perf_counter() - started))
+    def _scheduled(self, decided: Decided, later: bool) -> None:
+        self._deciding = None
+        self._give(decided)
+        if later:
             self._kick_soon()
 
-        self._deciding.add_done_callback(answered)
+    def _failed(self, exc: BaseException) -> None:
+        """A scheduler that fails ends the run with its error."""
+        self._deciding = None
+        if self._done is not None and not self._done.done():
+            self._done.set_exception(exc)
 
     def _plan(self, ask: Ask) -> None:
         """Ask the planner. In virtual time at once (time stands still while it thinks); on a scaled or wall

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import inspect
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -22,7 +20,7 @@ from twin.core.clock import LabClock
 from twin.campaign import Presence
 from twin.core.errors import ScenarioError, TwinError
 from twin.runtime.lab_desk import LabDesk
-from twin.runtime.live import EventDecoder, LiveCampaign
+from twin.runtime.live import EventDecoder, LiveCampaign, ask_scheduler
 from twin.scenario import Scenario
 from twin.scenario.files import parse_yaml
 from twin.scenario.sharing import campaign_scenario, parse_campaign
@@ -279,29 +277,19 @@ class LiveLab:
         worker answers; the answer is journalled with the lab's inputs."""
         if self.lab_scheduler is None:
             raise RuntimeError(f"{self.lab.name}: the lab asked its one scheduler, and it has none")
-        started = time.perf_counter()
-        decided = self.lab_scheduler.decide(ask.view)
-        if not inspect.isawaitable(decided):
-            self._lab_decided(Decided(list(decided), time.perf_counter() - started))
-            return
-        self._lab_deciding = asyncio.ensure_future(decided)
+        self._lab_deciding = ask_scheduler(self.lab_scheduler, ask, self._lab_decided, self._failed)
 
-        def answered(fut: asyncio.Future) -> None:
-            self._lab_deciding = None
-            if fut.cancelled():
-                return
-            if fut.exception() is not None:
-                if self._done is not None and not self._done.done():
-                    self._done.set_exception(fut.exception())
-                return
-            self._lab_decided(Decided(list(fut.result()), time.perf_counter() - started))
-            self.kick_soon()
-
-        self._lab_deciding.add_done_callback(answered)
-
-    def _lab_decided(self, decided: Decided) -> None:
+    def _lab_decided(self, decided: Decided, later: bool) -> None:
+        self._lab_deciding = None
         self.record(["lab", encode(decided)])
         self.shared.feed(LAB, decided)
+        if later:
+            self.kick_soon()
+
+    def _failed(self, exc: BaseException) -> None:
+        self._lab_deciding = None
+        if self._done is not None and not self._done.done():
+            self._done.set_exception(exc)
 
     def _on_timer(self, key: TimerKey) -> None:
         self._timers.pop(key, None)
