@@ -34,11 +34,13 @@ def whatif(
     save: Annotated[Optional[Path], typer.Option(help="draw the trade-offs into a Rerun recording, e.g. whatif.rrd")] = None,
 ) -> None:
     """The scenario as written and each variant, over the same seeds: lab-hours and cost to target, experiments,
-    abandoned, the busiest device type, and the change against the scenario as written."""
+    abandoned, the busiest device type, and the change against the scenario as written; for a lab of several
+    campaigns, each campaign's lab-hours from its start to its end too."""
     from rich import box
 
-    from twin.tools.whatif import (AS_WRITTEN, axes_of, caption, cheapest_within, costs_anything, has_targets as any_targets, header,
-                                   parse_vary, rows, summarise, variants, written_values)
+    from twin.tools.whatif import (AS_WRITTEN, axes_of, campaign_rows, caption, cheapest_within, costs_anything,
+                                   has_targets as any_targets, header, parse_vary, rows, summarise, variants,
+                                   written_values)
     from twin.tools.whatif import whatif as run_whatif
 
     split = lambda text: [x.strip() for x in text.split(",") if x.strip()] if text else None  # noqa: E731
@@ -84,6 +86,16 @@ def whatif(
         table.add_row(*row)
     console.print(table)
     console.print(caption(has_targets, seeds, with_cost), highlight=False)  # wrapped at the terminal, not the table
+    if s.campaigns:
+        names = list(summary[0]["per_campaign"])
+        console.print("each campaign: median lab-h from its start to its end", highlight=False)
+        per = Table(box=box.SIMPLE_HEAD, collapse_padding=True, pad_edge=False)
+        for i, h in enumerate([*(header(axes)[:len(axes)]), *names]):
+            per.add_column(h, overflow="fold", min_width=max(len(part) for part in h.split("\n")) if i < len(axes)
+                           else None, justify="left" if i < len(axes) else "right")
+        for row in campaign_rows(summary, axes, written_values(s, axes)):
+            per.add_row(*row)
+        console.print(per)
     base = next(r for r in summary if r["variant"] == AS_WRITTEN)
     console.print(f"as written, the busiest device type is {base['bottleneck']} "
                   f"({100 * base['utilisation'].get(base['bottleneck'], 0):.0f} % busy)", highlight=False)
@@ -98,15 +110,17 @@ def whatif(
 
 def _write_csv(path: Path, summary: list[dict]) -> None:
     types = sorted({t for row in summary for t in row["utilisation"]})
+    names = list(dict.fromkeys(n for row in summary for n in row["per_campaign"]))
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["variant", "runs", "reached", "lab_h_q1", "lab_h_median", "lab_h_q3", "lab_h_change_median",
                     "cost_median", "cost_change_median", "experiments_median", "abandoned_mean", "degraded_mean",
-                    *[f"utilisation_{t}" for t in types], "busiest"])
+                    *[f"utilisation_{t}" for t in types], "busiest", *[f"campaign_h_{n}" for n in names]])
         for row in summary:
             change, cost_change = row["lab_hours_change"], row["cost_change"]
             w.writerow([row["variant"], row["runs"], row["reached"], *[round(x, 4) for x in row["lab_hours"]],
                         round(change[1], 4) if change else "", round(row["cost"][1], 2),
                         round(cost_change[1], 2) if cost_change else "", row["experiments"],
                         round(row["abandoned"], 3), round(row["degraded"], 3),
-                        *[round(row["utilisation"].get(t, 0.0), 4) for t in types], row["bottleneck"]])
+                        *[round(row["utilisation"].get(t, 0.0), 4) for t in types], row["bottleneck"],
+                        *[round(row["per_campaign"][n], 4) if n in row["per_campaign"] else "" for n in names]])

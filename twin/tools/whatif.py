@@ -21,7 +21,7 @@ from typing import Any
 import yaml
 
 from twin.core.errors import ScenarioError
-from twin.runtime.lab import prepare, run
+from twin.runtime.lab import make_scheduler, prepare, run
 from twin.runtime.shared_run import run_shared
 from twin.tools.planner_bench import quartiles, quiet_alerts
 from twin.scenario import Scenario
@@ -50,6 +50,7 @@ class Outcome:
     abandoned: int
     degraded: int
     utilisation: dict[str, float] = field(default_factory=dict)  # per device type: mean over its instances
+    per_campaign: dict[str, float] = field(default_factory=dict)  # a lab of several: each one's lab-h, start to end
 
 
 def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
@@ -109,7 +110,10 @@ def variants(scenario: Scenario, vary: list[tuple[str, list[Any]]], schedulers: 
         if all(written.get(name) == v for name, v in combo):
             continue
         label = ", ".join(f"{name}={v}" for name, v in combo)
-        prepare(scenario, overrides=dict(combo))  # a field that does not exist or a value it refuses: said now
+        lab = prepare(scenario, overrides=dict(combo))  # a field that does not exist or a value it refuses: said now
+        for name, value in combo:
+            if name.rsplit(".", 1)[-1] in ("scheduler", "lab_scheduler") and value:
+                make_scheduler(lab, str(value))  # an unknown rule or a policy file that is not there: said now too
         out.append(Variant(label, tuple(combo)))
     return out
 
@@ -152,7 +156,8 @@ def _shared(lab: Scenario, variant: Variant, seed: int) -> Outcome:
                 for dtype in lab.devices}
     return Outcome(variant.label, seed, reached, last if reached else out.lab_hours, out.lab_hours,
                    sum(r.cost for r in runs), sum(r.proposed for r in runs), sum(r.abandoned for r in runs),
-                   sum(r.degraded_samples for r in runs), per_type)
+                   sum(r.degraded_samples for r in runs), per_type,
+                   {n: c.lab_hours for n, c in out.campaigns.items()})
 
 
 def _one(job: tuple[Scenario, Variant, int]) -> Outcome:
@@ -194,6 +199,8 @@ def summarise(results: list[Outcome], chosen: list[Variant]) -> list[dict[str, A
             "degraded": statistics.mean(o.degraded for o in mine),
             "utilisation": util,
             "bottleneck": max(util, key=util.get) if util else "",
+            "per_campaign": {n: statistics.median(o.per_campaign[n] for o in mine if n in o.per_campaign)
+                             for n in dict.fromkeys(n for o in mine for n in o.per_campaign)},
         })
     return out
 
@@ -249,6 +256,16 @@ def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any]
             f"{busiest} {100 * row['utilisation'].get(busiest, 0):.0f}%" if busiest else "",
         ])
     return out
+
+
+def campaign_rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any]) -> list[list[str]]:
+    """A lab of several campaigns: per variant, each campaign's median lab-hours from its start to its end (the
+    times a lab's one scheduler trades against each other), in the order of the first variant's campaigns."""
+    names = list(summary[0]["per_campaign"]) if summary else []
+    return [[*(f"{_shown(written.get(a))}*" if row["variant"] == AS_WRITTEN else
+               _shown(row["changes"].get(a, written.get(a))) for a in axes),
+             *(f"{row['per_campaign'][n]:.1f}" if n in row["per_campaign"] else "—" for n in names)]
+            for row in summary]
 
 
 def _shown(value: Any) -> str:
