@@ -62,6 +62,7 @@ def test_the_table_fits_80_columns_and_names_the_busiest_device():
     (["--vary", "devices.reactor.instances=0"], "devices.reactor.instances"),
     (["--vary", "devices.reactor.instances=2"], "nothing to compare"),
     (["--schedulers", "nope"], "nope"),
+    (["--vary", "campaign.scheduler=fifo,rl:missing.zip"], "policy missing.zip does not exist"),
     (["--vary", "devices.reactor.instances=3", "--seeds", "0"], "--seeds 0"),
 ])
 def test_what_cannot_run_is_refused_before_anything_runs(args, says):
