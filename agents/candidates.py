@@ -61,9 +61,6 @@ class CandidateEncoder:
         self.width = WIDTHS[encoding]  # a policy of an earlier encoding reads the first columns only
         self.scale = time_scale(scenario)
         self.stability = scenario.chemistry.stability_s or 0.0
-        # a lab of several campaigns: each campaign's samples keep as its chemistry says
-        self.stability_of = {n: c.chemistry.stability_s or 0.0
-                             for n, c in campaign_scenarios(scenario, scenario.name).items()}
         self.encoded: list[tuple[ReadyStep, str]] = []  # the candidates of the view last encoded, in row order
 
     def pairs(self, view: LabView) -> list[tuple[ReadyStep, str]]:
@@ -91,6 +88,7 @@ class CandidateEncoder:
         for f in view.free:
             free_of[f.device_type] = free_of.get(f.device_type, 0) + 1
         load, arriving = self._loads(view)
+        stability_of = {c.name: c.stability_s for c in view.campaigns}  # a lab's campaigns: each one's samples
         campaign_columns = self._campaigns(view, ready_of)
         ops_of: dict[str, int] = {}
         for r in view.ready:
@@ -118,7 +116,7 @@ class CandidateEncoder:
             nxt_busy = sum(x.busy_until is not None for x in nxt) / len(nxt) if nxt else 0.0
             nxt_wait = min((x.busy_until - now for x in nxt if x.busy_until is not None), default=0.0) if nxt and \
                 all(x.busy_until is not None for x in nxt) else 0.0
-            stability = self.stability_of.get(r.campaign, self.stability)
+            stability = stability_of.get(r.campaign, self.stability)
             age = (now - r.sample_made) if r.sample_made is not None else 0.0
             spare = (stability - age) / k if stability and r.sample_made is not None else CLIP
             rows[i] = [

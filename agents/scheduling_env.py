@@ -99,6 +99,10 @@ class SchedulingEnv(gym.Env):
     # -- gymnasium ------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
+        if self.base.campaigns:
+            raise ValueError(f"{self.base.name}: a lab of several campaigns; this environment poses one campaign's "
+                             f"questions. Train a lab's one scheduler with `twin train {self.base.name}.yaml` "
+                             f"(imitation, agents.lab_scheduling), or step it with twin.SteppedLab")
         self._episode_seed = int(self.np_random.integers(2**31)) if seed is None else int(seed)
         lab = randomised(self.base, self._episode_seed) if self.randomise else self.base
         lab = prepare(lab, seed=self._episode_seed)

@@ -169,3 +169,23 @@ def test_fair_share_serves_the_top_priority_then_the_campaign_furthest_below_its
     assert given(a, CampaignState("b", 0, 0.3, 0.1, 0, 9), c) == "b/t1"  # 0.2 below its share
     assert given(a, CampaignState("b", 0, 0.3, 0.5, 0, 9), c) == "c/t1"  # 0.05 above it; a 0.1, b 0.2
     assert given(a, CampaignState("b", 0, 0.3, 0.1, 0, 9), CampaignState("c", 1, 0.2, 0.3, 0, 9)) == "c/t1"
+
+
+def test_the_gym_environment_refuses_a_lab_of_several_campaigns_with_what_to_use():
+    from agents.scheduling_env import SchedulingEnv
+
+    with pytest.raises(ValueError, match=r"busy_lab: a lab of several campaigns.*twin train.*SteppedLab"):
+        SchedulingEnv(prepare(BUSY)).reset(seed=0)
+
+
+def test_each_campaigns_samples_age_by_its_own_stability_also_one_submitted_later():
+    lab = prepare(LAB)
+    made = ReadyStep("x/t", 0, "measure", "spectrometer", 0.0, 100.0, 60.0, 60.0, campaign="x")
+    other = ReadyStep("y/t", 0, "measure", "spectrometer", 0.0, 100.0, 60.0, 60.0, campaign="y")
+    view = LabView(1900.0, (made, other), (FreeDevice("spectrometer", "spectrometer"),),
+                   campaigns=(CampaignState("x", 0, 0.5, 0.5, 0, 9, 3600.0), CampaignState("y", 0, 0.5, 0.5, 0, 9)))
+    enc = CandidateEncoder(lab)  # "x" and "y" are in no lab file: as if submitted to a served lab
+    obs, _ = enc.encode(view)
+    rows = {r.task: row for (r, _), row in zip(enc.encoded, obs[:MAX_CANDIDATES * FEATURES].reshape(-1, FEATURES))}
+    assert rows["x/t"][5] == pytest.approx(1800 / 3600)  # age ÷ its stability
+    assert rows["y/t"][5] == 0.0  # its samples keep for ever

@@ -87,6 +87,7 @@ class CampaignState:
     used: float  # the part of the device time it has had so far
     finished: int  # its experiments done or abandoned
     budget: int
+    stability_s: float = 0.0  # how long its samples keep (its chemistry's; 0: for ever)
 
 
 @dataclass(frozen=True)

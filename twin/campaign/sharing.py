@@ -304,7 +304,8 @@ class SharedLab:
         total, due = sum(used.values()), sum(self.entries[n].share for n in running)
         return tuple(CampaignState(n, self.entries[n].priority, self.entries[n].share / due,
                                    used[n] / total if total else 0.0, self.cores[n].finished_count,
-                                   self.cores[n].s.campaign.budget) for n in running)
+                                   self.cores[n].s.campaign.budget, self.cores[n].s.chemistry.stability_s or 0.0)
+                     for n in running)
 
     def _view(self, name: str, now: float) -> LabView:
         core = self.cores[name]
