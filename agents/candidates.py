@@ -28,7 +28,7 @@ import bisect
 import numpy as np
 
 from agents.scheduling_features import time_scale
-from twin import ANY_WORKFLOW, Assignment, LabView, ReadyStep, Scenario, campaign_scenarios, drawn_at_random
+from twin import ANY_WORKFLOW, Assignment, LabView, ReadyStep, Scenario, drawn_at_random
 
 ENCODING = "candidates-v3"
 MAX_CANDIDATES = 128
@@ -230,12 +230,14 @@ class CandidateEncoder:
 
 def lab_shape(s: Scenario) -> dict:
     """What a scheduler policy's fit is judged on: the step types a lab runs, how many device types it has, and
-    the most instances of one type (a lab drawn by ``twin.scenario.random_labs`` stands for any workflow)."""
+    the most instances of one type (a lab drawn by ``twin.scenario.random_labs`` stands for any workflow; a lab
+    file of several campaigns, or one serving none yet, runs whatever its devices run)."""
     steps = {ANY_WORKFLOW} if drawn_at_random(s) else {w.step for w in s.workflow}
-    for c in campaign_scenarios(s, s.name).values():  # a lab of several campaigns: every campaign's steps
-        steps |= {w.step for w in c.workflow}
-    for p in s.campaign.planner_options.get("proposals", []):  # a job shop's fixed routes
+    routes = s.campaign.planner_options.get("proposals", [])
+    for p in routes:  # a job shop's fixed routes
         steps |= {str(step.get("step")) for step in p.get("route", [])}
+    if s.campaigns or not (steps or routes):  # a lab file: every step its devices run (campaigns come and go)
+        steps |= {step for d in s.devices.values() for step in d.steps}
     counts = [d.instances for d in s.devices.values()]
     return {"steps": sorted(steps), "device_types": len(counts), "instances": max(counts, default=0)}
 

@@ -189,3 +189,15 @@ def test_each_campaigns_samples_age_by_its_own_stability_also_one_submitted_late
     rows = {r.task: row for (r, _), row in zip(enc.encoded, obs[:MAX_CANDIDATES * FEATURES].reshape(-1, FEATURES))}
     assert rows["x/t"][5] == pytest.approx(1800 / 3600)  # age ÷ its stability
     assert rows["y/t"][5] == 0.0  # its samples keep for ever
+
+
+def test_a_lab_policy_for_other_steps_is_refused_before_a_journal_is_made(tmp_path):
+    """The lab's one scheduler is judged on every step its devices run (campaigns may be submitted later)."""
+    from twin import PluginError
+
+    furnace = {"driver": "synthesiser", "instances": 1, "steps": ["anneal"], "duration": {"mean_s": 600}}
+    lab = prepare(BUSY, overrides={"devices.furnace": furnace, "campaign.policy_fit": "refuse",
+                                   "orchestrator.lab_scheduler": "rl:agents/policies/lab_scheduler.zip"})
+    with pytest.raises(PluginError, match=r"step type\(s\) \['anneal'\] never seen.*4 device types"):
+        run_shared(lab, tmp_path / "j", handle_signals=False)
+    assert not (tmp_path / "j").exists() or not list((tmp_path / "j").iterdir())

@@ -51,6 +51,7 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
     _refuse_agents(scenarios)
+    one = _lab_scheduler(s)  # a policy that does not fit the lab is said before a journal is made
     drivers, per_device = shared_drivers(scenarios, skip=external_devices)
     if s.clock.mode == "virtual":
         refuse_realtime(drivers)
@@ -60,7 +61,7 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
              for name, cs in scenarios.items()}
     if s.clock.mode == "virtual":
         lab: Any = FastLab(s, scenarios, drivers, per_device, parts, observer=observer,
-                           lab_scheduler=_lab_scheduler(s))
+                           lab_scheduler=one)
         with _stop_on_signals(lab.stop, handle_signals):
             try:
                 lab.run()
