@@ -270,6 +270,7 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         assert again.exit_code == 1 and "has a campaign 'dots' already" in again.output
         listed = ctl("ctl", "status")
         assert listed.exit_code == 0 and "dots" in listed.output and "catalyst" in listed.output, listed.output
+        assert "each campaign schedules its own steps, in turns" in " ".join(listed.output.split())
         both = ctl("ctl", "pause")
         assert both.exit_code == 1 and "name one with --campaign" in both.output
         paused = ctl("ctl", "pause", "--campaign", "catalyst", "--as", "alice")
@@ -310,7 +311,8 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
 
     s = prepare(LAB, clock="scaled", speed=50_000, bus="memory",
                 overrides={"campaigns.0.campaign.budget": 2, "campaigns.0.campaign.planner": "random",
-                           "campaigns": [load(LAB).campaigns[0].model_dump(exclude_none=True)]}, lab_only=True)
+                           "campaigns": [load(LAB).campaigns[0].model_dump(exclude_none=True)],
+                           "orchestrator.lab_scheduler": "fair-share"}, lab_only=True)
     bomb = "a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
         f"{k}: &{k} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
         for p, k in zip("abcdefg", "bcdefgh"))
@@ -332,10 +334,12 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
         async def ask() -> None:
             for payload in hostile:
                 answers[payload] = json.loads(await lab.desk.serve("labtwin/shared/control/submit", payload))
+            answers["status"] = lab.status()
             lab.stop("test over")
         asyncio.ensure_future(ask())
 
     out = serve_lab(s, tmp_path, handle_signals=False, on_start=started)
+    assert answers["status"]["scheduler"] == "fair-share"  # twin ctl status says who decides
     for payload, words in hostile.items():
         answer = answers[payload]
         assert answer["ok"] is False and words in answer["error"], (payload[:60], answer)

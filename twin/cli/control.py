@@ -67,8 +67,11 @@ def _acted(answer: dict, as_json: bool) -> None:
 
 def _lab_status(answer: dict) -> None:
     """A lab that several campaigns share: a row per campaign."""
+    one = answer.get("scheduler")
     console.print(f"lab {answer['lab']} at lab {answer['lab_hours']:.2f} h: {len(answer['campaigns'])} campaign(s)"
-                  f"{'; it takes more (twin submit)' if answer['serving'] else ''}", highlight=False, markup=False)
+                  f"{'; it takes more (twin submit)' if answer['serving'] else ''}; "
+                  f"{f'one scheduler for the lab: {one}' if one else 'each campaign schedules its own steps, in turns'}",
+                  highlight=False, markup=False)
     table = narrow_table(["campaign", "owner", "prio", "state", "done", "aband.", "in lab", "budget"],
                          caption="twin ctl status --campaign NAME: one campaign in full")
     for c in answer["campaigns"]:

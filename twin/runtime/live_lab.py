@@ -203,7 +203,8 @@ class LiveLab:
         return {"ok": True, "campaign": entry.name, "journal": parts[0].label, "lab_hours": self.clock.now() / 3600}
 
     def status(self) -> dict[str, Any]:
-        """The lab's campaigns: each one's state, experiments and priority."""
+        """The lab's campaigns: each one's state, experiments and priority; and its one scheduler ("": each
+        campaign's own, in turns)."""
         shared, rows = self.shared, []
         for name, entry in shared.entries.items():
             core = shared.cores[name]
@@ -215,7 +216,7 @@ class LiveLab:
                          "in_progress": len(core.active), "budget": core.s.campaign.budget,
                          "targets_met": sorted(core.met_at)})
         return {"ok": True, "lab": self.lab.lab, "lab_hours": self.clock.now() / 3600, "serving": shared.serving,
-                "campaigns": rows}
+                "scheduler": self.lab.orchestrator.lab_scheduler or "", "campaigns": rows}
 
     # -- events in --------------------------------------------------------------------
     def _on_event(self, key: str, payload: bytes) -> None:
