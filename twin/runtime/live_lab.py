@@ -274,8 +274,9 @@ class LiveLab:
                 self._timers[a.key] = self.clock.call_later(a.delay, functools.partial(self._on_timer, a.key))
 
     def _ask_lab(self, ask: Ask) -> None:
-        """The lab's one scheduler: at once, or (past its deadline on a live clock: ``OffLoopScheduler``) when its
-        worker answers; the answer is journalled with the lab's inputs."""
+        """The lab's one scheduler: at once, or (on a live clock, once it held the loop too long:
+        ``OffLoopScheduler``) when its worker thread or, past the deadline, the fallback rule answers; the answer is
+        journalled with the lab's inputs."""
         if self.lab_scheduler is None:
             raise RuntimeError(f"{self.lab.name}: the lab asked its one scheduler, and it has none")
         self._lab_deciding = ask_scheduler(self.lab_scheduler, ask, self._lab_decided, self._failed)
