@@ -41,9 +41,9 @@ import torch
 from agents.candidates import FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, lab_shape, widen
 from agents.cpsat import jobshop
 from agents.scheduling_env import randomised
-from agents.schedulers import LAB_RULES, RULES
+from agents.schedulers import rules_for
 from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, initial_state, objective, started_from
-from twin import Scenario, SteppedCampaign, SteppedLab, jobshop_as_lab, load_plugin, prepare, random_jobshop
+from twin import Scenario, SteppedCampaign, jobshop_as_lab, load_plugin, prepare, random_jobshop, stepped
 
 
 @dataclass
@@ -146,7 +146,7 @@ def rollout(lab: Scenario, teacher: PlanTeacher | RuleTeacher, choose, rng: rand
     """One campaign of ``lab``, every state labelled by ``teacher``; ``choose(obs, mask, taught, rng)`` acts.
     Returns the samples and the campaign's summary."""
     encoder = CandidateEncoder(lab)
-    c: Any = SteppedLab(lab) if lab.campaigns else SteppedCampaign(lab)
+    c = stepped(lab)
     out: list[Sample] = []
     teacher.reset()
     try:
@@ -209,8 +209,7 @@ def lab_task(args: tuple) -> tuple[list[Sample], dict]:
     torch.set_num_threads(1)
     rng = random.Random(f"imitate:{seed}")
     lab = prepare(randomised(base, seed), seed=seed)
-    rules = (*RULES, *LAB_RULES) if lab.campaigns else RULES  # a lab of several campaigns: as its one scheduler
-    scores = {r: objective(campaign(lab, seed, load_plugin("schedulers", r)().decide), lab) for r in rules}
+    scores = {r: objective(campaign(lab, seed, load_plugin("schedulers", r)().decide), lab) for r in rules_for(lab)}
     rule = min(scores, key=scores.get)
     samples, ratios = _rollouts(lab, RuleTeacher(rule), modes, _scorer(state, seed), beta, rng,
                                 lambda summary: objective(summary, lab) / scores[rule])
@@ -230,7 +229,6 @@ def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
     the policy, a sample strays so far from the greedy run that the best of 16 is hardly better than it; too low,
     it seldom leaves it); each state is labelled with the choice the run made there. The samples and the summary
     of each run."""
-    stepped: Any = SteppedLab if lab.campaigns else SteppedCampaign  # a lab of several: its one scheduler's questions
     runs = [(CandidateEncoder(lab), stepped(lab), []) for _ in range(k)]
     try:
         live = list(range(k))
@@ -398,8 +396,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     net = model.policy.action_net
     fits = None
     if init is not None:
-        state = initial_state(Path(init), scenario, "candidates")
-        net.load_state_dict({k.removeprefix("action_net."): v for k, v in state.items() if k.startswith("action_net.")})
+        net.load_state_dict(initial_state(Path(init), scenario, "candidates", part="action_net"))
         fits = read_meta(Path(init)).get("fits")
     optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
     judge = Judge(scenario, out, "candidates", eval_seeds or EVAL_SEEDS, held_out_count, on_progress,

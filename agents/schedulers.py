@@ -92,3 +92,9 @@ class FairShareScheduler(_Rule):
 
 RULES = ("fifo", "spt", "mwkr", "least-loaded", "oldest-sample")
 LAB_RULES = ("fair-share",)  # rules that read whose step each is: a lab's one scheduler's baselines and teachers
+
+
+def rules_for(scenario: Any) -> tuple[str, ...]:
+    """The rules a policy is judged against and taught by: in a lab of several campaigns, also those that read
+    whose step each is (as the lab's one scheduler)."""
+    return (*RULES, *LAB_RULES) if scenario.campaigns else RULES

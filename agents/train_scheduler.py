@@ -20,7 +20,7 @@ from agents.rl_scheduler import RlScheduler
 from agents.candidates import signature as candidate_signature
 from agents.candidates import widen
 from agents.scheduling_features import signature, time_scale
-from agents.schedulers import LAB_RULES, RULES
+from agents.schedulers import rules_for
 from twin import load_plugin, load_policy
 from twin import Assignment, LabView
 from twin import prepare
@@ -83,8 +83,7 @@ def score(summaries: list[Any], scenario: Scenario | None = None) -> dict[str, f
 def baselines(scenario: Scenario) -> dict[str, Callable[[LabView], list[Assignment]] | None]:
     """What a policy is judged against: every dispatching rule (in a lab of several campaigns, as its one
     scheduler, with ``fair-share``), and there also the campaigns' own schedulers in turns."""
-    rules = (*RULES, *LAB_RULES) if scenario.campaigns else RULES
-    out: dict[str, Any] = {rule: load_plugin("schedulers", rule)().decide for rule in rules}
+    out: dict[str, Any] = {rule: load_plugin("schedulers", rule)().decide for rule in rules_for(scenario)}
     if scenario.campaigns:
         out[TURNS] = None
     return out
@@ -136,9 +135,10 @@ def judge_signature(scenario: Scenario, encoding: str) -> dict:
     return candidate_signature(scenario) if encoding == "candidates" else signature(scenario)
 
 
-def initial_state(init: Path, scenario: Scenario, encoding: str) -> dict[str, torch.Tensor]:
+def initial_state(init: Path, scenario: Scenario, encoding: str, part: str = "") -> dict[str, torch.Tensor]:
     """The policy state in ``init`` to start training from; a candidate policy of an earlier encoding
-    (``agents.candidates.WIDTHS``) widened to this one, deciding as it did until trained further."""
+    (``agents.candidates.WIDTHS``) widened to this one, deciding as it did until trained further. ``part``: only
+    that module's state (``action_net``: the candidate scorer)."""
     from twin import read_meta
 
     from agents.candidate_policy import widened
@@ -146,8 +146,12 @@ def initial_state(init: Path, scenario: Scenario, encoding: str) -> dict[str, to
 
     trained = read_meta(Path(init)).get("signature", {}).get("encoding")
     if encoding == "candidates" and trained in WIDTHS:
-        return widened(load_policy(Path(init), "scheduler", candidate_signature(scenario, trained)).policy.state_dict())
-    return load_policy(Path(init), "scheduler", judge_signature(scenario, encoding)).policy.state_dict()
+        state = widened(load_policy(Path(init), "scheduler", candidate_signature(scenario, trained)).policy.state_dict())
+    else:
+        state = load_policy(Path(init), "scheduler", judge_signature(scenario, encoding)).policy.state_dict()
+    if not part:
+        return state
+    return {k.removeprefix(part + "."): v for k, v in state.items() if k.startswith(part + ".")}
 
 
 class Judge:

@@ -40,8 +40,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     s = prepare(args.scenario)
-    state = {k.removeprefix("action_net."): v for k, v in initial_state(args.policy, s, "candidates").items()
-             if k.startswith("action_net.")}
+    state = initial_state(args.policy, s, "candidates", part="action_net")
     sizes = s.training.jobshop_sizes or [[10, 10]]
     low, high = (int(x) for x in (s.training.operation_s or (1, 99)))
     shops = []

@@ -105,3 +105,12 @@ def mosquitto(tmp_path_factory):
     yield f"127.0.0.1:{port}"
     proc.terminate()
     proc.wait(timeout=10)
+
+
+def assert_adopted_once(events: list[dict], task: str, device: str) -> None:
+    """A step that finished while its campaign was dead: its result taken once, from ``device``, after the resume,
+    and the step never counted as failed."""
+    done = [e for e in events if e["kind"] == "attempt.done" and e["task"] == task]
+    assert len(done) == 1 and done[0]["device"] == device, "the finished result is adopted, once"
+    assert done[0]["t_lab"] >= next(e["t_lab"] for e in events if e["kind"] == "campaign.resumed")
+    assert not [e for e in events if e["kind"] == "attempt.failed" and e["task"] == task]

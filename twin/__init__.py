@@ -20,7 +20,7 @@ from twin.core.streams import keyed_uniforms, seeded
 from twin.device.actor import DeviceActor
 from twin.device.driver import Driver, DriverFeatures, DriverSetup, StepContext, StepResult
 from twin.learning.policies import load_policy, read_meta, save_policy
-from twin.learning.stepper import SteppedCampaign, SteppedLab
+from twin.learning.stepper import SteppedCampaign, SteppedLab, stepped
 from twin.learning.workcell import open_workcell
 from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.lab import prepare, run, run_async
@@ -43,5 +43,5 @@ __all__ = [
     "SteppedCampaign", "SteppedLab", "Summary", "TwinError", "campaign_scenarios", "capable", "drawn_at_random", "driver_setup", "expected_duration", "jobshop_as_lab",
     "json_schema", "keyed_uniforms", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
     "prepare", "random_jobshop", "random_lab", "read_meta", "resume", "run", "run_async", "run_scenario", "run_step",
-    "save_policy", "score", "seeded", "sleep_wall",
+    "save_policy", "score", "seeded", "sleep_wall", "stepped",
 ]

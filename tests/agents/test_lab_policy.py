@@ -137,8 +137,7 @@ def test_a_lab_is_trained_from_a_policy_by_its_own_best_runs_and_says_so_when_it
     with pytest.raises(ValueError, match=r"here candidates, ppo, "):
         train_scheduler(prepare(BUSY, overrides={"training.method": "ppo"}), 100, tmp_path / "p.zip", init=SHIPPED)
     # a worker's labels: variants of the lab, whose questions hold several campaigns' steps
-    state = {k.removeprefix("action_net."): v for k, v in initial_state(SHIPPED, lab, "candidates").items()
-             if k.startswith("action_net.")}
+    state = initial_state(SHIPPED, lab, "candidates", part="action_net")
     labelled = []
     for seed in (1, 2):
         samples, info = self_task((lab, seed, ("self",), state, 0.0))

@@ -31,8 +31,7 @@ def ft06():
 def state(ft06):
     from agents.train_scheduler import initial_state
 
-    return {k.removeprefix("action_net."): v for k, v in initial_state(SHIPPED, ft06, "candidates").items()
-            if k.startswith("action_net.")}  # a shipped v2 policy, widened
+    return initial_state(SHIPPED, ft06, "candidates", part="action_net")  # a shipped v2 policy, widened
 
 
 def replay(lab, samples) -> float:

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.conftest import qd_lab
+from tests.conftest import assert_adopted_once, qd_lab
 from twin.campaign.journal import read_events, read_run
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -111,11 +111,7 @@ def test_a_result_finished_while_the_campaign_was_dead_is_adopted_once(tmp_path)
             p.wait()
     summary = json.loads(resumed.stdout)
     events = read_events(db)
-    done = [e for e in events if e["kind"] == "attempt.done" and e["task"] == killed_task]
-    assert len(done) == 1 and done[0]["device"] == "spectrometer-2", "the finished result is adopted, once"
-    resumed_at = next(e["t_lab"] for e in events if e["kind"] == "campaign.resumed")
-    assert done[0]["t_lab"] >= resumed_at
-    assert not [e for e in events if e["kind"] == "attempt.failed" and e["task"] == killed_task]
+    assert_adopted_once(events, killed_task, "spectrometer-2")
     finals = [e["experiment"] for e in events if e["kind"] in ("experiment.done", "experiment.abandoned")]
     assert len(finals) == len(set(finals))
     assert summary["done"] + summary["abandoned"] + summary["pending"] == summary["proposed"] == 6

@@ -11,6 +11,7 @@ from twin.runtime.shared_run import run_shared
 
 from twin.campaign.journal import read_run
 from tests.twin.shared_labs import (LAB, ROOT, SMALL, assert_one_step_at_a_time, journal_tables, kill_all, wait_until_ended)
+from tests.conftest import assert_adopted_once
 
 
 def _lab_killed_at(s, where: Path, row: int) -> None:
@@ -223,11 +224,7 @@ def test_a_shared_lab_killed_with_a_step_on_a_device_of_another_process_adopts_i
             p.kill()
             p.wait()
     out = json.loads(resumed.stdout)
-    events_ = read_events(where / f"{campaign}.db")
-    done = [e for e in events_ if e["kind"] == "attempt.done" and e["task"] == killed]
-    assert len(done) == 1 and done[0]["device"] == "spectrometer", "the finished result is adopted, once"
-    assert done[0]["t_lab"] >= next(e["t_lab"] for e in events_ if e["kind"] == "campaign.resumed")
-    assert not [e for e in events_ if e["kind"] == "attempt.failed" and e["task"] == killed]
+    assert_adopted_once(read_events(where / f"{campaign}.db"), killed, "spectrometer")
     for name, budget in (("dots", 3), ("catalyst", 2)):
         c = out["campaigns"][name]
         assert c["done"] + c["abandoned"] == budget == c["proposed"] and c["pending"] == 0, (name, c)

@@ -50,10 +50,11 @@ def by_campaign(tagged: list[Tagged]) -> list[tuple[str, list[Action]]]:
 
 class SharedLab:
     def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], secrets: dict[str, bytes] | None = None,
-                 serving: bool = False) -> None:
+                 serving: bool = False, one_scheduler: bool | None = None) -> None:
         """``scenarios``: each campaign's scenario (``twin.scenario.sharing.campaign_scenarios``), in the lab
         file's order. ``serving``: the lab goes on when its campaigns have ended, taking more (``add``), until
-        it is stopped."""
+        it is stopped. ``one_scheduler``: the lab asks one scheduler with every campaign's steps (default: if the
+        lab file names one, ``orchestrator.lab_scheduler``); else each campaign's own decides, in turns."""
         self.serving = serving
         self.lab = lab
         self.entries: dict[str, SharedCampaign] = {c.name: c for c in lab.campaigns}
@@ -67,7 +68,7 @@ class SharedLab:
         self.unsubmitted: dict[str, str] = {}  # campaigns never started, and why (the lab stopped first)
         self._due: list[str] = []  # submitted, waiting for a turn to start
         self._deciding = ""  # the campaign whose decision pass waits on an answer: one at a time
-        self.one_scheduler = bool(lab.orchestrator.lab_scheduler)  # the lab's scheduler sees every campaign's steps
+        self.one_scheduler = bool(lab.orchestrator.lab_scheduler) if one_scheduler is None else one_scheduler
         self._asks: dict[str, Ask] = {}  # with one scheduler: the campaigns that asked it, this pass
         self._lab_ask: Ask | None = None  # ... and the lab's question to it, until it answers
         self._stopping = ""

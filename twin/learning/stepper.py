@@ -81,18 +81,17 @@ class SteppedLab(_Stepped):
     end at once (the baseline a lab's one scheduler is judged against)."""
 
     def __init__(self, lab: Scenario, one_scheduler: bool = True) -> None:
-        s = prepare(lab, clock="virtual", bus="memory")
-        if not s.campaigns:
-            raise ValueError(f"{s.name}: a stepped lab has several campaigns (campaigns:); a lab of one is a "
+        self.s = prepare(lab, clock="virtual", bus="memory")
+        if not self.s.campaigns:
+            raise ValueError(f"{self.s.name}: a stepped lab has several campaigns (campaigns:); a lab of one is a "
                              "SteppedCampaign")
-        spec = "(stepped)" if one_scheduler else None
-        self.s = s.model_copy(update={"orchestrator": s.orchestrator.model_copy(update={"lab_scheduler": spec})})
         self._wall0 = time.perf_counter()
         scenarios = campaign_scenarios(self.s, self.s.name)
         drivers, per_device = shared_drivers(scenarios)
         self._parts: dict[str, SeatParts] = {n: (NullJournal(), make_planner(cs), make_scheduler(cs))
                                              for n, cs in scenarios.items()}
-        self._run = FastLab(self.s, scenarios, drivers, per_device, self._parts, alerts=False)
+        self._run = FastLab(self.s, scenarios, drivers, per_device, self._parts, alerts=False,
+                            one_scheduler=one_scheduler)
         self.summary: LabSummary | None = None
         self.view = None
         self._next()
@@ -107,3 +106,8 @@ class SteppedLab(_Stepped):
             shared = self._run.shared
             summaries = lab_summaries(shared, self._parts, self._wall0, self.now)
             self.summary = lab_summary(self.s, shared, summaries, Path("(memory)"), time.perf_counter() - self._wall0)
+
+
+def stepped(scenario: Scenario) -> SteppedCampaign | SteppedLab:
+    """``scenario`` one scheduling decision at a time: a lab of several campaigns by its one scheduler's questions."""
+    return SteppedLab(scenario) if scenario.campaigns else SteppedCampaign(scenario)

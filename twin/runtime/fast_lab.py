@@ -25,15 +25,17 @@ class FastLab:
                  per_device: dict[str, dict[str, Any]], parts: dict[str, SeatParts],
                  on_progress: Callable[[str], Progress | None] | None = None,
                  observer: SharedLabObserver | None = None, lab_scheduler: Scheduler | None = None,
-                 alerts: bool = True) -> None:
+                 alerts: bool = True, one_scheduler: bool | None = None) -> None:
         """``scenarios``: each campaign's; ``per_device``: each instance's driver for each campaign (a simulated
         device simulates the chemistry of the campaign whose step it runs); ``parts``: each campaign's journal,
         planner and scheduler; ``observer``: handed the lab's devices' results and telemetry and each campaign's
         notes as they happen (a recording); ``lab_scheduler``: the one scheduler of a lab whose
         ``orchestrator.lab_scheduler`` is set (it answers the lab's questions, with every campaign's steps);
-        ``alerts``: log the campaigns' alerts as warnings (a training episode's are never read)."""
+        ``alerts``: log the campaigns' alerts as warnings (a training episode's are never read);
+        ``one_scheduler``: ask one scheduler (``lab_scheduler``, or the caller of ``next_decision``) whatever the
+        lab file says (``SharedLab``)."""
         self.lab, self.queue, self.lab_scheduler = lab, EventQueue(), lab_scheduler
-        self.shared = SharedLab(lab, scenarios)
+        self.shared = SharedLab(lab, scenarios, one_scheduler=one_scheduler)
         watch = observer.on_envelope if observer is not None else None
         self.devices = {name: FastDevice(name, dtype, lab.devices[dtype], drv, self.queue, lab.campaign.seed,
                                          self.shared.feed_device, watch, shared=per_device[name])
