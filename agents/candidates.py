@@ -170,8 +170,11 @@ class CandidateEncoder:
         far less the share it is due, its progress through its budget, the other campaigns' ready steps for the
         same device type, and their part of the known work queued for that type. One campaign: 1, 0, its
         progress, 0, 0."""
+        alone = (1.0, 0.0, view.finished / max(view.budget, 1), 0.0, 0.0)
+        if not view.campaigns:  # one campaign (training's hot path): the same for every row
+            return lambda r: alone
         states = {c.name: c for c in view.campaigns}
-        top = max((c.priority for c in view.campaigns), default=0)
+        top = max(c.priority for c in view.campaigns)
         count: dict[tuple[str, str], int] = {}
         work: dict[tuple[str, str], float] = {}
         for r in view.ready:
@@ -181,12 +184,11 @@ class CandidateEncoder:
         total: dict[str, float] = {}
         for (_, t), w in work.items():
             total[t] = total.get(t, 0.0) + w
-        alone = view.finished / max(view.budget, 1)
 
         def columns(r: ReadyStep) -> tuple[float, ...]:
             c = states.get(r.campaign)
             if c is None:
-                return 1.0, 0.0, alone, 0.0, 0.0
+                return alone
             others = total.get(r.device_type, 0.0) - work.get((r.campaign, r.device_type), 0.0)
             return (float(c.priority >= top), c.used - c.share, c.finished / max(c.budget, 1),
                     (ready_of.get(r.device_type, 0) - count.get((r.campaign, r.device_type), 0)) / 10,
