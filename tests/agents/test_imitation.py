@@ -12,7 +12,8 @@ import torch
 
 from agents.candidates import WAIT, CandidateEncoder
 from agents.cpsat import jobshop
-from agents.imitation import PlanTeacher, RuleTeacher, follow_teacher, lab_task, rollout
+from agents.imitation import follow_teacher, lab_task, rollout
+from agents.teachers import PlanTeacher, RuleTeacher
 from agents.schedulers import RULES
 from agents.rl_scheduler import RlScheduler
 from agents.train_scheduler import campaign, score, solver_reference, train_scheduler
