@@ -106,3 +106,28 @@ async def test_a_device_answers_health_requests_with_its_drivers_report(virtual_
     for a in actors:
         await a.stop()
     await bus.close()
+
+
+def test_a_training_episode_keeps_a_raising_driver_in_its_run_not_in_the_log(tmp_path, caplog):
+    """A run warns once per raise; a training episode (thousands of them) records the fault and logs it at debug."""
+    import logging
+
+    from twin import SteppedCampaign, load_plugin
+
+    lab = parse(qd_lab(**{
+        "devices.broken": {"driver": "tests.twin.test_bad_drivers:Raises", "instances": 1, "steps": ["measure"],
+                           "duration": {"mean_s": 60, "cv": 0.1}},
+        "workflow": [{"step": "synthesise", "device": "synthesiser"}, {"step": "measure", "device": "broken"}],
+        "campaign.budget": 2,
+    }))
+    with caplog.at_level(logging.WARNING):
+        run(lab, journal=tmp_path / "j.db")
+    assert any("driver raised during measure" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        episode, fifo = SteppedCampaign(lab), load_plugin("schedulers", "fifo")()
+        while not episode.done:
+            episode.answer(fifo.decide(episode.view))
+        episode.close()
+    assert episode.summary.abandoned == 2 and episode.summary.attempts > 0
+    assert not any("driver raised" in r.getMessage() for r in caplog.records)

@@ -121,7 +121,7 @@ class FastCampaign:
         self.core = CampaignCore(scenario, campaign_id)
         watch = observer.on_envelope if observer is not None else None
         self.devices = {name: FastDevice(name, dtype, scenario.devices[dtype], drv, self.queue,
-                                         scenario.campaign.seed, self.core.feed, watch)
+                                         scenario.campaign.seed, self.core.feed, watch, warn=alerts)
                         for name, dtype, drv in drivers}
         self.seat = Seat(self.core, journal, planner, scheduler, self.queue, self.devices, on_progress, alerts,
                          observer)

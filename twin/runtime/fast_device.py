@@ -36,11 +36,13 @@ class FastRuntimeRefused(DriverError):
 class FastDevice:
     def __init__(self, name: str, device_type: str, spec: Any, driver: Driver, queue: EventQueue, seed: int,
                  deliver: Callable[[Any], None], watch: Callable[[dict], None] | None = None,
-                 shared: dict[str, Driver] | None = None) -> None:
+                 shared: dict[str, Driver] | None = None, warn: bool = True) -> None:
         """``watch``: given the envelope of each result and telemetry message, decoded (an in-process observer).
         ``shared``: the device serves several campaigns — campaign -> the driver that simulates its chemistry;
-        their steps draw faults and durations by campaign too (their task ids repeat)."""
+        their steps draw faults and durations by campaign too (their task ids repeat). ``warn``: log a driver that
+        raises as a warning (a training episode's go to debug: its fault is in the run all the same)."""
         self.name, self.device_type, self.spec, self.driver = name, device_type, spec, driver
+        self._log_raised = log.warning if warn else log.debug
         self._watch = watch
         self._q, self._clock, self._deliver, self._seed = queue, QueueClock(queue), deliver, seed
         self._crash_rng = seeded(seed, "crashes", name)[0] if spec.faults.mtbc_h > 0 else None
@@ -204,7 +206,7 @@ class FastDevice:
         except Refused as no:
             emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
         except Exception as exc:  # a driver bug must never take the lab down
-            log.warning("%s: driver raised during %s: %r", self.name, step, exc)
+            self._log_raised("%s: driver raised during %s: %r", self.name, step, exc)
             await self.driver.safe_state()
             emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(exc).__name__}: {exc}"})
         finally:

@@ -38,7 +38,7 @@ class FastLab:
         self.shared = SharedLab(lab, scenarios, one_scheduler=one_scheduler)
         watch = observer.on_envelope if observer is not None else None
         self.devices = {name: FastDevice(name, dtype, lab.devices[dtype], drv, self.queue, lab.campaign.seed,
-                                         self.shared.feed_device, watch, shared=per_device[name])
+                                         self.shared.feed_device, watch, shared=per_device[name], warn=alerts)
                         for name, dtype, drv in sorted(drivers)}
         self.seats = {name: Seat(self.shared.cores[name], *parts[name], self.queue, self.devices,
                                  on_progress(name) if on_progress else None, alerts,
