@@ -191,7 +191,8 @@ def test_two_campaigns_on_a_scaled_clock_over_zenoh_with_a_device_in_another_pro
         port = sock.getsockname()[1]
     raw = yaml.safe_load(LAB.read_text())
     raw["clock"] = {"mode": "scaled", "speed": 3000}
-    raw["bus"] = {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]}
+    # the device is started first and waits for the lab, which loads torch for the policy before it listens
+    raw["bus"] = {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"], "connect_timeout_ms": 60_000}
     raw["orchestrator"]["startup_s"] = 3000
     for c, budget in zip(raw["campaigns"], (5, 3)):
         c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
