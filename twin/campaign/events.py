@@ -35,8 +35,9 @@ class Code(StrEnum):
     DRIVER_ERROR = "driver_error"
 
 
-#: Notes a runtime also logs as warnings: the lab cannot go on as it is.
+#: Notes a runtime also logs as warnings, on the ``ALERT_LOGGER`` logger: the lab cannot go on as it is.
 ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping"})
+ALERT_LOGGER = "twin.alerts"
 #: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, a device type gone, an
 #: operator's act
 PROGRESS_KINDS = ("attempt.done", "attempt.failed", "devices.", "operator.")

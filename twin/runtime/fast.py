@@ -21,7 +21,7 @@ from typing import Any
 
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Proposed, RecordExperiment,
                            RecordMessage, Send, SetTimer, Stop, TimerFired)
-from twin.campaign.events import ALERTS, PROGRESS_KINDS, TimerKey
+from twin.campaign.events import ALERT_LOGGER, ALERTS, PROGRESS_KINDS, TimerKey
 from twin.campaign.decisions import Assignment, LabView, Planner, Scheduler
 from twin.core.errors import ClockError
 from twin.campaign.journal import Journal
@@ -32,6 +32,7 @@ from twin.scenario import Scenario
 from twin.view.observer import UNDRAWN
 
 log = logging.getLogger(__name__)
+alerts_log = logging.getLogger(ALERT_LOGGER)
 Progress = Callable[[CampaignCore], None]
 
 
@@ -58,7 +59,7 @@ class Seat:
                 if observer is not None and a.kind not in UNDRAWN:
                     observer.on_note(a)
                 if a.kind in self.alerts:
-                    log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
+                    alerts_log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
                 if watched and not progressed:
                     progressed = a.kind.startswith(PROGRESS_KINDS)
             elif t is RecordMessage:

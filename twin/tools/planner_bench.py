@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from twin.campaign.events import ALERT_LOGGER
 from twin.runtime.lab import prepare, run
 from twin.scenario import Scenario
 
@@ -68,7 +69,7 @@ def _trial(args: tuple) -> Trial:
 def quiet_alerts() -> None:
     """A bench runs hundreds of campaigns and its table counts what they lost: a warning for every device type
     gone in every campaign would bury the progress bar under hundreds of lines."""
-    logging.getLogger("twin.runtime.fast").setLevel(logging.ERROR)
+    logging.getLogger(ALERT_LOGGER).setLevel(logging.ERROR)
 
 
 def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str], seeds: int, workers: int,
