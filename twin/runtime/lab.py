@@ -227,7 +227,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         external_devices: Collection[str] = frozenset(),
         on_progress: Callable[[CampaignCore], None] | None = None,
         record: RecordOptions | None = None, observer: LabObserver | None = None, runtime: str = "auto",
-        make_journal: JournalFactory = Journal, **overrides: Any) -> Summary:
+        make_journal: JournalFactory = Journal, agent_in_process: bool = False, **overrides: Any) -> Summary:
     """Run one campaign to its end and return its summary.
 
     ``overrides`` are ``seed``, ``clock``, ``speed``, ``bus`` or ``overrides``
@@ -237,9 +237,11 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
     is an observer the caller opened (and closes) itself. ``runtime``:
     ``fast`` (virtual time on the memory bus, in-process), ``asyncio``
     (everything else), or ``auto``: fast where it can. ``make_journal`` opens the journal at a path.
+    ``agent_in_process``: a scheduler that is an agent on the bus (rl) is asked in this process instead, so the
+    fast runtime can run the campaign: the same decisions without a bus round trip each (benches, what-if).
     """
     s = prepare(scenario, **overrides)
-    why_not = fast_refused(s, external_devices)
+    why_not = fast_refused(s, external_devices, agent_in_process)
     if runtime not in RUNTIMES:
         raise TwinError(f"unknown runtime {runtime!r}: use one of {', '.join(RUNTIMES)}")
     if runtime == "fast" and why_not:
@@ -253,7 +255,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         if runtime == "fast" or (runtime == "auto" and not why_not):
             try:
                 return run_fast(s, journal or default_journal(s), on_progress, make_journal=make_journal,
-                                observer=observer)
+                                observer=observer, agent_in_process=agent_in_process)
             except FastRuntimeRefused as exc:
                 if runtime == "fast":
                     raise
@@ -271,7 +273,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
             recording.stop_serving()
 
 
-def fast_refused(s: Scenario, external_devices: Collection[str] = frozenset()) -> str:
+def fast_refused(s: Scenario, external_devices: Collection[str] = frozenset(), agent_in_process: bool = False) -> str:
     """Why the fast runtime cannot run ``s`` as asked ('' when it can)."""
     if s.clock.mode != "virtual":
         return f"the clock is {s.clock.mode} (the fast runtime keeps virtual time only)"
@@ -279,7 +281,7 @@ def fast_refused(s: Scenario, external_devices: Collection[str] = frozenset()) -
         return f"the bus is {s.bus.kind} (the fast runtime passes messages in-process)"
     if external_devices:
         return f"devices {sorted(external_devices)} run in other processes"
-    if s.campaign.scheduler == REMOTE or _agent_on_bus(s.campaign.scheduler):
+    if s.campaign.scheduler == REMOTE or (not agent_in_process and _agent_on_bus(s.campaign.scheduler)):
         return "the scheduler is an agent on the bus"
     return ""
 
@@ -299,14 +301,14 @@ def recording_id(s: Scenario) -> str:
 
 def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[CampaignCore], None] | None = None,
              handle_signals: bool = True, make_journal: JournalFactory = Journal,
-             observer: LabObserver | None = None) -> Summary:
+             observer: LabObserver | None = None, agent_in_process: bool = False) -> Summary:
     """The campaign of ``s`` on the fast runtime (virtual time, in-process devices); ``observer`` is handed
-    what the campaign does as it happens."""
+    what the campaign does as it happens; ``agent_in_process``: see ``run``."""
     wall0 = time.perf_counter()
     drivers = load_drivers(s)
     refuse_realtime(drivers)
     planner, scheduler = make_planner(s), make_scheduler(s)
-    if getattr(scheduler, "serve_on_bus", False):
+    if getattr(scheduler, "serve_on_bus", False) and not agent_in_process:
         raise FastRuntimeRefused(f"scheduler {s.campaign.scheduler!r} is an agent on the bus, which the fast "
                                  "runtime does not have: use --runtime asyncio")
     journal = open_journal(s, journal_path, make_journal)

@@ -53,7 +53,7 @@ def trial(scenario: Scenario, planner: str, seed: int) -> Trial:
     if variant == "seq":
         overrides["campaign.max_in_flight"] = 1
     with tempfile.TemporaryDirectory() as d:
-        s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual", overrides=overrides)
+        s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual", overrides=overrides, agent_in_process=True)
     targets = [t.name for t in scenario.chemistry.targets]
     reached = all(t in s.targets_met_h for t in targets)
     return Trial(planner, seed, reached,

@@ -39,7 +39,7 @@ class Run:
 def one(scenario: Scenario, scheduler: str, seed: int) -> Run:
     with tempfile.TemporaryDirectory() as d:
         s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual",
-                overrides={"campaign.scheduler": scheduler})
+                overrides={"campaign.scheduler": scheduler}, agent_in_process=True)
     util = statistics.mean(s.utilisation.values()) if s.utilisation else 0.0
     return Run(scheduler, seed, s.lab_hours * 3600, util, s.degraded_samples, s.abandoned, s.scheduler_fallbacks,
                s.decision_ms.get("p50", 0.0), s.decision_ms.get("p99", 0.0))
@@ -76,7 +76,8 @@ def caption(unit: str) -> str:
     return (f"mean, median: makespan ({unit}); vs bound: gap to CP-SAT's optimum (a deterministic job shop); vs best "
             "rule: against the rule with the lowest mean; busy: mean utilisation; degr.: degraded samples; lost: "
             "abandoned experiments; fallb.: decisions the fallback rule made (an agent absent or late); ms: wall "
-            "time per decision, median p50 / worst p99")
+            "time per decision, median p50 / worst p99 (an rl agent is asked in the bench's process: the same "
+            "decisions as over the bus, without its round trip)")
 
 
 def rows(results: dict[str, list[Run]], optimum: float | None, unit_s: float) -> list[list[str]]:
