@@ -117,3 +117,18 @@ def test_numpy_outputs_travel_and_both_runtimes_agree(tmp_path):
     slow = run(lab, journal=tmp_path / "asyncio.db", runtime="asyncio")
     assert fast.done == slow.done == 3
     assert journal(tmp_path / "fast.db") == journal(tmp_path / "asyncio.db")
+
+
+def test_an_rl_agent_asked_in_process_decides_as_it_does_over_the_bus(tmp_path):
+    """What benches and what-if do: the agent in the campaign's process lets the fast runtime run it."""
+    from twin.core.errors import ClockError
+
+    policy = {"campaign.scheduler": "rl:agents/policies/flaky_scheduler.zip", "campaign.budget": 30}
+    scenario = ROOT / "scenarios" / "flaky_lab.yaml"
+    with pytest.raises(ClockError, match="agent on the bus"):
+        run(scenario, journal=tmp_path / "refused.db", seed=3, bus="memory", runtime="fast", overrides=policy)
+    bus = run(scenario, journal=tmp_path / "bus.db", seed=3, bus="memory", overrides=policy)
+    here = run(scenario, journal=tmp_path / "here.db", seed=3, bus="memory", runtime="fast", overrides=policy,
+               agent_in_process=True)
+    assert here.decisions > 20 and lab_facts(here) == lab_facts(bus)
+    assert journal(tmp_path / "here.db")[1] == journal(tmp_path / "bus.db")[1]  # every experiment, as it ended

@@ -45,7 +45,7 @@ def test_a_bench_keeps_device_alerts_out_of_its_output_that_a_single_run_prints(
     assert "devices.unavailable spectrometer" in caplog.text  # one campaign alone says so
     res = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/flaky_lab.yaml",
                           "--seeds", "2", "--budget", "8", "--workers", "1", "--schedulers",
-                          "fifo,rl:agents/policies/flaky_scheduler.zip",  # the rl agent runs on the asyncio runtime
+                          "fifo,rl:agents/policies/flaky_scheduler.zip",
                           *[x for c in crashing for x in ("--set", c)]],
                          capture_output=True, text=True, cwd=ROOT, timeout=120, env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
     assert res.returncode == 0, res.stderr
