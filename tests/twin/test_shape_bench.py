@@ -52,3 +52,24 @@ def test_a_bench_keeps_device_alerts_out_of_its_output_that_a_single_run_prints(
     assert "devices.unavailable" not in res.stderr
     rows = [line.split()[:1] for line in res.stdout.splitlines()]
     assert ["fifo"] in rows and ["rl:flaky_scheduler"] in rows, res.stdout
+
+
+def test_shapes_give_every_run_and_every_comparison_to_machines(tmp_path):
+    import csv
+    import json
+    import statistics
+
+    args = [sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/quantum_dots.yaml", "--shapes",
+            "--seeds", "2", "--budget", "3", "--schedulers", "fifo,spt", "--csv", str(tmp_path / "runs.csv"), "--json"]
+    out = subprocess.run(args, capture_output=True, text=True, cwd=ROOT, timeout=300,
+                         env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr
+    data = json.loads(out.stdout)
+    shapes_run = {c["shape"] for c in data["comparisons"]}
+    assert len(data["runs"]) == len(shapes_run) * 2 * 2 and "as written" in shapes_run
+    with open(tmp_path / "runs.csv") as f:
+        assert len(list(csv.DictReader(f))) == len(data["runs"])
+    for c in data["comparisons"]:  # each verdict is the mean of the seeds' differences to the best rule
+        span = {(r["scheduler"], r["seed"]): r["makespan_h"] for r in data["runs"] if r["shape"] == c["shape"]}
+        diffs = [span[c["scheduler"], seed] - span[c["best_rule"], seed] for seed in (0, 1)]
+        assert abs(statistics.mean(diffs) - c["diff_h"]) < 1e-9

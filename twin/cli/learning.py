@@ -145,6 +145,7 @@ def bench_schedulers(
     """Makespan, gap to the CP-SAT bound, utilisation, degraded and lost samples, decision latency per scheduler."""
     from dataclasses import asdict
 
+    from twin.tools.planner_bench import bench_pool
     from twin.tools.scheduler_bench import HEADER, bench, bound, caption, load_variant, rows
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
@@ -154,36 +155,40 @@ def bench_schedulers(
     tables: list[dict] = []
     all_runs: list[dict] = []
     files = [f.strip() for f in jobshop.split(",")] if jobshop else [None]
-    for file in files:
-        try:
-            s = load_variant(scenario, file, budget, _assignments(set_ or []))
-            for name in names:
-                lab.make_scheduler(s, name)
-        except TwinError as exc:
-            _fail(exc)
-        optimum = bound(s)
-        title = f"{Path(file).stem if file else s.name}"
-        progress = bar_progress(as_json)
-        with progress:
-            bar = progress.add_task(f"{title}: {len(names)} schedulers", total=len(names) * (1 if s.jobshop else seeds))
-            results = bench(s, names, seeds, workers, on_run=lambda r: progress.advance(bar))
-        runs = len(next(iter(results.values())))
-        table_rows = rows(results, optimum, 1.0 if s.jobshop else 3600.0)
-        all_runs += [{"lab": title, **asdict(r)} for v in results.values() for r in v]
-        tables.append({"lab": title, "bound_s": optimum, "rows": [dict(zip(HEADER, r)) for r in table_rows]})
-        if as_json:
-            continue
-        table = narrow_table(HEADER, f"{title} — {runs} run(s) per scheduler" +
-                             (f"; CP-SAT bound {optimum:.0f} lab-s" if optimum else ""),
-                             caption("lab-s" if s.jobshop else "lab-h"))
-        for row in table_rows:
-            table.add_row(*row)
-        console.print(table)
+    with bench_pool(workers) as pool:  # one set of workers for every shop
+        for file in files:
+            try:
+                s = load_variant(scenario, file, budget, _assignments(set_ or []))
+                for name in names:
+                    lab.make_scheduler(s, name)
+            except TwinError as exc:
+                _fail(exc)
+            optimum = bound(s)
+            title = f"{Path(file).stem if file else s.name}"
+            progress = bar_progress(as_json)
+            with progress:
+                bar = progress.add_task(f"{title}: {len(names)} schedulers",
+                                        total=len(names) * (1 if s.jobshop else seeds))
+                results = bench(s, names, seeds, workers, on_run=lambda r: progress.advance(bar), pool=pool)
+            runs = len(next(iter(results.values())))
+            table_rows = rows(results, optimum, 1.0 if s.jobshop else 3600.0)
+            all_runs += [{"lab": title, **asdict(r)} for v in results.values() for r in v]
+            tables.append({"lab": title, "bound_s": optimum, "rows": [dict(zip(HEADER, r)) for r in table_rows]})
+            if as_json:
+                continue
+            table = narrow_table(HEADER, f"{title} — {runs} run(s) per scheduler" +
+                                 (f"; CP-SAT bound {optimum:.0f} lab-s" if optimum else ""),
+                                 caption("lab-s" if s.jobshop else "lab-h"))
+            for row in table_rows:
+                table.add_row(*row)
+            console.print(table)
     machine_output(as_json, csv_out, HEADER, [], all_runs, labs=tables)
 
 
 def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, budget: int | None,
                   changes: dict, random_labs: int = 0, as_json: bool = False, csv_out: Path | None = None) -> None:
+    from dataclasses import asdict
+
     from twin.tools.planner_bench import label
     from twin.tools.scheduler_bench import load_variant
     from twin.tools.shape_bench import shapes, variants, verdict
@@ -204,17 +209,19 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     with progress:
         bar = progress.add_task(f"{s.name}: shapes", total=len(variants(s, random_labs)))
         results = shapes(s, names, seeds, workers, on_shape=lambda c: progress.advance(bar), random_labs=random_labs)
-    table_rows, records = [], []
+    table_rows, comparisons, runs = [], [], []
     for c in results:
         cells = []
         for n in others:
             diff, half = c.diffs[n]
             cells.append("—" if n == c.best_rule else f"{diff / 3600:+.2f} ± {half / 3600:.2f} {verdict(diff, half)}")
-            records.append({"shape": c.shape, "scheduler": n, "best_rule": c.best_rule,
-                            "best_rule_mean_h": c.best_mean_s / 3600, "diff_h": diff / 3600, "ci95_h": half / 3600,
-                            "verdict": verdict(diff, half)})
+            comparisons.append({"shape": c.shape, "scheduler": n, "best_rule": c.best_rule,
+                                "best_rule_mean_h": c.best_mean_s / 3600, "diff_h": diff / 3600,
+                                "ci95_h": half / 3600, "verdict": verdict(diff, half)})
+            runs += [{"shape": c.shape, **asdict(r), "makespan_h": r.makespan_s / 3600} for r in c.runs[n]]
         table_rows.append([c.shape, label(c.best_rule), f"{c.best_mean_s / 3600:.2f}", *cells])
-    if machine_output(as_json, csv_out, header, table_rows, records, scenario=s.name, seeds=seeds):
+    if machine_output(as_json, csv_out, header, table_rows, runs, scenario=s.name, seeds=seeds,
+                      comparisons=comparisons):
         return
     for row in table_rows:
         table.add_row(*row)

@@ -9,6 +9,7 @@ and ``@SCHEDULER`` to run it with another scheduler than the scenario's, e.g.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import statistics
@@ -72,12 +73,21 @@ def quiet_alerts() -> None:
     logging.getLogger(ALERT_LOGGER).setLevel(logging.ERROR)
 
 
+def bench_pool(workers: int) -> ProcessPoolExecutor:
+    """The worker processes of a bench (alerts quiet); one pool serves a bench of several labs, which would
+    otherwise start (and import everything in) new workers for each."""
+    return ProcessPoolExecutor(max_workers=max(1, workers), initializer=quiet_alerts)
+
+
 def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str], seeds: int, workers: int,
-               on_each: Callable[[Any], None] | None) -> dict[str, list[Any]]:
-    """``one((scenario, name, seed))`` for every name and seed, in parallel processes, grouped by name."""
+               on_each: Callable[[Any], None] | None, pool: ProcessPoolExecutor | None = None) -> dict[str, list[Any]]:
+    """``one((scenario, name, seed))`` for every name and seed, in parallel processes (``pool``, or new ones),
+    grouped by name."""
     results: dict[str, list[Any]] = {name: [] for name in names}
     jobs = [(scenario, name, seed) for name in names for seed in range(seeds)]
-    with ProcessPoolExecutor(max_workers=workers, initializer=quiet_alerts) as pool:
+    with contextlib.ExitStack() as stack:
+        if pool is None:
+            pool = stack.enter_context(bench_pool(workers))
         for (_, name, _), r in zip(jobs, pool.map(one, jobs)):
             results[name].append(r)
             if on_each:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import statistics
 import tempfile
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -65,8 +66,8 @@ def bound(s: Scenario) -> float | None:
 
 
 def bench(scenario: Scenario, schedulers: list[str], seeds: int, workers: int = 2,
-          on_run: Callable[[Run], None] | None = None) -> dict[str, list[Run]]:
-    return over_seeds(_one, scenario, schedulers, 1 if deterministic(scenario) else seeds, workers, on_run)
+          on_run: Callable[[Run], None] | None = None, pool: ProcessPoolExecutor | None = None) -> dict[str, list[Run]]:
+    return over_seeds(_one, scenario, schedulers, 1 if deterministic(scenario) else seeds, workers, on_run, pool)
 
 
 HEADER = ["scheduler", "mean", "median", "vs bound", "vs best rule", "busy", "degr.", "lost", "fallb.", "ms p50/p99"]

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from twin.runtime.lab import prepare
 from twin.scenario import Scenario
 from twin.scenario.random_labs import held_out
+from twin.tools.planner_bench import bench_pool
 from twin.tools.scheduler_bench import RULES, Run, bench
 
 #: two-sided 95 % quantiles of Student's t for n − 1 degrees of freedom (n paired seeds), then the normal's
@@ -50,6 +51,7 @@ class Comparison:
     best_rule: str
     best_mean_s: float
     diffs: dict[str, tuple[float, float]]  # scheduler -> (mean difference to the best rule, 95 % half-width), s
+    runs: dict[str, list[Run]]  # scheduler -> its runs of this shape, one per seed
 
 
 def compare(results: dict[str, list[Run]], shape: str) -> Comparison:
@@ -62,16 +64,17 @@ def compare(results: dict[str, list[Run]], shape: str) -> Comparison:
         d = [r.makespan_s - ref[r.seed] for r in runs]
         half = _t95(len(d) - 1) * statistics.stdev(d) / math.sqrt(len(d)) if len(d) > 1 else float("inf")
         diffs[name] = (statistics.mean(d), half)
-    return Comparison(shape, best, means[best], diffs)
+    return Comparison(shape, best, means[best], diffs, results)
 
 
 def shapes(s: Scenario, schedulers: list[str], seeds: int, workers: int = 2,
            on_shape: Callable[[Comparison], None] | None = None, random_labs: int = 0) -> list[Comparison]:
     out = []
-    for shape, variant in variants(s, random_labs):
-        out.append(compare(bench(variant, schedulers, seeds, workers), shape))
-        if on_shape is not None:
-            on_shape(out[-1])
+    with bench_pool(workers) as pool:
+        for shape, variant in variants(s, random_labs):
+            out.append(compare(bench(variant, schedulers, seeds, workers, pool=pool), shape))
+            if on_shape is not None:
+                on_shape(out[-1])
     return out
 
 
