@@ -43,11 +43,16 @@ def randomised(s: Scenario, seed: int) -> Scenario:
     if t.random_labs is not None and not s.campaigns and rng.random() < t.random_labs.share:
         return prepare(random_lab(s, rng, dur, fault))
     over: dict[str, Any] = {}
+    if t.stability_scale != (1.0, 1.0) and s.chemistry.stability_s:
+        over["chemistry.stability_s"] = s.chemistry.stability_s * rng.uniform(*t.stability_scale)
     for name, d in s.devices.items():
-        over[f"devices.{name}.duration.mean_s"] = d.duration.mean_s * dur
-        over[f"devices.{name}.faults.fail_p"] = min(0.5, d.faults.fail_p * fault)
-        over[f"devices.{name}.faults.hang_p"] = min(0.5, d.faults.hang_p * fault)
-        over[f"devices.{name}.faults.mtbc_h"] = d.faults.mtbc_h / fault if d.faults.mtbc_h else 0.0
+        # drawn only when asked for, so that labs drawn without it stay the labs drawn before
+        d_dur, d_fault = ((rng.uniform(*t.type_scale), rng.uniform(*t.type_scale)) if t.type_scale != (1.0, 1.0)
+                          else (1.0, 1.0))
+        over[f"devices.{name}.duration.mean_s"] = d.duration.mean_s * dur * d_dur
+        over[f"devices.{name}.faults.fail_p"] = min(0.5, d.faults.fail_p * fault * d_fault)
+        over[f"devices.{name}.faults.hang_p"] = min(0.5, d.faults.hang_p * fault * d_fault)
+        over[f"devices.{name}.faults.mtbc_h"] = d.faults.mtbc_h / (fault * d_fault) if d.faults.mtbc_h else 0.0
         if name in t.instances:
             over[f"devices.{name}.instances"] = rng.randint(*t.instances[name])
     if s.jobshop is not None and t.jobshop_sizes:

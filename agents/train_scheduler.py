@@ -98,8 +98,8 @@ def held_out_labs(scenario: Scenario, n: int) -> list[Scenario]:
     """Labs drawn from the scenario's ``training`` ranges with seeds the training draws never use (a lab of
     several campaigns: always, its campaigns' priorities and shares drawn)."""
     t = scenario.training
-    if not (t.jobshop_sizes or t.instances or t.operation_s or t.random_labs or t.duration_scale != (1.0, 1.0)
-            or scenario.campaigns):
+    varied = any(r != (1.0, 1.0) for r in (t.duration_scale, t.fault_scale, t.type_scale, t.stability_scale))
+    if not (t.jobshop_sizes or t.instances or t.operation_s or t.random_labs or varied or scenario.campaigns):
         return []
     return [prepare(randomised(scenario, HELD_OUT_SEED + i), seed=0) for i in range(n)]
 

@@ -86,3 +86,27 @@ def test_the_shipped_flaky_policy_schedules_a_lab_of_other_step_types_without_a_
     assert rl.misfit == "" and "trained on labs unlike" not in caplog.text
     s = campaign(qd, 0, rl.decide)
     assert s.done + s.abandoned == 8 and s.done >= 7
+
+
+def test_each_device_type_draws_its_own_stage_scale_and_samples_their_own_stability():
+    written = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"training.random_labs": None})
+    t = written.training
+    assert t.type_scale != (1.0, 1.0) and t.stability_scale != (1.0, 1.0)
+    lo = t.duration_scale[0] * t.type_scale[0]
+    hi = t.duration_scale[1] * t.type_scale[1]
+    spreads, stabilities = [], set()
+    for seed in range(30):
+        lab = randomised(written, seed)
+        ratios = {n: lab.devices[n].duration.mean_s / d.duration.mean_s for n, d in written.devices.items()}
+        assert all(lo <= r <= hi for r in ratios.values())
+        spreads.append(max(ratios.values()) / min(ratios.values()))  # one global scale would give 1.0
+        fail = {n: lab.devices[n].faults.fail_p / d.faults.fail_p for n, d in written.devices.items()}
+        assert all(t.fault_scale[0] * t.type_scale[0] <= f <= t.fault_scale[1] * t.type_scale[1] or
+                   lab.devices[n].faults.fail_p == 0.5 for n, f in fail.items())
+        stabilities.add(lab.chemistry.stability_s / written.chemistry.stability_s)
+    assert max(spreads) > 2.0 and all(t.stability_scale[0] <= x <= t.stability_scale[1] for x in stabilities)
+    assert len(stabilities) == 30
+    unscaled = prepare(written, overrides={"training.type_scale": [1.0, 1.0], "training.stability_scale": [1, 1]})
+    lab = randomised(unscaled, 5)
+    assert lab.chemistry.stability_s == written.chemistry.stability_s
+    assert len({round(lab.devices[n].duration.mean_s / d.duration.mean_s, 9) for n, d in written.devices.items()}) == 1

@@ -349,6 +349,11 @@ class Training(_Spec):
 
     duration_scale: Range = Field(default=(1.0, 1.0), description="multiplies every mean duration")
     fault_scale: Range = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")
+    type_scale: Range = Field(default=(1.0, 1.0), description="each device type's durations and faults are also "
+                              "multiplied by draws of their own from this range: one stage slower or flakier than "
+                              "the rest (a bottleneck, a flaky stage)")
+    stability_scale: Range = Field(default=(1.0, 1.0), description="multiplies how long samples keep "
+                                   "(chemistry.stability_s)")
     instances: dict[str, IntRange] = Field(default_factory=dict, description="device type -> [min, max] instances")
     operation_s: Range | None = Field(
         default=None, description="job shops: draw every operation's duration from [low, high] lab-s")
@@ -362,6 +367,7 @@ class Training(_Spec):
     @model_validator(mode="after")
     def _ordered(self) -> Training:
         ranges = {"duration_scale": self.duration_scale, "fault_scale": self.fault_scale,
+                  "type_scale": self.type_scale, "stability_scale": self.stability_scale,
                   **({"operation_s": self.operation_s} if self.operation_s else {}),
                   **{f"instances.{k}": v for k, v in self.instances.items()}}
         bad = [f"{k}: [{lo}, {hi}] must be low ≤ high, both > 0" for k, (lo, hi) in ranges.items() if not 0 < lo <= hi]
