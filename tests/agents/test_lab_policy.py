@@ -18,6 +18,7 @@ from twin.runtime.shared_run import run_shared
 ROOT = Path(__file__).resolve().parents[2]
 LAB = ROOT / "scenarios" / "shared_lab.yaml"
 SHIPPED = ROOT / "agents" / "policies" / "flaky_scheduler.zip"
+EARLIER = ROOT / "agents" / "policies" / "jobshop_scheduler.zip"  # a policy of the earlier encoding, candidates-v2
 torch.set_num_threads(1)
 CONTENDED = {"campaigns.1.priority": 0, "devices.spectrometer.duration.mean_s": 1500}  # both queue at one device
 
@@ -80,12 +81,12 @@ def test_a_policy_of_the_earlier_encoding_decides_as_before_and_widened_the_same
     from agents.scheduling_env import SchedulingEnv
 
     lab = prepare(LAB, seed=1, overrides=CONTENDED)
-    old = RlScheduler(lab, str(SHIPPED))
+    old = RlScheduler(lab, str(EARLIER))
     assert not old.sees_campaigns and old.encoder.width == WIDTHS["candidates-v2"]
     host = DummyVecEnv([lambda: SchedulingEnv(lab, randomise=False)])
     model = MaskablePPO(CandidatePolicy, host, device="cpu")
     host.close()
-    model.policy.load_state_dict(initial_state(SHIPPED, lab, "candidates"))
+    model.policy.load_state_dict(initial_state(EARLIER, lab, "candidates"))
     widened = RlScheduler.from_model(model, lab, "candidates")
     assert widened.encoder.width == FEATURES
     stepped, decisions = SteppedLab(lab), 0
