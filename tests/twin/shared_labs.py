@@ -72,6 +72,29 @@ def wait_until_ended(status, campaigns: int, seconds: float = 90) -> dict:
     pytest.fail(f"the campaigns did not end: {now}")
 
 
+def lines_until(stream, wanted: set[str], seconds: float = 60) -> list[str]:
+    """Read a process's text ``stream`` until a line starting with each of ``wanted`` has come (or fail)."""
+    import queue
+    import threading
+
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(line) for line in iter(stream.readline, "")] + [lines.put("")],
+                     daemon=True).start()
+    seen, missing = [], set(wanted)
+    while missing:
+        try:
+            line = lines.get(timeout=seconds)
+        except queue.Empty:
+            break
+        if not line:
+            break
+        seen.append(line)
+        missing -= {w for w in missing if line.startswith(w)}
+    if missing:
+        pytest.fail(f"no line starting with {sorted(missing)} in {seen}")
+    return seen
+
+
 def kill_all(*procs) -> None:
     for proc in procs:
         if proc is not None and proc.poll() is None:

@@ -125,6 +125,7 @@ def test_twin_watch_in_another_process_records_the_campaign(tmp_path):
         assert campaign.returncode == 0, err
         wout, werr = watcher.communicate(timeout=60)
         assert watcher.returncode == 0, werr
+        assert "campaign ended: 12 experiments finished" in wout, wout
     finally:
         campaign.kill()
         watcher.kill()

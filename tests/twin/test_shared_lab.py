@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from twin.core.errors import ScenarioError
-from tests.twin.shared_labs import (LAB, NO_FAULTS, ROOT, SMALL, assert_accounted, assert_one_step_at_a_time, device_jobs, events, kill_all,
-                                    wait_until_ended)
+from tests.twin.shared_labs import (LAB, NO_FAULTS, ROOT, SMALL, assert_accounted, assert_one_step_at_a_time,
+                                    device_jobs, events, kill_all, lines_until, wait_until_ended)
 
 
 def test_two_campaigns_share_the_lab_each_with_its_own_ledger(tmp_path):
@@ -230,7 +230,6 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
     import socket
     import subprocess
     import sys
-    import time
 
     import yaml
     from typer.testing import CliRunner
@@ -280,7 +279,7 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         wait_until_ended(lambda: json.loads(ctl("ctl", "status", "--json").output), 2)
         lab.send_signal(signal.SIGTERM)
         out, err = lab.communicate(timeout=60)
-        time.sleep(1.0)  # the campaigns' summaries reach the watcher
+        lines_until(watcher.stdout, {"campaign dots ended: 4 experiments", "campaign catalyst ended: 3 experiments"})
         watcher.send_signal(signal.SIGTERM)
         _, watch_err = watcher.communicate(timeout=60)
     finally:

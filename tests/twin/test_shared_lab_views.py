@@ -152,10 +152,11 @@ def test_twin_watch_without_follow_ends_by_itself_when_every_campaign_has_ended(
                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
     try:
         lab.communicate(timeout=120)
-        _, err = watcher.communicate(timeout=60)  # it ends without being told to
+        out, err = watcher.communicate(timeout=60)  # it ends without being told to
     finally:
         kill_all(lab, watcher)
     assert lab.returncode == 0 and watcher.returncode == 0, err[-2000:]
+    assert "campaign catalyst ended: 2 experiments" in out and "campaign dots ended: 3 experiments" in out, out
     assert "recorded" in err
     drawn = read_rrd(tmp_path / "w.rrd")
     for name in ("dots", "catalyst"):

@@ -11,8 +11,10 @@ import heapq
 import json
 import logging
 import signal
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from twin.core import keys
 from twin.core.bus import Bus, Closable, NoReplyError
@@ -116,9 +118,23 @@ def _replay_lab(where: Path, options: RecordOptions) -> SharedLabObserver:
 
 
 async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOptions, follow: bool = False,
-                      stop: asyncio.Event | None = None) -> LabObserver | SharedLabObserver:
+                      stop: asyncio.Event | None = None,
+                      on_ended: Callable[[str, Any], None] | None = None) -> LabObserver | SharedLabObserver:
     """Record a lab that runs elsewhere until its campaign ends (or ``stop`` is set). A lab several campaigns
-    share is drawn as ``twin run LAB.yaml --save`` draws it, each campaign found by its token as it comes."""
+    share is drawn as ``twin run LAB.yaml --save`` draws it, each campaign found by its token as it comes.
+    ``on_ended(name, observer)``: told once of each campaign whose summary has been drawn ("" for a lab's one
+    campaign)."""
+    told: set[str] = set()
+
+    def tell_ended() -> None:
+        if on_ended is None:
+            return
+        ended = ({n: c for n, c in observer.campaigns.items() if c.done} if isinstance(observer, SharedLabObserver)
+                 else {"": observer} if observer.done else {})
+        for name in sorted(set(ended) - told):
+            told.add(name)
+            on_ended(name, ended[name])
+
     waiting: list | None = []  # live messages wait here until the history is read
     seats: list[str] = []  # the campaigns of a shared lab, as their tokens appear
 
@@ -156,6 +172,8 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
                     await shared.catch_up(seats.pop(0))
             await clock.sleep(0.25 * clock.speed)
             observer.c.flush()
+            tell_ended()
+        tell_ended()
     finally:
         for h in handles:
             h.close()
@@ -247,8 +265,12 @@ def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
         print(f"watching lab {lab!r}", flush=True)
+
+        def ended(name: str, seen: Any) -> None:
+            print(f"campaign {name + ' ' if name else ''}ended: {seen.finished} experiments finished, "
+                  "its summary drawn", flush=True)
         try:
-            return await watch_async(bus, clock, lab, options, follow, stop)
+            return await watch_async(bus, clock, lab, options, follow, stop, ended)
         finally:
             await bus.close()
 
