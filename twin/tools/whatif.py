@@ -13,7 +13,7 @@ import itertools
 import statistics
 import tempfile
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,7 +23,7 @@ import yaml
 from twin.core.errors import ScenarioError
 from twin.runtime.lab import make_scheduler, prepare, run
 from twin.runtime.shared_run import run_shared
-from twin.tools.planner_bench import quartiles, quiet_alerts
+from twin.tools.planner_bench import bench_pool, quartiles
 from twin.scenario import Scenario
 from twin.scenario.sharing import campaign_scenario
 
@@ -168,7 +168,7 @@ def whatif(scenario: Scenario, chosen: list[Variant], seeds: int, workers: int =
            on_run: Callable[[Outcome], None] = lambda o: None) -> list[Outcome]:
     jobs = [(scenario, v, seed) for v in chosen for seed in range(seeds)]
     results = []
-    with ProcessPoolExecutor(max(1, workers), initializer=quiet_alerts) as pool:
+    with bench_pool(workers) as pool:
         for fut in as_completed([pool.submit(_one, job) for job in jobs]):
             results.append(fut.result())
             on_run(results[-1])
