@@ -52,6 +52,13 @@ def test_a_bench_keeps_device_alerts_out_of_its_output_that_a_single_run_prints(
     assert "devices.unavailable" not in res.stderr
     rows = [line.split()[:1] for line in res.stdout.splitlines()]
     assert ["fifo"] in rows and ["rl:flaky_scheduler"] in rows, res.stdout
+    raising = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/flaky_lab.yaml",
+                              "--seeds", "2", "--budget", "4", "--workers", "1", "--schedulers", "fifo", "--set",
+                              "devices.spectrometer.driver=tests.twin.test_bad_drivers:Raises"],
+                             capture_output=True, text=True, cwd=ROOT, timeout=120,
+                             env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
+    assert raising.returncode == 0 and "driver raised" not in raising.stderr, raising.stderr[-2000:]
+    assert any(line.split()[:1] == ["fifo"] for line in raising.stdout.splitlines()), raising.stdout
 
 
 def test_shapes_give_every_run_and_every_comparison_to_machines(tmp_path):

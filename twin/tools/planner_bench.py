@@ -69,8 +69,10 @@ def _trial(args: tuple) -> Trial:
 
 def quiet_alerts() -> None:
     """A bench runs hundreds of campaigns and its table counts what they lost: a warning for every device type
-    gone in every campaign would bury the progress bar under hundreds of lines."""
+    gone, or every step a driver failed by raising, in every campaign would bury the progress bar under
+    hundreds of lines (a training run logs those at debug for the same reason)."""
     logging.getLogger(ALERT_LOGGER).setLevel(logging.ERROR)
+    logging.getLogger("twin.runtime.fast_device").setLevel(logging.ERROR)
 
 
 def bench_pool(workers: int) -> ProcessPoolExecutor:
