@@ -9,8 +9,8 @@ from hypothesis import strategies as st
 
 from tests.conftest import qd_lab
 from tests.twin.test_core import msg, notes
-from tests.twin.test_operator import running
-from twin.campaign import Decided, Operator
+from tests.twin.test_operator import op, running
+from twin.campaign import Decided, Operator, Proposed
 from twin.campaign.decisions import Assignment
 from twin.campaign.journal import read_events
 from twin.core.errors import ScenarioError
@@ -21,10 +21,12 @@ from twin.scenario import parse
 P = {"concentration_mm": 5, "temperature_c": 250, "time_s": 60}
 
 
-def stocked(precursor, vials, refill_after=None, per=0.1, fixed=1.0):
+def stocked(precursor, vials, refill_after=None, per=0.1, fixed=1.0, vials_per_spectrometer=False):
     c = {"precursor": {"unit": "mL", "level": precursor, "reorder_at": precursor / 2,
                        "used_by": {"synthesise": {"fixed": fixed, "per": {"concentration_mm": per}}}},
          "vials": {"unit": "vials", "level": vials, "used_by": {"measure": 1}}}
+    if vials_per_spectrometer:  # each of the two spectrometers has its own rack of vials
+        c["vials"]["device"] = "spectrometer"
     if refill_after is not None:
         for item in c.values():
             item["simulate_refill"] = {"after_s": refill_after}
@@ -33,18 +35,26 @@ def stocked(precursor, vials, refill_after=None, per=0.1, fixed=1.0):
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(precursor=st.floats(0.5, 30), vials=st.integers(1, 10), fixed=st.floats(0, 4), per=st.floats(0, 0.4),
-       refill_after=st.one_of(st.none(), st.floats(0, 5000)), seed=st.integers(0, 1000))
+       refill_after=st.one_of(st.none(), st.floats(0, 5000)), seed=st.integers(0, 1000),
+       vials_per_spectrometer=st.booleans())
 def test_levels_never_go_negative_and_every_depletion_pauses_its_work_once(tmp_path, precursor, vials, fixed, per,
-                                                                            refill_after, seed):
+                                                                            refill_after, seed,
+                                                                            vials_per_spectrometer):
     s = parse(qd_lab(**{"campaign.budget": 10, "campaign.seed": seed,
-                        "consumables": stocked(precursor, vials, refill_after, per, fixed)}), "lab.yaml")
+                        "consumables": stocked(precursor, vials, refill_after, per, fixed, vials_per_spectrometer)}),
+              "lab.yaml")
     db = tmp_path / f"c{seed}.db"
     summary = run(s, journal=db)
     assert summary.done + summary.abandoned + summary.pending == summary.proposed  # nothing lost
     events = read_events(db)
-    level = {"precursor": precursor, "vials": float(vials)}
-    depleted: dict[str, set[str]] = {"precursor": set(), "vials": set()}  # an episode's waiting tasks
-    episodes = {"precursor": 0, "vials": 0}
+    full = {"precursor": precursor}
+    full.update({f"vials@spectrometer-{i}": float(vials) for i in (1, 2)} if vials_per_spectrometer
+                else {"vials": float(vials)})
+    assert set(summary.consumables) == set(full)
+    level = dict(full)
+    depleted: dict[str, set[str]] = {k: set() for k in full}  # an episode's tasks that found the stock short
+    episodes = dict.fromkeys(full, 0)
+    starved: set[str] = set()  # tasks waiting for a refill (every stock they could use short)
     for e in events:
         d = json.loads(e["detail"]) if e["detail"] else {}
         if e["kind"] == "attempt.dispatched":
@@ -52,23 +62,26 @@ def test_levels_never_go_negative_and_every_depletion_pauses_its_work_once(tmp_p
                 assert n <= level[item] + 1e-6, f"{e['task']} took {n} of {item} with {level[item]} left"
                 level[item] -= n
                 assert abs(d["left"][item] - max(level[item], 0)) < 1e-5 and d["left"][item] >= 0
-            assert not any(e["task"] in waiting for waiting in depleted.values()), \
-                f"{e['task']} was dispatched while the item it waits for was short"
+                if "@" in item:  # an instance's own stock: the step ran on that instance, never on a dry one
+                    assert item == f"vials@{e['device']}" and not depleted[item]
+            assert e["task"] not in starved, f"{e['task']} was dispatched while the item it waits for was short"
         elif e["kind"] == "consumable.depleted":
             item = d["item"]
             assert not depleted[item], f"a second depletion note for {item} before a refill"
             assert d["needed"] > d["level"]
             depleted[item].add(e["task"])
             episodes[item] += 1
+            if "@" not in item or all(depleted[k] for k in full if "@" in k):
+                starved.add(e["task"])
         elif e["kind"] == "consumable.refilled":
             item = d["item"]
-            level[item] = {"precursor": precursor, "vials": float(vials)}[item] if d["amount"] is None else \
-                level[item] + d["amount"]
+            level[item] = full[item] if d["amount"] is None else level[item] + d["amount"]
             assert d["who"] == "simulated operator" and refill_after is not None
             depleted[item] = set()
-    assert summary.consumables["precursor"]["left"] >= 0 and summary.consumables["vials"]["left"] >= 0
+            starved = set()
+    assert all(c["left"] >= 0 for c in summary.consumables.values())
     if refill_after is None and sum(episodes.values()):
-        assert summary.pending > 0 and any(c["short"] for c in summary.consumables.values())
+        assert any(c["short"] for c in summary.consumables.values())
 
 
 def test_a_short_step_waits_for_the_operators_refill_and_the_lab_goes_on(scenario_of):
@@ -91,6 +104,68 @@ def test_a_short_step_waits_for_the_operators_refill_and_the_lab_goes_on(scenari
     assert notes(out, "consumable.refilled")[0].detail == {"item": "vials", "amount": 5, "level": 5.0,
                                                            "unit": "vials", "who": "alice"}
     assert "e1s1" in core.ready and not core.starved and not core.stocks.items["vials"].depleted
+
+
+def no_more_experiments(core, out, t):
+    """Answer the planner's question, if it asked one, with nothing: the scheduler's comes next."""
+    if [a for a in out if getattr(a, "what", "") == "plan"]:
+        core.feed(Proposed([]))
+        out = core.advance(t)
+    return out
+
+
+def test_an_instance_whose_own_stock_is_short_gets_no_step_and_the_other_takes_it(scenario_of):
+    c = stocked(100, 1, vials_per_spectrometer=True)
+    core = running(scenario_of, **{"consumables": c, "campaign.budget": 3})
+    assert set(core.stocks.items) == {"precursor", "vials@spectrometer-1", "vials@spectrometer-2"}
+    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0}))
+    core.advance(60.0)
+    core.feed(Decided([Assignment("e0s1", "spectrometer-1"), Assignment("e1s0", "synthesiser")]))
+    out = core.advance(60.0)
+    (sent,) = notes(out, "attempt.dispatched")[:1]
+    assert sent.detail["used"] == {"vials@spectrometer-1": 1.0}
+    assert sent.detail["left"] == {"vials@spectrometer-1": 0}
+    core.feed(msg(Kind.RESULT, "spectrometer-1", "e0s1", 1, outputs={"peak_nm": 520.0, "fwhm_nm": 30.0}))
+    core.feed(msg(Kind.RESULT, "synthesiser", "e1s0", 1, outputs={}, sample={"t_made": 120.0}))
+    out = core.advance(120.0)
+    assert core.devices["spectrometer-1"].free
+    (dry,) = notes(out, "consumable.depleted")  # found by the next step, which can still go to spectrometer-2
+    assert dry.detail["item"] == "vials@spectrometer-1" and dry.task == "e1s1" and "e1s1" in core.ready
+    out = no_more_experiments(core, out, 120.0)
+    (ask,) = [a for a in out if getattr(a, "what", "") == "schedule"]
+    (step,) = [r for r in ask.view.ready if r.task == "e1s1"]
+    assert "spectrometer-1" in step.avoid  # every scheduler, rule or policy, keeps off the dry instance
+    core.feed(Decided([Assignment("e1s1", "spectrometer-1")]))
+    out = core.advance(120.0)
+    (invalid,) = notes(out, "scheduler.invalid")
+    assert "spectrometer-1" in invalid.detail and "its own stock" in invalid.detail
+    assert "e1s1" in core.ready and not notes(out, "attempt.dispatched")  # nothing valid: the pass ends
+    out = op(core, "refill", 130.0, item="vials@spectrometer-2", amount=4)  # one instance's stock
+    (one,) = notes(out, "consumable.refilled")
+    assert one.detail["item"] == "vials@spectrometer-2" and one.detail["level"] == 5.0
+    assert core.stocks.items["vials@spectrometer-1"].depleted  # the other is still short
+    out = no_more_experiments(core, out, 130.0)
+    core.feed(Decided([Assignment("e1s1", "spectrometer-2")]))
+    out = core.advance(130.0)
+    assert notes(out, "attempt.dispatched")[0].detail["used"] == {"vials@spectrometer-2": 1.0}
+    out = op(core, "refill", 140.0, item="vials")  # the item: every instance's stock, to its starting level
+    assert sorted((n.detail["item"], n.detail["level"]) for n in notes(out, "consumable.refilled")) == [
+        ("vials@spectrometer-1", 1.0), ("vials@spectrometer-2", 1.0)]
+    assert not any(st.depleted for st in core.stocks.items.values())
+
+
+def test_every_instance_short_makes_the_step_wait_and_virtual_time_says_who_must_refill(tmp_path):
+    s = parse(qd_lab(**{"campaign.budget": 8, "consumables": {
+        "vials": {"unit": "vials", "level": 2, "device": "spectrometer", "used_by": {"measure": 1}}}}), "lab.yaml")
+    summary = run(s, journal=tmp_path / "j.db")
+    assert summary.done == 4 and summary.pending >= 1 and summary.done + summary.pending == summary.proposed
+    assert {k: v["left"] for k, v in summary.consumables.items()} == {"vials@spectrometer-1": 0,
+                                                                       "vials@spectrometer-2": 0}
+    assert "vials@spectrometer-1, vials@spectrometer-2" in summary.stopped
+    used = [(e["device"], json.loads(e["detail"])["used"]) for e in read_events(tmp_path / "j.db")
+            if e["kind"] == "attempt.dispatched" and e["device"].startswith("spectrometer")]
+    assert sorted(d for d, _ in used) == ["spectrometer-1"] * 2 + ["spectrometer-2"] * 2
+    assert all(u == {f"vials@{d}": 1.0} for d, u in used)
 
 
 def test_crossing_the_reorder_point_says_when_it_runs_out(scenario_of):
@@ -117,6 +192,10 @@ def test_crossing_the_reorder_point_says_when_it_runs_out(scenario_of):
     ({"consumables": {"x": {"level": -1, "used_by": {"measure": 1}}}}, "consumables.x.level"),
     ({"consumables": {"x": {"level": 5, "used_by": {}}}}, "consumables.x.used_by"),
     ({"consumables": {"x": {"level": 5, "used_by": {"measure": {"fixed": -2}}}}}, "fixed"),
+    ({"consumables": {"x": {"level": 5, "device": "oven", "used_by": {"measure": 1}}}},
+     "consumables.x.device: 'oven' is not a device type"),
+    ({"consumables": {"x": {"level": 5, "device": "synthesiser", "used_by": {"measure": 1}}}},
+     "consumables.x.used_by.measure: 'measure' does not run on a synthesiser"),
 ])
 def test_a_consumable_that_cannot_work_is_refused_with_its_field(change, words):
     with pytest.raises(ScenarioError, match=words):

@@ -276,20 +276,25 @@ def test_an_operator_lists_the_pending_question_and_answers_it(tmp_path):
 
 
 @pytest.mark.process
-def test_a_short_consumable_waits_for_the_operators_refill(tmp_path):
-    with Lab(tmp_path, **{"campaign.budget": 3, "consumables": {
-            "vials": {"unit": "vials", "level": 1, "used_by": {"measure": 1}}}}) as lab:
-        lab.until(lambda st: st["consumables"]["vials"]["depleted"])
+@pytest.mark.parametrize("held_by", [None, "spectrometer"])
+def test_a_short_consumable_waits_for_the_operators_refill(tmp_path, held_by):
+    """A lab's stock of vials, or each of the two spectrometers' own: the third sample waits for a refill."""
+    vials = {"unit": "vials", "level": 1, "used_by": {"measure": 1}, **({"device": held_by} if held_by else {})}
+    stocks = ["vials"] if held_by is None else ["vials@spectrometer-1", "vials@spectrometer-2"]
+    with Lab(tmp_path, **{"campaign.budget": 3, "consumables": {"vials": vials}}) as lab:
+        lab.until(lambda st: all(st["consumables"][k]["depleted"] for k in stocks))
         res = lab.ctl("pending")
-        assert res.exit_code == 0 and "vials is short (0 vials left)" in res.output
-        assert "twin ctl refill vials" in res.output
+        assert res.exit_code == 0 and all(f"{k} is short (0 vials left)" in res.output for k in stocks), res.output
+        assert all(f"twin ctl refill {k}" in res.output for k in stocks)
         res = lab.ctl("refill", "vials", "--amount", "5", "--as", "alice")
         assert res.exit_code == 0 and "operator.refill by alice" in res.output, res.output
         summary = lab.finished()
-    assert summary["done"] == 3 and summary["consumables"]["vials"] == {"left": 3.0, "used": 3.0, "unit": "vials",
-                                                                        "short": False}
+    assert summary["done"] == 3 and set(summary["consumables"]) == set(stocks)
+    assert sum(c["left"] for c in summary["consumables"].values()) == len(stocks) * 6 - 3
+    assert sum(c["used"] for c in summary["consumables"].values()) == 3
+    assert not any(c["short"] for c in summary["consumables"].values())
     kinds = [e["kind"] for e in read_events(lab.db)]
-    assert kinds.count("consumable.depleted") == 1 and kinds.count("consumable.refilled") == 1
+    assert kinds.count("consumable.depleted") == len(stocks) and kinds.count("consumable.refilled") == len(stocks)
 
 
 @pytest.mark.process

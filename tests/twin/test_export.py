@@ -118,3 +118,35 @@ def test_consumables_come_out_as_levels_over_time(tmp_path):
             level = start if r["why"] == "refilled" and r["change"] is None else level + r["change"]
             assert r["level"] == pytest.approx(level) and r["level"] >= 0
     assert any(r["why"] == "refilled" and r["who"] == "simulated operator" for r in rows)
+
+
+def test_each_instances_own_stock_is_its_own_series_from_its_start(tmp_path):
+    """Exported and drawn: a series per instance's stock (the viewer draws it under its item)."""
+    from tests.conftest import qd_lab
+    from tests.rrd import read_rrd
+    from twin.view.watch import RecordOptions
+
+    db = tmp_path / "j.db"
+    vials = {"unit": "vials", "level": 3, "device": "spectrometer", "used_by": {"measure": 1},
+             "simulate_refill": {"after_s": 600}}
+    summary = run(parse(qd_lab(**{"campaign.budget": 10, "consumables": {"vials": vials}}), "lab.yaml"), journal=db,
+                  record=RecordOptions(save=tmp_path / "r.rrd"))
+    assert summary.done == 10
+    export(db, tmp_path / "out", "jsonl", ["consumables"])
+    rows = [json.loads(line) for line in (tmp_path / "out" / "consumables.jsonl").read_text().splitlines()]
+    series: dict[str, list[dict]] = {}
+    for r in rows:
+        series.setdefault(r["item"], []).append(r)
+    assert set(series) == {"vials@spectrometer-1", "vials@spectrometer-2"}
+    for item, rs in series.items():  # each series starts full and every row follows from the one before it
+        assert rs[0]["why"] == "start" and rs[0]["level"] == 3 and rs[0]["unit"] == "vials"
+        for before, r in zip(rs, rs[1:]):
+            expected = 3 if r["why"] == "refilled" and r["change"] is None else before["level"] + r["change"]
+            assert r["level"] == pytest.approx(expected) and r["level"] >= 0, (item, r)
+            if r["why"] == "used":
+                assert r["who"] == item.split("@")[1]
+    assert sum(r["why"] == "used" for r in rows) == 10
+    rrd = read_rrd(tmp_path / "r.rrd")
+    for item, rs in series.items():
+        drawn = [r["Scalars:scalars"][0] for r in rrd["consumables/vials/" + item.split("@")[1]]]
+        assert len(drawn) == len(rs) - 1 and sorted(drawn) == sorted(r["level"] for r in rs[1:])

@@ -1,7 +1,9 @@
 """Consumables: reagents, vials and tips a lab holds and its steps use up.
 
 The scenario's ``consumables`` section gives each item a unit, a starting level, a reorder point and what each
-step type uses (a fixed amount plus amounts per experiment parameter). The core takes a step's amounts when it
+step type uses (a fixed amount plus amounts per experiment parameter); an item may be held by each instance of a
+device type (``device``: a stock per instance, ``ITEM@INSTANCE``, used by the steps that run on it; a step goes
+only to an instance with enough of its own). The core takes a step's amounts when it
 dispatches the step — never more than is left, so a level is never negative. A step that needs more than is left
 is not dispatched: it waits (``consumable.depleted``, once per item until it is refilled, and `twin ctl pending`
 lists it), the rest of the lab goes on, and ``twin ctl refill ITEM`` (or, in virtual time, the scenario's
@@ -11,6 +13,7 @@ when, at the rate so far, the item runs out.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -23,15 +26,17 @@ CampaignCore = Any  # the core calls in here with itself (an import of it would 
 
 @dataclass(slots=True)
 class Stock:
-    name: str
+    name: str  # the item's name; a stock of one instance's own: ITEM@INSTANCE
     unit: str
     full: float
     reorder_at: float
     level: float
     used: float = 0.0
-    depleted: bool = False  # a step waits for it: one depletion at a time, until a refill
+    depleted: bool = False  # a step found it short: one depletion at a time, until a refill
     low: bool = False  # below the reorder point (said once per crossing)
     uses: dict[str, Any] = field(default_factory=dict)  # step type -> amount (number, or {fixed, per})
+    item: str = ""  # the scenario's name of the item
+    holder: str | None = None  # the instance whose own stock this is (None: the lab's)
 
 
 def amount(use: Any, params: dict[str, Any]) -> float:
@@ -47,32 +52,77 @@ def amount(use: Any, params: dict[str, Any]) -> float:
 
 
 class Stocks:
-    def __init__(self, spec: dict[str, Any]) -> None:
-        self.items = {name: Stock(name, c.unit, c.level, c.reorder_at, c.level, uses=dict(c.used_by))
-                      for name, c in spec.items()}
+    """The lab's stocks: one per item, or — for an item a device type holds (``consumables.ITEM.device``) — one
+    per instance of that type, named ``ITEM@INSTANCE``. ``needs`` are by item; which stock a step draws on
+    depends on the instance it runs on."""
+
+    def __init__(self, spec: dict[str, Any], instances: Callable[[str], list[str]] | None = None) -> None:
+        self.items: dict[str, Stock] = {}
+        self.holder_type: dict[str, str] = {}  # item -> the device type whose instances each hold a stock of it
+        self.of: dict[str, list[str]] = {}  # item -> its stocks' names
+        for name, c in spec.items():
+            device = getattr(c, "device", None)
+            holders = instances(device) if device is not None and instances is not None else [None]
+            if device is not None and instances is not None:
+                self.holder_type[name] = device
+            for holder in holders:
+                stock = Stock(name if holder is None else f"{name}@{holder}", c.unit, c.level, c.reorder_at, c.level,
+                              uses=dict(c.used_by), item=name, holder=holder)
+                self.items[stock.name] = stock
+                self.of.setdefault(name, []).append(stock.name)
 
     def __bool__(self) -> bool:
         return bool(self.items)
 
-    def needs(self, step: str, params: dict[str, Any]) -> dict[str, float]:
+    @property
+    def per_device(self) -> bool:
+        return bool(self.holder_type)
+
+    def needs(self, step: str, params: dict[str, Any], device_type: str | None = None) -> dict[str, float]:
+        """What one ``step`` uses, by item (an item a device type holds: only when the step runs on that type)."""
         out = {}
-        for stock in self.items.values():
-            use = stock.uses.get(step)
+        for item, names in self.of.items():
+            holder = self.holder_type.get(item)
+            if holder is not None and device_type is not None and holder != device_type:
+                continue
+            use = self.items[names[0]].uses.get(step)
             if use is not None:
                 n = amount(use, params)
                 if n > 0:
-                    out[stock.name] = n
+                    out[item] = n
         return out
 
-    def short(self, needs: dict[str, float]) -> list[str]:
-        """The items of ``needs`` there is not enough of."""
-        return [name for name, n in needs.items() if self.items[name].level + EPS < n]
+    def stock(self, item: str, device: str) -> Stock:
+        """The stock of ``item`` a step on instance ``device`` draws on."""
+        return self.items[item] if item not in self.holder_type else self.items[f"{item}@{device}"]
 
-    def take(self, needs: dict[str, float]) -> list[Stock]:
-        """Take ``needs`` (all there: check ``short`` first); returns the items that fell below their reorder point."""
+    def short(self, needs: dict[str, float], device: str | None = None) -> list[str]:
+        """The stocks there is not enough of for a step with ``needs`` on instance ``device``; without a device:
+        the lab's stocks short, and of an item each instance holds, every instance's stock — only when none of
+        them has enough (the step can run nowhere)."""
+        out = []
+        for item, n in needs.items():
+            if item not in self.holder_type or device is not None:
+                stock = self.items[item] if device is None else self.stock(item, device)
+                if stock.level + EPS < n:
+                    out.append(stock.name)
+                continue
+            names = self.of[item]
+            if all(self.items[k].level + EPS < n for k in names):
+                out += names
+        return out
+
+    def dry(self, needs: dict[str, float]) -> set[str]:
+        """The instances whose own stock of some item of ``needs`` is short (a step must go to another)."""
+        return {self.items[k].holder or "" for item, n in needs.items() if item in self.holder_type
+                for k in self.of[item] if self.items[k].level + EPS < n}
+
+    def take(self, needs: dict[str, float], device: str) -> list[Stock]:
+        """Take ``needs`` for a step on ``device`` (all there: check ``short`` first); returns the stocks that fell
+        below their reorder point."""
         crossed = []
-        for name, n in needs.items():
-            stock = self.items[name]
+        for item, n in needs.items():
+            stock = self.stock(item, device)
             stock.level = max(0.0, stock.level - n)
             stock.used += n
             if not stock.low and stock.level < stock.reorder_at:
@@ -80,12 +130,19 @@ class Stocks:
                 crossed.append(stock)
         return crossed
 
-    def refill(self, name: str, amount_: float | None) -> Stock:
-        stock = self.items[name]
-        stock.level = stock.full if amount_ is None else stock.level + amount_
-        stock.depleted = False
-        stock.low = stock.level < stock.reorder_at
-        return stock
+    def refill(self, name: str, amount_: float | None) -> list[Stock]:
+        """Refill stock ``name``, or every instance's stock of item ``name``."""
+        out = []
+        for key in ([name] if name in self.items else self.of[name]):
+            stock = self.items[key]
+            stock.level = stock.full if amount_ is None else stock.level + amount_
+            stock.depleted = False
+            stock.low = stock.level < stock.reorder_at
+            out.append(stock)
+        return out
+
+    def known(self, name: str) -> bool:
+        return name in self.items or name in self.of
 
     def runs_out_in_s(self, stock: Stock, elapsed_s: float) -> float | None:
         """Lab seconds until ``stock`` runs out at the rate it was used so far (None: not used yet)."""
@@ -98,32 +155,49 @@ class Stocks:
 
 
 # -- the core's side -------------------------------------------------------------------
-def take(core: CampaignCore, task: Task) -> dict[str, Any]:
-    """Take what ``task`` uses as it is dispatched; the dispatch note's ``used`` and ``left``."""
+def take(core: CampaignCore, task: Task, device: str) -> dict[str, Any]:
+    """Take what ``task`` uses as it is dispatched to ``device``; the dispatch note's ``used`` and ``left``, by
+    stock."""
     needs = core._needs(task)
     if not needs:
         return {}
-    for stock in core.stocks.take(needs):
+    for stock in core.stocks.take(needs, device):
         core._note("consumable.low", detail={"item": stock.name, "level": round(stock.level, 6), "unit": stock.unit,
                                              "reorder_at": stock.reorder_at,
                                              "runs_out_in_s": core.stocks.runs_out_in_s(stock, core.elapsed_s)})
-    return {"used": needs, "left": {k: round(core.stocks.items[k].level, 6) for k in needs}}
+    stocks = {item: core.stocks.stock(item, device) for item in needs}
+    return {"used": {stocks[k].name: n for k, n in needs.items()},
+            "left": {st.name: round(st.level, 6) for st in stocks.values()}}
 
 
 def starve(core: CampaignCore, task: Task, short: list[str]) -> None:
-    """``task`` waits for ``short`` to be refilled: the first step to find an item short says so, once per
-    depletion. A step that needs more than the item's starting level could never run: its experiment is refused
-    as infeasible, with what it needs."""
+    """``task`` waits for the stocks ``short`` to be refilled: the first step to find one short says so, once
+    per depletion. A step that needs more than the item's starting level could never run: its experiment is
+    refused as infeasible, with what it needs."""
     needs = core._needs(task)
-    beyond = [n for n in short if needs[n] > core.stocks.items[n].full + EPS]
+    items = core.stocks.items
+    beyond = sorted({items[k].item for k in short if needs[items[k].item] > items[k].full + EPS})
     if beyond:
         core.counts.infeasible += 1
         core.experiments[task.experiment.id].infeasible = True
         core._finish(task.experiment, Status.ABANDONED, "infeasible: " + "; ".join(
-            f"step {task.step.step!r} needs {needs[n]:g} {core.stocks.items[n].unit} of {n}, more than the lab "
-            f"holds (consumables.{n}.level: {core.stocks.items[n].full:g})" for n in beyond))
+            f"step {task.step.step!r} needs {needs[n]:g} {items[core.stocks.of[n][0]].unit} of {n}, more than "
+            f"{'a ' + core.stocks.holder_type[n] if n in core.stocks.holder_type else 'the lab'} holds "
+            f"(consumables.{n}.level: {items[core.stocks.of[n][0]].full:g})" for n in beyond))
         return
     core.starved[task.id] = task
+    _depleted(core, task, short, needs)
+
+
+def dried(core: CampaignCore, task: Task, needs: dict[str, float]) -> None:
+    """``task`` is ready, and some instances' own stock of what it uses is short (it goes to another): the first
+    step to find one short says so, once per depletion."""
+    short = [core.stocks.stock(item, d).name for d in core.stocks.dry(needs) for item in needs
+             if item in core.stocks.holder_type and core.stocks.stock(item, d).level + EPS < needs[item]]
+    _depleted(core, task, short, needs)
+
+
+def _depleted(core: CampaignCore, task: Task, short: list[str], needs: dict[str, float]) -> None:
     for name in short:
         stock = core.stocks.items[name]
         if stock.depleted:
@@ -131,18 +205,19 @@ def starve(core: CampaignCore, task: Task, short: list[str]) -> None:
         stock.depleted = True
         core._note("consumable.depleted", task.experiment.id, task.id,
                    detail={"item": name, "level": round(stock.level, 6), "unit": stock.unit,
-                           "needed": round(needs[name], 6)})
-        sim = core.s.consumables[name].simulate_refill
+                           "needed": round(needs[stock.item], 6)})
+        sim = core.s.consumables[stock.item].simulate_refill
         if sim is not None and core.s.clock.mode == "virtual":
             core._timer(TimerKey(TimerKind.REFILL, name), sim.after_s)
 
 
 def refill(core: CampaignCore, item: str, amount_: float | None, who: str) -> None:
-    """Refill ``item``; the steps that waited for it go back in the queue (one still short waits on, and says so)."""
-    stock = core.stocks.refill(item, amount_)
-    core._out.append(CancelTimer(TimerKey(TimerKind.REFILL, item)))
-    core._note("consumable.refilled", detail={"item": item, "amount": amount_, "level": round(stock.level, 6),
-                                              "unit": stock.unit, "who": who})
+    """Refill ``item`` (a stock, or every instance's stock of an item each holds); the steps that waited for it
+    go back in the queue (one still short waits on, and says so)."""
+    for stock in core.stocks.refill(item, amount_):
+        core._out.append(CancelTimer(TimerKey(TimerKind.REFILL, stock.name)))
+        core._note("consumable.refilled", detail={"item": stock.name, "amount": amount_,
+                                                  "level": round(stock.level, 6), "unit": stock.unit, "who": who})
     requeue(core)
 
 
@@ -167,7 +242,7 @@ def stalled(core: CampaignCore) -> str:
     if any(e not in waiting for e in core.active):
         return ""
     short = sorted({n for t in core.starved.values() for n in core.stocks.short(core._needs(t))})
-    if any(core.s.consumables[n].simulate_refill is not None for n in short):
+    if any(core.s.consumables[core.stocks.items[n].item].simulate_refill is not None for n in short):
         return ""
     return (f"every experiment waits for a refill of {', '.join(short)}, and in virtual time nobody refills "
             f"(consumables.<item>.simulate_refill gives a simulated operator)")

@@ -76,7 +76,7 @@ class CampaignCore:
         self.stopping = ""
         self.paused_by = ""  # an operator paused the campaign: nothing new is proposed or dispatched
         self.questions: dict[str, questions.Question] = {}  # failed steps an operator is asked about
-        self.stocks = Stocks(scenario.consumables)
+        self.stocks = Stocks(scenario.consumables, scenario.instance_names)
         self.starved: dict[str, Task] = {}  # ready steps waiting for a consumable to be refilled
         self._question_seq = 0
         self.finished = False
@@ -358,10 +358,12 @@ class CampaignCore:
                     return
                 self._filled = True
             self._check_stranded()
-            if not (self.stopping or self.paused_by) and dispatch.pair_possible(self.ready.values(), self.devices):
+            dry = self._dry if self.stocks.per_device else None
+            if not (self.stopping or self.paused_by) and dispatch.pair_possible(self.ready.values(), self.devices,
+                                                                               dry):
                 c = self.s.campaign
                 self._ask(Ask("schedule", view=dispatch.view(self.now, self.ready.values(), self.devices,
-                                                             self.finished_count, c.budget, len(self.active))))
+                                                             self.finished_count, c.budget, len(self.active), dry)))
                 return
             self._end_pass()
         if not self.stopping and self.starved:
@@ -437,12 +439,12 @@ class CampaignCore:
         self.decision_wall_s.append(d.wall_s)
         sent = 0
         for a in d.assignments if not self.stopping else ():
-            why = dispatch.problem(a, self.ready, self.devices)
+            why = dispatch.problem(a, self.ready, self.devices, self._dry if self.stocks.per_device else None)
             if why:
                 self._note("scheduler.invalid", task=a.task, device=a.device, detail=why)
                 continue
             task = self.ready.pop(a.task)
-            short = self.stocks.short(self._needs(task)) if self.stocks else []
+            short = self.stocks.short(self._needs(task), a.device) if self.stocks else []
             if short:  # an assignment earlier in this answer used up what this one needs
                 self._starve(task, short)
                 continue
@@ -481,10 +483,13 @@ class CampaignCore:
                         expected + sum(d for _, d in then), then)
         task.ready_since = self.now
         if self.stocks:
-            short = self.stocks.short(self._needs(task))
+            needs = self._needs(task)
+            short = self.stocks.short(needs)
             if short:
                 self._starve(task, short)
                 return
+            if self.stocks.per_device:  # some instances may have run dry: say so, the step goes to another
+                consumables.dried(self, task, needs)
         self.ready[task.id] = task
         self._note("task.ready", e.id, task.id, detail={"sample_made": e.sample_made, "step": task.step.step})
         self._wake = True
@@ -507,7 +512,8 @@ class CampaignCore:
         self._timer(TimerKey(TimerKind.DEADLINE, f"{task.id}#{att.n}"), deadline)
         body = {"step": task.step.step, "params": {**e.params, **task.step.params}, "sample": e.sample,
                 "expected_s": task.expected_s, "deadline_s": deadline}
-        detail: dict[str, Any] = {"deadline_s": deadline, **(consumables.take(self, task) if self.stocks else {})}
+        used = consumables.take(self, task, dev.name) if self.stocks else {}
+        detail: dict[str, Any] = {"deadline_s": deadline, **used}
         self._note("attempt.dispatched", e.id, task.id, att.n, dev.name, detail=detail)
         if dev.name in self.people:
             human.dispatched(self, att, body)
@@ -515,7 +521,10 @@ class CampaignCore:
             self._send(dev.name, Kind.COMMAND, task.id, att.n, body, att.token)
 
     def _needs(self, task: Task) -> dict[str, float]:
-        return self.stocks.needs(task.step.step, {**task.experiment.params, **task.step.params})
+        return self.stocks.needs(task.step.step, {**task.experiment.params, **task.step.params}, task.step.device)
+
+    def _dry(self, task: Task) -> frozenset[str]:
+        return frozenset(self.stocks.dry(self._needs(task)))
 
     def _starve(self, task: Task, short: list[str]) -> None:
         consumables.starve(self, task, short)

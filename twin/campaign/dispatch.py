@@ -2,21 +2,26 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 from twin.campaign import policy
 from twin.campaign.ledger import Device, Task
 from twin.campaign.decisions import Assignment, DeviceState, FreeDevice, LabView, ReadyStep
 
 
-def avoid_for(t: Task, devices: Iterable[Device]) -> frozenset[str]:
+#: the instances a step may not go to because their own stock of something it uses is short (``Stocks.dry``)
+Dry = Callable[[Task], frozenset[str]]
+
+
+def avoid_for(t: Task, devices: Iterable[Device], dry: Dry | None = None) -> frozenset[str]:
+    barred = t.barred | dry(t) if dry is not None else t.barred
     if not t.failed_on:
-        return t.barred
+        return barred
     usable = {d.name for d in devices if d.type == t.step.device and d.online and not d.quarantined}
-    return policy.avoid(t.failed_on, usable) | t.barred
+    return policy.avoid(t.failed_on, usable) | barred
 
 
-def pair_possible(ready: Iterable[Task], devices: dict[str, Device]) -> bool:
+def pair_possible(ready: Iterable[Task], devices: dict[str, Device], dry: Dry | None = None) -> bool:
     """Whether some free device could take some ready step (cheaper than building the view)."""
     free: dict[str, set[str]] = {}
     for d in devices.values():
@@ -26,17 +31,17 @@ def pair_possible(ready: Iterable[Task], devices: dict[str, Device]) -> bool:
         return False
     for t in ready:
         names = free.get(t.step.device)
-        if names and (not (t.failed_on or t.barred) or names - avoid_for(t, devices.values())):
+        if names and (not (t.failed_on or t.barred or dry) or names - avoid_for(t, devices.values(), dry)):
             return True
     return False
 
 
 def view(now: float, ready: Iterable[Task], devices: dict[str, Device], finished: int, budget: int,
-         in_lab: int) -> LabView:
+         in_lab: int, dry: Dry | None = None) -> LabView:
     devs = devices.values()
     steps = tuple(
         ReadyStep(t.id, t.experiment.id, t.step.step, t.step.device, t.ready_since, t.experiment.sample_made,
-                  t.expected_s, t.work_remaining_s, avoid_for(t, devs), t.then)
+                  t.expected_s, t.work_remaining_s, avoid_for(t, devs, dry), t.then)
         for t in ready
     )
     free = tuple(FreeDevice(d.name, d.type) for d in devs if d.free)
@@ -49,7 +54,7 @@ def view(now: float, ready: Iterable[Task], devices: dict[str, Device], finished
     return LabView(now, steps, free, states, finished, budget, in_lab)
 
 
-def problem(a: Assignment, ready: dict[str, Task], devices: dict[str, Device]) -> str:
+def problem(a: Assignment, ready: dict[str, Task], devices: dict[str, Device], dry: Dry | None = None) -> str:
     """Why an assignment cannot be carried out, or ''."""
     task, dev = ready.get(a.task), devices.get(a.device)
     if task is None:
@@ -60,4 +65,6 @@ def problem(a: Assignment, ready: dict[str, Task], devices: dict[str, Device]) -
         return f"device {a.device!r} is a {dev.type}, task {a.task} needs a {task.step.device}"
     if a.device in task.barred:
         return f"an operator chose another device than {a.device!r} for task {a.task}"
+    if dry is not None and a.device in dry(task):
+        return f"device {a.device!r} has too little left of its own stock of what task {a.task} uses (twin ctl pending)"
     return ""

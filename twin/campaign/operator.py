@@ -123,7 +123,7 @@ def _stop(core: CampaignCore, op: Operator) -> str:
 
 
 def _refill(core: CampaignCore, op: Operator) -> str:
-    if op.item not in core.stocks.items:
+    if not core.stocks.known(op.item):
         have = ", ".join(core.stocks.items) or "none"
         return f"there is no consumable {op.item!r} (this lab's: {have})"
     if op.amount is not None and not 0 < op.amount < 1e15:

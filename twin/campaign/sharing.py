@@ -59,7 +59,7 @@ class SharedLab:
         self.lab = lab
         self.entries: dict[str, SharedCampaign] = {c.name: c for c in lab.campaigns}
         self.cores = {name: CampaignCore(s, name, (secrets or {}).get(name)) for name, s in scenarios.items()}
-        self.stocks = Stocks(lab.consumables)
+        self.stocks = Stocks(lab.consumables, lab.instance_names)
         for core in self.cores.values():
             core.stocks = self.stocks
         self.online = {name: False for dtype in lab.devices for name in lab.instance_names(dtype)}
@@ -311,7 +311,7 @@ class SharedLab:
     def _view(self, name: str, now: float) -> LabView:
         core = self.cores[name]
         return dispatch.view(now, core.ready.values(), core.devices, core.finished_count, core.s.campaign.budget,
-                             len(core.active))
+                             len(core.active), core._dry if core.stocks.per_device else None)
 
     def _device_states(self, free: set[str]) -> tuple[DeviceState, ...]:
         """Each device as the lab sees it: its attempts, failures and busy time over every campaign, and the step

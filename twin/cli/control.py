@@ -197,7 +197,8 @@ def ctl_answer(question: Annotated[str, typer.Argument(help="the question's id (
 
 
 @ctl_app.command("refill")
-def ctl_refill(item: Annotated[str, typer.Argument(help="the consumable, as the scenario names it")],
+def ctl_refill(item: Annotated[str, typer.Argument(help="the consumable, as the scenario names it (an item each "
+                                                        "instance holds: ITEM@INSTANCE for one, ITEM for all)")],
                lab: Lab, connect: Connect,
                amount: Annotated[Optional[float], typer.Option(help="how much is added (default: fill to the "
                                                                      "starting level)")] = None,

@@ -239,6 +239,9 @@ class Consumable(_Spec):
                                                 "uses: an amount, or {fixed, per: {parameter: amount per unit}}")
     simulate_refill: SimulatedRefill | None = Field(default=None, description="virtual time: a simulated operator's "
                                                     "refill")
+    device: Name | None = Field(default=None, description="a device type whose every instance holds its own stock "
+                                "of the item (its own level, refills and notes, as 'ITEM@INSTANCE'); none: one "
+                                "stock for the whole lab")
 
 
 class Orchestration(_Spec):
@@ -420,6 +423,15 @@ class Scenario(_Spec):
                     for k in self.training.instances if k not in self.devices]
         steps = {st for dev in self.devices.values() for st in dev.steps}
         for name, c in self.consumables.items():
+            holder = self.devices.get(c.device) if c.device is not None else None
+            if c.device is not None and holder is None:
+                problems.append(f"consumables.{name}.device: {c.device!r} is not a device type of this lab "
+                                f"({', '.join(self.devices)})")
+            elif holder is not None:  # a stock per instance is used only by the steps that run on the instances
+                problems += [f"consumables.{name}.used_by.{st}: {st!r} does not run on a {c.device} (it runs "
+                             f"{', '.join(holder.steps)}), so it can never use a {c.device}'s own {name}"
+                             for st in c.used_by if st not in holder.steps]
+                continue
             problems += [f"consumables.{name}.used_by.{st}: {st!r} is no device's step ({', '.join(sorted(steps))})"
                          for st in c.used_by if st not in steps]
         for i, rule in enumerate(self.orchestrator.recovery):

@@ -128,20 +128,32 @@ def device_rows(run: dict[str, Any], events: list[dict[str, Any]]) -> list[dict[
 
 
 def consumable_rows(run: dict[str, Any], events: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    stocks = (run.get("scenario") or {}).get("consumables") or {}
-    rows = [{"t_lab_s": 0.0, "item": name, "unit": c.get("unit", ""), "level": c["level"], "change": None,
-             "why": "start", "task": None, "who": None} for name, c in stocks.items()]
+    scenario = run.get("scenario") or {}
+    stocks = scenario.get("consumables") or {}
+    rows = [{"t_lab_s": 0.0, "item": stock, "unit": c.get("unit", ""), "level": c["level"], "change": None,
+             "why": "start", "task": None, "who": None}
+            for name, c in stocks.items() for stock in _stocks_of(name, c, scenario.get("devices") or {})]
     for e in events:
         d = _json(e["detail"]) if e["kind"] in ("attempt.dispatched", "consumable.refilled") else None
         if e["kind"] == "attempt.dispatched" and isinstance(d, dict):
             for item, used in (d.get("used") or {}).items():
-                rows.append({"t_lab_s": e["t_lab"], "item": item, "unit": stocks.get(item, {}).get("unit", ""),
+                unit = stocks.get(item.split("@")[0], {}).get("unit", "")
+                rows.append({"t_lab_s": e["t_lab"], "item": item, "unit": unit,
                              "level": d["left"][item], "change": -used, "why": "used", "task": e["task"],
                              "who": e["device"]})
         elif e["kind"] == "consumable.refilled" and isinstance(d, dict):
             rows.append({"t_lab_s": e["t_lab"], "item": d["item"], "unit": d.get("unit", ""), "level": d["level"],
                          "change": d["amount"], "why": "refilled", "task": None, "who": d.get("who")})
     return rows
+
+
+def _stocks_of(item: str, spec: dict[str, Any], devices: dict[str, Any]) -> list[str]:
+    """The stocks of ``item``: the lab's one, or one per instance of the device type that holds it."""
+    holder = spec.get("device")
+    if not holder or holder not in devices:
+        return [item]
+    n = int(devices[holder].get("instances", 1))
+    return [f"{item}@{holder}-{i + 1}" for i in range(n)] if n > 1 else [f"{item}@{holder}"]
 
 
 def decision_rows(events: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -75,6 +75,11 @@ def drawable(payload: bytes | str) -> dict[str, Any] | None:
     return env if isinstance(env, dict) else None
 
 
+def _stock_path(stock: str) -> str:
+    """An item's stock, or an instance's own (``vials@spectrometer-2``: drawn under the item)."""
+    return "consumables/" + stock.replace("@", "/")
+
+
 def _level(what: str) -> str:
     return "ERROR" if what in ERROR_KINDS else "WARN" if what in WARN_KINDS else "DEBUG" if (
         what in DEBUG_KINDS) else "INFO"
@@ -243,13 +248,13 @@ class LabObserver:
         self._queue_at = t
 
     def _consumable_refilled(self, t: float, n: Note, info: dict) -> None:
-        self.c.scalar(f"consumables/{info['item']}", t, float(info["level"]))
+        self.c.scalar(_stock_path(info["item"]), t, float(info["level"]))
 
     def _attempt_dispatched(self, t: float, n: Note, info: Any) -> None:
         if self._route is not None:
             self._route.running(t, n.experiment, n.device)
         for item, level in ((info or {}).get("left") or {}).items():
-            self.c.scalar(f"consumables/{item}", t, float(level))
+            self.c.scalar(_stock_path(item), t, float(level))
         self.ready.discard(n.task)
         self._made.pop(n.task, None)
         self._queue_at = t
