@@ -286,6 +286,10 @@ def test_a_short_consumable_waits_for_the_operators_refill(tmp_path, held_by):
         res = lab.ctl("pending")
         assert res.exit_code == 0 and all(f"{k} is short (0 vials left)" in res.output for k in stocks), res.output
         assert all(f"twin ctl refill {k}" in res.output for k in stocks)
+        res = lab.ctl("status")  # the levels, and what waits for which
+        rows = [line.split() for line in res.output.splitlines() if line.split()[:1] and line.split()[0] in stocks]
+        assert sorted(r[0] for r in rows) == stocks and all(r[1:4] == ["0", "vials", "0"] for r in rows), res.output
+        assert all("short" in r for r in rows) and sum(any(x.startswith("e") for x in r[5:]) for r in rows) >= 1
         res = lab.ctl("refill", "vials", "--amount", "5", "--as", "alice")
         assert res.exit_code == 0 and "operator.refill by alice" in res.output, res.output
         summary = lab.finished()

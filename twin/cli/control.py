@@ -104,11 +104,24 @@ def ctl_status(lab: Lab, connect: Connect, security: Security = None,
         r = running.get(name)
         table.add_row(name, state, f"{r['task']} #{r['attempt']}" if r else "", f"{r['for_s']:.0f}" if r else "")
     console.print(table)
+    if st.get("consumables"):
+        console.print(_stock_table(st["consumables"]))
     if st["ready"] or st["retrying"]:
         console.print(f"waiting for a device: {', '.join(st['ready']) or '-'}; waiting to retry: "
                       f"{', '.join(st['retrying']) or '-'}", highlight=False, markup=False)
     for n, reason in st["abandoned"].items():
         console.print(f"abandoned {n}: {reason}  (twin ctl retry {n})", highlight=False, markup=False)
+
+
+def _stock_table(stocks: dict[str, dict]) -> Any:
+    """Each stock's level, and when it runs out at the rate so far (or what waits for its refill)."""
+    table = narrow_table(["stock", "level", "reorder at", "runs out in", "waiting"])
+    for name, c in stocks.items():
+        out = c.get("runs_out_in_s")
+        when = "short" if c["depleted"] else f"{out / 3600:.1f} lab-h" if out is not None else "-"
+        table.add_row(name, f"{c['level']:g} {c['unit']}", f"{c['reorder_at']:g}", when,
+                      ", ".join(c["waiting"]) or "")
+    return table
 
 
 @ctl_app.command("pause")
