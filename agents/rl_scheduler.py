@@ -86,10 +86,20 @@ class RlScheduler:
 
     def decide(self, view: LabView) -> list[Assignment]:
         obs, mask = self.encoder.encode(view)
-        if not self.greedy and self.temperature != 1.0 and isinstance(self.encoder, candidates.CandidateEncoder):
+        if isinstance(self.encoder, candidates.CandidateEncoder) and (self.greedy or self.temperature != 1.0):
             with torch.no_grad():
                 logits = self.model.policy.action_net(torch.as_tensor(obs).unsqueeze(0))[0]
+            if self.greedy:
+                return self.encoder.decode(view, greedy(logits, mask))
             logits = logits.masked_fill(~torch.as_tensor(mask), -torch.inf) / self.temperature
             return self.encoder.decode(view, int(torch.distributions.Categorical(logits=logits).sample()))
         action, _ = self.model.predict(obs, action_masks=mask, deterministic=self.greedy)
         return self.encoder.decode(view, int(action))
+
+
+def greedy(logits: torch.Tensor, mask: np.ndarray) -> int:
+    """The action SB3's ``predict(deterministic=True)`` takes for these scores — the most probable under the
+    mask, computed as its masked categorical does (so ties fall the same way) — without its per-call set-up
+    (switching every module to eval mode, building distributions), half of a decision's time."""
+    masked = torch.where(torch.as_tensor(mask), logits, torch.tensor(-1e8, dtype=logits.dtype))
+    return int(torch.softmax(masked - masked.logsumexp(-1, keepdim=True), -1).argmax())

@@ -129,3 +129,24 @@ def test_the_live_agent_over_zenoh_dispatches_what_the_env_does(ft06, trained, t
     live, in_env, summary = live_and_env(ft06, trained, tmp_path)
     assert live == in_env and len(live) == 36
     assert summary.scheduler_fallbacks == 0
+
+
+@pytest.mark.parametrize("policy, scenario", [("flaky_scheduler.zip", "flaky_lab.yaml"),
+                                              ("jobshop_scheduler.zip", "jobshop.yaml")])
+def test_a_greedy_decision_is_the_one_sb3_predict_takes(policy, scenario):
+    """The rl scheduler scores candidates with the policy's own network and takes the most probable under the
+    mask, as SB3's predict(deterministic=True) does — every decision of a campaign, shipped v3 and v2 policies."""
+    lab = prepare(ROOT / "scenarios" / scenario)
+    rl = RlScheduler(lab, str(ROOT / "agents" / "policies" / policy))
+    views = []
+
+    def decide(view):
+        views.append(view)
+        return rl.decide(view)
+
+    campaign(lab, 0, decide)
+    assert len(views) > 30
+    for view in views:
+        obs, mask = rl.encoder.encode(view)
+        action, _ = rl.model.predict(obs, action_masks=mask, deterministic=True)
+        assert rl.decide(view) == rl.encoder.decode(view, int(action))
