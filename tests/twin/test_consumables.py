@@ -11,7 +11,7 @@ from tests.conftest import qd_lab
 from tests.twin.test_core import msg, notes
 from tests.twin.test_operator import op, running
 from twin.campaign import Decided, Operator, Proposed
-from twin.campaign.decisions import Assignment
+from twin.campaign.decisions import Assignment, Proposal
 from twin.campaign.journal import read_events
 from twin.core.errors import ScenarioError
 from twin.core.messages import Kind
@@ -200,3 +200,27 @@ def test_crossing_the_reorder_point_says_when_it_runs_out(scenario_of):
 def test_a_consumable_that_cannot_work_is_refused_with_its_field(change, words):
     with pytest.raises(ScenarioError, match=words):
         parse(qd_lab(**change), "lab.yaml")
+
+
+def test_fail_over_never_avoids_the_only_instance_with_stock_left(scenario_of):
+    """spectrometer-1 is out of its own vials, spectrometer-2 failed the step and was restocked: the retry must
+    be offered spectrometer-2 (fail-over avoids a failed instance only while another usable one exists)."""
+    from tests.twin.test_core import SetTimer, TimerFired, TimerKind, started
+
+    vials = {"unit": "vials", "level": 1, "device": "spectrometer", "used_by": {"measure": 1}}
+    core, _ = started(scenario_of, **{"campaign.budget": 2, "consumables": {"vials": vials},
+                                      "workflow": [{"step": "measure", "device": "spectrometer"}]})
+    core.feed(Proposed([Proposal({"x": 1}), Proposal({"x": 2})]))
+    core.advance(0.0)
+    core.feed(Decided([Assignment("e0s0", "spectrometer-1"), Assignment("e1s0", "spectrometer-2")]))
+    core.advance(0.0)
+    core.feed(msg(Kind.RESULT, "spectrometer-1", "e0s0", 1, outputs={"peak_nm": 600}, sample=None))
+    core.feed(msg(Kind.FAULT, "spectrometer-2", "e1s0", 1, code="failed", reason="lamp"))
+    out = core.advance(10.0)
+    retry = [a for a in out if type(a) is SetTimer and a.key.kind == TimerKind.RETRY]
+    op(core, "refill", 11.0, item="vials@spectrometer-2", amount=1)
+    core.feed(TimerFired(retry[0].key))
+    out = no_more_experiments(core, core.advance(10.0 + retry[0].delay), 10.0 + retry[0].delay)
+    asks = [a for a in out if getattr(a, "what", "") == "schedule"]
+    assert asks, "the retry is offered no device: fail-over avoided the only instance with vials left"
+    assert asks[0].view.ready[0].avoid == frozenset({"spectrometer-1"})  # dry; spectrometer-2 failed it, has vials

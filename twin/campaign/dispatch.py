@@ -17,7 +17,8 @@ def avoid_for(t: Task, devices: Iterable[Device], dry: Dry | None = None) -> fro
     barred = t.barred | dry(t) if dry is not None else t.barred
     if not t.failed_on:
         return barred
-    usable = {d.name for d in devices if d.type == t.step.device and d.online and not d.quarantined}
+    # an instance short of the step's stock is not usable: fail-over must not avoid the only one left with some
+    usable = {d.name for d in devices if d.type == t.step.device and d.online and not d.quarantined} - barred
     return policy.avoid(t.failed_on, usable) | barred
 
 
