@@ -224,3 +224,34 @@ def test_fail_over_never_avoids_the_only_instance_with_stock_left(scenario_of):
     asks = [a for a in out if getattr(a, "what", "") == "schedule"]
     assert asks, "the retry is offered no device: fail-over avoided the only instance with vials left"
     assert asks[0].view.ready[0].avoid == frozenset({"spectrometer-1"})  # dry; spectrometer-2 failed it, has vials
+
+
+def test_a_step_barred_from_the_only_instance_with_stock_waits_for_a_refill(scenario_of):
+    """The operator sent a failed step to another device, and that one's own vials are out: the step waits for a
+    refill of that stock (and says so) rather than sitting ready for a device it may not use."""
+    from tests.twin.test_core import started
+
+    vials = {"unit": "vials", "level": 2, "device": "spectrometer", "used_by": {"measure": 1}}
+    rules = [{"device": "spectrometer", "options": ["another_device", "abandon"], "default": "abandon"}]
+    core, _ = started(scenario_of, **{"campaign.budget": 3, "campaign.max_in_flight": 3,
+                                      "consumables": {"vials": vials},
+                                      "orchestrator.retry.max_attempts": 1, "orchestrator.recovery": rules,
+                                      "workflow": [{"step": "measure", "device": "spectrometer"}]})
+    core.feed(Proposed([Proposal({"x": 1}), Proposal({"x": 2}), Proposal({"x": 3})]))
+    core.advance(0.0)
+    core.feed(Decided([Assignment("e0s0", "spectrometer-1"), Assignment("e1s0", "spectrometer-2")]))
+    core.advance(0.0)
+    core.feed(msg(Kind.RESULT, "spectrometer-2", "e1s0", 1, outputs={"peak_nm": 600}, sample=None))
+    core.advance(5.0)
+    core.feed(Decided([Assignment("e2s0", "spectrometer-2")]))
+    core.advance(5.0)
+    assert core.stocks.levels() == {"vials@spectrometer-1": 1.0, "vials@spectrometer-2": 0.0}
+    core.feed(msg(Kind.FAULT, "spectrometer-1", "e0s0", 1, code="failed", reason="lamp"))
+    core.advance(10.0)
+    core.feed(Operator("answer", "alice", "r1", question="q1", option="another_device"))
+    out = core.advance(20.0)
+    assert "e0s0" in core.starved and "e0s0" not in core.ready
+    (short,) = notes(out, "consumable.depleted")
+    assert short.detail["item"] == "vials@spectrometer-2" and short.task == "e0s0"
+    out = op(core, "refill", 30.0, item="vials@spectrometer-2")
+    assert "e0s0" in core.ready and not core.starved

@@ -96,10 +96,11 @@ class Stocks:
         """The stock of ``item`` a step on instance ``device`` draws on."""
         return self.items[item] if item not in self.holder_type else self.items[f"{item}@{device}"]
 
-    def short(self, needs: dict[str, float], device: str | None = None) -> list[str]:
+    def short(self, needs: dict[str, float], device: str | None = None,
+              barred: frozenset[str] = frozenset()) -> list[str]:
         """The stocks there is not enough of for a step with ``needs`` on instance ``device``; without a device:
-        the lab's stocks short, and of an item each instance holds, every instance's stock — only when none of
-        them has enough (the step can run nowhere)."""
+        the lab's stocks short, and of an item each instance holds, the stocks of every instance the step may go
+        to (not ``barred``) — only when none of them has enough (the step can run nowhere)."""
         out = []
         for item, n in needs.items():
             if item not in self.holder_type or device is not None:
@@ -107,7 +108,7 @@ class Stocks:
                 if stock.level + EPS < n:
                     out.append(stock.name)
                 continue
-            names = self.of[item]
+            names = [k for k in self.of[item] if self.items[k].holder not in barred] or self.of[item]
             if all(self.items[k].level + EPS < n for k in names):
                 out += names
         return out
@@ -241,7 +242,7 @@ def stalled(core: CampaignCore) -> str:
     waiting = {t.experiment.id for t in core.starved.values()}
     if any(e not in waiting for e in core.active):
         return ""
-    short = sorted({n for t in core.starved.values() for n in core.stocks.short(core._needs(t))})
+    short = sorted({n for t in core.starved.values() for n in core.stocks.short(core._needs(t), barred=t.barred)})
     if any(core.s.consumables[core.stocks.items[n].item].simulate_refill is not None for n in short):
         return ""
     return (f"every experiment waits for a refill of {', '.join(short)}, and in virtual time nobody refills "

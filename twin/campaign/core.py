@@ -484,7 +484,7 @@ class CampaignCore:
         task.ready_since = self.now
         if self.stocks:
             needs = self._needs(task)
-            short = self.stocks.short(needs)
+            short = self.stocks.short(needs, barred=task.barred)
             if short:
                 self._starve(task, short)
                 return

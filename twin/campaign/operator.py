@@ -178,7 +178,7 @@ def status(core: CampaignCore, now: float | None = None) -> dict[str, Any]:
                                    "used": round(st.used, 6), "depleted": st.depleted,
                                    "runs_out_in_s": core.stocks.runs_out_in_s(st, now - core.t0),
                                    "waiting": sorted(t.id for t in core.starved.values()
-                                                     if name in core.stocks.short(core._needs(t)))}
+                                                     if name in core.stocks.short(core._needs(t), barred=t.barred))}
                             for name, st in core.stocks.items.items()},
             "abandoned": {e.id: e.reason for e in core.experiments if e.status == Status.ABANDONED},
             "human_steps": [{"task": d.attempt.task.id, "device": d.name, "step": d.attempt.task.step.step,
