@@ -148,3 +148,42 @@ def test_another_device_bars_the_one_that_failed_and_is_offered_only_where_there
     two.feed(Decided([Assignment("e0s0", "synthesiser-1")]))
     out = two.advance(20.0)
     assert "an operator chose another device" in notes(out, "scheduler.invalid")[0].detail
+
+
+def test_an_alternative_abandons_the_experiment_and_the_planner_proposes_one_in_its_place(scenario_of):
+    """`alternative`: the experiment is abandoned, the planner is asked at once — its history has the failure —
+    and the new experiment does not count against the budget."""
+    rules = [{"device": "synthesiser", "options": ["retry", "alternative", "abandon"], "default": "abandon"}]
+    core = running(scenario_of, **{"orchestrator.retry.max_attempts": 1, "orchestrator.recovery": rules})
+    assert len(core.experiments) == core.s.campaign.budget == 2  # the budget is spent
+    failed(core)
+    core.feed(Decided([Assignment("e1s0", "synthesiser")]))  # the other experiment's step takes the synthesiser
+    core.advance(10.0)
+    out = answer(core, "q1", "alternative", 20.0)
+    (gone,) = notes(out, "experiment.abandoned")
+    assert gone.experiment == 0 and gone.detail["reason"].endswith("; alice asked the planner for an alternative")
+    (ask,) = [a for a in out if getattr(a, "what", "") == "plan"]
+    assert ask.n == 1 and any(h.reason.endswith("an alternative") for h in ask.history)
+    from twin.campaign import Proposed
+    from twin.campaign.decisions import Proposal
+
+    core.feed(Proposed([Proposal({"concentration_mm": 9, "temperature_c": 260, "time_s": 30})]))
+    out = core.advance(20.0)
+    assert len(core.experiments) == 3 and notes(out, "experiment.proposed")[0].experiment == 2
+    assert not [a for a in core.advance(20.0) if getattr(a, "what", "") == "plan"]  # one in its place, no more
+
+
+def test_a_simulated_operator_asking_for_alternatives_gets_the_budget_done(tmp_path):
+    """Virtual time: every failed synthesis is replaced; the campaign still finishes its budget's worth of
+    experiments, and the books balance."""
+    lab = qd_lab(**{"campaign.budget": 8, "campaign.stop_on_target": False, "orchestrator.retry.max_attempts": 1,
+                    "devices.synthesiser.faults": {"fail_p": 0.3},
+                    "orchestrator.recovery": [{"device": "synthesiser", "options": ["alternative", "abandon"],
+                                               "default": "abandon",
+                                               "simulate": {"after_s": 60, "answer": "alternative"}}]})
+    summary = run(parse(lab, "lab.yaml"), journal=tmp_path / "j.db")
+    replaced = [e for e in read_events(tmp_path / "j.db", "experiment.abandoned")
+                if json.loads(e["detail"])["reason"].endswith("asked the planner for an alternative")]
+    assert replaced and summary.abandoned == len(replaced)
+    assert summary.done == 8 and summary.proposed == 8 + len(replaced)
+    assert summary.done + summary.abandoned + summary.pending == summary.proposed

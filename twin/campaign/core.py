@@ -76,6 +76,7 @@ class CampaignCore:
         self.stopping = ""
         self.paused_by = ""  # an operator paused the campaign: nothing new is proposed or dispatched
         self.questions: dict[str, questions.Question] = {}  # failed steps an operator is asked about
+        self.replaced = 0  # experiments an operator had the planner replace ('alternative'): beyond the budget
         self.stocks = Stocks(scenario.consumables, scenario.instance_names)
         self.starved: dict[str, Task] = {}  # ready steps waiting for a consumable to be refilled
         self._question_seq = 0
@@ -414,11 +415,11 @@ class CampaignCore:
         if self.stopping or self.paused_by or not self._can_propose():
             return 0
         c = self.s.campaign
-        return min(c.max_in_flight - len(self.active), c.budget - len(self.experiments))
+        return min(c.max_in_flight - len(self.active), c.budget + self.replaced - len(self.experiments))
 
     def _can_propose(self) -> bool:
         c = self.s.campaign
-        if self.planner_exhausted or len(self.experiments) >= c.budget:
+        if self.planner_exhausted or len(self.experiments) >= c.budget + self.replaced:
             return False
         if self._availability.blocks(step.device for step in self._workflow):
             return False  # an experiment would wait for a device type given up on

@@ -119,6 +119,10 @@ def settle(core: CampaignCore, q: Question, option: str, who: str, timed_out: bo
     elif option == "skip":
         core._note("task.skipped", e.id, task.id, task.attempts, q.device, detail={"by": chooser})
         core._advance_experiment(task, {})
+    elif option == "alternative":  # the planner proposes one in its place (it sees this one fail), beyond the budget
+        core.replaced += 1
+        core._filled = False  # ask the planner in this decision pass, even if it had its say before the answer
+        core._finish(e, Status.ABANDONED, f"{q.why}; {chooser} asked the planner for an alternative")
     else:
         core._finish(e, Status.ABANDONED, f"{q.why}; {chooser} chose to abandon it")
     core._wake = True

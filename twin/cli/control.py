@@ -201,10 +201,12 @@ def ctl_pending(lab: Lab, connect: Connect, security: Security = None, campaign:
 
 @ctl_app.command("answer")
 def ctl_answer(question: Annotated[str, typer.Argument(help="the question's id (twin ctl pending), e.g. q3")],
-               option: Annotated[str, typer.Argument(help="one of the question's options: retry, skip, abandon")],
+               option: Annotated[str, typer.Argument(help="one of the question's options: retry, another_device, "
+                                                          "skip, alternative, abandon")],
                lab: Lab, connect: Connect, who: Who = None, security: Security = None, campaign: CampaignOpt = None,
                as_json: AsJson = False) -> None:
-    """Answer a question: the failed step is retried (with fresh attempts) or skipped, or its experiment abandoned."""
+    """Answer a question: the failed step is retried (with fresh attempts, or on another device) or skipped, or
+    its experiment abandoned (with `alternative`, the planner proposes one in its place)."""
     _acted(_send("answer", lab, connect, security, as_json,
                  campaign=campaign, who=_who(who), question=question, option=option), as_json)
 

@@ -172,11 +172,11 @@ class Retry(_Spec):
     jitter: float = Field(default=0.5, ge=0, le=1)
 
 
-RecoveryOption = Literal["retry", "another_device", "skip", "abandon"]
+RecoveryOption = Literal["retry", "another_device", "skip", "alternative", "abandon"]
 
 
 def _every_option() -> list[RecoveryOption]:
-    return ["retry", "another_device", "skip", "abandon"]
+    return ["retry", "another_device", "skip", "alternative", "abandon"]
 
 
 class SimulatedOperator(_Spec):
@@ -199,7 +199,9 @@ class Recovery(_Spec):
                                           description="retry (fresh attempts), another_device (fresh attempts, "
                                           "never on the devices that failed it; offered only where the type has "
                                           "another instance), skip (the step: the experiment goes on without its "
-                                          "outputs), abandon (the experiment)")
+                                          "outputs), alternative (abandon the experiment and have the planner "
+                                          "propose one in its place, beyond the budget), abandon (the "
+                                          "experiment)")
     default: RecoveryOption = Field(default="abandon", description="what happens when nobody answers in time")
     timeout_s: float = Field(default=3600, gt=0, le=MAX_S, description="lab seconds to wait for an answer")
     simulate: SimulatedOperator | None = Field(default=None, description="virtual time: a simulated operator's "
