@@ -56,15 +56,16 @@ class Stocks:
     per instance of that type, named ``ITEM@INSTANCE``. ``needs`` are by item; which stock a step draws on
     depends on the instance it runs on."""
 
-    def __init__(self, spec: dict[str, Any], instances: Callable[[str], list[str]] | None = None) -> None:
+    def __init__(self, spec: dict[str, Any], instances: Callable[[str], list[str]]) -> None:
+        """``instances``: a device type's instance names (``Scenario.instance_names``)."""
         self.items: dict[str, Stock] = {}
         self.holder_type: dict[str, str] = {}  # item -> the device type whose instances each hold a stock of it
         self.of: dict[str, list[str]] = {}  # item -> its stocks' names
         for name, c in spec.items():
-            device = getattr(c, "device", None)
-            holders = instances(device) if device is not None and instances is not None else [None]
-            if device is not None and instances is not None:
-                self.holder_type[name] = device
+            holders: list[str | None] = [None]
+            if c.device is not None:
+                self.holder_type[name] = c.device
+                holders = list(instances(c.device))
             for holder in holders:
                 stock = Stock(name if holder is None else f"{name}@{holder}", c.unit, c.level, c.reorder_at, c.level,
                               uses=dict(c.used_by), item=name, holder=holder)
@@ -113,10 +114,10 @@ class Stocks:
                 out += names
         return out
 
-    def dry(self, needs: dict[str, float]) -> set[str]:
-        """The instances whose own stock of some item of ``needs`` is short (a step must go to another)."""
-        return {self.items[k].holder or "" for item, n in needs.items() if item in self.holder_type
-                for k in self.of[item] if self.items[k].level + EPS < n}
+    def dry(self, needs: dict[str, float]) -> list[Stock]:
+        """The instances' own stocks too short for ``needs`` (a step must go to another instance)."""
+        return [self.items[k] for item, n in needs.items() if item in self.holder_type
+                for k in self.of[item] if self.items[k].level + EPS < n]
 
     def take(self, needs: dict[str, float], device: str) -> list[Stock]:
         """Take ``needs`` for a step on ``device`` (all there: check ``short`` first); returns the stocks that fell
@@ -193,9 +194,7 @@ def starve(core: CampaignCore, task: Task, short: list[str]) -> None:
 def dried(core: CampaignCore, task: Task, needs: dict[str, float]) -> None:
     """``task`` is ready, and some instances' own stock of what it uses is short (it goes to another): the first
     step to find one short says so, once per depletion."""
-    short = [core.stocks.stock(item, d).name for d in core.stocks.dry(needs) for item in needs
-             if item in core.stocks.holder_type and core.stocks.stock(item, d).level + EPS < needs[item]]
-    _depleted(core, task, short, needs)
+    _depleted(core, task, [st.name for st in core.stocks.dry(needs)], needs)
 
 
 def _depleted(core: CampaignCore, task: Task, short: list[str], needs: dict[str, float]) -> None:

@@ -359,7 +359,7 @@ class CampaignCore:
                     return
                 self._filled = True
             self._check_stranded()
-            dry = self._dry if self.stocks.per_device else None
+            dry = self.dry
             if not (self.stopping or self.paused_by) and dispatch.pair_possible(self.ready.values(), self.devices,
                                                                                dry):
                 c = self.s.campaign
@@ -440,7 +440,7 @@ class CampaignCore:
         self.decision_wall_s.append(d.wall_s)
         sent = 0
         for a in d.assignments if not self.stopping else ():
-            why = dispatch.problem(a, self.ready, self.devices, self._dry if self.stocks.per_device else None)
+            why = dispatch.problem(a, self.ready, self.devices, self.dry)
             if why:
                 self._note("scheduler.invalid", task=a.task, device=a.device, detail=why)
                 continue
@@ -524,8 +524,13 @@ class CampaignCore:
     def _needs(self, task: Task) -> dict[str, float]:
         return self.stocks.needs(task.step.step, {**task.experiment.params, **task.step.params}, task.step.device)
 
+    @property
+    def dry(self) -> dispatch.Dry | None:
+        """What keeps a step off instances short of their own stock (None: no stock is an instance's own)."""
+        return self._dry if self.stocks.per_device else None
+
     def _dry(self, task: Task) -> frozenset[str]:
-        return frozenset(self.stocks.dry(self._needs(task)))
+        return frozenset(st.holder for st in self.stocks.dry(self._needs(task)) if st.holder)
 
     def _starve(self, task: Task, short: list[str]) -> None:
         consumables.starve(self, task, short)

@@ -311,7 +311,7 @@ class SharedLab:
     def _view(self, name: str, now: float) -> LabView:
         core = self.cores[name]
         return dispatch.view(now, core.ready.values(), core.devices, core.finished_count, core.s.campaign.budget,
-                             len(core.active), core._dry if core.stocks.per_device else None)
+                             len(core.active), core.dry)
 
     def _device_states(self, free: set[str]) -> tuple[DeviceState, ...]:
         """Each device as the lab sees it: its attempts, failures and busy time over every campaign, and the step

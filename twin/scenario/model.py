@@ -522,8 +522,12 @@ class Scenario(_Spec):
         return problems
 
     def instance_names(self, device_type: str) -> list[str]:
-        n = self.devices[device_type].instances
-        return [f"{device_type}-{i + 1}" for i in range(n)] if n > 1 else [device_type]
+        return instance_names(device_type, self.devices[device_type].instances)
+
+
+def instance_names(device_type: str, n: int) -> list[str]:
+    """The names of ``n`` instances of a device type: the type's own name for one, else ``type-1`` … ``type-n``."""
+    return [f"{device_type}-{i + 1}" for i in range(n)] if n > 1 else [device_type]
 
 
 def expected_duration(duration: Duration, params: dict[str, Any], setup_s: float, clean_s: float) -> float:

@@ -21,6 +21,7 @@ from typing import Any
 
 from twin.campaign.journal import read_events, read_experiments, read_run
 from twin.core.errors import TwinError
+from twin.scenario.model import instance_names
 
 WHAT = ("experiments", "attempts", "devices", "consumables", "decisions", "operator")
 FORMATS = ("csv", "parquet", "jsonl")
@@ -152,8 +153,7 @@ def _stocks_of(item: str, spec: dict[str, Any], devices: dict[str, Any]) -> list
     holder = spec.get("device")
     if not holder or holder not in devices:
         return [item]
-    n = int(devices[holder].get("instances", 1))
-    return [f"{item}@{holder}-{i + 1}" for i in range(n)] if n > 1 else [f"{item}@{holder}"]
+    return [f"{item}@{name}" for name in instance_names(holder, int(devices[holder].get("instances", 1)))]
 
 
 def decision_rows(events: list[dict[str, Any]]) -> list[dict[str, Any]]:
