@@ -118,7 +118,8 @@ def _stock_table(stocks: dict[str, dict]) -> Any:
     table = narrow_table(["stock", "level", "reorder at", "runs out in", "waiting"])
     for name, c in stocks.items():
         out = c.get("runs_out_in_s")
-        when = "short" if c["depleted"] else f"{out / 3600:.1f} lab-h" if out is not None else "-"
+        when = "short" if c["depleted"] else "empty" if c["level"] <= 0 else \
+            f"{out / 3600:.1f} lab-h" if out is not None else "-"
         table.add_row(name, f"{c['level']:g} {c['unit']}", f"{c['reorder_at']:g}", when,
                       ", ".join(c["waiting"]) or "")
     return table
@@ -191,8 +192,10 @@ def ctl_pending(lab: Lab, connect: Connect, security: Security = None, campaign:
         console.print(f"{h['task']}: {h['step']} on {h['device']}{how}, waiting {h['for_s']:.0f} lab-s "
                       f"(twin ctl confirm {h['task']})", highlight=False, markup=False)
     for name, c in short.items():
-        console.print(f"{name} is short ({c['level']:g} {c['unit']} left): {', '.join(c['waiting']) or 'nothing'} "
-                      f"waits for it (twin ctl refill {name} [--amount X])", highlight=False, markup=False)
+        who = f"{', '.join(c['waiting'])} wait" if len(c["waiting"]) > 1 else f"{c['waiting'][0]} waits" \
+            if c["waiting"] else "nothing waits"
+        console.print(f"{name} is short ({c['level']:g} {c['unit']} left): {who} for it (twin ctl refill {name} "
+                      "[--amount X])", highlight=False, markup=False)
     for q in pending:
         console.print(f"{q['id']}: experiment {q['experiment']}, {q['why']}\n"
                       f"  options: {', '.join(q['options'])}; {q['default']} in {q['default_in_s']:.0f} lab-s unless "
