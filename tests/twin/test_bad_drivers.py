@@ -131,3 +131,43 @@ def test_a_training_episode_keeps_a_raising_driver_in_its_run_not_in_the_log(tmp
         episode.close()
     assert episode.summary.abandoned == 2 and episode.summary.attempts > 0
     assert not any("driver raised" in r.getMessage() for r in caplog.records)
+
+
+class OddSpectra:
+    """A spectrometer whose spectra are JSON but not curves: the fifth of each kind is fine, the others not."""
+
+    capabilities = frozenset({"measure"})
+    outputs = frozenset({"peak_nm", "spectrum"})
+    ODD = [{"y": ["high", "low"]}, {"y": 3.0}, {"y": [[1.0, 2.0], [3.0, 4.0]]}, {"start_nm": "blue", "y": [1.0]},
+           {"x": [1.0, 2.0]}, {"y": [1.0, None, 2.0]}, {"y": []}, "a spectrum", {"y": [1e308, -1e308, 0.5]}]
+
+    def __init__(self, setup):
+        self.n = 0
+
+    async def run(self, step, params, sample, ctx):
+        await ctx.clock.sleep(60)
+        self.n += 1
+        spectrum = self.ODD[self.n % len(self.ODD)] if self.n % 5 else {"start_nm": 400.0, "step_nm": 2.0,
+                                                                          "y": [0.0, 0.5, 1.0, 0.5]}
+        return StepResult({"peak_nm": 404.0, "spectrum": spectrum}, sample)
+
+    async def safe_state(self):
+        pass
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_spectra_that_are_not_curves_are_not_drawn_and_change_nothing_else(tmp_path, runtime):
+    """The recorder skips what it cannot draw: the campaign runs as it does unrecorded, the good spectra are drawn."""
+    from tests.rrd import read_rrd
+    from twin.view.watch import RecordOptions
+
+    lab = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_drivers:OddSpectra",
+                          "devices.spectrometer.instances": 1,
+                          "campaign.budget": 20}))
+    plain = run(lab, journal=tmp_path / "plain.db", runtime=runtime)
+    drawn = run(lab, journal=tmp_path / "drawn.db", runtime=runtime, record=RecordOptions(save=tmp_path / "r.rrd"))
+    assert drawn.done == plain.done == 20 and drawn.attempts == plain.attempts == 40 and not drawn.failed_attempts
+    strips = [r["LineStrips2D:strips"][0] for r in read_rrd(tmp_path / "r.rrd")["spectra/measurement"]]
+    good = [[400.0, 300.0], [402.0, 150.0], [404.0, 0.0], [406.0, 150.0]]
+    assert strips.count(good) == 4  # experiments 5, 10, 15, 20
+    assert all(s == good or len(s) == 3 for s in strips), strips  # [1e308, -1e308, .5] at infinity, [1, None, 2] a gap

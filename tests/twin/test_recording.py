@@ -53,6 +53,14 @@ def test_one_spectrum_per_measurement_at_the_same_lab_times(live):
     sent = sorted(json.loads(e["detail"])["t_lab"] for e in journal)
     assert [r["lab_time"] for r in spectra] == pytest.approx(sent, abs=1e-6)
     assert len(spectra[0]["LineStrips2D:strips"][0]) == 176
+    by_time = {r["lab_time"]: r["LineStrips2D:strips"][0] for r in spectra}
+    for e in journal:  # each point where the device put it: x evenly spaced from start_nm, y flipped to screen
+        msg = json.loads(e["detail"])
+        spectrum = msg["body"]["outputs"]["spectrum"]
+        drawn = min(by_time.items(), key=lambda kv: abs(kv[0] - msg["t_lab"]))[1]
+        x = [spectrum["start_nm"] + i * spectrum["step_nm"] for i in range(len(spectrum["y"]))]
+        assert [p[0] for p in drawn] == pytest.approx(x, rel=1e-6)
+        assert [p[1] for p in drawn] == pytest.approx([300 * (1 - y) for y in spectrum["y"]], rel=1e-5, abs=1e-3)
 
 
 def test_best_so_far_is_monotone_and_ends_at_the_journals_best(live):

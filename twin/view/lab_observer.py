@@ -45,6 +45,9 @@ class PrefixedCanvas:
     def line(self, path: str, t: float, points: Any, seq: int | None = None) -> None:
         self.c.line(self.p + path, t, points, seq)
 
+    def curve(self, path: str, t: float, x0: float, dx: float, y: list, seq: int | None = None) -> None:
+        self.c.curve(self.p + path, t, x0, dx, y, seq)
+
     def points(self, path: str, t: float, points: list[tuple[float, ...]], seq: int | None = None) -> None:
         self.c.points(self.p + path, t, points, seq)
 
@@ -61,7 +64,7 @@ class PrefixedCanvas:
 class LabDevices(LabObserver):
     """The lab's devices, from every campaign's device notes; it logs nothing (each campaign logs its own)."""
 
-    def on_note(self, n: Note) -> None:
+    def _note(self, n: Note) -> None:
         if n.kind not in DEVICE_KINDS:
             return
         if self.t0 is None:
@@ -81,8 +84,8 @@ class CampaignObserver(LabObserver):
         super().__init__(PrefixedCanvas(lab.c, f"campaigns/{name}/"), dedupe)
         self.lab = lab
 
-    def on_note(self, n: Note) -> None:
-        super().on_note(n)
+    def _note(self, n: Note) -> None:
+        super()._note(n)
         if n.kind in DEVICE_KINDS:
             self.lab.devices.on_note(n)
         elif n.kind == "campaign.started":

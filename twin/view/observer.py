@@ -10,10 +10,9 @@ recorder implements it) and imports nothing of Rerun itself.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from typing import Any, Protocol
-
-import numpy as np
 
 from twin.campaign.events import Note
 
@@ -26,6 +25,7 @@ WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.inva
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned",
                "consumable.depleted"}
 MISSING = object()
+log = logging.getLogger(__name__)
 QUEUE_SERIES = ("ready steps", "samples waiting", "oldest sample's age (h)")
 #: What an observer draws of a device's messages (an in-process runtime hands it only these).
 WATCHED = frozenset({"result", "telemetry"})
@@ -49,6 +49,9 @@ class Canvas(Protocol):
 
     def line(self, path: str, t: float, points: Any, seq: int | None = None) -> None:
         """A polyline: a list of (x, y) or an (N, 2) array."""
+
+    def curve(self, path: str, t: float, x0: float, dx: float, y: list, seq: int | None = None) -> None:
+        """A polyline over evenly spaced x: (x0 + i·dx, y[i]); a curve whose y are not all numbers is not drawn."""
 
     def points(self, path: str, t: float, points: list[tuple[float, ...]], seq: int | None = None) -> None: ...
 
@@ -107,6 +110,7 @@ class LabObserver:
         self.finished = 0
         self.t0: float | None = None
         self.spectra = 0
+        self.undrawn = 0  # messages and decisions the viewer could not draw
         self.done = False
         self._last_queue: tuple | None = None
         self._queue_at: float | None = None  # the queue changed at this lab time; drawn when time moves on
@@ -131,7 +135,19 @@ class LabObserver:
         self.on_envelope(env)
 
     def on_envelope(self, env: dict[str, Any]) -> None:
-        """A message already decoded: what an in-process runtime hands over, without a second parse."""
+        """A message already decoded: what an in-process runtime hands over, without a second parse. What cannot
+        be drawn is skipped and logged: the viewer never stops a campaign."""
+        try:
+            self._envelope(env)
+        except Exception as exc:
+            self._not_drawn(f"a {env.get('kind')} message from {env.get('sender')}", exc)
+
+    def _not_drawn(self, what: str, exc: Exception) -> None:
+        self.undrawn += 1
+        if self.undrawn <= 10:
+            log.warning("viewer: could not draw %s (%r); the campaign goes on without it in the viewer", what, exc)
+
+    def _envelope(self, env: dict[str, Any]) -> None:
         kind, t = env["kind"], float(env["t_lab"])
         if self.t0 is None:
             self.t0 = t
@@ -169,6 +185,12 @@ class LabObserver:
 
     def on_note(self, n: Note) -> None:
         """A decision as the core noted it: what an in-process runtime hands over, without building a message."""
+        try:
+            self._note(n)
+        except Exception as exc:
+            self._not_drawn(f"the decision {n.kind} {n.task or ''}", exc)
+
+    def _note(self, n: Note) -> None:
         t, what = n.t_lab, n.kind
         if self.t0 is None:
             self.t0 = t
@@ -349,17 +371,23 @@ class LabObserver:
         self.c.scalars("queue", t, (now[0], now[1], (t - now[2]) / 3600 if made else 0.0), QUEUE_SERIES)
 
     def _spectrum(self, t: float, env: dict) -> None:
-        outputs = env.get("body", {}).get("outputs") or {}
-        spec = outputs.get("spectrum")
-        if not isinstance(spec, dict) or "y" not in spec:
+        outputs = env["body"].get("outputs")
+        spec = outputs.get("spectrum") if type(outputs) is dict else None
+        if type(spec) is not dict:
             return
-        start, step = float(spec.get("start_nm", 0.0)), float(spec.get("step_nm", 1.0))
+        y = spec.get("y")
+        if type(y) is not list or not y:
+            return
+        try:
+            start, step = float(spec.get("start_nm", 0.0)), float(spec.get("step_nm", 1.0))
+        except (TypeError, ValueError):
+            return
         seq = _experiment_of(env.get("task"))
         self.spectra += 1
-        y = np.asarray(spec["y"], dtype=np.float64)
-        self.c.line("spectra/measurement", t, np.column_stack((start + step * np.arange(len(y)), y)), seq=seq)
-        if isinstance(outputs.get("peak_nm"), (int, float)) and isinstance(outputs.get("intensity"), (int, float)):
-            self.c.points("spectra/peak", t, [(float(outputs["peak_nm"]), float(outputs["intensity"]))], seq=seq)
+        self.c.curve("spectra/measurement", t, start, step, y, seq=seq)
+        peak, intensity = outputs.get("peak_nm"), outputs.get("intensity")
+        if isinstance(peak, (int, float)) and isinstance(intensity, (int, float)):
+            self.c.points("spectra/peak", t, [(float(peak), float(intensity))], seq=seq)
 
 
 def summary_markdown(s: dict[str, Any]) -> str:

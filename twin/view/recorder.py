@@ -10,6 +10,7 @@ fails take the campaign down.
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import os
 import select
@@ -122,22 +123,23 @@ class RerunCanvas:
     """Draws on one recording stream, in columns: rows are buffered per entity and sent with
     ``send_columns`` when ``flush`` is called or an entity has ``SERIES_ROWS`` waiting (one ``log``
     call per row cost more than the whole campaign; each ``send_columns`` costs ~0.3 ms however
-    few rows it carries)."""
+    few rows it carries). Values are kept as given and become arrays only when sent, all rows at once.
+    An entity is always drawn as one kind, with or without experiment numbers."""
 
     SERIES_ROWS = 4096
 
     def __init__(self, rec: rr.RecordingStream) -> None:
         self.rec = rec
-        self._series: dict[str, dict[str, _Series]] = {}  # by kind ("scalar@" with experiment numbers), then path
+        self._series: dict[str, _Series] = {}
+        self.unsent = 0  # rows that could not be drawn (a device's odd values): dropped, and logged once
 
     def _add(self, kind: str, path: str, t: float, seq: int | None, value: Any) -> None:
-        by_path = self._series.get(kind if seq is None else kind + "@")
-        series = by_path.get(path) if by_path is not None else None
+        series = self._series.get(path)
         if series is None:
             series = self._open(kind, path, seq is not None)
         series.t.append(t)
-        if series.seq is not None:
-            series.seq.append(seq)
+        if seq is not None:
+            series.seq.append(seq)  # an entity with experiment numbers has them all
         series.values.append(value)
         if len(series.t) >= self.SERIES_ROWS:
             self._send(series)
@@ -147,15 +149,14 @@ class RerunCanvas:
             names = list(STATES)
             self.rec.log(path, rr.StateConfiguration(values=names, colors=[STATE_COLOURS[n] for n in names]),
                          static=True)
-        series = _Series(kind, path, with_seq)
-        self._series.setdefault(kind + "@" if with_seq else kind, {})[path] = series
+        series = self._series[path] = _Series(kind, path, with_seq)
         return series
 
     def scalar(self, path: str, t: float, value: float, seq: int | None = None) -> None:
         self._add("scalar", path, t, seq, value)
 
     def scalars(self, path: str, t: float, values: tuple[float, ...], names: tuple[str, ...]) -> None:
-        if path not in self._series.get("scalars", ()):
+        if path not in self._series:
             self.rec.log(path, rr.SeriesLines(names=list(names)), static=True)
         self._add("scalars", path, t, None, values)
 
@@ -166,15 +167,13 @@ class RerunCanvas:
         self._add("text", path, t, None, (text, level))
 
     def line(self, path: str, t: float, points: Any, seq: int | None = None) -> None:
-        xy = np.array(points, dtype=np.float32)  # a copy: y is flipped in place below
-        xy[:, 1] = 300.0 * (1.0 - xy[:, 1])  # screen y grows downwards; 300 px per unit of signal
-        self._add("line", path, t, seq, xy)
+        self._add("line", path, t, seq, points)
+
+    def curve(self, path: str, t: float, x0: float, dx: float, y: list, seq: int | None = None) -> None:
+        self._add("curve", path, t, seq, (x0, dx, y))
 
     def points(self, path: str, t: float, points: list[tuple[float, ...]], seq: int | None = None) -> None:
-        pts = np.asarray(points, dtype=np.float32)
-        if pts.shape[1] == 2:
-            pts[:, 1] = 300.0 * (1.0 - pts[:, 1])
-        self._add("points2" if pts.shape[1] == 2 else "points3", path, t, seq, pts[0])
+        self._add("points", path, t, seq, points[0])
 
     def document(self, path: str, markdown: str, t: float | None = None) -> None:
         if t is not None:
@@ -186,49 +185,110 @@ class RerunCanvas:
         self.rec.log(path, rr.EncodedImage(contents=png, media_type="image/png"))
 
     def flush(self) -> None:
-        for by_path in self._series.values():
-            for series in by_path.values():
-                if series.t:
-                    self._send(series)
+        for series in self._series.values():
+            if series.t:
+                self._send(series)
 
     def _send(self, series: _Series) -> None:
+        t, seq, values = series.t, series.seq, series.values
+        series.t, series.values = [], []
+        if seq is not None:
+            series.seq = []
+        try:
+            columns, keep = _columns(series.kind, values)
+        except (ValueError, TypeError, OverflowError) as exc:  # a value no rule above foresaw: this batch only
+            columns, keep = None, np.zeros(len(t), dtype=bool)
+            log.warning("viewer: %d rows of %s could not be drawn (%r); the campaign goes on", len(t), series.path,
+                        exc)
+        if keep is not None:
+            if not self.unsent:
+                log.warning("viewer: a value on %s is not a number and is not drawn (more are counted, not logged); "
+                            "the campaign goes on", series.path)
+            self.unsent += int(len(keep) - keep.sum())
+            if not keep.any():
+                return
         # nanosecond arrays take rerun's vectorised path (a list of floats is converted one by one)
-        indexes = [rr.TimeColumn("lab_time", duration=np.round(np.asarray(series.t) * 1e9).astype("timedelta64[ns]"))]
-        if series.seq is not None:
-            indexes.append(rr.TimeColumn("experiment", sequence=np.asarray(series.seq, dtype=np.int64)))
-            series.seq.clear()
-        self.rec.send_columns(series.path, indexes=indexes, columns=_columns(series.kind, series.values))
-        series.t.clear()
-        series.values.clear()
+        times = np.round(np.asarray(t) * 1e9).astype("timedelta64[ns]")
+        indexes = [rr.TimeColumn("lab_time", duration=times if keep is None else times[keep])]
+        if seq is not None:
+            numbers = np.asarray(seq, dtype=np.int64)
+            indexes.append(rr.TimeColumn("experiment", sequence=numbers if keep is None else numbers[keep]))
+        self.rec.send_columns(series.path, indexes=indexes, columns=columns)
 
 
-def _columns(kind: str, values: list) -> Any:
+def _columns(kind: str, values: list) -> tuple[Any, np.ndarray | None]:
+    """The columns of these rows, and which rows they hold (None: all of them)."""
     # strings and points go over as arrow arrays: rerun's own conversion walks them one by one in Python
     if kind == "scalar":
-        return rr.Scalars.columns(scalars=values)
+        return rr.Scalars.columns(scalars=values), None
     if kind == "scalars":  # one row of several series each
         return rr.Scalars.columns(scalars=np.asarray(values, dtype=np.float64).ravel()).partition(
-            [len(v) for v in values])
+            [len(v) for v in values]), None
     if kind == "state":
-        return rr.StateChange.columns(state=pa.array(values, pa.utf8()))
+        return rr.StateChange.columns(state=pa.array(values, pa.utf8())), None
     if kind == "text":
         return rr.TextLog.columns(text=pa.array([v[0] for v in values], pa.utf8()),
-                                  level=pa.array([v[1] for v in values], pa.utf8()))
-    if kind == "line":
-        return rr.LineStrips2D.columns(strips=_strips(values))
-    if kind == "points2":
-        return rr.Points2D.columns(positions=np.stack(values), radii=np.full(len(values), 3.0, np.float32))
-    return rr.Points3D.columns(positions=np.stack(values), radii=np.full(len(values), 0.01, np.float32))
+                                  level=pa.array([v[1] for v in values], pa.utf8())), None
+    if kind == "points":
+        pts = np.asarray(values, dtype=np.float32)
+        if pts.shape[1] == 2:
+            pts[:, 1] = 300.0 * (1.0 - pts[:, 1])  # screen y grows downwards; 300 px per unit of signal
+            return rr.Points2D.columns(positions=pts, radii=np.full(len(pts), 3.0, np.float32)), None
+        return rr.Points3D.columns(positions=pts, radii=np.full(len(pts), 0.01, np.float32)), None
+    if kind == "curve":
+        strips, keep = _curves(values)
+        return rr.LineStrips2D.columns(strips=strips), keep
+    strips, keep = _lines(values)
+    return rr.LineStrips2D.columns(strips=strips), keep
 
 
-def _strips(strips: list[np.ndarray]) -> pa.Array:
-    """Polylines of float32 (x, y) rows as one arrow list array (a copy of all points, no per-strip work)."""
-    lengths = np.fromiter((len(s) for s in strips), dtype=np.int32, count=len(strips))
-    offsets: np.ndarray = np.zeros(len(strips) + 1, dtype=np.int32)
-    np.cumsum(lengths, out=offsets[1:])
-    flat = pa.array(np.concatenate(strips).reshape(-1), pa.float32())
+def _curves(curves: list[tuple[float, float, list]]) -> tuple[pa.Array, np.ndarray | None]:
+    """Polylines over evenly spaced x, ``(x0, dx, y)`` each, as one arrow list array: all points converted at
+    once; a curve whose y are not numbers is left out (and only then is each converted on its own)."""
+    lengths = np.fromiter((len(c[2]) for c in curves), dtype=np.int64, count=len(curves))
+    total, keep = int(lengths.sum()), None
+    try:
+        y = np.fromiter(itertools.chain.from_iterable(c[2] for c in curves), dtype=np.float64, count=total)
+    except (ValueError, TypeError):
+        ys = [_numbers(c[2]) for c in curves]
+        keep = np.fromiter((v is not None for v in ys), dtype=bool, count=len(ys))
+        curves = [c for c, k in zip(curves, keep) if k]
+        lengths = lengths[keep]
+        y = np.concatenate([v for v in ys if v is not None]) if curves else np.zeros(0)
+    starts: np.ndarray = np.zeros(len(lengths) + 1, dtype=np.int64)
+    np.cumsum(lengths, out=starts[1:])
+    x0 = np.fromiter((c[0] for c in curves), dtype=np.float64, count=len(curves))
+    dx = np.fromiter((c[1] for c in curves), dtype=np.float64, count=len(curves))
+    i = np.arange(len(y)) - np.repeat(starts[:-1], lengths)  # each point's place in its curve
+    xy: np.ndarray = np.empty((len(y), 2), dtype=np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge value is drawn at infinity
+        xy[:, 0] = np.repeat(x0, lengths) + np.repeat(dx, lengths) * i
+        xy[:, 1] = 300.0 * (1.0 - y)
+    return _strips(starts, xy), keep
+
+
+def _numbers(y: list) -> np.ndarray | None:
+    try:
+        return np.fromiter(y, dtype=np.float64, count=len(y))
+    except (ValueError, TypeError):
+        return None
+
+
+def _lines(lines: list) -> tuple[pa.Array, None]:
+    """Polylines, each a list of (x, y) or an (N, 2) array."""
+    xys = [np.asarray(p, dtype=np.float32).reshape(-1, 2) for p in lines]
+    starts: np.ndarray = np.zeros(len(xys) + 1, dtype=np.int64)
+    np.cumsum([len(p) for p in xys], out=starts[1:])
+    xy = np.concatenate(xys)
+    xy[:, 1] = 300.0 * (1.0 - xy[:, 1])
+    return _strips(starts, xy), None
+
+
+def _strips(starts: np.ndarray, xy: np.ndarray) -> pa.Array:
+    """Polylines as one arrow list array: ``xy`` all their float32 (x, y) rows, polyline i from starts[i]."""
+    flat = pa.array(xy.reshape(-1), pa.float32())
     strip_type = rr.components.LineStrip2DBatch._ARROW_DATATYPE
-    return pa.ListArray.from_arrays(pa.array(offsets), pa.FixedSizeListArray.from_arrays(
+    return pa.ListArray.from_arrays(pa.array(starts.astype(np.int32)), pa.FixedSizeListArray.from_arrays(
         flat, type=strip_type.value_type), type=strip_type)
 
 
