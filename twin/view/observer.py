@@ -24,7 +24,6 @@ WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.inva
               "question.withdrawn", "consumable.low"}
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned",
                "consumable.depleted"}
-MISSING = object()
 log = logging.getLogger(__name__)
 QUEUE_SERIES = ("ready steps", "samples waiting", "oldest sample's age (h)")
 #: What an observer draws of a device's messages (an in-process runtime hands it only these).
@@ -117,7 +116,7 @@ class LabObserver:
         self._made: dict[str, float] = {}  # ready steps whose sample exists: when it was made
         self._seen: set[str] | None = set() if dedupe else None
         self._route: Any = None  # a RouteView, once a synthesis route runs
-        self._handlers: dict[str, Any] = {}
+        self._kinds: dict[str, tuple[Any, str | None]] = {}  # a decision's handler and its log level (None: unlogged)
         self._paths: dict[str, tuple[str, str]] = {}  # a device's state and utilisation entities
         self._target_outputs: set[str] = set()
         self._telemetry_paths: dict[tuple[str, str], str] = {}
@@ -199,12 +198,14 @@ class LabObserver:
         if what in UNDRAWN:
             return
         info = n.detail
-        handler = self._handlers.get(what, MISSING)
-        if handler is MISSING:  # looked up once per kind of decision: thousands of decisions, a dozen kinds
-            handler = self._handlers[what] = getattr(self, "_" + what.replace(".", "_"), None)
+        kind = self._kinds.get(what)
+        if kind is None:  # looked up once per kind of decision: thousands of decisions, a dozen kinds
+            kind = self._kinds[what] = (getattr(self, "_" + what.replace(".", "_"), None),
+                                        None if what in QUIET else _level(what))
+        handler, level = kind
         if handler is not None:
             handler(t, n, info)
-        if what not in QUIET:
+        if level is not None:
             text = what
             if n.task:
                 text = f"{text} {n.task}"
@@ -212,7 +213,7 @@ class LabObserver:
                 text = f"{text} #{n.attempt}"
             if n.device:
                 text = f"{text} on {n.device}"
-            self.c.text("log", t, text + self._describe(info) if info is not None else text, _level(what))
+            self.c.text("log", t, text + self._describe(info) if info is not None else text, level)
 
     def finish(self) -> None:
         """Draw what waits for lab time to move on (the queue's last change); a recording calls this on close."""
