@@ -171,3 +171,56 @@ def test_spectra_that_are_not_curves_are_not_drawn_and_change_nothing_else(tmp_p
     good = [[400.0, 300.0], [402.0, 150.0], [404.0, 0.0], [406.0, 150.0]]
     assert strips.count(good) == 4  # experiments 5, 10, 15, 20
     assert all(s == good or len(s) == 3 for s in strips), strips  # [1e308, -1e308, .5] at infinity, [1, None, 2] a gap
+
+
+class OddNumbers:
+    """A spectrometer whose peak comes as null (a NaN), a string, a boolean, or a number, in turn; its telemetry
+    has a NaN reading every other time."""
+
+    capabilities = frozenset({"measure"})
+    outputs = frozenset({"peak_nm"})
+    PEAKS = [float("nan"), "630", True, 630.0]
+
+    def __init__(self, setup):
+        self.n = 0
+
+    async def run(self, step, params, sample, ctx):
+        await ctx.clock.sleep(60)
+        ctx.telemetry({"lamp_k": float("nan") if self.n % 2 else 300.0})
+        self.n += 1
+        return StepResult({"peak_nm": self.PEAKS[(self.n - 1) % 4]}, sample)
+
+    async def safe_state(self):
+        pass
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_an_output_that_is_not_a_number_is_never_scored_and_is_said_once(tmp_path, runtime, caplog):
+    """null, "630" and true are not 630: no target is met by them (true once scored as 1), the first is noted and
+    logged naming the output, and a NaN telemetry reading is an invalid message on either runtime."""
+    import logging
+
+    lab = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_drivers:OddNumbers",
+                          "devices.spectrometer.instances": 1, "campaign.budget": 8, "campaign.max_in_flight": 1,
+                          "chemistry.targets": [{"name": "one", "outputs": {"peak_nm": {"value": 1, "tol": 5}}},
+                                                {"name": "R", "outputs": {"peak_nm": {"value": 630, "tol": 5}}}]}))
+    with caplog.at_level(logging.WARNING, logger="twin.alerts"):
+        summary = run(lab, journal=tmp_path / "j.db", runtime=runtime)
+    assert summary.done == 8 and "one" not in summary.targets_met_h and "R" in summary.targets_met_h
+    noted = read_events(tmp_path / "j.db", "output.unscored")
+    assert len(noted) == 1 and "peak_nm = null is not a number" in noted[0]["detail"]
+    assert [r for r in caplog.records if "output.unscored" in r.getMessage()]
+    assert summary.invalid_messages == 4  # the telemetry of steps 2, 4, 6, 8
+    invalid = read_events(tmp_path / "j.db", "message.invalid")
+    assert len(invalid) == 4 and all("readings" in e["detail"] and e["device"] == "spectrometer" for e in invalid)
+
+
+def test_a_target_scores_only_finite_numbers():
+    from twin.scenario.targets import score, unscorable
+
+    target = parse(qd_lab()).chemistry.targets[0]  # R: peak_nm 630 ± 5
+    assert score({"peak_nm": 630}, target) == 0 and score({"peak_nm": 640.0}, target) == 1.0
+    for odd in (None, "630", True, float("nan"), float("inf")):
+        assert score({"peak_nm": odd}, target) == float("inf"), odd
+    assert unscorable({"peak_nm": "630", "other": "x"}, [target]) == {"peak_nm": "630"}
+    assert unscorable({"intensity": 1.0}, [target]) == {}  # missing is not listed: not every workflow measures it

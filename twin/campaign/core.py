@@ -13,6 +13,7 @@ before the pass goes on; events that arrive meanwhile wait in the inbox.
 
 from __future__ import annotations
 
+import json
 import secrets
 from typing import Any
 
@@ -26,7 +27,7 @@ from twin.campaign.ledger import Attempt, Counters, Device, Experiment, Task, ch
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
 from twin.core.messages import Kind
 from twin.scenario.model import Scenario, expected_duration
-from twin.scenario.targets import scores
+from twin.scenario.targets import scores, unscorable
 
 MAX_REFUSALS = 100  # "not now" answers to one step before it is given up: a device that never says yes
 
@@ -67,6 +68,7 @@ class CampaignCore:
         self.history: list[Outcome] = []
         self.best: dict[str, tuple[float, int]] = {}  # target -> (score, experiment)
         self.met_at: dict[str, float] = {}
+        self._unscorable: set[str] = set()  # outputs already said to be unscorable
         self.met_after: dict[str, int] = {}  # target -> experiments finished when it was met
         self.met_cost: dict[str, float] = {}  # target -> money spent when it was met
         self.cost = 0.0
@@ -649,6 +651,7 @@ class CampaignCore:
         del self.active[e.id]
         if status == Status.DONE:
             e.scores = scores(e.outputs, self.s.chemistry.targets)
+            self._note_unscorable(e)
             for name, sc in e.scores.items():
                 if name not in self.best or sc < self.best[name][0]:
                     self.best[name] = (sc, e.id)
@@ -663,6 +666,15 @@ class CampaignCore:
         numeric = {k: v for k, v in e.outputs.items() if isinstance(v, (int, float))}
         self._note(f"experiment.{status}", e.id, detail={"reason": reason, "outputs": numeric, "scores": e.scores})
         self._out.append(RecordExperiment(e, final=True))
+
+    def _note_unscorable(self, e: Experiment) -> None:
+        """A target's output that came as something other than a number: said once per output per campaign."""
+        for name, value in unscorable(e.outputs, self.s.chemistry.targets).items():
+            if name not in self._unscorable:
+                self._unscorable.add(name)
+                self._note("output.unscored", e.id, detail=f"{name} = {json.dumps(value)[:60]} is not a number, so no "
+                           "target can be scored on it (a device sent it; a NaN arrives as null). Fix the driver; "
+                           "later experiments like this are not noted again")
 
     # -- shutdown ---------------------------------------------------------------------
     def _shutdown(self) -> None:

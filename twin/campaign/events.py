@@ -35,8 +35,9 @@ class Code(StrEnum):
     DRIVER_ERROR = "driver_error"
 
 
-#: Notes a runtime also logs as warnings, on the ``ALERT_LOGGER`` logger: the lab cannot go on as it is.
-ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping"})
+#: Notes a runtime also logs as warnings (``alert_text``), on the ``ALERT_LOGGER`` logger: the lab cannot go on as
+#: it is, or a device sends what the campaign cannot use.
+ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "output.unscored"})
 ALERT_LOGGER = "twin.alerts"
 #: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, a device type gone, an
 #: operator's act
@@ -225,3 +226,9 @@ class Finished:
 
 Event = DeviceMessage | InvalidInput | Presence | TimerFired | Operator | Stop
 Action = Send | SetTimer | CancelTimer | Ask | Note | RecordMessage | RecordExperiment | Finished
+
+
+def alert_text(n: Note) -> str:
+    """An alert's line in the log: what, on which device or experiment, and the detail."""
+    where = f" {n.device}" if n.device else f" (experiment {n.experiment})" if n.experiment is not None else ""
+    return f"{n.kind}{where}: {n.detail}"

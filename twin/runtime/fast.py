@@ -21,7 +21,7 @@ from typing import Any
 
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Proposed, RecordExperiment,
                            RecordMessage, Send, SetTimer, Stop, TimerFired)
-from twin.campaign.events import ALERT_LOGGER, ALERTS, PROGRESS_KINDS, TimerKey
+from twin.campaign.events import ALERT_LOGGER, ALERTS, PROGRESS_KINDS, TimerKey, alert_text
 from twin.campaign.decisions import Assignment, LabView, Planner, Scheduler
 from twin.core.errors import ClockError
 from twin.campaign.journal import Journal
@@ -59,7 +59,7 @@ class Seat:
                 if observer is not None and a.kind not in UNDRAWN:
                     observer.on_note(a)
                 if a.kind in self.alerts:
-                    alerts_log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
+                    alerts_log.warning("%s", alert_text(a))
                 if watched and not progressed:
                     progressed = a.kind.startswith(PROGRESS_KINDS)
             elif t is RecordMessage:

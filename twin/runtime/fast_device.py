@@ -17,11 +17,11 @@ from typing import Any
 
 import msgspec
 
-from twin.campaign import DeviceMessage, Presence
+from twin.campaign import DeviceMessage, InvalidInput, Presence
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.driver import Driver, StepContext, feature, simulated_faults
 from twin.core.errors import DriverError, Refused
-from twin.core.messages import Kind, envelope, to_wire
+from twin.core.messages import InvalidMessage, Kind, decode, envelope, excerpt, to_wire
 from twin.view.observer import WATCHED
 from twin.runtime.queue import EventQueue, Park, QueueClock, Sleep, Timer
 
@@ -107,6 +107,12 @@ class FastDevice:
                        campaign=campaign, task=task, attempt=attempt)
         # encoded once, as the journal stores it; a body that cannot go on the wire fails here, as on a bus
         payload = to_wire(env)
+        if kind is Kind.TELEMETRY:  # checked as a receiver on a bus checks it (a NaN reading goes as null)
+            try:
+                decode(payload, self.name)
+            except InvalidMessage as exc:
+                self._deliver(InvalidInput(exc.sender, exc.reason, excerpt=excerpt(payload)))
+                return
         if kind is Kind.RESULT:  # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
             body = _plain(payload)["body"]
         if self._watch is not None and kind in WATCHED:

@@ -25,7 +25,7 @@ from twin.core.bus import Bus
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, DeviceMessage, Finished, InvalidInput, Note,
                            Presence, Proposed, RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
 from twin.campaign import replay
-from twin.campaign.events import ALERT_LOGGER, ALERTS, PROGRESS_KINDS, TimerKey
+from twin.campaign.events import ALERT_LOGGER, ALERTS, PROGRESS_KINDS, TimerKey, alert_text
 from twin.campaign.replay import Rebuilt
 from twin.core.clock import LabClock
 from twin.campaign.decisions import Planner, Scheduler
@@ -274,7 +274,7 @@ class LiveCampaign:
                 if a.kind.startswith("operator."):
                     self.desk.noted(a)
                 if a.kind in ALERTS:
-                    alerts_log.warning("%s %s: %s", a.kind, a.device or "", a.detail)
+                    alerts_log.warning("%s", alert_text(a))
                 elif a.kind == "message.rejected":
                     self._rejected += 1
                     if self._rejected <= 10 or self._rejected % 1000 == 0:  # a device of your own echoes tokens?

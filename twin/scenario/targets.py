@@ -2,15 +2,22 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 
+def measured(x: Any) -> bool:
+    """Whether an output is a number a target can be scored on (not a string, a boolean, or a NaN sent as null)."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
 def score(outputs: dict[str, Any], target: Any) -> float:
-    """0 when every condition of ``target`` holds; else the largest violation in tolerance units."""
+    """0 when every condition of ``target`` holds; else the largest violation in tolerance units (infinite when
+    an output it reads is missing or not a number)."""
     worst = 0.0
     for name, cond in target.outputs.items():
         x = outputs.get(name)
-        if not isinstance(x, (int, float)):
+        if not measured(x):
             return float("inf")
         if cond.value is not None:
             worst = max(worst, max(0.0, abs(x - cond.value) - cond.tol) / cond.tol)
@@ -24,3 +31,10 @@ def score(outputs: dict[str, Any], target: Any) -> float:
 
 def scores(outputs: dict[str, Any], targets: list[Any]) -> dict[str, float]:
     return {t.name: score(outputs, t) for t in targets}
+
+
+def unscorable(outputs: dict[str, Any], targets: list[Any]) -> dict[str, Any]:
+    """The outputs targets read that a device sent but not as a number: name -> value (a missing one is not
+    listed: some workflows do not measure everything)."""
+    return {name: outputs[name] for t in targets for name in t.outputs
+            if name in outputs and not measured(outputs[name])}
