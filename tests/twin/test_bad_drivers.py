@@ -224,3 +224,57 @@ def test_a_target_scores_only_finite_numbers():
         assert score({"peak_nm": odd}, target) == float("inf"), odd
     assert unscorable({"peak_nm": "630", "other": "x"}, [target]) == {"peak_nm": "630"}
     assert unscorable({"intensity": 1.0}, [target]) == {}  # missing is not listed: not every workflow measures it
+
+
+class OddSample:
+    """A synthesiser whose samples are not what the lab can carry: in turn, t_made a word, null, a NaN, a list,
+    far in the future, and a sample that is a number; every seventh is fine."""
+
+    capabilities = frozenset({"synthesise"})
+    SAMPLES = [{"t_made": "yesterday"}, {"t_made": None}, {"t_made": float("nan")}, {"t_made": [1]},
+               {"t_made": 1e300}, 5]
+
+    def __init__(self, setup):
+        self.n = 0
+
+    async def run(self, step, params, sample, ctx):
+        await ctx.clock.sleep(60)
+        self.n += 1
+        if self.n % 7 == 0:
+            return StepResult({}, {"kind": "qd", "peak_nm": 630.0, "fwhm_nm": 30.0, "amplitude": 1.0,
+                                   "t_made": ctx.clock.now()})
+        return StepResult({}, self.SAMPLES[self.n % 7 - 1])
+
+    async def safe_state(self):
+        pass
+
+
+def test_a_result_whose_sample_the_lab_cannot_carry_fails_its_attempt_alike_on_both_runtimes(tmp_path):
+    """Once it stopped the campaign (float(None)); now each is a failed attempt naming the device and the field,
+    retried like any other, and the two runtimes agree to the attempt (a sample that is not an object is an
+    invalid message on a bus, so in the fast runtime too)."""
+    lab = parse(qd_lab(**{"devices.synthesiser.driver": "tests.twin.test_bad_drivers:OddSample",
+                          "campaign.budget": 6, "orchestrator.quarantine_after": 100}))
+    fast = run(lab, journal=tmp_path / "fast.db", runtime="auto")
+    slow = run(lab, journal=tmp_path / "slow.db", runtime="asyncio")
+    assert fast.done + fast.abandoned == 6 and fast.done >= 1
+    for field in ("done", "abandoned", "attempts", "failed_attempts", "invalid_messages", "timed_out"):
+        assert getattr(fast, field) == getattr(slow, field), field
+    assert fast.invalid_messages > 0  # the sample that is a number
+    reasons = [json.loads(e["detail"])["reason"] for e in read_events(tmp_path / "fast.db", "attempt.failed")
+               if json.loads(e["detail"])["code"] == "driver_error"]
+    assert {"'yesterday'", "'None'", "'[1]'", "after the lab's time now"} <= {
+        w for r in reasons for w in ("'yesterday'", "'None'", "'[1]'", "after the lab's time now") if w in r}
+    assert all(r.startswith("synthesiser returned a result the lab cannot use") for r in reasons)
+
+
+def test_what_a_result_must_hold():
+    from twin.campaign.results import problem
+
+    assert problem({"outputs": {}, "sample": {"t_made": 10.0}}, now=20.0) == ""
+    assert problem({"outputs": {}, "sample": None}, now=0.0) == ""
+    assert problem({"outputs": {}, "sample": {"kind": "qd"}}, now=0.0) == ""  # no t_made: made when it arrives
+    assert "t_made" in problem({"outputs": {}, "sample": {"t_made": True}}, now=0.0)
+    assert "t_made" in problem({"outputs": {}, "sample": {"t_made": float("inf")}}, now=0.0)
+    assert "after the lab's time" in problem({"outputs": {}, "sample": {"t_made": 100.0}}, now=20.0)
+    assert "JSON object" in problem({"outputs": [1], "sample": None}, now=0.0)

@@ -17,7 +17,7 @@ import json
 import secrets
 from typing import Any
 
-from twin.campaign import consumables, dispatch, human, operator, policy, provenance, questions
+from twin.campaign import consumables, dispatch, human, operator, policy, provenance, questions, results
 from twin.campaign.consumables import Stocks
 from twin.campaign.availability import Availability
 from twin.campaign.events import (Action, Ask, CancelTimer, Code, Decided, DeviceMessage, Event, Finished,
@@ -248,7 +248,11 @@ class CampaignCore:
             att.t_accepted = self.now
             self._note("attempt.running", exp, m.task, m.attempt, m.device)
         elif m.kind == Kind.RESULT:
-            self._resolve(att, Code.OK, m.body)
+            bad = results.problem(m.body, self.now)
+            if bad:
+                self._resolve(att, Code.DRIVER_ERROR, {"reason": f"{m.device} returned a result the lab cannot use: {bad}"})
+            else:
+                self._resolve(att, Code.OK, m.body)
         elif m.kind == Kind.FAULT:
             self._resolve(att, m.body.get("code", Code.FAILED), {"reason": m.body.get("reason", "")})
         elif m.kind == Kind.REJECTED:

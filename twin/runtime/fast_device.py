@@ -15,7 +15,6 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-import msgspec
 
 from twin.campaign import DeviceMessage, InvalidInput, Presence
 from twin.core.streams import KeyedGenerator, seeded
@@ -26,7 +25,8 @@ from twin.view.observer import WATCHED
 from twin.runtime.queue import EventQueue, Park, QueueClock, Sleep, Timer
 
 log = logging.getLogger(__name__)
-_plain = msgspec.json.Decoder().decode
+#: Messages whose body holds what a driver gave (the others the runtime writes itself).
+_DRIVERS_WORDS = frozenset({Kind.RESULT, Kind.TELEMETRY, Kind.PROGRESS})
 
 
 class FastRuntimeRefused(DriverError):
@@ -107,14 +107,13 @@ class FastDevice:
                        campaign=campaign, task=task, attempt=attempt)
         # encoded once, as the journal stores it; a body that cannot go on the wire fails here, as on a bus
         payload = to_wire(env)
-        if kind is Kind.TELEMETRY:  # checked as a receiver on a bus checks it (a NaN reading goes as null)
+        if kind in _DRIVERS_WORDS:  # checked as a receiver on a bus checks it (a NaN reading goes as null)
             try:
-                decode(payload, self.name)
+                # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
+                body = decode(payload, self.name)[1].to_dict()
             except InvalidMessage as exc:
                 self._deliver(InvalidInput(exc.sender, exc.reason, excerpt=excerpt(payload)))
                 return
-        if kind is Kind.RESULT:  # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
-            body = _plain(payload)["body"]
         if self._watch is not None and kind in WATCHED:
             self._watch({**env, "body": body})
         self._deliver(DeviceMessage(kind, self.name, task, attempt, body, payload, token=token, campaign=campaign))
