@@ -32,12 +32,21 @@ def test_report_of_a_missing_journal_is_a_clear_error(tmp_path):
     assert res.returncode == 2 and "no such journal" in res.stderr and "Traceback" not in res.stderr
 
 
-@pytest.mark.parametrize("command", ["report", "resume"])
-def test_a_file_that_is_not_a_journal_is_a_clear_error(tmp_path, command):
+@pytest.mark.parametrize("command", [["report"], ["resume"], ["replay", "--save", "r.rrd"], ["export"]])
+@pytest.mark.parametrize("content", ["text", "another SQLite database"])
+def test_a_file_that_is_not_a_journal_is_a_clear_error(tmp_path, command, content):
+    import sqlite3
+
     bad = tmp_path / "notes.db"
-    bad.write_text("this is not SQLite")
-    res = subprocess.run([*TWIN, command, str(bad)], capture_output=True, text=True, cwd=ROOT)
-    assert res.returncode == 2 and "not a labtwin journal" in res.stderr and "Traceback" not in res.stderr
+    if content == "text":
+        bad.write_text("this is not SQLite")
+    else:
+        with sqlite3.connect(bad) as db:
+            db.execute("CREATE TABLE notes (line TEXT)")
+    res = subprocess.run([*TWIN, command[0], str(bad), *command[1:]], capture_output=True, text=True,
+                         cwd=tmp_path)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert f"{bad}: not a labtwin journal" in " ".join(res.stderr.split())
 
 
 @pytest.mark.process

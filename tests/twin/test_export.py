@@ -92,7 +92,7 @@ def test_bad_requests_name_what_to_do(flaky, tmp_path):
     with pytest.raises(TwinError, match="use one of csv, parquet, jsonl"):
         export(flaky, tmp_path, "xlsx")
     (tmp_path / "notes.db").write_text("not a database")
-    with pytest.raises(TwinError, match="is not a labtwin journal"):
+    with pytest.raises(TwinError, match="not a labtwin journal"):
         export(tmp_path / "notes.db", tmp_path / "x")
     res = CliRunner().invoke(app, ["export", str(tmp_path / "none.db")])
     assert res.exit_code == 2 and "no such journal" in res.output

@@ -11,11 +11,14 @@ from __future__ import annotations
 import json
 import os
 import sqlite3
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import msgspec
 
+from twin.core.errors import TwinError
 from twin.core.messages import plain_value
 from twin.core.messages import to_wire
 
@@ -177,19 +180,47 @@ class NullJournal(Journal):
         self.closed = True
 
 
+class NotAJournal(TwinError):
+    """A file that is not a labtwin journal (not SQLite, or not ours, or damaged)."""
+
+
+def no_such_journal(path: str | Path) -> NotAJournal:
+    return NotAJournal(f"{path}: no such journal; runs are written to runs/ by default")
+
+
+@contextmanager
+def reading(path: str | Path) -> Iterator[sqlite3.Connection]:
+    """A journal opened read-only; a file that is not one raises ``NotAJournal`` naming it and why."""
+    if not Path(path).exists():
+        raise no_such_journal(path)
+    try:
+        with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+            yield db
+    except sqlite3.DatabaseError as exc:  # not SQLite, or not ours
+        raise _not_ours(path, exc) from None
+
+
+def _not_ours(path: str | Path, exc: Exception) -> NotAJournal:
+    return NotAJournal(f"{path}: not a labtwin journal ({type(exc).__name__}: {exc}); twin run writes them to runs/")
+
+
 def read_run(path: str | Path) -> dict[str, Any]:
-    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
-        return {k: json.loads(v) for k, v in db.execute("SELECT key, value FROM run")}
+    with reading(path) as db:
+        rows = db.execute("SELECT key, value FROM run").fetchall()
+    try:
+        return {k: json.loads(v) for k, v in rows}
+    except (ValueError, TypeError) as exc:  # damaged
+        raise _not_ours(path, exc) from None
 
 
 def read_experiments(path: str | Path) -> list[dict[str, Any]]:
-    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+    with reading(path) as db:
         db.row_factory = sqlite3.Row
         return [dict(r) for r in db.execute("SELECT * FROM experiments ORDER BY id")]
 
 
 def read_events(path: str | Path, kind_like: str = "%") -> list[dict[str, Any]]:
-    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+    with reading(path) as db:
         db.row_factory = sqlite3.Row
         rows = db.execute("SELECT * FROM events WHERE kind LIKE ? ORDER BY seq", (kind_like,))
         return [dict(r) for r in rows]
@@ -216,7 +247,7 @@ def as_messages(rows: list[dict[str, Any]]) -> list[str]:
 
 def read_inputs(path: str | Path) -> list[tuple[float, Any]]:
     """A live run's core inputs, batch by batch: (lab time, batch)."""
-    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+    with reading(path) as db:
         try:
             return [(t, json.loads(b)) for t, b in db.execute("SELECT t_lab, batch FROM inputs ORDER BY seq")]
         except sqlite3.OperationalError:

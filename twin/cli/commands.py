@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import sqlite3
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -19,7 +18,7 @@ from twin.core import plugins
 from twin.runtime import lab
 from twin.runtime.checks import validate_file
 from twin.core.errors import TwinError
-from twin.campaign.journal import read_run
+from twin.campaign.journal import no_such_journal, read_run
 from twin.view.report import render_summary
 from twin.scenario import json_schema
 from twin.campaign.summary import Summary
@@ -250,7 +249,7 @@ def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<
                                                      "journals: each campaign's)")]) -> None:
     """Print a run's summary again from its journal (a killed run: how far it got, and how to resume it)."""
     if not journal.exists():
-        _fail(TwinError(f"{journal}: no such journal; runs are written to runs/ by default"))
+        _fail(no_such_journal(journal))
     if journal.is_dir():  # a lab of several campaigns: each campaign's journal, and how to resume the lab
         dbs = sorted(journal.glob("*.db"))
         if not dbs:
@@ -268,8 +267,8 @@ def _report(journal: Path, resume_with: Path | None = None) -> None:
     try:
         data = read_run(journal)
         got = interrupted(journal) if "summary" not in data else {}
-    except (sqlite3.Error, ValueError, KeyError) as exc:
-        _fail(TwinError(f"{journal}: not a labtwin journal ({exc}); twin run writes them to runs/"))
+    except TwinError as exc:
+        _fail(exc)
     if "summary" not in data:
         shown = {"pending": "not finished", "running": "not finished"}
         counts: dict[str, int] = {}

@@ -17,13 +17,12 @@ from __future__ import annotations
 import json
 import logging
 import os
-import sqlite3
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from twin.campaign import CampaignCore
-from twin.campaign.journal import Journal, read_inputs, read_run
+from twin.campaign.journal import Journal, read_inputs, read_run, reading
 from twin.campaign.replay import rebuild
 from twin.campaign.summary import Summary
 from twin.core import keys
@@ -74,14 +73,9 @@ def _short(detail: Any, n: int = 80) -> str:
 def recorded(path: str | Path) -> tuple[Scenario, list[tuple]]:
     """The scenario and the events a killed run's journal holds."""
     path = Path(path)
-    if not path.exists():
-        raise ResumeError(f"{path}: no such journal; runs are written to runs/ by default")
-    try:
-        data = read_run(path)
-        with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
-            prefix = db.execute("SELECT * FROM events ORDER BY seq").fetchall()
-    except sqlite3.DatabaseError as exc:
-        raise ResumeError(f"{path}: not a labtwin journal ({exc})") from None
+    data = read_run(path)
+    with reading(path) as db:
+        prefix = db.execute("SELECT * FROM events ORDER BY seq").fetchall()
     if "summary" in data:
         raise ResumeError(f"{path}: the campaign finished; nothing to resume (twin report {path} shows it)")
     if "scenario" not in data:
@@ -91,11 +85,11 @@ def recorded(path: str | Path) -> tuple[Scenario, list[tuple]]:
 
 def interrupted(path: str | Path) -> dict[str, Any]:
     """How far a killed run got, from what its journal committed."""
-    with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+    with reading(path) as db:
         events, t_lab = db.execute("SELECT COUNT(*), MAX(t_lab) FROM events").fetchone()
         statuses = dict(db.execute("SELECT status, COUNT(*) FROM experiments GROUP BY status").fetchall())
         scenario = db.execute("SELECT value FROM run WHERE key='scenario'").fetchone()
-    name = json.loads(scenario[0])["name"] if scenario else "?"
+        name = json.loads(scenario[0])["name"] if scenario else "?"
     return {"scenario": name, "events": events, "lab_hours": (t_lab or 0.0) / 3600, "experiments": statuses}
 
 

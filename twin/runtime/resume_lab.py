@@ -13,11 +13,10 @@ import logging
 from collections.abc import Callable
 from typing import Any
 import shutil
-import sqlite3
 import time
 from pathlib import Path
 
-from twin.campaign.journal import Journal, read_inputs, read_run
+from twin.campaign.journal import Journal, read_inputs, read_run, reading
 from twin.campaign.lab_replay import rebuild_lab
 from twin.campaign.summary import LabSummary
 from twin.runtime.resume import CheckedJournal, ResumeError, replace
@@ -44,12 +43,9 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
                           "runs/<lab>-seed<N>-<time>/ by default")
     lab, prefixes, ended, scenarios = None, {}, [], {}
     for db in dbs:
-        try:
-            data = read_run(db)
-            with sqlite3.connect(f"file:{db}?mode=ro", uri=True) as con:
-                prefixes[db.stem] = con.execute("SELECT * FROM events ORDER BY seq").fetchall()
-        except sqlite3.DatabaseError as exc:
-            raise ResumeError(f"{db}: not a labtwin journal ({exc})") from None
+        data = read_run(db)
+        with reading(db) as con:
+            prefixes[db.stem] = con.execute("SELECT * FROM events ORDER BY seq").fetchall()
         if "lab" not in data:
             raise ResumeError(f"{db}: the journal does not say which lab file it ran in (a campaign run on its own: "
                               f"twin resume {db}; or a lab run before labs journalled it: run it again)")

@@ -19,7 +19,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from twin.campaign.journal import read_events, read_experiments, read_run
+from twin.campaign.journal import no_such_journal, read_events, read_experiments, read_run
 from twin.core.errors import TwinError
 from twin.scenario.model import instance_names
 
@@ -33,18 +33,14 @@ def export(journal: str | Path, out: str | Path, fmt: str = "csv", what: list[st
     files written."""
     path = Path(journal)
     if not path.is_file():
-        raise TwinError(f"{path}: no such journal; runs are written to runs/ by default")
+        raise no_such_journal(path)
     if fmt not in FORMATS:
         raise TwinError(f"--format {fmt!r}: use one of {', '.join(FORMATS)}")
     chosen = list(what or WHAT)
     unknown = [w for w in chosen if w not in WHAT]
     if unknown:
         raise TwinError(f"--what {','.join(unknown)}: the tables are {', '.join(WHAT)}")
-    try:
-        run, events = read_run(path), read_events(path)
-        experiments = read_experiments(path)
-    except Exception as exc:  # not SQLite, or not a journal
-        raise TwinError(f"{path} is not a labtwin journal ({type(exc).__name__}: {exc})") from None
+    run, events, experiments = read_run(path), read_events(path), read_experiments(path)
     tables = {"experiments": lambda: experiment_rows(experiments), "attempts": lambda: attempt_rows(events),
               "devices": lambda: device_rows(run, events), "consumables": lambda: consumable_rows(run, events),
               "decisions": lambda: decision_rows(events),

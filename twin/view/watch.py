@@ -20,7 +20,7 @@ from twin.core import keys
 from twin.core.bus import Bus, Closable, NoReplyError
 from twin.core.clock import LabClock
 from twin.core.errors import TwinError
-from twin.campaign.journal import as_messages, read_events, read_run
+from twin.campaign.journal import as_messages, no_such_journal, read_events, read_run
 from twin.view.lab_observer import SharedLabObserver
 from twin.view.observer import LabObserver
 
@@ -76,7 +76,7 @@ def replay(journal: str | Path, options: RecordOptions) -> LabObserver | SharedL
     journals, drawn as the lab's recorder draws it)."""
     path = Path(journal)
     if not path.exists():
-        raise TwinError(f"{path}: no such journal; runs are written to runs/ by default")
+        raise no_such_journal(path)
     if path.is_dir():
         return _replay_lab(path, options)
     run = read_run(path)
