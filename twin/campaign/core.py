@@ -13,11 +13,10 @@ before the pass goes on; events that arrive meanwhile wait in the inbox.
 
 from __future__ import annotations
 
-import json
 import secrets
 from typing import Any
 
-from twin.campaign import consumables, dispatch, human, operator, policy, provenance, questions, results
+from twin.campaign import consumables, dispatch, human, operator, outcomes, policy, provenance, questions, results
 from twin.campaign.consumables import Stocks
 from twin.campaign.availability import Availability
 from twin.campaign.events import (Action, Ask, CancelTimer, Code, Decided, DeviceMessage, Event, Finished,
@@ -27,9 +26,7 @@ from twin.campaign.ledger import Attempt, Counters, Device, Experiment, Task, ch
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
 from twin.core.messages import Kind
 from twin.scenario.model import Scenario, expected_duration
-from twin.scenario.targets import scores, unscorable
 
-MAX_REFUSALS = 100  # "not now" answers to one step before it is given up: a device that never says yes
 
 _ORDER = {DeviceMessage: 0, InvalidInput: 0, Presence: 1, TimerFired: 2, Operator: 3, Stop: 4}
 
@@ -250,13 +247,14 @@ class CampaignCore:
         elif m.kind == Kind.RESULT:
             bad = results.problem(m.body, self.now)
             if bad:
-                self._resolve(att, Code.DRIVER_ERROR, {"reason": f"{m.device} returned a result the lab cannot use: {bad}"})
+                outcomes.resolve(self, att, Code.DRIVER_ERROR,
+                                 {"reason": f"{m.device} returned a result the lab cannot use: {bad}"})
             else:
-                self._resolve(att, Code.OK, m.body)
+                outcomes.resolve(self, att, Code.OK, m.body)
         elif m.kind == Kind.FAULT:
-            self._resolve(att, m.body.get("code", Code.FAILED), {"reason": m.body.get("reason", "")})
+            outcomes.resolve(self, att, m.body.get("code", Code.FAILED), {"reason": m.body.get("reason", "")})
         elif m.kind == Kind.REJECTED:
-            self._resolve(att, Code.REJECTED, {"reason": m.body.get("reason", ""),
+            outcomes.resolve(self, att, Code.REJECTED, {"reason": m.body.get("reason", ""),
                                                "infeasible": bool(m.body.get("infeasible", False))})
 
     def _reject(self, m: DeviceMessage, why: str) -> None:
@@ -300,7 +298,8 @@ class CampaignCore:
                 self._out.append(CancelTimer(TimerKey(TimerKind.CANCEL_GRACE, dev.name)))
             if dev.attempt is not None:
                 self.counts.device_lost += 1
-                self._resolve(dev.attempt, Code.DEVICE_LOST, {"reason": f"{dev.name} left the bus (liveliness lost)"})
+                outcomes.resolve(self, dev.attempt, Code.DEVICE_LOST,
+                                 {"reason": f"{dev.name} left the bus (liveliness lost)"})
         if not self._running and all(d.online for d in self.devices.values()):
             self._out.append(CancelTimer(TimerKey(TimerKind.STARTUP)))
             self._begin()
@@ -313,7 +312,7 @@ class CampaignCore:
             att = self.attempts.get((task, int(n)))
             if att is not None and not att.resolved:
                 limit = policy.deadline_s(att.task.expected_s, self.s.orchestrator)
-                self._resolve(att, Code.TIMED_OUT, {"reason": f"no result within {limit:.0f} lab-s"})
+                outcomes.resolve(self, att, Code.TIMED_OUT, {"reason": f"no result within {limit:.0f} lab-s"})
         elif kind == TimerKind.RETRY:
             waiting = self._retrying.pop(key.ref, None)
             if waiting is not None and not self.stopping:
@@ -406,7 +405,7 @@ class CampaignCore:
             self.ready.pop(t.id, None)
             self._retrying.pop(t.id, None)
             self._out.append(CancelTimer(TimerKey(TimerKind.RETRY, t.id)))
-            self._finish(t.experiment, Status.ABANDONED, f"no usable {dtype} (lost or quarantined) for "
+            outcomes.finish(self, t.experiment, Status.ABANDONED, f"no usable {dtype} (lost or quarantined) for "
                                                         f"{after:.0f} lab-s (campaign.give_up_after_s)")
         self._wake = True
 
@@ -473,7 +472,7 @@ class CampaignCore:
         outside = policy.outside_envelope(e.route, e.params, self.s.devices)
         if outside:  # refused before anything is sent: no step runs for an experiment that cannot finish
             self.counts.infeasible += 1
-            self._finish_infeasible(e, outside)
+            outcomes.finish_infeasible(self, e, outside)
             return
         self._make_ready(e)
 
@@ -540,145 +539,6 @@ class CampaignCore:
 
     def _starve(self, task: Task, short: list[str]) -> None:
         consumables.starve(self, task, short)
-
-    # -- outcomes ---------------------------------------------------------------------
-    def _resolve(self, att: Attempt, code: str, body: dict[str, Any]) -> None:
-        att.resolved = True
-        task, dev = att.task, self.devices[att.device]
-        e = task.experiment
-        if code != Code.TIMED_OUT:
-            self._out.append(CancelTimer(TimerKey(TimerKind.DEADLINE, f"{task.id}#{att.n}")))
-        dev.attempt = None
-        dev.busy_s += self.now - att.t_sent
-        self._note(f"attempt.{'done' if code == Code.OK else 'failed'}", e.id, task.id, att.n, dev.name,
-                   detail=None if code == Code.OK else {"code": str(code), **body})
-        if code == Code.TIMED_OUT and dev.name in self.people:
-            self.counts.timed_out += 1  # nobody to tell to stop: the person sees the step is gone (twin ctl status)
-        elif code == Code.TIMED_OUT:
-            self.counts.timed_out += 1
-            dev.cancelling = att
-            self._timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name), self.s.orchestrator.cancel_grace_s)
-            self._send(dev.name, Kind.CANCEL, task.id, att.n, {"reason": body["reason"]}, att.token)
-        if code == Code.OK:
-            dev.consecutive_failures = 0
-            dev.steps_done += 1
-            self._advance_experiment(task, body)
-        elif code == Code.REJECTED:
-            self._refused(task, dev, body.get("reason", ""), bool(body.get("infeasible")))
-        else:
-            self._failed(task, dev, str(code), body.get("reason", ""))
-        self._wake = True
-
-    def _refused(self, task: Task, dev: Device, reason: str, infeasible: bool) -> None:
-        """A refusal is not a fault: no strike against the device, no quarantine."""
-        e, o = task.experiment, self.s.orchestrator
-        if infeasible:
-            self.counts.infeasible += 1
-            self._finish_infeasible(e, f"{dev.name} refused {task.step.step!r}: {reason}")
-            return
-        self.counts.refused_now += 1
-        if dev.unanswered is not None:  # still stopping the step it was told to cancel: wait for it again
-            dev.cancelling, dev.unanswered = dev.unanswered, None
-            self._timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name), o.cancel_grace_s)
-            self._note("device.still_cancelling", device=dev.name, detail={"reason": reason})
-        # "not now" does not use up one of the step's attempts; its number is not used again, so an answer that
-        # comes later for the refused attempt can never count for the next one
-        task.excused += 1
-        task.refusals += 1
-        counted = task.attempts - task.excused
-        if (task.refusals < MAX_REFUSALS and not self.stopping
-                and policy.may_retry(counted, self.now - task.first_ready, o.retry)):
-            backoff = policy.backoff_s(o.retry, counted + 1, self.seed, task.id)
-            self._note("task.refused", e.id, task.id, task.attempts + 1, dev.name,
-                       detail={"backoff_s": backoff, "reason": reason})
-            self._retrying[task.id] = task
-            self._timer(TimerKey(TimerKind.RETRY, task.id), backoff)
-        else:
-            self._finish(e, Status.ABANDONED, f"step {task.step.step!r} refused {task.refusals} time(s), last by "
-                                              f"{dev.name}: {reason}")
-
-    def _finish_infeasible(self, e: Experiment, why: str) -> None:
-        e.infeasible = True
-        self._finish(e, Status.ABANDONED, f"infeasible: {why}")
-
-    def _advance_experiment(self, task: Task, result: dict[str, Any]) -> None:
-        e = task.experiment
-        for k, v in (result.get("outputs") or {}).items():
-            if not isinstance(v, (list, dict)):  # a spectrum or a trace stays in the journal's msg.result row
-                e.outputs[k] = v
-        sample = result.get("sample")
-        if sample is not None:
-            e.sample_made = float(sample.get("t_made", self.now))
-            # the sample is the campaign's: its id is given when it is made and checked on every result after
-            e.sample = {**sample, "id": e.sample["id"] if e.sample is not None else f"{self.campaign_id}/e{e.id}"}
-        e.stage += 1
-        if e.stage < len(e.route):
-            self._make_ready(e)
-        else:
-            self._finish(e, Status.DONE)
-
-    def _failed(self, task: Task, dev: Device, code: str, reason: str) -> None:
-        e, o = task.experiment, self.s.orchestrator
-        self.counts.failed += 1
-        if code != Code.REJECTED:
-            dev.failures += 1
-            dev.consecutive_failures += 1
-            task.failed_on.append(dev.name)
-            if policy.should_quarantine(dev.consecutive_failures, o.quarantine_after, dev.quarantined):
-                self._quarantine(dev)
-        counted = task.attempts - task.excused
-        retries_left = policy.may_retry(counted, self.now - task.first_ready, o.retry) and not self.stopping
-        rule = None if self.stopping else questions.rule_for(self, task, dev.type, code, retries_left)
-        if rule is not None:
-            why = f"step {task.step.step!r} failed {task.attempts} time(s); last: {code} on {dev.name}: {reason}"
-            questions.ask(self, task, dev.name, code, why, rule)
-        elif retries_left:
-            backoff = policy.backoff_s(o.retry, counted, self.seed, task.id)
-            e.retries += 1
-            self.counts.retried += 1
-            self._note("task.retry", e.id, task.id, task.attempts, dev.name, detail={"backoff_s": backoff, "after": code})
-            self._retrying[task.id] = task
-            self._timer(TimerKey(TimerKind.RETRY, task.id), backoff)
-        else:
-            why = f"step {task.step.step!r} failed {task.attempts} time(s); last: {code} on {dev.name}: {reason}"
-            self._finish(e, Status.ABANDONED, why)
-
-    def _quarantine(self, dev: Device) -> None:
-        dev.quarantined = True
-        self.counts.quarantined += 1
-        probe = self.s.orchestrator.probe_after_s
-        self._note("device.quarantined", device=dev.name, detail={"probe_after_s": probe})
-        self._timer(TimerKey(TimerKind.PROBE, dev.name), probe)
-
-    def _finish(self, e: Experiment, status: Status, reason: str = "") -> None:
-        e.status, e.reason, e.t_done = status, reason, self.now
-        del self.active[e.id]
-        if status == Status.DONE:
-            e.scores = scores(e.outputs, self.s.chemistry.targets)
-            self._note_unscorable(e)
-            for name, sc in e.scores.items():
-                if name not in self.best or sc < self.best[name][0]:
-                    self.best[name] = (sc, e.id)
-                if sc == 0 and name not in self.met_at:
-                    self.met_at[name] = self.now - self.t0
-                    self.met_after[name] = self.finished_count
-                    self.met_cost[name] = self.cost
-                    self._note("target.met", e.id, detail=name)
-            self.counts.degraded += e.degraded
-        self.history.append(Outcome(e.params, e.outputs if status == Status.DONE else None,
-                                    min(e.scores.values()) if e.scores else None, reason, e.infeasible))
-        numeric = {k: v for k, v in e.outputs.items() if isinstance(v, (int, float))}
-        self._note(f"experiment.{status}", e.id, detail={"reason": reason, "outputs": numeric, "scores": e.scores})
-        self._out.append(RecordExperiment(e, final=True))
-
-    def _note_unscorable(self, e: Experiment) -> None:
-        """A target's output that came as something other than a number: said once per output per campaign."""
-        for name, value in unscorable(e.outputs, self.s.chemistry.targets).items():
-            if name not in self._unscorable:
-                self._unscorable.add(name)
-                self._note("output.unscored", e.id, detail=f"{name} = {json.dumps(value)[:60]} is not a number, so no "
-                           "target can be scored on it (a device sent it; a NaN arrives as null). Fix the driver; "
-                           "later experiments like this are not noted again")
 
     # -- shutdown ---------------------------------------------------------------------
     def _shutdown(self) -> None:
