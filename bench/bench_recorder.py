@@ -1,8 +1,10 @@
 """Recorder benchmarks for issue [2 of 5]: campaign speed with the Rerun recorder on vs off, recording size.
 
-    python bench/bench_recorder.py [--pairs 15] [--sizes]
+    python bench/bench_recorder.py [--pairs 15] [--sizes] [--isolated]
 
 ``--sizes`` adds the recording size of 1,000-experiment campaigns (minutes: GP-BO fits dominate).
+``--isolated`` gives instead the recorder's own cost: what one campaign handed its observer, handed again to a new
+observer and recording, the campaign not running (process CPU, Rerun's threads included; best of 15).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -19,6 +22,8 @@ sys.path.insert(0, str(ROOT))
 from bench.bench_kernel import STANDARD  # noqa: E402
 from bench.tables import table  # noqa: E402
 from twin.runtime.lab import prepare, run  # noqa: E402
+from twin.view.observer import LabObserver  # noqa: E402
+from twin.view.recorder import open_recording  # noqa: E402
 from twin.view.watch import RecordOptions  # noqa: E402
 
 
@@ -86,5 +91,67 @@ def main() -> None:
           ["scenario", "experiments", "recording MB", "journal MB", "÷ journal"], sizes)
 
 
+class _Taped(LabObserver):
+    """An observer that also keeps what it is handed, to hand it again."""
+
+    def __init__(self, canvas: Any) -> None:
+        super().__init__(canvas)
+        self.tape: list[tuple[str, Any]] = []
+
+    def on_note(self, n: Any) -> None:
+        self.tape.append(("note", n))
+        super().on_note(n)
+
+    def on_envelope(self, env: dict) -> None:
+        self.tape.append(("envelope", env))
+        super().on_envelope(env)
+
+
+class _Blank:
+    """A canvas that draws nothing: the observer's own work."""
+
+    def _nothing(self, *args: Any, **kwargs: Any) -> None:
+        return None
+
+    scalar = scalars = state = text = line = curve = points = document = image = flush = _nothing
+
+
+def isolated(repeats: int = 15) -> None:
+    with tempfile.TemporaryDirectory() as d:
+        recording = open_recording("tape", save=Path(d) / "tape.rrd")
+        taped = _Taped(recording.canvas)
+        run(prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides=STANDARD), journal=Path(d) / "j.db",
+            bus="memory", observer=taped)
+        recording.close()
+        tape = taped.tape
+        parts: dict[str, list[float]] = {"open": [], "draw": [], "close": [], "observer alone": []}
+        for i in range(repeats):
+            t0 = time.process_time()
+            recording = open_recording(f"again{i}", save=Path(d) / f"{i}.rrd")
+            t1 = time.process_time()
+            _hand(LabObserver(recording.canvas), tape)
+            t2 = time.process_time()
+            recording.close()
+            t3 = time.process_time()
+            _hand(LabObserver(_Blank()), tape)
+            parts["open"].append(t1 - t0)
+            parts["draw"].append(t2 - t1)
+            parts["close"].append(t3 - t2)
+            parts["observer alone"].append(time.process_time() - t3)
+    table(f"The recorder on its own: the {len(tape):,} calls one standard campaign made, handed again to a new "
+          f"observer and recording ({repeats} times; process CPU ms, Rerun's threads included)",
+          ["part", "best ms", "median ms"],
+          [[k, f"{1000 * min(v):.1f}", f"{1000 * statistics.median(v):.1f}"] for k, v in parts.items()])
+
+
+def _hand(observer: LabObserver, tape: list[tuple[str, Any]]) -> None:
+    for kind, item in tape:
+        if kind == "note":
+            observer.on_note(item)
+        else:
+            observer.on_envelope(item)
+    observer.finish()
+
+
 if __name__ == "__main__":
-    main()
+    isolated() if "--isolated" in sys.argv else main()

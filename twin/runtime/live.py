@@ -34,7 +34,7 @@ from twin.core.bus import NoReplyError
 from twin.core.messages import InvalidMessage, Kind, decode, excerpt, pack, without_token
 from twin.runtime.control import ControlDesk
 from twin.runtime.decision_stream import SENDER, DecisionStream
-from twin.view.observer import WATCHED
+from twin.view.observer import UNDRAWN, WATCHED
 from twin.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -139,7 +139,7 @@ class LiveCampaign:
 
     def _decided(self, n: Note) -> None:
         self.decisions.add(n, self.journal.note(n))
-        if self.observer is not None:
+        if self.observer is not None and n.kind not in UNDRAWN:
             self.observer.on_note(n)
 
     async def run(self) -> None:
