@@ -22,7 +22,7 @@ from twin.campaign.availability import Availability
 from twin.campaign.events import (Action, Ask, CancelTimer, Code, Decided, DeviceMessage, Event, Finished,
                                   InvalidInput, Note, Operator, Presence, Proposed, RecordExperiment, RecordMessage,
                                   Send, SetTimer, Status, Stop, TimerFired, TimerKey, TimerKind)
-from twin.campaign.ledger import Attempt, Counters, Device, Experiment, Task, check_accounting
+from twin.campaign.ledger import UNRUNNABLE, Attempt, Counters, Device, Experiment, Task, check_accounting
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
 from twin.core.messages import Kind
 from twin.scenario.model import Scenario, expected_duration
@@ -469,6 +469,11 @@ class CampaignCore:
         if isinstance(p.cost, (int, float)) and 0 < p.cost < float("inf"):  # a planner's nonsense costs nothing
             self.cost += float(p.cost)
         self._out.append(RecordExperiment(e))
+        unusable = policy.unusable_params(e.params, self.s.chemistry.parameters)
+        if unusable:  # the planner's fault, not the devices': nothing is sent
+            self._note("planner.invalid", e.id, detail=unusable)
+            outcomes.finish(self, e, Status.ABANDONED, f"{UNRUNNABLE}: {unusable}")
+            return
         outside = policy.outside_envelope(e.route, e.params, self.s.devices)
         if outside:  # refused before anything is sent: no step runs for an experiment that cannot finish
             self.counts.infeasible += 1

@@ -98,6 +98,10 @@ class Device:
         return "busy" if self.attempt or self.cancelling or self.held_by else "idle"
 
 
+#: The reason an experiment the planner proposed wrongly is abandoned with (then what is wrong).
+UNRUNNABLE = "the planner proposed what cannot be run"
+
+
 @dataclass(slots=True)
 class Counters:
     """What happened to attempts and messages; ``Summary`` is built from these."""

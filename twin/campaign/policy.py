@@ -6,6 +6,7 @@ attempt), so a decision never depends on how events interleaved.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from twin.core.streams import keyed_uniforms
@@ -51,4 +52,19 @@ def outside_envelope(route: Any, params: dict[str, Any], devices: dict[str, Any]
             v = values.get(name)
             if isinstance(v, (int, float)) and not box.low <= v <= box.high:
                 return f"{name} {v:.6g} is outside devices.{step.device}.envelope.{name} [{box.low:g}, {box.high:g}]"
+    return ""
+
+
+def unusable_params(params: dict[str, Any], box: dict[str, Any]) -> str:
+    """Why a planner's proposal cannot be sent ('' if it can): a parameter of the scenario's
+    ``chemistry.parameters`` missing, not a finite number, or outside its [low, high]."""
+    for name, p in box.items():
+        v = params.get(name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            return (f"{name} is missing" if name not in params else f"{name} = {str(v)[:40]!r} is not a number") + \
+                f" (chemistry.parameters.{name} is a number in [{p.low:g}, {p.high:g}])"
+        if not math.isfinite(v):
+            return f"{name} = {v} is not a finite number (chemistry.parameters.{name} is in [{p.low:g}, {p.high:g}])"
+        if not p.low <= v <= p.high:
+            return f"{name} = {v:.6g} is outside chemistry.parameters.{name} [{p.low:g}, {p.high:g}]"
     return ""

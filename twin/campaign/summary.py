@@ -6,6 +6,8 @@ from collections import Counter
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from twin.campaign.ledger import UNRUNNABLE
+
 
 @dataclass
 class Summary:
@@ -94,6 +96,8 @@ def _reason_kind(reason: str) -> str:
     """'step 'measure' failed 3 time(s); last: timed_out on spec-1: ...' -> 'measure: timed_out'."""
     if reason.startswith("infeasible"):
         return "infeasible"
+    if reason.startswith(UNRUNNABLE):
+        return UNRUNNABLE
     try:
         step = reason.split("'")[1]
         code = reason.split("last: ")[1].split(" ")[0]

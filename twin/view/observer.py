@@ -21,7 +21,7 @@ STATES = ("offline", "idle", "failed", "quarantined", "busy")
 WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",
               "device.flapping", "devices.unavailable", "devices.missing", "campaign.stopping", "attempt.cancelled",
               "operator.pause", "operator.abort", "operator.stop", "operator.refused", "question.asked",
-              "question.withdrawn", "consumable.low", "output.unscored"}
+              "question.withdrawn", "consumable.low", "output.unscored", "planner.invalid"}
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned",
                "consumable.depleted"}
 log = logging.getLogger(__name__)
