@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tests.conftest import qd_lab
-from tests.twin.test_core import msg, notes
+from tests.twin.test_core import QD, msg, notes
 from tests.twin.test_operator import op, running
 from twin.campaign import Decided, Operator, Proposed
 from twin.campaign.decisions import Assignment, Proposal
@@ -210,7 +210,7 @@ def test_fail_over_never_avoids_the_only_instance_with_stock_left(scenario_of):
     vials = {"unit": "vials", "level": 1, "device": "spectrometer", "used_by": {"measure": 1}}
     core, _ = started(scenario_of, **{"campaign.budget": 2, "consumables": {"vials": vials},
                                       "workflow": [{"step": "measure", "device": "spectrometer"}]})
-    core.feed(Proposed([Proposal({"x": 1}), Proposal({"x": 2})]))
+    core.feed(Proposed([Proposal({**QD, "concentration_mm": 1}), Proposal({**QD, "concentration_mm": 2})]))
     core.advance(0.0)
     core.feed(Decided([Assignment("e0s0", "spectrometer-1"), Assignment("e1s0", "spectrometer-2")]))
     core.advance(0.0)
@@ -237,7 +237,7 @@ def test_a_step_barred_from_the_only_instance_with_stock_waits_for_a_refill(scen
                                       "consumables": {"vials": vials},
                                       "orchestrator.retry.max_attempts": 1, "orchestrator.recovery": rules,
                                       "workflow": [{"step": "measure", "device": "spectrometer"}]})
-    core.feed(Proposed([Proposal({"x": 1}), Proposal({"x": 2}), Proposal({"x": 3})]))
+    core.feed(Proposed([Proposal({**QD, "concentration_mm": c}) for c in (1, 2, 3)]))
     core.advance(0.0)
     core.feed(Decided([Assignment("e0s0", "spectrometer-1"), Assignment("e1s0", "spectrometer-2")]))
     core.advance(0.0)

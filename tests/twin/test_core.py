@@ -8,6 +8,8 @@ from twin.campaign.events import TimerKey, TimerKind
 from twin.campaign.decisions import Assignment, Proposal
 from twin.core.messages import Kind
 
+QD = {"concentration_mm": 5, "temperature_c": 250, "time_s": 60}  # a proposal inside qd_lab's box
+
 
 def notes(actions, kind=None):
     return [a for a in actions if isinstance(a, Note) and (kind is None or a.kind == kind)]
@@ -60,7 +62,7 @@ def test_a_step_goes_out_when_the_scheduler_assigns_it_and_finishes_with_its_res
 def test_a_timed_out_device_gets_no_work_until_it_answers_the_cancel(scenario_of):
     core, out = started(scenario_of, **{"campaign.budget": 2, "devices.spectrometer.instances": 1,
                                         "workflow": [{"step": "measure", "device": "spectrometer"}]})
-    core.feed(Proposed([Proposal({"x": 1}), Proposal({"x": 2})]))
+    core.feed(Proposed([Proposal({**QD, "concentration_mm": 1}), Proposal({**QD, "concentration_mm": 2})]))
     ask = of(core.advance(0.0), Ask)[0]
     core.feed(Decided([Assignment(ask.view.ready[0].task, "spectrometer")]))
     core.advance(0.0)
@@ -80,7 +82,7 @@ def test_a_cancel_never_answered_frees_the_device_after_the_grace_period(scenari
     core, _ = started(scenario_of, **{"campaign.budget": 1, "devices.spectrometer.instances": 1,
                                       "workflow": [{"step": "measure", "device": "spectrometer"}],
                                       "orchestrator.cancel_grace_s": 42})
-    core.feed(Proposed([Proposal({"x": 1})]))
+    core.feed(Proposed([Proposal({**QD, "concentration_mm": 1})]))
     core.advance(0.0)
     core.feed(Decided([Assignment("e0s0", "spectrometer")]))
     core.advance(0.0)
@@ -98,7 +100,7 @@ def test_events_of_one_instant_give_the_same_actions_whatever_order_they_came_in
     def run(order):
         core, _ = started(scenario_of, **{"campaign.budget": 2, "campaign.max_in_flight": 2,
                                           "workflow": [{"step": "measure", "device": "spectrometer"}]})
-        core.feed(Proposed([Proposal({"x": 1}), Proposal({"x": 2})]))
+        core.feed(Proposed([Proposal({**QD, "concentration_mm": 1}), Proposal({**QD, "concentration_mm": 2})]))
         core.advance(0.0)
         core.feed(Decided([Assignment("e0s0", "spectrometer-1"), Assignment("e1s0", "spectrometer-2")]))
         core.advance(0.0)
@@ -114,7 +116,7 @@ def test_events_of_one_instant_give_the_same_actions_whatever_order_they_came_in
 
 def test_the_campaign_ends_with_every_experiment_accounted_for(scenario_of):
     core, _ = started(scenario_of, **{"campaign.budget": 1, "workflow": [{"step": "measure", "device": "spectrometer"}]})
-    core.feed(Proposed([Proposal({"x": 1})]))
+    core.feed(Proposed([Proposal({**QD, "concentration_mm": 1})]))
     core.advance(0.0)
     core.feed(Decided([Assignment("e0s0", "spectrometer-2")]))
     core.advance(0.0)

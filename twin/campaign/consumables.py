@@ -17,7 +17,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from twin.campaign import outcomes
 from twin.campaign.events import CancelTimer, Status, TimerKey, TimerKind
 from twin.campaign.ledger import Task
 
@@ -183,7 +182,7 @@ def starve(core: CampaignCore, task: Task, short: list[str]) -> None:
     if beyond:
         core.counts.infeasible += 1
         core.experiments[task.experiment.id].infeasible = True
-        outcomes.finish(core, task.experiment, Status.ABANDONED, "infeasible: " + "; ".join(
+        core._finish(task.experiment, Status.ABANDONED, "infeasible: " + "; ".join(
             f"step {task.step.step!r} needs {needs[n]:g} {items[core.stocks.of[n][0]].unit} of {n}, more than "
             f"{'a ' + core.stocks.holder_type[n] if n in core.stocks.holder_type else 'the lab'} holds "
             f"(consumables.{n}.level: {items[core.stocks.of[n][0]].full:g})" for n in beyond))

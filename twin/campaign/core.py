@@ -545,6 +545,16 @@ class CampaignCore:
     def _starve(self, task: Task, short: list[str]) -> None:
         consumables.starve(self, task, short)
 
+    # -- outcomes (outcomes.py): what the modules acting on experiments call ---------
+    def _resolve(self, att: Attempt, code: str, body: dict[str, Any]) -> None:
+        outcomes.resolve(self, att, code, body)
+
+    def _finish(self, e: Experiment, status: Status, reason: str = "") -> None:
+        outcomes.finish(self, e, status, reason)
+
+    def _advance_experiment(self, task: Task, result: dict[str, Any]) -> None:
+        outcomes.advance(self, task, result)
+
     # -- shutdown ---------------------------------------------------------------------
     def _shutdown(self) -> None:
         for dev in self.devices.values():

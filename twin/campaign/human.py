@@ -9,7 +9,6 @@ from __future__ import annotations
 
 from typing import Any
 
-from twin.campaign import outcomes
 from twin.campaign.events import Code, Operator, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt
 
@@ -54,4 +53,4 @@ def on_timer(core: CampaignCore, ref: str) -> None:
 
 def done(core: CampaignCore, att: Attempt, who: str) -> None:
     core._note("attempt.confirmed", att.task.experiment.id, att.task.id, att.n, att.device, detail={"who": who})
-    outcomes.resolve(core, att, Code.OK, {"outputs": {}})
+    core._resolve(att, Code.OK, {"outputs": {}})

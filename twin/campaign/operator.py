@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from twin.campaign import consumables, human, outcomes, questions
+from twin.campaign import consumables, human, questions
 from twin.campaign.events import CancelTimer, Operator, Status, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt
 from twin.core.messages import Kind
@@ -78,7 +78,7 @@ def _abort(core: CampaignCore, op: Operator) -> str:
     for task_id in [t for t, task in core._retrying.items() if task.experiment is e]:
         del core._retrying[task_id]
         core._out.append(CancelTimer(TimerKey(TimerKind.RETRY, task_id)))
-    outcomes.finish(core, e, Status.ABANDONED, f"aborted by {op.who}" + (f": {op.reason}" if op.reason else ""))
+    core._finish(e, Status.ABANDONED, f"aborted by {op.who}" + (f": {op.reason}" if op.reason else ""))
     return ""
 
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from twin.campaign import outcomes
 from twin.campaign.events import CancelTimer, Operator, Status, TimerKey, TimerKind
 from twin.campaign.ledger import Task
 
@@ -119,11 +118,11 @@ def settle(core: CampaignCore, q: Question, option: str, who: str, timed_out: bo
         core._make_ready(e, task)
     elif option == "skip":
         core._note("task.skipped", e.id, task.id, task.attempts, q.device, detail={"by": chooser})
-        outcomes.advance(core, task, {})
+        core._advance_experiment(task, {})
     elif option == "alternative":  # the planner proposes one in its place (it sees this one fail), beyond the budget
         core.replaced += 1
         core._filled = False  # ask the planner in this decision pass, even if it had its say before the answer
-        outcomes.finish(core, e, Status.ABANDONED, f"{q.why}; {chooser} asked the planner for an alternative")
+        core._finish(e, Status.ABANDONED, f"{q.why}; {chooser} asked the planner for an alternative")
     else:
-        outcomes.finish(core, e, Status.ABANDONED, f"{q.why}; {chooser} chose to abandon it")
+        core._finish(e, Status.ABANDONED, f"{q.why}; {chooser} chose to abandon it")
     core._wake = True
