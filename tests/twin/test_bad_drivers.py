@@ -278,3 +278,39 @@ def test_what_a_result_must_hold():
     assert "t_made" in problem({"outputs": {}, "sample": {"t_made": float("inf")}}, now=0.0)
     assert "after the lab's time" in problem({"outputs": {}, "sample": {"t_made": 100.0}}, now=20.0)
     assert "JSON object" in problem({"outputs": [1], "sample": None}, now=0.0)
+
+
+class OddSleep:
+    """A spectrometer that waits NaN, -5, forever, a minute, '10' or None lab seconds, in turn."""
+
+    capabilities = frozenset({"measure"})
+    outputs = frozenset({"peak_nm"})
+    WAITS = [float("nan"), -5.0, float("inf"), 60.0, "10", None]
+
+    def __init__(self, setup):
+        self.n = 0
+
+    async def run(self, step, params, sample, ctx):
+        self.n += 1
+        await ctx.clock.sleep(self.WAITS[self.n % 6])
+        return StepResult({"peak_nm": 600.0}, sample)
+
+    async def safe_state(self):
+        pass
+
+
+def test_a_wait_that_is_not_a_number_is_the_drivers_error_on_both_runtimes(tmp_path):
+    """Once ctx.clock.sleep('10') stopped a campaign on the fast runtime (a TypeError in the runtime's own
+    loop); now a wait of a word, None or NaN fails the step as driver_error, said at the call, a negative wait is
+    no wait and an infinite one times out — the same, to the lab-second, on both runtimes."""
+    lab = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_drivers:OddSleep",
+                          "devices.spectrometer.instances": 1, "campaign.budget": 8}))
+    fast = run(lab, journal=tmp_path / "fast.db", runtime="auto")
+    slow = run(lab, journal=tmp_path / "slow.db", runtime="asyncio")
+    assert fast.done + fast.abandoned == 8 and fast.done > 0 and fast.timed_out > 0
+    assert fast.lab_hours == pytest.approx(slow.lab_hours, abs=1e-9)
+    for field in ("done", "abandoned", "attempts", "failed_attempts", "timed_out", "abandoned_reasons"):
+        assert getattr(fast, field) == getattr(slow, field), field
+    reasons = {json.loads(e["detail"])["reason"] for e in read_events(tmp_path / "fast.db", "attempt.failed")}
+    for said in ("clock.sleep('10'): lab seconds must be a number, not str", "not NoneType", "not NaN"):
+        assert any(said in r for r in reasons), (said, reasons)

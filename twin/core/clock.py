@@ -35,6 +35,15 @@ ClockMode = Literal["virtual", "scaled", "wall"]
 IN_FLIGHT_PATIENCE_S = 5.0
 
 
+def lab_seconds(seconds: Any, call: str = "sleep") -> float:
+    """A wait in lab seconds as a float; a driver's wait that is not a number (or is NaN) is its bug, said at
+    the call (a negative wait is no wait; an infinite one lasts until the step is cancelled)."""
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or seconds != seconds:
+        raise TypeError(f"clock.{call}({str(seconds)[:40]!r}): lab seconds must be a number, not "
+                        f"{'NaN' if seconds != seconds else type(seconds).__name__}")
+    return float(seconds)
+
+
 class Clock(Protocol):
     """What actors and the orchestrator know of time."""
 
@@ -212,10 +221,10 @@ class LabClock:
         return self._base.time()
 
     async def sleep(self, seconds: float) -> None:
-        await asyncio.sleep(max(0.0, seconds))
+        await asyncio.sleep(max(0.0, lab_seconds(seconds)))
 
     async def sleep_until(self, t_lab: float) -> None:
-        await asyncio.sleep(max(0.0, t_lab - self.now()))
+        await asyncio.sleep(max(0.0, lab_seconds(t_lab, "sleep_until") - self.now()))
 
     def timeout(self, seconds: float | None) -> asyncio.Timeout:
         return asyncio.timeout(seconds)

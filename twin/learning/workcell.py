@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from twin.core.clock import ClockMode
+from twin.core.clock import ClockMode, lab_seconds
 from twin.core.streams import seeded
 from twin.device.driver import StepContext
 from twin.core.errors import DriverError
@@ -32,10 +32,10 @@ class SteppedClock:
         return self.t
 
     async def sleep(self, seconds: float) -> None:
-        self.t += max(0.0, seconds)
+        self.t += max(0.0, lab_seconds(seconds))
 
     async def sleep_until(self, t_lab: float) -> None:
-        self.t = max(self.t, t_lab)
+        self.t = max(self.t, lab_seconds(t_lab, "sleep_until"))
 
     def timeout(self, seconds: float | None) -> Any:
         raise DriverError("clock.timeout() is not available to a driver in a workcell: the caller owns timeouts")

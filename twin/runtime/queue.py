@@ -15,6 +15,8 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any
 
+from twin.core.clock import lab_seconds
+
 RESOLUTION = 1e-6  # LabEventLoop._clock_resolution
 
 
@@ -104,10 +106,10 @@ class QueueClock:
         return self._q.now
 
     def sleep(self, seconds: float) -> Sleep:
-        return Sleep(seconds)
+        return Sleep(lab_seconds(seconds))
 
     def sleep_until(self, t_lab: float) -> Sleep:
-        return Sleep(t_lab - self._q.now)
+        return Sleep(lab_seconds(t_lab, "sleep_until") - self._q.now)
 
     def timeout(self, seconds: float | None) -> Any:
         from twin.core.errors import ClockError
