@@ -70,8 +70,26 @@ class Partial(Raises):
     capabilities = frozenset({"synthesise"})
 
 
-@pytest.mark.parametrize("cls, says", [("FromTheFuture", "driver API 2; this labtwin speaks 1"),
-                                       ("Partial", "runs ['synthesise'], but the scenario asks it for ['measure']")])
+class WordCaps(Raises):
+    capabilities = "measure"  # a string, whose letters would be the steps
+
+
+class NoCaps(Raises):
+    capabilities = None
+
+
+class SyncRun(Raises):
+    def run(self, step, params, sample, ctx):  # not async: the lab would fail every step with a TypeError
+        return StepResult({}, sample)
+
+
+@pytest.mark.parametrize("cls, says", [
+    ("FromTheFuture", "driver API 2; this labtwin speaks 1"),
+    ("Partial", "runs ['synthesise'], but the scenario asks it for ['measure']"),
+    ("WordCaps", "capabilities is 'measure', not a set of step names: write capabilities = frozenset({'measure'})"),
+    ("NoCaps", "declares no capabilities: give its class capabilities = frozenset({'measure', ...})"),
+    ("SyncRun", "run() must be `async def`: the lab awaits it"),
+])
 def test_version_and_capabilities_are_checked_at_load(tmp_path, cls, says):
     from twin.core.errors import DriverError
 

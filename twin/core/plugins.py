@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+import inspect
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
@@ -42,6 +43,11 @@ def load(kind: str, name: str) -> Any:
         raise error(f"{name!r} is {_what_it_is(obj)}, not a {what}: a {what} is a class with "
                     f"{', '.join(m + '()' for m in PROTOCOLS.get(kind, ()))} (see docs/drivers.md and "
                     "docs/architecture.md)")
+    if kind == "devices":
+        plain = [m for m in PROTOCOLS["devices"] if not inspect.iscoroutinefunction(getattr(obj, m))]
+        if plain:
+            raise DriverError(f"{name!r}: {' and '.join(m + '()' for m in plain)} must be `async def`: the lab "
+                              f"awaits {'it' if len(plain) == 1 else 'them'} (see docs/drivers.md)")
     return obj
 
 

@@ -16,6 +16,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from twin.core.clock import Clock
+from twin.core.errors import DriverError
 from twin.core.streams import keyed_uniforms
 
 DRIVER_API = 1  # a driver may say which it was written for: ``labtwin_api = 1``
@@ -101,6 +102,20 @@ def feature(driver: Any, name: str) -> Any:
     if name not in FEATURES:
         raise ValueError(f"{name!r} is not a driver feature: {sorted(FEATURES)}")
     return getattr(driver, name, None)
+
+
+def capabilities(driver: Any, who: str) -> frozenset[str]:
+    """The step names a driver runs; a declaration that is not a collection of them is refused, saying why."""
+    caps = getattr(driver, "capabilities", None)
+    if caps is None:
+        raise DriverError(f"{who} declares no capabilities: give its class capabilities = "
+                          "frozenset({'measure', ...}), the steps it runs")
+    if isinstance(caps, str) or not isinstance(caps, (set, frozenset, list, tuple)) or \
+            not all(isinstance(c, str) for c in caps):
+        example = f"{{{caps!r}}}" if isinstance(caps, str) else "{'measure', ...}"
+        raise DriverError(f"{who}: capabilities is {str(caps)[:60]!r}, not a set of step names: write "
+                          f"capabilities = frozenset({example})")
+    return frozenset(caps)
 
 
 def simulated_faults(seed: int, task: str, attempt: int, faults: Any) -> tuple[bool, bool]:

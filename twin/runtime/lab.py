@@ -17,7 +17,7 @@ from twin.device.actor import DeviceActor
 from twin.core.bus import Bus, open_bus, security
 from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
-from twin.device.driver import DRIVER_API, DriverSetup, feature
+from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature
 from twin.core.errors import BusError, ClockError, DriverError, PluginError, TwinError
 from twin.campaign.journal import Journal
 from pydantic import ValidationError
@@ -133,7 +133,7 @@ def load_driver(s: Scenario, device_type: str, name: str) -> Any:
         driver = cls(setup)
     except Exception as exc:
         raise DriverError(f"driver {spec.driver!r} for {name} failed to start: {exc}") from exc
-    caps = frozenset(getattr(driver, "capabilities", None) or ())
+    caps = capabilities(driver, f"devices.{device_type}.driver: {spec.driver!r}")
     missing = set(spec.steps) - caps
     if missing:
         raise DriverError(
