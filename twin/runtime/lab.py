@@ -28,6 +28,7 @@ from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.off_loop import OffLoopScheduler
+from twin.runtime.checked_scheduler import CheckedScheduler
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
 from twin.runtime.run_record import provenance
 from twin.campaign.human import DRIVER as HUMAN
@@ -312,12 +313,19 @@ def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[Campa
         raise FastRuntimeRefused(f"scheduler {s.campaign.scheduler!r} is an agent on the bus, which the fast "
                                  "runtime does not have: use --runtime asyncio")
     journal = open_journal(s, journal_path, make_journal)
-    camp = FastCampaign(s, drivers, journal, planner, scheduler, on_progress=on_progress, observer=observer)
+    checked = CheckedScheduler(scheduler, _fallback(s), s.campaign.scheduler)
+    camp = FastCampaign(s, drivers, journal, planner, checked, on_progress=on_progress, observer=observer)
+
+    def fell_back(reason: str) -> None:
+        journal.event(camp.now, "scheduler.fallback", detail=reason)
+
+    checked.fallback.on_fallback = fell_back
     with _stop_on_signals(camp.stop, handle_signals):
         try:
             camp.run()
         finally:
-            summary = finish(camp.core, journal, wall0, camp.now, _noted(journal, observer, camp.now))
+            summary = finish(camp.core, journal, wall0, camp.now, _noted(journal, observer, camp.now),
+                             checked.fallback.count)
     return summary
 
 
@@ -418,15 +426,20 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
             source = LabTimeSource(bus, s.lab, clock)
             source.start()
             stack.callback(source.close)
-        scheduler, service = live_scheduler(s, scheduler, bus, clock)
+        checked = None if scheduler == REMOTE or getattr(scheduler, "serve_on_bus", False) else \
+            CheckedScheduler(scheduler, _fallback(s), s.campaign.scheduler)
+        scheduler, service = live_scheduler(s, checked or scheduler, bus, clock)
         journal = open_journal(s, journal_path, make_journal)
         journal.set("external", sorted(external_devices))
         camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress, rebuilt=rebuilt,
                             observer=observer)
         remote = scheduler if isinstance(scheduler, RemoteScheduler) else None
         guarded = scheduler if isinstance(scheduler, RemoteScheduler | OffLoopScheduler) else None
-        stack.callback(lambda: result.setdefault(
-            "summary", finish(camp.core, journal, wall0, clock.now(), camp.note, guarded.fallback.count if guarded else 0)))
+        stack.callback(lambda: result.setdefault("summary", finish(
+            camp.core, journal, wall0, clock.now(), camp.note,
+            (guarded.fallback.count if guarded else 0) + (checked.fallback.count if checked else 0))))
+        if checked is not None:
+            checked.fallback.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
         if guarded is not None:
             guarded.fallback.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
             stack.callback(guarded.close)

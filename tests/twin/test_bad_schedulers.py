@@ -1,0 +1,73 @@
+"""A scheduler plugin that raises or answers garbage: the fallback rule decides that time, the campaign goes on
+(it used to end with the plugin's traceback), and the two runtimes agree."""
+
+import pytest
+
+from tests.conftest import qd_lab
+from twin.campaign.decisions import Assignment
+from twin.campaign.journal import read_events
+from twin.runtime.checked_scheduler import assignments
+from twin.runtime.lab import run
+from twin.scenario import parse
+
+
+class OddScheduler:
+    """In turn: None, a list of tuples, a word, an Assignment of no names, a raise, and a proper answer."""
+
+    def __init__(self, **_):
+        self.n = 0
+
+    def decide(self, view):
+        self.n += 1
+        k = self.n % 6
+        if k == 0:
+            return None
+        if k == 1:
+            return [(r.task, "spectrometer-1") for r in view.ready]
+        if k == 2:
+            return "fifo"
+        if k == 3:
+            return [Assignment(task=None, device=3)]
+        if k == 4:
+            raise RuntimeError("model file missing")
+        out, used = [], set()
+        for r in view.ready:
+            for d in view.free:
+                if d.name not in used and d.device_type == r.device_type:
+                    out.append(Assignment(r.task, d.name))
+                    used.add(d.name)
+                    break
+        return out
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_a_scheduler_that_raises_or_answers_garbage_is_covered_by_the_fallback_rule(tmp_path, runtime):
+    lab = parse(qd_lab(**{"campaign.scheduler": "tests.twin.test_bad_schedulers:OddScheduler",
+                          "campaign.budget": 10}))
+    summary = run(lab, journal=tmp_path / "j.db", runtime=runtime)
+    assert summary.done == 10 and summary.abandoned == 0
+    assert summary.scheduler_fallbacks > 0 and summary.decisions > summary.scheduler_fallbacks  # it decided too
+    said = [e["detail"] for e in read_events(tmp_path / "j.db", "scheduler.fallback")]
+    assert any("raised RuntimeError('model file missing')" in s for s in said), said
+    assert any("answered 'None', not a list of Assignment(task, device)" in s for s in said), said
+    assert all("'tests.twin.test_bad_schedulers:OddScheduler'" in s for s in said)
+
+
+def test_both_runtimes_decide_alike_with_it(tmp_path):
+    lab = parse(qd_lab(**{"campaign.scheduler": "tests.twin.test_bad_schedulers:OddScheduler",
+                          "campaign.budget": 10}))
+    fast = run(lab, journal=tmp_path / "fast.db", runtime="auto")
+    slow = run(lab, journal=tmp_path / "slow.db", runtime="asyncio")
+    assert fast.scheduler_fallbacks == slow.scheduler_fallbacks and fast.lab_hours == pytest.approx(slow.lab_hours)
+
+
+def test_what_counts_as_an_answer():
+    class Named:
+        task, device = "e1s0", "spectrometer-2"
+
+    assert assignments([Assignment("e0s0", "spectrometer-1"), Named()]) == [
+        Assignment("e0s0", "spectrometer-1"), Assignment("e1s0", "spectrometer-2")]
+    assert assignments(()) == [] and assignments(iter([])) == []
+    for odd in (None, "fifo", b"x", {"e0s0": "spectrometer-1"}, 3, [("e0s0", "spectrometer-1")],
+                [Assignment(None, "x")]):
+        assert assignments(odd) is None, odd

@@ -1,0 +1,54 @@
+"""An in-process scheduler whose mistakes the fallback rule covers, as it covers an agent's on the bus.
+
+A ``decide`` that raises, or answers something other than a list of ``Assignment(task, device)``, is decided
+that time by ``campaign.fallback_scheduler``; the reason is noted once per change (``scheduler.fallback``) and
+the summary counts the decisions it made. The campaign goes on: a plugin's bug costs decisions, not samples.
+"""
+
+from __future__ import annotations
+
+import inspect
+from typing import Any
+
+from twin.campaign.decisions import Assignment, LabView
+from twin.runtime.remote_scheduler import Fallback
+
+
+class CheckedScheduler:
+    def __init__(self, inner: Any, fallback: Fallback, name: str) -> None:
+        self.inner, self.fallback, self.name = inner, fallback, name
+
+    def __getattr__(self, attr: str) -> Any:  # the scheduler's own attributes (serve_on_bus, its policy, ...)
+        return getattr(self.inner, attr)
+
+    def decide(self, view: LabView) -> Any:
+        try:
+            decided = self.inner.decide(view)
+        except Exception as exc:
+            return self.fallback.decide(view, "raised", f"scheduler {self.name!r} raised {exc!r}"[:300])
+        if inspect.isawaitable(decided):  # an agent: its answer is checked where it arrives
+            return decided
+        items = assignments(decided)
+        if items is None:
+            return self.fallback.decide(view, "invalid", f"scheduler {self.name!r} answered "
+                                        f"{str(decided)[:80]!r}, not a list of Assignment(task, device)")
+        self.fallback.recovered(f"scheduler {self.name!r} decides again")
+        return items
+
+
+def assignments(decided: Any) -> list[Assignment] | None:
+    """``decided`` as a list of ``Assignment``, or None if it is not a collection of (task, device) pairs of
+    names (objects with string ``task`` and ``device``)."""
+    if decided is None or isinstance(decided, (str, bytes, dict)):
+        return None
+    try:
+        items = list(decided)
+    except TypeError:
+        return None
+    out = []
+    for a in items:
+        task, device = getattr(a, "task", None), getattr(a, "device", None)
+        if type(task) is not str or type(device) is not str:
+            return None
+        out.append(a if type(a) is Assignment else Assignment(task, device))
+    return out
