@@ -71,3 +71,21 @@ def test_what_counts_as_an_answer():
     for odd in (None, "fifo", b"x", {"e0s0": "spectrometer-1"}, 3, [("e0s0", "spectrometer-1")],
                 [Assignment(None, "x")]):
         assert assignments(odd) is None, odd
+
+
+def test_in_a_lab_of_several_campaigns_too(tmp_path, caplog):
+    """The campaigns of a shared lab go on as well (the fallback is logged there, not yet journalled)."""
+    import logging
+
+    from tests.twin.shared_labs import LAB, SMALL, assert_accounted
+    from twin.runtime.lab import prepare
+    from twin.runtime.shared_run import run_shared
+
+    s = prepare(LAB, seed=1, overrides={**SMALL, "campaigns.0.campaign.scheduler":
+                                        "tests.twin.test_bad_schedulers:OddScheduler"})
+    with caplog.at_level(logging.WARNING):
+        out = run_shared(s, tmp_path, handle_signals=False)
+    assert_accounted(out)
+    assert out.campaigns["dots"].done + out.campaigns["dots"].abandoned == 6
+    assert any("raised RuntimeError('model file missing'): fifo decides instead" in r.getMessage()
+               for r in caplog.records)

@@ -16,11 +16,13 @@ from twin.core.errors import ClockError, DriverError
 from twin.runtime.fast_lab import FastLab
 from twin.campaign.journal import Journal
 from twin.campaign.lab_replay import RebuiltLab
-from twin.runtime.lab import (REMOTE, JournalFactory, _agent_on_bus, _flush_live, _noted, _stop_on_loop_signals,
+from twin.runtime.lab import (REMOTE, JournalFactory, _agent_on_bus, _fallback, _flush_live, _noted,
+                              _stop_on_loop_signals,
                               _stop_on_signals, build_actors, default_journal, finish, live_scheduler, load_driver,
                               load_drivers, make_bus, make_clock, make_planner, make_scheduler, open_journal,
                               refuse_realtime)
 from twin.runtime.checks import check_campaign
+from twin.runtime.checked_scheduler import CheckedScheduler
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.live_lab import LiveLab
 from twin.campaign.human import DRIVER as HUMAN
@@ -126,7 +128,8 @@ def _lab_scheduler(s: Scenario) -> Any:
     if chosen == REMOTE:
         raise ClockError(f"{s.name}: orchestrator.lab_scheduler {spec!r} is an agent elsewhere; the lab's one "
                          "scheduler runs in its process (a rule, or rl:POLICY)")
-    return chosen  # an rl policy is asked in-process, as the fast runtime's benches ask it
+    # an rl policy is asked in-process, as the fast runtime's benches ask it
+    return CheckedScheduler(chosen, _fallback(s), spec)
 
 
 def _refuse_agents(scenarios: dict[str, Scenario]) -> None:
@@ -144,7 +147,10 @@ def _parts(s: Scenario, path: Path, external: Collection[str], lab: Scenario | N
     journal.set("external", sorted(external))
     if lab is not None:  # what was set only: each campaign's seed is then the lab's plus its place, as it was
         journal.set("lab", lab.model_dump(exclude_unset=True))
-    return journal, make_planner(s), make_scheduler(s)
+    scheduler = make_scheduler(s)
+    if scheduler != REMOTE:  # a plugin's mistake is the fallback rule's to cover (logged; the lab goes on)
+        scheduler = CheckedScheduler(scheduler, _fallback(s), s.campaign.scheduler)
+    return journal, make_planner(s), scheduler
 
 
 async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], drivers: list, per_device: dict,
