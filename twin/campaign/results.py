@@ -6,8 +6,9 @@ fault: the attempt fails as ``driver_error`` with the reason, and is retried as 
 
 from __future__ import annotations
 
-import math
 from typing import Any
+
+from twin.core.numbers import finite
 
 
 #: How far after the lab's time a sample may say it was made (lab seconds): processes' clocks agree only so far.
@@ -24,7 +25,7 @@ def problem(body: dict[str, Any], now: float) -> str:
     if not isinstance(sample, dict):
         return f"its sample must be a JSON object or null, not {type(sample).__name__}"
     made = sample.get("t_made", 0.0)
-    if isinstance(made, bool) or not isinstance(made, (int, float)) or not math.isfinite(made):
+    if not finite(made):
         return (f"its sample's t_made must be the lab time it was made, in seconds (ctx.clock.now()), "
                 f"not {str(made)[:40]!r}")
     if made > now + FUTURE_SLACK_S:

@@ -23,6 +23,7 @@ from typing import Any
 from twin.core import keys
 from twin.core.bus import Bus, Closable, NoReplyError
 from twin.core.clock import LabClock
+from twin.core.numbers import finite
 from twin.core.errors import BusError, ClockError
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,7 @@ def parse_anchor(payload: bytes, lab: str) -> dict[str, Any]:
     if mode not in ("virtual", "scaled", "wall"):
         raise ClockError(f"lab {lab!r}'s clock message has mode {str(mode)[:20]!r}: expected virtual, scaled or wall")
     for name, value in (("speed", speed), ("lab_s", lab_s), ("wall_s", wall_s)):
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        if not finite(value):
             raise ClockError(f"lab {lab!r}'s clock message has a {name} that is not a finite number")
     if speed <= 0:
         raise ClockError(f"lab {lab!r}'s clock message has speed {speed}: must be > 0")

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any
+
+from twin.core.numbers import finite
 
 
 def measured(x: Any) -> bool:
     """Whether an output is a number a target can be scored on (not a string, a boolean, or a NaN sent as null)."""
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+    return finite(x)
 
 
 def score(outputs: dict[str, Any], target: Any) -> float:
