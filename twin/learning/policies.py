@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.core.errors import PluginError
+from twin.learning.policy_file import safe_objects
 from twin.runtime.run_record import versions
 from twin.scenario import Scenario
 
@@ -32,7 +33,14 @@ def read_meta(path: Path) -> dict[str, Any]:
     side = path.with_suffix(".json")
     if not side.exists():
         raise PluginError(f"{path}: no {side.name} beside it; policies are saved by `twin train`")
-    return json.loads(side.read_text())
+    try:
+        meta = json.loads(side.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise PluginError(f"{side}: not a policy description ({exc}); policies are saved by `twin train`") from exc
+    if not isinstance(meta, dict) or not isinstance(meta.get("signature", {}), dict):
+        raise PluginError(f"{side}: not a policy description (not an object with a signature); "
+                          "policies are saved by `twin train`")
+    return meta
 
 
 def load_policy(path: Path, kind: str, signature: dict[str, Any]) -> Any:
@@ -53,7 +61,12 @@ def load_policy(path: Path, kind: str, signature: dict[str, Any]) -> Any:
     algorithm: Any = {"PPO": PPO, "MaskablePPO": MaskablePPO}.get(meta.get("algorithm", "PPO"))
     if algorithm is None:
         raise PluginError(f"{path}: unknown algorithm {meta.get('algorithm')!r}")
-    return algorithm.load(path, device="cpu")
+    objects = safe_objects(path)  # SB3 would unpickle these itself, running whatever they ask
+    try:
+        return algorithm.load(path, device="cpu", custom_objects=objects)
+    except Exception as exc:
+        raise PluginError(f"{path}: the policy cannot be loaded ({type(exc).__name__}: {exc}); "
+                          "save it again with `twin train`") from exc
 
 
 def _plain(value: Any) -> Any:

@@ -1,0 +1,126 @@
+"""A policy file from someone else: loading it runs none of its code, and a damaged one is a clear error."""
+
+import base64
+import json
+import os
+import pickle
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from twin import PluginError, load_scenario
+
+ROOT = Path(__file__).resolve().parents[2]
+POLICIES = ROOT / "agents" / "policies"
+
+
+class _Runs:
+    """Pickles as a call of ``os.system``: what a hostile file would put where SB3 keeps a space."""
+
+    def __init__(self, command: str) -> None:
+        self.command = command
+
+    def __reduce__(self):
+        return os.system, (self.command,)
+
+
+def _rewritten(src: Path, out: Path, change) -> Path:
+    """A copy of the policy ``src`` (and its description) whose ``data`` went through ``change``."""
+    data = json.loads(zipfile.ZipFile(src).read("data"))
+    change(data)
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(out, "w") as zout:
+        for item in zin.infolist():
+            zout.writestr(item, json.dumps(data) if item.filename == "data" else zin.read(item.filename))
+    shutil.copy(src.with_suffix(".json"), out.with_suffix(".json"))
+    return out
+
+
+def _hostile(src: Path, out: Path, key: str, marker: Path) -> Path:
+    def change(data):
+        data[key][":serialized:"] = base64.b64encode(pickle.dumps(_Runs(f"touch {marker}"))).decode()
+    return _rewritten(src, out, change)
+
+
+@pytest.mark.parametrize("key", ["observation_space", "action_space", "policy_class", "lr_schedule"])
+def test_a_scheduler_policy_that_would_run_a_command_is_refused_and_runs_nothing(tmp_path, key):
+    from agents.rl_scheduler import RlScheduler
+
+    marker = tmp_path / "ran"
+    bad = _hostile(POLICIES / "jobshop_scheduler.zip", tmp_path / "bad.zip", key, marker)
+    with pytest.raises(PluginError, match=rf"bad.zip: its '{key}' asks for posix.system.*does not run code"):
+        RlScheduler(load_scenario(ROOT / "scenarios" / "jobshop.yaml"), policy=str(bad))
+    assert not marker.exists()
+
+
+def test_a_planner_policy_that_would_run_a_command_is_refused_and_runs_nothing(tmp_path):
+    from agents.rl_planner import RlPlanner
+
+    marker = tmp_path / "ran"
+    bad = _hostile(POLICIES / "quantum_dots.zip", tmp_path / "bad.zip", "observation_space", marker)
+    qd = load_scenario(ROOT / "scenarios" / "quantum_dots.yaml")
+    with pytest.raises(PluginError, match="does not run code from a policy file"):
+        RlPlanner(qd.chemistry.parameters, seed=0, targets=qd.chemistry.targets, policy=str(bad))
+    assert not marker.exists()
+
+
+def test_a_policy_class_that_is_not_a_policy_is_refused(tmp_path):
+    """A class from an allowed package is not enough: it must be a policy, a buffer, a space or an activation."""
+    from agents.rl_scheduler import RlScheduler
+
+    def change(data):
+        data["policy_class"][":serialized:"] = base64.b64encode(pickle.dumps(zipfile.ZipFile)).decode()
+    bad = _rewritten(POLICIES / "jobshop_scheduler.zip", tmp_path / "bad.zip", change)
+    with pytest.raises(PluginError, match=r"'policy_class' asks for zipfile.ZipFile"):
+        RlScheduler(load_scenario(ROOT / "scenarios" / "jobshop.yaml"), policy=str(bad))
+
+
+def test_every_shipped_policy_still_loads_and_decides_as_before():
+    """The restricted reading gives what SB3's own unpickling gives, for every policy shipped."""
+    from stable_baselines3.common.save_util import json_to_data
+
+    from twin.learning.policy_file import safe_objects
+
+    for path in sorted(POLICIES.glob("*.zip")):
+        ours = safe_objects(path)
+        theirs = json_to_data(zipfile.ZipFile(path).read("data").decode())
+        assert ours and sorted(ours) == sorted(k for k, v in json.loads(zipfile.ZipFile(path).read("data")).items()
+                                               if isinstance(v, dict) and ":serialized:" in v)
+        for key, value in ours.items():
+            assert repr(value) == repr(theirs[key]), (path.name, key)
+
+
+@pytest.mark.parametrize("damage", ["not a zip", "no data", "garbled pickle", "description not an object"])
+def test_a_damaged_policy_file_is_a_clear_error(tmp_path, damage):
+    from agents.rl_scheduler import RlScheduler
+
+    src, bad = POLICIES / "jobshop_scheduler.zip", tmp_path / "bad.zip"
+    shutil.copy(src.with_suffix(".json"), bad.with_suffix(".json"))
+    if damage == "not a zip":
+        bad.write_text("weights")
+    elif damage == "no data":
+        with zipfile.ZipFile(src) as zin, zipfile.ZipFile(bad, "w") as zout:
+            for item in zin.infolist():
+                if item.filename != "data":
+                    zout.writestr(item, zin.read(item.filename))
+    elif damage == "garbled pickle":
+        _rewritten(src, bad, lambda d: d["action_space"].update({":serialized:": "gASV////"}))
+    else:
+        shutil.copy(src, bad)
+        bad.with_suffix(".json").write_text("[1, 2]")
+    with pytest.raises(PluginError, match=r"bad\.(zip|json): not an SB3 policy file|bad.json: not a policy "
+                                          r"description|bad.zip: its 'action_space' cannot be read"):
+        RlScheduler(load_scenario(ROOT / "scenarios" / "jobshop.yaml"), policy=str(bad))
+
+
+def test_twin_run_with_a_hostile_policy_says_why_and_runs_nothing(tmp_path):
+    marker = tmp_path / "ran"
+    bad = _hostile(POLICIES / "jobshop_scheduler.zip", tmp_path / "bad.zip", "observation_space", marker)
+    res = subprocess.run([sys.executable, "-m", "twin", "run", "scenarios/jobshop.yaml", "--scheduler", f"rl:{bad}",
+                          "--journal", str(tmp_path / "j.db")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    assert "does not run code from a policy file" in " ".join(res.stderr.split())
+    assert not marker.exists()
