@@ -115,7 +115,12 @@ def load_prior(path: Path, templates: tuple[Template, ...]) -> LearnedPrior:
     if not meta_file.exists() or not path.with_suffix(".pt").exists():
         raise FileNotFoundError(f"{path}: a route prior is a .pt file with a .json beside it; train one with "
                                 f"`python -m agents.routes.train --out {path}`")
-    meta = json.loads(meta_file.read_text())
+    try:
+        meta = json.loads(meta_file.read_text())
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise ValueError(f"{meta_file}: not a route prior's description ({exc})") from None
+    if not isinstance(meta, dict) or not isinstance(meta.get("templates", []), list):
+        raise ValueError(f"{meta_file}: not a route prior's description (an object naming its templates)")
     names = meta.get("templates", [])
     missing = sorted(set(t.name for t in templates) - set(names))
     if meta.get("kind") != "route-prior" or meta.get("bits") != BITS:
@@ -125,5 +130,9 @@ def load_prior(path: Path, templates: tuple[Template, ...]) -> LearnedPrior:
                          f"{' …' if len(missing) > 3 else ''}; retrain it on this template file (python -m "
                          f"agents.routes.train --templates FILE --out P) or search without one (--prior none)")
     scorer = TemplateScorer(len(names))
-    scorer.load_state_dict(torch.load(path.with_suffix(".pt"), weights_only=True))
+    try:
+        scorer.load_state_dict(torch.load(path.with_suffix(".pt"), weights_only=True))
+    except Exception as exc:  # torch's errors for a damaged or foreign file are of many types
+        raise ValueError(f"{path.with_suffix('.pt')}: not this prior's weights ({type(exc).__name__}); "
+                         "train it again with `python -m agents.routes.train`") from None
     return LearnedPrior(scorer, names)

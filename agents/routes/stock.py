@@ -75,4 +75,7 @@ def load(path: Path = STOCK) -> Stock:
         text = Path(path).read_text()
     except OSError as exc:
         raise StockError(f"{path}: cannot read the stock file ({exc.strerror})") from None
+    except UnicodeDecodeError as exc:
+        raise StockError(f"{path}: not a text file (byte {exc.start} is not UTF-8); a stock file is CSV: "
+                         "smiles[,name,eur_per_g]") from None
     return parse(text, str(path))

@@ -65,6 +65,30 @@ def test_exit_codes_and_what_they_say(args, code, says):
     assert exit_code == code and says in out and "Traceback" not in out, out
 
 
+@pytest.mark.parametrize("damage,says", [
+    ("stock not text", "stock.csv: not a text file (byte 17 is not UTF-8)"),
+    ("description not JSON", "prior.json: not a route prior's description"),
+    ("description a list", "prior.json: not a route prior's description"),
+    ("weights not torch's", "prior.pt: not this prior's weights"),
+])
+def test_damaged_files_are_one_line_errors_naming_them(tmp_path, damage, says):
+    prior, stock = ROOT / "agents" / "policies" / "route_prior", tmp_path / "stock.csv"
+    for suffix in (".json", ".pt"):
+        (tmp_path / f"prior{suffix}").write_bytes(prior.with_suffix(suffix).read_bytes())
+    args = ["CCO", "--prior", str(tmp_path / "prior")]
+    if damage == "stock not text":
+        stock.write_bytes(b"smiles,name\nCCO,e\xff\xfe\n")
+        args += ["--stock", str(stock)]
+    elif damage == "description not JSON":
+        (tmp_path / "prior.json").write_text('{"kind": ')
+    elif damage == "description a list":
+        (tmp_path / "prior.json").write_text("[1]")
+    else:
+        (tmp_path / "prior.pt").write_bytes(b"not weights")
+    exit_code, out = in_process(*args)
+    assert exit_code == 2 and says in out and "Traceback" not in out, out
+
+
 def test_save_draws_the_route_as_svg(tmp_path):
     out = tmp_path / "lidocaine.svg"
     res = twin_route("CCN(CC)CC(=O)Nc1c(C)cccc1C", "--method", "breadth-first", "--save", str(out))
