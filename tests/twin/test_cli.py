@@ -131,3 +131,25 @@ def test_ctrl_c_stops_training_and_says_what_was_kept(tmp_path):
     # so its own SIGINT handler, were it installed, would have killed the command without a word)
     assert "interrupted; no policy saved yet" in rest and "Traceback" not in rest
     assert not out.exists()
+
+
+@pytest.mark.parametrize("command", [
+    ["bench", "schedulers", "--seeds", "2"], ["bench", "schedulers", "--shapes", "--seeds", "2"],
+    ["bench", "planners", "--seeds", "2"], ["whatif", "--vary", "campaign.budget=3,4", "--seeds", "2"],
+    ["train", "--steps", "100", "--out", "p.zip"],
+])
+def test_a_lab_its_drivers_cannot_run_is_one_error_before_any_worker_starts(tmp_path, command):
+    """A bench's campaigns load their drivers in worker processes: the lab is checked first, as `twin run` does."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    text = (ROOT / "scenarios" / "flaky_lab.yaml").read_text().replace("steps: [measure]", "steps: [measure, wash]")
+    lab = tmp_path / "lab.yaml"
+    lab.write_text(text)
+    res = CliRunner().invoke(app, [*command[:2 if command[0] == "bench" else 1], str(lab),
+                                   *command[2 if command[0] == "bench" else 1:]], env={"COLUMNS": "200"})
+    out = " ".join(res.output.split())
+    assert res.exit_code == 2 and "Traceback" not in out, out
+    assert f"{lab}: 1 problem(s)" in out and "devices.spectrometer.driver: 'spectrometer' runs" in out
+    assert "asks it for ['wash']" in out

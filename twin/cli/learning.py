@@ -9,6 +9,7 @@ import typer
 
 from twin.core import plugins
 from twin.runtime import lab
+from twin.runtime.checks import checked
 from twin.cli.common import _fail, app, bar_progress, bench_app, console, err, machine_output, narrow_table
 from twin.core.errors import TwinError
 from twin.tools.planner_bench import DEFAULT_PLANNERS
@@ -34,7 +35,7 @@ def train(
 ) -> None:
     """Train an agent in the twin; the evaluation curve is printed as it goes (and recorded to Rerun if asked)."""
     try:
-        s = lab.prepare(scenario, overrides=_assignments(set_ or []))
+        s = checked(lab.prepare(scenario, overrides=_assignments(set_ or [])), scenario)
         trainer = plugins.load("trainers", agent)
         if init is not None and agent not in ("scheduler", "route"):
             raise TwinError(f"--init starts the scheduler's or the route prior's training from a policy; the {agent} "
@@ -99,7 +100,7 @@ def bench_planners(
 
     names = [p.strip() for p in planners.split(",") if p.strip()]
     try:
-        s = lab.prepare(scenario)
+        s = checked(lab.prepare(scenario), scenario)
         for name in names:
             planner, scheduler, _ = parse(name)
             lab.make_planner(s.model_copy(update={"campaign": s.campaign.model_copy(update={"planner": planner})}))
@@ -158,7 +159,7 @@ def bench_schedulers(
     with bench_pool(workers) as pool:  # one set of workers for every shop
         for file in files:
             try:
-                s = load_variant(scenario, file, budget, _assignments(set_ or []))
+                s = checked(load_variant(scenario, file, budget, _assignments(set_ or [])), scenario)
                 for name in names:
                     lab.make_scheduler(s, name)
             except TwinError as exc:
@@ -194,7 +195,7 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     from twin.tools.shape_bench import shapes, variants, verdict
 
     try:
-        s = load_variant(scenario, None, budget, changes)
+        s = checked(load_variant(scenario, None, budget, changes), scenario)
         for name in names:
             lab.make_scheduler(s, name)
     except TwinError as exc:

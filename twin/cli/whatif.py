@@ -15,6 +15,7 @@ from rich.table import Table
 from twin.cli.common import _fail, app, bar_progress, console
 from twin.core.errors import TwinError
 from twin.runtime import lab
+from twin.runtime.checks import checked
 
 
 @app.command()
@@ -47,7 +48,7 @@ def whatif(
     try:
         if seeds < 1:
             raise TwinError(f"--seeds {seeds}: give at least 1")
-        s = lab.prepare(scenario)
+        s = checked(lab.prepare(scenario), scenario)
         varied = parse_vary(vary or [])
         chosen = variants(s, varied, split(schedulers), split(planners))
         axes = [name for name, _ in axes_of(varied, split(schedulers), split(planners))]

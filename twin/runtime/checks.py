@@ -68,7 +68,13 @@ def _at(field: str, make: Callable[..., Any], *args: Any) -> Any:
 
 def validate_file(path: str | Path) -> Scenario:
     """``twin validate``: the scenario file read, checked field by field, and against the installed plugins."""
-    s = load(path)
+    return checked(load(path), path)
+
+
+def checked(s: Scenario, path: str | Path) -> Scenario:
+    """``s`` (read from ``path``) checked against the installed plugins; its errors name the file. What a bench,
+    a what-if or a training checks before its workers start, so that a driver that cannot run the lab is one
+    error, not a traceback from a worker."""
     try:
         check(s)
     except ScenarioError as exc:
