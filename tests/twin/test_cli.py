@@ -1,6 +1,7 @@
 """`twin run`, `twin report` and Ctrl-C, as a user meets them."""
 
 import json
+import os
 import signal
 import sqlite3
 import subprocess
@@ -153,3 +154,21 @@ def test_a_lab_its_drivers_cannot_run_is_one_error_before_any_worker_starts(tmp_
     assert res.exit_code == 2 and "Traceback" not in out, out
     assert f"{lab}: 1 problem(s)" in out and "devices.spectrometer.driver: 'spectrometer' runs" in out
     assert "asks it for ['wash']" in out
+
+
+def test_experiments_abandoned_by_deadlines_say_which_fields_set_them(tmp_path):
+    """flaky_lab's reactor with the reaction time left out of its expected duration: its deadlines are too short."""
+    text = (ROOT / "scenarios" / "flaky_lab.yaml").read_text()
+    short = tmp_path / "short.yaml"
+    short.write_text(text.replace("duration: {mean_s: 300, cv: 0.2, plus_param: time_s}", "duration: {mean_s: 300, cv: 0.2}"))
+    outs = {}
+    for name, path in (("short", short), ("as written", ROOT / "scenarios" / "flaky_lab.yaml")):
+        res = subprocess.run([*TWIN, "run", str(path), "--bus", "memory", "--budget", "8", "--journal",
+                              str(tmp_path / f"{name}.db")], capture_output=True, text=True, cwd=ROOT, timeout=120,
+                             env={**os.environ, "COLUMNS": "200"})
+        assert res.returncode == 0, res.stderr
+        outs[name] = " ".join(res.stdout.split())
+    assert "react: timed_out" in outs["short"]
+    assert "the last attempt at react ran past its deadline" in outs["short"]
+    assert "orchestrator.timeout_factor" in outs["short"] and "plus_param" in outs["short"]
+    assert "why?" not in outs["as written"]

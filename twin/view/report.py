@@ -17,6 +17,12 @@ def render_summary(s: Summary, console: Console) -> None:
     t.add_row("attempts", f"{s.attempts} ({s.failed_attempts} failed, {s.retried} retried, {s.timed_out} timed out)")
     for reason, n in sorted(s.abandoned_reasons.items()):
         t.add_row("  abandoned", f"{n} × {reason}")
+    timed_out = sorted(r.split(":")[0] for r in s.abandoned_reasons if r.endswith(": timed_out"))
+    if timed_out:
+        t.add_row("  why?", f"timed_out: the last attempt at {', '.join(timed_out)} ran past its deadline. If the "
+                            "step is slower than the scenario says, raise its device type's duration (or plus_param "
+                            "for a time parameter): a deadline is the expected duration × "
+                            "orchestrator.timeout_factor + orchestrator.timeout_slack_s")
     t.add_row("faults", f"{s.devices_lost} device losses, {s.quarantines} quarantines, "
                         f"{s.invalid_messages} invalid messages, {s.late_results} late results")
     if s.rejected_messages or s.presence_flaps:
