@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from devices.models import synthesis
-from twin import DriverError, DriverSetup, StepContext, StepResult
+from twin import DriverSetup, Refused, StepContext, StepResult
 
 
 class Purifier:
@@ -19,7 +19,7 @@ class Purifier:
 
     async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
         if not sample or sample.get("kind") not in ("crude", "purified"):
-            raise DriverError("purify needs a reaction's crude product: the route must react first")
+            raise Refused("purify needs a reaction's crude product: the route must react first", infeasible=True)
         await ctx.clock.sleep(ctx.draw_duration(params))
         return StepResult({}, synthesis.purify(sample, ctx.rng))
 

@@ -12,12 +12,12 @@ from typing import Any
 import numpy as np
 
 from devices.models import spectra, synthesis
-from twin import DriverSetup, StepContext, StepResult
-from twin import DriverError
+from twin import DriverSetup, Refused, StepContext, StepResult
 
 FEED_NM, PRODUCT_NM, BYPRODUCT_NM, BAND_NM = 450.0, 540.0, 640.0, 40.0
 HC_EV_NM = 1239.84  # photon energy (eV) × wavelength (nm)
 EDGE_WIDTH_NM = 4.0
+MEASURED = frozenset({"qd", "film", "reaction", "crude", "purified"})  # the kinds of sample the models make
 
 
 class Spectrometer:
@@ -31,8 +31,12 @@ class Spectrometer:
         self.stability_s = setup.chemistry.stability_s
 
     async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
+        # what arrives is the workflow's doing, not the instrument's: refused at once, no strike against it
         if not sample:
-            raise DriverError("measure needs a sample: the workflow must make one first")
+            raise Refused("measure needs a sample: the workflow must make one first", infeasible=True)
+        if sample.get("kind") not in MEASURED:
+            raise Refused(f"the spectrometer cannot measure a sample of kind {str(sample.get('kind'))[:40]!r} (it "
+                          f"measures {', '.join(sorted(MEASURED))}): check the workflow's order", infeasible=True)
         await ctx.clock.sleep(ctx.draw_duration(params))
         if sample.get("kind") in ("crude", "purified"):  # a route's reaction: LC-MS
             return StepResult(synthesis.lcms(sample, params, ctx.clock.now(), self.stability_s, self.noise, ctx.rng),
@@ -47,7 +51,7 @@ class Spectrometer:
         elif sample.get("kind") == "film":
             y, edge_nm = self._absorption_edge(sample["band_gap_ev"], keep, ctx)
             outputs = {"band_gap_ev": HC_EV_NM / edge_nm, "edge_nm": edge_nm}
-        elif sample.get("kind") == "reaction":
+        else:  # a reaction's product
             conv, sel = sample["conversion"], sample["selectivity"]
             bands = [(FEED_NM, BAND_NM, 1 - conv), (PRODUCT_NM, BAND_NM, conv * sel * keep),
                      (BYPRODUCT_NM, BAND_NM, conv * (1 - sel))]
@@ -55,8 +59,6 @@ class Spectrometer:
             product = spectra.fit_peak(y, PRODUCT_NM - 30, PRODUCT_NM + 30)["height"]
             byproduct = max(spectra.fit_peak(y, BYPRODUCT_NM - 30, BYPRODUCT_NM + 30)["height"], 0.0)
             outputs = {"yield": 100 * product, "selectivity": 100 * product / max(product + byproduct, 1e-9)}
-        else:
-            raise DriverError(f"cannot measure a sample of kind {sample.get('kind')!r}")
         outputs = {k: round(v, 4) for k, v in outputs.items()}
         grid = spectra.UV_GRID_NM if sample.get("kind") == "film" else spectra.GRID_NM
         outputs["spectrum"] = {"start_nm": float(grid[0]), "step_nm": float(grid[1] - grid[0]),

@@ -168,7 +168,25 @@ def test_experiments_abandoned_by_deadlines_say_which_fields_set_them(tmp_path):
                              env={**os.environ, "COLUMNS": "200"})
         assert res.returncode == 0, res.stderr
         outs[name] = " ".join(res.stdout.split())
-    assert "react: timed_out" in outs["short"]
+    assert "react: timed_out — e.g. step 'react' failed 4 time(s); last: timed_out on reactor" in outs["short"]
     assert "the last attempt at react ran past its deadline" in outs["short"]
     assert "orchestrator.timeout_factor" in outs["short"] and "plus_param" in outs["short"]
     assert "why?" not in outs["as written"]
+
+
+def test_a_workflow_that_measures_before_it_reacts_is_refused_per_experiment_without_blaming_the_instruments(tmp_path):
+    """The spectrometer refuses a sample it cannot measure as infeasible (the workflow's doing): every experiment
+    is abandoned at once with its reason, and no spectrometer is quarantined."""
+    text = (ROOT / "scenarios" / "flaky_lab.yaml").read_text()
+    order = ("  - {step: react, device: reactor}\n  - {step: measure, device: spectrometer}\n")
+    assert order in text
+    swapped = tmp_path / "swapped.yaml"
+    swapped.write_text(text.replace(order, "  - {step: measure, device: spectrometer}\n  - {step: react, device: reactor}\n"))
+    res = subprocess.run([*TWIN, "run", str(swapped), "--bus", "memory", "--budget", "6", "--json", "--journal",
+                          str(tmp_path / "j.db")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.returncode == 0, res.stderr
+    summary = json.loads(res.stdout)
+    assert summary["abandoned"] == 6 and summary["abandoned_reasons"] == {"infeasible": 6}
+    assert summary["quarantines"] == 0 and summary["infeasible"] == 6
+    assert "cannot measure a sample of kind 'feed'" in summary["abandoned_examples"]["infeasible"]
+    assert "check the workflow's order" in summary["abandoned_examples"]["infeasible"]

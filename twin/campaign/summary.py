@@ -9,6 +9,9 @@ from typing import Any
 from twin.campaign.ledger import UNRUNNABLE
 
 
+EXAMPLE_CHARS = 240
+
+
 @dataclass
 class Summary:
     scenario: str
@@ -32,6 +35,7 @@ class Summary:
     infeasible: int = 0  # experiments a device refused, or its safe envelope excluded
     presence_flaps: int = 0
     abandoned_reasons: dict[str, int] = field(default_factory=dict)
+    abandoned_examples: dict[str, str] = field(default_factory=dict)  # each kind of reason: its first in full
     utilisation: dict[str, float] = field(default_factory=dict)
     best: dict[str, dict[str, Any]] = field(default_factory=dict)
     targets_met_h: dict[str, float] = field(default_factory=dict)
@@ -60,6 +64,11 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
     status = Counter(str(e.status) for e in exps)
     elapsed = max(core.elapsed_s, 1e-9)
     reasons = Counter(_reason_kind(e.reason) for e in exps if e.status == "abandoned")
+    examples: dict[str, str] = {}
+    for e in exps:
+        if e.status == "abandoned":
+            kind = _reason_kind(e.reason)
+            examples.setdefault(kind, e.reason.removeprefix(f"{kind}: ")[:EXAMPLE_CHARS])
     best = {}
     for name, (score, exp_id) in core.best.items():
         outputs = {k: v for k, v in exps[exp_id].outputs.items() if isinstance(v, (int, float))}
@@ -73,7 +82,7 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         devices_lost=c.device_lost, quarantines=c.quarantined, invalid_messages=c.invalid,
         late_results=c.late, degraded_samples=c.degraded, rejected_messages=c.rejected, presence_flaps=c.flaps,
         infeasible=c.infeasible,
-        abandoned_reasons=dict(reasons),
+        abandoned_reasons=dict(reasons), abandoned_examples=examples,
         utilisation={d.name: round(d.busy_s / elapsed, 4) for d in core.devices.values()},
         best=best, targets_met_h={k: v / 3600 for k, v in core.met_at.items()},
         targets_met_after=dict(core.met_after), targets_met_cost=dict(core.met_cost),

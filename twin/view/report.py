@@ -16,7 +16,8 @@ def render_summary(s: Summary, console: Console) -> None:
     t.add_row("experiments", f"{s.done} done, {s.abandoned} abandoned, {s.pending} pending (of {s.proposed} proposed)")
     t.add_row("attempts", f"{s.attempts} ({s.failed_attempts} failed, {s.retried} retried, {s.timed_out} timed out)")
     for reason, n in sorted(s.abandoned_reasons.items()):
-        t.add_row("  abandoned", f"{n} × {reason}")
+        example = s.abandoned_examples.get(reason, "")
+        t.add_row("  abandoned", f"{n} × {escape(reason)}" + (f" [dim]— e.g. {escape(example)}[/]" if example else ""))
     timed_out = sorted(r.split(":")[0] for r in s.abandoned_reasons if r.endswith(": timed_out"))
     if timed_out:
         t.add_row("  why?", f"timed_out: the last attempt at {', '.join(timed_out)} ran past its deadline. If the "
