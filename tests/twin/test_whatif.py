@@ -64,6 +64,9 @@ def test_the_table_fits_80_columns_and_names_the_busiest_device():
     (["--schedulers", "nope"], "nope"),
     (["--vary", "campaign.scheduler=fifo,rl:missing.zip"], "policy missing.zip does not exist"),
     (["--vary", "devices.reactor.instances=3", "--seeds", "0"], "--seeds 0"),
+    (["--vary", "devices.spectrometer.driver=spectrometer,reactor"],
+     "--vary devices.spectrometer.driver=reactor: 1 problem(s) - devices.spectrometer.driver: 'reactor' runs"),
+    (["--vary", "campaign.planner=random,nope"], "--vary campaign.planner=nope"),
 ])
 def test_what_cannot_run_is_refused_before_anything_runs(args, says):
     code, out = whatif(FLAKY, *args)
