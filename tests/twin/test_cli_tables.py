@@ -37,3 +37,19 @@ def test_every_bench_script_speaks_json_and_csv(tmp_path):
     with open(tmp_path / "t.csv") as f:
         assert list(csv.reader(f)) == [["run", "ratio"], ["baseline", "1.0"], ["new", "0.5"]]
     assert (tmp_path / "t-2.csv").read_text().splitlines() == ["mb", "2"]
+
+
+def test_a_health_answer_of_any_shape_is_shown_not_fatal(capsys):
+    """A device of someone else's (docs/wire.md) may answer a health query with anything."""
+    from twin.cli.distributed import render_health
+    from twin.runtime.serve import health_report
+
+    answers = [b'{"running": ["e1s2", 1], "dropped": 3, "driver": {"ok": true}}', b"[1, 2]", b"\xff not json",
+               b'{"running": 5, "driver": "[bold]fine[/bold]"}', b'"ok"']
+    reports = [health_report(a) for a in answers]
+    assert reports[1] == {"driver": [1, 2]} and reports[4] == {"driver": "ok"}
+    assert reports[2]["driver"]["ok"] is False and "not JSON" in reports[2]["driver"]["error"]
+    render_health([{"device": f"dev[{i}]", "report": r} for i, r in enumerate(reports)]
+                  + [{"device": "gone", "report": None}])
+    out = capsys.readouterr().out
+    assert "e1s2#1" in out and "[bold]fine[/bold]" in out and "dev[4]" in out and "not JSON" in out

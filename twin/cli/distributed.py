@@ -90,19 +90,21 @@ def device_health(
 
 def render_health(answers: list[dict]) -> None:
     """One row per device: whether it answered, what it runs, what it dropped, what its driver says."""
+    from rich.markup import escape
     from rich.table import Table
 
     table = Table("device", "answered", "running", "dropped", "driver", caption="driver: its own health() report")
     for a in answers:
         r = a["report"]
         if r is None:
-            table.add_row(a["device"], "[red]no[/]", "", "", "")
+            table.add_row(escape(a["device"]), "[red]no[/]", "", "", "")
             continue
-        running = "#".join(map(str, r["running"])) if r.get("running") else "idle"
+        running = r.get("running")
+        running = "#".join(map(str, running)) if isinstance(running, list) else str(running or "idle")[:20]
         driver = r.get("driver", "")
         ok = driver.get("ok") if isinstance(driver, dict) else None
-        shown = ("[red]" if ok is False else "") + str(driver)[:60] + ("[/]" if ok is False else "")
-        table.add_row(a["device"], "yes", running, str(r.get("dropped", 0)), shown)
+        shown = ("[red]" if ok is False else "") + escape(str(driver)[:60]) + ("[/]" if ok is False else "")
+        table.add_row(escape(a["device"]), "yes", escape(running), escape(str(r.get("dropped", ""))[:12]), shown)
     console.print(table)
 
 

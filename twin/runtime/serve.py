@@ -16,6 +16,7 @@ from twin.core.bus import Bus, NoReplyError, security
 from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
+from twin.core.messages import excerpt
 from twin.runtime.labtime import LabTimeFollower
 from twin.runtime.lab import build_actors, load_drivers, make_bus, make_clock, make_scheduler, prepare
 from twin.runtime.shared_run import shared_drivers
@@ -156,11 +157,23 @@ async def _ask_health(bus: Bus, lab: str, names: list[str], wait_s: float) -> li
     out = []
     for name in names:
         try:
-            report = json.loads(await bus.request(keys.health(lab, name), b"", wait_s))
-        except (NoReplyError, ValueError):
+            answer = await bus.request(keys.health(lab, name), b"", wait_s)
+        except NoReplyError:
             report = None
+        else:
+            report = health_report(answer)
         out.append({"device": name, "report": report})
     return out
+
+
+def health_report(answer: bytes) -> dict:
+    """A device's answer to a health query as a report (a device of someone else's may answer anything):
+    JSON that is not an object becomes its ``driver`` entry; an answer that is not JSON a failed one."""
+    try:
+        report = json.loads(answer)
+    except (ValueError, UnicodeDecodeError, RecursionError):
+        return {"driver": {"ok": False, "error": f"an answer that is not JSON: {excerpt(answer, 60)}"}}
+    return report if isinstance(report, dict) else {"driver": report}
 
 
 def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: str | None = None,
