@@ -20,11 +20,14 @@ ROOT = Path(__file__).resolve().parents[2]
 SPEED = 100.0  # lab seconds per wall second
 
 
-def documented_device() -> str:
-    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "wire.md").read_text(), re.S)
-    assert len(blocks) == 1, "docs/wire.md has one Python block: the device"
-    assert "twin" not in re.findall(r"^(?:import|from) (\w+)", blocks[0], re.M)
-    return blocks[0]
+def documented(name: str) -> str:
+    """The Python block of docs/wire.md whose first line is ``# name``."""
+    blocks = {b.split("\n", 1)[0].removeprefix("# "): b
+              for b in re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "wire.md").read_text(), re.S)}
+    assert set(blocks) == {"device.py", "agent.py"}, sorted(blocks)
+    assert set(re.findall(r"^(?:import|from) (\w+)", blocks[name], re.M)) <= {"json", "queue", "signal", "sys",
+                                                                              "time", "zenoh"}
+    return blocks[name]
 
 
 def test_the_documented_device_measures_every_experiment_of_a_live_campaign(tmp_path):
@@ -42,7 +45,7 @@ def test_the_documented_device_measures_every_experiment_of_a_live_campaign(tmp_
     path = tmp_path / "lab.yaml"
     path.write_text(yaml.safe_dump(raw))
     script = tmp_path / "device.py"
-    script.write_text(documented_device())
+    script.write_text(documented("device.py"))
     s = prepare(path)
     clock = make_clock(s)
     db = tmp_path / "j.db"
@@ -69,3 +72,34 @@ def test_the_documented_device_measures_every_experiment_of_a_live_campaign(tmp_
         assert body["sample"]["id"].endswith(f"/e{r['experiment']}")  # the id the lab gave it, handed back
     accepted = [e for e in events if e["kind"] == "msg.accepted" and e["device"] == "spectrometer"]
     assert len(accepted) == 4
+
+
+def test_the_documented_agent_schedules_a_live_campaign_and_the_lab_does_what_it_said(tmp_path):
+    port = free_port()
+    raw = qd_lab(**{
+        "lab": f"agent{port}",
+        "campaign.budget": 6, "campaign.max_in_flight": 3,
+        "campaign.scheduler": "remote", "campaign.fallback_scheduler": "fifo",
+        "clock": {"mode": "scaled", "speed": SPEED},
+        "bus": {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]},
+        "orchestrator.startup_s": 3000,
+    })
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    script = tmp_path / "agent.py"
+    script.write_text(documented("agent.py"))
+    s = prepare(path)
+    clock = make_clock(s)
+    db = tmp_path / "j.db"
+    agent = subprocess.Popen([sys.executable, str(script), s.lab, f"tcp/127.0.0.1:{port}"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        summary = clock.run(run_async(s, clock, db))
+    finally:
+        agent.terminate()
+        out, err = agent.communicate(timeout=30)
+    assert agent.returncode == 0, err
+    assert summary.done == 6 and summary.abandoned == 0 and summary.scheduler_fallbacks == 0, summary
+    said = [(a["task"], a["device"]) for line in out.splitlines() for a in json.loads(line)]
+    dispatched = [(e["task"], e["device"]) for e in read_events(db) if e["kind"] == "attempt.dispatched"]
+    assert dispatched and sorted(dispatched) == sorted(said)  # every pair it gave was carried out, and no other
