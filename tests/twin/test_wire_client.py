@@ -30,33 +30,35 @@ def documented(name: str) -> str:
     return blocks[name]
 
 
-def test_the_documented_device_measures_every_experiment_of_a_live_campaign(tmp_path):
+def run_with(tmp_path, script: str, args: list[str], external: set[str] = frozenset(), **changes):
+    """A live qd_lab campaign on a scaled clock over Zenoh, with docs/wire.md's ``script`` started beside it
+    (given the lab, ``args`` and the endpoint) and stopped with SIGTERM after: (summary, journal, its stdout)."""
     port = free_port()
-    raw = qd_lab(**{
-        "lab": f"wire{port}",
-        "campaign.budget": 4,
-        "devices.spectrometer.instances": 1,
-        "devices.spectrometer.duration": {"mean_s": 50, "cv": 0.0},
-        "devices.synthesiser.duration": {"mean_s": 30, "cv": 0.0},
-        "clock": {"mode": "scaled", "speed": SPEED},
-        "bus": {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]},
-        "orchestrator.startup_s": 3000,
-    })
+    raw = qd_lab(**{"lab": f"wire{port}", "clock": {"mode": "scaled", "speed": SPEED},
+                    "bus": {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]}, "orchestrator.startup_s": 3000,
+                    **changes})
     path = tmp_path / "lab.yaml"
     path.write_text(yaml.safe_dump(raw))
-    script = tmp_path / "device.py"
-    script.write_text(documented("device.py"))
+    (tmp_path / script).write_text(documented(script))
     s = prepare(path)
     clock = make_clock(s)
     db = tmp_path / "j.db"
-    device = subprocess.Popen([sys.executable, str(script), s.lab, "spectrometer", f"tcp/127.0.0.1:{port}"],
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    proc = subprocess.Popen([sys.executable, script, s.lab, *args, f"tcp/127.0.0.1:{port}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
     try:
-        summary = clock.run(run_async(s, clock, db, {"spectrometer"}))
+        summary = clock.run(run_async(s, clock, db, set(external)))
     finally:
-        device.terminate()
-        _, err = device.communicate(timeout=30)
-    assert device.returncode == 0, err  # SIGTERM: the token undeclared and the session closed, as documented
+        proc.terminate()
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err  # SIGTERM: the token undeclared and the session closed, as documented
+    return summary, db, out
+
+
+def test_the_documented_device_measures_every_experiment_of_a_live_campaign(tmp_path):
+    summary, db, _ = run_with(tmp_path, "device.py", ["spectrometer"], {"spectrometer"}, **{
+        "campaign.budget": 4, "devices.spectrometer.instances": 1,
+        "devices.spectrometer.duration": {"mean_s": 50, "cv": 0.0},
+        "devices.synthesiser.duration": {"mean_s": 30, "cv": 0.0}})
     assert summary.done == 4 and summary.abandoned == 0, summary
     assert summary.invalid_messages == 0 and summary.rejected_messages == 0 and summary.failed_attempts == 0
     events = read_events(db)
@@ -75,30 +77,9 @@ def test_the_documented_device_measures_every_experiment_of_a_live_campaign(tmp_
 
 
 def test_the_documented_agent_schedules_a_live_campaign_and_the_lab_does_what_it_said(tmp_path):
-    port = free_port()
-    raw = qd_lab(**{
-        "lab": f"agent{port}",
+    summary, db, out = run_with(tmp_path, "agent.py", [], **{
         "campaign.budget": 6, "campaign.max_in_flight": 3,
-        "campaign.scheduler": "remote", "campaign.fallback_scheduler": "fifo",
-        "clock": {"mode": "scaled", "speed": SPEED},
-        "bus": {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]},
-        "orchestrator.startup_s": 3000,
-    })
-    path = tmp_path / "lab.yaml"
-    path.write_text(yaml.safe_dump(raw))
-    script = tmp_path / "agent.py"
-    script.write_text(documented("agent.py"))
-    s = prepare(path)
-    clock = make_clock(s)
-    db = tmp_path / "j.db"
-    agent = subprocess.Popen([sys.executable, str(script), s.lab, f"tcp/127.0.0.1:{port}"],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
-    try:
-        summary = clock.run(run_async(s, clock, db))
-    finally:
-        agent.terminate()
-        out, err = agent.communicate(timeout=30)
-    assert agent.returncode == 0, err
+        "campaign.scheduler": "remote", "campaign.fallback_scheduler": "fifo"})
     assert summary.done == 6 and summary.abandoned == 0 and summary.scheduler_fallbacks == 0, summary
     said = [(a["task"], a["device"]) for line in out.splitlines() for a in json.loads(line)]
     dispatched = [(e["task"], e["device"]) for e in read_events(db) if e["kind"] == "attempt.dispatched"]
