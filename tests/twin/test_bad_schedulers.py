@@ -73,19 +73,26 @@ def test_what_counts_as_an_answer():
         assert assignments(odd) is None, odd
 
 
-def test_in_a_lab_of_several_campaigns_too(tmp_path, caplog):
-    """The campaigns of a shared lab go on as well (the fallback is logged there, not yet journalled)."""
+@pytest.mark.parametrize("clock", ["virtual", "scaled"])
+def test_in_a_lab_of_several_campaigns_too(tmp_path, caplog, clock):
+    """The campaigns of a shared lab go on as well, the fallback journalled and counted in each campaign's
+    summary as for a campaign on its own."""
     import logging
 
     from tests.twin.shared_labs import LAB, SMALL, assert_accounted
     from twin.runtime.lab import prepare
     from twin.runtime.shared_run import run_shared
 
-    s = prepare(LAB, seed=1, overrides={**SMALL, "campaigns.0.campaign.scheduler":
-                                        "tests.twin.test_bad_schedulers:OddScheduler"})
+    odd = {**SMALL, "campaigns.0.campaign.scheduler": "tests.twin.test_bad_schedulers:OddScheduler"}
+    s = prepare(LAB, seed=1, clock=clock, speed=50_000, bus="memory", overrides=odd)
     with caplog.at_level(logging.WARNING):
         out = run_shared(s, tmp_path, handle_signals=False)
     assert_accounted(out)
     assert out.campaigns["dots"].done + out.campaigns["dots"].abandoned == 6
     assert any("raised RuntimeError('model file missing'): fifo decides instead" in r.getMessage()
                for r in caplog.records)
+    dots = out.campaigns["dots"]
+    assert dots.scheduler_fallbacks > 0 and all(c.scheduler_fallbacks == 0 for n, c in out.campaigns.items()
+                                                if n != "dots")
+    noted = [e for e in read_events(tmp_path / "dots.db") if e["kind"] == "scheduler.fallback"]
+    assert any("model file missing" in e["detail"] for e in noted)

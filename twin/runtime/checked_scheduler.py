@@ -52,3 +52,15 @@ def assignments(decided: Any) -> list[Assignment] | None:
             return None
         out.append(a if type(a) is Assignment else Assignment(task, device))
     return out
+
+
+def fallbacks(scheduler: Any) -> list[Fallback]:
+    """The fallback rules in a chain of wrappers (covered, off the loop, on the bus), outermost first: whose
+    decisions a campaign counts and whose changes it journals."""
+    out = []
+    while scheduler is not None and hasattr(scheduler, "__dict__"):
+        own = vars(scheduler)  # not getattr: a covered scheduler hands unknown attributes to the one it covers
+        if isinstance(own.get("fallback"), Fallback):
+            out.append(own["fallback"])
+        scheduler = own.get("inner")
+    return out

@@ -26,6 +26,7 @@ from twin.campaign.decisions import Assignment, LabView, Planner, Scheduler
 from twin.core.errors import ClockError
 from twin.campaign.journal import Journal
 from twin.core.messages import Kind
+from twin.runtime.checked_scheduler import fallbacks
 from twin.runtime.fast_device import FastDevice
 from twin.runtime.queue import EventQueue, Timer
 from twin.scenario import Scenario
@@ -48,6 +49,11 @@ class Seat:
         self.alerts = ALERTS if alerts else frozenset()
         self.timers: dict[TimerKey, Timer] = {}
         self.view: LabView | None = None  # a decision the caller of next_decision() is to make
+        for rule in fallbacks(scheduler):  # a scheduler's mistakes covered: journalled when the reason changes
+            rule.on_fallback = self._fell_back
+
+    def _fell_back(self, reason: str) -> None:
+        self.journal.event(self.queue.now, "scheduler.fallback", detail=reason)
 
     def perform(self, actions: list[Any]) -> None:
         journal, progressed, watched = self.journal, False, self.on_progress is not None

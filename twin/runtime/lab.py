@@ -315,11 +315,6 @@ def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[Campa
     journal = open_journal(s, journal_path, make_journal)
     checked = CheckedScheduler(scheduler, _fallback(s), s.campaign.scheduler)
     camp = FastCampaign(s, drivers, journal, planner, checked, on_progress=on_progress, observer=observer)
-
-    def fell_back(reason: str) -> None:
-        journal.event(camp.now, "scheduler.fallback", detail=reason)
-
-    checked.fallback.on_fallback = fell_back
     with _stop_on_signals(camp.stop, handle_signals):
         try:
             camp.run()

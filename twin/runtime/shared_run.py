@@ -22,7 +22,7 @@ from twin.runtime.lab import (REMOTE, JournalFactory, _agent_on_bus, _fallback, 
                               load_drivers, make_bus, make_clock, make_planner, make_scheduler, open_journal,
                               refuse_realtime)
 from twin.runtime.checks import check_campaign
-from twin.runtime.checked_scheduler import CheckedScheduler
+from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.live_lab import LiveLab
 from twin.campaign.human import DRIVER as HUMAN
@@ -218,9 +218,10 @@ def lab_summaries(shared: SharedLab, parts: dict, wall0: float, now: float,
             notes: dict[str, Callable[[str, Any], None]] | None = None) -> dict[str, Summary]:
     """Each started campaign's summary, journalled; a campaign that never started says why in its journal."""
     summaries = {}
-    for name, (journal, _, _) in parts.items():
+    for name, (journal, _, scheduler) in parts.items():
         if name in shared.started:
-            summaries[name] = finish(shared.cores[name], journal, wall0, now, (notes or {}).get(name))
+            summaries[name] = finish(shared.cores[name], journal, wall0, now, (notes or {}).get(name),
+                                     sum(rule.count for rule in fallbacks(scheduler)))
         else:
             journal.event(now, "campaign.not_started", detail=shared.unsubmitted.get(name, "the lab ended first"))
             journal.close()
