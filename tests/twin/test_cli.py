@@ -190,3 +190,27 @@ def test_a_workflow_that_measures_before_it_reacts_is_refused_per_experiment_wit
     assert summary["quarantines"] == 0 and summary["infeasible"] == 6
     assert "cannot measure a sample of kind 'feed'" in summary["abandoned_examples"]["infeasible"]
     assert "check the workflow's order" in summary["abandoned_examples"]["infeasible"]
+
+
+@pytest.mark.parametrize("damage,says", [
+    ("UPDATE events SET detail = 'not json {' WHERE seq = 3", "event 3 is damaged (its detail is not JSON"),
+    ("UPDATE events SET experiment = 'zz' WHERE seq = 4", "event 4 is damaged (its experiment is 'zz'"),
+    ("UPDATE events SET t_lab = 'noon' WHERE seq = 5", "event 5 is damaged (its lab time is 'noon'"),
+])
+def test_a_journal_altered_row_by_row_is_refused_naming_the_row(tmp_path, damage, says):
+    """SQLite keeps whatever a row is given: replay and export check each row instead of failing on it later."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+    from twin.runtime.lab import run
+
+    db = tmp_path / "qd.db"
+    run(ROOT / "scenarios" / "quantum_dots.yaml", journal=db, bus="memory", overrides={"campaign.budget": 3})
+    with sqlite3.connect(db) as conn:
+        conn.execute(damage)
+    for command in (["replay", str(db), "--save", str(tmp_path / "r.rrd")],
+                    ["export", str(db), "--format", "csv", "--out", str(tmp_path / "out")]):
+        res = CliRunner().invoke(app, command, env={"COLUMNS": "200"})
+        out = " ".join(res.output.split())
+        assert res.exit_code == 2 and says in out and "altered or corrupted" in out, (command, out)
+    assert CliRunner().invoke(app, ["report", str(db)], env={"COLUMNS": "200"}).exit_code == 0

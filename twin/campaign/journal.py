@@ -220,10 +220,39 @@ def read_experiments(path: str | Path) -> list[dict[str, Any]]:
 
 
 def read_events(path: str | Path, kind_like: str = "%") -> list[dict[str, Any]]:
+    """The journal's events in order; a row no labtwin wrote (a time that is not a number, a detail that is not
+    JSON, ...) raises ``NotAJournal`` naming it, rather than failing whatever reads the rows after."""
     with reading(path) as db:
         db.row_factory = sqlite3.Row
-        rows = db.execute("SELECT * FROM events WHERE kind LIKE ? ORDER BY seq", (kind_like,))
-        return [dict(r) for r in rows]
+        rows = [dict(r) for r in db.execute("SELECT * FROM events WHERE kind LIKE ? ORDER BY seq", (kind_like,))]
+    for row in rows:
+        damage = _damage(row)
+        if damage:
+            raise NotAJournal(f"{path}: event {row.get('seq')} is damaged ({damage}); labtwin never writes such a "
+                              "row, so the journal was altered or corrupted (twin report still reads its summary)")
+    return rows
+
+
+def _damage(row: dict[str, Any]) -> str:
+    """What is wrong with an event row, or ''."""
+    t = row.get("t_lab")
+    if type(t) not in (int, float) or t != t or t in (float("inf"), float("-inf")):
+        return f"its lab time is {str(t)[:20]!r}, not a number"
+    if type(row.get("kind")) is not str or not row["kind"]:
+        return "it has no kind"
+    for field in ("experiment", "attempt"):
+        if row.get(field) is not None and type(row[field]) is not int:
+            return f"its {field} is {str(row[field])[:20]!r}, not a whole number"
+    for field in ("task", "device"):
+        if row.get(field) is not None and type(row[field]) is not str:
+            return f"its {field} is not text"
+    detail = row.get("detail")
+    if detail is not None:
+        try:
+            json.loads(detail)
+        except (TypeError, ValueError, RecursionError):
+            return f"its detail is not JSON: {str(detail)[:40]!r}"
+    return ""
 
 
 def decision_id(seq: int) -> str:
