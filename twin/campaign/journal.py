@@ -19,6 +19,7 @@ from typing import Any
 import msgspec
 
 from twin.core.errors import TwinError
+from twin.core.numbers import finite
 from twin.core.messages import plain_value
 from twin.core.messages import to_wire
 
@@ -236,7 +237,7 @@ def read_events(path: str | Path, kind_like: str = "%") -> list[dict[str, Any]]:
 def _damage(row: dict[str, Any]) -> str:
     """What is wrong with an event row, or ''."""
     t = row.get("t_lab")
-    if type(t) not in (int, float) or t != t or t in (float("inf"), float("-inf")):
+    if not finite(t):
         return f"its lab time is {str(t)[:20]!r}, not a number"
     if type(row.get("kind")) is not str or not row["kind"]:
         return "it has no kind"

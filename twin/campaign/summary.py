@@ -63,11 +63,12 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
     exps = core.experiments
     status = Counter(str(e.status) for e in exps)
     elapsed = max(core.elapsed_s, 1e-9)
-    reasons = Counter(_reason_kind(e.reason) for e in exps if e.status == "abandoned")
-    examples: dict[str, str] = {}
+    reasons: Counter[str] = Counter()
+    examples: dict[str, str] = {}  # each kind's first reason, in full
     for e in exps:
         if e.status == "abandoned":
             kind = _reason_kind(e.reason)
+            reasons[kind] += 1
             examples.setdefault(kind, e.reason.removeprefix(f"{kind}: ")[:EXAMPLE_CHARS])
     best = {}
     for name, (score, exp_id) in core.best.items():

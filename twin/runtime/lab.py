@@ -28,7 +28,7 @@ from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.off_loop import OffLoopScheduler
-from twin.runtime.checked_scheduler import CheckedScheduler
+from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
 from twin.runtime.run_record import provenance
 from twin.campaign.human import DRIVER as HUMAN
@@ -429,15 +429,10 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         camp = LiveCampaign(s, bus, clock, journal, planner, scheduler, on_progress=on_progress, rebuilt=rebuilt,
                             observer=observer)
         remote = scheduler if isinstance(scheduler, RemoteScheduler) else None
-        guarded = scheduler if isinstance(scheduler, RemoteScheduler | OffLoopScheduler) else None
         stack.callback(lambda: result.setdefault("summary", finish(
-            camp.core, journal, wall0, clock.now(), camp.note,
-            (guarded.fallback.count if guarded else 0) + (checked.fallback.count if checked else 0))))
-        if checked is not None:
-            checked.fallback.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
-        if guarded is not None:
-            guarded.fallback.on_fallback = lambda reason: camp.note("scheduler.fallback", reason)
-            stack.callback(guarded.close)
+            camp.core, journal, wall0, clock.now(), camp.note, sum(rule.count for rule in fallbacks(scheduler)))))
+        if isinstance(scheduler, RemoteScheduler | OffLoopScheduler):
+            stack.callback(scheduler.close)
         if service is not None:
             stack.callback(service.stop)
         for actor in build_actors(s, drivers, bus, clock):

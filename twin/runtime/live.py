@@ -32,6 +32,7 @@ from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.bus import NoReplyError
 from twin.core.messages import InvalidMessage, Kind, decode, excerpt, pack, without_token
+from twin.runtime.checked_scheduler import fallbacks
 from twin.runtime.control import ControlDesk
 from twin.runtime.decision_stream import SENDER, DecisionStream
 from twin.view.observer import UNDRAWN, WATCHED
@@ -106,6 +107,8 @@ class LiveCampaign:
         self.observer = observer
         self.s, self.bus, self.clock, self.journal = scenario, bus, clock, journal
         self.planner, self.scheduler, self.on_progress = planner, scheduler, on_progress
+        for rule in fallbacks(scheduler):  # a scheduler's mistakes covered: journalled when the reason changes
+            rule.on_fallback = lambda reason: self.note("scheduler.fallback", reason)
         self.core = rebuilt.core if rebuilt is not None else core or CampaignCore(scenario, campaign_id)
         self._rebuilt = rebuilt
         # a live campaign journals its core's inputs, so that a killed one can be rebuilt (virtual time re-runs)

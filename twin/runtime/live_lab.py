@@ -19,7 +19,6 @@ from twin.core.bus import Bus
 from twin.core.clock import LabClock
 from twin.campaign import Presence
 from twin.core.errors import ScenarioError, TwinError
-from twin.runtime.checked_scheduler import fallbacks
 from twin.runtime.lab_desk import LabDesk
 from twin.runtime.live import EventDecoder, LiveCampaign, ask_scheduler
 from twin.scenario import Scenario
@@ -37,8 +36,6 @@ class LiveSeat(LiveCampaign):
         super().__init__(*args, **kwargs)
         self._lab = lab
         self.decisions.shared = True
-        for rule in fallbacks(self.scheduler):  # as a campaign on its own journals them
-            rule.on_fallback = lambda reason: self.note("scheduler.fallback", reason)
 
     def on_bus(self) -> list[Any]:
         """Its history for watchers, and its token: how a watcher finds the lab's campaigns."""

@@ -115,12 +115,11 @@ def variants(scenario: Scenario, vary: list[tuple[str, list[Any]]], schedulers: 
         for name, value in combo:
             if name.rsplit(".", 1)[-1] in ("scheduler", "lab_scheduler") and value:
                 make_scheduler(lab, str(value))  # an unknown rule or a policy file that is not there: said now too
-        if any(name.startswith(("devices.", "chemistry.", "workflow", "campaign.planner")) for name, _ in combo):
-            try:  # another driver, steps, model or planner: what only the installed plugins can refuse, said now
-                check(lab)
-            except TwinError as exc:
-                problems = exc.problems if isinstance(exc, ScenarioError) else [str(exc)]
-                raise ScenarioError(f"--vary {label}", problems) from None
+        try:  # another driver, steps, model or planner: what only the installed plugins can refuse, said now
+            check(lab)
+        except TwinError as exc:
+            problems = exc.problems if isinstance(exc, ScenarioError) else [str(exc)]
+            raise ScenarioError(f"--vary {label}", problems) from None
         out.append(Variant(label, tuple(combo)))
     return out
 
