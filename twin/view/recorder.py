@@ -3,23 +3,15 @@
 A ``RerunCanvas`` draws what the ``LabObserver`` derives on one lab-time
 timeline (``lab_time``) plus a sequence timeline of experiment numbers
 (``experiment``); ``open_recording`` attaches the sinks a user asked for —
-a file, a spawned viewer, a loopback web viewer — and never lets a sink that
-fails take the campaign down.
+a file, a spawned viewer, a loopback web viewer (their processes:
+``viewer_process``) — and never lets a sink that fails take the campaign down.
 """
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import logging
-import os
-import select
-import signal
-import shutil
-import socket
 import subprocess
-import sys
-import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -29,6 +21,7 @@ import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
+from twin.view import viewer_process
 from twin.view.observer import STATES
 
 log = logging.getLogger(__name__)
@@ -316,7 +309,7 @@ class Recording:
 
     def stop_serving(self) -> None:
         if self.server is not None:
-            _stop(self.server)
+            viewer_process.stop(self.server)
             self.server = None
 
 
@@ -341,107 +334,18 @@ def open_recording(recording_id: str, save: str | Path | None = None, viewer: bo
         Path(save).parent.mkdir(parents=True, exist_ok=True)
         sinks.append(rr.FileSink(str(save)))
     if viewer:
-        url = _spawn_viewer(out)
+        url = viewer_process.spawn_viewer(out.messages)
         if url:
             sinks.append(rr.GrpcSink(url))
     if serve:
-        url = _serve(out, serve_port, web_port)
-        if url:
+        served = viewer_process.serve(serve_port, web_port, out.messages)
+        if served:
+            out.server, out.url, url = served
             sinks.append(rr.GrpcSink(url))
     if sinks:
         layout = lab_blueprint(campaigns) if campaigns is not None else blueprint() if campaign_layout else None
         rec.set_sinks(*sinks, default_blueprint=layout)
     return out
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    """End a rerun process and its children (the `rerun` command is a wrapper that starts the viewer)."""
-    with contextlib.suppress(ProcessLookupError):
-        os.killpg(proc.pid, signal.SIGTERM)
-    try:
-        proc.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-
-
-def _rerun_cli() -> str | None:
-    here = Path(sys.executable).parent / "rerun"
-    return str(here) if here.exists() else shutil.which("rerun")
-
-
-def _free(port: int) -> int | None:
-    """``port`` if it can be bound on loopback (0 picks one), else None."""
-    with socket.socket() as s:
-        try:
-            s.bind(("127.0.0.1", port))
-        except OSError:
-            return None
-        return s.getsockname()[1]
-
-
-def _spawn_viewer(out: Recording) -> str | None:
-    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        out.messages.append("viewer: no display here (DISPLAY is unset); the campaign runs without it. "
-                            "Use --save run.rrd and open it with `rerun run.rrd`, or --serve for a web viewer.")
-        return None
-    cli = _rerun_cli()
-    port = _free(0)
-    if cli is None or port is None:
-        out.messages.append("viewer: the rerun command is not installed; the campaign runs without it")
-        return None
-    subprocess.Popen([cli, "--port", str(port), "--bind", "127.0.0.1"], stdout=subprocess.DEVNULL,
-                     stderr=subprocess.DEVNULL, start_new_session=True)
-    return f"rerun+http://127.0.0.1:{port}/proxy"
-
-
-def _serve(out: Recording, grpc_port: int, web_port: int) -> str | None:
-    cli = _rerun_cli()
-    grpc, web = _free(grpc_port), _free(web_port)
-    if cli is None:
-        out.messages.append("serve: the rerun command is not installed; the campaign runs without serving")
-        return None
-    if grpc is None or web is None:
-        busy = grpc_port if grpc is None else web_port
-        out.messages.append(f"serve: port {busy} on 127.0.0.1 is in use; pick another with --serve-port/--web-port. "
-                            "The campaign runs without serving.")
-        return None
-    out.server = subprocess.Popen(
-        [cli, "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc), "--web-viewer-port", str(web)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
-    if not _wait_listening(out.server, grpc, web):
-        _stop(out.server)
-        err = out.server.stderr.read().decode(errors="replace")[-300:] if out.server.stderr else ""
-        out.messages.append(f"serve: the rerun server did not start ({err.strip() or 'no reason given'}); "
-                            "the campaign runs without serving")
-        out.server = None
-        return None
-    grpc_url = f"rerun+http://127.0.0.1:{grpc}/proxy"
-    out.url = f"http://127.0.0.1:{web}/?url={grpc_url}"
-    out.messages.append(f"serving the live campaign at {out.url}")
-    return grpc_url
-
-
-def _wait_listening(proc: subprocess.Popen, grpc: int, web: int, seconds: float = 15.0) -> bool:
-    """Read the server's log until it says both its gRPC and web ports listen."""
-    fd = proc.stderr.fileno()  # raw reads: a buffered reader could hold lines select() cannot see
-    waiting, log_text = {f"127.0.0.1:{grpc}".encode(), f"127.0.0.1:{web}".encode()}, b""
-    while waiting and len(log_text) < 1 << 20:
-        ready, _, _ = select.select([fd], [], [], seconds)
-        chunk = os.read(fd, 65536) if ready else b""
-        if not chunk:
-            return False
-        log_text += chunk
-        waiting = {w for w in waiting if w not in log_text}
-    threading.Thread(target=_drain, args=(fd,), daemon=True).start()  # keep its pipe from filling
-    return not waiting
-
-
-def _drain(fd: int) -> None:
-    with contextlib.suppress(OSError):
-        while os.read(fd, 65536):
-            pass
 
 
 def save_whatif(path: str | Path, scenario: str, summary: list[dict[str, Any]]) -> None:
