@@ -9,6 +9,7 @@ import yaml
 
 from tests.conftest import qd_lab
 from twin.core.errors import DriverError, ScenarioError
+from twin.runtime.checks import check
 from twin.runtime.lab import load_driver
 from twin.scenario import load
 
@@ -92,3 +93,26 @@ def test_cli_run_of_a_bad_scenario_exits_2(tmp_path):
 def test_shipped_scenarios_validate():
     res = twin("validate", *sorted(str(p) for p in (ROOT / "scenarios").glob("*.yaml")))
     assert res.returncode == 0, res.stderr
+
+
+def test_twin_run_names_the_file_and_field_of_a_driver_it_cannot_load_before_running(tmp_path):
+    path = write(tmp_path, qd_lab(**{"devices.spectrometer.driver": "robot9000"}), "lab.yaml")
+    journal = tmp_path / "j.db"
+    res = twin("run", str(path), "--bus", "memory", "--journal", str(journal))
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+    assert f"{path}: 1 problem(s)" in res.stderr and "devices.spectrometer.driver: unknown driver 'robot9000'" in (
+        res.stderr)
+    assert "lab 0.0 h" not in res.stderr and not journal.exists()  # refused before the progress bar, the journal
+
+
+def test_a_device_type_served_elsewhere_is_not_loaded_here(tmp_path):
+    """Its driver may be installed only where it is served (`twin device serve`); what it outputs is not known
+    here, so targets are not checked against it. Not every instance elsewhere: this process loads it."""
+    s = load(write(tmp_path, qd_lab(**{"devices.spectrometer.driver": "robot9000"})))
+    check(s, external=s.instance_names("spectrometer"))
+    with pytest.raises(ScenarioError, match="devices.spectrometer.driver"):
+        check(s)
+    two = load(write(tmp_path, qd_lab(**{"devices.spectrometer.driver": "robot9000",
+                                        "devices.spectrometer.instances": 2}), "two.yaml"))
+    with pytest.raises(ScenarioError, match="devices.spectrometer.driver"):
+        check(two, external=two.instance_names("spectrometer")[:1])

@@ -16,7 +16,7 @@ from twin.cli.common import _fail, app, console, err, keep_serving, machine_outp
 from twin.cli.sharing import shared_lab
 from twin.core import plugins
 from twin.runtime import lab
-from twin.runtime.checks import validate_file
+from twin.runtime.checks import checked, validate_file
 from twin.core.errors import TwinError
 from twin.campaign.journal import no_such_journal, read_run
 from twin.view.report import render_summary
@@ -83,6 +83,10 @@ def run(
     if s.campaigns:
         shared_lab(s, journal, record, quiet, json_out, external)
         return
+    try:
+        checked(s, scenario, external or ())
+    except TwinError as exc:
+        _fail(exc)
     _campaign(s, record, quiet, json_out, lambda on_progress, observer: lab.run(
         s, journal=journal, external_devices=set(external or ()), on_progress=on_progress, observer=observer,
         runtime=runtime))

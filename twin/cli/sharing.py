@@ -29,7 +29,7 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
     recording = None
     try:
         if s.campaigns or resuming is None:  # a served lab resumed may have had none yet
-            check(s)
+            check(s, external or ())
         observer = None
         if record.wanted:
             devices = {name: dtype for dtype in s.devices for name in s.instance_names(dtype)}
@@ -99,7 +99,7 @@ def lab_serve(
     try:
         s = lab.prepare(lab_file, clock=clock, speed=speed, bus="zenoh", overrides=overrides, lab_only=True)
         if s.campaigns:
-            check(s)
+            check(s, external or ())
 
         def started(live) -> None:
             err.print(f"serving lab {s.lab} ({s.clock.mode} clock"

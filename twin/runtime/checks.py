@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
@@ -14,34 +14,38 @@ from twin.scenario import Scenario, load
 from twin.scenario.sharing import campaign_scenarios
 
 
-def check(s: Scenario) -> None:
+def check(s: Scenario, external: Collection[str] = ()) -> None:
     """What only the installed plugins can tell about ``s`` (``twin validate`` and ``twin run`` both ask):
     its drivers, planner, scheduler and fallback load; its targets ask for outputs the workflow produces;
     its Zenoh settings make a config. A lab of several campaigns: each campaign's, on the device types its
-    workflow uses."""
+    workflow uses. ``external``: instances served by other processes, whose drivers need not be installed here
+    (a device type all of whose instances are external is not loaded)."""
     if not s.campaigns:
-        _check(s)
+        _check(s, external=external)
         return
     for i, (name, cs) in enumerate(campaign_scenarios(s, s.name).items()):
         try:
-            check_campaign(cs)
+            check_campaign(cs, external)
         except ScenarioError as exc:
             raise ScenarioError(exc.source or s.name, [f"campaigns.{i} ({name}): {p}" for p in exc.problems]) from None
 
 
-def check_campaign(s: Scenario) -> None:
+def check_campaign(s: Scenario, external: Collection[str] = ()) -> None:
     """What the installed plugins tell about one campaign of a shared lab, on the device types it uses."""
-    _check(s, {w.device for w in s.workflow})
+    _check(s, {w.device for w in s.workflow}, external)
 
 
-def _check(s: Scenario, types: set[str] | None = None) -> None:
+def _check(s: Scenario, types: set[str] | None = None, external: Collection[str] = ()) -> None:
+    elsewhere = {dtype for dtype in s.devices if set(s.instance_names(dtype)) <= set(external)}
     drivers = {dtype: _at(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0])
-               for dtype in s.devices if s.devices[dtype].driver != HUMAN and (types is None or dtype in types)}
+               for dtype in s.devices if s.devices[dtype].driver != HUMAN and (types is None or dtype in types)
+               and dtype not in elsewhere}
     _at("campaign.planner", make_planner, s)
     _at("campaign.scheduler", make_scheduler, s)
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
     used = {w.device for w in s.workflow} or set(s.devices)
-    declared = [feature(drivers[d], "outputs") if d in drivers else set() for d in used]
+    # a type served elsewhere produces what its driver there says: unknown here, so targets are not checked
+    declared = [None if d in elsewhere else feature(drivers[d], "outputs") if d in drivers else set() for d in used]
     if s.chemistry.targets and all(o is not None for o in declared):
         produced = set().union(*declared)
         for i, t in enumerate(s.chemistry.targets):
@@ -71,12 +75,12 @@ def validate_file(path: str | Path) -> Scenario:
     return checked(load(path), path)
 
 
-def checked(s: Scenario, path: str | Path) -> Scenario:
-    """``s`` (read from ``path``) checked against the installed plugins; its errors name the file. What a bench,
-    a what-if or a training checks before its workers start, so that a driver that cannot run the lab is one
-    error, not a traceback from a worker."""
+def checked(s: Scenario, path: str | Path, external: Collection[str] = ()) -> Scenario:
+    """``s`` (read from ``path``) checked against the installed plugins; its errors name the file. What `twin run`
+    checks before its progress bar, and a bench, a what-if or a training before its workers start, so that a
+    driver that cannot run the lab is one error naming the file and field, not a traceback from a worker."""
     try:
-        check(s)
+        check(s, external)
     except ScenarioError as exc:
         raise ScenarioError(str(path), exc.problems) from None
     except TwinError as exc:
