@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from twin import DriverError, DriverSetup, StepContext, StepResult
+from twin import DriverSetup, Refused, StepContext, StepResult
 
 
 class {cls}:
@@ -26,8 +26,8 @@ class {cls}:
         self.noise_nm = float(setup.options.get("noise_nm", 0.5))
 
     async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
-        if not sample or "peak_nm" not in sample:
-            raise DriverError(f"{{self.name}}: nothing to measure in {{sample!r:.80}}")
+        if not sample or "peak_nm" not in sample:  # the workflow's doing, not a fault: refused, not retried
+            raise Refused(f"{{self.name}}: nothing to measure in {{sample!r:.80}}", infeasible=True)
         await ctx.clock.sleep(ctx.draw_duration(params))  # replace with talking to the instrument
         peak = sample["peak_nm"] + float(ctx.rng.normal(0.0, self.noise_nm))
         return StepResult({{"peak_nm": round(peak, 3)}}, sample)
@@ -42,7 +42,7 @@ from pathlib import Path
 
 import pytest
 
-from twin import DriverError, driver_setup, run_scenario, run_step
+from twin import Refused, driver_setup, run_scenario, run_step
 from {module}.driver import {cls}
 
 HERE = Path(__file__).resolve().parents[1]
@@ -54,7 +54,7 @@ def test_it_measures_a_sample():
 
 
 def test_it_refuses_a_missing_sample():
-    with pytest.raises(DriverError, match="nothing to measure"):
+    with pytest.raises(Refused, match="nothing to measure"):
         run_step({cls}(driver_setup("{name}-1")), "measure", {{}}, None)
 
 
