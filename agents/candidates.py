@@ -24,6 +24,7 @@ without them, and is blind to campaigns (``agents.candidate_policy.widened`` sta
 from __future__ import annotations
 
 import bisect
+from typing import Any
 
 import numpy as np
 
@@ -56,12 +57,65 @@ def _ranks(values: list[float]) -> list[float]:
     return [bisect.bisect_left(order, v) / (len(values) - 1) for v in values]
 
 
+class Observed:
+    """The range of every column a policy saw on the labs it was judged on (the rows of its candidates and the
+    globals), kept in its policy file as ``observed``. A policy deciding in a larger lab than it trained on
+    sees counts and work it never met (a 50-job shop queues five times the steps of the 10-job ones); held at
+    the edge of this range, those read as the most it knows instead of as values its network never fitted."""
+
+    def __init__(self, width: int) -> None:
+        self.lo = np.full(width, np.inf, np.float32)
+        self.hi = np.full(width, -np.inf, np.float32)
+        self.glo = np.full(GLOBALS, np.inf, np.float32)
+        self.ghi = np.full(GLOBALS, -np.inf, np.float32)
+
+    def add(self, rows: np.ndarray, glob: np.ndarray) -> None:
+        if len(rows):
+            np.minimum(self.lo, rows.min(0), out=self.lo)
+            np.maximum(self.hi, rows.max(0), out=self.hi)
+        np.minimum(self.glo, glob, out=self.glo)
+        np.maximum(self.ghi, glob, out=self.ghi)
+
+    def merge(self, other: Observed | None) -> Observed:
+        """This range widened by ``other``'s."""
+        if other is not None:
+            for mine, theirs, keep in ((self.lo, other.lo, np.minimum), (self.hi, other.hi, np.maximum),
+                                       (self.glo, other.glo, np.minimum), (self.ghi, other.ghi, np.maximum)):
+                keep(mine, theirs, out=mine)
+        return self
+
+    def to_meta(self) -> dict | None:
+        if not np.isfinite(self.lo).all():
+            return None  # no candidate was ever seen
+        return {"rows": [self.lo.tolist(), self.hi.tolist()], "globals": [self.glo.tolist(), self.ghi.tolist()]}
+
+    @classmethod
+    def from_meta(cls, meta: Any, width: int, where: str) -> Observed:
+        """The range a policy file records (``where`` names it in the error if it is not one)."""
+        try:
+            rows, glob = meta["rows"], meta["globals"]
+            out = cls(width)
+            out.lo, out.hi = (np.asarray(v, np.float32) for v in rows)
+            out.glo, out.ghi = (np.asarray(v, np.float32) for v in glob)
+            shapes_fit = out.lo.shape == out.hi.shape == (width,) and out.glo.shape == out.ghi.shape == (GLOBALS,)
+            ordered = shapes_fit and bool((out.lo <= out.hi).all() and (out.glo <= out.ghi).all())
+            finite = ordered and all(np.isfinite(v).all() for v in (out.lo, out.hi, out.glo, out.ghi))
+        except (KeyError, TypeError, ValueError):
+            finite = False
+        if not finite:
+            raise ValueError(f"{where}: its 'observed' is not two ranges of finite numbers ({width} row columns, "
+                             f"{GLOBALS} globals, low ≤ high); policies are saved by `twin train`")
+        return out
+
+
 class CandidateEncoder:
     def __init__(self, scenario: Scenario, encoding: str = ENCODING) -> None:
         self.width = WIDTHS[encoding]  # a policy of an earlier encoding reads the first columns only
         self.scale = time_scale(scenario)
         self.stability = scenario.chemistry.stability_s or 0.0
         self.encoded: list[tuple[ReadyStep, str]] = []  # the candidates of the view last encoded, in row order
+        self.held: Observed | None = None  # what it sees is held inside this range (the policy's observed one)
+        self.seen: Observed | None = None  # what it sees is added to this range (a policy being judged)
 
     def pairs(self, view: LabView) -> list[tuple[ReadyStep, str]]:
         """The candidates, in row order: steps by most work remaining, then devices by name."""
@@ -160,7 +214,13 @@ class CandidateEncoder:
                          view.finished / max(view.budget, 1), view.in_lab / max(view.budget, 1),
                          sum(not d.online for d in view.devices) / n, now / (k * 100.0)], np.float32)
         mask[WAIT] = busy > 0 or not pairs
-        obs = np.concatenate([np.clip(rows[:, :self.width], -CLIP, CLIP).ravel(), np.clip(glob, -CLIP, CLIP)])
+        rows, glob = np.clip(rows[:, :self.width], -CLIP, CLIP), np.clip(glob, -CLIP, CLIP)
+        if self.seen is not None:
+            self.seen.add(rows[:len(pairs)], glob)
+        if self.held is not None:
+            np.clip(rows[:len(pairs)], self.held.lo, self.held.hi, out=rows[:len(pairs)])
+            np.clip(glob, self.held.glo, self.held.ghi, out=glob)
+        obs = np.concatenate([rows.ravel(), glob])
         return obs.astype(np.float32), mask
 
     @staticmethod

@@ -38,13 +38,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from agents.candidates import FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, lab_shape, widen
+from agents.candidates import (FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, Observed, WIDTHS,
+                               lab_shape, widen)
 from agents.cpsat import jobshop
 from agents.scheduling_env import randomised
 from agents.schedulers import rules_for
 from agents.teachers import PlanTeacher, RuleTeacher, solve_time
 from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, initial_state, objective, started_from
-from twin import Scenario, jobshop_as_lab, load_plugin, prepare, random_jobshop, stepped
+from twin import PluginError, Scenario, jobshop_as_lab, load_plugin, prepare, random_jobshop, stepped
 
 
 @dataclass
@@ -268,6 +269,13 @@ def training_fits(scenario: Scenario) -> dict:
     return {"steps": ["op"], "device_types": [min(machines), max(machines)], "instances": [1, 1]}
 
 
+def trained_from_width(init) -> int:
+    """The row width of the candidate policy in ``init`` (0 for another kind)."""
+    from twin import read_meta
+
+    return WIDTHS.get(read_meta(Path(init)).get("signature", {}).get("encoding"), 0)
+
+
 def check_imitable(scenario: Scenario, init) -> None:
     if scenario.training.teacher == "self" and init is None:
         raise ValueError(
@@ -319,6 +327,13 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     task = self_task if itself else shop_task if jobshop else lab_task
     if jobshop:
         fits = widen(fits, training_fits(scenario))
+    trained_on = judge.trained_on = Observed(FEATURES)  # the range of what it learns from, kept with the policy
+    started = read_meta(Path(init)).get("observed") if init is not None else None
+    if started is not None and trained_from_width(init) == FEATURES:  # and of what the policy it starts from learnt
+        try:
+            trained_on.merge(Observed.from_meta(started, FEATURES, str(Path(init).with_suffix(".json"))))
+        except ValueError as exc:
+            raise PluginError(str(exc)) from None
     if init is not None:
         judge(model, 0, fits, "start (--init)")
     data: list[Sample] = []
@@ -337,6 +352,8 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
             for samples, info in pool.imap_unordered(
                     task, [(scenario, shop + i, modes, state, beta) for i in range(count)]):
                 data += samples
+                for sample in samples:
+                    trained_on.add(sample.rows, sample.glob)
                 got += len(samples)
                 measured.append(info)
                 if "shape" in info:

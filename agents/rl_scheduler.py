@@ -40,8 +40,9 @@ def _check_fit(path: Path, meta: dict, scenario: Any) -> str:
     why = candidates.outside(fits, candidates.lab_shape(scenario))
     if not why:
         return ""
-    text = (f"{path} was trained on labs unlike {scenario.name!r}: {'; '.join(why)}. It may schedule it poorly; "
-            f"train on this lab's shapes (its `training` section) to be sure")
+    held = " (what it sees beyond the range it was judged on is held at that range's edge)" if "observed" in meta else ""
+    text = (f"{path} was trained on labs unlike {scenario.name!r}: {'; '.join(why)}. It may schedule it poorly"
+            f"{held}; train on this lab's shapes (its `training` section) to be sure")
     if scenario.campaign.policy_fit == "refuse":
         raise PluginError(text + " (campaign.policy_fit: refuse)")
     if text not in _warned:
@@ -73,6 +74,12 @@ class RlScheduler:
         self.model = load_policy(path, "scheduler", sign)
         self.misfit = _check_fit(path, meta, scenario)
         self.encoder = encoder_for(scenario, encoding or "slots")
+        if "observed" in meta and isinstance(self.encoder, candidates.CandidateEncoder):
+            try:
+                self.encoder.held = candidates.Observed.from_meta(meta["observed"], self.encoder.width,
+                                                                  str(path.with_suffix(".json")))
+            except ValueError as exc:
+                raise PluginError(str(exc)) from None
         self.sees_campaigns = encoding == candidates.ENCODING
         # warm up torch
         self.model.predict(np.zeros(sign["observation_size"], np.float32), action_masks=np.ones(sign["actions"], bool))

@@ -18,7 +18,7 @@ import torch
 from agents.scheduling_env import SchedulingEnv, randomised
 from agents.rl_scheduler import RlScheduler
 from agents.candidates import signature as candidate_signature
-from agents.candidates import widen
+from agents.candidates import FEATURES, Observed, widen
 from agents.scheduling_features import signature, time_scale
 from agents.schedulers import rules_for
 from twin import load_plugin, load_policy
@@ -178,18 +178,20 @@ class Judge:
         self.solver = solver_reference(scenario, eval_seeds, self.held_out)
         self.best: float | None = None
         self.curve: list[dict] = []
+        self.trained_on: Observed | None = None  # what a policy taught by labels saw in them (imitation adds it)
         if on_progress:
             on_progress(0, {"policy": f"best rule: {self.best_rule}", **self.rules[self.best_rule]})
 
     def __call__(self, model: Any, done: int, fits: dict | None, policy: str, seen: dict | None = None) -> dict:
         """``seen``: what training itself measured, reported first."""
         s, rules, best_rule = self.scenario, self.rules, self.best_rule
-        decide = RlScheduler.from_model(model, s, self.encoding).decide
+        observed = Observed(FEATURES) if self.encoding == "candidates" else None
+        decide = self._decider(model, s, observed)
         result = {**(seen or {}), **score([campaign(s, seed, decide) for seed in self.eval_seeds], s)}
         result["vs best rule"] = result["makespan h"] / rules[best_rule]["makespan h"]
         ratios = [result["objective"] / rules[best_rule]["objective"]]
         result["objective vs best rule"] = ratios[0]
-        held = [campaign(lab, 0, RlScheduler.from_model(model, lab, self.encoding).decide) for lab in self.held_out]
+        held = [campaign(lab, 0, self._decider(model, lab, observed)) for lab in self.held_out]
         if held:  # labs it never trained on: each against the best rule there
             ratios += [objective(summary, lab) / ref for summary, lab, ref in zip(held, self.held_out, self.rule_spans)]
             result["held-out vs best rule"] = statistics.mean(ratios[1:])
@@ -202,11 +204,21 @@ class Judge:
         self.curve.append({"steps": done, **result})
         if self.best is None or result["score"] <= self.best:
             self.best = result["score"]
+            seen_range = observed.merge(self.trained_on).to_meta() if observed is not None else None
             save_policy(model, self.out, "scheduler", s, self.sign, steps=done, rules=rules, fits=fits,
-                        best_rule=best_rule, curve=self.curve, **self.extra)
+                        best_rule=best_rule, curve=self.curve, **({"observed": seen_range} if seen_range else {}),
+                        **self.extra)
         if self.on_progress:  # after saving: what the user reads is on disk
             self.on_progress(done, {"policy": policy, **result})
         return result
+
+
+    def _decider(self, model: Any, lab: Scenario, observed: Observed | None):
+        """The policy in training deciding ``lab``, what it sees added to ``observed``: the range it is judged on,
+        which its file records and a lab beyond it is held inside (``agents.candidates.Observed``)."""
+        agent = RlScheduler.from_model(model, lab, self.encoding)
+        agent.encoder.seen = observed
+        return agent.decide
 
 
 def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs: int = 2,

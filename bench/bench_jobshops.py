@@ -4,7 +4,8 @@
 
 Every instance in ../shared/data/jobshop/ (34, with optima from the literature) runs once per scheduler as a
 lab (one device per machine, deterministic, no faults) on the fast runtime; the gap is makespan / optimum − 1.
-Then `--random` random shops each of 10×10, 15×15 and 20×15 (durations 1–99), as makespan relative to MWKR's (and,
+Then `--random` random shops each of 10×10, 15×15 and 20×15 (or `--sizes 30x20,50x20,...`; durations 1–99), as
+makespan relative to MWKR's (and,
 with `--plan-seconds S`, CP-SAT's offline plan of each in S seconds: how far below MWKR any schedule gets). The p99 of
 each scheduler's decision time (wall ms) is measured over every decision it made. `--samples K` adds, for each
 rl policy, the best of K rollouts (greedy + K−1 sampled from the policy at temperature ½): an improvement at
@@ -68,6 +69,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--schedulers", default="fifo,spt,mwkr")
     ap.add_argument("--random", type=int, default=3)
+    ap.add_argument("--sizes", default="10x10,15x15,20x15", help="the random shops' sizes, jobs x machines (the "
+                                                                "policies trained on 6x6 to 20x15)")
     ap.add_argument("--plan-seconds", type=float, default=0.0, help="also CP-SAT's offline plan of each random shop "
                                                                     "(this many seconds, one worker): what any "
                                                                     "schedule can reach there")
@@ -103,7 +106,8 @@ def main() -> None:
           rows)
     base = load_variant(SCENARIO)
     rand_rows = []
-    for jobs, machines in ((10, 10), (15, 15), (20, 15)) if args.random > 0 else ():
+    sizes_asked = [tuple(int(x) for x in size.split("x")) for size in args.sizes.split(",") if size.strip()]
+    for jobs, machines in sizes_asked if args.random > 0 else ():
         ratios: dict[str, list[float]] = {n: [] for n in names}
         for k in range(args.random):
             s = jobshop_as_lab(base, random_jobshop(jobs, machines, 1, 99, random.Random(f"bench:{jobs}x{machines}:{k}")))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from agents.candidates import WAIT, CandidateEncoder
+from agents.candidates import FEATURES, WAIT, CandidateEncoder, Observed
 from agents.cpsat import jobshop
 from agents.imitation import follow_teacher, lab_task, rollout
 from agents.teachers import PlanTeacher, RuleTeacher
@@ -80,6 +80,10 @@ def test_a_short_imitation_beats_random_dispatching_and_says_how_it_learnt(ft06,
     meta = json.loads(out.with_suffix(".json").read_text())
     assert meta["method"] == "imitate" and meta["teacher"] == "cp-sat" and len(meta["curve"]) >= 2
     assert meta["fits"] == {"steps": ["op"], "device_types": [5, 6], "instances": [1, 1]}
+    # the range of what it saw, in its labels and when judged: what a larger lab is held inside
+    observed = Observed.from_meta(meta["observed"], FEATURES, "imitated")
+    assert observed.hi[0] == 1.0 and (observed.hi >= observed.lo).all() and (observed.hi > observed.lo).sum() > 10
+    assert RlScheduler(ft06, str(out)).encoder.held is not None
     assert any("imitation" in r["policy"] for r in seen)
     # against CP-SAT's plans of ft06 and the two held-out shops: no schedule is shorter than an optimal one
     assert all(r["vs cp-sat plan"] >= 1 - 1e-9 for r in seen[1:]) and meta["curve"][0]["vs cp-sat plan"] < 1.5

@@ -1,0 +1,100 @@
+"""A candidate policy holds what it sees inside the range it was judged on (``observed`` in its file): a lab
+larger than any it trained on reads as the most it knows, not as values its network never fitted."""
+
+import json
+import random
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from agents.candidates import GLOBALS, MAX_CANDIDATES, Observed
+from agents.observed_range import observe
+from agents.rl_scheduler import RlScheduler
+from agents.train_scheduler import campaign
+from twin import PluginError, jobshop_as_lab, load_plugin, random_jobshop
+from twin.runtime.lab import prepare
+
+ROOT = Path(__file__).resolve().parents[2]
+POLICY = ROOT / "agents" / "policies" / "jobshop_scheduler.zip"
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def ft06():
+    return prepare(ROOT / "scenarios" / "jobshop.yaml")
+
+
+def long_shop(ft06):
+    """60 jobs on 5 machines: three times the jobs of the largest shop the policy trained on (20)."""
+    return jobshop_as_lab(ft06, random_jobshop(60, 5, 1, 99, random.Random(1)))
+
+
+def unheld(lab):
+    agent = RlScheduler(lab, str(POLICY))
+    agent.encoder.held = None
+    return agent
+
+
+def test_every_shipped_candidate_policy_records_the_range_it_was_judged_on():
+    for name in ("jobshop_scheduler", "flaky_scheduler", "lab_scheduler"):
+        meta = json.loads((ROOT / "agents" / "policies" / f"{name}.json").read_text())
+        width = 29 if name == "jobshop_scheduler" else 34  # candidates-v2 and -v3
+        held = Observed.from_meta(meta["observed"], width, name)
+        assert (held.lo <= held.hi).all() and held.ghi.shape == (GLOBALS,)
+
+
+def test_a_larger_lab_is_seen_inside_the_range_and_scheduled_near_the_rule(ft06):
+    lab = long_shop(ft06)
+    agent = RlScheduler(lab, str(POLICY))
+    held, width, beyond = agent.encoder.held, agent.encoder.width, []
+
+    def decide(view):
+        out = agent.decide(view)
+        obs = agent.encoder.encode(view)[0]
+        rows = obs[:MAX_CANDIDATES * width].reshape(MAX_CANDIDATES, width)[:len(agent.encoder.encoded)]
+        glob = obs[MAX_CANDIDATES * width:]
+        assert (rows >= held.lo - 1e-6).all() and (rows <= held.hi + 1e-6).all()
+        assert (glob >= held.glo - 1e-6).all() and (glob <= held.ghi + 1e-6).all()
+        raw = unheld(lab).encoder.encode(view)[0][MAX_CANDIDATES * width:]
+        beyond.append(bool((raw > held.ghi + 1e-6).any()))
+        return out
+
+    spans = {"held": campaign(lab, 0, decide).lab_hours, "unheld": campaign(lab, 0, unheld(lab).decide).lab_hours,
+             "mwkr": campaign(lab, 0, load_plugin("schedulers", "mwkr")().decide).lab_hours}
+    assert any(beyond)  # the lab did go beyond what the policy was judged on
+    assert spans["held"] <= 1.25 * spans["mwkr"] and spans["unheld"] >= 2 * spans["mwkr"], spans
+
+
+def test_inside_the_range_the_decisions_are_unchanged(ft06):
+    shop = jobshop_as_lab(ft06, random_jobshop(10, 10, 1, 99, random.Random(5)))
+    for lab in (ft06, shop):
+        made = {}
+        for name, agent in (("held", RlScheduler(lab, str(POLICY))), ("unheld", unheld(lab))):
+            decisions = []
+            campaign(lab, 0, lambda view, a=agent, d=decisions: d.append(a.decide(view)) or d[-1])
+            made[name] = [[(x.task, x.device) for x in out] for out in decisions]
+        assert made["held"] == made["unheld"]
+
+
+@pytest.mark.parametrize("damage", [{"rows": [[0.0], [1.0]], "globals": [[0.0] * GLOBALS, [1.0] * GLOBALS]},
+                                    {"rows": "wide"}, [1, 2],
+                                    {"rows": [[1.0] * 29, [0.0] * 29], "globals": [[0.0] * GLOBALS] * 2}])
+def test_a_damaged_range_is_refused_naming_the_file(ft06, tmp_path, damage):
+    copy = tmp_path / "p.zip"
+    shutil.copy(POLICY, copy)
+    meta = json.loads(POLICY.with_suffix(".json").read_text())
+    meta["observed"] = damage
+    copy.with_suffix(".json").write_text(json.dumps(meta))
+    with pytest.raises(PluginError, match=r"p\.json: its 'observed' is not two ranges of finite numbers"):
+        RlScheduler(ft06, str(copy))
+
+
+def test_a_policy_saved_before_ranges_were_kept_gets_one_from_its_labs(ft06, tmp_path):
+    observed = observe(POLICY, ft06, held_out_count=2)
+    held = Observed.from_meta(observed, 29, "here")
+    shipped = Observed.from_meta(json.loads(POLICY.with_suffix(".json").read_text())["observed"], 29, "shipped")
+    # fewer labs than the shipped range was taken over: inside it, and not a single point
+    assert (held.lo >= shipped.lo - 1e-6).all() and (held.hi <= shipped.hi + 1e-6).all()
+    assert (held.hi > held.lo).sum() > 10
