@@ -8,7 +8,7 @@ order — so a very large lab is seen in part, never mis-seen). Action ``i`` sta
 (``agents.candidate_policy``) scores every row with one shared network, so its size does not depend on the lab.
 
 A row describes a pair in terms that carry to another lab: times divided by the scenario's typical step
-duration (``agents.scheduling_features.time_scale``), counts divided by ten, and the dispatching rules'
+duration (``twin.time_scale``), counts divided by ten, and the dispatching rules'
 own orderings (the step's rank by work remaining, by duration, by waiting time) as features, so that the
 network starts from what the rules know; and the lab's critical path as the job-shop heuristics weigh it (the
 known work left per device type and per job against a lower bound of what remains, what arrives next from a
@@ -28,8 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from agents.scheduling_features import time_scale
-from twin import ANY_WORKFLOW, Assignment, LabView, ReadyStep, Scenario, drawn_at_random
+from twin import ANY_WORKFLOW, Assignment, LabView, ReadyStep, Scenario, drawn_at_random, time_scale
 
 ENCODING = "candidates-v3"
 MAX_CANDIDATES = 128

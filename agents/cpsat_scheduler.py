@@ -14,7 +14,7 @@ from __future__ import annotations
 from typing import Any
 
 from agents.cpsat import Op, solve
-from agents.scheduling_features import time_scale
+from twin import time_scale
 from twin import Assignment, LabView, capable
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import random
 from typing import Any
 
-from twin import LabSummary, Scenario
+from twin import LabSummary, Scenario, weighted
 
 
 def weights(lab: Scenario) -> dict[str, float]:
@@ -31,11 +31,11 @@ def lab_objective(summary: LabSummary, lab: Scenario, unit_s: float) -> float:
     """The weighted mean over the campaigns that ran of their objectives, as ``agents.train_scheduler.objective``
     weighs one campaign (``training.weights`` of the lab file; lab time from each campaign's start to its end in
     units of ``unit_s``, the lab's typical step)."""
-    w, k = weights(lab), lab.training.weights
+    w = weights(lab)
     ran = [n for n in summary.campaigns if n in w]
     if not ran:
         return 0.0
-    total = sum(w[n] * (k.time * c.lab_hours * 3600 / unit_s + k.degraded * c.degraded_samples + k.abandoned * c.abandoned)
+    total = sum(w[n] * weighted(lab, c.lab_hours * 3600, c.degraded_samples, c.abandoned, unit_s)
                 for n, c in ((n, summary.campaigns[n]) for n in ran))
     return total / sum(w[n] for n in ran)
 

@@ -19,13 +19,11 @@ tried and trained no better; see the issue notes.)
 
 from __future__ import annotations
 
-import statistics
 
 import numpy as np
 
 from twin import Assignment, DeviceState, LabView, ReadyStep
-from twin import expected_duration
-from twin import Scenario, campaign_scenarios
+from twin import Scenario, time_scale
 
 SLOTS, INSTANCES = 10, 4
 STEP_FEATURES, PAIR_FEATURES, GLOBAL_FEATURES = 8, 3, 6
@@ -33,22 +31,6 @@ OBS_SIZE = SLOTS * STEP_FEATURES + SLOTS * INSTANCES * PAIR_FEATURES + GLOBAL_FE
 ACTIONS = SLOTS * INSTANCES + 1
 WAIT = ACTIONS - 1
 CLIP = 10.0
-
-
-def time_scale(s: Scenario) -> float:
-    """The scenario's typical step duration (lab seconds): the unit of every time feature (a lab of several
-    campaigns: the mean of theirs)."""
-    if s.campaigns:
-        return statistics.mean(time_scale(c) for c in campaign_scenarios(s, s.name).values())
-    durations = []
-    for p in s.campaign.planner_options.get("proposals", []):  # a job shop's fixed routes
-        durations += [float(step.get("params", {}).get("duration_s", 0.0)) for step in p.get("route", [])]
-    if not durations:
-        for w in s.workflow:
-            d = s.devices[w.device]
-            mid = {k: (p.low + p.high) / 2 for k, p in s.chemistry.parameters.items()}
-            durations.append(expected_duration(d.duration, mid, d.setup_s, d.clean_s))
-    return max(statistics.mean(durations), 1e-6) if durations else 1.0
 
 
 def signature(s: Scenario) -> dict:

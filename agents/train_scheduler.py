@@ -19,13 +19,13 @@ from agents.scheduling_env import SchedulingEnv, randomised
 from agents.rl_scheduler import RlScheduler
 from agents.candidates import signature as candidate_signature
 from agents.candidates import FEATURES, Observed, widen
-from agents.scheduling_features import signature, time_scale
+from agents.scheduling_features import signature
 from agents.schedulers import rules_for
 from twin import load_plugin, load_policy
 from twin import Assignment, LabView
 from twin import prepare
 from twin import save_policy
-from twin import Scenario
+from twin import Scenario, time_scale, weighted
 from twin import LabSummary, SteppedCampaign, SteppedLab
 from agents.lab_scheduling import lab_objective
 
@@ -60,9 +60,7 @@ def objective(summary: Any, scenario: Scenario) -> float:
     (``agents.lab_scheduling.lab_objective``)."""
     if isinstance(summary, LabSummary):
         return lab_objective(summary, scenario, time_scale(scenario))
-    w = scenario.training.weights
-    return (w.time * summary.lab_hours * 3600 / time_scale(scenario) + w.degraded * summary.degraded_samples
-            + w.abandoned * summary.abandoned)
+    return weighted(scenario, summary.lab_hours * 3600, summary.degraded_samples, summary.abandoned)
 
 
 def _count(summary: Any, what: str) -> int:

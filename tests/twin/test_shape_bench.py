@@ -80,3 +80,39 @@ def test_shapes_give_every_run_and_every_comparison_to_machines(tmp_path):
         span = {(r["scheduler"], r["seed"]): r["makespan_h"] for r in data["runs"] if r["shape"] == c["shape"]}
         diffs = [span[c["scheduler"], seed] - span[c["best_rule"], seed] for seed in (0, 1)]
         assert abs(statistics.mean(diffs) - c["diff_h"]) < 1e-9
+
+
+def test_by_objective_each_degraded_sample_and_abandoned_experiment_counts_as_the_weights_say(tmp_path):
+    import json
+
+    from twin import time_scale
+
+    raw = qd_lab(**{"chemistry.stability_s": 120, "campaign.max_in_flight": 4, "devices.synthesiser.instances": 2,
+                    "devices.spectrometer.instances": 1, "devices.spectrometer.duration.mean_s": 200,
+                    "training.weights": {"time": 2.0, "degraded": 3.0, "abandoned": 5.0}})
+    lab = parse(raw)
+    (tmp_path / "lab.yaml").write_text(__import__("yaml").safe_dump(raw))
+    args = [sys.executable, "-m", "twin", "bench", "schedulers", str(tmp_path / "lab.yaml"), "--shapes", "--seeds",
+            "3", "--budget", "6", "--schedulers", "fifo,spt,oldest-sample", "--by", "objective", "--json"]
+    out = subprocess.run(args, capture_output=True, text=True, cwd=ROOT, timeout=300,
+                         env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr
+    data = json.loads(out.stdout)
+    unit = time_scale(lab)  # the shape as written: its typical step
+    runs = {(r["scheduler"], r["seed"]): r for r in data["runs"] if r["shape"] == "as written"}
+    assert any(r["degraded"] for r in runs.values())  # the objective differs from the makespan here
+
+    def objective_h(r):
+        return r["makespan_h"] + (3.0 * r["degraded"] + 5.0 * r["lost"]) * unit / 2.0 / 3600
+
+    for c in (c for c in data["comparisons"] if c["shape"] == "as written"):
+        assert c["by"] == "objective"
+        diffs = [objective_h(runs[c["scheduler"], s]) - objective_h(runs[c["best_rule"], s]) for s in (0, 1, 2)]
+        assert abs(sum(diffs) / 3 - c["diff_h"]) < 1e-6
+        assert min(sum(objective_h(runs[n, s]) for s in (0, 1, 2)) for n in ("fifo", "spt", "oldest-sample")) == (
+            sum(objective_h(runs[c["best_rule"], s]) for s in (0, 1, 2)))
+    no_time = tmp_path / "no_time.yaml"
+    no_time.write_text(__import__("yaml").safe_dump(qd_lab(**{"training.weights": {"time": 0}})))
+    refused = subprocess.run([*args[:5], str(no_time), *args[6:]], capture_output=True, text=True, cwd=ROOT,
+                             timeout=120, env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
+    assert refused.returncode == 2 and "training.weights.time, which is 0" in refused.stderr

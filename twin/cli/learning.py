@@ -140,6 +140,9 @@ def bench_schedulers(
                                                           "paired seeds, 95 % CI")] = False,
     random_labs: Annotated[int, typer.Option(help="with --shapes: also N whole other labs drawn at random "
                                                   "(2–5 device types; training.random_labs)")] = 0,
+    by: Annotated[str, typer.Option(help="with --shapes: compare on makespan, or on the objective "
+                                         "(training.weights: makespan, degraded samples, abandoned experiments)")]
+    = "makespan",
     as_json: Annotated[bool, typer.Option("--json", help="print the rows and every run as JSON instead")] = False,
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every run to this CSV file")] = None,
 ) -> None:
@@ -151,7 +154,8 @@ def bench_schedulers(
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if shapes:
-        _bench_shapes(scenario, names, seeds, workers, budget, _assignments(set_ or []), random_labs, as_json, csv_out)
+        _bench_shapes(scenario, names, seeds, workers, budget, _assignments(set_ or []), random_labs, as_json, csv_out,
+                      by)
         return
     tables: list[dict] = []
     all_runs: list[dict] = []
@@ -187,15 +191,19 @@ def bench_schedulers(
 
 
 def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, budget: int | None,
-                  changes: dict, random_labs: int = 0, as_json: bool = False, csv_out: Path | None = None) -> None:
+                  changes: dict, random_labs: int = 0, as_json: bool = False, csv_out: Path | None = None,
+                  by: str = "makespan") -> None:
     from dataclasses import asdict
 
     from twin.tools.planner_bench import label
     from twin.tools.scheduler_bench import load_variant
-    from twin.tools.shape_bench import shapes, variants, verdict
+    from twin.tools.shape_bench import MEASURES, measure, shapes, variants, verdict
 
     try:
+        if by not in MEASURES:
+            raise TwinError(f"--by {by!r}: use one of {', '.join(MEASURES)}")
         s = checked(load_variant(scenario, None, budget, changes), scenario)
+        measure(s, by)
         for name in names:
             lab.make_scheduler(s, name)
     except TwinError as exc:
@@ -204,19 +212,24 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
         _fail(TwinError("--shapes varies a lab's devices and samples; for job shops use --jobshop FILES"))
     others = list(names)
     header = ["shape", "best rule", "its mean h", *[label(n) for n in others]]
-    table = narrow_table(header, f"{s.name}: each scheduler minus the shape's best rule, makespan lab-h "
+    what = "makespan lab-h" if by == "makespan" else (
+        f"objective in lab-h (makespan, and {s.training.weights.degraded:g} typical steps per degraded sample, "
+        f"{s.training.weights.abandoned:g} per abandoned experiment, ÷ {s.training.weights.time:g}: "
+        "training.weights)")
+    table = narrow_table(header, f"{s.name}: each scheduler minus the shape's best rule, {what} "
                                  f"(mean of {seeds} paired seeds ± 95 % CI)")
     progress = bar_progress(as_json)
     with progress:
         bar = progress.add_task(f"{s.name}: shapes", total=len(variants(s, random_labs)))
-        results = shapes(s, names, seeds, workers, on_shape=lambda c: progress.advance(bar), random_labs=random_labs)
+        results = shapes(s, names, seeds, workers, on_shape=lambda c: progress.advance(bar), random_labs=random_labs,
+                         by=by)
     table_rows, comparisons, runs = [], [], []
     for c in results:
         cells = []
         for n in others:
             diff, half = c.diffs[n]
             cells.append("—" if n == c.best_rule else f"{diff / 3600:+.2f} ± {half / 3600:.2f} {verdict(diff, half)}")
-            comparisons.append({"shape": c.shape, "scheduler": n, "best_rule": c.best_rule,
+            comparisons.append({"shape": c.shape, "scheduler": n, "by": by, "best_rule": c.best_rule,
                                 "best_rule_mean_h": c.best_mean_s / 3600, "diff_h": diff / 3600,
                                 "ci95_h": half / 3600, "verdict": verdict(diff, half)})
             runs += [{"shape": c.shape, **asdict(r), "makespan_h": r.makespan_s / 3600} for r in c.runs[n]]

@@ -4,8 +4,10 @@ The family: the lab as written; for each device type, twice its instances, a bot
 long) and a flaky stage (a fifth of its steps fail); and, when samples degrade, samples that keep a quarter as
 long; with ``random_labs``, that many whole other labs drawn as ``training.random_labs`` draws them (on seeds
 no training run draws: ``twin.scenario.random_labs.held_out``). Every scheduler runs the same seeds on every variant; each one is compared with the variant's best rule
-(the rule with the lowest mean makespan there) seed by seed, as a mean difference with a 95 % confidence
-interval — so "better" and "worse" mean outside the noise, not a lucky seed.
+(the rule with the lowest mean makespan there — or, with ``by="objective"``, the lowest objective as the
+scenario's ``training.weights`` weigh makespan, degraded samples and abandoned experiments) seed by seed, as a
+mean difference with a 95 % confidence interval — so "better" and "worse" mean outside the noise, not a lucky
+seed.
 """
 
 from __future__ import annotations
@@ -15,8 +17,10 @@ import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from twin.core.errors import TwinError
 from twin.runtime.lab import prepare
 from twin.scenario import Scenario
+from twin.scenario.objective import time_scale, weighted
 from twin.scenario.random_labs import held_out
 from twin.tools.planner_bench import bench_pool
 from twin.tools.scheduler_bench import RULES, Run, bench
@@ -54,25 +58,47 @@ class Comparison:
     runs: dict[str, list[Run]]  # scheduler -> its runs of this shape, one per seed
 
 
-def compare(results: dict[str, list[Run]], shape: str) -> Comparison:
-    means = {k: statistics.mean(r.makespan_s for r in v) for k, v in results.items()}
+#: What ``--by`` compares schedulers on.
+MEASURES = ("makespan", "objective")
+
+
+def measure(lab: Scenario, by: str) -> Callable[[Run], float]:
+    """A run's makespan, or its objective as ``training.weights`` weighs it (``twin.weighted``) in lab-second
+    equivalents: makespan + (``degraded`` × degraded samples + ``abandoned`` × abandoned experiments) typical steps
+    ÷ ``time``."""
+    if by == "makespan":
+        return lambda r: r.makespan_s
+    w = lab.training.weights
+    if w.time <= 0:
+        raise TwinError(f"{lab.name}: --by objective counts lab time in training.weights.time, which is {w.time}: "
+                        "give it a positive weight, or compare --by makespan")
+    unit = time_scale(lab)
+    return lambda r: weighted(lab, r.makespan_s, r.degraded, r.lost, unit) * unit / w.time
+
+
+def compare(results: dict[str, list[Run]], shape: str, value: Callable[[Run], float] = lambda r: r.makespan_s
+            ) -> Comparison:
+    """Each scheduler against the shape's best rule by ``value`` (lab seconds, or their equivalent)."""
+    means = {k: statistics.mean(value(r) for r in v) for k, v in results.items()}
     rules = [k for k in results if k in RULES] or list(results)
     best = min(rules, key=means.get)
-    ref = {r.seed: r.makespan_s for r in results[best]}
+    ref = {r.seed: value(r) for r in results[best]}
     diffs = {}
     for name, runs in results.items():
-        d = [r.makespan_s - ref[r.seed] for r in runs]
+        d = [value(r) - ref[r.seed] for r in runs]
         half = _t95(len(d) - 1) * statistics.stdev(d) / math.sqrt(len(d)) if len(d) > 1 else float("inf")
         diffs[name] = (statistics.mean(d), half)
     return Comparison(shape, best, means[best], diffs, results)
 
 
 def shapes(s: Scenario, schedulers: list[str], seeds: int, workers: int = 2,
-           on_shape: Callable[[Comparison], None] | None = None, random_labs: int = 0) -> list[Comparison]:
+           on_shape: Callable[[Comparison], None] | None = None, random_labs: int = 0,
+           by: str = "makespan") -> list[Comparison]:
     out = []
+    measure(s, by)  # a measure the lab cannot give is refused before any run
     with bench_pool(workers) as pool:
         for shape, variant in variants(s, random_labs):
-            out.append(compare(bench(variant, schedulers, seeds, workers, pool=pool), shape))
+            out.append(compare(bench(variant, schedulers, seeds, workers, pool=pool), shape, measure(variant, by)))
             if on_shape is not None:
                 on_shape(out[-1])
     return out

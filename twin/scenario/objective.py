@@ -1,0 +1,35 @@
+"""The lab's objective as a scenario weighs it (``training.weights``): what schedulers are trained on and judged by.
+
+Lab time counts in the scenario's typical step (``time_scale``), so a lab of hours and a job shop of seconds
+weigh a degraded sample or an abandoned experiment alike: ``time`` × lab time ÷ the typical step +
+``degraded`` × samples that waited past their stability + ``abandoned`` × experiments given up.
+"""
+
+from __future__ import annotations
+
+import statistics
+
+from twin.scenario.model import Scenario, expected_duration
+from twin.scenario.sharing import campaign_scenarios
+
+
+def time_scale(s: Scenario) -> float:
+    """The scenario's typical step duration (lab seconds): the unit of every time feature (a lab of several
+    campaigns: the mean of theirs)."""
+    if s.campaigns:
+        return statistics.mean(time_scale(c) for c in campaign_scenarios(s, s.name).values())
+    durations = []
+    for p in s.campaign.planner_options.get("proposals", []):  # a job shop's fixed routes
+        durations += [float(step.get("params", {}).get("duration_s", 0.0)) for step in p.get("route", [])]
+    if not durations:
+        for w in s.workflow:
+            d = s.devices[w.device]
+            mid = {k: (p.low + p.high) / 2 for k, p in s.chemistry.parameters.items()}
+            durations.append(expected_duration(d.duration, mid, d.setup_s, d.clean_s))
+    return max(statistics.mean(durations), 1e-6) if durations else 1.0
+
+
+def weighted(s: Scenario, lab_s: float, degraded: float, abandoned: float, unit_s: float | None = None) -> float:
+    """One campaign's objective: ``lab_s`` lab seconds, ``degraded`` samples, ``abandoned`` experiments."""
+    w = s.training.weights
+    return (w.time * lab_s / (unit_s or time_scale(s)) + w.degraded * degraded + w.abandoned * abandoned)
