@@ -18,7 +18,7 @@ from __future__ import annotations
 import random
 from typing import Any
 
-from twin import LabSummary, Scenario, weighted
+from twin import LabSummary, Scenario, weighted_objective
 
 
 def weights(lab: Scenario) -> dict[str, float]:
@@ -35,7 +35,7 @@ def lab_objective(summary: LabSummary, lab: Scenario, unit_s: float) -> float:
     ran = [n for n in summary.campaigns if n in w]
     if not ran:
         return 0.0
-    total = sum(w[n] * weighted(lab, c.lab_hours * 3600, c.degraded_samples, c.abandoned, unit_s)
+    total = sum(w[n] * weighted_objective(lab, c.lab_hours * 3600, c.degraded_samples, c.abandoned, unit_s)
                 for n, c in ((n, summary.campaigns[n]) for n in ran))
     return total / sum(w[n] for n in ran)
 

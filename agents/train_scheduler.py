@@ -25,7 +25,7 @@ from twin import load_plugin, load_policy
 from twin import Assignment, LabView
 from twin import prepare
 from twin import save_policy
-from twin import Scenario, time_scale, weighted
+from twin import Scenario, time_scale, weighted_objective
 from twin import LabSummary, SteppedCampaign, SteppedLab
 from agents.lab_scheduling import lab_objective
 
@@ -60,7 +60,7 @@ def objective(summary: Any, scenario: Scenario) -> float:
     (``agents.lab_scheduling.lab_objective``)."""
     if isinstance(summary, LabSummary):
         return lab_objective(summary, scenario, time_scale(scenario))
-    return weighted(scenario, summary.lab_hours * 3600, summary.degraded_samples, summary.abandoned)
+    return weighted_objective(scenario, summary.lab_hours * 3600, summary.degraded_samples, summary.abandoned)
 
 
 def _count(summary: Any, what: str) -> int:

@@ -29,7 +29,7 @@ def time_scale(s: Scenario) -> float:
     return max(statistics.mean(durations), 1e-6) if durations else 1.0
 
 
-def weighted(s: Scenario, lab_s: float, degraded: float, abandoned: float, unit_s: float | None = None) -> float:
+def weighted_objective(s: Scenario, lab_s: float, degraded: float, abandoned: float, unit_s: float | None = None) -> float:
     """One campaign's objective: ``lab_s`` lab seconds, ``degraded`` samples, ``abandoned`` experiments."""
     w = s.training.weights
     return (w.time * lab_s / (unit_s or time_scale(s)) + w.degraded * degraded + w.abandoned * abandoned)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from twin.core.errors import TwinError
 from twin.runtime.lab import prepare
 from twin.scenario import Scenario
-from twin.scenario.objective import time_scale, weighted
+from twin.scenario.objective import time_scale, weighted_objective
 from twin.scenario.random_labs import held_out
 from twin.tools.planner_bench import bench_pool
 from twin.tools.scheduler_bench import RULES, Run, bench
@@ -63,7 +63,7 @@ MEASURES = ("makespan", "objective")
 
 
 def measure(lab: Scenario, by: str) -> Callable[[Run], float]:
-    """A run's makespan, or its objective as ``training.weights`` weighs it (``twin.weighted``) in lab-second
+    """A run's makespan, or its objective as ``training.weights`` weighs it (``twin.weighted_objective``) in lab-second
     equivalents: makespan + (``degraded`` × degraded samples + ``abandoned`` × abandoned experiments) typical steps
     ÷ ``time``."""
     if by == "makespan":
@@ -73,7 +73,7 @@ def measure(lab: Scenario, by: str) -> Callable[[Run], float]:
         raise TwinError(f"{lab.name}: --by objective counts lab time in training.weights.time, which is {w.time}: "
                         "give it a positive weight, or compare --by makespan")
     unit = time_scale(lab)
-    return lambda r: weighted(lab, r.makespan_s, r.degraded, r.lost, unit) * unit / w.time
+    return lambda r: weighted_objective(lab, r.makespan_s, r.degraded, r.lost, unit) * unit / w.time
 
 
 def compare(results: dict[str, list[Run]], shape: str, value: Callable[[Run], float] = lambda r: r.makespan_s
