@@ -13,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-from agents.candidates import Observed
+from agents.candidates import CandidateEncoder, Observed
 from agents.rl_scheduler import RlScheduler
 from agents.train_scheduler import EVAL_SEEDS, campaign, held_out_labs
 from twin import Scenario, prepare, read_meta
@@ -22,11 +22,12 @@ from twin import Scenario, prepare, read_meta
 def observe(policy: Path, scenario: Scenario, held_out_count: int = 40) -> dict:
     """What ``policy`` sees over the scenario's evaluation seeds and ``held_out_count`` held-out labs (more than
     the Judge's 6–24: this range stands in for what training saw too), as its file records it."""
-    width = RlScheduler(scenario, str(policy)).encoder.width
-    seen = Observed(width)
+    agent = RlScheduler(scenario, str(policy))
+    encoding = read_meta(policy)["signature"]["encoding"]
+    seen = Observed(agent.encoder.width)
     for lab, seeds in [(scenario, EVAL_SEEDS), *[(lab, (0,)) for lab in held_out_labs(scenario, held_out_count)]]:
-        agent = RlScheduler(lab, str(policy))
-        agent.encoder.held, agent.encoder.seen = None, seen  # as it was judged: unheld
+        agent.encoder = CandidateEncoder(lab, encoding)  # as it was judged: unheld
+        agent.encoder.seen = seen
         for seed in seeds:
             campaign(lab, seed, agent.decide)
     observed = seen.to_meta()

@@ -66,6 +66,8 @@ def measure(lab: Scenario, by: str) -> Callable[[Run], float]:
     """A run's makespan, or its objective as ``training.weights`` weighs it (``twin.weighted_objective``) in lab-second
     equivalents: makespan + (``degraded`` × degraded samples + ``abandoned`` × abandoned experiments) typical steps
     ÷ ``time``."""
+    if by not in MEASURES:
+        raise TwinError(f"--by {by!r}: use one of {', '.join(MEASURES)}")
     if by == "makespan":
         return lambda r: r.makespan_s
     w = lab.training.weights
@@ -95,7 +97,7 @@ def shapes(s: Scenario, schedulers: list[str], seeds: int, workers: int = 2,
            on_shape: Callable[[Comparison], None] | None = None, random_labs: int = 0,
            by: str = "makespan") -> list[Comparison]:
     out = []
-    measure(s, by)  # a measure the lab cannot give is refused before any run
+    measure(s, by)  # an unknown measure, or one the lab cannot give, is refused before any run
     with bench_pool(workers) as pool:
         for shape, variant in variants(s, random_labs):
             out.append(compare(bench(variant, schedulers, seeds, workers, pool=pool), shape, measure(variant, by)))

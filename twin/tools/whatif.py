@@ -112,11 +112,11 @@ def variants(scenario: Scenario, vary: list[tuple[str, list[Any]]], schedulers: 
             continue
         label = ", ".join(f"{name}={v}" for name, v in combo)
         lab = prepare(scenario, overrides=dict(combo))  # a field that does not exist or a value it refuses: said now
-        for name, value in combo:
-            if name.rsplit(".", 1)[-1] in ("scheduler", "lab_scheduler") and value:
-                make_scheduler(lab, str(value))  # an unknown rule or a policy file that is not there: said now too
-        try:  # another driver, steps, model or planner: what only the installed plugins can refuse, said now
+        try:  # another driver, steps, model, planner or scheduler: what only the installed plugins can refuse
             check(lab)
+            for name, value in combo:  # the one scheduler check() does not make: a shared lab's own
+                if name.endswith("lab_scheduler") and value:
+                    make_scheduler(lab, str(value))
         except TwinError as exc:
             problems = exc.problems if isinstance(exc, ScenarioError) else [str(exc)]
             raise ScenarioError(f"--vary {label}", problems) from None
