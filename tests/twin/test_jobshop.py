@@ -59,3 +59,48 @@ def test_a_malformed_instance_is_a_scenario_error(tmp_path):
     bad.write_text("2 2\n0 3 1\n")
     with pytest.raises(ScenarioError, match="bad.txt"):
         read(bad)
+
+
+def _as_taillard(inst, labelled: bool) -> str:
+    """``inst`` written as Taillard writes an instance: durations, then machines numbered from 1."""
+    n = len(inst.jobs)
+    times = [" ".join(str(d) for _, d in job) for job in inst.jobs]
+    machines = [" ".join(str(m + 1) for m, _ in job) for job in inst.jobs]
+    if labelled:
+        return "\n".join(["Nb of jobs, Nb of Machines, Time seed, Machine seed, Upper bound, Lower bound",
+                          f" {n} {inst.machines} 840612802 398197754 1231 1005", "Times", *times, "Machines:",
+                          *machines]) + "\n"
+    return "\n".join([f"{n} {inst.machines}", *times, *machines]) + "\n"
+
+
+@pytest.mark.parametrize("name", ["ft06", "la01", "ft10"])
+def test_taillard_and_or_library_layouts_read_as_the_standard_one(tmp_path, name):
+    inst = read(ROOT / "scenarios" / "jobshop" / f"{name}.txt")
+    (tmp_path / "labelled.txt").write_text(_as_taillard(inst, labelled=True))
+    (tmp_path / "bare.txt").write_text(_as_taillard(inst, labelled=False))
+    standard = [ln for ln in (ROOT / "scenarios" / "jobshop" / f"{name}.txt").read_text().splitlines()
+                if not ln.startswith("#")]
+    (tmp_path / "orlib.txt").write_text("\n".join([" +++++", f" instance {name}", " +++++",
+                                                   " An instance, as OR-Library lists it", *standard]) + "\n")
+    for f in ("labelled.txt", "bare.txt", "orlib.txt"):
+        again = read(tmp_path / f)
+        assert (again.machines, again.jobs) == (inst.machines, inst.jobs), f
+
+
+@pytest.mark.parametrize("text, says", [
+    ("3 3\n0 5 1 3 2 2\n2 1 0 4 1\n1 7 2 2 0 3\n", "line 3: an odd count"),
+    ("3 3\n0 5 1 3 2 2\n2 1 0 4 1 6\nfoo bar\n", "line 4: 'foo bar' is not a row"),
+    ("2 2\n0 3 1 4\n1 2 0 5\n0 1 1 1\n", "line 4: 3 rows after the header's 2 jobs"),
+    ("x\n2 2\nTimes\n1 2\n3 4\nMachines\n1 2\n2 1\nx\n2 2\nTimes\n1 2\n3 4\nMachines\n1 2\n2 1\n",
+     "line 11: found 4 'Times'/'Machines' labels"),
+    ("x\n2 2\nTimes\n1 2\n3 4\nMachines\n1 1\n2 1\n", "line 6: each row after 'Machines' must visit every machine"),
+    ("just words\n", "no line of numbers"),
+])
+def test_a_malformed_layout_is_refused_naming_the_line(tmp_path, text, says):
+    from twin.core.errors import ScenarioError
+
+    bad = tmp_path / "shop.txt"
+    bad.write_text(text)
+    with pytest.raises(ScenarioError, match="shop.txt") as caught:
+        read(bad)
+    assert says in str(caught.value)

@@ -1,8 +1,16 @@
 """Job-shop instances as labs: one device per machine, deterministic durations, no faults.
 
-The standard text format: ``#`` comments, then ``jobs machines``, then one line
-per job of ``machine duration`` pairs in processing order. One time unit is one
-lab-second.
+Two text formats are read, one instance per file, ``#`` starting a comment:
+
+- the standard one (JSPLIB, OR-Library): ``jobs machines``, then one line per
+  job of ``machine duration`` pairs in processing order, machines numbered from
+  0; lines of words before it (an OR-Library title) are skipped;
+- Taillard's: ``jobs machines`` (more numbers on that line are ignored), the
+  jobs' durations as a jobs × machines matrix, then the machines they visit in
+  that order, numbered from 1 — with or without the ``Times``/``Machines`` labels
+  and the line of words above of Taillard's own files.
+
+One time unit is one lab-second.
 """
 
 from __future__ import annotations
@@ -24,26 +32,25 @@ class Instance:
 
 
 MAX_JOBS, MAX_MACHINES, MAX_DURATION = 1000, 256, 10**7
+FORMATS = ("expected 'jobs machines', then per job a line of 'machine duration' pairs with machines from 0, or "
+           "Taillard's durations matrix then machines matrix with machines from 1")
 
 
 def read(path: str | Path) -> Instance:
+    """An instance in either format of the module's docstring; an error names the file and the line."""
     path = Path(path)
     where = str(path)
-    lines = [ln.split("#")[0].strip() for ln in read_text(path, "job-shop").splitlines()]
-    lines = [ln for ln in lines if ln]
+    lines = [(i, ln.split("#")[0].strip()) for i, ln in enumerate(read_text(path, "job-shop").splitlines(), 1)]
+    lines = [(i, ln) for i, ln in lines if ln]
     if not lines:
         raise ScenarioError(where, ["empty job-shop file: expected 'jobs machines' then one line per job"])
-    try:
-        n_jobs, n_machines = (int(x) for x in lines[0].split())
-        jobs = []
-        for row in lines[1 : 1 + min(n_jobs, MAX_JOBS)]:
-            nums = [int(x) for x in row.split()]
-            jobs.append(list(zip(nums[0::2], nums[1::2], strict=True)))
-    except ValueError as exc:
-        raise ScenarioError(where, [f"not in the standard job-shop format ('jobs machines', then per job "
-                                    f"'machine duration' pairs): {str(exc)[:120]}"]) from None
+    labels = [k for k, (_, ln) in enumerate(lines) if ln.lower().rstrip(":") in ("times", "machines")]
+    if labels:
+        n_jobs, n_machines, jobs = _taillard_labelled(where, lines, labels)
+    else:
+        n_jobs, n_machines, jobs = _unlabelled(where, lines)
     if not (1 <= n_jobs <= MAX_JOBS and 1 <= n_machines <= MAX_MACHINES):
-        raise ScenarioError(where, [f"line 1: {n_jobs} jobs on {n_machines} machines; expected 1-{MAX_JOBS} jobs "
+        raise ScenarioError(where, [f"{n_jobs} jobs on {n_machines} machines; expected 1-{MAX_JOBS} jobs "
                                     f"on 1-{MAX_MACHINES} machines"])
     if len(jobs) != n_jobs or any(not job for job in jobs) or any(not 0 <= m < n_machines for job in jobs for m, _ in job):
         raise ScenarioError(where, [f"expected {n_jobs} non-empty jobs on machines 0..{n_machines - 1}"])
@@ -51,6 +58,82 @@ def read(path: str | Path) -> Instance:
     if bad:
         raise ScenarioError(where, [f"job {bad[0][0]}: duration {bad[0][1]} is outside 0..{MAX_DURATION:,}"])
     return Instance(path.stem, n_machines, jobs)
+
+
+def _integers(text: str) -> list[int] | None:
+    try:
+        return [int(x) for x in text.replace(",", " ").split()]
+    except ValueError:
+        return None
+
+
+def _numbers(where: str, lines: list[tuple[int, str]]) -> list[list[int]]:
+    rows = []
+    for i, text in lines:
+        row = _integers(text)
+        if row is None:
+            raise ScenarioError(where, [f"line {i}: {text[:60]!r} is not a row of whole numbers ({FORMATS})"])
+        rows.append(row)
+    return rows
+
+
+def _unlabelled(where: str, lines: list[tuple[int, str]]) -> tuple[int, int, list]:
+    """The standard format, or Taillard's matrices without their labels; lines of words before the header (an
+    OR-Library instance's title and description) are skipped."""
+    start = next((k for k, (_, ln) in enumerate(lines) if _integers(ln)), None)
+    if start is None:
+        raise ScenarioError(where, [f"no line of numbers: {FORMATS}"])
+    head = _integers(lines[start][1]) or []
+    if len(head) < 2:
+        raise ScenarioError(where, [f"line {lines[start][0]}: expected 'jobs machines' ({FORMATS})"])
+    n_jobs, n_machines = head[:2]
+    rows = _numbers(where, lines[start + 1:])
+    if len(rows) == 2 * n_jobs and _is_taillard(rows[n_jobs:], n_machines) and all(len(r) == n_machines for r in rows):
+        return n_jobs, n_machines, _from_matrices(rows[:n_jobs], rows[n_jobs:])
+    if len(rows) > n_jobs:
+        raise ScenarioError(where, [f"line {lines[start + 1 + n_jobs][0]}: {len(rows)} rows after the header's "
+                                    f"{n_jobs} jobs ({FORMATS}; one instance per file)"])
+    jobs = []
+    for (i, _), row in zip(lines[start + 1:], rows):
+        if len(row) % 2:
+            raise ScenarioError(where, [f"line {i}: an odd count of numbers ({len(row)}): expected 'machine "
+                                        f"duration' pairs ({FORMATS})"])
+        jobs.append(list(zip(row[0::2], row[1::2])))
+    return n_jobs, n_machines, jobs
+
+
+def _taillard_labelled(where: str, lines: list[tuple[int, str]], labels: list[int]) -> tuple[int, int, list]:
+    """Taillard's own layout: a line of words, 'jobs machines seeds bounds', 'Times', the durations' matrix,
+    'Machines', the machines' matrix (numbered from 1)."""
+    names = [lines[k][1].lower().rstrip(":") for k in labels]
+    if names != ["times", "machines"]:
+        raise ScenarioError(where, [f"line {lines[labels[2 if len(labels) > 2 else 0]][0]}: found "
+                                    f"{len(names)} 'Times'/'Machines' labels; a file holds one instance (Taillard's "
+                                    "own files hold ten: give each its own file)"])
+    t, m = labels
+    head = [row for _, row in ((i, _integers(ln)) for i, ln in lines[:t]) if row]
+    if not head or len(head[-1]) < 2:
+        raise ScenarioError(where, [f"line {lines[t][0]}: no 'jobs machines' line before 'Times' ({FORMATS})"])
+    n_jobs, n_machines = head[-1][:2]
+    times, machines = _numbers(where, lines[t + 1:m]), _numbers(where, lines[m + 1:])
+    if len(times) != n_jobs or len(machines) != n_jobs or any(len(r) != n_machines for r in times + machines):
+        raise ScenarioError(where, [f"expected {n_jobs} rows of {n_machines} numbers after 'Times' and after "
+                                    f"'Machines'; found {len(times)} and {len(machines)} rows"])
+    if not _is_taillard(machines, n_machines):
+        raise ScenarioError(where, [f"line {lines[m][0]}: each row after 'Machines' must visit every machine "
+                                    f"1..{n_machines} once"])
+    return n_jobs, n_machines, _from_matrices(times, machines)
+
+
+def _is_taillard(machines: list[list[int]], n: int) -> bool:
+    """Every row a visit of each machine once, numbered from 1 (Taillard's) or from 0."""
+    first = 0 if any(0 in row for row in machines) else 1
+    return bool(machines) and all(sorted(row) == list(range(first, first + n)) for row in machines)
+
+
+def _from_matrices(times: list[list[int]], machines: list[list[int]]) -> list[list[tuple[int, int]]]:
+    first = 0 if any(0 in row for row in machines) else 1
+    return [[(m - first, d) for m, d in zip(ms, ts)] for ts, ms in zip(times, machines)]
 
 
 def expand(scenario: Scenario, base_dir: Path) -> Scenario:
