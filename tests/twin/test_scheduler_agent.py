@@ -85,3 +85,49 @@ def test_an_agent_that_answers_nonsense_is_overruled_by_the_fallback(tmp_path):
     assert summary.done == 4 and summary.scheduler_fallbacks == summary.decisions > 0
     notes = [e for e in read_events(tmp_path / "j.db") if e["kind"] == "scheduler.fallback"]
     assert len(notes) == 1 and "invalid decision" in notes[0]["detail"] and "no-such-device" in notes[0]["detail"]
+
+
+class FirstFit:
+    def decide(self, view):
+        free, out = list(view.free), []
+        for r in view.ready:
+            fits = [f for f in free if f.device_type == r.device_type and f.name not in r.avoid]
+            if fits:
+                free.remove(fits[0])
+                out.append(Assignment(r.task, fits[0].name))
+        return out
+
+
+def test_the_agent_reads_the_documented_view_and_names_the_field_of_a_malformed_one(virtual_clock):
+    import json
+
+    from twin.core.bus import open_bus
+    from twin.core.bus.base import BusError
+    from twin.campaign.decisions import DeviceState, FreeDevice, LabView, ReadyStep
+    from twin.runtime.remote_scheduler import SchedulerService, decide_key, encode_view
+
+    view = LabView(5230.0, (ReadyStep("e4s1", 4, "measure", "spectrometer", 5100.0, 5100.0, 60.0, 90.0,
+                                      frozenset({"spectrometer-3", "spectrometer-1"}), (("reactor", 30.0),)),),
+                   (FreeDevice("spectrometer-1", "spectrometer"), FreeDevice("spectrometer-2", "spectrometer")),
+                   (DeviceState("spectrometer-1", "spectrometer", True, True, None, 7, 1, 480.0),), 3, 10, 2)
+    wire = json.loads(encode_view(view))  # as docs/wire.md shows it: sets as sorted lists, pairs as lists
+    assert wire["ready"][0]["avoid"] == ["spectrometer-1", "spectrometer-3"]
+    assert wire["ready"][0]["then"] == [["reactor", 30.0]] and wire["devices"][0]["busy_until"] is None
+
+    async def main():
+        bus = open_bus("zenoh", virtual_clock)
+        await bus.start()
+        service = SchedulerService(bus, "t", FirstFit())
+        service.start()
+        try:
+            await virtual_clock.sleep(1.0)
+            reply = json.loads(await bus.request(decide_key("t"), encode_view(view), 5.0))
+            wire["ready"][0]["expected_s"] = "a minute"
+            with pytest.raises(BusError, match=r"\$\.ready\[0\]\.expected_s"):
+                await bus.request(decide_key("t"), json.dumps(wire).encode(), 5.0)
+            return reply
+        finally:
+            service.stop()
+            await bus.close()
+
+    assert virtual_clock.run(main()) == {"assign": [{"task": "e4s1", "device": "spectrometer-2"}]}

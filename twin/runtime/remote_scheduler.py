@@ -19,9 +19,11 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
+import msgspec
+
 from twin.core.bus import Bus
 from twin.core.bus.base import NoReplyError
-from twin.campaign.decisions import Assignment, CampaignState, DeviceState, FreeDevice, LabView, ReadyStep, capable
+from twin.campaign.decisions import Assignment, LabView, capable
 from twin.core.keys import PREFIX
 
 log = logging.getLogger(__name__)
@@ -36,20 +38,20 @@ def alive_key(lab: str) -> str:
 
 
 # -- the wire -----------------------------------------------------------------------
+# msgspec writes the view's dataclasses as the JSON docs/wire.md shows (sets sorted) ~30 × faster than
+# dataclasses.asdict + json, which took 1.7 ms of a 50-job shop's decision; it reads a view back checked field by
+# field, a field it does not know ignored
+_VIEW_ENCODER = msgspec.json.Encoder(order="deterministic")
+_VIEW_DECODER = msgspec.json.Decoder(LabView)
+
+
 def encode_view(view: LabView) -> bytes:
-    data = dataclasses.asdict(view)
-    for r in data["ready"]:
-        r["avoid"] = sorted(r["avoid"])
-    return json.dumps(data).encode()
+    return _VIEW_ENCODER.encode(view)
 
 
 def decode_view(payload: bytes) -> LabView:
-    d = json.loads(payload)
-    then = lambda x: tuple(tuple(step) for step in x["then"])  # noqa: E731
-    return LabView(d["now"], tuple(ReadyStep(**{**r, "avoid": frozenset(r["avoid"]), "then": then(r)}) for r in d["ready"]),
-                   tuple(FreeDevice(**f) for f in d["free"]),
-                   tuple(DeviceState(**{**x, "then": then(x)}) for x in d["devices"]),
-                   d["finished"], d["budget"], d["in_lab"], tuple(CampaignState(**c) for c in d.get("campaigns", ())))
+    """The view a request carries; a malformed one raises ``ValueError`` saying which field (``$.ready[0].expected_s``)."""
+    return _VIEW_DECODER.decode(payload)
 
 
 def check(view: LabView, reply: bytes) -> tuple[list[Assignment], str]:
