@@ -214,3 +214,23 @@ def test_a_journal_altered_row_by_row_is_refused_naming_the_row(tmp_path, damage
         out = " ".join(res.output.split())
         assert res.exit_code == 2 and says in out and "altered or corrupted" in out, (command, out)
     assert CliRunner().invoke(app, ["report", str(db)], env={"COLUMNS": "200"}).exit_code == 0
+
+
+def test_run_set_changes_any_field_and_a_bad_one_is_named(tmp_path):
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    res = CliRunner().invoke(app, ["run", "scenarios/flaky_lab.yaml", "--set", "devices.spectrometer.instances=3",
+                                   "--set", "campaign.budget=5", "--journal", str(tmp_path / "j.db"), "--quiet",
+                                   "--json"])
+    assert res.exit_code == 0, res.output
+    summary = json.loads(res.stdout)
+    assert summary["done"] + summary["abandoned"] == 5
+    assert sorted(d for d in summary["utilisation"] if d.startswith("spectrometer")) == [
+        "spectrometer-1", "spectrometer-2", "spectrometer-3"]
+    for item, says in (("campaign.budget=-4", "campaign.budget"), ("budget", "expected FIELD=VALUE"),
+                       ("campaign.budget=[", "not YAML")):
+        bad = CliRunner().invoke(app, ["run", "scenarios/flaky_lab.yaml", "--set", item, "--quiet"],
+                                 env={"COLUMNS": "200"})
+        assert bad.exit_code == 2 and says in bad.output, bad.output

@@ -12,7 +12,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from rich.markup import escape
 
-from twin.cli.common import _fail, app, console, err, keep_serving, machine_output, narrow_table
+from twin.cli.common import _fail, app, assignments, console, err, keep_serving, machine_output, narrow_table
 from twin.cli.sharing import shared_lab
 from twin.core import plugins
 from twin.runtime import lab
@@ -47,6 +47,8 @@ def run(
     budget: Annotated[Optional[int], typer.Option(help="override campaign.budget")] = None,
     planner: Annotated[Optional[str], typer.Option(help="override campaign.planner (twin bench planners lists them)")] = None,
     scheduler: Annotated[Optional[str], typer.Option(help="override campaign.scheduler")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", help="override any scenario field, e.g. "
+                                                      "devices.spectrometer.instances=2; repeatable")] = None,
     journal: Annotated[Optional[Path], typer.Option(help="where to write the SQLite journal")] = None,
     external: Annotated[Optional[list[str]], typer.Option(help="a device served by another process")] = None,
     listen: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447")] = None,
@@ -65,8 +67,9 @@ def run(
 ) -> None:
     """Run a campaign and print its summary."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    overrides: dict = {f"campaign.{k}": v for k, v in (("budget", budget), ("planner", planner),
-                                                        ("scheduler", scheduler)) if v is not None}
+    overrides: dict = assignments(set_ or [])
+    overrides |= {f"campaign.{k}": v for k, v in (("budget", budget), ("planner", planner),
+                                                   ("scheduler", scheduler)) if v is not None}
     if listen:
         overrides["bus.listen"] = list(listen)
     if connect:

@@ -37,6 +37,22 @@ def _fail(exc: TwinError) -> None:
     raise typer.Exit(2)
 
 
+def assignments(items: list[str]) -> dict:
+    """``--set`` options, ``["a.b=1", "c=x"]`` → ``{"a.b": 1, "c": "x"}`` (values read as YAML)."""
+    import yaml
+
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            _fail(TwinError(f"--set {item!r}: expected FIELD=VALUE, e.g. devices.reactor.instances=1"))
+        try:
+            out[key.strip()] = yaml.safe_load(value)
+        except yaml.YAMLError as exc:
+            _fail(TwinError(f"--set {item!r}: the value is not YAML ({str(exc).splitlines()[0]})"))
+    return out
+
+
 def bar_progress(transient: bool = False):
     """The progress bar every long command shows on stderr: what it does, the bar, done of total, time taken."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn

@@ -10,7 +10,7 @@ import typer
 from twin.core import plugins
 from twin.runtime import lab
 from twin.runtime.checks import checked
-from twin.cli.common import _fail, app, bar_progress, bench_app, console, err, machine_output, narrow_table
+from twin.cli.common import _fail, app, assignments, bar_progress, bench_app, console, err, machine_output, narrow_table
 from twin.core.errors import TwinError
 from twin.tools.planner_bench import DEFAULT_PLANNERS
 
@@ -35,7 +35,7 @@ def train(
 ) -> None:
     """Train an agent in the twin; the evaluation curve is printed as it goes (and recorded to Rerun if asked)."""
     try:
-        s = checked(lab.prepare(scenario, overrides=_assignments(set_ or [])), scenario)
+        s = checked(lab.prepare(scenario, overrides=assignments(set_ or [])), scenario)
         trainer = plugins.load("trainers", agent)
         if init is not None and agent not in ("scheduler", "route"):
             raise TwinError(f"--init starts the scheduler's or the route prior's training from a policy; the {agent} "
@@ -154,7 +154,7 @@ def bench_schedulers(
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if shapes:
-        _bench_shapes(scenario, names, seeds, workers, budget, _assignments(set_ or []), random_labs, as_json, csv_out,
+        _bench_shapes(scenario, names, seeds, workers, budget, assignments(set_ or []), random_labs, as_json, csv_out,
                       by)
         return
     tables: list[dict] = []
@@ -163,7 +163,7 @@ def bench_schedulers(
     with bench_pool(workers) as pool:  # one set of workers for every shop
         for file in files:
             try:
-                s = checked(load_variant(scenario, file, budget, _assignments(set_ or [])), scenario)
+                s = checked(load_variant(scenario, file, budget, assignments(set_ or [])), scenario)
                 for name in names:
                     lab.make_scheduler(s, name)
             except TwinError as exc:
@@ -238,16 +238,3 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     for row in table_rows:
         table.add_row(*row)
     console.print(table)
-
-
-def _assignments(items: list[str]) -> dict:
-    """``["a.b=1", "c=x"]`` → ``{"a.b": 1, "c": "x"}`` (values read as YAML)."""
-    import yaml
-
-    out = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key:
-            _fail(TwinError(f"--set {item!r}: expected FIELD=VALUE, e.g. devices.reactor.instances=1"))
-        out[key.strip()] = yaml.safe_load(value)
-    return out
