@@ -116,3 +116,21 @@ def test_a_device_type_served_elsewhere_is_not_loaded_here(tmp_path):
                                         "devices.spectrometer.instances": 2}), "two.yaml"))
     with pytest.raises(ScenarioError, match="devices.spectrometer.driver"):
         check(two, external=two.instance_names("spectrometer")[:1])
+
+
+@pytest.mark.parametrize("dotted, says", [
+    ("devices.spectrometr.instances", "devices.spectrometr: not in the scenario; did you mean devices.spectrometer?"),
+    ("devices.spectrometer.durration.mean_s", "did you mean devices.spectrometer.duration?"),
+])
+def test_an_override_through_a_misspelt_name_says_which_was_meant(tmp_path, dotted, says):
+    from twin.runtime.lab import prepare
+
+    path = write(tmp_path, qd_lab())
+    with pytest.raises(ScenarioError) as from_file:
+        load(path, {dotted: 3})
+    with pytest.raises(ScenarioError) as from_scenario:  # a variant of a loaded scenario (twin whatif, benches)
+        prepare(load(path), overrides={dotted: 3})
+    assert says in str(from_file.value) and says in str(from_scenario.value)
+    new = load(path, {"devices.centrifuge.instances": 2, "devices.centrifuge.driver": "synthesiser",
+                      "devices.centrifuge.steps": ["spin"], "devices.centrifuge.duration.mean_s": 60})
+    assert new.devices["centrifuge"].instances == 2  # a name far from every other is a new entry, not a typo

@@ -32,7 +32,7 @@ from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
 from twin.runtime.run_record import provenance
 from twin.campaign.human import DRIVER as HUMAN
-from twin.scenario import Scenario, load, parse, set_dotted
+from twin.scenario import Scenario, load, parse_overridden
 from twin.view.observer import LabObserver
 from twin.campaign.summary import Summary, from_core
 from twin.view.lab_observer import SharedLabObserver
@@ -63,10 +63,8 @@ def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: 
             return quick
         # what was set only: a campaign of a lab that never gave its own seed must still run on the lab's plus
         # its place (a full dump made every default look given, and every variant's campaigns ran on seed 0)
-        data = scenario.model_dump(exclude_unset=True)
-        for dotted, value in extra.items():
-            set_dotted(data, dotted, value)
-        return parse(data, f"{scenario.name} with {', '.join(extra)}", lab_only)
+        return parse_overridden(scenario.model_dump(exclude_unset=True), extra,
+                                f"{scenario.name} with {', '.join(extra)}", lab_only)
     return load(scenario, extra, lab_only)
 
 

@@ -1,6 +1,6 @@
 """Scenarios: the model, reading files, job shops as labs, and targets."""
 
-from twin.scenario.loading import json_schema, load, parse, set_dotted
+from twin.scenario.loading import json_schema, load, parse, parse_overridden, set_dotted
 from twin.scenario.model import (BusSpec, Campaign, Chemistry, ClockSpec, Condition, DeviceType, Duration, Faults,
                                  JobShop, Orchestration, Parameter, Retry, Scenario, Target, Training, WorkflowStep,
                                  expected_duration)
@@ -8,5 +8,5 @@ from twin.scenario.model import (BusSpec, Campaign, Chemistry, ClockSpec, Condit
 __all__ = [
     "BusSpec", "Campaign", "Chemistry", "ClockSpec", "Condition", "DeviceType", "Duration", "Faults", "JobShop",
     "Orchestration", "Parameter", "Retry", "Scenario", "Target", "Training", "WorkflowStep", "expected_duration",
-    "json_schema", "load", "parse", "set_dotted",
+    "json_schema", "load", "parse", "parse_overridden", "set_dotted",
 ]

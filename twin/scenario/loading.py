@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 from pathlib import Path
 from typing import Any
 
@@ -19,9 +20,7 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bo
     raw = read_yaml(path)
     if not isinstance(raw, dict):
         raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"])
-    for dotted, value in (overrides or {}).items():
-        set_dotted(raw, dotted, value)
-    scenario = parse(raw, str(path), lab_only)
+    scenario = parse_overridden(raw, overrides or {}, str(path), lab_only)
     if scenario.bus.security and not Path(scenario.bus.security).is_absolute():
         bus = scenario.bus.model_copy(update={"security": str((path.parent / scenario.bus.security).resolve())})
         scenario = scenario.model_copy(update={"bus": bus})
@@ -30,6 +29,37 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bo
 
         scenario = expand(scenario, path.parent)
     return scenario
+
+
+def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str, lab_only: bool = False) -> Scenario:
+    """``raw`` with the command line's dotted ``overrides`` set, validated; an override through a name the
+    scenario nearly has (``devices.spectrometr.instances``) adds "did you mean" to the problems it makes."""
+    hints = [hint for dotted in overrides if (hint := _misspelt(raw, dotted))]
+    for dotted, value in overrides.items():
+        set_dotted(raw, dotted, value)
+    try:
+        return parse(raw, source, lab_only)
+    except ScenarioError as exc:
+        if not hints:
+            raise
+        raise ScenarioError(exc.source, [*exc.problems, *hints]) from None
+
+
+def _misspelt(raw: dict[str, Any], dotted: str) -> str | None:
+    node: Any = raw
+    parts = dotted.split(".")
+    for i, p in enumerate(parts[:-1]):
+        if isinstance(node, list) and p.isdigit() and int(p) < len(node):
+            node = node[int(p)]
+        elif not isinstance(node, dict):
+            return None
+        elif p in node:
+            node = node[p]
+        else:
+            close = difflib.get_close_matches(p, [str(k) for k in node], n=1)
+            return (f"{'.'.join(parts[:i + 1])}: not in the scenario; did you mean {'.'.join([*parts[:i], close[0]])}?"
+                    if close else None)
+    return None
 
 
 def parse(raw: dict[str, Any], source: str = "<scenario>", lab_only: bool = False) -> Scenario:
