@@ -56,7 +56,7 @@ def main() -> None:
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=ROOT, check=True)
     base = min(rows["old"])
-    print(f"\nThe standard campaign (flaky_lab, 400 experiments, memory bus), µs per experiment, best of 6")
+    print("\nThe standard campaign (flaky_lab, 400 experiments, memory bus), µs per experiment, best of 6")
     print("| tree | µs/exp | speed-up |\n|---|---|---|")
     print(f"| {rev} | {base:,.0f} | 1.00 |")
     for name in ("asyncio", "fast"):

@@ -11,7 +11,6 @@ tls: what TLS + access control cost on request/reply and on messages per second.
 
 from __future__ import annotations
 
-import asyncio
 import json
 import os
 import secrets

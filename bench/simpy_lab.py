@@ -31,7 +31,7 @@ def _physics(s, seed: int):
     """Call a step's driver on a stepped clock: its outputs, and the lab seconds it slept."""
     from twin.core.streams import seeded
     from twin.device.driver import StepContext
-    from twin.runtime.lab import load_driver
+    from twin.runtime.assembly import load_driver
     from twin.learning.workcell import SteppedClock, _complete
 
     drivers = {d: load_driver(s, d, f"{d}-simpy") for d in s.devices}

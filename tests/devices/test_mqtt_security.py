@@ -15,7 +15,8 @@ from tests.conftest import qd_lab, start_mosquitto
 from tests.devices.test_mqtt import SPEED
 from twin.campaign.journal import read_events
 from twin.core.errors import DriverError
-from twin.runtime.lab import load_driver, run
+from twin.runtime.assembly import load_driver
+from twin.runtime.lab import run
 from twin.scenario import parse
 from twin.tools.security_init import init
 

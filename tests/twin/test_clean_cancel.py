@@ -2,7 +2,6 @@
 period has passed, or it left the bus), and a "busy" answer from a device still stopping uses up no attempt —
 in one process on the memory bus, and with the device in another process behind a router."""
 
-import asyncio
 import json
 
 import pytest

@@ -10,7 +10,7 @@ import yaml
 from tests.conftest import qd_lab
 from twin.core.errors import DriverError, ScenarioError
 from twin.runtime.checks import check
-from twin.runtime.lab import load_driver
+from twin.runtime.assembly import load_driver
 from twin.scenario import load
 
 ROOT = Path(__file__).resolve().parents[2]

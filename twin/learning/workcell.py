@@ -83,7 +83,7 @@ def _complete(coro: Any, device: str) -> Any:
 
 def open_workcell(scenario: Scenario, seed: int = 0) -> Workcell:
     """A workcell with one driver of each device type the workflow uses."""
-    from twin.runtime.lab import load_driver
+    from twin.runtime.assembly import load_driver
 
     used = dict.fromkeys(w.device for w in scenario.workflow)
     return Workcell(scenario, {d: load_driver(scenario, d, f"{d}-workcell") for d in used}, seed)

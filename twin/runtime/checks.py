@@ -9,7 +9,7 @@ from typing import Any
 from twin.core.errors import ScenarioError, TwinError
 from twin.campaign.human import DRIVER as HUMAN
 from twin.device.driver import feature
-from twin.runtime.lab import load_driver, make_planner, make_scheduler
+from twin.runtime.assembly import load_driver, make_planner, make_scheduler
 from twin.scenario import Scenario, load
 from twin.scenario.sharing import campaign_scenarios
 

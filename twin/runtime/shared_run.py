@@ -16,11 +16,10 @@ from twin.core.errors import ClockError, DriverError
 from twin.runtime.fast_lab import FastLab
 from twin.campaign.journal import Journal
 from twin.campaign.lab_replay import RebuiltLab
-from twin.runtime.lab import (REMOTE, JournalFactory, _agent_on_bus, _fallback, _flush_live, _noted,
-                              _stop_on_loop_signals,
-                              _stop_on_signals, build_actors, default_journal, finish, live_scheduler, load_driver,
-                              load_drivers, make_bus, make_clock, make_planner, make_scheduler, open_journal,
-                              refuse_realtime)
+from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_driver,
+                                   load_drivers, make_bus, make_clock, make_planner, make_scheduler)
+from twin.runtime.lab import (JournalFactory, default_journal, finish, flush_live, noted, open_journal, refuse_realtime,
+                              stop_on_loop_signals, stop_on_signals)
 from twin.runtime.checks import check_campaign
 from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.labtime import LabTimeSource
@@ -64,11 +63,11 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
     if s.clock.mode == "virtual":
         lab: Any = FastLab(s, scenarios, drivers, per_device, parts, observer=observer,
                            lab_scheduler=one)
-        with _stop_on_signals(lab.stop, handle_signals):
+        with stop_on_signals(lab.stop, handle_signals):
             try:
                 lab.run()
             finally:
-                notes = {n: _noted(parts[n][0], observer.campaign(n), lab.now) for n in parts} if observer else None
+                notes = {n: noted(parts[n][0], observer.campaign(n), lab.now) for n in parts} if observer else None
                 summaries = lab_summaries(lab.shared, parts, wall0, lab.now, notes)
         return lab_summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
     clock = make_clock(s)
@@ -129,11 +128,11 @@ def _lab_scheduler(s: Scenario) -> Any:
         raise ClockError(f"{s.name}: orchestrator.lab_scheduler {spec!r} is an agent elsewhere; the lab's one "
                          "scheduler runs in its process (a rule, or rl:POLICY)")
     # an rl policy is asked in-process, as the fast runtime's benches ask it
-    return CheckedScheduler(chosen, _fallback(s), spec)
+    return CheckedScheduler(chosen, fallback_for(s), spec)
 
 
 def _refuse_agents(scenarios: dict[str, Scenario]) -> None:
-    agents = [n for n, cs in scenarios.items() if _agent_on_bus(cs.campaign.scheduler)]
+    agents = [n for n, cs in scenarios.items() if agent_on_bus(cs.campaign.scheduler)]
     if agents:
         raise ClockError(f"campaigns {agents}: a scheduler agent on the bus serves one campaign; in a lab of "
                          "several, give each campaign an in-process scheduler")
@@ -149,7 +148,7 @@ def _parts(s: Scenario, path: Path, external: Collection[str], lab: Scenario | N
         journal.set("lab", lab.model_dump(exclude_unset=True))
     scheduler = make_scheduler(s)
     if scheduler != REMOTE:  # a plugin's mistake is the fallback rule's to cover (logged; the lab goes on)
-        scheduler = CheckedScheduler(scheduler, _fallback(s), s.campaign.scheduler)
+        scheduler = CheckedScheduler(scheduler, fallback_for(s), s.campaign.scheduler)
     return journal, make_planner(s), scheduler
 
 
@@ -197,12 +196,12 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
         lab = LiveLab(s, scenarios, bus, clock, {n: seat_parts(n, scenarios[n], p) for n, p in parts.items()},
                       adopt if serving is not None else None, observer, inputs, rebuilt, one)
         if observer is not None:
-            stack.callback(asyncio.ensure_future(_flush_live(clock, observer)).cancel)
+            stack.callback(asyncio.ensure_future(flush_live(clock, observer)).cancel)
         for actor in actors:
             await actor.start()
             stack.push_async_callback(actor.stop)
         if handle_signals:
-            stack.enter_context(_stop_on_loop_signals(lab.stop))
+            stack.enter_context(stop_on_loop_signals(lab.stop))
         if on_start is not None:
             on_start(lab)
         try:

@@ -1,0 +1,210 @@
+"""From a scenario to the parts of its lab: the scenario with the command line's overrides, its clock and
+bus, its device drivers and actors, its planner and its scheduler (with the fallback rule, and over the bus
+when it is an agent). ``twin.runtime.lab`` runs a campaign on them; the shared-lab runner and the checks of
+``twin validate`` build from them too."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Collection
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from twin.campaign.human import DRIVER as HUMAN
+from twin.core import plugins
+from twin.core.bus import Bus, open_bus, security
+from twin.core.bus.security import Identity
+from twin.core.clock import LabClock
+from twin.core.errors import BusError, DriverError, PluginError, TwinError
+from twin.device.actor import DeviceActor
+from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature
+from twin.runtime.off_loop import OffLoopScheduler
+from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
+from twin.scenario import Scenario, load, parse_overridden
+
+log = logging.getLogger(__name__)
+
+
+def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: str | None = None,
+            speed: float | None = None, bus: str | None = None,
+            overrides: dict[str, Any] | None = None, lab_only: bool = False) -> Scenario:
+    """Load a scenario and apply the command line's overrides. ``lab_only``: a lab whose campaigns come later
+    (``twin lab serve``), or a device of it, needs no workflow."""
+    extra = dict(overrides or {})
+    if seed is not None:
+        extra["campaign.seed"] = seed
+    if clock is not None:
+        extra["clock.mode"] = clock
+    if speed is not None:
+        extra["clock.speed"] = speed
+    if bus is not None:
+        extra["bus.kind"] = bus
+    if isinstance(scenario, Scenario):
+        if not extra:
+            return scenario
+        quick = _with_fields(scenario, extra)
+        if quick is not None:
+            return quick
+        # what was set only: a campaign of a lab that never gave its own seed must still run on the lab's plus
+        # its place (a full dump made every default look given, and every variant's campaigns ran on seed 0)
+        return parse_overridden(scenario.model_dump(exclude_unset=True), extra,
+                                f"{scenario.name} with {', '.join(extra)}", lab_only)
+    return load(scenario, extra, lab_only)
+
+
+_SIMPLE = ("campaign", "clock", "bus")  # sections whose fields no cross-field check of Scenario reads
+
+
+def _with_fields(s: Scenario, extra: dict[str, Any]) -> Scenario | None:
+    """``s`` with plain fields of its campaign, clock or bus replaced, re-validating only those sections
+    (a reset of a training env does this; the whole scenario costs ~20× more). None: take the long way."""
+    sections: dict[str, dict[str, Any]] = {}
+    for dotted, value in extra.items():
+        section, _, leaf = dotted.partition(".")
+        if section not in _SIMPLE or not leaf or "." in leaf:
+            return None
+        sections.setdefault(section, {})[leaf] = value
+    update = {}
+    for section, fields in sections.items():
+        sub = getattr(s, section)
+        try:
+            update[section] = type(sub).model_validate({**sub.model_dump(), **fields})
+        except ValidationError:
+            return None  # the long way names the field
+    return s.model_copy(update=update)
+
+
+def make_clock(s: Scenario) -> LabClock:
+    return LabClock(s.clock.mode, s.clock.speed)
+
+
+def make_bus(s: Scenario, clock: LabClock, who: Identity | None = None) -> Bus:
+    """The bus of ``s`` for ``who`` (the lab's orchestrator unless said otherwise): with ``bus.security``, a
+    client of the lab's router over mutual TLS with ``who``'s certificate; without it, loopback unless
+    ``bus.insecure``."""
+    if s.bus.kind == "memory":
+        return open_bus("memory", clock)
+    extra, mode, listen = dict(s.bus.zenoh), s.bus.mode, s.bus.listen
+    if s.bus.security:
+        who = who or Identity("orchestrator", s.lab)
+        plain = [e for e in s.bus.connect if not e.startswith(("tls/", "quic/"))]
+        if not s.bus.connect or plain:
+            raise BusError(f"bus.security is on: connect to the lab's router over TLS (bus.connect: "
+                           f"[tls/HOST:PORT], where `twin router --security DIR` listens), not {s.bus.connect}")
+        extra.update(security.session_config(s.bus.security, who))
+        mode, listen = "client", []
+    for warning in security.check_listen(listen, secure=bool(s.bus.security), insecure=s.bus.insecure,
+                                         what="bus.listen"):
+        log.warning("%s", warning)
+    return open_bus("zenoh", clock, mode=mode, listen=listen, connect=s.bus.connect, lease_ms=s.bus.lease_ms,
+                    extra=extra, connect_timeout_ms=s.bus.connect_timeout_ms)
+
+
+def load_driver(s: Scenario, device_type: str, name: str) -> Any:
+    spec = s.devices[device_type]
+    cls = plugins.load("devices", spec.driver)
+    api = feature(cls, "labtwin_api") or DRIVER_API
+    if api != DRIVER_API:
+        raise DriverError(f"devices.{device_type}.driver: {spec.driver!r} was written for driver API {api}; this "
+                          f"labtwin speaks {DRIVER_API}. Install a matching version of the driver or of labtwin.")
+    models = feature(cls, "chemistry_models")
+    if models is not None and s.chemistry.model not in models:
+        raise DriverError(f"chemistry.model: the {spec.driver!r} driver of devices.{device_type} simulates "
+                          f"{sorted(models)}, not {s.chemistry.model[:64]!r}: use one of those, or a driver of yours")
+    setup = DriverSetup(name, device_type, spec.options, s.chemistry, spec.duration, s.campaign.seed)
+    try:
+        driver = cls(setup)
+    except Exception as exc:
+        raise DriverError(f"driver {spec.driver!r} for {name} failed to start: {exc}") from exc
+    caps = capabilities(driver, f"devices.{device_type}.driver: {spec.driver!r}")
+    missing = set(spec.steps) - caps
+    if missing:
+        raise DriverError(
+            f"devices.{device_type}.driver: {spec.driver!r} runs {sorted(caps)}, "
+            f"but the scenario asks it for {sorted(missing)}"
+        )
+    return driver
+
+
+def load_drivers(s: Scenario, only: set[str] | None = None, skip: Collection[str] = frozenset()) -> list[tuple[str, str, Any]]:
+    """(instance, device type, driver) for each device this process serves (people, ``driver: operator``, are
+    served by the campaign itself: twin/campaign/human.py)."""
+    return [
+        (name, dtype, load_driver(s, dtype, name))
+        for dtype in s.devices
+        for name in s.instance_names(dtype)
+        if name not in skip and (only is None or name in only) and s.devices[dtype].driver != HUMAN
+    ]
+
+
+def build_actors(s: Scenario, drivers: list[tuple[str, str, Any]], bus: Bus, clock: LabClock,
+                 per_campaign: dict[str, dict[str, Any]] | None = None) -> list[DeviceActor]:
+    """``per_campaign``: a lab of several campaigns — each instance's driver for each campaign's chemistry."""
+    return [DeviceActor(name, s.devices[dtype], drv, bus, clock, s.lab, s.campaign.seed, s.orchestrator.orphan_grace_s,
+                        (per_campaign or {}).get(name))
+            for name, dtype, drv in drivers]
+
+
+def make_planner(s: Scenario) -> Any:
+    name, options = plugins.with_policy("planners", s.campaign.planner)
+    cls = plugins.load("planners", name)
+    if not s.chemistry.parameters and getattr(cls, "needs_parameters", True):
+        raise PluginError(f"chemistry.parameters: empty, and planner {s.campaign.planner!r} proposes values for "
+                          "parameters: give at least one parameter with low and high")
+    try:
+        return cls(parameters=s.chemistry.parameters, seed=s.campaign.seed, targets=s.chemistry.targets,
+                   budget=s.campaign.budget, **{**options, **s.campaign.planner_options})
+    except TwinError:
+        raise
+    except Exception as exc:
+        raise PluginError(f"planner {s.campaign.planner!r} failed to start: {type(exc).__name__}: {exc}") from exc
+
+
+REMOTE = "remote"  # campaign.scheduler: an agent served elsewhere (`twin scheduler serve`)
+
+
+def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
+    """The scheduler named by ``spec`` (default: the scenario's); ``REMOTE`` for an agent elsewhere."""
+    spec = spec or s.campaign.scheduler
+    if spec == REMOTE:
+        return REMOTE
+    name, options = plugins.with_policy("schedulers", spec)
+    cls = plugins.load("schedulers", name)
+    try:
+        return cls(scenario=s, seed=s.campaign.seed, **options)
+    except TwinError:
+        raise
+    except Exception as exc:
+        raise PluginError(f"scheduler {spec!r} failed to start: {exc}") from exc
+
+
+def live_scheduler(s: Scenario, chosen: Any, bus: Bus, clock: LabClock,
+                   in_process: bool = False) -> tuple[Any, SchedulerService | None]:
+    """An agent scheduler (``serve_on_bus``, or ``remote``) is asked over the bus, with the fallback rule;
+    ``in_process``: asked here even so (a lab's one scheduler), in a worker thread past its deadline."""
+    deadline = s.campaign.scheduler_deadline_ms / 1000 * (1.0 if clock.is_virtual else clock.speed)
+    if chosen != REMOTE and (in_process or not getattr(chosen, "serve_on_bus", False)):
+        if clock.is_virtual:  # time stands still while it thinks
+            return chosen, None
+        return OffLoopScheduler(chosen, fallback_for(s), deadline), None
+    service = None
+    if chosen != REMOTE:
+        service = SchedulerService(bus, s.lab, chosen)
+        service.start()
+    return RemoteScheduler(bus, s.lab, fallback_for(s), deadline), service
+
+
+def fallback_for(s: Scenario) -> Fallback:
+    """The rule that decides when the chosen scheduler cannot (``campaign.fallback_scheduler``)."""
+    return Fallback(make_scheduler(s, s.campaign.fallback_scheduler), s.campaign.fallback_scheduler)
+
+
+def agent_on_bus(spec: str) -> bool:
+    """Whether the scheduler ``spec`` names sits on the bus (the rl agent), known from its class."""
+    try:
+        return bool(getattr(plugins.load("schedulers", plugins.with_policy("schedulers", spec)[0]), "serve_on_bus",
+                            False))
+    except TwinError:
+        return False  # an unknown scheduler is reported, with the installed ones, when it is made
