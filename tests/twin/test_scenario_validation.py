@@ -1,5 +1,6 @@
 """Each class of bad scenario gets one message per problem naming file, field and value; exit 2, no traceback."""
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -63,6 +64,20 @@ def test_a_class_string_that_does_not_import_says_why(tmp_path):
     s = load(write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "nowhere.module:Robot"})))
     with pytest.raises(DriverError, match="could not import 'nowhere.module'"):
         load_driver(s, "synthesiser", "synthesiser")
+
+
+def test_a_driver_module_beside_the_scenario_is_not_imported_and_the_error_says_how(tmp_path):
+    """A scenario may come from anyone: a .py beside it is not run; the error names it and says how to let it.
+    (The `twin` command, as installed: `python -m` would put the folder on the path itself.)"""
+    (tmp_path / "mine_robot.py").write_text("import sys\nsys.exit('the module ran')\n")
+    path = write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "mine_robot:Robot"}))
+    command = Path(sys.executable).parent / "twin"
+    res = subprocess.run([str(command), "validate", path.name], capture_output=True, text=True, cwd=tmp_path)
+    assert res.returncode == 2 and "the module ran" not in res.stdout + res.stderr
+    assert "mine_robot.py is in this folder" in res.stderr and "PYTHONPATH=." in res.stderr
+    ok = subprocess.run([str(command), "validate", path.name], capture_output=True, text=True, cwd=tmp_path,
+                        env={**os.environ, "PYTHONPATH": "."})
+    assert "the module ran" in ok.stderr  # as told: now it is imported
 
 
 def test_workflow_naming_a_missing_device_type(tmp_path):

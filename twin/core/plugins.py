@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import importlib
 import inspect
+from pathlib import Path
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
 
@@ -74,6 +75,19 @@ def _load(kind: str, name: str) -> Any:
         raise error(f"{_NAMES.get(kind, kind[:-1])} {name!r} ({eps[name].value}) failed to load: {exc}") from exc
 
 
+def _where_modules_come_from(exc: ImportError) -> str:
+    """What to do when a class string's module is not found: labtwin imports only what Python can (never a file
+    because it lies beside a scenario, which may come from anyone)."""
+    missing = getattr(exc, "name", None) or ""
+    here = [f for f in (Path.cwd() / f"{missing}.py", Path.cwd() / missing / "__init__.py") if missing and f.exists()]
+    if here:
+        return (f"{here[0].relative_to(Path.cwd())} is in this folder, but a scenario's code is imported only from "
+                f"installed packages or PYTHONPATH: run with PYTHONPATH=. (or `pip install -e` its package; "
+                "`twin driver new` writes one)")
+    return ("Is its package installed? (`pip install -e` it; `twin driver new` writes one.) A module of your own "
+            "not in a package: put its folder on PYTHONPATH")
+
+
 def _import_string(spec: str, error: type[Exception]) -> Any:
     module_name, _, attr = spec.partition(":")
     if not module_name or not attr:
@@ -81,7 +95,7 @@ def _import_string(spec: str, error: type[Exception]) -> Any:
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
-        raise error(f"could not import {module_name!r} for {spec!r}: {exc}. Is its package installed?") from exc
+        raise error(f"could not import {module_name!r} for {spec!r}: {exc}. {_where_modules_come_from(exc)}") from exc
     obj = module
     for part in attr.split("."):
         try:
