@@ -19,6 +19,14 @@ is (``LabView.campaigns``): whether its campaign has the top priority, how far i
 the device time, its progress, and how many steps and how much work of other campaigns queue for the same device
 type. These are the last five columns (``candidates-v3``); a policy trained on ``candidates-v2`` reads a row
 without them, and is blind to campaigns (``agents.candidate_policy.widened`` starts a v3 policy from it).
+
+``candidates-v4`` (this labtwin's) reads what grows with the lab as a share of it: a step's operations left
+against the most any ready step has, its type's ready steps against all ready steps, the operations queued for
+its type against the busiest type's, the free instances of its type against its instances, ready and free
+steps per device, and lab time against elapsed plus the bound on what remains — where v2 and v3 divided
+counts by ten and time by a hundred typical steps, so that a 50-job shop showed counts five times any its
+policy had seen. A v2 or v3 policy still reads its own columns, and one trained from it keeps them
+(``trained_encoding``).
 """
 
 from __future__ import annotations
@@ -30,7 +38,7 @@ import numpy as np
 
 from twin import ANY_WORKFLOW, Assignment, LabView, ReadyStep, Scenario, drawn_at_random, time_scale
 
-ENCODING = "candidates-v3"
+ENCODING = "candidates-v4"
 MAX_CANDIDATES = 128
 FEATURES = 34
 GLOBALS = 8
@@ -40,7 +48,19 @@ WAIT = MAX_CANDIDATES
 CLIP = 10.0
 # earlier encodings a policy file may have been trained with, and the row width each reads: v2 is v3 without the
 # campaign columns (the last five), so a v2 policy reads the first 29 of every row and is blind to campaigns
-WIDTHS = {"candidates-v2": 29, ENCODING: FEATURES}
+WIDTHS = {"candidates-v2": 29, "candidates-v3": FEATURES, ENCODING: FEATURES}
+# v4 reads the counts that grow with the lab as shares of it (ready steps per device, a type's ready steps and the
+# operations queued for it against the busiest type's, the lab time against elapsed + the bound): a 50-job shop
+# then looks like the 10-job ones it trained on, where v2/v3's "ready steps ÷ 10" ran past anything seen
+RELATIVE = {ENCODING}
+
+
+def trained_encoding(init_encoding: str | None) -> str:
+    """The encoding a policy trained from one of ``init_encoding`` reads labs with: this labtwin's for a new policy
+    or one started from a relative one; ``candidates-v3`` for one started from a v2 or v3 policy, whose columns
+    keep their meaning (v2's widened by the campaign columns) so that it starts deciding as that one did."""
+    return ENCODING if init_encoding is None or init_encoding in RELATIVE or init_encoding not in WIDTHS \
+        else "candidates-v3"
 
 
 def signature(s: Scenario | None = None, encoding: str = ENCODING) -> dict:
@@ -110,6 +130,7 @@ class Observed:
 class CandidateEncoder:
     def __init__(self, scenario: Scenario, encoding: str = ENCODING) -> None:
         self.width = WIDTHS[encoding]  # a policy of an earlier encoding reads the first columns only
+        self.relative = encoding in RELATIVE
         self.scale = time_scale(scenario)
         self.stability = scenario.chemistry.stability_s or 0.0
         self.encoded: list[tuple[ReadyStep, str]] = []  # the candidates of the view last encoded, in row order
@@ -161,6 +182,13 @@ class CandidateEncoder:
             g[0] = max(g[0], r.work_remaining_s)
             g[1] = max(g[1], r.expected_s)
             g[2] = max(g[2], per_unit.get(r.then[0][0], 0.0) if r.then else 0.0)
+        n_ready = max(len(view.ready), 1)
+        most_then = max((len(r.then) for r in view.ready), default=0) or 1
+        most_ops = max(ops_of.values(), default=0) or 1
+        if self.relative:
+            then_scale, ready_scale, ops_scale = most_then, n_ready, most_ops
+        else:
+            then_scale = ready_scale = ops_scale = 10
         for i, (r, name) in enumerate(pairs):
             d = devices.get(name)
             kind = by_type.get(r.device_type, [])
@@ -180,12 +208,12 @@ class CandidateEncoder:
                 (now - r.ready_since) / k,
                 age / stability if stability else 0.0,
                 spare,
-                len(r.then) / 10,
+                len(r.then) / then_scale,
                 nxt_s / k,
                 nxt_busy,
                 nxt_wait / k,
-                ready_of.get(r.device_type, 0) / 10,
-                free_of.get(r.device_type, 0) / 10,
+                ready_of.get(r.device_type, 0) / ready_scale,
+                free_of.get(r.device_type, 0) / (max(len(kind), 1) if self.relative else 10),
                 len(kind) / 10,
                 (d.failures / (d.attempts + 1)) if d else 0.0,
                 (d.busy_s / max(now, k)) if d else 0.0,
@@ -197,7 +225,7 @@ class CandidateEncoder:
                 per_unit.get(r.device_type, 0.0) / lb,
                 per_unit.get(nxt_type, 0.0) / lb,
                 r.work_remaining_s / lb,
-                ops_of.get(r.device_type, 0) / 10,
+                ops_of.get(r.device_type, 0) / ops_scale,
                 arriving.get(r.device_type, (CLIP * k, 0.0))[0] / k,
                 arriving.get(r.device_type, (0.0, 0.0))[1] / lb,
                 # against the other steps this device could take instead
@@ -209,9 +237,11 @@ class CandidateEncoder:
             mask[i] = True
         n = max(len(view.devices), 1)
         busy = sum(d.busy_until is not None for d in view.devices)
-        glob = np.array([busy / n, len(view.ready) / 10, len(view.free) / 10, len(pairs) / MAX_CANDIDATES,
+        per = n if self.relative else 10
+        glob = np.array([busy / n, len(view.ready) / per, len(view.free) / per, len(pairs) / MAX_CANDIDATES,
                          view.finished / max(view.budget, 1), view.in_lab / max(view.budget, 1),
-                         sum(not d.online for d in view.devices) / n, now / (k * 100.0)], np.float32)
+                         sum(not d.online for d in view.devices) / n,
+                         now / (now + lb) if self.relative else now / (k * 100.0)], np.float32)
         mask[WAIT] = busy > 0 or not pairs
         rows, glob = np.clip(rows[:, :self.width], -CLIP, CLIP), np.clip(glob, -CLIP, CLIP)
         if self.seen is not None:

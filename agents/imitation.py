@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from agents.candidates import (FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, Observed, WIDTHS,
+from agents.candidates import (ENCODING, FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, Observed, WIDTHS,
                                lab_shape, widen)
 from agents.cpsat import jobshop
 from agents.scheduling_env import randomised
@@ -56,10 +56,11 @@ class Sample:
     taught: np.ndarray  # (n + 1,) bool: the teacher's choices among them
 
 
-def rollout(lab: Scenario, teacher: PlanTeacher | RuleTeacher, choose, rng: random.Random) -> tuple[list[Sample], Any]:
+def rollout(lab: Scenario, teacher: PlanTeacher | RuleTeacher, choose, rng: random.Random,
+            encoding: str = ENCODING) -> tuple[list[Sample], Any]:
     """One campaign of ``lab``, every state labelled by ``teacher``; ``choose(obs, mask, taught, rng)`` acts.
     Returns the samples and the campaign's summary."""
-    encoder = CandidateEncoder(lab)
+    encoder = CandidateEncoder(lab, encoding)
     c = stepped(lab)
     out: list[Sample] = []
     teacher.reset()
@@ -103,7 +104,7 @@ def learner(scorer: torch.nn.Module, greedy: bool, beta: float):
 def shop_task(args: tuple) -> tuple[list[Sample], dict]:
     """Worker: draw a shop from ``seed``, solve it, and roll it out ``len(modes)`` times; ``modes`` are
     ``teacher``, ``greedy`` or ``sample``. Returns the samples and what the runs measured."""
-    base, seed, modes, state, beta = args
+    base, seed, modes, state, beta, encoding = args
     torch.set_num_threads(1)
     rng = random.Random(f"imitate:{seed}")
     n_jobs, n_machines = rng.choice(base.training.jobshop_sizes)
@@ -112,21 +113,21 @@ def shop_task(args: tuple) -> tuple[list[Sample], dict]:
     lab = prepare(jobshop_as_lab(base, inst), seed=0)
     plan = jobshop(inst.jobs, inst.machines, time_limit_s=solve_time(n_jobs, n_machines))
     samples, spans = _rollouts(lab, PlanTeacher(inst.jobs, plan.starts), modes, _scorer(state, seed), beta, rng,
-                               lambda summary: summary.lab_hours * 3600 / plan.makespan)
+                               lambda summary: summary.lab_hours * 3600 / plan.makespan, encoding)
     return samples, {"size": f"{n_jobs}x{n_machines}", "plan": plan.makespan, "optimal": plan.optimal, **spans}
 
 
 def lab_task(args: tuple) -> tuple[list[Sample], dict]:
     """Worker: draw a lab from the scenario's ``training`` ranges with ``seed``, find the rule that does best
     there, and roll the lab out ``len(modes)`` times with that rule as the teacher."""
-    base, seed, modes, state, beta = args
+    base, seed, modes, state, beta, encoding = args
     torch.set_num_threads(1)
     rng = random.Random(f"imitate:{seed}")
     lab = prepare(randomised(base, seed), seed=seed)
     scores = {r: objective(campaign(lab, seed, load_plugin("schedulers", r)().decide), lab) for r in rules_for(lab)}
     rule = min(scores, key=scores.get)
     samples, ratios = _rollouts(lab, RuleTeacher(rule), modes, _scorer(state, seed), beta, rng,
-                                lambda summary: objective(summary, lab) / scores[rule])
+                                lambda summary: objective(summary, lab) / scores[rule], encoding)
     return samples, {"rule": rule, "shape": lab_shape(lab), **ratios}
 
 
@@ -137,13 +138,14 @@ SAMPLE_TEMPERATURES = (0.5, 1.0)
 
 
 def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
-                 temperatures: tuple[float, ...] = SAMPLE_TEMPERATURES) -> list[tuple[list[Sample], Any]]:
+                 temperatures: tuple[float, ...] = SAMPLE_TEMPERATURES,
+                 encoding: str = ENCODING) -> list[tuple[list[Sample], Any]]:
     """``k`` campaigns of ``lab`` stepped in lockstep, one forward pass for all: the first takes the policy's best
     candidate, the others sample from its scores ÷ a temperature, each in turn from ``temperatures`` (too high for
     the policy, a sample strays so far from the greedy run that the best of 16 is hardly better than it; too low,
     it seldom leaves it); each state is labelled with the choice the run made there. The samples and the summary
     of each run."""
-    runs = [(CandidateEncoder(lab), stepped(lab), []) for _ in range(k)]
+    runs = [(CandidateEncoder(lab, encoding), stepped(lab), []) for _ in range(k)]
     try:
         live = list(range(k))
         while live:
@@ -172,7 +174,7 @@ def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
 def self_task(args: tuple) -> tuple[list[Sample], dict]:
     """Worker: draw a job shop (``training.jobshop_sizes``) or a lab (the ``training`` ranges) from ``seed``, roll
     it out ``training.samples`` times with the policy, and return the best run's samples."""
-    base, seed, _modes, state, _beta = args
+    base, seed, _modes, state, _beta, encoding = args
     torch.set_num_threads(1)
     if base.training.jobshop_sizes and not base.campaigns:
         rng = random.Random(f"imitate:{seed}")
@@ -183,20 +185,21 @@ def self_task(args: tuple) -> tuple[list[Sample], dict]:
     else:
         lab = prepare(randomised(base, seed), seed=seed)
         shape = lab_shape(lab)
-    runs = sampled_runs(lab, _scorer(state, seed), base.training.samples)
+    runs = sampled_runs(lab, _scorer(state, seed), base.training.samples, encoding=encoding)
     scores = [objective(summary, lab) for _, summary in runs]
     best = min(range(len(runs)), key=scores.__getitem__)
     info = {"greedy ÷ best": scores[0] / scores[best], "sampled ÷ best": statistics.mean(scores[1:]) / scores[best]}
     return runs[best][0], {**info, **({"shape": shape} if shape else {})}
 
 
-def _rollouts(lab: Scenario, teacher, modes, scorer, beta: float, rng: random.Random, measure):
+def _rollouts(lab: Scenario, teacher, modes, scorer, beta: float, rng: random.Random, measure,
+              encoding: str = ENCODING):
     """``lab`` rolled out once per mode (``teacher``, ``greedy``, ``sample``), every state labelled; the samples,
     and ``measure(summary)`` per mode."""
     samples, measured = [], {}
     for mode in modes:
         choose = follow_teacher if mode == "teacher" or scorer is None else learner(scorer, mode == "greedy", beta)
-        got, summary = rollout(lab, teacher, choose, rng)
+        got, summary = rollout(lab, teacher, choose, rng, encoding)
         samples += got
         measured[mode] = measure(summary)
     return samples, measured
@@ -291,7 +294,7 @@ def check_imitable(scenario: Scenario, init) -> None:
 def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, workers: int = 2,
                        eval_every: int = 20_000, on_progress=None, eval_seeds=None, held_out_count: int | None = None,
                        max_samples: int | None = None, epochs: int = 3, learning_rate: float | None = None,
-                       init=None):
+                       init=None, encoding: str = ENCODING):
     """Rounds of about ``eval_every`` labelled decisions each, ``steps`` in all; the policy is evaluated after every
     round and the best kept (``agents.train_scheduler.Judge``). ``init``: a policy file to start from. The most
     recent ``max_samples`` labels are trained on (by default 400,000 from a teacher; from the policy itself, the
@@ -311,16 +314,16 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     learning_rate = learning_rate or (2e-4 if init is not None else 1e-3)  # a trained policy is tuned, not retaught
     torch.set_num_threads(1)
     torch.manual_seed(seed)
-    host = DummyVecEnv([lambda: SchedulingEnv(scenario, randomise=False)])  # SB3's spaces
+    host = DummyVecEnv([lambda: SchedulingEnv(scenario, randomise=False, encoding=encoding)])  # SB3's spaces
     model = MaskablePPO(CandidatePolicy, host, seed=seed, verbose=0, device="cpu")
     host.close()
     net = model.policy.action_net
     fits = None
     if init is not None:
-        net.load_state_dict(initial_state(Path(init), scenario, "candidates", part="action_net"))
+        net.load_state_dict(initial_state(Path(init), scenario, encoding, part="action_net"))
         fits = read_meta(Path(init)).get("fits")
     optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
-    judge = Judge(scenario, out, "candidates", eval_seeds or EVAL_SEEDS, held_out_count, on_progress,
+    judge = Judge(scenario, out, encoding, eval_seeds or EVAL_SEEDS, held_out_count, on_progress,
                   method="imitate", teacher=scenario.training.teacher, **started_from(init))
     jobshop = bool(scenario.training.jobshop_sizes and not scenario.campaigns) if itself else \
         scenario.training.teacher == "cp-sat"
@@ -350,7 +353,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
             count = max(workers, round(want / (per_shop * len(modes))))
             got, measured = 0, []
             for samples, info in pool.imap_unordered(
-                    task, [(scenario, shop + i, modes, state, beta) for i in range(count)]):
+                    task, [(scenario, shop + i, modes, state, beta, encoding) for i in range(count)]):
                 data += samples
                 for sample in samples:
                     trained_on.add(sample.rows, sample.glob)

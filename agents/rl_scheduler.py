@@ -80,7 +80,7 @@ class RlScheduler:
                                                                   str(path.with_suffix(".json")))
             except ValueError as exc:
                 raise PluginError(str(exc)) from None
-        self.sees_campaigns = encoding == candidates.ENCODING
+        self.sees_campaigns = candidates.WIDTHS.get(encoding) == candidates.FEATURES
         # warm up torch
         self.model.predict(np.zeros(sign["observation_size"], np.float32), action_masks=np.ones(sign["actions"], bool))
 

@@ -87,13 +87,14 @@ class SchedulingEnv(gym.Env):
     def __init__(self, scenario: Scenario | str | Path | None = None, randomise: bool = True,
                  encoding: str = "candidates") -> None:
         """``scenario``: a Scenario or a file (default: ``scenarios/flaky_lab.yaml``). ``encoding``:
-        ``candidates`` (one row per allowed pair, ``agents.candidates``) or ``slots`` (the fixed grid of
+        ``candidates`` (one row per allowed pair, ``agents.candidates``; or a version of it, ``candidates-v3``) or ``slots`` (the fixed grid of
         ``agents.scheduling_features``, kept as a baseline)."""
         scenario = default_scenario(scenario, "flaky_lab.yaml")
         self.base, self.randomise = scenario, randomise
-        self.features = ENCODINGS[encoding]
-        self.encoder = self.features.CandidateEncoder(scenario) if encoding == "candidates" else \
-            self.features.Encoder(scenario)
+        candidates_of = encoding.startswith("candidates")  # "candidates" (this labtwin's) or a version of it
+        self.features = ENCODINGS["candidates" if candidates_of else encoding]
+        self.encoder = self.features.CandidateEncoder(scenario, *([] if encoding == "candidates" else [encoding])) \
+            if candidates_of else self.features.Encoder(scenario)
         self.observation_space = gym.spaces.Box(-10.0, 10.0, (self.features.OBS_SIZE,), np.float32)
         self.action_space = gym.spaces.Discrete(self.features.ACTIONS)
         self.campaign: SteppedCampaign | None = None

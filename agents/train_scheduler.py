@@ -18,6 +18,7 @@ import torch
 from agents.scheduling_env import SchedulingEnv, randomised
 from agents.rl_scheduler import RlScheduler
 from agents.candidates import signature as candidate_signature
+from agents.candidates import trained_encoding
 from agents.candidates import FEATURES, Observed, widen
 from agents.scheduling_features import signature
 from agents.schedulers import rules_for
@@ -130,7 +131,9 @@ def started_from(init: Path | None) -> dict[str, Any]:
 
 
 def judge_signature(scenario: Scenario, encoding: str) -> dict:
-    return candidate_signature(scenario) if encoding == "candidates" else signature(scenario)
+    if encoding.startswith("candidates"):
+        return candidate_signature(scenario, *([] if encoding == "candidates" else [encoding]))
+    return signature(scenario)
 
 
 def initial_state(init: Path, scenario: Scenario, encoding: str, part: str = "") -> dict[str, torch.Tensor]:
@@ -143,7 +146,7 @@ def initial_state(init: Path, scenario: Scenario, encoding: str, part: str = "")
     from agents.candidates import WIDTHS
 
     trained = read_meta(Path(init)).get("signature", {}).get("encoding")
-    if encoding == "candidates" and trained in WIDTHS:
+    if encoding.startswith("candidates") and trained in WIDTHS:
         state = widened(load_policy(Path(init), "scheduler", candidate_signature(scenario, trained)).policy.state_dict())
     else:
         state = load_policy(Path(init), "scheduler", judge_signature(scenario, encoding)).policy.state_dict()
@@ -183,7 +186,7 @@ class Judge:
     def __call__(self, model: Any, done: int, fits: dict | None, policy: str, seen: dict | None = None) -> dict:
         """``seen``: what training itself measured, reported first."""
         s, rules, best_rule = self.scenario, self.rules, self.best_rule
-        observed = Observed(FEATURES) if self.encoding == "candidates" else None
+        observed = Observed(FEATURES) if self.encoding.startswith("candidates") else None
         decide = self._decider(model, s, observed)
         result = {**(seen or {}), **score([campaign(s, seed, decide) for seed in self.eval_seeds], s)}
         result["vs best rule"] = result["makespan h"] / rules[best_rule]["makespan h"]
@@ -226,22 +229,27 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
     """Train by the scenario's ``training.method``: ``ppo`` (MaskablePPO in the environment) or ``imitate``
     (DAgger from ``training.teacher``, ``agents.imitation``). ``encoding``: ``candidates`` (the
     candidate-scoring policy) or ``slots`` (an MLP over the fixed grid, the baseline; PPO only). ``init``: a policy
-    of the same encoding to start from."""
+    of the same encoding to start from (a candidate policy of an earlier version: trained on in its columns'
+    meaning, ``agents.candidates.trained_encoding``)."""
     if scenario.campaigns:
         scenario = lab_training(scenario, encoding, init)
-    if scenario.training.method == "imitate" and encoding == "candidates":
+    if encoding == "candidates":
+        from twin import read_meta
+
+        encoding = trained_encoding(read_meta(Path(init)).get("signature", {}).get("encoding") if init else None)
+    if scenario.training.method == "imitate" and encoding.startswith("candidates"):
         from agents.imitation import train_by_imitation
 
         return train_by_imitation(scenario, steps, out, seed=seed, workers=envs, eval_every=eval_every,
                                   on_progress=on_progress, eval_seeds=eval_seeds, held_out_count=held_out_count,
-                                  init=init)
+                                  init=init, encoding=encoding)
     from sb3_contrib import MaskablePPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     torch.set_num_threads(1)
     venv = DummyVecEnv([lambda: SchedulingEnv(scenario, encoding=encoding) for _ in range(envs)])
     venv.seed(seed)
-    if encoding == "candidates":
+    if encoding.startswith("candidates"):
         from stable_baselines3.common.vec_env import VecNormalize
 
         from agents.candidate_policy import CandidatePolicy

@@ -27,7 +27,8 @@ sys.path.insert(0, str(ROOT))
 from agents.train_scheduler import initial_state  # noqa: E402
 from agents.imitation import _scorer, sampled_runs  # noqa: E402
 from bench.tables import table  # noqa: E402
-from twin import jobshop_as_lab, prepare, random_jobshop  # noqa: E402
+from agents.candidates import trained_encoding  # noqa: E402
+from twin import jobshop_as_lab, prepare, random_jobshop, read_meta  # noqa: E402
 
 
 def main() -> None:
@@ -41,6 +42,7 @@ def main() -> None:
     torch.set_num_threads(1)
     s = prepare(args.scenario)
     state = initial_state(args.policy, s, "candidates", part="action_net")
+    encoding = trained_encoding(read_meta(args.policy).get("signature", {}).get("encoding"))  # as it decides
     sizes = s.training.jobshop_sizes or [[10, 10]]
     low, high = (int(x) for x in (s.training.operation_s or (1, 99)))
     shops = []
@@ -53,7 +55,8 @@ def main() -> None:
         best, sampled, t0 = [], [], time.perf_counter()
         for k, lab in enumerate(shops):
             spans = [summary.lab_hours for _, summary in
-                     sampled_runs(lab, _scorer(state, k), args.samples, temperatures=(temperature,))]
+                     sampled_runs(lab, _scorer(state, k), args.samples, temperatures=(temperature,),
+                                  encoding=encoding)]
             best.append(min(spans) / spans[0])
             sampled.append(statistics.mean(spans[1:]) / spans[0])
         rows.append([f"{temperature:g}", f"{statistics.mean(best):.3f}", f"{max(best):.3f}",

@@ -131,13 +131,14 @@ def test_the_live_agent_over_zenoh_dispatches_what_the_env_does(ft06, trained, t
     assert summary.scheduler_fallbacks == 0
 
 
-@pytest.mark.parametrize("policy, scenario", [("flaky_scheduler.zip", "flaky_lab.yaml"),
-                                              ("jobshop_scheduler.zip", "jobshop.yaml")])
+@pytest.mark.parametrize("policy, scenario", [("agents/policies/flaky_scheduler.zip", "flaky_lab.yaml"),
+                                              ("agents/policies/jobshop_scheduler.zip", "jobshop.yaml"),
+                                              ("tests/data/jobshop_scheduler_v2.zip", "jobshop.yaml")])
 def test_a_greedy_decision_is_the_one_sb3_predict_takes(policy, scenario):
     """The rl scheduler scores candidates with the policy's own network and takes the most probable under the
-    mask, as SB3's predict(deterministic=True) does — every decision of a campaign, shipped v3 and v2 policies."""
+    mask, as SB3's predict(deterministic=True) does — every decision of a campaign, policies of v3, v4 and v2."""
     lab = prepare(ROOT / "scenarios" / scenario)
-    rl = RlScheduler(lab, str(ROOT / "agents" / "policies" / policy))
+    rl = RlScheduler(lab, str(ROOT / policy))
     views = []
 
     def decide(view):

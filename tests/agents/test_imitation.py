@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from agents.candidates import FEATURES, WAIT, CandidateEncoder, Observed
+from agents.candidates import ENCODING, FEATURES, WAIT, CandidateEncoder, Observed
 from agents.cpsat import jobshop
 from agents.imitation import follow_teacher, lab_task, rollout
 from agents.teachers import PlanTeacher, RuleTeacher
@@ -107,7 +107,7 @@ def test_the_cp_sat_teacher_outside_a_job_shop_is_refused_with_what_to_use_inste
 
 def test_the_best_rule_teacher_chooses_its_rules_step_in_a_flaky_lab():
     flaky = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"campaign.budget": 10})
-    samples, info = lab_task((flaky, 5, ("teacher",), None, 0.0))
+    samples, info = lab_task((flaky, 5, ("teacher",), None, 0.0, ENCODING))
     assert info["rule"] in RULES and 0.7 < info["teacher"] < 1.3  # its objective ÷ the rule's own run
     assert samples and all(s.taught.sum() >= 1 and not (s.taught & ~s.allowed).any() for s in samples)
     assert set(info["shape"]) == {"steps", "device_types", "instances"}

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from agents.candidates import FEATURES, MAX_CANDIDATES, WIDTHS, CandidateEncoder
+from agents.candidates import FEATURES, MAX_CANDIDATES, WIDTHS, CandidateEncoder, trained_encoding
 from agents.rl_scheduler import RlScheduler
 from agents.train_scheduler import initial_state
 from twin import load_plugin, prepare
@@ -18,7 +18,7 @@ from twin.runtime.shared_run import run_shared
 ROOT = Path(__file__).resolve().parents[2]
 LAB = ROOT / "scenarios" / "shared_lab.yaml"
 SHIPPED = ROOT / "agents" / "policies" / "flaky_scheduler.zip"
-EARLIER = ROOT / "agents" / "policies" / "jobshop_scheduler.zip"  # a policy of the earlier encoding, candidates-v2
+EARLIER = ROOT / "tests" / "data" / "jobshop_scheduler_v2.zip"  # a policy of an earlier encoding, candidates-v2
 torch.set_num_threads(1)
 CONTENDED = {"campaigns.1.priority": 0, "devices.spectrometer.duration.mean_s": 1500}  # both queue at one device
 
@@ -88,7 +88,7 @@ def test_a_policy_of_the_earlier_encoding_decides_as_before_and_widened_the_same
     model = MaskablePPO(CandidatePolicy, host, device="cpu")
     host.close()
     model.policy.load_state_dict(initial_state(EARLIER, lab, "candidates"))
-    widened = RlScheduler.from_model(model, lab, "candidates")
+    widened = RlScheduler.from_model(model, lab, trained_encoding("candidates-v2"))  # v3: v2's columns and five
     assert widened.encoder.width == FEATURES
     stepped, decisions = SteppedLab(lab), 0
     try:
@@ -142,7 +142,7 @@ def test_a_lab_is_trained_from_a_policy_by_its_own_best_runs_and_says_so_when_it
     state = initial_state(SHIPPED, lab, "candidates", part="action_net")
     labelled = []
     for seed in (1, 2):
-        samples, info = self_task((lab, seed, ("self",), state, 0.0))
+        samples, info = self_task((lab, seed, ("self",), state, 0.0, "candidates-v3"))
         labelled += samples
         assert info["greedy ÷ best"] >= 1.0 and {"prepare", "react", "synthesise", "measure"} <= set(info["shape"]["steps"])
     top, rivals = np.concatenate([s.rows[:, -5] for s in labelled]), np.concatenate([s.rows[:, -2] for s in labelled])

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from agents.candidates import GLOBALS, MAX_CANDIDATES, Observed
+from agents.candidates import GLOBALS, MAX_CANDIDATES, WIDTHS, Observed
 from agents.observed_range import observe
 from agents.rl_scheduler import RlScheduler
 from agents.train_scheduler import campaign
@@ -17,7 +17,8 @@ from twin import PluginError, jobshop_as_lab, load_plugin, random_jobshop
 from twin.runtime.lab import prepare
 
 ROOT = Path(__file__).resolve().parents[2]
-POLICY = ROOT / "agents" / "policies" / "jobshop_scheduler.zip"
+# the earlier job-shop policy (candidates-v2, counts ÷ 10): a larger shop runs its inputs past anything it saw
+POLICY = ROOT / "tests" / "data" / "jobshop_scheduler_v2.zip"
 torch.set_num_threads(1)
 
 
@@ -40,7 +41,7 @@ def unheld(lab):
 def test_every_shipped_candidate_policy_records_the_range_it_was_judged_on():
     for name in ("jobshop_scheduler", "flaky_scheduler", "lab_scheduler"):
         meta = json.loads((ROOT / "agents" / "policies" / f"{name}.json").read_text())
-        width = 29 if name == "jobshop_scheduler" else 34  # candidates-v2 and -v3
+        width = WIDTHS[meta["signature"]["encoding"]]
         held = Observed.from_meta(meta["observed"], width, name)
         assert (held.lo <= held.hi).all() and held.ghi.shape == (GLOBALS,)
 
@@ -98,3 +99,35 @@ def test_a_policy_saved_before_ranges_were_kept_gets_one_from_its_labs(ft06, tmp
     # fewer labs than the shipped range was taken over: inside it, and not a single point
     assert (held.lo >= shipped.lo - 1e-6).all() and (held.hi <= shipped.hi + 1e-6).all()
     assert (held.hi > held.lo).sum() > 10
+
+
+SHIPPED = ROOT / "agents" / "policies" / "jobshop_scheduler.zip"
+
+
+def test_candidates_v4_reads_a_larger_shops_counts_as_shares_of_it(ft06):
+    """What grows with the lab — a type's ready steps, the operations queued for it, a step's operations left —
+    v3 divides by ten and v4 reads as a share of the lab: on a 60-job shop v3's run past 1, v4's stay in 0..1."""
+    from agents.candidates import CandidateEncoder
+
+    lab, columns = long_shop(ft06), [7, 11, 23]
+    v3, v4, most = CandidateEncoder(lab, "candidates-v3"), CandidateEncoder(lab, "candidates-v4"), {3: 0.0, 4: 0.0}
+
+    def decide(view):
+        for version, enc in ((3, v3), (4, v4)):
+            rows = enc.encode(view)[0][:MAX_CANDIDATES * 34].reshape(MAX_CANDIDATES, 34)[:len(enc.encoded)]
+            most[version] = max(most[version], float(rows[:, columns].max(initial=0.0)))
+        return load_plugin("schedulers", "mwkr")().decide(view)
+
+    campaign(lab, 0, decide)
+    assert most[3] > 1.5 and most[4] <= 1.0, most
+
+
+def test_the_shipped_job_shop_policy_beats_mwkr_on_shops_larger_than_any_it_trained_on(ft06):
+    """Trained on shops of up to 20 jobs × 15 machines; here 40 jobs × 10 and 50 × 20, two shops of each."""
+    ratios = []
+    for jobs, machines in ((40, 10), (50, 20)):
+        for k in range(2):
+            lab = jobshop_as_lab(ft06, random_jobshop(jobs, machines, 1, 99, random.Random(f"larger:{jobs}:{k}")))
+            rl = campaign(lab, 0, RlScheduler(lab, str(SHIPPED)).decide).lab_hours
+            ratios.append(rl / campaign(lab, 0, load_plugin("schedulers", "mwkr")().decide).lab_hours)
+    assert sum(ratios) / len(ratios) < 1.0, ratios

@@ -10,15 +10,16 @@ from pathlib import Path
 import pytest
 import torch
 
-from agents.candidates import WAIT, CandidateEncoder
+from agents.candidates import WAIT, CandidateEncoder, trained_encoding
 from agents.imitation import _scorer, sampled_runs, self_task
 from agents.rl_scheduler import RlScheduler
 from agents.train_scheduler import campaign, objective, train_scheduler
-from twin import SteppedCampaign, jobshop_as_lab, random_jobshop
+from twin import SteppedCampaign, jobshop_as_lab, random_jobshop, read_meta
 from twin.runtime.lab import prepare
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = ROOT / "agents" / "policies" / "jobshop_scheduler.zip"
+AS_SHIPPED = trained_encoding(read_meta(SHIPPED)["signature"]["encoding"])  # the columns it decides by
 torch.set_num_threads(1)
 
 
@@ -31,12 +32,12 @@ def ft06():
 def state(ft06):
     from agents.train_scheduler import initial_state
 
-    return initial_state(SHIPPED, ft06, "candidates", part="action_net")  # a shipped v2 policy, widened
+    return initial_state(SHIPPED, ft06, "candidates", part="action_net")  # the shipped policy (an earlier one widened)
 
 
 def replay(lab, samples) -> float:
     """Lab-seconds of a campaign of ``lab`` that takes, state by state, the choice each sample is labelled with."""
-    enc, c = CandidateEncoder(lab), SteppedCampaign(lab)
+    enc, c = CandidateEncoder(lab, AS_SHIPPED), SteppedCampaign(lab)
     try:
         for s in samples:
             enc.encode(c.view)
@@ -51,7 +52,7 @@ def replay(lab, samples) -> float:
 
 def test_the_runs_go_in_lockstep_the_first_greedy_and_each_label_replays_its_run(ft06, state):
     lab = prepare(jobshop_as_lab(ft06, random_jobshop(8, 5, 1, 50, random.Random(3))), seed=0)
-    runs = sampled_runs(lab, _scorer(state, 0), 6)
+    runs = sampled_runs(lab, _scorer(state, 0), 6, encoding=AS_SHIPPED)
     spans = [summary.lab_hours * 3600 for _, summary in runs]
     greedy = campaign(lab, 0, RlScheduler(lab, str(SHIPPED)).decide).lab_hours * 3600
     assert spans[0] == pytest.approx(greedy)
@@ -62,11 +63,11 @@ def test_the_runs_go_in_lockstep_the_first_greedy_and_each_label_replays_its_run
 
 def test_a_self_task_returns_its_best_run(ft06, state):
     small = prepare(ft06, overrides={"training.jobshop_sizes": [[10, 5]], "training.samples": 8})
-    samples, info = self_task((small, 11, ("self",), state, 0.0))
+    samples, info = self_task((small, 11, ("self",), state, 0.0, AS_SHIPPED))
     rng = random.Random("imitate:11")  # the shop the task drew
     n_jobs, n_machines = rng.choice(small.training.jobshop_sizes)
     lab = prepare(jobshop_as_lab(small, random_jobshop(n_jobs, n_machines, 1, 99, rng)), seed=0)
-    runs = sampled_runs(lab, _scorer(state, 11), 8)
+    runs = sampled_runs(lab, _scorer(state, 11), 8, encoding=AS_SHIPPED)
     best = min(objective(summary, lab) for _, summary in runs)
     assert info["greedy ÷ best"] >= 1.0 and info["sampled ÷ best"] >= 1.0
     assert replay(lab, samples) / 3600 == pytest.approx(min(s.lab_hours for _, s in runs))
