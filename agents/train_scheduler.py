@@ -8,6 +8,7 @@ ranges, against every dispatching rule, and keeps the best.
 
 from __future__ import annotations
 
+import logging
 import statistics
 from collections.abc import Callable
 from pathlib import Path
@@ -17,9 +18,8 @@ import torch
 
 from agents.scheduling_env import SchedulingEnv, randomised
 from agents.rl_scheduler import RlScheduler
+from agents.candidates import ENCODING, FEATURES, Observed, trained_encoding, widen
 from agents.candidates import signature as candidate_signature
-from agents.candidates import trained_encoding
-from agents.candidates import FEATURES, Observed, widen
 from agents.scheduling_features import signature
 from agents.schedulers import rules_for
 from twin import load_plugin, load_policy
@@ -30,6 +30,7 @@ from twin import Scenario, time_scale, weighted_objective
 from twin import LabSummary, SteppedCampaign, SteppedLab
 from agents.lab_scheduling import lab_objective
 
+log = logging.getLogger(__name__)
 EVAL_SEEDS = tuple(range(100_000, 100_005))
 CANDIDATE_SETTINGS = dict(n_steps=1024, batch_size=512, n_epochs=8, gamma=0.995, gae_lambda=0.95, learning_rate=1e-4,
                           ent_coef=0.01)
@@ -237,6 +238,10 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
         from twin import read_meta
 
         encoding = trained_encoding(read_meta(Path(init)).get("signature", {}).get("encoding") if init else None)
+        if encoding != ENCODING:
+            log.warning("%s reads labs as %s: the policy trained from it keeps those columns, so that it starts "
+                        "deciding as that one did (a policy trained afresh reads %s: counts as shares of the lab)",
+                        init, encoding, ENCODING)
     if scenario.training.method == "imitate" and encoding.startswith("candidates"):
         from agents.imitation import train_by_imitation
 

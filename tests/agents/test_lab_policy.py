@@ -128,7 +128,7 @@ def test_a_campaigns_weight_doubles_per_lower_priority_and_follows_its_share():
     assert weights(lab) == {"dots": 4.0, "catalyst": 4.0, "bandgap": 0.5}  # catalyst: share 2
 
 
-def test_a_lab_is_trained_from_a_policy_by_its_own_best_runs_and_says_so_when_it_cannot_be(tmp_path):
+def test_a_lab_is_trained_from_a_policy_by_its_own_best_runs_and_says_so_when_it_cannot_be(tmp_path, caplog):
     from agents.imitation import self_task
     from agents.train_scheduler import train_scheduler
     from twin import read_meta
@@ -151,7 +151,8 @@ def test_a_lab_is_trained_from_a_policy_by_its_own_best_runs_and_says_so_when_it
     out = train_scheduler(lab, 300, tmp_path / "lab.zip", envs=1, eval_every=300, init=SHIPPED, held_out_count=2,
                           eval_seeds=(0, 1))
     meta = read_meta(out)
-    assert meta["signature"]["encoding"] == "candidates-v3" and meta["method"] == "imitate"
+    assert meta["signature"]["encoding"] == "candidates-v3" and meta["method"] == "imitate"  # SHIPPED's own
+    assert "reads labs as candidates-v3: the policy trained from it keeps those columns" in caplog.text
     assert "turns" in meta["rules"] and meta["lineage"][-1]["steps"] == read_meta(SHIPPED)["steps"]
     ran = run_shared(prepare(BUSY, seed=3, overrides={"orchestrator.lab_scheduler": f"rl:{out}"}), tmp_path / "j",
                      handle_signals=False)
