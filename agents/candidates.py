@@ -17,7 +17,7 @@ running step, and the step against the others the same device could take).
 In a lab of several campaigns with one scheduler (``orchestrator.lab_scheduler``) a row also says whose step it
 is (``LabView.campaigns``): whether its campaign has the top priority, how far it is above or below its share of
 the device time, its progress, and how many steps and how much work of other campaigns queue for the same device
-type. These are the last five columns (``candidates-v3``); a policy trained on ``candidates-v2`` reads a row
+type. These are the last five columns (since ``candidates-v3``); a policy trained on ``candidates-v2`` reads a row
 without them, and is blind to campaigns (``agents.candidate_policy.widened`` starts a v3 policy from it).
 
 ``candidates-v4`` (this labtwin's) reads what grows with the lab as a share of it: a step's operations left

@@ -87,8 +87,8 @@ class SchedulingEnv(gym.Env):
     def __init__(self, scenario: Scenario | str | Path | None = None, randomise: bool = True,
                  encoding: str = "candidates") -> None:
         """``scenario``: a Scenario or a file (default: ``scenarios/flaky_lab.yaml``). ``encoding``:
-        ``candidates`` (one row per allowed pair, ``agents.candidates``; or a version of it, ``candidates-v3``) or ``slots`` (the fixed grid of
-        ``agents.scheduling_features``, kept as a baseline)."""
+        ``candidates`` (one row per allowed pair, ``agents.candidates``; or a version of it, ``candidates-v3``)
+        or ``slots`` (the fixed grid of ``agents.scheduling_features``, kept as a baseline)."""
         scenario = default_scenario(scenario, "flaky_lab.yaml")
         self.base, self.randomise = scenario, randomise
         candidates_of = encoding.startswith("candidates")  # "candidates" (this labtwin's) or a version of it
