@@ -63,8 +63,14 @@ def trained_encoding(init_encoding: str | None) -> str:
         else "candidates-v3"
 
 
+def version(encoding: str) -> str:
+    """``candidates`` (the family: this labtwin's) or one of its versions, as the version."""
+    return ENCODING if encoding == "candidates" else encoding
+
+
 def signature(s: Scenario | None = None, encoding: str = ENCODING) -> dict:
     """What a policy must match to be used at all; the shapes it was trained on are checked separately."""
+    encoding = version(encoding)
     return {"encoding": encoding, "observation_size": MAX_CANDIDATES * WIDTHS[encoding] + GLOBALS, "actions": ACTIONS}
 
 
@@ -129,6 +135,7 @@ class Observed:
 
 class CandidateEncoder:
     def __init__(self, scenario: Scenario, encoding: str = ENCODING) -> None:
+        encoding = version(encoding)
         self.width = WIDTHS[encoding]  # a policy of an earlier encoding reads the first columns only
         self.relative = encoding in RELATIVE
         self.scale = time_scale(scenario)
@@ -182,11 +189,9 @@ class CandidateEncoder:
             g[0] = max(g[0], r.work_remaining_s)
             g[1] = max(g[1], r.expected_s)
             g[2] = max(g[2], per_unit.get(r.then[0][0], 0.0) if r.then else 0.0)
-        n_ready = max(len(view.ready), 1)
-        most_then = max((len(r.then) for r in view.ready), default=0) or 1
-        most_ops = max(ops_of.values(), default=0) or 1
-        if self.relative:
-            then_scale, ready_scale, ops_scale = most_then, n_ready, most_ops
+        if self.relative:  # the most of each in this lab (v4); v2 and v3 divide by ten
+            then_scale = max((len(r.then) for r in view.ready), default=0) or 1
+            ready_scale, ops_scale = max(len(view.ready), 1), max(ops_of.values(), default=0) or 1
         else:
             then_scale = ready_scale = ops_scale = 10
         for i, (r, name) in enumerate(pairs):

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from agents.candidates import (ENCODING, FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, Observed, WIDTHS,
+from agents.candidates import (ENCODING, FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, Observed,
                                lab_shape, widen)
 from agents.cpsat import jobshop
 from agents.scheduling_env import randomised
@@ -272,13 +272,6 @@ def training_fits(scenario: Scenario) -> dict:
     return {"steps": ["op"], "device_types": [min(machines), max(machines)], "instances": [1, 1]}
 
 
-def trained_from_width(init) -> int:
-    """The row width of the candidate policy in ``init`` (0 for another kind)."""
-    from twin import read_meta
-
-    return WIDTHS.get(read_meta(Path(init)).get("signature", {}).get("encoding"), 0)
-
-
 def check_imitable(scenario: Scenario, init) -> None:
     if scenario.training.teacher == "self" and init is None:
         raise ValueError(
@@ -331,10 +324,10 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     if jobshop:
         fits = widen(fits, training_fits(scenario))
     trained_on = judge.trained_on = Observed(FEATURES)  # the range of what it learns from, kept with the policy
-    started = read_meta(Path(init)).get("observed") if init is not None else None
-    if started is not None and trained_from_width(init) == FEATURES:  # and of what the policy it starts from learnt
+    started = read_meta(Path(init)) if init is not None else {}
+    if "observed" in started and started.get("signature", {}).get("encoding") == encoding:  # and what it started from saw
         try:
-            trained_on.merge(Observed.from_meta(started, FEATURES, str(Path(init).with_suffix(".json"))))
+            trained_on.merge(Observed.from_meta(started["observed"], FEATURES, str(Path(init).with_suffix(".json"))))
         except ValueError as exc:
             raise PluginError(str(exc)) from None
     if init is not None:

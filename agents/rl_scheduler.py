@@ -24,9 +24,7 @@ _warned: set[str] = set()  # one warning per text: the CLI checks a scheduler be
 
 def encoder_for(scenario: Any, encoding: str) -> Any:
     """The encoder a policy of ``encoding`` reads its labs with."""
-    if encoding == "candidates":
-        return candidates.CandidateEncoder(scenario)
-    if encoding in candidates.WIDTHS:
+    if candidates.version(encoding) in candidates.WIDTHS:
         return candidates.CandidateEncoder(scenario, encoding)
     return scheduling_features.Encoder(scenario)
 

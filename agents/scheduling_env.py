@@ -93,8 +93,8 @@ class SchedulingEnv(gym.Env):
         self.base, self.randomise = scenario, randomise
         candidates_of = encoding.startswith("candidates")  # "candidates" (this labtwin's) or a version of it
         self.features = ENCODINGS["candidates" if candidates_of else encoding]
-        self.encoder = self.features.CandidateEncoder(scenario, *([] if encoding == "candidates" else [encoding])) \
-            if candidates_of else self.features.Encoder(scenario)
+        self.encoder = self.features.CandidateEncoder(scenario, encoding) if candidates_of else \
+            self.features.Encoder(scenario)
         self.observation_space = gym.spaces.Box(-10.0, 10.0, (self.features.OBS_SIZE,), np.float32)
         self.action_space = gym.spaces.Discrete(self.features.ACTIONS)
         self.campaign: SteppedCampaign | None = None

@@ -132,9 +132,7 @@ def started_from(init: Path | None) -> dict[str, Any]:
 
 
 def judge_signature(scenario: Scenario, encoding: str) -> dict:
-    if encoding.startswith("candidates"):
-        return candidate_signature(scenario, *([] if encoding == "candidates" else [encoding]))
-    return signature(scenario)
+    return candidate_signature(scenario, encoding) if encoding.startswith("candidates") else signature(scenario)
 
 
 def initial_state(init: Path, scenario: Scenario, encoding: str, part: str = "") -> dict[str, torch.Tensor]:
@@ -213,7 +211,6 @@ class Judge:
         if self.on_progress:  # after saving: what the user reads is on disk
             self.on_progress(done, {"policy": policy, **result})
         return result
-
 
     def _decider(self, model: Any, lab: Scenario, observed: Observed | None):
         """The policy in training deciding ``lab``, what it sees added to ``observed``: the range it is judged on,
