@@ -88,8 +88,9 @@ def _unlabelled(where: str, lines: list[tuple[int, str]]) -> tuple[int, int, lis
         raise ScenarioError(where, [f"line {lines[start][0]}: expected 'jobs machines' ({FORMATS})"])
     n_jobs, n_machines = head[:2]
     rows = _numbers(where, lines[start + 1:])
-    if len(rows) == 2 * n_jobs and _is_taillard(rows[n_jobs:], n_machines) and all(len(r) == n_machines for r in rows):
-        return n_jobs, n_machines, _from_matrices(rows[:n_jobs], rows[n_jobs:])
+    visits = _from_zero(rows[n_jobs:], n_machines) if len(rows) == 2 * n_jobs else None
+    if visits is not None and all(len(r) == n_machines for r in rows[:n_jobs]):
+        return n_jobs, n_machines, _jobs(rows[:n_jobs], visits)
     if len(rows) > n_jobs:
         raise ScenarioError(where, [f"line {lines[start + 1 + n_jobs][0]}: {len(rows)} rows after the header's "
                                     f"{n_jobs} jobs ({FORMATS}; one instance per file)"])
@@ -119,21 +120,24 @@ def _taillard_labelled(where: str, lines: list[tuple[int, str]], labels: list[in
     if len(times) != n_jobs or len(machines) != n_jobs or any(len(r) != n_machines for r in times + machines):
         raise ScenarioError(where, [f"expected {n_jobs} rows of {n_machines} numbers after 'Times' and after "
                                     f"'Machines'; found {len(times)} and {len(machines)} rows"])
-    if not _is_taillard(machines, n_machines):
+    visits = _from_zero(machines, n_machines)
+    if visits is None:
         raise ScenarioError(where, [f"line {lines[m][0]}: each row after 'Machines' must visit every machine "
                                     f"1..{n_machines} once"])
-    return n_jobs, n_machines, _from_matrices(times, machines)
+    return n_jobs, n_machines, _jobs(times, visits)
 
 
-def _is_taillard(machines: list[list[int]], n: int) -> bool:
-    """Every row a visit of each machine once, numbered from 1 (Taillard's) or from 0."""
+def _from_zero(machines: list[list[int]], n: int) -> list[list[int]] | None:
+    """The machines' matrix numbered from 0, if each row visits every one of the ``n`` machines once, numbered
+    from 1 (Taillard's) or from 0; else None."""
     first = 0 if any(0 in row for row in machines) else 1
-    return bool(machines) and all(sorted(row) == list(range(first, first + n)) for row in machines)
+    if not machines or any(sorted(row) != list(range(first, first + n)) for row in machines):
+        return None
+    return [[m - first for m in row] for row in machines]
 
 
-def _from_matrices(times: list[list[int]], machines: list[list[int]]) -> list[list[tuple[int, int]]]:
-    first = 0 if any(0 in row for row in machines) else 1
-    return [[(m - first, d) for m, d in zip(ms, ts)] for ts, ms in zip(times, machines)]
+def _jobs(times: list[list[int]], machines: list[list[int]]) -> list[list[tuple[int, int]]]:
+    return [list(zip(ms, ts)) for ts, ms in zip(times, machines)]
 
 
 def expand(scenario: Scenario, base_dir: Path) -> Scenario:
