@@ -11,29 +11,16 @@ from __future__ import annotations
 import re
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, Strict, StringConstraints, field_validator, model_validator, ValidationInfo
+from pydantic import Field, StringConstraints, ValidationInfo, field_validator, model_validator
 
-#: Labs, device types, scenario names: Zenoh key chunks and file names (no '/', '*', '$', '#', '?', '..').
-NAME = r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,62}$"
-Name = Annotated[str, StringConstraints(pattern=NAME)]
-#: Steps, parameters, outputs, targets: shown and journalled; any text of sensible length.
-Label = Annotated[str, StringConstraints(min_length=1, max_length=64)]
-#: Upper bounds: far beyond any real lab, far below what overflows a clock or a timer.
-MAX_S = 1e7  # lab seconds (~116 days) for one duration
-MAX_VALUE = 1e12  # a parameter's bound, a cost
-Range = Annotated[tuple[float, float], Strict(False)]
-IntRange = Annotated[tuple[int, int], Strict(False)]
+from twin.scenario.spec import MAX_S, MAX_VALUE, Label, Name, Spec
+from twin.scenario.training import Training
+
 _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9a-fA-F:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})(#.*)?$"
                        r"|^(unixsock-stream|unixpipe|serial|vsock)/\S+$")
 
 
-
-class _Spec(BaseModel):
-    # strict: `budget: true` or `instances: "2"` is a mistake, not a number; no infinities or NaNs anywhere
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, validate_default=True)
-
-
-class Duration(_Spec):
+class Duration(Spec):
     """Lab seconds of one step: lognormal around ``mean_s`` plus a parameter's value."""
 
     mean_s: float = Field(ge=0, le=MAX_S, description="mean duration of the step itself")
@@ -43,7 +30,7 @@ class Duration(_Spec):
     )
 
 
-class Faults(_Spec):
+class Faults(Spec):
     fail_p: float = Field(default=0.0, ge=0, le=1, description="probability a step fails")
     hang_p: float = Field(default=0.0, ge=0, le=1, description="probability a step never ends")
     mtbc_h: float = Field(default=0.0, ge=0, le=1e6, description="mean lab-hours between crashes; 0 = never")
@@ -58,7 +45,7 @@ class Faults(_Spec):
         return mtbc_h
 
 
-class DeviceType(_Spec):
+class DeviceType(Spec):
     driver: str = Field(description="an installed driver name (`twin devices`) or 'package.module:Class'")
     instances: int = Field(default=1, ge=1, le=64)
     steps: list[Label] = Field(min_length=1, max_length=64, description="the steps this device type runs")
@@ -74,7 +61,7 @@ class DeviceType(_Spec):
     options: dict[str, Any] = Field(default_factory=dict, description="passed to the driver as is")
 
 
-class Parameter(_Spec):
+class Parameter(Spec):
     low: float = Field(ge=-MAX_VALUE, le=MAX_VALUE)
     high: float = Field(ge=-MAX_VALUE, le=MAX_VALUE)
     unit: str = Field(default="", max_length=32)
@@ -86,7 +73,7 @@ class Parameter(_Spec):
         return self
 
 
-class Condition(_Spec):
+class Condition(Spec):
     value: float | None = None
     tol: float | None = Field(default=None, gt=0)
     min: float | None = None
@@ -103,12 +90,12 @@ class Condition(_Spec):
         return self
 
 
-class Target(_Spec):
+class Target(Spec):
     name: Label
     outputs: dict[Label, Condition] = Field(min_length=1)
 
 
-class Chemistry(_Spec):
+class Chemistry(Spec):
     model: Label = Field(description="the physical model the simulated devices share")
     parameters: dict[Label, Parameter] = Field(default_factory=dict, max_length=64)
     targets: list[Target] = Field(default_factory=list, max_length=64)
@@ -131,14 +118,14 @@ class Chemistry(_Spec):
 StepValue = Annotated[float, Field(ge=-MAX_VALUE, le=MAX_VALUE)] | bool | Annotated[str, StringConstraints(max_length=256)]
 
 
-class WorkflowStep(_Spec):
+class WorkflowStep(Spec):
     step: Label
     device: str = Field(max_length=64, description="a device type of the lab")
     params: dict[Label, StepValue] = Field(default_factory=dict, max_length=64, description="this step's own "
                                            "parameters, sent with the experiment's (these win a clash)")
 
 
-class Campaign(_Spec):
+class Campaign(Spec):
     budget: int = Field(default=30, ge=1, le=1_000_000, description="experiments to propose at most")
     planner: str = Field(default="random", max_length=256)
     scheduler: str = Field(default="fifo", max_length=256)
@@ -164,7 +151,7 @@ class Campaign(_Spec):
                                          "worker thread); past it the fallback scheduler decides that time")
 
 
-class Retry(_Spec):
+class Retry(Spec):
     max_attempts: int = Field(default=3, ge=1, le=100)
     max_delay_s: float = Field(default=24 * 3600, gt=0, le=1e8, description="stop retrying a step after this")
     backoff_s: float = Field(default=60, ge=0, le=MAX_S)
@@ -179,14 +166,14 @@ def _every_option() -> list[RecoveryOption]:
     return ["retry", "another_device", "skip", "alternative", "abandon"]
 
 
-class SimulatedOperator(_Spec):
+class SimulatedOperator(Spec):
     """Virtual time: the operator a what-if assumes — who answers after ``after_s`` lab seconds with ``answer``."""
 
     after_s: float = Field(ge=0, le=MAX_S)
     answer: RecoveryOption
 
 
-class Recovery(_Spec):
+class Recovery(Spec):
     """Ask the operator what to do with a failed step instead of abandoning its experiment: when the step's
     automatic retries are spent, or at once for a fault in ``faults``. The answer is one of ``options``
     (`twin ctl answer`); ``default`` applies after ``timeout_s`` lab seconds without one."""
@@ -218,7 +205,7 @@ class Recovery(_Spec):
         return self
 
 
-class Usage(_Spec):
+class Usage(Spec):
     """How much of an item one step uses: ``fixed`` plus, for each experiment parameter in ``per``, that much per
     unit of the parameter (never below 0)."""
 
@@ -226,13 +213,13 @@ class Usage(_Spec):
     per: dict[Label, float] = Field(default_factory=dict, max_length=64)
 
 
-class SimulatedRefill(_Spec):
+class SimulatedRefill(Spec):
     """Virtual time: the operator refills the item (to its starting level) this long after it runs short."""
 
     after_s: float = Field(ge=0, le=MAX_S)
 
 
-class Consumable(_Spec):
+class Consumable(Spec):
     unit: str = Field(default="units", max_length=32, description="what the levels count: mL, g, vials, tips, ...")
     level: float = Field(gt=0, le=MAX_VALUE, description="the starting level (a refill without an amount fills to it)")
     reorder_at: float = Field(default=0.0, ge=0, le=MAX_VALUE, description="below this, a consumable.low note says "
@@ -246,7 +233,7 @@ class Consumable(_Spec):
                                 "stock for the whole lab")
 
 
-class Orchestration(_Spec):
+class Orchestration(Spec):
     timeout_factor: float = Field(default=2.0, ge=1, le=1000)
     timeout_slack_s: float = Field(default=300, ge=0, le=MAX_S)
     retry: Retry = Retry()
@@ -265,12 +252,12 @@ class Orchestration(_Spec):
                                       "scheduler, the campaigns in turns")
 
 
-class ClockSpec(_Spec):
+class ClockSpec(Spec):
     mode: Literal["virtual", "scaled", "wall"] = "virtual"
     speed: float = Field(default=3600, gt=0, le=1e9, description="lab seconds per wall second (scaled)")
 
 
-class BusSpec(_Spec):
+class BusSpec(Spec):
     kind: Literal["zenoh", "memory"] = "zenoh"
     mode: Literal["auto", "peer", "client"] = Field(
         default="auto", description="auto: a peer, or a client when it only connects (to a router)")
@@ -299,89 +286,12 @@ class BusSpec(_Spec):
         return endpoints
 
 
-class JobShop(_Spec):
-    file: str = Field(max_length=1024, description="a job-shop instance in the standard text format, relative to "
-                      "the scenario")
+class JobShop(Spec):
+    file: str = Field(max_length=1024, description="a job-shop instance in the standard text format or "
+                      "Taillard's, relative to the scenario")
 
 
-class RewardWeights(_Spec):
-    """What a scheduler is trained to minimise, per episode: weighted lab time, degraded samples, abandoned
-    experiments (a policy that trades one for another says so in its training curve and the bench)."""
-
-    time: float = Field(default=1.0, ge=0, le=1000, description="per typical step duration of lab time")
-    degraded: float = Field(default=0.5, ge=0, le=1000, description="per sample that waited past its stability")
-    abandoned: float = Field(default=2.0, ge=0, le=1000, description="per experiment abandoned")
-
-
-class RandomLabs(_Spec):
-    """Whole labs drawn at random for training a scheduler (``twin.scenario.random_labs``): each has its own device types,
-    instance counts and workflow, its devices copied from this scenario's (durations, faults) and scaled."""
-
-    share: float = Field(default=0.5, ge=0, le=1, description="the fraction of training labs drawn this way; "
-                         "the rest come from the scenario's own devices and the ranges above")
-    device_types: IntRange = Field(default=(2, 5), description="[min, max] device types in a lab")
-    instances: IntRange = Field(default=(1, 6), description="[min, max] instances of each type")
-    duration_scale: Range = Field(default=(0.5, 2.0), description="multiplies each type's mean duration, so "
-                                  "bottlenecks move from type to type")
-    revisit_p: float = Field(default=0.3, ge=0, le=1, description="probability that the workflow visits one type "
-                             "a second time (re-entrant: measure before and after)")
-
-    @model_validator(mode="after")
-    def _ordered(self) -> RandomLabs:
-        (a, b), (c, d), (e, f) = self.device_types, self.instances, self.duration_scale
-        bad = [f"{k}: [{lo}, {hi}] must be low ≤ high, both > 0" for k, (lo, hi) in
-               {"device_types": (a, b), "instances": (c, d), "duration_scale": (e, f)}.items() if not 0 < lo <= hi]
-        if b > 16 or d > 64:
-            bad.append("at most 16 device types and 64 instances of each")
-        if bad:
-            raise ValueError("random_labs: " + "; ".join(bad))
-        return self
-
-
-class Training(_Spec):
-    """Domain randomisation for training a scheduler: each episode draws a lab from these ranges."""
-
-    weights: RewardWeights = RewardWeights()
-    method: Literal["ppo", "imitate"] = Field(
-        default="ppo", description="how `twin train --agent scheduler` learns: ppo (from the reward, any lab) or "
-        "imitate (DAgger from a teacher)")
-    teacher: Literal["cp-sat", "best-rule", "self"] = Field(
-        default="cp-sat", description="method imitate: cp-sat (its schedules of random shops; job shops with "
-        "jobshop_sizes), best-rule (in each lab drawn from these ranges, the dispatching rule that does best there) "
-        "or self (the policy's own best of `samples` rollouts of each lab; start it from a policy with --init)")
-    samples: int = Field(default=16, ge=2, le=256, description="teacher self: rollouts of each lab (one greedy, the "
-                         "rest sampled), the best of which is imitated")
-
-    duration_scale: Range = Field(default=(1.0, 1.0), description="multiplies every mean duration")
-    fault_scale: Range = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")
-    type_scale: Range = Field(default=(1.0, 1.0), description="each device type's durations and faults are also "
-                              "multiplied by draws of their own from this range: one stage slower or flakier than "
-                              "the rest (a bottleneck, a flaky stage)")
-    stability_scale: Range = Field(default=(1.0, 1.0), description="multiplies how long samples keep "
-                                   "(chemistry.stability_s)")
-    instances: dict[str, IntRange] = Field(default_factory=dict, description="device type -> [min, max] instances")
-    operation_s: Range | None = Field(
-        default=None, description="job shops: draw every operation's duration from [low, high] lab-s")
-    shuffle_routes: bool = Field(default=False, description="job shops: draw each job's machine order afresh")
-    jobshop_sizes: list[IntRange] = Field(
-        default_factory=list, description="job shops: draw a random instance of one of these [jobs, machines] sizes")
-    random_labs: RandomLabs | None = Field(
-        default=None, description="also train on whole labs drawn at random (other device types, counts and "
-        "workflows), so the policy is not tied to this lab's shape")
-
-    @model_validator(mode="after")
-    def _ordered(self) -> Training:
-        ranges = {"duration_scale": self.duration_scale, "fault_scale": self.fault_scale,
-                  "type_scale": self.type_scale, "stability_scale": self.stability_scale,
-                  **({"operation_s": self.operation_s} if self.operation_s else {}),
-                  **{f"instances.{k}": v for k, v in self.instances.items()}}
-        bad = [f"{k}: [{lo}, {hi}] must be low ≤ high, both > 0" for k, (lo, hi) in ranges.items() if not 0 < lo <= hi]
-        if bad:
-            raise ValueError("; ".join(bad))
-        return self
-
-
-class SharedCampaign(_Spec):
+class SharedCampaign(Spec):
     """One of several campaigns a lab serves at once: its own chemistry, workflow, planner and budget on the
     lab's devices and consumables. A section it leaves out is the lab file's."""
 
@@ -399,7 +309,7 @@ class SharedCampaign(_Spec):
     campaign: Campaign | None = None
 
 
-class Scenario(_Spec):
+class Scenario(Spec):
     name: Name = Field(description="names the run's journal (runs/<name>-seed<N>-<time>.db): letters, digits, "
                        "'_', '-', '.'")
     description: str = Field(default="", max_length=4096)

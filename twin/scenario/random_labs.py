@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import random
 
-from twin.scenario.model import RandomLabs, Scenario
+from twin.scenario.model import Scenario
+from twin.scenario.training import RandomLabs
 
 ANY_WORKFLOW = "*"  # in a policy's fits: trained on random workflows, so no step type is unseen
 SUFFIX = "-random"

@@ -1,0 +1,86 @@
+"""A scenario's ``training`` section: what a scheduler is trained to minimise and the labs it is trained on."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, model_validator
+
+from twin.scenario.spec import IntRange, Range, Spec
+
+
+class RewardWeights(Spec):
+    """What a scheduler is trained to minimise, per episode: weighted lab time, degraded samples, abandoned
+    experiments (a policy that trades one for another says so in its training curve and the bench)."""
+
+    time: float = Field(default=1.0, ge=0, le=1000, description="per typical step duration of lab time")
+    degraded: float = Field(default=0.5, ge=0, le=1000, description="per sample that waited past its stability")
+    abandoned: float = Field(default=2.0, ge=0, le=1000, description="per experiment abandoned")
+
+
+class RandomLabs(Spec):
+    """Whole labs drawn at random for training a scheduler (``twin.scenario.random_labs``): each has its own device types,
+    instance counts and workflow, its devices copied from this scenario's (durations, faults) and scaled."""
+
+    share: float = Field(default=0.5, ge=0, le=1, description="the fraction of training labs drawn this way; "
+                         "the rest come from the scenario's own devices and the ranges above")
+    device_types: IntRange = Field(default=(2, 5), description="[min, max] device types in a lab")
+    instances: IntRange = Field(default=(1, 6), description="[min, max] instances of each type")
+    duration_scale: Range = Field(default=(0.5, 2.0), description="multiplies each type's mean duration, so "
+                                  "bottlenecks move from type to type")
+    revisit_p: float = Field(default=0.3, ge=0, le=1, description="probability that the workflow visits one type "
+                             "a second time (re-entrant: measure before and after)")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> RandomLabs:
+        (a, b), (c, d), (e, f) = self.device_types, self.instances, self.duration_scale
+        bad = [f"{k}: [{lo}, {hi}] must be low ≤ high, both > 0" for k, (lo, hi) in
+               {"device_types": (a, b), "instances": (c, d), "duration_scale": (e, f)}.items() if not 0 < lo <= hi]
+        if b > 16 or d > 64:
+            bad.append("at most 16 device types and 64 instances of each")
+        if bad:
+            raise ValueError("random_labs: " + "; ".join(bad))
+        return self
+
+
+class Training(Spec):
+    """Domain randomisation for training a scheduler: each episode draws a lab from these ranges."""
+
+    weights: RewardWeights = RewardWeights()
+    method: Literal["ppo", "imitate"] = Field(
+        default="ppo", description="how `twin train --agent scheduler` learns: ppo (from the reward, any lab) or "
+        "imitate (DAgger from a teacher)")
+    teacher: Literal["cp-sat", "best-rule", "self"] = Field(
+        default="cp-sat", description="method imitate: cp-sat (its schedules of random shops; job shops with "
+        "jobshop_sizes), best-rule (in each lab drawn from these ranges, the dispatching rule that does best there) "
+        "or self (the policy's own best of `samples` rollouts of each lab; start it from a policy with --init)")
+    samples: int = Field(default=16, ge=2, le=256, description="teacher self: rollouts of each lab (one greedy, the "
+                         "rest sampled), the best of which is imitated")
+
+    duration_scale: Range = Field(default=(1.0, 1.0), description="multiplies every mean duration")
+    fault_scale: Range = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")
+    type_scale: Range = Field(default=(1.0, 1.0), description="each device type's durations and faults are also "
+                              "multiplied by draws of their own from this range: one stage slower or flakier than "
+                              "the rest (a bottleneck, a flaky stage)")
+    stability_scale: Range = Field(default=(1.0, 1.0), description="multiplies how long samples keep "
+                                   "(chemistry.stability_s)")
+    instances: dict[str, IntRange] = Field(default_factory=dict, description="device type -> [min, max] instances")
+    operation_s: Range | None = Field(
+        default=None, description="job shops: draw every operation's duration from [low, high] lab-s")
+    shuffle_routes: bool = Field(default=False, description="job shops: draw each job's machine order afresh")
+    jobshop_sizes: list[IntRange] = Field(
+        default_factory=list, description="job shops: draw a random instance of one of these [jobs, machines] sizes")
+    random_labs: RandomLabs | None = Field(
+        default=None, description="also train on whole labs drawn at random (other device types, counts and "
+        "workflows), so the policy is not tied to this lab's shape")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Training:
+        ranges = {"duration_scale": self.duration_scale, "fault_scale": self.fault_scale,
+                  "type_scale": self.type_scale, "stability_scale": self.stability_scale,
+                  **({"operation_s": self.operation_s} if self.operation_s else {}),
+                  **{f"instances.{k}": v for k, v in self.instances.items()}}
+        bad = [f"{k}: [{lo}, {hi}] must be low ≤ high, both > 0" for k, (lo, hi) in ranges.items() if not 0 < lo <= hi]
+        if bad:
+            raise ValueError("; ".join(bad))
+        return self
