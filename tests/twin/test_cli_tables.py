@@ -53,3 +53,29 @@ def test_a_health_answer_of_any_shape_is_shown_not_fatal(capsys):
                   + [{"device": "gone", "report": None}])
     out = capsys.readouterr().out
     assert "e1s2#1" in out and "[bold]fine[/bold]" in out and "dev[4]" in out and "not JSON" in out
+
+
+def test_a_narrow_table_keeps_numbers_whole_and_fits_80_columns(monkeypatch):
+    """rich folds any word to fit: '0.01/0.33' came out as '0.01/0.3' over '3', and widening a column after it
+    had narrowed the others left the caption one column too wide (its last letter cut)."""
+    import io
+
+    from rich.console import Console
+
+    from twin.cli import common
+    from twin.tools.scheduler_bench import HEADER, caption
+
+    out = io.StringIO()
+    monkeypatch.setattr(common, "console", Console(file=out, width=80))
+    table = common.narrow_table(HEADER, "five_stage — 4 run(s) per scheduler", caption("lab-h"))
+    numbers = [["least-loaded", "39.89", "39.89", "—", "+1.2%", "28%", "48.5", "0.0", "0.0", "0.01/0.33"],
+               ["rl:flaky_scheduler", "139.18", "39.18", "—", "-10.6%", "29%", "18.0", "0.1", "0.0", "10.30/14.51"]]
+    for row in numbers:
+        table.add_row(*row)
+    common.print_table(table)
+    text = out.getvalue()
+    assert max(len(line) for line in text.splitlines()) <= 80
+    words = text.split()
+    for row in numbers:
+        assert all(cell in words for cell in row[1:]), row
+    assert " ".join(words).endswith(caption("lab-h"))  # the caption whole, wrapped only at spaces

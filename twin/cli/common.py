@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import re
 import signal
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import typer
 from rich.console import Console
+from rich.segment import Segment
 
 from twin.core.errors import TwinError
 
@@ -72,6 +74,29 @@ def narrow_table(header: list[str], title: str = "", caption: str = "") -> Table
     for h in header:
         table.add_column(h, overflow="fold")
     return table
+
+
+_NUMBER = re.compile(r"\[?[-+−]?[\d.,]*\d(?:[%×]|[/–][-+−]?[\d.,]*\d%?)?\]?")
+
+
+def print_table(table: Table) -> None:
+    """Print a ``narrow_table`` with every column at least as wide as the longest number in it, so that a number
+    is never split across lines (where "0.33" folded reads as "0.3"); names and words wrap instead."""
+    for column in table.columns:
+        numbers = [len(word) for cell in column.cells if isinstance(cell, str) for word in cell.split()
+                   if _NUMBER.fullmatch(word)]
+        if numbers:
+            column.min_width = max(column.min_width or 0, *numbers)
+    # rich narrows the widest columns to fit and only then widens each to its min_width, so the table can come
+    # out wider than the terminal (and its caption cropped): ask it for less until it fits
+    width = console.width
+    for _ in range(4):
+        lines = Segment.split_lines(console.render(table, console.options.update_width(width)))  # uncropped
+        over = max((Segment.get_line_length(line) for line in lines), default=0) - console.width
+        if over <= 0:
+            break
+        width -= over
+    console.print(table, width=width)
 
 
 def machine_output(as_json: bool, csv_path: Path | None, header: list[str], rows: list[list[str]],

@@ -10,7 +10,7 @@ from typing import Annotated, Any, Optional
 import typer
 from rich.markup import escape
 
-from twin.cli.common import _fail, app, console, err, narrow_table
+from twin.cli.common import _fail, app, console, err, narrow_table, print_table
 from twin.core.errors import TwinError
 
 ctl_app = typer.Typer(help="Operate a running campaign: status, pause, resume, abort, retry, stop; answer "
@@ -77,7 +77,7 @@ def _lab_status(answer: dict) -> None:
     for c in answer["campaigns"]:
         table.add_row(escape(c["campaign"]), escape(c["owner"]), str(c["priority"]), escape(c["state"]),
                       str(c["done"]), str(c["abandoned"]), str(c["in_progress"]), str(c["budget"]))
-    console.print(table)
+    print_table(table)
 
 
 @ctl_app.command("status")
@@ -103,7 +103,7 @@ def ctl_status(lab: Lab, connect: Connect, security: Security = None,
     for name, state in st["devices"].items():
         r = running.get(name)
         table.add_row(name, state, f"{r['task']} #{r['attempt']}" if r else "", f"{r['for_s']:.0f}" if r else "")
-    console.print(table)
+    print_table(table)
     if st.get("consumables"):
         console.print(_stock_table(st["consumables"]))
     if st["ready"] or st["retrying"]:

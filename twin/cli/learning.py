@@ -10,7 +10,8 @@ import typer
 from twin.core import plugins
 from twin.runtime import lab
 from twin.runtime.checks import checked
-from twin.cli.common import _fail, app, assignments, bar_progress, bench_app, console, err, machine_output, narrow_table
+from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, machine_output, narrow_table,
+                             print_table)
 from twin.core.errors import TwinError
 from twin.tools.planner_bench import DEFAULT_PLANNERS
 
@@ -120,7 +121,7 @@ def bench_planners(
                                  f"{s.campaign.max_in_flight} in the lab", CAPTION)
     for row in table_rows:
         table.add_row(*row)
-    console.print(table)
+    print_table(table)
 
 
 @bench_app.command("schedulers")
@@ -186,7 +187,7 @@ def bench_schedulers(
                                  caption("lab-s" if s.jobshop else "lab-h"))
             for row in table_rows:
                 table.add_row(*row)
-            console.print(table)
+            print_table(table)
     machine_output(as_json, csv_out, HEADER, [], all_runs, labs=tables)
 
 
@@ -237,4 +238,4 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
         return
     for row in table_rows:
         table.add_row(*row)
-    console.print(table)
+    print_table(table)

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import _fail, app, bar_progress, bench_app, console, machine_output, narrow_table
+from twin.cli.common import _fail, app, bar_progress, bench_app, console, machine_output, narrow_table, print_table
 from twin.core import plugins
 from twin.core.errors import TwinError
 
@@ -66,7 +66,7 @@ def _show(data: dict, method: str) -> None:
     for s in data["steps"]:
         table.add_row(str(s["step"]), s["reaction"], " + ".join(names.get(r) or made.get(r) or r for r in s["reactants"]),
                       "{:.0f}–{:.0f}".format(*s["yield_pct"]), "{:g}–{:g}".format(*s["hours"]))
-    console.print(table)
+    print_table(table)
     prices = ", ".join(f"{b['name']} ({b['eur_per_g']:g} €/g)" if b["eur_per_g"] is not None else b["name"]
                        for b in data["bought"])
     console.print(f"buys: {prices}", highlight=False)
@@ -114,4 +114,4 @@ def bench_routes(
     table = narrow_table(list(HEADER), f"{len(chosen)} {target_set} targets, {seconds:g} s each", CAPTION)
     for row in table_rows:
         table.add_row(*row)
-    console.print(table)
+    print_table(table)
