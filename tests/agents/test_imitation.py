@@ -142,3 +142,19 @@ def test_the_shipped_policies_fit_their_labs_and_name_what_they_do_not(scenario,
     assert f"{most + 2} instances of one type (trained on at most {most})" in RlScheduler(wider, path).misfit
     summary = campaign(lab, 0, RlScheduler(lab, path).decide)
     assert summary.abandoned <= 1 and summary.done + summary.abandoned == lab.campaign.budget
+
+
+def test_a_lab_that_says_nothing_of_training_learns_from_its_best_rule(tmp_path):
+    """The default (training.teacher: auto) is the teacher the lab has: CP-SAT for a job shop with random shops to
+    draw, the best rule for any other lab — not PPO from scratch, which needs far more steps to reach the rules."""
+    from agents.train_scheduler import with_teacher
+
+    plain = prepare(ROOT / "scenarios" / "quantum_dots.yaml", overrides={"campaign.budget": 6})
+    assert "training" not in (ROOT / "scenarios" / "quantum_dots.yaml").read_text()
+    assert with_teacher(plain).training.teacher == "best-rule"
+    assert with_teacher(prepare(ROOT / "scenarios" / "jobshop.yaml")).training.teacher == "cp-sat"
+    assert with_teacher(prepare(plain, overrides={"training.method": "ppo"})).training.method == "ppo"
+    out = train_scheduler(plain, 600, tmp_path / "qd.zip", envs=1, eval_every=300, eval_seeds=(0,), held_out_count=2)
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert (meta["method"], meta["teacher"]) == ("imitate", "best-rule")
+    assert meta["curve"][-1]["objective vs best rule"] <= 1.02, meta["curve"]

@@ -48,12 +48,14 @@ class Training(Spec):
 
     weights: RewardWeights = RewardWeights()
     method: Literal["ppo", "imitate"] = Field(
-        default="ppo", description="how `twin train --agent scheduler` learns: ppo (from the reward, any lab) or "
-        "imitate (DAgger from a teacher)")
-    teacher: Literal["cp-sat", "best-rule", "self"] = Field(
-        default="cp-sat", description="method imitate: cp-sat (its schedules of random shops; job shops with "
+        default="imitate", description="how `twin train --agent scheduler` learns: imitate (DAgger from a teacher; "
+        "it matches the teacher within minutes) or ppo (from the reward alone, any lab of one campaign; it needs "
+        "far more steps to catch up with the rules)")
+    teacher: Literal["auto", "cp-sat", "best-rule", "self"] = Field(
+        default="auto", description="method imitate: cp-sat (its schedules of random shops; job shops with "
         "jobshop_sizes), best-rule (in each lab drawn from these ranges, the dispatching rule that does best there) "
-        "or self (the policy's own best of `samples` rollouts of each lab; start it from a policy with --init)")
+        "or self (the policy's own best of `samples` rollouts of each lab; start it from a policy with --init); "
+        "auto: cp-sat for a job shop with jobshop_sizes, self for a lab of several campaigns, else best-rule")
     samples: int = Field(default=16, ge=2, le=256, description="teacher self: rollouts of each lab (one greedy, the "
                          "rest sampled), the best of which is imitated")
 
