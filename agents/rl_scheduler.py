@@ -56,8 +56,10 @@ class RlScheduler:
 
     def __init__(self, scenario: Any = None, policy: str | None = None, **_: Any) -> None:
         if not policy or scenario is None:
-            raise PluginError("the rl scheduler needs a trained policy: train one with "
-                              "`twin train SCENARIO --out P.zip`, then use --scheduler rl:P.zip")
+            general = Path(__file__).parent / "policies" / "flaky_scheduler.zip"
+            raise PluginError("the rl scheduler needs a trained policy: train one for this lab with `twin train "
+                              "SCENARIO --out P.zip` (a few minutes) and use --scheduler rl:P.zip, or try the shipped "
+                              f"one trained on random labs of 2-5 device types: --scheduler rl:{general}")
         torch.set_num_threads(1)
         path = Path(policy)
         meta = read_meta(path) if path.exists() else {}

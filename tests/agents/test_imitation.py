@@ -158,3 +158,15 @@ def test_a_lab_that_says_nothing_of_training_learns_from_its_best_rule(tmp_path)
     meta = json.loads(out.with_suffix(".json").read_text())
     assert (meta["method"], meta["teacher"]) == ("imitate", "best-rule")
     assert meta["curve"][-1]["objective vs best rule"] <= 1.02, meta["curve"]
+
+
+def test_rl_without_a_policy_says_how_to_train_one_and_names_a_shipped_one_that_fits_any_lab():
+    from twin import PluginError
+
+    lab = prepare(ROOT / "scenarios" / "quantum_dots.yaml", overrides={"campaign.budget": 4})
+    with pytest.raises(PluginError, match="twin train SCENARIO --out P.zip") as refused:
+        RlScheduler(lab, None)
+    named = Path(str(refused.value).rsplit("--scheduler rl:", 1)[1])
+    agent = RlScheduler(lab, str(named))
+    assert agent.misfit == ""
+    assert campaign(lab, 0, agent.decide).done == 4
