@@ -47,12 +47,17 @@ class Faults(Spec):
 
 class DeviceType(Spec):
     driver: str = Field(description="an installed driver name (`twin devices`) or 'package.module:Class'")
-    instances: int = Field(default=1, ge=1, le=64)
+    instances: int = Field(default=1, ge=1, le=64, description="identical devices of this type (named <type>-1, "
+                           "<type>-2, ...); a step may run on any of them")
     steps: list[Label] = Field(min_length=1, max_length=64, description="the steps this device type runs")
-    duration: Duration
-    setup_s: float = Field(default=0, ge=0, le=MAX_S)
-    clean_s: float = Field(default=0, ge=0, le=MAX_S)
-    faults: Faults = Faults()
+    duration: Duration = Field(description="how long the step itself takes (lab seconds), drawn per attempt")
+    setup_s: float = Field(default=0, ge=0, le=MAX_S, description="lab seconds before every step (loading, "
+                           "warming up), part of the step's time and its deadline")
+    clean_s: float = Field(default=0, ge=0, le=MAX_S, description="lab seconds after every step, before the device "
+                           "reports it done: the sample waits (and ages) with the device, and the step's deadline "
+                           "includes it")
+    faults: Faults = Field(default=Faults(), description="simulated faults, injected by the twin around the "
+                           "driver for rehearsing failures")
     cost: float = Field(default=0, ge=0, le=MAX_VALUE, description="charged for every attempt dispatched to "
                         "this device type")
     envelope: dict[Label, Parameter] = Field(default_factory=dict, description="the safe range of parameters "
@@ -62,9 +67,9 @@ class DeviceType(Spec):
 
 
 class Parameter(Spec):
-    low: float = Field(ge=-MAX_VALUE, le=MAX_VALUE)
-    high: float = Field(ge=-MAX_VALUE, le=MAX_VALUE)
-    unit: str = Field(default="", max_length=32)
+    low: float = Field(ge=-MAX_VALUE, le=MAX_VALUE, description="the least value the planner may propose")
+    high: float = Field(ge=-MAX_VALUE, le=MAX_VALUE, description="the most (above low)")
+    unit: str = Field(default="", max_length=32, description="shown with the value; not converted")
 
     @model_validator(mode="after")
     def _ordered(self) -> Parameter:
@@ -74,10 +79,10 @@ class Parameter(Spec):
 
 
 class Condition(Spec):
-    value: float | None = None
-    tol: float | None = Field(default=None, gt=0)
-    min: float | None = None
-    max: float | None = None
+    value: float | None = Field(default=None, description="met within value ± tol (give both)")
+    tol: float | None = Field(default=None, gt=0, description="the half-width of the window around value")
+    min: float | None = Field(default=None, description="met at or above this")
+    max: float | None = Field(default=None, description="met at or below this")
 
     @model_validator(mode="after")
     def _complete(self) -> Condition:
@@ -91,19 +96,22 @@ class Condition(Spec):
 
 
 class Target(Spec):
-    name: Label
-    outputs: dict[Label, Condition] = Field(min_length=1)
+    name: Label = Field(description="names the target in the summary and the viewer")
+    outputs: dict[Label, Condition] = Field(min_length=1, description="output -> the condition it must meet; "
+                                            "the target is met when one experiment meets them all")
 
 
 class Chemistry(Spec):
     model: Label = Field(description="the physical model the simulated devices share")
-    parameters: dict[Label, Parameter] = Field(default_factory=dict, max_length=64)
-    targets: list[Target] = Field(default_factory=list, max_length=64)
+    parameters: dict[Label, Parameter] = Field(default_factory=dict, max_length=64, description="the box the planner "
+                                               "proposes experiments in: parameter -> its range")
+    targets: list[Target] = Field(default_factory=list, max_length=64, description="what the campaign looks for; "
+                                  "with campaign.stop_on_target it ends once every one is met")
     stability_s: float = Field(
         default=0, ge=0, le=MAX_S, description="e-folding time of a waiting sample's signal; 0 = stable"
     )
     noise: float = Field(default=0.01, ge=0, le=10, description="relative measurement noise")
-    options: dict[str, Any] = Field(default_factory=dict)
+    options: dict[str, Any] = Field(default_factory=dict, description="passed to the chemistry model as is")
 
     @field_validator("targets")
     @classmethod
@@ -119,7 +127,7 @@ StepValue = Annotated[float, Field(ge=-MAX_VALUE, le=MAX_VALUE)] | bool | Annota
 
 
 class WorkflowStep(Spec):
-    step: Label
+    step: Label = Field(description="the step type, one of the device type's steps")
     device: str = Field(max_length=64, description="a device type of the lab")
     params: dict[Label, StepValue] = Field(default_factory=dict, max_length=64, description="this step's own "
                                            "parameters, sent with the experiment's (these win a clash)")
@@ -127,15 +135,22 @@ class WorkflowStep(Spec):
 
 class Campaign(Spec):
     budget: int = Field(default=30, ge=1, le=1_000_000, description="experiments to propose at most")
-    planner: str = Field(default="random", max_length=256)
-    scheduler: str = Field(default="fifo", max_length=256)
-    seed: int = Field(default=0, ge=0, lt=2**63)
+    planner: str = Field(default="random", max_length=256, description="what proposes experiments: an installed "
+                         "planner (random, lhs, gp-bo, mf-gp-bo, ...; a wrong name lists them), rl:POLICY.zip, or "
+                         "'package.module:Class'")
+    scheduler: str = Field(default="fifo", max_length=256, description="what decides which ready step runs on which "
+                           "free device: a rule (fifo, spt, mwkr, least-loaded, oldest-sample), cp-sat, rl:POLICY.zip, "
+                           "remote (an agent on the bus) or 'package.module:Class'")
+    seed: int = Field(default=0, ge=0, lt=2**63, description="every random draw of the run (durations, faults, "
+                      "noise, the planner) follows from it: the same seed, the same campaign")
     max_in_flight: int = Field(default=4, ge=1, le=10_000, description="experiments in the lab at once")
-    stop_on_target: bool = True
-    max_lab_hours: float = Field(default=10_000, gt=0, le=1e6)
+    stop_on_target: bool = Field(default=True, description="stop proposing once every target is met")
+    max_lab_hours: float = Field(default=10_000, gt=0, le=1e6, description="stop the campaign after this much lab "
+                                 "time")
     max_cost: float | None = Field(default=None, gt=0, le=MAX_VALUE, description="stop proposing once this much "
                                    "is spent")
-    planner_options: dict[str, Any] = Field(default_factory=dict)
+    planner_options: dict[str, Any] = Field(default_factory=dict, description="passed to the planner as keyword "
+                                            "arguments (gp-bo: n_init, candidates, refit_every, log_scale)")
     fallback_scheduler: str = Field(default="fifo", max_length=256, description="decides when a scheduler agent "
                                     "on the bus is absent, late or wrong")
     policy_fit: Literal["warn", "refuse"] = Field(default="warn", description="a scheduler policy used on a lab "
@@ -152,11 +167,13 @@ class Campaign(Spec):
 
 
 class Retry(Spec):
-    max_attempts: int = Field(default=3, ge=1, le=100)
+    max_attempts: int = Field(default=3, ge=1, le=100, description="attempts of one step before its experiment is "
+                              "abandoned (or an operator is asked: orchestrator.recovery)")
     max_delay_s: float = Field(default=24 * 3600, gt=0, le=1e8, description="stop retrying a step after this")
-    backoff_s: float = Field(default=60, ge=0, le=MAX_S)
-    backoff_max_s: float = Field(default=3600, ge=0, le=MAX_S)
-    jitter: float = Field(default=0.5, ge=0, le=1)
+    backoff_s: float = Field(default=60, ge=0, le=MAX_S, description="lab seconds before the first retry; doubled "
+                             "for each one after")
+    backoff_max_s: float = Field(default=3600, ge=0, le=MAX_S, description="the longest wait before a retry")
+    jitter: float = Field(default=0.5, ge=0, le=1, description="each wait is drawn within ± this share of it")
 
 
 RecoveryOption = Literal["retry", "another_device", "skip", "alternative", "abandon"]
@@ -169,8 +186,8 @@ def _every_option() -> list[RecoveryOption]:
 class SimulatedOperator(Spec):
     """Virtual time: the operator a what-if assumes — who answers after ``after_s`` lab seconds with ``answer``."""
 
-    after_s: float = Field(ge=0, le=MAX_S)
-    answer: RecoveryOption
+    after_s: float = Field(ge=0, le=MAX_S, description="lab seconds before the simulated operator answers")
+    answer: RecoveryOption = Field(description="the option the simulated operator chooses")
 
 
 class Recovery(Spec):
@@ -209,14 +226,15 @@ class Usage(Spec):
     """How much of an item one step uses: ``fixed`` plus, for each experiment parameter in ``per``, that much per
     unit of the parameter (never below 0)."""
 
-    fixed: float = Field(default=0.0, ge=0, le=MAX_VALUE)
-    per: dict[Label, float] = Field(default_factory=dict, max_length=64)
+    fixed: float = Field(default=0.0, ge=0, le=MAX_VALUE, description="used by every step")
+    per: dict[Label, float] = Field(default_factory=dict, max_length=64, description="experiment parameter -> "
+                                    "used per unit of it")
 
 
 class SimulatedRefill(Spec):
     """Virtual time: the operator refills the item (to its starting level) this long after it runs short."""
 
-    after_s: float = Field(ge=0, le=MAX_S)
+    after_s: float = Field(ge=0, le=MAX_S, description="lab seconds after the item runs short")
 
 
 class Consumable(Spec):
@@ -234,11 +252,13 @@ class Consumable(Spec):
 
 
 class Orchestration(Spec):
-    timeout_factor: float = Field(default=2.0, ge=1, le=1000)
-    timeout_slack_s: float = Field(default=300, ge=0, le=MAX_S)
-    retry: Retry = Retry()
+    timeout_factor: float = Field(default=2.0, ge=1, le=1000, description="an attempt's deadline is this times the "
+                                  "step's expected lab seconds (set-up and clean-up included), plus timeout_slack_s")
+    timeout_slack_s: float = Field(default=300, ge=0, le=MAX_S, description="lab seconds added to every deadline")
+    retry: Retry = Field(default=Retry(), description="how a failed step is tried again")
     quarantine_after: int = Field(default=3, ge=1, le=1000, description="consecutive failures")
-    probe_after_s: float = Field(default=3600, ge=0, le=MAX_S)
+    probe_after_s: float = Field(default=3600, ge=0, le=MAX_S, description="lab seconds a quarantined device rests "
+                                 "before it is given work again (its next failure quarantines it again)")
     startup_s: float = Field(default=60, ge=0, le=MAX_S, description="lab seconds to wait for devices")
     orphan_grace_s: float = Field(default=300, ge=0, le=MAX_S, description="lab seconds a device goes on with a "
                                   "step after the orchestrator has left the bus, before it stops it in a safe state")
@@ -253,17 +273,23 @@ class Orchestration(Spec):
 
 
 class ClockSpec(Spec):
-    mode: Literal["virtual", "scaled", "wall"] = "virtual"
+    mode: Literal["virtual", "scaled", "wall"] = Field(default="virtual", description="virtual: as fast as the CPU "
+                                                       "allows, repeatable; scaled: speed lab seconds per wall "
+                                                       "second; wall: real time, for real devices")
     speed: float = Field(default=3600, gt=0, le=1e9, description="lab seconds per wall second (scaled)")
 
 
 class BusSpec(Spec):
-    kind: Literal["zenoh", "memory"] = "zenoh"
+    kind: Literal["zenoh", "memory"] = Field(default="zenoh", description="zenoh (devices may be other processes "
+                                             "and hosts) or memory (one process, virtual time)")
     mode: Literal["auto", "peer", "client"] = Field(
         default="auto", description="auto: a peer, or a client when it only connects (to a router)")
-    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"])
-    connect: list[str] = Field(default_factory=list)
-    lease_ms: int = Field(default=1000, ge=100, le=600_000)
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"], description="Zenoh endpoints the lab "
+                              "listens on (port 0: any free one)")
+    connect: list[str] = Field(default_factory=list, description="Zenoh endpoints to connect to (a router, `twin "
+                               "router`)")
+    lease_ms: int = Field(default=1000, ge=100, le=600_000, description="a peer silent this long is gone: a hung "
+                          "device's liveliness token lapses after it")
     connect_timeout_ms: int = Field(default=5000, ge=100, le=600_000, description="how long a session that "
                                     "connects waits for its router or lab before it says nothing answered")
     zenoh: dict[str, Any] = Field(default_factory=dict, description="extra Zenoh config paths")
@@ -304,27 +330,33 @@ class SharedCampaign(Spec):
                            "which it is submitted")
     after: Name | None = Field(default=None, description="submitted when this other campaign has ended (one "
                                "after the other), instead of at start_h")
-    chemistry: Chemistry | None = None
-    workflow: list[WorkflowStep] | None = None
-    campaign: Campaign | None = None
+    chemistry: Chemistry | None = Field(default=None, description="this campaign's chemistry (default: the lab's)")
+    workflow: list[WorkflowStep] | None = Field(default=None, description="this campaign's workflow (default: the "
+                                                "lab's)")
+    campaign: Campaign | None = Field(default=None, description="this campaign's settings (default: the lab's)")
 
 
 class Scenario(Spec):
     name: Name = Field(description="names the run's journal (runs/<name>-seed<N>-<time>.db): letters, digits, "
                        "'_', '-', '.'")
-    description: str = Field(default="", max_length=4096)
+    description: str = Field(default="", max_length=4096, description="one line about the scenario, for people")
     lab: str = Field(default="lab", pattern=r"^[A-Za-z0-9_-]{1,64}$", description="bus prefix")
-    devices: dict[Name, DeviceType] = Field(default_factory=dict, max_length=256)
-    chemistry: Chemistry = Chemistry(model="none")
-    workflow: list[WorkflowStep] = Field(default_factory=list)
-    campaign: Campaign = Campaign()
-    orchestrator: Orchestration = Orchestration()
-    clock: ClockSpec = ClockSpec()
-    bus: BusSpec = BusSpec()
-    jobshop: JobShop | None = None
+    devices: dict[Name, DeviceType] = Field(default_factory=dict, max_length=256, description="the lab: device "
+                                            "type -> its driver, instances, steps, durations and faults")
+    chemistry: Chemistry = Field(default=Chemistry(model="none"), description="the physical model "
+                                 "the simulated devices share, the parameter box and the targets")
+    workflow: list[WorkflowStep] = Field(default_factory=list, description="the steps of every experiment, in order")
+    campaign: Campaign = Field(default=Campaign(), description="budget, planner, scheduler and seed")
+    orchestrator: Orchestration = Field(default=Orchestration(), description="deadlines, retries, "
+                                        "quarantine and recovery")
+    clock: ClockSpec = Field(default=ClockSpec(), description="the lab's clock")
+    bus: BusSpec = Field(default=BusSpec(), description="the message bus the devices and the lab share")
+    jobshop: JobShop | None = Field(default=None, description="a job-shop instance run as a lab (one device per "
+                                    "machine, an experiment per job)")
     consumables: dict[Name, Consumable] = Field(default_factory=dict, max_length=256, description="reagents, vials, "
                                                 "tips: what the lab holds and what its steps use up")
-    training: Training = Training()
+    training: Training = Field(default=Training(), description="`twin train`: what a scheduler is trained to "
+                               "minimise and the labs it is trained on")
     campaigns: list[SharedCampaign] = Field(default_factory=list, max_length=64, description="several campaigns "
                                             "sharing this lab's devices (each with its own ledger and journal); "
                                             "empty: the one campaign of this file")

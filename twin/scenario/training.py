@@ -46,7 +46,8 @@ class RandomLabs(Spec):
 class Training(Spec):
     """Domain randomisation for training a scheduler: each episode draws a lab from these ranges."""
 
-    weights: RewardWeights = RewardWeights()
+    weights: RewardWeights = Field(default=RewardWeights(), description="what the scheduler is trained to "
+                                   "minimise: lab time, degraded samples, abandoned experiments")
     method: Literal["ppo", "imitate"] = Field(
         default="imitate", description="how `twin train --agent scheduler` learns: imitate (DAgger from a teacher; "
         "it matches the teacher within minutes) or ppo (from the reward alone, any lab of one campaign; it needs "
