@@ -76,7 +76,7 @@ def narrow_table(header: list[str], title: str = "", caption: str = "") -> Table
     return table
 
 
-_NUMBER = re.compile(r"\[?[-+−]?[\d.,]*\d(?:[%×]|[/–][-+−]?[\d.,]*\d%?)?\]?")
+_NUMBER = re.compile(r"\[?[≥≤~]?[-+−]?[\d.,]*\d(?:[%×]|[/–][-+−]?[\d.,]*\d%?)?\]?")
 
 
 def print_table(table: Table) -> None:

@@ -47,8 +47,8 @@ class Faults(Spec):
 
 class DeviceType(Spec):
     driver: str = Field(description="an installed driver name (`twin devices`) or 'package.module:Class'")
-    instances: int = Field(default=1, ge=1, le=64, description="identical devices of this type (named <type>-1, "
-                           "<type>-2, ...); a step may run on any of them")
+    instances: int = Field(default=1, ge=1, le=64, description="identical devices of this type (named <type>, or "
+                           "<type>-1, <type>-2, ... when several); a step may run on any of them")
     steps: list[Label] = Field(min_length=1, max_length=64, description="the steps this device type runs")
     duration: Duration = Field(description="how long the step itself takes (lab seconds), drawn per attempt")
     setup_s: float = Field(default=0, ge=0, le=MAX_S, description="lab seconds before every step (loading, "
@@ -106,7 +106,7 @@ class Chemistry(Spec):
     parameters: dict[Label, Parameter] = Field(default_factory=dict, max_length=64, description="the box the planner "
                                                "proposes experiments in: parameter -> its range")
     targets: list[Target] = Field(default_factory=list, max_length=64, description="what the campaign looks for; "
-                                  "with campaign.stop_on_target it ends once every one is met")
+                                  "with campaign.stop_on_target it stops proposing once every one is met")
     stability_s: float = Field(
         default=0, ge=0, le=MAX_S, description="e-folding time of a waiting sample's signal; 0 = stable"
     )
@@ -281,7 +281,7 @@ class ClockSpec(Spec):
 
 class BusSpec(Spec):
     kind: Literal["zenoh", "memory"] = Field(default="zenoh", description="zenoh (devices may be other processes "
-                                             "and hosts) or memory (one process, virtual time)")
+                                             "and hosts) or memory (every device in this process, no sockets)")
     mode: Literal["auto", "peer", "client"] = Field(
         default="auto", description="auto: a peer, or a client when it only connects (to a router)")
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"], description="Zenoh endpoints the lab "
