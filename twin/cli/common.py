@@ -83,10 +83,14 @@ def print_table(table: Table) -> None:
     """Print a ``narrow_table`` with every column at least as wide as the longest number in it, so that a number
     is never split across lines (where "0.33" folded reads as "0.3"); names and words wrap instead."""
     for column in table.columns:
-        numbers = [len(word) for cell in column.cells if isinstance(cell, str) for word in cell.split()
-                   if _NUMBER.fullmatch(word)]
+        cells = [cell for cell in column.cells if isinstance(cell, str)]
+        numbers = [len(word) for cell in cells for word in cell.split() if _NUMBER.fullmatch(word)]
         if numbers:
             column.min_width = max(column.min_width or 0, *numbers)
+        if cells and all(_NUMBER.fullmatch(c) or c in ("—", "-", "") for c in cells):
+            # a column of numbers needs no more room than its widest one and its header's longest word: the rest
+            # goes to the names
+            column.max_width = max(max(map(len, cells)), *(len(w) for w in str(column.header).split()))
     # rich narrows the widest columns to fit and only then widens each to its min_width, so the table can come
     # out wider than the terminal (and its caption cropped): ask it for less until it fits
     width = console.width

@@ -182,11 +182,12 @@ def bench_schedulers(
             tables.append({"lab": title, "bound_s": optimum, "rows": [dict(zip(HEADER, r)) for r in table_rows]})
             if as_json:
                 continue
-            table = narrow_table(HEADER, f"{title} — {runs} run(s) per scheduler" +
+            shown = [i for i in range(len(HEADER)) if optimum or HEADER[i] != "vs bound"]  # no bound: no column
+            table = narrow_table([HEADER[i] for i in shown], f"{title} — {runs} run(s) per scheduler" +
                                  (f"; CP-SAT bound {optimum:.0f} lab-s" if optimum else ""),
-                                 caption("lab-s" if s.jobshop else "lab-h"))
+                                 caption("lab-s" if s.jobshop else "lab-h", bound=bool(optimum)))
             for row in table_rows:
-                table.add_row(*row)
+                table.add_row(*(row[i] for i in shown))
             print_table(table)
     machine_output(as_json, csv_out, HEADER, [], all_runs, labs=tables)
 

@@ -73,8 +73,8 @@ def bench(scenario: Scenario, schedulers: list[str], seeds: int, workers: int = 
 HEADER = ["scheduler", "mean", "median", "vs bound", "vs best rule", "busy", "degr.", "lost", "fallb.", "ms p50/p99"]
 
 
-def caption(unit: str) -> str:
-    return (f"mean, median: makespan ({unit}); vs bound: gap to CP-SAT's optimum (a deterministic job shop); vs best "
+def caption(unit: str, bound: bool = True) -> str:
+    return (f"mean, median: makespan ({unit}); " + ("vs bound: gap to CP-SAT's optimum; " if bound else "") + "vs best "
             "rule: against the rule with the lowest mean; busy: mean utilisation; degr.: degraded samples; lost: "
             "abandoned experiments; fallb.: decisions the fallback rule made (an agent absent or late); ms: wall "
             "time per decision, median p50 / worst p99 (an rl agent is asked in the bench's process: the same "
