@@ -229,7 +229,9 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
     candidate-scoring policy) or ``slots`` (an MLP over the fixed grid, the baseline; PPO only). ``init``: a policy
     of the same encoding to start from (a candidate policy of an earlier version: trained on in its columns'
     meaning, ``agents.candidates.trained_encoding``)."""
-    scenario = lab_training(scenario, encoding, init) if scenario.campaigns else with_teacher(scenario)
+    scenario = with_teacher(scenario)
+    if scenario.campaigns:
+        scenario = lab_training(scenario, encoding, init)
     if encoding == "candidates":
         from twin import read_meta
 
@@ -291,7 +293,7 @@ def lab_training(lab: Scenario, encoding: str, init: Path | None) -> Scenario:
     if encoding != "candidates" or t.method == "ppo" or t.teacher == "cp-sat":
         raise ValueError(f"{lab.name}: the scheduler of a lab of several campaigns learns by imitation "
                          f"(training.teacher self or best-rule; here {encoding}, {t.method}, {t.teacher}): {fix}")
-    teacher = "self" if t.teacher == "auto" else t.teacher
+    teacher = t.teacher
     if teacher == "self" and init is None:
         raise ValueError(f"{lab.name}: the scheduler of a lab of several campaigns improves on a policy's own best "
                          f"runs (training.teacher self): {fix}")
@@ -299,12 +301,14 @@ def lab_training(lab: Scenario, encoding: str, init: Path | None) -> Scenario:
 
 
 def with_teacher(scenario: Scenario) -> Scenario:
-    """``training.teacher: auto`` made concrete for a lab of one campaign: CP-SAT's schedules for a job shop
-    with random shops to draw, else the best rule of each lab drawn (the one teacher every lab has)."""
+    """``training.teacher: auto`` made concrete: a lab of several campaigns improves on its policy's own best runs;
+    a job shop with random shops to draw learns CP-SAT's schedules; any other lab the best rule of each lab drawn
+    (the one teacher every lab has)."""
     t = scenario.training
     if t.teacher != "auto":
         return scenario
-    teacher = "cp-sat" if scenario.jobshop is not None and t.jobshop_sizes else "best-rule"
+    teacher = "self" if scenario.campaigns else \
+        "cp-sat" if scenario.jobshop is not None and t.jobshop_sizes else "best-rule"
     return scenario.model_copy(update={"training": t.model_copy(update={"teacher": teacher})})
 
 

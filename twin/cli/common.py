@@ -90,7 +90,7 @@ def print_table(table: Table) -> None:
         if cells and all(_NUMBER.fullmatch(c) or c in ("—", "-", "") for c in cells):
             # a column of numbers needs no more room than its widest one and its header's longest word: the rest
             # goes to the names
-            column.max_width = max(max(map(len, cells)), *(len(w) for w in str(column.header).split()))
+            column.max_width = max([*map(len, cells), *(len(w) for w in str(column.header).split())])
     # rich narrows the widest columns to fit and only then widens each to its min_width, so the table can come
     # out wider than the terminal (and its caption cropped): ask it for less until it fits
     width = console.width
