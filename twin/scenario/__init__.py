@@ -2,7 +2,8 @@
 
 from twin.scenario.loading import json_schema, load, parse, parse_overridden, set_dotted
 from twin.scenario.model import (BusSpec, Campaign, Chemistry, ClockSpec, Condition, DeviceType, Duration, Faults,
-                                 JobShop, Orchestration, Parameter, Retry, Scenario, Target, WorkflowStep, expected_duration)
+                                 JobShop, Parameter, Scenario, Target, WorkflowStep, expected_duration)
+from twin.scenario.operations import Orchestration, Retry
 from twin.scenario.training import Training
 
 __all__ = [
