@@ -16,12 +16,13 @@ from __future__ import annotations
 import secrets
 from typing import Any
 
-from twin.campaign import consumables, dispatch, human, operator, outcomes, policy, provenance, questions, results
+from twin.campaign import (consumables, device_events, dispatch, human, operator, outcomes, policy, provenance,
+                           questions, timers)
 from twin.campaign.consumables import Stocks
 from twin.campaign.availability import Availability
-from twin.campaign.events import (Action, Ask, CancelTimer, Code, Decided, DeviceMessage, Event, Finished,
-                                  InvalidInput, Note, Operator, Presence, Proposed, RecordExperiment, RecordMessage,
-                                  Send, SetTimer, Status, Stop, TimerFired, TimerKey, TimerKind)
+from twin.campaign.events import (Action, Ask, CancelTimer, Decided, DeviceMessage, Event, Finished, InvalidInput,
+                                  Note, Operator, Presence, Proposed, RecordExperiment, Send, SetTimer, Status, Stop,
+                                  TimerFired, TimerKey, TimerKind)
 from twin.campaign.ledger import UNRUNNABLE, Attempt, Counters, Device, Experiment, Task, check_accounting
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
 from twin.core.messages import Kind
@@ -205,11 +206,11 @@ class CampaignCore:
     # -- events -----------------------------------------------------------------------
     def _handle(self, ev: Event) -> None:
         if isinstance(ev, DeviceMessage):
-            self._on_message(ev)
+            device_events.message(self, ev)
         elif isinstance(ev, Presence):
-            self._on_presence(ev.device, ev.alive)
+            device_events.presence(self, ev.device, ev.alive)
         elif isinstance(ev, TimerFired):
-            self._on_timer(ev.key)
+            timers.fired(self, ev.key)
         elif isinstance(ev, Operator):
             operator.act(self, ev)
         elif isinstance(ev, InvalidInput):
@@ -224,127 +225,6 @@ class CampaignCore:
                 self._begin()
             self._asking = None  # a question still open is moot now; its answer will be ignored
             self._wake = True
-
-    def _on_message(self, m: DeviceMessage) -> None:
-        att = self.attempts.get((m.task, m.attempt))
-        why = provenance.problem(m, att, self.devices)
-        if why:
-            self._reject(m, why)
-            return
-        if m.kind == Kind.TELEMETRY:
-            self._out.append(RecordMessage(self.now, "msg.telemetry", None, m.task or None, m.attempt, m.device,
-                                           m.payload))
-            return
-        assert att is not None  # provenance vouched for it
-        exp = att.task.experiment.id
-        self._out.append(RecordMessage(self.now, f"msg.{m.kind}", exp, m.task, m.attempt, m.device, m.payload))
-        if att.resolved:
-            self._after_resolved(att, m)
-            return
-        if m.kind == Kind.ACCEPTED:
-            att.t_accepted = self.now
-            self._note("attempt.running", exp, m.task, m.attempt, m.device)
-        elif m.kind == Kind.RESULT:
-            bad = results.problem(m.body, self.now)
-            if bad:
-                outcomes.resolve(self, att, Code.DRIVER_ERROR,
-                                 {"reason": f"{m.device} returned a result the lab cannot use: {bad}"})
-            else:
-                outcomes.resolve(self, att, Code.OK, m.body)
-        elif m.kind == Kind.FAULT:
-            outcomes.resolve(self, att, m.body.get("code", Code.FAILED), {"reason": m.body.get("reason", "")})
-        elif m.kind == Kind.REJECTED:
-            outcomes.resolve(self, att, Code.REJECTED, {"reason": m.body.get("reason", ""),
-                                               "infeasible": bool(m.body.get("infeasible", False))})
-
-    def _reject(self, m: DeviceMessage, why: str) -> None:
-        self.counts.rejected += 1
-        self._note("message.rejected", device=m.key or m.device, detail=provenance.rejection(m, why, self.s.lab))
-
-    def _after_resolved(self, att: Attempt, m: DeviceMessage) -> None:
-        """A message about an attempt already decided: the answer to a cancel, or late."""
-        dev = self.devices[att.device]
-        final = m.kind in (Kind.FAULT, Kind.RESULT, Kind.REJECTED)
-        if final and dev.unanswered is att:
-            dev.unanswered = None
-        acked = dev.cancelling is att and final
-        if acked:
-            dev.cancelling = None
-            self._out.append(CancelTimer(TimerKey(TimerKind.CANCEL_GRACE, dev.name)))
-            self._wake = True
-        if acked and m.kind == Kind.FAULT and m.body.get("code") == Code.CANCELLED:
-            self._note("attempt.cancel_acknowledged", att.task.experiment.id, att.task.id, att.n, dev.name)
-        elif m.kind in (Kind.RESULT, Kind.FAULT):
-            self.counts.late += 1
-            self._note("result.late", att.task.experiment.id, att.task.id, att.n, dev.name, detail=str(m.kind))
-
-    def _on_presence(self, name: str, alive: bool) -> None:
-        dev = self.devices.get(name)
-        if dev is None or dev.online == alive:
-            return
-        dev.online = alive
-        self._note("device.online" if alive else "device.lost", device=dev.name)
-        if not alive:
-            flap = dev.lost_at is not None and self.now - dev.lost_at < self._flap_s
-            dev.lost_at = self.now
-            if flap:  # gone again within a lease: an impostor's token, or a bad link; the deadline still holds
-                self.counts.flaps += 1
-                self._note("device.flapping", device=dev.name, detail={"within_s": self._flap_s})
-                self._wake = True
-                return
-            dev.unanswered = None
-            if dev.cancelling is not None:
-                dev.cancelling = None
-                self._out.append(CancelTimer(TimerKey(TimerKind.CANCEL_GRACE, dev.name)))
-            if dev.attempt is not None:
-                self.counts.device_lost += 1
-                outcomes.resolve(self, dev.attempt, Code.DEVICE_LOST,
-                                 {"reason": f"{dev.name} left the bus (liveliness lost)"})
-        if not self._running and all(d.online for d in self.devices.values()):
-            self._out.append(CancelTimer(TimerKey(TimerKind.STARTUP)))
-            self._begin()
-        self._wake = True
-
-    def _on_timer(self, key: TimerKey) -> None:
-        kind = key.kind
-        if kind == TimerKind.DEADLINE:
-            task, _, n = key.ref.rpartition("#")
-            att = self.attempts.get((task, int(n)))
-            if att is not None and not att.resolved:
-                limit = policy.deadline_s(att.task.expected_s, self.s.orchestrator)
-                outcomes.resolve(self, att, Code.TIMED_OUT, {"reason": f"no result within {limit:.0f} lab-s"})
-        elif kind == TimerKind.RETRY:
-            waiting = self._retrying.pop(key.ref, None)
-            if waiting is not None and not self.stopping:
-                self._make_ready(waiting.experiment, waiting)
-        elif kind == TimerKind.PROBE:
-            dev = self.devices[key.ref]
-            dev.quarantined = False
-            self._note("device.probe", device=dev.name)
-            self._wake = True
-        elif kind == TimerKind.CANCEL_GRACE:
-            dev = self.devices[key.ref]
-            if dev.cancelling is not None:
-                att, dev.cancelling = dev.cancelling, None
-                dev.unanswered = att
-                self.counts.cancels_unanswered += 1
-                self._note("attempt.cancel_unanswered", att.task.experiment.id, att.task.id, att.n, dev.name,
-                           detail={"grace_s": self.s.orchestrator.cancel_grace_s})
-                self._wake = True
-        elif kind == TimerKind.GIVE_UP:
-            self._give_up(key.ref)
-        elif kind in (TimerKind.QUESTION, TimerKind.ANSWER):
-            questions.on_timer(self, kind, key.ref)
-        elif kind == TimerKind.CONFIRM:
-            human.on_timer(self, key.ref)
-        elif kind == TimerKind.REFILL:
-            consumables.refill(self, key.ref, None, "simulated operator")
-        elif kind == TimerKind.LIMIT:
-            self._on_stop("max_lab_hours reached")
-        elif kind == TimerKind.STARTUP and not self._running:
-            missing = [d.name for d in self.devices.values() if not d.online]
-            self._note("devices.missing", detail=missing)
-            self._begin()
 
     def _on_stop(self, reason: str) -> None:
         self._handle(Stop(reason))
