@@ -41,6 +41,7 @@ import torch
 from agents.candidates import (ENCODING, FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, Observed,
                                lab_shape, widen)
 from agents.cpsat import jobshop
+from agents.lockstep import SAMPLE_TEMPERATURES, lockstep
 from agents.scheduling_env import randomised
 from agents.schedulers import rules_for
 from agents.teachers import PlanTeacher, RuleTeacher, solve_time
@@ -131,44 +132,22 @@ def lab_task(args: tuple) -> tuple[list[Sample], dict]:
     return samples, {"rule": rule, "shape": lab_shape(lab), **ratios}
 
 
-# `python bench/bench_sampling.py P.zip` (best of 16 ÷ greedy, 8 random shops): the CP-SAT-taught policy does best
-# at temperature ¼ (0.958; 0.976 at 1), the self-labelled ones, sharper, at 1 (0.961; 0.978 at ¼): the sampled
-# runs take turns at ½ and 1, good for both.
-SAMPLE_TEMPERATURES = (0.5, 1.0)
-
-
 def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
                  temperatures: tuple[float, ...] = SAMPLE_TEMPERATURES,
                  encoding: str = ENCODING) -> list[tuple[list[Sample], Any]]:
-    """``k`` campaigns of ``lab`` stepped in lockstep, one forward pass for all: the first takes the policy's best
-    candidate, the others sample from its scores ÷ a temperature, each in turn from ``temperatures`` (too high for
-    the policy, a sample strays so far from the greedy run that the best of 16 is hardly better than it; too low,
-    it seldom leaves it); each state is labelled with the choice the run made there. The samples and the summary
-    of each run."""
-    runs = [(CandidateEncoder(lab, encoding), stepped(lab), []) for _ in range(k)]
-    try:
-        live = list(range(k))
-        while live:
-            encoded = [runs[i][0].encode(runs[i][1].view) for i in live]
-            mask = torch.as_tensor(np.stack([m for _, m in encoded]))
-            with torch.no_grad():
-                logits = scorer(torch.as_tensor(np.stack([o for o, _ in encoded]))).masked_fill(~mask, -torch.inf)
-            heat = torch.tensor([temperatures[(i - 1) % len(temperatures)] for i in live]).unsqueeze(1)
-            best, drawn = logits.argmax(1), torch.distributions.Categorical(logits=logits / heat).sample()
-            for j, i in enumerate(live):
-                encoder, c, out = runs[i]
-                (obs, m), n = encoded[j], len(encoder.encoded)
-                action = int(best[j] if i == 0 else drawn[j])
-                taught = np.zeros(n + 1, bool)
-                taught[n if action == WAIT else action] = True
-                rows = obs[:MAX_CANDIDATES * FEATURES].reshape(MAX_CANDIDATES, FEATURES)[:n].copy()
-                out.append(Sample(rows, obs[MAX_CANDIDATES * FEATURES:].copy(), np.append(m[:n], m[WAIT]), taught))
-                c.answer(encoder.decode(c.view, action))
-            live = [i for i in live if not runs[i][1].done]
-        return [(out, c.summary) for _, c, out in runs]
-    finally:
-        for _, c, _ in runs:
-            c.close()
+    """``k`` campaigns of ``lab`` in lockstep (``agents.lockstep``), each state labelled with the choice the run
+    made there: the samples and the summary of each run."""
+    out: list[list[Sample]] = [[] for _ in range(k)]
+
+    def label(i: int, encoder: CandidateEncoder, obs: np.ndarray, m: np.ndarray, action: int, _: Any) -> None:
+        n = len(encoder.encoded)
+        taught = np.zeros(n + 1, bool)
+        taught[n if action == WAIT else action] = True
+        rows = obs[:MAX_CANDIDATES * FEATURES].reshape(MAX_CANDIDATES, FEATURES)[:n].copy()
+        out[i].append(Sample(rows, obs[MAX_CANDIDATES * FEATURES:].copy(), np.append(m[:n], m[WAIT]), taught))
+
+    summaries = lockstep(lab, scorer, k, temperatures, encoding, label)
+    return list(zip(out, summaries))
 
 
 def self_task(args: tuple) -> tuple[list[Sample], dict]:

@@ -7,8 +7,9 @@ the orchestrator asks it over Zenoh, with a deadline and the scenario's fallback
 from __future__ import annotations
 
 import logging
+import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -18,8 +19,12 @@ from twin import Assignment, LabView
 from twin import PluginError
 from twin import load_policy, read_meta
 
+if TYPE_CHECKING:
+    from agents.rollout_plan import Plan, PlanFollower
+
 log = logging.getLogger(__name__)
 _warned: set[str] = set()  # one warning per text: the CLI checks a scheduler before the lab builds its own
+_plans: dict[tuple, "Plan"] = {}  # campaign.rollouts' plans, by policy file and lab
 
 
 def encoder_for(scenario: Any, encoding: str) -> Any:
@@ -51,6 +56,7 @@ def _check_fit(path: Path, meta: dict, scenario: Any) -> str:
 
 class RlScheduler:
     serve_on_bus = True
+    plays_ahead = True  # campaign.rollouts: it plays a deterministic lab ahead in the twin and follows its best run
     greedy = True  # False: sample from the policy (several rollouts of a deterministic lab, keeping the best)
     temperature = 1.0  # when sampling a candidate policy: its scores are divided by this (½ keeps closer to greedy)
 
@@ -83,15 +89,45 @@ class RlScheduler:
         self.sees_campaigns = candidates.WIDTHS.get(encoding) == candidates.FEATURES
         # warm up torch
         self.model.predict(np.zeros(sign["observation_size"], np.float32), action_masks=np.ones(sign["actions"], bool))
+        self.follower: PlanFollower | None = None
+        if scenario.campaign.rollouts > 1:
+            from agents import rollout_plan  # it reads the training objective, whose module reads this one
+
+            self.follower = rollout_plan.PlanFollower(self._plan(path, scenario, encoding))
+
+    def _plan(self, path: Path, scenario: Any, encoding: str | None) -> Plan:
+        """``campaign.rollouts`` runs of the lab in the twin, the best kept (once per policy and lab: the CLI makes
+        a scheduler to check it before the lab makes its own)."""
+        from agents.rollout_plan import plan, why_unplannable
+
+        why = why_unplannable(scenario)
+        if not isinstance(self.encoder, candidates.CandidateEncoder):
+            why = f"{path} reads labs as fixed slots; only a candidate policy samples its runs"
+        if why:
+            raise PluginError(f"campaign.rollouts: {scenario.campaign.rollouts} plays the lab ahead in the twin, and "
+                              f"{scenario.name!r} would not run as played: {why}. Set campaign.rollouts: 1 to decide "
+                              "as the lab goes")
+        key = (str(path.resolve()), path.stat().st_mtime_ns, scenario.model_dump_json())
+        if key not in _plans:  # told on stderr: planning a large shop many times takes a while
+            what = scenario.jobshop.file if scenario.jobshop is not None else scenario.name
+            print(f"rl: playing {what} {scenario.campaign.rollouts} times in the twin ...", file=sys.stderr, flush=True)
+            _plans[key] = plan(scenario, self.model.policy.action_net, scenario.campaign.rollouts, str(encoding))
+            print(f"rl: {_plans[key].describe()}; the lab follows it", file=sys.stderr, flush=True)
+        return _plans[key]
 
     @classmethod
     def from_model(cls, model: Any, scenario: Any, encoding: str = "slots") -> RlScheduler:
         """A policy still in training, deciding the same way."""
         self = cls.__new__(cls)
-        self.model, self.encoder = model, encoder_for(scenario, encoding)
+        self.model, self.encoder, self.follower = model, encoder_for(scenario, encoding), None
         return self
 
     def decide(self, view: LabView) -> list[Assignment]:
+        if self.follower is not None:
+            planned = self.follower.decide(view)
+            if planned is not None:
+                return planned
+            self.follower = None
         obs, mask = self.encoder.encode(view)
         if isinstance(self.encoder, candidates.CandidateEncoder) and (self.greedy or self.temperature != 1.0):
             with torch.no_grad():

@@ -8,8 +8,9 @@ Then `--random` random shops each of 10×10, 15×15 and 20×15 (or `--sizes 30x2
 makespan relative to MWKR's (and,
 with `--plan-seconds S`, CP-SAT's offline plan of each in S seconds: how far below MWKR any schedule gets). The p99 of
 each scheduler's decision time (wall ms) is measured over every decision it made. `--samples K` adds, for each
-rl policy, the best of K rollouts (greedy + K−1 sampled from the policy at temperature ½): an improvement at
-decision time that only a deterministic lab allows, reported apart from the greedy policy.
+rl policy, the lab run with ``campaign.rollouts: K`` (the best of K runs played ahead in the twin — the greedy one and
+K−1 sampled from the policy — followed): an improvement at decision time that only a deterministic lab allows,
+reported apart from the greedy policy.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from agents.cpsat_scheduler import CpSatScheduler  # noqa: E402
 from agents.train_scheduler import campaign  # noqa: E402
 from bench.tables import table  # noqa: E402
 from twin import jobshop_as_lab, random_jobshop  # noqa: E402
-from twin.runtime.lab import make_scheduler  # noqa: E402
+from twin.runtime.lab import make_scheduler, prepare  # noqa: E402
 from twin.tools.scheduler_bench import load_variant  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "jobshop"
@@ -39,21 +40,15 @@ OPTIMA = {"ft06": 55, "ft10": 930, "la01": 666, "la02": 655, "la03": 597, "la04"
           "orb01": 1059, "orb02": 888, "orb03": 1005, "orb04": 1005, "orb05": 887, "orb06": 1010, "orb07": 397,
           "orb08": 899, "orb09": 934, "orb10": 944, "la21": 1046, "la22": 927, "la23": 1032, "la24": 935,
           "la25": 977, "la36": 1268, "la37": 1397, "la38": 1196, "la39": 1233, "la40": 1222}
-TEMPERATURE = 0.5  # sampled rollouts: the policy's scores ÷ this (which is best depends on the policy: bench_sampling)
 PUBLIC = ("ft06", "la01", "la02", "la03", "la04", "la05", "ft10")
 SCENARIO = ROOT / "scenarios" / "jobshop.yaml"
 
 
 def run(s, name: str, times: list[float]) -> float:
-    if name.startswith("best-of-"):  # K rollouts of a deterministic shop: the greedy one and K-1 sampled
+    if name.startswith("best-of-"):  # campaign.rollouts: K runs played ahead in the twin, the best one followed
         k, _, policy = name[len("best-of-"):].partition(":")
-        spans = [run(s, policy, times)]
-        sampler = make_scheduler(s, policy)
-        sampler.greedy, sampler.temperature = False, TEMPERATURE
-        for i in range(int(k) - 1):
-            torch.manual_seed(i)
-            spans.append(campaign(s, 0, sampler.decide).lab_hours * 3600)
-        return min(spans)
+        s = prepare(s, overrides={"campaign.rollouts": int(k)})
+        return campaign(s, 0, make_scheduler(s, policy).decide).lab_hours * 3600
     scheduler = make_scheduler(s, name)
 
     def timed(view):

@@ -9,7 +9,7 @@ from typing import Any
 from twin.core.errors import ScenarioError, TwinError
 from twin.campaign.human import DRIVER as HUMAN
 from twin.device.driver import feature
-from twin.runtime.assembly import load_driver, make_planner, make_scheduler
+from twin.runtime.assembly import REMOTE, load_driver, make_planner, make_scheduler
 from twin.scenario import Scenario, load
 from twin.scenario.sharing import campaign_scenarios
 
@@ -41,7 +41,12 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
                for dtype in s.devices if s.devices[dtype].driver != HUMAN and (types is None or dtype in types)
                and dtype not in elsewhere}
     _at("campaign.planner", make_planner, s)
-    _at("campaign.scheduler", make_scheduler, s)
+    scheduler = _at("campaign.scheduler", make_scheduler, s)
+    if s.campaign.rollouts > 1 and not getattr(scheduler, "plays_ahead", False):
+        remote = " (an agent elsewhere plays ahead with its own scenario file)" if scheduler == REMOTE else ""
+        raise ScenarioError("", [f"campaign.rollouts: {s.campaign.rollouts}: only the rl scheduler plays a lab ahead, "
+                                 f"and {s.campaign.scheduler!r} decides as the lab goes{remote}; set "
+                                 "campaign.rollouts: 1, or --scheduler rl:POLICY.zip"])
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
     used = {w.device for w in s.workflow} or set(s.devices)
     # a type served elsewhere produces what its driver there says: unknown here, so targets are not checked

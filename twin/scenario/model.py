@@ -157,6 +157,11 @@ class Campaign(Spec):
                                     "on the bus is absent, late or wrong")
     policy_fit: Literal["warn", "refuse"] = Field(default="warn", description="a scheduler policy used on a lab "
                                                   "outside the shapes it was trained on: warn, or refuse to start")
+    rollouts: int = Field(default=1, ge=1, le=4096, description="the rl scheduler on a lab that runs as planned (every "
+                          "experiment known, as in a job shop; durations with cv 0; no faults): play the campaign "
+                          "this many times in the twin before it starts (the greedy run and the rest sampled from "
+                          "the policy) and keep the best run's order of steps on each device; 1: decide greedily as "
+                          "the lab goes")
     give_up_after_s: float = Field(default=4 * 3600, gt=0, le=MAX_S, description="lab seconds the experiments "
                                    "that need a device type wait when none of its instances is usable (lost, "
                                    "quarantined) before they are abandoned; an instance that comes back resumes them")

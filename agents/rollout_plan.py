@@ -1,0 +1,118 @@
+"""`campaign.rollouts`: the rl scheduler plays a deterministic lab in the twin before it starts, and follows its
+best run.
+
+The lab is played ``rollouts`` times on the fast runtime in lockstep (``agents.lockstep``: the greedy run and the
+others sampled from the policy). The run with the best objective (lab time, degraded samples and abandoned
+experiments, weighted by ``training.weights``) gives each device its order of steps, and the campaign keeps those
+orders: a device starts the next step of its order as soon as that step is ready, and waits for it otherwise.
+Each step then starts no later than it did in the run planned, so a lab that keeps to the plan ends no later.
+Where the lab leaves the plan — a step the plan never held (a retry, an experiment it did not foresee), a device
+of the plan that is down — the policy decides from then on, greedily.
+
+Only a lab that runs as it was played can be planned: every experiment known before it starts (a job shop),
+durations without spread, no faults. The best of several runs of a lab with chance in it is its luckiest, not
+its best decided: such a lab is refused, with the field to change.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import torch
+
+from agents.lockstep import lockstep
+from agents.train_scheduler import objective
+from twin import Assignment, LabView, Scenario, prepare
+
+log = logging.getLogger(__name__)
+
+
+def why_unplannable(s: Scenario) -> str:
+    """Why ``s`` would not run as the twin plays it ('' if it would)."""
+    if s.campaigns:
+        return "it is a lab of several campaigns"
+    if s.campaign.planner != "fixed":
+        return (f"its experiments are proposed as it runs (campaign.planner: {s.campaign.planner}); only a lab whose "
+                "experiments are all known before it starts (a job shop) can be played ahead")
+    for name, d in s.devices.items():
+        if d.duration.cv > 0:
+            return f"devices.{name}.duration.cv is {d.duration.cv:g}: its steps' durations vary from run to run"
+        for fault in ("fail_p", "hang_p", "mtbc_h"):
+            if getattr(d.faults, fault) > 0:
+                return f"devices.{name}.faults.{fault} is {getattr(d.faults, fault):g}: its faults come by chance"
+    return ""
+
+
+@dataclass
+class Plan:
+    """The best of ``rollouts`` runs: each device's order of steps, and what the runs scored."""
+
+    orders: dict[str, list[str]]
+    rollouts: int
+    best: float  # its objective
+    greedy: float  # the greedy run's
+    best_h: float  # its lab-hours
+    greedy_h: float
+    seconds: float  # wall time the rollouts took
+
+    def describe(self) -> str:
+        gain = 100 * (1 - self.best / self.greedy) if self.greedy else 0.0
+        best, greedy = ((f"{self.best_h * 3600:,.0f} lab-s", f"{self.greedy_h * 3600:,.0f}") if self.greedy_h < 1
+                        else (f"{self.best_h:.2f} lab-h", f"{self.greedy_h:.2f}"))
+        return (f"the best of {self.rollouts} rollouts in the twin takes {best} against the greedy run's {greedy} "
+                f"(objective {gain:.1f} % lower; {self.seconds:.1f} s of planning)")
+
+
+def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str) -> Plan:
+    """Play ``s`` ``rollouts`` times with the policy whose candidate scores ``scorer`` gives; the best run's plan."""
+    orders: list[dict[str, list[str]]] = [{} for _ in range(rollouts)]
+
+    def keep(i: int, _encoder: object, _obs: object, _mask: object, _action: int, made: list[Assignment]) -> None:
+        for a in made:
+            orders[i].setdefault(a.device, []).append(a.task)
+
+    t0 = time.perf_counter()
+    lab = prepare(s, clock="virtual", bus="memory")
+    summaries = lockstep(lab, scorer, rollouts, encoding=encoding, seen=keep)
+    scores = [objective(summary, lab) for summary in summaries]
+    best = min(range(rollouts), key=scores.__getitem__)
+    return Plan(orders[best], rollouts, scores[best], scores[0], summaries[best].lab_hours, summaries[0].lab_hours,
+                time.perf_counter() - t0)
+
+
+@dataclass
+class PlanFollower:
+    """Keeps each device's order of the plan while the lab does; ``decide`` gives None once it has left it."""
+
+    plan: Plan
+    queues: dict[str, deque[str]] = field(init=False)
+    left: set[str] = field(init=False)  # the plan's steps not started yet
+
+    def __post_init__(self) -> None:
+        self.queues = {device: deque(tasks) for device, tasks in self.plan.orders.items()}
+        self.left = {task for tasks in self.plan.orders.values() for task in tasks}
+
+    def decide(self, view: LabView) -> list[Assignment] | None:
+        strays = [r.task for r in view.ready if r.task not in self.left]
+        if strays:
+            return self._left_plan(view, f"step {strays[0]} is ready and the plan does not hold it (still)")
+        online = {d.name for d in view.devices if d.online}
+        down = [name for name, queue in self.queues.items() if queue and name not in online]
+        if down:
+            return self._left_plan(view, f"{down[0]} is down with steps of the plan still to run")
+        ready = {r.task for r in view.ready}
+        out = []
+        for device in view.free:
+            queue = self.queues.get(device.name)
+            if queue and queue[0] in ready:
+                task = queue.popleft()
+                self.left.discard(task)
+                out.append(Assignment(task, device.name))
+        return out
+
+    def _left_plan(self, view: LabView, why: str) -> None:
+        log.warning("the lab left the plan at %.0f lab-s: %s; the policy decides from here", view.now, why)
+        return None

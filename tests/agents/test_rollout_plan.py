@@ -1,0 +1,99 @@
+"""campaign.rollouts: the rl scheduler plays a deterministic lab ahead in the twin, follows its best run on both
+runtimes, leaves the plan (and loses nothing) when the lab does, and refuses labs whose runs would not repeat."""
+
+import logging
+import random
+from pathlib import Path
+
+import pytest
+import torch
+
+from agents.rl_scheduler import RlScheduler
+from agents.rollout_plan import PlanFollower
+from agents.train_scheduler import campaign
+from twin import Assignment, LabView, ScenarioError, TwinError, jobshop_as_lab, random_jobshop
+from twin.campaign.decisions import DeviceState, FreeDevice, ReadyStep
+from twin.runtime.lab import prepare, run
+from twin.runtime.checks import check
+
+ROOT = Path(__file__).resolve().parents[2]
+POLICY = f"rl:{ROOT / 'agents' / 'policies' / 'jobshop_scheduler.zip'}"
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def shop():
+    """A random 8×5 shop on which the shipped policy's greedy run is not its best."""
+    base = prepare(ROOT / "scenarios" / "jobshop.yaml")
+    return jobshop_as_lab(base, random_jobshop(8, 5, 1, 99, random.Random("rollouts:2")))
+
+
+def with_rollouts(s, rollouts: int, **more):
+    return prepare(s, overrides={"campaign.scheduler": POLICY, "campaign.rollouts": rollouts, **more})
+
+
+def makespan(s, tmp_path: Path, **kw) -> float:
+    return run(s, journal=tmp_path / f"j{len(list(tmp_path.iterdir()))}.db", **kw).lab_hours * 3600
+
+
+def test_the_lab_keeps_the_best_of_its_rollouts_on_either_runtime(shop, tmp_path, capsys):
+    greedy = makespan(with_rollouts(shop, 1), tmp_path)
+    planned = with_rollouts(shop, 16)
+    scheduler = RlScheduler(planned, POLICY[3:])
+    plan = scheduler.follower.plan
+    assert plan.rollouts == 16 and plan.greedy_h * 3600 == pytest.approx(greedy)
+    assert plan.best_h < plan.greedy_h  # on this shop a sampled run beats the greedy one
+    fast = makespan(planned, tmp_path)
+    assert fast <= plan.best_h * 3600 + 1e-6  # each step starts no later than in the run planned
+    assert makespan(planned, tmp_path, runtime="asyncio") == pytest.approx(fast)
+    assert "best of 16 rollouts" in capsys.readouterr().err  # said once: the plan is kept for the same lab
+
+
+def test_a_lab_that_leaves_the_plan_is_scheduled_by_the_policy_and_loses_nothing(shop, caplog):
+    scheduler = RlScheduler(with_rollouts(shop, 8), POLICY[3:])
+    crashing = prepare(shop, overrides={"devices.m1.faults.mtbc_h": 0.05, "devices.m1.faults.restart_s": 30})
+    with caplog.at_level(logging.WARNING, logger="agents.rollout_plan"):
+        summary = campaign(crashing, 0, scheduler.decide)
+    assert "left the plan" in caplog.text
+    assert scheduler.follower is None
+    assert summary.done == len(shop.campaign.planner_options["proposals"]) and summary.abandoned == 0
+
+
+def test_a_stray_step_or_a_device_down_ends_the_plan():
+    from agents.rollout_plan import Plan
+
+    plan = Plan({"m0": ["e0s0", "e1s0"], "m1": ["e1s1"]}, 4, 1.0, 1.0, 1.0, 1.0, 0.0)
+
+    def view(ready, m1_online=True):
+        steps = tuple(ReadyStep(t, int(t[1]), "op", "m0", 0.0, None, 1.0, 1.0) for t in ready)
+        devices = (DeviceState("m0", "m0", True, True, None, 0, 0, 0.0),
+                   DeviceState("m1", "m1", True, m1_online, None, 0, 0, 0.0))
+        return LabView(0.0, steps, (FreeDevice("m0", "m0"), FreeDevice("m1", "m1")), devices)
+
+    follower = PlanFollower(plan)
+    assert follower.decide(view(["e1s0"])) == []  # m0 waits for e0s0, first in its order
+    assert follower.decide(view(["e0s0", "e1s0"])) == [Assignment("e0s0", "m0")]
+    assert follower.decide(view(["e0s0"])) is None  # e0s0 again (a retry): not in the plan any more
+    assert PlanFollower(plan).decide(view(["e0s0"], m1_online=False)) is None  # m1 has e1s1 still to run
+
+
+@pytest.mark.parametrize("field, value, why", [
+    ("devices.m0.duration.cv", 0.1, "devices.m0.duration.cv is 0.1"),
+    ("devices.m3.faults.fail_p", 0.05, "devices.m3.faults.fail_p is 0.05"),
+])
+def test_a_lab_whose_runs_would_not_repeat_is_refused_naming_the_field(shop, field, value, why):
+    with pytest.raises(TwinError, match="campaign.rollouts: 4 plays the lab ahead") as exc:
+        RlScheduler(with_rollouts(shop, 4, **{field: value}), POLICY[3:])
+    assert why in str(exc.value) and "campaign.rollouts: 1" in str(exc.value)
+
+
+def test_a_lab_that_proposes_as_it_goes_is_refused(tmp_path):
+    s = prepare(ROOT / "scenarios" / "quantum_dots.yaml", overrides={"campaign.rollouts": 4})
+    with pytest.raises(TwinError, match="campaign.planner: gp-bo"):
+        RlScheduler(s, str(ROOT / "agents" / "policies" / "flaky_scheduler.zip"))
+
+
+def test_rollouts_with_a_rule_are_refused_by_validation(shop):
+    s = prepare(shop, overrides={"campaign.scheduler": "mwkr", "campaign.rollouts": 8})
+    with pytest.raises(ScenarioError, match="only the rl scheduler plays a lab ahead, and 'mwkr'"):
+        check(s)
