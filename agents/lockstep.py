@@ -28,9 +28,10 @@ Seen = Callable[[int, CandidateEncoder, np.ndarray, np.ndarray, int, list[Assign
 
 
 def lockstep(lab: Scenario, scorer: torch.nn.Module, k: int, temperatures: tuple[float, ...] = SAMPLE_TEMPERATURES,
-             encoding: str = ENCODING, seen: Seen | None = None) -> list[Any]:
+             encoding: str = ENCODING, seen: Seen | None = None, greedy_first: bool = True,
+             generator: torch.Generator | None = None) -> list[Any]:
     """``k`` campaigns of ``lab`` (its seed for all), run to their ends; the summary of each, the greedy run's
-    first."""
+    first (``greedy_first=False``: every run sampled). ``generator`` draws the samples (None: torch's own)."""
     runs = [(CandidateEncoder(lab, encoding), stepped(lab)) for _ in range(k)]
     try:
         live = list(range(k))
@@ -40,10 +41,11 @@ def lockstep(lab: Scenario, scorer: torch.nn.Module, k: int, temperatures: tuple
             with torch.no_grad():
                 logits = scorer(torch.as_tensor(np.stack([o for o, _ in encoded]))).masked_fill(~mask, -torch.inf)
             heat = torch.tensor([temperatures[(i - 1) % len(temperatures)] for i in live]).unsqueeze(1)
-            best, drawn = logits.argmax(1), torch.distributions.Categorical(logits=logits / heat).sample()
+            probs = torch.distributions.Categorical(logits=logits / heat).probs
+            best, drawn = logits.argmax(1), torch.multinomial(probs, 1, generator=generator).squeeze(1)
             for j, i in enumerate(live):
                 encoder, c = runs[i]
-                action = int(best[j] if i == 0 else drawn[j])
+                action = int(best[j] if i == 0 and greedy_first else drawn[j])
                 assignments = encoder.decode(c.view, action)
                 if seen is not None:
                     seen(i, encoder, *encoded[j], action, assignments)

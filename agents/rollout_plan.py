@@ -20,6 +20,8 @@ import logging
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
 
 import torch
 
@@ -28,6 +30,7 @@ from agents.train_scheduler import objective
 from twin import Assignment, LabView, Scenario, prepare
 
 log = logging.getLogger(__name__)
+BATCH = 64  # runs played at once: each holds a whole lab in memory
 
 
 def why_unplannable(s: Scenario) -> str:
@@ -68,19 +71,27 @@ class Plan:
 
 def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str) -> Plan:
     """Play ``s`` ``rollouts`` times with the policy whose candidate scores ``scorer`` gives; the best run's plan."""
-    orders: list[dict[str, list[str]]] = [{} for _ in range(rollouts)]
-
-    def keep(i: int, _encoder: object, _obs: object, _mask: object, _action: int, made: list[Assignment]) -> None:
-        for a in made:
-            orders[i].setdefault(a.device, []).append(a.task)
-
     t0 = time.perf_counter()
     lab = prepare(s, clock="virtual", bus="memory")
-    summaries = lockstep(lab, scorer, rollouts, encoding=encoding, seen=keep)
+    draws = torch.Generator().manual_seed(s.campaign.seed)  # the same lab and seed, the same plan
+    orders: list[dict[str, list[str]]] = []
+    summaries: list[Any] = []
+    for first in range(0, rollouts, BATCH):
+        batch: list[dict[str, list[str]]] = [{} for _ in range(min(BATCH, rollouts - first))]
+        summaries += lockstep(lab, scorer, len(batch), encoding=encoding, seen=partial(_keep, batch),
+                              greedy_first=first == 0, generator=draws)
+        orders += batch
     scores = [objective(summary, lab) for summary in summaries]
     best = min(range(rollouts), key=scores.__getitem__)
     return Plan(orders[best], rollouts, scores[best], scores[0], summaries[best].lab_hours, summaries[0].lab_hours,
                 time.perf_counter() - t0)
+
+
+def _keep(orders: list[dict[str, list[str]]], i: int, _encoder: object, _obs: object, _mask: object, _action: int,
+          made: list[Assignment]) -> None:
+    """Each run's order of steps on each device, as it assigns them."""
+    for a in made:
+        orders[i].setdefault(a.device, []).append(a.task)
 
 
 @dataclass

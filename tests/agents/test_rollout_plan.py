@@ -11,7 +11,7 @@ import torch
 from agents.rl_scheduler import RlScheduler
 from agents.rollout_plan import PlanFollower
 from agents.train_scheduler import campaign
-from twin import Assignment, LabView, ScenarioError, TwinError, jobshop_as_lab, random_jobshop
+from twin import Assignment, LabView, ScenarioError, TwinError, jobshop_as_lab, random_jobshop, read_meta
 from twin.campaign.decisions import DeviceState, FreeDevice, ReadyStep
 from twin.runtime.lab import prepare, run
 from twin.runtime.checks import check
@@ -97,3 +97,16 @@ def test_rollouts_with_a_rule_are_refused_by_validation(shop):
     s = prepare(shop, overrides={"campaign.scheduler": "mwkr", "campaign.rollouts": 8})
     with pytest.raises(ScenarioError, match="only the rl scheduler plays a lab ahead, and 'mwkr'"):
         check(s)
+
+
+def test_the_same_lab_and_seed_give_the_same_plan_in_batches_past_one(shop):
+    from agents.rollout_plan import BATCH, plan
+
+    policy = RlScheduler(with_rollouts(shop, 1), POLICY[3:])
+    encoding = read_meta(Path(POLICY[3:]))["signature"]["encoding"]
+    s = with_rollouts(shop, BATCH + 3)
+    first, again = (plan(s, policy.model.policy.action_net, BATCH + 3, encoding) for _ in range(2))
+    assert first.orders == again.orders and first.best == again.best
+    assert first.rollouts == BATCH + 3 and first.best <= first.greedy
+    other_seed = plan(prepare(s, seed=1), policy.model.policy.action_net, BATCH + 3, encoding)
+    assert other_seed.greedy == first.greedy  # the greedy run does not draw
