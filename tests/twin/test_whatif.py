@@ -126,3 +126,16 @@ def test_a_lab_of_several_campaigns_shows_each_campaigns_hours_one_after_the_oth
     for row, variant in zip(rows, data["variants"]):
         assert float(row["campaign_h_dots"]) == pytest.approx(variant["per_campaign"]["dots"], abs=1e-4)
     assert all(len(line) <= 80 for line in out.splitlines())
+
+
+def test_a_job_shop_of_minutes_shows_its_hours_to_the_second_and_a_played_ahead_run_saves_them(tmp_path):
+    """Playing the shop ahead (campaign.rollouts) shortens it by minutes: shown, not rounded to '0.2' and '-0.0'."""
+    shop = tmp_path / "la02.yaml"
+    shop.write_text(f"name: la02\nlab: jobshop\njobshop: {{file: {ROOT / 'scenarios' / 'jobshop' / 'la02.txt'}}}\n"
+                    f"campaign: {{scheduler: 'rl:{ROOT / 'agents' / 'policies' / 'jobshop_scheduler.zip'}'}}\n")
+    code, out = whatif(str(shop), "--vary", "campaign.rollouts=16", "--seeds", "1")
+    assert code == 0, out
+    table = {line.split()[0]: line.split()[1:4] for line in out.splitlines() if line.split()[:1] in (["1*"], ["16"])}
+    (greedy, _, _), (played, _, saved) = table["1*"], table["16"]
+    assert all(len(h.partition(".")[2]) == 3 for h in (greedy, played, saved)), out  # la02: ~0.2 lab-h
+    assert float(played) < float(greedy) and float(saved) < 0

@@ -245,6 +245,8 @@ def costs_anything(summary: list[dict[str, Any]]) -> bool:
 def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any], targets: bool,
          with_cost: bool = True) -> list[list[str]]:
     out = []
+    top = max((row["lab_hours"][2] for row in summary), default=0.0)
+    d = 3 if top < 1 else 1  # a job shop of minutes is not all "0.2"
     for row in summary:
         lo, mid, hi = row["lab_hours"]
         censored = "≥" if targets and row["reached"] < row["runs"] else ""
@@ -254,8 +256,8 @@ def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any]
         out.append([
             *[f"{_shown(written.get(name))}*" if base else _shown(row["changes"].get(name, written.get(name)))
               for name in axes],
-            f"{censored}{mid:.1f}", f"{lo:.1f}–{hi:.1f}" if hi < 10 else f"{lo:.0f}–{hi:.0f}",
-            "—" if base or change is None else f"{change[1]:+.1f}",
+            f"{censored}{mid:.{d}f}", f"{lo:.{d}f}–{hi:.{d}f}" if hi < 10 else f"{lo:.0f}–{hi:.0f}",
+            "—" if base or change is None else f"{change[1]:+.{d}f}",
             *([f"{row['cost'][1]:,.0f}", "—" if base or cost_change is None else f"{cost_change[1]:+,.0f}"]
               if with_cost else []),
             f"{row['abandoned']:.1f}",
