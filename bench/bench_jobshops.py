@@ -45,10 +45,9 @@ SCENARIO = ROOT / "scenarios" / "jobshop.yaml"
 
 
 def run(s, name: str, times: list[float]) -> float:
-    if name.startswith("best-of-"):  # campaign.rollouts: K runs played ahead in the twin, the best one followed
-        k, _, policy = name[len("best-of-"):].partition(":")
+    if name.startswith("best-of-"):  # campaign.rollouts: K runs played ahead in the twin (before the campaign and
+        k, _, name = name[len("best-of-"):].partition(":")  # its clock), the best one followed
         s = prepare(s, overrides={"campaign.rollouts": int(k)})
-        return campaign(s, 0, make_scheduler(s, policy).decide).lab_hours * 3600
     scheduler = make_scheduler(s, name)
 
     def timed(view):
