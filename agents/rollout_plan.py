@@ -7,7 +7,8 @@ experiments, weighted by ``training.weights``) gives each device its order of st
 orders: a device starts the next step of its order as soon as that step is ready, and waits for it otherwise.
 Each step then starts no later than it did in the run planned, so a lab that keeps to the plan ends no later.
 Where the lab leaves the plan — a step the plan never held (a retry, an experiment it did not foresee), a device
-of the plan that is down — the policy decides from then on, greedily.
+of the plan that is down, nothing running and no device's next step ready, a campaign resumed part-way — the policy
+decides from then on, greedily.
 
 Only a lab that runs as it was played can be planned: every experiment known before it starts (a job shop),
 durations without spread, no faults. The best of several runs of a lab with chance in it is its luckiest, not
@@ -101,12 +102,17 @@ class PlanFollower:
     plan: Plan
     queues: dict[str, deque[str]] = field(init=False)
     left: set[str] = field(init=False)  # the plan's steps not started yet
+    fresh: bool = field(init=False, default=True)  # no decision asked yet
 
     def __post_init__(self) -> None:
         self.queues = {device: deque(tasks) for device, tasks in self.plan.orders.items()}
         self.left = {task for tasks in self.plan.orders.values() for task in tasks}
 
     def decide(self, view: LabView) -> list[Assignment] | None:
+        if self.fresh:
+            self.fresh = False
+            if any(d.attempts for d in view.devices):  # a resumed campaign: some of the plan is done or running
+                return self._left_plan(view, "the campaign had started before the plan was made (resumed)")
         strays = [r.task for r in view.ready if r.task not in self.left]
         if strays:
             return self._left_plan(view, f"step {strays[0]} is ready and the plan does not hold it (still)")
@@ -122,6 +128,10 @@ class PlanFollower:
                 task = queue.popleft()
                 self.left.discard(task)
                 out.append(Assignment(task, device.name))
+        if not out and ready and not any(d.busy_until is not None for d in view.devices):
+            # a plan kept to always has a step to start when nothing runs: the earliest one not started
+            return self._left_plan(view, "nothing runs and no device's next step is ready (an experiment it "
+                                         "counted on ended early?)")
         return out
 
     def _left_plan(self, view: LabView, why: str) -> None:

@@ -36,7 +36,7 @@ def makespan(s, tmp_path: Path, **kw) -> float:
     return run(s, journal=tmp_path / f"j{len(list(tmp_path.iterdir()))}.db", **kw).lab_hours * 3600
 
 
-def test_the_lab_keeps_the_best_of_its_rollouts_on_either_runtime(shop, tmp_path, capsys):
+def test_the_lab_keeps_the_best_of_its_rollouts_on_either_runtime(shop, tmp_path, capsys, caplog):
     greedy = makespan(with_rollouts(shop, 1), tmp_path)
     planned = with_rollouts(shop, 16)
     scheduler = RlScheduler(planned, POLICY[3:])
@@ -46,6 +46,7 @@ def test_the_lab_keeps_the_best_of_its_rollouts_on_either_runtime(shop, tmp_path
     fast = makespan(planned, tmp_path)
     assert fast <= plan.best_h * 3600 + 1e-6  # each step starts no later than in the run planned
     assert makespan(planned, tmp_path, runtime="asyncio") == pytest.approx(fast)
+    assert "left the plan" not in caplog.text
     assert "best of 16 rollouts" in capsys.readouterr().err  # said once: the plan is kept for the same lab
 
 
@@ -64,17 +65,19 @@ def test_a_stray_step_or_a_device_down_ends_the_plan():
 
     plan = Plan({"m0": ["e0s0", "e1s0"], "m1": ["e1s1"]}, 4, 1.0, 1.0, 1.0, 1.0, 0.0)
 
-    def view(ready, m1_online=True):
+    def view(ready, m1_online=True, m1_busy=True, attempts=0):
         steps = tuple(ReadyStep(t, int(t[1]), "op", "m0", 0.0, None, 1.0, 1.0) for t in ready)
-        devices = (DeviceState("m0", "m0", True, True, None, 0, 0, 0.0),
-                   DeviceState("m1", "m1", True, m1_online, None, 0, 0, 0.0))
-        return LabView(0.0, steps, (FreeDevice("m0", "m0"), FreeDevice("m1", "m1")), devices)
+        devices = (DeviceState("m0", "m0", True, True, None, attempts, 0, 0.0),
+                   DeviceState("m1", "m1", not m1_busy, m1_online, 5.0 if m1_busy else None, 0, 0, 0.0))
+        return LabView(0.0, steps, (FreeDevice("m0", "m0"),), devices)
 
     follower = PlanFollower(plan)
-    assert follower.decide(view(["e1s0"])) == []  # m0 waits for e0s0, first in its order
+    assert follower.decide(view(["e1s0"])) == []  # m0 waits for e0s0, first in its order (m1 runs something)
     assert follower.decide(view(["e0s0", "e1s0"])) == [Assignment("e0s0", "m0")]
     assert follower.decide(view(["e0s0"])) is None  # e0s0 again (a retry): not in the plan any more
     assert PlanFollower(plan).decide(view(["e0s0"], m1_online=False)) is None  # m1 has e1s1 still to run
+    assert PlanFollower(plan).decide(view(["e1s0"], m1_busy=False)) is None  # nothing runs: e0s0 will never come
+    assert PlanFollower(plan).decide(view(["e0s0"], attempts=3)) is None  # resumed: the plan's start is past
 
 
 @pytest.mark.parametrize("field, value, why", [
