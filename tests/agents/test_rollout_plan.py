@@ -113,3 +113,12 @@ def test_the_same_lab_and_seed_give_the_same_plan_in_batches_past_one(shop):
     assert first.rollouts == BATCH + 3 and first.best <= first.greedy
     other_seed = plan(prepare(s, seed=1), policy.model.policy.action_net, BATCH + 3, encoding)
     assert other_seed.greedy == first.greedy  # the greedy run does not draw
+
+
+def test_a_bench_runs_its_rules_as_they_go_beside_a_policy_that_plays_ahead(shop):
+    from twin.tools.scheduler_bench import one
+
+    s = with_rollouts(shop, 8)
+    rule, played, greedy = one(s, "mwkr", 0), one(s, POLICY, 0), one(with_rollouts(shop, 1), POLICY, 0)
+    assert rule.makespan_s == one(with_rollouts(shop, 1), "mwkr", 0).makespan_s  # not refused, and unchanged
+    assert played.makespan_s < greedy.makespan_s

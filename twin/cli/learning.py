@@ -164,7 +164,7 @@ def bench_schedulers(
     with bench_pool(workers) as pool:  # one set of workers for every shop
         for file in files:
             try:
-                s = checked(load_variant(scenario, file, budget, assignments(set_ or [])), scenario)
+                s = checked(load_variant(scenario, file, budget, assignments(set_ or [])), scenario, benched=True)
                 for name in names:
                     lab.make_scheduler(s, name)
             except TwinError as exc:
@@ -202,7 +202,7 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     from twin.tools.shape_bench import measure, shapes, variants, verdict
 
     try:
-        s = checked(load_variant(scenario, None, budget, changes), scenario)
+        s = checked(load_variant(scenario, None, budget, changes), scenario, benched=True)
         measure(s, by)  # said before the progress bar
         for name in names:
             lab.make_scheduler(s, name)

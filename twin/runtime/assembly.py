@@ -166,8 +166,11 @@ REMOTE = "remote"  # campaign.scheduler: an agent served elsewhere (`twin schedu
 
 
 def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
-    """The scheduler named by ``spec`` (default: the scenario's); ``REMOTE`` for an agent elsewhere."""
-    spec = spec or s.campaign.scheduler
+    """The scheduler named by ``spec`` (default: the scenario's, which must play the lab ahead if
+    ``campaign.rollouts`` asks it to; a bench's or a fallback's need not); ``REMOTE`` for an agent elsewhere."""
+    own, spec = spec is None, spec or s.campaign.scheduler
+    if own and s.campaign.rollouts > 1:
+        _plays_ahead(s, spec)
     if spec == REMOTE:
         return REMOTE
     name, options = plugins.with_policy("schedulers", spec)
@@ -178,6 +181,21 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
         raise
     except Exception as exc:
         raise PluginError(f"scheduler {spec!r} failed to start: {exc}") from exc
+
+
+def plays_ahead(spec: str) -> bool:
+    """Whether the scheduler ``spec`` names can play a lab ahead (``campaign.rollouts``), known from its class."""
+    return spec != REMOTE and bool(getattr(plugins.load("schedulers", plugins.with_policy("schedulers", spec)[0]),
+                                           "plays_ahead", False))
+
+
+def _plays_ahead(s: Scenario, spec: str) -> None:
+    """``campaign.rollouts`` above 1 asks the lab's own scheduler to play the lab ahead: refused unless it can."""
+    if not plays_ahead(spec):
+        remote = " (an agent elsewhere plays ahead with its own scenario file)" if spec == REMOTE else ""
+        raise PluginError(f"campaign.rollouts: {s.campaign.rollouts}: only the rl scheduler plays a lab ahead, and "
+                          f"{spec!r} decides as the lab goes{remote}; set campaign.rollouts: 1, or --scheduler "
+                          "rl:POLICY.zip")
 
 
 def live_scheduler(s: Scenario, chosen: Any, bus: Bus, clock: LabClock,

@@ -9,19 +9,20 @@ from typing import Any
 from twin.core.errors import ScenarioError, TwinError
 from twin.campaign.human import DRIVER as HUMAN
 from twin.device.driver import feature
-from twin.runtime.assembly import REMOTE, load_driver, make_planner, make_scheduler
+from twin.runtime.assembly import load_driver, make_planner, make_scheduler
 from twin.scenario import Scenario, load
 from twin.scenario.sharing import campaign_scenarios
 
 
-def check(s: Scenario, external: Collection[str] = ()) -> None:
+def check(s: Scenario, external: Collection[str] = (), benched: bool = False) -> None:
     """What only the installed plugins can tell about ``s`` (``twin validate`` and ``twin run`` both ask):
     its drivers, planner, scheduler and fallback load; its targets ask for outputs the workflow produces;
     its Zenoh settings make a config. A lab of several campaigns: each campaign's, on the device types its
     workflow uses. ``external``: instances served by other processes, whose drivers need not be installed here
-    (a device type all of whose instances are external is not loaded)."""
+    (a device type all of whose instances are external is not loaded). ``benched``: a bench names the schedulers
+    to run, so the scenario's own need not be the one ``campaign.rollouts`` asks to play the lab ahead."""
     if not s.campaigns:
-        _check(s, external=external)
+        _check(s, external=external, benched=benched)
         return
     for i, (name, cs) in enumerate(campaign_scenarios(s, s.name).items()):
         try:
@@ -35,18 +36,14 @@ def check_campaign(s: Scenario, external: Collection[str] = ()) -> None:
     _check(s, {w.device for w in s.workflow}, external)
 
 
-def _check(s: Scenario, types: set[str] | None = None, external: Collection[str] = ()) -> None:
+def _check(s: Scenario, types: set[str] | None = None, external: Collection[str] = (),
+           benched: bool = False) -> None:
     elsewhere = {dtype for dtype in s.devices if set(s.instance_names(dtype)) <= set(external)}
     drivers = {dtype: _at(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0])
                for dtype in s.devices if s.devices[dtype].driver != HUMAN and (types is None or dtype in types)
                and dtype not in elsewhere}
     _at("campaign.planner", make_planner, s)
-    scheduler = _at("campaign.scheduler", make_scheduler, s)
-    if s.campaign.rollouts > 1 and not getattr(scheduler, "plays_ahead", False):
-        remote = " (an agent elsewhere plays ahead with its own scenario file)" if scheduler == REMOTE else ""
-        raise ScenarioError("", [f"campaign.rollouts: {s.campaign.rollouts}: only the rl scheduler plays a lab ahead, "
-                                 f"and {s.campaign.scheduler!r} decides as the lab goes{remote}; set "
-                                 "campaign.rollouts: 1, or --scheduler rl:POLICY.zip"])
+    _at("campaign.scheduler", make_scheduler, s, s.campaign.scheduler if benched else None)
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
     used = {w.device for w in s.workflow} or set(s.devices)
     # a type served elsewhere produces what its driver there says: unknown here, so targets are not checked
@@ -80,12 +77,12 @@ def validate_file(path: str | Path) -> Scenario:
     return checked(load(path), path)
 
 
-def checked(s: Scenario, path: str | Path, external: Collection[str] = ()) -> Scenario:
+def checked(s: Scenario, path: str | Path, external: Collection[str] = (), benched: bool = False) -> Scenario:
     """``s`` (read from ``path``) checked against the installed plugins; its errors name the file. What `twin run`
     checks before its progress bar, and a bench, a what-if or a training before its workers start, so that a
     driver that cannot run the lab is one error naming the file and field, not a traceback from a worker."""
     try:
-        check(s, external)
+        check(s, external, benched)
     except ScenarioError as exc:
         raise ScenarioError(str(path), exc.problems) from None
     except TwinError as exc:

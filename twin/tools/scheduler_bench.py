@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from twin.core import plugins
+from twin.runtime.assembly import plays_ahead
 from twin.runtime.lab import prepare, run
 from twin.tools.planner_bench import label, over_seeds
 from twin.scenario import Scenario
@@ -39,8 +40,9 @@ class Run:
 
 def one(scenario: Scenario, scheduler: str, seed: int) -> Run:
     with tempfile.TemporaryDirectory() as d:
+        rollouts = {} if plays_ahead(scheduler) else {"campaign.rollouts": 1}  # a rule runs as it goes
         s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual",
-                overrides={"campaign.scheduler": scheduler}, agent_in_process=True)
+                overrides={"campaign.scheduler": scheduler, **rollouts}, agent_in_process=True)
     util = statistics.mean(s.utilisation.values()) if s.utilisation else 0.0
     return Run(scheduler, seed, s.lab_hours * 3600, util, s.degraded_samples, s.abandoned, s.scheduler_fallbacks,
                s.decision_ms.get("p50", 0.0), s.decision_ms.get("p99", 0.0))
