@@ -57,8 +57,6 @@ def _check_fit(path: Path, meta: dict, scenario: Any) -> str:
 class RlScheduler:
     serve_on_bus = True
     plays_ahead = True  # campaign.rollouts: it plays a deterministic lab ahead in the twin and follows its best run
-    greedy = True  # False: sample from the policy (several rollouts of a deterministic lab, keeping the best)
-    temperature = 1.0  # when sampling a candidate policy: its scores are divided by this (½ keeps closer to greedy)
 
     def __init__(self, scenario: Any = None, policy: str | None = None, **_: Any) -> None:
         if not policy or scenario is None:
@@ -100,9 +98,11 @@ class RlScheduler:
         a scheduler to check it before the lab makes its own)."""
         from agents.rollout_plan import plan, why_unplannable
 
-        why = why_unplannable(scenario)
         if not isinstance(self.encoder, candidates.CandidateEncoder):
-            why = f"{path} reads labs as fixed slots; only a candidate policy samples its runs"
+            raise PluginError(f"campaign.rollouts: {scenario.campaign.rollouts}: {path} reads labs as fixed slots (the "
+                              "earlier kind of policy), and only a policy that scores candidates plays a lab ahead: "
+                              "train one with `twin train SCENARIO`, or set campaign.rollouts: 1")
+        why = why_unplannable(scenario)
         if why:
             raise PluginError(f"campaign.rollouts: {scenario.campaign.rollouts} plays the lab ahead in the twin, and "
                               f"{scenario.name!r} would not run as played: {why}. Set campaign.rollouts: 1 to decide "
@@ -129,14 +129,11 @@ class RlScheduler:
                 return planned
             self.follower = None
         obs, mask = self.encoder.encode(view)
-        if isinstance(self.encoder, candidates.CandidateEncoder) and (self.greedy or self.temperature != 1.0):
+        if isinstance(self.encoder, candidates.CandidateEncoder):
             with torch.no_grad():
                 logits = self.model.policy.action_net(torch.as_tensor(obs).unsqueeze(0))[0]
-            if self.greedy:
-                return self.encoder.decode(view, greedy(logits, mask))
-            logits = logits.masked_fill(~torch.as_tensor(mask), -torch.inf) / self.temperature
-            return self.encoder.decode(view, int(torch.distributions.Categorical(logits=logits).sample()))
-        action, _ = self.model.predict(obs, action_masks=mask, deterministic=self.greedy)
+            return self.encoder.decode(view, greedy(logits, mask))
+        action, _ = self.model.predict(obs, action_masks=mask, deterministic=True)
         return self.encoder.decode(view, int(action))
 
 

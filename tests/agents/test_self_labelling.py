@@ -106,17 +106,3 @@ def test_init_is_refused_where_it_cannot_work(args, says, tmp_path):
     res = subprocess.run([sys.executable, "-m", "twin", "train", "scenarios/jobshop.yaml", "--out",
                           str(tmp_path / "p.zip"), *args], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert res.returncode != 0 and says in " ".join(res.stderr.split()), res.stderr
-
-
-def test_a_sampling_scheduler_divides_its_scores_by_the_temperature(ft06):
-    lab = prepare(jobshop_as_lab(ft06, random_jobshop(8, 5, 1, 50, random.Random(3))), seed=0)
-    greedy = campaign(lab, 0, RlScheduler(lab, str(SHIPPED)).decide).lab_hours
-
-    def sampled(temperature, seed):
-        sampler = RlScheduler(lab, str(SHIPPED))
-        sampler.greedy, sampler.temperature = False, temperature
-        torch.manual_seed(seed)
-        return campaign(lab, 0, sampler.decide).lab_hours
-
-    assert all(sampled(0.01, seed) == pytest.approx(greedy) for seed in range(3))  # nearly greedy
-    assert len({round(sampled(2.0, seed), 6) for seed in range(4)}) > 1
