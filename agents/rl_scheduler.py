@@ -96,7 +96,7 @@ class RlScheduler:
     def _plan(self, path: Path, scenario: Any, encoding: str | None) -> Plan:
         """``campaign.rollouts`` runs of the lab in the twin, the best kept (once per policy and lab: the CLI makes
         a scheduler to check it before the lab makes its own)."""
-        from agents.rollout_plan import plan, why_unplannable
+        from agents.rollout_plan import lab_time, plan, why_unplannable
 
         if not isinstance(self.encoder, candidates.CandidateEncoder):
             raise PluginError(f"campaign.rollouts: {scenario.campaign.rollouts}: {path} reads labs as fixed slots (the "
@@ -111,7 +111,12 @@ class RlScheduler:
         if key not in _plans:  # told on stderr: planning a large shop many times takes a while
             what = scenario.jobshop.file if scenario.jobshop is not None else scenario.name
             print(f"rl: playing {what} {scenario.campaign.rollouts} times in the twin ...", file=sys.stderr, flush=True)
-            _plans[key] = plan(scenario, self.model.policy.action_net, scenario.campaign.rollouts, str(encoding))
+            rollouts = scenario.campaign.rollouts
+
+            def played(n: int, best_h: float) -> None:
+                print(f"rl: {n} of {rollouts} played, the shortest so far {lab_time(best_h)}", file=sys.stderr, flush=True)
+
+            _plans[key] = plan(scenario, self.model.policy.action_net, rollouts, str(encoding), played)
             print(f"rl: {_plans[key].describe()}; the lab follows it", file=sys.stderr, flush=True)
         return _plans[key]
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -64,14 +65,19 @@ class Plan:
 
     def describe(self) -> str:
         gain = 100 * (1 - self.best / self.greedy) if self.greedy else 0.0
-        best, greedy = ((f"{self.best_h * 3600:,.0f} lab-s", f"{self.greedy_h * 3600:,.0f}") if self.greedy_h < 1
-                        else (f"{self.best_h:.2f} lab-h", f"{self.greedy_h:.2f}"))
-        return (f"the best of {self.rollouts} rollouts in the twin takes {best} against the greedy run's {greedy} "
-                f"(objective {gain:.1f} % lower; {self.seconds:.1f} s of planning)")
+        return (f"the best of {self.rollouts} rollouts in the twin takes {lab_time(self.best_h)} against the greedy "
+                f"run's {lab_time(self.greedy_h)} (objective {gain:.1f} % lower; {self.seconds:.1f} s of planning)")
 
 
-def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str) -> Plan:
-    """Play ``s`` ``rollouts`` times with the policy whose candidate scores ``scorer`` gives; the best run's plan."""
+def lab_time(hours: float) -> str:
+    """Lab seconds for a lab of minutes (a job shop), else lab-hours."""
+    return f"{hours * 3600:,.0f} lab-s" if hours < 1 else f"{hours:.2f} lab-h"
+
+
+def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
+         on_batch: Callable[[int, float], None] | None = None) -> Plan:
+    """Play ``s`` ``rollouts`` times with the policy whose candidate scores ``scorer`` gives; the best run's plan.
+    ``on_batch(played, best lab-hours so far)`` after each batch but the last."""
     t0 = time.perf_counter()
     lab = prepare(s, clock="virtual", bus="memory")
     draws = torch.Generator().manual_seed(s.campaign.seed)  # the same lab and seed, the same plan
@@ -82,6 +88,8 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str) -> 
         summaries += lockstep(lab, scorer, len(batch), encoding=encoding, seen=partial(_keep, batch),
                               greedy_first=first == 0, generator=draws)
         orders += batch
+        if on_batch is not None and len(summaries) < rollouts:
+            on_batch(len(summaries), min(summary.lab_hours for summary in summaries))
     scores = [objective(summary, lab) for summary in summaries]
     best = min(range(rollouts), key=scores.__getitem__)
     return Plan(orders[best], rollouts, scores[best], scores[0], summaries[best].lab_hours, summaries[0].lab_hours,

@@ -115,6 +115,15 @@ def test_the_same_lab_and_seed_give_the_same_plan_in_batches_past_one(shop):
     assert other_seed.greedy == first.greedy  # the greedy run does not draw
 
 
+def test_a_long_planning_says_how_far_it_has_got(shop, capsys):
+    from agents.rollout_plan import BATCH
+
+    RlScheduler(with_rollouts(shop, BATCH + 5, **{"campaign.seed": 5}), POLICY[3:])
+    err = capsys.readouterr().err.splitlines()
+    assert [line.split(",")[0] for line in err if " played" in line] == [f"rl: {BATCH} of {BATCH + 5} played"]
+    assert err[-1].startswith(f"rl: the best of {BATCH + 5} rollouts") and err[-1].endswith("the lab follows it")
+
+
 def test_a_bench_runs_its_rules_as_they_go_beside_a_policy_that_plays_ahead(shop):
     from twin.tools.scheduler_bench import one
 
