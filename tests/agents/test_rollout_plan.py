@@ -131,3 +131,43 @@ def test_a_bench_runs_its_rules_as_they_go_beside_a_policy_that_plays_ahead(shop
     rule, played, greedy = one(s, "mwkr", 0), one(s, POLICY, 0), one(with_rollouts(shop, 1), POLICY, 0)
     assert rule.makespan_s == one(with_rollouts(shop, 1), "mwkr", 0).makespan_s  # not refused, and unchanged
     assert played.makespan_s < greedy.makespan_s
+
+
+@pytest.mark.process
+def test_an_agent_on_the_bus_plays_the_lab_ahead_from_the_file_the_lab_runs(tmp_path):
+    """`campaign.scheduler: remote` with campaign.rollouts: the lab's file is the agent's too (`twin scheduler
+    serve`), so the lab does not refuse it; the agent plans from it and the lab, over Zenoh, keeps the plan."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    from tests.twin.test_device_process import free_port
+    from twin.runtime.lab import make_clock, run_async
+
+    port, speed = free_port(), 100.0
+    path = tmp_path / "la02.yaml"
+    path.write_text(yaml.safe_dump({
+        "name": "la02", "lab": "shop", "jobshop": {"file": str(ROOT / "scenarios" / "jobshop" / "la02.txt")},
+        "campaign": {"scheduler": "remote", "rollouts": 16, "fallback_scheduler": "fifo"},
+        "orchestrator": {"startup_s": 4000},  # the agent joins the bus once the lab listens
+        "clock": {"mode": "scaled", "speed": speed}, "bus": {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]}}))
+    agent = subprocess.Popen([sys.executable, "-m", "twin", "scheduler", "serve", str(path), "--scheduler", POLICY,
+                              "--connect", f"tcp/127.0.0.1:{port}", "--clock", "scaled", "--speed", str(speed)],
+                             stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        said = []
+        for line in agent.stderr:  # planned before it serves: the lab starts once it has said so
+            said.append(line)
+            if "the lab follows it" in line:
+                break
+        assert said and "the lab follows it" in said[-1], "".join(said)
+        planned_s = float(said[-1].split(" takes ")[1].split(" lab-s")[0].replace(",", ""))
+        s = prepare(path)
+        clock = make_clock(s)
+        summary = clock.run(run_async(s, clock, tmp_path / "j.db"))
+    finally:
+        agent.kill()
+        agent.communicate()
+    assert summary.done == 10 and summary.scheduler_fallbacks == 0
+    assert summary.lab_hours * 3600 <= planned_s * 1.03  # each step no later than played, but for the clock's jitter

@@ -190,12 +190,11 @@ def plays_ahead(spec: str) -> bool:
 
 
 def _plays_ahead(s: Scenario, spec: str) -> None:
-    """``campaign.rollouts`` above 1 asks the lab's own scheduler to play the lab ahead: refused unless it can."""
-    if not plays_ahead(spec):
-        remote = " (an agent elsewhere plays ahead with its own scenario file)" if spec == REMOTE else ""
+    """``campaign.rollouts`` above 1 asks the lab's own scheduler to play the lab ahead: refused unless it can (an
+    agent elsewhere, ``remote``, reads the same file with ``twin scheduler serve`` and plays ahead there)."""
+    if spec != REMOTE and not plays_ahead(spec):
         raise PluginError(f"campaign.rollouts: {s.campaign.rollouts}: only the rl scheduler plays a lab ahead, and "
-                          f"{spec!r} decides as the lab goes{remote}; set campaign.rollouts: 1, or --scheduler "
-                          "rl:POLICY.zip")
+                          f"{spec!r} decides as the lab goes; set campaign.rollouts: 1, or --scheduler rl:POLICY.zip")
 
 
 def live_scheduler(s: Scenario, chosen: Any, bus: Bus, clock: LabClock,
