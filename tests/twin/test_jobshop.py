@@ -104,3 +104,19 @@ def test_a_malformed_layout_is_refused_naming_the_line(tmp_path, text, says):
     with pytest.raises(ScenarioError, match="shop.txt") as caught:
         read(bad)
     assert says in str(caught.value)
+
+
+@pytest.mark.parametrize("given, named", [
+    ({"jobshop.file": "jobshop/la02.txt"}, "jobshop_la02"),
+    ({"jobshop.file": "jobshop/la02.txt", "name": "mine"}, "mine"),  # the command line's own name wins
+    ({}, "jobshop_ft06"),  # the file's own name
+])
+def test_a_shop_given_on_the_command_line_names_the_run(given, named, tmp_path):
+    from twin.runtime.lab import prepare
+
+    s = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides=given)
+    assert s.name == named
+    if given.get("jobshop.file"):
+        assert len(s.campaign.planner_options["proposals"]) == 10  # la02's ten jobs, not ft06's six
+        summary = run(s, journal=tmp_path / "j.db")
+        assert summary.scenario == named

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import difflib
+import re
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,7 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bo
     raw = read_yaml(path)
     if not isinstance(raw, dict):
         raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"])
-    scenario = parse_overridden(raw, overrides or {}, str(path), lab_only)
+    scenario = parse_overridden(raw, _named_after_its_shop(raw, overrides or {}), str(path), lab_only)
     if scenario.bus.security and not Path(scenario.bus.security).is_absolute():
         bus = scenario.bus.model_copy(update={"security": str((path.parent / scenario.bus.security).resolve())})
         scenario = scenario.model_copy(update={"bus": bus})
@@ -29,6 +30,17 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bo
 
         scenario = expand(scenario, path.parent)
     return scenario
+
+
+def _named_after_its_shop(raw: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """A job-shop file given on the command line (``--set jobshop.file=jobshop/la02.txt``) names the run after it
+    (``jobshop_la02``: its summary and journal), unless the command line names it too."""
+    file = overrides.get("jobshop.file")
+    if not isinstance(file, str) or "name" in overrides:
+        return overrides
+    lab = raw.get("lab") if isinstance(raw.get("lab"), str) else "jobshop"
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", f"{lab}_{Path(file).stem}")
+    return {**overrides, "name": ("_" + name if name[0] in ".-" else name)[:63]}
 
 
 def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str, lab_only: bool = False) -> Scenario:
