@@ -17,7 +17,7 @@ import torch
 from agents import candidates, scheduling_features
 from twin import Assignment, LabView
 from twin import PluginError
-from twin import load_policy, read_meta
+from twin import load_policy, read_meta, why_runs_vary
 
 if TYPE_CHECKING:
     from agents.rollout_plan import Plan, PlanFollower
@@ -96,13 +96,13 @@ class RlScheduler:
     def _plan(self, path: Path, scenario: Any, encoding: str | None) -> Plan:
         """``campaign.rollouts`` runs of the lab in the twin, the best kept (once per policy and lab: the CLI makes
         a scheduler to check it before the lab makes its own)."""
-        from agents.rollout_plan import lab_time, plan, why_unplannable
+        from agents.rollout_plan import lab_time, plan
 
         if not isinstance(self.encoder, candidates.CandidateEncoder):
             raise PluginError(f"campaign.rollouts: {scenario.campaign.rollouts}: {path} reads labs as fixed slots (the "
                               "earlier kind of policy), and only a policy that scores candidates plays a lab ahead: "
                               "train one with `twin train SCENARIO`, or set campaign.rollouts: 1")
-        why = why_unplannable(scenario)
+        why = why_runs_vary(scenario)
         if why:
             raise PluginError(f"campaign.rollouts: {scenario.campaign.rollouts} plays the lab ahead in the twin, and "
                               f"{scenario.name!r} would not run as played: {why}. Set campaign.rollouts: 1 to decide "

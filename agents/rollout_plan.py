@@ -12,7 +12,7 @@ decides from then on, greedily.
 
 Only a lab that runs as it was played can be planned: every experiment known before it starts (a job shop),
 durations without spread, no faults. The best of several runs of a lab with chance in it is its luckiest, not
-its best decided: such a lab is refused, with the field to change.
+its best decided: such a lab (``twin.why_runs_vary``) is refused, with the field to change.
 """
 
 from __future__ import annotations
@@ -33,22 +33,6 @@ from twin import Assignment, LabView, Scenario, prepare
 
 log = logging.getLogger(__name__)
 BATCH = 64  # runs played at once: each holds a whole lab in memory
-
-
-def why_unplannable(s: Scenario) -> str:
-    """Why ``s`` would not run as the twin plays it ('' if it would)."""
-    if s.campaigns:
-        return "it is a lab of several campaigns"
-    if s.campaign.planner != "fixed":
-        return (f"its experiments are proposed as it runs (campaign.planner: {s.campaign.planner}); only a lab whose "
-                "experiments are all known before it starts (a job shop) can be played ahead")
-    for name, d in s.devices.items():
-        if d.duration.cv > 0:
-            return f"devices.{name}.duration.cv is {d.duration.cv:g}: its steps' durations vary from run to run"
-        for fault in ("fail_p", "hang_p", "mtbc_h"):
-            if getattr(d.faults, fault) > 0:
-                return f"devices.{name}.faults.{fault} is {getattr(d.faults, fault):g}: its faults come by chance"
-    return ""
 
 
 @dataclass

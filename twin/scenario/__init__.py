@@ -2,12 +2,13 @@
 
 from twin.scenario.loading import json_schema, load, parse, parse_overridden, set_dotted
 from twin.scenario.model import (BusSpec, Campaign, Chemistry, ClockSpec, Condition, DeviceType, Duration, Faults,
-                                 JobShop, Parameter, Scenario, Target, WorkflowStep, expected_duration)
+                                 JobShop, Parameter, Scenario, Target, WorkflowStep, expected_duration,
+                                 why_runs_vary)
 from twin.scenario.operations import Orchestration, Retry
 from twin.scenario.training import Training
 
 __all__ = [
     "BusSpec", "Campaign", "Chemistry", "ClockSpec", "Condition", "DeviceType", "Duration", "Faults", "JobShop",
     "Orchestration", "Parameter", "Retry", "Scenario", "Target", "Training", "WorkflowStep", "expected_duration",
-    "json_schema", "load", "parse", "parse_overridden", "set_dotted",
+    "json_schema", "load", "parse", "parse_overridden", "set_dotted", "why_runs_vary",
 ]

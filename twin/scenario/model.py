@@ -377,3 +377,21 @@ def expected_duration(duration: Duration, params: dict[str, Any], setup_s: float
     """A step's mean duration, which the campaign turns into a deadline."""
     extra = float(params.get(duration.plus_param, 0.0)) if duration.plus_param else 0.0
     return duration.mean_s + extra + setup_s + clean_s
+
+
+def why_runs_vary(s: Scenario) -> str:
+    """Why two runs of ``s`` on one seed, scheduled alike, could still differ from each other — chance in its
+    durations or faults, experiments proposed from results — or '' for a lab that runs as it was played (a job
+    shop): what an offline bound, one run standing for every seed, and a plan played ahead need."""
+    if s.campaigns:
+        return "it is a lab of several campaigns"
+    if s.campaign.planner != "fixed":
+        return (f"its experiments are proposed as it runs (campaign.planner: {s.campaign.planner}); only a lab whose "
+                "experiments are all known before it starts (a job shop) runs as it was played")
+    for name, d in s.devices.items():
+        if d.duration.cv > 0:
+            return f"devices.{name}.duration.cv is {d.duration.cv:g}: its steps' durations vary from run to run"
+        for fault in ("fail_p", "hang_p", "mtbc_h"):
+            if getattr(d.faults, fault) > 0:
+                return f"devices.{name}.faults.{fault} is {getattr(d.faults, fault):g}: its faults come by chance"
+    return ""

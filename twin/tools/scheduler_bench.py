@@ -20,7 +20,7 @@ from twin.core import plugins
 from twin.runtime.assembly import plays_ahead
 from twin.runtime.lab import prepare, run
 from twin.tools.planner_bench import label, over_seeds
-from twin.scenario import Scenario
+from twin.scenario import Scenario, why_runs_vary
 
 RULES = ("fifo", "spt", "mwkr", "least-loaded", "oldest-sample")
 
@@ -53,8 +53,7 @@ def _one(args: tuple) -> Run:
 
 
 def deterministic(s: Scenario) -> bool:
-    return s.jobshop is not None and all(
-        d.duration.cv == 0 and d.faults.fail_p == d.faults.hang_p == d.faults.mtbc_h == 0 for d in s.devices.values())
+    return s.jobshop is not None and not why_runs_vary(s)
 
 
 def bound(s: Scenario) -> float | None:
