@@ -17,7 +17,7 @@ import secrets
 from typing import Any
 
 from twin.campaign import (consumables, device_events, dispatch, human, operator, outcomes, policy, provenance,
-                           questions, timers)
+                           questions, stranded, timers)
 from twin.campaign.consumables import Stocks
 from twin.campaign.availability import Availability
 from twin.campaign.events import (Action, Ask, CancelTimer, Decided, DeviceMessage, Event, Finished, InvalidInput,
@@ -243,7 +243,7 @@ class CampaignCore:
                     self._ask(Ask("plan", n, tuple(self.history), tuple(e.params for e in self.active.values())))
                     return
                 self._filled = True
-            self._check_stranded()
+            stranded.review(self)
             dry = self.dry
             if not (self.stopping or self.paused_by) and dispatch.pair_possible(self.ready.values(), self.devices,
                                                                                dry):
@@ -258,36 +258,6 @@ class CampaignCore:
                 self._on_stop(stalled)
         if self.stopping or (not self.active and not self._can_propose()):
             self._shutdown()
-
-    def _check_stranded(self) -> None:
-        """Say at once when the work waiting for a device type has no usable instance left, and give it
-        ``campaign.give_up_after_s`` before abandoning it; an instance that comes back resumes it."""
-        waiting: dict[str, list[int]] = {}
-        for t in [*self.ready.values(), *self._retrying.values()]:
-            waiting.setdefault(t.step.device, []).append(t.experiment.id)
-        usable = {d.type for d in self.devices.values() if d.online and not d.quarantined}
-        after = self.s.campaign.give_up_after_s
-        for what, dtype in self._availability.review(waiting, usable, bool(self.stopping)):
-            if what == "unavailable":
-                self._note("devices.unavailable", device=dtype,
-                           detail={"type": dtype, "experiments": sorted(waiting[dtype]), "give_up_after_s": after})
-                self._timer(TimerKey(TimerKind.GIVE_UP, dtype), after)
-                continue
-            self._out.append(CancelTimer(TimerKey(TimerKind.GIVE_UP, dtype)))
-            if what == "available":
-                self._note("devices.available", device=dtype, detail={"type": dtype})
-
-    def _give_up(self, dtype: str) -> None:
-        if not self._availability.give_up(dtype):
-            return
-        after = self.s.campaign.give_up_after_s
-        for t in [t for t in [*self.ready.values(), *self._retrying.values()] if t.step.device == dtype]:
-            self.ready.pop(t.id, None)
-            self._retrying.pop(t.id, None)
-            self._out.append(CancelTimer(TimerKey(TimerKind.RETRY, t.id)))
-            outcomes.finish(self, t.experiment, Status.ABANDONED, f"no usable {dtype} (lost or quarantined) for "
-                                                        f"{after:.0f} lab-s (campaign.give_up_after_s)")
-        self._wake = True
 
     def _ask(self, ask: Ask) -> None:
         self._asking = ask

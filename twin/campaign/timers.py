@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from twin.campaign import consumables, human, outcomes, policy, questions
+from twin.campaign import consumables, human, outcomes, policy, questions, stranded
 from twin.campaign.events import Code, TimerKey, TimerKind
 
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
@@ -40,7 +40,7 @@ def fired(core: CampaignCore, key: TimerKey) -> None:
                        detail={"grace_s": core.s.orchestrator.cancel_grace_s})
             core._wake = True
     elif kind == TimerKind.GIVE_UP:
-        core._give_up(key.ref)
+        stranded.give_up(core, key.ref)
     elif kind in (TimerKind.QUESTION, TimerKind.ANSWER):
         questions.on_timer(core, kind, key.ref)
     elif kind == TimerKind.CONFIRM:

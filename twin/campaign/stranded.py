@@ -1,0 +1,46 @@
+"""Work stranded without a usable device: what the core does as ``Availability`` sees a device type's
+instances all lost or quarantined while work waits for it — say so at once, arm ``campaign.give_up_after_s``,
+abandon the work when it fires, say when an instance is back. The core calls in here with itself.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from twin.campaign import outcomes
+from twin.campaign.events import CancelTimer, Status, TimerKey, TimerKind
+
+CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
+
+
+def review(core: CampaignCore) -> None:
+    """Say at once when the work waiting for a device type has no usable instance left, and give it
+    ``campaign.give_up_after_s`` before abandoning it; an instance that comes back resumes it."""
+    waiting: dict[str, list[int]] = {}
+    for t in [*core.ready.values(), *core._retrying.values()]:
+        waiting.setdefault(t.step.device, []).append(t.experiment.id)
+    usable = {d.type for d in core.devices.values() if d.online and not d.quarantined}
+    after = core.s.campaign.give_up_after_s
+    for what, dtype in core._availability.review(waiting, usable, bool(core.stopping)):
+        if what == "unavailable":
+            core._note("devices.unavailable", device=dtype,
+                       detail={"type": dtype, "experiments": sorted(waiting[dtype]), "give_up_after_s": after})
+            core._timer(TimerKey(TimerKind.GIVE_UP, dtype), after)
+            continue
+        core._out.append(CancelTimer(TimerKey(TimerKind.GIVE_UP, dtype)))
+        if what == "available":
+            core._note("devices.available", device=dtype, detail={"type": dtype})
+
+
+def give_up(core: CampaignCore, dtype: str) -> None:
+    """The give-up timer of ``dtype`` fired: its waiting work is abandoned, unless an instance came back."""
+    if not core._availability.give_up(dtype):
+        return
+    after = core.s.campaign.give_up_after_s
+    for t in [t for t in [*core.ready.values(), *core._retrying.values()] if t.step.device == dtype]:
+        core.ready.pop(t.id, None)
+        core._retrying.pop(t.id, None)
+        core._out.append(CancelTimer(TimerKey(TimerKind.RETRY, t.id)))
+        outcomes.finish(core, t.experiment, Status.ABANDONED, f"no usable {dtype} (lost or quarantined) for "
+                                                              f"{after:.0f} lab-s (campaign.give_up_after_s)")
+    core._wake = True
