@@ -109,7 +109,9 @@ class RlScheduler:
                               "as the lab goes")
         key = (str(path.resolve()), path.stat().st_mtime_ns, scenario.model_dump_json())
         if key not in _plans:  # told on stderr: planning a large shop many times takes a while
-            what = scenario.jobshop.file if scenario.jobshop is not None else scenario.name
+            what = scenario.name  # a shop's file would be stale for a shop generated in memory (benches, training)
+            if scenario.jobshop is not None:
+                what += f" ({scenario.campaign.budget} jobs on {len(scenario.devices)} machines)"
             print(f"rl: playing {what} {scenario.campaign.rollouts} times in the twin ...", file=sys.stderr, flush=True)
             rollouts = scenario.campaign.rollouts
 

@@ -120,6 +120,7 @@ def test_a_long_planning_says_how_far_it_has_got(shop, capsys):
 
     RlScheduler(with_rollouts(shop, BATCH + 5, **{"campaign.seed": 5}), POLICY[3:])
     err = capsys.readouterr().err.splitlines()
+    assert err[0] == f"rl: playing jobshop_random-8x5 (8 jobs on 5 machines) {BATCH + 5} times in the twin ..."  # not ft06's file
     assert [line.split(",")[0] for line in err if " played" in line] == [f"rl: {BATCH} of {BATCH + 5} played"]
     assert err[-1].startswith(f"rl: the best of {BATCH + 5} rollouts") and err[-1].endswith("the lab follows it")
 

@@ -16,6 +16,7 @@ One time unit is one lab-second.
 from __future__ import annotations
 
 import random
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -142,7 +143,13 @@ def _jobs(times: list[list[int]], machines: list[list[int]]) -> list[list[tuple[
 
 def expand(scenario: Scenario, base_dir: Path) -> Scenario:
     """The lab and the fixed list of experiments (one per job) of the scenario's instance."""
-    return as_lab(scenario, read(base_dir / scenario.jobshop.file))
+    return as_lab(scenario, read(base_dir / scenario.jobshop.file), rename=False)
+
+
+def run_name(lab: str, shop: str) -> str:
+    """The name of a run of shop ``shop`` in lab ``lab`` (``jobshop_la02``), made a valid scenario name."""
+    name = re.sub(r"[^A-Za-z0-9_.-]", "_", f"{lab}_{shop}")
+    return ("_" + name if name[0] in ".-" else name)[:63]
 
 
 def generate(jobs: int, machines: int, low: int, high: int, rng: random.Random) -> Instance:
@@ -152,8 +159,9 @@ def generate(jobs: int, machines: int, low: int, high: int, rng: random.Random) 
                     [[(m, rng.randint(low, high)) for m in rng.sample(range(machines), machines)] for _ in range(jobs)])
 
 
-def as_lab(scenario: Scenario, inst: Instance) -> Scenario:
-    """``scenario`` with ``inst``'s machines as its devices and its jobs as its experiments."""
+def as_lab(scenario: Scenario, inst: Instance, rename: bool = True) -> Scenario:
+    """``scenario`` with ``inst``'s machines as its devices and its jobs as its experiments, named after ``inst``
+    (``jobshop_random-20x15``; ``rename=False``: the scenario's own name, for the shop its file names)."""
     devices = {
         f"m{m}": {
             "driver": "machine",
@@ -173,6 +181,8 @@ def as_lab(scenario: Scenario, inst: Instance) -> Scenario:
     ]
     data = scenario.model_dump()
     data["devices"] = devices
+    if rename:
+        data["name"] = run_name(scenario.lab, inst.name)
     data["campaign"].update(
         planner="fixed",
         budget=len(proposals),

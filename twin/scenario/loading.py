@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import difflib
-import re
 from pathlib import Path
 from typing import Any
 
@@ -38,9 +37,10 @@ def _named_after_its_shop(raw: dict[str, Any], overrides: dict[str, Any]) -> dic
     file = overrides.get("jobshop.file")
     if not isinstance(file, str) or "name" in overrides:
         return overrides
+    from twin.scenario.jobshop import run_name
+
     lab = raw.get("lab") if isinstance(raw.get("lab"), str) else "jobshop"
-    name = re.sub(r"[^A-Za-z0-9_.-]", "_", f"{lab}_{Path(file).stem}")
-    return {**overrides, "name": ("_" + name if name[0] in ".-" else name)[:63]}
+    return {**overrides, "name": run_name(lab, Path(file).stem)}
 
 
 def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str, lab_only: bool = False) -> Scenario:
