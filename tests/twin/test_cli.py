@@ -28,6 +28,20 @@ def test_run_prints_the_summary_and_report_prints_it_again(tmp_path):
     assert again.stdout.split("journal")[0] == res.stdout.split("journal")[0]
 
 
+def test_a_lab_of_minutes_shows_its_time_in_seconds_and_one_of_hours_in_hours(tmp_path):
+    import re
+
+    res = subprocess.run([*TWIN, "run", "scenarios/jobshop.yaml", "--bus", "memory", "--journal",
+                          str(tmp_path / "shop.db")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.returncode == 0, res.stderr
+    shown = re.search(r"lab time\W+(\d+) s \((0\.\d{3}) h;", res.stdout)  # a job shop of about a minute
+    assert shown and abs(int(shown[1]) / 3600 - float(shown[2])) < 0.001, res.stdout
+    assert re.search(rf"6/6 lab {shown[1]} s", res.stderr)  # the progress bar, in the same seconds
+    res = subprocess.run([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "6", "--bus", "memory",
+                          "--journal", str(tmp_path / "qd.db")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert re.search(r"lab time\W+\d+\.\d\d h \(\d", res.stdout) and re.search(r"lab \d+\.\d h", res.stderr)
+
+
 def test_report_of_a_missing_journal_is_a_clear_error(tmp_path):
     res = subprocess.run([*TWIN, "report", str(tmp_path / "nope.db")], capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 2 and "no such journal" in res.stderr and "Traceback" not in res.stderr

@@ -19,7 +19,7 @@ from twin.runtime import lab
 from twin.runtime.checks import checked, validate_file
 from twin.core.errors import TwinError
 from twin.campaign.journal import no_such_journal, read_run
-from twin.view.report import render_summary
+from twin.view.report import lab_span, render_summary
 from twin.scenario import json_schema
 from twin.campaign.summary import Summary
 from twin.view.watch import RecordOptions, open_observer
@@ -155,15 +155,15 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
             for message in recording.messages:
                 err.print(message, highlight=False)
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                            TextColumn("lab {task.fields[lab_h]:.1f} h"), TimeElapsedColumn(),
+                            TextColumn("lab {task.fields[lab]}"), TimeElapsedColumn(),
                             TextColumn("{task.fields[status]}"),
                             console=err, disable=quiet or json_out, transient=False)
         with progress:
             bar = progress.add_task(f"{s.name} ({s.clock.mode} clock, {s.bus.kind} bus)",
-                                    total=s.campaign.budget, lab_h=0.0, status="")
+                                    total=s.campaign.budget, lab=lab_span(0.0), status="")
 
             def on_progress(core) -> None:
-                progress.update(bar, completed=core.finished_count, lab_h=core.elapsed_s / 3600,
+                progress.update(bar, completed=core.finished_count, lab=lab_span(core.elapsed_s, 1),
                                 status=waiting_for(core.unavailable, core.paused_by))
 
             summary = call(on_progress, observer)

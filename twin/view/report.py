@@ -9,6 +9,11 @@ from rich.table import Table
 from twin.campaign.summary import LabSummary, Summary
 
 
+def lab_span(seconds: float, digits: int = 2) -> str:
+    """A lab's time as a person reads it: seconds for a lab of under an hour (a job shop), else hours."""
+    return f"{seconds:,.0f} s" if seconds < 3600 else f"{seconds / 3600:.{digits}f} h"
+
+
 def render_summary(s: Summary, console: Console) -> None:
     t = Table(title=f"{s.scenario} — seed {s.seed}", show_header=False, title_justify="left")
     t.add_column(style="bold")
@@ -37,7 +42,8 @@ def render_summary(s: Summary, console: Console) -> None:
                                 f"(p50 / p99 wall){fallback}")
     if s.cost:
         t.add_row("cost", f"{s.cost:,.0f}")
-    t.add_row("lab time", f"{s.lab_hours:.2f} h ({s.wall_s:.2f} s wall, {s.events} journal events)")
+    hours = f"{s.lab_hours:.3f} h; " if s.lab_hours < 1 else ""
+    t.add_row("lab time", f"{lab_span(s.lab_hours * 3600)} ({hours}{s.wall_s:.2f} s wall, {s.events} journal events)")
     for dev, u in s.utilisation.items():
         t.add_row(f"  {dev}", f"{100 * u:5.1f} % busy")
     for name, c in s.consumables.items():
