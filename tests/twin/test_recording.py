@@ -82,6 +82,17 @@ def test_fault_log_matches_the_journals_faults(live):
     assert len([r for r in rrd["log"] if r["TextLog:text"][0].startswith("device.lost")]) == len(lost)
 
 
+def test_the_log_names_each_finished_experiment_and_keeps_its_numbers_short(live):
+    import re
+
+    d, _, rrd = live
+    done = [r["TextLog:text"][0] for r in rrd["log"] if r["TextLog:text"][0].startswith("experiment.done")]
+    ids = [int(re.match(r"experiment\.done e(\d+):", line)[1]) for line in done]
+    assert sorted(ids) == sorted(e["id"] for e in read_experiments(d / "j.db") if e["status"] == "done")
+    numbers = [n for r in rrd["log"] for n in re.findall(r"\d+\.\d+", r["TextLog:text"][0])]
+    assert numbers and all(len(n.replace(".", "").lstrip("0")) <= 6 for n in numbers)  # 131.741, not 131.7414949…
+
+
 def test_the_summary_document_is_the_runs_summary(live):
     _, summary, rrd = live
     text = rrd["summary"][0]["TextDocument:text"][0]

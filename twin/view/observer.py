@@ -87,6 +87,16 @@ def _level(what: str) -> str:
         what in DEBUG_KINDS) else "INFO"
 
 
+def _shown(value: Any) -> str:
+    """A value in a log line: floats to six figures (a back-off of 131.741 s, not 131.74149491155254), an object's
+    too."""
+    if type(value) is float:
+        return f"{value:.6g}"
+    if type(value) is dict:
+        return "{" + ", ".join([f"{k}: {_shown(v)}" for k, v in value.items()]) + "}"
+    return str(value)
+
+
 def _experiment_of(task: str | None) -> int | None:
     if task and task.startswith("e") and "s" in task:
         try:
@@ -209,6 +219,8 @@ class LabObserver:
             text = what
             if n.task:
                 text = f"{text} {n.task}"
+            elif n.experiment is not None:  # experiment.done, .abandoned: which one
+                text = f"{text} e{n.experiment}"
             if n.attempt:
                 text = f"{text} #{n.attempt}"
             if n.device:
@@ -225,7 +237,7 @@ class LabObserver:
         if info is None:
             return ""
         if isinstance(info, dict):
-            text = ", ".join([f"{k}={v}" for k, v in info.items()
+            text = ", ".join([f"{k}={_shown(v)}" for k, v in info.items()
                               if v not in (None, "", {}) and (v or k not in ("outputs", "scores"))])
             return f": {text}" if text else ""
         return f": {info}"
