@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from agents.candidates import ENCODING, CandidateEncoder
+from agents.candidates import ENCODING, CandidateEncoder, Observed
 from twin import Assignment, Scenario, stepped
 
 # `python bench/bench_sampling.py P.zip` (best of 16 ÷ greedy, 8 random shops): the CP-SAT-taught policy does best
@@ -29,10 +29,13 @@ Seen = Callable[[int, CandidateEncoder, np.ndarray, np.ndarray, int, list[Assign
 
 def lockstep(lab: Scenario, scorer: torch.nn.Module, k: int, temperatures: tuple[float, ...] = SAMPLE_TEMPERATURES,
              encoding: str = ENCODING, seen: Seen | None = None, greedy_first: bool = True,
-             generator: torch.Generator | None = None) -> list[Any]:
+             generator: torch.Generator | None = None, held: Observed | None = None) -> list[Any]:
     """``k`` campaigns of ``lab`` (its seed for all), run to their ends; the summary of each, the greedy run's
-    first (``greedy_first=False``: every run sampled). ``generator`` draws the samples (None: torch's own)."""
+    first (``greedy_first=False``: every run sampled). ``generator`` draws the samples (None: torch's own);
+    ``held``: the range the policy's inputs are held in, as it decides in a lab (its file's observed range)."""
     runs = [(CandidateEncoder(lab, encoding), stepped(lab)) for _ in range(k)]
+    for encoder, _ in runs:
+        encoder.held = held
     try:
         live = list(range(k))
         while live:

@@ -118,7 +118,8 @@ class RlScheduler:
             def played(n: int, best_h: float) -> None:
                 print(f"rl: {n} of {rollouts} played, the shortest so far {lab_time(best_h)}", file=sys.stderr, flush=True)
 
-            _plans[key] = plan(scenario, self.model.policy.action_net, rollouts, str(encoding), played)
+            _plans[key] = plan(scenario, self.model.policy.action_net, rollouts, str(encoding), played,
+                               self.encoder.held)
             print(f"rl: {_plans[key].describe()}; the lab follows it", file=sys.stderr, flush=True)
         return _plans[key]
 

@@ -27,6 +27,7 @@ from typing import Any
 
 import torch
 
+from agents.candidates import Observed
 from agents.lockstep import lockstep
 from agents.train_scheduler import objective
 from twin import Assignment, LabView, Scenario, prepare
@@ -59,9 +60,10 @@ def lab_time(hours: float) -> str:
 
 
 def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
-         on_batch: Callable[[int, float], None] | None = None) -> Plan:
+         on_batch: Callable[[int, float], None] | None = None, held: Observed | None = None) -> Plan:
     """Play ``s`` ``rollouts`` times with the policy whose candidate scores ``scorer`` gives; the best run's plan.
-    ``on_batch(played, best lab-hours so far)`` after each batch but the last."""
+    ``on_batch(played, best lab-hours so far)`` after each batch but the last. ``held``: the range the policy's
+    inputs are held in (its file's), so that the greedy run played is the one the lab would run."""
     t0 = time.perf_counter()
     lab = prepare(s, clock="virtual", bus="memory")
     draws = torch.Generator().manual_seed(s.campaign.seed)  # the same lab and seed, the same plan
@@ -70,7 +72,7 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
     for first in range(0, rollouts, BATCH):
         batch: list[dict[str, list[str]]] = [{} for _ in range(min(BATCH, rollouts - first))]
         summaries += lockstep(lab, scorer, len(batch), encoding=encoding, seen=partial(_keep, batch),
-                              greedy_first=first == 0, generator=draws)
+                              greedy_first=first == 0, generator=draws, held=held)
         orders += batch
         if on_batch is not None and len(summaries) < rollouts:
             on_batch(len(summaries), min(summary.lab_hours for summary in summaries))
