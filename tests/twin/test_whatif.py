@@ -139,3 +139,12 @@ def test_a_job_shop_of_minutes_shows_its_hours_to_the_second_and_a_played_ahead_
     (greedy, _, _), (played, _, saved) = table["1*"], table["16"]
     assert all(len(h.partition(".")[2]) == 3 for h in (greedy, played, saved)), out  # la02: ~0.2 lab-h
     assert float(played) < float(greedy) and float(saved) < 0
+
+
+def test_a_policy_is_shown_by_its_files_name_and_kept_whole_in_json(tmp_path):
+    policy = f"rl:{ROOT / 'agents' / 'policies' / 'jobshop_scheduler.zip'}"
+    code, out = whatif("scenarios/jobshop.yaml", "--schedulers", policy, "--seeds", "1")
+    assert code == 0, out
+    assert "rl:jobshop_scheduler " in out and "/agents/" not in out.split("busiest")[1]
+    code, out = whatif("scenarios/jobshop.yaml", "--schedulers", policy, "--seeds", "1", "--json")
+    assert policy in out

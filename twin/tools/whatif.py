@@ -24,7 +24,7 @@ from twin.core.errors import ScenarioError, TwinError
 from twin.runtime.checks import check
 from twin.runtime.lab import make_scheduler, prepare, run
 from twin.runtime.shared_run import run_shared
-from twin.tools.planner_bench import bench_pool, quartiles
+from twin.tools.planner_bench import bench_pool, quartiles, short
 from twin.scenario import Scenario
 from twin.scenario.sharing import campaign_scenario
 
@@ -277,7 +277,9 @@ def campaign_rows(summary: list[dict[str, Any]], axes: list[str], written: dict[
 
 
 def _shown(value: Any) -> str:
-    return "none" if value is None else str(value)
+    """A variant's value in the table: a policy by its file's name (``rl:jobshop_scheduler``; --json and --csv
+    keep the path)."""
+    return "none" if value is None else short(value) if isinstance(value, str) else str(value)
 
 
 def has_targets(s: Scenario) -> bool:
