@@ -53,8 +53,16 @@ def read(path: str | Path) -> Instance:
     if not (1 <= n_jobs <= MAX_JOBS and 1 <= n_machines <= MAX_MACHINES):
         raise ScenarioError(where, [f"{n_jobs} jobs on {n_machines} machines; expected 1-{MAX_JOBS} jobs "
                                     f"on 1-{MAX_MACHINES} machines"])
-    if len(jobs) != n_jobs or any(not job for job in jobs) or any(not 0 <= m < n_machines for job in jobs for m, _ in job):
-        raise ScenarioError(where, [f"expected {n_jobs} non-empty jobs on machines 0..{n_machines - 1}"])
+    if len(jobs) != n_jobs:
+        raise ScenarioError(where, [f"the header says {n_jobs} jobs and {len(jobs)} job line(s) follow it: one line "
+                                    "per job"])
+    empty = [j for j, job in enumerate(jobs) if not job]
+    if empty:
+        raise ScenarioError(where, [f"job {empty[0]} has no operations: each job line holds 'machine duration' pairs"])
+    stray = [(j, m) for j, job in enumerate(jobs) for m, _ in job if not 0 <= m < n_machines]
+    if stray:
+        raise ScenarioError(where, [f"job {stray[0][0]}: machine {stray[0][1]} is outside 0..{n_machines - 1} (the "
+                                    f"header says {n_machines} machines, numbered from 0)"])
     bad = [(j, d) for j, job in enumerate(jobs) for _, d in job if not 0 <= d <= MAX_DURATION]
     if bad:
         raise ScenarioError(where, [f"job {bad[0][0]}: duration {bad[0][1]} is outside 0..{MAX_DURATION:,}"])
