@@ -122,3 +122,24 @@ def test_a_shop_given_on_the_command_line_names_the_run(given, named, tmp_path):
         assert len(s.campaign.planner_options["proposals"]) == 10  # la02's ten jobs, not ft06's six
         summary = run(s, journal=tmp_path / "j.db")
         assert summary.scenario == named
+
+
+def test_a_budget_or_a_number_in_the_lab_given_for_a_shop_is_kept_and_a_planner_is_refused(tmp_path):
+    """They were overwritten with the shop's: `twin run jobshop.yaml --budget 5` ran all ten jobs of la02."""
+    from twin.core.errors import ScenarioError
+    from twin.runtime.lab import prepare
+
+    la02 = {"jobshop.file": "jobshop/la02.txt"}
+    five = run(prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={**la02, "campaign.budget": 5}),
+               journal=tmp_path / "five.db")
+    assert (five.proposed, five.done) == (5, 5)
+    written = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides=la02)
+    assert written.campaign.budget == written.campaign.max_in_flight == 10  # not given: the whole shop at once
+    one_at_a_time = run(prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={**la02, "campaign.max_in_flight": 1}),
+                        journal=tmp_path / "one.db")
+    together = run(written, journal=tmp_path / "all.db")
+    assert one_at_a_time.done == together.done == 10
+    jobs = read(ROOT / "scenarios" / "jobshop" / "la02.txt").jobs
+    assert one_at_a_time.lab_hours * 3600 == sum(d for job in jobs for _, d in job)  # one job after another
+    with pytest.raises(ScenarioError, match=r"(?s)jobshop\.yaml.*campaign\.planner: .gp-bo. cannot plan a job shop"):
+        prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={**la02, "campaign.planner": "gp-bo"})

@@ -149,9 +149,19 @@ def _jobs(times: list[list[int]], machines: list[list[int]]) -> list[list[tuple[
     return [list(zip(ms, ts)) for ts, ms in zip(times, machines)]
 
 
-def expand(scenario: Scenario, base_dir: Path) -> Scenario:
-    """The lab and the fixed list of experiments (one per job) of the scenario's instance."""
-    return as_lab(scenario, read(base_dir / scenario.jobshop.file), rename=False)
+def expand(scenario: Scenario, base_dir: Path, source: str = "") -> Scenario:
+    """The lab and the fixed list of experiments (one per job) of the scenario's instance. A budget or a number in
+    the lab the scenario (or the command line) gives is kept: the first ``budget`` jobs, ``max_in_flight`` of them
+    at once; a planner other than ``fixed`` is refused (the jobs are the experiments)."""
+    asked = scenario.campaign.model_fields_set
+    if "planner" in asked and scenario.campaign.planner != "fixed":
+        raise ScenarioError(source or scenario.name, [f"campaign.planner: {scenario.campaign.planner!r} cannot plan a job shop: "
+                                            f"its experiments are the jobs of {scenario.jobshop.file}, in order "
+                                            "(planner fixed); leave campaign.planner out"])
+    lab = as_lab(scenario, read(base_dir / scenario.jobshop.file), rename=False)
+    kept = {k: min(getattr(scenario.campaign, k), lab.campaign.budget) for k in ("budget", "max_in_flight")
+            if k in asked}
+    return lab.model_copy(update={"campaign": lab.campaign.model_copy(update=kept)}) if kept else lab
 
 
 def run_name(lab: str, shop: str) -> str:

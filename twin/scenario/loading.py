@@ -27,7 +27,7 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bo
     if scenario.jobshop is not None:
         from twin.scenario.jobshop import expand
 
-        scenario = expand(scenario, path.parent)
+        scenario = expand(scenario, path.parent, str(path))
     return scenario
 
 
