@@ -316,7 +316,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     with multiprocessing.get_context("spawn").Pool(max(1, workers), initializer=_quiet_worker) as pool:
         while done < steps:
             left = steps - done
-            if rnd > 0 and left < eval_every / 4:
+            if rnd > 0 and left < min(eval_every, done) / 4:
                 break  # rounds gather about as many labels as asked: a last round of a few would cost a whole fit
             want = left if left < 1.5 * eval_every else eval_every
             state = None if rnd == 0 and init is None else {k: v.detach().clone() for k, v in net.state_dict().items()}

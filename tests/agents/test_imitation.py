@@ -160,6 +160,15 @@ def test_a_lab_that_says_nothing_of_training_learns_from_its_best_rule(tmp_path)
     assert meta["curve"][-1]["objective vs best rule"] <= 1.02, meta["curve"]
 
 
+def test_a_short_training_of_a_lab_with_few_decisions_gathers_about_the_labels_asked(tmp_path):
+    """Its first round guesses 150 labels a lab; quantum_dots' six experiments give a dozen, and training stopped
+    after that round with a tenth of what was asked (`twin train lab.yaml --steps 3000`: 1,301 labels)."""
+    plain = prepare(ROOT / "scenarios" / "quantum_dots.yaml", overrides={"campaign.budget": 6})
+    out = train_scheduler(plain, 400, tmp_path / "qd.zip", envs=1, eval_seeds=(0,), held_out_count=1)
+    curve = json.loads(out.with_suffix(".json").read_text())["curve"]
+    assert 0.75 * 400 <= curve[-1]["steps"] <= 1.5 * 400, curve
+
+
 def test_rl_without_a_policy_says_how_to_train_one_and_names_a_shipped_one_that_fits_any_lab():
     from twin import PluginError
 

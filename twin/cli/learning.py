@@ -55,7 +55,7 @@ def train(
     progress = bar_progress()
 
     def report(done: int, result: dict | None) -> None:
-        progress.update(bar, completed=done)
+        progress.update(bar, completed=done, total=max(steps, done))  # rounds of labels can end a little past it
         if result:
             fields = "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
                                for k, v in result.items() if k != "policy")
