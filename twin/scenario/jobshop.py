@@ -19,6 +19,7 @@ import random
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from twin.core.errors import ScenarioError
 from twin.scenario.files import read_text
@@ -159,8 +160,8 @@ def expand(scenario: Scenario, base_dir: Path, source: str = "") -> Scenario:
                                             f"its experiments are the jobs of {scenario.jobshop.file}, in order "
                                             "(planner fixed); leave campaign.planner out"])
     lab = as_lab(scenario, read(base_dir / scenario.jobshop.file), rename=False)
-    kept = {k: min(getattr(scenario.campaign, k), lab.campaign.budget) for k in ("budget", "max_in_flight")
-            if k in asked}
+    kept: dict[str, Any] = {k: min(getattr(scenario.campaign, k), lab.campaign.budget)
+                            for k in ("budget", "max_in_flight") if k in asked}
     return lab.model_copy(update={"campaign": lab.campaign.model_copy(update=kept)}) if kept else lab
 
 
