@@ -133,6 +133,13 @@ def test_a_budget_or_a_number_in_the_lab_given_for_a_shop_is_kept_and_a_planner_
     five = run(prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={**la02, "campaign.budget": 5}),
                journal=tmp_path / "five.db")
     assert (five.proposed, five.done) == (5, 5)
+    from twin.tools.scheduler_bench import bound
+
+    first_five = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={**la02, "campaign.budget": 5})
+    assert len(first_five.campaign.planner_options["proposals"]) == 5  # the shop is its first five jobs
+    assert bound(first_five) <= five.lab_hours * 3600 < bound(prepare(ROOT / "scenarios" / "jobshop.yaml",
+                                                                       overrides=la02))  # not la02's 655
+    assert bound(prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={**la02, "campaign.max_in_flight": 3})) is None
     written = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides=la02)
     assert written.campaign.budget == written.campaign.max_in_flight == 10  # not given: the whole shop at once
     one_at_a_time = run(prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={**la02, "campaign.max_in_flight": 1}),

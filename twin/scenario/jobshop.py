@@ -162,6 +162,9 @@ def expand(scenario: Scenario, base_dir: Path, source: str = "") -> Scenario:
     lab = as_lab(scenario, read(base_dir / scenario.jobshop.file), rename=False)
     kept: dict[str, Any] = {k: min(getattr(scenario.campaign, k), lab.campaign.budget)
                             for k in ("budget", "max_in_flight") if k in asked}
+    if "budget" in kept:  # the shop is its first jobs: what a bound or a plan of it reads too
+        proposals = lab.campaign.planner_options["proposals"][:kept["budget"]]
+        kept["planner_options"] = {**lab.campaign.planner_options, "proposals": proposals}
     return lab.model_copy(update={"campaign": lab.campaign.model_copy(update=kept)}) if kept else lab
 
 

@@ -57,8 +57,11 @@ def deterministic(s: Scenario) -> bool:
 
 
 def bound(s: Scenario) -> float | None:
-    """CP-SAT's optimum makespan (lab-s) for a deterministic job shop; None without OR-Tools or a job shop."""
+    """CP-SAT's optimum makespan (lab-s) for a deterministic job shop; None without OR-Tools or a job shop, or for a
+    shop whose jobs may not all be in the lab at once (its optimum is another problem's)."""
     if not deterministic(s) or "cp-sat" not in plugins.installed("schedulers"):
+        return None
+    if s.campaign.max_in_flight < len(s.campaign.planner_options.get("proposals", [])):
         return None
     try:
         return float(plugins.load("schedulers", "cp-sat").offline_bound(s))
