@@ -150,3 +150,15 @@ def test_a_budget_or_a_number_in_the_lab_given_for_a_shop_is_kept_and_a_planner_
     assert one_at_a_time.lab_hours * 3600 == sum(d for job in jobs for _, d in job)  # one job after another
     with pytest.raises(ScenarioError, match=r"(?s)jobshop\.yaml.*campaign\.planner: .gp-bo. cannot plan a job shop"):
         prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={**la02, "campaign.planner": "gp-bo"})
+
+
+def test_a_shop_already_read_is_not_swapped_for_another_silently():
+    """`twin whatif scenarios/jobshop.yaml --vary jobshop.file=...` ran ft06 for every variant."""
+    from twin.core.errors import ScenarioError
+    from twin.runtime.lab import prepare
+
+    ft06 = prepare(ROOT / "scenarios" / "jobshop.yaml")
+    with pytest.raises(ScenarioError, match=r"(?s)jobshop\.file: a job shop is read when its scenario file is loaded"):
+        prepare(ft06, overrides={"jobshop.file": "jobshop/la02.txt"})
+    la02 = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={"jobshop.file": "jobshop/la02.txt"})
+    assert len(la02.campaign.planner_options["proposals"]) == 10  # loading the file with it set reads it

@@ -17,7 +17,7 @@ from twin.core import plugins
 from twin.core.bus import Bus, open_bus, security
 from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
-from twin.core.errors import BusError, DriverError, PluginError, TwinError
+from twin.core.errors import BusError, DriverError, PluginError, ScenarioError, TwinError
 from twin.device.actor import DeviceActor
 from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature
 from twin.runtime.off_loop import OffLoopScheduler
@@ -44,6 +44,12 @@ def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: 
     if isinstance(scenario, Scenario):
         if not extra:
             return scenario
+        shop = next((k for k in extra if k == "jobshop" or k.startswith("jobshop.")), None)
+        if shop is not None and scenario.jobshop is not None:  # its shop was read into devices and jobs already
+            raise ScenarioError(scenario.name, [f"{shop}: a job shop is read when its scenario file is loaded, and "
+                                                f"this one has read {scenario.jobshop.file}; load the file with "
+                                                f"{shop} set (`--set {shop}=...`), or compare shops with `twin "
+                                                "bench schedulers SCENARIO --jobshop A,B`"])
         quick = _with_fields(scenario, extra)
         if quick is not None:
             return quick
