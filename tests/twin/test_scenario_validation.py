@@ -60,6 +60,21 @@ def test_unknown_driver_lists_the_installed_ones(tmp_path):
         assert name in str(info.value)
 
 
+def test_a_misspelt_planner_option_is_named_and_another_planners_option_is_not_refused(tmp_path):
+    """planner_options went to the planner's constructor, whose **_ swallowed a typo (n_int for n_init) silently."""
+    from twin.runtime.lab import make_planner, prepare
+
+    typo = load(write(tmp_path, qd_lab(**{"campaign.planner": "gp-bo", "campaign.planner_options": {"n_int": 4}})))
+    with pytest.raises(ScenarioError, match=r"campaign\.planner_options\.n_int: no installed planner takes an option "
+                                          r"'n_int' \('gp-bo' takes n_init, "):
+        check(typo)
+    kept = load(write(tmp_path, qd_lab(**{"campaign.planner": "gp-bo", "campaign.planner_options": {"n_init": 4}}),
+                      "ok.yaml"))
+    assert make_planner(kept).n_init == 4
+    swapped = prepare(kept, overrides={"campaign.planner": "random"})  # --planner random, or a bench's row
+    assert make_planner(swapped).propose(1, [], [])  # gp-bo's option is not random's: not used, not refused
+
+
 def test_a_class_string_that_does_not_import_says_why(tmp_path):
     s = load(write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "nowhere.module:Robot"})))
     with pytest.raises(DriverError, match="could not import 'nowhere.module'"):

@@ -159,6 +159,11 @@ def make_planner(s: Scenario) -> Any:
     if not s.chemistry.parameters and getattr(cls, "needs_parameters", True):
         raise PluginError(f"chemistry.parameters: empty, and planner {s.campaign.planner!r} proposes values for "
                           "parameters: give at least one parameter with low and high")
+    unknown, taken = _options_not_taken(cls, s.campaign.planner_options, PLANNER_ARGUMENTS)
+    typos = [k for k in unknown if not _another_planner_takes(k, name)]  # another's options: a swapped planner's
+    if typos:
+        raise PluginError(f"campaign.planner_options.{typos[0]}: no installed planner takes an option {typos[0]!r} "
+                          f"({name!r} takes {', '.join(taken) or 'none'}); check its spelling")
     try:
         return cls(parameters=s.chemistry.parameters, seed=s.campaign.seed, targets=s.chemistry.targets,
                    budget=s.campaign.budget, **{**options, **s.campaign.planner_options})
@@ -166,6 +171,41 @@ def make_planner(s: Scenario) -> Any:
         raise
     except Exception as exc:
         raise PluginError(f"planner {s.campaign.planner!r} failed to start: {type(exc).__name__}: {exc}") from exc
+
+
+PLANNER_ARGUMENTS = frozenset({"parameters", "seed", "targets", "budget"})  # what every planner is given
+
+
+def _options_not_taken(cls: Any, options: dict[str, Any], given: frozenset[str]) -> tuple[list[str], list[str]]:
+    """The ``options`` a plugin's constructor has no parameter for, and the options it has: known only when its
+    catch-all, if any, is ``**_`` (the kernel's arguments it does not use); a ``**kwargs`` of another name may read
+    anything, so nothing is refused."""
+    import inspect
+
+    try:
+        params = inspect.signature(cls).parameters
+    except (TypeError, ValueError):
+        return [], []
+    if any(p.kind is p.VAR_KEYWORD and p.name != "_" for p in params.values()):
+        return [], []
+    named = [n for n, p in params.items() if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY) and n not in given]
+    return [k for k in options if k not in named], named
+
+
+def _another_planner_takes(option: str, but: str) -> bool:
+    """Whether an installed planner other than ``but`` names ``option`` (or may read any): the scenario's options
+    may be for its own planner while a bench or ``--planner`` runs another. Imports them: only for an option the
+    planner running does not take."""
+    for other in plugins.installed("planners"):
+        if other == but:
+            continue
+        try:
+            unknown, _ = _options_not_taken(plugins.load("planners", other), {option: None}, PLANNER_ARGUMENTS)
+        except Exception:  # a planner that cannot be loaded here says nothing about this option
+            continue
+        if not unknown:
+            return True
+    return False
 
 
 REMOTE = "remote"  # campaign.scheduler: an agent served elsewhere (`twin scheduler serve`)
