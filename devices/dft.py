@@ -13,6 +13,7 @@ class DftCalculator:
     capabilities = frozenset({"compute"})
     outputs = frozenset({"band_gap_dft_ev"})
     chemistry_models = frozenset({"bandgap"})
+    option_names: frozenset[str] = frozenset()  # it takes none
 
     def __init__(self, setup: DriverSetup) -> None:
         pass

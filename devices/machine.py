@@ -9,6 +9,7 @@ from twin import DriverSetup, StepContext, StepResult
 
 class Machine:
     capabilities = frozenset({"op"})
+    option_names: frozenset[str] = frozenset()  # it takes none
     outputs: frozenset[str] = frozenset()
 
     def __init__(self, setup: DriverSetup) -> None:

@@ -50,6 +50,8 @@ PING_EVERY_WALL_S = 2.0
 class MqttInstrument:
     labtwin_api = 1
     realtime = True  # a real instrument keeps wall time: the lab's clock must be scaled or wall
+    option_names = frozenset({"broker", "topic", "steps", "outputs", "qos", "cancel_wait_s", "connect_timeout_s",
+                              "tls", "username", "password", "password_env"})
 
     def __init__(self, setup: DriverSetup) -> None:
         o = setup.options

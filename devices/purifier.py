@@ -13,6 +13,7 @@ class Purifier:
     capabilities = frozenset({"purify"})
     outputs: frozenset[str] = frozenset()
     chemistry_models = frozenset({"synthesis"})
+    option_names: frozenset[str] = frozenset()  # it takes none
 
     def __init__(self, setup: DriverSetup) -> None:
         pass

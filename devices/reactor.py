@@ -21,6 +21,7 @@ class Reactor:
     capabilities = frozenset({"react"})
     outputs = frozenset({"max_temperature_k", "overshoot_k"})
     chemistry_models = frozenset({"catalyst"})
+    option_names = frozenset({"kp", "ki", "kd", "telemetry_s", "dt_s", "controller"})
 
     def __init__(self, setup: DriverSetup) -> None:
         o = setup.options

@@ -25,6 +25,7 @@ class Spectrometer:
     outputs = frozenset({"peak_nm", "fwhm_nm", "intensity", "band_gap_ev", "edge_nm", "yield", "selectivity",
                          "spectrum", "age_s", *synthesis.LCMS_OUTPUTS})
     chemistry_models = frozenset({"quantum_dots", "bandgap", "catalyst", "synthesis"})
+    option_names: frozenset[str] = frozenset()  # it takes none
 
     def __init__(self, setup: DriverSetup) -> None:
         self.noise = setup.chemistry.noise

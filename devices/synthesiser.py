@@ -20,6 +20,7 @@ class Synthesiser:
     capabilities = frozenset({"synthesise", "prepare", "react"})
     outputs = frozenset({"diameter_nm"})
     chemistry_models = frozenset({"quantum_dots", "bandgap", "catalyst", "synthesis"})
+    option_names = frozenset({"batch_sd_nm"})
 
     def __init__(self, setup: DriverSetup) -> None:
         self.model = setup.chemistry.model

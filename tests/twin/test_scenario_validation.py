@@ -75,6 +75,21 @@ def test_a_misspelt_planner_option_is_named_and_another_planners_option_is_not_r
     assert make_planner(swapped).propose(1, [], [])  # gp-bo's option is not random's: not used, not refused
 
 
+def test_a_misspelt_driver_option_is_named_where_the_driver_lists_its_options(tmp_path):
+    """`devices.reactor.options.kq` (for kp) reached the reactor, which read kp's default and said nothing."""
+    from twin.runtime.lab import prepare
+
+    catalyst = prepare(Path(__file__).resolve().parents[2] / "scenarios" / "catalyst.yaml")
+    typo = prepare(catalyst, overrides={"devices.reactor.options": {"kp": 6.0, "kq": 3.0}})
+    with pytest.raises(DriverError, match=r"devices\.reactor\.options\.kq: the 'reactor' driver takes no option 'kq' "
+                                          r"\(it takes controller, dt_s, kd, ki, kp, telemetry_s\)"):
+        load_driver(typo, "reactor", "reactor")
+    assert load_driver(catalyst, "reactor", "reactor").pid["kp"] == 6.0
+    plain = load(write(tmp_path, qd_lab(**{"devices.spectrometer.options": {"anything": 1}})))
+    with pytest.raises(DriverError, match=r"takes no option 'anything' \(it takes none\)"):
+        load_driver(plain, "spectrometer", "spectrometer")
+
+
 def test_a_class_string_that_does_not_import_says_why(tmp_path):
     s = load(write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "nowhere.module:Robot"})))
     with pytest.raises(DriverError, match="could not import 'nowhere.module'"):

@@ -79,13 +79,15 @@ class DriverFeatures(Protocol):
     and a presence of its own. ``health()``: what the device's health key reports about it.
     ``outputs``: every output name its results can hold (a target on an output no device of the
     workflow produces is then refused by ``twin validate``). ``chemistry_models``: the scenario
-    ``chemistry.model`` values it can simulate (others are refused).
+    ``chemistry.model`` values it can simulate (others are refused). ``option_names``: every key its
+    ``setup.options`` may hold (a misspelt one is then refused, naming the field).
     """
 
     labtwin_api: int
     realtime: bool
     outputs: frozenset[str]
     chemistry_models: frozenset[str]
+    option_names: frozenset[str]
 
     async def connect(self, presence: Callable[[bool], None]) -> None: ...
 
@@ -94,7 +96,8 @@ class DriverFeatures(Protocol):
     async def health(self) -> dict[str, Any]: ...
 
 
-FEATURES = frozenset({"labtwin_api", "realtime", "connect", "disconnect", "health", "outputs", "chemistry_models"})
+FEATURES = frozenset({"labtwin_api", "realtime", "connect", "disconnect", "health", "outputs", "chemistry_models",
+                      "option_names"})
 
 
 def feature(driver: Any, name: str) -> Any:

@@ -119,6 +119,11 @@ def load_driver(s: Scenario, device_type: str, name: str) -> Any:
     if models is not None and s.chemistry.model not in models:
         raise DriverError(f"chemistry.model: the {spec.driver!r} driver of devices.{device_type} simulates "
                           f"{sorted(models)}, not {s.chemistry.model[:64]!r}: use one of those, or a driver of yours")
+    names = feature(cls, "option_names")
+    stray = sorted(set(spec.options) - set(names)) if names is not None else []
+    if stray:
+        raise DriverError(f"devices.{device_type}.options.{stray[0]}: the {spec.driver!r} driver takes no option "
+                          f"{stray[0]!r} (it takes {', '.join(sorted(names)) or 'none'}); check its spelling")
     setup = DriverSetup(name, device_type, spec.options, s.chemistry, spec.duration, s.campaign.seed)
     try:
         driver = cls(setup)

@@ -20,6 +20,7 @@ from twin import DriverSetup, Refused, StepContext, StepResult
 class {cls}:
     labtwin_api = 1
     capabilities = frozenset({{"measure"}})
+    option_names = frozenset({{"noise_nm"}})  # a misspelt option in a scenario is refused, naming the field
 
     def __init__(self, setup: DriverSetup) -> None:
         self.name = setup.name
