@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from tests.conftest import qd_lab
-from twin.core.errors import DriverError, ScenarioError
+from twin.core.errors import DriverError, ScenarioError, TwinError
 from twin.runtime.checks import check
 from twin.runtime.assembly import load_driver
 from twin.scenario import load
@@ -73,6 +73,22 @@ def test_a_misspelt_planner_option_is_named_and_another_planners_option_is_not_r
     assert make_planner(kept).n_init == 4
     swapped = prepare(kept, overrides={"campaign.planner": "random"})  # --planner random, or a bench's row
     assert make_planner(swapped).propose(1, [], [])  # gp-bo's option is not random's: not used, not refused
+
+
+def test_a_policy_file_given_to_a_rule_is_refused_not_ignored():
+    """`--scheduler mwkr:P.zip` ran MWKR and never read P.zip; `--planner lhs:P.zip` likewise."""
+    from twin.runtime.lab import make_planner, make_scheduler, prepare
+
+    root = Path(__file__).resolve().parents[2]
+    shop = prepare(root / "scenarios" / "jobshop.yaml")
+    policy = root / "agents" / "policies" / "jobshop_scheduler.zip"
+    with pytest.raises(TwinError, match=rf"'mwkr' reads no policy file; a trained scheduler is rl:PATH "
+                                        rf"\(`--scheduler rl:{policy}`\)"):
+        make_scheduler(shop, f"mwkr:{policy}")
+    assert make_scheduler(shop, f"rl:{policy}").follower is None  # a policy through rl: is read
+    dots = prepare(root / "scenarios" / "quantum_dots.yaml")
+    with pytest.raises(TwinError, match="planner 'lhs' reads no policy file"):
+        make_planner(prepare(dots, overrides={"campaign.planner": "lhs:agents/policies/quantum_dots.zip"}))
 
 
 def test_a_misspelt_driver_option_is_named_where_the_driver_lists_its_options(tmp_path):

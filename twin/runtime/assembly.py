@@ -164,6 +164,9 @@ def make_planner(s: Scenario) -> Any:
     if not s.chemistry.parameters and getattr(cls, "needs_parameters", True):
         raise PluginError(f"chemistry.parameters: empty, and planner {s.campaign.planner!r} proposes values for "
                           "parameters: give at least one parameter with low and high")
+    if options and _options_not_taken(cls, options, PLANNER_ARGUMENTS)[0]:
+        raise PluginError(f"campaign.planner: {s.campaign.planner!r}: planner {name!r} reads no policy file; a "
+                          f"trained planner is rl:PATH (`--planner rl:{options['policy']}`)")
     unknown, taken = _options_not_taken(cls, s.campaign.planner_options, PLANNER_ARGUMENTS)
     typos = [k for k in unknown if not _another_planner_takes(k, name)]  # another's options: a swapped planner's
     if typos:
@@ -226,6 +229,9 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
         return REMOTE
     name, options = plugins.with_policy("schedulers", spec)
     cls = plugins.load("schedulers", name)
+    if options and _options_not_taken(cls, options, frozenset({"scenario", "seed"}))[0]:
+        raise PluginError(f"scheduler {spec!r}: {name!r} reads no policy file; a trained scheduler is "
+                          f"rl:PATH (`--scheduler rl:{options['policy']}`)")
     try:
         return cls(scenario=s, seed=s.campaign.seed, **options)
     except TwinError:
