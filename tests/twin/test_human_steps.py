@@ -73,3 +73,15 @@ def test_in_virtual_time_the_simulated_operator_confirms_after_the_expected_time
     assert all(abs(confirmed[t][0] - asked[t] - 300) < 1e-6 and confirmed[t][1] == "simulated operator"
                for t in asked)
     assert summary.utilisation["operator"] > 0
+
+
+def test_a_misspelt_option_for_people_is_named():
+    """Their instructions are all their options: `instrutions` would have shown an empty operator.step."""
+    import pytest
+
+    from twin.core.errors import ScenarioError
+
+    misspelt = {**HUMAN, "devices.operator": {**HUMAN["devices.operator"], "options": {"instrutions": "x"}}}
+    with pytest.raises(ScenarioError, match=r"devices\.operator\.options\.instrutions: people \('operator'\) take "
+                                            "only instructions"):
+        check(parse(qd_lab(**misspelt), "lab.yaml"))

@@ -13,6 +13,7 @@ from twin.campaign.events import Code, Operator, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt
 
 DRIVER = "operator"
+OPTION_NAMES = frozenset({"instructions"})  # what its options may hold (checked like a driver's option_names)
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
 
 

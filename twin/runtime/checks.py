@@ -8,6 +8,7 @@ from typing import Any
 
 from twin.core.errors import ScenarioError, TwinError
 from twin.campaign.human import DRIVER as HUMAN
+from twin.campaign.human import OPTION_NAMES as HUMAN_OPTIONS
 from twin.device.driver import feature
 from twin.runtime.assembly import load_driver, make_planner, make_scheduler
 from twin.scenario import Scenario, load
@@ -39,6 +40,11 @@ def check_campaign(s: Scenario, external: Collection[str] = ()) -> None:
 def _check(s: Scenario, types: set[str] | None = None, external: Collection[str] = (),
            benched: bool = False) -> None:
     elsewhere = {dtype for dtype in s.devices if set(s.instance_names(dtype)) <= set(external)}
+    for dtype, spec in s.devices.items():
+        stray = sorted(set(spec.options) - HUMAN_OPTIONS) if spec.driver == HUMAN else []
+        if stray:
+            raise ScenarioError(s.name, [f"devices.{dtype}.options.{stray[0]}: people ('{HUMAN}') take only "
+                                         f"{', '.join(sorted(HUMAN_OPTIONS))}; check its spelling"])
     drivers = {dtype: _at(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0])
                for dtype in s.devices if s.devices[dtype].driver != HUMAN and (types is None or dtype in types)
                and dtype not in elsewhere}
