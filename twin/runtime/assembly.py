@@ -5,6 +5,7 @@ when it is an agent). ``twin.runtime.lab`` runs a campaign on them; the shared-l
 
 from __future__ import annotations
 
+import inspect
 import logging
 from collections.abc import Collection
 from pathlib import Path
@@ -188,8 +189,6 @@ def _options_not_taken(cls: Any, options: dict[str, Any], given: frozenset[str])
     """The ``options`` a plugin's constructor has no parameter for, and the options it has: known only when its
     catch-all, if any, is ``**_`` (the kernel's arguments it does not use); a ``**kwargs`` of another name may read
     anything, so nothing is refused."""
-    import inspect
-
     try:
         params = inspect.signature(cls).parameters
     except (TypeError, ValueError):

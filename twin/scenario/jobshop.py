@@ -156,9 +156,9 @@ def expand(scenario: Scenario, base_dir: Path, source: str = "") -> Scenario:
     at once; a planner other than ``fixed`` is refused (the jobs are the experiments)."""
     asked = scenario.campaign.model_fields_set
     if "planner" in asked and scenario.campaign.planner != "fixed":
-        raise ScenarioError(source or scenario.name, [f"campaign.planner: {scenario.campaign.planner!r} cannot plan a job shop: "
-                                            f"its experiments are the jobs of {scenario.jobshop.file}, in order "
-                                            "(planner fixed); leave campaign.planner out"])
+        raise ScenarioError(source or scenario.name, [
+            f"campaign.planner: {scenario.campaign.planner!r} cannot plan a job shop: its experiments are the jobs of "
+            f"{scenario.jobshop.file}, in order (planner fixed); leave campaign.planner out"])
     lab = as_lab(scenario, read(base_dir / scenario.jobshop.file), rename=False)
     kept: dict[str, Any] = {k: min(getattr(scenario.campaign, k), lab.campaign.budget)
                             for k in ("budget", "max_in_flight") if k in asked}
