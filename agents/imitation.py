@@ -238,6 +238,30 @@ def fit(net: torch.nn.Module, data: list[Sample], epochs: int, optimizer: torch.
     return last
 
 
+def _spawn_pool(workers: int) -> Any:
+    """Spawned workers, started with Ctrl-C held back until all are: one landing while a worker is handed its
+    start-up data leaves the worker reading half of it (a traceback after "interrupted"), and a pool half-built
+    is not stopped (``Pool`` cleans up only on ``Exception``)."""
+    import multiprocessing
+    import signal
+    import threading
+
+    start = multiprocessing.get_context("spawn").Pool
+    if threading.current_thread() is not threading.main_thread():
+        return start(max(1, workers), initializer=_quiet_worker)
+    held: list[Any] = []
+    previous = signal.signal(signal.SIGINT, lambda *sig: held.append(sig))
+    try:
+        pool = start(max(1, workers), initializer=_quiet_worker)
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
+    if held:
+        pool.terminate()
+        pool.join()
+        raise KeyboardInterrupt
+    return pool
+
+
 def _quiet_worker() -> None:
     """Ctrl-C reaches the whole process group: the trainer stops the workers and says what it kept."""
     import signal
@@ -271,8 +295,6 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     round and the best kept (``agents.train_scheduler.Judge``). ``init``: a policy file to start from. The most
     recent ``max_samples`` labels are trained on (by default 400,000 from a teacher; from the policy itself, the
     last three rounds', as older ones are an older policy's best)."""
-    import multiprocessing
-
     from sb3_contrib import MaskablePPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -313,7 +335,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
         judge(model, 0, fits, "start (--init)")
     data: list[Sample] = []
     done, rnd, shop, per_shop = 0, 0, seed * 1_000_000, 150.0
-    with multiprocessing.get_context("spawn").Pool(max(1, workers), initializer=_quiet_worker) as pool:
+    with _spawn_pool(workers) as pool:
         while done < steps:
             left = steps - done
             if rnd > 0 and left < min(eval_every, done) / 4:

@@ -179,3 +179,26 @@ def test_rl_without_a_policy_says_how_to_train_one_and_names_a_shipped_one_that_
     agent = RlScheduler(lab, str(named))
     assert agent.misfit == ""
     assert campaign(lab, 0, agent.decide).done == 4
+
+
+def test_ctrl_c_while_the_training_workers_start_lets_them_start_then_stops_them(monkeypatch):
+    """Ctrl-C landing while a worker was handed its start-up data left it reading half of it: a traceback after
+    "interrupted" (seen once in CI), and a half-built pool nobody stopped."""
+    import multiprocessing
+    import signal
+
+    from agents import imitation
+
+    kind = type(multiprocessing.get_context("spawn"))
+    real, built = kind.Pool, []
+
+    def pool(self, *args, **kwargs):
+        signal.raise_signal(signal.SIGINT)  # as the workers start
+        built.append(real(self, *args, **kwargs))
+        return built[-1]
+
+    monkeypatch.setattr(kind, "Pool", pool)
+    with pytest.raises(KeyboardInterrupt):
+        imitation._spawn_pool(2)
+    assert built and not any(worker.is_alive() for worker in built[0]._pool)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Ctrl-C is Ctrl-C again
