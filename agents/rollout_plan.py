@@ -30,7 +30,7 @@ import torch
 from agents.candidates import Observed
 from agents.lockstep import lockstep
 from agents.train_scheduler import objective
-from twin import Assignment, LabView, Scenario, prepare
+from twin import Assignment, LabView, Scenario, lab_span, prepare
 
 log = logging.getLogger(__name__)
 BATCH = 64  # runs played at once: each holds a whole lab in memory
@@ -56,7 +56,7 @@ class Plan:
 
 def lab_time(hours: float) -> str:
     """Lab seconds for a lab of minutes (a job shop), else lab-hours."""
-    return f"{hours * 3600:,.0f} lab-s" if hours < 1 else f"{hours:.2f} lab-h"
+    return lab_span(hours * 3600, prefix="lab-")
 
 
 def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,

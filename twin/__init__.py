@@ -34,6 +34,7 @@ from twin.scenario.objective import time_scale, weighted_objective
 from twin.scenario.random_labs import ANY_WORKFLOW, drawn_at_random, random_lab
 from twin.scenario.targets import score
 from twin.tools.testing import driver_setup, run_scenario, run_step
+from twin.view.report import lab_span
 from twin.view.watch import RecordOptions
 
 __all__ = [
@@ -42,7 +43,7 @@ __all__ = [
     "LabClock", "LabSummary", "LabView", "LiveCampaign", "MemoryBus", "Outcome", "Planner", "PluginError", "Proposal",
     "ReadyStep", "RecordOptions", "Refused", "RouteStep", "Scenario", "ScenarioError", "Scheduler", "StepContext", "StepResult",
     "SteppedCampaign", "SteppedLab", "Summary", "TwinError", "campaign_scenarios", "time_scale", "weighted_objective", "capable", "drawn_at_random", "driver_setup", "expected_duration", "jobshop_as_lab",
-    "json_schema", "keyed_uniforms", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
+    "json_schema", "keyed_uniforms", "lab_span", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
     "prepare", "random_jobshop", "random_lab", "read_meta", "resume", "run", "run_async", "run_scenario", "run_step",
     "save_policy", "score", "seeded", "sleep_wall", "stepped", "why_runs_vary",
 ]

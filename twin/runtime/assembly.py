@@ -240,15 +240,15 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
 
 
 def plays_ahead(spec: str) -> bool:
-    """Whether the scheduler ``spec`` names can play a lab ahead (``campaign.rollouts``), known from its class."""
-    return spec != REMOTE and bool(getattr(plugins.load("schedulers", plugins.with_policy("schedulers", spec)[0]),
-                                           "plays_ahead", False))
+    """Whether the scheduler ``spec`` names can play a lab ahead (``campaign.rollouts``), known from its class (an
+    agent elsewhere, ``remote``, reads the same file with ``twin scheduler serve`` and plays ahead there)."""
+    return spec == REMOTE or bool(getattr(plugins.load("schedulers", plugins.with_policy("schedulers", spec)[0]),
+                                          "plays_ahead", False))
 
 
 def _plays_ahead(s: Scenario, spec: str) -> None:
-    """``campaign.rollouts`` above 1 asks the lab's own scheduler to play the lab ahead: refused unless it can (an
-    agent elsewhere, ``remote``, reads the same file with ``twin scheduler serve`` and plays ahead there)."""
-    if spec != REMOTE and not plays_ahead(spec):
+    """``campaign.rollouts`` above 1 asks the lab's own scheduler to play the lab ahead: refused unless it can."""
+    if not plays_ahead(spec):
         raise PluginError(f"campaign.rollouts: {s.campaign.rollouts}: only the rl scheduler plays a lab ahead, and "
                           f"{spec!r} decides as the lab goes; set campaign.rollouts: 1, or --scheduler rl:POLICY.zip")
 

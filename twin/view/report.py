@@ -9,9 +9,10 @@ from rich.table import Table
 from twin.campaign.summary import LabSummary, Summary
 
 
-def lab_span(seconds: float, digits: int = 2) -> str:
-    """A lab's time as a person reads it: seconds for a lab of under an hour (a job shop), else hours."""
-    return f"{seconds:,.0f} s" if seconds < 3600 else f"{seconds / 3600:.{digits}f} h"
+def lab_span(seconds: float, digits: int = 2, prefix: str = "") -> str:
+    """A lab's time as a person reads it: seconds for a lab of under an hour (a job shop), else hours
+    (``prefix="lab-"``: ``732 lab-s``, ``6.00 lab-h``)."""
+    return f"{seconds:,.0f} {prefix}s" if seconds < 3600 else f"{seconds / 3600:.{digits}f} {prefix}h"
 
 
 def render_summary(s: Summary, console: Console) -> None:
