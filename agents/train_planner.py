@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from agents.planning_env import PlanningEnv, signature
+from agents.sb3_logging import without_log_dir
 from twin import save_policy
 from twin import Scenario
 
@@ -53,7 +54,7 @@ def train_planner(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs
 
     torch.set_num_threads(1)
     venv = DummyVecEnv([lambda i=i: PlanningEnv(scenario, seed=seed * 1000 + i) for i in range(envs)])
-    model = PPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS)
+    model = without_log_dir(PPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS))
     baseline = evaluate(scenario, random_moves)
     if on_progress:
         on_progress(0, {"policy": "random moves", **baseline})

@@ -22,6 +22,7 @@ from agents.candidates import ENCODING, FEATURES, Observed, trained_encoding, wi
 from agents.candidates import signature as candidate_signature
 from agents.scheduling_features import signature
 from agents.schedulers import rules_for
+from agents.sb3_logging import without_log_dir
 from twin import load_plugin, load_policy
 from twin import Assignment, LabView
 from twin import prepare
@@ -263,6 +264,7 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
         model = MaskablePPO(CandidatePolicy, venv, seed=seed, verbose=0, device="cpu", **CANDIDATE_SETTINGS)
     else:
         model = MaskablePPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS)
+    without_log_dir(model)
     if init is not None:
         model.policy.load_state_dict(initial_state(init, scenario, encoding))
     judge = Judge(scenario, out, encoding, eval_seeds, held_out_count, on_progress, method="ppo",

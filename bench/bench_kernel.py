@@ -119,12 +119,13 @@ def _ppo_steps_per_s(steps: int = 4096) -> float:
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     from agents.scheduling_env import SchedulingEnv
+    from agents.sb3_logging import without_log_dir
     from agents.train_scheduler import PPO_SETTINGS
 
     torch.set_num_threads(1)
     s = prepare(ROOT / "scenarios" / "flaky_lab.yaml")
     venv = DummyVecEnv([lambda: SchedulingEnv(s, encoding="slots") for _ in range(2)])
-    model = MaskablePPO("MlpPolicy", venv, seed=0, verbose=0, **PPO_SETTINGS)
+    model = without_log_dir(MaskablePPO("MlpPolicy", venv, seed=0, verbose=0, **PPO_SETTINGS))
     model.learn(1024)  # warm up
     t0 = time.perf_counter()
     model.learn(steps)

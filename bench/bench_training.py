@@ -19,6 +19,7 @@ sys.path.insert(0, str(ROOT))
 
 from bench.tables import table  # noqa: E402
 from agents.scheduling_env import SchedulingEnv  # noqa: E402
+from agents.sb3_logging import without_log_dir  # noqa: E402
 from agents.train_scheduler import PPO_SETTINGS  # noqa: E402
 from twin.runtime.lab import prepare  # noqa: E402
 
@@ -30,7 +31,7 @@ def rate(scenario, kind: str, n: int, steps: int) -> float:
     make = [lambda: SchedulingEnv(scenario, encoding="slots") for _ in range(n)]  # the figures in docs
     venv = DummyVecEnv(make) if kind == "dummy" else SubprocVecEnv(make, start_method="fork")
     venv.seed(0)
-    model = MaskablePPO("MlpPolicy", venv, seed=0, verbose=0, device="cpu", **PPO_SETTINGS)
+    model = without_log_dir(MaskablePPO("MlpPolicy", venv, seed=0, verbose=0, device="cpu", **PPO_SETTINGS))
     model.learn(PPO_SETTINGS["n_steps"] * n)  # warm up
     t = time.perf_counter()
     model.learn(steps, reset_num_timesteps=False)

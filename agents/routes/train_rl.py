@@ -30,6 +30,7 @@ from agents.routes.policy import (HIDDEN, LearnedPrior, TemplateScorer, examples
                                   train_prior)
 from agents.routes.search import Expander
 from agents.routes.targets import target_set
+from agents.sb3_logging import without_log_dir
 from twin import Scenario
 
 EVAL_TARGETS = 30
@@ -134,6 +135,7 @@ def train_route(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs: 
     model = MaskablePPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu",
                         policy_kwargs=dict(net_arch=dict(pi=[HIDDEN], vf=[64]), activation_fn=nn.ReLU),
                         **PPO_SETTINGS)
+    without_log_dir(model)
     scorer_into_policy(scorer, model.policy)
     done = 0
     while done < steps:

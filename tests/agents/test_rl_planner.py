@@ -1,6 +1,7 @@
 """The rl planner: its environment is a valid gymnasium env, short training improves it, and the
 shipped policy proposes valid, non-duplicate experiments in a campaign."""
 
+import tempfile
 from pathlib import Path
 
 import gymnasium as gym
@@ -47,9 +48,10 @@ def test_the_same_seed_gives_the_same_episode(qd):
     assert episode(3) != episode(4)
 
 
-def test_short_ppo_training_improves_its_own_return(qd, tmp_path):
+def test_short_ppo_training_improves_its_own_return_and_leaves_no_log_directory(qd, tmp_path, monkeypatch):
     from stable_baselines3 import PPO
 
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where SB3's default logger makes SB3-<time>/
     untrained = PPO("MlpPolicy", PlanningEnv(qd), seed=0, device="cpu")
     before = evaluate(qd, lambda o, _: untrained.predict(o, deterministic=True)[0], episodes=12)
     path = train_planner(qd, 16_384, tmp_path / "p.zip", envs=4, eval_every=16_384)
@@ -57,6 +59,7 @@ def test_short_ppo_training_improves_its_own_return(qd, tmp_path):
     after = evaluate(qd, lambda o, _: model.predict(o, deterministic=True)[0], episodes=12)
     assert after["return"] > before["return"] + 0.5, (before, after)
     assert after["success"] > before["success"]
+    assert not list(tmp_path.glob("SB3-*"))
 
 
 def test_the_policy_proposes_inside_the_box_and_never_repeats_a_pending_point(qd):
