@@ -81,3 +81,21 @@ def test_a_narrow_table_keeps_numbers_whole_and_fits_80_columns(monkeypatch):
         assert all(cell in words for cell in row[1:]), row
     assert " ".join(words).endswith(caption("lab-h", bound=False))  # the caption whole, wrapped only at spaces
     assert "least-loaded" in words  # columns of numbers no wider than they need: the names have the room
+
+
+def test_a_job_shop_bench_at_80_columns_keeps_the_policy_name_whole_and_leaves_out_counts_that_are_nought():
+    """A job shop degrades no sample, abandons nothing and needs no fallback: those columns took the room that
+    folded 'rl:jobshop_scheduler' over three lines; the caption says what they would have shown."""
+    env = {**os.environ, "COLUMNS": "80"}
+    res = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/jobshop.yaml",
+                          "--schedulers", "fifo,mwkr,rl:agents/policies/jobshop_scheduler.zip"],
+                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert max(map(len, lines)) <= 80
+    header = " ".join(line for line in lines if "scheduler" in line.split()[:1] or "vs" in line.split()[:1])
+    assert "degr." not in header and "lost" not in header and "fallb." not in header and "busy" in header
+    rl = [line.split() for line in lines if line.strip().startswith("rl:")]
+    assert rl and rl[0][0] == "rl:jobshop_scheduler" and float(rl[0][1]) >= 55  # whole, then its makespan (ft06)
+    caption = " ".join(" ".join(lines).split())
+    assert "no run degraded a sample, abandoned an experiment or needed the fallback rule (not shown)" in caption

@@ -151,7 +151,7 @@ def bench_schedulers(
     from dataclasses import asdict
 
     from twin.tools.planner_bench import bench_pool
-    from twin.tools.scheduler_bench import HEADER, bench, bound, caption, load_variant, rows
+    from twin.tools.scheduler_bench import COUNTS, HEADER, bench, bound, caption, deterministic, load_variant, rows
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if shapes:
@@ -174,7 +174,7 @@ def bench_schedulers(
             progress = bar_progress(as_json)
             with progress:
                 bar = progress.add_task(f"{title}: {len(names)} schedulers",
-                                        total=len(names) * (1 if s.jobshop else seeds))
+                                        total=len(names) * (1 if deterministic(s) else seeds))
                 results = bench(s, names, seeds, workers, on_run=lambda r: progress.advance(bar), pool=pool)
             runs = len(next(iter(results.values())))
             table_rows = rows(results, optimum, 1.0 if s.jobshop else 3600.0)
@@ -182,10 +182,12 @@ def bench_schedulers(
             tables.append({"lab": title, "bound_s": optimum, "rows": [dict(zip(HEADER, r)) for r in table_rows]})
             if as_json:
                 continue
-            shown = [i for i in range(len(HEADER)) if optimum or HEADER[i] != "vs bound"]  # no bound: no column
+            # no bound: no column; counts that are nought for every scheduler (a job shop's) leave the room to names
+            silent = {h for i, h in enumerate(HEADER) if h in COUNTS and all(float(r[i]) == 0 for r in table_rows)}
+            shown = [i for i, h in enumerate(HEADER) if (optimum or h != "vs bound") and h not in silent]
             table = narrow_table([HEADER[i] for i in shown], f"{title} — {runs} run(s) per scheduler" +
                                  (f"; CP-SAT bound {optimum:.0f} lab-s" if optimum else ""),
-                                 caption("lab-s" if s.jobshop else "lab-h", bound=bool(optimum)))
+                                 caption("lab-s" if s.jobshop else "lab-h", bound=bool(optimum), silent=silent))
             for row in table_rows:
                 table.add_row(*(row[i] for i in shown))
             print_table(table)

@@ -77,12 +77,21 @@ def bench(scenario: Scenario, schedulers: list[str], seeds: int, workers: int = 
 HEADER = ["scheduler", "mean", "median", "vs bound", "vs best rule", "busy", "degr.", "lost", "fallb.", "ms p50/p99"]
 
 
-def caption(unit: str, bound: bool = True) -> str:
+#: Columns of counts: what each counts, and what a run that never counted one did not do. A table may leave out
+#: a column that is nought throughout.
+COUNTS = {"degr.": ("degraded samples", "degraded a sample"), "lost": ("abandoned experiments", "abandoned an experiment"),
+          "fallb.": ("decisions the fallback rule made (an agent absent or late)", "needed the fallback rule")}
+
+
+def caption(unit: str, bound: bool = True, silent: set[str] | frozenset[str] = frozenset()) -> str:
+    counts = "".join(f"{h}: {what}; " for h, (what, _) in COUNTS.items() if h not in silent)
+    nothing = [did for h, (_, did) in COUNTS.items() if h in silent]
+    none = f"no run {', '.join(nothing[:-1])}{' or ' if len(nothing) > 1 else ''}{nothing[-1]} (not shown); " if (
+        nothing) else ""
     return (f"mean, median: makespan ({unit}); " + ("vs bound: gap to CP-SAT's optimum; " if bound else "") + "vs best "
-            "rule: against the rule with the lowest mean; busy: mean utilisation; degr.: degraded samples; lost: "
-            "abandoned experiments; fallb.: decisions the fallback rule made (an agent absent or late); ms: wall "
-            "time per decision, median p50 / worst p99 (an rl agent is asked in the bench's process: the same "
-            "decisions as over the bus, without its round trip)")
+            f"rule: against the rule with the lowest mean; busy: mean utilisation; {counts}{none}ms: wall time per "
+            "decision, median p50 / worst p99 (an rl agent is asked in the bench's process: the same decisions as "
+            "over the bus, without its round trip)")
 
 
 def rows(results: dict[str, list[Run]], optimum: float | None, unit_s: float) -> list[list[str]]:
@@ -93,7 +102,7 @@ def rows(results: dict[str, list[Run]], optimum: float | None, unit_s: float) ->
     for name, runs in results.items():
         m = means[name]
         out.append([
-            label(name), f"{m / unit_s:.2f}", f"{statistics.median(r.makespan_s for r in runs) / unit_s:.2f}",
+            label(name), _figure(m / unit_s), _figure(statistics.median(r.makespan_s for r in runs) / unit_s),
             f"{100 * (m / optimum - 1):+.1f}%" if optimum else "—",
             f"{100 * (m / best_rule - 1):+.1f}%" if best_rule else "—",
             f"{100 * statistics.mean(r.utilisation for r in runs):.0f}%",
@@ -102,6 +111,12 @@ def rows(results: dict[str, list[Run]], optimum: float | None, unit_s: float) ->
             f"{statistics.median(r.decision_p50_ms for r in runs):.2f}/{max(r.decision_p99_ms for r in runs):.2f}",
         ])
     return out
+
+
+def _figure(x: float) -> str:
+    """A makespan with the decimals its size needs: 46.37 lab-h, 930.5 or 1999999 lab-s (two decimals on a
+    seven-figure number squeezed the scheduler's name to five letters a line at 80 columns)."""
+    return f"{x:.2f}" if abs(x) < 100 else f"{x:.1f}" if abs(x) < 1000 else f"{x:.0f}"
 
 
 def load_variant(path: str | Path, jobshop_file: str | None = None, budget: int | None = None,
