@@ -58,6 +58,29 @@ def test_a_device_failing_k_times_in_a_row_is_quarantined_then_probed(scenario_o
     assert all("failed" in r for r in summary.abandoned_reasons)
 
 
+def test_a_step_that_became_ready_too_long_ago_is_not_retried_and_the_reason_says_which_field(scenario_of, tmp_path):
+    """Attempts left, but first ready longer ago than retry.max_delay_s: abandoned after one failure. The reason
+    used to read only "failed 1 time(s)" while max_attempts was 4 (in a large lab whose queue held a step for
+    a day, most abandoned experiments read so)."""
+    s = scenario_of(**{"devices.synthesiser.faults": {"fail_p": 1.0}, "orchestrator.quarantine_after": 50,
+                       "orchestrator.retry": {"max_attempts": 4, "backoff_s": 10, "max_delay_s": 1},
+                       "campaign.budget": 2})
+    summary = run(s, journal=tmp_path / "j.db")
+    assert summary.abandoned == 2 and summary.attempts == 2  # one attempt each: none retried
+    (kind, n), = summary.abandoned_reasons.items()
+    assert n == 2 and kind.endswith(": failed (waited past max_delay_s)")
+    reason = summary.abandoned_examples[kind]
+    assert "failed 1 time(s) and is not retried" in reason and "orchestrator.retry.max_delay_s (1 s" in reason
+
+
+def test_a_step_whose_attempts_are_used_up_says_only_how_often_it_failed(scenario_of, tmp_path):
+    s = scenario_of(**{"devices.synthesiser.faults": {"fail_p": 1.0}, "orchestrator.quarantine_after": 50,
+                       "orchestrator.retry": {"max_attempts": 2, "backoff_s": 10}, "campaign.budget": 1})
+    summary = run(s, journal=tmp_path / "j.db")
+    (kind, n), = summary.abandoned_reasons.items()
+    assert kind.endswith(": failed") and "failed 2 time(s); last: failed on" in summary.abandoned_examples[kind]
+
+
 async def _duplicating_device(bus, clock, lab, name):
     """A misbehaving device: answers every command with its result twice, plus one for a stranger."""
     ids = iter(range(1, 10**6))

@@ -73,7 +73,9 @@ def refused(core: CampaignCore, task: Task, dev: Device, reason: str, infeasible
         core._retrying[task.id] = task
         core._timer(TimerKey(TimerKind.RETRY, task.id), backoff)
     else:
-        finish(core, e, Status.ABANDONED, f"step {task.step.step!r} refused {task.refusals} time(s), last by "
+        late = "" if core.stopping or task.refusals >= MAX_REFUSALS else policy.waited_too_long(
+            counted, core.now - task.first_ready, o.retry)
+        finish(core, e, Status.ABANDONED, f"step {task.step.step!r} refused {task.refusals} time(s){late}, last by "
                                           f"{dev.name}: {reason}")
 
 
@@ -122,7 +124,8 @@ def failed(core: CampaignCore, task: Task, dev: Device, code: str, reason: str) 
         core._retrying[task.id] = task
         core._timer(TimerKey(TimerKind.RETRY, task.id), backoff)
     else:
-        why = f"step {task.step.step!r} failed {task.attempts} time(s); last: {code} on {dev.name}: {reason}"
+        late = "" if core.stopping else policy.waited_too_long(counted, core.now - task.first_ready, o.retry)
+        why = f"step {task.step.step!r} failed {task.attempts} time(s){late}; last: {code} on {dev.name}: {reason}"
         finish(core, e, Status.ABANDONED, why)
 
 

@@ -21,6 +21,15 @@ def may_retry(attempts: int, waited_s: float, retry: Any) -> bool:
     return attempts < retry.max_attempts and waited_s < retry.max_delay_s
 
 
+def waited_too_long(attempts: int, waited_s: float, retry: Any) -> str:
+    """Why a step with attempts left is not retried — it first became ready longer ago than
+    ``retry.max_delay_s`` — or '' (also when its attempts are used up: its count of failures says that)."""
+    if attempts >= retry.max_attempts or waited_s < retry.max_delay_s:
+        return ""
+    return (f" and is not retried: it became ready {waited_s / 3600:.1f} lab-h ago, past "
+            f"orchestrator.retry.max_delay_s ({retry.max_delay_s:g} s; raise it to retry longer)")
+
+
 def backoff_s(retry: Any, attempts: int, seed: int, task: str) -> float:
     """Exponential back-off with jitter, drawn from the (seed, task, attempt) stream."""
     base = min(retry.backoff_max_s, retry.backoff_s * 2 ** (attempts - 1))
