@@ -58,19 +58,23 @@ def test_a_device_failing_k_times_in_a_row_is_quarantined_then_probed(scenario_o
     assert all("failed" in r for r in summary.abandoned_reasons)
 
 
-def test_a_step_that_became_ready_too_long_ago_is_not_retried_and_the_reason_says_which_field(scenario_of, tmp_path):
-    """Attempts left, but first ready longer ago than retry.max_delay_s: abandoned after one failure. The reason
-    used to read only "failed 1 time(s)" while max_attempts was 4 (in a large lab whose queue held a step for
-    a day, most abandoned experiments read so)."""
-    s = scenario_of(**{"devices.synthesiser.faults": {"fail_p": 1.0}, "orchestrator.quarantine_after": 50,
+def test_a_step_retried_for_longer_than_max_delay_is_abandoned_and_the_reason_names_the_field(scenario_of, tmp_path):
+    """Attempts left, but retried for longer than retry.max_delay_s: abandoned, saying so. The clock starts at the
+    step's first failure: time it spent queued before its first attempt is not retrying (it was counted, and in a
+    large lab whose queue held steps for days an experiment was abandoned at its first failure, reading only
+    "failed 1 time(s)" while max_attempts was 4)."""
+    s = scenario_of(**{"devices.synthesiser.faults": {"fail_p": 1.0}, "devices.synthesiser.instances": 1,
+                       "orchestrator.quarantine_after": 50, "campaign.max_in_flight": 3,
                        "orchestrator.retry": {"max_attempts": 4, "backoff_s": 10, "max_delay_s": 1},
-                       "campaign.budget": 2})
+                       "campaign.budget": 3})
     summary = run(s, journal=tmp_path / "j.db")
-    assert summary.abandoned == 2 and summary.attempts == 2  # one attempt each: none retried
+    # every step is retried once, the queued ones too (first ready long before their first failure), then not
+    assert summary.abandoned == 3 and summary.attempts == 6
     (kind, n), = summary.abandoned_reasons.items()
-    assert n == 2 and kind.endswith(": failed (waited past max_delay_s)")
+    assert n == 3 and kind.endswith(": failed (retried past max_delay_s)")
     reason = summary.abandoned_examples[kind]
-    assert "failed 1 time(s) and is not retried" in reason and "orchestrator.retry.max_delay_s (1 s" in reason
+    assert "failed 2 time(s) and is not retried: it has been retried for" in reason
+    assert "orchestrator.retry.max_delay_s (1 s; raise it" in reason
 
 
 def test_a_step_whose_attempts_are_used_up_says_only_how_often_it_failed(scenario_of, tmp_path):

@@ -340,7 +340,7 @@ class CampaignCore:
             step = e.route[e.stage]
             expected = self._expected(e, step)
             then = tuple((s.device, self._expected(e, s)) for s in e.route[e.stage + 1:])
-            task = Task(f"e{e.id}s{e.stage}", e, step, self.now, self.now, expected,
+            task = Task(f"e{e.id}s{e.stage}", e, step, self.now, expected,
                         expected + sum(d for _, d in then), then)
         task.ready_since = self.now
         if self.stocks:

@@ -44,7 +44,6 @@ class Task:
     id: str
     experiment: Experiment
     step: RouteStep
-    first_ready: float
     ready_since: float
     expected_s: float
     work_remaining_s: float
@@ -53,6 +52,7 @@ class Task:
     failed_on: list[str] = field(default_factory=list)  # devices, oldest failure first
     refusals: int = 0  # "not now" answers, which do not count as attempts
     excused: int = 0  # attempts refused "not now" or stopped by an operator: numbered, not counted against retries
+    retrying_since: float | None = None  # its first failure or "not now": retry.max_delay_s counts from here
     barred: frozenset[str] = frozenset()  # devices it may not go to (an operator chose another device)
 
 

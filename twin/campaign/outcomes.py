@@ -65,16 +65,17 @@ def refused(core: CampaignCore, task: Task, dev: Device, reason: str, infeasible
     task.excused += 1
     task.refusals += 1
     counted = task.attempts - task.excused
+    retrying_s = core.now - _retrying_since(core, task)
     if (task.refusals < MAX_REFUSALS and not core.stopping
-            and policy.may_retry(counted, core.now - task.first_ready, o.retry)):
+            and policy.may_retry(counted, retrying_s, o.retry)):
         backoff = policy.backoff_s(o.retry, counted + 1, core.seed, task.id)
         core._note("task.refused", e.id, task.id, task.attempts + 1, dev.name,
                    detail={"backoff_s": backoff, "reason": reason})
         core._retrying[task.id] = task
         core._timer(TimerKey(TimerKind.RETRY, task.id), backoff)
     else:
-        late = "" if core.stopping or task.refusals >= MAX_REFUSALS else policy.waited_too_long(
-            counted, core.now - task.first_ready, o.retry)
+        late = "" if core.stopping or task.refusals >= MAX_REFUSALS else policy.retried_too_long(
+            counted, retrying_s, o.retry)
         finish(core, e, Status.ABANDONED, f"step {task.step.step!r} refused {task.refusals} time(s){late}, last by "
                                           f"{dev.name}: {reason}")
 
@@ -111,7 +112,8 @@ def failed(core: CampaignCore, task: Task, dev: Device, code: str, reason: str) 
         if policy.should_quarantine(dev.consecutive_failures, o.quarantine_after, dev.quarantined):
             quarantine(core, dev)
     counted = task.attempts - task.excused
-    retries_left = policy.may_retry(counted, core.now - task.first_ready, o.retry) and not core.stopping
+    retrying_s = core.now - _retrying_since(core, task)
+    retries_left = policy.may_retry(counted, retrying_s, o.retry) and not core.stopping
     rule = None if core.stopping else questions.rule_for(core, task, dev.type, code, retries_left)
     if rule is not None:
         why = f"step {task.step.step!r} failed {task.attempts} time(s); last: {code} on {dev.name}: {reason}"
@@ -124,9 +126,17 @@ def failed(core: CampaignCore, task: Task, dev: Device, code: str, reason: str) 
         core._retrying[task.id] = task
         core._timer(TimerKey(TimerKind.RETRY, task.id), backoff)
     else:
-        late = "" if core.stopping else policy.waited_too_long(counted, core.now - task.first_ready, o.retry)
+        late = "" if core.stopping else policy.retried_too_long(counted, retrying_s, o.retry)
         why = f"step {task.step.step!r} failed {task.attempts} time(s){late}; last: {code} on {dev.name}: {reason}"
         finish(core, e, Status.ABANDONED, why)
+
+
+def _retrying_since(core: CampaignCore, task: Task) -> float:
+    """When the step's retries began (now, at its first failure or "not now"): time it spent queued before its
+    first attempt is the scheduler's doing, not retrying, and must not cost it its retries."""
+    if task.retrying_since is None:
+        task.retrying_since = core.now
+    return task.retrying_since
 
 
 def quarantine(core: CampaignCore, dev: Device) -> None:

@@ -21,12 +21,12 @@ def may_retry(attempts: int, waited_s: float, retry: Any) -> bool:
     return attempts < retry.max_attempts and waited_s < retry.max_delay_s
 
 
-def waited_too_long(attempts: int, waited_s: float, retry: Any) -> str:
-    """Why a step with attempts left is not retried — it first became ready longer ago than
+def retried_too_long(attempts: int, retrying_s: float, retry: Any) -> str:
+    """Why a step with attempts left is not retried — its first failure or refusal was longer ago than
     ``retry.max_delay_s`` — or '' (also when its attempts are used up: its count of failures says that)."""
-    if attempts >= retry.max_attempts or waited_s < retry.max_delay_s:
+    if attempts >= retry.max_attempts or retrying_s < retry.max_delay_s:
         return ""
-    return (f" and is not retried: it became ready {waited_s / 3600:.1f} lab-h ago, past "
+    return (f" and is not retried: it has been retried for {retrying_s / 3600:.1f} lab-h, past "
             f"orchestrator.retry.max_delay_s ({retry.max_delay_s:g} s; raise it to retry longer)")
 
 

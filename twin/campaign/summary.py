@@ -111,7 +111,7 @@ def _reason_kind(reason: str) -> str:
     try:
         step = reason.split("'")[1]
         code = reason.split("last: ")[1].split(" ")[0]
-        return f"{step}: {code}" + (" (waited past max_delay_s)" if "max_delay_s" in reason else "")
+        return f"{step}: {code}" + (" (retried past max_delay_s)" if "max_delay_s" in reason else "")
     except IndexError:
         return reason
 

@@ -14,7 +14,8 @@ from twin.scenario.spec import MAX_S, MAX_VALUE, Label, Name, Spec
 class Retry(Spec):
     max_attempts: int = Field(default=3, ge=1, le=100, description="attempts of one step before its experiment is "
                               "abandoned (or an operator is asked: orchestrator.recovery)")
-    max_delay_s: float = Field(default=24 * 3600, gt=0, le=1e8, description="stop retrying a step after this")
+    max_delay_s: float = Field(default=24 * 3600, gt=0, le=1e8, description="stop retrying a step this long after its "
+                              "first failure (lab seconds; time queued before it is not counted)")
     backoff_s: float = Field(default=60, ge=0, le=MAX_S, description="lab seconds before the first retry; doubled "
                              "for each one after")
     backoff_max_s: float = Field(default=3600, ge=0, le=MAX_S, description="the longest wait before a retry")
