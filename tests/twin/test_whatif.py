@@ -128,17 +128,32 @@ def test_a_lab_of_several_campaigns_shows_each_campaigns_hours_one_after_the_oth
     assert all(len(line) <= 80 for line in out.splitlines())
 
 
-def test_a_job_shop_of_minutes_shows_its_hours_to_the_second_and_a_played_ahead_run_saves_them(tmp_path):
-    """Playing the shop ahead (campaign.rollouts) shortens it by minutes: shown, not rounded to '0.2' and '-0.0'."""
+def test_a_job_shop_of_minutes_reads_in_lab_seconds_and_a_played_ahead_run_saves_them(tmp_path):
+    """Playing the shop ahead (campaign.rollouts) shortens it by seconds of a shop of minutes: shown as such, not
+    as '0.224' and '-0.007' lab-h (nor, before that, '0.2' and '-0.0')."""
     shop = tmp_path / "la02.yaml"
     shop.write_text(f"name: la02\nlab: jobshop\njobshop: {{file: {ROOT / 'scenarios' / 'jobshop' / 'la02.txt'}}}\n"
                     f"campaign: {{scheduler: 'rl:{ROOT / 'agents' / 'policies' / 'jobshop_scheduler.zip'}'}}\n")
     code, out = whatif(str(shop), "--vary", "campaign.rollouts=16", "--seeds", "1")
     assert code == 0, out
+    assert "lab-s" in out and "lab-s: lab-seconds of the whole campaign" in " ".join(out.split())
     table = {line.split()[0]: line.split()[1:4] for line in out.splitlines() if line.split()[:1] in (["1*"], ["16"])}
     (greedy, _, _), (played, _, saved) = table["1*"], table["16"]
-    assert all(len(h.partition(".")[2]) == 3 for h in (greedy, played, saved)), out  # la02: ~0.2 lab-h
-    assert float(played) < float(greedy) and float(saved) < 0
+    assert int(greedy) == 808 and int(played) < int(greedy) and int(saved) == int(played) - int(greedy), out
+
+
+def test_a_lab_that_runs_alike_on_every_seed_runs_once_per_variant_and_one_with_chance_runs_every_seed():
+    """A job shop (no chance in durations or faults) gives the same run on every seed: twenty were run and shown
+    with an IQR of nothing; a variant that brings chance in runs them all, the scenario as written too."""
+    code, out = whatif("scenarios/jobshop.yaml", "--schedulers", "mwkr", "--seeds", "20", "--json")
+    assert code == 0, out
+    doc = json.loads(out)
+    assert doc["seeds"] == 1 and [(r["variant"], r["seed"]) for r in doc["runs"]] == [("as written", 0), ("campaign.scheduler=mwkr", 0)]
+    code, out = whatif("scenarios/jobshop.yaml", "--schedulers", "mwkr", "--seeds", "20")
+    assert "runs alike on every seed" in out and "One run per variant" in " ".join(out.split())
+    code, out = whatif("scenarios/jobshop.yaml", "--vary", "devices.m0.faults.fail_p=0,0.3", "--seeds", "3", "--json")
+    doc = json.loads(out)
+    assert doc["seeds"] == 3 and len(doc["runs"]) == 6
 
 
 def test_a_policy_is_shown_by_its_files_name_and_kept_whole_in_json(tmp_path):

@@ -40,8 +40,8 @@ def whatif(
     from rich import box
 
     from twin.tools.whatif import (AS_WRITTEN, axes_of, campaign_rows, caption, cheapest_within, costs_anything,
-                                   has_targets as any_targets, header, parse_vary, rows, summarise, variants,
-                                   written_values)
+                                   has_targets as any_targets, header, in_seconds, parse_vary, rows, runs_alike,
+                                   summarise, variants, written_values)
     from twin.tools.whatif import whatif as run_whatif
 
     split = lambda text: [x.strip() for x in text.split(",") if x.strip()] if text else None  # noqa: E731
@@ -57,11 +57,17 @@ def whatif(
         if len(chosen) == 1:
             raise TwinError("nothing to compare: give --vary FIELD=V1,V2 (or --schedulers / --planners) with a value "
                             "other than the scenario's")
+        alike = runs_alike(s, chosen)
     except TwinError as exc:
         _fail(exc)
+    if alike and seeds > 1:
+        seeds = 1
+        if not as_json:
+            console.print(f"{s.name} runs alike on every seed (no chance in its durations or faults): one run per "
+                          "variant", highlight=False)
     progress = bar_progress(as_json)
     with progress:
-        bar = progress.add_task(f"{s.name}: {len(chosen)} variants × {seeds} seeds", total=len(chosen) * seeds)
+        bar = progress.add_task(f"{s.name}: {len(chosen)} variants × {seeds} seed(s)", total=len(chosen) * seeds)
         results = run_whatif(s, chosen, seeds, workers, on_run=lambda o: progress.advance(bar))
     summary = summarise(results, chosen)
     best = cheapest_within(summary, budget_hours) if budget_hours is not None else None
@@ -77,16 +83,17 @@ def whatif(
                                        "runs": [asdict(o) for o in results]}))
         return
     has_targets, with_cost = any_targets(s), costs_anything(summary)
-    table = Table(title=f"{s.name}: what if — {len(chosen)} variants × {seeds} seeds", title_justify="left",
+    seconds = in_seconds(summary)
+    table = Table(title=f"{s.name}: what if — {len(chosen)} variants × {seeds} seed(s)", title_justify="left",
                   box=box.SIMPLE_HEAD, collapse_padding=True,
                   pad_edge=False)
-    for i, h in enumerate(header(axes, with_cost)):
+    for i, h in enumerate(header(axes, with_cost, seconds)):
         table.add_column(h, overflow="fold", no_wrap=i >= len(axes) and h not in ("busiest", "IQR"),
                          min_width=max(len(part) for part in h.split("\n")) if i < len(axes) else None)
     for row in rows(summary, axes, written_values(s, axes), has_targets, with_cost):
         table.add_row(*row)
     console.print(table)
-    console.print(caption(has_targets, seeds, with_cost), highlight=False)  # wrapped at the terminal, not the table
+    console.print(caption(has_targets, seeds, with_cost, seconds, alike), highlight=False)  # wrapped at the terminal, not the table
     if s.campaigns:
         names = list(summary[0]["per_campaign"])
         console.print("each campaign: median lab-h from its start to its end", highlight=False)

@@ -166,6 +166,18 @@ def _shared(lab: Scenario, variant: Variant, seed: int) -> Outcome:
                    {n: c.lab_hours for n, c in out.campaigns.items()})
 
 
+def runs_alike(scenario: Scenario, chosen: list[Variant]) -> bool:
+    """Whether every variant runs the same on every seed — a job shop: experiments known, durations fixed, no
+    faults, no plan sampled ahead — so that one run each says all that more seeds would."""
+    from twin.tools.scheduler_bench import deterministic
+
+    for v in chosen:
+        lab = prepare(scenario, overrides=dict(v.changes) or None)
+        if not deterministic(lab) or lab.campaign.rollouts > 1:
+            return False
+    return True
+
+
 def _one(job: tuple[Scenario, Variant, int]) -> Outcome:
     return one(*job)
 
@@ -218,11 +230,18 @@ def cheapest_within(summary: list[dict[str, Any]], hours: float) -> dict[str, An
     return min(fits, key=lambda row: (row["cost"][1], row["lab_hours"][1])) if fits else None
 
 
-def header(axes: list[str], with_cost: bool = True) -> list[str]:
+def in_seconds(summary: list[dict[str, Any]]) -> bool:
+    """Whether the table reads in lab-seconds: every variant's runs end within the hour (a job shop's 55 s read
+    0.015 lab-h, and a change of 3 s −0.001)."""
+    return bool(summary) and max(row["lab_hours"][2] for row in summary) < 1
+
+
+def header(axes: list[str], with_cost: bool = True, seconds: bool = False) -> list[str]:
     """The table's columns: one per varied field (a device's field on lines of its own), then the measures
     (the cost ones only if something costs)."""
+    unit = "lab-s" if seconds else "lab-h"
     return [_short(name, axes) for name in axes] + \
-        ["lab-h", "IQR", "Δ lab-h", *(["cost", "Δ cost"] if with_cost else []), "aband.", "busiest"]
+        [unit, "IQR", f"Δ {unit}", *(["cost", "Δ cost"] if with_cost else []), "aband.", "busiest"]
 
 
 def _short(name: str, axes: list[str]) -> str:
@@ -245,12 +264,12 @@ def costs_anything(summary: list[dict[str, Any]]) -> bool:
 def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any], targets: bool,
          with_cost: bool = True) -> list[list[str]]:
     out = []
-    top = max((row["lab_hours"][2] for row in summary), default=0.0)
-    d = 3 if top < 1 else 1  # a job shop of minutes is not all "0.2"
+    scale, d = (3600, 0) if in_seconds(summary) else (1, 1)
     for row in summary:
-        lo, mid, hi = row["lab_hours"]
+        lo, mid, hi = (scale * x for x in row["lab_hours"])
         censored = "≥" if targets and row["reached"] < row["runs"] else ""
         change, cost_change = row["lab_hours_change"], row["cost_change"]
+        change = change and [scale * x for x in change]
         base = row["variant"] == AS_WRITTEN
         busiest = row["bottleneck"]
         out.append([
@@ -287,11 +306,14 @@ def has_targets(s: Scenario) -> bool:
     return bool(s.chemistry.targets) or any(c.chemistry is not None and c.chemistry.targets for c in s.campaigns)
 
 
-def caption(targets: bool, seeds: int, with_cost: bool = True) -> str:
-    what = ("lab-h: lab-hours until every target (of every campaign) was met (≥: not met in every run, the whole "
+def caption(targets: bool, seeds: int, with_cost: bool = True, seconds: bool = False, alike: bool = False) -> str:
+    unit, hours = ("lab-s", "lab-seconds") if seconds else ("lab-h", "lab-hours")
+    what = (f"{unit}: {hours} until every target (of every campaign) was met (≥: not met in every run, the whole "
             "campaign counted)"
-            if targets else "lab-h: lab-hours of the whole campaign (the scenario has no targets)")
-    return (f"*: the scenario as written. Medians and IQR over {seeds} paired seeds. {what}; Δ: median of the per-seed "
-            "change against the scenario as written; " + ("cost: at the last target (else all spent); " if with_cost else
+            if targets else f"{unit}: {hours} of the whole campaign (the scenario has no targets)")
+    runs = ("One run per variant: each runs alike on every seed (a job shop: no chance in durations or faults)"
+            if alike else f"Medians and IQR over {seeds} paired seeds")
+    return (f"*: the scenario as written. {runs}. {what}; Δ: " + ("the change" if alike else "median of the per-seed "
+            "change") + " against the scenario as written; " + ("cost: at the last target (else all spent); " if with_cost else
             "no device costs anything (devices.*.cost), so no cost columns; ") + "aband.: experiments "
             "abandoned (mean); busiest: the device type with the highest mean utilisation. --json or --csv: all of it")
