@@ -26,6 +26,9 @@ def test_run_prints_the_summary_and_report_prints_it_again(tmp_path):
     again = subprocess.run([*TWIN, "report", str(db)], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert again.returncode == 0
     assert again.stdout.split("journal")[0] == res.stdout.split("journal")[0]
+    moved = db.rename(tmp_path / "kept.db")  # the report names the file it read, not where the run wrote it
+    again = subprocess.run([*TWIN, "report", str(moved)], capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert f"journal: {moved}  (twin report {moved})" in again.stdout and str(db) not in again.stdout
 
 
 def test_a_lab_of_minutes_shows_its_time_in_seconds_and_one_of_hours_in_hours(tmp_path):

@@ -287,7 +287,9 @@ def _report(journal: Path, resume_with: Path | None = None) -> None:
                       f"Continue it with: twin resume {resume_with or journal}",
                       highlight=False, soft_wrap=True)
         return
-    render_summary(Summary.from_dict(data["summary"]), console)
+    summary = Summary.from_dict(data["summary"])
+    summary.journal = str(journal)  # the file read: a journal copied or moved names where it was written
+    render_summary(summary, console)
 
 
 @app.command()
