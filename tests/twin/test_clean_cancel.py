@@ -3,6 +3,7 @@ period has passed, or it left the bus), and a "busy" answer from a device still 
 in one process on the memory bus, and with the device in another process behind a router."""
 
 import json
+import re
 
 import pytest
 import yaml
@@ -63,6 +64,8 @@ def _check(db, summary) -> None:
     assert {t: len(ns) for t, ns in per_step.items()} == {f"e{i}s1": 2 for i in range(3)}
     assert summary.abandoned == 3 and summary.timed_out == 6
     assert busy, "the device was never asked while stopping: the grace is longer than the test means"
+    # says what it is still running, in words (it read "busy with ('e0s1', 1)")
+    assert all(re.search(r"busy with e\d+s1 \(attempt \d+\)", json.loads(e["detail"])["body"]["reason"]) for e in busy), busy
     assert len(busy) <= kinds.count("attempt.cancel_unanswered") == kinds.count("device.still_cancelling")
     assert kinds.count("attempt.cancel_acknowledged") >= 5  # the campaign may end before the last
 

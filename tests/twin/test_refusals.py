@@ -87,6 +87,21 @@ class BusyOnce(Interlocked):
         return StepResult({"peak_nm": sample["peak_nm"]}, sample)
 
 
+class AlwaysWarmingUp(Interlocked):
+    async def run(self, step, params, sample, ctx):
+        raise Refused("warming up", infeasible=False)
+
+
+def test_a_step_refused_until_it_gives_up_is_counted_as_refused_and_says_by_whom(tmp_path):
+    """The summary groups it as '<step>: refused' (it showed the whole reason as its kind, then again as its
+    example)."""
+    s = run(parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_refusals:AlwaysWarmingUp",
+                            "devices.spectrometer.instances": 1, "campaign.budget": 2})), journal=tmp_path / "j.db")
+    assert s.abandoned == 2 and s.abandoned_reasons == {"measure: refused": 2}, s.abandoned_reasons
+    assert "refused" in s.abandoned_examples["measure: refused"]
+    assert "last by spectrometer: warming up" in s.abandoned_examples["measure: refused"]
+
+
 def test_a_box_that_misses_the_envelope_is_a_validation_error():
     with pytest.raises(ScenarioError, match=r"devices.spectrometer.envelope.temperature_c: .* does not overlap"):
         parse(qd_lab(**{"devices.spectrometer.envelope": {"temperature_c": {"low": 400, "high": 500}}}))

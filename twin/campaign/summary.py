@@ -103,14 +103,18 @@ def _percentiles(seconds: list[float]) -> dict[str, float]:
 
 
 def _reason_kind(reason: str) -> str:
-    """'step 'measure' failed 3 time(s); last: timed_out on spec-1: ...' -> 'measure: timed_out'."""
+    """'step 'measure' failed 3 time(s); last: timed_out on spec-1: ...' -> 'measure: timed_out'; 'step 'measure'
+    refused 5 time(s), last by spec-1: ...' -> 'measure: refused'."""
     if reason.startswith("infeasible"):
         return "infeasible"
     if reason.startswith(UNRUNNABLE):
         return UNRUNNABLE
     try:
         step = reason.split("'")[1]
-        code = reason.split("last: ")[1].split(" ")[0]
+        if reason.startswith(f"step '{step}' refused "):
+            code = "refused"
+        else:
+            code = reason.split("last: ")[1].split(" ")[0]
         return f"{step}: {code}" + (" (retried past max_delay_s)" if "max_delay_s" in reason else "")
     except IndexError:
         return reason

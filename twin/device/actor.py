@@ -21,7 +21,7 @@ from twin.core import keys
 from twin.core.bus import Bus, Closable
 from twin.core.clock import LabClock, wait_cancelled
 from twin.core.streams import KeyedGenerator, seeded
-from twin.device.driver import Driver, StepContext, feature, simulated_faults
+from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults
 from twin.core.errors import Refused
 from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack
 
@@ -179,8 +179,7 @@ class DeviceActor:
                            env.task, env.attempt, env.campaign, env.token)
                 return
             if self._job is not None:
-                self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, env.task, env.attempt,
-                           env.campaign, env.token)
+                self._emit(Kind.REJECTED, busy_with(self._current), env.task, env.attempt, env.campaign, env.token)
                 return
             self._current, self._token_of_current = (env.task, env.attempt), env.token
             self._job = asyncio.ensure_future(self._run(env.task, env.attempt, env.campaign, env.token, body))  # type: ignore[arg-type]

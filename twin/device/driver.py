@@ -121,6 +121,12 @@ def capabilities(driver: Any, who: str) -> frozenset[str]:
     return frozenset(caps)
 
 
+def busy_with(running: tuple[str, int]) -> dict[str, str]:
+    """The "not now" a device answers while it runs a step (one at a time: the lab retries it later)."""
+    task, attempt = running
+    return {"reason": f"busy with {task} (attempt {attempt})"}
+
+
 def simulated_faults(seed: int, task: str, attempt: int, faults: Any) -> tuple[bool, bool]:
     """Whether this attempt hangs, and whether it fails: drawn from the (seed, task, attempt) stream,
     so the draw does not depend on which device runs it or what ran before."""

@@ -18,7 +18,7 @@ from typing import Any
 
 from twin.campaign import DeviceMessage, InvalidInput, Presence
 from twin.core.streams import KeyedGenerator, seeded
-from twin.device.driver import Driver, StepContext, feature, simulated_faults
+from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults
 from twin.core.errors import DriverError, Refused
 from twin.core.messages import InvalidMessage, Kind, decode, envelope, excerpt, to_wire
 from twin.view.observer import WATCHED
@@ -122,7 +122,7 @@ class FastDevice:
         if not self.online:
             return  # off the bus: the command is lost, as it would be
         if self._job is not None:
-            self._emit(Kind.REJECTED, {"reason": f"busy with {self._current}"}, task, attempt, token, campaign)
+            self._emit(Kind.REJECTED, busy_with(self._current), task, attempt, token, campaign)
             return
         self._campaign = campaign
         self._current, self._token = (task, attempt), token
