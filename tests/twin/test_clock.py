@@ -123,3 +123,22 @@ def test_a_scaled_clock_faster_than_the_runtime_keeps_up_with_warns_and_names_a_
     assert first.startswith("clock.speed 30000: ") and "up to about 5,788× keeps that near 1 %" in first
     assert second.startswith("clock.speed 3600: ") and "jobshop_ft06's typical step of 5.5 lab-s" in second
     assert all("--clock virtual runs a campaign as fast as it can go" in m for m in (first, second))
+
+
+def test_a_lab_with_no_steps_yet_is_not_warned_about_its_speed(caplog, tmp_path):
+    """A lab served for campaigns to come (`twin lab serve`) has no steps to weigh the speed against (it was told
+    its 'typical step of 1.0 lab-s' was too short for 3,000×)."""
+    import logging
+
+    import yaml
+
+    from twin.runtime.assembly import make_clock
+    from twin.runtime.lab import prepare
+
+    raw = yaml.safe_load((Path(__file__).resolve().parents[2] / "scenarios" / "shared_lab.yaml").read_text())
+    raw.pop("campaigns")
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
+    empty = prepare(tmp_path / "lab.yaml", clock="scaled", speed=3000, lab_only=True)
+    with caplog.at_level(logging.WARNING, logger="twin.runtime.assembly"):
+        make_clock(empty)
+    assert not caplog.records

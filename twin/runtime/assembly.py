@@ -96,7 +96,8 @@ def _seconds(x: float) -> str:
 def make_clock(s: Scenario) -> LabClock:
     """The lab's clock; a scaled one so fast that the runtime's own wall time per step would lengthen the lab by
     more than about 1 % is run as asked, with a warning that says so and what to use instead."""
-    if s.clock.mode == "scaled":
+    steps_known = bool(s.workflow or s.campaigns or s.campaign.planner_options.get("proposals"))  # a lab serving
+    if s.clock.mode == "scaled" and steps_known:  # campaigns to come has no steps to measure the speed against yet
         added, typical = s.clock.speed * WALL_PER_STEP_S, time_scale(s)
         if added > 0.01 * typical:
             log.warning("clock.speed %g: each step costs the runtime about %.0f ms of wall time, %s lab-s at this "
