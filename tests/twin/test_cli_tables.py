@@ -99,3 +99,33 @@ def test_a_job_shop_bench_at_80_columns_keeps_the_policy_name_whole_and_leaves_o
     assert rl and rl[0][0] == "rl:jobshop_scheduler" and float(rl[0][1]) >= 55  # whole, then its makespan (ft06)
     caption = " ".join(" ".join(lines).split())
     assert "no run degraded a sample, abandoned an experiment or needed the fallback rule (not shown)" in caption
+
+
+def test_the_shapes_bench_at_80_columns_heads_a_policys_column_with_its_name_whole():
+    """It was headed 'rl:flaky_schedu' over 'ler' with room to spare: the name now breaks after 'rl:', and a
+    header's words are kept whole when the table still fits."""
+    env = {**os.environ, "COLUMNS": "80"}
+    res = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/flaky_lab.yaml", "--shapes",
+                          "--seeds", "2", "--schedulers", "fifo,mwkr,rl:agents/policies/flaky_scheduler.zip"],
+                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert max(map(len, res.stdout.splitlines())) <= 80
+    assert "flaky_scheduler" in res.stdout.split() and "rl:" in res.stdout.split()
+
+
+def test_a_narrow_table_with_more_header_words_than_80_columns_hold_folds_them_and_fits(monkeypatch):
+    import io
+
+    from rich.console import Console
+
+    from twin.cli import common
+
+    out = io.StringIO()
+    monkeypatch.setattr(common, "console", Console(file=out, width=80))
+    names = ["fifo", "mwkr", "spt", "oldest-sample", "least-loaded"]
+    table = common.narrow_table(["shape", "best rule", "its mean h", *names, "rl:\nflaky_scheduler"])
+    for shape in ("as written", "synthesiser ×2 instances", "synthesiser bottleneck (×2 duration)"):
+        table.add_row(shape, "mwkr", "44.94", *["+0.17 ± 3.58\nsame"] * len(names), "+1.28 ± 5.51\nsame")
+    common.print_table(table)
+    assert max(map(len, out.getvalue().splitlines())) <= 80
+    assert all(n in out.getvalue().split() for n in ("+0.17", "3.58", "+1.28", "5.51"))  # numbers whole

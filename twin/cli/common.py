@@ -81,26 +81,44 @@ _NUMBER = re.compile(r"\[?[≥≤~]?[-+−]?[\d.,]*\d(?:[%×]|[/–][-+−]?[\d.
 
 def print_table(table: Table) -> None:
     """Print a ``narrow_table`` with every column at least as wide as the longest number in it, so that a number
-    is never split across lines (where "0.33" folded reads as "0.3"); names and words wrap instead."""
+    is never split across lines (where "0.33" folded reads as "0.3"); names and words wrap instead. A header's
+    words are kept whole too ("flaky_scheduler", not "flaky_schedu" over "ler") when the table still fits."""
+    numbers_only = []
     for column in table.columns:
         cells = [cell for cell in column.cells if isinstance(cell, str)]
         numbers = [len(word) for cell in cells for word in cell.split() if _NUMBER.fullmatch(word)]
         if numbers:
             column.min_width = max(column.min_width or 0, *numbers)
+        numbers_only.append(column.min_width)
         if cells and all(_NUMBER.fullmatch(c) or c in ("—", "-", "") for c in cells):
             # a column of numbers needs no more room than its widest one and its header's longest word: the rest
             # goes to the names
             column.max_width = max([*map(len, cells), *(len(w) for w in str(column.header).split())])
-    # rich narrows the widest columns to fit and only then widens each to its min_width, so the table can come
-    # out wider than the terminal (and its caption cropped): ask it for less until it fits
+    for column in table.columns:
+        words = [len(w) for w in str(column.header).split()]
+        column.min_width = max(column.min_width or 0, *words) if words else column.min_width
+    width = _fitted(table)
+    if width is None:  # whole header words leave no room: let them fold, as the numbers may not
+        for column, least in zip(table.columns, numbers_only):
+            column.min_width = least
+        width = _fitted(table) or console.width
+    console.print(table, width=width)
+
+
+def _fitted(table: Table) -> int | None:
+    """The width to render ``table`` at so that it fits the terminal, or None if it cannot. Rich narrows the
+    widest columns to fit and only then widens each to its min_width, so the table can come out wider than the
+    terminal (and its caption cropped): ask it for less until it fits."""
     width = console.width
     for _ in range(4):
         lines = Segment.split_lines(console.render(table, console.options.update_width(width)))  # uncropped
         over = max((Segment.get_line_length(line) for line in lines), default=0) - console.width
         if over <= 0:
-            break
+            return width
         width -= over
-    console.print(table, width=width)
+        if width < 20:
+            return None
+    return None
 
 
 def machine_output(as_json: bool, csv_path: Path | None, header: list[str], rows: list[list[str]],

@@ -218,7 +218,9 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
         f"objective in lab-h (makespan, and {s.training.weights.degraded:g} typical steps per degraded sample, "
         f"{s.training.weights.abandoned:g} per abandoned experiment, ÷ {s.training.weights.time:g}: "
         "training.weights)")
-    table = narrow_table(header, f"{s.name}: each scheduler minus the shape's best rule, {what} "
+    # a policy's or a class's name breaks after its prefix ("rl:" over "flaky_scheduler"), not at the column's edge
+    shown = [*header[:3], *(h.replace(":", ":\n", 1) for h in header[3:])]
+    table = narrow_table(shown, f"{s.name}: each scheduler minus the shape's best rule, {what} "
                                  f"(mean of {seeds} paired seeds ± 95 % CI)")
     progress = bar_progress(as_json)
     with progress:
