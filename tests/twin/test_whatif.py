@@ -148,7 +148,8 @@ def test_a_lab_that_runs_alike_on_every_seed_runs_once_per_variant_and_one_with_
     code, out = whatif("scenarios/jobshop.yaml", "--schedulers", "mwkr", "--seeds", "20", "--json")
     assert code == 0, out
     doc = json.loads(out)
-    assert doc["seeds"] == 1 and [(r["variant"], r["seed"]) for r in doc["runs"]] == [("as written", 0), ("campaign.scheduler=mwkr", 0)]
+    runs = [(r["variant"], r["seed"]) for r in doc["runs"]]
+    assert doc["seeds"] == 1 and runs == [("as written", 0), ("campaign.scheduler=mwkr", 0)]
     code, out = whatif("scenarios/jobshop.yaml", "--schedulers", "mwkr", "--seeds", "20")
     assert "runs alike on every seed" in out and "One run per variant" in " ".join(out.split())
     code, out = whatif("scenarios/jobshop.yaml", "--vary", "devices.m0.faults.fail_p=0,0.3", "--seeds", "3", "--json")

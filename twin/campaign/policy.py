@@ -17,8 +17,9 @@ def deadline_s(expected_s: float, o: Any) -> float:
     return expected_s * o.timeout_factor + o.timeout_slack_s
 
 
-def may_retry(attempts: int, waited_s: float, retry: Any) -> bool:
-    return attempts < retry.max_attempts and waited_s < retry.max_delay_s
+def may_retry(attempts: int, retrying_s: float, retry: Any) -> bool:
+    """Whether a step that has used ``attempts`` and been retried for ``retrying_s`` lab-s may go again."""
+    return attempts < retry.max_attempts and retrying_s < retry.max_delay_s
 
 
 def retried_too_long(attempts: int, retrying_s: float, retry: Any) -> str:
