@@ -251,3 +251,14 @@ def test_run_set_changes_any_field_and_a_bad_one_is_named(tmp_path):
         bad = CliRunner().invoke(app, ["run", "scenarios/flaky_lab.yaml", "--set", item, "--quiet"],
                                  env={"COLUMNS": "200"})
         assert bad.exit_code == 2 and says in bad.output, bad.output
+
+
+def test_the_command_list_shows_each_summary_as_one_paragraph():
+    """typer's rich mode kept a docstring's line breaks in `twin --help`'s list: "as tables (one file" over
+    "each) and its provenance"."""
+    res = subprocess.run([*TWIN, "--help"], capture_output=True, text=True, cwd=ROOT, timeout=60,
+                         env={**os.environ, "COLUMNS": "100"})
+    assert res.returncode == 0
+    text = " ".join(res.stdout.split())
+    assert "acts as tables (one file each) and its provenance" in text
+    assert "or with --connect the devices of a running lab and their health" in text
