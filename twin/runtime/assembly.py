@@ -24,7 +24,7 @@ from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature
 from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
 from twin.scenario import Scenario, load, parse_overridden
-from twin.scenario.objective import time_scale
+from twin.scenario.objective import typical_step
 
 log = logging.getLogger(__name__)
 
@@ -96,9 +96,9 @@ def _seconds(x: float) -> str:
 def make_clock(s: Scenario) -> LabClock:
     """The lab's clock; a scaled one so fast that the runtime's own wall time per step would lengthen the lab by
     more than about 1 % is run as asked, with a warning that says so and what to use instead."""
-    steps_known = bool(s.workflow or s.campaigns or s.campaign.planner_options.get("proposals"))  # a lab serving
-    if s.clock.mode == "scaled" and steps_known:  # campaigns to come has no steps to measure the speed against yet
-        added, typical = s.clock.speed * WALL_PER_STEP_S, time_scale(s)
+    typical = typical_step(s) if s.clock.mode == "scaled" else None  # None: no steps yet to weigh the speed by
+    if typical is not None:
+        added = s.clock.speed * WALL_PER_STEP_S
         if added > 0.01 * typical:
             log.warning("clock.speed %g: each step costs the runtime about %.0f ms of wall time, %s lab-s at this "
                         "speed against %s's typical step of %s lab-s, so the lab will run longer than its devices "

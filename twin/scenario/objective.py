@@ -15,7 +15,13 @@ from twin.scenario.sharing import campaign_scenarios
 
 def time_scale(s: Scenario) -> float:
     """The scenario's typical step duration (lab seconds): the unit of every time feature (a lab of several
-    campaigns: the mean of theirs)."""
+    campaigns: the mean of theirs; a lab with no steps yet: 1)."""
+    return typical_step(s) or 1.0
+
+
+def typical_step(s: Scenario) -> float | None:
+    """The mean expected duration of the scenario's steps (lab seconds), or None for a lab that has none yet (a
+    lab file served for campaigns to come)."""
     if s.campaigns:
         return statistics.mean(time_scale(c) for c in campaign_scenarios(s, s.name).values())
     durations = []
@@ -26,7 +32,7 @@ def time_scale(s: Scenario) -> float:
             d = s.devices[w.device]
             mid = {k: (p.low + p.high) / 2 for k, p in s.chemistry.parameters.items()}
             durations.append(expected_duration(d.duration, mid, d.setup_s, d.clean_s))
-    return max(statistics.mean(durations), 1e-6) if durations else 1.0
+    return max(statistics.mean(durations), 1e-6) if durations else None
 
 
 def weighted_objective(s: Scenario, lab_s: float, degraded: float, abandoned: float, unit_s: float | None = None) -> float:
