@@ -1,9 +1,11 @@
 """Refusals are not faults: an infeasible request is abandoned at once, costs the device nothing, and teaches
 the planner; a scenario's safe envelope stops such requests before they reach the device."""
 
+import io
 import json
 
 import pytest
+from rich.console import Console
 
 from tests.conftest import qd_lab
 from twin import Refused, StepResult
@@ -12,6 +14,7 @@ from twin.cli.commands import waiting_for
 from twin.core.errors import ScenarioError
 from twin.runtime.lab import run
 from twin.scenario import parse
+from twin.view.report import render_summary
 
 HOT_C = 270.0  # the measuring device's interlock: no sample made above this
 
@@ -71,6 +74,11 @@ def test_a_busy_refusal_is_retried_and_does_not_count_as_an_attempt(tmp_path):
     s = run(parse(qd_lab(**{"devices.spectrometer.driver": class_path, "devices.spectrometer.instances": 1,
                             "campaign.budget": 3, "orchestrator.retry.max_attempts": 1})), journal=tmp_path / "j.db")
     assert s.done == 3 and s.abandoned == 0 and s.quarantines == 0
+    # the summary says why there were more attempts than steps: each sample was answered "not now" once
+    assert s.refused_now == 3 and s.attempts == 6 + 3
+    out = io.StringIO()
+    render_summary(s, Console(file=out, width=200))
+    assert "9 (0 failed, 0 retried, 0 timed out, 3 answered 'not now' (sent again later, no attempt used))" in out.getvalue()
 
 
 class BusyOnce(Interlocked):

@@ -33,6 +33,7 @@ class Summary:
     degraded_samples: int
     rejected_messages: int = 0  # well-formed but without the attempt's provenance: forged, misrouted, stale
     infeasible: int = 0  # experiments a device refused, or its safe envelope excluded
+    refused_now: int = 0  # attempts a device answered "not now" (busy, warming up, still stopping): no attempt used
     presence_flaps: int = 0
     abandoned_reasons: dict[str, int] = field(default_factory=dict)
     abandoned_examples: dict[str, str] = field(default_factory=dict)  # each kind of reason: its first in full
@@ -82,7 +83,7 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         failed_attempts=c.failed, retried=c.retried, timed_out=c.timed_out,
         devices_lost=c.device_lost, quarantines=c.quarantined, invalid_messages=c.invalid,
         late_results=c.late, degraded_samples=c.degraded, rejected_messages=c.rejected, presence_flaps=c.flaps,
-        infeasible=c.infeasible,
+        infeasible=c.infeasible, refused_now=c.refused_now,
         abandoned_reasons=dict(reasons), abandoned_examples=examples,
         utilisation={d.name: round(d.busy_s / elapsed, 4) for d in core.devices.values()},
         best=best, targets_met_h={k: v / 3600 for k, v in core.met_at.items()},

@@ -20,7 +20,9 @@ def render_summary(s: Summary, console: Console) -> None:
     t.add_column(style="bold")
     t.add_column()
     t.add_row("experiments", f"{s.done} done, {s.abandoned} abandoned, {s.pending} pending (of {s.proposed} proposed)")
-    t.add_row("attempts", f"{s.attempts} ({s.failed_attempts} failed, {s.retried} retried, {s.timed_out} timed out)")
+    not_now = f", {s.refused_now} answered 'not now' (sent again later, no attempt used)" if s.refused_now else ""
+    t.add_row("attempts", f"{s.attempts} ({s.failed_attempts} failed, {s.retried} retried, {s.timed_out} timed out"
+                          f"{not_now})")
     for reason, n in sorted(s.abandoned_reasons.items()):
         example = s.abandoned_examples.get(reason, "")
         t.add_row("  abandoned", f"{n} × {escape(reason)}" + (f" [dim]— e.g. {escape(example)}[/]" if example else ""))
