@@ -139,3 +139,52 @@ def test_duplicate_and_late_results_are_recorded_never_double_counted(scenario_o
     assert len(read_events(db, "experiment.done")) == 5
     assert len(read_events(db, "result.late")) == 5
     assert len(read_events(db, "message.rejected")) == 5
+
+
+def test_the_summary_names_the_step_degraded_samples_waited_for(scenario_of, tmp_path):
+    """A lab whose one spectrometer is the bottleneck: every degraded sample waited too long for 'measure', and the
+    summary says so with the count, as `twin report` prints it."""
+    import io
+
+    from rich.console import Console
+
+    from twin.view.report import render_summary
+
+    s = scenario_of(**{"devices.synthesiser.instances": 4, "devices.spectrometer.duration": {"mean_s": 3000},
+                       "chemistry.stability_s": 3600, "campaign.max_in_flight": 12, "campaign.budget": 24,
+                       "campaign.stop_on_target": False})
+    db = tmp_path / "j.db"
+    summary = run(s, journal=db)
+    assert summary.degraded_samples > 0
+    assert summary.degraded_before == {"measure": summary.degraded_samples}
+    made = {}
+    for r in read_events(db, "attempt.done"):
+        if r["task"].endswith("s0"):
+            made[r["experiment"]] = r["t_lab"]
+    late = {r["experiment"] for r in read_events(db, "attempt.dispatched")
+            if r["task"].endswith("s1") and r["t_lab"] - made[r["experiment"]] > 3600}
+    done = {r["experiment"] for r in read_events(db, "experiment.done")}
+    assert len(late & done) == summary.degraded_samples
+    out = io.StringIO()
+    render_summary(summary, Console(file=out, width=200))
+    assert (f"{summary.degraded_samples} — waited longer than chemistry.stability_s before measure "
+            f"{summary.degraded_samples}") in out.getvalue()
+
+
+def test_a_type_of_many_instances_is_one_row_of_the_summary(scenario_of, tmp_path):
+    import io
+
+    from rich.console import Console
+
+    from twin.view.report import render_summary
+
+    s = scenario_of(**{"devices.synthesiser.instances": 9, "campaign.budget": 12, "campaign.max_in_flight": 9,
+                       "campaign.stop_on_target": False})
+    summary = run(s, journal=tmp_path / "j.db")
+    out = io.StringIO()
+    render_summary(summary, Console(file=out, width=200))
+    text = out.getvalue()
+    busy = [100 * summary.utilisation[f"synthesiser-{i}"] for i in range(1, 10)]
+    assert f"synthesiser ×9 │ {sum(busy) / 9:5.1f} % busy on average ({min(busy):.1f}–{max(busy):.1f} % per " \
+           "instance)" in text
+    assert "synthesiser-1 " not in text and "spectrometer-1 " in text  # one instance: its own row

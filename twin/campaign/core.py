@@ -358,8 +358,8 @@ class CampaignCore:
     def _dispatch(self, task: Task, dev: Device) -> None:
         e = task.experiment
         stability = self.s.chemistry.stability_s
-        if stability and e.sample_made is not None and self.now - e.sample_made > stability:
-            e.degraded = True  # the sample waited longer than it keeps
+        if stability and not e.degraded and e.sample_made is not None and self.now - e.sample_made > stability:
+            e.degraded, e.degraded_before = True, task.step.step  # the sample waited for this step longer than it keeps
         task.attempts += 1
         e.attempts += 1
         e.status = Status.RUNNING

@@ -33,6 +33,7 @@ class Experiment:
     attempts: int = 0
     retries: int = 0
     degraded: bool = False
+    degraded_before: str = ""  # the step its sample waited for past chemistry.stability_s
     infeasible: bool = False
     t_done: float | None = None
 

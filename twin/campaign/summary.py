@@ -50,6 +50,8 @@ class Summary:
     scheduler_fallbacks: int = 0  # decisions the fallback rule made for an absent, late or wrong agent
     decision_ms: dict[str, float] = field(default_factory=dict)  # wall time per scheduler decision: p50, p99, max
     consumables: dict[str, dict[str, Any]] = field(default_factory=dict)  # item -> left, used, unit, short
+    degraded_before: dict[str, int] = field(default_factory=dict)  # step -> samples that waited for it too long
+    device_types: dict[str, str] = field(default_factory=dict)  # device -> its type
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -86,10 +88,12 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         infeasible=c.infeasible, refused_now=c.refused_now,
         abandoned_reasons=dict(reasons), abandoned_examples=examples,
         utilisation={d.name: round(d.busy_s / elapsed, 4) for d in core.devices.values()},
+        device_types={d.name: d.type for d in core.devices.values()},
         best=best, targets_met_h={k: v / 3600 for k, v in core.met_at.items()},
         targets_met_after=dict(core.met_after), targets_met_cost=dict(core.met_cost),
         stopped=core.stopping, cost=core.cost, wall_s=wall_s, events=events,
         decisions=len(core.decision_wall_s), decision_ms=_percentiles(core.decision_wall_s),
+        degraded_before=dict(Counter(e.degraded_before for e in exps if e.degraded and e.status == "done")),
         consumables={name: {"left": round(st.level, 6), "used": round(st.used, 6), "unit": st.unit,
                             "short": st.depleted} for name, st in core.stocks.items.items()},
     )

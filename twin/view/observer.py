@@ -403,6 +403,13 @@ class LabObserver:
             self.c.points("spectra/peak", t, [(float(peak), float(intensity))], seq=seq)
 
 
+def _waited_for(steps: Any) -> str:
+    if not isinstance(steps, dict) or not steps:
+        return ""
+    return " (past chemistry.stability_s before " + ", ".join(
+        f"{step} {n}" for step, n in sorted(steps.items(), key=lambda kv: -kv[1])) + ")"
+
+
 def summary_markdown(s: dict[str, Any]) -> str:
     lines = [f"# {s.get('scenario', 'campaign')} — seed {s.get('seed', '?')}", "", "| | |", "|---|---|",
              f"| experiments | {s.get('done')} done, {s.get('abandoned')} abandoned, {s.get('pending')} pending "
@@ -410,7 +417,7 @@ def summary_markdown(s: dict[str, Any]) -> str:
              f"| attempts | {s.get('attempts')} ({s.get('failed_attempts')} failed, {s.get('retried')} retried, "
              f"{s.get('timed_out')} timed out) |",
              f"| faults | {s.get('devices_lost')} device losses, {s.get('quarantines')} quarantines |",
-             f"| samples degraded | {s.get('degraded_samples')} |",
+             f"| samples degraded | {s.get('degraded_samples')}{_waited_for(s.get('degraded_before'))} |",
              f"| lab time | {s.get('lab_hours', 0):.2f} h |"]
     for dev, u in (s.get("utilisation") or {}).items():
         lines.append(f"| {dev} | {100 * u:.1f} % busy |")

@@ -15,6 +15,34 @@ def lab_span(seconds: float, digits: int = 2, prefix: str = "") -> str:
     return f"{seconds:,.0f} {prefix}s" if seconds < 3600 else f"{seconds / 3600:.{digits}f} {prefix}h"
 
 
+def degraded(s: Summary) -> str:
+    """How many samples degraded, and the steps they waited for past ``chemistry.stability_s`` (most first)."""
+    if not s.degraded_samples or not s.degraded_before:
+        return str(s.degraded_samples)
+    steps = ", ".join(f"{escape(step)} {n}" for step, n in sorted(s.degraded_before.items(), key=lambda kv: -kv[1]))
+    return f"{s.degraded_samples} [dim]— waited longer than chemistry.stability_s before {steps}[/]"
+
+
+#: A device type with more instances than this is shown as one row (its mean and range), not one per instance.
+FOLD_INSTANCES = 8
+
+
+def busy_rows(s: Summary) -> list[tuple[str, str]]:
+    """Utilisation per device, in the lab's order; a type of many instances as one row."""
+    by_type: dict[str, list[str]] = {}
+    for dev in s.utilisation:
+        by_type.setdefault(s.device_types.get(dev, dev), []).append(dev)
+    rows = []
+    for dtype, devices in by_type.items():
+        if len(devices) <= FOLD_INSTANCES:
+            rows += [(dev, f"{100 * s.utilisation[dev]:5.1f} % busy") for dev in devices]
+            continue
+        busy = [100 * s.utilisation[dev] for dev in devices]
+        rows.append((f"{dtype} ×{len(devices)}", f"{sum(busy) / len(busy):5.1f} % busy on average "
+                                                  f"({min(busy):.1f}–{max(busy):.1f} % per instance)"))
+    return rows
+
+
 def render_summary(s: Summary, console: Console) -> None:
     t = Table(title=f"{s.scenario} — seed {s.seed}", show_header=False, title_justify="left")
     t.add_column(style="bold")
@@ -37,7 +65,7 @@ def render_summary(s: Summary, console: Console) -> None:
     if s.rejected_messages or s.presence_flaps:
         t.add_row("refused", f"{s.rejected_messages} messages without the attempt's provenance (message.rejected), "
                              f"{s.presence_flaps} presence flaps")
-    t.add_row("samples degraded", str(s.degraded_samples))
+    t.add_row("samples degraded", degraded(s))
     if s.decisions:
         ms = s.decision_ms
         fallback = f"; {s.scheduler_fallbacks} made by the fallback rule" if s.scheduler_fallbacks else ""
@@ -47,8 +75,8 @@ def render_summary(s: Summary, console: Console) -> None:
         t.add_row("cost", f"{s.cost:,.0f}")
     hours = f"{s.lab_hours:.3f} h; " if s.lab_hours < 1 else ""
     t.add_row("lab time", f"{lab_span(s.lab_hours * 3600)} ({hours}{s.wall_s:.2f} s wall, {s.events} journal events)")
-    for dev, u in s.utilisation.items():
-        t.add_row(f"  {dev}", f"{100 * u:5.1f} % busy")
+    for name, u in busy_rows(s):
+        t.add_row(f"  {escape(name)}", u)
     for name, c in s.consumables.items():
         short = " [red](short: work waits for a refill)[/]" if c.get("short") else ""
         t.add_row(f"  {escape(name)}", f"{c['left']:g} {escape(c['unit'])} left, {c['used']:g} used{short}")
