@@ -168,3 +168,31 @@ def test_a_policy_is_shown_by_its_files_name_and_kept_whole_in_json(tmp_path):
     assert "rl:jobshop_scheduler " in out and "/agents/" not in out.split("busiest")[1]
     code, out = whatif("scenarios/jobshop.yaml", "--schedulers", policy, "--seeds", "1", "--json")
     assert policy in out
+
+
+def test_set_changes_the_lab_every_variant_starts_from_and_degraded_samples_get_a_column():
+    """flaky_lab with one reactor: samples wait for it past chemistry.stability_s, so the table has a 'degr.'
+    column; the 'as written' row is the lab with --set, and a variant with three reactors degrades fewer."""
+    code, out = whatif(FLAKY, "--set", "devices.reactor.instances=1", "--set", "campaign.budget=20",
+                       "--vary", "devices.reactor.instances=3", "--seeds", "3", "--json")
+    assert code == 0, out
+    rows = {r["variant"]: r for r in json.loads(out)["variants"]}
+    base, more = rows["as written"], rows["devices.reactor.instances=3"]
+    assert base["experiments"] <= 20 and base["degraded"] > more["degraded"]
+    code, out = whatif(FLAKY, "--set", "devices.reactor.instances=1", "--set", "campaign.budget=20",
+                       "--vary", "devices.reactor.instances=3", "--seeds", "3")
+    assert code == 0, out
+    lines = out.splitlines()
+    assert "with --set devices.reactor.instances=1, campaign.budget=20" in lines[0]
+    head = next(line for line in lines if "aband." in line).split()
+    first = next(line for line in lines if line.split()[:1] == ["1*"]).split()  # the base's reactors, marked
+    assert head[-2:] == ["degr.", "busiest"]  # and the busiest is "reactor NN%", two words
+    assert float(first[-3]) == pytest.approx(base["degraded"], abs=0.05)
+    assert "degr.: samples degraded (mean)" in " ".join(out.split())
+
+
+def test_a_lab_whose_samples_never_degrade_has_no_degraded_column():
+    code, out = whatif(FLAKY, "--set", "chemistry.stability_s=0", "--vary", "devices.reactor.instances=3",
+                       "--seeds", "2")
+    assert code == 0, out
+    assert "degr." not in out

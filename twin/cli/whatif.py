@@ -12,7 +12,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import _fail, app, bar_progress, console
+from twin.cli.common import _fail, app, assignments, bar_progress, console
 from twin.core.errors import TwinError
 from twin.runtime import lab
 from twin.runtime.checks import checked
@@ -26,6 +26,9 @@ def whatif(
                                                            "every combination runs")] = None,
     schedulers: Annotated[Optional[str], typer.Option(help="comma-separated schedulers to vary too")] = None,
     planners: Annotated[Optional[str], typer.Option(help="comma-separated planners to vary too")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", help="change a field of the scenario every variant "
+                                                                    "starts from, e.g. campaign.budget=200 "
+                                                                    "(repeatable)")] = None,
     seeds: Annotated[int, typer.Option(help="paired seeds per variant")] = 20,
     workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
     budget_hours: Annotated[Optional[float], typer.Option(help="also name the cheapest variant that meets every "
@@ -40,7 +43,7 @@ def whatif(
     from rich import box
 
     from twin.tools.whatif import (AS_WRITTEN, axes_of, campaign_rows, caption, cheapest_within, costs_anything,
-                                   has_targets as any_targets, header, in_seconds, parse_vary, rows, runs_alike,
+                                   degrades, has_targets as any_targets, header, in_seconds, parse_vary, rows, runs_alike,
                                    summarise, variants, written_values)
     from twin.tools.whatif import whatif as run_whatif
 
@@ -48,7 +51,7 @@ def whatif(
     try:
         if seeds < 1:
             raise TwinError(f"--seeds {seeds}: give at least 1")
-        s = checked(lab.prepare(scenario), scenario)
+        s = checked(lab.prepare(scenario, overrides=assignments(set_ or [])), scenario)
         varied = parse_vary(vary or [])
         chosen = variants(s, varied, split(schedulers), split(planners))
         axes = [name for name, _ in axes_of(varied, split(schedulers), split(planners))]
@@ -60,6 +63,8 @@ def whatif(
         alike = runs_alike(s, chosen)
     except TwinError as exc:
         _fail(exc)
+    if set_ and not as_json:
+        console.print(f"as written: {scenario} with --set {', '.join(set_)}", highlight=False, soft_wrap=True)
     if alike and seeds > 1:
         seeds = 1
         if not as_json:
@@ -82,18 +87,18 @@ def whatif(
                                        "cheapest_within": best and best["variant"],
                                        "runs": [asdict(o) for o in results]}))
         return
-    has_targets, with_cost = any_targets(s), costs_anything(summary)
+    has_targets, with_cost, with_degraded = any_targets(s), costs_anything(summary), degrades(summary)
     seconds = in_seconds(summary)
     table = Table(title=f"{s.name}: what if — {len(chosen)} variants × {seeds} seed(s)", title_justify="left",
                   box=box.SIMPLE_HEAD, collapse_padding=True,
                   pad_edge=False)
-    for i, h in enumerate(header(axes, with_cost, seconds)):
+    for i, h in enumerate(header(axes, with_cost, seconds, with_degraded)):
         table.add_column(h, overflow="fold", no_wrap=i >= len(axes) and h not in ("busiest", "IQR"),
                          min_width=max(len(part) for part in h.split("\n")) if i < len(axes) else None)
-    for row in rows(summary, axes, written_values(s, axes), has_targets, with_cost):
+    for row in rows(summary, axes, written_values(s, axes), has_targets, with_cost, with_degraded):
         table.add_row(*row)
     console.print(table)
-    console.print(caption(has_targets, seeds, with_cost, seconds, alike), highlight=False)  # wrapped at the terminal, not the table
+    console.print(caption(has_targets, seeds, with_cost, seconds, alike, with_degraded), highlight=False)  # wrapped at the terminal, not the table
     if s.campaigns:
         names = list(summary[0]["per_campaign"])
         console.print("each campaign: median lab-h from its start to its end", highlight=False)

@@ -236,12 +236,17 @@ def in_seconds(summary: list[dict[str, Any]]) -> bool:
     return bool(summary) and max(row["lab_hours"][2] for row in summary) < 1
 
 
-def header(axes: list[str], with_cost: bool = True, seconds: bool = False) -> list[str]:
+def header(axes: list[str], with_cost: bool = True, seconds: bool = False, with_degraded: bool = False) -> list[str]:
     """The table's columns: one per varied field (a device's field on lines of its own), then the measures
-    (the cost ones only if something costs)."""
+    (the cost ones only if something costs, degraded samples only if some run had any)."""
     unit = "lab-s" if seconds else "lab-h"
     return [_short(name, axes) for name in axes] + \
-        [unit, "IQR", f"Δ {unit}", *(["cost", "Δ cost"] if with_cost else []), "aband.", "busiest"]
+        [unit, "IQR", f"Δ {unit}", *(["cost", "Δ cost"] if with_cost else []), "aband.",
+         *(["degr."] if with_degraded else []), "busiest"]
+
+
+def degrades(summary: list[dict[str, Any]]) -> bool:
+    return any(row["degraded"] > 0 for row in summary)
 
 
 def _short(name: str, axes: list[str]) -> str:
@@ -262,7 +267,7 @@ def costs_anything(summary: list[dict[str, Any]]) -> bool:
 
 
 def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any], targets: bool,
-         with_cost: bool = True) -> list[list[str]]:
+         with_cost: bool = True, with_degraded: bool = False) -> list[list[str]]:
     out = []
     scale, d = (3600, 0) if in_seconds(summary) else (1, 1)
     for row in summary:
@@ -280,6 +285,7 @@ def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any]
             *([f"{row['cost'][1]:,.0f}", "—" if base or cost_change is None else f"{cost_change[1]:+,.0f}"]
               if with_cost else []),
             f"{row['abandoned']:.1f}",
+            *([f"{row['degraded']:.1f}"] if with_degraded else []),
             f"{busiest} {100 * row['utilisation'].get(busiest, 0):.0f}%" if busiest else "",
         ])
     return out
@@ -306,7 +312,8 @@ def has_targets(s: Scenario) -> bool:
     return bool(s.chemistry.targets) or any(c.chemistry is not None and c.chemistry.targets for c in s.campaigns)
 
 
-def caption(targets: bool, seeds: int, with_cost: bool = True, seconds: bool = False, alike: bool = False) -> str:
+def caption(targets: bool, seeds: int, with_cost: bool = True, seconds: bool = False, alike: bool = False,
+            with_degraded: bool = False) -> str:
     unit, hours = ("lab-s", "lab-seconds") if seconds else ("lab-h", "lab-hours")
     what = (f"{unit}: {hours} until every target (of every campaign) was met (≥: not met in every run, the whole "
             "campaign counted)"
@@ -316,4 +323,4 @@ def caption(targets: bool, seeds: int, with_cost: bool = True, seconds: bool = F
     return (f"*: the scenario as written. {runs}. {what}; Δ: " + ("the change" if alike else "median of the per-seed "
             "change") + " against the scenario as written; " + ("cost: at the last target (else all spent); " if with_cost else
             "no device costs anything (devices.*.cost), so no cost columns; ") + "aband.: experiments "
-            "abandoned (mean); busiest: the device type with the highest mean utilisation. --json or --csv: all of it")
+            "abandoned (mean); " + ("degr.: samples degraded (mean); " if with_degraded else "") + "busiest: the device type with the highest mean utilisation. --json or --csv: all of it")
