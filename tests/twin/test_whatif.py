@@ -196,3 +196,38 @@ def test_a_lab_whose_samples_never_degrade_has_no_degraded_column():
                        "--seeds", "2")
     assert code == 0, out
     assert "degr." not in out
+
+
+@pytest.mark.process
+def test_ctrl_c_stops_the_workers_at_once_and_says_so(tmp_path):
+    """Ctrl-C reaches the whole process group: the workers used to take it as a failed run and go on, and the
+    pool waited for every run submitted (a whatif of 40 runs went on for its whole length, silently)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    proc = subprocess.Popen([sys.executable, "-m", "twin", "whatif", str(ROOT / "scenarios" / "quantum_dots.yaml"),
+                             "--vary", "devices.synthesiser.instances=2,3", "--seeds", "200"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env={**os.environ, "TMPDIR": str(scratch)}, cwd=ROOT)
+    children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+    deadline = time.monotonic() + 60
+    while len(children.read_text().split()) < 2 or not any(scratch.iterdir()):  # workers running campaigns
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.05)
+    workers = children.read_text().split()
+    os.killpg(proc.pid, signal.SIGINT)
+    try:
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 130, (out, err)
+    assert "interrupted: the runs still going were stopped" in err and "Traceback" not in err
+    assert not [w for w in workers if Path(f"/proc/{w}").exists() and
+                "zombie" not in Path(f"/proc/{w}/status").read_text()]
+    assert not list(scratch.iterdir())  # the runs' temporary journals were removed

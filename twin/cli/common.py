@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import functools
 import re
 import signal
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Callable, TypeVar
 
 import typer
 from rich.console import Console
@@ -32,6 +33,24 @@ security_app = typer.Typer(help="Certificates and access control for a lab's bus
 app.add_typer(security_app, name="security")
 console = Console()
 err = Console(stderr=True, soft_wrap=True)
+
+
+Command = TypeVar("Command", bound=Callable[..., Any])
+
+
+def interruptible(command: Command) -> Command:
+    """A command of many runs in worker processes (a bench, `twin whatif`): Ctrl-C stops them (``WorkerPool``)
+    and says so, instead of a traceback or a silent exit."""
+    @functools.wraps(command)
+    def stopping(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return command(*args, **kwargs)
+        except KeyboardInterrupt:
+            err.print("interrupted: the runs still going were stopped; no --csv, --json or --save file was written",
+                      highlight=False)
+            raise typer.Exit(130) from None
+
+    return stopping  # type: ignore[return-value]
 
 
 def _fail(exc: TwinError) -> None:

@@ -10,8 +10,8 @@ import typer
 from twin.core import plugins
 from twin.runtime import lab
 from twin.runtime.checks import checked
-from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, machine_output, narrow_table,
-                             print_table)
+from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
+                             machine_output, narrow_table, print_table)
 from twin.core.errors import TwinError
 from twin.tools.planner_bench import DEFAULT_PLANNERS
 
@@ -84,6 +84,7 @@ def train(
 
 
 @bench_app.command("planners")
+@interruptible
 def bench_planners(
     scenario: Annotated[Path, typer.Argument(help="a scenario with targets, e.g. scenarios/quantum_dots.yaml")],
     seeds: Annotated[int, typer.Option(help="seeds per planner")] = 20,
@@ -125,6 +126,7 @@ def bench_planners(
 
 
 @bench_app.command("schedulers")
+@interruptible
 def bench_schedulers(
     scenario: Annotated[Path, typer.Argument(help="a scenario, e.g. scenarios/flaky_lab.yaml or scenarios/jobshop.yaml")],
     seeds: Annotated[int, typer.Option(help="seeds per scheduler (a deterministic job shop runs once)")] = 20,

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import _fail, app, bar_progress, bench_app, console, machine_output, narrow_table, print_table
+from twin.cli.common import _fail, app, bar_progress, bench_app, console, interruptible, machine_output, narrow_table, print_table
 from twin.core import plugins
 from twin.core.errors import TwinError
 
@@ -76,6 +76,7 @@ def _show(data: dict, method: str) -> None:
 
 
 @bench_app.command("routes")
+@interruptible
 def bench_routes(
     targets: Annotated[int, typer.Option(help="how many targets of the set")] = 100,
     target_set: Annotated[str, typer.Option("--set", help="held-out (made forwards from the stock, depths 1–6) "

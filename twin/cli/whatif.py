@@ -12,13 +12,14 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import _fail, app, assignments, bar_progress, console
+from twin.cli.common import _fail, app, assignments, bar_progress, console, interruptible
 from twin.core.errors import TwinError
 from twin.runtime import lab
 from twin.runtime.checks import checked
 
 
 @app.command()
+@interruptible
 def whatif(
     scenario: Annotated[Path, typer.Argument(help="the scenario as written, e.g. scenarios/flaky_lab.yaml")],
     vary: Annotated[Optional[list[str]], typer.Option(help="FIELD=V1,V2,... e.g. devices.spectrometer.instances=1,2,3 "

@@ -23,6 +23,7 @@ from typing import Any
 from twin.campaign.events import ALERT_LOGGER
 from twin.runtime.lab import prepare, run
 from twin.scenario import Scenario
+from twin.tools.pool import WorkerPool
 
 DEFAULT_PLANNERS = ("random", "lhs", "gp-bo~seq", "gp-bo")
 
@@ -75,10 +76,10 @@ def quiet_alerts() -> None:
     logging.getLogger("twin.runtime.fast_device").setLevel(logging.ERROR)
 
 
-def bench_pool(workers: int) -> ProcessPoolExecutor:
-    """The worker processes of a bench (alerts quiet); one pool serves a bench of several labs, which would
-    otherwise start (and import everything in) new workers for each."""
-    return ProcessPoolExecutor(max_workers=max(1, workers), initializer=quiet_alerts)
+def bench_pool(workers: int) -> WorkerPool:
+    """The worker processes of a bench (alerts quiet; Ctrl-C stops them at once); one pool serves a bench of
+    several labs, which would otherwise start (and import everything in) new workers for each."""
+    return WorkerPool(workers, initializer=quiet_alerts)
 
 
 def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str], seeds: int, workers: int,

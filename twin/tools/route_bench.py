@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import os
 import statistics
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from typing import Any, Callable
 
 from twin.core import plugins
 from twin.core.errors import PluginError
+from twin.tools.pool import WorkerPool
 
 HEADER = ("method", "solved %", "≤known+1 %", "exp. mean", "exp. med", "s med", "s max")
 CAPTION = ("solved: a route within the budget; ≤known+1: of those solved, the share no longer than the target's "
@@ -58,7 +59,7 @@ def bench(methods: list[str], chosen: list[dict[str, Any]], seconds: float, work
           on_done: Callable[[dict[str, Any]], None] = lambda r: None) -> list[dict[str, Any]]:
     jobs = [(m, t, seconds) for m in methods for t in chosen]
     results = []
-    with ProcessPoolExecutor(max(1, workers), initializer=_single_threaded) as pool:
+    with WorkerPool(workers, initializer=_single_threaded) as pool:
         for fut in as_completed([pool.submit(_one, job) for job in jobs]):
             results.append(fut.result())
             on_done(results[-1])

@@ -1,0 +1,47 @@
+"""Worker processes for benches and `twin whatif` that Ctrl-C stops at once.
+
+Ctrl-C reaches the whole process group. A worker of a plain ``ProcessPoolExecutor`` took it as an error of the
+run it was in and went on to the next, and the pool's exit waited for every run submitted: a bench went on for
+its whole length, silently. Here the workers ignore SIGINT; the pool, left by an exception (KeyboardInterrupt
+among them), drops the runs not started and stops the running ones with SIGTERM, which a worker turns into
+``SystemExit`` so that its run's temporary files are removed on the way out.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any
+
+STOP_S = 10.0  # how long a stopped worker has to clean up before it is killed
+
+
+class WorkerPool(ProcessPoolExecutor):
+    def __init__(self, workers: int, initializer: Callable[[], None] | None = None) -> None:
+        super().__init__(max_workers=max(1, workers), initializer=_start_worker, initargs=(initializer,))
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> bool:
+        if exc_type is None:
+            return bool(super().__exit__(exc_type, exc, tb))
+        workers = list((self._processes or {}).values())
+        self.shutdown(wait=False, cancel_futures=True)
+        for p in workers:
+            p.terminate()
+        for p in workers:
+            p.join(STOP_S)
+            if p.is_alive():
+                p.kill()
+        return False
+
+
+def _start_worker(then: Callable[[], None] | None) -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _exit)
+    if then is not None:
+        then()
+
+
+def _exit(*_: Any) -> None:
+    sys.exit(143)
