@@ -121,6 +121,39 @@ def test_replay_from_the_journal_equals_the_live_recording(live):
     assert compare(d / "live.rrd", d / "other.rrd").returncode != 0
 
 
+def test_an_interrupted_replay_leaves_the_file_it_was_to_replace_as_it_was(live, monkeypatch):
+    """Ctrl-C half-way through a replay left a recording of part of the run under the name asked for."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+    from twin.view.observer import LabObserver
+
+    d, _, _ = live
+    earlier = d / "earlier.rrd"
+    earlier.write_bytes(b"a recording from before")
+    seen = []
+    real = LabObserver.on_message
+
+    def interrupted(self, key, payload):
+        seen.append(key)
+        if len(seen) == 200:
+            raise KeyboardInterrupt
+        real(self, key, payload)
+
+    monkeypatch.setattr(LabObserver, "on_message", interrupted)
+    res = CliRunner().invoke(app, ["replay", str(d / "j.db"), "--save", str(earlier)])
+    assert res.exit_code == 130 and len(seen) == 200, res.output
+    assert f"interrupted: nothing saved ({earlier} is as it was)" in " ".join(res.output.split())
+    assert earlier.read_bytes() == b"a recording from before"
+    assert not [p for p in d.iterdir() if p.name.endswith(".partial")]
+    monkeypatch.setattr(LabObserver, "on_message", real)
+    res = CliRunner().invoke(app, ["replay", str(d / "j.db"), "--save", str(earlier)])
+    assert res.exit_code == 0
+    replayed, recorded = read_rrd(earlier), read_rrd(d / "live.rrd")
+    assert {k: v for k, v in replayed.items() if k != "__properties"} == \
+        {k: v for k, v in recorded.items() if k != "__properties"}  # the start time is the replay's own
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -218,13 +219,23 @@ def replay(
     serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,
 ) -> None:
     """Rebuild a run's Rerun recording from its journal alone."""
-    record = RecordOptions(save, viewer, serve)
+    # written beside and renamed when whole: an interrupted replay leaves no recording that looks like the run's
+    partial = save.with_name(f".{save.name}.partial") if save else None
+    record = RecordOptions(partial, viewer, serve)
     if not record.wanted:
         _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
     try:
         observer = replay_journal(journal, record)
-    except TwinError as exc:
-        _fail(exc)
+    except (TwinError, KeyboardInterrupt) as exc:
+        if partial is not None:
+            partial.unlink(missing_ok=True)
+        if isinstance(exc, TwinError):
+            _fail(exc)
+        err.print("interrupted: nothing saved" + (f" ({save} is as it was)" if save and save.exists() else ""),
+                  highlight=False)
+        raise typer.Exit(130) from None
+    if partial is not None and save is not None:
+        os.replace(partial, save)
     err.print(f"replayed {observer.spectra} spectra, {observer.finished} finished experiments"
               + (f" to {save}" if save else ""), highlight=False)
 
