@@ -35,6 +35,7 @@ from twin import open_workcell
 STEP = 0.3  # the largest move per experiment, as a fraction of the unit box
 CLIP = 6.0
 MET_BONUS, STEP_COST = 1.0, 0.02
+MISS = 1e3  # the distance counted for an experiment with no outputs to score (refused as infeasible, say)
 
 
 def signed_errors(outputs: dict[str, Any] | None, target: Any) -> np.ndarray:
@@ -125,7 +126,8 @@ class PlanningEnv(gym.Env):
         if self._last.distance < self._best.distance:
             self._best = self._last
         met = self._best.distance == 0
-        reward = math.log1p(before) - math.log1p(self._best.distance) - STEP_COST + (MET_BONUS if met else 0.0)
+        reward = math.log1p(min(before, MISS)) - math.log1p(min(self._best.distance, MISS)) - STEP_COST + (
+            MET_BONUS if met else 0.0)
         truncated = not met and self._n >= self.horizon
         return self._obs(), float(reward), met, truncated, {"distance": self._best.distance, "experiments": self._n}
 

@@ -104,3 +104,77 @@ def test_the_env_scores_what_the_targets_score(qd):
     env = PlanningEnv(qd, random_goals=0.0)
     _, info = env.reset(seed=0, options={"target": qd.chemistry.targets[0]})
     assert info["distance"] == score(env._best.outputs, qd.chemistry.targets[0])
+
+
+class HotKiln:
+    """A furnace (the docs' kind of driver): over its limit it refuses for good; the first time, it is warming up."""
+
+    labtwin_api = 1
+    capabilities = frozenset({"anneal"})
+    outputs = frozenset({"anneal_c"})
+    option_names = frozenset({"max_c"})
+    asked: list = []
+
+    def __init__(self, setup):
+        self.max_c, self.warm = float(setup.options.get("max_c", 900)), False
+
+    async def run(self, step, params, sample, ctx):
+        from twin import Refused, StepResult
+
+        HotKiln.asked.append(ctx.clock.now())
+        if params["anneal_c"] > self.max_c:
+            raise Refused(f"{params['anneal_c']:.0f} C is over {self.max_c:.0f} C", infeasible=True)
+        if not self.warm:
+            self.warm = True
+            raise Refused("warming up", infeasible=False)
+        await ctx.clock.sleep(600)
+        return StepResult({"anneal_c": params["anneal_c"]}, sample)
+
+    async def safe_state(self):
+        self.warm = False
+
+
+def kiln_lab(max_c=850):
+    return prepare(ROOT / "scenarios" / "bandgap.yaml", overrides={
+        "devices.kiln": {"driver": "tests.agents.test_rl_planner:HotKiln", "instances": 1, "steps": ["anneal"],
+                         "duration": {"mean_s": 600}, "options": {"max_c": max_c}},
+        "chemistry.parameters.anneal_c": {"low": 400, "high": 950},
+        "workflow": [{"step": "synthesise", "device": "synthesiser"}, {"step": "anneal", "device": "kiln"},
+                     {"step": "measure", "device": "spectrometer"}],
+        "orchestrator.retry": {"max_attempts": 3, "backoff_s": 120}})
+
+
+def test_a_refusal_in_the_planning_env_is_taken_as_a_campaign_takes_it():
+    """A driver's Refused stopped training with 'Error: warming up' (or its limit's words): the env now waits
+    out a 'not now' and scores an experiment refused for good as one with nothing measured."""
+    from twin import open_workcell
+
+    lab = kiln_lab()
+    cell = open_workcell(lab)
+    HotKiln.asked.clear()
+    ok = cell.run({**{n: p.low for n, p in lab.chemistry.parameters.items()}, "anneal_c": 700})
+    assert not ok.infeasible and ok.outputs and len(HotKiln.asked) == 2
+    assert HotKiln.asked[1] - HotKiln.asked[0] == 120  # asked again after the retry back-off, in lab time
+    hot = cell.run({**{n: p.low for n, p in lab.chemistry.parameters.items()}, "anneal_c": 900})
+    assert hot.outputs == {} and hot.infeasible == "kiln refused 'anneal': 900 C is over 850 C"
+    env = PlanningEnv(kiln_lab(max_c=600))  # most of the box too hot
+    check_env(env, skip_render_check=True)
+    measured, run = [], env.workcell.run
+    env.workcell.run = lambda params: measured.append(run(params)) or measured[-1]
+    env.action_space.seed(3)
+    env.reset(seed=3)
+    rewards = [env.step(env.action_space.sample())[1] for _ in range(30)]
+    assert any(m.infeasible for m in measured) and any(not m.infeasible for m in measured)
+    assert all(r == r and abs(r) < 100 for r in rewards)  # finite, though some experiments measured nothing
+
+
+def test_a_driver_that_is_never_ready_is_named_in_a_workcell():
+    from twin import DriverError, open_workcell
+
+    lab = kiln_lab()
+    cell = open_workcell(lab)
+    cell.drivers["kiln"].warm = False
+    cell.drivers["kiln"].run = lambda *a: HotKiln.run(type("Cold", (), {"warm": False, "max_c": 850})(), *a)
+    with pytest.raises(DriverError, match="kiln driver answered 'not now' to 'anneal' 3 times in a row in a "
+                                          "workcell \\(last: warming up\\)"):
+        cell.run({**{n: p.low for n, p in lab.chemistry.parameters.items()}, "anneal_c": 700})

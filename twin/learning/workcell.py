@@ -6,6 +6,10 @@ calls each step in turn on a *stepped clock*: ``sleep`` adds to the lab time
 and returns without suspending, so a step's coroutine finishes in one
 ``send`` and no event loop is needed. Device faults, set-up and cleaning
 times are the orchestrator's and actors' business and are left out.
+
+A driver's refusal is taken as a campaign takes it: ``Refused(infeasible=True)`` ends the experiment with no
+outputs, marked ``infeasible``; a "not now" is asked again after the scenario's retry back-off, lab time
+passing, up to ``orchestrator.retry.max_attempts`` times.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ from typing import Any
 from twin.core.clock import ClockMode, lab_seconds
 from twin.core.streams import seeded
 from twin.device.driver import StepContext
-from twin.core.errors import DriverError
+from twin.core.errors import DriverError, Refused
 from twin.scenario import Scenario
 
 
@@ -45,6 +49,7 @@ class SteppedClock:
 class Measured:
     outputs: dict[str, Any]  # the last step's outputs, as a planner would see them
     lab_s: float  # lab time the workflow took
+    infeasible: str = ""  # why a device refused these parameters for good (then no outputs)
 
 
 class Workcell:
@@ -66,9 +71,27 @@ class Workcell:
             spec = self.scenario.devices[w.device]
             ctx = StepContext(clock=self.clock, rng=self._rngs[w.device], duration=spec.duration,
                               progress=lambda *_: None, telemetry=lambda _: None)
-            result = _complete(self.drivers[w.device].run(w.step, params, sample, ctx), w.device)
+            try:
+                result = self._step(w, params, sample, ctx)
+            except Refused as refused:
+                return Measured({}, self.clock.t - start, infeasible=f"{w.device} refused {w.step!r}: {refused.reason}")
             sample, outputs = result.sample, result.outputs
         return Measured({k: v for k, v in outputs.items() if k != "spectrum"}, self.clock.t - start)
+
+    def _step(self, w: Any, params: dict[str, Any], sample: Any, ctx: StepContext) -> Any:
+        """The step's result; a "not now" asked again later. Raises ``Refused`` only for good."""
+        retry = self.scenario.orchestrator.retry
+        for attempt in range(retry.max_attempts):
+            try:
+                return _complete(self.drivers[w.device].run(w.step, params, sample, ctx), w.device)
+            except Refused as refused:
+                if refused.infeasible:
+                    raise
+                reason = refused.reason
+                self.clock.t += min(retry.backoff_s * 2 ** attempt, retry.backoff_max_s)
+        raise DriverError(f"the {w.device} driver answered 'not now' to {w.step!r} {retry.max_attempts} times in a "
+                          f"row in a workcell (last: {reason}); a workcell has nothing else to wait for: raise "
+                          "orchestrator.retry.max_attempts or backoff_s, or make the driver ready sooner")
 
 
 def _complete(coro: Any, device: str) -> Any:
