@@ -118,8 +118,11 @@ class RlScheduler:
             def played(n: int, best_h: float) -> None:
                 print(f"rl: {n} of {rollouts} played, the shortest so far {lab_time(best_h)}", file=sys.stderr, flush=True)
 
+            def going(share: float, seconds: float) -> None:
+                print(f"rl: {100 * share:.0f} % played, {seconds:.0f} s so far", file=sys.stderr, flush=True)
+
             _plans[key] = plan(scenario, self.model.policy.action_net, rollouts, str(encoding), played,
-                               self.encoder.held)
+                               self.encoder.held, going)
             print(f"rl: {_plans[key].describe()}; the lab follows it", file=sys.stderr, flush=True)
         return _plans[key]
 

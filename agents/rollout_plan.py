@@ -34,6 +34,7 @@ from twin import Assignment, LabView, Scenario, lab_span, prepare
 
 log = logging.getLogger(__name__)
 BATCH = 64  # runs played at once: each holds a whole lab in memory
+HEARTBEAT_S = 10.0  # how often a long planning says how far it is
 
 
 @dataclass
@@ -60,18 +61,21 @@ def lab_time(hours: float) -> str:
 
 
 def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
-         on_batch: Callable[[int, float], None] | None = None, held: Observed | None = None) -> Plan:
+         on_batch: Callable[[int, float], None] | None = None, held: Observed | None = None,
+         on_share: Callable[[float, float], None] | None = None) -> Plan:
     """Play ``s`` ``rollouts`` times with the policy whose candidate scores ``scorer`` gives; the best run's plan.
-    ``on_batch(played, best lab-hours so far)`` after each batch but the last. ``held``: the range the policy's
-    inputs are held in (its file's), so that the greedy run played is the one the lab would run."""
+    ``on_batch(played, best lab-hours so far)`` after each batch but the last; ``on_share(share of the steps
+    played, wall seconds)`` every ``HEARTBEAT_S`` of wall time. ``held``: the range the policy's inputs are held in
+    (its file's), so that the greedy run played is the one the lab would run."""
     t0 = time.perf_counter()
     lab = prepare(s, clock="virtual", bus="memory")
     draws = torch.Generator().manual_seed(s.campaign.seed)  # the same lab and seed, the same plan
     orders: list[dict[str, list[str]]] = []
     summaries: list[Any] = []
+    heartbeat = _Heartbeat(rollouts * _steps(lab), t0, on_share)
     for first in range(0, rollouts, BATCH):
         batch: list[dict[str, list[str]]] = [{} for _ in range(min(BATCH, rollouts - first))]
-        summaries += lockstep(lab, scorer, len(batch), encoding=encoding, seen=partial(_keep, batch),
+        summaries += lockstep(lab, scorer, len(batch), encoding=encoding, seen=partial(_keep, batch, heartbeat),
                               greedy_first=first == 0, generator=draws, held=held)
         orders += batch
         if on_batch is not None and len(summaries) < rollouts:
@@ -82,11 +86,39 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
                 time.perf_counter() - t0)
 
 
-def _keep(orders: list[dict[str, list[str]]], i: int, _encoder: object, _obs: object, _mask: object, _action: int,
-          made: list[Assignment]) -> None:
+def _keep(orders: list[dict[str, list[str]]], heartbeat: _Heartbeat, i: int, _encoder: object, _obs: object,
+          _mask: object, _action: int, made: list[Assignment]) -> None:
     """Each run's order of steps on each device, as it assigns them."""
     for a in made:
         orders[i].setdefault(a.device, []).append(a.task)
+    heartbeat.started(len(made))
+
+
+def _steps(lab: Scenario) -> int:
+    """The steps one run of a planned lab starts: every experiment is known (a fixed planner's proposals) and none
+    is retried (no faults)."""
+    proposals = (lab.campaign.planner_options.get("proposals") or [])[:lab.campaign.budget]
+    return sum(len(p.get("route") or lab.workflow or ()) for p in proposals)
+
+
+@dataclass
+class _Heartbeat:
+    """Calls ``tell(share of the steps started, wall seconds)`` every ``HEARTBEAT_S``."""
+
+    total: int
+    t0: float
+    tell: Callable[[float, float], None] | None
+    done: int = 0
+    told: float = 0.0
+
+    def started(self, n: int) -> None:
+        self.done += n
+        if self.tell is None or not self.total:
+            return
+        now = time.perf_counter()
+        if now - max(self.t0, self.told) >= HEARTBEAT_S:
+            self.told = now
+            self.tell(min(1.0, self.done / self.total), now - self.t0)
 
 
 @dataclass

@@ -131,8 +131,25 @@ def test_a_long_planning_says_how_far_it_has_got(shop, capsys):
     RlScheduler(with_rollouts(shop, BATCH + 5, **{"campaign.seed": 5}), POLICY[3:])
     err = capsys.readouterr().err.splitlines()
     assert err[0] == f"rl: playing jobshop_random-8x5 (8 jobs on 5 machines) {BATCH + 5} times in the twin ..."  # not ft06's file
-    assert [line.split(",")[0] for line in err if " played" in line] == [f"rl: {BATCH} of {BATCH + 5} played"]
+    assert [line.split(",")[0] for line in err if " of " in line and " played" in line] == \
+        [f"rl: {BATCH} of {BATCH + 5} played"]
     assert err[-1].startswith(f"rl: the best of {BATCH + 5} rollouts") and err[-1].endswith("the lab follows it")
+
+
+def test_planning_a_shop_tells_the_share_played_as_it_goes(shop, monkeypatch):
+    """A 50×20 shop played 64 times took 51 s with one line before and one after."""
+    from agents import rollout_plan
+
+    policy = RlScheduler(with_rollouts(shop, 1), POLICY[3:])
+    encoding = read_meta(Path(POLICY[3:]))["signature"]["encoding"]
+    told = []
+    monkeypatch.setattr(rollout_plan, "HEARTBEAT_S", 0.0)
+    best = rollout_plan.plan(with_rollouts(shop, 3), policy.model.policy.action_net, 3, encoding,
+                             on_share=lambda share, seconds: told.append((share, seconds)))
+    shares = [share for share, _ in told]
+    assert shares == sorted(shares) and shares[-1] == 1.0 and len(set(shares)) > 10
+    assert sum(len(order) for order in best.orders.values()) == 8 * 5  # one run's steps: 1/3 of what was told
+    assert told[-1][1] <= best.seconds
 
 
 def test_a_bench_runs_its_rules_as_they_go_beside_a_policy_that_plays_ahead(shop):
