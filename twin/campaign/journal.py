@@ -50,12 +50,14 @@ class Journal:
     FLUSH_EVERY = FLUSH_EVERY
 
     def __init__(self, path: str | Path, append: bool = False) -> None:
-        """A new journal at ``path`` (one already there is replaced), or with ``append`` the one there, continued."""
+        """A new journal at ``path`` (one already there is replaced; an empty file there is a name claimed for it),
+        or with ``append`` the one there, continued."""
         self.path = Path(path)
         self.label = str(path)  # how summaries name it
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.path.exists() and not append:
-            self.path.unlink()
+        if self.path.exists() and not append and self.path.stat().st_size:
+            for old in (self.path, Path(f"{self.path}-wal"), Path(f"{self.path}-shm")):
+                old.unlink(missing_ok=True)
         self._db = sqlite3.connect(self.path)
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")

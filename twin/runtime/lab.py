@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import logging
+import os
 import signal
 import threading
 import time
@@ -42,7 +44,36 @@ RUNTIMES = ("auto", "fast", "asyncio")
 
 
 def default_journal(s: Scenario) -> Path:
-    return Path("runs") / f"{s.name}-seed{s.campaign.seed}-{time.strftime('%Y%m%d-%H%M%S')}.db"
+    """``runs/<name>-seed<seed>-<time>.db``, claimed (made, empty) here: campaigns of one scenario and seed started
+    in the same second — a sweep run in parallel — each get their own (``…-2.db``, ``…-3.db``)."""
+    return claim(_default_stem(s), ".db", _create)
+
+
+def default_journals(s: Scenario) -> Path:
+    """The directory of a lab's journals, named as a run's journal would be, claimed likewise."""
+    return claim(_default_stem(s), "", os.mkdir)
+
+
+def _default_stem(s: Scenario) -> Path:
+    return Path("runs") / f"{s.name}-seed{s.campaign.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def claim(stem: Path, suffix: str, make: Callable[[Path], None]) -> Path:
+    """The first of ``stem + suffix``, ``stem-2 + suffix``, ... that ``make`` creates (it raises FileExistsError
+    for one already there: another process's)."""
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    for n in itertools.count(1):
+        path = stem.with_name(f"{stem.name}-{n}{suffix}" if n > 1 else f"{stem.name}{suffix}")
+        try:
+            make(path)
+        except FileExistsError:
+            continue
+        return path
+    raise AssertionError("unreachable")
+
+
+def _create(path: Path) -> None:
+    os.close(os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
 
 
 def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
@@ -73,10 +104,12 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         observer, recording = open_observer(record, recording_id(s))
         for message in recording.messages:
             log.warning("%s", message)
+    claimed = journal is None
+    journal = journal or default_journal(s)
     try:
         if runtime == "fast" or (runtime == "auto" and not why_not):
             try:
-                return run_fast(s, journal or default_journal(s), on_progress, make_journal=make_journal,
+                return run_fast(s, journal, on_progress, make_journal=make_journal,
                                 observer=observer, agent_in_process=agent_in_process)
             except FastRuntimeRefused as exc:
                 if runtime == "fast":
@@ -87,8 +120,12 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
                     recording.stop_serving()
                     observer, recording = open_observer(record, recording_id(s))
         clock = make_clock(s)
-        return clock.run(run_async(s, clock, journal or default_journal(s), external_devices, on_progress, observer,
+        return clock.run(run_async(s, clock, journal, external_devices, on_progress, observer,
                                    make_journal=make_journal))
+    except BaseException:
+        if claimed and Path(journal).exists() and not Path(journal).stat().st_size:
+            Path(journal).unlink()  # nothing was written: the name goes back
+        raise
     finally:
         if recording is not None:
             recording.close()

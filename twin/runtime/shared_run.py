@@ -18,7 +18,7 @@ from twin.campaign.journal import Journal
 from twin.campaign.lab_replay import RebuiltLab
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_driver,
                                    load_drivers, make_bus, make_clock, make_planner, make_scheduler)
-from twin.runtime.lab import (JournalFactory, default_journal, finish, flush_live, noted, open_journal, refuse_realtime,
+from twin.runtime.lab import (JournalFactory, default_journals, finish, flush_live, noted, open_journal, refuse_realtime,
                               stop_on_loop_signals, stop_on_signals)
 from twin.runtime.checks import check_campaign
 from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
@@ -33,10 +33,6 @@ from twin.view.lab_observer import SharedLabObserver
 
 
 LAB_INPUTS = "lab.inputs"  # beside the campaigns' journals: what a live lab was given (twin.campaign.lab_replay)
-
-
-def default_journals(s: Scenario) -> Path:
-    return default_journal(s).with_suffix("")  # a directory named as a run's journal would be
 
 
 def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: bool = True,

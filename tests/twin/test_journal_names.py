@@ -1,0 +1,61 @@
+"""Default journal names: campaigns of one scenario and seed started in the same second (a sweep run in parallel)
+each get their own journal; one that fails before it writes anything leaves no file behind."""
+
+from pathlib import Path
+
+import pytest
+
+from twin.campaign.journal import read_events
+from twin.runtime import lab
+from twin.runtime.lab import run
+from twin.runtime.shared_run import run_shared
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def same_second(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(lab, "_default_stem",
+                        lambda s: Path("runs") / f"{s.name}-seed{s.campaign.seed}-20261129-050000")
+    return tmp_path / "runs"
+
+
+def test_campaigns_started_in_the_same_second_each_get_their_own_journal(same_second):
+    """Two of three parallel runs of a sweep died with 'sqlite3.OperationalError: disk I/O error': each replaced
+    the journal the others were writing."""
+    summaries = [run(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"devices.reactor.instances": n,
+                                                                         "campaign.budget": 6}) for n in (1, 2, 3)]
+    names = [Path(s.journal).name for s in summaries]
+    assert names == ["flaky_lab-seed0-20261129-050000.db", "flaky_lab-seed0-20261129-050000-2.db",
+                     "flaky_lab-seed0-20261129-050000-3.db"]
+    assert sorted(p.name for p in same_second.iterdir()) == sorted(names)
+    for s in summaries:  # each journal holds its own campaign, whole
+        assert sum(1 for e in read_events(Path(s.journal), "experiment.done")) == s.done
+
+
+def test_a_lab_of_several_campaigns_gets_its_own_directory_too(same_second):
+    first, again = (run_shared(lab.prepare(ROOT / "scenarios" / "shared_lab.yaml"), handle_signals=False)
+                    for _ in range(2))
+    assert Path(first.journals).name == "shared_lab-seed0-20261129-050000"
+    assert Path(again.journals).name == "shared_lab-seed0-20261129-050000-2"
+
+
+class Broken:
+    labtwin_api = 1
+
+    def __init__(self, setup):
+        raise RuntimeError("no such instrument on this bench")
+
+    async def run(self, step, params, sample, ctx):
+        raise AssertionError("never made")
+
+    async def safe_state(self):
+        pass
+
+
+def test_a_campaign_that_fails_before_it_writes_leaves_no_journal_behind(same_second):
+    with pytest.raises(Exception, match="no such instrument"):
+        run(ROOT / "scenarios" / "quantum_dots.yaml", bus="memory",
+            overrides={"devices.synthesiser.driver": "tests.twin.test_journal_names:Broken"})
+    assert not list(same_second.iterdir())
