@@ -59,3 +59,17 @@ def test_a_campaign_that_fails_before_it_writes_leaves_no_journal_behind(same_se
         run(ROOT / "scenarios" / "quantum_dots.yaml", bus="memory",
             overrides={"devices.synthesiser.driver": "tests.twin.test_journal_names:Broken"})
     assert not list(same_second.iterdir())
+
+
+def test_a_journal_that_cannot_be_written_is_a_clear_error_before_anything_runs(tmp_path, monkeypatch):
+    """It was a traceback ending in FileExistsError or FileNotFoundError."""
+    from twin import TwinError
+
+    (tmp_path / "a_file").write_text("not a directory")
+    with pytest.raises(TwinError, match=r"cannot write the journal .*a_file/j\.db: .*give --journal a file in a "
+                                        r"directory you can write \(nothing has run yet\)"):
+        run(ROOT / "scenarios" / "quantum_dots.yaml", journal=tmp_path / "a_file" / "j.db", bus="memory")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "runs").write_text("a file where the runs directory goes")
+    with pytest.raises(TwinError, match=r"cannot write a journal in runs/: .*give --journal FILE"):
+        run(ROOT / "scenarios" / "quantum_dots.yaml", bus="memory")

@@ -54,14 +54,18 @@ class Journal:
         or with ``append`` the one there, continued."""
         self.path = Path(path)
         self.label = str(path)  # how summaries name it
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.path.exists() and not append and self.path.stat().st_size:
-            for old in (self.path, Path(f"{self.path}-wal"), Path(f"{self.path}-shm")):
-                old.unlink(missing_ok=True)
-        self._db = sqlite3.connect(self.path)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=NORMAL")
-        self._db.executescript(SCHEMA)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            if self.path.exists() and not append and self.path.stat().st_size:
+                for old in (self.path, Path(f"{self.path}-wal"), Path(f"{self.path}-shm")):
+                    old.unlink(missing_ok=True)
+            self._db = sqlite3.connect(self.path)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=NORMAL")
+            self._db.executescript(SCHEMA)
+        except (OSError, sqlite3.Error) as exc:
+            raise TwinError(f"cannot write the journal {path}: {exc}; give --journal a file in a directory you can "
+                            "write (nothing has run yet)") from None
         self._events: list[tuple] = []
         self._experiments: dict[int, tuple] = {}
         self._seq = self._db.execute("SELECT COALESCE(MAX(seq), 0) FROM events").fetchone()[0]

@@ -61,14 +61,18 @@ def _default_stem(s: Scenario) -> Path:
 def claim(stem: Path, suffix: str, make: Callable[[Path], None]) -> Path:
     """The first of ``stem + suffix``, ``stem-2 + suffix``, ... that ``make`` creates (it raises FileExistsError
     for one already there: another process's)."""
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    for n in itertools.count(1):
-        path = stem.with_name(f"{stem.name}-{n}{suffix}" if n > 1 else f"{stem.name}{suffix}")
-        try:
-            make(path)
-        except FileExistsError:
-            continue
-        return path
+    try:
+        stem.parent.mkdir(parents=True, exist_ok=True)
+        for n in itertools.count(1):
+            path = stem.with_name(f"{stem.name}-{n}{suffix}" if n > 1 else f"{stem.name}{suffix}")
+            try:
+                make(path)
+            except FileExistsError:
+                continue
+            return path
+    except OSError as exc:
+        raise TwinError(f"cannot write a journal in {stem.parent}/: {exc}; run from a directory you can write, or "
+                        "give --journal FILE (nothing has run yet)") from None
     raise AssertionError("unreachable")
 
 
