@@ -262,3 +262,31 @@ def test_the_command_list_shows_each_summary_as_one_paragraph():
     text = " ".join(res.stdout.split())
     assert "acts as tables (one file each) and its provenance" in text
     assert "or with --connect the devices of a running lab and their health" in text
+
+
+@pytest.mark.parametrize("args", [
+    ["run", "scenarios/quantum_dots.yaml", "--budget", "3", "--save", "{bad}/r.rrd"],
+    ["whatif", "scenarios/quantum_dots.yaml", "--vary", "devices.synthesiser.instances=3", "--seeds", "1",
+     "--csv", "{bad}/w.csv"],
+    ["bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "1", "--csv", "{bad}/b.csv"],
+    ["bench", "schedulers", "scenarios/jobshop.yaml", "--csv", "{bad}/b.csv"],
+    ["train", "scenarios/quantum_dots.yaml", "--agent", "planner", "--steps", "100", "--out", "{bad}/p.zip"],
+    ["devices", "--csv", "{bad}/d.csv"],
+    ["route", "CCO", "--save", "{bad}/r.svg"],
+])
+def test_a_file_to_write_that_cannot_be_is_refused_before_anything_runs(args, tmp_path, monkeypatch):
+    """A whatif or a bench ran to its end and then died with a traceback on its --csv (and training would have
+    lost its policy): a path whose directory is a file is refused at once, naming the option."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    (tmp_path / "a_file").write_text("not a directory")
+    monkeypatch.chdir(tmp_path)
+    bad = tmp_path / "a_file"
+    args = [a.format(bad=bad) if "{bad}" in a else str(ROOT / a) if a.startswith("scenarios/") else a for a in args]
+    res = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    option = next(a for a in args if a.startswith("--") and "{" not in a and str(bad) in args[args.index(a) + 1])
+    assert res.exit_code == 2, res.output
+    assert f"error: {option} {bad}/" in res.output and f"its directory {bad} cannot be made" in res.output
+    assert "nothing has run" in res.output and not (tmp_path / "runs").exists()

@@ -13,7 +13,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from rich.markup import escape
 
-from twin.cli.common import _fail, app, assignments, console, err, keep_serving, machine_output, narrow_table
+from twin.cli.common import (_fail, app, assignments, console, err, keep_serving, machine_output, narrow_table,
+                             writable)
 from twin.cli.sharing import shared_lab
 from twin.core import plugins
 from twin.runtime import lab
@@ -80,6 +81,7 @@ def run(
     if insecure:
         overrides["bus.insecure"] = True
     record = RecordOptions(save, viewer, serve, serve_port, web_port)
+    writable("--save", save)
     try:
         s = lab.prepare(scenario, seed=seed, clock=clock, speed=speed, bus=bus, overrides=overrides)
     except TwinError as exc:
@@ -196,6 +198,7 @@ def watch(
                                                           "router with the watcher's certificate")] = None,
 ) -> None:
     """Attach to a lab running in another process and record what it does."""
+    writable("--save", save)
     if not (connect or listen):
         _fail(TwinError("give --connect ENDPOINT (where the lab listens: twin run --listen ...) or --listen ENDPOINT"))
     record = RecordOptions(save, viewer, serve)
@@ -219,6 +222,7 @@ def replay(
     serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,
 ) -> None:
     """Rebuild a run's Rerun recording from its journal alone."""
+    writable("--save", save)
     # written beside and renamed when whole: an interrupted replay leaves no recording that looks like the run's
     partial = save.with_name(f".{save.name}.partial") if save else None
     record = RecordOptions(partial, viewer, serve)
@@ -315,6 +319,7 @@ def devices(
 ) -> None:
     """List the installed device drivers (name, where from, package and version, capabilities), or with
     --connect the devices of a running lab and their health."""
+    writable("--csv", csv_out)
 
     if connect:
         from twin.cli.distributed import render_health

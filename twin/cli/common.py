@@ -53,6 +53,26 @@ def interruptible(command: Command) -> Command:
     return stopping  # type: ignore[return-value]
 
 
+def writable(option: str, *paths: Path | None) -> None:
+    """Refuse, before any work, a file to write that cannot be: the runs, the training or the campaign would be
+    lost at their end (its directory is made, as a recording's is; a file made to try is removed)."""
+    for path in paths:
+        if path is None:
+            continue
+        existed = path.exists()
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with open(path, "a"):
+                pass
+        except OSError as exc:
+            why = (f"its directory {path.parent} cannot be made: {exc.strerror}"
+                   if exc.filename and str(exc.filename) != str(path) else exc.strerror or str(exc))
+            _fail(TwinError(f"{option} {path}: cannot write it ({why}); give a file in a directory you can write "
+                            "(nothing has run)"))
+        if not existed:
+            path.unlink()
+
+
 def _fail(exc: TwinError) -> None:
     err.print(f"[bold red]error:[/] {exc}", highlight=False)
     raise typer.Exit(2)

@@ -11,7 +11,7 @@ from twin.core import plugins
 from twin.runtime import lab
 from twin.runtime.checks import checked
 from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
-                             machine_output, narrow_table, print_table)
+                             machine_output, narrow_table, print_table, writable)
 from twin.core.errors import TwinError
 from twin.tools.planner_bench import DEFAULT_PLANNERS
 
@@ -35,6 +35,8 @@ def train(
                                                       "training.teacher=self; repeatable")] = None,
 ) -> None:
     """Train an agent in the twin; the evaluation curve is printed as it goes (and recorded to Rerun if asked)."""
+    writable("--out", out.with_suffix(".zip"), out.with_suffix(".json"))
+    writable("--save", save)
     try:
         s = checked(lab.prepare(scenario, overrides=assignments(set_ or [])), scenario)
         trainer = plugins.load("trainers", agent)
@@ -96,6 +98,7 @@ def bench_planners(
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every run to this CSV file")] = None,
 ) -> None:
     """Experiments and lab-hours to target (median [IQR]) for each planner over many seeds, vs random."""
+    writable("--csv", csv_out)
     from dataclasses import asdict
 
     from twin.tools.planner_bench import CAPTION, HEADER, bench, parse, rows
@@ -150,6 +153,7 @@ def bench_schedulers(
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every run to this CSV file")] = None,
 ) -> None:
     """Makespan, gap to the CP-SAT bound, utilisation, degraded and lost samples, decision latency per scheduler."""
+    writable("--csv", csv_out)
     from dataclasses import asdict
 
     from twin.tools.planner_bench import bench_pool

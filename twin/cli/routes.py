@@ -9,7 +9,8 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import _fail, app, bar_progress, bench_app, console, interruptible, machine_output, narrow_table, print_table
+from twin.cli.common import (_fail, app, bar_progress, bench_app, console, interruptible, machine_output,
+                             narrow_table, print_table, writable)
 from twin.core import plugins
 from twin.core.errors import TwinError
 
@@ -28,6 +29,7 @@ def route(
 ) -> None:
     """A route to SMILES from the stock: its steps in the order the lab runs them, what it buys, estimates.
     Exit 0: a route (or the target is in stock); 1: no route within the budget; 2: bad input."""
+    writable("--save", save)
     try:
         planner = plugins.load("routes", method)
     except TwinError as exc:
@@ -90,6 +92,7 @@ def bench_routes(
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every search's result to this CSV file")] = None,
 ) -> None:
     """Solved rate, route length against the known one, expansions and time per target, for every search method."""
+    writable("--csv", csv_out)
     from twin.tools.route_bench import CAPTION, HEADER, bench, default_methods, rows, split
     from twin.tools.route_bench import targets as make_targets
 

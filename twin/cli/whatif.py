@@ -12,7 +12,7 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import _fail, app, assignments, bar_progress, console, interruptible
+from twin.cli.common import _fail, app, assignments, bar_progress, console, interruptible, writable
 from twin.core.errors import TwinError
 from twin.runtime import lab
 from twin.runtime.checks import checked
@@ -41,6 +41,8 @@ def whatif(
     """The scenario as written and each variant, over the same seeds: lab-hours and cost to target, experiments,
     abandoned, the busiest device type, and the change against the scenario as written; for a lab of several
     campaigns, each campaign's lab-hours from its start to its end too."""
+    writable("--csv", csv_out)
+    writable("--save", save)
     from rich import box
 
     from twin.tools.whatif import (AS_WRITTEN, axes_of, campaign_rows, caption, cheapest_within, costs_anything,
