@@ -150,3 +150,11 @@ def test_each_instances_own_stock_is_its_own_series_from_its_start(tmp_path):
     for item, rs in series.items():
         drawn = [r["Scalars:scalars"][0] for r in rrd["consumables/vials/" + item.split("@")[1]]]
         assert len(drawn) == len(rs) - 1 and sorted(drawn) == sorted(r["level"] for r in rs[1:])
+
+
+def test_an_out_directory_that_cannot_be_made_says_so(flaky, tmp_path):
+    (tmp_path / "a_file").write_text("not a directory")
+    res = CliRunner().invoke(app, ["export", str(flaky), "--out", str(tmp_path / "a_file" / "x")],
+                             env={"COLUMNS": "200"})
+    assert res.exit_code == 2 and "error: --out" in res.output and "give --out a directory you can write" in \
+        " ".join(res.output.split()), res.output

@@ -46,7 +46,11 @@ def export(journal: str | Path, out: str | Path, fmt: str = "csv", what: list[st
               "decisions": lambda: decision_rows(events),
               "operator": lambda: operator_rows(events)}
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise TwinError(f"--out {out}: cannot make the directory ({exc.strerror}: {exc.filename}); give --out a "
+                        "directory you can write") from None
     written = [_write(out / f"{name}.{fmt}", tables[name](), fmt) for name in chosen]
     record = {**(run.get("provenance") or _older(run)), "operator_acts": operator_rows(events),
               "summary": run.get("summary"), "journal": str(path)}
