@@ -290,3 +290,24 @@ def test_a_file_to_write_that_cannot_be_is_refused_before_anything_runs(args, tm
     assert res.exit_code == 2, res.output
     assert f"error: {option} {bad}/" in res.output and f"its directory {bad} cannot be made" in res.output
     assert "nothing has run" in res.output and not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("args,option", [
+    (["train", "scenarios/quantum_dots.yaml", "--agent", "planner", "--out", "p.zip", "--steps", "0"], "--steps"),
+    (["train", "scenarios/quantum_dots.yaml", "--agent", "planner", "--out", "p.zip", "--envs", "0"], "--envs"),
+    (["train", "scenarios/quantum_dots.yaml", "--agent", "planner", "--out", "p.zip", "--eval-every", "0"],
+     "--eval-every"),
+    (["bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "0"], "--seeds"),
+    (["bench", "schedulers", "scenarios/flaky_lab.yaml", "--workers", "0"], "--workers"),
+])
+def test_counts_below_one_are_refused_by_name(args, option, tmp_path, monkeypatch):
+    """--steps 0 saved an untrained policy, --envs 0 was an IndexError, --eval-every 0 evaluated at step 0 for ever."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    args = [str(ROOT / a) if a.startswith("scenarios/") else a for a in args]
+    res = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    assert res.exit_code == 2 and f"Invalid value for '{option}'" in res.output, res.output
+    assert not (tmp_path / "p.zip").exists()

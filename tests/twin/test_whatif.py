@@ -63,7 +63,7 @@ def test_the_table_fits_80_columns_and_names_the_busiest_device():
     (["--vary", "devices.reactor.instances=2"], "nothing to compare"),
     (["--schedulers", "nope"], "nope"),
     (["--vary", "campaign.scheduler=fifo,rl:missing.zip"], "policy missing.zip does not exist"),
-    (["--vary", "devices.reactor.instances=3", "--seeds", "0"], "--seeds 0"),
+    (["--vary", "devices.reactor.instances=3", "--seeds", "0"], "Invalid value for '--seeds'"),
     (["--vary", "devices.spectrometer.driver=spectrometer,reactor"],
      "--vary devices.spectrometer.driver=reactor: 1 problem(s) - devices.spectrometer.driver: 'reactor' runs"),
     (["--vary", "campaign.planner=random,nope"], "--vary campaign.planner=nope"),

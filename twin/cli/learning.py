@@ -23,10 +23,10 @@ def train(
     agent: Annotated[str, typer.Option(help="scheduler (the rl scheduler), planner (the rl planner), "
                                             "controller or controller-residual (the reactor's heater), route "
                                             "(the route search's expansion prior)")] = "scheduler",
-    steps: Annotated[int, typer.Option(help="environment steps")] = 200_000,
+    steps: Annotated[int, typer.Option(min=1, help="environment steps")] = 200_000,
     seed: Annotated[int, typer.Option(help="training seed")] = 0,
-    envs: Annotated[int, typer.Option(help="environments stepped together")] = 4,
-    eval_every: Annotated[int, typer.Option(help="evaluate (and keep the best policy) every this many steps")] = 20_000,
+    envs: Annotated[int, typer.Option(min=1, help="environments stepped together")] = 4,
+    eval_every: Annotated[int, typer.Option(min=1, help="evaluate (and keep the best policy) every this many steps")] = 20_000,
     save: Annotated[Optional[Path], typer.Option(help="also record the evaluation curve to Rerun, e.g. curve.rrd")] = None,
     viewer: Annotated[bool, typer.Option(help="show the evaluation curve live in the Rerun viewer")] = False,
     init: Annotated[Optional[Path], typer.Option(help="start from this policy (the scheduler, needed by "
@@ -89,10 +89,10 @@ def train(
 @interruptible
 def bench_planners(
     scenario: Annotated[Path, typer.Argument(help="a scenario with targets, e.g. scenarios/quantum_dots.yaml")],
-    seeds: Annotated[int, typer.Option(help="seeds per planner")] = 20,
+    seeds: Annotated[int, typer.Option(min=1, help="seeds per planner")] = 20,
     planners: Annotated[str, typer.Option(help="comma-separated; name~seq runs one experiment at a time, "
                                                 "name@SCHEDULER with another scheduler (gp-bo@fifo~seq)")] = ",".join(DEFAULT_PLANNERS),
-    workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
+    workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
     budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget (a larger one censors less)")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the rows and every run as JSON instead")] = False,
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every run to this CSV file")] = None,
@@ -132,11 +132,11 @@ def bench_planners(
 @interruptible
 def bench_schedulers(
     scenario: Annotated[Path, typer.Argument(help="a scenario, e.g. scenarios/flaky_lab.yaml or scenarios/jobshop.yaml")],
-    seeds: Annotated[int, typer.Option(help="seeds per scheduler (a deterministic job shop runs once)")] = 20,
+    seeds: Annotated[int, typer.Option(min=1, help="seeds per scheduler (a deterministic job shop runs once)")] = 20,
     schedulers: Annotated[str, typer.Option(help="comma-separated: rules, cp-sat, rl:POLICY.zip")] = "fifo,spt,mwkr,least-loaded,oldest-sample",
     jobshop: Annotated[Optional[str], typer.Option(help="job-shop files to run instead of the scenario's, comma-separated "
                                                        "(e.g. jobshop/la01.txt,jobshop/ft10.txt)")] = None,
-    workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
+    workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
     budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", help="override a scenario field, e.g. "
                                                       "devices.reactor.instances=1 (another lab shape); repeatable")] = None,

@@ -87,7 +87,7 @@ def bench_routes(
                                                         "with a uniform prior, mcts:P with prior P; default: all, "
                                                         "and mcts:none")] = None,
     seconds: Annotated[float, typer.Option(help="search budget per target, wall seconds")] = 10.0,
-    workers: Annotated[int, typer.Option(help="searches run in parallel")] = 2,
+    workers: Annotated[int, typer.Option(min=1, help="searches run in parallel")] = 2,
     as_json: Annotated[bool, typer.Option("--json", help="print the rows and every search's result as JSON")] = False,
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every search's result to this CSV file")] = None,
 ) -> None:

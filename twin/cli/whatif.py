@@ -30,8 +30,8 @@ def whatif(
     set_: Annotated[Optional[list[str]], typer.Option("--set", help="change a field of the scenario every variant "
                                                                     "starts from, e.g. campaign.budget=200 "
                                                                     "(repeatable)")] = None,
-    seeds: Annotated[int, typer.Option(help="paired seeds per variant")] = 20,
-    workers: Annotated[int, typer.Option(help="campaigns run in parallel")] = 2,
+    seeds: Annotated[int, typer.Option(min=1, help="paired seeds per variant")] = 20,
+    workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
     budget_hours: Annotated[Optional[float], typer.Option(help="also name the cheapest variant that meets every "
                                                                "target within this many lab-hours")] = None,
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write a row per variant to this CSV file")] = None,
@@ -52,8 +52,6 @@ def whatif(
 
     split = lambda text: [x.strip() for x in text.split(",") if x.strip()] if text else None  # noqa: E731
     try:
-        if seeds < 1:
-            raise TwinError(f"--seeds {seeds}: give at least 1")
         s = checked(lab.prepare(scenario, overrides=assignments(set_ or [])), scenario)
         varied = parse_vary(vary or [])
         chosen = variants(s, varied, split(schedulers), split(planners))
