@@ -311,3 +311,15 @@ def test_counts_below_one_are_refused_by_name(args, option, tmp_path, monkeypatc
     res = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
     assert res.exit_code == 2 and f"Invalid value for '{option}'" in res.output, res.output
     assert not (tmp_path / "p.zip").exists()
+
+
+def test_a_port_past_65535_is_refused_by_name(tmp_path, monkeypatch):
+    """It was an OverflowError from bind() after the campaign had started."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(app, ["run", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--serve", "--serve-port",
+                                   "99999"], env={"COLUMNS": "200"})
+    assert res.exit_code == 2 and "Invalid value for '--serve-port'" in res.output and not (tmp_path / "runs").exists()
