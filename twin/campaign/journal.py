@@ -200,6 +200,9 @@ def reading(path: str | Path) -> Iterator[sqlite3.Connection]:
     """A journal opened read-only; a file that is not one raises ``NotAJournal`` naming it and why."""
     if not Path(path).exists():
         raise no_such_journal(path)
+    if not Path(path).stat().st_size:
+        raise NotAJournal(f"{path}: empty — the name a run claimed for its journal, and the run was stopped before it "
+                          "wrote anything (or the file is not a journal); nothing to report, resume or export")
     try:
         with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
             yield db
