@@ -45,9 +45,9 @@ def whatif(
     writable("--save", save)
     from rich import box
 
-    from twin.tools.whatif import (AS_WRITTEN, axes_of, campaign_rows, caption, cheapest_within, costs_anything,
-                                   degrades, has_targets as any_targets, header, in_seconds, parse_vary, rows, runs_alike,
-                                   summarise, variants, written_values)
+    from twin.tools.whatif import (AS_WRITTEN, axes_of, campaign_rows, caption, cheapest_within,
+                                   has_targets as any_targets, header, in_seconds, measures, parse_vary, rows,
+                                   runs_alike, summarise, variants, written_values)
     from twin.tools.whatif import whatif as run_whatif
 
     split = lambda text: [x.strip() for x in text.split(",") if x.strip()] if text else None  # noqa: E731
@@ -65,7 +65,7 @@ def whatif(
     except TwinError as exc:
         _fail(exc)
     if set_ and not as_json:
-        console.print(f"as written: {scenario} with --set {', '.join(set_)}", highlight=False, soft_wrap=True)
+        console.print(f"as written: {scenario} with --set {', '.join(set_)}", highlight=False)
     if alike and seeds > 1:
         seeds = 1
         if not as_json:
@@ -88,18 +88,21 @@ def whatif(
                                        "cheapest_within": best and best["variant"],
                                        "runs": [asdict(o) for o in results]}))
         return
-    has_targets, with_cost, with_degraded = any_targets(s), costs_anything(summary), degrades(summary)
+    has_targets, shown = any_targets(s), measures(summary)
     seconds = in_seconds(summary)
-    table = Table(title=f"{s.name}: what if — {len(chosen)} variants × {seeds} seed(s)", title_justify="left",
-                  box=box.SIMPLE_HEAD, collapse_padding=True,
-                  pad_edge=False)
-    for i, h in enumerate(header(axes, with_cost, seconds, with_degraded)):
+    # the title above the table, not in it: a narrow table would fold it ("2 variants × 20" over "seed(s)")
+    console.print(f"{s.name}: what if — {len(chosen)} variants × {seeds} seed(s)", highlight=False)
+    table = Table(box=box.SIMPLE_HEAD, collapse_padding=True, pad_edge=False)
+    table_rows = rows(summary, axes, written_values(s, axes), has_targets, shown)
+    for i, h in enumerate(header(axes, shown, seconds)):
+        # a varied field's name and the busiest type's name stay whole: "reactor" over "92%", never squeezed away
+        whole = [h] if i < len(axes) else [row[i] for row in table_rows] if h == "busiest" else []
         table.add_column(h, overflow="fold", no_wrap=i >= len(axes) and h not in ("busiest", "IQR"),
-                         min_width=max(len(part) for part in h.split("\n")) if i < len(axes) else None)
-    for row in rows(summary, axes, written_values(s, axes), has_targets, with_cost, with_degraded):
+                         min_width=max((len(w) for text in whole for w in text.split()), default=0) or None)
+    for row in table_rows:
         table.add_row(*row)
     console.print(table)
-    console.print(caption(has_targets, seeds, with_cost, seconds, alike, with_degraded), highlight=False)  # wrapped at the terminal, not the table
+    console.print(caption(has_targets, seeds, shown, seconds, alike), highlight=False)  # wrapped at the terminal, not the table
     if s.campaigns:
         names = list(summary[0]["per_campaign"])
         console.print("each campaign: median lab-h from its start to its end", highlight=False)

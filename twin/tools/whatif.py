@@ -236,17 +236,21 @@ def in_seconds(summary: list[dict[str, Any]]) -> bool:
     return bool(summary) and max(row["lab_hours"][2] for row in summary) < 1
 
 
-def header(axes: list[str], with_cost: bool = True, seconds: bool = False, with_degraded: bool = False) -> list[str]:
+def measures(summary: list[dict[str, Any]]) -> frozenset[str]:
+    """The measures worth a column: cost if something costs, abandoned and degraded if some run had any (a
+    column of noughts takes the room a varied field's values need)."""
+    return frozenset(name for name, worth in (("cost", costs_anything(summary)),
+                                              ("abandoned", any(row["abandoned"] > 0 for row in summary)),
+                                              ("degraded", any(row["degraded"] > 0 for row in summary))) if worth)
+
+
+def header(axes: list[str], shown: frozenset[str] = frozenset({"cost", "abandoned"}), seconds: bool = False) -> list[str]:
     """The table's columns: one per varied field (a device's field on lines of its own), then the measures
-    (the cost ones only if something costs, degraded samples only if some run had any)."""
+    (``shown``: the optional ones, from ``measures``)."""
     unit = "lab-s" if seconds else "lab-h"
     return [_short(name, axes) for name in axes] + \
-        [unit, "IQR", f"Δ {unit}", *(["cost", "Δ cost"] if with_cost else []), "aband.",
-         *(["degr."] if with_degraded else []), "busiest"]
-
-
-def degrades(summary: list[dict[str, Any]]) -> bool:
-    return any(row["degraded"] > 0 for row in summary)
+        [unit, "IQR", f"Δ {unit}", *(["cost", "Δ cost"] if "cost" in shown else []),
+         *(["aband."] if "abandoned" in shown else []), *(["degr."] if "degraded" in shown else []), "busiest"]
 
 
 def _short(name: str, axes: list[str]) -> str:
@@ -267,7 +271,7 @@ def costs_anything(summary: list[dict[str, Any]]) -> bool:
 
 
 def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any], targets: bool,
-         with_cost: bool = True, with_degraded: bool = False) -> list[list[str]]:
+         shown: frozenset[str] = frozenset({"cost", "abandoned"})) -> list[list[str]]:
     out = []
     scale, d = (3600, 0) if in_seconds(summary) else (1, 1)
     for row in summary:
@@ -283,9 +287,9 @@ def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any]
             f"{censored}{mid:.{d}f}", f"{lo:.{d}f}–{hi:.{d}f}" if hi < 10 else f"{lo:.0f}–{hi:.0f}",
             "—" if base or change is None else f"{change[1]:+.{d}f}",
             *([f"{row['cost'][1]:,.0f}", "—" if base or cost_change is None else f"{cost_change[1]:+,.0f}"]
-              if with_cost else []),
-            f"{row['abandoned']:.1f}",
-            *([f"{row['degraded']:.1f}"] if with_degraded else []),
+              if "cost" in shown else []),
+            *([f"{row['abandoned']:.1f}"] if "abandoned" in shown else []),
+            *([f"{row['degraded']:.1f}"] if "degraded" in shown else []),
             f"{busiest} {100 * row['utilisation'].get(busiest, 0):.0f}%" if busiest else "",
         ])
     return out
@@ -312,15 +316,19 @@ def has_targets(s: Scenario) -> bool:
     return bool(s.chemistry.targets) or any(c.chemistry is not None and c.chemistry.targets for c in s.campaigns)
 
 
-def caption(targets: bool, seeds: int, with_cost: bool = True, seconds: bool = False, alike: bool = False,
-            with_degraded: bool = False) -> str:
+def caption(targets: bool, seeds: int, shown: frozenset[str] = frozenset({"cost", "abandoned"}), seconds: bool = False,
+            alike: bool = False) -> str:
     unit, hours = ("lab-s", "lab-seconds") if seconds else ("lab-h", "lab-hours")
     what = (f"{unit}: {hours} until every target (of every campaign) was met (≥: not met in every run, the whole "
             "campaign counted)"
             if targets else f"{unit}: {hours} of the whole campaign (the scenario has no targets)")
     runs = ("One run per variant: each runs alike on every seed (a job shop: no chance in durations or faults)"
             if alike else f"Medians and IQR over {seeds} paired seeds")
+    cost = ("cost: at the last target (else all spent)" if "cost" in shown else
+            "no device costs anything (devices.*.cost), so no cost columns")
+    counts = [("aband.: experiments abandoned (mean)" if "abandoned" in shown else
+               "no run abandoned an experiment (no aband. column)"),
+              *(["degr.: samples degraded (mean)"] if "degraded" in shown else [])]
     return (f"*: the scenario as written. {runs}. {what}; Δ: " + ("the change" if alike else "median of the per-seed "
-            "change") + " against the scenario as written; " + ("cost: at the last target (else all spent); " if with_cost else
-            "no device costs anything (devices.*.cost), so no cost columns; ") + "aband.: experiments "
-            "abandoned (mean); " + ("degr.: samples degraded (mean); " if with_degraded else "") + "busiest: the device type with the highest mean utilisation. --json or --csv: all of it")
+            "change") + f" against the scenario as written; {cost}; {'; '.join(counts)}; busiest: the device type "
+            "with the highest mean utilisation. --json or --csv: all of it")
