@@ -103,14 +103,14 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         raise TwinError(f"unknown runtime {runtime!r}: use one of {', '.join(RUNTIMES)}")
     if runtime == "fast" and why_not:
         raise ClockError(f"the fast runtime cannot run this campaign: {why_not}. Use --runtime asyncio (or auto).")
-    recording = None
-    if record is not None and record.wanted and observer is None:
-        observer, recording = open_observer(record, recording_id(s))
-        for message in recording.messages:
-            log.warning("%s", message)
     claimed = journal is None
     journal = journal or default_journal(s)
+    recording = None
     try:
+        if record is not None and record.wanted and observer is None:
+            observer, recording = open_observer(record, recording_id(s))
+            for message in recording.messages:
+                log.warning("%s", message)
         if runtime == "fast" or (runtime == "auto" and not why_not):
             try:
                 return run_fast(s, journal, on_progress, make_journal=make_journal,
