@@ -49,9 +49,10 @@ class Template:
 
 
 def canonical(smiles: str) -> str | None:
-    """RDKit's canonical SMILES of ``smiles`` (None if it does not parse)."""
+    """RDKit's canonical SMILES of ``smiles`` (None if it does not parse, or is no molecule: RDKit reads '' as one of
+    no atoms)."""
     mol = Chem.MolFromSmiles(smiles)
-    return Chem.MolToSmiles(mol) if mol is not None else None
+    return Chem.MolToSmiles(mol) if mol is not None and mol.GetNumAtoms() else None
 
 
 def _mol(smiles: str) -> Chem.Mol:

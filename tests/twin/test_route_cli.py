@@ -54,6 +54,7 @@ def test_a_bad_smiles_exits_2_from_a_real_process():
 
 @pytest.mark.parametrize("args,code,says", [
     (["C1CC"], 2, "not a valid SMILES: 'C1CC'"),
+    ([""], 2, "not a valid SMILES: ''"),  # RDKit reads it as a molecule of no atoms: the search said "no route to "
     (["CCO", "--method", "nope"], 2, "unknown route planner 'nope'. Installed: breadth-first, mcts, random"),
     (["CCO", "--stock", "missing.csv"], 2, "missing.csv: cannot read the stock file"),
     (["CCO", "--prior", "missing"], 2, "python -m agents.routes.train --out missing"),
