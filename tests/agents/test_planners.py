@@ -131,3 +131,22 @@ def test_bench_tables_read_at_80_columns():
     lines = res.output.splitlines()
     assert max(len(line) for line in lines) <= 80 and "…" not in res.output
     assert any(line.split()[:1] == ["random"] for line in lines) and "accel.: random's median" in " ".join(res.output.split())
+
+
+def test_bench_planners_leaves_out_a_cost_column_of_noughts_and_keeps_it_where_experiments_cost():
+    """Where nothing costs, the column of noughts folded 'rl:quantum_dots~seq' over two lines at 80 columns."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    def head(*more):
+        res = CliRunner().invoke(app, ["bench", "planners", *more, "--seeds", "1", "--budget", "3", "--workers", "1",
+                                       "--planners", "random,lhs"], env={"COLUMNS": "80"})
+        assert res.exit_code == 0, res.output
+        words = " ".join(res.output.split())
+        return next(line.split() for line in res.output.splitlines() if line.split()[:1] == ["planner"]), words
+
+    free, says = head("scenarios/quantum_dots.yaml")
+    assert "cost" not in free and "no device costs anything (devices.*.cost), so no cost column" in says
+    paid, says = head("scenarios/bandgap.yaml")
+    assert "cost" in paid and "cost: at the last target (median)" in says

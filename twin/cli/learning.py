@@ -101,7 +101,7 @@ def bench_planners(
     writable("--csv", csv_out)
     from dataclasses import asdict
 
-    from twin.tools.planner_bench import CAPTION, HEADER, bench, parse, rows
+    from twin.tools.planner_bench import HEADER, bench, caption, parse, rows
 
     names = [p.strip() for p in planners.split(",") if p.strip()]
     try:
@@ -121,10 +121,13 @@ def bench_planners(
     runs = [asdict(t) for trials in results.values() for t in trials]
     if machine_output(as_json, csv_out, HEADER, table_rows, runs, scenario=s.name, seeds=seeds):
         return
-    table = narrow_table(HEADER, f"{s.name} — {seeds} seeds, budget {budget or s.campaign.budget}, "
-                                 f"{s.campaign.max_in_flight} in the lab", CAPTION)
+    # a lab where nothing costs has a cost column of noughts: its room goes to the planners' names
+    costs = any(t.cost > 0 for trials in results.values() for t in trials)
+    shown = [i for i, h in enumerate(HEADER) if costs or h != "cost"]
+    table = narrow_table([HEADER[i] for i in shown], f"{s.name} — {seeds} seeds, budget {budget or s.campaign.budget}, "
+                         f"{s.campaign.max_in_flight} in the lab", caption(costs))
     for row in table_rows:
-        table.add_row(*row)
+        table.add_row(*(row[i] for i in shown))
     print_table(table)
 
 
