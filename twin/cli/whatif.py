@@ -38,9 +38,9 @@ def whatif(
     as_json: Annotated[bool, typer.Option("--json", help="print every variant and run as JSON instead of the table")] = False,
     save: Annotated[Optional[Path], typer.Option(help="draw the trade-offs into a Rerun recording, e.g. whatif.rrd")] = None,
 ) -> None:
-    """The scenario as written and each variant, over the same seeds: lab-hours and cost to target, experiments,
-    abandoned, the busiest device type, and the change against the scenario as written; for a lab of several
-    campaigns, each campaign's lab-hours from its start to its end too."""
+    """The scenario as written and each variant, over the same seeds: lab-hours and cost to target, abandoned
+    experiments and degraded samples (where any), the busiest device type, and the change against the scenario as
+    written; for a lab of several campaigns, each campaign's lab-hours from its start to its end too."""
     writable("--csv", csv_out)
     writable("--save", save)
     from rich import box
