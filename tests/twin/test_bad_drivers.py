@@ -332,3 +332,36 @@ def test_a_wait_that_is_not_a_number_is_the_drivers_error_on_both_runtimes(tmp_p
     reasons = {json.loads(e["detail"])["reason"] for e in read_events(tmp_path / "fast.db", "attempt.failed")}
     for said in ("clock.sleep('10'): lab seconds must be a number, not str", "not NoneType", "not NaN"):
         assert any(said in r for r in reasons), (said, reasons)
+
+
+class Blocks(Raises):
+    """A driver that calls a blocking vendor SDK (time.sleep) instead of awaiting the lab clock."""
+
+    async def run(self, step, params, sample, ctx):
+        import time
+
+        await ctx.clock.sleep(30)
+        time.sleep(0.2)
+        return StepResult({"peak_nm": 500.0}, sample)
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+def test_a_driver_that_blocks_the_lab_is_named_once_on_either_runtime(tmp_path, caplog, monkeypatch, runtime):
+    """A 3 s time.sleep in run() held the whole lab 3 s per step, silently, and took no lab time."""
+    import logging
+
+    from twin.device import blocking
+
+    monkeypatch.setattr(blocking, "BLOCKING_S", 0.1)
+    lab = parse(qd_lab(**{
+        "devices.spectrometer": {"driver": "tests.twin.test_bad_drivers:Blocks", "instances": 2, "steps": ["measure"],
+                                 "duration": {"mean_s": 60, "cv": 0.1}},
+        "campaign.budget": 3, "bus.kind": "memory"}))
+    with caplog.at_level(logging.WARNING):
+        summary = run(lab, journal=tmp_path / "j.db", runtime=runtime)
+    said = [r.getMessage() for r in caplog.records if "without awaiting" in r.getMessage()]
+    assert summary.done == 3
+    devices = {message.split(":")[0] for message in said}
+    assert len(said) == len(devices) and devices <= {"spectrometer-1", "spectrometer-2"} and devices
+    assert all(re.search(r"its driver ran \d+\.\d s of wall time without awaiting \(a blocking call: time\.sleep, a "
+                         r"vendor SDK\?\)", m) and "await asyncio.to_thread(call)" in m for m in said)

@@ -21,6 +21,7 @@ from twin.core import keys
 from twin.core.bus import Bus, Closable
 from twin.core.clock import LabClock, wait_cancelled
 from twin.core.streams import KeyedGenerator, seeded
+from twin.device.blocking import BlockWatch, timed
 from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults
 from twin.core.errors import Refused
 from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack
@@ -42,6 +43,7 @@ class DeviceActor:
         self._seed = seed
         self._crash_rng, _ = seeded(seed, "crashes", name)
         self._step_rngs = KeyedGenerator()
+        self._blocking = BlockWatch(name)
         self._ids = itertools.count(1)
         self._evt_key = keys.evt(lab, name)
         self._job: asyncio.Task | None = None
@@ -249,7 +251,7 @@ class DeviceActor:
             await self._clock.sleep(spec.setup_s)
             if hang:
                 await asyncio.Event().wait()  # only a cancel (a timeout) ends a hung step
-            result = await driver.run(cmd.step, cmd.params, cmd.sample, ctx)
+            result = await timed(driver.run(cmd.step, cmd.params, cmd.sample, ctx), self._blocking)
             await self._clock.sleep(spec.clean_s)
             if fail:
                 emit(Kind.FAULT, {"code": "failed", "reason": f"{cmd.step} failed on {self.name} (simulated)"})

@@ -12,12 +12,14 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
+import time
 from collections.abc import Callable
 from typing import Any
 
 
 from twin.campaign import DeviceMessage, InvalidInput, Presence
 from twin.core.streams import KeyedGenerator, seeded
+from twin.device.blocking import BlockWatch
 from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults
 from twin.core.errors import DriverError, Refused
 from twin.core.messages import InvalidMessage, Kind, decode, envelope, excerpt, to_wire
@@ -55,6 +57,7 @@ class FastDevice:
         self._cancel_reason = ""
         self._timer: Timer | None = None
         self._shared = shared or {}
+        self._blocking = BlockWatch(name)
         self.online = False
 
     # -- life cycle -------------------------------------------------------------------
@@ -138,10 +141,14 @@ class FastDevice:
     def _resume(self, exc: BaseException | None = None) -> None:
         self._timer = None
         job, current, token = self._job, self._current, self._token
+        watch, clock = self._blocking, time.perf_counter
         while True:
+            since = clock()
             try:
                 req = job.send(None) if exc is None else job.throw(exc)
             except (StopIteration, asyncio.CancelledError):
+                if clock() - since > watch.limit:
+                    watch.ran(since)
                 return
             except Exception as err:  # the step died in the device's own handling (a safe_state that raised)
                 log.error("%s: step %s died in the device's own handling: %r; reported as a driver error",
@@ -150,6 +157,8 @@ class FastDevice:
                     self._emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(err).__name__}: {err}"[:500]},
                                *current, token)
                 return
+            if clock() - since > watch.limit:
+                watch.ran(since)
             exc = None
             if type(req) is Sleep:
                 if req.seconds > 0:

@@ -1,0 +1,60 @@
+"""A driver that blocks: said once per device, on either runtime.
+
+A driver's ``run`` that calls something blocking — ``time.sleep``, a vendor SDK's synchronous call — holds the
+process between two of its awaits: every other device, the orchestrator's deadlines and the bus wait meanwhile,
+and on a virtual clock no lab time passes for it. The runtimes time each stretch a driver runs between awaits and
+warn once per device when one passes ``BLOCKING_S`` of wall time.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import types
+from collections.abc import Awaitable, Generator
+from typing import Any
+
+log = logging.getLogger(__name__)
+BLOCKING_S = 2.0  # wall seconds between two awaits: past this a driver is said to block the lab
+
+
+class BlockWatch:
+    def __init__(self, device: str) -> None:
+        self.device = device
+        self.limit = BLOCKING_S
+        self.warned = False
+
+    def ran(self, since: float) -> None:
+        """A driver's stretch that began at ``since`` (``time.perf_counter``) has ended."""
+        took = time.perf_counter() - since
+        if took > self.limit and not self.warned:
+            self.warned = True
+            log.warning("%s: its driver ran %.1f s of wall time without awaiting (a blocking call: time.sleep, a "
+                        "vendor SDK?); every other device and the orchestrator waited meanwhile. Wait for the "
+                        "instrument with `await ctx.clock.sleep(...)` and run a blocking call in a thread, `await "
+                        "asyncio.to_thread(call)` (docs/drivers.md); said once per device", self.device, took)
+
+
+@types.coroutine
+def timed(step: Awaitable[Any], watch: BlockWatch) -> Generator[Any, Any, Any]:
+    """``step`` awaited as it is, each stretch between its awaits timed for ``watch``; a cancel goes in as it
+    would."""
+    inner = step.__await__()
+    sent: Any = None
+    thrown: BaseException | None = None
+    while True:
+        since = time.perf_counter()
+        try:
+            asked = inner.send(sent) if thrown is None else inner.throw(thrown)
+        except StopIteration as done:
+            watch.ran(since)
+            return done.value
+        watch.ran(since)
+        sent, thrown = None, None
+        try:
+            sent = yield asked
+        except GeneratorExit:
+            inner.close()
+            raise
+        except BaseException as exc:  # a cancel (CancelledError) thrown in at the await: passed on to the driver
+            thrown = exc
