@@ -365,3 +365,33 @@ def test_a_driver_that_blocks_the_lab_is_named_once_on_either_runtime(tmp_path, 
     assert len(said) == len(devices) and devices <= {"spectrometer-1", "spectrometer-2"} and devices
     assert all(re.search(r"its driver ran \d+\.\d s of wall time without awaiting \(a blocking call: time\.sleep, a "
                          r"vendor SDK\?\)", m) and "await asyncio.to_thread(call)" in m for m in said)
+
+
+class StuckSafe(Raises):
+    """Its step hangs until the lab cancels it, and its safe_state never returns."""
+
+    async def run(self, step, params, sample, ctx):
+        await ctx.clock.sleep(float("inf"))
+
+    async def safe_state(self):
+        await asyncio.Event().wait()
+
+
+@pytest.mark.process
+def test_a_safe_state_that_never_returns_does_not_keep_the_lab_from_ending(tmp_path):
+    """The campaign abandoned the experiment and printed nothing more: the process hung at shutdown for ever, in
+    the device's last safe_state()."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    code = ("from tests.conftest import qd_lab\nfrom twin.scenario import parse\nfrom twin.runtime.lab import run\n"
+            "lab = parse(qd_lab(**{'devices.spectrometer': {'driver': 'tests.twin.test_bad_drivers:StuckSafe', "
+            "'instances': 1, 'steps': ['measure'], 'duration': {'mean_s': 60}}, 'campaign.budget': 1, "
+            "'bus.kind': 'memory'}))\n"
+            f"s = run(lab, journal={str(tmp_path / 'j.db')!r}, runtime='asyncio')\nprint('ended', s.abandoned)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root, timeout=90)
+    assert res.returncode == 0 and "ended 1" in res.stdout, res.stderr[-2000:]
+    assert "spectrometer: safe_state() did not return within 60 lab-s at shutdown (orchestrator.cancel_grace_s)" \
+        in res.stderr

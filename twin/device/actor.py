@@ -31,12 +31,14 @@ log = logging.getLogger(__name__)
 
 class DeviceActor:
     def __init__(self, name: str, spec: Any, driver: Driver, bus: Bus, clock: LabClock, lab: str, seed: int,
-                 orphan_grace_s: float = 300.0, shared: dict[str, Driver] | None = None) -> None:
+                 orphan_grace_s: float = 300.0, shared: dict[str, Driver] | None = None,
+                 stop_grace_s: float = 60.0) -> None:
         """``shared``: the device serves several campaigns — campaign -> the driver that simulates its chemistry;
-        their steps draw faults and durations by campaign too (their task ids repeat)."""
+        their steps draw faults and durations by campaign too (their task ids repeat). ``stop_grace_s``: lab
+        seconds ``safe_state`` has at shutdown before the lab stops without it (``orchestrator.cancel_grace_s``)."""
         self.name, self.spec, self.driver = name, spec, driver
         self._shared = shared or {}
-        self.orphan_grace_s = orphan_grace_s
+        self.orphan_grace_s, self.stop_grace_s = orphan_grace_s, stop_grace_s
         self._boss: Closable | None = None
         self._orphan_timer: asyncio.TimerHandle | None = None
         self._bus, self._clock, self._lab = bus, clock, lab
@@ -85,7 +87,11 @@ class DeviceActor:
             self._cancel_reason = "stop"
             await wait_cancelled(self._job)
         try:
-            await self.driver.safe_state()
+            async with asyncio.timeout(self.stop_grace_s):  # lab time: on a virtual clock, no wait at all
+                await self.driver.safe_state()
+        except TimeoutError:  # a driver that never returns must not keep the lab from ending
+            log.error("%s: safe_state() did not return within %g lab-s at shutdown (orchestrator.cancel_grace_s); "
+                      "the lab stopped without it: check the instrument by hand", self.name, self.stop_grace_s)
         except Exception as exc:  # stopping goes on: the token goes, the other devices stop too
             log.error("%s: safe_state() failed at shutdown: %r; check the instrument by hand", self.name, exc)
         self._offline()

@@ -177,7 +177,7 @@ def build_actors(s: Scenario, drivers: list[tuple[str, str, Any]], bus: Bus, clo
                  per_campaign: dict[str, dict[str, Any]] | None = None) -> list[DeviceActor]:
     """``per_campaign``: a lab of several campaigns — each instance's driver for each campaign's chemistry."""
     return [DeviceActor(name, s.devices[dtype], drv, bus, clock, s.lab, s.campaign.seed, s.orchestrator.orphan_grace_s,
-                        (per_campaign or {}).get(name))
+                        (per_campaign or {}).get(name), stop_grace_s=s.orchestrator.cancel_grace_s)
             for name, dtype, drv in drivers]
 
 
