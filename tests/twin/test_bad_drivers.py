@@ -350,9 +350,9 @@ def test_a_driver_that_blocks_the_lab_is_named_once_on_either_runtime(tmp_path, 
     """A 3 s time.sleep in run() held the whole lab 3 s per step, silently, and took no lab time."""
     import logging
 
-    from twin.device import blocking
+    from twin.device import habits
 
-    monkeypatch.setattr(blocking, "BLOCKING_S", 0.1)
+    monkeypatch.setattr(habits, "BLOCKING_S", 0.1)
     lab = parse(qd_lab(**{
         "devices.spectrometer": {"driver": "tests.twin.test_bad_drivers:Blocks", "instances": 2, "steps": ["measure"],
                                  "duration": {"mean_s": 60, "cv": 0.1}},
@@ -395,3 +395,42 @@ def test_a_safe_state_that_never_returns_does_not_keep_the_lab_from_ending(tmp_p
     assert res.returncode == 0 and "ended 1" in res.stdout, res.stderr[-2000:]
     assert "spectrometer: safe_state() did not return within 60 lab-s at shutdown (orchestrator.cancel_grace_s)" \
         in res.stderr
+
+
+class Chatters(Raises):
+    """Reports telemetry in a loop: without waiting (``tight``), or a reading every lab-second."""
+
+    tight = True
+
+    async def run(self, step, params, sample, ctx):
+        for i in range(150):
+            ctx.telemetry({"lamp_c": 40.0 + i % 3})
+            if not self.tight:
+                await ctx.clock.sleep(1)
+        return StepResult({"peak_nm": 500.0}, sample)
+
+
+class Paced(Chatters):
+    tight = False
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+def test_telemetry_reported_in_a_loop_that_does_not_wait_is_named_once(tmp_path, caplog, runtime):
+    """100,000 readings in one step made a 97 MB journal for three experiments, silently."""
+    import logging
+
+    def said(driver):
+        lab = parse(qd_lab(**{
+            "devices.spectrometer": {"driver": f"tests.twin.test_bad_drivers:{driver}", "instances": 1,
+                                     "steps": ["measure"], "duration": {"mean_s": 150}},
+            "campaign.budget": 2, "bus.kind": "memory"}))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            summary = run(lab, journal=tmp_path / f"{driver}.db", runtime=runtime)
+        assert summary.done == 2
+        return [r.getMessage() for r in caplog.records if "telemetry readings at one lab instant" in r.getMessage()]
+
+    tight = said("Chatters")
+    assert len(tight) == 1 and tight[0].startswith("spectrometer: its driver reported 100 telemetry readings at one "
+                                                   "lab instant") and "report between awaits of ctx.clock.sleep" in tight[0]
+    assert said("Paced") == []  # as many readings, a lab-second apart

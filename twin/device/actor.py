@@ -21,7 +21,7 @@ from twin.core import keys
 from twin.core.bus import Bus, Closable
 from twin.core.clock import LabClock, wait_cancelled
 from twin.core.streams import KeyedGenerator, seeded
-from twin.device.blocking import BlockWatch, timed
+from twin.device.habits import Habits, timed
 from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults
 from twin.core.errors import Refused
 from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack
@@ -45,7 +45,7 @@ class DeviceActor:
         self._seed = seed
         self._crash_rng, _ = seeded(seed, "crashes", name)
         self._step_rngs = KeyedGenerator()
-        self._blocking = BlockWatch(name)
+        self._habits = Habits(name)
         self._ids = itertools.count(1)
         self._evt_key = keys.evt(lab, name)
         self._job: asyncio.Task | None = None
@@ -240,13 +240,17 @@ class DeviceActor:
         def emit(kind: Kind, body: dict, key: str | None = None) -> None:
             self._emit(kind, body, task, attempt, campaign, token, key)
 
+        def telemetry(readings: dict) -> None:
+            self._habits.reading(self._clock.now())
+            emit(Kind.TELEMETRY, {"readings": readings}, keys.telemetry(self._lab, self.name))
+
         drawn_by = f"{campaign}/{task}" if self._shared else task
         ctx = StepContext(
             clock=self._clock,
             rng=self._step_rngs.keyed(f"{self._seed}:steps:{drawn_by}:{attempt}"),
             duration=spec.duration,
             progress=lambda f, note: emit(Kind.PROGRESS, {"fraction": f, "note": note}),
-            telemetry=lambda r: emit(Kind.TELEMETRY, {"readings": r}, keys.telemetry(self._lab, self.name)),
+            telemetry=telemetry,
             expected_s=cmd.expected_s,
             deadline_s=cmd.deadline_s,
         )
@@ -257,7 +261,7 @@ class DeviceActor:
             await self._clock.sleep(spec.setup_s)
             if hang:
                 await asyncio.Event().wait()  # only a cancel (a timeout) ends a hung step
-            result = await timed(driver.run(cmd.step, cmd.params, cmd.sample, ctx), self._blocking)
+            result = await timed(driver.run(cmd.step, cmd.params, cmd.sample, ctx), self._habits)
             await self._clock.sleep(spec.clean_s)
             if fail:
                 emit(Kind.FAULT, {"code": "failed", "reason": f"{cmd.step} failed on {self.name} (simulated)"})

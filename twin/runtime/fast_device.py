@@ -19,7 +19,7 @@ from typing import Any
 
 from twin.campaign import DeviceMessage, InvalidInput, Presence
 from twin.core.streams import KeyedGenerator, seeded
-from twin.device.blocking import BlockWatch
+from twin.device.habits import Habits
 from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults
 from twin.core.errors import DriverError, Refused
 from twin.core.messages import InvalidMessage, Kind, decode, envelope, excerpt, to_wire
@@ -57,7 +57,7 @@ class FastDevice:
         self._cancel_reason = ""
         self._timer: Timer | None = None
         self._shared = shared or {}
-        self._blocking = BlockWatch(name)
+        self._habits = Habits(name)
         self.online = False
 
     # -- life cycle -------------------------------------------------------------------
@@ -141,7 +141,7 @@ class FastDevice:
     def _resume(self, exc: BaseException | None = None) -> None:
         self._timer = None
         job, current, token = self._job, self._current, self._token
-        watch, clock = self._blocking, time.perf_counter
+        watch, clock = self._habits, time.perf_counter
         while True:
             since = clock()
             try:
@@ -188,13 +188,17 @@ class FastDevice:
         def emit(kind: Kind, body: dict) -> None:
             self._emit(kind, body, task, attempt, token)
 
+        def telemetry(readings: dict) -> None:
+            self._habits.reading(self._q.now)
+            emit(Kind.TELEMETRY, {"readings": readings})
+
         key = f"{self._campaign}/{task}" if self._shared else task
         ctx = StepContext(
             clock=self._clock,  # type: ignore[arg-type]
             rng=self._step_rngs.keyed(f"{self._seed}:steps:{key}:{attempt}"),
             duration=spec.duration,
             progress=lambda f, note: emit(Kind.PROGRESS, {"fraction": f, "note": note}),
-            telemetry=lambda r: emit(Kind.TELEMETRY, {"readings": r}),
+            telemetry=telemetry,
             expected_s=cmd["expected_s"],
             deadline_s=cmd.get("deadline_s"),
         )

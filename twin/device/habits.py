@@ -1,9 +1,12 @@
-"""A driver that blocks: said once per device, on either runtime.
+"""A driver's habits that hurt the lab, said once per device on either runtime.
 
-A driver's ``run`` that calls something blocking — ``time.sleep``, a vendor SDK's synchronous call — holds the
-process between two of its awaits: every other device, the orchestrator's deadlines and the bus wait meanwhile,
-and on a virtual clock no lab time passes for it. The runtimes time each stretch a driver runs between awaits and
-warn once per device when one passes ``BLOCKING_S`` of wall time.
+- **Blocking.** A ``run`` that calls something blocking — ``time.sleep``, a vendor SDK's synchronous call — holds
+  the process between two of its awaits: every other device, the orchestrator's deadlines and the bus wait
+  meanwhile, and on a virtual clock no lab time passes for it. The runtimes time each stretch a driver runs
+  between awaits and warn when one passes ``BLOCKING_S`` of wall time.
+- **Chatter.** Telemetry reported in a loop that does not wait: every reading is a message and a journal row
+  (100,000 readings in a step made a 97 MB journal for three experiments). The runtimes warn when
+  ``SAME_INSTANT`` readings come at one lab instant.
 """
 
 from __future__ import annotations
@@ -16,13 +19,29 @@ from typing import Any
 
 log = logging.getLogger(__name__)
 BLOCKING_S = 2.0  # wall seconds between two awaits: past this a driver is said to block the lab
+SAME_INSTANT = 100  # telemetry readings at one lab instant: past this a driver is said to report in a loop
 
 
-class BlockWatch:
+class Habits:
     def __init__(self, device: str) -> None:
         self.device = device
         self.limit = BLOCKING_S
         self.warned = False
+        self._chatter_said = False
+        self._instant: float | None = None
+        self._readings = 0
+
+    def reading(self, t_lab: float) -> None:
+        """A telemetry reading at lab time ``t_lab``."""
+        if t_lab != self._instant:
+            self._instant, self._readings = t_lab, 0
+        self._readings += 1
+        if self._readings == SAME_INSTANT and not self._chatter_said:
+            self._chatter_said = True
+            log.warning("%s: its driver reported %d telemetry readings at one lab instant (lab time %.0f s), in a "
+                        "loop that does not wait; each is a message and a journal row: report between awaits of "
+                        "ctx.clock.sleep, every few lab-seconds (docs/drivers.md); said once per device",
+                        self.device, SAME_INSTANT, t_lab)
 
     def ran(self, since: float) -> None:
         """A driver's stretch that began at ``since`` (``time.perf_counter``) has ended."""
@@ -36,7 +55,7 @@ class BlockWatch:
 
 
 @types.coroutine
-def timed(step: Awaitable[Any], watch: BlockWatch) -> Generator[Any, Any, Any]:
+def timed(step: Awaitable[Any], watch: Habits) -> Generator[Any, Any, Any]:
     """``step`` awaited as it is, each stretch between its awaits timed for ``watch``; a cancel goes in as it
     would."""
     inner = step.__await__()
