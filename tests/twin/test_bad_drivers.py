@@ -267,13 +267,18 @@ class OddSample:
         pass
 
 
-def test_a_result_whose_sample_the_lab_cannot_carry_fails_its_attempt_alike_on_both_runtimes(tmp_path):
+def test_a_result_whose_sample_the_lab_cannot_carry_fails_its_attempt_alike_on_both_runtimes(tmp_path, caplog):
     """Once it stopped the campaign (float(None)); now each is a failed attempt naming the device and the field,
     retried like any other, and the two runtimes agree to the attempt (a sample that is not an object is an
-    invalid message on a bus, so in the fast runtime too)."""
+    invalid message on a bus, so in the fast runtime too, where it is now logged as a bus receiver logs it)."""
+    import logging
+
     lab = parse(qd_lab(**{"devices.synthesiser.driver": "tests.twin.test_bad_drivers:OddSample",
                           "campaign.budget": 6, "orchestrator.quarantine_after": 100}))
-    fast = run(lab, journal=tmp_path / "fast.db", runtime="auto")
+    with caplog.at_level(logging.WARNING):
+        fast = run(lab, journal=tmp_path / "fast.db", runtime="auto")
+    assert any(r.getMessage().startswith("dropped a message from synthesiser: invalid message from synthesiser")
+               for r in caplog.records)
     slow = run(lab, journal=tmp_path / "slow.db", runtime="asyncio")
     assert fast.done + fast.abandoned == 6 and fast.done >= 1
     for field in ("done", "abandoned", "attempts", "failed_attempts", "invalid_messages", "timed_out"):

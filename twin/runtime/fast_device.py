@@ -58,6 +58,7 @@ class FastDevice:
         self._timer: Timer | None = None
         self._shared = shared or {}
         self._habits = Habits(name)
+        self._invalid = 0  # its messages that did not pass the wire's checks
         self.online = False
 
     # -- life cycle -------------------------------------------------------------------
@@ -115,6 +116,10 @@ class FastDevice:
                 # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
                 body = decode(payload, self.name)[1].to_dict()
             except InvalidMessage as exc:
+                self._invalid += 1
+                if self._invalid <= 10 or self._invalid % 1000 == 0:  # as a bus receiver says it (runtime.live)
+                    log.warning("dropped a message from %s: %s (%d so far; the journal has each)", self.name, exc,
+                                self._invalid)
                 self._deliver(InvalidInput(exc.sender, exc.reason, excerpt=excerpt(payload)))
                 return
         if self._watch is not None and kind in WATCHED:
