@@ -403,13 +403,16 @@ def test_a_safe_state_that_never_returns_does_not_keep_the_lab_from_ending(tmp_p
 
 
 class Chatters(Raises):
-    """Reports telemetry in a loop: without waiting (``tight``), or a reading every lab-second."""
+    """Reports in a loop: without waiting (``tight``), or once every lab-second; telemetry, or progress."""
 
-    tight = True
+    tight, telemetry = True, True
 
     async def run(self, step, params, sample, ctx):
         for i in range(150):
-            ctx.telemetry({"lamp_c": 40.0 + i % 3})
+            if self.telemetry:
+                ctx.telemetry({"lamp_c": 40.0 + i % 3})
+            else:
+                ctx.progress(i / 150, "scanning")
             if not self.tight:
                 await ctx.clock.sleep(1)
         return StepResult({"peak_nm": 500.0}, sample)
@@ -419,9 +422,14 @@ class Paced(Chatters):
     tight = False
 
 
+class Scans(Chatters):
+    telemetry = False
+
+
 @pytest.mark.parametrize("runtime", ["fast", "asyncio"])
-def test_telemetry_reported_in_a_loop_that_does_not_wait_is_named_once(tmp_path, caplog, runtime):
-    """100,000 readings in one step made a 97 MB journal for three experiments, silently."""
+def test_telemetry_or_progress_reported_in_a_loop_that_does_not_wait_is_named_once(tmp_path, caplog, runtime):
+    """100,000 readings in one step made a 97 MB journal for three experiments, silently (100,000 progress
+    reports 77 MB)."""
     import logging
 
     def said(driver):
@@ -433,9 +441,11 @@ def test_telemetry_reported_in_a_loop_that_does_not_wait_is_named_once(tmp_path,
         with caplog.at_level(logging.WARNING):
             summary = run(lab, journal=tmp_path / f"{driver}.db", runtime=runtime)
         assert summary.done == 2
-        return [r.getMessage() for r in caplog.records if "telemetry readings at one lab instant" in r.getMessage()]
+        return [r.getMessage() for r in caplog.records if "reports at one lab instant" in r.getMessage()]
 
-    tight = said("Chatters")
-    assert len(tight) == 1 and tight[0].startswith("spectrometer: its driver reported 100 telemetry readings at one "
-                                                   "lab instant") and "report between awaits of ctx.clock.sleep" in tight[0]
+    for driver, what in (("Chatters", "telemetry"), ("Scans", "progress")):
+        tight = said(driver)
+        assert len(tight) == 1 and tight[0].startswith("spectrometer: its driver made 100 reports at one lab instant")
+        assert f"the last by ctx.{what}), in a loop that does not wait" in tight[0]
+        assert "report between awaits of ctx.clock.sleep" in tight[0]
     assert said("Paced") == []  # as many readings, a lab-second apart

@@ -241,15 +241,19 @@ class DeviceActor:
             self._emit(kind, body, task, attempt, campaign, token, key)
 
         def telemetry(readings: dict) -> None:
-            self._habits.reading(self._clock.now())
+            self._habits.reported(self._clock.now(), "telemetry")
             emit(Kind.TELEMETRY, {"readings": readings}, keys.telemetry(self._lab, self.name))
+
+        def progress(fraction: float, note: str) -> None:
+            self._habits.reported(self._clock.now(), "progress")
+            emit(Kind.PROGRESS, {"fraction": fraction, "note": note})
 
         drawn_by = f"{campaign}/{task}" if self._shared else task
         ctx = StepContext(
             clock=self._clock,
             rng=self._step_rngs.keyed(f"{self._seed}:steps:{drawn_by}:{attempt}"),
             duration=spec.duration,
-            progress=lambda f, note: emit(Kind.PROGRESS, {"fraction": f, "note": note}),
+            progress=progress,
             telemetry=telemetry,
             expected_s=cmd.expected_s,
             deadline_s=cmd.deadline_s,

@@ -4,9 +4,9 @@
   the process between two of its awaits: every other device, the orchestrator's deadlines and the bus wait
   meanwhile, and on a virtual clock no lab time passes for it. The runtimes time each stretch a driver runs
   between awaits and warn when one passes ``BLOCKING_S`` of wall time.
-- **Chatter.** Telemetry reported in a loop that does not wait: every reading is a message and a journal row
-  (100,000 readings in a step made a 97 MB journal for three experiments). The runtimes warn when
-  ``SAME_INSTANT`` readings come at one lab instant.
+- **Chatter.** Telemetry or progress reported in a loop that does not wait: every report is a message and a
+  journal row (100,000 readings in a step made a 97 MB journal for three experiments). The runtimes warn when
+  ``SAME_INSTANT`` reports come at one lab instant.
 """
 
 from __future__ import annotations
@@ -31,17 +31,17 @@ class Habits:
         self._instant: float | None = None
         self._readings = 0
 
-    def reading(self, t_lab: float) -> None:
-        """A telemetry reading at lab time ``t_lab``."""
+    def reported(self, t_lab: float, what: str) -> None:
+        """A telemetry reading or a progress report (``what``) at lab time ``t_lab``."""
         if t_lab != self._instant:
             self._instant, self._readings = t_lab, 0
         self._readings += 1
         if self._readings == SAME_INSTANT and not self._chatter_said:
             self._chatter_said = True
-            log.warning("%s: its driver reported %d telemetry readings at one lab instant (lab time %.0f s), in a "
-                        "loop that does not wait; each is a message and a journal row: report between awaits of "
-                        "ctx.clock.sleep, every few lab-seconds (docs/drivers.md); said once per device",
-                        self.device, SAME_INSTANT, t_lab)
+            log.warning("%s: its driver made %d reports at one lab instant (lab time %.0f s; the last by "
+                        "ctx.%s), in a loop that does not wait; each is a message and a journal row: report "
+                        "between awaits of ctx.clock.sleep, every few lab-seconds (docs/drivers.md); said once per "
+                        "device", self.device, SAME_INSTANT, t_lab, what)
 
     def ran(self, since: float) -> None:
         """A driver's stretch that began at ``since`` (``time.perf_counter``) has ended."""

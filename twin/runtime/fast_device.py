@@ -194,15 +194,19 @@ class FastDevice:
             self._emit(kind, body, task, attempt, token)
 
         def telemetry(readings: dict) -> None:
-            self._habits.reading(self._q.now)
+            self._habits.reported(self._q.now, "telemetry")
             emit(Kind.TELEMETRY, {"readings": readings})
+
+        def progress(fraction: float, note: str) -> None:
+            self._habits.reported(self._q.now, "progress")
+            emit(Kind.PROGRESS, {"fraction": fraction, "note": note})
 
         key = f"{self._campaign}/{task}" if self._shared else task
         ctx = StepContext(
             clock=self._clock,  # type: ignore[arg-type]
             rng=self._step_rngs.keyed(f"{self._seed}:steps:{key}:{attempt}"),
             duration=spec.duration,
-            progress=lambda f, note: emit(Kind.PROGRESS, {"fraction": f, "note": note}),
+            progress=progress,
             telemetry=telemetry,
             expected_s=cmd["expected_s"],
             deadline_s=cmd.get("deadline_s"),
