@@ -19,14 +19,14 @@ from typing import Any
 
 log = logging.getLogger(__name__)
 BLOCKING_S = 2.0  # wall seconds between two awaits: past this a driver is said to block the lab
-SAME_INSTANT = 100  # telemetry readings at one lab instant: past this a driver is said to report in a loop
+SAME_INSTANT = 100  # telemetry or progress reports at one lab instant: past this a driver reports in a loop
 
 
 class Habits:
     def __init__(self, device: str) -> None:
         self.device = device
-        self.limit = BLOCKING_S
-        self.warned = False
+        self.blocking_s = BLOCKING_S
+        self._blocking_said = False
         self._chatter_said = False
         self._instant: float | None = None
         self._readings = 0
@@ -46,8 +46,8 @@ class Habits:
     def ran(self, since: float) -> None:
         """A driver's stretch that began at ``since`` (``time.perf_counter``) has ended."""
         took = time.perf_counter() - since
-        if took > self.limit and not self.warned:
-            self.warned = True
+        if took > self.blocking_s and not self._blocking_said:
+            self._blocking_said = True
             log.warning("%s: its driver ran %.1f s of wall time without awaiting (a blocking call: time.sleep, a "
                         "vendor SDK?); every other device and the orchestrator waited meanwhile. Wait for the "
                         "instrument with `await ctx.clock.sleep(...)` and run a blocking call in a thread, `await "

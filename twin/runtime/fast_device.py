@@ -152,7 +152,7 @@ class FastDevice:
             try:
                 req = job.send(None) if exc is None else job.throw(exc)
             except (StopIteration, asyncio.CancelledError):
-                if clock() - since > watch.limit:
+                if clock() - since > watch.blocking_s:
                     watch.ran(since)
                 return
             except Exception as err:  # the step died in the device's own handling (a safe_state that raised)
@@ -162,7 +162,7 @@ class FastDevice:
                     self._emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(err).__name__}: {err}"[:500]},
                                *current, token)
                 return
-            if clock() - since > watch.limit:
+            if clock() - since > watch.blocking_s:
                 watch.ran(since)
             exc = None
             if type(req) is Sleep:
