@@ -79,6 +79,19 @@ def test_held_messages_stop_the_jump_until_released(virtual_clock):
     assert virtual_clock.run(main()) == [0.0]
 
 
+def test_work_handed_to_a_thread_stops_the_jump_until_it_is_done(virtual_clock):
+    """A driver's blocking call moved off the loop (asyncio.to_thread) ran while lab time jumped past its step's
+    deadline: on a virtual clock every step of such a driver timed out, and the lab abandoned them all."""
+    async def main():
+        deadline = asyncio.ensure_future(virtual_clock.sleep(60))  # a timer the clock would jump to
+        await asyncio.to_thread(time.sleep, 0.2)
+        t = virtual_clock.now()
+        deadline.cancel()
+        return t
+
+    assert virtual_clock.run(main()) == 0.0
+
+
 def test_scaled_clock_runs_lab_time_faster_than_wall():
     clock = LabClock("scaled", speed=1000)
 

@@ -109,7 +109,7 @@ class _VirtualTime(_TimeBase):
         events = real_select(IN_FLIGHT_PATIENCE_S)
         if not events and self.in_flight > 0:
             log.warning(
-                "virtual clock: %d message(s) in flight for %.0f s of wall time; "
+                "virtual clock: %d message(s) or thread call(s) in flight for %.0f s of wall time; "
                 "assuming they were lost and letting lab time move on",
                 self.in_flight,
                 IN_FLIGHT_PATIENCE_S,
@@ -160,6 +160,16 @@ class LabEventLoop(asyncio.SelectorEventLoop):
 
     def time(self) -> float:
         return self._base.time()
+
+    def run_in_executor(self, executor: Any, func: Any, *args: Any) -> asyncio.Future:  # type: ignore[override]
+        """Work handed to a thread (``asyncio.to_thread``: a driver's blocking call moved off the loop): a virtual
+        clock waits for it as for a message in flight, instead of jumping past the deadlines it is inside."""
+        fut = super().run_in_executor(executor, func, *args)
+        base = self._base
+        if isinstance(base, _VirtualTime):
+            base.in_flight += 1
+            fut.add_done_callback(lambda _: setattr(base, "in_flight", max(0, base.in_flight - 1)))
+        return fut
 
     @property
     def speed(self) -> float:
