@@ -105,6 +105,10 @@ class _VirtualTime(_TimeBase):
         self.now = max(self.now, scheduled[0]._when) if scheduled else self.now + timeout
         return []
 
+    def release(self, n: int = 1) -> None:
+        """``n`` messages (or thread calls) in flight have arrived."""
+        self.in_flight = max(0, self.in_flight - n)
+
     def _wait_for_in_flight(self, real_select, timeout):
         events = real_select(IN_FLIGHT_PATIENCE_S)
         if not events and self.in_flight > 0:
@@ -168,7 +172,7 @@ class LabEventLoop(asyncio.SelectorEventLoop):
         base = self._base
         if isinstance(base, _VirtualTime):
             base.in_flight += 1
-            fut.add_done_callback(lambda _: setattr(base, "in_flight", max(0, base.in_flight - 1)))
+            fut.add_done_callback(lambda _: base.release())
         return fut
 
     @property
@@ -260,9 +264,8 @@ class LabClock:
         return lambda: hook in hooks and hooks.remove(hook)
 
     def release(self, n: int = 1) -> None:
-        if self._base.virtual:
-            base: _VirtualTime = self._base  # type: ignore[assignment]
-            base.in_flight = max(0, base.in_flight - n)
+        if isinstance(self._base, _VirtualTime):
+            self._base.release(n)
 
 
 async def wait_cancelled(task: asyncio.Task, seconds: float = 1.0) -> None:

@@ -121,6 +121,20 @@ class InvalidMessage(TwinError):
         super().__init__(f"invalid message from {sender}: {reason}")
 
 
+class Dropped:
+    """Messages that failed the wire's checks, said as a receiver says them: the first ten, then every thousandth
+    (a flood of them must not flood the log too)."""
+
+    def __init__(self, log: Any) -> None:
+        """``log``: the receiver's logger (a bench quietens its workers' runtimes by theirs)."""
+        self.log, self.count = log, 0
+
+    def said(self, where: str, exc: InvalidMessage) -> None:
+        self.count += 1
+        if self.count <= 10 or self.count % 1000 == 0:
+            self.log.warning("dropped a message %s: %s (%d so far; the journal has each)", where, exc, self.count)
+
+
 def envelope(kind: Kind, body: dict[str, Any], *, id: str, sender: str, t_lab: float,
              campaign: str = "", task: str = "", attempt: int = 0, token: str = "") -> dict[str, Any]:
     """An envelope as a plain dict, in wire order: what the fast runtime passes around in-process.

@@ -22,7 +22,7 @@ from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits
 from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults
 from twin.core.errors import DriverError, Refused
-from twin.core.messages import InvalidMessage, Kind, decode, envelope, excerpt, to_wire
+from twin.core.messages import Dropped, InvalidMessage, Kind, decode, envelope, excerpt, to_wire
 from twin.view.observer import WATCHED
 from twin.runtime.queue import EventQueue, Park, QueueClock, Sleep, Timer
 
@@ -58,7 +58,7 @@ class FastDevice:
         self._timer: Timer | None = None
         self._shared = shared or {}
         self._habits = Habits(name)
-        self._invalid = 0  # its messages that did not pass the wire's checks
+        self._dropped = Dropped(log)  # its messages that did not pass the wire's checks
         self.online = False
 
     # -- life cycle -------------------------------------------------------------------
@@ -116,10 +116,7 @@ class FastDevice:
                 # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
                 body = decode(payload, self.name)[1].to_dict()
             except InvalidMessage as exc:
-                self._invalid += 1
-                if self._invalid <= 10 or self._invalid % 1000 == 0:  # as a bus receiver says it (runtime.live)
-                    log.warning("dropped a message from %s: %s (%d so far; the journal has each)", self.name, exc,
-                                self._invalid)
+                self._dropped.said(f"from {self.name}", exc)
                 self._deliver(InvalidInput(exc.sender, exc.reason, excerpt=excerpt(payload)))
                 return
         if self._watch is not None and kind in WATCHED:
@@ -152,8 +149,6 @@ class FastDevice:
             try:
                 req = job.send(None) if exc is None else job.throw(exc)
             except (StopIteration, asyncio.CancelledError):
-                if clock() - since > watch.blocking_s:
-                    watch.ran(since)
                 return
             except Exception as err:  # the step died in the device's own handling (a safe_state that raised)
                 log.error("%s: step %s died in the device's own handling: %r; reported as a driver error",
@@ -162,8 +157,9 @@ class FastDevice:
                     self._emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(err).__name__}: {err}"[:500]},
                                *current, token)
                 return
-            if clock() - since > watch.blocking_s:
-                watch.ran(since)
+            finally:
+                if clock() - since > watch.blocking_s:  # inline: the call is only made for a driver that blocked
+                    watch.ran(since)
             exc = None
             if type(req) is Sleep:
                 if req.seconds > 0:

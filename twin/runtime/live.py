@@ -31,7 +31,7 @@ from twin.core.clock import LabClock
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.bus import NoReplyError
-from twin.core.messages import InvalidMessage, Kind, decode, excerpt, pack, without_token
+from twin.core.messages import Dropped, InvalidMessage, Kind, decode, excerpt, pack, without_token
 from twin.runtime.checked_scheduler import fallbacks
 from twin.runtime.control import ControlDesk
 from twin.runtime.decision_stream import SENDER, DecisionStream
@@ -74,16 +74,14 @@ class EventDecoder:
 
     def __init__(self, observer: Any = None) -> None:
         self.observer = observer
-        self.invalid = 0
+        self.dropped = Dropped(log)
 
     def event(self, key: str, payload: bytes) -> DeviceMessage | InvalidInput:
         on_key = keys.device_of(key)
         try:
             env, body = decode(payload, sender_hint=on_key)
         except InvalidMessage as exc:
-            self.invalid += 1
-            if self.invalid <= 10 or self.invalid % 1000 == 0:  # a flood must not flood the log too
-                log.warning("dropped a message on %s: %s (%d so far; the journal has each)", key, exc, self.invalid)
+            self.dropped.said(f"on {key}", exc)
             return InvalidInput(exc.sender, exc.reason, key, excerpt(payload))
         kept = without_token(env) if env.token else payload
         plain = body.to_dict()

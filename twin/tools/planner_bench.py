@@ -153,6 +153,8 @@ def short(spec: str) -> str:
 
 
 HEADER = ["planner", "exp. to target", "lab-h to target", "exp. run", "cost", "reached", "accel."]
+
+
 def caption(costs: bool = True) -> str:
     """What the columns mean; ``costs``: whether the table has a cost column (something in the lab costs)."""
     cost = ("cost: at the last target (median)" if costs else
