@@ -8,22 +8,10 @@ import re
 import pytest
 
 from tests.conftest import qd_lab
+from tests.twin.test_bad_drivers import Raises
 from twin.device.driver import StepResult
 from twin.runtime.lab import run
 from twin.scenario import parse
-
-
-class Raises:
-    capabilities = frozenset({"measure"})
-
-    def __init__(self, setup):
-        pass
-
-    async def run(self, step, params, sample, ctx):
-        raise RuntimeError("lamp broken")
-
-    async def safe_state(self):
-        pass
 
 
 class Blocks(Raises):
