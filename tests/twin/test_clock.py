@@ -155,3 +155,68 @@ def test_a_lab_with_no_steps_yet_is_not_warned_about_its_speed(caplog, tmp_path)
     with caplog.at_level(logging.WARNING, logger="twin.runtime.assembly"):
         make_clock(empty)
     assert not caplog.records
+
+
+async def test_a_campaign_run_where_a_loop_already_runs_runs_in_a_thread_of_its_own(tmp_path):
+    """A notebook's cell runs inside an event loop: `twin.run` on the asyncio runtime (a Zenoh bus, a scaled clock,
+    an rl scheduler) raised "Cannot run the event loop while another loop is running" there."""
+    import threading
+
+    from twin.runtime.lab import run
+
+    root = Path(__file__).resolve().parents[2]
+    loop_thread = threading.current_thread()
+    seen: list[threading.Thread] = []
+    summary = run(root / "scenarios" / "flaky_lab.yaml", journal=tmp_path / "j.db", runtime="asyncio",
+                  on_progress=lambda core: seen.append(threading.current_thread()), overrides={"campaign.budget": 6})
+    assert summary.done + summary.abandoned == 6
+    assert seen and all(t is not loop_thread for t in seen)  # this loop was not asked to run a second one
+    asyncio.get_running_loop()  # and still runs
+
+
+async def test_ctrl_c_stops_a_campaign_on_its_own_thread_cleanly_as_on_the_main_one(tmp_path):
+    """A notebook's interrupt: the campaign stops proposing, cancels what is in the lab and returns its summary,
+    every experiment accounted for (a second Ctrl-C would cancel it outright: the test below)."""
+    import signal
+    import threading
+
+    from twin.runtime.lab import run
+
+    root = Path(__file__).resolve().parents[2]
+    sent: list[int] = []
+
+    def progress(core) -> None:
+        if not sent and sum(e.status == "done" for e in core.experiments) >= 20:
+            sent.append(1)
+            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+
+    summary = run(root / "scenarios" / "flaky_lab.yaml", journal=tmp_path / "j.db", runtime="asyncio",
+                  on_progress=progress, overrides={"campaign.budget": 5000})
+    assert sent and summary.stopped == "interrupted (SIGINT)"
+    assert 20 <= summary.done < 200
+    assert summary.done + summary.abandoned + summary.pending == summary.proposed
+
+
+def test_ctrl_c_while_a_campaign_runs_in_its_own_thread_cancels_it_there_and_is_raised():
+    import signal
+    import threading
+
+    from twin.core.clock import _in_own_thread
+
+    started, unwound = threading.Event(), []
+
+    async def campaign():
+        started.set()
+        try:
+            await asyncio.Event().wait()  # a campaign with no end of its own
+        finally:
+            unwound.append(threading.current_thread().name)
+
+    def interrupt():
+        started.wait()
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
+
+    threading.Thread(target=interrupt).start()
+    with pytest.raises(KeyboardInterrupt):
+        _in_own_thread(asyncio.new_event_loop, campaign())
+    assert unwound == ["labtwin-campaign"]

@@ -22,6 +22,8 @@ import asyncio
 import contextlib
 import logging
 import selectors
+import signal
+import threading
 import time
 from collections.abc import Callable, Coroutine
 from typing import Any, Literal, Protocol, TypeVar
@@ -161,6 +163,9 @@ class LabEventLoop(asyncio.SelectorEventLoop):
         if isinstance(base, _VirtualTime):
             base.loop = self
         self._clock_resolution = 1e-6
+        #: What Ctrl-C asks of this loop when it runs in a thread of its own, where signals never reach it (a
+        #: campaign's clean stop); nothing here: Ctrl-C cancels what the loop runs
+        self.on_interrupt: list[Callable[[], None]] = []
 
     def time(self) -> float:
         return self._base.time()
@@ -227,9 +232,15 @@ class LabClock:
         return LabEventLoop(self._base)
 
     def run(self, main: Coroutine[Any, Any, T]) -> T:
-        """Run ``main`` to completion on a fresh loop of this clock."""
-        with asyncio.Runner(loop_factory=self.new_loop) as runner:
-            return runner.run(main)
+        """Run ``main`` to completion on a fresh loop of this clock. Called where a loop already runs (a Jupyter
+        notebook's cell, an ``async def``), which a thread can hold only one of, it runs in a thread of its own and
+        this call waits for it, as it would otherwise."""
+        try:
+            asyncio.get_running_loop()
+        except RuntimeError:
+            with asyncio.Runner(loop_factory=self.new_loop) as runner:
+                return runner.run(main)
+        return _in_own_thread(self.new_loop, main)
 
     def now(self) -> float:
         return self._base.time()
@@ -275,3 +286,84 @@ async def wait_cancelled(task: asyncio.Task, seconds: float = 1.0) -> None:
         async with asyncio.timeout(seconds):
             await task
 
+
+
+def _in_own_thread(loop_factory: Callable[[], asyncio.AbstractEventLoop], main: Coroutine[Any, Any, T]) -> T:
+    """``main`` run on a new loop in a new thread, waited for. Ctrl-C while waiting (a notebook's "interrupt") is
+    handed to that loop: a campaign stops cleanly, as Ctrl-C stops it on the main thread, and returns its summary;
+    anything else, or a second Ctrl-C, is cancelled there, waited for while it unwinds (a journal closed, devices
+    stopped), and KeyboardInterrupt is raised here."""
+    box: dict[str, Any] = {}
+    ready, done = threading.Event(), threading.Event()
+
+    async def tracked() -> T:
+        box["task"], box["loop"] = asyncio.current_task(), asyncio.get_running_loop()
+        ready.set()
+        return await main
+
+    def body() -> None:
+        try:
+            with asyncio.Runner(loop_factory=loop_factory) as runner:
+                box["result"] = runner.run(tracked())
+        except BaseException as exc:  # handed to the caller's thread
+            box["error"] = exc
+        finally:
+            ready.set()
+            done.set()
+
+    # waited for with an Event: Thread.join interrupted by Ctrl-C marks the thread stopped (Python 3.11), and a
+    # second join returns at once
+    thread = threading.Thread(target=body, name="labtwin-campaign", daemon=True)
+    try:
+        with _ctrl_c_raises():
+            thread.start()
+            done.wait()
+    except KeyboardInterrupt:
+        box["interrupted"] = True
+        _interrupt(box, ready, done)
+        try:
+            with _ctrl_c_raises():
+                done.wait()  # the campaign stops cleanly and returns its summary, as on the main thread
+        except KeyboardInterrupt:  # a second Ctrl-C: no waiting for a clean stop
+            box["cancel"] = True
+            _interrupt(box, ready, done)
+            done.wait()
+            raise
+    if "error" in box:
+        if box.get("interrupted") and isinstance(box["error"], asyncio.CancelledError):
+            raise KeyboardInterrupt
+        raise box["error"]
+    return box["result"]
+
+
+def _interrupt(box: dict[str, Any], ready: threading.Event, done: threading.Event) -> None:
+    """Ctrl-C handed to the loop in ``box``: its ``on_interrupt`` handlers, or (none, or ``box["cancel"]``) its
+    task cancelled."""
+    ready.wait()
+    if "task" not in box or done.is_set():
+        return
+    loop, task = box["loop"], box["task"]
+
+    def there() -> None:
+        handlers = [] if box.get("cancel") else list(getattr(loop, "on_interrupt", ()))
+        for handler in handlers:
+            handler()
+        if not handlers:
+            task.cancel()
+
+    with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: nothing left to interrupt
+        loop.call_soon_threadsafe(there)
+
+
+@contextlib.contextmanager
+def _ctrl_c_raises():
+    """Ctrl-C raises KeyboardInterrupt here: the loop this thread runs (``asyncio.run``'s) would only cancel its
+    task, which waits without awaiting, and the campaign would run on to its end."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -312,9 +312,16 @@ def stop_on_loop_signals(stop: Callable[[str], None]) -> Iterator[None]:
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, stop, f"interrupted ({name})")
             added.append(sig)
+    interrupts = getattr(loop, "on_interrupt", [])  # on a thread of its own (twin.run in a notebook)
+
+    def interrupted() -> None:
+        stop("interrupted (SIGINT)")
+
+    interrupts.append(interrupted)
     try:
         yield
     finally:
+        interrupts.remove(interrupted)
         for sig in added:
             loop.remove_signal_handler(sig)
 
