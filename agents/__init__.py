@@ -21,11 +21,14 @@ ENVS = {"labtwin/Scheduling-v0": "agents.scheduling_env:SchedulingEnv",
 
 
 def default_scenario(scenario: Any, file: str) -> Any:
-    """``scenario`` as a Scenario: loaded if a path, the shipped ``scenarios/<file>`` if None."""
+    """``scenario`` as a Scenario: loaded if a path (or the mapping a file would hold), the shipped
+    ``scenarios/<file>`` if None."""
     from twin import Scenario, prepare
 
     if isinstance(scenario, Scenario):
         return scenario
+    if isinstance(scenario, dict):
+        return prepare(scenario)
     path = Path(scenario) if scenario is not None else SCENARIOS / file
     if scenario is None and not path.exists():
         raise FileNotFoundError(f"the default scenario {path} is not here (labtwin installed without its "

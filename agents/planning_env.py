@@ -97,7 +97,7 @@ class PlanningEnv(gym.Env):
 
     def __init__(self, scenario: Scenario | str | Path | None = None, horizon: int = 30, random_goals: float = 0.5,
                  seed: int = 0) -> None:
-        """``scenario``: a Scenario or a file (default: ``scenarios/quantum_dots.yaml``)."""
+        """``scenario``: a Scenario, a file or the mapping a file holds (default: ``scenarios/quantum_dots.yaml``)."""
         scenario = default_scenario(scenario, "quantum_dots.yaml")
         target_shape(scenario)
         self.scenario, self.horizon, self.random_goals = scenario, horizon, random_goals

@@ -86,7 +86,7 @@ class SchedulingEnv(gym.Env):
 
     def __init__(self, scenario: Scenario | str | Path | None = None, randomise: bool = True,
                  encoding: str = "candidates") -> None:
-        """``scenario``: a Scenario or a file (default: ``scenarios/flaky_lab.yaml``). ``encoding``:
+        """``scenario``: a Scenario, a file or the mapping a file holds (default: ``scenarios/flaky_lab.yaml``). ``encoding``:
         ``candidates`` (one row per allowed pair, ``agents.candidates``; or a version of it, ``candidates-v3``)
         or ``slots`` (the fixed grid of ``agents.scheduling_features``, kept as a baseline)."""
         scenario = default_scenario(scenario, "flaky_lab.yaml")

@@ -23,17 +23,23 @@ from twin.device.actor import DeviceActor
 from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature
 from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
-from twin.scenario import Scenario, load, parse_overridden
+from twin.scenario import Scenario, load, load_mapping, parse_overridden
 from twin.scenario.objective import typical_step
 
 log = logging.getLogger(__name__)
 
 
-def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: str | None = None,
+def prepare(scenario: str | Path | Scenario | dict[str, Any], *, seed: int | None = None, clock: str | None = None,
             speed: float | None = None, bus: str | None = None,
-            overrides: dict[str, Any] | None = None, lab_only: bool = False) -> Scenario:
-    """Load a scenario and apply the command line's overrides. ``lab_only``: a lab whose campaigns come later
-    (``twin lab serve``), or a device of it, needs no workflow."""
+            overrides: dict[str, Any] | None = None, lab_only: bool = False, **unknown: Any) -> Scenario:
+    """Load a scenario (a file, a ``Scenario``, or the mapping a file would hold) and apply the command line's
+    overrides. ``lab_only``: a lab whose campaigns come later (``twin lab serve``), or a device of it, needs no
+    workflow."""
+    if unknown:
+        raise TypeError(unknown_keywords(unknown))
+    if overrides is not None and not isinstance(overrides, dict):
+        raise TypeError(f"overrides must be a dict of dotted scenario fields, e.g. {{'campaign.budget': 5}} "
+                        f"(got {type(overrides).__name__})")
     extra = dict(overrides or {})
     if seed is not None:
         extra["campaign.seed"] = seed
@@ -59,7 +65,29 @@ def prepare(scenario: str | Path | Scenario, *, seed: int | None = None, clock: 
         # its place (a full dump made every default look given, and every variant's campaigns ran on seed 0)
         return parse_overridden(scenario.model_dump(exclude_unset=True), extra,
                                 f"{scenario.name} with {', '.join(extra)}", lab_only)
+    if isinstance(scenario, dict):
+        return load_mapping(scenario, extra, lab_only)
     return load(scenario, extra, lab_only)
+
+
+def unknown_keywords(given: dict[str, Any]) -> str:
+    """Keywords that are not a run's own: a scenario field given by its leaf name (``budget=5``) is named in full."""
+    parts = []
+    for name, value in given.items():
+        fields = [f"{section}.{name}" for section, info in Scenario.model_fields.items()
+                  if name in getattr(_model_of(info.annotation), "model_fields", {})]
+        hint = (f"; scenario fields go in overrides, e.g. overrides={{{fields[0]!r}: {value!r}}}" if fields else
+                "; scenario fields go in overrides={'section.field': value}")
+        parts.append(f"unexpected keyword {name!r}{hint}")
+    return "; ".join(parts) + " (the keywords are seed, clock, speed, bus and overrides)"
+
+
+def _model_of(annotation: Any) -> Any:
+    """The pydantic model a Scenario field holds (``Campaign``, or ``Campaign | None``'s)."""
+    for arg in (annotation, *getattr(annotation, "__args__", ())):
+        if hasattr(arg, "model_fields"):
+            return arg
+    return None
 
 
 _SIMPLE = ("campaign", "clock", "bus")  # sections whose fields no cross-field check of Scenario reads

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import difflib
 from pathlib import Path
 from typing import Any
@@ -20,14 +21,30 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bo
     raw = read_yaml(path)
     if not isinstance(raw, dict):
         raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"])
-    scenario = parse_overridden(raw, _named_after_its_shop(raw, overrides or {}), str(path), lab_only)
+    return _resolved(parse_overridden(raw, _named_after_its_shop(raw, overrides or {}), str(path), lab_only),
+                     path.parent, str(path))
+
+
+def load_mapping(raw: dict[str, Any], overrides: dict[str, Any] | None = None, lab_only: bool = False) -> Scenario:
+    """A scenario given as the mapping its file would hold (built in a notebook, say), validated as a file is;
+    the files it names (a job shop, a security directory) are relative to the working directory. ``raw`` itself
+    is left as it was."""
+    source = f"the scenario {raw.get('name')!r} (a mapping)" if isinstance(raw.get("name"), str) else \
+        "the scenario (a mapping)"
+    raw = copy.deepcopy(raw)
+    return _resolved(parse_overridden(raw, _named_after_its_shop(raw, overrides or {}), source, lab_only),
+                     Path.cwd(), source)
+
+
+def _resolved(scenario: Scenario, base: Path, source: str) -> Scenario:
+    """The files a scenario names, found relative to ``base``; a job shop read into devices and jobs."""
     if scenario.bus.security and not Path(scenario.bus.security).is_absolute():
-        bus = scenario.bus.model_copy(update={"security": str((path.parent / scenario.bus.security).resolve())})
+        bus = scenario.bus.model_copy(update={"security": str((base / scenario.bus.security).resolve())})
         scenario = scenario.model_copy(update={"bus": bus})
     if scenario.jobshop is not None:
         from twin.scenario.jobshop import expand
 
-        scenario = expand(scenario, path.parent, str(path))
+        scenario = expand(scenario, base, source)
     return scenario
 
 

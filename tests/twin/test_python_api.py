@@ -1,0 +1,61 @@
+"""`twin.run` from Python as a notebook calls it: a scenario built as a mapping, keywords that are not its own."""
+
+import copy
+from pathlib import Path
+
+import pytest
+import yaml
+
+import twin
+from twin.core.errors import ScenarioError
+
+ROOT = Path(__file__).resolve().parents[2]
+FLAKY = ROOT / "scenarios" / "flaky_lab.yaml"
+
+
+def test_a_scenario_given_as_the_mapping_its_file_holds_runs_as_the_file_does(tmp_path):
+    raw = yaml.safe_load(FLAKY.read_text())
+    kept = copy.deepcopy(raw)
+    small = {"campaign.budget": 8}
+    from_mapping = twin.run(raw, journal=tmp_path / "m.db", seed=4, overrides=small)
+    from_file = twin.run(FLAKY, journal=tmp_path / "f.db", seed=4, overrides=small)
+    assert (from_mapping.scenario, from_mapping.done, from_mapping.lab_hours) == \
+        (from_file.scenario, from_file.done, from_file.lab_hours)
+    assert raw == kept  # the overrides went into a copy
+
+
+def test_a_mapping_with_a_problem_is_named_as_a_mapping_with_the_field():
+    raw = yaml.safe_load(FLAKY.read_text())
+    raw["devices"]["reactor"]["instances"] = "two"
+    with pytest.raises(ScenarioError) as caught:
+        twin.prepare(raw)
+    assert "the scenario 'flaky_lab' (a mapping)" in str(caught.value)
+    assert "devices.reactor.instances" in str(caught.value)
+    with pytest.raises(ScenarioError, match=r"the scenario \(a mapping\).*\n.*name: required"):
+        twin.prepare({"devices": {}})
+
+
+def test_a_scenario_field_given_as_a_keyword_is_named_in_full():
+    """`twin.run(f, budget=5)` said "prepare() got an unexpected keyword argument 'budget'"."""
+    with pytest.raises(TypeError, match=r"unexpected keyword 'budget'; .* overrides=\{'campaign.budget': 5\}"):
+        twin.run(FLAKY, budget=5)
+    with pytest.raises(TypeError, match=r"unexpected keyword 'colour'; scenario fields go in overrides="):
+        twin.run(FLAKY, colour="red")
+    with pytest.raises(TypeError, match=r"overrides must be a dict .* \(got list\)"):
+        twin.run(FLAKY, overrides=["campaign.budget=5"])
+
+
+def test_the_gym_environments_take_a_mapping_too():
+    import gymnasium as gym
+
+    import agents
+
+    assert "labtwin/Scheduling-v0" in gym.registry and agents.ENVS
+
+    raw = yaml.safe_load(FLAKY.read_text())
+    raw["devices"]["reactor"]["instances"] = 5
+    env = gym.make("labtwin/Scheduling-v0", scenario=raw, randomise=False)
+    try:
+        assert env.unwrapped.base.devices["reactor"].instances == 5
+    finally:
+        env.close()
