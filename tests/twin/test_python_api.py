@@ -51,7 +51,6 @@ def test_the_gym_environments_take_a_mapping_too():
     import agents
 
     assert "labtwin/Scheduling-v0" in gym.registry and agents.ENVS
-
     raw = yaml.safe_load(FLAKY.read_text())
     raw["devices"]["reactor"]["instances"] = 5
     env = gym.make("labtwin/Scheduling-v0", scenario=raw, randomise=False)
