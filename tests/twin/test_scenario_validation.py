@@ -197,6 +197,16 @@ def test_an_override_through_a_misspelt_name_says_which_was_meant(tmp_path, dott
     assert new.devices["centrifuge"].instances == 2  # a name far from every other is a new entry, not a typo
 
 
+def test_an_override_of_a_device_the_scenario_lacks_says_which_it_has_before_what_a_new_one_needs(tmp_path):
+    """`twin whatif aspirin.yaml --vary devices.reactor.instances=1,2` listed only the missing driver, steps and
+    duration of a new device 'reactor', as if the user had meant to make one."""
+    with pytest.raises(ScenarioError) as caught:
+        load(write(tmp_path, qd_lab()), {"devices.reactor.instances": 2})
+    first, *rest = caught.value.problems
+    assert first == "devices.reactor: not in the scenario; devices has spectrometer, synthesiser"
+    assert "devices.reactor.driver: required field is missing" in rest
+
+
 def test_twin_schema_gives_every_field_its_meaning():
     """The README says `twin schema` prints every field with its meaning: an editor shows it as the field's hint."""
     import json

@@ -71,7 +71,7 @@ def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str
     except ScenarioError as exc:
         if not hints:
             raise
-        raise ScenarioError(exc.source, [*exc.problems, *hints]) from None
+        raise ScenarioError(exc.source, [*hints, *exc.problems]) from None  # the cause first
 
 
 def _misspelt(raw: dict[str, Any], dotted: str) -> str | None:
@@ -85,9 +85,13 @@ def _misspelt(raw: dict[str, Any], dotted: str) -> str | None:
         elif p in node:
             node = node[p]
         else:
-            close = difflib.get_close_matches(p, [str(k) for k in node], n=1)
-            return (f"{'.'.join(parts[:i + 1])}: not in the scenario; did you mean {'.'.join([*parts[:i], close[0]])}?"
-                    if close else None)
+            names = [str(k) for k in node]
+            close = difflib.get_close_matches(p, names, n=1)
+            where = ".".join(parts[:i + 1])
+            if close:
+                return f"{where}: not in the scenario; did you mean {'.'.join([*parts[:i], close[0]])}?"
+            return f"{where}: not in the scenario; {'.'.join(parts[:i]) or 'its top level'} has " + \
+                (", ".join(names[:12]) + (", …" if len(names) > 12 else "") if names else "nothing")
     return None
 
 
