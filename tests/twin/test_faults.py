@@ -188,3 +188,6 @@ def test_a_type_of_many_instances_is_one_row_of_the_summary(scenario_of, tmp_pat
     assert f"synthesiser ×9 │ {sum(busy) / 9:5.1f} % busy on average ({min(busy):.1f}–{max(busy):.1f} % per " \
            "instance)" in text
     assert "synthesiser-1 " not in text and "spectrometer-1 " in text  # one instance: its own row
+    markdown = summary._repr_markdown_()  # a notebook's view, and the viewer's summary panel: folded alike
+    assert f"| synthesiser ×9 | {sum(busy) / 9:.1f} % busy on average" in markdown
+    assert "| synthesiser-1 |" not in markdown and "| spectrometer-1 |" in markdown

@@ -60,6 +60,65 @@ class Summary:
     def from_dict(cls, data: dict[str, Any]) -> Summary:
         return cls(**data)
 
+    def _repr_markdown_(self) -> str:
+        """A notebook shows a summary as the viewer's summary panel does."""
+        return summary_markdown(self.to_dict())
+
+
+#: A device type of more instances than this is one row of utilisation: its mean and range
+FOLD_INSTANCES = 8
+
+
+def busy_rows(utilisation: dict[str, float], device_types: dict[str, str]) -> list[tuple[str, str]]:
+    """Utilisation per device, in the lab's order; a type of many instances as one row."""
+    by_type: dict[str, list[str]] = {}
+    for dev in utilisation:
+        by_type.setdefault(device_types.get(dev, dev), []).append(dev)
+    rows = []
+    for dtype, devices in by_type.items():
+        if len(devices) <= FOLD_INSTANCES:
+            rows += [(dev, f"{100 * utilisation[dev]:5.1f} % busy") for dev in devices]
+            continue
+        busy = [100 * utilisation[dev] for dev in devices]
+        rows.append((f"{dtype} ×{len(devices)}", f"{sum(busy) / len(busy):5.1f} % busy on average "
+                                                  f"({min(busy):.1f}–{max(busy):.1f} % per instance)"))
+    return rows
+
+
+def _waited_for(steps: Any) -> str:
+    if not isinstance(steps, dict) or not steps:
+        return ""
+    return " (past chemistry.stability_s before " + ", ".join(
+        f"{step} {n}" for step, n in sorted(steps.items(), key=lambda kv: -kv[1])) + ")"
+
+
+def _cell(value: Any) -> str:
+    return str(value).replace("|", "\\|").replace("\n", " ")
+
+
+def summary_markdown(s: dict[str, Any]) -> str:
+    """A summary (as ``Summary.to_dict`` gives it, or as journalled) as a markdown table: the viewer's summary
+    panel, and a notebook's view of a ``Summary``."""
+    lines = [f"# {_cell(s.get('scenario', 'campaign'))} — seed {s.get('seed', '?')}", "", "| | |", "|---|---|",
+             f"| experiments | {s.get('done')} done, {s.get('abandoned')} abandoned, {s.get('pending')} pending "
+             f"(of {s.get('proposed')}) |",
+             f"| attempts | {s.get('attempts')} ({s.get('failed_attempts')} failed, {s.get('retried')} retried, "
+             f"{s.get('timed_out')} timed out) |",
+             f"| faults | {s.get('devices_lost')} device losses, {s.get('quarantines')} quarantines |",
+             f"| samples degraded | {s.get('degraded_samples')}{_cell(_waited_for(s.get('degraded_before')))} |",
+             f"| lab time | {s.get('lab_hours', 0):.2f} h |"]
+    for dev, busy in busy_rows(s.get("utilisation") or {}, s.get("device_types") or {}):
+        lines.append(f"| {_cell(dev)} | {busy.strip()} |")
+    for name, b in (s.get("best") or {}).items():
+        met = (s.get("targets_met_h") or {}).get(name)
+        status = f"met at {met:.2f} lab-h" if met is not None else f"best score {b.get('score')}"
+        lines.append(f"| target {_cell(name)} | {status} (experiment {b.get('experiment')}) |")
+    for reason, n in (s.get("abandoned_reasons") or {}).items():
+        lines.append(f"| abandoned | {n} × {_cell(reason)} |")
+    if s.get("stopped"):
+        lines.append(f"| stopped | {_cell(s['stopped'])} |")
+    return "\n".join(lines)
+
 
 def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
     """The summary of a campaign core's ledger (``twin.campaign.CampaignCore``)."""

@@ -15,6 +15,7 @@ import math
 from typing import Any, Protocol
 
 from twin.campaign.events import Note
+from twin.campaign.summary import summary_markdown
 
 #: A device's states, in the order the viewer lists them.
 STATES = ("offline", "idle", "failed", "quarantined", "busy")
@@ -401,32 +402,3 @@ class LabObserver:
         peak, intensity = outputs.get("peak_nm"), outputs.get("intensity")
         if isinstance(peak, (int, float)) and isinstance(intensity, (int, float)):
             self.c.points("spectra/peak", t, [(float(peak), float(intensity))], seq=seq)
-
-
-def _waited_for(steps: Any) -> str:
-    if not isinstance(steps, dict) or not steps:
-        return ""
-    return " (past chemistry.stability_s before " + ", ".join(
-        f"{step} {n}" for step, n in sorted(steps.items(), key=lambda kv: -kv[1])) + ")"
-
-
-def summary_markdown(s: dict[str, Any]) -> str:
-    lines = [f"# {s.get('scenario', 'campaign')} — seed {s.get('seed', '?')}", "", "| | |", "|---|---|",
-             f"| experiments | {s.get('done')} done, {s.get('abandoned')} abandoned, {s.get('pending')} pending "
-             f"(of {s.get('proposed')}) |",
-             f"| attempts | {s.get('attempts')} ({s.get('failed_attempts')} failed, {s.get('retried')} retried, "
-             f"{s.get('timed_out')} timed out) |",
-             f"| faults | {s.get('devices_lost')} device losses, {s.get('quarantines')} quarantines |",
-             f"| samples degraded | {s.get('degraded_samples')}{_waited_for(s.get('degraded_before'))} |",
-             f"| lab time | {s.get('lab_hours', 0):.2f} h |"]
-    for dev, u in (s.get("utilisation") or {}).items():
-        lines.append(f"| {dev} | {100 * u:.1f} % busy |")
-    for name, b in (s.get("best") or {}).items():
-        met = (s.get("targets_met_h") or {}).get(name)
-        status = f"met at {met:.2f} lab-h" if met is not None else f"best score {b.get('score')}"
-        lines.append(f"| target {name} | {status} (experiment {b.get('experiment')}) |")
-    for reason, n in (s.get("abandoned_reasons") or {}).items():
-        lines.append(f"| abandoned | {n} × {reason} |")
-    if s.get("stopped"):
-        lines.append(f"| stopped | {s['stopped']} |")
-    return "\n".join(lines)

@@ -6,7 +6,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from twin.campaign.summary import LabSummary, Summary
+from twin.campaign.summary import LabSummary, Summary, busy_rows
 
 
 def lab_span(seconds: float, digits: int = 2, prefix: str = "") -> str:
@@ -21,26 +21,6 @@ def degraded(s: Summary) -> str:
         return str(s.degraded_samples)
     steps = ", ".join(f"{escape(step)} {n}" for step, n in sorted(s.degraded_before.items(), key=lambda kv: -kv[1]))
     return f"{s.degraded_samples} [dim]— waited longer than chemistry.stability_s before {steps}[/]"
-
-
-#: A device type with more instances than this is shown as one row (its mean and range), not one per instance.
-FOLD_INSTANCES = 8
-
-
-def busy_rows(s: Summary) -> list[tuple[str, str]]:
-    """Utilisation per device, in the lab's order; a type of many instances as one row."""
-    by_type: dict[str, list[str]] = {}
-    for dev in s.utilisation:
-        by_type.setdefault(s.device_types.get(dev, dev), []).append(dev)
-    rows = []
-    for dtype, devices in by_type.items():
-        if len(devices) <= FOLD_INSTANCES:
-            rows += [(dev, f"{100 * s.utilisation[dev]:5.1f} % busy") for dev in devices]
-            continue
-        busy = [100 * s.utilisation[dev] for dev in devices]
-        rows.append((f"{dtype} ×{len(devices)}", f"{sum(busy) / len(busy):5.1f} % busy on average "
-                                                  f"({min(busy):.1f}–{max(busy):.1f} % per instance)"))
-    return rows
 
 
 def render_summary(s: Summary, console: Console) -> None:
@@ -75,7 +55,7 @@ def render_summary(s: Summary, console: Console) -> None:
         t.add_row("cost", f"{s.cost:,.0f}")
     hours = f"{s.lab_hours:.3f} h; " if s.lab_hours < 1 else ""
     t.add_row("lab time", f"{lab_span(s.lab_hours * 3600)} ({hours}{s.wall_s:.2f} s wall, {s.events} journal events)")
-    for name, u in busy_rows(s):
+    for name, u in busy_rows(s.utilisation, s.device_types):
         t.add_row(f"  {escape(name)}", u)
     for name, c in s.consumables.items():
         short = " [red](short: work waits for a refill)[/]" if c.get("short") else ""
