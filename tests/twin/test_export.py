@@ -158,3 +158,24 @@ def test_an_out_directory_that_cannot_be_made_says_so(flaky, tmp_path):
                              env={"COLUMNS": "200"})
     assert res.exit_code == 2 and "error: --out" in res.output and "give --out a directory you can write" in \
         " ".join(res.output.split()), res.output
+
+
+def test_an_export_interrupted_mid_table_leaves_the_earlier_tables_whole(flaky, tmp_path, monkeypatch):
+    """Ctrl-C while a table was written left it half written, under its name, over the earlier export's."""
+    from twin.tools import export as module
+
+    out = tmp_path / "tables"
+    module.export(flaky, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    write = module._write_table
+
+    def stopped_halfway(path, rows, fmt):
+        if path.name.startswith(".decisions"):
+            write(path, rows[: len(rows) // 2], fmt)
+            raise KeyboardInterrupt
+        write(path, rows, fmt)
+
+    monkeypatch.setattr(module, "_write_table", stopped_halfway)
+    with pytest.raises(KeyboardInterrupt):
+        module.export(flaky, out)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # nothing half written, nothing left over

@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 from twin.campaign.journal import no_such_journal, read_events, read_experiments, read_run
@@ -54,8 +56,9 @@ def export(journal: str | Path, out: str | Path, fmt: str = "csv", what: list[st
     written = [_write(out / f"{name}.{fmt}", tables[name](), fmt) for name in chosen]
     record = {**(run.get("provenance") or _older(run)), "operator_acts": operator_rows(events),
               "summary": run.get("summary"), "journal": str(path)}
-    (out / "provenance.json").write_text(json.dumps(record, indent=2, default=str) + "\n")
-    return [*written, out / "provenance.json"]
+    provenance = _whole(out / "provenance.json", lambda p: p.write_text(json.dumps(record, indent=2, default=str)
+                                                                         + "\n"))
+    return [*written, provenance]
 
 
 def _older(run: dict[str, Any]) -> dict[str, Any]:
@@ -182,6 +185,23 @@ def _columns(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def _write(path: Path, rows: list[dict[str, Any]], fmt: str) -> Path:
+    return _whole(path, lambda p: _write_table(p, rows, fmt))
+
+
+def _whole(path: Path, write: Callable[[Path], Any]) -> Path:
+    """``path`` written whole or not at all: into ``.<name>.partial`` beside it, renamed when done (Ctrl-C, or a
+    full disk, leaves no half table under the name, nor over an earlier export's)."""
+    partial = path.with_name(f".{path.name}.partial")
+    try:
+        write(partial)
+        os.replace(partial, path)
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _write_table(path: Path, rows: list[dict[str, Any]], fmt: str) -> None:
     cols = _columns(rows)
     if fmt == "csv":
         with open(path, "w", newline="") as f:
@@ -204,4 +224,3 @@ def _write(path: Path, rows: list[dict[str, Any]], fmt: str) -> Path:
             except (pa.ArrowInvalid, pa.ArrowTypeError):  # a column of mixed kinds: kept as text
                 arrays[c] = pa.array([None if v is None else str(v) for v in values], pa.string())
         pq.write_table(pa.table(arrays) if arrays else pa.table({}), path)
-    return path
