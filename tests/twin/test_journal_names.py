@@ -88,3 +88,25 @@ def test_an_empty_journal_a_killed_run_claimed_says_so(tmp_path, command, monkey
     res = CliRunner().invoke(app, [command[0], str(empty), *command[1:]], env={"COLUMNS": "200"})
     assert res.exit_code == 2 and f"{empty}: empty — the name a run claimed for its journal" in \
         " ".join(res.output.split()), res.output
+
+
+def test_a_journal_being_written_is_not_replaced_by_a_second_run_given_its_name(tmp_path):
+    """`--journal x.db` given to two runs at once: the second replaced the file under the first, which died of a
+    disk I/O error with its campaign lost. Now the second is refused, naming the first's process."""
+    import os
+
+    from twin.campaign.journal import Journal
+    from twin.core.errors import TwinError
+
+    path = tmp_path / "x.db"
+    first = Journal(path)
+    first.event(1.0, "campaign.started")
+    first.flush()
+    with pytest.raises(TwinError, match=rf"x.db is being written by another run \(process {os.getpid()}\): give "
+                                        r"--journal another file"):
+        run(ROOT / "scenarios" / "flaky_lab.yaml", journal=path, overrides={"campaign.budget": 2})
+    assert [e["kind"] for e in read_events(path)] == ["campaign.started"]  # the first's journal, untouched
+    first.close()
+    assert not Path(f"{path}-lock").exists()
+    assert run(ROOT / "scenarios" / "flaky_lab.yaml", journal=path, overrides={"campaign.budget": 2}).done == 2
+    assert not Path(f"{path}-lock").exists()

@@ -8,6 +8,7 @@ are buffered and committed in batches; ``close`` flushes everything.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import sqlite3
@@ -56,6 +57,7 @@ class Journal:
         self.label = str(path)  # how summaries name it
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._lock = _writer_lock(self.path)
             if self.path.exists() and not append and self.path.stat().st_size:
                 for old in (self.path, Path(f"{self.path}-wal"), Path(f"{self.path}-shm")):
                     old.unlink(missing_ok=True)
@@ -147,6 +149,36 @@ class Journal:
         self.flush()
         self._db.close()
         self.closed = True
+        _release(self._lock)
+
+
+def _writer_lock(path: Path) -> Any:
+    """``<journal>-lock``, locked while this process writes the journal: a second run given the same journal
+    (``--journal`` twice, a resume of a run still going) is refused, where it replaced the file under the first,
+    which then died of a disk I/O error with its campaign lost. Released when the journal closes or the process
+    ends (a lock left by a killed run holds nothing)."""
+    lock = open(f"{path}-lock", "a+")
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.seek(0)
+        holder = lock.read().strip()
+        lock.close()
+        raise TwinError(f"{path} is being written by another run{f' (process {holder})' if holder else ''}: give "
+                        "--journal another file, or wait for that run to end (nothing has run yet)") from None
+    lock.seek(0)
+    lock.truncate()
+    lock.write(str(os.getpid()))
+    lock.flush()
+    return lock
+
+
+def _release(lock: Any) -> None:
+    try:
+        os.unlink(lock.name)  # before unlocking: a run waiting for the name then makes a new lock, not this one
+    except OSError:
+        pass
+    lock.close()
 
 
 class NullJournal(Journal):
