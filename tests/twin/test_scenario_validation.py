@@ -219,3 +219,21 @@ def test_twin_schema_gives_every_field_its_meaning():
             if not spec.get("description")]
     assert not bare, bare
     assert "the sample waits (and ages)" in models["DeviceType"]["properties"]["clean_s"]["description"]
+
+
+def test_a_job_shop_file_given_as_a_scenario_says_how_to_run_it(tmp_path):
+    import re
+    import shlex
+
+    shop = ROOT / "scenarios" / "jobshop" / "la01.txt"
+    with pytest.raises(ScenarioError) as caught:
+        load(shop)
+    said = str(caught.value)
+    assert "la01.txt looks like a job-shop instance" in said
+    command = shlex.split(re.search(r"run it with `(twin run [^`]+)`", said).group(1))
+    assert command[:3] == ["twin", "run", "scenarios/jobshop.yaml"] and command[3] == "--set"
+    field, value = command[4].split("=", 1)
+    assert load(ROOT / command[2], {field: value}).jobshop.file == str(shop)  # the command it gives runs
+    with pytest.raises(ScenarioError) as plain:
+        load(write(tmp_path, "just some words here and 1 2\n", "words.yaml"))
+    assert "job-shop" not in str(plain.value)

@@ -20,9 +20,19 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bo
     path = Path(path)
     raw = read_yaml(path)
     if not isinstance(raw, dict):
-        raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"])
+        raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"
+                                        + _if_a_shop(raw, path)])
     return _resolved(parse_overridden(raw, _named_after_its_shop(raw, overrides or {}), str(path), lab_only),
                      path.parent, str(path))
+
+
+def _if_a_shop(raw: Any, path: Path) -> str:
+    """A job-shop instance given where a scenario goes: say how a scenario runs it."""
+    words = str(raw).split() if isinstance(raw, (str, int)) else []
+    if len(words) >= 4 and sum(w.isdigit() for w in words) >= 0.8 * len(words):
+        return (f"; {path.name} looks like a job-shop instance: run it with `twin run scenarios/jobshop.yaml --set "
+                f"jobshop.file={path.resolve()}`, or name it in a scenario as `jobshop: {{file: {path.name}}}`")
+    return ""
 
 
 def load_mapping(raw: dict[str, Any], overrides: dict[str, Any] | None = None, lab_only: bool = False) -> Scenario:
