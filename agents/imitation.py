@@ -17,6 +17,11 @@ a schedule within a few percent of the optimum. So the candidate policy can lear
   labels, so the greedy policy learns what its own best samples do; it starts from a policy (``--init``), such
   as one taught by CP-SAT, and improves on it without a teacher of its own. (In a lab with faults the best run
   may be the luckiest rather than the best decided: the runs share the lab's seed, not its faults' timing.)
+- ``self-pg`` (any lab; policy gradient): each lab drawn is rolled out ``training.samples`` times, every run
+  sampled, and each run's choices are reinforced by how much better than the runs' mean it ended (discouraged by
+  how much worse), in units of their spread — REINFORCE with the runs' mean as the baseline (as POMO, Kwon et al.,
+  2020). Self-labelling learns only the best run; this learns from every run, on the policy's own samples: a few
+  labs at a time, one gradient pass each. It starts from a policy (``--init``);
 - DAgger (Ross et al., 2011): round 0 follows the teacher; later rounds follow the learner (greedy and sampled,
   mixed with the teacher's choices with a probability that halves every round) and label every state it
   visits with the teacher's choices, so the learner is taught where its own mistakes take it;
@@ -49,12 +54,19 @@ from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, initial_state, o
 from twin import PluginError, Scenario, jobshop_as_lab, load_plugin, prepare, random_jobshop, stepped
 
 
+#: The teachers that are the policy itself: they start from a policy (``--init``)
+ITSELF = ("self", "self-pg")
+#: self-pg: labs rolled out between two gradient passes, and the rows in each gradient step
+PG_LABS, PG_BATCH = 8, 1024
+
+
 @dataclass
 class Sample:
     rows: np.ndarray  # (n, FEATURES)
     glob: np.ndarray  # (GLOBALS,)
     allowed: np.ndarray  # (n + 1,) bool: the candidates, then waiting
     taught: np.ndarray  # (n + 1,) bool: the teacher's choices among them
+    weight: float = 1.0  # self-pg: the run's advantage (negative: a choice to make less likely)
 
 
 def rollout(lab: Scenario, teacher: PlanTeacher | RuleTeacher, choose, rng: random.Random,
@@ -134,7 +146,8 @@ def lab_task(args: tuple) -> tuple[list[Sample], dict]:
 
 def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
                  temperatures: tuple[float, ...] = SAMPLE_TEMPERATURES,
-                 encoding: str = ENCODING) -> list[tuple[list[Sample], Any]]:
+                 encoding: str = ENCODING, greedy_first: bool = True,
+                 generator: torch.Generator | None = None) -> list[tuple[list[Sample], Any]]:
     """``k`` campaigns of ``lab`` in lockstep (``agents.lockstep``), each state labelled with the choice the run
     made there: the samples and the summary of each run."""
     out: list[list[Sample]] = [[] for _ in range(k)]
@@ -146,13 +159,15 @@ def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
         rows = obs[:MAX_CANDIDATES * FEATURES].reshape(MAX_CANDIDATES, FEATURES)[:n].copy()
         out[i].append(Sample(rows, obs[MAX_CANDIDATES * FEATURES:].copy(), np.append(m[:n], m[WAIT]), taught))
 
-    summaries = lockstep(lab, scorer, k, temperatures, encoding, label)
+    summaries = lockstep(lab, scorer, k, temperatures, encoding, label, greedy_first=greedy_first,
+                         generator=generator)
     return list(zip(out, summaries))
 
 
 def self_task(args: tuple) -> tuple[list[Sample], dict]:
     """Worker: draw a job shop (``training.jobshop_sizes``) or a lab (the ``training`` ranges) from ``seed``, roll
-    it out ``training.samples`` times with the policy, and return the best run's samples."""
+    it out ``training.samples`` times with the policy, and return the best run's samples (``self``) or every
+    run's, weighted by its advantage (``self-pg``)."""
     base, seed, _modes, state, _beta, encoding = args
     torch.set_num_threads(1)
     if base.training.jobshop_sizes and not base.campaigns:
@@ -164,11 +179,32 @@ def self_task(args: tuple) -> tuple[list[Sample], dict]:
     else:
         lab = prepare(randomised(base, seed), seed=seed)
         shape = lab_shape(lab)
+    if base.training.teacher == "self-pg":
+        samples, info = _reinforced(lab, _scorer(state, seed), base.training.samples, seed, encoding)
+        return samples, {**info, **({"shape": shape} if shape else {})}
     runs = sampled_runs(lab, _scorer(state, seed), base.training.samples, encoding=encoding)
     scores = [objective(summary, lab) for _, summary in runs]
     best = min(range(len(runs)), key=scores.__getitem__)
     info = {"greedy ÷ best": scores[0] / scores[best], "sampled ÷ best": statistics.mean(scores[1:]) / scores[best]}
     return runs[best][0], {**info, **({"shape": shape} if shape else {})}
+
+
+def _reinforced(lab: Scenario, scorer: torch.nn.Module, k: int, seed: int,
+                encoding: str) -> tuple[list[Sample], dict]:
+    """``k`` runs of ``lab``, all sampled (temperature 1: the policy's own distribution, which the gradient is of),
+    each state labelled with the run's choice and weighted by the run's advantage: (mean − its objective) ÷ the
+    runs' spread. Runs that all end alike teach nothing (weight 0)."""
+    runs = sampled_runs(lab, scorer, k, (1.0,), encoding, greedy_first=False,
+                        generator=torch.Generator().manual_seed(seed))
+    scores = np.array([objective(summary, lab) for _, summary in runs])
+    spread = float(scores.std())
+    advantage = (scores.mean() - scores) / spread if spread > 0 else np.zeros(k)
+    samples = []
+    for (labelled, _), a in zip(runs, advantage):
+        for sample in labelled:
+            sample.weight = float(a)
+        samples += labelled
+    return samples, {"sampled ÷ best": float(scores.mean() / scores.min())}
 
 
 def _rollouts(lab: Scenario, teacher, modes, scorer, beta: float, rng: random.Random, measure,
@@ -211,24 +247,30 @@ def batch(samples: list[Sample]) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     return torch.as_tensor(obs), torch.as_tensor(allowed), torch.as_tensor(taught)
 
 
-def imitation_loss(logits: torch.Tensor, allowed: torch.Tensor, taught: torch.Tensor) -> torch.Tensor:
-    """−log P(the teacher's set of choices), the softmax taken over what is allowed."""
+def imitation_loss(logits: torch.Tensor, allowed: torch.Tensor, taught: torch.Tensor,
+                   weights: torch.Tensor | None = None) -> torch.Tensor:
+    """−log P(the teacher's set of choices), the softmax taken over what is allowed; ``weights``: each row's
+    (self-pg: its run's advantage, so that the mean is REINFORCE's loss)."""
     masked = logits.masked_fill(~allowed, -1e9)
-    return (torch.logsumexp(masked, 1) - torch.logsumexp(logits.masked_fill(~taught, -1e9), 1)).mean()
+    nll = torch.logsumexp(masked, 1) - torch.logsumexp(logits.masked_fill(~taught, -1e9), 1)
+    return (nll if weights is None else weights * nll).mean()
 
 
 def fit(net: torch.nn.Module, data: list[Sample], epochs: int, optimizer: torch.optim.Optimizer,
         batch_size: int = 256, seed: int = 0) -> float:
-    """Cross-entropy epochs over ``data``; the last epoch's mean loss."""
+    """Cross-entropy epochs over ``data`` (each row weighted by its ``weight``); the last epoch's mean loss."""
     rng = random.Random(seed)
     order = list(range(len(data)))
     last = 0.0
+    weighted = any(s.weight != 1.0 for s in data)
     for _ in range(epochs):
         rng.shuffle(order)
         losses = []
         for i in range(0, len(order), batch_size):
-            obs, allowed, taught = batch([data[k] for k in order[i:i + batch_size]])
-            loss = imitation_loss(net(obs), allowed, taught)
+            chunk = [data[k] for k in order[i:i + batch_size]]
+            obs, allowed, taught = batch(chunk)
+            weights = torch.tensor([s.weight for s in chunk], dtype=torch.float32) if weighted else None
+            loss = imitation_loss(net(obs), allowed, taught, weights)
             optimizer.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
@@ -276,10 +318,11 @@ def training_fits(scenario: Scenario) -> dict:
 
 
 def check_imitable(scenario: Scenario, init) -> None:
-    if scenario.training.teacher == "self" and init is None:
+    if scenario.training.teacher in ITSELF and init is None:
         raise ValueError(
-            f"{scenario.name}: training.teacher 'self' improves a policy by imitating its own best rollouts, so it "
-            f"starts from one: pass --init POLICY.zip (e.g. one trained with training.teacher: cp-sat or best-rule)")
+            f"{scenario.name}: training.teacher '{scenario.training.teacher}' improves a policy on its own rollouts, "
+            f"so it starts from one: pass --init POLICY.zip (e.g. one trained with training.teacher: cp-sat or "
+            f"best-rule)")
     if scenario.training.teacher == "cp-sat" and (scenario.jobshop is None or not scenario.training.jobshop_sizes):
         raise ValueError(
             f"{scenario.name}: training.teacher 'cp-sat' learns from CP-SAT's schedules of random job shops, so it "
@@ -303,9 +346,11 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     from twin import read_meta
 
     check_imitable(scenario, init)
-    itself = scenario.training.teacher == "self"
+    itself = scenario.training.teacher in ITSELF
+    gradient = scenario.training.teacher == "self-pg"
     max_samples = max_samples or (3 * eval_every if itself else 400_000)
-    learning_rate = learning_rate or (2e-4 if init is not None else 1e-3)  # a trained policy is tuned, not retaught
+    # a trained policy is tuned, not retaught; a policy gradient, noisier than a label, in smaller steps
+    learning_rate = learning_rate or (1e-4 if gradient else 2e-4 if init is not None else 1e-3)
     torch.set_num_threads(1)
     torch.manual_seed(seed)
     host = DummyVecEnv([lambda: SchedulingEnv(scenario, randomise=False, encoding=encoding)])  # SB3's spaces
@@ -345,26 +390,43 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
             modes = ("self",) if itself else ("teacher",) if rnd == 0 else ("greedy", "sample", "sample")
             beta = 0.0 if rnd == 0 else 0.5 ** rnd
             count = max(workers, round(want / (per_shop * len(modes))))
-            got, measured = 0, []
-            for samples, info in pool.imap_unordered(
-                    task, [(scenario, shop + i, modes, state, beta, encoding) for i in range(count)]):
-                data += samples
-                for sample in samples:
-                    trained_on.add(sample.rows, sample.glob)
-                got += len(samples)
-                measured.append(info)
-                if "shape" in info:
-                    fits = widen(fits, info["shape"])
-                if on_progress:
-                    on_progress(min(steps, done + got), None)
-            shop += count
-            per_shop = got / (count * len(modes))
-            data = data[-max_samples:]
+            got, measured, losses = 0, [], []
+            while got < want:  # once, but for self-pg: a few labs on the policy as it is now, a gradient pass, again
+                labs = PG_LABS if gradient else count
+                if gradient:
+                    state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+                fresh: list[Sample] = []
+                for samples, info in pool.imap_unordered(
+                        task, [(scenario, shop + i, modes, state, beta, encoding) for i in range(labs)]):
+                    fresh += samples
+                    for sample in samples:
+                        trained_on.add(sample.rows, sample.glob)
+                    got += len(samples)
+                    measured.append(info)
+                    if "shape" in info:
+                        fits = widen(fits, info["shape"])
+                    if on_progress:
+                        on_progress(min(steps, done + got), None)
+                shop += labs
+                if not gradient:
+                    data += fresh
+                    per_shop = got / (count * len(modes))
+                    break
+                net.train()
+                losses.append(fit(net, fresh, 1, optimizer, batch_size=PG_BATCH, seed=seed + shop))
+                net.eval()
             done += got
-            net.train()
-            loss = fit(net, data, epochs, optimizer, seed=seed + rnd)
-            net.eval()
-            if itself:
+            if gradient:
+                loss = statistics.mean(losses)
+            else:
+                data = data[-max_samples:]
+                net.train()
+                loss = fit(net, data, epochs, optimizer, seed=seed + rnd)
+                net.eval()
+            if gradient:
+                policy, seen = "policy gradient", {"sampled ÷ best": statistics.mean(m["sampled ÷ best"]
+                                                                                     for m in measured)}
+            elif itself:
                 policy, seen = "self-labelled", {k: statistics.mean(m[k] for m in measured)
                                                  for k in ("greedy ÷ best", "sampled ÷ best")}
             else:

@@ -296,7 +296,7 @@ def lab_training(lab: Scenario, encoding: str, init: Path | None) -> Scenario:
         raise ValueError(f"{lab.name}: the scheduler of a lab of several campaigns learns by imitation "
                          f"(training.teacher self or best-rule; here {encoding}, {t.method}, {t.teacher}): {fix}")
     teacher = t.teacher
-    if teacher == "self" and init is None:
+    if teacher in ("self", "self-pg") and init is None:
         raise ValueError(f"{lab.name}: the scheduler of a lab of several campaigns improves on a policy's own best "
                          f"runs (training.teacher self): {fix}")
     return lab.model_copy(update={"training": t.model_copy(update={"method": "imitate", "teacher": teacher})})

@@ -52,13 +52,15 @@ class Training(Spec):
         default="imitate", description="how `twin train --agent scheduler` learns: imitate (DAgger from a teacher; "
         "it matches the teacher within minutes) or ppo (from the reward alone, any lab of one campaign; it needs "
         "far more steps to catch up with the rules)")
-    teacher: Literal["auto", "cp-sat", "best-rule", "self"] = Field(
+    teacher: Literal["auto", "cp-sat", "best-rule", "self", "self-pg"] = Field(
         default="auto", description="method imitate: cp-sat (its schedules of random shops; job shops with "
-        "jobshop_sizes), best-rule (in each lab drawn from these ranges, the dispatching rule that does best there) "
-        "or self (the policy's own best of `samples` rollouts of each lab; start it from a policy with --init); "
-        "auto: cp-sat for a job shop with jobshop_sizes, self for a lab of several campaigns, else best-rule")
+        "jobshop_sizes), best-rule (in each lab drawn from these ranges, the dispatching rule that does best there), "
+        "self (the policy's own best of `samples` rollouts of each lab) or self-pg (a policy gradient: every one of "
+        "`samples` sampled rollouts of each lab reinforced by how much better than their mean it ended); self and "
+        "self-pg start from a policy (--init); auto: cp-sat for a job shop with jobshop_sizes, self for a lab of "
+        "several campaigns, else best-rule")
     samples: int = Field(default=16, ge=2, le=256, description="teacher self: rollouts of each lab (one greedy, the "
-                         "rest sampled), the best of which is imitated")
+                         "rest sampled), the best of which is imitated; self-pg: sampled rollouts of each lab")
 
     duration_scale: Range = Field(default=(1.0, 1.0), description="multiplies every mean duration")
     fault_scale: Range = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")
