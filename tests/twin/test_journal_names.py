@@ -102,11 +102,33 @@ def test_a_journal_being_written_is_not_replaced_by_a_second_run_given_its_name(
     first = Journal(path)
     first.event(1.0, "campaign.started")
     first.flush()
-    with pytest.raises(TwinError, match=rf"x.db is being written by another run \(process {os.getpid()}\): give "
-                                        r"--journal another file"):
+    with pytest.raises(TwinError, match=rf"x.db is being written by another run \(process {os.getpid()}\): wait "
+                                        r"for that run to end, or give --journal another file"):
         run(ROOT / "scenarios" / "flaky_lab.yaml", journal=path, overrides={"campaign.budget": 2})
     assert [e["kind"] for e in read_events(path)] == ["campaign.started"]  # the first's journal, untouched
     first.close()
     assert not Path(f"{path}-lock").exists()
     assert run(ROOT / "scenarios" / "flaky_lab.yaml", journal=path, overrides={"campaign.budget": 2}).done == 2
     assert not Path(f"{path}-lock").exists()
+
+
+def test_a_journal_being_written_is_not_resumed_under_its_run(tmp_path):
+    """`twin resume` of a run still going re-ran it and then replaced the journal the run was writing."""
+    import sqlite3
+
+    from twin.campaign.journal import Journal
+    from twin.core.errors import TwinError
+    from twin.runtime.resume import resume
+
+    path = tmp_path / "j.db"
+    run(ROOT / "scenarios" / "flaky_lab.yaml", journal=path, overrides={"campaign.budget": 4}, bus="memory")
+    with sqlite3.connect(path) as c:  # as a run still going has it: no summary yet
+        c.execute("DELETE FROM run WHERE key='summary'")
+    writer = Journal(path, append=True)  # and its writer
+    try:
+        with pytest.raises(TwinError, match="j.db is being written by another run"):
+            resume(path)
+        assert not (tmp_path / "j.db.resuming").exists()
+    finally:
+        writer.close()
+    assert resume(path).done == 4  # once it has ended (killed), it resumes

@@ -164,13 +164,24 @@ def _writer_lock(path: Path) -> Any:
         lock.seek(0)
         holder = lock.read().strip()
         lock.close()
-        raise TwinError(f"{path} is being written by another run{f' (process {holder})' if holder else ''}: give "
-                        "--journal another file, or wait for that run to end (nothing has run yet)") from None
+        raise TwinError(f"{path} is being written by another run{f' (process {holder})' if holder else ''}: wait "
+                        "for that run to end, or give --journal another file (nothing has run yet)") from None
     lock.seek(0)
     lock.truncate()
     lock.write(str(os.getpid()))
     lock.flush()
     return lock
+
+
+@contextmanager
+def held(path: Path) -> Iterator[None]:
+    """The journal at ``path`` kept from every other writer while the block runs (``twin resume``, which reads it
+    and then replaces it); refused, naming the process, if a run is writing it now."""
+    lock = _writer_lock(path)
+    try:
+        yield
+    finally:
+        _release(lock)
 
 
 def _release(lock: Any) -> None:

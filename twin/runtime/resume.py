@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.campaign import CampaignCore
-from twin.campaign.journal import Journal, read_inputs, read_run, reading
+from twin.campaign.journal import Journal, held, read_inputs, read_run, reading
 from twin.campaign.replay import rebuild
 from twin.campaign.summary import Summary
 from twin.core import keys
@@ -106,7 +106,13 @@ def resume(path: str | Path, *, on_progress: Callable[[CampaignCore], None] | No
     path = Path(path)
     s, prefix = recorded(path)
     if s.clock.mode != "virtual":
-        return _resume_live(path, s, on_progress, observer)
+        return _resume_live(path, s, on_progress, observer)  # appends to the journal: its writer's lock, as a run's
+    with held(path):  # a run still writing it is not resumed, nor does one start on it while this re-runs
+        return _resume_virtual(path, s, prefix, on_progress, record, observer, runtime)
+
+
+def _resume_virtual(path: Path, s: Scenario, prefix: list, on_progress: Callable[[CampaignCore], None] | None,
+                    record: RecordOptions | None, observer: LabObserver | None, runtime: str) -> Summary:
     resuming = path.with_name(path.name + ".resuming")
     checked: list[CheckedJournal] = []
 
