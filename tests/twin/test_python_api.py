@@ -58,3 +58,10 @@ def test_the_gym_environments_take_a_mapping_too():
         assert env.unwrapped.base.devices["reactor"].instances == 5
     finally:
         env.close()
+
+
+def test_a_policy_description_is_read_from_a_path_given_as_text():
+    """`twin.read_meta("agents/policies/x.zip")` was an AttributeError ('str' has no with_suffix)."""
+    policy = "agents/policies/jobshop_scheduler.zip"
+    assert twin.read_meta(str(ROOT / policy)) == twin.read_meta(ROOT / policy)
+    assert twin.read_meta(str(ROOT / policy))["kind"] == "scheduler"

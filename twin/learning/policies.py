@@ -29,7 +29,9 @@ def save_policy(model: Any, path: Path, kind: str, scenario: Scenario, signature
     return path
 
 
-def read_meta(path: Path) -> dict[str, Any]:
+def read_meta(path: str | Path) -> dict[str, Any]:
+    """The description ``twin train`` saved beside the policy at ``path`` (its ``.json``)."""
+    path = Path(path)
     side = path.with_suffix(".json")
     if not side.exists():
         raise PluginError(f"{path}: no {side.name} beside it; policies are saved by `twin train`")
