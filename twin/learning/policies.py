@@ -45,8 +45,9 @@ def read_meta(path: str | Path) -> dict[str, Any]:
     return meta
 
 
-def load_policy(path: Path, kind: str, signature: dict[str, Any]) -> Any:
+def load_policy(path: str | Path, kind: str, signature: dict[str, Any]) -> Any:
     """The policy at ``path``, checked to be a ``kind`` policy trained for a lab of this ``signature``."""
+    path = Path(path)
     if not path.exists():
         raise PluginError(f"policy {path} does not exist; train one with `twin train SCENARIO --agent {kind} --out {path}`")
     meta = read_meta(path)
