@@ -51,7 +51,7 @@ def replay(lab, samples) -> float:
 
 
 def test_the_runs_go_in_lockstep_the_first_greedy_and_each_label_replays_its_run(ft06, state):
-    lab = prepare(jobshop_as_lab(ft06, random_jobshop(8, 5, 1, 50, random.Random(3))), seed=0)
+    lab = prepare(jobshop_as_lab(ft06, random_jobshop(10, 10, 1, 50, random.Random(3))), seed=0)
     runs = sampled_runs(lab, _scorer(state, 0), 6, encoding=AS_SHIPPED)
     spans = [summary.lab_hours * 3600 for _, summary in runs]
     greedy = campaign(lab, 0, RlScheduler(lab, str(SHIPPED)).decide).lab_hours * 3600

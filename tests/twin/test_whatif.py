@@ -134,11 +134,11 @@ def test_a_job_shop_of_minutes_reads_in_lab_seconds_and_a_played_ahead_run_saves
     shop = tmp_path / "la02.yaml"
     shop.write_text(f"name: la02\nlab: jobshop\njobshop: {{file: {ROOT / 'scenarios' / 'jobshop' / 'la02.txt'}}}\n"
                     f"campaign: {{scheduler: 'rl:{ROOT / 'agents' / 'policies' / 'jobshop_scheduler.zip'}'}}\n")
-    code, out = whatif(str(shop), "--vary", "campaign.rollouts=16", "--seeds", "1")
+    code, out = whatif(str(shop), "--vary", "campaign.rollouts=32", "--seeds", "1")
     assert code == 0, out
     assert "lab-s" in out and "lab-s: lab-seconds of the whole campaign" in " ".join(out.split())
-    table = {line.split()[0]: line.split()[1:4] for line in out.splitlines() if line.split()[:1] in (["1*"], ["16"])}
-    (greedy, _, _), (played, _, saved) = table["1*"], table["16"]
+    table = {line.split()[0]: line.split()[1:4] for line in out.splitlines() if line.split()[:1] in (["1*"], ["32"])}
+    (greedy, _, _), (played, _, saved) = table["1*"], table["32"]
     from twin.runtime.lab import run
 
     alone = run(shop, journal=tmp_path / "j.db", bus="memory", agent_in_process=True)  # the same lab, run by itself
