@@ -26,11 +26,6 @@ ROOT = Path(__file__).resolve().parents[2]
 torch.set_num_threads(1)
 
 
-@pytest.fixture(scope="module")
-def ft06():
-    return prepare(ROOT / "scenarios" / "jobshop.yaml")
-
-
 def teacher_for(lab, inst, limit=5.0):
     plan = jobshop(inst.jobs, inst.machines, time_limit_s=limit)
     return PlanTeacher(inst.jobs, plan.starts), plan

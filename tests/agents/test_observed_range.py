@@ -14,17 +14,11 @@ from agents.observed_range import observe
 from agents.rl_scheduler import RlScheduler
 from agents.train_scheduler import campaign
 from twin import PluginError, jobshop_as_lab, load_plugin, random_jobshop
-from twin.runtime.lab import prepare
 
 ROOT = Path(__file__).resolve().parents[2]
 # the earlier job-shop policy (candidates-v2, counts ÷ 10): a larger shop runs its inputs past anything it saw
 POLICY = ROOT / "tests" / "data" / "jobshop_scheduler_v2.zip"
 torch.set_num_threads(1)
-
-
-@pytest.fixture(scope="module")
-def ft06():
-    return prepare(ROOT / "scenarios" / "jobshop.yaml")
 
 
 def long_shop(ft06):

@@ -4,7 +4,6 @@ mean it ended (REINFORCE with the runs' mean as the baseline)."""
 import copy
 import json
 import random
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,20 +15,7 @@ from tests.agents.test_self_labelling import AS_SHIPPED, SHIPPED, replay
 from twin import jobshop_as_lab, random_jobshop
 from twin.runtime.lab import prepare
 
-ROOT = Path(__file__).resolve().parents[2]
 torch.set_num_threads(1)
-
-
-@pytest.fixture(scope="module")
-def ft06():
-    return prepare(ROOT / "scenarios" / "jobshop.yaml")
-
-
-@pytest.fixture(scope="module")
-def state(ft06):
-    from agents.train_scheduler import initial_state
-
-    return initial_state(SHIPPED, ft06, "candidates", part="action_net")
 
 
 @pytest.fixture(scope="module")

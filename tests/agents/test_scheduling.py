@@ -23,11 +23,6 @@ torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="module")
-def ft06():
-    return prepare(ROOT / "scenarios" / "jobshop.yaml")
-
-
-@pytest.fixture(scope="module")
 def flaky():
     return prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"campaign.budget": 12})
 

@@ -23,18 +23,6 @@ AS_SHIPPED = trained_encoding(read_meta(SHIPPED)["signature"]["encoding"])  # th
 torch.set_num_threads(1)
 
 
-@pytest.fixture(scope="module")
-def ft06():
-    return prepare(ROOT / "scenarios" / "jobshop.yaml")
-
-
-@pytest.fixture(scope="module")
-def state(ft06):
-    from agents.train_scheduler import initial_state
-
-    return initial_state(SHIPPED, ft06, "candidates", part="action_net")  # the shipped policy (an earlier one widened)
-
-
 def replay(lab, samples) -> float:
     """Lab-seconds of a campaign of ``lab`` that takes, state by state, the choice each sample is labelled with."""
     enc, c = CandidateEncoder(lab, AS_SHIPPED), SteppedCampaign(lab)
