@@ -177,7 +177,7 @@ def test_an_agent_on_the_bus_plays_the_lab_ahead_from_the_file_the_lab_runs(tmp_
     path = tmp_path / "la02.yaml"
     path.write_text(yaml.safe_dump({
         "name": "la02", "lab": "shop", "jobshop": {"file": str(ROOT / "scenarios" / "jobshop" / "la02.txt")},
-        "campaign": {"scheduler": "remote", "rollouts": 16, "fallback_scheduler": "fifo"},
+        "campaign": {"scheduler": "remote", "rollouts": 32, "fallback_scheduler": "fifo"},
         "orchestrator": {"startup_s": 4000},  # the agent joins the bus once the lab listens
         "clock": {"mode": "scaled", "speed": speed}, "bus": {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]}}))
     agent = subprocess.Popen([sys.executable, "-m", "twin", "scheduler", "serve", str(path), "--scheduler", POLICY,
@@ -198,4 +198,14 @@ def test_an_agent_on_the_bus_plays_the_lab_ahead_from_the_file_the_lab_runs(tmp_
         agent.kill()
         agent.communicate()
     assert summary.done == 10 and summary.scheduler_fallbacks == 0
-    assert summary.lab_hours * 3600 <= planned_s * 1.03  # each step no later than played, but for the clock's jitter
+    from twin.campaign.journal import read_events
+
+    kept: dict[str, list[str]] = {}
+    for row in read_events(tmp_path / "j.db", "attempt.dispatched"):
+        kept.setdefault(row["device"], []).append(row["task"])
+    plan = RlScheduler(s, POLICY[3:]).follower.plan  # the agent's: the same lab and seed, the same plan
+    assert plan.best_h < plan.greedy_h  # a plan other than the greedy run, so that keeping it means something
+    assert kept == plan.orders  # every machine ran its steps in the plan's order
+    # and about as soon: the agent's round trips over Zenoh, at 100×, add lab-seconds each (3 % was too tight on a
+    # loaded machine: 790 lab-s against 760 planned)
+    assert summary.lab_hours * 3600 <= planned_s * 1.10
