@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
-import os
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -17,6 +17,7 @@ from twin.cli.common import (_fail, app, assignments, console, err, keep_serving
                              writable)
 from twin.cli.sharing import shared_lab
 from twin.core import plugins
+from twin.core.whole_files import written_whole
 from twin.runtime import lab
 from twin.runtime.checks import checked, validate_file
 from twin.core.errors import TwinError
@@ -223,23 +224,18 @@ def replay(
 ) -> None:
     """Rebuild a run's Rerun recording from its journal alone."""
     writable("--save", save)
-    # written beside and renamed when whole: an interrupted replay leaves no recording that looks like the run's
-    partial = save.with_name(f".{save.name}.partial") if save else None
-    record = RecordOptions(partial, viewer, serve)
-    if not record.wanted:
+    if not (save or viewer or serve):
         _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
+    # written whole or not at all: an interrupted replay leaves no recording that looks like the run's
     try:
-        observer = replay_journal(journal, record)
-    except (TwinError, KeyboardInterrupt) as exc:
-        if partial is not None:
-            partial.unlink(missing_ok=True)
-        if isinstance(exc, TwinError):
-            _fail(exc)
+        with written_whole(save) if save else contextlib.nullcontext() as partial:
+            observer = replay_journal(journal, RecordOptions(partial, viewer, serve))
+    except TwinError as exc:
+        _fail(exc)
+    except KeyboardInterrupt:
         err.print("interrupted: nothing saved" + (f" ({save} is as it was)" if save and save.exists() else ""),
                   highlight=False)
         raise typer.Exit(130) from None
-    if partial is not None and save is not None:
-        os.replace(partial, save)
     err.print(f"replayed {observer.spectra} spectra, {observer.finished} finished experiments"
               + (f" to {save}" if save else ""), highlight=False)
 

@@ -16,13 +16,12 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 from pathlib import Path
-from collections.abc import Callable
 from typing import Any
 
 from twin.campaign.journal import no_such_journal, read_events, read_experiments, read_run
 from twin.core.errors import TwinError
+from twin.core.whole_files import written_whole
 from twin.scenario.model import instance_names
 
 WHAT = ("experiments", "attempts", "devices", "consumables", "decisions", "operator")
@@ -56,9 +55,9 @@ def export(journal: str | Path, out: str | Path, fmt: str = "csv", what: list[st
     written = [_write(out / f"{name}.{fmt}", tables[name](), fmt) for name in chosen]
     record = {**(run.get("provenance") or _older(run)), "operator_acts": operator_rows(events),
               "summary": run.get("summary"), "journal": str(path)}
-    provenance = _whole(out / "provenance.json", lambda p: p.write_text(json.dumps(record, indent=2, default=str)
-                                                                         + "\n"))
-    return [*written, provenance]
+    with written_whole(out / "provenance.json") as partial:
+        partial.write_text(json.dumps(record, indent=2, default=str) + "\n")
+    return [*written, out / "provenance.json"]
 
 
 def _older(run: dict[str, Any]) -> dict[str, Any]:
@@ -185,19 +184,8 @@ def _columns(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def _write(path: Path, rows: list[dict[str, Any]], fmt: str) -> Path:
-    return _whole(path, lambda p: _write_table(p, rows, fmt))
-
-
-def _whole(path: Path, write: Callable[[Path], Any]) -> Path:
-    """``path`` written whole or not at all: into ``.<name>.partial`` beside it, renamed when done (Ctrl-C, or a
-    full disk, leaves no half table under the name, nor over an earlier export's)."""
-    partial = path.with_name(f".{path.name}.partial")
-    try:
-        write(partial)
-        os.replace(partial, path)
-    except BaseException:
-        partial.unlink(missing_ok=True)
-        raise
+    with written_whole(path) as partial:
+        _write_table(partial, rows, fmt)
     return path
 
 
