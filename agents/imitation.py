@@ -248,12 +248,11 @@ def batch(samples: list[Sample]) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
 
 
 def imitation_loss(logits: torch.Tensor, allowed: torch.Tensor, taught: torch.Tensor,
-                   weights: torch.Tensor | None = None) -> torch.Tensor:
-    """−log P(the teacher's set of choices), the softmax taken over what is allowed; ``weights``: each row's
-    (self-pg: its run's advantage, so that the mean is REINFORCE's loss)."""
+                   weights: torch.Tensor) -> torch.Tensor:
+    """−log P(the teacher's set of choices), the softmax taken over what is allowed, times each row's weight (1 for
+    a label; self-pg: its run's advantage, so that the mean is REINFORCE's loss)."""
     masked = logits.masked_fill(~allowed, -1e9)
-    nll = torch.logsumexp(masked, 1) - torch.logsumexp(logits.masked_fill(~taught, -1e9), 1)
-    return (nll if weights is None else weights * nll).mean()
+    return (weights * (torch.logsumexp(masked, 1) - torch.logsumexp(logits.masked_fill(~taught, -1e9), 1))).mean()
 
 
 def fit(net: torch.nn.Module, data: list[Sample], epochs: int, optimizer: torch.optim.Optimizer,
@@ -262,15 +261,13 @@ def fit(net: torch.nn.Module, data: list[Sample], epochs: int, optimizer: torch.
     rng = random.Random(seed)
     order = list(range(len(data)))
     last = 0.0
-    weighted = any(s.weight != 1.0 for s in data)
     for _ in range(epochs):
         rng.shuffle(order)
         losses = []
         for i in range(0, len(order), batch_size):
             chunk = [data[k] for k in order[i:i + batch_size]]
             obs, allowed, taught = batch(chunk)
-            weights = torch.tensor([s.weight for s in chunk], dtype=torch.float32) if weighted else None
-            loss = imitation_loss(net(obs), allowed, taught, weights)
+            loss = imitation_loss(net(obs), allowed, taught, torch.tensor([s.weight for s in chunk]))
             optimizer.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
@@ -278,6 +275,16 @@ def fit(net: torch.nn.Module, data: list[Sample], epochs: int, optimizer: torch.
             losses.append(float(loss.detach()))
         last = sum(losses) / max(len(losses), 1)
     return last
+
+
+def _round_seen(scenario: Scenario, rnd: int, itself: bool, jobshop: bool, measured: list[dict]) -> tuple[str, dict]:
+    """What a round of labels was (for the curve), and how its labs went: against the best run (self-labelling),
+    the plan (CP-SAT) or the rule (best-rule)."""
+    if itself:
+        return "self-labelled", {k: statistics.mean(m[k] for m in measured) for k in ("greedy ÷ best", "sampled ÷ best")}
+    mode = "teacher" if rnd == 0 else "greedy"
+    return (f"{scenario.training.teacher} teacher" if rnd == 0 else "imitation",
+            {f"{mode} ÷ {'plan' if jobshop else 'rule'}": statistics.mean(m[mode] for m in measured)})
 
 
 def _spawn_pool(workers: int) -> Any:
@@ -416,23 +423,16 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
                 losses.append(fit(net, fresh, 1, optimizer, batch_size=PG_BATCH, seed=seed + shop))
                 net.eval()
             done += got
-            if gradient:
+            if gradient:  # fitted as it went
                 loss = statistics.mean(losses)
+                policy, seen = "policy gradient", {"sampled ÷ best": statistics.mean(m["sampled ÷ best"]
+                                                                                     for m in measured)}
             else:
                 data = data[-max_samples:]
                 net.train()
                 loss = fit(net, data, epochs, optimizer, seed=seed + rnd)
                 net.eval()
-            if gradient:
-                policy, seen = "policy gradient", {"sampled ÷ best": statistics.mean(m["sampled ÷ best"]
-                                                                                     for m in measured)}
-            elif itself:
-                policy, seen = "self-labelled", {k: statistics.mean(m[k] for m in measured)
-                                                 for k in ("greedy ÷ best", "sampled ÷ best")}
-            else:
-                policy = f"{scenario.training.teacher} teacher" if rnd == 0 else "imitation"
-                mode = "teacher" if rnd == 0 else "greedy"  # how this round's labs went, against the plan/rule
-                seen = {f"{mode} ÷ {'plan' if jobshop else 'rule'}": statistics.mean(m[mode] for m in measured)}
+                policy, seen = _round_seen(scenario, rnd, itself, jobshop, measured)
             judge(model, done, fits, f"{policy} (loss {loss:.3f})", seen)
             rnd += 1
     return out.with_suffix(".zip")

@@ -311,48 +311,46 @@ def _in_own_thread(loop_factory: Callable[[], asyncio.AbstractEventLoop], main: 
             ready.set()
             done.set()
 
+    def interrupt(cancel: bool) -> None:
+        """Ctrl-C handed to the loop: its ``on_interrupt`` handlers, or (none, or ``cancel``) its task cancelled."""
+        ready.wait()
+        if "task" not in box or done.is_set():
+            return
+        loop, task = box["loop"], box["task"]
+
+        def there() -> None:
+            handlers = [] if cancel else list(getattr(loop, "on_interrupt", ()))
+            for handler in handlers:
+                handler()
+            if not handlers:
+                task.cancel()
+
+        with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: nothing left to interrupt
+            loop.call_soon_threadsafe(there)
+
     # waited for with an Event: Thread.join interrupted by Ctrl-C marks the thread stopped (Python 3.11), and a
     # second join returns at once
     thread = threading.Thread(target=body, name="labtwin-campaign", daemon=True)
+    interrupted = False
     try:
         with _ctrl_c_raises():
             thread.start()
             done.wait()
     except KeyboardInterrupt:
-        box["interrupted"] = True
-        _interrupt(box, ready, done)
+        interrupted = True
+        interrupt(cancel=False)
         try:
             with _ctrl_c_raises():
                 done.wait()  # the campaign stops cleanly and returns its summary, as on the main thread
         except KeyboardInterrupt:  # a second Ctrl-C: no waiting for a clean stop
-            box["cancel"] = True
-            _interrupt(box, ready, done)
+            interrupt(cancel=True)
             done.wait()
             raise
     if "error" in box:
-        if box.get("interrupted") and isinstance(box["error"], asyncio.CancelledError):
+        if interrupted and isinstance(box["error"], asyncio.CancelledError):
             raise KeyboardInterrupt
         raise box["error"]
     return box["result"]
-
-
-def _interrupt(box: dict[str, Any], ready: threading.Event, done: threading.Event) -> None:
-    """Ctrl-C handed to the loop in ``box``: its ``on_interrupt`` handlers, or (none, or ``box["cancel"]``) its
-    task cancelled."""
-    ready.wait()
-    if "task" not in box or done.is_set():
-        return
-    loop, task = box["loop"], box["task"]
-
-    def there() -> None:
-        handlers = [] if box.get("cancel") else list(getattr(loop, "on_interrupt", ()))
-        for handler in handlers:
-            handler()
-        if not handlers:
-            task.cancel()
-
-    with contextlib.suppress(RuntimeError):  # the loop closed meanwhile: nothing left to interrupt
-        loop.call_soon_threadsafe(there)
 
 
 @contextlib.contextmanager
