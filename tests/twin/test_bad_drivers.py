@@ -338,3 +338,25 @@ def test_a_wait_that_is_not_a_number_is_the_drivers_error_on_both_runtimes(tmp_p
     for said in ("clock.sleep('10'): lab seconds must be a number, not str", "not NoneType", "not NaN"):
         assert any(said in r for r in reasons), (said, reasons)
 
+
+
+class ProgressWithoutNote(Raises):
+    """Reports progress as `ctx.progress(done / total)`: the note is optional (run_step and the planning
+    environment took it so, while the lab's devices failed every step with a TypeError)."""
+
+    async def run(self, step, params, sample, ctx):
+        for i in range(1, 4):
+            await ctx.clock.sleep(10.0)
+            ctx.progress(i / 3)
+        ctx.progress(1.0, "scanned")
+        return StepResult({"peak_nm": 520.0}, sample)
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+def test_progress_without_a_note_is_reported_not_a_fault(tmp_path, runtime):
+    lab = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_drivers:ProgressWithoutNote",
+                          "campaign.budget": 4, "campaign.stop_on_target": False}))
+    summary = run(lab, journal=tmp_path / "j.db", runtime=runtime, bus="memory")
+    assert summary.done == 4 and summary.failed_attempts == 0
+    notes = [json.loads(e["detail"])["body"]["note"] for e in read_events(tmp_path / "j.db", "msg.progress")]
+    assert notes.count("") == 12 and notes.count("scanned") == 4

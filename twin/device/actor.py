@@ -244,7 +244,7 @@ class DeviceActor:
             self._habits.reported(self._clock.now(), "telemetry")
             emit(Kind.TELEMETRY, {"readings": readings}, keys.telemetry(self._lab, self.name))
 
-        def progress(fraction: float, note: str) -> None:
+        def progress(fraction: float, note: str = "") -> None:
             self._habits.reported(self._clock.now(), "progress")
             emit(Kind.PROGRESS, {"fraction": fraction, "note": note})
 

@@ -47,7 +47,7 @@ class StepContext:
     clock: Clock
     rng: np.random.Generator
     duration: Any  # twin.scenario.Duration
-    progress: Callable[[float, str], None]
+    progress: Callable[..., None]  # progress(fraction, note="")
     telemetry: Callable[[dict[str, float]], None]
     expected_s: float = 0.0  # lab seconds the lab expects the step to take
     deadline_s: float | None = None  # lab seconds from dispatch after which the lab cancels the step

@@ -193,7 +193,7 @@ class FastDevice:
             self._habits.reported(self._q.now, "telemetry")
             emit(Kind.TELEMETRY, {"readings": readings})
 
-        def progress(fraction: float, note: str) -> None:
+        def progress(fraction: float, note: str = "") -> None:
             self._habits.reported(self._q.now, "progress")
             emit(Kind.PROGRESS, {"fraction": fraction, "note": note})
 
