@@ -153,15 +153,20 @@ def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
     out: list[list[Sample]] = [[] for _ in range(k)]
 
     def label(i: int, encoder: CandidateEncoder, obs: np.ndarray, m: np.ndarray, action: int, _: Any) -> None:
-        n = len(encoder.encoded)
-        taught = np.zeros(n + 1, bool)
-        taught[n if action == WAIT else action] = True
-        rows = obs[:MAX_CANDIDATES * FEATURES].reshape(MAX_CANDIDATES, FEATURES)[:n].copy()
-        out[i].append(Sample(rows, obs[MAX_CANDIDATES * FEATURES:].copy(), np.append(m[:n], m[WAIT]), taught))
+        out[i].append(chosen(encoder, obs, m, action))
 
     summaries = lockstep(lab, scorer, k, temperatures, encoding, label, greedy_first=greedy_first,
                          generator=generator)
     return list(zip(out, summaries))
+
+
+def chosen(encoder: CandidateEncoder, obs: np.ndarray, mask: np.ndarray, action: int) -> Sample:
+    """The state ``encoder`` encoded as ``obs`` (only the rows that exist), labelled with the choice ``action``."""
+    n = len(encoder.encoded)
+    taught = np.zeros(n + 1, bool)
+    taught[n if action == WAIT else action] = True
+    rows = obs[:MAX_CANDIDATES * FEATURES].reshape(MAX_CANDIDATES, FEATURES)[:n].copy()
+    return Sample(rows, obs[MAX_CANDIDATES * FEATURES:].copy(), np.append(mask[:n], mask[WAIT]), taught)
 
 
 def self_task(args: tuple) -> tuple[list[Sample], dict]:
@@ -192,19 +197,25 @@ def self_task(args: tuple) -> tuple[list[Sample], dict]:
 def _reinforced(lab: Scenario, scorer: torch.nn.Module, k: int, seed: int,
                 encoding: str) -> tuple[list[Sample], dict]:
     """``k`` runs of ``lab``, all sampled (temperature 1: the policy's own distribution, which the gradient is of),
-    each state labelled with the run's choice and weighted by the run's advantage: (mean − its objective) ÷ the
-    runs' spread. Runs that all end alike teach nothing (weight 0)."""
+    each state labelled with the run's choice and weighted by the run's advantage (``advantage_weighted``)."""
     runs = sampled_runs(lab, scorer, k, (1.0,), encoding, greedy_first=False,
                         generator=torch.Generator().manual_seed(seed))
     scores = np.array([objective(summary, lab) for _, summary in runs])
+    return (advantage_weighted([labelled for labelled, _ in runs], scores),
+            {"sampled ÷ best": float(scores.mean() / scores.min())})
+
+
+def advantage_weighted(runs: list[list[Sample]], scores: np.ndarray) -> list[Sample]:
+    """Every run's labelled choices, weighted by its advantage: (the runs' mean objective − its own) ÷ their spread,
+    so that ``fit`` makes REINFORCE's step. Runs that all end alike teach nothing (weight 0)."""
     spread = float(scores.std())
-    advantage = (scores.mean() - scores) / spread if spread > 0 else np.zeros(k)
+    advantage = (scores.mean() - scores) / spread if spread > 0 else np.zeros(len(scores))
     samples = []
-    for (labelled, _), a in zip(runs, advantage):
+    for labelled, a in zip(runs, advantage):
         for sample in labelled:
             sample.weight = float(a)
         samples += labelled
-    return samples, {"sampled ÷ best": float(scores.mean() / scores.min())}
+    return samples
 
 
 def _rollouts(lab: Scenario, teacher, modes, scorer, beta: float, rng: random.Random, measure,

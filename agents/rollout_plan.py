@@ -23,16 +23,21 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 
-from agents.candidates import Observed
-from agents.lockstep import lockstep
+from agents.candidates import CandidateEncoder, Observed
+from agents.lockstep import SAMPLE_TEMPERATURES, lockstep
 from agents.train_scheduler import objective
 from twin import Assignment, LabView, Scenario, lab_span, prepare
 
+if TYPE_CHECKING:
+    from agents.active_search import ActiveSearch
+
 log = logging.getLogger(__name__)
+ROUND = 32  # campaign.rollout_search: active: the runs played between two tunings of the policy
 BATCH = 64  # runs played at once: each holds a whole lab in memory
 HEARTBEAT_S = 10.0  # how often a long planning says how far it is
 
@@ -48,11 +53,14 @@ class Plan:
     best_h: float  # its lab-hours
     greedy_h: float
     seconds: float  # wall time the rollouts took
+    search: str = "sample"  # campaign.rollout_search
 
     def describe(self) -> str:
         gain = 100 * (1 - self.best / self.greedy) if self.greedy else 0.0
-        return (f"the best of {self.rollouts} rollouts in the twin takes {lab_time(self.best_h)} against the greedy "
-                f"run's {lab_time(self.greedy_h)} (objective {gain:.1f} % lower; {self.seconds:.1f} s of planning)")
+        how = f" (active search: the policy tuned on this lab after every {ROUND})" if self.search == "active" else ""
+        return (f"the best of {self.rollouts} rollouts in the twin{how} takes {lab_time(self.best_h)} against the "
+                f"greedy run's {lab_time(self.greedy_h)} (objective {gain:.1f} % lower; {self.seconds:.1f} s of "
+                f"planning)")
 
 
 def lab_time(hours: float) -> str:
@@ -66,32 +74,47 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
     """Play ``s`` ``rollouts`` times with the policy whose candidate scores ``scorer`` gives; the best run's plan.
     ``on_batch(played, best lab-hours so far)`` after each batch but the last; ``on_share(share of the steps
     played, wall seconds)`` every ``HEARTBEAT_S`` of wall time. ``held``: the range the policy's inputs are held in
-    (its file's), so that the greedy run played is the one the lab would run."""
+    (its file's), so that the greedy run played is the one the lab would run. ``campaign.rollout_search:
+    active`` plays the runs in rounds, tuning a copy of the policy on this lab between them (``agents.active_search``)."""
     t0 = time.perf_counter()
     lab = prepare(s, clock="virtual", bus="memory")
     draws = torch.Generator().manual_seed(s.campaign.seed)  # the same lab and seed, the same plan
+    search = None
+    if s.campaign.rollout_search == "active":
+        from agents.active_search import ActiveSearch  # it imports the training's loss and fitting
+
+        search = ActiveSearch(scorer, s.campaign.seed)
+    size, temperatures = (ROUND, (1.0,)) if search else (BATCH, SAMPLE_TEMPERATURES)
     orders: list[dict[str, list[str]]] = []
     summaries: list[Any] = []
     heartbeat = _Heartbeat(rollouts * _steps(lab), t0, on_share)
-    for first in range(0, rollouts, BATCH):
-        batch: list[dict[str, list[str]]] = [{} for _ in range(min(BATCH, rollouts - first))]
-        summaries += lockstep(lab, scorer, len(batch), encoding=encoding, seen=partial(_keep, batch, heartbeat),
-                              greedy_first=first == 0, generator=draws, held=held)
+    for first in range(0, rollouts, size):
+        batch: list[dict[str, list[str]]] = [{} for _ in range(min(size, rollouts - first))]
+        if search:
+            search.start(len(batch))
+        played = lockstep(lab, search.net if search else scorer, len(batch), temperatures, encoding,
+                          seen=partial(_keep, batch, heartbeat, search), greedy_first=first == 0, generator=draws,
+                          held=held)
+        summaries += played
         orders += batch
-        if on_batch is not None and len(summaries) < rollouts:
+        if search and len(summaries) < rollouts:
+            search.learn([objective(summary, lab) for summary in played], greedy_first=first == 0)
+        if on_batch is not None and len(summaries) < rollouts and len(summaries) % BATCH < size:
             on_batch(len(summaries), min(summary.lab_hours for summary in summaries))
     scores = [objective(summary, lab) for summary in summaries]
     best = min(range(rollouts), key=scores.__getitem__)
     return Plan(orders[best], rollouts, scores[best], scores[0], summaries[best].lab_hours, summaries[0].lab_hours,
-                time.perf_counter() - t0)
+                time.perf_counter() - t0, s.campaign.rollout_search)
 
 
-def _keep(orders: list[dict[str, list[str]]], heartbeat: _Heartbeat, i: int, _encoder: object, _obs: object,
-          _mask: object, _action: int, made: list[Assignment]) -> None:
-    """Each run's order of steps on each device, as it assigns them."""
+def _keep(orders: list[dict[str, list[str]]], heartbeat: _Heartbeat, search: ActiveSearch | None, i: int,
+          encoder: CandidateEncoder, obs: np.ndarray, mask: np.ndarray, action: int, made: list[Assignment]) -> None:
+    """Each run's order of steps on each device, as it assigns them (and its choices, for an active search)."""
     for a in made:
         orders[i].setdefault(a.device, []).append(a.task)
     heartbeat.started(len(made))
+    if search is not None:
+        search.seen(i, encoder, obs, mask, action)
 
 
 def _steps(lab: Scenario) -> int:

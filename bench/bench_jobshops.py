@@ -10,7 +10,8 @@ with `--plan-seconds S`, CP-SAT's offline plan of each in S seconds: how far bel
 each scheduler's decision time (wall ms) is measured over every decision it made. `--samples K` adds, for each
 rl policy, the lab run with ``campaign.rollouts: K`` (the best of K runs played ahead in the twin — the greedy one and
 K−1 sampled from the policy — followed): an improvement at decision time that only a deterministic lab allows,
-reported apart from the greedy policy.
+reported apart from the greedy policy; `--search active` plays them with the policy tuned on each shop between
+rounds (``campaign.rollout_search: active``).
 """
 
 from __future__ import annotations
@@ -44,10 +45,10 @@ PUBLIC = ("ft06", "la01", "la02", "la03", "la04", "la05", "ft10")
 SCENARIO = ROOT / "scenarios" / "jobshop.yaml"
 
 
-def run(s, name: str, times: list[float]) -> float:
+def run(s, name: str, times: list[float], search: str = "sample") -> float:
     if name.startswith("best-of-"):  # campaign.rollouts: K runs played ahead in the twin (before the campaign and
         k, _, name = name[len("best-of-"):].partition(":")  # its clock), the best one followed
-        s = prepare(s, overrides={"campaign.rollouts": int(k)})
+        s = prepare(s, overrides={"campaign.rollouts": int(k), "campaign.rollout_search": search})
     scheduler = make_scheduler(s, name)
 
     def timed(view):
@@ -70,13 +71,16 @@ def main() -> None:
                                                                     "schedule can reach there")
     ap.add_argument("--samples", type=int, default=0, help="also K rollouts of each rl policy, keeping the best "
                                                            "(deterministic shops only), as its own column")
+    ap.add_argument("--search", choices=("sample", "active"), default="sample", help="how the K rollouts are played "
+                                                                                     "(campaign.rollout_search)")
     args = ap.parse_args()
     torch.set_num_threads(1)
     names = [n.strip() for n in args.schedulers.split(",") if n.strip()]
     if args.samples > 1:
         names += [f"best-of-{args.samples}:{n}" for n in names if n.startswith("rl:")]
     short = {n: (Path(n.partition(":")[2]).stem if n.startswith("rl:") else n) for n in names}
-    short.update({n: f"{Path(n.rpartition(':')[2]).stem} best of {args.samples}" for n in names
+    searched = " (active)" if args.search == "active" else ""
+    short.update({n: f"{Path(n.rpartition(':')[2]).stem} best of {args.samples}{searched}" for n in names
                   if n.startswith("best-of-")})
     times: dict[str, list[float]] = {n: [] for n in names}
     gaps: dict[str, dict[str, float]] = {n: {} for n in names}
@@ -85,7 +89,7 @@ def main() -> None:
         s = load_variant(SCENARIO, str(DATA / f"{inst}.txt"))
         sizes[inst] = f"{len(s.campaign.planner_options['proposals'])}×{len(s.devices)}"
         for n in names:
-            gaps[n][inst] = run(s, n, times[n]) / OPTIMA[inst] - 1
+            gaps[n][inst] = run(s, n, times[n], args.search) / OPTIMA[inst] - 1
         print(f"{inst:6} {sizes[inst]:6} " + "  ".join(f"{short[n]} {100 * gaps[n][inst]:5.1f}%" for n in names),
               file=sys.stderr, flush=True)
     classes = sorted(set(sizes.values()), key=lambda c: [int(x) for x in c.split("×")])
@@ -105,7 +109,7 @@ def main() -> None:
         ratios: dict[str, list[float]] = {n: [] for n in names}
         for k in range(args.random):
             s = jobshop_as_lab(base, random_jobshop(jobs, machines, 1, 99, random.Random(f"bench:{jobs}x{machines}:{k}")))
-            spans = {n: run(s, n, times[n]) for n in names}
+            spans = {n: run(s, n, times[n], args.search) for n in names}
             ref = spans["mwkr"] if "mwkr" in spans else run(s, "mwkr", [])  # the reference, asked for or not
             for n in names:
                 ratios[n].append(spans[n] / ref)
