@@ -60,9 +60,40 @@ def run(s, name: str, times: list[float], search: str = "sample") -> float:
     return campaign(s, 0, timed).lab_hours * 3600
 
 
+def instances(asked: str) -> list[str]:
+    """The instances ``--instances`` names, checked against the ones with known optima."""
+    if asked == "all":
+        return sorted(OPTIMA)
+    names = [] if asked == "none" else [n.strip() for n in asked.split(",") if n.strip()]
+    unknown = [n for n in names if n not in OPTIMA]
+    if unknown:
+        raise SystemExit(f"--instances: {', '.join(unknown)} not among the instances with known optima "
+                         f"({', '.join(sorted(OPTIMA))}); or give all, or none")
+    return names
+
+
+def gap_table(names: list[str], short: dict[str, str], gaps: dict[str, dict[str, float]],
+              sizes: dict[str, str]) -> None:
+    """Mean gap per group of the instances run: the public seven (if all were run), each size class, all."""
+    ran = list(sizes)
+    classes = sorted(set(sizes.values()), key=lambda c: [int(x) for x in c.split("×")])
+    rows = [["public 7 (ft06, la01–05, ft10)",
+             *[f"{100 * statistics.mean(gaps[n][i] for i in PUBLIC):.1f}" for n in names]]] \
+        if set(PUBLIC) <= set(ran) else []
+    for c in classes:
+        members = [i for i in ran if sizes[i] == c]
+        rows.append([f"{c} ({len(members)})", *[f"{100 * statistics.mean(gaps[n][i] for i in members):.1f}"
+                                                 for n in names]])
+    rows.append([f"all {len(ran)}", *[f"{100 * statistics.mean(gaps[n].values()):.1f}" for n in names]])
+    table("Mean gap to the optimum, % (one run per instance; never trained on)", ["instances", *map(short.get, names)],
+          rows)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--schedulers", default="fifo,spt,mwkr")
+    ap.add_argument("--instances", default="all", help="which of the 34 instances to run: all, none, or names "
+                                                         "(ft06,la01,...)")
     ap.add_argument("--random", type=int, default=3)
     ap.add_argument("--sizes", default="10x10,15x15,20x15", help="the random shops' sizes, jobs x machines (the "
                                                                 "policies trained on 6x6 to 20x15)")
@@ -85,23 +116,15 @@ def main() -> None:
     times: dict[str, list[float]] = {n: [] for n in names}
     gaps: dict[str, dict[str, float]] = {n: {} for n in names}
     sizes: dict[str, str] = {}
-    for inst in sorted(OPTIMA):
+    for inst in instances(args.instances):
         s = load_variant(SCENARIO, str(DATA / f"{inst}.txt"))
         sizes[inst] = f"{len(s.campaign.planner_options['proposals'])}×{len(s.devices)}"
         for n in names:
             gaps[n][inst] = run(s, n, times[n], args.search) / OPTIMA[inst] - 1
         print(f"{inst:6} {sizes[inst]:6} " + "  ".join(f"{short[n]} {100 * gaps[n][inst]:5.1f}%" for n in names),
               file=sys.stderr, flush=True)
-    classes = sorted(set(sizes.values()), key=lambda c: [int(x) for x in c.split("×")])
-    rows = [["public 7 (ft06, la01–05, ft10)",
-             *[f"{100 * statistics.mean(gaps[n][i] for i in PUBLIC):.1f}" for n in names]]]
-    for c in classes:
-        members = [i for i in OPTIMA if sizes[i] == c]
-        rows.append([f"{c} ({len(members)})", *[f"{100 * statistics.mean(gaps[n][i] for i in members):.1f}"
-                                                 for n in names]])
-    rows.append(["all 34", *[f"{100 * statistics.mean(gaps[n].values()):.1f}" for n in names]])
-    table("Mean gap to the optimum, % (one run per instance; never trained on)", ["instances", *map(short.get, names)],
-          rows)
+    if sizes:
+        gap_table(names, short, gaps, sizes)
     base = load_variant(SCENARIO)
     rand_rows = []
     sizes_asked = [tuple(int(x) for x in size.split("x")) for size in args.sizes.split(",") if size.strip()]
