@@ -29,7 +29,9 @@ class FixedPlanner:
 
     needs_parameters = False  # its proposals carry their own parameters
 
-    def __init__(self, parameters: dict[str, Any], seed: int, proposals: list[dict[str, Any]], **_: Any) -> None:
+    def __init__(self, parameters: dict[str, Any], seed: int, proposals: list[dict[str, Any]] | None = None,
+                 **_: Any) -> None:
+        _check_proposals(proposals)
         self._queue = [
             Proposal(
                 p["params"],
@@ -43,6 +45,25 @@ class FixedPlanner:
     def propose(self, n: int, history: list[Outcome], pending: list[dict[str, Any]]) -> list[Proposal]:
         out, self._queue = self._queue[:n], self._queue[n:]
         return out
+
+
+def _check_proposals(proposals: Any) -> None:
+    """Refuse proposals not in the form the planner reads, naming the entry and the form."""
+    form = ("each proposal is {params: {name: value, ...}}, with optionally route: [{step, device, params}, ...] "
+            "(the steps it runs, in order, instead of the workflow)")
+    if not isinstance(proposals, list) or not proposals:
+        raise ValueError(f"campaign.planner_options.proposals: the fixed planner proposes a list given there, and "
+                         f"it is {'missing' if proposals is None else 'empty' if not proposals else 'not a list'}; "
+                         f"{form}")
+    for i, p in enumerate(proposals):
+        where = f"campaign.planner_options.proposals.{i}"
+        if not isinstance(p, dict) or not isinstance(p.get("params"), dict):
+            keys = f" (it has {', '.join(map(str, p))}: put the parameters under params)" if isinstance(p, dict) else ""
+            raise ValueError(f"{where}: {form}{keys}")
+        route = p.get("route")
+        if route is not None and (not isinstance(route, list) or not all(
+                isinstance(st, dict) and {"step", "device"} <= set(st) for st in route)):
+            raise ValueError(f"{where}.route: a list of {{step, device}} (and optionally params) for each step")
 
 
 class LhsPlanner:

@@ -150,3 +150,22 @@ def test_bench_planners_leaves_out_a_cost_column_of_noughts_and_keeps_it_where_e
     assert "cost" not in free and "no device costs anything (devices.*.cost), so no cost column" in says
     paid, says = head("scenarios/bandgap.yaml")
     assert "cost" in paid and "cost: at the last target (median)" in says
+
+
+@pytest.mark.parametrize("proposals, says", [
+    ([{"temperature_k": 400, "time_s": 900}], "proposals.0: each proposal is {params: {name: value, ...}}"),
+    ([{"temperature_k": 400, "time_s": 900}], "(it has temperature_k, time_s: put the parameters under params)"),
+    ([{"params": {"temperature_k": 400}}, {"params": {}, "route": [{"step": "react"}]}],
+     "proposals.1.route: a list of {step, device}"),
+    ([], "proposals: the fixed planner proposes a list given there, and it is empty"),
+])
+def test_fixed_proposals_in_another_form_are_refused_naming_the_entry_and_the_form(proposals, says):
+    import re
+
+    from twin import ScenarioError
+    from twin.runtime.checks import check
+
+    s = prepare(ROOT / "scenarios" / "flaky_lab.yaml",
+                overrides={"campaign.planner": "fixed", "campaign.planner_options": {"proposals": proposals}})
+    with pytest.raises(ScenarioError, match=re.escape(says)):
+        check(s)

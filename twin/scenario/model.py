@@ -152,7 +152,8 @@ class Campaign(Spec):
     max_cost: float | None = Field(default=None, gt=0, le=MAX_VALUE, description="stop proposing once this much "
                                    "is spent")
     planner_options: dict[str, Any] = Field(default_factory=dict, description="passed to the planner as keyword "
-                                            "arguments (gp-bo: n_init, candidates, refit_every, log_scale)")
+                                            "arguments (gp-bo: n_init, candidates, refit_every, log_scale; fixed: "
+                                            "proposals, a list of {params: {...}} proposed in order)")
     fallback_scheduler: str = Field(default="fifo", max_length=256, description="decides when a scheduler agent "
                                     "on the bus is absent, late or wrong")
     policy_fit: Literal["warn", "refuse"] = Field(default="warn", description="a scheduler policy used on a lab "
