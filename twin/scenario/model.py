@@ -167,8 +167,9 @@ class Campaign(Spec):
                                                          "campaign.rollouts: sample (every run from the policy as "
                                                          "it is) or active (in rounds of 32, a copy of the policy "
                                                          "tuned on this lab between rounds by a policy gradient on "
-                                                         "the runs played: a better plan for as many rollouts; the "
-                                                         "policy file is not changed)")
+                                                         "the runs played: from a few hundred rollouts up, a "
+                                                         "better plan than sampling's; the policy file is not "
+                                                         "changed)")
     give_up_after_s: float = Field(default=4 * 3600, gt=0, le=MAX_S, description="lab seconds the experiments "
                                    "that need a device type wait when none of its instances is usable (lost, "
                                    "quarantined) before they are abandoned; an instance that comes back resumes them")
