@@ -48,10 +48,14 @@ def _check_fit(path: Path, meta: dict, scenario: Any) -> str:
             f"{held}; train on this lab's shapes (its `training` section) to be sure")
     if scenario.campaign.policy_fit == "refuse":
         raise PluginError(text + " (campaign.policy_fit: refuse)")
+    _warn_once(text)
+    return text
+
+
+def _warn_once(text: str) -> None:
     if text not in _warned:
         _warned.add(text)
         log.warning("%s", text)
-    return text
 
 
 class RlScheduler:
@@ -92,6 +96,9 @@ class RlScheduler:
             from agents import rollout_plan  # it reads the training objective, whose module reads this one
 
             self.follower = rollout_plan.PlanFollower(self._plan(path, scenario, encoding))
+        elif scenario.campaign.rollout_search == "active":
+            _warn_once("campaign.rollout_search: active has nothing to search with campaign.rollouts: 1 (the policy "
+                       "decides greedily as the lab goes); set campaign.rollouts too, e.g. 512")
 
     def _plan(self, path: Path, scenario: Any, encoding: str | None) -> Plan:
         """``campaign.rollouts`` runs of the lab in the twin, the best kept (once per policy and lab: the CLI makes

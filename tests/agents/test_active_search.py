@@ -1,6 +1,7 @@
 """campaign.rollout_search: active — the lab is played ahead in rounds, a copy of the policy tuned on it between
 rounds; the lab follows the best run, and the policy itself is not changed."""
 
+import logging
 import random
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from agents.rl_scheduler import RlScheduler
 from agents.rollout_plan import ROUND, plan
 from agents.train_scheduler import objective
 from tests.agents.test_rollout_plan import POLICY, makespan, with_rollouts
-from twin import ScenarioError, jobshop_as_lab, random_jobshop, read_meta
+from twin import jobshop_as_lab, random_jobshop, read_meta
 from twin.runtime.lab import prepare
 
 torch.set_num_threads(1)
@@ -77,7 +78,18 @@ def test_a_tuning_moves_the_copy_toward_the_rounds_better_runs(shop):
     assert search.rounds == 1 and search.runs == []
 
 
-def test_an_active_search_without_rollouts_is_refused_naming_the_field(shop):
-    with pytest.raises(ScenarioError, match="rollout_search: active tunes the policy between rounds of "
-                                            "campaign.rollouts runs played ahead, and rollouts is 1"):
-        prepare(shop, overrides={"campaign.rollout_search": "active"})
+def test_an_active_search_without_rollouts_says_so_and_decides_greedily(shop, tmp_path, caplog):
+    with caplog.at_level(logging.WARNING, logger="agents.rl_scheduler"):
+        alone = makespan(with_rollouts(shop, 1, **{"campaign.rollout_search": "active"}), tmp_path)
+    assert "campaign.rollout_search: active has nothing to search with campaign.rollouts: 1" in caplog.text
+    assert alone == makespan(with_rollouts(shop, 1), tmp_path)
+
+
+def test_a_bench_runs_its_rules_as_they_go_beside_a_policy_played_ahead_by_active_search(shop):
+    """The bench runs a rule with campaign.rollouts: 1 (it cannot play ahead); with active search asked for, that
+    was refused in the bench's worker, whose ScenarioError then broke the process pool."""
+    from twin.tools.scheduler_bench import one
+
+    s = with_rollouts(shop, ROUND + 8, **{"campaign.rollout_search": "active"})
+    assert one(s, "mwkr", 0).makespan_s == one(with_rollouts(shop, 1), "mwkr", 0).makespan_s
+    assert one(s, POLICY, 0).makespan_s <= one(with_rollouts(shop, 1), POLICY, 0).makespan_s

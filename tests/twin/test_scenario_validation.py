@@ -237,3 +237,28 @@ def test_a_job_shop_file_given_as_a_scenario_says_how_to_run_it(tmp_path):
     with pytest.raises(ScenarioError) as plain:
         load(write(tmp_path, "just some words here and 1 2\n", "words.yaml"))
     assert "job-shop" not in str(plain.value)
+
+
+def _prepare_in_worker(overrides: dict) -> None:
+    from twin.runtime.lab import prepare
+
+    prepare(Path(__file__).resolve().parents[2] / "scenarios" / "flaky_lab.yaml", overrides=overrides)
+
+
+def test_errors_cross_a_process_pool_whole():
+    """A bench or a sweep runs its labs in worker processes: an error raised there came back as "TypeError:
+    ScenarioError.__init__() missing 1 required positional argument" and broke the pool."""
+    import pickle
+    from concurrent.futures import ProcessPoolExecutor
+    from multiprocessing import get_context
+
+    from twin.core.messages import InvalidMessage
+
+    with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
+        with pytest.raises(ScenarioError) as caught:
+            pool.submit(_prepare_in_worker, {"campaign.budget": -1}).result()
+    assert caught.value.problems and "campaign.budget" in caught.value.problems[0]
+    assert str(caught.value).startswith(caught.value.source)
+    again = pickle.loads(pickle.dumps(InvalidMessage("spectrometer-1", "no body")))
+    assert (again.sender, again.reason, str(again)) == ("spectrometer-1", "no body",
+                                                        "invalid message from spectrometer-1: no body")

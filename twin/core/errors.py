@@ -4,8 +4,23 @@ Every message says what went wrong and what to do next.
 """
 
 
+from typing import Any
+
+
 class TwinError(Exception):
-    """Root of every error labtwin raises on purpose."""
+    """Root of every error labtwin raises on purpose. It crosses a process pool whole (a bench's or a sweep's
+    worker): pickling rebuilds it from its message and attributes, not by calling its ``__init__`` again, which
+    most subclasses give other arguments than the message."""
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return _rebuilt, (type(self), self.args, self.__dict__)
+
+
+def _rebuilt(cls: type[TwinError], args: tuple, state: dict[str, Any]) -> TwinError:
+    error = cls.__new__(cls)
+    error.args = args
+    error.__dict__.update(state)
+    return error
 
 
 class ScenarioError(TwinError):

@@ -169,7 +169,7 @@ class Campaign(Spec):
                                                          "tuned on this lab between rounds by a policy gradient on "
                                                          "the runs played: from a few hundred rollouts up, a "
                                                          "better plan than sampling's; the policy file is not "
-                                                         "changed)")
+                                                         "changed); with rollouts 1, nothing is played ahead")
     give_up_after_s: float = Field(default=4 * 3600, gt=0, le=MAX_S, description="lab seconds the experiments "
                                    "that need a device type wait when none of its instances is usable (lost, "
                                    "quarantined) before they are abandoned; an instance that comes back resumes them")
@@ -179,14 +179,6 @@ class Campaign(Spec):
     scheduler_deadline_ms: float = Field(default=2000, gt=0, le=3_600_000, description="wall ms a scheduler has "
                                          "per decision on a scaled or wall clock (an agent on the bus, or one in a "
                                          "worker thread); past it the fallback scheduler decides that time")
-
-    @model_validator(mode="after")
-    def _searched(self) -> Campaign:
-        if self.rollout_search == "active" and self.rollouts == 1:
-            raise ValueError("rollout_search: active tunes the policy between rounds of campaign.rollouts runs played "
-                             "ahead, and rollouts is 1 (decide as the lab goes): set rollouts too (e.g. 512), or "
-                             "leave rollout_search out")
-        return self
 
 
 class ClockSpec(Spec):
