@@ -3,9 +3,9 @@
 The ``campaign.rollouts`` runs are played in rounds of 32 (``agents.rollout_plan.ROUND``). After each round, the
 copy takes one policy-gradient pass on the round's sampled runs, each run's choices weighted by how much better than
 the round's mean it ended (as ``training.teacher: self-pg`` does over many labs; here on the one lab to be run). The
-next round samples from the tuned copy, nearer to what worked on this lab. This is efficient active search (Hottung, Kwon and Tierney,
-2022) with every weight of the small network tuned. The policy file is not changed. The lab follows the best run of
-all rounds, as with plain sampling.
+next round samples from the tuned copy, nearer to what worked on this lab. This is efficient active search (Hottung,
+Kwon and Tierney, 2022) with every weight of the small network tuned. The policy file is not changed. The lab follows
+the best run of all rounds, as with plain sampling.
 """
 
 from __future__ import annotations

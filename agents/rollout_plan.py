@@ -87,6 +87,7 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
     size, temperatures = (ROUND, (1.0,)) if search else (BATCH, SAMPLE_TEMPERATURES)
     orders: list[dict[str, list[str]]] = []
     summaries: list[Any] = []
+    scores: list[float] = []
     heartbeat = _Heartbeat(rollouts * _steps(lab), t0, on_share)
     for first in range(0, rollouts, size):
         batch: list[dict[str, list[str]]] = [{} for _ in range(min(size, rollouts - first))]
@@ -96,12 +97,12 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
                           seen=partial(_keep, batch, heartbeat, search), greedy_first=first == 0, generator=draws,
                           held=held)
         summaries += played
+        scores += [objective(summary, lab) for summary in played]
         orders += batch
         if search and len(summaries) < rollouts:
-            search.learn([objective(summary, lab) for summary in played], greedy_first=first == 0)
+            search.learn(scores[first:], greedy_first=first == 0)
         if on_batch is not None and len(summaries) < rollouts and len(summaries) % BATCH < size:
             on_batch(len(summaries), min(summary.lab_hours for summary in summaries))
-    scores = [objective(summary, lab) for summary in summaries]
     best = min(range(rollouts), key=scores.__getitem__)
     return Plan(orders[best], rollouts, scores[best], scores[0], summaries[best].lab_hours, summaries[0].lab_hours,
                 time.perf_counter() - t0, s.campaign.rollout_search)
