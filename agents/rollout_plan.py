@@ -30,7 +30,7 @@ import torch
 
 from agents.candidates import CandidateEncoder, Observed
 from agents.lockstep import SAMPLE_TEMPERATURES, lockstep
-from agents.train_scheduler import objective
+from agents.train_scheduler import count, objective
 from twin import Assignment, LabView, Scenario, lab_span, prepare
 
 if TYPE_CHECKING:
@@ -54,13 +54,18 @@ class Plan:
     greedy_h: float
     seconds: float  # wall time the rollouts took
     search: str = "sample"  # campaign.rollout_search
+    degraded: tuple[int, int] = (0, 0)  # degraded samples, its and the greedy run's
+    abandoned: tuple[int, int] = (0, 0)  # abandoned experiments, its and the greedy run's
 
     def describe(self) -> str:
         gain = 100 * (1 - self.best / self.greedy) if self.greedy else 0.0
         how = f" (active search: the policy tuned on this lab after every {ROUND})" if self.search == "active" else ""
+        # what else the objective weighs, where the runs differ in it (lab time alike, fewer degraded samples)
+        also = "".join(f", {what} {mine} against {greedy}" for what, (mine, greedy) in
+                       (("degraded samples", self.degraded), ("abandoned experiments", self.abandoned)) if mine != greedy)
         return (f"the best of {self.rollouts} rollouts in the twin{how} takes {lab_time(self.best_h)} against the "
-                f"greedy run's {lab_time(self.greedy_h)} (objective {gain:.1f} % lower; {self.seconds:.1f} s of "
-                f"planning)")
+                f"greedy run's {lab_time(self.greedy_h)}{also} (objective {gain:.1f} % lower; {self.seconds:.1f} s "
+                f"of planning)")
 
 
 def lab_time(hours: float) -> str:
@@ -105,7 +110,8 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
             on_batch(len(summaries), min(summary.lab_hours for summary in summaries))
     best = min(range(rollouts), key=scores.__getitem__)
     return Plan(orders[best], rollouts, scores[best], scores[0], summaries[best].lab_hours, summaries[0].lab_hours,
-                time.perf_counter() - t0, s.campaign.rollout_search)
+                time.perf_counter() - t0, s.campaign.rollout_search,
+                *((count(summaries[best], what), count(summaries[0], what)) for what in ("degraded_samples", "abandoned")))
 
 
 def _keep(orders: list[dict[str, list[str]]], heartbeat: _Heartbeat, search: ActiveSearch | None, i: int,

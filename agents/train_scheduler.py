@@ -66,7 +66,8 @@ def objective(summary: Any, scenario: Scenario) -> float:
     return weighted_objective(scenario, summary.lab_hours * 3600, summary.degraded_samples, summary.abandoned)
 
 
-def _count(summary: Any, what: str) -> int:
+def count(summary: Any, what: str) -> int:
+    """``what`` (degraded_samples, abandoned) of a campaign's summary, or summed over a lab's campaigns."""
     if isinstance(summary, LabSummary):
         return sum(getattr(c, what) for c in summary.campaigns.values())
     return getattr(summary, what)
@@ -74,8 +75,8 @@ def _count(summary: Any, what: str) -> int:
 
 def score(summaries: list[Any], scenario: Scenario | None = None) -> dict[str, float]:
     out = {"makespan h": statistics.mean(s.lab_hours for s in summaries),
-           "degraded": statistics.mean(_count(s, "degraded_samples") for s in summaries),
-           "abandoned": statistics.mean(_count(s, "abandoned") for s in summaries)}
+           "degraded": statistics.mean(count(s, "degraded_samples") for s in summaries),
+           "abandoned": statistics.mean(count(s, "abandoned") for s in summaries)}
     if scenario is not None:
         out["objective"] = statistics.mean(objective(s, scenario) for s in summaries)
     return out
