@@ -39,7 +39,7 @@ def test_a_lab_of_minutes_shows_its_time_in_seconds_and_one_of_hours_in_hours(tm
     assert res.returncode == 0, res.stderr
     shown = re.search(r"lab time\W+(\d+) s \((0\.\d{3}) h;", res.stdout)  # a job shop of about a minute
     assert shown and abs(int(shown[1]) / 3600 - float(shown[2])) < 0.001, res.stdout
-    assert re.search(rf"6/6 lab {shown[1]} s", res.stderr)  # the progress bar, in the same seconds
+    assert re.search(rf"6/6\s+lab {shown[1]} s", res.stderr)  # the progress bar, in the same seconds
     res = subprocess.run([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "6", "--bus", "memory",
                           "--journal", str(tmp_path / "qd.db")], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert re.search(r"lab time\W+\d+\.\d\d h \(\d", res.stdout) and re.search(r"lab \d+\.\d h", res.stderr)

@@ -111,7 +111,7 @@ def bench_in_process(*args):
     from twin.cli import app
 
     res = CliRunner().invoke(app, ["bench", "routes", *args], env={"COLUMNS": "80"})
-    return res.exit_code, res.output
+    return res.exit_code, res.stdout if "--json" in args else res.output  # progress lines go to stderr
 
 
 def test_bench_routes_compares_methods_on_targets_of_known_length():

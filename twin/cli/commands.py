@@ -9,12 +9,11 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
 from rich.markup import escape
 
 from twin.cli.common import (_fail, app, assignments, console, err, keep_serving, machine_output, narrow_table,
                              writable)
+from twin.cli.progress import bar_progress
 from twin.cli.sharing import shared_lab
 from twin.core import plugins
 from twin.core.whole_files import written_whole
@@ -158,10 +157,8 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
             observer, recording = open_observer(record, lab.recording_id(s))
             for message in recording.messages:
                 err.print(message, highlight=False)
-        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                            TextColumn("lab {task.fields[lab]}"), TimeElapsedColumn(),
-                            TextColumn("{task.fields[status]}"),
-                            console=err, disable=quiet or json_out, transient=False)
+        progress = bar_progress(err, fields=("lab {task.fields[lab]}", "{task.fields[status]}"),
+                                disable=quiet or json_out)
         with progress:
             bar = progress.add_task(f"{s.name} ({s.clock.mode} clock, {s.bus.kind} bus)",
                                     total=s.campaign.budget, lab=lab_span(0.0), status="")

@@ -95,11 +95,10 @@ def assignments(items: list[str]) -> dict:
 
 
 def bar_progress(transient: bool = False):
-    """The progress bar every long command shows on stderr: what it does, the bar, done of total, time taken."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    """The progress every long command shows on stderr (a bar on a terminal, lines in a log)."""
+    from twin.cli import progress
 
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    console=err, transient=transient)
+    return progress.bar_progress(err, transient)
 
 
 def narrow_table(header: list[str], title: str = "", caption: str = "") -> Table:

@@ -1,0 +1,73 @@
+"""Progress where no one watches a terminal: a long command piped to a log says how far it has got as it goes,
+not only when it ends (rich's live bar prints nothing to a pipe until it stops)."""
+
+import io
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from rich.console import Console
+
+from twin.cli.progress import PlainProgress, bar_progress
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_a_log_gets_a_line_at_the_start_every_interval_while_work_moves_and_at_the_end():
+    out, clock = io.StringIO(), Clock()
+    progress = PlainProgress(Console(file=out, width=200), ("lab {task.fields[lab]}",), every_s=10, clock=clock)
+    with progress:
+        task = progress.add_task("busy_lab [x]", total=40, lab="0 s")
+        for second in range(1, 60):
+            clock.now = 100 + second
+            progress.update(task, completed=second // 2, lab=f"{second} h")
+        clock.now = 200
+        progress.update(task, completed=40)
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "busy_lab [x]: 0/40  lab 0 s  0:00:00"  # markup in a name is shown as written
+    assert lines[1:-1] == [f"busy_lab [x]: {s // 2}/40  lab {s} h  0:00:{s:02d}" for s in (10, 20, 30, 40, 50)]
+    assert lines[-1] == "busy_lab [x]: 40/40  lab 59 h  0:01:40"
+
+
+def test_lines_thin_out_as_a_long_run_goes_on_and_none_repeat_a_count():
+    out, clock = io.StringIO(), Clock()
+    progress = PlainProgress(Console(file=out, width=200), every_s=10, clock=clock)
+    with progress:
+        task = progress.add_task("night", total=3_600_000)
+        for second in range(1, 36_001):
+            clock.now = 100 + second
+            progress.advance(task, 100)
+            if second == 5_000:  # a stall: no line while nothing moves
+                clock.now += 3_000
+                progress.advance(task, 0)
+    lines = out.getvalue().splitlines()
+    assert 20 <= len(lines) <= 60
+    counts = [line.split(": ")[1].split()[0] for line in lines]
+    assert len(counts) == len(set(counts)) and counts[-1] == "3600000/3600000"
+
+
+def test_a_terminal_gets_the_live_bar_and_a_pipe_the_lines():
+    assert isinstance(bar_progress(Console(file=io.StringIO())), PlainProgress)
+    live = bar_progress(Console(file=io.StringIO(), force_terminal=True, force_interactive=True))
+    assert not isinstance(live, PlainProgress)
+    assert not isinstance(bar_progress(Console(file=io.StringIO()), disable=True), PlainProgress)
+
+
+def test_a_piped_campaign_reports_its_progress_on_stderr():
+    env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "TTY_COMPATIBLE", "TTY_INTERACTIVE")}
+    res = subprocess.run([sys.executable, "-m", "twin", "run", "scenarios/quantum_dots.yaml", "--bus", "memory"],
+                         capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
+    assert res.returncode == 0, res.stderr
+    lines = [line for line in res.stderr.splitlines() if line.startswith("quantum_dots (virtual clock, memory bus): ")]
+    assert lines[0].startswith("quantum_dots (virtual clock, memory bus): 0/120")
+    done = int(lines[-1].split(": ")[1].split("/")[0])
+    assert f"│ experiments │ {done} done," in " ".join(res.stdout.split()) and done > 0

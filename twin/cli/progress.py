@@ -1,0 +1,95 @@
+"""Progress on stderr: rich's live bar on a terminal; on a pipe or a log file, where a live bar shows nothing until
+it ends, a plain line when work starts, every ``every_s`` seconds (or a sixth of the time so far, if longer) while
+it moves, and when it ends."""
+
+from __future__ import annotations
+
+import time
+from types import SimpleNamespace
+from typing import Any
+
+from rich.console import Console
+
+PLAIN_EVERY_S = 10.0
+
+
+def bar_progress(console: Console, transient: bool = False, fields: tuple[str, ...] = (), disable: bool = False,
+                 every_s: float = PLAIN_EVERY_S) -> Any:
+    """What a long command does, its bar, done of total and time taken, then ``fields``: rich format strings
+    such as ``"lab {task.fields[lab]}"`` (each task's own values, given to ``add_task`` and ``update``)."""
+    if not console.is_interactive and not disable:
+        return PlainProgress(console, fields, every_s)
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                    *(TextColumn(f) for f in fields), console=console, transient=transient, disable=disable)
+
+
+class PlainProgress:
+    """The part of rich's ``Progress`` the commands use, written as lines: ``description: done/total  fields  0:01:05``."""
+
+    def __init__(self, console: Console, fields: tuple[str, ...] = (), every_s: float = PLAIN_EVERY_S,
+                 clock=time.monotonic) -> None:
+        self.console = console
+        self._fields, self._every_s, self._clock = fields, every_s, clock
+        self._tasks: list[dict[str, Any]] = []
+
+    def __enter__(self) -> PlainProgress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def add_task(self, description: str, total: float | None = None, **fields: Any) -> int:
+        now = self._clock()
+        self._tasks.append({"description": description, "total": total, "completed": 0, "fields": fields,
+                            "started": now, "said": now, "said_what": None, "stopped": False})
+        self._say(self._tasks[-1], now)
+        return len(self._tasks) - 1
+
+    def update(self, task_id: int, *, completed: float | None = None, total: float | None = None,
+               advance: float | None = None, description: str | None = None, **fields: Any) -> None:
+        task = self._tasks[task_id]
+        if total is not None:
+            task["total"] = total
+        if completed is not None:
+            task["completed"] = completed
+        if advance is not None:
+            task["completed"] += advance
+        if description is not None:
+            task["description"] = description
+        task["fields"].update(fields)
+        now = self._clock()
+        # every every_s at first, then less often as the work goes on: a few dozen lines for a night's campaign
+        due = max(self._every_s, (now - task["started"]) / 6)
+        if now - task["said"] >= due and self._moved(task):
+            self._say(task, now)
+
+    def advance(self, task_id: int, advance: float = 1) -> None:
+        self.update(task_id, advance=advance)
+
+    def stop(self) -> None:
+        """Say where each task ended (once), unless the last line already did."""
+        now = self._clock()
+        for task in self._tasks:
+            if not task["stopped"] and self._moved(task):
+                self._say(task, now)
+            task["stopped"] = True
+
+    @staticmethod
+    def _moved(task: dict[str, Any]) -> bool:
+        return (task["completed"], task["fields"]) != task["said_what"]
+
+    def _say(self, task: dict[str, Any], now: float) -> None:
+        done = _count(task["completed"]) + ("" if task["total"] is None else f"/{_count(task['total'])}")
+        elapsed = int(now - task["started"])
+        view = SimpleNamespace(fields=task["fields"], description=task["description"])
+        extra = "  ".join(s for s in (f.format(task=view).strip() for f in self._fields) if s)
+        clock = f"{elapsed // 3600}:{elapsed // 60 % 60:02d}:{elapsed % 60:02d}"
+        self.console.print("  ".join(s for s in (f"{task['description']}: {done}", extra, clock) if s),
+                           highlight=False, markup=False)
+        task["said"], task["said_what"] = now, (task["completed"], dict(task["fields"]))
+
+
+def _count(x: float) -> str:
+    return f"{x:.0f}" if float(x).is_integer() else f"{x:.1f}"
