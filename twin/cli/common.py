@@ -108,7 +108,7 @@ def narrow_table(header: list[str], title: str = "", caption: str = "") -> Table
     from rich.table import Table
 
     table = Table(title=title or None, title_justify="left", caption=caption or None, caption_justify="left",
-                  box=box.SIMPLE_HEAD, collapse_padding=True, pad_edge=False)
+                  box=box.SIMPLE_HEAD, collapse_padding=True, pad_edge=False, show_edge=False)
     for h in header:
         table.add_column(h, overflow="fold")
     return table
@@ -119,28 +119,46 @@ _NUMBER = re.compile(r"\[?[≥≤~]?[-+−]?[\d.,]*\d(?:[%×]|[/–][-+−]?[\d.
 
 def print_table(table: Table) -> None:
     """Print a ``narrow_table`` with every column at least as wide as the longest number in it, so that a number
-    is never split across lines (where "0.33" folded reads as "0.3"); names and words wrap instead. A header's
-    words are kept whole too ("flaky_scheduler", not "flaky_schedu" over "ler") when the table still fits."""
+    is never split across lines (where "0.33" folded reads as "0.3"); names and words wrap instead. Words are
+    kept whole too when the table still fits: the cells' and the headers' ("synthesiser", not "synthes" over
+    "iser"), else broken after a hyphen, underscore or slash between letters ("least-" over "loaded"), the
+    headers' first."""
     numbers_only = []
     for column in table.columns:
         cells = [cell for cell in column.cells if isinstance(cell, str)]
         numbers = [len(word) for cell in cells for word in cell.split() if _NUMBER.fullmatch(word)]
-        if numbers:
-            column.min_width = max(column.min_width or 0, *numbers)
-        numbers_only.append(column.min_width)
+        numbers_only.append(max([column.min_width or 0, *numbers]))
         if cells and all(_NUMBER.fullmatch(c) or c in ("—", "-", "") for c in cells):
             # a column of numbers needs no more room than its widest one and its header's longest word: the rest
             # goes to the names
             column.max_width = max([*map(len, cells), *(len(w) for w in str(column.header).split())])
-    for column in table.columns:
-        words = [len(w) for w in str(column.header).split()]
-        column.min_width = max(column.min_width or 0, *words) if words else column.min_width
-    width = _fitted(table)
-    if width is None:  # whole header words leave no room: let them fold, as the numbers may not
-        for column, least in zip(table.columns, numbers_only):
-            column.min_width = least
+    headers = [str(column.header) for column in table.columns]
+    contents: list[list[Any]] = [list(column._cells) for column in table.columns]  # rich keeps them in _cells
+    broken = [_broken(h) for h in headers]
+    stages = [(headers, contents, True), (broken, contents, True),
+              (broken, [[_broken(c) for c in col] for col in contents], True),
+              (headers, contents, False), (broken, contents, False)]
+    for names, texts, whole in stages:
+        for column, name, text, least in zip(table.columns, names, texts, numbers_only):
+            column.header, column._cells = name, list(text)
+            words = [len(w) for c in text if isinstance(c, str) for w in c.split()] if whole else []
+            column.min_width = max(least, *words, *(len(w) for w in name.split()))
+        width = _fitted(table)
+        if width is not None:
+            break
+    else:  # whole words leave no room: let them fold, as the numbers may not
+        for column, name, text, least in zip(table.columns, headers, contents, numbers_only):
+            column.header, column._cells, column.min_width = name, text, least
         width = _fitted(table) or console.width
     console.print(table, width=width)
+
+
+def _broken(text: Any) -> Any:
+    """``text`` with a line break after each hyphen, underscore or slash between two letters."""
+    return _WORD_BREAK.sub("\n", text) if isinstance(text, str) else text
+
+
+_WORD_BREAK = re.compile(r"(?<=[^\W\d_][-_/])(?=[^\W\d_])")
 
 
 def _fitted(table: Table) -> int | None:
@@ -148,7 +166,7 @@ def _fitted(table: Table) -> int | None:
     widest columns to fit and only then widens each to its min_width, so the table can come out wider than the
     terminal (and its caption cropped): ask it for less until it fits."""
     width = console.width
-    for _ in range(4):
+    for _ in range(16):  # each try narrows the table by about what it was over, not exactly
         lines = Segment.split_lines(console.render(table, console.options.update_width(width)))  # uncropped
         over = max((Segment.get_line_length(line) for line in lines), default=0) - console.width
         if over <= 0:
