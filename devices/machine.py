@@ -1,4 +1,7 @@
-"""A job-shop machine: runs an operation for exactly its given duration."""
+"""A machine that only keeps time: each step lasts its drawn duration and hands the sample on unchanged. A
+job shop's machines are these (step `op`), and so is a twin that stands in for a real instrument when only
+its timing matters (`twin: {driver: machine, options: {steps: [measure]}}`: training a scheduler, a what-if of
+device counts)."""
 
 from __future__ import annotations
 
@@ -8,12 +11,14 @@ from twin import DriverSetup, StepContext, StepResult
 
 
 class Machine:
-    capabilities = frozenset({"op"})
-    option_names: frozenset[str] = frozenset()  # it takes none
+    option_names = frozenset({"steps"})
     outputs: frozenset[str] = frozenset()
 
     def __init__(self, setup: DriverSetup) -> None:
-        pass
+        steps = setup.options.get("steps", ["op"])
+        if not isinstance(steps, list) or not steps or not all(isinstance(s, str) and s for s in steps):
+            raise ValueError(f"options.steps must be a list of step names, e.g. [measure] (got {steps!r:.80})")
+        self.capabilities = frozenset(steps)
 
     async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
         await ctx.clock.sleep(ctx.draw_duration(params))

@@ -31,6 +31,11 @@ class Garbage(Raises):
         return 42
 
 
+class Pair(Raises):
+    async def run(self, step, params, sample, ctx):
+        return {"peak_nm": 600.0}, sample
+
+
 class NotJson(Raises):
     async def run(self, step, params, sample, ctx):
         return StepResult({"peak_nm": object()}, sample)
@@ -46,7 +51,11 @@ class Never(Raises):
         await asyncio.Event().wait()
 
 
-@pytest.mark.parametrize("bad, says", [("Raises", "lamp broken"), ("Garbage", "int"), ("NotJson", "object"),
+@pytest.mark.parametrize("bad, says", [("Raises", "lamp broken"), ("NotJson", "object"),
+                                       ("Garbage", "Garbage.run() returned int 42, not a StepResult: return "
+                                                   "StepResult(outputs, sample)"),
+                                       ("Pair", "Pair.run() returned tuple ({'peak_nm': 600.0}"),
+                                       ("Pair", "a tuple (outputs, sample)? return StepResult(outputs, sample)"),
                                        ("Never", "no result within"), ("SafeStateRaises", "arm stuck")])
 @pytest.mark.parametrize("runtime", ["auto", "asyncio"])  # auto: fast, unless the driver awaits asyncio
 def test_a_bad_driver_is_isolated_and_reported_by_name_and_nothing_is_lost(tmp_path, bad, says, runtime):

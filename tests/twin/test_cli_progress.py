@@ -24,18 +24,19 @@ class Clock:
 
 def test_a_log_gets_a_line_at_the_start_every_interval_while_work_moves_and_at_the_end():
     out, clock = io.StringIO(), Clock()
-    progress = PlainProgress(Console(file=out, width=200), ("lab {task.fields[lab]}",), every_s=10, clock=clock)
+    progress = PlainProgress(Console(file=out, width=200), ("lab {task.fields[lab]}", "{task.fields[status]}"),
+                             every_s=10, clock=clock)
     with progress:
-        task = progress.add_task("busy_lab [x]", total=40, lab="0 s")
+        task = progress.add_task("busy_lab [x]", total=40, lab="0 s", status="")
         for second in range(1, 60):
             clock.now = 100 + second
             progress.update(task, completed=second // 2, lab=f"{second} h")
         clock.now = 200
-        progress.update(task, completed=40)
+        progress.update(task, completed=40, status="[yellow]paused by ann (twin ctl resume)[/]")
     lines = out.getvalue().splitlines()
     assert lines[0] == "busy_lab [x]: 0/40  lab 0 s  0:00:00"  # markup in a name is shown as written
     assert lines[1:-1] == [f"busy_lab [x]: {s // 2}/40  lab {s} h  0:00:{s:02d}" for s in (10, 20, 30, 40, 50)]
-    assert lines[-1] == "busy_lab [x]: 40/40  lab 59 h  0:01:40"
+    assert lines[-1] == "busy_lab [x]: 40/40  lab 59 h  paused by ann (twin ctl resume)  0:01:40"  # markup is styling
 
 
 def test_lines_thin_out_as_a_long_run_goes_on_and_none_repeat_a_count():

@@ -86,6 +86,10 @@ def run(
         s = lab.prepare(scenario, seed=seed, clock=clock, speed=speed, bus=bus, overrides=overrides)
     except TwinError as exc:
         _fail(exc)
+    twins = [f"{d} by {spec.twin.driver}" for d, spec in s.devices.items() if spec.twin is not None]
+    if twins and s.clock.mode == "virtual" and not (quiet or json_out):
+        err.print(f"the clock is virtual, so twins stand in: {', '.join(twins)} (devices.*.twin; --clock scaled "
+                  "runs the lab's own drivers)", highlight=False)
     if s.campaigns:
         shared_lab(s, journal, record, quiet, json_out, external)
         return
@@ -240,6 +244,7 @@ def replay(
 @app.command()
 def validate(files: Annotated[list[Path], typer.Argument(help="scenario files")]) -> None:
     """Check scenario files; every problem names its file, field and value."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     bad = 0
     for f in files:
         try:

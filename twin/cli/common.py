@@ -40,11 +40,13 @@ Command = TypeVar("Command", bound=Callable[..., Any])
 
 def interruptible(command: Command) -> Command:
     """A command of many runs in worker processes (a bench, `twin whatif`): Ctrl-C stops them (``WorkerPool``)
-    and says so, instead of a traceback or a silent exit."""
+    and says so, and an error raised in a worker is one line, instead of a traceback or a silent exit."""
     @functools.wraps(command)
     def stopping(*args: Any, **kwargs: Any) -> Any:
         try:
             return command(*args, **kwargs)
+        except TwinError as exc:  # raised in a worker, past the checks made before it started
+            _fail(exc)
         except KeyboardInterrupt:
             err.print("interrupted: the runs still going were stopped; no --csv, --json or --save file was written",
                       highlight=False)

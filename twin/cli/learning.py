@@ -13,6 +13,7 @@ from twin.runtime.checks import checked
 from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
                              machine_output, narrow_table, print_table, writable)
 from twin.core.errors import TwinError
+from twin.runtime.fast_device import FastRuntimeRefused
 from twin.tools.planner_bench import DEFAULT_PLANNERS
 
 
@@ -71,6 +72,11 @@ def train(
         try:
             path = trainer(s, steps, out, seed=seed, envs=envs, eval_every=eval_every, on_progress=report,
                            **({"init": init} if init is not None else {}))
+        except FastRuntimeRefused as exc:
+            _fail(TwinError(f"{exc.why}. `twin train` runs every episode on the fast runtime (virtual time, "
+                            "in-process)" + (f": give devices.{exc.device_type}.twin: {{driver: NAME}}, a simulated "
+                                             "driver of its steps, and training runs that instead (docs/drivers.md)"
+                                             if exc.device_type else "")))
         except (TwinError, ValueError) as exc:
             _fail(TwinError(str(exc)))
         except KeyboardInterrupt:

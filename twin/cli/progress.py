@@ -9,6 +9,7 @@ from types import SimpleNamespace
 from typing import Any
 
 from rich.console import Console
+from rich.text import Text
 
 PLAIN_EVERY_S = 10.0
 
@@ -84,7 +85,7 @@ class PlainProgress:
         done = _count(task["completed"]) + ("" if task["total"] is None else f"/{_count(task['total'])}")
         elapsed = int(now - task["started"])
         view = SimpleNamespace(fields=task["fields"], description=task["description"])
-        extra = "  ".join(s for s in (f.format(task=view).strip() for f in self._fields) if s)
+        extra = "  ".join(s for s in (Text.from_markup(f.format(task=view)).plain.strip() for f in self._fields) if s)
         clock = f"{elapsed // 3600}:{elapsed // 60 % 60:02d}:{elapsed % 60:02d}"
         self.console.print("  ".join(s for s in (f"{task['description']}: {done}", extra, clock) if s),
                            highlight=False, markup=False)

@@ -22,7 +22,7 @@ from twin.core.bus import Bus, Closable
 from twin.core.clock import LabClock, wait_cancelled
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits, timed
-from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults
+from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults, step_result
 from twin.core.errors import Refused
 from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack
 
@@ -265,7 +265,7 @@ class DeviceActor:
             await self._clock.sleep(spec.setup_s)
             if hang:
                 await asyncio.Event().wait()  # only a cancel (a timeout) ends a hung step
-            result = await timed(driver.run(cmd.step, cmd.params, cmd.sample, ctx), self._habits)
+            result = step_result(await timed(driver.run(cmd.step, cmd.params, cmd.sample, ctx), self._habits), driver)
             await self._clock.sleep(spec.clean_s)
             if fail:
                 emit(Kind.FAULT, {"code": "failed", "reason": f"{cmd.step} failed on {self.name} (simulated)"})

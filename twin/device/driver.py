@@ -40,6 +40,17 @@ class StepResult:
     sample: dict[str, Any] | None = None
 
 
+def step_result(result: Any, driver: Any) -> StepResult:
+    """What ``driver.run`` returned, if it is a ``StepResult`` (or has its two fields); else the driver's error,
+    saying what to return."""
+    if isinstance(result, StepResult) or (hasattr(result, "outputs") and hasattr(result, "sample")):
+        return result
+    hint = (": a tuple (outputs, sample)? return StepResult(outputs, sample)" if isinstance(result, tuple) else
+            ": return StepResult(outputs, sample)")
+    raise DriverError(f"{type(driver).__name__}.run() returned {type(result).__name__} {repr(result)[:60]}, "
+                      f"not a StepResult{hint}")
+
+
 @dataclass
 class StepContext:
     """What a running step may use: lab time, randomness, and ways to report."""

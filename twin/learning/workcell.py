@@ -19,7 +19,7 @@ from typing import Any
 
 from twin.core.clock import ClockMode, lab_seconds
 from twin.core.streams import seeded
-from twin.device.driver import StepContext
+from twin.device.driver import StepContext, step_result
 from twin.core.errors import DriverError, Refused
 from twin.scenario import Scenario
 
@@ -83,7 +83,8 @@ class Workcell:
         retry = self.scenario.orchestrator.retry
         for attempt in range(retry.max_attempts):
             try:
-                return _complete(self.drivers[w.device].run(w.step, params, sample, ctx), w.device)
+                return step_result(_complete(self.drivers[w.device].run(w.step, params, sample, ctx), w.device),
+                                   self.drivers[w.device])
             except Refused as refused:
                 if refused.infeasible:
                     raise

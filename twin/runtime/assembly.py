@@ -159,35 +159,41 @@ def make_bus(s: Scenario, clock: LabClock, who: Identity | None = None) -> Bus:
                     extra=extra, connect_timeout_ms=s.bus.connect_timeout_ms)
 
 
-def load_driver(s: Scenario, device_type: str, name: str) -> Any:
+def load_driver(s: Scenario, device_type: str, name: str, simulated: bool | None = None) -> Any:
+    """The driver of one instance: the type's own, or on a virtual clock (``simulated``, by default) its
+    ``twin`` where it has one."""
     spec = s.devices[device_type]
-    cls = plugins.load("devices", spec.driver)
+    stand_in = spec.twin if (s.clock.mode == "virtual" if simulated is None else simulated) else None
+    driver, given, field = ((stand_in.driver, stand_in.options, f"devices.{device_type}.twin") if stand_in else
+                            (spec.driver, spec.options, f"devices.{device_type}"))
+    cls = plugins.load("devices", driver)
     api = feature(cls, "labtwin_api") or DRIVER_API
     if api != DRIVER_API:
-        raise DriverError(f"devices.{device_type}.driver: {spec.driver!r} was written for driver API {api}; this "
+        raise DriverError(f"{field}.driver: {driver!r} was written for driver API {api}; this "
                           f"labtwin speaks {DRIVER_API}. Install a matching version of the driver or of labtwin.")
+    if stand_in and (feature(cls, "realtime") or callable(feature(cls, "connect"))):
+        raise DriverError(f"{field}.driver: {driver!r} talks to an instrument of its own; a twin must be a "
+                          "simulated driver (one that waits with ctx.clock.sleep), such as the built-in ones")
     models = feature(cls, "chemistry_models")
     if models is not None and s.chemistry.model not in models:
-        raise DriverError(f"chemistry.model: the {spec.driver!r} driver of devices.{device_type} simulates "
+        raise DriverError(f"chemistry.model: the {driver!r} driver of {field} simulates "
                           f"{sorted(models)}, not {s.chemistry.model[:64]!r}: use one of those, or a driver of yours")
     names = feature(cls, "option_names")
-    stray = sorted(set(spec.options) - set(names)) if names is not None else []
+    stray = sorted(set(given) - set(names)) if names is not None else []
     if stray:
-        raise DriverError(f"devices.{device_type}.options.{stray[0]}: the {spec.driver!r} driver takes no option "
+        raise DriverError(f"{field}.options.{stray[0]}: the {driver!r} driver takes no option "
                           f"{stray[0]!r} (it takes {', '.join(sorted(names)) or 'none'}); check its spelling")
-    setup = DriverSetup(name, device_type, spec.options, s.chemistry, spec.duration, s.campaign.seed)
+    setup = DriverSetup(name, device_type, given, s.chemistry, spec.duration, s.campaign.seed)
     try:
-        driver = cls(setup)
+        instance = cls(setup)
     except Exception as exc:
-        raise DriverError(f"driver {spec.driver!r} for {name} failed to start: {exc}") from exc
-    caps = capabilities(driver, f"devices.{device_type}.driver: {spec.driver!r}")
+        raise DriverError(f"driver {driver!r} for {name} failed to start: {exc}") from exc
+    caps = capabilities(instance, f"{field}.driver: {driver!r}")
     missing = set(spec.steps) - caps
     if missing:
-        raise DriverError(
-            f"devices.{device_type}.driver: {spec.driver!r} runs {sorted(caps)}, "
-            f"but the scenario asks it for {sorted(missing)}"
-        )
-    return driver
+        raise DriverError(f"{field}.driver: {driver!r} runs {sorted(caps)}, but the scenario asks it for "
+                          f"{sorted(missing)}")
+    return instance
 
 
 def load_drivers(s: Scenario, only: set[str] | None = None, skip: Collection[str] = frozenset()) -> list[tuple[str, str, Any]]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
@@ -13,6 +14,8 @@ from twin.device.driver import feature
 from twin.runtime.assembly import load_driver, make_planner, make_scheduler
 from twin.scenario import Scenario, load
 from twin.scenario.sharing import campaign_scenarios
+
+log = logging.getLogger(__name__)
 
 
 def check(s: Scenario, external: Collection[str] = (), benched: bool = False) -> None:
@@ -45,12 +48,29 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         if stray:
             raise ScenarioError(s.name, [f"devices.{dtype}.options.{stray[0]}: people ('{HUMAN}') take only "
                                          f"{', '.join(sorted(HUMAN_OPTIONS))}; check its spelling"])
-    drivers = {dtype: _at(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0])
+    drivers = {dtype: _at(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0], False)
                for dtype in s.devices if s.devices[dtype].driver != HUMAN and (types is None or dtype in types)
                and dtype not in elsewhere}
+    twins = {dtype: _at(f"devices.{dtype}.twin.driver", load_driver, s, dtype, s.instance_names(dtype)[0], True)
+             for dtype in drivers if s.devices[dtype].twin is not None}
     _at("campaign.planner", make_planner, s)
     _at("campaign.scheduler", make_scheduler, s, s.campaign.scheduler if benched else None)
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
+    problem = _unproduced(s, drivers, elsewhere)
+    if problem:
+        raise ScenarioError(s.name, [problem])
+    problem = _unproduced(s, {**drivers, **twins}, elsewhere, " with their twins (devices.*.twin)") if twins else ""
+    if problem:  # a twin that only keeps time still serves a scheduler's training or a what-if of device counts
+        log.warning("%s: on a virtual clock no experiment meets that target, and campaigns run their whole budget",
+                    problem)
+    if s.bus.zenoh:
+        from twin.core.bus.zenoh_bus import check_config
+
+        check_config(s.bus.zenoh)
+
+
+def _unproduced(s: Scenario, drivers: dict[str, Any], elsewhere: set[str], how: str = "") -> str:
+    """An output a target reads that no driver of the workflow declares (where all of them declare theirs)."""
     used = {w.device for w in s.workflow} or set(s.devices)
     # a type served elsewhere produces what its driver there says: unknown here, so targets are not checked
     declared = [None if d in elsewhere else feature(drivers[d], "outputs") if d in drivers else set() for d in used]
@@ -59,12 +79,9 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         for i, t in enumerate(s.chemistry.targets):
             for out in t.outputs:
                 if out not in produced:
-                    raise ScenarioError(s.name, [f"chemistry.targets.{i}.outputs.{out}: no device of the workflow "
-                                                 f"produces {out!r} (they produce {sorted(produced)})"])
-    if s.bus.zenoh:
-        from twin.core.bus.zenoh_bus import check_config
-
-        check_config(s.bus.zenoh)
+                    return (f"chemistry.targets.{i}.outputs.{out}: no device of the workflow{how} produces {out!r} "
+                            f"(they produce {sorted(produced)})")
+    return ""
 
 
 def _at(field: str, make: Callable[..., Any], *args: Any) -> Any:

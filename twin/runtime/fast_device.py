@@ -20,7 +20,7 @@ from typing import Any
 from twin.campaign import DeviceMessage, InvalidInput, Presence
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits
-from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults
+from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults, step_result
 from twin.core.errors import DriverError, Refused
 from twin.core.messages import Dropped, InvalidMessage, Kind, decode, envelope, excerpt, to_wire
 from twin.view.observer import WATCHED
@@ -32,7 +32,14 @@ _DRIVERS_WORDS = frozenset({Kind.RESULT, Kind.TELEMETRY, Kind.PROGRESS})
 
 
 class FastRuntimeRefused(DriverError):
-    """A driver does something only the asyncio runtime can serve (awaits I/O, connects to an instrument)."""
+    """A driver does something only the asyncio runtime can serve (awaits I/O, connects to an instrument):
+    ``why``, about the device type ``device_type``."""
+
+    def __init__(self, why: str, device_type: str = "") -> None:
+        self.why, self.device_type = why, device_type
+        super().__init__(f"{why}. Use --runtime asyncio" + (
+            f", or give devices.{device_type}.twin: {{driver: NAME}}, a simulated driver that stands in for it "
+            "on a virtual clock (docs/drivers.md)" if device_type else ""))
 
 
 class FastDevice:
@@ -65,7 +72,7 @@ class FastDevice:
     def start(self) -> None:
         if feature(self.driver, "connect") is not None:
             raise FastRuntimeRefused(f"{self.name}: its driver connects to an instrument of its own, which the "
-                                     "fast runtime cannot wait for; use --runtime asyncio")
+                                     "fast runtime cannot wait for", self.device_type)
         self._set_online(True)
         if self.spec.faults.mtbc_h > 0:
             self._schedule_crash()
@@ -75,7 +82,7 @@ class FastDevice:
             self._cancel_reason = "stop"
             self._throw_cancel()
         try:
-            _complete(self.driver.safe_state(), self.name)
+            _complete(self.driver.safe_state(), self.name, self.device_type)
         except FastRuntimeRefused:
             raise
         except Exception as exc:  # the campaign is over; say so, and let the others stop too
@@ -175,7 +182,7 @@ class FastDevice:
                     if isinstance(req, asyncio.Future) else repr(req))
             raise FastRuntimeRefused(
                 f"{self.name}: the {self.device_type} driver awaited {what}, not the lab clock; the fast runtime "
-                "can only run drivers that wait with ctx.clock.sleep. Run this scenario with --runtime asyncio.")
+                "can only run drivers that wait with ctx.clock.sleep", self.device_type)
 
     def _throw_cancel(self) -> None:
         if self._timer is not None:
@@ -214,7 +221,7 @@ class FastDevice:
             if hang:
                 await Park()  # only a cancel (a timeout) ends a hung step
             driver = self._shared.get(self._campaign, self.driver)
-            result = await driver.run(step, cmd["params"], cmd["sample"], ctx)
+            result = step_result(await driver.run(step, cmd["params"], cmd["sample"], ctx), driver)
             await self._clock.sleep(spec.clean_s)
             if fail:
                 emit(Kind.FAULT, {"code": "failed", "reason": f"{step} failed on {self.name} (simulated)"})
@@ -237,7 +244,7 @@ class FastDevice:
             self._cancel_reason = ""
 
 
-def _complete(coro: Any, name: str) -> Any:
+def _complete(coro: Any, name: str, device_type: str) -> Any:
     """Run a coroutine that must not wait (``safe_state``) to its end."""
     try:
         while True:
@@ -245,6 +252,6 @@ def _complete(coro: Any, name: str) -> Any:
             if type(req) is not Sleep:
                 coro.close()
                 raise FastRuntimeRefused(f"{name}: safe_state() awaited {req!r}; in the fast runtime it may only "
-                                         "sleep. Use --runtime asyncio.")
+                                         "sleep", device_type)
     except StopIteration as done:
         return done.value

@@ -164,7 +164,7 @@ def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[Campa
     planner, scheduler = make_planner(s), make_scheduler(s)
     if getattr(scheduler, "serve_on_bus", False) and not agent_in_process:
         raise FastRuntimeRefused(f"scheduler {s.campaign.scheduler!r} is an agent on the bus, which the fast "
-                                 "runtime does not have: use --runtime asyncio")
+                                 "runtime does not have")
     journal = open_journal(s, journal_path, make_journal)
     checked = CheckedScheduler(scheduler, fallback_for(s), s.campaign.scheduler)
     camp = FastCampaign(s, drivers, journal, planner, checked, on_progress=on_progress, observer=observer)
@@ -190,10 +190,12 @@ def noted(journal: Journal, observer: LabObserver | None, now: float) -> Callabl
 
 
 def refuse_realtime(drivers: list[tuple[str, str, Any]]) -> None:
-    realtime = [name for name, _, drv in drivers if feature(drv, "realtime")]
+    realtime = {name: dtype for name, dtype, drv in drivers if feature(drv, "realtime")}
     if realtime:
-        raise ClockError(f"devices {realtime} talk to real instruments, which keep wall time: "
-                         "use --clock scaled (or wall)")
+        dtype = next(iter(realtime.values()))
+        raise ClockError(f"devices {sorted(realtime)} talk to real instruments, which keep wall time: use --clock "
+                         f"scaled (or wall), or give devices.{dtype}.twin: {{driver: NAME}}, a simulated driver "
+                         "that stands in for it on a virtual clock (docs/drivers.md)")
 
 
 JournalFactory = Callable[[Path], Journal]

@@ -47,8 +47,21 @@ class Faults(Spec):
         return mtbc_h
 
 
+class StandIn(Spec):
+    """A simulated driver that runs a device type's steps where the lab runs in virtual time."""
+
+    driver: str = Field(description="an installed driver name (`twin devices`) or 'package.module:Class' that "
+                        "simulates the type's steps (waiting with ctx.clock.sleep)")
+    options: dict[str, Any] = Field(default_factory=dict, description="passed to that driver as is")
+
+
 class DeviceType(Spec):
     driver: str = Field(description="an installed driver name (`twin devices`) or 'package.module:Class'")
+    twin: StandIn | None = Field(
+        default=None, description="the simulated driver that stands in for this one whenever the clock is "
+        "virtual (`twin run --clock virtual`, `twin whatif`, `twin bench`, `twin train`): a driver that talks to a "
+        "real instrument keeps wall time, and one that waits on I/O cannot be trained on; the type's duration, "
+        "set-up, cleaning and faults stay as written")
     instances: int = Field(default=1, ge=1, le=64, description="identical devices of this type (named <type>, or "
                            "<type>-1, <type>-2, ... when several); a step may run on any of them")
     steps: list[Label] = Field(min_length=1, max_length=64, description="the steps this device type runs")
@@ -66,6 +79,13 @@ class DeviceType(Spec):
                                              "this device accepts: an experiment outside it is refused before "
                                              "anything is sent (abandoned as infeasible)")
     options: dict[str, Any] = Field(default_factory=dict, description="passed to the driver as is")
+
+    @model_validator(mode="after")
+    def _twin_of_a_driver(self) -> DeviceType:
+        if self.twin is not None and "operator" in (self.driver, self.twin.driver):
+            raise ValueError("twin: a twin stands in for a driver, and people (driver: operator) are not one, nor "
+                             "stand in for one: on a virtual clock the campaign confirms their steps itself")
+        return self
 
 
 class Parameter(Spec):

@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from twin.core.clock import LabClock
-from twin.device.driver import DriverSetup, StepContext, StepResult
+from twin.device.driver import DriverSetup, StepContext, StepResult, step_result
 from twin.runtime.lab import prepare, run
 from twin.scenario import Chemistry, Duration
 from twin.campaign.summary import Summary
@@ -34,7 +34,7 @@ def run_step(driver: Any, step: str, params: dict[str, Any], sample: dict | None
                       progress=lambda *_: None, telemetry=lambda _: None, expected_s=duration.mean_s)
 
     async def one() -> tuple[StepResult, float]:
-        result = await driver.run(step, params, sample, ctx)
+        result = step_result(await driver.run(step, params, sample, ctx), driver)
         return result, clock.now()
 
     return clock.run(one())
