@@ -46,3 +46,67 @@ def test_proposals_that_cannot_be_run_are_abandoned_before_anything_is_sent(tmp_
     sent = [e for e in read_events(tmp_path / "j.db", "attempt.dispatched")]
     abandoned = {e["experiment"] for e in read_events(tmp_path / "j.db", "planner.invalid")}
     assert not {e["experiment"] for e in sent} & abandoned
+
+
+class GivesOut:
+    """Proposes good experiments until its third question, then raises (or, ``WRONG``, answers bare dicts)."""
+
+    WRONG = False
+
+    def __init__(self, parameters):  # takes only what it reads: the kernel gives what its constructor names
+        self.asked = 0
+
+    def propose(self, n, history, pending):
+        self.asked += 1
+        if self.asked >= 3:
+            if self.WRONG:
+                return [dict(GOOD)]
+            raise RuntimeError("out of ideas")
+        return [Proposal(dict(GOOD)) for _ in range(n)]
+
+
+class GivesWrong(GivesOut):
+    WRONG = True
+
+
+class LongestFirst:  # no constructor at all
+    def decide(self, view):
+        from twin import Assignment, capable
+
+        free, out = list(view.free), []
+        for step in sorted(view.ready, key=lambda r: -r.expected_s):
+            fits = capable(step, tuple(free))
+            if fits:
+                free.remove(fits[0])
+                out.append(Assignment(step.task, fits[0].name))
+        return out
+
+
+@pytest.mark.parametrize("planner, says", [("GivesOut", "planner 'tests.twin.test_bad_planners:GivesOut' raised "
+                                                        "RuntimeError('out of ideas')"),
+                                           ("GivesWrong", "GivesWrong' answered ")])
+@pytest.mark.parametrize("runtime, clock", [("auto", "virtual"), ("asyncio", "virtual"), ("asyncio", "scaled")])
+def test_a_planner_that_fails_ends_the_campaign_after_what_it_proposed_is_run(tmp_path, planner, says, runtime,
+                                                                               clock):
+    """It crashed `twin run` with a traceback (and a planner that returned dicts, with an AttributeError in the
+    core); on a scaled clock it ended the campaign with its error, leaving what was in the lab."""
+    lab = parse(qd_lab(**{"campaign.planner": f"tests.twin.test_bad_planners:{planner}", "campaign.budget": 12,
+                          "campaign.planner_options": {"n_init": 2},  # another planner's: not handed to this one
+                          "campaign.scheduler": "tests.twin.test_bad_planners:LongestFirst",
+                          "clock": {"mode": clock, "speed": 20000}}))
+    summary = run(lab, journal=tmp_path / "j.db", runtime=runtime)
+    assert summary.proposed > 0 and summary.done == summary.proposed and summary.pending == 0  # nothing lost
+    assert summary.proposed < 12 and says in summary.stopped and "run to their end" in summary.stopped
+    if planner == "GivesWrong":
+        assert "not a list of Proposal(params): return [twin.Proposal({name: value, ...}), ...]" in summary.stopped
+    failed = [e["detail"] for e in read_events(tmp_path / "j.db", "planner.failed")]
+    assert len(failed) == 1 and says in failed[0]
+    assert summary.scheduler_fallbacks == 0  # the scheduler without a constructor decided every time
+
+
+def test_a_planners_failure_is_an_input_a_resumed_campaign_replays():
+    from twin.campaign.events import Proposed
+    from twin.campaign.replay import decode_input, encode
+
+    for answer in (Proposed([], "planner 'x' raised RuntimeError()"), Proposed([Proposal(dict(GOOD))])):
+        assert decode_input(encode(answer)) == answer

@@ -73,6 +73,7 @@ class CampaignCore:
         self.counts = Counters()
         self.decision_wall_s: list[float] = []
         self.planner_exhausted = False
+        self.planner_failed = ""  # why the planner can propose no more: the campaign finishes what is in the lab
         self.stopping = ""
         self.paused_by = ""  # an operator paused the campaign: nothing new is proposed or dispatched
         self.questions: dict[str, questions.Question] = {}  # failed steps an operator is asked about
@@ -131,7 +132,7 @@ class CampaignCore:
             answer, self._answer, asked = self._answer, None, self._asking
             self._asking = None
             if isinstance(answer, Proposed) and asked is not None and asked.what == "plan":
-                self._proposed(answer.proposals[:asked.n])
+                self._proposed(answer.proposals[:asked.n], answer.failed)
             elif isinstance(answer, Decided) and asked is not None and asked.what == "schedule":
                 self._decided(answer)
         if self._running and self._asking is None:
@@ -282,7 +283,13 @@ class CampaignCore:
             return False
         return not (c.stop_on_target and self.s.chemistry.targets and len(self.met_at) == len(self.s.chemistry.targets))
 
-    def _proposed(self, proposals: list[Proposal]) -> None:
+    def _proposed(self, proposals: list[Proposal], failed: str = "") -> None:
+        if failed:
+            if not self.planner_failed:
+                self.planner_failed = failed
+                self._note("planner.failed", detail=failed)
+            self.planner_exhausted = self._filled = True
+            return
         if not proposals:
             # nothing now: ask again when something finishes, or give up if nothing will
             self.planner_exhausted = not self.active

@@ -137,9 +137,11 @@ OPERATOR_COMMANDS = ("pause", "resume", "abort", "retry", "stop", "answer", "ref
 
 @dataclass(frozen=True, slots=True)
 class Proposed:
-    """The planner's answer to an ``Ask`` of kind ``plan``."""
+    """The planner's answer to an ``Ask`` of kind ``plan``; ``failed``: why the planner can propose no more
+    (it raised, or answered something else than proposals)."""
 
     proposals: list[Proposal]
+    failed: str = ""
 
 
 @dataclass(frozen=True, slots=True)

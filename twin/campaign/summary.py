@@ -150,7 +150,9 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         device_types={d.name: d.type for d in core.devices.values()},
         best=best, targets_met_h={k: v / 3600 for k, v in core.met_at.items()},
         targets_met_after=dict(core.met_after), targets_met_cost=dict(core.met_cost),
-        stopped=core.stopping, cost=core.cost, wall_s=wall_s, events=events,
+        stopped=core.stopping or (f"the planner failed ({core.planner_failed}); the experiments it had proposed "
+                                  "were run to their end" if core.planner_failed else ""),
+        cost=core.cost, wall_s=wall_s, events=events,
         decisions=len(core.decision_wall_s), decision_ms=_percentiles(core.decision_wall_s),
         degraded_before=dict(Counter(e.degraded_before for e in exps if e.degraded and e.status == "done")),
         consumables={name: {"left": round(st.level, 6), "used": round(st.used, 6), "unit": st.unit,

@@ -230,8 +230,9 @@ def make_planner(s: Scenario) -> Any:
         raise PluginError(f"campaign.planner_options.{typos[0]}: no installed planner takes an option {typos[0]!r} "
                           f"({name!r} takes {', '.join(taken) or 'none'}); check its spelling")
     try:
-        return cls(parameters=s.chemistry.parameters, seed=s.campaign.seed, targets=s.chemistry.targets,
-                   budget=s.campaign.budget, **{**options, **s.campaign.planner_options})
+        own = {k: v for k, v in s.campaign.planner_options.items() if k not in unknown}  # not a swapped one's
+        return constructed(cls, dict(parameters=s.chemistry.parameters, seed=s.campaign.seed,
+                                     targets=s.chemistry.targets, budget=s.campaign.budget), {**options, **own})
     except TwinError:
         raise
     except Exception as exc:
@@ -239,6 +240,18 @@ def make_planner(s: Scenario) -> Any:
 
 
 PLANNER_ARGUMENTS = frozenset({"parameters", "seed", "targets", "budget"})  # what every planner is given
+
+
+def constructed(cls: Any, given: dict[str, Any], options: dict[str, Any]) -> Any:
+    """A planner or scheduler: ``cls`` called with the kernel's arguments (``given``) that its constructor takes
+    (all of them for a ``**kwargs``; none for a class without ``__init__``) and the scenario's ``options``."""
+    try:
+        params = inspect.signature(cls).parameters
+    except (TypeError, ValueError):
+        return cls(**given, **options)
+    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        given = {k: v for k, v in given.items() if k in params}
+    return cls(**given, **options)
 
 
 def _options_not_taken(cls: Any, options: dict[str, Any], given: frozenset[str]) -> tuple[list[str], list[str]]:
@@ -288,7 +301,7 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
         raise PluginError(f"scheduler {spec!r}: {name!r} reads no policy file; a trained scheduler is "
                           f"rl:PATH (`--scheduler rl:{options['policy']}`)")
     try:
-        return cls(scenario=s, seed=s.campaign.seed, **options)
+        return constructed(cls, dict(scenario=s, seed=s.campaign.seed), options)
     except TwinError:
         raise
     except Exception as exc:

@@ -39,11 +39,8 @@ class CheckedScheduler:
 def assignments(decided: Any) -> list[Assignment] | None:
     """``decided`` as a list of ``Assignment``, or None if it is not a collection of (task, device) pairs of
     names (objects with string ``task`` and ``device``)."""
-    if decided is None or isinstance(decided, (str, bytes, dict)):
-        return None
-    try:
-        items = list(decided)
-    except TypeError:
+    items = listed(decided)
+    if items is None:
         return None
     out = []
     for a in items:
@@ -52,6 +49,16 @@ def assignments(decided: Any) -> list[Assignment] | None:
             return None
         out.append(a if type(a) is Assignment else Assignment(task, device))
     return out
+
+
+def listed(answer: Any) -> list[Any] | None:
+    """A plugin's answer as a list, or None if it is not a collection of items (None, a string, a mapping)."""
+    if answer is None or isinstance(answer, (str, bytes, dict)):
+        return None
+    try:
+        return list(answer)
+    except TypeError:
+        return None
 
 
 def fallbacks(scheduler: Any) -> list[Fallback]:

@@ -19,13 +19,14 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Proposed, RecordExperiment,
+from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, RecordExperiment,
                            RecordMessage, Send, SetTimer, Stop, TimerFired)
 from twin.campaign.events import ALERT_LOGGER, ALERTS, PROGRESS_KINDS, TimerKey, alert_text
 from twin.campaign.decisions import Assignment, LabView, Planner, Scheduler
 from twin.core.errors import ClockError
 from twin.campaign.journal import Journal
 from twin.core.messages import Kind
+from twin.runtime.checked_planner import covered
 from twin.runtime.checked_scheduler import fallbacks
 from twin.runtime.fast_device import FastDevice
 from twin.runtime.queue import EventQueue, Timer
@@ -44,7 +45,8 @@ class Seat:
     def __init__(self, core: CampaignCore, journal: Journal, planner: Planner, scheduler: Scheduler | None,
                  queue: EventQueue, devices: dict[str, FastDevice], on_progress: Progress | None = None,
                  alerts: bool = True, observer: Any = None) -> None:
-        self.core, self.journal, self.planner, self.scheduler = core, journal, planner, scheduler
+        self.core, self.journal, self.scheduler = core, journal, scheduler
+        self.planner = covered(planner, core.s.campaign.planner)
         self.queue, self.devices, self.on_progress, self.observer = queue, devices, on_progress, observer
         self.alerts = ALERTS if alerts else frozenset()
         self.timers: dict[TimerKey, Timer] = {}
@@ -103,7 +105,7 @@ class Seat:
 
     def _answer(self, ask: Ask) -> None:
         if ask.what == "plan":
-            self.core.feed(Proposed(self.planner.propose(ask.n, list(ask.history), list(ask.pending))))
+            self.core.feed(self.planner.answer(ask.n, list(ask.history), list(ask.pending)))
         elif self.scheduler is None:
             self.view = ask.view
         else:

@@ -32,6 +32,7 @@ from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.bus import NoReplyError
 from twin.core.messages import Dropped, InvalidMessage, Kind, decode, excerpt, pack, without_token
+from twin.runtime.checked_planner import covered
 from twin.runtime.checked_scheduler import fallbacks
 from twin.runtime.control import ControlDesk
 from twin.runtime.decision_stream import SENDER, DecisionStream
@@ -104,7 +105,7 @@ class LiveCampaign:
         telemetry as they are decoded here (not a second subscription that parses them again)."""
         self.observer = observer
         self.s, self.bus, self.clock, self.journal = scenario, bus, clock, journal
-        self.planner, self.scheduler, self.on_progress = planner, scheduler, on_progress
+        self.planner, self.scheduler, self.on_progress = covered(planner, scenario.campaign.planner), scheduler, on_progress
         for rule in fallbacks(scheduler):  # a scheduler's mistakes covered: journalled when the reason changes
             rule.on_fallback = lambda reason: self.note("scheduler.fallback", reason)
         self.core = rebuilt.core if rebuilt is not None else core or CampaignCore(scenario, campaign_id)
@@ -122,7 +123,7 @@ class LiveCampaign:
         self._kicked = False
         self._deciding: asyncio.Future | None = None
         self._planning: asyncio.Future | None = None  # a proposal being computed in the worker thread
-        self._spare: list[Any] | None = None  # proposals that came after the lab went on without them
+        self._spare: Proposed | None = None  # an answer that came after the lab went on without it
         self._late: asyncio.TimerHandle | None = None
         self._rejected = 0
 
@@ -339,11 +340,11 @@ class LiveCampaign:
         is lab time there). Past ``campaign.planner_deadline_s`` the lab goes on without the answer
         (``planner.late``) if it has work in hand; the answer is used at the next question."""
         if self.clock.is_virtual:
-            self._give(Proposed(self.planner.propose(ask.n, list(ask.history), list(ask.pending))))
+            self._give(self.planner.answer(ask.n, list(ask.history), list(ask.pending)))
             return
         if self._spare is not None:
             spare, self._spare = self._spare, None
-            self._give(Proposed(spare))
+            self._give(spare)
             self._kick_soon()
             return
         if self._late is not None:
@@ -353,7 +354,7 @@ class LiveCampaign:
         if self._planning is not None:
             return  # still thinking about an earlier question (one call at a time: planners keep state)
         self._planning = asyncio.get_running_loop().run_in_executor(
-            None, self.planner.propose, ask.n, list(ask.history), list(ask.pending))
+            None, self.planner.answer, ask.n, list(ask.history), list(ask.pending))
         self._planning.add_done_callback(self._planned)
 
     def _planned(self, fut: asyncio.Future) -> None:
@@ -362,16 +363,16 @@ class LiveCampaign:
             self._late.cancel()
         if fut.cancelled():
             return
-        if fut.exception() is not None:  # a planner that crashes ends the campaign with its error
+        if fut.exception() is not None:  # not the planner's (CheckedPlanner answers for it): ours, ending the run
             if self._done is not None and not self._done.done():
                 self._done.set_exception(fut.exception())
             return
         asked = self.core.waiting
         if asked is not None and asked.what == "plan":
-            self._give(Proposed(list(fut.result())))
+            self._give(fut.result())
             self._kick_soon()
         else:  # the lab went on without it: the next question gets it
-            self._spare = list(fut.result())
+            self._spare = fut.result()
 
     def _planner_late(self, ask: Ask) -> None:
         if self.core.waiting is not ask or not self.core.active:

@@ -61,12 +61,12 @@ def render_summary(s: Summary, console: Console) -> None:
         short = " [red](short: work waits for a refill)[/]" if c.get("short") else ""
         t.add_row(f"  {escape(name)}", f"{c['left']:g} {escape(c['unit'])} left, {c['used']:g} used{short}")
     for name, b in s.best.items():
-        shown = ", ".join(f"{k}={v:.4g}" for k, v in b["outputs"].items())
+        shown = ", ".join(f"{escape(k)}={v:.4g}" for k, v in b["outputs"].items())
         met = s.targets_met_h.get(name)
         status = f"[green]met at {met:.2f} lab-h[/]" if met is not None else f"best score {b['score']:.3g}"
-        t.add_row(f"target {name}", f"{status} — experiment {b['experiment']}: {shown}")
+        t.add_row(f"target {escape(name)}", f"{status} — experiment {b['experiment']}: {shown}")
     if s.stopped:
-        t.add_row("stopped", s.stopped)
+        t.add_row("stopped", escape(s.stopped))
     console.print(t)
     console.print(f"journal: {s.journal}  (twin report {s.journal})", soft_wrap=True, highlight=False)
 

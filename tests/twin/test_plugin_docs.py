@@ -1,0 +1,58 @@
+"""A scheduler and a planner written from docs/plugins.md alone — its Python blocks, run as they stand — run a
+campaign each and take part in the benches, as a stranger's would."""
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from twin.campaign.journal import read_events
+from twin.cli import app
+from twin.runtime.lab import run
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture
+def documented(tmp_path, monkeypatch):
+    """docs/plugins.md's Python blocks written as the files their first lines name, importable here and in the
+    benches' worker processes."""
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "plugins.md").read_text(), re.S)
+    names = [b.split("\n", 1)[0].removeprefix("# ") for b in blocks]
+    assert names == ["my_rules.py", "my_planner.py"]
+    for name, block in zip(names, blocks):
+        (tmp_path / name).write_text(block)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("PYTHONPATH", str(tmp_path))
+    return tmp_path
+
+
+def test_the_documented_scheduler_runs_a_lab_and_is_benched_beside_the_rules(documented):
+    summary = run(ROOT / "scenarios" / "flaky_lab.yaml", journal=documented / "j.db", bus="memory",
+                  overrides={"campaign.scheduler": "my_rules:LongestFirst", "campaign.budget": 12})
+    assert summary.done + summary.abandoned == 12 and summary.decisions > 0 and summary.scheduler_fallbacks == 0
+    res = CliRunner().invoke(app, ["bench", "schedulers", str(ROOT / "scenarios" / "flaky_lab.yaml"), "--budget", "8",
+                                   "--seeds", "2", "--schedulers", "mwkr,my_rules:LongestFirst", "--json"])
+    assert res.exit_code == 0, res.output
+    runs = [r for r in json.loads(res.stdout)["runs"] if r["scheduler"] == "my_rules:LongestFirst"]
+    assert len(runs) == 2 and all(r["makespan_s"] > 0 for r in runs)
+
+
+def test_the_documented_planner_takes_its_option_and_closes_in_on_the_best(documented):
+    def spread(radius: float) -> float:
+        """How far the last experiments' temperatures lie from one another (°C)."""
+        db = documented / f"r{radius}.db"
+        run(ROOT / "scenarios" / "quantum_dots.yaml", journal=db, bus="memory",
+            overrides={"campaign.planner": "my_planner:NearBest", "campaign.budget": 16,
+                       "campaign.stop_on_target": False, "campaign.planner_options": {"radius": radius}})
+        temps = [json.loads(e["detail"])["temperature_c"] for e in read_events(db, "experiment.proposed")]
+        assert len(temps) == 16
+        return max(temps[-6:]) - min(temps[-6:])
+
+    assert spread(0.001) < 1.0 < spread(0.5)  # the option reached it: a small radius stays close to the best
+    res = CliRunner().invoke(app, ["bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds",
+                                   "2", "--budget", "12", "--planners", "random,my_planner:NearBest", "--json"])
+    assert res.exit_code == 0, res.output
+    assert {r["planner"] for r in json.loads(res.stdout)["rows"]} == {"random", "my_planner:NearBest"}
