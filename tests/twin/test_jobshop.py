@@ -162,3 +162,20 @@ def test_a_shop_already_read_is_not_swapped_for_another_silently():
         prepare(ft06, overrides={"jobshop.file": "jobshop/la02.txt"})
     la02 = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={"jobshop.file": "jobshop/la02.txt"})
     assert len(la02.campaign.planner_options["proposals"]) == 10  # loading the file with it set reads it
+
+
+def test_a_shops_machines_can_be_changed_from_the_command_line_like_any_lab_s_devices(tmp_path):
+    """`--set devices.m0.instances=2` on a job shop was refused with 'devices: not in the scenario', as was `--bus
+    memory` beside it ('bus: not in the scenario'): a shop's devices are read from its file, after the overrides."""
+    from twin.core.errors import ScenarioError
+    from twin.runtime.lab import prepare
+
+    ft10 = {"jobshop.file": "jobshop/ft10.txt", "campaign.scheduler": "mwkr"}
+    two = prepare(ROOT / "scenarios" / "jobshop.yaml", bus="memory", overrides={**ft10, "devices.m0.instances": 2})
+    assert two.devices["m0"].instances == 2 and len(two.devices) == 10 and two.bus.kind == "memory"
+    summary = run(two, journal=tmp_path / "two.db")
+    assert summary.done == 10 and summary.utilisation["m0-1"] > 0 and summary.utilisation["m0-2"] > 0
+    with pytest.raises(ScenarioError) as refused:
+        prepare(ROOT / "scenarios" / "jobshop.yaml", bus="memory", overrides={**ft10, "devices.m19.instances": 2})
+    said = str(refused.value)
+    assert "devices.m19: not in the scenario; did you mean devices.m9?" in said and "bus:" not in said

@@ -24,6 +24,7 @@ from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature
 from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
 from twin.scenario import Scenario, load, load_mapping, parse_overridden
+from twin.scenario.loading import model_of
 from twin.scenario.objective import typical_step
 
 log = logging.getLogger(__name__)
@@ -75,19 +76,11 @@ def unknown_keywords(given: dict[str, Any]) -> str:
     parts = []
     for name, value in given.items():
         fields = [f"{section}.{name}" for section, info in Scenario.model_fields.items()
-                  if name in getattr(_model_of(info.annotation), "model_fields", {})]
+                  if name in getattr(model_of(info.annotation), "model_fields", {})]
         hint = (f"; scenario fields go in overrides, e.g. overrides={{{fields[0]!r}: {value!r}}}" if fields else
                 "; scenario fields go in overrides={'section.field': value}")
         parts.append(f"unexpected keyword {name!r}{hint}")
     return "; ".join(parts) + " (the keywords are seed, clock, speed, bus and overrides)"
-
-
-def _model_of(annotation: Any) -> Any:
-    """The pydantic model a Scenario field holds (``Campaign``, or ``Campaign | None``'s)."""
-    for arg in (annotation, *getattr(annotation, "__args__", ())):
-        if hasattr(arg, "model_fields"):
-            return arg
-    return None
 
 
 _SIMPLE = ("campaign", "clock", "bus")  # sections whose fields no cross-field check of Scenario reads

@@ -22,8 +22,7 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bo
     if not isinstance(raw, dict):
         raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"
                                         + _if_a_shop(raw, path)])
-    return _resolved(parse_overridden(raw, _named_after_its_shop(raw, overrides or {}), str(path), lab_only),
-                     path.parent, str(path))
+    return _parsed(raw, _named_after_its_shop(raw, overrides or {}), str(path), lab_only, path.parent)
 
 
 def _if_a_shop(raw: Any, path: Path) -> str:
@@ -42,8 +41,19 @@ def load_mapping(raw: dict[str, Any], overrides: dict[str, Any] | None = None, l
     source = f"the scenario {raw.get('name')!r} (a mapping)" if isinstance(raw.get("name"), str) else \
         "the scenario (a mapping)"
     raw = copy.deepcopy(raw)
-    return _resolved(parse_overridden(raw, _named_after_its_shop(raw, overrides or {}), source, lab_only),
-                     Path.cwd(), source)
+    return _parsed(raw, _named_after_its_shop(raw, overrides or {}), source, lab_only, Path.cwd())
+
+
+def _parsed(raw: dict[str, Any], overrides: dict[str, Any], source: str, lab_only: bool, base: Path) -> Scenario:
+    """``raw`` with ``overrides``, validated, its files found from ``base``. A job shop's devices are read from its
+    file, so overrides of them (``devices.m0.instances=2``: two of that machine) apply to the lab the shop makes."""
+    shop = "jobshop" in raw or any(k.split(".")[0] == "jobshop" for k in overrides)
+    later = {k: v for k, v in overrides.items() if shop and k.split(".")[0] == "devices"}
+    scenario = _resolved(parse_overridden(raw, {k: v for k, v in overrides.items() if k not in later}, source,
+                                          lab_only), base, source)
+    if not later:
+        return scenario
+    return parse_overridden(scenario.model_dump(exclude_unset=True), later, source, lab_only)
 
 
 def _resolved(scenario: Scenario, base: Path, source: str) -> Scenario:
@@ -86,14 +96,19 @@ def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str
 
 def _misspelt(raw: dict[str, Any], dotted: str) -> str | None:
     node: Any = raw
+    model: Any = Scenario  # the section's model, while the path follows named fields (not a mapping's own keys)
     parts = dotted.split(".")
     for i, p in enumerate(parts[:-1]):
+        fields = getattr(model, "model_fields", {})
+        model = model_of(fields[p].annotation) if p in fields else None
         if isinstance(node, list) and p.isdigit() and int(p) < len(node):
             node = node[int(p)]
         elif not isinstance(node, dict):
             return None
         elif p in node:
             node = node[p]
+        elif p in fields:  # a section the file leaves to its defaults (bus, orchestrator.retry): not a misspelling
+            return None
         else:
             names = [str(k) for k in node]
             close = difflib.get_close_matches(p, names, n=1)
@@ -102,6 +117,14 @@ def _misspelt(raw: dict[str, Any], dotted: str) -> str | None:
                 return f"{where}: not in the scenario; did you mean {'.'.join([*parts[:i], close[0]])}?"
             return f"{where}: not in the scenario; {'.'.join(parts[:i]) or 'its top level'} has " + \
                 (", ".join(names[:12]) + (", …" if len(names) > 12 else "") if names else "nothing")
+    return None
+
+
+def model_of(annotation: Any) -> Any:
+    """The pydantic model a field holds (``Bus``, or ``Training | None``'s), if any."""
+    for arg in (annotation, *getattr(annotation, "__args__", ())):
+        if hasattr(arg, "model_fields"):
+            return arg
     return None
 
 
