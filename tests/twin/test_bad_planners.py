@@ -110,3 +110,59 @@ def test_a_planners_failure_is_an_input_a_resumed_campaign_replays():
 
     for answer in (Proposed([], "planner 'x' raised RuntimeError()"), Proposed([Proposal(dict(GOOD))])):
         assert decode_input(encode(answer)) == answer
+
+
+class Shapeless:
+    """Answers proposals whose shape is wrong (``KIND``), or whose route the lab cannot run."""
+
+    KIND = "list"
+
+    def __init__(self, parameters):
+        pass
+
+    def propose(self, n, history, pending):
+        from twin import RouteStep
+
+        if self.KIND == "list":
+            return [Proposal([1, 2])]
+        if self.KIND == "none":
+            return [Proposal(None)]
+        if self.KIND == "strings":
+            return [Proposal(dict(GOOD), route=("synthesise", "measure"))]
+        return [Proposal(dict(GOOD), route=(RouteStep("synthesise", "synthesiser"), RouteStep("fly", "nowhere")))
+                for _ in range(n)]
+
+
+class ListParams(Shapeless):
+    KIND = "list"
+
+
+class NoParams(Shapeless):
+    KIND = "none"
+
+
+class StringRoute(Shapeless):
+    KIND = "strings"
+
+
+class NowhereRoute(Shapeless):
+    KIND = "nowhere"
+
+
+@pytest.mark.parametrize("planner, says", [
+    ("ListParams", "malformed proposal (item 0): params is '[1, 2]', not a mapping of parameter names to values"),
+    ("NoParams", "malformed proposal (item 0): params is 'None'"),
+    ("StringRoute", "route item 0 is 'synthesise', not a RouteStep(step, device_type, params={})"),
+])
+def test_a_proposal_of_the_wrong_shape_is_the_planners_failure_not_a_crash(tmp_path, planner, says):
+    lab = parse(qd_lab(**{"campaign.planner": f"tests.twin.test_bad_planners:{planner}", "campaign.budget": 3}))
+    summary = run(lab, journal=tmp_path / "j.db")
+    assert summary.proposed == 0 and says in summary.stopped
+
+
+def test_a_route_the_lab_cannot_run_abandons_its_experiment_before_anything_is_sent(tmp_path):
+    lab = parse(qd_lab(**{"campaign.planner": "tests.twin.test_bad_planners:NowhereRoute", "campaign.budget": 3}))
+    summary = run(lab, journal=tmp_path / "j.db")
+    assert summary.abandoned == summary.proposed == 3 and summary.attempts == 0 and not summary.stopped
+    said = [e["detail"] for e in read_events(tmp_path / "j.db", "planner.invalid")]
+    assert len(said) == 3 and all("route step 1: no device type 'nowhere' in the lab" in s for s in said)

@@ -318,7 +318,8 @@ class CampaignCore:
 
     # -- experiments and steps ------------------------------------------------------
     def _add_experiment(self, p: Proposal) -> None:
-        route = p.route or self._workflow
+        bad_route = policy.unusable_route(p.route, self.s.devices) if p.route else ""
+        route = self._workflow if bad_route or not p.route else tuple(p.route)
         e = Experiment(len(self.experiments), dict(p.params), route, self.now)
         self.experiments.append(e)
         self.active[e.id] = e
@@ -326,7 +327,7 @@ class CampaignCore:
         if isinstance(p.cost, (int, float)) and 0 < p.cost < float("inf"):  # a planner's nonsense costs nothing
             self.cost += float(p.cost)
         self._out.append(RecordExperiment(e))
-        unusable = policy.unusable_params(e.params, self.s.chemistry.parameters)
+        unusable = bad_route or policy.unusable_params(e.params, self.s.chemistry.parameters)
         if unusable:  # the planner's fault, not the devices': nothing is sent
             self._note("planner.invalid", e.id, detail=unusable)
             outcomes.finish(self, e, Status.ABANDONED, f"{UNRUNNABLE}: {unusable}")

@@ -78,3 +78,14 @@ def unusable_params(params: dict[str, Any], box: dict[str, Any]) -> str:
         if not p.low <= v <= p.high:
             return f"{name} = {v:.6g} is outside chemistry.parameters.{name} [{p.low:g}, {p.high:g}]"
     return ""
+
+
+def unusable_route(route: Any, devices: dict[str, Any]) -> str:
+    """Why a planner's route cannot be run in this lab ('' if it can): a step on a device type the lab does not
+    have, or one its type does not run."""
+    for i, r in enumerate(route):
+        if r.device not in devices:
+            return f"route step {i}: no device type {r.device[:40]!r} in the lab (it has {', '.join(devices)})"
+        if r.step not in devices[r.device].steps:
+            return f"route step {i}: {r.device} runs {', '.join(devices[r.device].steps)}, not {r.step[:40]!r}"
+    return ""

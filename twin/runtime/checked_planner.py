@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from twin.campaign.decisions import Outcome, Proposal
+from twin.campaign.decisions import Outcome, Proposal, RouteStep
 from twin.campaign.events import Proposed
 from twin.runtime.checked_scheduler import listed
 
@@ -41,6 +41,10 @@ class CheckedPlanner:
         if proposals is None:
             return self._fail(f"planner {self.name!r} answered {str(answer)[:80]!r}, not a list of "
                               "Proposal(params): return [twin.Proposal({name: value, ...}), ...]")
+        for i, p in enumerate(proposals):
+            wrong = _malformed(p)
+            if wrong:
+                return self._fail(f"planner {self.name!r} answered a malformed proposal (item {i}): {wrong}")
         return Proposed(proposals)
 
     def _fail(self, reason: str) -> Proposed:
@@ -52,6 +56,22 @@ class CheckedPlanner:
 def covered(planner: Any, name: str) -> CheckedPlanner:
     """``planner`` covered, unless it is already."""
     return planner if isinstance(planner, CheckedPlanner) else CheckedPlanner(planner, name)
+
+
+def _malformed(p: Proposal) -> str:
+    """What is wrong with the shape of a proposal ('' if nothing): its values are the core's to judge."""
+    if not isinstance(p.params, dict) or not all(isinstance(k, str) for k in p.params):
+        return f"params is {str(p.params)[:60]!r}, not a mapping of parameter names to values"
+    if p.route is None:
+        return ""
+    steps = listed(p.route)
+    if steps is None:
+        return f"route is {str(p.route)[:60]!r}, not a list of RouteStep(step, device_type)"
+    for j, r in enumerate(steps):
+        if not (isinstance(r, RouteStep) and isinstance(r.step, str) and isinstance(r.device, str)
+                and isinstance(r.params, dict)):
+            return f"route item {j} is {str(r)[:60]!r}, not a RouteStep(step, device_type, params={{}})"
+    return ""
 
 
 def _proposals(answer: Any) -> list[Proposal] | None:

@@ -24,7 +24,7 @@ WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.inva
               "operator.pause", "operator.abort", "operator.stop", "operator.refused", "question.asked",
               "question.withdrawn", "consumable.low", "output.unscored", "planner.invalid"}
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned",
-               "consumable.depleted"}
+               "consumable.depleted", "planner.failed"}
 log = logging.getLogger(__name__)
 QUEUE_SERIES = ("ready steps", "samples waiting", "oldest sample's age (h)")
 #: What an observer draws of a device's messages (an in-process runtime hands it only these).
