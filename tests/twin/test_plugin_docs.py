@@ -56,3 +56,23 @@ def test_the_documented_planner_takes_its_option_and_closes_in_on_the_best(docum
                                    "2", "--budget", "12", "--planners", "random,my_planner:NearBest", "--json"])
     assert res.exit_code == 0, res.output
     assert {r["planner"] for r in json.loads(res.stdout)["rows"]} == {"random", "my_planner:NearBest"}
+
+
+class WantsALab:
+    def __init__(self, lab):
+        pass
+
+    def decide(self, view):
+        return []
+
+
+def test_a_constructor_that_wants_what_is_not_given_is_told_what_is():
+    from tests.conftest import qd_lab
+    from twin.core.errors import ScenarioError
+    from twin.runtime.checks import checked
+    from twin.scenario import parse
+
+    lab = parse(qd_lab(**{"campaign.scheduler": "tests.twin.test_plugin_docs:WantsALab"}))
+    with pytest.raises(ScenarioError, match=r"missing 1 required positional argument: 'lab' \(its constructor is "
+                                            r"given, by keyword, those of scenario and seed it names"):
+        checked(lab, "lab.yaml")

@@ -229,7 +229,8 @@ def make_planner(s: Scenario) -> Any:
     except TwinError:
         raise
     except Exception as exc:
-        raise PluginError(f"planner {s.campaign.planner!r} failed to start: {type(exc).__name__}: {exc}") from exc
+        raise PluginError(f"planner {s.campaign.planner!r} failed to start: {type(exc).__name__}: {exc}"
+                          + _given(exc, "parameters, seed, targets, budget and planner_options")) from exc
 
 
 PLANNER_ARGUMENTS = frozenset({"parameters", "seed", "targets", "budget"})  # what every planner is given
@@ -245,6 +246,12 @@ def constructed(cls: Any, given: dict[str, Any], options: dict[str, Any]) -> Any
     if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
         given = {k: v for k, v in given.items() if k in params}
     return cls(**given, **options)
+
+
+def _given(exc: Exception, what: str) -> str:
+    """For a constructor that wanted other arguments: what the kernel gives (docs/plugins.md)."""
+    return (f" (its constructor is given, by keyword, those of {what} it names: docs/plugins.md)"
+            if isinstance(exc, TypeError) else "")
 
 
 def _options_not_taken(cls: Any, options: dict[str, Any], given: frozenset[str]) -> tuple[list[str], list[str]]:
@@ -298,7 +305,7 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
     except TwinError:
         raise
     except Exception as exc:
-        raise PluginError(f"scheduler {spec!r} failed to start: {exc}") from exc
+        raise PluginError(f"scheduler {spec!r} failed to start: {exc}" + _given(exc, "scenario and seed")) from exc
 
 
 def plays_ahead(spec: str) -> bool:
