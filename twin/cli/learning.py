@@ -235,8 +235,12 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
         "training.weights)")
     # a policy's or a class's name breaks after its prefix ("rl:" over "flaky_scheduler"), not at the column's edge
     shown = [*header[:3], *(h.replace(":", ":\n", 1) for h in header[3:])]
+    chance = ("campaigns end when every target is met (campaign.stop_on_target), and which experiment meets them "
+              "first depends on the order they ran, so chance weighs on every row; --set "
+              "campaign.stop_on_target=false compares the schedulers on the whole budget"
+              if s.chemistry.targets and s.campaign.stop_on_target else "")
     table = narrow_table(shown, f"{s.name}: each scheduler minus the shape's best rule, {what} "
-                                 f"(mean of {seeds} paired seeds ± 95 % CI)")
+                                f"(mean of {seeds} paired seeds ± 95 % CI)", chance)
     progress = bar_progress(as_json)
     with progress:
         bar = progress.add_task(f"{s.name}: shapes", total=len(variants(s, random_labs)))
