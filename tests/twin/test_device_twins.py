@@ -118,3 +118,11 @@ def test_a_twin_that_only_keeps_time_serves_a_schedulers_training_and_says_what_
 def test_people_take_no_twin():
     with pytest.raises(ScenarioError, match="a twin stands in for a driver, and people .driver: operator. are not one"):
         parse(qd_lab(**{"devices.spectrometer.driver": "operator", "devices.spectrometer.twin": {"driver": "machine"}}))
+
+
+def test_a_driver_that_runs_the_steps_its_options_list_says_so_when_they_are_not_listed():
+    lab = parse(qd_lab(**{"devices.washer": {"driver": "machine", "steps": ["wash"],
+                                             "duration": {"mean_s": 60, "cv": 0}}}))
+    with pytest.raises(ScenarioError, match=r"'machine' runs \['op'\], but the scenario asks it for \['wash'\]; it "
+                                            r"runs the steps its options list: devices.washer.options.steps: \['wash'\]"):
+        checked(lab, "lab.yaml")

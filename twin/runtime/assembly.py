@@ -184,8 +184,10 @@ def load_driver(s: Scenario, device_type: str, name: str, simulated: bool | None
     caps = capabilities(instance, f"{field}.driver: {driver!r}")
     missing = set(spec.steps) - caps
     if missing:
+        hint = (f"; it runs the steps its options list: {field}.options.steps: {sorted(spec.steps)}"
+                if "steps" in (names or ()) and "steps" not in given else "")
         raise DriverError(f"{field}.driver: {driver!r} runs {sorted(caps)}, but the scenario asks it for "
-                          f"{sorted(missing)}")
+                          f"{sorted(missing)}{hint}")
     return instance
 
 
