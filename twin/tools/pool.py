@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import signal
 import sys
+import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from typing import Any
 
-STOP_S = 10.0  # how long a stopped worker has to clean up before it is killed
+STOP_S = 10.0  # how long the stopped workers have to clean up before they are killed
 
 
 class WorkerPool(ProcessPoolExecutor):
@@ -29,8 +30,10 @@ class WorkerPool(ProcessPoolExecutor):
         self.shutdown(wait=False, cancel_futures=True)
         for p in workers:
             p.terminate()
+        deadline = time.monotonic() + STOP_S  # one wait for them all: they stop together
         for p in workers:
-            p.join(STOP_S)
+            p.join(max(0.0, deadline - time.monotonic()))
+        for p in workers:
             if p.is_alive():
                 p.kill()
         return False
