@@ -126,3 +126,17 @@ def test_a_driver_that_runs_the_steps_its_options_list_says_so_when_they_are_not
     with pytest.raises(ScenarioError, match=r"'machine' runs \['op'\], but the scenario asks it for \['wash'\]; it "
                                             r"runs the steps its options list: devices.washer.options.steps: \['wash'\]"):
         checked(lab, "lab.yaml")
+
+
+def test_the_planners_workcell_is_simulated_whatever_the_scenarios_clock():
+    """`twin train scenarios/mqtt_lab.yaml --agent planner` tried the MQTT broker ('reader-workcell: not connected'):
+    the workcell loaded the lab's own drivers on the scenario's scaled clock."""
+    from twin import open_workcell
+    from twin.core.errors import DriverError
+    from twin.runtime.assembly import prepare
+
+    cell = open_workcell(prepare(MQTT_LAB))
+    assert type(cell.drivers["reader"]).__name__ == "Spectrometer"
+    with pytest.raises(DriverError, match=r"devices.reader: its driver talks to an instrument, which a workcell "
+                                          r"\(simulated\) cannot: give devices.reader.twin"):
+        open_workcell(prepare(MQTT_LAB, overrides={"devices.reader.twin": None}))

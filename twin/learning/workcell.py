@@ -101,13 +101,22 @@ def _complete(coro: Any, device: str) -> Any:
     except StopIteration as done:
         return done.value
     coro.close()
-    raise DriverError(f"the {device} driver waited on something other than the lab clock; "
-                      f"it cannot run in a workcell (run it in a campaign instead)")
+    raise DriverError(f"the {device} driver waited on something other than the lab clock; it cannot run in a "
+                      f"workcell: give devices.{device}.twin: {{driver: NAME}}, a simulated driver that stands in "
+                      "for it (docs/drivers.md)")
 
 
 def open_workcell(scenario: Scenario, seed: int = 0) -> Workcell:
-    """A workcell with one driver of each device type the workflow uses."""
+    """A workcell with one driver of each device type the workflow uses: a type's twin where it has one, since a
+    workcell is simulated whatever the scenario's clock."""
+    from twin.device.driver import feature
     from twin.runtime.assembly import load_driver
 
     used = dict.fromkeys(w.device for w in scenario.workflow)
-    return Workcell(scenario, {d: load_driver(scenario, d, f"{d}-workcell") for d in used}, seed)
+    drivers = {d: load_driver(scenario, d, f"{d}-workcell", simulated=True) for d in used}
+    real = [d for d, drv in drivers.items() if feature(drv, "realtime") or callable(feature(drv, "connect"))]
+    if real:
+        raise DriverError(f"devices.{real[0]}: its driver talks to an instrument, which a workcell (simulated) "
+                          f"cannot: give devices.{real[0]}.twin: {{driver: NAME}}, a simulated driver that stands "
+                          "in for it (docs/drivers.md)")
+    return Workcell(scenario, drivers, seed)
