@@ -76,3 +76,24 @@ def test_a_constructor_that_wants_what_is_not_given_is_told_what_is():
     with pytest.raises(ScenarioError, match=r"missing 1 required positional argument: 'lab' \(its constructor is "
                                             r"given, by keyword, those of scenario and seed it names"):
         checked(lab, "lab.yaml")
+
+
+class Boom:
+    def propose(self, n, history, pending):
+        raise RuntimeError("out of ideas")
+
+
+def test_a_bench_says_which_rows_ended_early_and_why(tmp_path):
+    """A planner that failed gave a row of noughts ('≥0 [0–0]') and nothing else; and 'Boom:' in its name came out
+    as an emoji."""
+    res = CliRunner().invoke(app, ["bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds", "2",
+                                   "--budget", "6", "--planners", "random,tests.twin.test_plugin_docs:Boom"],
+                             env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    said = " ".join(res.output.split())
+    assert ("tests.twin.test_plugin_docs:Boom: 2 of 2 run(s) ended early — the planner failed (planner "
+            "'tests.twin.test_plugin_docs:Boom' raised RuntimeError('out of ideas'))") in said
+    assert "random:" not in said  # its runs ended as they should
+    res = CliRunner().invoke(app, ["bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds", "2",
+                                   "--budget", "6", "--planners", "tests.twin.test_plugin_docs:Boom", "--json"])
+    assert all("raised RuntimeError" in r["stopped"] for r in json.loads(res.stdout)["runs"])

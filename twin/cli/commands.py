@@ -356,4 +356,4 @@ def devices(
     else:
         from rich.console import Console
 
-        Console(width=1000, no_color=True).print(table)
+        Console(width=1000, no_color=True, emoji=False).print(table)

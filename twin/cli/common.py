@@ -31,8 +31,8 @@ app.add_typer(driver_app, name="driver")
 app.add_typer(scheduler_app, name="scheduler")
 security_app = typer.Typer(help="Certificates and access control for a lab's bus.", no_args_is_help=True)
 app.add_typer(security_app, name="security")
-console = Console()
-err = Console(stderr=True, soft_wrap=True)
+console = Console(emoji=False)  # a name like "raising:Boom:" is not an emoji code
+err = Console(stderr=True, soft_wrap=True, emoji=False)
 
 
 Command = TypeVar("Command", bound=Callable[..., Any])
@@ -177,6 +177,19 @@ def _fitted(table: Table) -> int | None:
         if width < 20:
             return None
     return None
+
+
+def say_ended_early(runs: list[tuple[str, str]]) -> None:
+    """Under a bench's or a what-if's table: for each row whose runs ended early (``(label, why)`` per run, ``why``
+    empty for a run that did not), how many did and the first reason, so that a row of noughts is not a mystery."""
+    counts: dict[str, list[str]] = {}
+    for label, why in runs:
+        counts.setdefault(label, []).append(why)
+    for label, whys in counts.items():
+        early = [w for w in whys if w]
+        if early:
+            err.print(f"{label}: {len(early)} of {len(whys)} run(s) ended early — {early[0]}", highlight=False,
+                      markup=False)
 
 
 def machine_output(as_json: bool, csv_path: Path | None, header: list[str], rows: list[list[str]],

@@ -11,7 +11,7 @@ from twin.core import plugins
 from twin.runtime import lab
 from twin.runtime.checks import checked
 from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
-                             machine_output, narrow_table, print_table, writable)
+                             machine_output, narrow_table, print_table, say_ended_early, writable)
 from twin.core.errors import TwinError
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.tools.planner_bench import DEFAULT_PLANNERS
@@ -135,6 +135,7 @@ def bench_planners(
     for row in table_rows:
         table.add_row(*(row[i] for i in shown))
     print_table(table)
+    say_ended_early([(t.planner, t.stopped) for trials in results.values() for t in trials])
 
 
 @bench_app.command("schedulers")
@@ -206,6 +207,7 @@ def bench_schedulers(
             for row in table_rows:
                 table.add_row(*(row[i] for i in shown))
             print_table(table)
+            say_ended_early([(r.scheduler, r.stopped) for v in results.values() for r in v])
     machine_output(as_json, csv_out, HEADER, [], all_runs, labs=tables)
 
 
@@ -263,3 +265,4 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     for row in table_rows:
         table.add_row(*row)
     print_table(table)
+    say_ended_early([(n, r.stopped) for c in results for n in others for r in c.runs[n]])

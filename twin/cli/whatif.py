@@ -12,7 +12,8 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import _fail, app, assignments, bar_progress, console, interruptible, writable
+from twin.cli.common import (_fail, app, assignments, bar_progress, console, interruptible, say_ended_early,
+                             writable)
 from twin.core.errors import TwinError
 from twin.runtime import lab
 from twin.runtime.checks import checked
@@ -103,6 +104,7 @@ def whatif(
         table.add_row(*row)
     console.print(table)
     console.print(caption(has_targets, seeds, shown, seconds, alike), highlight=False)  # wrapped at the terminal, not the table
+    say_ended_early([(o.variant, o.stopped) for o in results])
     if s.campaigns:
         names = list(summary[0]["per_campaign"])
         console.print("each campaign: median lab-h from its start to its end", highlight=False)

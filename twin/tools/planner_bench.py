@@ -37,6 +37,7 @@ class Trial:
     lab_hours: float  # lab time until then (the whole run if never)
     experiments_run: int
     cost: float  # spent when the last target was met (all that was spent if never)
+    stopped: str = ""  # why the campaign ended early, if it did (its planner failed, say)
 
 
 def parse(planner: str) -> tuple[str, str | None, str]:
@@ -61,7 +62,7 @@ def trial(scenario: Scenario, planner: str, seed: int) -> Trial:
     return Trial(planner, seed, reached,
                  max(s.targets_met_after.values()) if reached else s.proposed,
                  max(s.targets_met_h.values()) if reached else s.lab_hours, s.proposed,
-                 max(s.targets_met_cost.values()) if reached else s.cost)
+                 max(s.targets_met_cost.values()) if reached else s.cost, s.stopped)
 
 
 def _trial(args: tuple) -> Trial:

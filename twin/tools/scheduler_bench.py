@@ -36,6 +36,7 @@ class Run:
     fallbacks: int
     decision_p50_ms: float
     decision_p99_ms: float
+    stopped: str = ""  # why the campaign ended early, if it did (its planner failed, say)
 
 
 def one(scenario: Scenario, scheduler: str, seed: int) -> Run:
@@ -45,7 +46,7 @@ def one(scenario: Scenario, scheduler: str, seed: int) -> Run:
                 overrides={"campaign.scheduler": scheduler, **rollouts}, agent_in_process=True)
     util = statistics.mean(s.utilisation.values()) if s.utilisation else 0.0
     return Run(scheduler, seed, s.lab_hours * 3600, util, s.degraded_samples, s.abandoned, s.scheduler_fallbacks,
-               s.decision_ms.get("p50", 0.0), s.decision_ms.get("p99", 0.0))
+               s.decision_ms.get("p50", 0.0), s.decision_ms.get("p99", 0.0), s.stopped)
 
 
 def _one(args: tuple) -> Run:

@@ -52,6 +52,7 @@ class Outcome:
     degraded: int
     utilisation: dict[str, float] = field(default_factory=dict)  # per device type: mean over its instances
     per_campaign: dict[str, float] = field(default_factory=dict)  # a lab of several: each one's lab-h, start to end
+    stopped: str = ""  # why the campaign (or a campaign of the lab) ended early, if it did
 
 
 def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
@@ -140,7 +141,7 @@ def one(scenario: Scenario, variant: Variant, seed: int) -> Outcome:
                    max(s.targets_met_h.values()) if reached else s.lab_hours, s.lab_hours,
                    max(s.targets_met_cost.values()) if reached else s.cost,
                    max(s.targets_met_after.values()) if reached else s.proposed,
-                   s.abandoned, s.degraded_samples, per_type)
+                   s.abandoned, s.degraded_samples, per_type, stopped=s.stopped)
 
 
 def _shared(lab: Scenario, variant: Variant, seed: int) -> Outcome:
@@ -163,7 +164,8 @@ def _shared(lab: Scenario, variant: Variant, seed: int) -> Outcome:
     return Outcome(variant.label, seed, reached, last if reached else out.lab_hours, out.lab_hours,
                    sum(r.cost for r in runs), sum(r.proposed for r in runs), sum(r.abandoned for r in runs),
                    sum(r.degraded_samples for r in runs), per_type,
-                   {n: c.lab_hours for n, c in out.campaigns.items()})
+                   {n: c.lab_hours for n, c in out.campaigns.items()},
+                   "; ".join(f"{n}: {c.stopped}" for n, c in out.campaigns.items() if c.stopped))
 
 
 def runs_alike(scenario: Scenario, chosen: list[Variant]) -> bool:
