@@ -11,9 +11,8 @@ from typing import Annotated, Optional
 import typer
 from rich.markup import escape
 
-from twin.cli.common import (_fail, app, assignments, console, err, keep_serving, machine_output, narrow_table,
-                             writable)
-from twin.cli.progress import bar_progress
+from twin.cli.common import (_fail, app, assignments, bar_progress, console, err, keep_serving, machine_output,
+                             narrow_table, writable)
 from twin.cli.sharing import shared_lab
 from twin.core import plugins
 from twin.core.whole_files import written_whole
@@ -161,8 +160,7 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
             observer, recording = open_observer(record, lab.recording_id(s))
             for message in recording.messages:
                 err.print(message, highlight=False)
-        progress = bar_progress(err, fields=("lab {task.fields[lab]}", "{task.fields[status]}"),
-                                disable=quiet or json_out)
+        progress = bar_progress(fields=("lab {task.fields[lab]}", "{task.fields[status]}"), disable=quiet or json_out)
         with progress:
             bar = progress.add_task(f"{s.name} ({s.clock.mode} clock, {s.bus.kind} bus)",
                                     total=s.campaign.budget, lab=lab_span(0.0), status="")

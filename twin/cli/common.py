@@ -96,11 +96,12 @@ def assignments(items: list[str]) -> dict:
     return out
 
 
-def bar_progress(transient: bool = False):
-    """The progress every long command shows on stderr (a bar on a terminal, lines in a log)."""
+def bar_progress(transient: bool = False, **options: Any) -> Any:
+    """The progress every long command shows on stderr (a bar on a terminal, lines in a log); ``options``:
+    ``fields`` and ``disable`` of ``twin.cli.progress.bar_progress``."""
     from twin.cli import progress
 
-    return progress.bar_progress(err, transient)
+    return progress.bar_progress(err, transient, **options)
 
 
 def narrow_table(header: list[str], title: str = "", caption: str = "") -> Table:

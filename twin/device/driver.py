@@ -40,6 +40,11 @@ class StepResult:
     sample: dict[str, Any] | None = None
 
 
+def talks_to_instrument(driver: Any) -> bool:
+    """Whether ``driver`` (a class or an instance) reaches a real instrument: it keeps wall time, or connects."""
+    return bool(feature(driver, "realtime")) or callable(feature(driver, "connect"))
+
+
 def step_result(result: Any, driver: Any) -> StepResult:
     """What ``driver.run`` returned, if it is a ``StepResult`` (or has its two fields); else the driver's error,
     saying what to return."""

@@ -19,7 +19,7 @@ from typing import Any
 
 from twin.core.clock import ClockMode, lab_seconds
 from twin.core.streams import seeded
-from twin.device.driver import StepContext, step_result
+from twin.device.driver import StepContext, step_result, talks_to_instrument
 from twin.core.errors import DriverError, Refused
 from twin.scenario import Scenario
 
@@ -109,12 +109,11 @@ def _complete(coro: Any, device: str) -> Any:
 def open_workcell(scenario: Scenario, seed: int = 0) -> Workcell:
     """A workcell with one driver of each device type the workflow uses: a type's twin where it has one, since a
     workcell is simulated whatever the scenario's clock."""
-    from twin.device.driver import feature
     from twin.runtime.assembly import load_driver
 
     used = dict.fromkeys(w.device for w in scenario.workflow)
     drivers = {d: load_driver(scenario, d, f"{d}-workcell", simulated=True) for d in used}
-    real = [d for d, drv in drivers.items() if feature(drv, "realtime") or callable(feature(drv, "connect"))]
+    real = [d for d, drv in drivers.items() if talks_to_instrument(drv)]
     if real:
         raise DriverError(f"devices.{real[0]}: its driver talks to an instrument, which a workcell (simulated) "
                           f"cannot: give devices.{real[0]}.twin: {{driver: NAME}}, a simulated driver that stands "

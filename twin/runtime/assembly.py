@@ -20,7 +20,7 @@ from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
 from twin.core.errors import BusError, DriverError, PluginError, ScenarioError, TwinError
 from twin.device.actor import DeviceActor
-from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature
+from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature, talks_to_instrument
 from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
 from twin.scenario import Scenario, load, load_mapping, parse_overridden
@@ -164,7 +164,7 @@ def load_driver(s: Scenario, device_type: str, name: str, simulated: bool | None
     if api != DRIVER_API:
         raise DriverError(f"{field}.driver: {driver!r} was written for driver API {api}; this "
                           f"labtwin speaks {DRIVER_API}. Install a matching version of the driver or of labtwin.")
-    if stand_in and (feature(cls, "realtime") or callable(feature(cls, "connect"))):
+    if stand_in and talks_to_instrument(cls):
         raise DriverError(f"{field}.driver: {driver!r} talks to an instrument of its own; a twin must be a "
                           "simulated driver (one that waits with ctx.clock.sleep), such as the built-in ones")
     models = feature(cls, "chemistry_models")

@@ -20,23 +20,16 @@ class CheckedPlanner:
         self.inner, self.name = inner, name
         self.failed = ""
 
-    def __getattr__(self, attr: str) -> Any:  # the planner's own attributes
-        return getattr(self.inner, attr)
-
-    def propose(self, n: int, history: list[Outcome], pending: list[dict[str, Any]]) -> list[Proposal]:
-        return self.answer(n, history, pending).proposals
-
     def answer(self, n: int, history: list[Outcome], pending: list[dict[str, Any]]) -> Proposed:
         """The planner's answer for the campaign core, or why it can give none."""
         if self.failed:
             return Proposed([], self.failed)
         try:
-            return self.checked(self.inner.propose(n, history, pending))
+            return self._checked(self.inner.propose(n, history, pending))
         except Exception as exc:
             return self._fail(f"planner {self.name!r} raised {exc!r}"[:300])
 
-    def checked(self, answer: Any) -> Proposed:
-        """A planner's answer (from this process or a worker thread) as the core takes it."""
+    def _checked(self, answer: Any) -> Proposed:
         proposals = _proposals(answer)
         if proposals is None:
             return self._fail(f"planner {self.name!r} answered {str(answer)[:80]!r}, not a list of "

@@ -105,7 +105,8 @@ class LiveCampaign:
         telemetry as they are decoded here (not a second subscription that parses them again)."""
         self.observer = observer
         self.s, self.bus, self.clock, self.journal = scenario, bus, clock, journal
-        self.planner, self.scheduler, self.on_progress = covered(planner, scenario.campaign.planner), scheduler, on_progress
+        self.planner = covered(planner, scenario.campaign.planner)
+        self.scheduler, self.on_progress = scheduler, on_progress
         for rule in fallbacks(scheduler):  # a scheduler's mistakes covered: journalled when the reason changes
             rule.on_fallback = lambda reason: self.note("scheduler.fallback", reason)
         self.core = rebuilt.core if rebuilt is not None else core or CampaignCore(scenario, campaign_id)

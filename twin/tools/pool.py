@@ -30,7 +30,7 @@ class WorkerPool(ProcessPoolExecutor):
         self.shutdown(wait=False, cancel_futures=True)
         for p in workers:
             p.terminate()
-        deadline = time.monotonic() + STOP_S  # one wait for them all: they stop together
+        deadline = time.monotonic() + STOP_S  # wall time of OS processes, not lab time; one wait for them all
         for p in workers:
             p.join(max(0.0, deadline - time.monotonic()))
         for p in workers:
