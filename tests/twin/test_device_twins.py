@@ -112,6 +112,10 @@ def test_a_twin_that_only_keeps_time_serves_a_schedulers_training_and_says_what_
                for r in caplog.records)
     summary = run(lab, journal=tmp_path / "j.db")
     assert summary.done == 6 and not summary.targets_met_h  # every step run for its time; no output to score
+    caplog.clear()
+    checked(parse({**sdk_lab({"driver": "machine", "options": {"steps": ["measure"]}}),
+                   "clock": {"mode": "scaled", "speed": 100}}), "lab.yaml")
+    assert not caplog.records  # on a scaled clock the lab's own drivers run: nothing to warn of
     assert summary.utilisation["reader"] > 0
 
 

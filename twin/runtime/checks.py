@@ -59,7 +59,8 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
     problem = _unproduced(s, drivers, elsewhere)
     if problem:
         raise ScenarioError(s.name, [problem])
-    problem = _unproduced(s, {**drivers, **twins}, elsewhere, " with their twins (devices.*.twin)") if twins else ""
+    simulated = twins and s.clock.mode == "virtual"  # on a scaled or wall clock the lab's own drivers run
+    problem = _unproduced(s, {**drivers, **twins}, elsewhere, " with their twins (devices.*.twin)") if simulated else ""
     if problem:  # a twin that only keeps time still serves a scheduler's training or a what-if of device counts
         log.warning("%s: on a virtual clock no experiment meets that target, and campaigns run their whole budget",
                     problem)
