@@ -233,6 +233,38 @@ def test_a_journal_altered_row_by_row_is_refused_naming_the_row(tmp_path, damage
     assert CliRunner().invoke(app, ["report", str(db)], env={"COLUMNS": "200"}).exit_code == 0
 
 
+_KILLED = "DELETE FROM run WHERE key = 'summary'; "  # as a run killed before its end leaves it
+
+
+@pytest.mark.parametrize("damage,commands,says", [
+    ("UPDATE experiments SET params = '[1,' WHERE id = 0", ["export"],
+     "experiment 0 is damaged (its params is not JSON"),
+    ("UPDATE run SET value = '\"hello\"' WHERE key = 'scenario'", ["replay", "export"],
+     "its run table's 'scenario' is 'hello', not a mapping"),
+    ("DELETE FROM run WHERE key = 'scenario'", ["export"], "its run table has no 'scenario'"),
+    (_KILLED + "UPDATE events SET t_lab = 'noon' WHERE seq = 5", ["resume", "report"],
+     "event 5 is damaged (its lab time is 'noon'"),
+    (_KILLED + "UPDATE run SET value = '{\"name\": 5}' WHERE key = 'scenario'", ["resume"],
+     "the journal's scenario: 1 problem(s) - name: Input should be a valid string"),
+])
+def test_a_journal_altered_in_its_run_or_experiments_is_refused_naming_what(tmp_path, damage, commands, says):
+    """Not a traceback from whichever reader met the damage first: export, replay, resume and report name it."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+    from twin.runtime.lab import run
+
+    db = tmp_path / "qd.db"
+    run(ROOT / "scenarios" / "quantum_dots.yaml", journal=db, bus="memory", overrides={"campaign.budget": 3})
+    with sqlite3.connect(db) as conn:
+        conn.executescript(damage)
+    args = {"replay": ["--save", str(tmp_path / "r.rrd")], "export": ["--out", str(tmp_path / "out")]}
+    for command in commands:
+        res = CliRunner().invoke(app, [command, str(db), *args.get(command, [])], env={"COLUMNS": "200"})
+        out = " ".join(res.output.split())
+        assert res.exit_code == 2 and says in out, (command, out)  # a traceback exits 1
+
+
 def test_run_set_changes_any_field_and_a_bad_one_is_named(tmp_path):
     from typer.testing import CliRunner
 

@@ -257,19 +257,54 @@ def _not_ours(path: str | Path, exc: Exception) -> NotAJournal:
     return NotAJournal(f"{path}: not a labtwin journal ({type(exc).__name__}: {exc}); twin run writes them to runs/")
 
 
-def read_run(path: str | Path) -> dict[str, Any]:
+# what labtwin writes under these keys of a journal's run table (the others are read where they are used)
+_RUN_SHAPES: dict[str, type] = {"scenario": dict, "lab": dict, "summary": dict, "provenance": dict}
+
+
+def read_run(path: str | Path, needs: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The journal's run table as a dict; one of ``needs`` missing, or a value of another shape than labtwin
+    writes, raises ``NotAJournal`` naming the key."""
     with reading(path) as db:
         rows = db.execute("SELECT key, value FROM run").fetchall()
     try:
-        return {k: json.loads(v) for k, v in rows}
-    except (ValueError, TypeError) as exc:  # damaged
+        run = {k: json.loads(v) for k, v in rows}
+    except (ValueError, TypeError, RecursionError) as exc:  # damaged
         raise _not_ours(path, exc) from None
+    for key, shape in _RUN_SHAPES.items():
+        if key in run and not isinstance(run[key], shape):
+            raise NotAJournal(f"{path}: its run table's {key!r} is {str(run[key])[:40]!r}, not a mapping; labtwin "
+                              "never writes that, so the journal was altered or corrupted")
+    missing = [key for key in needs if key not in run]
+    if missing:
+        raise NotAJournal(f"{path}: its run table has no {' or '.join(map(repr, missing))}: the run was stopped "
+                          "before it began, or the journal was altered")
+    return run
+
+
+_EXPERIMENT_JSON = ("params", "route", "outputs", "scores")
+_ALTERED = ("labtwin never writes such a row, so the journal was altered or corrupted: run the campaign again (twin "
+            "run); a finished run's summary is still shown by twin report")
 
 
 def read_experiments(path: str | Path) -> list[dict[str, Any]]:
+    """The journal's experiments in order; a row no labtwin wrote (an id that is not a whole number, a column
+    that should be JSON and is not) raises ``NotAJournal`` naming it."""
     with reading(path) as db:
         db.row_factory = sqlite3.Row
-        return [dict(r) for r in db.execute("SELECT * FROM experiments ORDER BY id")]
+        rows = [dict(r) for r in db.execute("SELECT * FROM experiments ORDER BY id")]
+    for row in rows:
+        damage = "its id is not a whole number" if type(row.get("id")) is not int else ""
+        for column in _EXPERIMENT_JSON:
+            text = row.get(column)
+            if damage or text is None:
+                continue
+            try:
+                json.loads(text)
+            except (TypeError, ValueError, RecursionError):
+                damage = f"its {column} is not JSON: {str(text)[:40]!r}"
+        if damage:
+            raise NotAJournal(f"{path}: experiment {str(row.get('id'))[:20]} is damaged ({damage}); {_ALTERED}")
+    return rows
 
 
 def read_events(path: str | Path, kind_like: str = "%") -> list[dict[str, Any]]:
@@ -281,8 +316,7 @@ def read_events(path: str | Path, kind_like: str = "%") -> list[dict[str, Any]]:
     for row in rows:
         damage = _damage(row)
         if damage:
-            raise NotAJournal(f"{path}: event {row.get('seq')} is damaged ({damage}); labtwin never writes such a "
-                              "row, so the journal was altered or corrupted (twin report still reads its summary)")
+            raise NotAJournal(f"{path}: event {row.get('seq')} is damaged ({damage}); {_ALTERED}")
     return rows
 
 

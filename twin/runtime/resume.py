@@ -14,7 +14,6 @@ A scaled or wall-clock campaign is rebuilt from the inputs it journalled
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 from collections.abc import Callable
@@ -22,12 +21,13 @@ from pathlib import Path
 from typing import Any
 
 from twin.campaign import CampaignCore
-from twin.campaign.journal import Journal, held, read_inputs, read_run, reading
+from twin.campaign.journal import Journal, held, read_events, read_inputs, read_run, reading
 from twin.campaign.replay import rebuild
 from twin.campaign.summary import Summary
 from twin.core import keys
 from twin.core.clock import LabClock
 from twin.core.errors import TwinError
+from twin.core.numbers import finite
 from twin.runtime.lab import make_bus, run, run_async
 from twin.view.observer import LabObserver
 from twin.view.watch import RecordOptions
@@ -73,14 +73,15 @@ def _short(detail: Any, n: int = 80) -> str:
 def recorded(path: str | Path) -> tuple[Scenario, list[tuple]]:
     """The scenario and the events a killed run's journal holds."""
     path = Path(path)
+    from twin.scenario import parse
+
     data = read_run(path)
-    with reading(path) as db:
-        prefix = db.execute("SELECT * FROM events ORDER BY seq").fetchall()
     if "summary" in data:
         raise ResumeError(f"{path}: the campaign finished; nothing to resume (twin report {path} shows it)")
     if "scenario" not in data:
         raise ResumeError(f"{path}: the journal holds no scenario; it was killed before it began")
-    return Scenario.model_validate(data["scenario"]), prefix
+    prefix = [tuple(row.values()) for row in read_events(path)]  # in the table's column order; damage is named
+    return parse(data["scenario"], f"{path}: the journal's scenario"), prefix
 
 
 def interrupted(path: str | Path) -> dict[str, Any]:
@@ -88,9 +89,11 @@ def interrupted(path: str | Path) -> dict[str, Any]:
     with reading(path) as db:
         events, t_lab = db.execute("SELECT COUNT(*), MAX(t_lab) FROM events").fetchone()
         statuses = dict(db.execute("SELECT status, COUNT(*) FROM experiments GROUP BY status").fetchall())
-        scenario = db.execute("SELECT value FROM run WHERE key='scenario'").fetchone()
-        name = json.loads(scenario[0])["name"] if scenario else "?"
-    return {"scenario": name, "events": events, "lab_hours": (t_lab or 0.0) / 3600, "experiments": statuses}
+    if t_lab is not None and not finite(t_lab):
+        read_events(path)  # names the damaged row
+    name = read_run(path).get("scenario", {}).get("name", "?")
+    return {"scenario": str(name), "events": events, "lab_hours": (t_lab or 0.0) / 3600 if finite(t_lab) else 0.0,
+            "experiments": statuses}
 
 
 def replace(resumed: Path, killed: Path) -> None:

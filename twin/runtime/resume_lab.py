@@ -16,11 +16,11 @@ import shutil
 import time
 from pathlib import Path
 
-from twin.campaign.journal import Journal, read_inputs, read_run, reading
+from twin.campaign.journal import Journal, read_events, read_inputs, read_run
 from twin.campaign.lab_replay import rebuild_lab
 from twin.campaign.summary import LabSummary
 from twin.runtime.resume import CheckedJournal, ResumeError, replace
-from twin.scenario import Scenario
+from twin.scenario import Scenario, parse
 from twin.scenario.sharing import campaign_scenarios
 from twin.view.lab_observer import SharedLabObserver
 
@@ -37,15 +37,14 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
         lab = read_run(where / LAB_INPUTS).get("lab")
         if lab is None:
             raise ResumeError(f"{where / LAB_INPUTS}: it does not say which lab file it ran; serve the lab again")
-        return Scenario.model_validate(lab, context={"lab_only": True}), {}
+        return parse(lab, f"{where / LAB_INPUTS}: the journal's lab file", lab_only=True), {}
     if not dbs:
         raise ResumeError(f"{where}: no campaign journals (<campaign>.db) here; a lab's journals are written to "
                           "runs/<lab>-seed<N>-<time>/ by default")
     lab, prefixes, ended, scenarios = None, {}, [], {}
     for db in dbs:
         data = read_run(db)
-        with reading(db) as con:
-            prefixes[db.stem] = con.execute("SELECT * FROM events ORDER BY seq").fetchall()
+        prefixes[db.stem] = [tuple(row.values()) for row in read_events(db)]  # damage is named
         if "lab" not in data:
             raise ResumeError(f"{db}: the journal does not say which lab file it ran in (a campaign run on its own: "
                               f"twin resume {db}; or a lab run before labs journalled it: run it again)")
@@ -56,9 +55,10 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
     if len(ended) == len(dbs):
         raise ResumeError(f"{where}: every campaign of the lab finished; nothing to resume (twin report "
                           f"{dbs[0]} shows one)")
-    s = Scenario.model_validate(lab, context={"lab_only": True})  # a served lab's file may have no workflow
+    s = parse(lab, f"{dbs[0]}: the journal's lab file", lab_only=True)  # a served lab's file may have no workflow
     for name, cs in campaign_scenarios(s, s.name).items():
-        if name in scenarios and Scenario.model_validate(scenarios[name]).model_dump() != cs.model_dump():
+        if name in scenarios and parse(scenarios[name], f"{where / (name + '.db')}: the journal's scenario"
+                                       ).model_dump() != cs.model_dump():
             raise ResumeError(f"{where / (name + '.db')}: the campaign's scenario differs from what its lab file "
                               "makes of it now (the code changed since the run); run the lab again instead (twin run)")
     return s, prefixes

@@ -41,7 +41,7 @@ def export(journal: str | Path, out: str | Path, fmt: str = "csv", what: list[st
     unknown = [w for w in chosen if w not in WHAT]
     if unknown:
         raise TwinError(f"--what {','.join(unknown)}: the tables are {', '.join(WHAT)}")
-    run, events, experiments = read_run(path), read_events(path), read_experiments(path)
+    run, events, experiments = read_run(path, needs=("scenario",)), read_events(path), read_experiments(path)
     tables = {"experiments": lambda: experiment_rows(experiments), "attempts": lambda: attempt_rows(events),
               "devices": lambda: device_rows(run, events), "consumables": lambda: consumable_rows(run, events),
               "decisions": lambda: decision_rows(events),
