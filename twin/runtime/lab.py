@@ -26,6 +26,7 @@ from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_drivers,
                                    make_bus, make_clock, make_planner, make_scheduler, prepare)
 from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
+from twin.runtime.lab_claim import refuse_if_taken
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.off_loop import OffLoopScheduler
@@ -272,6 +273,7 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         bus = make_bus(s, clock)
         await bus.start()
         stack.push_async_callback(bus.close)
+        await refuse_if_taken(bus, s, [name for name, _, _ in drivers])
         if s.bus.kind != "memory":  # before anything is dispatched: a joined device stamps in the lab's time
             source = LabTimeSource(bus, s.lab, clock)
             source.start()

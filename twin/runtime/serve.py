@@ -18,6 +18,7 @@ from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
 from twin.core.messages import excerpt
 from twin.runtime.labtime import LabTimeFollower
+from twin.runtime.lab_claim import refuse_if_taken
 from twin.runtime.lab import build_actors, load_drivers, make_bus, make_clock, make_scheduler, prepare
 from twin.runtime.shared_run import shared_drivers
 from twin.scenario import BusSpec, Scenario
@@ -93,6 +94,7 @@ def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str
         raise DriverError(f"{scenario}: no device instance {name!r}; the scenario has {known}")
 
     async def start(bus: Bus, clock: LabClock):
+        await refuse_if_taken(bus, s, [name], orchestrator=False)
         actors = build_actors(s, drivers, bus, clock, per_device)
         for a in actors:
             await a.start()

@@ -14,6 +14,7 @@ from twin.campaign.summary import LabSummary, Summary
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
 from twin.runtime.fast_lab import FastLab
+from twin.runtime.lab_claim import refuse_if_taken
 from twin.campaign.journal import Journal
 from twin.campaign.lab_replay import RebuiltLab
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_driver,
@@ -165,6 +166,7 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
         bus = make_bus(s, clock)
         await bus.start()
         stack.push_async_callback(bus.close)
+        await refuse_if_taken(bus, s, [name for name, _, _ in drivers])
         if s.bus.kind != "memory":
             source = LabTimeSource(bus, s.lab, clock)
             source.start()

@@ -1,0 +1,83 @@
+"""A second process that would serve a lab already on the router — its campaign, or one of its devices — is
+refused naming what holds it, and the lab that was there first loses nothing."""
+
+import asyncio
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import qd_lab
+from tests.twin.test_device_process import free_port
+from tests.twin.test_distributed_lab import start
+from twin.runtime.lab import make_clock, prepare, run_async
+from twin.runtime.lab_claim import LabTaken
+
+pytestmark = pytest.mark.process
+ROOT = Path(__file__).resolve().parents[2]
+SPEED = 200.0
+
+
+def _lab(tmp_path: Path, router: str) -> Path:
+    raw = qd_lab(**{
+        "campaign.budget": 4, "campaign.max_in_flight": 2,
+        "devices.synthesiser.duration": {"mean_s": 20, "cv": 0.0},
+        # long enough that the first campaign is still measuring while the second process starts
+        "devices.spectrometer.duration": {"mean_s": 4000, "cv": 0.0},
+        "clock": {"mode": "scaled", "speed": SPEED},
+        "bus": {"kind": "zenoh", "listen": [], "connect": [router], "lease_ms": 1000},
+    })
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+def _twin(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "twin", *args], capture_output=True, text=True, cwd=ROOT,
+                          env={**os.environ, "COLUMNS": "300"}, timeout=120)
+
+
+def test_a_second_campaign_or_device_of_a_lab_on_the_bus_is_refused_and_the_first_loses_nothing(tmp_path):
+    router = f"tcp/127.0.0.1:{free_port()}"
+    path = _lab(tmp_path, router)
+    procs = [start(["router", "--listen", router], "router")]
+    procs.append(start(["device", "serve", str(path), "--id", "spectrometer-1", "--connect", router, "--clock",
+                        "scaled", "--speed", str(SPEED)], "ready spectrometer-1"))
+    s = prepare(path)
+    seen: dict = {}
+    try:
+        # the same device served twice
+        again = _twin("device", "serve", str(path), "--id", "spectrometer-1", "--connect", router,
+                      "--clock", "scaled", "--speed", str(SPEED))
+        # a campaign that would serve spectrometer-1 itself, while another process does
+        clock = make_clock(s)
+        with pytest.raises(LabTaken, match=r"device\(s\) \['spectrometer-1'\] of lab 't' are already on this bus"):
+            clock.run(run_async(s, clock, tmp_path / "own.db"))
+
+        # the lab's campaign, using that device; a second campaign of the lab started while it runs
+        clock = make_clock(s)
+
+        async def second(camp) -> None:
+            seen["second"] = await asyncio.to_thread(_twin, "run", str(path), "--journal", str(tmp_path / "b.db"),
+                                                     "--external", "spectrometer-1")
+            camp.stop("the second campaign was turned away")
+
+        def started(camp) -> None:
+            seen["task"] = asyncio.ensure_future(second(camp))
+
+        summary = clock.run(run_async(s, clock, tmp_path / "a.db", {"spectrometer-1"}, on_start=started))
+    finally:
+        for p in procs:
+            p.terminate()
+            p.wait()
+    assert again.returncode == 2, again.stdout + again.stderr
+    assert "device(s) ['spectrometer-1'] of lab 't' are already on this bus, served by another process" in again.stderr
+    refused = seen["second"]
+    assert refused.returncode == 2, refused.stdout + refused.stderr
+    assert "lab 't' already has a campaign running on this bus" in refused.stderr and "--set lab=t-2" in refused.stderr
+    assert not (tmp_path / "b.db").exists()
+    # the first campaign saw nothing of the second: no foreign message, no attempt lost to it
+    assert summary.rejected_messages == 0 and summary.failed_attempts == 0 and summary.abandoned == 0

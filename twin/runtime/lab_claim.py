@@ -1,0 +1,64 @@
+"""Is a lab already on the bus this process joins? Asked before it serves the lab's campaign or devices.
+
+Two campaigns of one lab name on one router would send commands to each other's devices: the attempt tokens
+keep either from taking the other's results, but both lose their experiments to devices that are busy with, or
+answer for, the other. So a process that joins a network (``bus.connect``) first looks for the lab's tokens —
+its orchestrator's, and those of the devices it is about to serve itself — and refuses to start beside them.
+A lab that only listens cannot meet another at start: one that joins it later finds it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Iterable
+
+from twin.core import keys
+from twin.core.bus.base import Bus
+from twin.core.clock import sleep_wall
+from twin.core.errors import TwinError
+from twin.scenario import Scenario
+
+#: wall seconds to collect the tokens a router or peer reports: it sends those it knows within milliseconds of
+#: being asked, but a session opened an instant ago may not have asked yet
+SETTLE_S = 0.3
+
+
+class LabTaken(TwinError):
+    """The lab (or one of the devices this process would serve) is already on the bus, served by another
+    process."""
+
+
+async def present(bus: Bus, keyexprs: Iterable[str], wait_s: float = SETTLE_S) -> list[str]:
+    """The tokens on ``bus`` matching any of ``keyexprs``, as reported within ``wait_s`` wall seconds."""
+    seen: set[str] = set()
+
+    def note(key: str, alive: bool) -> None:
+        (seen.add if alive else seen.discard)(key)
+
+    watches = [bus.watch_tokens(k, note) for k in keyexprs]
+    try:
+        await sleep_wall(wait_s)
+    finally:
+        for w in watches:
+            w.close()
+    return sorted(seen)
+
+
+async def refuse_if_taken(bus: Bus, s: Scenario, devices: Collection[str], orchestrator: bool = True) -> None:
+    """Raise ``LabTaken`` if another process holds the orchestrator token of ``s``'s lab (when this process
+    would be its orchestrator) or the token of one of ``devices`` (which this process would serve)."""
+    if s.bus.kind == "memory" or not s.bus.connect:
+        return
+    lab = s.lab
+    wanted = [keys.alive(lab, d) for d in sorted(devices)] + ([keys.orchestrator(lab)] if orchestrator else [])
+    found = await present(bus, wanted)
+    if orchestrator and keys.orchestrator(lab) in found:
+        raise LabTaken(f"lab {lab!r} already has a campaign running on this bus ({keys.orchestrator(lab)} is held by "
+                       f"another process): two campaigns of one lab would dispatch to each other's devices. Stop "
+                       f"that one, run this one as another lab (--set lab={lab}-2), or share the lab's devices "
+                       "between campaigns (twin lab serve, then twin submit); if it stopped just now, its token "
+                       f"lasts one link lease ({s.bus.lease_ms} ms): try again then")
+    taken = [keys.device_of(k) for k in found if k != keys.orchestrator(lab)]
+    if taken:
+        raise LabTaken(f"device(s) {taken} of lab {lab!r} are already on this bus, served by another process: "
+                       "stop that one, or let this run use them (twin run --external NAME for each) instead of "
+                       f"serving its own, or run this one as another lab (--set lab={lab}-2)")
