@@ -1,5 +1,5 @@
-"""A second process that would serve a lab already on the router — its campaign, or one of its devices — is
-refused naming what holds it, and the lab that was there first loses nothing."""
+"""A second process that would serve a lab already on the router — its campaign, one of its devices, its
+scheduler agent — is refused naming what holds it, and the lab that was there first loses nothing."""
 
 import asyncio
 import os
@@ -49,9 +49,13 @@ def test_a_second_campaign_or_device_of_a_lab_on_the_bus_is_refused_and_the_firs
     s = prepare(path)
     seen: dict = {}
     try:
-        # the same device served twice
+        # the same device served twice, and a second scheduler agent
         again = _twin("device", "serve", str(path), "--id", "spectrometer-1", "--connect", router,
                       "--clock", "scaled", "--speed", str(SPEED))
+        procs.append(start(["scheduler", "serve", str(path), "--scheduler", "spt", "--connect", router, "--clock",
+                            "scaled", "--speed", str(SPEED)], "ready scheduler"))
+        agent = _twin("scheduler", "serve", str(path), "--scheduler", "fifo", "--connect", router, "--clock",
+                      "scaled", "--speed", str(SPEED))
         # a campaign that would serve spectrometer-1 itself, while another process does
         clock = make_clock(s)
         with pytest.raises(LabTaken, match=r"device\(s\) \['spectrometer-1'\] of lab 't' are already on this bus"):
@@ -75,6 +79,7 @@ def test_a_second_campaign_or_device_of_a_lab_on_the_bus_is_refused_and_the_firs
             p.wait()
     assert again.returncode == 2, again.stdout + again.stderr
     assert "device(s) ['spectrometer-1'] of lab 't' are already on this bus, served by another process" in again.stderr
+    assert agent.returncode == 2 and "lab 't' already has a scheduler agent on this bus" in agent.stderr, agent.stderr
     refused = seen["second"]
     assert refused.returncode == 2, refused.stdout + refused.stderr
     assert "lab 't' already has a campaign running on this bus" in refused.stderr and "--set lab=t-2" in refused.stderr

@@ -3,7 +3,8 @@
 Two campaigns of one lab name on one router would send commands to each other's devices: the attempt tokens
 keep either from taking the other's results, but both lose their experiments to devices that are busy with, or
 answer for, the other. So a process that joins a network (``bus.connect``) first looks for the lab's tokens —
-its orchestrator's, and those of the devices it is about to serve itself — and refuses to start beside them.
+its orchestrator's, and those of the devices it is about to serve itself — and refuses to start beside them;
+a scheduler agent (``twin scheduler serve``) looks for another agent of its lab.
 A lab that only listens cannot meet another at start: one that joins it later finds it.
 """
 
@@ -43,21 +44,28 @@ async def present(bus: Bus, keyexprs: Iterable[str], wait_s: float = SETTLE_S) -
     return sorted(seen)
 
 
-async def refuse_if_taken(bus: Bus, s: Scenario, devices: Collection[str], orchestrator: bool = True) -> None:
+async def refuse_if_taken(bus: Bus, s: Scenario, devices: Collection[str], orchestrator: bool = True,
+                          agent: bool = False) -> None:
     """Raise ``LabTaken`` if another process holds the orchestrator token of ``s``'s lab (when this process
-    would be its orchestrator) or the token of one of ``devices`` (which this process would serve)."""
+    would be its orchestrator), the token of one of ``devices`` (which this process would serve), or (``agent``)
+    the lab's scheduler agent's."""
     if s.bus.kind == "memory" or not s.bus.connect:
         return
+    from twin.runtime.remote_scheduler import alive_key
+
     lab = s.lab
     wanted = [keys.alive(lab, d) for d in sorted(devices)] + ([keys.orchestrator(lab)] if orchestrator else [])
-    found = await present(bus, wanted)
+    found = await present(bus, wanted + ([alive_key(lab)] if agent else []))
+    if agent and alive_key(lab) in found:
+        raise LabTaken(f"lab {lab!r} already has a scheduler agent on this bus ({alive_key(lab)} is held by another "
+                       "process): two agents would each answer the lab's requests. Stop that one first")
     if orchestrator and keys.orchestrator(lab) in found:
         raise LabTaken(f"lab {lab!r} already has a campaign running on this bus ({keys.orchestrator(lab)} is held by "
                        f"another process): two campaigns of one lab would dispatch to each other's devices. Stop "
                        f"that one, run this one as another lab (--set lab={lab}-2), or share the lab's devices "
                        "between campaigns (twin lab serve, then twin submit); if it stopped just now, its token "
                        f"lasts one link lease ({s.bus.lease_ms} ms): try again then")
-    taken = [keys.device_of(k) for k in found if k != keys.orchestrator(lab)]
+    taken = [keys.device_of(k) for k in found if k.startswith(keys.alive(lab, ""))]
     if taken:
         raise LabTaken(f"device(s) {taken} of lab {lab!r} are already on this bus, served by another process: "
                        "stop that one, or let this run use them (twin run --external NAME for each) instead of "

@@ -188,6 +188,7 @@ def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: 
     scheduler = make_scheduler(s, spec)
 
     async def start(bus: Bus, clock: LabClock):
+        await refuse_if_taken(bus, s, [], orchestrator=False, agent=True)
         service = SchedulerService(bus, s.lab, scheduler)
         service.start()
 
