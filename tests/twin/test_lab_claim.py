@@ -1,10 +1,12 @@
 """A second process that would serve a lab already on the router — its campaign, one of its devices, its
-scheduler agent — is refused naming what holds it, and the lab that was there first loses nothing."""
+scheduler agent — is refused naming what holds it, and the lab that was there first loses nothing; a watcher of a
+lab that is not there names the labs that are."""
 
 import asyncio
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -40,6 +42,22 @@ def _twin(*args: str) -> subprocess.CompletedProcess:
                           env={**os.environ, "COLUMNS": "300"}, timeout=120)
 
 
+def _watch_first_lines(router: str, lab: str, save: Path) -> tuple[list[str], float]:
+    """The first two lines `twin watch --lab LAB` prints, and the wall seconds it took to stop when told to
+    (SIGTERM) while it still waited for the lab."""
+    watcher = subprocess.Popen([sys.executable, "-m", "twin", "watch", "--lab", lab, "--connect", router, "--save",
+                                str(save)],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        lines = [watcher.stdout.readline(), watcher.stdout.readline()]
+        told = time.monotonic()
+        watcher.terminate()
+        watcher.wait(timeout=60)
+        return lines, time.monotonic() - told
+    finally:
+        watcher.kill()
+
+
 def test_a_second_campaign_or_device_of_a_lab_on_the_bus_is_refused_and_the_first_loses_nothing(tmp_path):
     router = f"tcp/127.0.0.1:{free_port()}"
     path = _lab(tmp_path, router)
@@ -67,6 +85,7 @@ def test_a_second_campaign_or_device_of_a_lab_on_the_bus_is_refused_and_the_firs
         async def second(camp) -> None:
             seen["second"] = await asyncio.to_thread(_twin, "run", str(path), "--journal", str(tmp_path / "b.db"),
                                                      "--external", "spectrometer-1")
+            seen["watch"] = await asyncio.to_thread(_watch_first_lines, router, "tt", tmp_path / "w.rrd")  # a lab name mistyped
             camp.stop("the second campaign was turned away")
 
         def started(camp) -> None:
@@ -84,5 +103,9 @@ def test_a_second_campaign_or_device_of_a_lab_on_the_bus_is_refused_and_the_firs
     assert refused.returncode == 2, refused.stdout + refused.stderr
     assert "lab 't' already has a campaign running on this bus" in refused.stderr and "--set lab=t-2" in refused.stderr
     assert not (tmp_path / "b.db").exists()
+    lines, stopping_s = seen["watch"]
+    assert lines == ["watching lab 'tt'\n", "no campaign of lab 'tt' is on this bus yet (labs on it now: t): "
+                     "waiting for one (Ctrl-C to stop)\n"]
+    assert stopping_s < 15, stopping_s  # it went on asking for the history for 30 s after SIGTERM
     # the first campaign saw nothing of the second: no foreign message, no attempt lost to it
     assert summary.rejected_messages == 0 and summary.failed_attempts == 0 and summary.abandoned == 0

@@ -10,38 +10,18 @@ A lab that only listens cannot meet another at start: one that joins it later fi
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable
+from collections.abc import Collection
 
 from twin.core import keys
 from twin.core.bus.base import Bus
-from twin.core.clock import sleep_wall
+from twin.core.bus.presence import present
 from twin.core.errors import TwinError
 from twin.scenario import Scenario
-
-#: wall seconds to collect the tokens a router or peer reports: it sends those it knows within milliseconds of
-#: being asked, but a session opened an instant ago may not have asked yet
-SETTLE_S = 0.3
 
 
 class LabTaken(TwinError):
     """The lab (or one of the devices this process would serve) is already on the bus, served by another
     process."""
-
-
-async def present(bus: Bus, keyexprs: Iterable[str], wait_s: float = SETTLE_S) -> list[str]:
-    """The tokens on ``bus`` matching any of ``keyexprs``, as reported within ``wait_s`` wall seconds."""
-    seen: set[str] = set()
-
-    def note(key: str, alive: bool) -> None:
-        (seen.add if alive else seen.discard)(key)
-
-    watches = [bus.watch_tokens(k, note) for k in keyexprs]
-    try:
-        await sleep_wall(wait_s)
-    finally:
-        for w in watches:
-            w.close()
-    return sorted(seen)
 
 
 async def refuse_if_taken(bus: Bus, s: Scenario, devices: Collection[str], orchestrator: bool = True,

@@ -152,7 +152,7 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
     stop = stop or asyncio.Event()
     recording = None
     try:
-        first = await _first_page(bus, clock, lab)
+        first = await _first_page(bus, clock, lab, stop)
         if first is not None and first.get("shared"):
             observer, recording = open_lab_observer(options, f"watch-{lab}", [], {}, dedupe=True)
             shared = _SharedWatch(bus, clock, lab, observer)
@@ -221,11 +221,14 @@ class _SharedWatch:
             self.observer.on_message(key, payload)
 
 
-async def _first_page(bus: Bus, clock: LabClock, lab: str, patience_s: float = 30.0) -> dict | None:
+async def _first_page(bus: Bus, clock: LabClock, lab: str, stop: asyncio.Event,
+                      patience_s: float = 30.0) -> dict | None:
     """The first page of the running campaign's history (of one of them, in a shared lab); waits for it to come
-    up, and gives up after ``patience_s``."""
+    up, and gives up after ``patience_s`` or when ``stop`` is set."""
     key = keys.campaign(lab, "*", "history")
     for _ in range(int(patience_s / 0.5)):
+        if stop.is_set():
+            return None
         try:
             return json.loads(await bus.request(key, b"", timeout=2.0 * clock.speed))
         except (NoReplyError, ValueError, TwinError):
@@ -250,6 +253,7 @@ def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str
     """``twin watch``: a wall-clock Zenoh session that records another process's lab; with ``security_dir``,
     a client of the lab's router with the lab's watcher certificate (which may read, nothing else)."""
     from twin.core.bus import open_bus, security
+    from twin.core.bus.presence import present
 
     clock = LabClock("wall")
     extra: dict = {}
@@ -265,6 +269,11 @@ def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
         print(f"watching lab {lab!r}", flush=True)
+        labs = sorted({key.split("/")[1] for key in await present(bus, [keys.orchestrator("*")])})
+        if lab not in labs:
+            there = f"labs on it now: {', '.join(labs)}" if labs else "no lab is on it now"
+            print(f"no campaign of lab {lab!r} is on this bus yet ({there}): waiting for one (Ctrl-C to stop)",
+                  flush=True)
 
         def ended(name: str, seen: Any) -> None:
             print(f"campaign {name + ' ' if name else ''}ended: {seen.finished} experiments finished, "
