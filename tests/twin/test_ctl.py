@@ -246,6 +246,14 @@ def test_the_ctl_commands_say_what_they_did_and_a_refusal_exits_1(tmp_path):
         assert "test_lab (campaign c1, lab t): paused by alice" in res.output and "spectrometer-1" in res.output
         res = lab.ctl("abort", "999")
         assert res.exit_code == 1 and "refused: there is no experiment 999" in res.output
+        from typer.testing import CliRunner
+
+        from twin.cli import app
+
+        wrong = CliRunner().invoke(app, ["ctl", "status", "--lab", "tt", "--connect", lab.endpoint],
+                                   env={"COLUMNS": "200"})  # a lab name mistyped: the one that is there is named
+        assert wrong.exit_code == 2 and "no campaign of lab 'tt' answered" in wrong.output
+        assert "(labs on it now: t)" in wrong.output, wrong.output
         assert json.loads(lab.ctl("status", "--json").output)["status"]["paused_by"] == "alice"
         res = lab.ctl("stop", "--as", "alice")
         assert res.exit_code == 0 and "operator.stop by alice" in res.output, res.output

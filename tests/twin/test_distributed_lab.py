@@ -136,3 +136,4 @@ def test_twin_device_health_asks_the_devices_of_a_running_lab(tmp_path):
     rows = [line for line in listed.stdout.splitlines() if "spectrometer" in line]
     assert len(rows) == 1 and "spectrometer-2" in rows[0] and "yes" in rows[0] and "idle" in rows[0]
     assert other.returncode == 1 and "no device of lab 'elsewhere'" in other.stdout
+    assert "(labs on it now: t)" in " ".join(other.stdout.split()), other.stdout  # what a mistyped name meant

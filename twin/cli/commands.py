@@ -319,16 +319,18 @@ def devices(
 
     if connect:
         from twin.cli.distributed import render_health
+        from twin.core.bus.presence import elsewhere
         from twin.runtime.serve import roster
 
         if not lab_name:
             _fail(TwinError("--connect needs --lab: the lab whose devices to list (the scenario's `lab` field)"))
         try:
-            answers = roster(lab_name, list(connect), str(security) if security else None)
+            answers, labs = roster(lab_name, list(connect), str(security) if security else None)
         except TwinError as exc:
             _fail(exc)
         if not answers:
-            console.print(f"no device of lab {lab_name!r} is on the bus at {', '.join(connect)}", highlight=False)
+            console.print(f"no device of lab {lab_name!r} is on the bus at {', '.join(connect)} ({elsewhere(labs)})",
+                          highlight=False)
             raise typer.Exit(1)
         render_health(answers)
         if any(a["report"] is None for a in answers):

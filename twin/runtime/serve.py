@@ -19,6 +19,7 @@ from twin.core.errors import ClockError, DriverError
 from twin.core.messages import excerpt
 from twin.runtime.labtime import LabTimeFollower
 from twin.runtime.lab_claim import refuse_if_taken
+from twin.core.bus.presence import labs_on
 from twin.runtime.lab import build_actors, load_drivers, make_bus, make_clock, make_scheduler, prepare
 from twin.runtime.shared_run import shared_drivers
 from twin.scenario import BusSpec, Scenario
@@ -131,13 +132,14 @@ def health(scenario: str | Path, ids: list[str], connect: list[str], security_di
 
 
 def roster(lab: str, connect: list[str], security_dir: str | None = None, wait_s: float = 3.0,
-           connect_timeout_ms: int = 5000) -> list[dict]:
-    """``twin devices --connect``: the devices on a running lab's bus (by their presence), with their health."""
+           connect_timeout_ms: int = 5000) -> tuple[list[dict], list[str]]:
+    """``twin devices --connect``: the devices on a running lab's bus (by their presence), with their health; and
+    when it has none, the labs the bus has."""
     from twin.core.bus import open_bus
 
     clock = LabClock("wall")
 
-    async def ask() -> list[dict]:
+    async def ask() -> tuple[list[dict], list[str]]:
         extra = security.session_config(security_dir, Identity("orchestrator", lab)) if security_dir else {}
         bus = open_bus("zenoh", clock, mode="client", listen=[], connect=connect, extra=extra,
                        connect_timeout_ms=connect_timeout_ms)
@@ -147,7 +149,9 @@ def roster(lab: str, connect: list[str], security_dir: str | None = None, wait_s
             keys.device_of(key)))
         try:
             await clock.sleep(0.5)  # the tokens already declared arrive as history
-            return await _ask_health(bus, lab, sorted(present), wait_s)
+            if not present:
+                return [], await labs_on(bus)
+            return await _ask_health(bus, lab, sorted(present), wait_s), [lab]
         finally:
             watch.close()
             await bus.close()

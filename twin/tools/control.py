@@ -7,6 +7,7 @@ from typing import Any
 
 from twin.core import keys
 from twin.core.bus import NoReplyError, open_bus
+from twin.core.bus.presence import elsewhere, labs_on
 from twin.core.bus.security import Identity, session_config
 from twin.core.clock import LabClock
 from twin.core.errors import TwinError
@@ -26,9 +27,9 @@ def request(lab: str, command: str, body: dict[str, Any], connect: list[str], se
         try:
             return json.loads(await bus.request(keys.control(lab, command), json.dumps(body).encode(), wait_s))
         except NoReplyError:
-            raise TwinError(f"no campaign of lab {lab!r} answered at {', '.join(connect)} within {wait_s:.0f} s: is "
-                            f"it running on a Zenoh bus that listens there (twin run --listen ...), and is its "
-                            f"scenario's lab {lab!r}?") from None
+            raise TwinError(f"no campaign of lab {lab!r} answered at {', '.join(connect)} within {wait_s:.0f} s "
+                            f"({elsewhere(await labs_on(bus))}): is it running on a Zenoh bus that listens there "
+                            f"(twin run --listen ...), and is its scenario's lab {lab!r}?") from None
         finally:
             await bus.close()
 

@@ -253,7 +253,7 @@ def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str
     """``twin watch``: a wall-clock Zenoh session that records another process's lab; with ``security_dir``,
     a client of the lab's router with the lab's watcher certificate (which may read, nothing else)."""
     from twin.core.bus import open_bus, security
-    from twin.core.bus.presence import present
+    from twin.core.bus.presence import elsewhere, labs_on
 
     clock = LabClock("wall")
     extra: dict = {}
@@ -269,11 +269,10 @@ def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
         print(f"watching lab {lab!r}", flush=True)
-        labs = sorted({key.split("/")[1] for key in await present(bus, [keys.orchestrator("*")])})
+        labs = await labs_on(bus)
         if lab not in labs:
-            there = f"labs on it now: {', '.join(labs)}" if labs else "no lab is on it now"
-            print(f"no campaign of lab {lab!r} is on this bus yet ({there}): waiting for one (Ctrl-C to stop)",
-                  flush=True)
+            print(f"no campaign of lab {lab!r} is on this bus yet ({elsewhere(labs)}): waiting for one (Ctrl-C to "
+                  "stop)", flush=True)
 
         def ended(name: str, seen: Any) -> None:
             print(f"campaign {name + ' ' if name else ''}ended: {seen.finished} experiments finished, "

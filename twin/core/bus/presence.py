@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+from twin.core import keys
 from twin.core.bus.base import Bus
 from twin.core.clock import sleep_wall
 
@@ -27,3 +28,14 @@ async def present(bus: Bus, keyexprs: Iterable[str], wait_s: float = SETTLE_S) -
         for w in watches:
             w.close()
     return sorted(seen)
+
+
+async def labs_on(bus: Bus, wait_s: float = SETTLE_S) -> list[str]:
+    """The labs with a campaign or a device on ``bus`` now (by their tokens)."""
+    found = await present(bus, [keys.orchestrator("*"), keys.alive("*")], wait_s)
+    return sorted({key.split("/")[1] for key in found})
+
+
+def elsewhere(labs: list[str]) -> str:
+    """The labs a bus has, as a clause for a message about a lab it does not have."""
+    return f"labs on it now: {', '.join(labs)}" if labs else "no lab is on it now"
