@@ -26,8 +26,9 @@ def request(lab: str, command: str, body: dict[str, Any], connect: list[str], se
         await bus.start()
         try:
             return json.loads(await bus.request(keys.control(lab, command), json.dumps(body).encode(), wait_s))
-        except NoReplyError:
-            raise TwinError(f"no campaign of lab {lab!r} answered at {', '.join(connect)} within {wait_s:.0f} s "
+        except NoReplyError as exc:
+            late = f" within {wait_s:.0f} s" if "within" in str(exc) else ""  # or nothing serves it at all
+            raise TwinError(f"no campaign of lab {lab!r} answered at {', '.join(connect)}{late} "
                             f"({elsewhere(await labs_on(bus))}): is it running on a Zenoh bus that listens there "
                             f"(twin run --listen ...), and is its scenario's lab {lab!r}?") from None
         finally:
