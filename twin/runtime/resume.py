@@ -25,6 +25,7 @@ from twin.campaign.journal import Journal, held, read_events, read_inputs, read_
 from twin.campaign.replay import rebuild
 from twin.campaign.summary import Summary
 from twin.core import keys
+from twin.core.bus.presence import present
 from twin.core.clock import LabClock
 from twin.core.errors import TwinError
 from twin.core.numbers import finite
@@ -175,11 +176,8 @@ async def _still_running(s: Scenario, clock: LabClock, wait_s: float = 1.0) -> s
         await bus.start()
     except TwinError as exc:
         return f"its bus endpoint is in use: {exc}"
-    seen: list[str] = []
-    watch = bus.watch_tokens(keys.orchestrator(s.lab), lambda key, alive: seen.append(key) if alive else None)
     try:
-        await clock.sleep(wait_s)  # a router or peer reports the tokens it knows within a few milliseconds
+        seen = await present(bus, [keys.orchestrator(s.lab)], wait_s)
     finally:
-        watch.close()
         await bus.close()
     return f"its token {seen[0]} is on the bus" if seen else ""
