@@ -19,7 +19,7 @@ from twin.core.errors import ClockError, DriverError
 from twin.core.messages import excerpt
 from twin.runtime.labtime import LabTimeFollower
 from twin.runtime.lab_claim import refuse_if_taken
-from twin.core.bus.presence import labs_on
+from twin.core.bus.presence import labs_on, present
 from twin.runtime.lab import build_actors, load_drivers, make_bus, make_clock, make_scheduler, prepare
 from twin.runtime.shared_run import shared_drivers
 from twin.scenario import BusSpec, Scenario
@@ -144,16 +144,12 @@ def roster(lab: str, connect: list[str], security_dir: str | None = None, wait_s
         bus = open_bus("zenoh", clock, mode="client", listen=[], connect=connect, extra=extra,
                        connect_timeout_ms=connect_timeout_ms)
         await bus.start()
-        present: set[str] = set()
-        watch = bus.watch_tokens(keys.alive(lab), lambda key, alive: (present.add if alive else present.discard)(
-            keys.device_of(key)))
         try:
-            await clock.sleep(0.5)  # the tokens already declared arrive as history
-            if not present:
+            names = sorted(keys.device_of(key) for key in await present(bus, [keys.alive(lab)], 0.5))
+            if not names:
                 return [], await labs_on(bus)
-            return await _ask_health(bus, lab, sorted(present), wait_s), [lab]
+            return await _ask_health(bus, lab, names, wait_s), [lab]
         finally:
-            watch.close()
             await bus.close()
 
     return clock.run(ask())
