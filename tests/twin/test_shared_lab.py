@@ -219,6 +219,14 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         line = lab.stderr.readline()
         assert "serving lab shared" in line, line + lab.stderr.read() if lab.poll() is not None else line
         assert ctl("submit", str(tmp_path / "dots.yaml"), "--as", "qd-group").exit_code == 0
+        with socket.socket() as sock:
+            sock.bind(("127.0.0.1", 0))
+            own = sock.getsockname()[1]
+        second = subprocess.run([sys.executable, "-m", "twin", "lab", "serve", str(tmp_path / "lab.yaml"), "--listen",
+                                 f"tcp/127.0.0.1:{own}", "--connect", f"tcp/127.0.0.1:{port}", "--journal",
+                                 str(tmp_path / "again")],
+                                capture_output=True, text=True, cwd=ROOT, timeout=60)  # the same lab served twice
+        assert second.returncode == 2 and "lab 'shared' already has a campaign running" in second.stderr, second.stderr
         watcher = subprocess.Popen([sys.executable, "-m", "twin", "watch", "--lab", "shared", "--connect",
                                     f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd"), "--follow"],
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
