@@ -16,6 +16,7 @@ from twin.core import keys
 from twin.core.bus.base import Bus
 from twin.core.bus.presence import present
 from twin.core.errors import TwinError
+from twin.runtime.remote_scheduler import alive_key
 from twin.scenario import Scenario
 
 
@@ -31,8 +32,6 @@ async def refuse_if_taken(bus: Bus, s: Scenario, devices: Collection[str], orche
     the lab's scheduler agent's."""
     if s.bus.kind == "memory" or not s.bus.connect:
         return
-    from twin.runtime.remote_scheduler import alive_key
-
     lab = s.lab
     wanted = [keys.alive(lab, d) for d in sorted(devices)] + ([keys.orchestrator(lab)] if orchestrator else [])
     found = await present(bus, wanted + ([alive_key(lab)] if agent else []))

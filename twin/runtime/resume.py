@@ -32,7 +32,7 @@ from twin.core.numbers import finite
 from twin.runtime.lab import make_bus, run, run_async
 from twin.view.observer import LabObserver
 from twin.view.watch import RecordOptions
-from twin.scenario import Scenario
+from twin.scenario import Scenario, parse
 
 
 log = logging.getLogger(__name__)
@@ -74,8 +74,6 @@ def _short(detail: Any, n: int = 80) -> str:
 def recorded(path: str | Path) -> tuple[Scenario, list[tuple]]:
     """The scenario and the events a killed run's journal holds."""
     path = Path(path)
-    from twin.scenario import parse
-
     data = read_run(path)
     if "summary" in data:
         raise ResumeError(f"{path}: the campaign finished; nothing to resume (twin report {path} shows it)")

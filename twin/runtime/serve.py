@@ -17,9 +17,9 @@ from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError
 from twin.core.messages import excerpt
+from twin.core.bus.presence import labs_on, present
 from twin.runtime.labtime import LabTimeFollower
 from twin.runtime.lab_claim import refuse_if_taken
-from twin.core.bus.presence import labs_on, present
 from twin.runtime.lab import build_actors, load_drivers, make_bus, make_clock, make_scheduler, prepare
 from twin.runtime.shared_run import shared_drivers
 from twin.scenario import BusSpec, Scenario

@@ -26,9 +26,8 @@ def request(lab: str, command: str, body: dict[str, Any], connect: list[str], se
         await bus.start()
         try:
             return json.loads(await bus.request(keys.control(lab, command), json.dumps(body).encode(), wait_s))
-        except NoReplyError as exc:
-            late = f" within {wait_s:.0f} s" if "within" in str(exc) else ""  # or nothing serves it at all
-            raise TwinError(f"no campaign of lab {lab!r} answered at {', '.join(connect)}{late} "
+        except NoReplyError:
+            raise TwinError(f"no campaign of lab {lab!r} answered at {', '.join(connect)} "
                             f"({elsewhere(await labs_on(bus))}): is it running on a Zenoh bus that listens there "
                             f"(twin run --listen ...), and is its scenario's lab {lab!r}?") from None
         finally:
