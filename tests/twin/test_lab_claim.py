@@ -97,7 +97,8 @@ def test_a_second_campaign_or_device_of_a_lab_on_the_bus_is_refused_and_the_firs
             p.terminate()
             p.wait()
     assert again.returncode == 2, again.stdout + again.stderr
-    assert "device(s) ['spectrometer-1'] of lab 't' are already on this bus, served by another process" in again.stderr
+    assert "device(s) ['spectrometer-1'] of lab 't' are already on this bus, served by another process: stop that " \
+           "one first" in " ".join(again.stderr.split())
     assert agent.returncode == 2 and "lab 't' already has a scheduler agent on this bus" in agent.stderr, agent.stderr
     refused = seen["second"]
     assert refused.returncode == 2, refused.stdout + refused.stderr

@@ -45,6 +45,9 @@ async def refuse_if_taken(bus: Bus, s: Scenario, devices: Collection[str], orche
                        "between campaigns (twin lab serve, then twin submit); if it stopped just now, its token "
                        f"lasts one link lease ({s.bus.lease_ms} ms): try again then")
     taken = [keys.device_of(k) for k in found if k.startswith(keys.alive(lab, ""))]
+    if taken and not orchestrator:  # twin device serve: the device is someone else's already
+        raise LabTaken(f"device(s) {taken} of lab {lab!r} are already on this bus, served by another process: stop "
+                       "that one first")
     if taken:
         raise LabTaken(f"device(s) {taken} of lab {lab!r} are already on this bus, served by another process: "
                        "stop that one, or let this run use them (twin run --external NAME for each) instead of "
