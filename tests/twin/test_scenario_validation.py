@@ -132,6 +132,15 @@ def test_workflow_naming_a_missing_device_type(tmp_path):
         load(path)
 
 
+def test_problems_across_fields_are_listed_one_each_under_their_own_field(tmp_path):
+    path = write(tmp_path, qd_lab(**{"workflow": [{"step": "synthesise", "device": "robot"},
+                                                  {"step": "measure", "device": "spectrometer"}],
+                                     "training.instances": {"hplc": [1, 2]}}))
+    with pytest.raises(ScenarioError) as err:
+        load(path)
+    assert [p.split(":")[0] for p in err.value.problems] == ["training.instances.hplc", "workflow.0.device"]
+
+
 def test_cli_validate_exits_2_without_a_traceback(tmp_path):
     bad = write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "robot9000", "campaign.budget": "x"}), "a.yaml")
     broken = write(tmp_path, "name: [unclosed\n", "b.yaml")

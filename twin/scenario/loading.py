@@ -132,7 +132,12 @@ def parse(raw: dict[str, Any], source: str = "<scenario>", lab_only: bool = Fals
     try:
         return Scenario.model_validate(raw, context={"lab_only": lab_only})
     except ValidationError as exc:
-        raise ScenarioError(source, [describe(e, raw) for e in exc.errors()]) from None
+        raise ScenarioError(source, problems_of(exc, raw)) from None
+
+
+def problems_of(exc: ValidationError, raw: Any) -> list[str]:
+    """One line per problem, each naming its field."""
+    return [line for e in exc.errors() for line in describe(e, raw).split("\n")]
 
 
 def describe(err: Any, raw: dict[str, Any]) -> str:
@@ -152,7 +157,9 @@ def describe(err: Any, raw: dict[str, Any]) -> str:
     text = repr(value)
     shown = "" if isinstance(value, dict) else f" (got {text if len(text) <= 80 else text[:79] + '…'})"
     msg = err["msg"].removeprefix("Value error, ")
-    return f"{loc or '(top level)'}: {msg}{shown}"
+    if not loc:  # the scenario's own checks across fields: each line names its field
+        return msg
+    return f"{loc}: {msg}{shown}"
 
 
 def set_dotted(raw: dict[str, Any], dotted: str, value: Any) -> None:

@@ -329,8 +329,8 @@ class Scenario(Spec):
             problems += self._plus_params() + self._envelopes()
         if self.bus.security and self.bus.kind != "zenoh":
             problems.append("bus.security: security is for the zenoh bus; the memory bus has no one to keep out")
-        if problems:
-            raise ValueError("; ".join(problems))
+        if problems:  # one line each, every one naming its own field (the loader lists them)
+            raise ValueError("\n".join(problems))
         return self
 
     def _sharing(self) -> list[str]:

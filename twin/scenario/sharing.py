@@ -15,7 +15,7 @@ from pydantic import ValidationError
 
 from twin.core.errors import ScenarioError
 from twin.scenario.files import read_yaml
-from twin.scenario.loading import describe, parse
+from twin.scenario.loading import parse, problems_of
 from twin.scenario.model import Scenario, SharedCampaign
 
 _OWN = ("chemistry", "workflow", "campaign")
@@ -54,4 +54,4 @@ def parse_campaign(raw: Any, source: str = "<campaign>") -> SharedCampaign:
     try:
         return SharedCampaign.model_validate(raw)
     except ValidationError as exc:
-        raise ScenarioError(source, [describe(e, raw) for e in exc.errors()]) from None
+        raise ScenarioError(source, problems_of(exc, raw)) from None
