@@ -173,6 +173,24 @@ def test_a_lab_its_drivers_cannot_run_is_one_error_before_any_worker_starts(tmp_
     assert "asks it for ['wash']" in out
 
 
+def test_a_bench_of_schedulers_does_not_load_the_scenarios_own(tmp_path):
+    """The bench runs the schedulers it is given: the scenario's policy file, missing here, is neither needed nor
+    loaded (a policy for another lab only warned of a scheduler that was never run), while `twin run` needs it."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    lab = tmp_path / "lab.yaml"
+    lab.write_text((ROOT / "scenarios" / "flaky_lab.yaml").read_text().replace(
+        "scheduler: oldest-sample", f"scheduler: rl:{tmp_path / 'nowhere.zip'}"))
+    res = CliRunner().invoke(app, ["bench", "schedulers", str(lab), "--schedulers", "fifo,mwkr", "--seeds", "1",
+                                   "--budget", "4", "--workers", "1"], env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    assert "fifo" in res.output and "mwkr" in res.output and "nowhere.zip" not in res.output
+    res = CliRunner().invoke(app, ["validate", str(lab)], env={"COLUMNS": "200"})
+    assert res.exit_code == 2 and "campaign.scheduler" in res.output and "nowhere.zip" in res.output
+
+
 def test_experiments_abandoned_by_deadlines_say_which_fields_set_them(tmp_path):
     """flaky_lab's reactor with the reaction time left out of its expected duration: its deadlines are too short."""
     text = (ROOT / "scenarios" / "flaky_lab.yaml").read_text()

@@ -24,7 +24,7 @@ def check(s: Scenario, external: Collection[str] = (), benched: bool = False) ->
     its Zenoh settings make a config. A lab of several campaigns: each campaign's, on the device types its
     workflow uses. ``external``: instances served by other processes, whose drivers need not be installed here
     (a device type all of whose instances are external is not loaded). ``benched``: a bench names the schedulers
-    to run, so the scenario's own need not be the one ``campaign.rollouts`` asks to play the lab ahead."""
+    to run and checks them itself, so the scenario's own is not loaded."""
     if not s.campaigns:
         _check(s, external=external, benched=benched)
         return
@@ -54,7 +54,8 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
     twins = {dtype: _at(f"devices.{dtype}.twin.driver", load_driver, s, dtype, s.instance_names(dtype)[0], True)
              for dtype in drivers if s.devices[dtype].twin is not None}
     _at("campaign.planner", make_planner, s)
-    _at("campaign.scheduler", make_scheduler, s, s.campaign.scheduler if benched else None)
+    if not benched:  # a bench runs the schedulers it names, not the scenario's (nor loads its policy to warn of it)
+        _at("campaign.scheduler", make_scheduler, s)
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
     problem = _unproduced(s, drivers, elsewhere)
     if problem:
