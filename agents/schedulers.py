@@ -17,12 +17,21 @@ def _assign_in_order(order: list[ReadyStep], view: LabView,
     free = list(view.free)
     out = []
     for step in order:
+        if not free:
+            break
         options = capable(step, tuple(free))
         if options:
             device = pick(options)
             free.remove(device)
             out.append(Assignment(step.task, device.name))
     return out
+
+
+def _servable(view: LabView) -> list[ReadyStep]:
+    """The ready steps of a type with a free device: the only ones a rule could start now (a lab of hundreds of
+    ready steps and all but a few devices busy sorted all of them at every decision)."""
+    types = {d.device_type for d in view.free}
+    return [s for s in view.ready if s.device_type in types]
 
 
 class _Rule:
@@ -35,7 +44,7 @@ class _Rule:
         raise NotImplementedError
 
     def decide(self, view: LabView) -> list[Assignment]:
-        return _assign_in_order(sorted(view.ready, key=self.key), view)
+        return _assign_in_order(sorted(_servable(view), key=self.key), view)
 
 
 class FifoScheduler(_Rule):
@@ -75,7 +84,7 @@ class LeastLoadedScheduler(_Rule):
 
     def decide(self, view: LabView) -> list[Assignment]:
         busy = {d.name: (d.busy_s, d.name) for d in view.devices}
-        return _assign_in_order(sorted(view.ready, key=self.key), view,
+        return _assign_in_order(sorted(_servable(view), key=self.key), view,
                                 pick=lambda options: min(options, key=lambda d: busy.get(d.name, (0.0, d.name))))
 
 
@@ -86,8 +95,8 @@ class FairShareScheduler(_Rule):
 
     def decide(self, view: LabView) -> list[Assignment]:
         states = {c.name: (-c.priority, c.used - c.share) for c in view.campaigns}
-        return _assign_in_order(sorted(view.ready, key=lambda s: (*states.get(s.campaign, (0, 0.0)), s.ready_since,
-                                                                  s.task)), view)
+        order = sorted(_servable(view), key=lambda s: (*states.get(s.campaign, (0, 0.0)), s.ready_since, s.task))
+        return _assign_in_order(order, view)
 
 
 RULES = ("fifo", "spt", "mwkr", "least-loaded", "oldest-sample")

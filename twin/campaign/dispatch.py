@@ -40,11 +40,7 @@ def pair_possible(ready: Iterable[Task], devices: dict[str, Device], dry: Dry | 
 def view(now: float, ready: Iterable[Task], devices: dict[str, Device], finished: int, budget: int,
          in_lab: int, dry: Dry | None = None) -> LabView:
     devs = devices.values()
-    steps = tuple(
-        ReadyStep(t.id, t.experiment.id, t.step.step, t.step.device, t.ready_since, t.experiment.sample_made,
-                  t.expected_s, t.work_remaining_s, avoid_for(t, devs, dry), t.then)
-        for t in ready
-    )
+    steps = tuple(_shown(t, avoid_for(t, devs, dry)) for t in ready)
     free = tuple(FreeDevice(d.name, d.type) for d in devs if d.free)
     states = tuple(
         DeviceState(d.name, d.type, d.free, d.online,
@@ -53,6 +49,16 @@ def view(now: float, ready: Iterable[Task], devices: dict[str, Device], finished
         for d in devs
     )
     return LabView(now, steps, free, states, finished, budget, in_lab)
+
+
+def _shown(t: Task, avoid: frozenset[str]) -> ReadyStep:
+    """``t`` as a scheduler sees it: the one built before while nothing in it changed (a view is built for every
+    decision, and a lab of hundreds of ready steps spent most of its time building them again)."""
+    made, last = t.experiment.sample_made, t.shown
+    if last is None or last.ready_since != t.ready_since or last.sample_made != made or last.avoid != avoid:
+        last = t.shown = ReadyStep(t.id, t.experiment.id, t.step.step, t.step.device, t.ready_since, made,
+                                   t.expected_s, t.work_remaining_s, avoid, t.then)
+    return last
 
 
 def problem(a: Assignment, ready: dict[str, Task], devices: dict[str, Device], dry: Dry | None = None) -> str:

@@ -16,10 +16,12 @@ CampaignCore = Any  # the core calls in here with itself (an import of it would 
 def review(core: CampaignCore) -> None:
     """Say at once when the work waiting for a device type has no usable instance left, and give it
     ``campaign.give_up_after_s`` before abandoning it; an instance that comes back resumes it."""
+    usable = {d.type for d in core.devices.values() if d.online and not d.quarantined}
+    if usable.issuperset(core.s.devices) and not (core._availability.stranded or core._availability.given_up):
+        return  # every type has a usable instance and none was stranded: nothing to say (the common case)
     waiting: dict[str, list[int]] = {}
     for t in [*core.ready.values(), *core._retrying.values()]:
         waiting.setdefault(t.step.device, []).append(t.experiment.id)
-    usable = {d.type for d in core.devices.values() if d.online and not d.quarantined}
     after = core.s.campaign.give_up_after_s
     for what, dtype in core._availability.review(waiting, usable, bool(core.stopping)):
         if what == "unavailable":
