@@ -187,6 +187,7 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
     paused by name; SIGTERM ends the lab with each campaign's summary and journal."""
     import signal
     import socket
+    import os
     import subprocess
     import sys
 
@@ -208,7 +209,8 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         (tmp_path / f"{c['name']}.yaml").write_text(yaml.safe_dump(c))
     lab = subprocess.Popen([sys.executable, "-m", "twin", "lab", "serve", str(tmp_path / "lab.yaml"), "--listen",
                             f"tcp/127.0.0.1:{port}", "--speed", "3000", "--journal", str(tmp_path / "runs")],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True,
+                           env={**os.environ, "COLUMNS": "200"})  # its summary's cells unfolded, whatever they hold
     runner, connect = CliRunner(), ["--lab", "shared", "--connect", f"tcp/127.0.0.1:{port}"]
     watcher = None
 
