@@ -22,6 +22,7 @@ class Reactor:
     outputs = frozenset({"max_temperature_k", "overshoot_k"})
     chemistry_models = frozenset({"catalyst"})
     option_names = frozenset({"kp", "ki", "kd", "telemetry_s", "dt_s", "controller"})
+    duration_param = "time_s"  # it heats, then holds for time_s: a step lasts at least that long
 
     def __init__(self, setup: DriverSetup) -> None:
         o = setup.options

@@ -192,17 +192,23 @@ def test_a_bench_of_schedulers_does_not_load_the_scenarios_own(tmp_path):
 
 
 def test_experiments_abandoned_by_deadlines_say_which_fields_set_them(tmp_path):
-    """flaky_lab's reactor with the reaction time left out of its expected duration: its deadlines are too short."""
+    """flaky_lab's reactor with the reaction time left out of its expected duration: its deadlines are too short,
+    which the run warns of before it starts (the reactor declares that its steps last time_s) and explains after."""
     text = (ROOT / "scenarios" / "flaky_lab.yaml").read_text()
     short = tmp_path / "short.yaml"
     short.write_text(text.replace("duration: {mean_s: 300, cv: 0.2, plus_param: time_s}", "duration: {mean_s: 300, cv: 0.2}"))
-    outs = {}
+    outs, warned = {}, {}
     for name, path in (("short", short), ("as written", ROOT / "scenarios" / "flaky_lab.yaml")):
         res = subprocess.run([*TWIN, "run", str(path), "--bus", "memory", "--budget", "8", "--journal",
                               str(tmp_path / f"{name}.db")], capture_output=True, text=True, cwd=ROOT, timeout=120,
                              env={**os.environ, "COLUMNS": "200"})
         assert res.returncode == 0, res.stderr
-        outs[name] = " ".join(res.stdout.split())
+        outs[name], warned[name] = " ".join(res.stdout.split()), " ".join(res.stderr.split())
+    # 300 + setup 120 + clean 600 = 1020 lab-s expected; × 1.5 + 600 = 2130; time_s goes up to 5400
+    assert ("devices.reactor.duration: a reactor step lasts at least time_s (up to 5400 lab-s here), which the "
+            "duration model leaves out, so its deadline is 2130 lab-s") in warned["short"]
+    assert "give devices.reactor.duration.plus_param: time_s" in warned["short"]
+    assert "devices.reactor.duration" not in warned["as written"]
     assert "react: timed_out — e.g. step 'react' failed 4 time(s); last: timed_out on reactor" in outs["short"]
     assert "the last attempt at react ran past its deadline" in outs["short"]
     assert "orchestrator.timeout_factor" in outs["short"] and "plus_param" in outs["short"]

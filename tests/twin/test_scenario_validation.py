@@ -163,6 +163,23 @@ def test_cli_run_of_a_bad_scenario_exits_2(tmp_path):
 def test_shipped_scenarios_validate():
     res = twin("validate", *sorted(str(p) for p in (ROOT / "scenarios").glob("*.yaml")))
     assert res.returncode == 0, res.stderr
+    assert "WARNING" not in res.stderr, res.stderr
+
+
+@pytest.mark.parametrize("hold_s, warned", [(20000, True), (600, False)])
+def test_a_hold_time_the_workflow_gives_is_weighed_against_the_deadline(tmp_path, caplog, hold_s, warned):
+    """The reactor's steps last time_s; here the workflow gives it (not the planner's box) and the duration model
+    leaves it out: a hold longer than the deadline is warned of, naming the field to give; a shorter one is not."""
+    raw = yaml.safe_load((ROOT / "scenarios" / "flaky_lab.yaml").read_text())
+    raw["devices"]["reactor"]["duration"].pop("plus_param")
+    del raw["chemistry"]["parameters"]["time_s"]
+    raw["workflow"][1]["params"] = {"time_s": hold_s}
+    s = load(write(tmp_path, raw))
+    with caplog.at_level("WARNING"):
+        check(s)
+    text = " ".join(r.getMessage() for r in caplog.records)
+    assert (f"devices.reactor.duration: a reactor step lasts at least time_s (up to {hold_s} lab-s here)" in text) \
+        is warned, text
 
 
 def test_twin_run_names_the_file_and_field_of_a_driver_it_cannot_load_before_running(tmp_path):

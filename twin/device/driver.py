@@ -96,7 +96,9 @@ class DriverFeatures(Protocol):
     ``outputs``: every output name its results can hold (a target on an output no device of the
     workflow produces is then refused by ``twin validate``). ``chemistry_models``: the scenario
     ``chemistry.model`` values it can simulate (others are refused). ``option_names``: every key its
-    ``setup.options`` may hold (a misspelt one is then refused, naming the field).
+    ``setup.options`` may hold (a misspelt one is then refused, naming the field). ``duration_param``: the
+    experiment parameter (lab seconds) its steps last at least as long as, a hold time (a scenario whose
+    duration model leaves it out, with deadlines shorter than its highest value, is then warned of).
     """
 
     labtwin_api: int
@@ -104,6 +106,7 @@ class DriverFeatures(Protocol):
     outputs: frozenset[str]
     chemistry_models: frozenset[str]
     option_names: frozenset[str]
+    duration_param: str
 
     async def connect(self, presence: Callable[[bool], None]) -> None: ...
 
@@ -113,7 +116,7 @@ class DriverFeatures(Protocol):
 
 
 FEATURES = frozenset({"labtwin_api", "realtime", "connect", "disconnect", "health", "outputs", "chemistry_models",
-                      "option_names"})
+                      "option_names", "duration_param"})
 
 
 def feature(driver: Any, name: str) -> Any:

@@ -10,9 +10,11 @@ from typing import Any
 from twin.core.errors import ScenarioError, TwinError
 from twin.campaign.human import DRIVER as HUMAN
 from twin.campaign.human import OPTION_NAMES as HUMAN_OPTIONS
+from twin.campaign.policy import deadline_s
 from twin.device.driver import feature
 from twin.runtime.assembly import load_driver, make_planner, make_scheduler
 from twin.scenario import Scenario, load
+from twin.scenario.model import expected_duration
 from twin.scenario.sharing import campaign_scenarios
 
 log = logging.getLogger(__name__)
@@ -60,6 +62,10 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
     problem = _unproduced(s, drivers, elsewhere)
     if problem:
         raise ScenarioError(s.name, [problem])
+    for dtype, driver in drivers.items():
+        problem = _short_deadline(s, dtype, driver)
+        if problem:
+            log.warning("%s", problem)
     simulated = twins and s.clock.mode == "virtual"  # on a scaled or wall clock the lab's own drivers run
     problem = _unproduced(s, {**drivers, **twins}, elsewhere, " with their twins (devices.*.twin)") if simulated else ""
     if problem:  # a twin that only keeps time still serves a scheduler's training or a what-if of device counts
@@ -69,6 +75,27 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         from twin.core.bus.zenoh_bus import check_config
 
         check_config(s.bus.zenoh)
+
+
+def _short_deadline(s: Scenario, dtype: str, driver: Any) -> str:
+    """A driver whose steps last as long as a parameter (``duration_param``) on a device type whose duration
+    model leaves that parameter out, with a deadline shorter than the parameter's highest value: its long
+    experiments would time out, attempt after attempt."""
+    param, spec = feature(driver, "duration_param"), s.devices[dtype]
+    if not isinstance(param, str) or spec.duration.plus_param == param:
+        return ""
+    box = s.chemistry.parameters.get(param)
+    given = [float(w.params[param]) for w in s.workflow if w.device == dtype and isinstance(w.params.get(param),
+                                                                                          (int, float))]
+    longest = max(given + ([box.high] if box is not None and not given else []), default=0.0)
+    expected = expected_duration(spec.duration, {}, spec.setup_s, spec.clean_s)
+    deadline = deadline_s(expected, s.orchestrator)
+    if longest <= deadline:
+        return ""
+    return (f"devices.{dtype}.duration: a {spec.driver} step lasts at least {param} (up to {longest:g} lab-s "
+            f"here), which the duration model leaves out, so its deadline is {deadline:.0f} lab-s ({expected:.0f} "
+            f"expected × orchestrator.timeout_factor + timeout_slack_s) and longer ones will time out: give "
+            f"devices.{dtype}.duration.plus_param: {param}")
 
 
 def _unproduced(s: Scenario, drivers: dict[str, Any], elsewhere: set[str], how: str = "") -> str:
