@@ -163,7 +163,21 @@ def test_cli_run_of_a_bad_scenario_exits_2(tmp_path):
 def test_shipped_scenarios_validate():
     res = twin("validate", *sorted(str(p) for p in (ROOT / "scenarios").glob("*.yaml")))
     assert res.returncode == 0, res.stderr
-    assert "WARNING" not in res.stderr, res.stderr
+    assert "warning" not in res.stdout + res.stderr, res.stdout + res.stderr
+
+
+def test_validate_shows_each_warning_under_the_file_that_gave_it(tmp_path):
+    """A lab whose measuring device only keeps time in the twin (the `machine` driver) can meet no target on a
+    virtual clock: valid, warned of, and the warning names its file — not the other file checked beside it."""
+    twin_only_times = {"driver": "machine", "options": {"steps": ["measure"]}}
+    twinned = write(tmp_path, qd_lab(**{"devices.spectrometer.twin": twin_only_times}), "twinned.yaml")
+    plain = write(tmp_path, qd_lab(), "plain.yaml")
+    res = twin("validate", str(twinned), str(plain))
+    assert res.returncode == 0, res.stderr
+    assert f"✓ {twinned} (1 warning(s))" in res.stdout and f"✓ {plain}\n" in res.stdout
+    warnings = [line for line in res.stderr.splitlines() if "warning:" in line]
+    assert len(warnings) == 1 and warnings[0].startswith(f"! {twinned}: warning: ")
+    assert "no experiment meets that target" in warnings[0]
 
 
 @pytest.mark.parametrize("hold_s, warned", [(20000, True), (600, False)])

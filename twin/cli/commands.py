@@ -241,19 +241,35 @@ def replay(
 
 @app.command()
 def validate(files: Annotated[list[Path], typer.Argument(help="scenario files")]) -> None:
-    """Check scenario files; every problem names its file, field and value."""
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    """Check scenario files; every problem names its file, field and value, and every warning its file."""
+    warned = _Warnings()
+    logging.getLogger().addHandler(warned)
     bad = 0
     for f in files:
+        warned.said.clear()
         try:
             validate_file(f)
         except TwinError as exc:
             bad += 1
             err.print(f"[red]✗[/] {exc}", highlight=False)
         else:
-            console.print(f"[green]✓[/] {f}")
+            said = f" ({len(warned.said)} warning(s))" if warned.said else ""
+            console.print(f"[green]✓[/] {escape(str(f))}{said}", highlight=False, soft_wrap=True)
+        for text in warned.said:
+            err.print(f"[yellow]![/] {escape(str(f))}: warning: {escape(text)}", highlight=False, soft_wrap=True)
     if bad:
         raise typer.Exit(2)
+
+
+class _Warnings(logging.Handler):
+    """What checking one file warned of, to be shown under its name (several files: which one said it)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.said: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.said.append(record.getMessage())
 
 
 @app.command()
