@@ -55,7 +55,8 @@ class Task:
     excused: int = 0  # attempts refused "not now" or stopped by an operator: numbered, not counted against retries
     retrying_since: float | None = None  # its first failure or "not now": retry.max_delay_s counts from here
     barred: frozenset[str] = frozenset()  # devices it may not go to (an operator chose another device)
-    shown: Any = None  # its ReadyStep as a scheduler last saw it (dispatch.view builds it again only if it changed)
+    # its ReadyStep as a scheduler last saw it (dispatch.view builds it again only if it changed): a cache, not state
+    shown: Any = field(default=None, compare=False, repr=False)
 
 
 @dataclass(slots=True)
