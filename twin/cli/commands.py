@@ -245,18 +245,21 @@ def validate(files: Annotated[list[Path], typer.Argument(help="scenario files")]
     warned = _Warnings()
     logging.getLogger().addHandler(warned)
     bad = 0
-    for f in files:
-        warned.said.clear()
-        try:
-            validate_file(f)
-        except TwinError as exc:
-            bad += 1
-            err.print(f"[red]✗[/] {exc}", highlight=False)
-        else:
-            said = f" ({len(warned.said)} warning(s))" if warned.said else ""
-            console.print(f"[green]✓[/] {escape(str(f))}{said}", highlight=False, soft_wrap=True)
-        for text in warned.said:
-            err.print(f"[yellow]![/] {escape(str(f))}: warning: {escape(text)}", highlight=False, soft_wrap=True)
+    try:
+        for f in files:
+            warned.said.clear()
+            try:
+                validate_file(f)
+            except TwinError as exc:
+                bad += 1
+                err.print(f"[red]✗[/] {exc}", highlight=False)
+            else:
+                said = f" ({len(warned.said)} warning(s))" if warned.said else ""
+                console.print(f"[green]✓[/] {escape(str(f))}{said}", highlight=False, soft_wrap=True)
+            for text in warned.said:
+                err.print(f"[yellow]![/] {escape(str(f))}: warning: {escape(text)}", highlight=False, soft_wrap=True)
+    finally:  # in-process callers (tests, a notebook) keep no handler of this command's
+        logging.getLogger().removeHandler(warned)
     if bad:
         raise typer.Exit(2)
 
