@@ -28,8 +28,8 @@ a schedule within a few percent of the optimum. So the candidate policy can lear
 - the learner is trained by cross-entropy on every label so far: minus the log of the probability it gives to
   the teacher's set of choices.
 
-Solves and rollouts run in worker processes (``spawn``); each returns compact samples (only the rows that
-exist). ``agents.train_scheduler.Judge`` evaluates and keeps the best policy exactly as for PPO.
+Solves and rollouts run in worker processes (``spawn``), or in the trainer's own process when one worker is
+asked for; each returns compact samples (only the rows that exist). ``agents.train_scheduler.Judge`` evaluates and keeps the best policy exactly as for PPO.
 """
 
 from __future__ import annotations
@@ -298,6 +298,25 @@ def _round_seen(scenario: Scenario, rnd: int, itself: bool, jobshop: bool, measu
             {f"{mode} ÷ {'plan' if jobshop else 'rule'}": statistics.mean(m[mode] for m in measured)})
 
 
+class _InProcess:
+    """One worker: the tasks run in the trainer's process, in the order given, as a pool of one would run them —
+    without a process to start (seconds of imports, longer than a short training's rounds)."""
+
+    def __enter__(self) -> "_InProcess":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        return None
+
+    @staticmethod
+    def imap_unordered(task, jobs):
+        return map(task, jobs)
+
+
+def _pool(workers: int) -> Any:
+    return _InProcess() if workers <= 1 else _spawn_pool(workers)
+
+
 def _spawn_pool(workers: int) -> Any:
     """Spawned workers, started with Ctrl-C held back until all are: one landing while a worker is handed its
     start-up data leaves the worker reading half of it (a traceback after "interrupted"), and a pool half-built
@@ -308,11 +327,11 @@ def _spawn_pool(workers: int) -> Any:
 
     start = multiprocessing.get_context("spawn").Pool
     if threading.current_thread() is not threading.main_thread():
-        return start(max(1, workers), initializer=_quiet_worker)
+        return start(workers, initializer=_quiet_worker)
     held: list[Any] = []
     previous = signal.signal(signal.SIGINT, lambda *sig: held.append(sig))
     try:
-        pool = start(max(1, workers), initializer=_quiet_worker)
+        pool = start(workers, initializer=_quiet_worker)
     finally:
         signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
     if held:
@@ -398,7 +417,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
         judge(model, 0, fits, "start (--init)")
     data: list[Sample] = []
     done, rnd, shop, per_shop = 0, 0, seed * 1_000_000, 150.0
-    with _spawn_pool(workers) as pool:
+    with _pool(workers) as pool:
         while done < steps:
             left = steps - done
             if rnd > 0 and left < min(eval_every, done) / 4:

@@ -144,7 +144,9 @@ def test_a_lab_that_says_nothing_of_training_learns_from_its_best_rule(tmp_path)
     draw, the best rule for any other lab — not PPO from scratch, which needs far more steps to reach the rules."""
     from agents.train_scheduler import with_teacher
 
-    plain = prepare(ROOT / "scenarios" / "quantum_dots.yaml", overrides={"campaign.budget": 6})
+    # the random planner: what is learnt is the dispatching, and GP fits would take most of the time
+    plain = prepare(ROOT / "scenarios" / "quantum_dots.yaml", overrides={"campaign.budget": 6,
+                                                                            "campaign.planner": "random"})
     assert "training" not in (ROOT / "scenarios" / "quantum_dots.yaml").read_text()
     assert with_teacher(plain).training.teacher == "best-rule"
     assert with_teacher(prepare(ROOT / "scenarios" / "jobshop.yaml")).training.teacher == "cp-sat"
@@ -155,10 +157,18 @@ def test_a_lab_that_says_nothing_of_training_learns_from_its_best_rule(tmp_path)
     assert meta["curve"][-1]["objective vs best rule"] <= 1.02, meta["curve"]
 
 
-def test_a_short_training_of_a_lab_with_few_decisions_gathers_about_the_labels_asked(tmp_path):
+def test_a_short_training_of_a_lab_with_few_decisions_gathers_about_the_labels_asked(tmp_path, monkeypatch):
     """Its first round guesses 150 labels a lab; quantum_dots' six experiments give a dozen, and training stopped
-    after that round with a tenth of what was asked (`twin train lab.yaml --steps 3000`: 1,301 labels)."""
-    plain = prepare(ROOT / "scenarios" / "quantum_dots.yaml", overrides={"campaign.budget": 6})
+    after that round with a tenth of what was asked (`twin train lab.yaml --steps 3000`: 1,301 labels). One worker
+    (`--envs 1`) is the trainer's own process: no process is started (a spawned one cost ~5 s of imports here)."""
+    import multiprocessing
+
+    def no_process(*args, **kwargs):
+        raise AssertionError("a worker process was started for --envs 1")
+
+    monkeypatch.setattr(type(multiprocessing.get_context("spawn")), "Pool", no_process)
+    plain = prepare(ROOT / "scenarios" / "quantum_dots.yaml", overrides={"campaign.budget": 6,
+                                                                            "campaign.planner": "random"})
     out = train_scheduler(plain, 400, tmp_path / "qd.zip", envs=1, eval_seeds=(0,), held_out_count=1)
     curve = json.loads(out.with_suffix(".json").read_text())["curve"]
     assert 0.75 * 400 <= curve[-1]["steps"] <= 1.5 * 400, curve
