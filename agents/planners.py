@@ -5,8 +5,6 @@ from __future__ import annotations
 import random
 from typing import Any
 
-from scipy.stats import qmc
-
 from twin import Outcome, Proposal, RouteStep
 
 
@@ -74,6 +72,8 @@ class LhsPlanner:
         box = list(parameters.values())
         self._lo = [p.low for p in box]
         self._hi = [p.high for p in box]
+        from scipy.stats import qmc  # here: scipy.stats takes ~1 s to import, which labs planning at random never need
+
         sampler = qmc.LatinHypercube(d=max(1, len(box)), seed=random.Random(f"lhs:{seed}").getrandbits(32))
         self._design = qmc.scale(sampler.random(max(1, budget)), self._lo, self._hi) if box else []
         self._next = 0
