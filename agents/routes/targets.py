@@ -34,8 +34,13 @@ def _slots(templates: tuple[Template, ...], stock: Stock) -> dict[str, list[list
     return out
 
 
+@lru_cache(maxsize=4096)  # a chain tries up to 200 templates on the same product: parsed once, only read
+def _molecule(smiles: str) -> Chem.Mol:
+    return Chem.MolFromSmiles(smiles)
+
+
 def _fits(template: Template, slot: int, smiles: str) -> bool:
-    return Chem.MolFromSmiles(smiles).HasSubstructMatch(template.forward.GetReactantTemplate(slot))
+    return _molecule(smiles).HasSubstructMatch(template.forward.GetReactantTemplate(slot))
 
 
 def make_target(templates: tuple[Template, ...], stock: Stock, steps: int, seed: int,

@@ -48,6 +48,7 @@ class Template:
         return self.forward.GetNumReactantTemplates()
 
 
+@lru_cache(maxsize=1 << 16)  # a search writes the same molecules again and again: each parse costs ~0.2 ms
 def canonical(smiles: str) -> str | None:
     """RDKit's canonical SMILES of ``smiles`` (None if it does not parse, or is no molecule: RDKit reads '' as one of
     no atoms)."""
