@@ -80,6 +80,30 @@ def test_the_peak_fit_recovers_a_noisy_band():
     assert fit["height"] == pytest.approx(0.8, rel=0.05)
 
 
+def test_the_peak_fit_is_numpys_weighted_least_squares_parabola():
+    """The closed form ``fit_peak`` solves is ``np.polyfit(x, log y, 2, w=y)``: on bands narrow and wide, faint and
+    strong, at the grid's edges too."""
+    rng = np.random.default_rng(3)
+    fitted = 0
+    for _ in range(400):
+        y = spectra.render([(rng.uniform(380, 770), rng.uniform(4, 120), rng.uniform(0.01, 1))], rng.uniform(5e-4, 0.1),
+                           rng)
+        top = int(np.argmax(y))
+        near = y > 0.3 * y[top]
+        lo = hi = top
+        while lo > 0 and near[lo - 1]:
+            lo -= 1
+        while hi < len(y) - 1 and near[hi + 1]:
+            hi += 1
+        if hi - lo < 2:
+            continue
+        x, yy = spectra.GRID_NM[lo:hi + 1] - spectra.GRID_NM[top], y[lo:hi + 1]
+        assert spectra._log_parabola(x.tolist(), yy.tolist()) == pytest.approx(np.polyfit(x, np.log(yy), 2, w=yy),
+                                                                              rel=1e-9)
+        fitted += 1
+    assert fitted > 300
+
+
 def test_ingan_band_gap_bows_between_gan_and_inn():
     from devices.models import bandgap
 
