@@ -20,7 +20,8 @@ LAB = ROOT / "scenarios" / "shared_lab.yaml"
 SHIPPED = ROOT / "agents" / "policies" / "flaky_scheduler.zip"
 EARLIER = ROOT / "tests" / "data" / "jobshop_scheduler_v2.zip"  # a policy of an earlier encoding, candidates-v2
 torch.set_num_threads(1)
-CONTENDED = {"campaigns.1.priority": 0, "devices.spectrometer.duration.mean_s": 1500}  # both queue at one device
+CONTENDED = {"campaigns.1.priority": 0, "devices.spectrometer.duration.mean_s": 1500,  # both queue at one device
+             "campaigns.0.campaign.budget": 16, "campaigns.1.campaign.budget": 12}
 
 
 def columns(view: LabView, lab) -> dict[str, tuple]:

@@ -42,7 +42,7 @@ def test_every_shipped_candidate_policy_records_the_range_it_was_judged_on():
 
 def test_a_larger_lab_is_seen_inside_the_range_and_scheduled_near_the_rule(ft06):
     lab = long_shop(ft06)
-    agent = RlScheduler(lab, str(POLICY))
+    agent, raw_reader = RlScheduler(lab, str(POLICY)), unheld(lab).encoder
     held, width, beyond = agent.encoder.held, agent.encoder.width, []
 
     def decide(view):
@@ -52,7 +52,7 @@ def test_a_larger_lab_is_seen_inside_the_range_and_scheduled_near_the_rule(ft06)
         glob = obs[MAX_CANDIDATES * width:]
         assert (rows >= held.lo - 1e-6).all() and (rows <= held.hi + 1e-6).all()
         assert (glob >= held.glo - 1e-6).all() and (glob <= held.ghi + 1e-6).all()
-        raw = unheld(lab).encoder.encode(view)[0][MAX_CANDIDATES * width:]
+        raw = raw_reader.encode(view)[0][MAX_CANDIDATES * width:]
         beyond.append(bool((raw > held.ghi + 1e-6).any()))
         return out
 

@@ -54,7 +54,7 @@ def test_short_ppo_training_improves_its_own_return_and_leaves_no_log_directory(
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))  # where SB3's default logger makes SB3-<time>/
     untrained = PPO("MlpPolicy", PlanningEnv(qd), seed=0, device="cpu")
     before = evaluate(qd, lambda o, _: untrained.predict(o, deterministic=True)[0], episodes=12)
-    path = train_planner(qd, 16_384, tmp_path / "p.zip", envs=4, eval_every=16_384)
+    path = train_planner(qd, 8192, tmp_path / "p.zip", envs=4, eval_every=8192)
     model = load_policy(path, "planner", signature(list(qd.chemistry.parameters), ["peak_nm"]))
     after = evaluate(qd, lambda o, _: model.predict(o, deterministic=True)[0], episodes=12)
     assert after["return"] > before["return"] + 0.5, (before, after)

@@ -109,7 +109,8 @@ def test_the_shapes_bench_at_80_columns_heads_a_policys_column_with_its_name_who
     header's words are kept whole when the table still fits."""
     env = {**os.environ, "COLUMNS": "80"}
     res = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/flaky_lab.yaml", "--shapes",
-                          "--seeds", "2", "--schedulers", "fifo,mwkr,rl:agents/policies/flaky_scheduler.zip"],
+                          "--seeds", "2", "--schedulers", "fifo,mwkr,rl:agents/policies/flaky_scheduler.zip",
+                          "--set", "campaign.budget=8"],  # the table's shape, not its numbers
                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stderr
     assert max(map(len, res.stdout.splitlines())) <= 80
