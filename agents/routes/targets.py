@@ -10,7 +10,7 @@ from functools import lru_cache
 from rdkit import Chem
 
 from agents.routes.stock import Stock
-from agents.routes.templates import Template, _products
+from agents.routes.templates import Template, _mol, _products
 
 HELD_OUT_SEED = 1_000_000  # held-out targets are drawn from seeds at or above this; training ones below
 MAX_HEAVY_ATOMS = 45
@@ -34,13 +34,8 @@ def _slots(templates: tuple[Template, ...], stock: Stock) -> dict[str, list[list
     return out
 
 
-@lru_cache(maxsize=4096)  # a chain tries up to 200 templates on the same product: parsed once, only read
-def _molecule(smiles: str) -> Chem.Mol:
-    return Chem.MolFromSmiles(smiles)
-
-
 def _fits(template: Template, slot: int, smiles: str) -> bool:
-    return _molecule(smiles).HasSubstructMatch(template.forward.GetReactantTemplate(slot))
+    return _mol(smiles).HasSubstructMatch(template.forward.GetReactantTemplate(slot))  # parsed once (cached)
 
 
 def make_target(templates: tuple[Template, ...], stock: Stock, steps: int, seed: int,

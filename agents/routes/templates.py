@@ -56,6 +56,7 @@ def canonical(smiles: str) -> str | None:
     return Chem.MolToSmiles(mol) if mol is not None and mol.GetNumAtoms() else None
 
 
+@lru_cache(maxsize=1 << 14)  # a molecule is parsed once for all 49 templates tried backwards on it; only read after
 def _mol(smiles: str) -> Chem.Mol:
     mol = Chem.MolFromSmiles(smiles)
     if mol is None:
