@@ -104,7 +104,6 @@ def _has_experiments(db: Path) -> bool:
         return False
 
 
-@pytest.mark.process  # a `twin` command in its own process: beside the CPU-bound tests
 def test_train_prints_its_evaluation_curve_and_saves_a_policy_with_its_sidecar(tmp_path):
     out = tmp_path / "heater.zip"
     rrd = tmp_path / "curve.rrd"

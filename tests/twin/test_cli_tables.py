@@ -7,8 +7,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -88,7 +86,6 @@ def test_a_narrow_table_keeps_numbers_whole_and_fits_80_columns(monkeypatch):
     assert names in (["least-loaded", "rl:flaky_scheduler"], ["least-", "loaded", "rl:flaky_", "scheduler"]), text
 
 
-@pytest.mark.process  # a `twin` command in its own process: beside the CPU-bound tests
 def test_a_job_shop_bench_at_80_columns_keeps_the_policy_name_whole_and_leaves_out_counts_that_are_nought():
     """A job shop degrades no sample, abandons nothing and needs no fallback: those columns took the room that
     folded 'rl:jobshop_scheduler' over three lines; the caption says what they would have shown."""
@@ -107,7 +104,6 @@ def test_a_job_shop_bench_at_80_columns_keeps_the_policy_name_whole_and_leaves_o
     assert "no run degraded a sample, abandoned an experiment or needed the fallback rule (not shown)" in caption
 
 
-@pytest.mark.process  # a `twin` command in its own process: beside the CPU-bound tests
 def test_the_shapes_bench_at_80_columns_heads_a_policys_column_with_its_name_whole():
     """It was headed 'rl:flaky_schedu' over 'ler' with room to spare: the name now breaks after 'rl:', and a
     header's words are kept whole when the table still fits."""

@@ -4,8 +4,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 from tests.conftest import qd_lab
 from twin.scenario import parse
 from twin.tools.shape_bench import shapes, variants, verdict
@@ -29,7 +27,6 @@ def test_each_shape_compares_every_scheduler_with_its_best_rule_on_paired_seeds(
     assert (verdict(-1.0, 0.5), verdict(1.0, 0.5), verdict(0.2, 0.5)) == ("better", "worse", "same")
 
 
-@pytest.mark.process  # a `twin` command in its own process: beside the CPU-bound tests
 def test_the_cli_refuses_shapes_of_a_job_shop_and_says_what_to_use(tmp_path):
     env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
     out = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/jobshop.yaml", "--shapes",
@@ -37,7 +34,6 @@ def test_the_cli_refuses_shapes_of_a_job_shop_and_says_what_to_use(tmp_path):
     assert out.returncode == 2 and "--jobshop" in out.stderr
 
 
-@pytest.mark.process  # a `twin` command in its own process: beside the CPU-bound tests
 def test_a_bench_keeps_device_alerts_out_of_its_output_that_a_single_run_prints(tmp_path, caplog):
     crashing = ["devices.spectrometer.instances=1", "devices.spectrometer.faults.mtbc_h=0.5"]
     from twin import run
@@ -65,7 +61,6 @@ def test_a_bench_keeps_device_alerts_out_of_its_output_that_a_single_run_prints(
     assert any(line.split()[:1] == ["fifo"] for line in raising.stdout.splitlines()), raising.stdout
 
 
-@pytest.mark.process  # a `twin` command in its own process: beside the CPU-bound tests
 def test_shapes_give_every_run_and_every_comparison_to_machines(tmp_path):
     import csv
     import json
@@ -87,7 +82,6 @@ def test_shapes_give_every_run_and_every_comparison_to_machines(tmp_path):
         assert abs(statistics.mean(diffs) - c["diff_h"]) < 1e-9
 
 
-@pytest.mark.process  # a `twin` command in its own process: beside the CPU-bound tests
 def test_by_objective_each_degraded_sample_and_abandoned_experiment_counts_as_the_weights_say(tmp_path):
     import json
 
@@ -124,7 +118,6 @@ def test_by_objective_each_degraded_sample_and_abandoned_experiment_counts_as_th
     assert refused.returncode == 2 and "training.weights.time, which is 0" in refused.stderr
 
 
-@pytest.mark.process  # a `twin` command in its own process: beside the CPU-bound tests
 def test_a_lab_that_stops_at_its_targets_is_compared_with_a_word_on_chance():
     """catalyst's shapes by lab-h to target with a random planner: one scheduler's seed took 4 h and another's 31 h,
     as the first experiment to meet the target came at a different turn; the table now says so, and how to
