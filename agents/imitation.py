@@ -28,8 +28,9 @@ a schedule within a few percent of the optimum. So the candidate policy can lear
 - the learner is trained by cross-entropy on every label so far: minus the log of the probability it gives to
   the teacher's set of choices.
 
-Solves and rollouts run in worker processes (``spawn``), or in the trainer's own process when one worker is
-asked for; each returns compact samples (only the rows that exist). ``agents.train_scheduler.Judge`` evaluates and keeps the best policy exactly as for PPO.
+Solves and rollouts run in worker processes (``agents.training_workers``; one worker: the trainer's own process);
+each returns compact samples (only the rows that exist). ``agents.train_scheduler.Judge`` evaluates and keeps the
+best policy exactly as for PPO.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ from agents.scheduling_env import randomised
 from agents.schedulers import rules_for
 from agents.teachers import PlanTeacher, RuleTeacher, solve_time
 from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, initial_state, objective, started_from
+from agents.training_workers import workers_for
 from twin import PluginError, Scenario, jobshop_as_lab, load_plugin, prepare, random_jobshop, stepped
 
 
@@ -298,56 +300,6 @@ def _round_seen(scenario: Scenario, rnd: int, itself: bool, jobshop: bool, measu
             {f"{mode} ÷ {'plan' if jobshop else 'rule'}": statistics.mean(m[mode] for m in measured)})
 
 
-class _InProcess:
-    """One worker: the tasks run in the trainer's process, in the order given, as a pool of one would run them —
-    without a process to start (seconds of imports, longer than a short training's rounds)."""
-
-    def __enter__(self) -> "_InProcess":
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        return None
-
-    @staticmethod
-    def imap_unordered(task, jobs):
-        return map(task, jobs)
-
-
-def _pool(workers: int) -> Any:
-    return _InProcess() if workers <= 1 else _spawn_pool(workers)
-
-
-def _spawn_pool(workers: int) -> Any:
-    """Spawned workers, started with Ctrl-C held back until all are: one landing while a worker is handed its
-    start-up data leaves the worker reading half of it (a traceback after "interrupted"), and a pool half-built
-    is not stopped (``Pool`` cleans up only on ``Exception``)."""
-    import multiprocessing
-    import signal
-    import threading
-
-    start = multiprocessing.get_context("spawn").Pool
-    if threading.current_thread() is not threading.main_thread():
-        return start(workers, initializer=_quiet_worker)
-    held: list[Any] = []
-    previous = signal.signal(signal.SIGINT, lambda *sig: held.append(sig))
-    try:
-        pool = start(workers, initializer=_quiet_worker)
-    finally:
-        signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
-    if held:
-        pool.terminate()
-        pool.join()
-        raise KeyboardInterrupt
-    return pool
-
-
-def _quiet_worker() -> None:
-    """Ctrl-C reaches the whole process group: the trainer stops the workers and says what it kept."""
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-
-
 def training_fits(scenario: Scenario) -> dict:
     """The shapes a policy trained on ``scenario``'s random shops has seen."""
     machines = [m for _, m in scenario.training.jobshop_sizes]
@@ -417,7 +369,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
         judge(model, 0, fits, "start (--init)")
     data: list[Sample] = []
     done, rnd, shop, per_shop = 0, 0, seed * 1_000_000, 150.0
-    with _pool(workers) as pool:
+    with workers_for(workers) as pool:
         while done < steps:
             left = steps - done
             if rnd > 0 and left < min(eval_every, done) / 4:

@@ -35,7 +35,7 @@ def _slots(templates: tuple[Template, ...], stock: Stock) -> dict[str, list[list
 
 
 def _fits(template: Template, slot: int, smiles: str) -> bool:
-    return _mol(smiles).HasSubstructMatch(template.forward.GetReactantTemplate(slot))  # parsed once (cached)
+    return _mol(smiles).HasSubstructMatch(template.forward.GetReactantTemplate(slot))
 
 
 def make_target(templates: tuple[Template, ...], stock: Stock, steps: int, seed: int,
@@ -63,9 +63,9 @@ def make_target(templates: tuple[Template, ...], stock: Stock, steps: int, seed:
                 if any(not c for i, c in enumerate(choices) if i != place):
                     continue
                 reactants = [current if i == place else rng.choice(c) for i, c in enumerate(choices)]
-            outcomes = {o[0] for o in _products(t.forward, tuple(Chem.MolFromSmiles(r) for r in reactants))}
+            outcomes = {o[0] for o in _products(t.forward, tuple(_mol(r) for r in reactants))}
             outcomes = sorted(o for o in outcomes if o not in stock and o not in seen and o not in reactants
-                              and Chem.MolFromSmiles(o).GetNumHeavyAtoms() <= MAX_HEAVY_ATOMS)
+                              and _mol(o).GetNumHeavyAtoms() <= MAX_HEAVY_ATOMS)
             if outcomes:
                 current = rng.choice(outcomes)
                 seen.add(current)

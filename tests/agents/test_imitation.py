@@ -192,7 +192,7 @@ def test_ctrl_c_while_the_training_workers_start_lets_them_start_then_stops_them
     import multiprocessing
     import signal
 
-    from agents import imitation
+    from agents import training_workers
 
     kind = type(multiprocessing.get_context("spawn"))
     real, built = kind.Pool, []
@@ -204,6 +204,6 @@ def test_ctrl_c_while_the_training_workers_start_lets_them_start_then_stops_them
 
     monkeypatch.setattr(kind, "Pool", pool)
     with pytest.raises(KeyboardInterrupt):
-        imitation._spawn_pool(2)
+        training_workers.spawn_pool(2)
     assert built and not any(worker.is_alive() for worker in built[0]._pool)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Ctrl-C is Ctrl-C again
