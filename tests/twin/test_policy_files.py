@@ -124,3 +124,21 @@ def test_twin_run_with_a_hostile_policy_says_why_and_runs_nothing(tmp_path):
     assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
     assert "does not run code from a policy file" in " ".join(res.stderr.split())
     assert not marker.exists()
+
+
+def test_a_policy_loaded_to_decide_leaves_torchs_compiler_unimported_and_its_optimizer_still_steps():
+    """Loading builds the policy's optimizer; torch's first optimizer call imports torch._dynamo (seconds), which
+    a policy that only decides does not need. Its optimizer still works: ``--init`` trains from a loaded policy."""
+    code = """
+import sys, torch
+from twin import load_scenario
+from agents.rl_scheduler import RlScheduler
+model = RlScheduler(load_scenario('scenarios/jobshop.yaml'), policy='agents/policies/jobshop_scheduler.zip').model
+print('torch._dynamo' in sys.modules)
+before = [p.detach().clone() for p in model.policy.parameters()]
+sum(p.square().sum() for p in model.policy.parameters()).backward()
+model.policy.optimizer.step()
+print(any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters())))
+"""
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.stdout.split() == ["False", "True"], res.stderr

@@ -65,11 +65,31 @@ def load_policy(path: str | Path, kind: str, signature: dict[str, Any]) -> Any:
     if algorithm is None:
         raise PluginError(f"{path}: unknown algorithm {meta.get('algorithm')!r}")
     objects = safe_objects(path)  # SB3 would unpickle these itself, running whatever they ask
+    _optimizer_without_dynamo()
     try:
         return algorithm.load(path, device="cpu", custom_objects=objects)
     except Exception as exc:
         raise PluginError(f"{path}: the policy cannot be loaded ({type(exc).__name__}: {exc}); "
                           "save it again with `twin train`") from exc
+
+
+def _optimizer_without_dynamo() -> None:
+    """Loading a policy builds its optimizer, whose methods torch wraps to keep ``torch.compile`` out; the first
+    call imports ``torch._dynamo`` to do that: 2 s of a `twin run --scheduler rl:…` start here, for a policy
+    that only decides. Nothing in labtwin compiles, so the wrappers are told to call the methods as they are
+    (what torch itself caches after that first call). Training still imports it: ``step`` asks for it."""
+    import torch.optim
+    from torch._compile import _disable_dynamo
+
+    wrapper = _disable_dynamo(_plain).__code__  # the code of every method so wrapped
+    classes = [torch.optim.Optimizer]
+    while classes:
+        cls = classes.pop()
+        classes.extend(cls.__subclasses__())
+        for attr in vars(cls).values():
+            method = getattr(attr, "__wrapped__", None)
+            if method is not None and getattr(attr, "__code__", None) is wrapper:
+                method.__dynamo_disable = method
 
 
 def _plain(value: Any) -> Any:
