@@ -1,6 +1,7 @@
 """`twin run`, `twin report` and Ctrl-C, as a user meets them."""
 
 import json
+import re
 import os
 import signal
 import sqlite3
@@ -326,6 +327,28 @@ def test_the_command_list_shows_each_summary_as_one_paragraph():
     text = " ".join(res.stdout.split())
     assert "acts as tables (one file each) and its provenance" in text
     assert "or with --connect the devices of a running lab and their health" in text
+
+
+def test_every_repeatable_option_says_what_it_takes_not_its_python_type():
+    """typer shows a repeatable option's type as `<list[str]>`, which reads as if a list were typed; each says
+    what one use takes instead (`--set FIELD=VALUE`, `--connect ENDPOINT`)."""
+    from typer.main import get_command
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    def commands(group, path: list[str]):  # typer's own click: a group is what has commands
+        for name, command in group.commands.items():
+            if hasattr(command, "commands"):
+                yield from commands(command, [*path, name])
+            else:
+                yield " ".join([*path, name]), command
+
+    repeatable = {(path, p.name): p.metavar for path, command in commands(get_command(app), [])
+                  for p in command.params if getattr(p, "multiple", False)}
+    assert len(repeatable) > 20 and [k for k, metavar in repeatable.items() if not metavar] == []
+    res = CliRunner().invoke(app, ["run", "--help"], env={"COLUMNS": "100"})
+    assert "list[" not in res.output and re.search(r"--set +FIELD=VALUE", res.output), res.output
 
 
 @pytest.mark.parametrize("args", [

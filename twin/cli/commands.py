@@ -48,12 +48,16 @@ def run(
     budget: Annotated[Optional[int], typer.Option(help="override campaign.budget")] = None,
     planner: Annotated[Optional[str], typer.Option(help="override campaign.planner (twin bench planners lists them)")] = None,
     scheduler: Annotated[Optional[str], typer.Option(help="override campaign.scheduler")] = None,
-    set_: Annotated[Optional[list[str]], typer.Option("--set", help="override any scenario field, e.g. "
-                                                      "devices.spectrometer.instances=2; repeatable")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",
+                                                      help="override any scenario field, e.g. "
+                                                           "devices.spectrometer.instances=2; repeatable")] = None,
     journal: Annotated[Optional[Path], typer.Option(help="where to write the SQLite journal")] = None,
-    external: Annotated[Optional[list[str]], typer.Option(help="a device served by another process")] = None,
-    listen: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447")] = None,
-    connect: Annotated[Optional[list[str]], typer.Option(help="the lab's router, e.g. tls/127.0.0.1:7447")] = None,
+    external: Annotated[Optional[list[str]], typer.Option(metavar="DEVICE",
+                                                          help="a device served by another process")] = None,
+    listen: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT",
+                                                        help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447")] = None,
+    connect: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT",
+                                                         help="the lab's router, e.g. tls/127.0.0.1:7447")] = None,
     security: Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
                                                           "join the router with the orchestrator's certificate")] = None,
     insecure: Annotated[bool, typer.Option(help="allow --listen beyond loopback without security")] = False,
@@ -188,8 +192,10 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
 @app.command()
 def watch(
     lab_name: Annotated[str, typer.Option("--lab", help="the lab to watch (the scenario's `lab` field)")],
-    connect: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")] = None,
-    listen: Annotated[Optional[list[str]], typer.Option(help="listen instead, for a lab that connects to us")] = None,
+    connect: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT",
+                                                         help="Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")] = None,
+    listen: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT",
+                                                        help="listen instead, for a lab that connects to us")] = None,
     save: Annotated[Optional[Path], typer.Option(help="save the recording, e.g. watch.rrd")] = None,
     viewer: Annotated[bool, typer.Option(help="open the Rerun viewer")] = False,
     serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,
@@ -240,7 +246,7 @@ def replay(
 
 
 @app.command()
-def validate(files: Annotated[list[Path], typer.Argument(help="scenario files")]) -> None:
+def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="scenario files")]) -> None:
     """Check scenario files; every problem names its file, field and value, and every warning its file."""
     warned = _Warnings()
     logging.getLogger().addHandler(warned)
@@ -324,7 +330,8 @@ def _report(journal: Path, resume_with: Path | None = None) -> None:
 
 @app.command()
 def devices(
-    connect: Annotated[Optional[list[str]], typer.Option(help="instead, list the devices on a running lab's bus "
+    connect: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT",
+                                                         help="instead, list the devices on a running lab's bus "
                                                               "(a Zenoh endpoint, e.g. tcp/127.0.0.1:7447), with "
                                                               "their health")] = None,
     lab_name: Annotated[Optional[str], typer.Option("--lab", help="the lab (the scenario's `lab`), with --connect")] = None,

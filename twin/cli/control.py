@@ -20,7 +20,8 @@ ctl_app = typer.Typer(help="Operate a running campaign: status, pause, resume, a
 app.add_typer(ctl_app, name="ctl")
 
 Lab = Annotated[str, typer.Option("--lab", help="the lab (the scenario's `lab` field)")]
-Connect = Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447 (the "
+Connect = Annotated[list[str], typer.Option(metavar="ENDPOINT",
+                                            help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447 (the "
                                                  "campaign's --listen, or the lab's router)")]
 Security = Annotated[Optional[Path], typer.Option(help="the lab's security directory: ask as its operator")]
 Who = Annotated[Optional[str], typer.Option("--as", help="the name the journal records (default: your login)")]

@@ -28,7 +28,8 @@ def _serving(serve, *args) -> None:
 def device_serve(
     scenario: Annotated[Path, typer.Argument(help="the scenario the device belongs to")],
     name: Annotated[str, typer.Option("--id", help="the device instance, e.g. spectrometer-2")],
-    connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
+    connect: Annotated[list[str], typer.Option(metavar="ENDPOINT",
+                                               help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
     clock: Annotated[Optional[str], typer.Option(help="scaled | wall: insist on this clock (default: follow the "
                                                       "lab's, whatever it is)")] = None,
     speed: Annotated[Optional[float], typer.Option(help="insist on this many lab seconds per wall second "
@@ -48,8 +49,10 @@ def device_serve(
 def security_init(
     directory: Annotated[Path, typer.Argument(help="where to write the lab's CA, certificates and configs")],
     lab: Annotated[str, typer.Option(help="the lab (the scenario's `lab` field)")],
-    device: Annotated[Optional[list[str]], typer.Option(help="a device instance, e.g. spectrometer-2 (repeat)")] = None,
-    host: Annotated[Optional[list[str]], typer.Option(help="a name or address the router is reached at (repeat; "
+    device: Annotated[Optional[list[str]], typer.Option(metavar="DEVICE",
+                                                        help="a device instance, e.g. spectrometer-2 (repeat)")] = None,
+    host: Annotated[Optional[list[str]], typer.Option(metavar="HOST",
+                                                      help="a name or address the router is reached at (repeat; "
                                                            "default localhost and 127.0.0.1)")] = None,
     endpoint: Annotated[str, typer.Option(help="the router's endpoint, written into the configs")] = "tls/127.0.0.1:7447",
     days: Annotated[int, typer.Option(help="how long the certificates are valid")] = 365,
@@ -72,8 +75,10 @@ def security_init(
 @device_app.command("health")
 def device_health(
     scenario: Annotated[Path, typer.Argument(help="the scenario the devices belong to")],
-    connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
-    ids: Annotated[Optional[list[str]], typer.Option("--id", help="a device instance (repeat; default: all)")] = None,
+    connect: Annotated[list[str], typer.Option(metavar="ENDPOINT",
+                                               help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
+    ids: Annotated[Optional[list[str]], typer.Option("--id", metavar="DEVICE",
+                                                     help="a device instance (repeat; default: all)")] = None,
     security: SecurityOpt = None,
 ) -> None:
     """Ask devices of a running lab for their health: on the bus, running what, messages dropped, the driver's own."""
@@ -126,10 +131,12 @@ def driver_new(
 
 @app.command()
 def router(
-    listen: Annotated[list[str], typer.Option(help="endpoint(s) to listen on, e.g. tcp/127.0.0.1:7447")],
+    listen: Annotated[list[str], typer.Option(metavar="ENDPOINT",
+                                              help="endpoint(s) to listen on, e.g. tcp/127.0.0.1:7447")],
     lease_ms: Annotated[int, typer.Option(help="how long a silent peer is kept, ms (a frozen process is seen after it)")] = 1000,
-    zenoh_config: Annotated[Optional[list[str]], typer.Option("--config", help="extra Zenoh config PATH=JSON5 "
-                                                                "e.g. transport/link/tx/lease=2000")] = None,
+    zenoh_config: Annotated[Optional[list[str]], typer.Option("--config", metavar="PATH=JSON5",
+                                                              help="extra Zenoh config PATH=JSON5 "
+                                                                   "e.g. transport/link/tx/lease=2000")] = None,
     security: Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
                                                           "mutual TLS and the lab's access control")] = None,
     insecure: Annotated[bool, typer.Option(help="listen beyond loopback without security (anyone who reaches "
@@ -160,7 +167,8 @@ def router(
 def scheduler_serve(
     scenario: Annotated[Path, typer.Argument(help="the scenario of the lab to schedule")],
     scheduler: Annotated[str, typer.Option(help="rl:POLICY.zip or a rule (fifo, spt, mwkr, least-loaded, ...)")],
-    connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
+    connect: Annotated[list[str], typer.Option(metavar="ENDPOINT",
+                                               help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
     clock: Annotated[Optional[str], typer.Option(help="scaled | wall: insist on this clock (default: follow the "
                                                       "lab's, whatever it is)")] = None,
     speed: Annotated[Optional[float], typer.Option(help="insist on this many lab seconds per wall second "

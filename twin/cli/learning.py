@@ -32,8 +32,9 @@ def train(
     viewer: Annotated[bool, typer.Option(help="show the evaluation curve live in the Rerun viewer")] = False,
     init: Annotated[Optional[Path], typer.Option(help="start from this policy (the scheduler, needed by "
                                                      "training.teacher: self; or a route prior, P.pt)")] = None,
-    set_: Annotated[Optional[list[str]], typer.Option("--set", help="override a scenario field, e.g. "
-                                                      "training.teacher=self; repeatable")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",
+                                                      help="override a scenario field, e.g. "
+                                                           "training.teacher=self; repeatable")] = None,
 ) -> None:
     """Train an agent in the twin; the evaluation curve is printed as it goes (and recorded to Rerun if asked)."""
     writable("--out", out.with_suffix(".zip"), out.with_suffix(".json"))
@@ -148,8 +149,9 @@ def bench_schedulers(
                                                        "(e.g. jobshop/la01.txt,jobshop/ft10.txt)")] = None,
     workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
     budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget")] = None,
-    set_: Annotated[Optional[list[str]], typer.Option("--set", help="override a scenario field, e.g. "
-                                                      "devices.reactor.instances=1 (another lab shape); repeatable")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",
+                                                      help="override a scenario field, e.g. "
+                                                           "devices.reactor.instances=1 (another lab shape); repeatable")] = None,
     shapes: Annotated[bool, typer.Option("--shapes", help="run a family of variants of the lab (instances ×2, "
                                                           "a bottleneck, a flaky stage, fast-degrading samples) "
                                                           "and compare each scheduler with the best rule, "

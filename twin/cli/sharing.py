@@ -76,13 +76,15 @@ def _show(summary, json_out: bool) -> None:
 @lab_app.command("serve")
 def lab_serve(
     lab_file: Annotated[Path, typer.Argument(help="the lab: its devices, and any campaigns to start with")],
-    listen: Annotated[Optional[list[str]], typer.Option(help="Zenoh endpoint to listen on, e.g. "
+    listen: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT", help="Zenoh endpoint to listen on, e.g. "
                                                              "tcp/127.0.0.1:7447")] = None,
-    connect: Annotated[Optional[list[str]], typer.Option(help="the lab's router, e.g. tls/127.0.0.1:7447")] = None,
+    connect: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT",
+                                                         help="the lab's router, e.g. tls/127.0.0.1:7447")] = None,
     clock: Annotated[str, typer.Option(help="scaled | wall")] = "scaled",
     speed: Annotated[Optional[float], typer.Option(help="lab seconds per wall second (scaled clock)")] = None,
     journal: Annotated[Optional[Path], typer.Option(help="the directory of the campaigns' journals")] = None,
-    external: Annotated[Optional[list[str]], typer.Option(help="a device served by another process")] = None,
+    external: Annotated[Optional[list[str]], typer.Option(metavar="DEVICE",
+                                                          help="a device served by another process")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="at the end, print the summary as JSON")] = False,
 ) -> None:
     """Serve a lab that several campaigns share, until Ctrl-C or SIGTERM: its devices, the campaigns of its file,
@@ -117,7 +119,8 @@ def submit(
     campaign_file: Annotated[Path, typer.Argument(help="a campaign: name, and any of owner, priority, share, "
                                                        "chemistry, workflow, campaign")],
     lab_name: Annotated[str, typer.Option("--lab", help="the lab (its file's `lab` field)")],
-    connect: Annotated[list[str], typer.Option(help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
+    connect: Annotated[list[str], typer.Option(metavar="ENDPOINT",
+                                               help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
     security: Annotated[Optional[Path], typer.Option(help="the lab's security directory: submit as its "
                                                           "operator")] = None,
     who: Annotated[Optional[str], typer.Option("--as", help="the name the journal records")] = None,

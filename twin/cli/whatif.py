@@ -23,14 +23,16 @@ from twin.runtime.checks import checked
 @interruptible
 def whatif(
     scenario: Annotated[Path, typer.Argument(help="the scenario as written, e.g. scenarios/flaky_lab.yaml")],
-    vary: Annotated[Optional[list[str]], typer.Option(help="FIELD=V1,V2,... e.g. devices.spectrometer.instances=1,2,3 "
+    vary: Annotated[Optional[list[str]], typer.Option(metavar="FIELD=V1,V2,...",
+                                                      help="FIELD=V1,V2,... e.g. devices.spectrometer.instances=1,2,3 "
                                                            "or devices.reactor.faults.fail_p=0,0.1; repeatable: "
                                                            "every combination runs")] = None,
     schedulers: Annotated[Optional[str], typer.Option(help="comma-separated schedulers to vary too")] = None,
     planners: Annotated[Optional[str], typer.Option(help="comma-separated planners to vary too")] = None,
-    set_: Annotated[Optional[list[str]], typer.Option("--set", help="change a field of the scenario every variant "
-                                                                    "starts from, e.g. campaign.budget=200 "
-                                                                    "(repeatable)")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",
+                                                      help="change a field of the scenario every variant "
+                                                           "starts from, e.g. campaign.budget=200 "
+                                                           "(repeatable)")] = None,
     seeds: Annotated[int, typer.Option(min=1, help="paired seeds per variant")] = 20,
     workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
     budget_hours: Annotated[Optional[float], typer.Option(help="also name the cheapest variant that meets every "
