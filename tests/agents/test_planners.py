@@ -120,6 +120,27 @@ def test_bench_planners_runs_a_row_with_another_scheduler_and_names_an_unknown_o
     assert bad.returncode != 0 and "no-such-rule" in bad.stderr and "Traceback" not in bad.stderr
 
 
+def test_bench_planners_set_changes_the_lab_every_run_uses_and_names_a_field_that_does_not_exist():
+    import json
+
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    bench = ["bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "1", "--budget", "3", "--workers", "1",
+             "--planners", "lhs", "--json"]
+    hours = {}
+    for in_lab in (1, 3):
+        res = CliRunner().invoke(app, [*bench, "--set", f"campaign.max_in_flight={in_lab}"], env={"COLUMNS": "200"})
+        assert res.exit_code == 0, res.output
+        (run,) = json.loads(res.stdout)["runs"]
+        assert run["experiments_run"] == 3
+        hours[in_lab] = run["lab_hours"]
+    assert hours[1] > 1.5 * hours[3]  # the same three experiments, one at a time on one synthesiser of two
+    bad = CliRunner().invoke(app, [*bench, "--set", "campaign.max_in_flihgt=2"], env={"COLUMNS": "200"})
+    assert bad.exit_code == 2 and "max_in_flihgt" in bad.output, bad.output
+
+
 def test_bench_tables_read_at_80_columns():
     from typer.testing import CliRunner
 

@@ -101,6 +101,9 @@ def bench_planners(
                                                 "name@SCHEDULER with another scheduler (gp-bo@fifo~seq)")] = ",".join(DEFAULT_PLANNERS),
     workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
     budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget (a larger one censors less)")] = None,
+    set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",
+                                                      help="override a scenario field, e.g. "
+                                                           "campaign.max_in_flight=2; repeatable")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print the rows and every run as JSON instead")] = False,
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every run to this CSV file")] = None,
 ) -> None:
@@ -111,8 +114,9 @@ def bench_planners(
     from twin.tools.planner_bench import HEADER, bench, caption, parse, rows
 
     names = [p.strip() for p in planners.split(",") if p.strip()]
+    overrides = {**assignments(set_ or []), **({"campaign.budget": budget} if budget else {})}
     try:
-        s = checked(lab.prepare(scenario), scenario)
+        s = checked(lab.prepare(scenario, overrides=overrides), scenario)
         for name in names:
             planner, scheduler, _ = parse(name)
             lab.make_planner(s.model_copy(update={"campaign": s.campaign.model_copy(update={"planner": planner})}))
@@ -123,7 +127,7 @@ def bench_planners(
     progress = bar_progress(as_json)
     with progress:
         bar = progress.add_task(f"{s.name}: {len(names)} planners × {seeds} seeds", total=len(names) * seeds)
-        results = bench(scenario, names, seeds, workers, on_trial=lambda t: progress.advance(bar), budget=budget)
+        results = bench(s, names, seeds, workers, on_trial=lambda t: progress.advance(bar))
     table_rows = rows(results)
     runs = [asdict(t) for trials in results.values() for t in trials]
     if machine_output(as_json, csv_out, HEADER, table_rows, runs, scenario=s.name, seeds=seeds):
@@ -131,7 +135,7 @@ def bench_planners(
     # a lab where nothing costs has a cost column of noughts: its room goes to the planners' names
     costs = any(t.cost > 0 for trials in results.values() for t in trials)
     shown = [i for i, h in enumerate(HEADER) if costs or h != "cost"]
-    table = narrow_table([HEADER[i] for i in shown], f"{s.name} — {seeds} seeds, budget {budget or s.campaign.budget}, "
+    table = narrow_table([HEADER[i] for i in shown], f"{s.name} — {seeds} seeds, budget {s.campaign.budget}, "
                          f"{s.campaign.max_in_flight} in the lab", caption(costs))
     for row in table_rows:
         table.add_row(*(row[i] for i in shown))

@@ -99,9 +99,10 @@ def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str]
     return results
 
 
-def bench(scenario_path: str | Path, planners: list[str], seeds: int, workers: int = 2,
+def bench(scenario: str | Path | Scenario, planners: list[str], seeds: int, workers: int = 2,
           on_trial: Callable[[Trial], None] | None = None, budget: int | None = None) -> dict[str, list[Trial]]:
-    scenario = prepare(scenario_path, overrides={"campaign.budget": budget} if budget else None)
+    """Each planner over ``seeds`` seeds of the scenario (a file, or one already prepared)."""
+    scenario = prepare(scenario, overrides={"campaign.budget": budget} if budget else None)
     return over_seeds(_trial, scenario, planners, seeds, workers, on_trial)
 
 
