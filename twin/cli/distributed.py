@@ -135,7 +135,7 @@ def router(
                                               help="endpoint(s) to listen on, e.g. tcp/127.0.0.1:7447")],
     lease_ms: Annotated[int, typer.Option(help="how long a silent peer is kept, ms (a frozen process is seen after it)")] = 1000,
     zenoh_config: Annotated[Optional[list[str]], typer.Option("--config", metavar="PATH=JSON5",
-                                                              help="extra Zenoh config PATH=JSON5 "
+                                                              help="an extra Zenoh config value, "
                                                                    "e.g. transport/link/tx/lease=2000")] = None,
     security: Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
                                                           "mutual TLS and the lab's access control")] = None,

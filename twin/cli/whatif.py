@@ -24,7 +24,7 @@ from twin.runtime.checks import checked
 def whatif(
     scenario: Annotated[Path, typer.Argument(help="the scenario as written, e.g. scenarios/flaky_lab.yaml")],
     vary: Annotated[Optional[list[str]], typer.Option(metavar="FIELD=V1,V2,...",
-                                                      help="FIELD=V1,V2,... e.g. devices.spectrometer.instances=1,2,3 "
+                                                      help="values of a field to try, e.g. devices.spectrometer.instances=1,2,3 "
                                                            "or devices.reactor.faults.fail_p=0,0.1; repeatable: "
                                                            "every combination runs")] = None,
     schedulers: Annotated[Optional[str], typer.Option(help="comma-separated schedulers to vary too")] = None,
