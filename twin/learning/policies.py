@@ -74,14 +74,15 @@ def load_policy(path: str | Path, kind: str, signature: dict[str, Any]) -> Any:
 
 
 def _optimizer_without_dynamo() -> None:
-    """Loading a policy builds its optimizer, whose methods torch wraps to keep ``torch.compile`` out; the first
-    call imports ``torch._dynamo`` to do that: 2 s of a `twin run --scheduler rl:…` start here, for a policy
-    that only decides. Nothing in labtwin compiles, so the wrappers are told to call the methods as they are
-    (what torch itself caches after that first call). Training still imports it: ``step`` asks for it."""
+    """Loading a policy builds its optimizer, whose methods torch wraps to keep ``torch.compile`` out of them;
+    the first call imports ``torch._dynamo`` to do that: 2 s of a `twin run --scheduler rl:…` start here, for
+    a policy that only decides. Nothing in labtwin compiles, so there is nothing to keep out: each wrapper is
+    handed, as its cached disabled method, the method itself. Training still imports the compiler (``step``
+    asks for it)."""
     import torch.optim
     from torch._compile import _disable_dynamo
 
-    wrapper = _disable_dynamo(_plain).__code__  # the code of every method so wrapped
+    wrapper = _disable_dynamo(_plain).__code__  # the code every so wrapped method shares (_plain: any function)
     classes = [torch.optim.Optimizer]
     while classes:
         cls = classes.pop()

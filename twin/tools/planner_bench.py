@@ -100,10 +100,9 @@ def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str]
 
 
 def bench(scenario: str | Path | Scenario, planners: list[str], seeds: int, workers: int = 2,
-          on_trial: Callable[[Trial], None] | None = None, budget: int | None = None) -> dict[str, list[Trial]]:
-    """Each planner over ``seeds`` seeds of the scenario (a file, or one already prepared)."""
-    scenario = prepare(scenario, overrides={"campaign.budget": budget} if budget else None)
-    return over_seeds(_trial, scenario, planners, seeds, workers, on_trial)
+          on_trial: Callable[[Trial], None] | None = None) -> dict[str, list[Trial]]:
+    """Each planner over ``seeds`` seeds of the scenario (a file, or one prepared with its overrides)."""
+    return over_seeds(_trial, prepare(scenario), planners, seeds, workers, on_trial)
 
 
 def quartiles(values: list[float]) -> tuple[float, float, float]:
