@@ -4,11 +4,15 @@ Ctrl-C reaches the whole process group. A worker of a plain ``ProcessPoolExecuto
 run it was in and went on to the next, and the pool's exit waited for every run submitted: a bench went on for
 its whole length, silently. Here the workers ignore SIGINT; the pool, left by an exception (KeyboardInterrupt
 among them), drops the runs not started and stops the running ones with SIGTERM, which a worker turns into
-``SystemExit`` so that its run's temporary files are removed on the way out.
+``SystemExit`` so that its run's temporary files are removed on the way out. The executor's worker loop catches
+that ``SystemExit`` as the run's failure and would take the next run already queued to it (half-started, then
+killed when ``STOP_S`` ran out, leaving its files; or a traceback from a queue closed under it): a stopped worker
+leaves as soon as its run has unwound.
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import time
@@ -22,6 +26,9 @@ STOP_S = 10.0  # how long the stopped workers have to clean up before they are k
 class WorkerPool(ProcessPoolExecutor):
     def __init__(self, workers: int, initializer: Callable[[], None] | None = None) -> None:
         super().__init__(max_workers=max(1, workers), initializer=_start_worker, initargs=(initializer,))
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
+        return super().submit(_run, fn, *args, **kwargs)
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> bool:
         if exc_type is None:
@@ -46,5 +53,19 @@ def _start_worker(then: Callable[[], None] | None) -> None:
         then()
 
 
+_stopped = False  # this worker was sent SIGTERM
+
+
+def _run(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    try:
+        return fn(*args, **kwargs)
+    finally:
+        if _stopped:  # the run has unwound (its files removed): leave, not on to the next run queued here
+            sys.stderr.flush()
+            os._exit(143)
+
+
 def _exit(*_: Any) -> None:
+    global _stopped
+    _stopped = True
     sys.exit(143)

@@ -1,0 +1,34 @@
+"""The benches' and `twin whatif`'s worker pool: Ctrl-C stops the runs going at once, and a stopped worker starts
+none of the runs already queued to it."""
+
+import time
+from pathlib import Path
+
+import pytest
+
+from twin.tools.pool import STOP_S, WorkerPool
+
+
+def _holds(path: str) -> None:
+    """A run that keeps a temporary file until it ends or is stopped."""
+    held = Path(path)
+    held.write_text("running")
+    try:
+        time.sleep(60)  # wall time, in a worker process: what is measured is how it is stopped
+    finally:
+        held.unlink()
+
+
+@pytest.mark.process
+def test_ctrl_c_stops_the_runs_going_and_no_worker_starts_one_queued_to_it(tmp_path):
+    started = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        with WorkerPool(2) as pool:
+            for i in range(6):  # two run, one more is queued to the workers, the rest wait in the pool
+                pool.submit(_holds, str(tmp_path / f"run{i}"))
+            while len(list(tmp_path.iterdir())) < 2:
+                time.sleep(0.01)
+            raise KeyboardInterrupt
+    # a worker that went on to the queued run was killed in it when STOP_S ran out, its file left behind
+    assert list(tmp_path.iterdir()) == []
+    assert time.monotonic() - started < STOP_S
