@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import time
@@ -73,6 +74,7 @@ def load_policy(path: str | Path, kind: str, signature: dict[str, Any]) -> Any:
                           "save it again with `twin train`") from exc
 
 
+@functools.cache  # once per process: the classes are torch's, the same for every policy loaded
 def _optimizer_without_dynamo() -> None:
     """Loading a policy builds its optimizer, whose methods torch wraps to keep ``torch.compile`` out of them;
     the first call imports ``torch._dynamo`` to do that: 2 s of a `twin run --scheduler rl:…` start here, for

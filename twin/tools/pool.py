@@ -61,6 +61,7 @@ def _run(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         return fn(*args, **kwargs)
     finally:
         if _stopped:  # the run has unwound (its files removed): leave, not on to the next run queued here
+            sys.stdout.flush()
             sys.stderr.flush()
             os._exit(143)
 
