@@ -34,6 +34,7 @@ class WorkerPool(ProcessPoolExecutor):
         if exc_type is None:
             return bool(super().__exit__(exc_type, exc, tb))
         workers = list((self._processes or {}).values())
+        manager = self._executor_manager_thread  # shutdown forgets it
         self.shutdown(wait=False, cancel_futures=True)
         for p in workers:
             p.terminate()
@@ -43,6 +44,10 @@ class WorkerPool(ProcessPoolExecutor):
         for p in workers:
             if p.is_alive():
                 p.kill()
+        # the executor's manager thread closes its wake-up pipe when it sees the workers gone; at exit, Python
+        # 3.11 writes to that pipe unlocked, and a close in between is a traceback ("Bad file descriptor")
+        if manager is not None:
+            manager.join(STOP_S)
         return False
 
 
