@@ -34,7 +34,7 @@ class WorkerPool(ProcessPoolExecutor):
         if exc_type is None:
             return bool(super().__exit__(exc_type, exc, tb))
         workers = list((self._processes or {}).values())
-        manager = self._executor_manager_thread  # shutdown forgets it
+        manager = getattr(self, "_executor_manager_thread", None)  # shutdown forgets it (typeshed mistypes it)
         self.shutdown(wait=False, cancel_futures=True)
         for p in workers:
             p.terminate()
