@@ -60,6 +60,19 @@ def qd_lab(**changes) -> dict:
     return raw
 
 
+def twin_cli(*args, columns: int = 200):
+    """`twin ARGS` run in this process (typer's CliRunner): its exit code, stdout and stderr, without a new
+    interpreter importing it all again. An uncaught exception, a traceback in a real process, fails the test."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    res = CliRunner().invoke(app, [str(a) for a in args], env={"COLUMNS": str(columns)})
+    if res.exception is not None and not isinstance(res.exception, SystemExit):
+        raise res.exception
+    return res
+
+
 @pytest.fixture
 def scenario_of():
     from twin.scenario import parse

@@ -95,29 +95,23 @@ def test_gp_bo_keeps_exploring_when_no_device_measures_what_the_targets_name():
     assert len(proposals) == 3 and all(set(p.params) == set(s.chemistry.parameters) for p in proposals)
 
 
-def test_bench_planners_runs_a_row_with_another_scheduler_and_names_an_unknown_one():
-    import subprocess
-    import sys
-
-    twin = [sys.executable, "-m", "twin", "bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "1",
-            "--budget", "3", "--workers", "1"]
-    env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
-    res = subprocess.run([*twin, "--planners", "lhs@fifo,lhs@spt~seq", "--json", "--csv", "runs.csv"],
-                         capture_output=True, text=True, cwd=ROOT, timeout=120, env=env)
-    assert res.returncode == 0, res.stderr
+def test_bench_planners_runs_a_row_with_another_scheduler_and_names_an_unknown_one(tmp_path):
     import csv
     import json
 
+    from tests.conftest import twin_cli
+
+    bench = ["bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "1", "--budget", "3", "--workers", "1"]
+    res = twin_cli(*bench, "--planners", "lhs@fifo,lhs@spt~seq", "--json", "--csv", tmp_path / "runs.csv")
+    assert res.exit_code == 0, res.stderr
     rows = {r["planner"]: r for r in json.loads(res.stdout)["rows"]}
     assert set(rows) == {"lhs@fifo", "lhs@spt~seq"}
     assert all(r["accel."] == "—" for r in rows.values())  # no random row to compare with
-    with open(ROOT / "runs.csv") as f:
+    with open(tmp_path / "runs.csv") as f:
         runs = list(csv.DictReader(f))
-    (ROOT / "runs.csv").unlink()
     assert sorted(r["planner"] for r in runs) == ["lhs@fifo", "lhs@spt~seq"] and all(int(r["experiments_run"]) == 3 for r in runs)
-    bad = subprocess.run([*twin, "--planners", "lhs@no-such-rule"], capture_output=True, text=True, cwd=ROOT,
-                         timeout=60, env=env)
-    assert bad.returncode != 0 and "no-such-rule" in bad.stderr and "Traceback" not in bad.stderr
+    bad = twin_cli(*bench, "--planners", "lhs@no-such-rule")
+    assert bad.exit_code != 0 and "no-such-rule" in bad.stderr
 
 
 def test_bench_planners_set_changes_the_lab_every_run_uses_and_names_a_field_that_does_not_exist():

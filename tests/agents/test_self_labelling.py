@@ -3,8 +3,6 @@ labels replay that best run, the first run is the greedy policy's, and a trainin
 
 import json
 import random
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -16,6 +14,7 @@ from agents.rl_scheduler import RlScheduler
 from agents.train_scheduler import campaign, objective, train_scheduler
 from twin import SteppedCampaign, jobshop_as_lab, random_jobshop, read_meta
 from twin.runtime.lab import prepare
+from tests.conftest import twin_cli
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIPPED = ROOT / "agents" / "policies" / "jobshop_scheduler.zip"
@@ -91,6 +90,5 @@ def test_a_training_starts_where_init_left_off(ft06, tmp_path):
     (["--init", "nowhere.zip"], "--init nowhere.zip: no such policy file"),
 ])
 def test_init_is_refused_where_it_cannot_work(args, says, tmp_path):
-    res = subprocess.run([sys.executable, "-m", "twin", "train", "scenarios/jobshop.yaml", "--out",
-                          str(tmp_path / "p.zip"), *args], capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert res.returncode != 0 and says in " ".join(res.stderr.split()), res.stderr
+    res = twin_cli("train", "scenarios/jobshop.yaml", "--out", tmp_path / "p.zip", *args)
+    assert res.exit_code != 0 and says in " ".join(res.stderr.split()), res.stderr

@@ -2,7 +2,6 @@
 
 import json
 import re
-import os
 import signal
 import sqlite3
 import subprocess
@@ -12,10 +11,13 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import twin_cli
+
 ROOT = Path(__file__).resolve().parents[2]
 TWIN = [sys.executable, "-m", "twin"]
 
 
+@pytest.mark.process  # the README's command as a user runs it: a process of its own, on Zenoh
 def test_run_prints_the_summary_and_report_prints_it_again(tmp_path):
     db = tmp_path / "qd.db"
     res = subprocess.run([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "6", "--journal", str(db)],
@@ -35,25 +37,24 @@ def test_run_prints_the_summary_and_report_prints_it_again(tmp_path):
 def test_a_lab_of_minutes_shows_its_time_in_seconds_and_one_of_hours_in_hours(tmp_path):
     import re
 
-    res = subprocess.run([*TWIN, "run", "scenarios/jobshop.yaml", "--bus", "memory", "--journal",
-                          str(tmp_path / "shop.db")], capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert res.returncode == 0, res.stderr
+    res = twin_cli("run", "scenarios/jobshop.yaml", "--bus", "memory", "--journal", tmp_path / "shop.db")
+    assert res.exit_code == 0, res.stderr
     shown = re.search(r"lab time\W+(\d+) s \((0\.\d{3}) h;", res.stdout)  # a job shop of about a minute
     assert shown and abs(int(shown[1]) / 3600 - float(shown[2])) < 0.001, res.stdout
     assert re.search(rf"6/6\s+lab {shown[1]} s", res.stderr)  # the progress bar, in the same seconds
-    res = subprocess.run([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "6", "--bus", "memory",
-                          "--journal", str(tmp_path / "qd.db")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    res = twin_cli("run", "scenarios/quantum_dots.yaml", "--budget", "6", "--bus", "memory", "--journal",
+                   tmp_path / "qd.db")
     assert re.search(r"lab time\W+\d+\.\d\d h \(\d", res.stdout) and re.search(r"lab \d+\.\d h", res.stderr)
 
 
 def test_report_of_a_missing_journal_is_a_clear_error(tmp_path):
-    res = subprocess.run([*TWIN, "report", str(tmp_path / "nope.db")], capture_output=True, text=True, cwd=ROOT)
-    assert res.returncode == 2 and "no such journal" in res.stderr and "Traceback" not in res.stderr
+    res = twin_cli("report", tmp_path / "nope.db")
+    assert res.exit_code == 2 and "no such journal" in res.stderr
 
 
 @pytest.mark.parametrize("command", [["report"], ["resume"], ["replay", "--save", "r.rrd"], ["export"]])
 @pytest.mark.parametrize("content", ["text", "another SQLite database"])
-def test_a_file_that_is_not_a_journal_is_a_clear_error(tmp_path, command, content):
+def test_a_file_that_is_not_a_journal_is_a_clear_error(tmp_path, command, content, monkeypatch):
     import sqlite3
 
     bad = tmp_path / "notes.db"
@@ -62,9 +63,9 @@ def test_a_file_that_is_not_a_journal_is_a_clear_error(tmp_path, command, conten
     else:
         with sqlite3.connect(bad) as db:
             db.execute("CREATE TABLE notes (line TEXT)")
-    res = subprocess.run([*TWIN, command[0], str(bad), *command[1:]], capture_output=True, text=True,
-                         cwd=tmp_path)
-    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    monkeypatch.chdir(tmp_path)
+    res = twin_cli(command[0], bad, *command[1:])
+    assert res.exit_code == 2, res.stderr
     assert f"{bad}: not a labtwin journal" in " ".join(res.stderr.split())
 
 
@@ -200,7 +201,7 @@ def test_a_bench_of_schedulers_does_not_load_the_scenarios_own(tmp_path):
     assert res.exit_code == 2 and "campaign.scheduler" in res.output and "nowhere.zip" in res.output
 
 
-def test_experiments_abandoned_by_deadlines_say_which_fields_set_them(tmp_path):
+def test_experiments_abandoned_by_deadlines_say_which_fields_set_them(tmp_path, caplog):
     """flaky_lab's reactor with the reaction time left out of its expected duration: its deadlines are too short,
     which the run warns of before it starts (the reactor declares that its steps last time_s) and explains after."""
     text = (ROOT / "scenarios" / "flaky_lab.yaml").read_text()
@@ -208,11 +209,11 @@ def test_experiments_abandoned_by_deadlines_say_which_fields_set_them(tmp_path):
     short.write_text(text.replace("duration: {mean_s: 300, cv: 0.2, plus_param: time_s}", "duration: {mean_s: 300, cv: 0.2}"))
     outs, warned = {}, {}
     for name, path in (("short", short), ("as written", ROOT / "scenarios" / "flaky_lab.yaml")):
-        res = subprocess.run([*TWIN, "run", str(path), "--bus", "memory", "--budget", "8", "--journal",
-                              str(tmp_path / f"{name}.db")], capture_output=True, text=True, cwd=ROOT, timeout=120,
-                             env={**os.environ, "COLUMNS": "200"})
-        assert res.returncode == 0, res.stderr
-        outs[name], warned[name] = " ".join(res.stdout.split()), " ".join(res.stderr.split())
+        caplog.clear()
+        res = twin_cli("run", path, "--bus", "memory", "--budget", "8", "--journal", tmp_path / f"{name}.db")
+        assert res.exit_code == 0, res.stderr
+        # the run's warnings are logged: on stderr in a process of its own, in caplog here
+        outs[name], warned[name] = " ".join(res.stdout.split()), " ".join((res.stderr + caplog.text).split())
     # 300 + setup 120 + clean 600 = 1020 lab-s expected; × 1.5 + 600 = 2130; time_s goes up to 5400
     assert ("devices.reactor.duration: a reactor step lasts at least time_s (up to 5400 lab-s here), which the "
             "duration model leaves out, so its deadline is 2130 lab-s") in warned["short"]
@@ -232,9 +233,8 @@ def test_a_workflow_that_measures_before_it_reacts_is_refused_per_experiment_wit
     assert order in text
     swapped = tmp_path / "swapped.yaml"
     swapped.write_text(text.replace(order, "  - {step: measure, device: spectrometer}\n  - {step: react, device: reactor}\n"))
-    res = subprocess.run([*TWIN, "run", str(swapped), "--bus", "memory", "--budget", "6", "--json", "--journal",
-                          str(tmp_path / "j.db")], capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert res.returncode == 0, res.stderr
+    res = twin_cli("run", swapped, "--bus", "memory", "--budget", "6", "--json", "--journal", tmp_path / "j.db")
+    assert res.exit_code == 0, res.stderr
     summary = json.loads(res.stdout)
     assert summary["abandoned"] == 6 and summary["abandoned_reasons"] == {"infeasible": 6}
     assert summary["quarantines"] == 0 and summary["infeasible"] == 6
@@ -321,9 +321,8 @@ def test_run_set_changes_any_field_and_a_bad_one_is_named(tmp_path):
 def test_the_command_list_shows_each_summary_as_one_paragraph():
     """typer's rich mode kept a docstring's line breaks in `twin --help`'s list: "as tables (one file" over
     "each) and its provenance"."""
-    res = subprocess.run([*TWIN, "--help"], capture_output=True, text=True, cwd=ROOT, timeout=60,
-                         env={**os.environ, "COLUMNS": "100"})
-    assert res.returncode == 0
+    res = twin_cli("--help", columns=100)
+    assert res.exit_code == 0
     text = " ".join(res.stdout.split())
     assert "acts as tables (one file each) and its provenance" in text
     assert "or with --connect the devices of a running lab and their health" in text

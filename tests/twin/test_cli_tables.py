@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from tests.conftest import twin_cli
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -89,11 +91,9 @@ def test_a_narrow_table_keeps_numbers_whole_and_fits_80_columns(monkeypatch):
 def test_a_job_shop_bench_at_80_columns_keeps_the_policy_name_whole_and_leaves_out_counts_that_are_nought():
     """A job shop degrades no sample, abandons nothing and needs no fallback: those columns took the room that
     folded 'rl:jobshop_scheduler' over three lines; the caption says what they would have shown."""
-    env = {**os.environ, "COLUMNS": "80"}
-    res = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/jobshop.yaml",
-                          "--schedulers", "fifo,mwkr,rl:agents/policies/jobshop_scheduler.zip"],
-                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr
+    res = twin_cli("bench", "schedulers", "scenarios/jobshop.yaml", "--workers", "1",
+                   "--schedulers", "fifo,mwkr,rl:agents/policies/jobshop_scheduler.zip", columns=80)
+    assert res.exit_code == 0, res.stderr
     lines = res.stdout.splitlines()
     assert max(map(len, lines)) <= 80
     header = " ".join(line for line in lines if "scheduler" in line.split()[:1] or "vs" in line.split()[:1])
@@ -107,12 +107,10 @@ def test_a_job_shop_bench_at_80_columns_keeps_the_policy_name_whole_and_leaves_o
 def test_the_shapes_bench_at_80_columns_heads_a_policys_column_with_its_name_whole():
     """It was headed 'rl:flaky_schedu' over 'ler' with room to spare: the name now breaks after 'rl:', and a
     header's words are kept whole when the table still fits."""
-    env = {**os.environ, "COLUMNS": "80"}
-    res = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/flaky_lab.yaml", "--shapes",
-                          "--seeds", "2", "--schedulers", "fifo,mwkr,rl:agents/policies/flaky_scheduler.zip",
-                          "--set", "campaign.budget=8"],  # the table's shape, not its numbers
-                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr
+    res = twin_cli("bench", "schedulers", "scenarios/flaky_lab.yaml", "--shapes", "--seeds", "2", "--workers", "1",
+                   "--schedulers", "fifo,mwkr,rl:agents/policies/flaky_scheduler.zip",
+                   "--set", "campaign.budget=8", columns=80)  # the table's shape, not its numbers
+    assert res.exit_code == 0, res.stderr
     assert max(map(len, res.stdout.splitlines())) <= 80
     assert "flaky_scheduler" in res.stdout.split() and "rl:" in res.stdout.split()
 

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import twin_cli
 from twin import PluginError, load_scenario
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -119,13 +120,13 @@ def test_a_damaged_policy_file_is_a_clear_error(tmp_path, damage):
 def test_twin_run_with_a_hostile_policy_says_why_and_runs_nothing(tmp_path):
     marker = tmp_path / "ran"
     bad = _hostile(POLICIES / "jobshop_scheduler.zip", tmp_path / "bad.zip", "observation_space", marker)
-    res = subprocess.run([sys.executable, "-m", "twin", "run", "scenarios/jobshop.yaml", "--scheduler", f"rl:{bad}",
-                          "--journal", str(tmp_path / "j.db")], capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+    res = twin_cli("run", "scenarios/jobshop.yaml", "--scheduler", f"rl:{bad}", "--journal", tmp_path / "j.db")
+    assert res.exit_code == 2, res.stderr
     assert "does not run code from a policy file" in " ".join(res.stderr.split())
     assert not marker.exists()
 
 
+@pytest.mark.process  # a fresh interpreter, which has imported nothing yet
 def test_a_policy_loaded_to_decide_leaves_torchs_compiler_unimported_and_its_optimizer_still_steps():
     """Loading builds the policy's optimizer; torch's first optimizer call imports torch._dynamo (seconds), which
     a policy that only decides does not need. Its optimizer still works: ``--init`` trains from a loaded policy."""

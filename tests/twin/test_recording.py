@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import twin_cli
 from tests.rrd import read_rrd, series
 from twin.campaign.journal import read_events, read_experiments
 from twin.runtime.lab import run
@@ -101,9 +102,8 @@ def test_the_summary_document_is_the_runs_summary(live):
 
 def test_replay_from_the_journal_equals_the_live_recording(live):
     d, _, rrd = live
-    res = subprocess.run([*TWIN, "replay", str(d / "j.db"), "--save", str(d / "replay.rrd")],
-                         capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert res.returncode == 0, res.stderr
+    res = twin_cli("replay", d / "j.db", "--save", d / "replay.rrd")
+    assert res.exit_code == 0, res.stderr
     replayed = read_rrd(d / "replay.rrd")
     assert set(replayed) - {"__properties"} == set(rrd) - {"__properties"}
     for path in rrd:
@@ -193,9 +193,8 @@ def test_the_fast_runtime_records_in_process_and_its_recording_equals_the_replay
     # runtime="fast" is refused for anything the fast runtime cannot do: recording is no longer one of them
     run(ROOT / "scenarios" / "flaky_lab.yaml", journal=tmp_path / "j.db", seed=5, bus="memory", runtime="fast",
         overrides={"campaign.budget": 16}, record=RecordOptions(save=tmp_path / "live.rrd"))
-    res = subprocess.run([*TWIN, "replay", str(tmp_path / "j.db"), "--save", str(tmp_path / "replay.rrd")],
-                         capture_output=True, text=True, cwd=ROOT, timeout=120)
-    assert res.returncode == 0, res.stderr
+    res = twin_cli("replay", tmp_path / "j.db", "--save", tmp_path / "replay.rrd")
+    assert res.exit_code == 0, res.stderr
     live, replayed = read_rrd(tmp_path / "live.rrd"), read_rrd(tmp_path / "replay.rrd")
     assert len(live["log"]) > 10 and len([p for p in live if p.startswith("devices/")]) == 6
     assert {p: rows for p, rows in live.items() if p != "__properties"} == \

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import twin_cli
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -19,15 +21,15 @@ def twin_route(*args):
 
 
 def test_aspirin_is_one_acetylation_of_salicylic_acid():
-    res = twin_route("CC(=O)OC1=CC=CC=C1C(=O)O")
-    assert res.returncode == 0, res.stderr
+    res = twin_cli("route", "CC(=O)OC1=CC=CC=C1C(=O)O")
+    assert res.exit_code == 0, res.stderr
     assert "O-acetylation with acetic anhydride" in res.stdout
     assert "acetic anhydride + salicylic acid" in res.stdout and "buys:" in res.stdout
 
 
 def test_json_gives_the_steps_in_the_order_the_lab_runs_them():
-    res = twin_route("CCN(CC)CC(=O)Nc1c(C)cccc1C", "--method", "breadth-first", "--json")
-    assert res.returncode == 0, res.stderr
+    res = twin_cli("route", "CCN(CC)CC(=O)Nc1c(C)cccc1C", "--method", "breadth-first", "--json")
+    assert res.exit_code == 0, res.stderr
     data = json.loads(res.stdout)
     assert data["solved"] and [s["step"] for s in data["steps"]] == [1, 2]
     made = {b["smiles"] for b in data["bought"]}
@@ -39,14 +41,11 @@ def test_json_gives_the_steps_in_the_order_the_lab_runs_them():
 
 def in_process(*args):
     """`twin route` run by typer's test runner: the same command, without a Python start-up per case."""
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
-    res = CliRunner().invoke(app, ["route", *args], env={"COLUMNS": "200"})
+    res = twin_cli("route", *args)
     return res.exit_code, " ".join(res.output.split())
 
 
+@pytest.mark.process
 def test_a_bad_smiles_exits_2_from_a_real_process():
     res = twin_route("C1CC")
     assert res.returncode == 2 and "not a valid SMILES: 'C1CC'" in res.stderr and "Traceback" not in res.stderr
@@ -92,8 +91,8 @@ def test_damaged_files_are_one_line_errors_naming_them(tmp_path, damage, says):
 
 def test_save_draws_the_route_as_svg(tmp_path):
     out = tmp_path / "lidocaine.svg"
-    res = twin_route("CCN(CC)CC(=O)Nc1c(C)cccc1C", "--method", "breadth-first", "--save", str(out))
-    assert res.returncode == 0 and f"drawn: {out}" in " ".join(res.stdout.split()), res.stderr
+    res = twin_cli("route", "CCN(CC)CC(=O)Nc1c(C)cccc1C", "--method", "breadth-first", "--save", out)
+    assert res.exit_code == 0 and f"drawn: {out}" in " ".join(res.stdout.split()), res.stderr
     svg = out.read_text()
     desc = svg[svg.index("<desc>"):svg.index("</desc>")]
     assert "<svg" in svg and svg.count("<path") > 50  # molecules drawn
@@ -106,11 +105,7 @@ def test_save_draws_the_route_as_svg(tmp_path):
 
 
 def bench_in_process(*args):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
-    res = CliRunner().invoke(app, ["bench", "routes", *args], env={"COLUMNS": "80"})
+    res = twin_cli("bench", "routes", *args, columns=80)
     return res.exit_code, res.stdout if "--json" in args else res.output  # progress lines go to stderr
 
 

@@ -4,7 +4,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tests.conftest import qd_lab
+import pytest
+
+from tests.conftest import qd_lab, twin_cli
 from twin.scenario import parse
 from twin.tools.shape_bench import shapes, variants, verdict
 
@@ -28,12 +30,11 @@ def test_each_shape_compares_every_scheduler_with_its_best_rule_on_paired_seeds(
 
 
 def test_the_cli_refuses_shapes_of_a_job_shop_and_says_what_to_use(tmp_path):
-    env = {"COLUMNS": "200", "PATH": "/usr/bin:/bin"}
-    out = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/jobshop.yaml", "--shapes",
-                          "--schedulers", "mwkr"], capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
-    assert out.returncode == 2 and "--jobshop" in out.stderr
+    out = twin_cli("bench", "schedulers", "scenarios/jobshop.yaml", "--shapes", "--schedulers", "mwkr")
+    assert out.exit_code == 2 and "--jobshop" in out.stderr
 
 
+@pytest.mark.process  # what the bench's own process logs, which the test's process would catch
 def test_a_bench_keeps_device_alerts_out_of_its_output_that_a_single_run_prints(tmp_path, caplog):
     crashing = ["devices.spectrometer.instances=1", "devices.spectrometer.faults.mtbc_h=0.5"]
     from twin import run
@@ -66,11 +67,9 @@ def test_shapes_give_every_run_and_every_comparison_to_machines(tmp_path):
     import json
     import statistics
 
-    args = [sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/quantum_dots.yaml", "--shapes",
-            "--seeds", "2", "--budget", "3", "--schedulers", "fifo,spt", "--csv", str(tmp_path / "runs.csv"), "--json"]
-    out = subprocess.run(args, capture_output=True, text=True, cwd=ROOT, timeout=300,
-                         env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
-    assert out.returncode == 0, out.stderr
+    out = twin_cli("bench", "schedulers", "scenarios/quantum_dots.yaml", "--shapes", "--seeds", "2", "--budget", "3",
+                   "--workers", "1", "--schedulers", "fifo,spt", "--csv", tmp_path / "runs.csv", "--json")
+    assert out.exit_code == 0, out.stderr
     data = json.loads(out.stdout)
     shapes_run = {c["shape"] for c in data["comparisons"]}
     assert len(data["runs"]) == len(shapes_run) * 2 * 2 and "as written" in shapes_run
@@ -92,11 +91,10 @@ def test_by_objective_each_degraded_sample_and_abandoned_experiment_counts_as_th
                     "training.weights": {"time": 2.0, "degraded": 3.0, "abandoned": 5.0}})
     lab = parse(raw)
     (tmp_path / "lab.yaml").write_text(__import__("yaml").safe_dump(raw))
-    args = [sys.executable, "-m", "twin", "bench", "schedulers", str(tmp_path / "lab.yaml"), "--shapes", "--seeds",
-            "3", "--budget", "6", "--schedulers", "fifo,spt,oldest-sample", "--by", "objective", "--json"]
-    out = subprocess.run(args, capture_output=True, text=True, cwd=ROOT, timeout=300,
-                         env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
-    assert out.returncode == 0, out.stderr
+    args = ["--shapes", "--seeds", "3", "--budget", "6", "--workers", "1", "--schedulers", "fifo,spt,oldest-sample",
+            "--by", "objective", "--json"]
+    out = twin_cli("bench", "schedulers", tmp_path / "lab.yaml", *args)
+    assert out.exit_code == 0, out.stderr
     data = json.loads(out.stdout)
     unit = time_scale(lab)  # the shape as written: its typical step
     runs = {(r["scheduler"], r["seed"]): r for r in data["runs"] if r["shape"] == "as written"}
@@ -113,9 +111,8 @@ def test_by_objective_each_degraded_sample_and_abandoned_experiment_counts_as_th
             sum(objective_h(runs[c["best_rule"], s]) for s in (0, 1, 2)))
     no_time = tmp_path / "no_time.yaml"
     no_time.write_text(__import__("yaml").safe_dump(qd_lab(**{"training.weights": {"time": 0}})))
-    refused = subprocess.run([*args[:5], str(no_time), *args[6:]], capture_output=True, text=True, cwd=ROOT,
-                             timeout=120, env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
-    assert refused.returncode == 2 and "training.weights.time, which is 0" in refused.stderr
+    refused = twin_cli("bench", "schedulers", no_time, *args)
+    assert refused.exit_code == 2 and "training.weights.time, which is 0" in refused.stderr
 
 
 def test_a_lab_that_stops_at_its_targets_is_compared_with_a_word_on_chance():
@@ -123,10 +120,8 @@ def test_a_lab_that_stops_at_its_targets_is_compared_with_a_word_on_chance():
     as the first experiment to meet the target came at a different turn; the table now says so, and how to
     compare on the whole budget."""
     def bench(*extra):
-        return subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/quantum_dots.yaml",
-                               "--shapes", "--seeds", "2", "--budget", "3", "--schedulers", "fifo,spt", *extra],
-                              capture_output=True, text=True, cwd=ROOT, timeout=300,
-                              env={"COLUMNS": "100", "PATH": "/usr/bin:/bin"})
+        return twin_cli("bench", "schedulers", "scenarios/quantum_dots.yaml", "--shapes", "--seeds", "2", "--budget",
+                        "3", "--workers", "1", "--schedulers", "fifo,spt", *extra, columns=100)
 
     said = " ".join(bench().stdout.split())
     assert "chance weighs on every row; --set campaign.stop_on_target=false compares the schedulers" in said

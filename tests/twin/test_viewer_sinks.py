@@ -19,6 +19,7 @@ def twin(*args, env=None):
     return subprocess.run([*TWIN, *args], capture_output=True, text=True, cwd=ROOT, timeout=120, env=env)
 
 
+@pytest.mark.process
 def test_viewer_without_a_display_is_reported_and_the_campaign_runs(tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     res = twin("run", "scenarios/quantum_dots.yaml", "--budget", "3", "--viewer", "--quiet",
@@ -28,6 +29,7 @@ def test_viewer_without_a_display_is_reported_and_the_campaign_runs(tmp_path):
     assert "3 done" in res.stdout
 
 
+@pytest.mark.process
 def test_serve_on_a_port_in_use_is_reported_and_the_campaign_runs(tmp_path):
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
