@@ -29,10 +29,11 @@ def flaky():
 
 @pytest.fixture(scope="module")
 def trained(ft06, tmp_path_factory):
-    """A fixed-grid (baseline) policy trained for a few seconds on ft06 itself (no randomisation)."""
+    """A fixed-grid (baseline) policy trained for a few seconds on ft06 itself (no randomisation): 3,072 steps make
+    72 s against the random policy's 94 (6,144 steps made 74)."""
     fixed = prepare(ft06, overrides={"training.jobshop_sizes": []})
     path = tmp_path_factory.mktemp("policy") / "ft06.zip"
-    train_scheduler(fixed, 6144, path, envs=2, eval_every=6144, eval_seeds=(0,), encoding="slots")
+    train_scheduler(fixed, 3072, path, envs=2, eval_every=3072, eval_seeds=(0,), encoding="slots")
     return path
 
 
