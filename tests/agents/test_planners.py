@@ -8,6 +8,7 @@ import pytest
 
 from agents.gp_bo import GpBoPlanner
 from agents.planners import LhsPlanner, RandomPlanner
+from tests.conftest import twin_cli
 from twin.campaign.decisions import Outcome
 from twin.tools.planner_bench import trial
 from twin.runtime.lab import prepare
@@ -117,31 +118,23 @@ def test_bench_planners_runs_a_row_with_another_scheduler_and_names_an_unknown_o
 def test_bench_planners_set_changes_the_lab_every_run_uses_and_names_a_field_that_does_not_exist():
     import json
 
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     bench = ["bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "1", "--budget", "3", "--workers", "1",
              "--planners", "lhs", "--json"]
     hours = {}
     for in_lab in (1, 3):
-        res = CliRunner().invoke(app, [*bench, "--set", f"campaign.max_in_flight={in_lab}"], env={"COLUMNS": "200"})
+        res = twin_cli(*bench, "--set", f"campaign.max_in_flight={in_lab}")
         assert res.exit_code == 0, res.output
         (run,) = json.loads(res.stdout)["runs"]
         assert run["experiments_run"] == 3
         hours[in_lab] = run["lab_hours"]
     assert hours[1] > 1.5 * hours[3]  # the same three experiments, one at a time on one synthesiser of two
-    bad = CliRunner().invoke(app, [*bench, "--set", "campaign.max_in_flihgt=2"], env={"COLUMNS": "200"})
+    bad = twin_cli(*bench, "--set", "campaign.max_in_flihgt=2")
     assert bad.exit_code == 2 and "max_in_flihgt" in bad.output, bad.output
 
 
 def test_bench_tables_read_at_80_columns():
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
-    res = CliRunner().invoke(app, ["bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "1", "--budget", "3",
-                                   "--workers", "1", "--planners", "random,lhs"], env={"COLUMNS": "80"})
+    res = twin_cli("bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "1", "--budget", "3",
+                   "--workers", "1", "--planners", "random,lhs", columns=80)
     assert res.exit_code == 0, res.output
     lines = res.output.splitlines()
     assert max(len(line) for line in lines) <= 80 and "…" not in res.output
@@ -150,13 +143,9 @@ def test_bench_tables_read_at_80_columns():
 
 def test_bench_planners_leaves_out_a_cost_column_of_noughts_and_keeps_it_where_experiments_cost():
     """Where nothing costs, the column of noughts folded 'rl:quantum_dots~seq' over two lines at 80 columns."""
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     def head(*more):
-        res = CliRunner().invoke(app, ["bench", "planners", *more, "--seeds", "1", "--budget", "3", "--workers", "1",
-                                       "--planners", "random,lhs"], env={"COLUMNS": "80"})
+        res = twin_cli("bench", "planners", *more, "--seeds", "1", "--budget", "3", "--workers", "1",
+                       "--planners", "random,lhs", columns=80)
         assert res.exit_code == 0, res.output
         words = " ".join(res.output.split())
         return next(line.split() for line in res.output.splitlines() if line.split()[:1] == ["planner"]), words

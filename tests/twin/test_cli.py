@@ -107,15 +107,11 @@ def _has_experiments(db: Path) -> bool:
 
 
 def test_train_prints_its_evaluation_curve_and_saves_a_policy_with_its_sidecar(tmp_path, monkeypatch):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     out = tmp_path / "heater.zip"
     rrd = tmp_path / "curve.rrd"
     monkeypatch.chdir(ROOT)
-    res = CliRunner().invoke(app, ["train", "scenarios/catalyst.yaml", "--agent", "controller", "--steps", "2880",
-                                   "--eval-every", "1440", "--out", str(out), "--save", str(rrd)])
+    res = twin_cli("train", "scenarios/catalyst.yaml", "--agent", "controller", "--steps", "2880",
+                   "--eval-every", "1440", "--out", str(out), "--save", str(rrd), columns=80)
     assert res.exit_code == 0, res.output
     curve = [ln for ln in res.stderr.splitlines() if " steps " in ln]
     assert [ln.split()[0] for ln in curve] == ["0", "1,440", "2,880"], res.stderr
@@ -131,12 +127,8 @@ def test_train_prints_its_evaluation_curve_and_saves_a_policy_with_its_sidecar(t
 
 
 def test_train_an_unknown_agent_lists_what_is_installed(tmp_path):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
-    res = CliRunner().invoke(app, ["train", str(ROOT / "scenarios" / "catalyst.yaml"), "--agent", "nope", "--out",
-                                   str(tmp_path / "x.zip")])
+    res = twin_cli("train", str(ROOT / "scenarios" / "catalyst.yaml"), "--agent", "nope", "--out",
+                   str(tmp_path / "x.zip"), columns=80)
     assert res.exit_code == 2 and "unknown trainer 'nope'" in res.stderr and "planner" in res.stderr
     assert type(res.exception) is SystemExit  # an error said, not an exception raised
 
@@ -168,15 +160,11 @@ def test_ctrl_c_stops_training_and_says_what_was_kept(tmp_path):
 ])
 def test_a_lab_its_drivers_cannot_run_is_one_error_before_any_worker_starts(tmp_path, command):
     """A bench's campaigns load their drivers in worker processes: the lab is checked first, as `twin run` does."""
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     text = (ROOT / "scenarios" / "flaky_lab.yaml").read_text().replace("steps: [measure]", "steps: [measure, wash]")
     lab = tmp_path / "lab.yaml"
     lab.write_text(text)
-    res = CliRunner().invoke(app, [*command[:2 if command[0] == "bench" else 1], str(lab),
-                                   *command[2 if command[0] == "bench" else 1:]], env={"COLUMNS": "200"})
+    res = twin_cli(*command[:2 if command[0] == "bench" else 1], str(lab),
+                   *command[2 if command[0] == "bench" else 1:])
     out = " ".join(res.output.split())
     assert res.exit_code == 2 and "Traceback" not in out, out
     assert f"{lab}: 1 problem(s)" in out and "devices.spectrometer.driver: 'spectrometer' runs" in out
@@ -186,18 +174,14 @@ def test_a_lab_its_drivers_cannot_run_is_one_error_before_any_worker_starts(tmp_
 def test_a_bench_of_schedulers_does_not_load_the_scenarios_own(tmp_path):
     """The bench runs the schedulers it is given: the scenario's policy file, missing here, is neither needed nor
     loaded (a policy for another lab only warned of a scheduler that was never run), while `twin run` needs it."""
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     lab = tmp_path / "lab.yaml"
     lab.write_text((ROOT / "scenarios" / "flaky_lab.yaml").read_text().replace(
         "scheduler: oldest-sample", f"scheduler: rl:{tmp_path / 'nowhere.zip'}"))
-    res = CliRunner().invoke(app, ["bench", "schedulers", str(lab), "--schedulers", "fifo,mwkr", "--seeds", "1",
-                                   "--budget", "4", "--workers", "1"], env={"COLUMNS": "200"})
+    res = twin_cli("bench", "schedulers", str(lab), "--schedulers", "fifo,mwkr", "--seeds", "1",
+                   "--budget", "4", "--workers", "1")
     assert res.exit_code == 0, res.output
     assert "fifo" in res.output and "mwkr" in res.output and "nowhere.zip" not in res.output
-    res = CliRunner().invoke(app, ["validate", str(lab)], env={"COLUMNS": "200"})
+    res = twin_cli("validate", str(lab))
     assert res.exit_code == 2 and "campaign.scheduler" in res.output and "nowhere.zip" in res.output
 
 
@@ -249,9 +233,6 @@ def test_a_workflow_that_measures_before_it_reacts_is_refused_per_experiment_wit
 ])
 def test_a_journal_altered_row_by_row_is_refused_naming_the_row(tmp_path, damage, says):
     """SQLite keeps whatever a row is given: replay and export check each row instead of failing on it later."""
-    from typer.testing import CliRunner
-
-    from twin.cli import app
     from twin.runtime.lab import run
 
     db = tmp_path / "qd.db"
@@ -260,10 +241,10 @@ def test_a_journal_altered_row_by_row_is_refused_naming_the_row(tmp_path, damage
         conn.execute(damage)
     for command in (["replay", str(db), "--save", str(tmp_path / "r.rrd")],
                     ["export", str(db), "--format", "csv", "--out", str(tmp_path / "out")]):
-        res = CliRunner().invoke(app, command, env={"COLUMNS": "200"})
+        res = twin_cli(*command)
         out = " ".join(res.output.split())
         assert res.exit_code == 2 and says in out and "altered or corrupted" in out, (command, out)
-    assert CliRunner().invoke(app, ["report", str(db)], env={"COLUMNS": "200"}).exit_code == 0
+    assert twin_cli("report", str(db)).exit_code == 0
 
 
 _KILLED = "DELETE FROM run WHERE key = 'summary'; "  # as a run killed before its end leaves it
@@ -282,9 +263,6 @@ _KILLED = "DELETE FROM run WHERE key = 'summary'; "  # as a run killed before it
 ])
 def test_a_journal_altered_in_its_run_or_experiments_is_refused_naming_what(tmp_path, damage, commands, says):
     """Not a traceback from whichever reader met the damage first: export, replay, resume and report name it."""
-    from typer.testing import CliRunner
-
-    from twin.cli import app
     from twin.runtime.lab import run
 
     db = tmp_path / "qd.db"
@@ -293,19 +271,15 @@ def test_a_journal_altered_in_its_run_or_experiments_is_refused_naming_what(tmp_
         conn.executescript(damage)
     args = {"replay": ["--save", str(tmp_path / "r.rrd")], "export": ["--out", str(tmp_path / "out")]}
     for command in commands:
-        res = CliRunner().invoke(app, [command, str(db), *args.get(command, [])], env={"COLUMNS": "200"})
+        res = twin_cli(command, str(db), *args.get(command, []))
         out = " ".join(res.output.split())
         assert res.exit_code == 2 and says in out, (command, out)  # a traceback exits 1
 
 
 def test_run_set_changes_any_field_and_a_bad_one_is_named(tmp_path):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
-    res = CliRunner().invoke(app, ["run", "scenarios/flaky_lab.yaml", "--set", "devices.spectrometer.instances=3",
-                                   "--set", "campaign.budget=5", "--journal", str(tmp_path / "j.db"), "--quiet",
-                                   "--json"])
+    res = twin_cli("run", "scenarios/flaky_lab.yaml", "--set", "devices.spectrometer.instances=3",
+                   "--set", "campaign.budget=5", "--journal", str(tmp_path / "j.db"), "--quiet",
+                   "--json", columns=80)
     assert res.exit_code == 0, res.output
     summary = json.loads(res.stdout)
     assert summary["done"] + summary["abandoned"] == 5
@@ -313,8 +287,7 @@ def test_run_set_changes_any_field_and_a_bad_one_is_named(tmp_path):
         "spectrometer-1", "spectrometer-2", "spectrometer-3"]
     for item, says in (("campaign.budget=-4", "campaign.budget"), ("budget", "expected FIELD=VALUE"),
                        ("campaign.budget=[", "not YAML")):
-        bad = CliRunner().invoke(app, ["run", "scenarios/flaky_lab.yaml", "--set", item, "--quiet"],
-                                 env={"COLUMNS": "200"})
+        bad = twin_cli("run", "scenarios/flaky_lab.yaml", "--set", item, "--quiet")
         assert bad.exit_code == 2 and says in bad.output, bad.output
 
 
@@ -332,8 +305,6 @@ def test_every_repeatable_option_says_what_it_takes_not_its_python_type():
     """typer shows a repeatable option's type as `<list[str]>`, which reads as if a list were typed; each says
     what one use takes instead (`--set FIELD=VALUE`, `--connect ENDPOINT`)."""
     from typer.main import get_command
-    from typer.testing import CliRunner
-
     from twin.cli import app
 
     def commands(group, path: list[str]):  # typer's own click: a group is what has commands
@@ -346,7 +317,7 @@ def test_every_repeatable_option_says_what_it_takes_not_its_python_type():
     repeatable = {(path, p.name): p.metavar for path, command in commands(get_command(app), [])
                   for p in command.params if getattr(p, "multiple", False)}
     assert len(repeatable) > 20 and [k for k, metavar in repeatable.items() if not metavar] == []
-    res = CliRunner().invoke(app, ["run", "--help"], env={"COLUMNS": "100"})
+    res = twin_cli("run", "--help", columns=100)
     assert "list[" not in res.output and re.search(r"--set +FIELD=VALUE", res.output), res.output
 
 
@@ -363,15 +334,11 @@ def test_every_repeatable_option_says_what_it_takes_not_its_python_type():
 def test_a_file_to_write_that_cannot_be_is_refused_before_anything_runs(args, tmp_path, monkeypatch):
     """A whatif or a bench ran to its end and then died with a traceback on its --csv (and training would have
     lost its policy): a path whose directory is a file is refused at once, naming the option."""
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     (tmp_path / "a_file").write_text("not a directory")
     monkeypatch.chdir(tmp_path)
     bad = tmp_path / "a_file"
     args = [a.format(bad=bad) if "{bad}" in a else str(ROOT / a) if a.startswith("scenarios/") else a for a in args]
-    res = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    res = twin_cli(*args)
     option = next(a for a in args if a.startswith("--") and "{" not in a and str(bad) in args[args.index(a) + 1])
     assert res.exit_code == 2, res.output
     assert f"error: {option} {bad}/" in res.output and f"its directory {bad} cannot be made" in res.output
@@ -388,24 +355,16 @@ def test_a_file_to_write_that_cannot_be_is_refused_before_anything_runs(args, tm
 ])
 def test_counts_below_one_are_refused_by_name(args, option, tmp_path, monkeypatch):
     """--steps 0 saved an untrained policy, --envs 0 was an IndexError, --eval-every 0 evaluated at step 0 for ever."""
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     monkeypatch.chdir(tmp_path)
     args = [str(ROOT / a) if a.startswith("scenarios/") else a for a in args]
-    res = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    res = twin_cli(*args)
     assert res.exit_code == 2 and f"Invalid value for '{option}'" in res.output, res.output
     assert not (tmp_path / "p.zip").exists()
 
 
 def test_a_port_past_65535_is_refused_by_name(tmp_path, monkeypatch):
     """It was an OverflowError from bind() after the campaign had started."""
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     monkeypatch.chdir(tmp_path)
-    res = CliRunner().invoke(app, ["run", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--serve", "--serve-port",
-                                   "99999"], env={"COLUMNS": "200"})
+    res = twin_cli("run", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--serve", "--serve-port",
+                   "99999")
     assert res.exit_code == 2 and "Invalid value for '--serve-port'" in res.output and not (tmp_path / "runs").exists()

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.conftest import qd_lab
+from tests.conftest import qd_lab, twin_cli
 from tests.twin.test_device_process import free_port
 from twin.campaign.journal import read_events, read_run
 from twin.core import keys
@@ -221,13 +221,8 @@ class Lab:
         asyncio.run(wait())
 
     def ctl(self, *args):
-        from typer.testing import CliRunner
-
-        from twin.cli import app
-
         command, rest = args[0], list(args[1:])
-        return CliRunner().invoke(app, ["ctl", command, "--lab", "t", "--connect", self.endpoint, *rest],
-                                  env={"COLUMNS": "200"})
+        return twin_cli("ctl", command, "--lab", "t", "--connect", self.endpoint, *rest)
 
     def finished(self) -> dict:
         out, errs = self.proc.communicate(timeout=60)
@@ -246,12 +241,8 @@ def test_the_ctl_commands_say_what_they_did_and_a_refusal_exits_1(tmp_path):
         assert "test_lab (campaign c1, lab t): paused by alice" in res.output and "spectrometer-1" in res.output
         res = lab.ctl("abort", "999")
         assert res.exit_code == 1 and "refused: there is no experiment 999" in res.output
-        from typer.testing import CliRunner
-
-        from twin.cli import app
-
-        wrong = CliRunner().invoke(app, ["ctl", "status", "--lab", "tt", "--connect", lab.endpoint],
-                                   env={"COLUMNS": "200"})  # a lab name mistyped: the one that is there is named
+        # a lab name mistyped: the one that is there is named
+        wrong = twin_cli("ctl", "status", "--lab", "tt", "--connect", lab.endpoint)
         assert wrong.exit_code == 2 and "no campaign of lab 'tt' answered" in wrong.output
         assert "(labs on it now: t)" in wrong.output, wrong.output
         assert json.loads(lab.ctl("status", "--json").output)["status"]["paused_by"] == "alice"

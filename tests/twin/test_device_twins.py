@@ -9,10 +9,8 @@ from pathlib import Path
 
 import pytest
 import yaml
-from typer.testing import CliRunner
 
-from tests.conftest import qd_lab
-from twin.cli import app
+from tests.conftest import qd_lab, twin_cli
 from twin.core.errors import ScenarioError
 from twin.device.driver import StepResult
 from twin.runtime.checks import checked
@@ -51,7 +49,7 @@ def sdk_lab(twin: dict | None = None) -> dict:
 
 
 def invoke(*args: str):
-    res = CliRunner().invoke(app, list(args), env={"COLUMNS": "200"})
+    res = twin_cli(*args)
     return res.exit_code, res.stdout, " ".join(res.output.split())
 
 

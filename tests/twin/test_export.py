@@ -7,10 +7,9 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
-from typer.testing import CliRunner
 
+from tests.conftest import twin_cli
 from twin.campaign.journal import Journal, read_events, read_experiments, read_run
-from twin.cli import app
 from twin.core.errors import TwinError
 from twin.runtime.lab import prepare, run
 from twin.runtime.run_record import scenario_hash
@@ -94,9 +93,9 @@ def test_bad_requests_name_what_to_do(flaky, tmp_path):
     (tmp_path / "notes.db").write_text("not a database")
     with pytest.raises(TwinError, match="not a labtwin journal"):
         export(tmp_path / "notes.db", tmp_path / "x")
-    res = CliRunner().invoke(app, ["export", str(tmp_path / "none.db")])
+    res = twin_cli("export", str(tmp_path / "none.db"), columns=80)
     assert res.exit_code == 2 and "no such journal" in res.output
-    res = CliRunner().invoke(app, ["export", str(flaky), "--format", "parquet", "--out", str(tmp_path / "cli")])
+    res = twin_cli("export", str(flaky), "--format", "parquet", "--out", str(tmp_path / "cli"), columns=80)
     assert res.exit_code == 0 and (tmp_path / "cli" / "experiments.parquet").exists()
     assert len(res.output.splitlines()) == len(WHAT) + 1
 
@@ -154,8 +153,7 @@ def test_each_instances_own_stock_is_its_own_series_from_its_start(tmp_path):
 
 def test_an_out_directory_that_cannot_be_made_says_so(flaky, tmp_path):
     (tmp_path / "a_file").write_text("not a directory")
-    res = CliRunner().invoke(app, ["export", str(flaky), "--out", str(tmp_path / "a_file" / "x")],
-                             env={"COLUMNS": "200"})
+    res = twin_cli("export", str(flaky), "--out", str(tmp_path / "a_file" / "x"))
     assert res.exit_code == 2 and "error: --out" in res.output and "give --out a directory you can write" in \
         " ".join(res.output.split()), res.output
 

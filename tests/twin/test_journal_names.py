@@ -5,6 +5,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import twin_cli
 from twin.campaign.journal import read_events
 from twin.runtime import lab
 from twin.runtime.lab import run
@@ -77,15 +78,11 @@ def test_a_journal_that_cannot_be_written_is_a_clear_error_before_anything_runs(
 
 @pytest.mark.parametrize("command", [["report"], ["resume"], ["export"], ["replay", "--save", "r.rrd"]])
 def test_an_empty_journal_a_killed_run_claimed_says_so(tmp_path, command, monkeypatch):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     monkeypatch.chdir(tmp_path)
     empty = tmp_path / "runs" / "qd-seed0-20261129-050000.db"
     empty.parent.mkdir()
     empty.touch()
-    res = CliRunner().invoke(app, [command[0], str(empty), *command[1:]], env={"COLUMNS": "200"})
+    res = twin_cli(command[0], str(empty), *command[1:])
     assert res.exit_code == 2 and f"{empty}: empty — the name a run claimed for its journal" in \
         " ".join(res.output.split()), res.output
 

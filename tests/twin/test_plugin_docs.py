@@ -6,10 +6,9 @@ import re
 from pathlib import Path
 
 import pytest
-from typer.testing import CliRunner
 
+from tests.conftest import twin_cli
 from twin.campaign.journal import read_events
-from twin.cli import app
 from twin.runtime.lab import run
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -33,8 +32,8 @@ def test_the_documented_scheduler_runs_a_lab_and_is_benched_beside_the_rules(doc
     summary = run(ROOT / "scenarios" / "flaky_lab.yaml", journal=documented / "j.db", bus="memory",
                   overrides={"campaign.scheduler": "my_rules:LongestFirst", "campaign.budget": 12})
     assert summary.done + summary.abandoned == 12 and summary.decisions > 0 and summary.scheduler_fallbacks == 0
-    res = CliRunner().invoke(app, ["bench", "schedulers", str(ROOT / "scenarios" / "flaky_lab.yaml"), "--budget", "8",
-                                   "--seeds", "2", "--schedulers", "mwkr,my_rules:LongestFirst", "--json"])
+    res = twin_cli("bench", "schedulers", str(ROOT / "scenarios" / "flaky_lab.yaml"), "--budget", "8",
+                   "--seeds", "2", "--schedulers", "mwkr,my_rules:LongestFirst", "--json", columns=80)
     assert res.exit_code == 0, res.output
     runs = [r for r in json.loads(res.stdout)["runs"] if r["scheduler"] == "my_rules:LongestFirst"]
     assert len(runs) == 2 and all(r["makespan_s"] > 0 for r in runs)
@@ -52,8 +51,8 @@ def test_the_documented_planner_takes_its_option_and_closes_in_on_the_best(docum
         return max(temps[-6:]) - min(temps[-6:])
 
     assert spread(0.001) < 1.0 < spread(0.5)  # the option reached it: a small radius stays close to the best
-    res = CliRunner().invoke(app, ["bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds",
-                                   "2", "--budget", "12", "--planners", "random,my_planner:NearBest", "--json"])
+    res = twin_cli("bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds",
+                   "2", "--budget", "12", "--planners", "random,my_planner:NearBest", "--json", columns=80)
     assert res.exit_code == 0, res.output
     assert {r["planner"] for r in json.loads(res.stdout)["rows"]} == {"random", "my_planner:NearBest"}
 
@@ -86,14 +85,13 @@ class Boom:
 def test_a_bench_says_which_rows_ended_early_and_why(tmp_path):
     """A planner that failed gave a row of noughts ('≥0 [0–0]') and nothing else; and 'Boom:' in its name came out
     as an emoji."""
-    res = CliRunner().invoke(app, ["bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds", "2",
-                                   "--budget", "6", "--planners", "random,tests.twin.test_plugin_docs:Boom"],
-                             env={"COLUMNS": "200"})
+    res = twin_cli("bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds", "2",
+                   "--budget", "6", "--planners", "random,tests.twin.test_plugin_docs:Boom")
     assert res.exit_code == 0, res.output
     said = " ".join(res.output.split())
     assert ("tests.twin.test_plugin_docs:Boom: 2 of 2 run(s) ended early — the planner failed (planner "
             "'tests.twin.test_plugin_docs:Boom' raised RuntimeError('out of ideas'))") in said
     assert "random:" not in said  # its runs ended as they should
-    res = CliRunner().invoke(app, ["bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds", "2",
-                                   "--budget", "6", "--planners", "tests.twin.test_plugin_docs:Boom", "--json"])
+    res = twin_cli("bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds", "2",
+                   "--budget", "6", "--planners", "tests.twin.test_plugin_docs:Boom", "--json", columns=80)
     assert all("raised RuntimeError" in r["stopped"] for r in json.loads(res.stdout)["runs"])

@@ -123,9 +123,6 @@ def test_replay_from_the_journal_equals_the_live_recording(live):
 
 def test_an_interrupted_replay_leaves_the_file_it_was_to_replace_as_it_was(live, monkeypatch):
     """Ctrl-C half-way through a replay left a recording of part of the run under the name asked for."""
-    from typer.testing import CliRunner
-
-    from twin.cli import app
     from twin.view.observer import LabObserver
 
     d, _, _ = live
@@ -141,13 +138,13 @@ def test_an_interrupted_replay_leaves_the_file_it_was_to_replace_as_it_was(live,
         real(self, key, payload)
 
     monkeypatch.setattr(LabObserver, "on_message", interrupted)
-    res = CliRunner().invoke(app, ["replay", str(d / "j.db"), "--save", str(earlier)])
+    res = twin_cli("replay", str(d / "j.db"), "--save", str(earlier), columns=80)
     assert res.exit_code == 130 and len(seen) == 200, res.output
     assert f"interrupted: nothing saved ({earlier} is as it was)" in " ".join(res.output.split())
     assert earlier.read_bytes() == b"a recording from before"
     assert not [p for p in d.iterdir() if p.name.endswith(".partial")]
     monkeypatch.setattr(LabObserver, "on_message", real)
-    res = CliRunner().invoke(app, ["replay", str(d / "j.db"), "--save", str(earlier)])
+    res = twin_cli("replay", str(d / "j.db"), "--save", str(earlier), columns=80)
     assert res.exit_code == 0
     replayed, recorded = read_rrd(earlier), read_rrd(d / "live.rrd")
     assert {k: v for k, v in replayed.items() if k != "__properties"} == \

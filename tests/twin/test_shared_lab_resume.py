@@ -11,7 +11,7 @@ from twin.runtime.shared_run import run_shared
 
 from twin.campaign.journal import read_run
 from tests.twin.shared_labs import (LAB, ROOT, SMALL, assert_one_step_at_a_time, journal_tables, kill_all, wait_until_ended)
-from tests.conftest import assert_adopted_once
+from tests.conftest import assert_adopted_once, twin_cli
 
 
 def _lab_killed_at(s, where: Path, row: int) -> None:
@@ -50,11 +50,7 @@ def test_a_lab_killed_anywhere_and_resumed_ends_with_the_journals_of_the_unkille
     child.join(60)
     assert child.exitcode == -signal.SIGKILL
     assert any("summary" not in read_run(db) for db in (tmp_path / "killed").glob("*.db"))
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
-    told = CliRunner().invoke(app, ["report", str(tmp_path / "killed")], env={"COLUMNS": "300"})
+    told = twin_cli("report", str(tmp_path / "killed"), columns=300)
     assert told.exit_code == 0 and f"Continue it with: twin resume {tmp_path / 'killed'}" in told.output
     out = resume_lab(tmp_path / "killed", handle_signals=False)
     assert journal_tables(tmp_path / "killed") == whole
@@ -63,10 +59,6 @@ def test_a_lab_killed_anywhere_and_resumed_ends_with_the_journals_of_the_unkille
 
 
 def test_twin_resume_of_a_lab_that_diverges_names_the_campaign_and_event_and_keeps_the_journals(tmp_path):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     run_shared(prepare(LAB, seed=3, overrides=SMALL), tmp_path, handle_signals=False)
     for db in tmp_path.glob("*.db"):
         with sqlite3.connect(db) as c:
@@ -74,19 +66,15 @@ def test_twin_resume_of_a_lab_that_diverges_names_the_campaign_and_event_and_kee
     with sqlite3.connect(tmp_path / "catalyst.db") as c:
         c.execute("UPDATE events SET kind='device.lost' WHERE seq=12")
     before = journal_tables(tmp_path)
-    result = CliRunner().invoke(app, ["resume", str(tmp_path)], env={"COLUMNS": "200"})
+    result = twin_cli("resume", str(tmp_path))
     assert result.exit_code == 2
     assert "catalyst.db: event 12 differs from the journal: it recorded 'device.lost'" in " ".join(result.output.split())
     assert journal_tables(tmp_path) == before
 
 
 def test_twin_resume_of_a_finished_lab_says_so(tmp_path):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     run_shared(prepare(LAB, seed=3, overrides=SMALL), tmp_path, handle_signals=False)
-    result = CliRunner().invoke(app, ["resume", str(tmp_path)], env={"COLUMNS": "200"})
+    result = twin_cli("resume", str(tmp_path))
     assert result.exit_code == 2 and "every campaign of the lab finished" in " ".join(result.output.split())
 
 
@@ -105,10 +93,6 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
     import time
 
     import yaml
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     raw = yaml.safe_load(LAB.read_text())
     for c, budget in zip(raw["campaigns"], (4, 3)):
         c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
@@ -145,7 +129,7 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
         kill_all(lab)
     held = journal_tables(where)
     assert all("summary" not in read_run(db) for db in where.glob("*.db"))
-    result = CliRunner().invoke(app, ["resume", str(where), "--json"], env={"COLUMNS": "200"})
+    result = twin_cli("resume", str(where), "--json")
     assert result.exit_code == 0, result.output
     out = json.loads(result.output[result.output.index("{"):])
     for name, budget in (("dots", 4), ("catalyst", 3)):

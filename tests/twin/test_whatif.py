@@ -8,9 +8,8 @@ import json
 from pathlib import Path
 
 import pytest
-from typer.testing import CliRunner
 
-from twin.cli import app
+from tests.conftest import twin_cli
 from twin.tools.whatif import cheapest_within
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -18,7 +17,7 @@ FLAKY = str(ROOT / "scenarios" / "flaky_lab.yaml")
 
 
 def whatif(*args):
-    res = CliRunner().invoke(app, ["whatif", *args], env={"COLUMNS": "80"})
+    res = twin_cli("whatif", *args, columns=80)
     return res.exit_code, res.stdout if "--json" in args else res.output  # progress lines go to stderr
 
 
@@ -96,8 +95,8 @@ def test_fields_in_lists_vary_and_columns_say_which_field_they_are(tmp_path):
     assert written_values(s, axes) == dict(zip(axes, [3600.0, 600.0, 2]))
     chosen = variants(s, [(axes[1], [60.0])])
     assert prepare(s, overrides=dict(chosen[-1].changes)).orchestrator.recovery[0].simulate.after_s == 60.0
-    res = CliRunner().invoke(app, ["whatif", "scenarios/staffed_lab.yaml", "--vary",
-                                   "orchestrator.recovery.3.timeout_s=60", "--seeds", "2"])
+    res = twin_cli("whatif", "scenarios/staffed_lab.yaml", "--vary",
+                   "orchestrator.recovery.3.timeout_s=60", "--seeds", "2", columns=80)
     assert res.exit_code == 2 and "'3' is not an index of it (0-0)" in res.output
 
 
