@@ -13,6 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests.conftest import twin_cli
 from twin.campaign.journal import Journal, read_run
 from twin.runtime.lab import prepare, run
 from twin.runtime.resume import ResumeError, resume
@@ -97,10 +98,6 @@ def test_a_finished_run_is_not_resumed(tmp_path):
 
 @pytest.mark.process
 def test_twin_report_on_a_sigkilled_run_says_how_far_it_got_and_twin_resume_finishes_it(tmp_path):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     db = tmp_path / "j.db"
     args = ["run", "scenarios/flaky_lab.yaml", "--bus", "memory", "--journal", str(db), "--quiet",
             "--budget", "1000", "--seed", "2"]
@@ -118,12 +115,11 @@ def test_twin_report_on_a_sigkilled_run_says_how_far_it_got_and_twin_resume_fini
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert proc.returncode == -signal.SIGKILL and "summary" not in read_run(db), "it finished before it was killed"
-    cli = CliRunner()
-    report = cli.invoke(app, ["report", str(db)], env={"COLUMNS": "200"})
+    report = twin_cli("report", str(db))
     assert report.exit_code == 0, report.output
     assert "interrupted" in report.output and f"twin resume {db}" in report.output.replace("\n", "")
-    resumed = cli.invoke(app, ["resume", str(db), "--json"])
+    resumed = twin_cli("resume", str(db), "--json", columns=80)
     assert resumed.exit_code == 0, resumed.output
     fresh = tmp_path / "fresh.db"
-    assert cli.invoke(app, args[:5] + [str(fresh)] + args[6:]).exit_code == 0
+    assert twin_cli(*args[:5] + [str(fresh)] + args[6:], columns=80).exit_code == 0
     assert tables(db) == tables(fresh)

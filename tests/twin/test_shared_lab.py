@@ -5,6 +5,7 @@ import sqlite3
 
 import pytest
 
+from tests.conftest import twin_cli
 from twin.runtime.lab import prepare
 from twin.runtime.shared_run import run_shared
 from twin.scenario import load
@@ -118,18 +119,13 @@ def test_whatif_compares_both_at_once_with_one_after_the_other():
 
 
 def test_a_campaign_journal_is_a_journal_like_any_other(tmp_path):
-    from typer.testing import CliRunner
-
-    from twin.cli import app
-
     run_shared(prepare(LAB, seed=4, overrides={"campaigns.0.campaign.budget": 6, "campaigns.1.campaign.budget": 4}),
                tmp_path, handle_signals=False)
-    runner = CliRunner()
-    report = runner.invoke(app, ["report", str(tmp_path / "catalyst.db")], env={"COLUMNS": "100"})
+    report = twin_cli("report", str(tmp_path / "catalyst.db"), columns=100)
     assert report.exit_code == 0, report.output
     assert "4 done" in report.output or "abandoned" in report.output
-    out = runner.invoke(app, ["export", str(tmp_path / "dots.db"), "--format", "jsonl", "--what", "experiments",
-                              "--out", str(tmp_path / "x")])
+    out = twin_cli("export", str(tmp_path / "dots.db"), "--format", "jsonl", "--what", "experiments",
+                   "--out", str(tmp_path / "x"), columns=80)
     assert out.exit_code == 0, out.output
     rows = [json.loads(line) for line in (tmp_path / "x" / "experiments.jsonl").read_text().splitlines()]
     assert len(rows) == 6 and all("param.concentration_mm" in r and "param.temperature_k" not in r for r in rows)
@@ -192,11 +188,8 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
     import sys
 
     import yaml
-    from typer.testing import CliRunner
-
     from tests.rrd import read_rrd
     from twin.campaign.journal import read_run
-    from twin.cli import app
 
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -211,11 +204,11 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
                             f"tcp/127.0.0.1:{port}", "--speed", "3000", "--journal", str(tmp_path / "runs")],
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True,
                            env={**os.environ, "COLUMNS": "200"})  # its summary's cells unfolded, whatever they hold
-    runner, connect = CliRunner(), ["--lab", "shared", "--connect", f"tcp/127.0.0.1:{port}"]
+    connect = ["--lab", "shared", "--connect", f"tcp/127.0.0.1:{port}"]
     watcher = None
 
     def ctl(*args):
-        return runner.invoke(app, [*args, *connect], env={"COLUMNS": "100"})
+        return twin_cli(*args, *connect, columns=100)
 
     try:
         line = lab.stderr.readline()

@@ -226,9 +226,7 @@ def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submission
     import time
 
     import yaml
-    from typer.testing import CliRunner
 
-    from twin.cli import app
     from tests.twin.test_device_process import free_port
 
     port = free_port()
@@ -245,13 +243,13 @@ def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submission
     where = tmp_path / "runs"
     serve = [sys.executable, "-m", "twin", "lab", "serve", str(tmp_path / "lab.yaml"), "--listen",
              f"tcp/127.0.0.1:{port}", "--speed", "3000", "--journal", str(where)]
-    runner, connect = CliRunner(), ["--lab", "shared", "--connect", f"tcp/127.0.0.1:{port}"]
+    connect = ["--lab", "shared", "--connect", f"tcp/127.0.0.1:{port}"]
     first = subprocess.Popen(serve, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
     again = None
     try:
         assert "serving lab shared" in first.stderr.readline()
         if with_campaigns:  # a campaign paused by an operator is still paused after the lab is resumed
-            paused = runner.invoke(app, ["ctl", "pause", "--campaign", "catalyst", "--as", "alice", *connect])
+            paused = twin_cli("ctl", "pause", "--campaign", "catalyst", "--as", "alice", *connect, columns=80)
             assert paused.exit_code == 0, paused.output
         deadline = time.monotonic() + 60
         what = ((where / "dots.db", "SELECT COUNT(*) FROM experiments WHERE status='done'") if with_campaigns else
@@ -274,12 +272,12 @@ def test_a_served_lab_sigkilled_and_resumed_goes_on_serving_and_takes_submission
         assert "serving again" in line, again.stderr.read()[-2000:] if again.poll() is not None else line
         if with_campaigns:
             states = {c["campaign"]: c["state"] for c in json.loads(
-                runner.invoke(app, ["ctl", "status", "--json", *connect]).output)["campaigns"]}
+                twin_cli("ctl", "status", "--json", *connect, columns=80).output)["campaigns"]}
             assert states["catalyst"] == "paused by alice", states
-            assert runner.invoke(app, ["ctl", "resume", "--campaign", "catalyst", *connect]).exit_code == 0
-        sub = runner.invoke(app, ["submit", str(tmp_path / "late.yaml"), *connect])
+            assert twin_cli("ctl", "resume", "--campaign", "catalyst", *connect, columns=80).exit_code == 0
+        sub = twin_cli("submit", str(tmp_path / "late.yaml"), *connect, columns=80)
         assert sub.exit_code == 0 and "campaign late started" in sub.output, sub.output
-        wait_until_ended(lambda: json.loads(runner.invoke(app, ["ctl", "status", "--json", *connect]).output),
+        wait_until_ended(lambda: json.loads(twin_cli("ctl", "status", "--json", *connect, columns=80).output),
                          len(budgets))
         again.send_signal(signal.SIGTERM)
         out, err = again.communicate(timeout=60)
