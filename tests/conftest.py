@@ -69,6 +69,7 @@ def twin_cli(*args, columns: int = 200):
 
     res = CliRunner().invoke(app, [str(a) for a in args], env={"COLUMNS": str(columns)})
     if res.exception is not None and not isinstance(res.exception, SystemExit):
+        res.exception.add_note(f"`twin {' '.join(map(str, args))}` printed before it:\n{res.output[-2000:]}")
         raise res.exception
     return res
 
