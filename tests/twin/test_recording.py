@@ -2,9 +2,11 @@
 
 import json
 import math
+import signal
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -161,13 +163,14 @@ def free_port() -> int:
 def test_twin_watch_in_another_process_records_the_campaign(tmp_path):
     port = free_port()
     db = tmp_path / "j.db"
+    watcher = subprocess.Popen(  # first: it waits for the campaign's endpoint to come up (--wait)
+        [*TWIN, "watch", "--lab", "qd", "--connect", f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd"),
+         "--wait", "60"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     campaign = subprocess.Popen(
         [*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "12", "--planner", "random", "--clock", "scaled",
          "--speed", "3000",
          "--listen", f"tcp/127.0.0.1:{port}", "--journal", str(db), "--quiet"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
-    watcher = subprocess.Popen(
-        [*TWIN, "watch", "--lab", "qd", "--connect", f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     try:
         out, err = campaign.communicate(timeout=120)
@@ -184,6 +187,27 @@ def test_twin_watch_in_another_process_records_the_campaign(tmp_path):
     best = [v for _, v in series(rrd["objective/best"])]
     assert len(best) == 12 and best == sorted(best, reverse=True)
     assert all(math.isfinite(v) for v in best)
+
+
+@pytest.mark.process
+def test_twin_watch_waits_for_its_lab_to_come_up_stops_at_ctrl_c_and_says_how_to_wait_longer(tmp_path):
+    nobody = f"tcp/127.0.0.1:{free_port()}"
+    watcher = subprocess.Popen([*TWIN, "watch", "--lab", "qd", "--connect", nobody, "--save", str(tmp_path / "w.rrd"),
+                                "--wait", "120"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert f"connecting to {nobody} (waiting up to 120 s" in watcher.stderr.readline()
+        watcher.send_signal(signal.SIGINT)  # Zenoh's own wait for the endpoint cannot be interrupted: ours can
+        t0 = time.monotonic()
+        _, err = watcher.communicate(timeout=60)
+        stopped_s = time.monotonic() - t0
+    finally:
+        watcher.kill()
+    assert watcher.returncode == 130 and f"interrupted while waiting for {nobody} to answer: nothing recorded" in err
+    assert "Traceback" not in err and stopped_s < 10 and not (tmp_path / "w.rrd").exists()
+
+    res = twin_cli("watch", "--lab", "qd", "--connect", nobody, "--save", str(tmp_path / "w.rrd"), "--wait", "1.5")
+    assert res.exit_code == 2 and f"nothing answered at {nobody} within 1.5 s" in res.stderr
+    assert "--wait SECONDS waits longer" in res.stderr and not (tmp_path / "w.rrd").exists()
 
 
 def test_the_fast_runtime_records_in_process_and_its_recording_equals_the_replay(tmp_path):

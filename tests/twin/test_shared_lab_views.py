@@ -143,13 +143,14 @@ def test_twin_watch_without_follow_ends_by_itself_when_every_campaign_has_ended(
     for c, budget in zip(raw["campaigns"], (3, 2)):
         c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
     (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
+    # the watcher first: it waits for the lab's endpoint to come up (--wait), however long the lab takes to start
+    watcher = subprocess.Popen([sys.executable, "-m", "twin", "watch", "--lab", "shared", "--connect",
+                                f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd"), "--wait", "60"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
     lab = subprocess.Popen([sys.executable, "-m", "twin", "run", str(tmp_path / "lab.yaml"), "--clock", "scaled",
                             "--speed", "2000", "--listen", f"tcp/127.0.0.1:{port}", "--journal",
                             str(tmp_path / "runs"), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                            cwd=ROOT, text=True)
-    watcher = subprocess.Popen([sys.executable, "-m", "twin", "watch", "--lab", "shared", "--connect",
-                                f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd")],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
     try:
         lab.communicate(timeout=120)
         out, err = watcher.communicate(timeout=60)  # it ends without being told to

@@ -202,6 +202,9 @@ def watch(
     follow: Annotated[bool, typer.Option(help="keep watching after the campaign ends")] = False,
     security: Annotated[Optional[Path], typer.Option(help="the lab's security directory: watch through its "
                                                           "router with the watcher's certificate")] = None,
+    wait: Annotated[float, typer.Option(min=0.1, max=600, metavar="SECONDS",
+                                        help="how long --connect may take to answer: a lab or router started "
+                                             "after the watcher")] = 30.0,
 ) -> None:
     """Attach to a lab running in another process and record what it does."""
     writable("--save", save)
@@ -212,9 +215,13 @@ def watch(
         _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
     try:
         observer = watch_lab(lab_name, record, list(connect or []), list(listen or []), follow,
-                             str(security) if security else None)
+                             str(security) if security else None, wait)
     except TwinError as exc:
         _fail(exc)
+    except KeyboardInterrupt:  # once connected, Ctrl-C ends the watch and saves; this is before, while it waits
+        err.print(f"interrupted while waiting for {', '.join(connect or listen or [])} to answer: nothing recorded",
+                  highlight=False)
+        raise typer.Exit(130) from None
     err.print(f"recorded {observer.spectra} spectra, {observer.finished} finished experiments"
               + (f" to {save}" if save else ""), highlight=False)
 

@@ -142,7 +142,7 @@ def roster(lab: str, connect: list[str], security_dir: str | None = None, wait_s
     async def ask() -> tuple[list[dict], list[str]]:
         extra = security.session_config(security_dir, Identity("orchestrator", lab)) if security_dir else {}
         bus = open_bus("zenoh", clock, mode="client", listen=[], connect=connect, extra=extra,
-                       connect_timeout_ms=connect_timeout_ms)
+                       connect_timeout_ms=connect_timeout_ms, wait_longer="")
         await bus.start()
         try:
             names = sorted(keys.device_of(key) for key in await present(bus, [keys.alive(lab)], 0.5))

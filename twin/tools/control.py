@@ -22,7 +22,7 @@ def request(lab: str, command: str, body: dict[str, Any], connect: list[str], se
     async def ask() -> dict[str, Any]:
         extra = session_config(security_dir, Identity("operator", lab)) if security_dir else {}
         bus = open_bus("zenoh", clock, mode="client", listen=[], connect=connect, extra=extra,
-                       connect_timeout_ms=connect_timeout_ms)
+                       connect_timeout_ms=connect_timeout_ms, wait_longer="")
         await bus.start()
         try:
             return json.loads(await bus.request(keys.control(lab, command), json.dumps(body).encode(), wait_s))

@@ -11,6 +11,7 @@ import heapq
 import json
 import logging
 import signal
+import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -249,9 +250,10 @@ async def _pages(bus: Bus, clock: LabClock, key: str, page: dict, on_message) ->
 
 
 def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str], follow: bool = False,
-          security_dir: str | None = None) -> LabObserver | SharedLabObserver:
+          security_dir: str | None = None, wait_s: float = 30.0) -> LabObserver | SharedLabObserver:
     """``twin watch``: a wall-clock Zenoh session that records another process's lab; with ``security_dir``,
-    a client of the lab's router with the lab's watcher certificate (which may read, nothing else)."""
+    a client of the lab's router with the lab's watcher certificate (which may read, nothing else). ``wait_s``:
+    how long ``connect`` may take to answer (a lab or router started after the watcher)."""
     from twin.core.bus import open_bus, security
     from twin.core.bus.presence import elsewhere, labs_on
 
@@ -262,7 +264,11 @@ def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str
         listen = []
 
     async def main() -> LabObserver | SharedLabObserver:
-        bus = open_bus("zenoh", clock, listen=listen, connect=connect, extra=extra)
+        if connect:
+            print(f"connecting to {', '.join(connect)} (waiting up to {wait_s:g} s for it to answer)", file=sys.stderr,
+                  flush=True)
+        bus = open_bus("zenoh", clock, listen=listen, connect=connect, extra=extra,
+                       connect_timeout_ms=round(wait_s * 1000), wait_longer="--wait SECONDS waits longer")
         await bus.start()
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()

@@ -18,6 +18,7 @@ import itertools
 import json
 import logging
 import struct
+import time
 from collections import defaultdict, deque
 from collections.abc import Callable
 from typing import Any
@@ -33,6 +34,7 @@ log = logging.getLogger(__name__)
 _SEQ = struct.Struct("<Q")
 _LAST = 1 << 63  # deliveries from elsewhere sort after local ones of the same batch
 CONNECT_TIMEOUT_MS = 5_000  # a client waits this long for its router or lab; a typo shows in seconds
+_CONNECT_TRY_MS = 1_000  # a longer wait is made of tries this long, so that Ctrl-C is seen between them
 
 
 @dataclass
@@ -50,13 +52,18 @@ class ZenohOptions:
     lease_ms: int = 1000
     extra: dict[str, object] = field(default_factory=dict)  # other config paths, e.g. TLS
     connect_timeout_ms: int = CONNECT_TIMEOUT_MS
+    wait_longer: str = "bus.connect_timeout_ms waits longer"  # how the caller's user waits longer, said on a timeout
 
-    def config(self) -> zenoh.Config:
+    @property
+    def is_client(self) -> bool:
+        return self.mode == "client" or (self.mode == "auto" and bool(self.connect) and not self.listen)
+
+    def config(self, connect_timeout_ms: int | None = None) -> zenoh.Config:
         cfg = zenoh.Config()
-        mode = self.mode if self.mode != "auto" else ("client" if self.connect and not self.listen else "peer")
+        mode = "client" if self.is_client else self.mode if self.mode != "auto" else "peer"
         cfg.insert_json5("mode", json.dumps(mode))
         if mode == "client":  # wait a little for the router or lab to come up rather than fail at once
-            cfg.insert_json5("connect/timeout_ms", str(self.connect_timeout_ms))
+            cfg.insert_json5("connect/timeout_ms", str(connect_timeout_ms or self.connect_timeout_ms))
             # Zenoh backs off to 4 s between tries: a device started before its lab would come up to 4 s late,
             # after the lab's startup wait on a fast clock
             cfg.insert_json5("connect/retry", "{period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2}")
@@ -173,19 +180,36 @@ class ZenohBus:
         self._loop = asyncio.get_running_loop()
         self._remove_idle_hook = self._clock.on_idle(self._deliver_at_idle)
         try:
-            self._session = zenoh.open(self.options.config())
+            self._session = await self._open()
         except zenoh.ZError as exc:
             if "Unable to connect" in str(exc):
                 raise BusError(
                     f"nothing answered at {', '.join(self.options.connect)} within "
                     f"{self.options.connect_timeout_ms / 1000:g} s: is the router (twin router --listen ...) or the "
-                    "lab running there, and is the endpoint right (protocol, host, port)? bus.connect_timeout_ms "
-                    "waits longer") from None
+                    "lab running there, and is the endpoint right (protocol, host, port)?"
+                    + (f" {self.options.wait_longer}" if self.options.wait_longer else "")) from None
             raise BusError(
                 f"could not open a Zenoh session (listen={self.options.listen}, "
                 f"connect={self.options.connect}): {exc}. Check that the endpoints are "
                 "free and well formed, e.g. tcp/127.0.0.1:7447."
             ) from exc
+
+    async def _open(self) -> zenoh.Session:
+        """``zenoh.open``; a client's wait for its router or lab in tries of at most a second, with a turn of
+        the loop between them: Zenoh's own wait cannot be interrupted, and Ctrl-C (which cancels the task) should
+        not have to wait out ``connect_timeout_ms``."""
+        opts = self.options
+        if not opts.is_client or opts.connect_timeout_ms <= _CONNECT_TRY_MS:
+            return zenoh.open(opts.config())
+        deadline = time.monotonic() + opts.connect_timeout_ms / 1000  # wall time: Zenoh's wait is wall time
+        while True:
+            left_ms = round((deadline - time.monotonic()) * 1000)
+            try:
+                return zenoh.open(opts.config(max(100, min(left_ms, _CONNECT_TRY_MS))))
+            except zenoh.ZError as exc:
+                if "Unable to connect" not in str(exc) or left_ms <= _CONNECT_TRY_MS:
+                    raise
+            await asyncio.sleep(0)
 
     async def close(self) -> None:
         self._remove_idle_hook()
