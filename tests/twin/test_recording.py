@@ -210,6 +210,56 @@ def test_twin_watch_waits_for_its_lab_to_come_up_stops_at_ctrl_c_and_says_how_to
     assert "--wait SECONDS waits longer" in res.stderr and not (tmp_path / "w.rrd").exists()
 
 
+@pytest.mark.process
+def test_a_watched_lab_that_dies_ends_the_watch_by_its_presence_and_a_following_watcher_records_its_resume(tmp_path):
+    port = free_port()
+    db = tmp_path / "j.db"
+    watch = [*TWIN, "watch", "--lab", "qd", "--connect", f"tcp/127.0.0.1:{port}", "--wait", "60"]
+    once = subprocess.Popen([*watch, "--save", str(tmp_path / "once.rrd")], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    following = subprocess.Popen([*watch, "--save", str(tmp_path / "all.rrd"), "--follow"], stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    lab = subprocess.Popen([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "6", "--planner", "random",
+                            "--clock", "scaled", "--speed", "1000", "--listen", f"tcp/127.0.0.1:{port}", "--journal",
+                            str(db), "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        deadline = time.monotonic() + 120
+        while not (db.exists() and measurements(db)):  # a spectrum measured: the watchers have drawn something
+            assert lab.poll() is None and time.monotonic() < deadline, lab.stderr.read() if lab.poll() else "slow"
+            time.sleep(0.05)
+        lab.kill()
+        lab.wait()
+        _, err = once.communicate(timeout=60)  # no --follow: it ends by itself, the lab's presence gone
+        assert once.returncode == 1, err
+        assert "lab 'qd' left the bus before its campaigns ended" in err and "twin resume JOURNAL" in err, err
+        assert "Traceback" not in err
+        drawn = len(read_rrd(tmp_path / "once.rrd").get("spectra/measurement", []))  # saved, with what it had
+        assert drawn < 6 and f"recorded {drawn} spectra" in err, err
+
+        said = []
+        for line in following.stderr:
+            said.append(line)
+            if "left the bus" in line:
+                break
+        assert "still watching, for it to come back (twin resume)" in said[-1], said
+        resumed = subprocess.run([*TWIN, "resume", str(db), "--quiet"], capture_output=True, text=True, cwd=ROOT,
+                                 timeout=180)
+        assert resumed.returncode == 0, resumed.stderr[-2000:]
+        for line in following.stdout:
+            if "campaign ended" in line:
+                break
+        assert "campaign ended: 6 experiments finished" in line, line
+        following.send_signal(signal.SIGINT)
+        _, err = following.communicate(timeout=60)
+    finally:
+        for p in (lab, once, following):
+            p.kill()
+    assert following.returncode == 0, err
+    # every spectrum, those before the kill and after the resume: a resumed lab's devices count their message ids
+    # from 1 again, and the watcher tells them from the ones it had by their lab time
+    assert len(read_rrd(tmp_path / "all.rrd")["spectra/measurement"]) == len(measurements(db)) == 6
+
+
 def test_the_fast_runtime_records_in_process_and_its_recording_equals_the_replay(tmp_path):
     # runtime="fast" is refused for anything the fast runtime cannot do: recording is no longer one of them
     run(ROOT / "scenarios" / "flaky_lab.yaml", journal=tmp_path / "j.db", seed=5, bus="memory", runtime="fast",

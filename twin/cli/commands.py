@@ -213,9 +213,18 @@ def watch(
     record = RecordOptions(save, viewer, serve)
     if not record.wanted:
         _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
+    gone: list[bool] = []
+
+    def lab_gone() -> None:
+        gone.append(True)
+        err.print(f"lab {lab_name!r} left the bus before its campaigns ended (its process stopped: killed, crashed, "
+                  "or its machine lost); " + ("still watching, for it to come back (twin resume)" if follow else
+                                              "the recording ends here. Finish them with twin resume JOURNAL (a lab "
+                                              "of several campaigns: their directory); twin replay JOURNAL then "
+                                              "draws all of it"), highlight=False)
     try:
         observer = watch_lab(lab_name, record, list(connect or []), list(listen or []), follow,
-                             str(security) if security else None, wait)
+                             str(security) if security else None, wait, lab_gone)
     except TwinError as exc:
         _fail(exc)
     except KeyboardInterrupt:  # once connected, Ctrl-C ends the watch and saves; this is before, while it waits
@@ -224,6 +233,8 @@ def watch(
         raise typer.Exit(130) from None
     err.print(f"recorded {observer.spectra} spectra, {observer.finished} finished experiments"
               + (f" to {save}" if save else ""), highlight=False)
+    if gone and not follow:
+        raise typer.Exit(1)
 
 
 @app.command()

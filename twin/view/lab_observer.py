@@ -97,7 +97,7 @@ class CampaignObserver(LabObserver):
     def on_envelope(self, env: dict[str, Any]) -> None:
         if env.get("kind") != "telemetry":
             super().on_envelope(env)
-        elif self.lab.devices._fresh(env.get("id")):  # a watcher hears it live and in a campaign's history
+        elif self.lab.devices._fresh(env):  # a watcher hears it live and in a campaign's history
             self.lab.devices.on_envelope(env)
 
 
@@ -145,7 +145,7 @@ class SharedLabObserver:
         if env is None:
             return
         if env.get("kind") == "telemetry":
-            if self.devices._fresh(env.get("id")):
+            if self.devices._fresh(env):
                 self.devices.on_envelope(env)
             return
         seen = self.campaigns.get(env.get("campaign") or "")

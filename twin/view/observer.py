@@ -125,7 +125,7 @@ class LabObserver:
         self._last_queue: tuple | None = None
         self._queue_at: float | None = None  # the queue changed at this lab time; drawn when time moves on
         self._made: dict[str, float] = {}  # ready steps whose sample exists: when it was made
-        self._seen: set[str] | None = set() if dedupe else None
+        self._seen: set[tuple[Any, Any]] | None = set() if dedupe else None
         self._route: Any = None  # a RouteView, once a synthesis route runs
         self._kinds: dict[str, tuple[Any, str | None]] = {}  # a decision's handler and its log level (None: unlogged)
         self._paths: dict[str, tuple[str, str]] = {}  # a device's state and utilisation entities
@@ -140,7 +140,7 @@ class LabObserver:
 
     def on_decoded(self, env: dict[str, Any]) -> None:
         """A message off the bus, parsed: drawn unless seen before."""
-        if env.get("body", {}).get("what") != "decisions" and not self._fresh(env.get("id")):
+        if env.get("body", {}).get("what") != "decisions" and not self._fresh(env):
             return
         self.on_envelope(env)
 
@@ -165,7 +165,7 @@ class LabObserver:
             body = env.get("body", {})
             if body.get("what") == "decisions":  # a turn's worth of decisions in one message
                 for item in body.get("detail", {}).get("items", []):
-                    if self._fresh(item.get("id")):
+                    if self._fresh(item):
                         self.on_decision(float(item["t_lab"]), item.get("what", ""), item.get("detail", {}))
             else:
                 self.on_decision(t, body.get("what", ""), body.get("detail", {}))
@@ -179,13 +179,16 @@ class LabObserver:
         elif kind == "result":
             self._spectrum(t, env)
 
-    def _fresh(self, message_id: str | None) -> bool:
-        """False for a message seen before (a watcher gets some twice: in the history and live)."""
+    def _fresh(self, message: dict[str, Any]) -> bool:
+        """False for a message seen before (a watcher gets some twice: in the history and live). A message is
+        known by its id and lab time: a sender started again (a device process, a resumed lab) counts its ids
+        from 1 again, at later lab times."""
         if self._seen is None:
             return True
-        if message_id in self._seen:
+        key = (message.get("id"), message.get("t_lab"))
+        if key in self._seen:
             return False
-        self._seen.add(message_id)
+        self._seen.add(key)
         return True
 
     def on_decision(self, t: float, what: str, d: dict[str, Any]) -> None:

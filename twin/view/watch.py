@@ -120,12 +120,17 @@ def _replay_lab(where: Path, options: RecordOptions) -> SharedLabObserver:
 
 async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOptions, follow: bool = False,
                       stop: asyncio.Event | None = None,
-                      on_ended: Callable[[str, Any], None] | None = None) -> LabObserver | SharedLabObserver:
+                      on_ended: Callable[[str, Any], None] | None = None,
+                      on_gone: Callable[[], None] | None = None) -> LabObserver | SharedLabObserver:
     """Record a lab that runs elsewhere until its campaign ends (or ``stop`` is set). A lab several campaigns
     share is drawn as ``twin run LAB.yaml --save`` draws it, each campaign found by its token as it comes.
     ``on_ended(name, observer)``: told once of each campaign whose summary has been drawn ("" for a lab's one
-    campaign)."""
+    campaign). ``on_gone()``: the lab's process left the bus (its presence gone) before its campaigns ended; the
+    watch then ends too, unless ``follow`` (a resumed lab comes back)."""
     told: set[str] = set()
+    # the lab's presence: when it went (while it is gone), and whether it came back after going (its messages
+    # before this watcher's session reached it again are in its history only)
+    lab_present: dict[str, Any] = {"gone_at": None, "lost": False, "back": False}
 
     def tell_ended() -> None:
         if on_ended is None:
@@ -149,7 +154,14 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
         if alive:
             seats.append(key.split("/")[3])
 
-    handles = [*attach(bus, lab, on_message), bus.watch_tokens(keys.campaign(lab, "*", "seat"), on_seat)]
+    def on_lab(key: str, alive: bool) -> None:
+        lab_present["gone_at"] = None if alive else clock.now()
+        if alive and lab_present["lost"]:
+            lab_present["back"] = True
+        lab_present["lost"] = not alive
+
+    handles = [*attach(bus, lab, on_message), bus.watch_tokens(keys.campaign(lab, "*", "seat"), on_seat),
+               bus.watch_tokens(keys.orchestrator(lab), on_lab)]
     stop = stop or asyncio.Event()
     recording = None
     try:
@@ -168,12 +180,33 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
             feed(key, payload)  # repeats of the history are dropped by id
         waiting = None
         while not stop.is_set() and (follow or not observer.done):
+            if lab_present["back"]:  # a lab resumed: what it did before this watcher's session reached it again
+                lab_present["back"] = False
+                if isinstance(observer, SharedLabObserver):
+                    seats[:0] = sorted(shared.read)
+                    shared.read.clear()
+                else:
+                    waiting = []
+                    again = await _first_page(bus, clock, lab, stop)
+                    if again is not None:
+                        await _pages(bus, clock, keys.campaign(lab, "*", "history"), again, observer.on_message)
+                    for key, payload in waiting:
+                        feed(key, payload)
+                    waiting = None
             if isinstance(observer, SharedLabObserver):
                 while seats:
                     await shared.catch_up(seats.pop(0))
             await clock.sleep(0.25 * clock.speed)
             observer.c.flush()
             tell_ended()
+            gone_at = lab_present["gone_at"]
+            # a lab that ends says so (its summaries) before its presence goes: a grace for those still in flight
+            if gone_at is not None and clock.now() - gone_at > _GONE_GRACE_S * clock.speed and not observer.done:
+                lab_present["gone_at"] = None
+                if on_gone is not None:
+                    on_gone()
+                if not follow:
+                    break
         tell_ended()
     finally:
         for h in handles:
@@ -181,6 +214,9 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
         if recording is not None:
             recording.close()
     return observer
+
+
+_GONE_GRACE_S = 2.0  # wall seconds between the lab's presence going and the watcher calling it gone
 
 
 class _SharedWatch:
@@ -250,10 +286,12 @@ async def _pages(bus: Bus, clock: LabClock, key: str, page: dict, on_message) ->
 
 
 def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str], follow: bool = False,
-          security_dir: str | None = None, wait_s: float = 30.0) -> LabObserver | SharedLabObserver:
+          security_dir: str | None = None, wait_s: float = 30.0,
+          on_gone: Callable[[], None] | None = None) -> LabObserver | SharedLabObserver:
     """``twin watch``: a wall-clock Zenoh session that records another process's lab; with ``security_dir``,
     a client of the lab's router with the lab's watcher certificate (which may read, nothing else). ``wait_s``:
-    how long ``connect`` may take to answer (a lab or router started after the watcher)."""
+    how long ``connect`` may take to answer (a lab or router started after the watcher). ``on_gone``: as
+    :func:`watch_async`'s."""
     from twin.core.bus import open_bus, security
     from twin.core.bus.presence import elsewhere, labs_on
 
@@ -284,7 +322,7 @@ def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str
             print(f"campaign {name + ' ' if name else ''}ended: {seen.finished} experiments finished, "
                   "its summary drawn", flush=True)
         try:
-            return await watch_async(bus, clock, lab, options, follow, stop, ended)
+            return await watch_async(bus, clock, lab, options, follow, stop, ended, on_gone)
         finally:
             await bus.close()
 
