@@ -29,4 +29,7 @@ def test_the_history_is_served_in_pages_that_add_up_to_the_journal(tmp_path):
     assert [m for p in got for m in p] == as_messages(journal.rows())
     bad = clock.run(stream.history("k", b'{"after": "lots"}'))
     assert "error" in json.loads(bad)
+    for past in (2 * PAGE_ROWS + 7, 10 ** 30, -5):  # the end, past it, before the start
+        page = json.loads(clock.run(stream.history("k", json.dumps({"after": past}).encode())))
+        assert page["items"] == (got[0] if past < 0 else []) and page["next"] == (None if past > 0 else len(got[0]))
     journal.close()

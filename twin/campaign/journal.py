@@ -137,9 +137,11 @@ class Journal:
             self._experiments.clear()
         self._db.commit()
 
-    def rows(self) -> list[dict[str, Any]]:
-        """The events written so far (flush first), as ``read_events`` returns them."""
-        cur = self._db.execute("SELECT * FROM events ORDER BY seq")
+    def rows(self, after: int = 0, limit: int | None = None) -> list[dict[str, Any]]:
+        """The events written so far (flush first), as ``read_events`` returns them; with ``after`` and ``limit``,
+        at most ``limit`` of them past the first ``after`` (a page, read without reading the rest)."""
+        cur = self._db.execute("SELECT * FROM events ORDER BY seq LIMIT ? OFFSET ?",
+                               (-1 if limit is None else limit, after))
         names = [c[0] for c in cur.description]
         return [dict(zip(names, r)) for r in cur]
 
@@ -223,7 +225,7 @@ class NullJournal(Journal):
     def flush(self) -> None:
         pass
 
-    def rows(self) -> list[dict[str, Any]]:
+    def rows(self, after: int = 0, limit: int | None = None) -> list[dict[str, Any]]:
         return []
 
     def close(self) -> None:

@@ -63,14 +63,17 @@ class DecisionStream:
             # watcher's subscription may have missed them, and they must be in the history then
             await self.clock.sleep(0.05 * (1.0 if self.clock.is_virtual else self.clock.speed))
             self.journal.flush()
-        rows = as_messages(self.journal.rows())
+        end = min(max(0, after), 1 << 62)  # SQLite's OFFSET is a 64-bit integer
+        # this page's rows only, and one more to know whether there is a next: a late watcher of a long campaign
+        # pages through all of it, and the lab's loop waits while a page is read
+        rows = self.journal.rows(end, PAGE_ROWS + 1)
         page: list[str] = []
-        size, end = 0, max(0, after)
-        for item in rows[end:end + PAGE_ROWS]:
+        size = 0
+        for item in as_messages(rows[:PAGE_ROWS]):
             if page and size + len(item) > PAGE_BYTES:
                 break
             page.append(item)
             size += len(item)
         end += len(page)
-        return json.dumps({"items": page, "next": end if end < len(rows) else None, "campaign": self.campaign_id,
-                           "shared": self.shared}).encode()
+        return json.dumps({"items": page, "next": end if len(rows) > len(page) else None,
+                           "campaign": self.campaign_id, "shared": self.shared}).encode()
