@@ -217,7 +217,7 @@ def watch(
 
     def lab_gone() -> None:
         gone.append(True)
-        err.print(f"lab {lab_name!r} left the bus before its campaigns ended (its process stopped: killed, crashed, "
+        err.print(f"lab {lab_name!r} left the bus before its campaigns ended (its process killed, crashed or hung, "
                   "or its machine lost); " + ("still watching, for it to come back (twin resume)" if follow else
                                               "the recording ends here. Finish them with twin resume JOURNAL (a lab "
                                               "of several campaigns: their directory); twin replay JOURNAL then "
