@@ -216,3 +216,57 @@ def test_a_foreign_attachment_is_delivered_not_raised(virtual_clock, caplog):
     assert b"odd" in got and b"ours" in got
     assert not [r for r in caplog.records if "Exception in callback" in r.getMessage()]
     assert any("3-byte attachment" in r.getMessage() for r in caplog.records)
+
+
+def test_another_processs_requests_and_messages_leave_a_virtual_clock_alone(virtual_clock, caplog):
+    """A watcher, `twin ctl` or any other labtwin process asking a virtual-clock lab: its bus stamps its messages
+    as the lab's bus does, yet neither its requests nor the replies sent back to it are held on the lab's clock
+    (a reply that never comes back would stop lab time for 5 s of wall time, then warn)."""
+    import socket
+    import threading
+
+    from twin.core.bus import open_bus
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    answers: list[bytes] = []
+
+    def other_process() -> None:
+        clock = LabClock("wall")
+
+        async def ask() -> None:
+            other = open_bus("zenoh", clock, mode="client", listen=[], connect=[endpoint])
+            await other.start()
+            try:
+                for i in range(5):
+                    answers.append(await other.request("lab/history", str(i).encode(), 10.0))
+            finally:
+                await other.close()
+
+        clock.run(ask())
+
+    async def body():
+        bus = open_bus("zenoh", virtual_clock, listen=[endpoint])
+        await bus.start()
+
+        async def page(key: str, payload: bytes) -> bytes:
+            return b"page " + payload
+
+        bus.serve("lab/history", page)
+        asker = threading.Thread(target=other_process)
+        asker.start()
+        try:
+            while asker.is_alive():  # wall time, bounded by the asker's own timeouts
+                await settle(virtual_clock, 0.01)
+                time.sleep(0.005)
+            await settle(virtual_clock)
+            return virtual_clock._base.in_flight
+        finally:
+            asker.join()
+            await bus.close()
+
+    with caplog.at_level(logging.WARNING):
+        in_flight = virtual_clock.run(body())
+    assert answers == [f"page {i}".encode() for i in range(5)]
+    assert in_flight == 0 and not [r for r in caplog.records if "in flight" in r.getMessage()]

@@ -17,6 +17,7 @@ import asyncio
 import itertools
 import json
 import logging
+import os
 import struct
 import time
 from collections import defaultdict, deque
@@ -31,7 +32,7 @@ from twin.core.clock import LabClock
 from twin.core.errors import BusError, ClockError
 
 log = logging.getLogger(__name__)
-_SEQ = struct.Struct("<Q")
+_STAMP = struct.Struct("<QQ")  # publish order, and the id of the bus that sent it
 _LAST = 1 << 63  # deliveries from elsewhere sort after local ones of the same batch
 CONNECT_TIMEOUT_MS = 5_000  # a client waits this long for its router or lab; a typo shows in seconds
 _CONNECT_TRY_MS = 1_000  # a longer wait is made of tries this long, so that Ctrl-C is seen between them
@@ -164,6 +165,8 @@ class ZenohBus:
         self._wake_pending = False
         self._batch: list = []
         self._seq = itertools.count(1)
+        # another labtwin process stamps its messages too: only this bus's own are held on the clock and ordered
+        self._bus_id = int.from_bytes(os.urandom(8), "little")
         self._ids = itertools.count()
         self._groups: dict[str, _Group] = {}
         self._queryables: list[_Declared] = []
@@ -293,7 +296,7 @@ class ZenohBus:
             key,
             payload,
             congestion_control=zenoh.CongestionControl.BLOCK,
-            attachment=_SEQ.pack(seq),
+            attachment=_STAMP.pack(seq, self._bus_id),
         )
 
     def wants(self, key: str) -> bool:
@@ -324,18 +327,19 @@ class ZenohBus:
             if not self.session.is_closed():
                 group.zsub.undeclare()
 
-    @staticmethod
-    def _seq_of(sample: zenoh.Sample | zenoh.Query) -> int:
-        """Our publish-order stamp; a message from outside this bus (no or a foreign attachment) has none."""
+    def _seq_of(self, sample: zenoh.Sample | zenoh.Query) -> int:
+        """Our publish-order stamp; a message from outside this bus (no attachment, a foreign one, another
+        labtwin process's) has none."""
         att = sample.attachment
         if att is None:
             return _LAST
         raw = att.to_bytes()
-        if len(raw) != _SEQ.size:
-            log.warning("a message on %s carries a %d-byte attachment that is not this bus's stamp: "
+        if len(raw) != _STAMP.size:
+            log.warning("a message on %s carries a %d-byte attachment that is not a labtwin bus's stamp: "
                         "delivered as from outside", sample.key_expr, len(raw))
             return _LAST
-        return _SEQ.unpack(raw)[0]
+        seq, bus_id = _STAMP.unpack(raw)
+        return seq if bus_id == self._bus_id else _LAST
 
     # -- request / reply --------------------------------------------------
     def serve(self, keyexpr: str, replier: Replier) -> Closable:
@@ -344,6 +348,7 @@ class ZenohBus:
             self._post((seq, entry.sid, entry, str(query.key_expr), query, seq != _LAST))
 
         async def answer(key: str, query: zenoh.Query) -> None:
+            mine = self._seq_of(query) != _LAST  # a reply to another process never comes back to this clock
             payload = query.payload.to_bytes() if query.payload is not None else b""
             try:
                 reply = await replier(key, payload)
@@ -352,7 +357,7 @@ class ZenohBus:
                 reply, ok = str(exc).encode(), False
             else:
                 ok = True
-            if self._virtual:
+            if self._virtual and mine:
                 self._clock.hold(1)
             with query:
                 if ok:
@@ -372,6 +377,7 @@ class ZenohBus:
         fut: asyncio.Future = loop.create_future()
         self._pending_requests.add(fut)
         local = sum(1 for q in self._queryables if keys_intersect(q.keyexpr, key))
+        own = self.session.zid()  # replies from this session's queryables were held on the clock; others not
         if self._virtual:
             if not local:
                 raise NoReplyError(f"no replier serves {key!r}: is the device or service running?")
@@ -382,7 +388,8 @@ class ZenohBus:
                 value = ("ok", reply.ok.payload.to_bytes())
             else:
                 value = ("err", reply.err.payload.to_bytes())
-            loop.call_soon_threadsafe(settle, value, True)
+            replier = reply.replier_id
+            loop.call_soon_threadsafe(settle, value, replier is not None and replier.zid == own)
 
         def on_done() -> None:
             loop.call_soon_threadsafe(settle, ("none", b""), False)
@@ -397,7 +404,7 @@ class ZenohBus:
             key,
             zenoh.handlers.Callback(on_reply, on_done),
             payload=payload,
-            attachment=_SEQ.pack(next(self._seq)),
+            attachment=_STAMP.pack(next(self._seq), self._bus_id),
             timeout=max(1.0, timeout / max(self._clock.speed, 1e-9)) if not self._virtual else 60.0,
         )
         try:
