@@ -52,6 +52,7 @@ def machines_only(s):
     for spec in bare.devices.values():
         spec.driver = "machine"
         spec.steps = ["op"]
+        spec.options = {}  # the physics drivers' options (the reactor's telemetry_s): the machine takes none
     return bare.model_copy(update={"workflow": [w.model_copy(update={"step": "op"}) for w in bare.workflow]})
 
 
