@@ -345,10 +345,9 @@ class ZenohBus:
     def serve(self, keyexpr: str, replier: Replier) -> Closable:
         def on_query(query: zenoh.Query) -> None:
             seq = self._seq_of(query)
-            self._post((seq, entry.sid, entry, str(query.key_expr), query, seq != _LAST))
+            self._post((seq, entry.sid, entry, str(query.key_expr), (query, seq != _LAST), seq != _LAST))
 
-        async def answer(key: str, query: zenoh.Query) -> None:
-            mine = self._seq_of(query) != _LAST  # a reply to another process never comes back to this clock
+        async def answer(key: str, query: zenoh.Query, mine: bool) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             try:
                 reply = await replier(key, payload)
@@ -357,7 +356,7 @@ class ZenohBus:
                 reply, ok = str(exc).encode(), False
             else:
                 ok = True
-            if self._virtual and mine:
+            if self._virtual and mine:  # a reply to another process never comes back to this clock
                 self._clock.hold(1)
             with query:
                 if ok:
@@ -365,8 +364,8 @@ class ZenohBus:
                 else:
                     query.reply_err(reply)
 
-        def dispatch(key: str, query: zenoh.Query) -> None:
-            asyncio.ensure_future(answer(key, query))
+        def dispatch(key: str, asked: tuple[zenoh.Query, bool]) -> None:
+            asyncio.ensure_future(answer(key, *asked))
 
         entry = _Declared(self, keyexpr, dispatch, next(self._ids), self._queryables)
         entry._zobj = self.session.declare_queryable(keyexpr, on_query)
