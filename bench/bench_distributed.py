@@ -31,6 +31,7 @@ from twin.core import keys  # noqa: E402
 from twin.core.bus.zenoh_bus import ZenohBus, ZenohOptions  # noqa: E402
 from twin.core.clock import LabClock  # noqa: E402
 from twin.core.messages import Kind, decode, pack  # noqa: E402
+from twin.runtime.labtime import LabTimeSource  # noqa: E402
 
 N_REQUESTS, N_MESSAGES, N_STEPS = 2000, 50_000, 300
 
@@ -160,8 +161,8 @@ async def round_trips(bus: ZenohBus, lab: str, device: str, step: str, n: int) -
     def on_event(key, payload):
         env, body = decode(payload)
         fut = results.get(env.task)
-        if fut is not None and env.kind in (Kind.RESULT, Kind.FAULT) and not fut.done():
-            fut.set_result(env.kind)
+        if fut is not None and env.kind in (Kind.RESULT, Kind.FAULT, Kind.REJECTED) and not fut.done():
+            fut.set_result((env.kind, body))
 
     sub = bus.subscribe(keys.evt(lab, device), on_event)
     ids, lat = itertools.count(), []
@@ -173,8 +174,8 @@ async def round_trips(bus: ZenohBus, lab: str, device: str, step: str, n: int) -
         t = time.perf_counter()
         bus.publish(keys.cmd(lab, device), pack(Kind.COMMAND, body, id=f"bench:{task}", sender="bench", t_lab=0.0,
                                                 campaign="bench", task=task, attempt=1))
-        kind = await asyncio.wait_for(results[task], 10)
-        assert kind == Kind.RESULT, f"{device} answered {kind}"
+        kind, body = await asyncio.wait_for(results[task], 10)
+        assert kind == Kind.RESULT, f"{device} answered {kind}: {body}"
         if i >= 30:
             lat.append((time.perf_counter() - t) * 1000)
     sub.close()
@@ -197,13 +198,17 @@ async def mqtt_vs_native(router: str, broker: str) -> dict[str, list[float]]:
              for name in ("m", "reader")]
     for p in serve:
         p.stdout.readline()
-    bus = ZenohBus(LabClock("wall"), ZenohOptions(listen=[], connect=[router]))
+    clock = LabClock("wall")
+    bus = ZenohBus(clock, ZenohOptions(listen=[], connect=[router]))
     await bus.start()
+    lab_time = LabTimeSource(bus, "bench", clock)  # the devices take commands once they have the lab's time
+    lab_time.start()
     try:
         await asyncio.sleep(1.0)
         return {"native": await round_trips(bus, "bench", "m", "op", N_STEPS),
                 "mqtt": await round_trips(bus, "bench", "reader", "measure", N_STEPS)}
     finally:
+        lab_time.close()
         await bus.close()
         stop(instrument, *serve)
 
