@@ -155,9 +155,12 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
             seats.append(key.split("/")[3])
 
     def on_lab(key: str, alive: bool) -> None:
+        nonlocal waiting
         lab_present["gone_at"] = None if alive else clock.now()
-        if alive and lab_present["lost"]:
+        if alive and lab_present["lost"]:  # back: what it sends waits until what it did before is read
             lab_present["back"] = True
+            if waiting is None:
+                waiting = []
         lab_present["lost"] = not alive
 
     handles = [*attach(bus, lab, on_message), bus.watch_tokens(keys.campaign(lab, "*", "seat"), on_seat),
@@ -183,16 +186,18 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
             if lab_present["back"]:  # a lab resumed: what it did before this watcher's session reached it again
                 lab_present["back"] = False
                 if isinstance(observer, SharedLabObserver):
-                    seats[:0] = sorted(shared.read)
+                    names = sorted(shared.read)
                     shared.read.clear()
+                    for name in names:
+                        await shared.catch_up(name)
                 else:
-                    waiting = []
                     again = await _first_page(bus, clock, lab, stop)
                     if again is not None:
                         await _pages(bus, clock, keys.campaign(lab, "*", "history"), again, observer.on_message)
-                    for key, payload in waiting:
-                        feed(key, payload)
-                    waiting = None
+                held: list = waiting or []
+                waiting = None
+                for key, payload in held:
+                    feed(key, payload)  # repeats of the history are dropped
             if isinstance(observer, SharedLabObserver):
                 while seats:
                     await shared.catch_up(seats.pop(0))
