@@ -199,7 +199,8 @@ def watch(
     save: Annotated[Optional[Path], typer.Option(help="save the recording, e.g. watch.rrd")] = None,
     viewer: Annotated[bool, typer.Option(help="open the Rerun viewer")] = False,
     serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,
-    follow: Annotated[bool, typer.Option(help="keep watching after the campaign ends")] = False,
+    follow: Annotated[bool, typer.Option(help="keep watching after the campaign ends, or when its lab dies "
+                                              "(for twin resume)")] = False,
     security: Annotated[Optional[Path], typer.Option(help="the lab's security directory: watch through its "
                                                           "router with the watcher's certificate")] = None,
     wait: Annotated[float, typer.Option(min=0.1, max=600, metavar="SECONDS",
