@@ -28,7 +28,8 @@ sys.path.insert(0, str(ROOT))
 
 from bench.tables import free_port, table  # noqa: E402
 from twin.core import keys  # noqa: E402
-from twin.core.bus.zenoh_bus import ZenohBus, ZenohOptions  # noqa: E402
+from twin.core.bus.zenoh_bus import ZenohBus  # noqa: E402
+from twin.core.bus.zenoh_config import ZenohOptions  # noqa: E402
 from twin.core.clock import LabClock  # noqa: E402
 from twin.core.messages import Kind, decode, pack  # noqa: E402
 from twin.runtime.labtime import LabTimeSource  # noqa: E402
@@ -37,7 +38,8 @@ N_REQUESTS, N_MESSAGES, N_STEPS = 2000, 50_000, 300
 
 SERVER = """
 import asyncio, sys
-from twin.core.bus.zenoh_bus import ZenohBus, ZenohOptions
+from twin.core.bus.zenoh_bus import ZenohBus
+from twin.core.bus.zenoh_config import ZenohOptions
 from twin.core.clock import LabClock
 async def main():
     listen, connect = sys.argv[1].split(",") if sys.argv[1] else [], sys.argv[2].split(",") if sys.argv[2] else []

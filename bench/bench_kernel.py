@@ -25,7 +25,8 @@ sys.path.insert(0, str(ROOT))
 
 from bench import simpy_lab  # noqa: E402
 from bench.tables import free_port, table  # noqa: E402
-from twin.core.bus.zenoh_bus import ZenohBus, ZenohOptions  # noqa: E402
+from twin.core.bus.zenoh_bus import ZenohBus  # noqa: E402
+from twin.core.bus.zenoh_config import ZenohOptions  # noqa: E402
 from twin.core.clock import LabClock  # noqa: E402
 from twin.runtime.lab import prepare, run  # noqa: E402
 

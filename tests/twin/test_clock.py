@@ -111,7 +111,8 @@ def test_unknown_mode_is_refused():
 
 
 def test_virtual_clock_refuses_a_bus_spread_over_processes(virtual_clock):
-    from twin.core.bus.zenoh_bus import ZenohBus, ZenohOptions
+    from twin.core.bus.zenoh_bus import ZenohBus
+    from twin.core.bus.zenoh_config import ZenohOptions
 
     with pytest.raises(ClockError, match="--clock scaled"):
         ZenohBus(virtual_clock, ZenohOptions(connect=["tcp/127.0.0.1:7447"]))

@@ -72,7 +72,7 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         log.warning("%s: on a virtual clock no experiment meets that target, and campaigns run their whole budget",
                     problem)
     if s.bus.zenoh:
-        from twin.core.bus.zenoh_bus import check_config
+        from twin.core.bus.zenoh_config import check_config
 
         check_config(s.bus.zenoh)
 

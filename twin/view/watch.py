@@ -128,9 +128,7 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
     campaign). ``on_gone()``: the lab's process left the bus (its presence gone) before its campaigns ended; the
     watch then ends too, unless ``follow`` (a resumed lab comes back)."""
     told: set[str] = set()
-    # the lab's presence: when it went (while it is gone), and whether it came back after going (its messages
-    # before this watcher's session reached it again are in its history only)
-    lab_present: dict[str, Any] = {"gone_at": None, "lost": False, "back": False}
+    presence = _Presence()
 
     def tell_ended() -> None:
         if on_ended is None:
@@ -156,12 +154,8 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
 
     def on_lab(key: str, alive: bool) -> None:
         nonlocal waiting
-        lab_present["gone_at"] = None if alive else clock.now()
-        if alive and lab_present["lost"]:  # back: what it sends waits until what it did before is read
-            lab_present["back"] = True
-            if waiting is None:
-                waiting = []
-        lab_present["lost"] = not alive
+        if presence.changed(alive, clock.now()) and waiting is None:
+            waiting = []  # back: what it sends waits until what it did before is read again
 
     handles = [*attach(bus, lab, on_message), bus.watch_tokens(keys.campaign(lab, "*", "seat"), on_seat),
                bus.watch_tokens(keys.orchestrator(lab), on_lab)]
@@ -183,8 +177,8 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
             feed(key, payload)  # repeats of the history are dropped by id
         waiting = None
         while not stop.is_set() and (follow or not observer.done):
-            if lab_present["back"]:  # a lab resumed: what it did before this watcher's session reached it again
-                lab_present["back"] = False
+            if presence.back:  # a lab resumed: what it did before this watcher's session reached it again
+                presence.back = False
                 if isinstance(observer, SharedLabObserver):
                     names = sorted(shared.read)
                     shared.read.clear()
@@ -204,10 +198,8 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
             await clock.sleep(0.25 * clock.speed)
             observer.c.flush()
             tell_ended()
-            gone_at = lab_present["gone_at"]
-            # a lab that ends says so (its summaries) before its presence goes: a grace for those still in flight
-            if gone_at is not None and clock.now() - gone_at > _GONE_GRACE_S * clock.speed and not observer.done:
-                lab_present["gone_at"] = None
+            if presence.gone_for(clock.now()) > _GONE_GRACE_S * clock.speed and not observer.done:
+                presence.gone_at = None
                 if on_gone is not None:
                     on_gone()
                 if not follow:
@@ -221,7 +213,29 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
     return observer
 
 
-_GONE_GRACE_S = 2.0  # wall seconds between the lab's presence going and the watcher calling it gone
+_GONE_GRACE_S = 2.0  # wall seconds between the lab's presence going and the watcher calling it gone: a lab that
+# ends says so (its summaries) before its presence goes, and this is a grace for those still in flight
+
+
+@dataclass
+class _Presence:
+    """The watched lab's presence token: since when it is gone, and whether it came back after going (what the lab
+    sent before the watcher's session reached it again is in its history only)."""
+
+    gone_at: float | None = None
+    lost: bool = False
+    back: bool = False
+
+    def changed(self, alive: bool, now: float) -> bool:
+        """The token came (``alive``) or went at ``now``; True when it came back after going."""
+        self.gone_at = None if alive else now
+        returned = alive and self.lost
+        self.back = self.back or returned
+        self.lost = not alive
+        return returned
+
+    def gone_for(self, now: float) -> float:
+        return 0.0 if self.gone_at is None else now - self.gone_at
 
 
 class _SharedWatch:

@@ -21,7 +21,8 @@ def open_bus(kind: str, clock, **zenoh_options) -> Bus:
     if kind == "memory":
         return MemoryBus()
     if kind == "zenoh":
-        from twin.core.bus.zenoh_bus import ZenohBus, ZenohOptions
+        from twin.core.bus.zenoh_bus import ZenohBus
+        from twin.core.bus.zenoh_config import ZenohOptions
 
         return ZenohBus(clock, ZenohOptions(**zenoh_options))
     from twin.core.errors import BusError

@@ -10,7 +10,7 @@ from collections.abc import Callable
 import zenoh
 
 from twin.core.bus import security
-from twin.core.bus.zenoh_bus import ZenohOptions
+from twin.core.bus.zenoh_config import ZenohOptions
 from twin.core.errors import BusError
 
 log = logging.getLogger(__name__)
