@@ -116,6 +116,7 @@ class ZenohBus:
         self._seq = itertools.count(1)
         # another labtwin process stamps its messages too: only this bus's own are held on the clock and ordered
         self._bus_id = int.from_bytes(os.urandom(8), "little")
+        self._zid: Any = None  # the session's Zenoh id, once open
         self._ids = itertools.count()
         self._groups: dict[str, _Group] = {}
         self._queryables: list[_Declared] = []
@@ -133,6 +134,7 @@ class ZenohBus:
         self._remove_idle_hook = self._clock.on_idle(self._deliver_at_idle)
         try:
             self._session = await self._open()
+            self._zid = self._session.zid()
         except zenoh.ZError as exc:
             if "Unable to connect" in str(exc):
                 raise BusError(
@@ -325,7 +327,7 @@ class ZenohBus:
         fut: asyncio.Future = loop.create_future()
         self._pending_requests.add(fut)
         local = sum(1 for q in self._queryables if keys_intersect(q.keyexpr, key))
-        own = self.session.zid()  # replies from this session's queryables were held on the clock; others not
+        own = self._zid  # replies from this session's queryables were held on the clock; others not
         if self._virtual:
             if not local:
                 raise NoReplyError(f"no replier serves {key!r}: is the device or service running?")
