@@ -133,6 +133,25 @@ def test_workflow_naming_a_missing_device_type(tmp_path):
         load(path)
 
 
+def test_a_lab_without_devices_says_so_and_a_device_type_it_lacks_says_there_are_none(tmp_path):
+    path = write(tmp_path, {"name": "x", "workflow": [{"step": "a", "device": "robot"}]})
+    with pytest.raises(ScenarioError) as err:
+        load(path)
+    assert err.value.problems[0].startswith("devices: none; a lab needs at least one device type")
+    assert err.value.problems[1] == "workflow.0.device: 'robot' is not a device type of this lab (it has none)"
+
+
+@pytest.mark.parametrize("changes, says", [
+    ({"jobshop": "ft06.txt"}, "jobshop: should be a mapping of its fields: file "),
+    ({"devices.synthesiser.duration": 600}, "devices.synthesiser.duration: should be a mapping of its fields: "
+                                            "mean_s, cv, "),
+])
+def test_a_section_given_as_a_value_says_which_fields_it_takes(tmp_path, changes, says):
+    with pytest.raises(ScenarioError) as err:
+        load(write(tmp_path, qd_lab(**changes)))
+    assert err.value.problems[0].startswith(says), err.value.problems
+
+
 def test_problems_across_fields_are_listed_one_each_under_their_own_field(tmp_path):
     path = write(tmp_path, qd_lab(**{"workflow": [{"step": "synthesise", "device": "robot"},
                                                   {"step": "measure", "device": "spectrometer"}],

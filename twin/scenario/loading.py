@@ -12,6 +12,7 @@ from pydantic import ValidationError
 from twin.core.errors import ScenarioError
 from twin.scenario.files import read_yaml
 from twin.scenario.model import Scenario
+from twin.scenario.spec import Spec
 
 
 def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bool = False) -> Scenario:
@@ -157,9 +158,25 @@ def describe(err: Any, raw: dict[str, Any]) -> str:
     text = repr(value)
     shown = "" if isinstance(value, dict) else f" (got {text if len(text) <= 80 else text[:79] + '…'})"
     msg = err["msg"].removeprefix("Value error, ")
+    if err["type"] == "model_type":  # pydantic says "a valid dictionary or instance of JobShop"
+        msg = f"should be a mapping{_of_fields(str(err.get('ctx', {}).get('class_name', '')))}"
     if not loc:  # the scenario's own checks across fields: each line names its field
         return msg
     return f"{loc}: {msg}{shown}"
+
+
+def _of_fields(class_name: str) -> str:
+    """`` of its fields: file`` for a section's class (its required fields first), or "" for a class not found."""
+    found = [c for c in _specs(Spec) if c.__name__ == class_name]
+    if not found:
+        return ""
+    fields = found[0].model_fields
+    names = sorted(fields, key=lambda n: not fields[n].is_required())
+    return f" of its fields: {', '.join(names)} (`twin schema` says what each means)"
+
+
+def _specs(cls: type) -> list[type]:
+    return [c for sub in cls.__subclasses__() for c in (sub, *_specs(sub))]
 
 
 def set_dotted(raw: dict[str, Any], dotted: str, value: Any) -> None:

@@ -290,16 +290,22 @@ class Scenario(Spec):
                                             "sharing this lab's devices (each with its own ledger and journal); "
                                             "empty: the one campaign of this file")
 
+    def _types(self) -> str:
+        return ", ".join(self.devices) or "it has none"
+
     @model_validator(mode="after")
     def _consistent(self, info: ValidationInfo) -> Scenario:
-        problems = [f"training.instances.{k}: {k!r} is not a device type of this lab"
+        problems = [f"training.instances.{k}: {k!r} is not a device type of this lab ({self._types()})"
                     for k in self.training.instances if k not in self.devices]
+        if not self.devices and self.jobshop is None:
+            problems.append("devices: none; a lab needs at least one device type (`twin devices` lists the drivers, "
+                            "`twin schema` the fields)")
         steps = {st for dev in self.devices.values() for st in dev.steps}
         for name, c in self.consumables.items():
             holder = self.devices.get(c.device) if c.device is not None else None
             if c.device is not None and holder is None:
                 problems.append(f"consumables.{name}.device: {c.device!r} is not a device type of this lab "
-                                f"({', '.join(self.devices)})")
+                                f"({self._types()})")
             elif holder is not None:  # a stock per instance is used only by the steps that run on the instances
                 problems += [f"consumables.{name}.used_by.{st}: {st!r} does not run on a {c.device} (it runs "
                              f"{', '.join(holder.steps)}), so it can never use a {c.device}'s own {name}"
@@ -310,14 +316,15 @@ class Scenario(Spec):
         for i, rule in enumerate(self.orchestrator.recovery):
             if rule.device is not None and rule.device not in self.devices:
                 problems.append(f"orchestrator.recovery.{i}.device: {rule.device!r} is not a device type of this "
-                                f"lab ({', '.join(self.devices)})")
+                                f"lab ({self._types()})")
             if rule.step is not None and rule.step not in steps:
                 problems.append(f"orchestrator.recovery.{i}.step: {rule.step!r} is no device's step "
                                 f"({', '.join(sorted(steps))})")
         for i, ws in enumerate(self.workflow):
             dev = self.devices.get(ws.device)
             if dev is None:
-                problems.append(f"workflow.{i}.device: {ws.device!r} is not a device type of this lab ({', '.join(self.devices)})")
+                problems.append(f"workflow.{i}.device: {ws.device!r} is not a device type of this lab "
+                                f"({self._types()})")
             elif ws.step not in dev.steps:
                 problems.append(f"workflow.{i}.step: device type {ws.device!r} does not run {ws.step!r} (it runs {dev.steps})")
         lab_only = bool(info.context and info.context.get("lab_only"))  # `twin lab serve`: campaigns come later
