@@ -175,8 +175,9 @@ def _of_fields(class_name: str) -> str:
     return f" of its fields: {', '.join(names)} (`twin schema` says what each means)"
 
 
-def _specs(cls: type) -> list[type]:
-    return [c for sub in cls.__subclasses__() for c in (sub, *_specs(sub))]
+def _specs(cls: type[Spec]) -> list[type[Spec]]:
+    subs: list[type[Spec]] = cls.__subclasses__()
+    return [c for sub in subs for c in (sub, *_specs(sub))]
 
 
 def set_dotted(raw: dict[str, Any], dotted: str, value: Any) -> None:
