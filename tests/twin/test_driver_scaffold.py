@@ -30,6 +30,7 @@ def test_a_scaffolded_driver_installs_and_runs_unmodified(tmp_path):
         assert "acme-hplc" in listed.stdout and "acme_hplc.driver:AcmeHplc" in listed.stdout
         own_tests = sh([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(pkg / "tests")], cwd=pkg)
         assert own_tests.returncode == 0 and "3 passed" in own_tests.stdout, own_tests.stdout + own_tests.stderr
+        assert "Warning" not in own_tests.stdout + own_tests.stderr  # a stranger's first run is a clean one
         campaign = sh([*TWIN, "run", str(pkg / "scenario.yaml"), "--json", "--journal", str(tmp_path / "j.db")], cwd=ROOT)
         assert campaign.returncode == 0, campaign.stderr
         assert '"done": 4' in campaign.stdout

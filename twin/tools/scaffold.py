@@ -98,6 +98,10 @@ dependencies = ["labtwin"]
 
 [tool.setuptools.packages.find]
 include = ["{module}*"]
+
+[tool.pytest.ini_options]
+# labtwin's test tools include pytest-asyncio, which warns at every run while this is unset
+asyncio_default_fixture_loop_scope = "function"
 '''
 
 README = '''# {name}
