@@ -67,7 +67,7 @@ def test_self_pg_starts_from_a_policy_and_its_training_says_what_it_did(ft06, tm
         train_scheduler(pg, 100, tmp_path / "x.zip")
     out, seen = tmp_path / "tuned.zip", []
     train_scheduler(pg, 600, out, envs=2, eval_every=300, eval_seeds=(0,), held_out_count=2, init=SHIPPED,
-                    on_progress=lambda done, result: seen.append(result) if result else None)
+                    on_progress=lambda done, result: seen.append(result) if result and "objective" in result else None)
     meta = json.loads(out.with_suffix(".json").read_text())
     assert meta["teacher"] == "self-pg" and meta["init"] == str(SHIPPED)
     assert [r["policy"].split(" (")[0] for r in seen[1:]][:2] == ["start", "policy gradient"]
