@@ -36,6 +36,7 @@ def twin(*args):
         ({"devices.synthesiser.faults": {"fail_p": 1.5}}, "devices.synthesiser.faults.fail_p", "1.5"),
         ({"chemistry.parameters.time_s": {"low": 10, "high": 5}}, "chemistry.parameters.time_s", "below high"),
         ({"clock.mode": "sundial"}, "clock.mode", "'sundial'"),
+        ({"devices.synthesiser.cost": {"per_hour": 40}}, "devices.synthesiser.cost", "got a mapping of per_hour"),
     ],
 )
 def test_each_bad_field_is_named_with_its_value(tmp_path, changes, field, shown):

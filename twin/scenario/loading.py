@@ -156,7 +156,10 @@ def describe(err: Any, raw: dict[str, Any]) -> str:
                 "become bus keys and file names)")
     value = err.get("input")
     text = repr(value)
-    shown = "" if isinstance(value, dict) else f" (got {text if len(text) <= 80 else text[:79] + '…'})"
+    shown = f" (got {text if len(text) <= 80 else text[:79] + '…'})"
+    if isinstance(value, dict):  # a section's own problems name its fields; a mapping where a value goes, its keys
+        keys = ", ".join(map(str, value))[:80]
+        shown = f" (got a mapping of {keys})" if err["type"].endswith(("_type", "_parsing")) and value else ""
     msg = err["msg"].removeprefix("Value error, ")
     if err["type"] == "model_type":  # pydantic says "a valid dictionary or instance of JobShop"
         msg = f"should be a mapping{_of_fields(str(err.get('ctx', {}).get('class_name', '')))}"
