@@ -84,6 +84,23 @@ def test_the_cheapest_variant_within_the_hours_must_meet_every_target_in_every_r
     assert cheapest_within(summary, 4) is None
 
 
+def test_each_instance_costs_its_hours_busy_or_not_and_the_cheapest_variant_weighs_them(tmp_path):
+    from twin import run
+
+    every_attempt = {f"devices.{t}.cost": 10.0 for t in ("synthesiser", "reactor", "spectrometer")}
+    changes = {"campaign.budget": 6, **every_attempt, "devices.spectrometer.cost_per_hour": 30.0}
+    for n in (1, 2, 3):
+        summary = run(FLAKY, journal=tmp_path / f"{n}.db", bus="memory",
+                      overrides={**changes, "devices.spectrometer.instances": n})
+        assert summary.cost == pytest.approx(10.0 * summary.attempts + 30.0 * n * summary.lab_hours)
+    # the spectrometers are not the bottleneck: a third saves no hours and costs its own
+    code, out = whatif(FLAKY, "--vary", "devices.spectrometer.instances=3", "--set",
+                       "devices.spectrometer.cost_per_hour=30", "--set", "campaign.stop_on_target=true",
+                       "--seeds", "2", "--json")
+    rows = {r["variant"]: r for r in json.loads(out)["variants"]}
+    assert code == 0 and rows["devices.spectrometer.instances=3"]["cost_change"][1] > 0
+
+
 def test_fields_in_lists_vary_and_columns_say_which_field_they_are(tmp_path):
     from twin.runtime.lab import prepare
     from twin.tools.whatif import header, variants, written_values

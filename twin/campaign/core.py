@@ -69,7 +69,8 @@ class CampaignCore:
         self._unscorable: set[str] = set()  # outputs already said to be unscorable
         self.met_after: dict[str, int] = {}  # target -> experiments finished when it was met
         self.met_cost: dict[str, float] = {}  # target -> money spent when it was met
-        self.cost = 0.0
+        self.spent = 0.0  # what attempts and experiments' materials cost; ``cost`` adds the devices' hours
+        self._per_hour = sum(d.instances * d.cost_per_hour for d in scenario.devices.values())
         self.counts = Counters()
         self.decision_wall_s: list[float] = []
         self.planner_exhausted = False
@@ -273,6 +274,12 @@ class CampaignCore:
         c = self.s.campaign
         return min(c.max_in_flight - len(self.active), c.budget + self.replaced - len(self.experiments))
 
+    @property
+    def cost(self) -> float:
+        """What the campaign has cost so far: its attempts, its experiments' materials and every instance's
+        hours (``devices.*.cost_per_hour``) since it started."""
+        return self.spent + self._per_hour * self.elapsed_s / 3600
+
     def _can_propose(self) -> bool:
         c = self.s.campaign
         if self.planner_exhausted or len(self.experiments) >= c.budget + self.replaced:
@@ -325,7 +332,7 @@ class CampaignCore:
         self.active[e.id] = e
         self._note("experiment.proposed", e.id, detail=e.params)
         if isinstance(p.cost, (int, float)) and 0 < p.cost < float("inf"):  # a planner's nonsense costs nothing
-            self.cost += float(p.cost)
+            self.spent += float(p.cost)
         self._out.append(RecordExperiment(e))
         unusable = bad_route or policy.unusable_params(e.params, self.s.chemistry.parameters)
         if unusable:  # the planner's fault, not the devices': nothing is sent
@@ -372,7 +379,7 @@ class CampaignCore:
         e.attempts += 1
         e.status = Status.RUNNING
         self.counts.attempts += 1
-        self.cost += self.s.devices[dev.type].cost
+        self.spent += self.s.devices[dev.type].cost
         att = Attempt(task, task.attempts, dev.name, self.now, token=self.token(task.id, task.attempts))
         dev.attempt = att
         dev.attempts += 1

@@ -35,8 +35,9 @@ def whatif(
                                                            "(repeatable)")] = None,
     seeds: Annotated[int, typer.Option(min=1, help="paired seeds per variant")] = 20,
     workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
-    budget_hours: Annotated[Optional[float], typer.Option(help="also name the cheapest variant that meets every "
-                                                               "target within this many lab-hours")] = None,
+    budget_hours: Annotated[Optional[float], typer.Option(help="also name the cheapest variant (median cost) "
+                                                               "that met every target in every run, its median "
+                                                               "lab-hours to them within this many")] = None,
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write a row per variant to this CSV file")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print every variant and run as JSON instead of the table")] = False,
     save: Annotated[Optional[Path], typer.Option(help="draw the trade-offs into a Rerun recording, e.g. whatif.rrd")] = None,
@@ -121,9 +122,9 @@ def whatif(
     console.print(f"as written, the busiest device type is {base['bottleneck']} "
                   f"({100 * base['utilisation'].get(base['bottleneck'], 0):.0f} % busy)", highlight=False)
     if budget_hours is not None:
-        console.print(f"cheapest within {budget_hours:g} lab-h: " + (
+        console.print(f"cheapest within {budget_hours:g} lab-h (median; every target met in every run): " + (
             f"{best['variant']} (cost {best['cost'][1]:,.0f}, {best['lab_hours'][1]:.1f} lab-h)" if best else
-            "none of these variants meets every target within that in every run"), highlight=False)
+            "none of these variants"), highlight=False)
     for path in (csv_out, save):
         if path is not None:
             console.print(f"wrote {path}", highlight=False)

@@ -75,6 +75,10 @@ class DeviceType(Spec):
                            "driver for rehearsing failures")
     cost: float = Field(default=0, ge=0, le=MAX_VALUE, description="charged for every attempt dispatched to "
                         "this device type")
+    cost_per_hour: float = Field(default=0, ge=0, le=MAX_VALUE, description="charged for each instance of this "
+                                 "type for every lab-hour the campaign runs, busy or not (its rent, upkeep, an "
+                                 "operator's time): `twin whatif` then weighs more instances against the hours "
+                                 "they save")
     envelope: dict[Label, Parameter] = Field(default_factory=dict, description="the safe range of parameters "
                                              "this device accepts: an experiment outside it is refused before "
                                              "anything is sent (abandoned as infeasible)")
