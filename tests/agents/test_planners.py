@@ -151,7 +151,7 @@ def test_bench_planners_leaves_out_a_cost_column_of_noughts_and_keeps_it_where_e
         return next(line.split() for line in res.output.splitlines() if line.split()[:1] == ["planner"]), words
 
     free, says = head("scenarios/quantum_dots.yaml")
-    assert "cost" not in free and "no device costs anything (devices.*.cost), so no cost column" in says
+    assert "cost" not in free and "no device costs anything (devices.*.cost, cost_per_hour), so no cost column" in says
     paid, says = head("scenarios/bandgap.yaml")
     assert "cost" in paid and "cost: at the last target (median)" in says
 

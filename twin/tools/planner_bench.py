@@ -159,7 +159,7 @@ HEADER = ["planner", "exp. to target", "lab-h to target", "exp. run", "cost", "r
 def caption(costs: bool = True) -> str:
     """What the columns mean; ``costs``: whether the table has a cost column (something in the lab costs)."""
     cost = ("cost: at the last target (median)" if costs else
-            "no device costs anything (devices.*.cost), so no cost column")
+            "no device costs anything (devices.*.cost, cost_per_hour), so no cost column")
     return ("medians [IQR]; ≥: censored by the budget (reached in under half the runs, where the budget or the run's "
             f"end is counted); exp. run: experiments run in all (mean); {cost}; reached: runs that met every target; "
             "accel.: random's median experiments (cost, where experiments cost) ÷ this planner's")

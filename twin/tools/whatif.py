@@ -327,7 +327,7 @@ def caption(targets: bool, seeds: int, shown: frozenset[str] = frozenset({"cost"
     runs = ("One run per variant: each runs alike on every seed (a job shop: no chance in durations or faults)"
             if alike else f"Medians and IQR over {seeds} paired seeds")
     cost = ("cost: at the last target (else all spent)" if "cost" in shown else
-            "no device costs anything (devices.*.cost), so no cost columns")
+            "no device costs anything (devices.*.cost, cost_per_hour), so no cost columns")
     counts = [("aband.: experiments abandoned (mean)" if "abandoned" in shown else
                "no run abandoned an experiment (no aband. column)"),
               *(["degr.: samples degraded (mean)"] if "degraded" in shown else [])]
