@@ -93,6 +93,9 @@ def test_each_instance_costs_its_hours_busy_or_not_and_the_cheapest_variant_weig
         summary = run(FLAKY, journal=tmp_path / f"{n}.db", bus="memory",
                       overrides={**changes, "devices.spectrometer.instances": n})
         assert summary.cost == pytest.approx(10.0 * summary.attempts + 30.0 * n * summary.lab_hours)
+        assert summary.hours_cost == pytest.approx(30.0 * n * summary.lab_hours)
+    shown = f"| cost | {summary.cost:,.0f} ({summary.hours_cost:,.0f} of it the devices' hours) |"
+    assert shown in summary._repr_markdown_().splitlines()  # the viewer's summary panel, a notebook's view
     # the spectrometers are not the bottleneck: a third saves no hours and costs its own
     code, out = whatif(FLAKY, "--vary", "devices.spectrometer.instances=3", "--set",
                        "devices.spectrometer.cost_per_hour=30", "--set", "campaign.stop_on_target=true",

@@ -276,9 +276,13 @@ class CampaignCore:
 
     @property
     def cost(self) -> float:
-        """What the campaign has cost so far: its attempts, its experiments' materials and every instance's
-        hours (``devices.*.cost_per_hour``) since it started."""
-        return self.spent + self._per_hour * self.elapsed_s / 3600
+        """What the campaign has cost so far: its attempts, its experiments' materials and ``hours_cost``."""
+        return self.spent + self.hours_cost
+
+    @property
+    def hours_cost(self) -> float:
+        """What every instance's hours have cost since the campaign started (``devices.*.cost_per_hour``)."""
+        return self._per_hour * self.elapsed_s / 3600
 
     def _can_propose(self) -> bool:
         c = self.s.campaign

@@ -44,6 +44,7 @@ class Summary:
     targets_met_cost: dict[str, float] = field(default_factory=dict)
     stopped: str = ""
     cost: float = 0.0
+    hours_cost: float = 0.0  # of ``cost``, what the instances' hours cost (devices.*.cost_per_hour)
     wall_s: float = 0.0
     events: int = 0
     decisions: int = 0
@@ -107,6 +108,9 @@ def summary_markdown(s: dict[str, Any]) -> str:
              f"| faults | {s.get('devices_lost')} device losses, {s.get('quarantines')} quarantines |",
              f"| samples degraded | {s.get('degraded_samples')}{_cell(_waited_for(s.get('degraded_before')))} |",
              f"| lab time | {s.get('lab_hours', 0):.2f} h |"]
+    if s.get("cost"):
+        hours = f" ({s['hours_cost']:,.0f} of it the devices' hours)" if s.get("hours_cost") else ""
+        lines.insert(-1, f"| cost | {s['cost']:,.0f}{hours} |")
     for dev, busy in busy_rows(s.get("utilisation") or {}, s.get("device_types") or {}):
         lines.append(f"| {_cell(dev)} | {busy.strip()} |")
     for name, b in (s.get("best") or {}).items():
@@ -152,7 +156,7 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         targets_met_after=dict(core.met_after), targets_met_cost=dict(core.met_cost),
         stopped=core.stopping or (f"the planner failed ({core.planner_failed}); the experiments it had proposed "
                                   "were run to their end" if core.planner_failed else ""),
-        cost=core.cost, wall_s=wall_s, events=events,
+        cost=core.cost, hours_cost=core.hours_cost, wall_s=wall_s, events=events,
         decisions=len(core.decision_wall_s), decision_ms=_percentiles(core.decision_wall_s),
         degraded_before=dict(Counter(e.degraded_before for e in exps if e.degraded and e.status == "done")),
         consumables={name: {"left": round(st.level, 6), "used": round(st.used, 6), "unit": st.unit,

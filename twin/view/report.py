@@ -52,7 +52,8 @@ def render_summary(s: Summary, console: Console) -> None:
         t.add_row("scheduling", f"{s.decisions} decisions, {ms.get('p50', 0):.2f} / {ms.get('p99', 0):.2f} ms "
                                 f"(p50 / p99 wall){fallback}")
     if s.cost:
-        t.add_row("cost", f"{s.cost:,.0f}")
+        hours = f" ({s.hours_cost:,.0f} of it the devices' hours)" if s.hours_cost else ""
+        t.add_row("cost", f"{s.cost:,.0f}{hours}")
     hours = f"{s.lab_hours:.3f} h; " if s.lab_hours < 1 else ""
     t.add_row("lab time", f"{lab_span(s.lab_hours * 3600)} ({hours}{s.wall_s:.2f} s wall, {s.events} journal events)")
     for name, u in busy_rows(s.utilisation, s.device_types):
