@@ -10,6 +10,11 @@ Where the lab leaves the plan — a step the plan never held (a retry, an experi
 of the plan that is down, nothing running and no device's next step ready, a campaign resumed part-way — the policy
 decides from then on, greedily.
 
+A pure job shop (every experiment a fixed route, all in the lab from the start, no set-up or cleaning, nothing that
+degrades or runs out) is also played backwards: every job's route reversed, the same shop in time reversed. A run of
+it, each device's order read backwards, is an order for the shop as written whose makespan is no longer (the longest
+path through the jobs' and devices' orders is the same either way), so half the runs search from the other end.
+
 Only a lab that runs as it was played can be planned: every experiment known before it starts (a job shop),
 durations without spread, no faults. The best of several runs of a lab with chance in it is its luckiest, not
 its best decided: such a lab (``twin.why_runs_vary``) is refused, with the field to change.
@@ -54,12 +59,15 @@ class Plan:
     greedy_h: float
     seconds: float  # wall time the rollouts took
     search: str = "sample"  # campaign.rollout_search
+    backwards: int = 0  # of the runs, those played on the shop backwards
     degraded: tuple[int, int] = (0, 0)  # degraded samples, its and the greedy run's
     abandoned: tuple[int, int] = (0, 0)  # abandoned experiments, its and the greedy run's
 
     def describe(self) -> str:
         gain = 100 * (1 - self.best / self.greedy) if self.greedy else 0.0
         how = f" (active search: the policy tuned on this lab after every {ROUND})" if self.search == "active" else ""
+        if self.backwards:
+            how += f" ({self.backwards} of them on the shop played backwards)"
         # what else the objective weighs, where the runs differ in it (lab time alike, fewer degraded samples)
         also = "".join(f", {what} {mine} against {greedy}" for what, (mine, greedy) in
                        (("degraded samples", self.degraded), ("abandoned experiments", self.abandoned)) if mine != greedy)
@@ -84,34 +92,70 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
     t0 = time.perf_counter()
     lab = prepare(s, clock="virtual", bus="memory")
     draws = torch.Generator().manual_seed(s.campaign.seed)  # the same lab and seed, the same plan
-    search = None
+    back = backwards(lab)
+    labs = [lab] if back is None else [lab, back]
+    searches: list[Any] = [None] * len(labs)
     if s.campaign.rollout_search == "active":
         from agents.active_search import ActiveSearch  # it imports the training's loss and fitting
 
-        search = ActiveSearch(scorer, s.campaign.seed)
-    size, temperatures = (ROUND, (1.0,)) if search else (BATCH, SAMPLE_TEMPERATURES)
+        searches = [ActiveSearch(scorer, s.campaign.seed + way) for way in range(len(labs))]
+    # sampled: the runs split between the directions even when they are fewer than a batch
+    size, temperatures = (ROUND, (1.0,)) if searches[0] else (min(BATCH, -(-rollouts // len(labs))),
+                                                                 SAMPLE_TEMPERATURES)
     orders: list[dict[str, list[str]]] = []
     summaries: list[Any] = []
     scores: list[float] = []
     heartbeat = _Heartbeat(rollouts * _steps(lab), t0, on_share)
-    for first in range(0, rollouts, size):
+    played_back = 0
+    for n, first in enumerate(range(0, rollouts, size)):
+        way = n % len(labs)  # batches take turns: the shop as written, then backwards
+        search = searches[way]
         batch: list[dict[str, list[str]]] = [{} for _ in range(min(size, rollouts - first))]
         if search:
             search.start(len(batch))
-        played = lockstep(lab, search.net if search else scorer, len(batch), temperatures, encoding,
+        played = lockstep(labs[way], search.net if search else scorer, len(batch), temperatures, encoding,
                           seen=partial(_keep, batch, heartbeat, search), greedy_first=first == 0, generator=draws,
                           held=held)
         summaries += played
-        scores += [objective(summary, lab) for summary in played]
-        orders += batch
+        scores += [objective(summary, labs[way]) for summary in played]
+        orders += [forwards(order) for order in batch] if way else batch
+        played_back += len(batch) if way else 0
         if search and len(summaries) < rollouts:
             search.learn(scores[first:], greedy_first=first == 0)
-        if on_batch is not None and len(summaries) < rollouts and len(summaries) % BATCH < size:
+        if on_batch is not None and len(summaries) < rollouts and len(summaries) // BATCH > first // BATCH:
             on_batch(len(summaries), min(summary.lab_hours for summary in summaries))
     best = min(range(rollouts), key=scores.__getitem__)
     return Plan(orders[best], rollouts, scores[best], scores[0], summaries[best].lab_hours, summaries[0].lab_hours,
                 time.perf_counter() - t0, s.campaign.rollout_search,
+                played_back,
                 *((count(summaries[best], what), count(summaries[0], what)) for what in ("degraded_samples", "abandoned")))
+
+
+def backwards(lab: Scenario) -> Scenario | None:
+    """``lab`` with every experiment's route reversed, if it is a pure job shop (see the module's doc), else None."""
+    c = lab.campaign
+    proposals = (c.planner_options.get("proposals") or [])[:c.budget]
+    if (c.planner != "fixed" or not proposals or c.max_in_flight < len(proposals) or lab.consumables
+            or lab.chemistry.stability_s or not all(p.get("route") for p in proposals)
+            or any(d.setup_s or d.clean_s for d in lab.devices.values())):
+        return None
+    reversed_proposals = [{**p, "route": list(reversed(p["route"]))} for p in proposals]
+    return prepare(lab, overrides={"campaign.planner_options.proposals": reversed_proposals})
+
+
+def forwards(order: dict[str, list[str]]) -> dict[str, list[str]]:
+    """Each device's order of a run of the shop played backwards, as an order of the shop as written: read from
+    the end, each job's k-th step from the end its k-th from the start."""
+    length: dict[str, int] = {}
+    for tasks in order.values():
+        for task in tasks:
+            job, step = task.rsplit("s", 1)
+            length[job] = max(length.get(job, 0), int(step) + 1)
+    flipped = {}
+    for device, tasks in order.items():
+        flipped[device] = [f"{job}s{length[job] - 1 - int(step)}"
+                           for job, step in (task.rsplit("s", 1) for task in reversed(tasks))]
+    return flipped
 
 
 def _keep(orders: list[dict[str, list[str]]], heartbeat: _Heartbeat, search: ActiveSearch | None, i: int,

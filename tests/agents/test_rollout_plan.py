@@ -80,6 +80,49 @@ def test_a_stray_step_or_a_device_down_ends_the_plan():
     assert PlanFollower(plan).decide(view(["e0s0"], attempts=3)) is None  # resumed: the plan's start is past
 
 
+@pytest.mark.parametrize("rule", ["mwkr", "fifo", "spt"])
+def test_a_run_of_the_shop_backwards_read_forwards_runs_the_shop_no_longer(shop, rule):
+    """The longest path through the jobs' and devices' orders is the same either way: the orders of a run of the
+    shop played backwards, read from the end, are a plan for the shop as written that ends no later."""
+    from agents.rollout_plan import Plan, backwards, forwards
+    from twin import load_plugin
+
+    back, orders = backwards(shop), {}
+    assert back is not None and back.campaign.planner_options["proposals"][0]["route"] == \
+        list(reversed(shop.campaign.planner_options["proposals"][0]["route"]))
+    decide = load_plugin("schedulers", rule)().decide
+
+    def noting(view):
+        made = decide(view)
+        for a in made:
+            orders.setdefault(a.device, []).append(a.task)
+        return made
+
+    backwards_s = campaign(back, 0, noting).lab_hours * 3600
+    follower = PlanFollower(Plan(forwards(orders), 1, 0.0, 0.0, 0.0, 0.0, 0.0))
+    decisions = []
+
+    def following(view):
+        decisions.append(follower.decide(view))
+        return decisions[-1] or []
+
+    forwards_s = campaign(shop, 0, following).lab_hours * 3600
+    assert None not in decisions and forwards_s <= backwards_s + 1e-6
+    jobs = {d: [t.rsplit("s", 1)[0] for t in ts] for d, ts in orders.items()}
+    assert {d: [t.rsplit("s", 1)[0] for t in ts] for d, ts in forwards(orders).items()} == \
+        {d: js[::-1] for d, js in jobs.items()}  # each device's jobs, in the reverse order
+
+
+@pytest.mark.parametrize("field, value", [("devices.m0.setup_s", 5.0), ("devices.m2.clean_s", 5.0),
+                                          ("chemistry.stability_s", 100.0), ("campaign.max_in_flight", 3)])
+def test_a_lab_that_is_not_a_pure_job_shop_is_not_played_backwards(shop, field, value, capsys):
+    from agents.rollout_plan import backwards
+
+    assert backwards(prepare(shop, overrides={field: value})) is None
+    RlScheduler(with_rollouts(shop, 8, **{field: value}), POLICY[3:])
+    assert "played backwards" not in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("field, value, why", [
     ("devices.m0.duration.cv", 0.1, "devices.m0.duration.cv is 0.1"),
     ("devices.m3.faults.fail_p", 0.05, "devices.m3.faults.fail_p is 0.05"),
@@ -128,12 +171,13 @@ def test_on_a_shop_past_its_training_the_greedy_run_played_ahead_is_the_one_the_
 def test_a_long_planning_says_how_far_it_has_got(shop, capsys):
     from agents.rollout_plan import BATCH
 
-    RlScheduler(with_rollouts(shop, BATCH + 5, **{"campaign.seed": 5}), POLICY[3:])
+    runs = 2 * BATCH + 5
+    RlScheduler(with_rollouts(shop, runs, **{"campaign.seed": 5}), POLICY[3:])
     err = capsys.readouterr().err.splitlines()
-    assert err[0] == f"rl: playing jobshop_random-8x5 (8 jobs on 5 machines) {BATCH + 5} times in the twin ..."  # not ft06's file
-    assert [line.split(",")[0] for line in err if " of " in line and " played" in line] == \
-        [f"rl: {BATCH} of {BATCH + 5} played"]
-    assert err[-1].startswith(f"rl: the best of {BATCH + 5} rollouts") and err[-1].endswith("the lab follows it")
+    assert err[0] == f"rl: playing jobshop_random-8x5 (8 jobs on 5 machines) {runs} times in the twin ..."  # not ft06's file
+    assert [line.split(",")[0] for line in err if " played, the shortest so far" in line] == \
+        [f"rl: {BATCH} of {runs} played", f"rl: {2 * BATCH} of {runs} played"]
+    assert err[-1].startswith(f"rl: the best of {runs} rollouts") and err[-1].endswith("the lab follows it")
 
 
 def test_planning_a_shop_tells_the_share_played_as_it_goes(shop, monkeypatch):
@@ -155,7 +199,7 @@ def test_planning_a_shop_tells_the_share_played_as_it_goes(shop, monkeypatch):
 def test_a_bench_runs_its_rules_as_they_go_beside_a_policy_that_plays_ahead(shop):
     from twin.tools.scheduler_bench import one
 
-    s = with_rollouts(shop, 8)
+    s = with_rollouts(shop, 16)
     rule, played, greedy = one(s, "mwkr", 0), one(s, POLICY, 0), one(with_rollouts(shop, 1), POLICY, 0)
     assert rule.makespan_s == one(with_rollouts(shop, 1), "mwkr", 0).makespan_s  # not refused, and unchanged
     assert played.makespan_s < greedy.makespan_s
