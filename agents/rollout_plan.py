@@ -106,7 +106,7 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
     summaries: list[Any] = []
     scores: list[float] = []
     heartbeat = _Heartbeat(rollouts * _steps(lab), t0, on_share)
-    played_back = 0
+    ways: list[int] = []  # each run's direction: 0 as written, 1 backwards
     for n, first in enumerate(range(0, rollouts, size)):
         way = n % len(labs)  # batches take turns: the shop as written, then backwards
         search = searches[way]
@@ -118,16 +118,17 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
                           held=held)
         summaries += played
         scores += [objective(summary, labs[way]) for summary in played]
-        orders += [forwards(order) for order in batch] if way else batch
-        played_back += len(batch) if way else 0
+        orders += batch
+        ways += [way] * len(batch)
         if search and len(summaries) < rollouts:
             search.learn(scores[first:], greedy_first=first == 0)
         if on_batch is not None and len(summaries) < rollouts and len(summaries) // BATCH > first // BATCH:
             on_batch(len(summaries), min(summary.lab_hours for summary in summaries))
     best = min(range(rollouts), key=scores.__getitem__)
-    return Plan(orders[best], rollouts, scores[best], scores[0], summaries[best].lab_hours, summaries[0].lab_hours,
+    order = forwards(orders[best], steps_per_job(lab)) if ways[best] else orders[best]  # only the run kept is read back
+    return Plan(order, rollouts, scores[best], scores[0], summaries[best].lab_hours, summaries[0].lab_hours,
                 time.perf_counter() - t0, s.campaign.rollout_search,
-                played_back,
+                ways.count(1),
                 *((count(summaries[best], what), count(summaries[0], what)) for what in ("degraded_samples", "abandoned")))
 
 
@@ -143,18 +144,18 @@ def backwards(lab: Scenario) -> Scenario | None:
     return prepare(lab, overrides={"campaign.planner_options.proposals": reversed_proposals})
 
 
-def forwards(order: dict[str, list[str]]) -> dict[str, list[str]]:
+def steps_per_job(lab: Scenario) -> list[int]:
+    """How many steps each experiment of a job shop's fixed routes has (experiment ``e<j>``: entry j)."""
+    return [len(p["route"]) for p in lab.campaign.planner_options["proposals"][:lab.campaign.budget]]
+
+
+def forwards(order: dict[str, list[str]], steps: list[int]) -> dict[str, list[str]]:
     """Each device's order of a run of the shop played backwards, as an order of the shop as written: read from
-    the end, each job's k-th step from the end its k-th from the start."""
-    length: dict[str, int] = {}
-    for tasks in order.values():
-        for task in tasks:
-            job, step = task.rsplit("s", 1)
-            length[job] = max(length.get(job, 0), int(step) + 1)
+    the end, job j's k-th step from the end (``e<j>s<k>``) its k-th from the start (``steps``: each job's steps)."""
     flipped = {}
     for device, tasks in order.items():
-        flipped[device] = [f"{job}s{length[job] - 1 - int(step)}"
-                           for job, step in (task.rsplit("s", 1) for task in reversed(tasks))]
+        flipped[device] = [f"e{j}s{steps[int(j)] - 1 - int(k)}"
+                           for j, k in (task[1:].split("s", 1) for task in reversed(tasks))]
     return flipped
 
 

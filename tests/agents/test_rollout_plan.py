@@ -84,7 +84,7 @@ def test_a_stray_step_or_a_device_down_ends_the_plan():
 def test_a_run_of_the_shop_backwards_read_forwards_runs_the_shop_no_longer(shop, rule):
     """The longest path through the jobs' and devices' orders is the same either way: the orders of a run of the
     shop played backwards, read from the end, are a plan for the shop as written that ends no later."""
-    from agents.rollout_plan import Plan, backwards, forwards
+    from agents.rollout_plan import Plan, backwards, forwards, steps_per_job
     from twin import load_plugin
 
     back, orders = backwards(shop), {}
@@ -99,7 +99,7 @@ def test_a_run_of_the_shop_backwards_read_forwards_runs_the_shop_no_longer(shop,
         return made
 
     backwards_s = campaign(back, 0, noting).lab_hours * 3600
-    follower = PlanFollower(Plan(forwards(orders), 1, 0.0, 0.0, 0.0, 0.0, 0.0))
+    follower = PlanFollower(Plan(forwards(orders, steps_per_job(shop)), 1, 0.0, 0.0, 0.0, 0.0, 0.0))
     decisions = []
 
     def following(view):
@@ -109,7 +109,7 @@ def test_a_run_of_the_shop_backwards_read_forwards_runs_the_shop_no_longer(shop,
     forwards_s = campaign(shop, 0, following).lab_hours * 3600
     assert None not in decisions and forwards_s <= backwards_s + 1e-6
     jobs = {d: [t.rsplit("s", 1)[0] for t in ts] for d, ts in orders.items()}
-    assert {d: [t.rsplit("s", 1)[0] for t in ts] for d, ts in forwards(orders).items()} == \
+    assert {d: [t.rsplit("s", 1)[0] for t in ts] for d, ts in forwards(orders, steps_per_job(shop)).items()} == \
         {d: js[::-1] for d, js in jobs.items()}  # each device's jobs, in the reverse order
 
 
