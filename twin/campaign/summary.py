@@ -97,6 +97,11 @@ def _cell(value: Any) -> str:
     return str(value).replace("|", "\\|").replace("\n", " ")
 
 
+def cost_text(cost: float, hours_cost: float) -> str:
+    """A campaign's cost, with the part its instances' hours make (``devices.*.cost_per_hour``) if any."""
+    return f"{cost:,.0f}" + (f" ({hours_cost:,.0f} of it the devices' hours)" if hours_cost else "")
+
+
 def summary_markdown(s: dict[str, Any]) -> str:
     """A summary (as ``Summary.to_dict`` gives it, or as journalled) as a markdown table: the viewer's summary
     panel, and a notebook's view of a ``Summary``."""
@@ -109,8 +114,7 @@ def summary_markdown(s: dict[str, Any]) -> str:
              f"| samples degraded | {s.get('degraded_samples')}{_cell(_waited_for(s.get('degraded_before')))} |",
              f"| lab time | {s.get('lab_hours', 0):.2f} h |"]
     if s.get("cost"):
-        hours = f" ({s['hours_cost']:,.0f} of it the devices' hours)" if s.get("hours_cost") else ""
-        lines.insert(-1, f"| cost | {s['cost']:,.0f}{hours} |")
+        lines.insert(-1, f"| cost | {cost_text(s['cost'], s.get('hours_cost', 0.0))} |")
     for dev, busy in busy_rows(s.get("utilisation") or {}, s.get("device_types") or {}):
         lines.append(f"| {_cell(dev)} | {busy.strip()} |")
     for name, b in (s.get("best") or {}).items():

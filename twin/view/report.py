@@ -6,7 +6,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from twin.campaign.summary import LabSummary, Summary, busy_rows
+from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text
 
 
 def lab_span(seconds: float, digits: int = 2, prefix: str = "") -> str:
@@ -52,8 +52,7 @@ def render_summary(s: Summary, console: Console) -> None:
         t.add_row("scheduling", f"{s.decisions} decisions, {ms.get('p50', 0):.2f} / {ms.get('p99', 0):.2f} ms "
                                 f"(p50 / p99 wall){fallback}")
     if s.cost:
-        hours = f" ({s.hours_cost:,.0f} of it the devices' hours)" if s.hours_cost else ""
-        t.add_row("cost", f"{s.cost:,.0f}{hours}")
+        t.add_row("cost", cost_text(s.cost, s.hours_cost))
     hours = f"{s.lab_hours:.3f} h; " if s.lab_hours < 1 else ""
     t.add_row("lab time", f"{lab_span(s.lab_hours * 3600)} ({hours}{s.wall_s:.2f} s wall, {s.events} journal events)")
     for name, u in busy_rows(s.utilisation, s.device_types):
