@@ -251,3 +251,37 @@ def test_the_fast_runtime_records_in_process_and_its_recording_equals_the_replay
     assert len(live["log"]) > 10 and len([p for p in live if p.startswith("devices/")]) == 6
     assert {p: rows for p, rows in live.items() if p != "__properties"} == \
         {p: rows for p, rows in replayed.items() if p != "__properties"}
+
+
+class _Rows:
+    """A canvas that keeps every row it is handed, in order."""
+
+    def __init__(self):
+        self.rows = []
+
+    def __getattr__(self, name):
+        if name == "flush":
+            return lambda: None
+        return lambda *args, **kwargs: self.rows.append((name, repr(args), repr(kwargs)))
+
+
+def test_a_watcher_that_reads_a_history_three_times_draws_it_once_and_remembers_a_bounded_number(live):
+    from twin.campaign.journal import as_messages
+    from twin.view.observer import LabObserver
+    from twin.view.repeats import Repeats
+
+    d, _, _ = live
+    messages = as_messages(read_events(d / "j.db"))
+    once = LabObserver(_Rows())
+    for m in messages:
+        once.on_message("", m)
+    watcher = LabObserver(_Rows(), dedupe=True)
+    watcher._seen = Repeats(keep=40)  # the default keeps 200,000; this journal has a few hundred messages
+    for _ in range(3):  # live and in its history, then all of it again when the lab came back
+        for m in messages:
+            watcher.on_message("", m)
+    assert len(messages) > 200 and watcher.c.rows == once.c.rows
+    assert len(watcher._seen) < 4 * 40  # each generation ends where lab time moves on: a little over 40
+    assert watcher._seen.floor > 0
+    # a message later than all of them is drawn; one at a time already forgotten is taken as drawn
+    assert watcher._seen.fresh("spectrometer:99999", 1e9) and not watcher._seen.fresh("anyone:1", 0.0)

@@ -16,6 +16,7 @@ from typing import Any, Protocol
 
 from twin.campaign.events import Note
 from twin.campaign.summary import summary_markdown
+from twin.view.repeats import Repeats
 
 #: A device's states, in the order the viewer lists them.
 STATES = ("offline", "idle", "failed", "quarantined", "busy")
@@ -125,7 +126,7 @@ class LabObserver:
         self._last_queue: tuple | None = None
         self._queue_at: float | None = None  # the queue changed at this lab time; drawn when time moves on
         self._made: dict[str, float] = {}  # ready steps whose sample exists: when it was made
-        self._seen: set[tuple[Any, Any]] | None = set() if dedupe else None
+        self._seen: Repeats | None = Repeats() if dedupe else None
         self._route: Any = None  # a RouteView, once a synthesis route runs
         self._kinds: dict[str, tuple[Any, str | None]] = {}  # a decision's handler and its log level (None: unlogged)
         self._paths: dict[str, tuple[str, str]] = {}  # a device's state and utilisation entities
@@ -180,16 +181,8 @@ class LabObserver:
             self._spectrum(t, env)
 
     def _fresh(self, message: dict[str, Any]) -> bool:
-        """False for a message seen before (a watcher gets some twice: in the history and live). A message is
-        known by its id and lab time: a sender started again (a device process, a resumed lab) counts its ids
-        from 1 again, at later lab times."""
-        if self._seen is None:
-            return True
-        key = (message.get("id"), message.get("t_lab"))
-        if key in self._seen:
-            return False
-        self._seen.add(key)
-        return True
+        """False for a message drawn before (a watcher gets some twice: in the history and live)."""
+        return self._seen is None or self._seen.fresh(message.get("id"), message.get("t_lab"))
 
     def on_decision(self, t: float, what: str, d: dict[str, Any]) -> None:
         """A decision as the bus carries it: ``d`` holds experiment, task, attempt, device and info."""
