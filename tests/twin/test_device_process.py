@@ -90,3 +90,33 @@ def test_virtual_clock_refuses_devices_in_other_processes(tmp_path):
     clock = LabClock("virtual")
     with pytest.raises(ClockError, match="--clock scaled"):
         clock.run(run_async(s, clock, tmp_path / "j.db", {"spectrometer-2"}))
+
+
+def test_a_device_started_before_its_lab_waits_for_it_with_wait_and_says_how_when_nothing_answers(tmp_path):
+    port = free_port()
+    raw = qd_lab(**{"campaign.budget": 4, "clock": {"mode": "scaled", "speed": SPEED},
+                    "devices.spectrometer.duration": {"mean_s": 200, "cv": 0.0},  # both spectrometers needed
+                    "devices.synthesiser.duration": {"mean_s": 20, "cv": 0.0},
+                    "bus": {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]}, "orchestrator.startup_s": 2000})
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    serve = [sys.executable, "-m", "twin", "device", "serve", str(path), "--id", "spectrometer-2",
+             "--connect", f"tcp/127.0.0.1:{port}"]
+    # nothing there: the device gives up after --wait and says how to wait longer
+    alone = subprocess.run(serve + ["--wait", "1"], capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert alone.returncode == 2
+    assert "waiting up to 1 s" in alone.stderr and "within 1 s" in alone.stderr, alone.stderr
+    assert "--wait SECONDS waits longer" in alone.stderr
+    # started first, with time to wait: it joins the lab that comes after it and takes its share of the work
+    device = subprocess.Popen(serve + ["--wait", "60"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              cwd=ROOT)
+    try:
+        assert "connecting to" in device.stderr.readline()  # from now on it is waiting for the lab
+        s = prepare(path)
+        clock = make_clock(s)
+        summary = clock.run(run_async(s, clock, tmp_path / "j.db", {"spectrometer-2"}))
+    finally:
+        device.send_signal(signal.SIGTERM)
+        device.wait(timeout=30)
+    done = [e for e in read_events(tmp_path / "j.db") if e["kind"] == "attempt.done"]
+    assert summary.done == 4 and any(e["device"] == "spectrometer-2" for e in done)

@@ -35,13 +35,17 @@ def device_serve(
     speed: Annotated[Optional[float], typer.Option(help="insist on this many lab seconds per wall second "
                                                         "(default: the lab's)")] = None,
     security: SecurityOpt = None,
+    wait: Annotated[Optional[float], typer.Option(min=0.1, max=86400, metavar="SECONDS",
+                                                  help="how long --connect may take to answer: a lab or router "
+                                                       "started after this process (default: the scenario's "
+                                                       "bus.connect_timeout_ms, 5 s)")] = None,
 ) -> None:
     """Serve one device actor of a scenario in this process until SIGINT/SIGTERM, on the lab's clock (commands
     are refused until the lab's clock is heard)."""
     from twin.runtime.serve import serve_device
 
     _serving(serve_device, scenario, name, connect, clock or ("scaled" if speed else None), speed,
-             str(security) if security else None)
+             str(security) if security else None, wait)
 
 
 
@@ -174,9 +178,13 @@ def scheduler_serve(
     speed: Annotated[Optional[float], typer.Option(help="insist on this many lab seconds per wall second "
                                                         "(default: the lab's)")] = None,
     security: SecurityOpt = None,
+    wait: Annotated[Optional[float], typer.Option(min=0.1, max=86400, metavar="SECONDS",
+                                                  help="how long --connect may take to answer: a lab or router "
+                                                       "started after this process (default: the scenario's "
+                                                       "bus.connect_timeout_ms, 5 s)")] = None,
 ) -> None:
     """Serve scheduling decisions to a lab whose campaign.scheduler is `remote`, until SIGINT/SIGTERM."""
     from twin.runtime.serve import serve_scheduler
 
     _serving(serve_scheduler, scenario, scheduler, connect, clock or ("scaled" if speed else None), speed,
-             str(security) if security else None)
+             str(security) if security else None, wait)

@@ -7,6 +7,7 @@ import asyncio
 import json
 import logging
 import signal
+import sys
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -29,16 +30,18 @@ log = logging.getLogger(__name__)
 
 
 def _joined(scenario: str | Path, connect: list[str], clock: str | None, speed: float | None,
-            security_dir: str | None = None) -> Scenario:
+            security_dir: str | None = None, wait_s: float | None = None) -> Scenario:
     """The scenario as seen from a process that joins the lab at ``connect`` (through its router, with
-    ``security_dir`` or the scenario's ``bus.security``). Its clock is a wall clock until the lab's is heard."""
+    ``security_dir`` or the scenario's ``bus.security``), waiting ``wait_s`` (default: the scenario's
+    ``bus.connect_timeout_ms``) for it to answer. Its clock is a wall clock until the lab's is heard."""
     if clock == "virtual":
         raise ClockError("a process joining a lab cannot follow a virtual clock: run the lab with --clock scaled "
                          "or wall, and start this process without --clock to follow it")
     s = prepare(scenario, clock=clock or "wall", speed=speed or 1.0, lab_only=True)
     return s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms,
                                                zenoh=s.bus.zenoh, security=security_dir or s.bus.security,
-                                               connect_timeout_ms=s.bus.connect_timeout_ms)})
+                                               connect_timeout_ms=(s.bus.connect_timeout_ms if wait_s is None
+                                                                   else round(wait_s * 1000)))})
 
 
 def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], Awaitable[None]]]], ready: str,
@@ -50,7 +53,9 @@ def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], 
     problems: list[str] = []
 
     async def main() -> None:
-        bus = make_bus(s, lab_clock, who)
+        print(f"connecting to {', '.join(s.bus.connect)} (waiting up to {s.bus.connect_timeout_ms / 1000:g} s for "
+              "it to answer)", file=sys.stderr, flush=True)
+        bus = make_bus(s, lab_clock, who, wait_longer="--wait SECONDS waits longer")
         await bus.start()
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
@@ -83,8 +88,8 @@ def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], 
 
 def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str | None = None,
                  speed: float | None = None,
-                 security_dir: str | None = None) -> None:
-    s = _joined(scenario, connect, clock, speed, security_dir)
+                 security_dir: str | None = None, wait_s: float | None = None) -> None:
+    s = _joined(scenario, connect, clock, speed, security_dir, wait_s)
     per_device: dict[str, dict[str, Any]] = {}
     if s.campaigns:  # a lab of several campaigns: a driver for each campaign's chemistry
         drivers, per_device = shared_drivers(campaign_scenarios(s, str(scenario)), only={name})
@@ -180,11 +185,11 @@ def health_report(answer: bytes) -> dict:
 
 def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: str | None = None,
                     speed: float | None = None,
-                    security_dir: str | None = None) -> None:
+                    security_dir: str | None = None, wait_s: float | None = None) -> None:
     """A scheduler (a rule or ``rl:PATH``) as an agent on a lab's bus."""
     from twin.runtime.remote_scheduler import SchedulerService
 
-    s = _joined(scenario, connect, clock, speed, security_dir)
+    s = _joined(scenario, connect, clock, speed, security_dir, wait_s)
     scheduler = make_scheduler(s, spec)
 
     async def start(bus: Bus, clock: LabClock):
