@@ -179,3 +179,31 @@ def test_a_shops_machines_can_be_changed_from_the_command_line_like_any_lab_s_de
         prepare(ROOT / "scenarios" / "jobshop.yaml", bus="memory", overrides={**ft10, "devices.m19.instances": 2})
     said = str(refused.value)
     assert "devices.m19: not in the scenario; did you mean devices.m9?" in said and "bus:" not in said
+
+
+def test_a_shop_scenario_s_devices_section_changes_its_machines_and_the_command_line_changes_them_again(tmp_path):
+    """A shop's machines are made from its file, so a scenario's `devices:` could not name one: `m0: {instances: 2}`
+    was refused as a device without driver, steps and duration. Now it applies to the machine as `--set` does."""
+    from twin.core.errors import ScenarioError
+    from twin.runtime.lab import prepare
+
+    path = tmp_path / "shop.yaml"
+    path.write_text(f"name: myshop\nlab: shop\njobshop: {{file: {ROOT / 'scenarios' / 'jobshop' / 'ft06.txt'}}}\n"
+                    "devices:\n  m0: {instances: 2, cost_per_hour: 5}\n  m3: {faults: {fail_p: 0.5}}\n")
+    s = prepare(path, bus="memory")
+    assert (s.devices["m0"].instances, s.devices["m0"].cost_per_hour, s.devices["m3"].faults.fail_p) == (2, 5, 0.5)
+    assert len(s.devices) == 6 and s.devices["m3"].steps == ["op"] and s.devices["m1"].instances == 1
+    again = prepare(path, bus="memory", overrides={"devices.m0.instances": 3})
+    assert again.devices["m0"].instances == 3 and again.devices["m0"].cost_per_hour == 5  # the command line wins
+    summary = run(s, journal=tmp_path / "j.db")
+    assert summary.done + summary.abandoned == 6 and summary.utilisation["m0-2"] > 0
+    assert any(e["device"] == "m3" for e in read_events(tmp_path / "j.db", "attempt.failed"))
+    # a misspelt field under a machine is named as it is, not as a machine the shop lacks
+    path.write_text(path.read_text().replace("fail_p", "p_fail"))
+    with pytest.raises(ScenarioError) as refused:
+        prepare(path, bus="memory")
+    assert [str(p) for p in refused.value.problems] == [
+        "devices.m3.faults.p_fail: unknown field (check the spelling; `twin schema` lists the fields)"]
+    path.write_text(path.read_text().replace("m3:", "robot:"))
+    with pytest.raises(ScenarioError, match=r"devices\.robot: not in the scenario; devices has m0, m1, m2, m3, m4, m5"):
+        prepare(path, bus="memory")

@@ -47,14 +47,29 @@ def load_mapping(raw: dict[str, Any], overrides: dict[str, Any] | None = None, l
 
 def _parsed(raw: dict[str, Any], overrides: dict[str, Any], source: str, lab_only: bool, base: Path) -> Scenario:
     """``raw`` with ``overrides``, validated, its files found from ``base``. A job shop's devices are read from its
-    file, so overrides of them (``devices.m0.instances=2``: two of that machine) apply to the lab the shop makes."""
+    file, so what the scenario's ``devices`` says of them (``m0: {instances: 2}``: two of that machine), then
+    overrides of them (``devices.m0.instances=2``), apply to the lab the shop makes."""
     shop = "jobshop" in raw or any(k.split(".")[0] == "jobshop" for k in overrides)
     later = {k: v for k, v in overrides.items() if shop and k.split(".")[0] == "devices"}
+    if shop and isinstance(raw.get("devices"), dict):
+        later = {**_leaves("devices", raw.pop("devices")), **later}
     scenario = _resolved(parse_overridden(raw, {k: v for k, v in overrides.items() if k not in later}, source,
                                           lab_only), base, source)
     if not later:
         return scenario
     return parse_overridden(scenario.model_dump(exclude_unset=True), later, source, lab_only)
+
+
+def _leaves(prefix: str, tree: dict[str, Any]) -> dict[str, Any]:
+    """A mapping as the dotted overrides that set each of its leaves: ``{m0: {instances: 2}}`` under ``devices``
+    is ``devices.m0.instances=2``."""
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, dict) and value:
+            out.update(_leaves(f"{prefix}.{key}", value))
+        else:
+            out[f"{prefix}.{key}"] = value
+    return out
 
 
 def _resolved(scenario: Scenario, base: Path, source: str) -> Scenario:
@@ -97,11 +112,19 @@ def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str
 
 def _misspelt(raw: dict[str, Any], dotted: str) -> str | None:
     node: Any = raw
-    model: Any = Scenario  # the section's model, while the path follows named fields (not a mapping's own keys)
+    model: Any = Scenario  # the section's model, while the path follows named fields and mappings' keys
+    keyed: Any = None  # the model of a mapping's values (devices.<type>), when the next part is one of its keys
     parts = dotted.split(".")
     for i, p in enumerate(parts[:-1]):
         fields = getattr(model, "model_fields", {})
-        model = model_of(fields[p].annotation) if p in fields else None
+        if keyed is not None:
+            model, keyed = keyed, None
+        elif p in fields:
+            annotation = fields[p].annotation
+            model, keyed = (None, model_of(annotation)) if getattr(annotation, "__origin__", None) is dict else \
+                (model_of(annotation), None)
+        else:
+            model = None
         if isinstance(node, list) and p.isdigit() and int(p) < len(node):
             node = node[int(p)]
         elif not isinstance(node, dict):

@@ -285,7 +285,8 @@ class Scenario(Spec):
     clock: ClockSpec = Field(default=ClockSpec(), description="the lab's clock")
     bus: BusSpec = Field(default=BusSpec(), description="the message bus the devices and the lab share")
     jobshop: JobShop | None = Field(default=None, description="a job-shop instance run as a lab (one device per "
-                                    "machine, an experiment per job)")
+                                    "machine, m0, m1, ..., an experiment per job); `devices:` then changes the "
+                                    "machines (m0: {instances: 2})")
     consumables: dict[Name, Consumable] = Field(default_factory=dict, max_length=256, description="reagents, vials, "
                                                 "tips: what the lab holds and what its steps use up")
     training: Training = Field(default=Training(), description="`twin train`: what a scheduler is trained to "
