@@ -230,6 +230,11 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         assert sub.exit_code == 0 and "campaign catalyst started on lab shared" in sub.output, sub.output
         again = ctl("submit", str(tmp_path / "dots.yaml"))
         assert again.exit_code == 1 and "has a campaign 'dots' already" in again.output
+        (tmp_path / "bare.yaml").write_text("name: bare\nworkflow: [{step: measure, device: spectrometer}]\n")
+        bare = ctl("submit", str(tmp_path / "bare.yaml"))  # no chemistry, and the lab file has none either
+        said = " ".join(bare.output.split())
+        assert bare.exit_code == 1 and "refused: campaign bare: 1 problem(s)" in said, said
+        assert "chemistry.model: none given" in said and "give chemistry.model, one of ['bandgap'" in said, said
         listed = ctl("ctl", "status")
         assert listed.exit_code == 0 and "dots" in listed.output and "catalyst" in listed.output, listed.output
         assert "each campaign schedules its own steps, in turns" in " ".join(listed.output.split())

@@ -170,6 +170,9 @@ def load_driver(s: Scenario, device_type: str, name: str, simulated: bool | None
                           "simulated driver (one that waits with ctx.clock.sleep), such as the built-in ones")
     models = feature(cls, "chemistry_models")
     if models is not None and s.chemistry.model not in models:
+        if s.chemistry.model == "none":
+            raise DriverError(f"chemistry.model: none given, and the {driver!r} driver of {field} simulates a "
+                              f"chemistry: give chemistry.model, one of {sorted(models)}")
         raise DriverError(f"chemistry.model: the {driver!r} driver of {field} simulates "
                           f"{sorted(models)}, not {s.chemistry.model[:64]!r}: use one of those, or a driver of yours")
     names = feature(cls, "option_names")

@@ -178,8 +178,10 @@ class LiveLab:
         text, who = body.get("file"), str(body.get("who", ""))[:64]
         if not isinstance(text, str):
             raise ValueError("submit: give the text of a campaign file in 'file'")
+        label = f"the campaign {who} submitted"
         try:
-            entry = parse_campaign(parse_yaml(text, f"the campaign {who} submitted"), f"the campaign {who} submitted")
+            entry = parse_campaign(parse_yaml(text, label), label)
+            label = f"campaign {entry.name}"
             if entry.after is not None or entry.start_h:
                 raise ScenarioError(entry.name, ["after / start_h: a submitted campaign starts when it is "
                                                  "submitted; leave them out"])
@@ -188,6 +190,8 @@ class LiveLab:
                                                  "new one another name"])
             scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), f"campaign {entry.name}")
             parts = self._adopt(entry.name, scenario)
+        except ScenarioError as exc:
+            return {"ok": False, "error": str(ScenarioError(exc.source or label, exc.problems))}
         except TwinError as exc:
             return {"ok": False, "error": str(exc)}
         core = self.shared.add(entry, scenario)
