@@ -85,12 +85,13 @@ def presence(core: CampaignCore, name: str, alive: bool) -> None:
             core._note("device.flapping", device=dev.name, detail={"within_s": core._flap_s})
             core._wake = True
             return
+        core.counts.device_lost += 1
         dev.unanswered = None
         if dev.cancelling is not None:
             dev.cancelling = None
             core._out.append(CancelTimer(TimerKey(TimerKind.CANCEL_GRACE, dev.name)))
         if dev.attempt is not None:
-            core.counts.device_lost += 1
+            core.counts.steps_lost += 1
             outcomes.resolve(core, dev.attempt, Code.DEVICE_LOST,
                              {"reason": f"{dev.name} left the bus (liveliness lost)"})
     if not core._running and all(d.online for d in core.devices.values()):

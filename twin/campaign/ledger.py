@@ -119,7 +119,8 @@ class Counters:
     infeasible: int = 0  # experiments a device refused, or its safe envelope excluded
     refused_now: int = 0  # "not now" refusals: retried, not counted as attempts
     late: int = 0
-    device_lost: int = 0
+    device_lost: int = 0  # devices that left the bus (a flap aside)
+    steps_lost: int = 0  # attempts failed because their device left
     quarantined: int = 0
     degraded: int = 0
     cancels_unanswered: int = 0

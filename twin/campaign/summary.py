@@ -26,7 +26,7 @@ class Summary:
     failed_attempts: int
     retried: int
     timed_out: int
-    devices_lost: int
+    devices_lost: int  # times a device left the bus
     quarantines: int
     invalid_messages: int
     late_results: int
@@ -35,6 +35,7 @@ class Summary:
     infeasible: int = 0  # experiments a device refused, or its safe envelope excluded
     refused_now: int = 0  # attempts a device answered "not now" (busy, warming up, still stopping): no attempt used
     presence_flaps: int = 0
+    steps_lost: int | None = None  # attempts failed because their device left (None: a journal from before)
     abandoned_reasons: dict[str, int] = field(default_factory=dict)
     abandoned_examples: dict[str, str] = field(default_factory=dict)  # each kind of reason: its first in full
     utilisation: dict[str, float] = field(default_factory=dict)
@@ -102,6 +103,12 @@ def cost_text(cost: float, hours_cost: float) -> str:
     return f"{cost:,.0f}" + (f" ({hours_cost:,.0f} of it the devices' hours)" if hours_cost else "")
 
 
+def losses_text(devices_lost: Any, steps_lost: Any) -> str:
+    """How often devices left the bus, and how many running steps failed with them."""
+    lost = f"{devices_lost} device losses"
+    return lost + (f" ({steps_lost} running steps lost with them)" if devices_lost and steps_lost is not None else "")
+
+
 def summary_markdown(s: dict[str, Any]) -> str:
     """A summary (as ``Summary.to_dict`` gives it, or as journalled) as a markdown table: the viewer's summary
     panel, and a notebook's view of a ``Summary``."""
@@ -110,7 +117,8 @@ def summary_markdown(s: dict[str, Any]) -> str:
              f"(of {s.get('proposed')}) |",
              f"| attempts | {s.get('attempts')} ({s.get('failed_attempts')} failed, {s.get('retried')} retried, "
              f"{s.get('timed_out')} timed out) |",
-             f"| faults | {s.get('devices_lost')} device losses, {s.get('quarantines')} quarantines |",
+             f"| faults | {losses_text(s.get('devices_lost'), s.get('steps_lost'))}, {s.get('quarantines')} "
+             "quarantines |",
              f"| samples degraded | {s.get('degraded_samples')}{_cell(_waited_for(s.get('degraded_before')))} |",
              f"| lab time | {s.get('lab_hours', 0):.2f} h |"]
     if s.get("cost"):
@@ -152,7 +160,7 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         failed_attempts=c.failed, retried=c.retried, timed_out=c.timed_out,
         devices_lost=c.device_lost, quarantines=c.quarantined, invalid_messages=c.invalid,
         late_results=c.late, degraded_samples=c.degraded, rejected_messages=c.rejected, presence_flaps=c.flaps,
-        infeasible=c.infeasible, refused_now=c.refused_now,
+        infeasible=c.infeasible, refused_now=c.refused_now, steps_lost=c.steps_lost,
         abandoned_reasons=dict(reasons), abandoned_examples=examples,
         utilisation={d.name: round(d.busy_s / elapsed, 4) for d in core.devices.values()},
         device_types={d.name: d.type for d in core.devices.values()},

@@ -6,7 +6,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text
+from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text, losses_text
 
 
 def lab_span(seconds: float, digits: int = 2, prefix: str = "") -> str:
@@ -40,7 +40,7 @@ def render_summary(s: Summary, console: Console) -> None:
                             "step is slower than the scenario says, raise its device type's duration (or plus_param "
                             "for a time parameter): a deadline is the expected duration × "
                             "orchestrator.timeout_factor + orchestrator.timeout_slack_s")
-    t.add_row("faults", f"{s.devices_lost} device losses, {s.quarantines} quarantines, "
+    t.add_row("faults", f"{losses_text(s.devices_lost, s.steps_lost)}, {s.quarantines} quarantines, "
                         f"{s.invalid_messages} invalid messages, {s.late_results} late results")
     if s.rejected_messages or s.presence_flaps:
         t.add_row("refused", f"{s.rejected_messages} messages without the attempt's provenance (message.rejected), "
