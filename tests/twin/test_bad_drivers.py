@@ -92,7 +92,14 @@ class SyncRun(Raises):
         return StepResult({}, sample)
 
 
+class KeyedByName(Raises):
+    def __init__(self, setup):
+        self.port = {"spectrometer-1": 1}[setup.name]  # a driver that expected one instance only
+
+
 @pytest.mark.parametrize("cls, says", [
+    ("KeyedByName", "driver 'tests.twin.test_bad_drivers:KeyedByName' for spectrometer-2 failed to start: "
+                    "KeyError: 'spectrometer-2'"),
     ("FromTheFuture", "driver API 2; this labtwin speaks 1"),
     ("Partial", "runs ['synthesise'], but the scenario asks it for ['measure']"),
     ("WordCaps", "capabilities is 'measure', not a set of step names: write capabilities = frozenset({'measure'})"),

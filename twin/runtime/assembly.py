@@ -184,7 +184,8 @@ def load_driver(s: Scenario, device_type: str, name: str, simulated: bool | None
     try:
         instance = cls(setup)
     except Exception as exc:
-        raise DriverError(f"driver {driver!r} for {name} failed to start: {exc}") from exc
+        said = str(exc) if isinstance(exc, TwinError) else f"{type(exc).__name__}: {exc}"  # KeyError: 'x', not 'x'
+        raise DriverError(f"driver {driver!r} for {name} failed to start: {said}") from exc
     caps = capabilities(instance, f"{field}.driver: {driver!r}")
     missing = set(spec.steps) - caps
     if missing:
@@ -311,7 +312,8 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
     except TwinError:
         raise
     except Exception as exc:
-        raise PluginError(f"scheduler {spec!r} failed to start: {exc}" + _given(exc, "scenario and seed")) from exc
+        raise PluginError(f"scheduler {spec!r} failed to start: {type(exc).__name__}: {exc}"
+                          + _given(exc, "scenario and seed")) from exc
 
 
 def plays_ahead(spec: str) -> bool:
