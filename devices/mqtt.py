@@ -11,6 +11,8 @@ The device's presence on the lab bus follows ``status``, and a retained
 ``online`` is trusted only once the instrument has answered a ping (a clean
 disconnect does not fire the last will). Deadlines and retries are the
 orchestrator's; commands carry them in wall seconds with the lab's clock speed.
+A broker lost takes the instrument off the bus; the adapter connects again
+every second until the broker is back.
 Options: ``broker`` (``host:port``, default ``127.0.0.1:1883``), ``topic``
 (``{name}`` in it is the device instance's name), ``steps`` (what the instrument
 runs), ``qos`` (default 1), ``outputs`` (what its results hold, for ``twin
@@ -46,6 +48,7 @@ from twin import DriverError, DriverSetup, Refused, StepContext, StepResult, sle
 log = logging.getLogger(__name__)
 NODELAY = ((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),)  # without it p99 round trips were ~40 ms
 PING_EVERY_WALL_S = 2.0
+RECONNECT_EVERY_WALL_S = 1.0
 
 class MqttInstrument:
     labtwin_api = 1
@@ -85,12 +88,17 @@ class MqttInstrument:
     # -- life cycle (called by the device actor) -------------------------------------
     async def connect(self, presence: Callable[[bool], None]) -> None:
         self._presence = presence
-        self._client = aiomqtt.Client(self.host, self.port, identifier=f"labtwin-{self.name}-{id(self):x}",
-                                      socket_options=NODELAY, username=self.username, password=self.password,
-                                      tls_params=self.tls, timeout=self.connect_timeout_s)
+        await self._open()
+        self._tasks = [asyncio.ensure_future(self._receive())]
+
+    async def _open(self) -> None:
+        """A session with the broker, subscribed to the instrument's topics; a DriverError says why not."""
+        client = aiomqtt.Client(self.host, self.port, identifier=f"labtwin-{self.name}-{id(self):x}",
+                                socket_options=NODELAY, username=self.username, password=self.password,
+                                tls_params=self.tls, timeout=self.connect_timeout_s)
         where = f"the MQTT broker at {self.host}:{self.port}"
         try:
-            await self._client.__aenter__()
+            await client.__aenter__()
         except MqttConnectError as exc:  # it answered, and said no
             who = f"user {self.username!r}" if self.username else "an anonymous client"
             raise DriverError(f"{self.name}: {where} refused {who} ({getattr(exc, 'rc', exc)}): check "
@@ -102,10 +110,15 @@ class MqttInstrument:
                                   "(the CA that signed the broker's certificate) and that this port speaks TLS") from exc
             raise DriverError(f"{self.name}: cannot reach {where} ({exc}): is it running, and listening on that "
                               f"port{' with TLS' if self.tls else ''}?") from exc
-        for topic, _retained in proto.TOPICS.items():
-            if topic != "command":
-                await self._client.subscribe(f"{self.topic}/{topic}", qos=self.qos)
-        self._tasks = [asyncio.ensure_future(self._receive())]
+        try:
+            for topic, _retained in proto.TOPICS.items():
+                if topic != "command":
+                    await client.subscribe(f"{self.topic}/{topic}", qos=self.qos)
+        except aiomqtt.MqttError as exc:
+            with contextlib.suppress(Exception):
+                await client.__aexit__(None, None, None)
+            raise DriverError(f"{self.name}: {where} did not take the subscriptions ({exc})") from exc
+        self._client = client
 
     async def disconnect(self) -> None:
         for task in self._tasks:
@@ -118,16 +131,41 @@ class MqttInstrument:
         self._client = None
 
     async def _receive(self) -> None:
-        try:
-            async for message in self._client.messages:
-                payload = message.payload if isinstance(message.payload, bytes) else str(message.payload).encode()
-                topic = str(message.topic)[len(self.topic) + 1:]
-                handle = getattr(self, f"_on_{topic}", None)
-                if handle is not None:
-                    handle(payload, bool(message.retain))
-        except aiomqtt.MqttError as exc:
-            log.warning("%s: lost the MQTT broker (%s)", self.name, exc)
+        """Hand each message to its topic's handler; when the broker goes, the instrument is gone with it until
+        a session is open again (tried every ``RECONNECT_EVERY_WALL_S``) and the instrument says it is there."""
+        while True:
+            client = self._client
+            assert client is not None
+            try:
+                async for message in client.messages:
+                    payload = message.payload if isinstance(message.payload, bytes) else str(message.payload).encode()
+                    topic = str(message.topic)[len(self.topic) + 1:]
+                    handle = getattr(self, f"_on_{topic}", None)
+                    if handle is not None:
+                        handle(payload, bool(message.retain))
+                return
+            except aiomqtt.MqttError as exc:
+                log.warning("%s: lost the MQTT broker (%s); connecting again every %g s", self.name, exc,
+                            RECONNECT_EVERY_WALL_S)
+            self._client = None
             self._set_present(False)
+            if self._answer is not None and not self._answer.done():  # its answer went with the broker
+                self._answer.set_exception(DriverError(f"{self.name}: lost the MQTT broker during the step"))
+            with contextlib.suppress(Exception):
+                await client.__aexit__(None, None, None)
+            await self._reopen()
+
+    async def _reopen(self) -> None:
+        tries = 0
+        while self._client is None:
+            await sleep_wall(RECONNECT_EVERY_WALL_S)
+            tries += 1
+            try:
+                await self._open()
+            except DriverError as exc:
+                if tries in (1, 10) or tries % 100 == 0:
+                    log.warning("%s: still no MQTT broker after %d tries (%s)", self.name, tries, exc)
+        log.info("%s: connected to the MQTT broker again; waiting for the instrument to say it is online", self.name)
 
     # -- what the instrument says ------------------------------------------------------
     def _on_status(self, payload: bytes, retained: bool) -> None:

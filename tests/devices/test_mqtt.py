@@ -3,6 +3,7 @@
 import asyncio
 import os
 import signal
+import socket
 import subprocess
 import sys
 import uuid
@@ -103,3 +104,63 @@ def test_an_instrument_error_is_a_fault_with_its_reason_and_nothing_is_lost(mosq
 def test_a_virtual_clock_is_refused_for_real_instruments(mosquitto, prefix, tmp_path):
     with pytest.raises(ClockError, match="--clock scaled"):
         run(parse(mqtt_lab(mosquitto, prefix, clock={"mode": "virtual"})), journal=tmp_path / "j.db")
+
+
+def test_the_adapter_comes_back_with_its_broker_and_nothing_is_lost(tmp_path, prefix):
+    """A broker restarted (an upgrade, a reboot) took every instrument behind it off the lab for good: the adapter
+    never connected again, and the campaign gave up on their steps. It now tries every second, and the
+    instruments are back as soon as they say so on the broker that came back."""
+    import time
+
+    from tests.conftest import start_mosquitto
+
+    proc, port = start_mosquitto(tmp_path, "allow_anonymous true\n")
+    broker = f"127.0.0.1:{port}"
+    procs = [instrument(broker, f"{prefix}/spectrometer-{i}") for i in (1, 2)]
+    s = prepare(parse(mqtt_lab(broker, prefix, **{"campaign.budget": 6})))
+    clock, db, seen = make_clock(s), tmp_path / "j.db", {}
+
+    def restart_broker_and_instruments() -> None:
+        """What a host's reboot does: the broker and the instruments' programs start again, on the same port."""
+        nonlocal proc
+        proc = subprocess.Popen([proc.args[0], "-c", str(tmp_path / "mosquitto.conf")], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.PIPE)
+        deadline = time.monotonic() + 10
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+                break
+            except OSError:
+                assert proc.poll() is None and time.monotonic() < deadline, "mosquitto did not start again"
+                time.sleep(0.05)
+        procs.extend(instrument(broker, f"{prefix}/spectrometer-{i}") for i in (1, 2))
+
+    async def main():
+        campaign = asyncio.ensure_future(run_async(s, clock, db, on_start=lambda o: seen.setdefault("core", o.core)))
+        while not campaign.done() and not ("core" in seen and any(e.status == "done" for e in seen["core"].experiments)):
+            await clock.sleep(10)
+        seen["down"] = clock.now()
+        proc.terminate()  # the broker goes, and the instruments' programs with it (they do not reconnect)
+        for p in procs:
+            p.kill()
+        await asyncio.to_thread(lambda: [p.wait() for p in (proc, *procs)])
+        await clock.sleep(300)  # five lab-minutes without a broker
+        await asyncio.to_thread(restart_broker_and_instruments)
+        return await campaign
+
+    try:
+        summary = clock.run(main())
+    finally:
+        proc.terminate()
+        for p in procs:
+            p.kill()
+            p.wait()
+        proc.wait()
+    events = read_events(db)
+    for name in ("spectrometer-1", "spectrometer-2"):
+        lost = [e["t_lab"] for e in events if e["kind"] == "device.lost" and e["device"] == name]
+        back = [e["t_lab"] for e in events if e["kind"] == "device.online" and e["device"] == name]
+        assert lost and lost[0] >= seen["down"] and back and back[-1] > lost[0] + 300, name
+    assert summary.done == 6 and summary.abandoned == 0
+    assert any(e["kind"] == "attempt.done" and e["device"].startswith("spectrometer") and e["t_lab"] > seen["down"]
+               + 300 for e in events)
