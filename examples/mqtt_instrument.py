@@ -9,7 +9,8 @@ It listens on ``<topic>/command``: a run command is measured for ``--seconds`` (
 emission peak and line width with a little noise); a second command while one runs is refused as busy; a cancel
 stops it (after ``--cancel-seconds``, a slow instrument) and is acknowledged ``{"id", "cancelled": true}``; a
 ping re-announces ``online``. ``<topic>/status`` is ``online`` (retained) while it runs, ``offline`` when it
-exits (explicitly) or dies (its MQTT last will); ``<topic>/health`` (retained) says how it is.
+exits (explicitly) or dies (its MQTT last will); ``<topic>/health`` (retained) says how it is. A broker lost
+is connected again every second, and ``online`` said again.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import os
 import random
 import signal
 import socket
+import sys
 
 import aiomqtt
 
@@ -39,13 +41,28 @@ async def measure(pub, cmd: dict, seconds: float, rng: random.Random) -> None:
 
 
 async def main(args: argparse.Namespace) -> None:
-    host, _, port = args.broker.rpartition(":")
-    t = args.topic
-    will = aiomqtt.Will(f"{t}/status", "offline", qos=1, retain=True)
-    rng, running = random.Random(args.seed), {}
     stop = asyncio.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         asyncio.get_running_loop().add_signal_handler(sig, stop.set)
+    rng, said = random.Random(args.seed), []
+
+    def ready(topic: str) -> None:
+        if not said:  # once, when it first is
+            said.append(print(f"ready {topic}", flush=True))
+
+    while not stop.is_set():  # a broker lost (restarted, unreachable): connect again every second
+        try:
+            await session(args, rng, stop, ready)
+        except aiomqtt.MqttError as exc:
+            print(f"no broker ({exc}); connecting again in 1 s", file=sys.stderr, flush=True)
+            await asyncio.sleep(1)
+
+
+async def session(args: argparse.Namespace, rng: random.Random, stop: asyncio.Event, ready) -> None:
+    """One session with the broker, until ``stop`` (then ``offline``) or until the broker goes (MqttError)."""
+    host, _, port = args.broker.rpartition(":")
+    t, running = args.topic, {}
+    will = aiomqtt.Will(f"{t}/status", "offline", qos=1, retain=True)
     tls = aiomqtt.TLSParameters(ca_certs=args.ca) if args.ca else None
     async with aiomqtt.Client(host, int(port), identifier=f"instrument-{t}", will=will, keepalive=args.keepalive,
                               username=args.username, tls_params=tls,
@@ -79,10 +96,15 @@ async def main(args: argparse.Namespace) -> None:
         await client.subscribe(f"{t}/command", qos=1)
         await pub("health", {"ok": True, "lamp_hours": 1234}, retain=True)
         await pub("status", "online", retain=True)
-        print(f"ready {t}", flush=True)
-        server = asyncio.ensure_future(serve())
-        await stop.wait()
-        server.cancel()
+        ready(t)
+        server, stopping = asyncio.ensure_future(serve()), asyncio.ensure_future(stop.wait())
+        await asyncio.wait({server, stopping}, return_when=asyncio.FIRST_COMPLETED)
+        for task in (server, stopping, *running.values()):
+            task.cancel()
+        if not stop.is_set():  # the session ended by itself: the broker went
+            if server.done() and not server.cancelled() and server.exception() is not None:
+                raise server.exception()
+            raise aiomqtt.MqttError("the broker ended the session")
         await pub("status", "offline", retain=True)  # a clean disconnect does not fire the last will
 
 
