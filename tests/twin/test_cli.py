@@ -368,3 +368,23 @@ def test_a_port_past_65535_is_refused_by_name(tmp_path, monkeypatch):
     res = twin_cli("run", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--serve", "--serve-port",
                    "99999")
     assert res.exit_code == 2 and "Invalid value for '--serve-port'" in res.output and not (tmp_path / "runs").exists()
+
+
+@pytest.mark.parametrize("command", [
+    ["ctl", "status", "--lab", "qd", "--connect", "{bad}"],
+    ["watch", "--lab", "qd", "--connect", "{bad}", "--save", "{tmp}/w.rrd"],
+    ["submit", "{tmp}/c.yaml", "--lab", "qd", "--connect", "{bad}"],
+    ["devices", "--connect", "{bad}", "--lab", "qd"],
+    ["router", "--listen", "{bad}"],
+    ["device", "serve", "scenarios/quantum_dots.yaml", "--id", "spectrometer", "--connect", "{bad}"],
+    ["scheduler", "serve", "scenarios/quantum_dots.yaml", "--scheduler", "fifo", "--connect", "{bad}"],
+])
+@pytest.mark.parametrize("bad", ["tcp/", "127.0.0.1:7447", "tcp/127.0.0.1:99999"])
+def test_an_endpoint_that_is_not_one_is_named_with_how_to_write_it_before_anything_opens(tmp_path, command, bad):
+    """`--connect tcp/` printed Zenoh's own parse error, cargo paths and all."""
+    (tmp_path / "c.yaml").write_text("name: c\n")
+    res = twin_cli(*[a.format(bad=bad, tmp=tmp_path) for a in command], columns=300)
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2, said
+    assert f"'{bad}' is not a Zenoh endpoint: write PROTOCOL/HOST:PORT, e.g. tcp/127.0.0.1:7447" in said, said
+    assert "cargo" not in said and "Json5Err" not in said

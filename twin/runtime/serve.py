@@ -14,9 +14,10 @@ from typing import Any
 
 from twin.core import keys
 from twin.core.bus import Bus, NoReplyError, security
+from twin.core.bus.endpoints import HOW, not_endpoints
 from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
-from twin.core.errors import ClockError, DriverError
+from twin.core.errors import BusError, ClockError, DriverError
 from twin.core.messages import excerpt
 from twin.core.bus.presence import labs_on, present
 from twin.runtime.labtime import LabTimeFollower
@@ -37,6 +38,9 @@ def _joined(scenario: str | Path, connect: list[str], clock: str | None, speed: 
     if clock == "virtual":
         raise ClockError("a process joining a lab cannot follow a virtual clock: run the lab with --clock scaled "
                          "or wall, and start this process without --clock to follow it")
+    bad = not_endpoints(connect)
+    if bad:
+        raise BusError(f"--connect: {', '.join(map(repr, bad))} is not a Zenoh endpoint: {HOW}")
     s = prepare(scenario, clock=clock or "wall", speed=speed or 1.0, lab_only=True)
     return s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms,
                                                zenoh=s.bus.zenoh, security=security_dir or s.bus.security,

@@ -9,17 +9,15 @@ retry policy, the bus and the clock. ``twin schema`` exports the JSON Schema.
 
 from __future__ import annotations
 
-import re
 from typing import Annotated, Any, Literal
 
 from pydantic import Field, StringConstraints, ValidationInfo, field_validator, model_validator
 
+from twin.core.bus.endpoints import HOW, not_endpoints
 from twin.scenario.operations import Consumable, Orchestration
 from twin.scenario.spec import MAX_S, MAX_VALUE, Label, Name, Spec
 from twin.scenario.training import Training
 
-_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws)/(\[[0-9a-fA-F:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})(#.*)?$"
-                       r"|^(unixsock-stream|unixpipe|serial|vsock)/\S+$")
 
 
 class Duration(Spec):
@@ -234,14 +232,9 @@ class BusSpec(Spec):
     @field_validator("listen", "connect")
     @classmethod
     def _endpoints(cls, endpoints: list[str]) -> list[str]:
-        bad = []
-        for e in endpoints:
-            m = _ENDPOINT.match(e)
-            if m is None or (m.group(3) is not None and int(m.group(3)) > 65535):
-                bad.append(e)
+        bad = not_endpoints(endpoints)
         if bad:
-            raise ValueError(f"{[e[:80] for e in bad]} are not Zenoh endpoints: write PROTOCOL/HOST:PORT, "
-                             "e.g. tcp/127.0.0.1:7447 or tls/lab.example:7447 (port 0-65535)")
+            raise ValueError(f"{bad} are not Zenoh endpoints: {HOW}")
         return endpoints
 
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 import zenoh
 
+from twin.core.bus.endpoints import HOW, not_endpoints
 from twin.core.errors import BusError
 
 CONNECT_TIMEOUT_MS = 5_000  # a client waits this long for its router or lab; a typo shows in seconds
@@ -33,6 +34,12 @@ class ZenohOptions:
     @property
     def is_client(self) -> bool:
         return self.mode == "client" or (self.mode == "auto" and bool(self.connect) and not self.listen)
+
+    def __post_init__(self) -> None:
+        for flag, endpoints in (("listen", self.listen), ("connect", self.connect)):
+            bad = not_endpoints(endpoints)
+            if bad:
+                raise BusError(f"{flag}: {', '.join(map(repr, bad))} is not a Zenoh endpoint: {HOW}")
 
     def config(self, connect_timeout_ms: int | None = None) -> zenoh.Config:
         cfg = zenoh.Config()
