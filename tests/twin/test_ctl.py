@@ -241,6 +241,12 @@ def test_the_ctl_commands_say_what_they_did_and_a_refusal_exits_1(tmp_path):
         assert "test_lab (campaign c1, lab t): paused by alice" in res.output and "spectrometer-1" in res.output
         res = lab.ctl("abort", "999")
         assert res.exit_code == 1 and "refused: there is no experiment 999" in res.output
+        # --campaign on a lab of one campaign: its own name is taken, another is refused naming it
+        res = lab.ctl("resume", "--campaign", "other")
+        said = " ".join(res.output.split())
+        assert res.exit_code == 1 and "this lab runs one campaign, 'test_lab', not 'other': leave --campaign out" \
+            in said, said
+        assert lab.ctl("status", "--campaign", "test_lab").exit_code == 0
         # a lab name mistyped: the one that is there is named
         wrong = twin_cli("ctl", "status", "--lab", "tt", "--connect", lab.endpoint)
         assert wrong.exit_code == 2 and "no campaign of lab 'tt' answered" in wrong.output

@@ -67,6 +67,10 @@ class ControlDesk:
 
     async def _answer(self, command: str, payload: bytes) -> dict[str, Any]:
         request = _request(payload)
+        named, mine = request.pop("campaign"), self.core.s.name
+        if named is not None and named != mine:
+            raise ValueError(f"this lab runs one campaign, {mine!r}, not {str(named)[:64]!r}: leave --campaign out "
+                             "(it names one of the campaigns of a lab several share, `twin lab serve`)")
         if command == "status":
             return {"ok": True, "status": status(self.core, self.clock.now())}
         if command not in OPERATOR_COMMANDS:
@@ -106,7 +110,7 @@ def _request(payload: bytes) -> dict[str, Any]:
         raise ValueError(f"the request is not JSON ({exc})") from None
     if not isinstance(data, dict):
         raise ValueError("the request must be a JSON object")
-    fields = ("who", "experiment", "now", "reason", "question", "option", "item", "amount", "task")
+    fields = ("who", "experiment", "now", "reason", "question", "option", "item", "amount", "task", "campaign")
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ValueError(f"unknown field(s) {unknown}: a request has {', '.join(fields)}")
@@ -132,4 +136,5 @@ def _request(payload: bytes) -> dict[str, Any]:
         if not isinstance(value, str) or len(value) > 64:
             raise ValueError(f"{name}: {str(value)[:80]!r} is not a short text")
         words[name] = value
-    return {"who": who, "experiment": experiment, "now": now, "reason": reason, "amount": amount, **words}
+    return {"who": who, "experiment": experiment, "now": now, "reason": reason, "amount": amount,
+            "campaign": data.get("campaign"), **words}
