@@ -30,16 +30,18 @@ def documented(name: str) -> str:
     return blocks[name]
 
 
-def run_with(tmp_path, script: str, args: list[str], external: set[str] = frozenset(), **changes):
+def run_with(tmp_path, script: str, args: list[str], external: set[str] = frozenset(), edit=lambda text: text,
+             **changes):
     """A live qd_lab campaign on a scaled clock over Zenoh, with docs/wire.md's ``script`` started beside it
-    (given the lab, ``args`` and the endpoint) and stopped with SIGTERM after: (summary, journal, its stdout)."""
+    (given the lab, ``args`` and the endpoint; ``edit``: a change to the script, a stranger's mistake) and stopped
+    with SIGTERM after: (summary, journal, its stdout)."""
     port = free_port()
     raw = qd_lab(**{"lab": f"wire{port}", "clock": {"mode": "scaled", "speed": SPEED},
                     "bus": {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]}, "orchestrator.startup_s": 3000,
                     **changes})
     path = tmp_path / "lab.yaml"
     path.write_text(yaml.safe_dump(raw))
-    (tmp_path / script).write_text(documented(script))
+    (tmp_path / script).write_text(edit(documented(script)))
     s = prepare(path)
     clock = make_clock(s)
     db = tmp_path / "j.db"
@@ -62,6 +64,7 @@ def test_the_documented_device_measures_every_experiment_of_a_live_campaign(tmp_
     assert summary.done == 4 and summary.abandoned == 0, summary
     assert summary.invalid_messages == 0 and summary.rejected_messages == 0 and summary.failed_attempts == 0
     events = read_events(db)
+    assert not [e for e in events if e["kind"] == "device.clock_off"]  # its lab time is the lab's
     results = [e for e in events if e["kind"] == "msg.result" and e["device"] == "spectrometer"]
     made = {e["task"].split("s")[0]: json.loads(e["detail"])["body"]["sample"]
             for e in events if e["kind"] == "msg.result" and e["device"] == "synthesiser"}
@@ -84,3 +87,18 @@ def test_the_documented_agent_schedules_a_live_campaign_and_the_lab_does_what_it
     said = [(a["task"], a["device"]) for line in out.splitlines() for a in json.loads(line)]
     dispatched = [(e["task"], e["device"]) for e in read_events(db) if e["kind"] == "attempt.dispatched"]
     assert dispatched and sorted(dispatched) == sorted(said)  # every pair it gave was carried out, and no other
+
+
+def test_a_device_that_stamps_unix_time_is_named_once_and_its_results_still_count(tmp_path, caplog):
+    """The likeliest mistake in a device written from docs/wire.md: t_lab as time.time(). The lab said nothing,
+    and the viewer drew its results 56 years into the campaign."""
+    unix = "\"t_lab\": time.time()"
+    summary, db, _ = run_with(tmp_path, "device.py", ["spectrometer"], {"spectrometer"},
+                              edit=lambda text: text.replace("\"t_lab\": lab_time() if anchor else 0.0", unix), **{
+        "campaign.budget": 2, "devices.spectrometer.instances": 1,
+        "devices.spectrometer.duration": {"mean_s": 50, "cv": 0.0},
+        "devices.synthesiser.duration": {"mean_s": 30, "cv": 0.0}})
+    assert summary.done == 2 and summary.invalid_messages == 0
+    off = [json.loads(e["detail"]) for e in read_events(db, "device.clock_off")]
+    assert len(off) == 1 and off[0]["sender"] == "spectrometer" and off[0]["off_s"] > 1e9, off
+    assert sum("spectrometer stamps its messages" in r.getMessage() for r in caplog.records) == 1
