@@ -69,6 +69,20 @@ def test_a_file_that_is_not_a_journal_is_a_clear_error(tmp_path, command, conten
     assert f"{bad}: not a labtwin journal" in " ".join(res.stderr.split())
 
 
+@pytest.mark.parametrize("command", [["report"], ["resume"], ["replay", "--save", "r.rrd"], ["export"]])
+def test_a_journal_cut_short_is_called_damaged_not_foreign(tmp_path, command, monkeypatch):
+    from twin.runtime.lab import run
+
+    whole = tmp_path / "whole.db"
+    run(ROOT / "scenarios" / "quantum_dots.yaml", journal=whole, overrides={"campaign.budget": 6})
+    cut = tmp_path / "cut.db"
+    cut.write_bytes(whole.read_bytes()[:whole.stat().st_size // 2])  # copied while the run still wrote it, say
+    monkeypatch.chdir(tmp_path)
+    res = twin_cli(command[0], cut, *command[1:])
+    said = " ".join(res.stderr.split())
+    assert res.exit_code == 2 and f"{cut}: a damaged database" in said and "copy it again" in said, said
+
+
 @pytest.mark.process
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_ctrl_c_stops_cleanly_and_flushes_the_journal(tmp_path, sig):

@@ -256,6 +256,10 @@ def reading(path: str | Path) -> Iterator[sqlite3.Connection]:
 
 
 def _not_ours(path: str | Path, exc: Exception) -> NotAJournal:
+    if "malformed" in str(exc):  # SQLite, cut short or overwritten in part
+        return NotAJournal(f"{path}: a damaged database ({type(exc).__name__}: {exc}): cut short or overwritten in "
+                           "part, so not a labtwin journal that can be read; if it was copied while its run wrote "
+                           "it, copy it again (with its -wal file) once the run has ended")
     return NotAJournal(f"{path}: not a labtwin journal ({type(exc).__name__}: {exc}); twin run writes them to runs/")
 
 
