@@ -2,6 +2,7 @@
 
 import json
 import math
+import os
 import signal
 import socket
 import subprocess
@@ -178,6 +179,55 @@ def test_twin_watch_waits_for_its_lab_to_come_up_stops_at_ctrl_c_and_says_how_to
     res = twin_cli("watch", "--lab", "qd", "--connect", nobody, "--save", str(tmp_path / "w.rrd"), "--wait", "1.5")
     assert res.exit_code == 2 and f"nothing answered at {nobody} within 1.5 s" in res.stderr
     assert "--wait SECONDS waits longer" in res.stderr and not (tmp_path / "w.rrd").exists()
+
+
+@pytest.mark.process
+def test_a_watcher_whose_router_restarts_waits_for_it_and_records_the_whole_campaign(tmp_path):
+    """A router restarted under a watcher took every token from it at once: the watch said the lab had died
+    ("finish it with twin resume") and ended, while the lab ran on. Now it tells its own lost link from a lost lab."""
+    router_at = f"tcp/127.0.0.1:{free_port()}"
+    router = [*TWIN, "router", "--listen", router_at]
+    db = tmp_path / "j.db"
+    procs = {"router": subprocess.Popen(router, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)}
+    assert "listening" in procs["router"].stdout.readline()
+    procs["lab"] = subprocess.Popen([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "6", "--planner",
+                                     "random", "--clock", "scaled", "--speed", "1000", "--connect", router_at,
+                                     "--journal", str(db), "--quiet"], stdout=subprocess.DEVNULL,
+                                    stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    procs["watcher"] = subprocess.Popen([*TWIN, "watch", "--lab", "qd", "--connect", router_at, "--wait", "60",
+                                         "--save", str(tmp_path / "w.rrd")], stdout=subprocess.PIPE,
+                                        stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                                        env={**os.environ, "COLUMNS": "300"})  # a line each
+    watcher = procs["watcher"]
+
+    def next_said(words: str) -> str:
+        for line in watcher.stderr:
+            if words in line:
+                return line
+        raise AssertionError(f"the watcher ended without saying {words!r}")
+    try:
+        assert "watching lab 'qd'" in watcher.stdout.readline()
+        deadline = time.monotonic() + 120
+        while not (db.exists() and db.stat().st_size and measurements(db)):
+            assert procs["lab"].poll() is None and time.monotonic() < deadline, "the lab ended or was slow"
+            time.sleep(0.05)
+        procs["router"].kill()
+        procs["router"].wait()
+        said = next_said("lost the connection")
+        assert f"lost the connection to {router_at}" in said and "the lab may be running still" in said, said
+        procs["router"] = subprocess.Popen(router, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                           cwd=ROOT)  # on the same port
+        assert "read from its history" in next_said(f"connected to {router_at} again")
+        assert procs["lab"].wait(timeout=120) == 0, procs["lab"].stderr.read()[-2000:]
+        out, err = watcher.communicate(timeout=120)
+    finally:
+        for p in procs.values():
+            p.kill()
+            p.wait()
+    assert watcher.returncode == 0 and "left the bus" not in err, err
+    assert "campaign ended: 6 experiments finished" in out, out
+    rrd = read_rrd(tmp_path / "w.rrd")
+    assert len(rrd["spectra/measurement"]) == len(measurements(db)) == 6
 
 
 @pytest.mark.process

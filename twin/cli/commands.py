@@ -223,9 +223,15 @@ def watch(
                                               "the recording ends here. Finish them with twin resume JOURNAL (a lab "
                                               "of several campaigns: their directory); twin replay JOURNAL then "
                                               "draws all of it"), highlight=False)
+
+    def link(cut: bool) -> None:
+        where = ", ".join(connect or listen or [])
+        err.print(f"lost the connection to {where} (a router restarted, a network down): the lab may be running "
+                  "still; waiting for the connection to come back (Ctrl-C ends the watch)" if cut else
+                  f"connected to {where} again: what the lab did meanwhile is read from its history", highlight=False)
     try:
         observer = watch_lab(lab_name, record, list(connect or []), list(listen or []), follow,
-                             str(security) if security else None, wait, lab_gone)
+                             str(security) if security else None, wait, lab_gone, link)
     except TwinError as exc:
         _fail(exc)
     except KeyboardInterrupt:  # once connected, Ctrl-C ends the watch and saves; this is before, while it waits

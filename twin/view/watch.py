@@ -121,14 +121,18 @@ def _replay_lab(where: Path, options: RecordOptions) -> SharedLabObserver:
 async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOptions, follow: bool = False,
                       stop: asyncio.Event | None = None,
                       on_ended: Callable[[str, Any], None] | None = None,
-                      on_gone: Callable[[], None] | None = None) -> LabObserver | SharedLabObserver:
+                      on_gone: Callable[[], None] | None = None,
+                      on_cut: Callable[[bool], None] | None = None) -> LabObserver | SharedLabObserver:
     """Record a lab that runs elsewhere until its campaign ends (or ``stop`` is set). A lab several campaigns
     share is drawn as ``twin run LAB.yaml --save`` draws it, each campaign found by its token as it comes.
     ``on_ended(name, observer)``: told once of each campaign whose summary has been drawn ("" for a lab's one
     campaign). ``on_gone()``: the lab's process left the bus (its presence gone) before its campaigns ended; the
-    watch then ends too, unless ``follow`` (a resumed lab comes back)."""
+    watch then ends too, unless ``follow`` (a resumed lab comes back). ``on_cut(True)``: the router the watcher
+    reached the lab through is gone (restarting, its network down), so the lab is not called gone meanwhile;
+    ``on_cut(False)``: it is back."""
     told: set[str] = set()
     presence = _Presence()
+    cut = False
 
     def tell_ended() -> None:
         if on_ended is None:
@@ -198,6 +202,12 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
             await clock.sleep(0.25 * clock.speed)
             observer.c.flush()
             tell_ended()
+            if cut != bus.router_lost():  # our router went, or came back (asked each turn: it learns of the router)
+                cut = not cut
+                if on_cut is not None:
+                    on_cut(cut)
+            if cut and presence.gone_at is not None:
+                presence.gone_at = clock.now()  # gone from here only, as far as we know: the grace runs from the link
             if presence.gone_for(clock.now()) > _GONE_GRACE_S * clock.speed and not observer.done:
                 presence.gone_at = None
                 if on_gone is not None:
@@ -306,11 +316,12 @@ async def _pages(bus: Bus, clock: LabClock, key: str, page: dict, on_message) ->
 
 def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str], follow: bool = False,
           security_dir: str | None = None, wait_s: float = 30.0,
-          on_gone: Callable[[], None] | None = None) -> LabObserver | SharedLabObserver:
+          on_gone: Callable[[], None] | None = None,
+          on_cut: Callable[[bool], None] | None = None) -> LabObserver | SharedLabObserver:
     """``twin watch``: a wall-clock Zenoh session that records another process's lab; with ``security_dir``,
     a client of the lab's router with the lab's watcher certificate (which may read, nothing else). ``wait_s``:
-    how long ``connect`` may take to answer (a lab or router started after the watcher). ``on_gone``: as
-    :func:`watch_async`'s."""
+    how long ``connect`` may take to answer (a lab or router started after the watcher). ``on_gone``, ``on_cut``:
+    as :func:`watch_async`'s."""
     from twin.core.bus import open_bus, security
     from twin.core.bus.presence import elsewhere, labs_on
 
@@ -341,7 +352,7 @@ def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str
             print(f"campaign {name + ' ' if name else ''}ended: {seen.finished} experiments finished, "
                   "its summary drawn", flush=True)
         try:
-            return await watch_async(bus, clock, lab, options, follow, stop, ended, on_gone)
+            return await watch_async(bus, clock, lab, options, follow, stop, ended, on_gone, on_cut)
         finally:
             await bus.close()
 

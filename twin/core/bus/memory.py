@@ -62,6 +62,9 @@ class MemoryBus:
             subs = hub.route_cache[key] = [s for s in hub.subs if key_matches(s.keyexpr, key)]
         return bool(subs)
 
+    def router_lost(self) -> bool:
+        return False
+
     def subscribe(self, keyexpr: str, handler: Handler) -> Closable:
         self._hub.route_cache.clear()
         entry = _Entry(keyexpr, handler, self._hub.subs)

@@ -109,6 +109,7 @@ class ZenohBus:
         self._clock = clock
         self._virtual = clock.is_virtual
         self._session: zenoh.Session | None = None
+        self._had_router = False  # this session has reached a router (which may go and come back)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._inbox: deque = deque()
         self._wake_pending = False
@@ -135,6 +136,7 @@ class ZenohBus:
         try:
             self._session = await self._open()
             self._zid = self._session.zid()
+            self._had_router = bool(self._session.info.routers_zid())
         except zenoh.ZError as exc:
             if "Unable to connect" in str(exc):
                 raise BusError(
@@ -252,6 +254,14 @@ class ZenohBus:
 
     def wants(self, key: str) -> bool:
         return True  # a subscriber in another process cannot be ruled out
+
+    def router_lost(self) -> bool:
+        if self._session is None:
+            return False
+        if self._session.info.routers_zid():
+            self._had_router = True
+            return False
+        return self._had_router
 
     def subscribe(self, keyexpr: str, handler: Handler) -> Closable:
         """Subscribers of one key expression share one Zenoh subscriber and are fanned out here."""
