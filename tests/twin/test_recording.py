@@ -335,3 +335,16 @@ def test_a_watcher_that_reads_a_history_three_times_draws_it_once_and_remembers_
     assert watcher._seen.floor > 0
     # a message later than all of them is drawn; one at a time already forgotten is taken as drawn
     assert watcher._seen.fresh("spectrometer:99999", 1e9) and not watcher._seen.fresh("anyone:1", 0.0)
+
+
+def test_a_message_stamped_far_off_neither_stops_a_watcher_forgetting_nor_hides_what_comes_after():
+    from twin.view.repeats import Repeats
+
+    seen = Repeats(keep=10)
+    for i in range(25):
+        assert seen.fresh(f"lab:{i}", float(i))
+    assert seen.fresh("odd:1", 1.7e9)  # Unix time where lab time belongs
+    for i in range(25, 100):
+        assert seen.fresh(f"lab:{i}", float(i)), i  # drawn: the odd one made no later message look forgotten
+    assert len(seen) <= 2 * 10 + 1 and 80 <= seen.floor < 99  # still forgetting
+    assert not any(seen.fresh(f"lab:{i}", float(i)) for i in range(100))  # a history read again: nothing twice
