@@ -51,6 +51,12 @@ def test_a_scheduler_that_raises_or_answers_garbage_is_covered_by_the_fallback_r
     assert any("raised RuntimeError('model file missing')" in s for s in said), said
     assert any("answered 'None', not a list of Assignment(task, device)" in s for s in said), said
     assert all("'tests.twin.test_bad_schedulers:OddScheduler'" in s for s in said)
+    # each time it answered properly again after the rule decided, that is journalled too, in turn with them
+    turns = [e["kind"] for e in read_events(tmp_path / "j.db") if e["kind"].startswith("scheduler.")]
+    assert turns[0] == "scheduler.fallback" and "scheduler.recovered" in turns, turns
+    assert not any(a == b == "scheduler.recovered" for a, b in zip(turns, turns[1:])), turns  # once per recovery
+    assert [e["detail"] for e in read_events(tmp_path / "j.db", "scheduler.recovered")][0] == \
+        "\"scheduler 'tests.twin.test_bad_schedulers:OddScheduler' decides again\""
 
 
 def test_both_runtimes_decide_alike_with_it(tmp_path):

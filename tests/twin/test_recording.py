@@ -191,9 +191,10 @@ def test_a_watcher_whose_router_restarts_waits_for_it_and_records_the_whole_camp
     procs = {"router": subprocess.Popen(router, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)}
     assert "listening" in procs["router"].stdout.readline()
     procs["lab"] = subprocess.Popen([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "6", "--planner",
-                                     "random", "--clock", "scaled", "--speed", "1000", "--connect", router_at,
+                                     "random", "--clock", "scaled", "--speed", "400", "--connect", router_at,
                                      "--journal", str(db), "--quiet"], stdout=subprocess.DEVNULL,
                                     stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    # 400x: the lab runs ~13 s, ~9 of them after the first measurement, while the router restarts (~2 s)
     procs["watcher"] = subprocess.Popen([*TWIN, "watch", "--lab", "qd", "--connect", router_at, "--wait", "60",
                                          "--save", str(tmp_path / "w.rrd")], stdout=subprocess.PIPE,
                                         stderr=subprocess.PIPE, text=True, cwd=ROOT,

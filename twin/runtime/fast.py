@@ -53,9 +53,13 @@ class Seat:
         self.view: LabView | None = None  # a decision the caller of next_decision() is to make
         for rule in fallbacks(scheduler):  # a scheduler's mistakes covered: journalled when the reason changes
             rule.on_fallback = self._fell_back
+            rule.on_recovered = self._recovered
 
     def _fell_back(self, reason: str) -> None:
         self.journal.event(self.queue.now, "scheduler.fallback", detail=reason)
+
+    def _recovered(self, message: str) -> None:
+        self.journal.event(self.queue.now, "scheduler.recovered", detail=message)
 
     def perform(self, actions: list[Any]) -> None:
         journal, progressed, watched = self.journal, False, self.on_progress is not None

@@ -133,6 +133,7 @@ class LiveCampaign:
         self.scheduler, self.on_progress = scheduler, on_progress
         for rule in fallbacks(scheduler):  # a scheduler's mistakes covered: journalled when the reason changes
             rule.on_fallback = lambda reason: self.note("scheduler.fallback", reason)
+            rule.on_recovered = lambda message: self.note("scheduler.recovered", message)
         self.core = rebuilt.core if rebuilt is not None else core or CampaignCore(scenario, campaign_id)
         self._rebuilt = rebuilt
         # a live campaign journals its core's inputs, so that a killed one can be rebuilt (virtual time re-runs)

@@ -96,11 +96,13 @@ class SchedulerService:
 # -- the orchestrator's side -----------------------------------------------------------
 class Fallback:
     """The rule that decides when the chosen scheduler cannot (absent, late, wrong): it counts its decisions
-    and says why once per change of reason, through ``on_fallback`` (the campaign journals it)."""
+    and says why once per change of reason, through ``on_fallback``, and when the chosen one decides again,
+    through ``on_recovered`` (the campaign journals both)."""
 
     def __init__(self, rule: Any, name: str) -> None:
         self.rule, self.name, self.count = rule, name, 0
         self.on_fallback: Callable[[str], None] = lambda reason: None
+        self.on_recovered: Callable[[str], None] = lambda message: None
         self._kind = ""
 
     def decide(self, view: LabView, kind: str, reason: str) -> list[Assignment]:
@@ -115,6 +117,7 @@ class Fallback:
         """The chosen scheduler answered properly again."""
         if self._kind:
             log.warning("%s", message)
+            self.on_recovered(message)
             self._kind = ""
 
 
