@@ -132,7 +132,7 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
     ``on_cut(False)``: it is back."""
     told: set[str] = set()
     presence = _Presence()
-    cut = False
+    cut, relinked_at = False, None  # the watcher's router gone; when it came back
 
     def tell_ended() -> None:
         if on_ended is None:
@@ -204,10 +204,12 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
             tell_ended()
             if cut != bus.router_lost():  # our router went, or came back (asked each turn: it learns of the router)
                 cut = not cut
+                relinked_at = None if cut else clock.now()
                 if on_cut is not None:
                     on_cut(cut)
-            if cut and presence.gone_at is not None:
-                presence.gone_at = clock.now()  # gone from here only, as far as we know: the grace runs from the link
+            if presence.gone_at is not None and (cut or (relinked_at is not None and clock.now() - relinked_at
+                                                         < _RELINK_GRACE_S * clock.speed)):
+                presence.gone_at = clock.now()  # gone from here only, as far as we know, until the lab could relink
             if presence.gone_for(clock.now()) > _GONE_GRACE_S * clock.speed and not observer.done:
                 presence.gone_at = None
                 if on_gone is not None:
@@ -225,6 +227,7 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
 
 _GONE_GRACE_S = 2.0  # wall seconds between the lab's presence going and the watcher calling it gone: a lab that
 # ends says so (its summaries) before its presence goes, and this is a grace for those still in flight
+_RELINK_GRACE_S = 10.0  # wall seconds the lab has to reach a router again after the watcher has (it retries each s)
 
 
 @dataclass

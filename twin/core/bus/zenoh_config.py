@@ -47,8 +47,9 @@ class ZenohOptions:
         cfg.insert_json5("mode", json.dumps(mode))
         if mode == "client":  # wait a little for the router or lab to come up rather than fail at once
             cfg.insert_json5("connect/timeout_ms", str(connect_timeout_ms or self.connect_timeout_ms))
+        if self.connect:
             # Zenoh backs off to 4 s between tries: a device started before its lab would come up to 4 s late,
-            # after the lab's startup wait on a fast clock
+            # after the lab's startup wait on a fast clock, and a lab whose router restarted 4 s after it
             cfg.insert_json5("connect/retry", "{period_init_ms: 250, period_max_ms: 1000, period_increase_factor: 2}")
         cfg.insert_json5("scouting/multicast/enabled", "false")
         cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
