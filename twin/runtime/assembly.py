@@ -130,11 +130,11 @@ def make_clock(s: Scenario) -> LabClock:
     return LabClock(s.clock.mode, s.clock.speed)
 
 
-def make_bus(s: Scenario, clock: LabClock, who: Identity | None = None,
-             wait_longer: str = "bus.connect_timeout_ms waits longer") -> Bus:
+def make_bus(s: Scenario, clock: LabClock, who: Identity | None = None, wait_longer: str | None = None) -> Bus:
     """The bus of ``s`` for ``who`` (the lab's orchestrator unless said otherwise): with ``bus.security``, a
     client of the lab's router over mutual TLS with ``who``'s certificate; without it, loopback unless
-    ``bus.insecure``. ``wait_longer``: how this command's user gives ``bus.connect`` longer to answer."""
+    ``bus.insecure``. ``wait_longer``: how this command's user gives ``bus.connect`` longer to answer (default: the scenario's
+    ``bus.connect_timeout_ms``)."""
     if s.bus.kind == "memory":
         return open_bus("memory", clock)
     extra, mode, listen = dict(s.bus.zenoh), s.bus.mode, s.bus.listen
@@ -150,7 +150,8 @@ def make_bus(s: Scenario, clock: LabClock, who: Identity | None = None,
                                          what="bus.listen"):
         log.warning("%s", warning)
     return open_bus("zenoh", clock, mode=mode, listen=listen, connect=s.bus.connect, lease_ms=s.bus.lease_ms,
-                    extra=extra, connect_timeout_ms=s.bus.connect_timeout_ms, wait_longer=wait_longer)
+                    extra=extra, connect_timeout_ms=s.bus.connect_timeout_ms,
+                    **({} if wait_longer is None else {"wait_longer": wait_longer}))
 
 
 def load_driver(s: Scenario, device_type: str, name: str, simulated: bool | None = None) -> Any:

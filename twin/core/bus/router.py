@@ -22,14 +22,14 @@ def run_router(listen: list[str], lease_ms: int = 1000, extra: dict[str, object]
 
     ``security_dir``: the lab's security directory; the router then requires a client certificate from the
     lab's CA and enforces the lab's access control (``twin.core.bus.security``)."""
-    options = ZenohOptions(mode="router", listen=listen, connect=[], lease_ms=lease_ms)  # endpoints checked first
     extra = dict(extra or {})
     if security_dir is not None:
         extra.update(security.router_config(security_dir, security.lab_of(security_dir)))
+    # its endpoints checked before what listening on them would mean
+    options = ZenohOptions(mode="router", listen=listen, connect=[], lease_ms=lease_ms, extra=extra)
     for warning in security.check_listen(listen, secure=security_dir is not None, insecure=insecure,
                                          what="twin router"):
         log.warning("%s", warning)
-    options.extra = extra
     try:
         session = zenoh.open(options.config())
     except Exception as exc:
