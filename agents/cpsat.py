@@ -35,6 +35,10 @@ def solve(jobs: list[list[Op]], capacity: dict[str, int], time_limit_s: float = 
     try:
         from ortools.sat.python import cp_model
     except ImportError as exc:
+        import importlib.util
+
+        if importlib.util.find_spec("ortools") is not None:  # installed, and its import broke (a Ctrl-C amid it)
+            raise
         raise ImportError("CP-SAT needs OR-Tools: pip install -e '.[bench]'") from exc
     model = cp_model.CpModel()
     horizon = sum(op.duration for job in jobs for op in job) + max(
