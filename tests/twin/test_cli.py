@@ -270,6 +270,13 @@ _KILLED = "DELETE FROM run WHERE key = 'summary'; "  # as a run killed before it
     ("UPDATE run SET value = '\"hello\"' WHERE key = 'scenario'", ["replay", "export"],
      "its run table's 'scenario' is 'hello', not a mapping"),
     ("DELETE FROM run WHERE key = 'scenario'", ["export"], "its run table has no 'scenario'"),
+    ("UPDATE experiments SET params = '[1, 2]' WHERE id = 0", ["export"],
+     "experiment 0 is damaged (its params is '[1, 2]', not a mapping)"),
+    ("UPDATE experiments SET route = '[[1, 2]]' WHERE id = 1", ["export"],
+     "experiment 1 is damaged (its route is '[[1, 2]]', not a list of [step, device type, params])"),
+    ("UPDATE run SET value = '{' WHERE key = 'summary'", ["report", "replay", "export", "resume"],
+     "its run table's 'summary' is not JSON: '{'"),
+    (_KILLED + "DELETE FROM run WHERE key = 'scenario'", ["report", "resume"], "before it began"),
     (_KILLED + "UPDATE events SET t_lab = 'noon' WHERE seq = 5", ["resume", "report"],
      "event 5 is damaged (its lab time is 'noon'"),
     (_KILLED + "UPDATE run SET value = '{\"name\": 5}' WHERE key = 'scenario'", ["resume"],
@@ -402,3 +409,16 @@ def test_an_endpoint_that_is_not_one_is_named_with_how_to_write_it_before_anythi
     assert res.exit_code == 2, said
     assert f"'{bad}' is not a Zenoh endpoint: write PROTOCOL/HOST:PORT, e.g. tcp/127.0.0.1:7447" in said, said
     assert "cargo" not in said and "Json5Err" not in said
+
+
+def test_paths_and_smiles_print_as_they_are_never_as_rich_markup(tmp_path):
+    """A file under "runs[/old]" or a SMILES with "[nH]" is text: rich read it as tags, dropping "[nH]" from the
+    target's name and failing with a MarkupError traceback on "[/old]"."""
+    odd = tmp_path / "runs[/old]" / "[lab]qd.yaml"
+    odd.parent.mkdir(parents=True)
+    odd.write_text((ROOT / "scenarios" / "quantum_dots.yaml").read_text().replace("budget:", "budget: x #"))
+    for command in ("validate", "run"):
+        res = twin_cli(command, odd)
+        assert res.exit_code == 2 and f"{odd}: 1 problem(s)" in res.output, res.output
+    res = twin_cli("route", "c1ccc2[nH]ccc2c1")
+    assert res.exit_code == 0 and "c1ccc2[nH]ccc2c1:" in res.output, res.output

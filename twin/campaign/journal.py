@@ -272,10 +272,14 @@ def read_run(path: str | Path, needs: tuple[str, ...] = ()) -> dict[str, Any]:
     writes, raises ``NotAJournal`` naming the key."""
     with reading(path) as db:
         rows = db.execute("SELECT key, value FROM run").fetchall()
-    try:
-        run = {k: json.loads(v) for k, v in rows}
-    except (ValueError, TypeError, RecursionError) as exc:  # damaged
-        raise _not_ours(path, exc) from None
+    run: dict[str, Any] = {}
+    for key, value in rows:
+        try:
+            run[key] = json.loads(value)
+        except (ValueError, TypeError, RecursionError):
+            raise NotAJournal(f"{path}: its run table's {str(key)[:40]!r} is not JSON: {str(value)[:40]!r}; labtwin "
+                              "never writes that, so the journal was altered or corrupted: run the campaign again "
+                              "(twin run)") from None
     for key, shape in _RUN_SHAPES.items():
         if key in run and not isinstance(run[key], shape):
             raise NotAJournal(f"{path}: its run table's {key!r} is {str(run[key])[:40]!r}, not a mapping; labtwin "
@@ -288,6 +292,13 @@ def read_run(path: str | Path, needs: tuple[str, ...] = ()) -> dict[str, Any]:
 
 
 _EXPERIMENT_JSON = ("params", "route", "outputs", "scores")
+_EXPERIMENT_SHAPES = {"params": lambda v: isinstance(v, dict), "outputs": lambda v: v is None or isinstance(v, dict),
+                      "scores": lambda v: v is None or isinstance(v, dict),
+                      "route": lambda v: isinstance(v, list) and all(
+                          isinstance(s, list) and len(s) in (2, 3) and isinstance(s[0], str) and isinstance(s[1], str)
+                          and (len(s) == 2 or s[2] is None or isinstance(s[2], dict)) for s in v)}
+_EXPERIMENT_WORDS = {"params": "a mapping", "outputs": "a mapping", "scores": "a mapping",
+                     "route": "a list of [step, device type, params]"}
 _ALTERED = ("labtwin never writes such a row, so the journal was altered or corrupted: run the campaign again (twin "
             "run); a finished run's summary is still shown by twin report")
 
@@ -305,9 +316,12 @@ def read_experiments(path: str | Path) -> list[dict[str, Any]]:
             if damage or text is None:
                 continue
             try:
-                json.loads(text)
+                value = json.loads(text)
             except (TypeError, ValueError, RecursionError):
                 damage = f"its {column} is not JSON: {str(text)[:40]!r}"
+                continue
+            if not _EXPERIMENT_SHAPES[column](value):
+                damage = f"its {column} is {str(text)[:40]!r}, not {_EXPERIMENT_WORDS[column]}"
         if damage:
             raise NotAJournal(f"{path}: experiment {str(row.get('id'))[:20]} is damaged ({damage}); {_ALTERED}")
     return rows

@@ -10,6 +10,7 @@ from typing import Annotated, Optional
 
 import typer
 from rich.markup import escape
+from rich.text import Text
 
 from twin.cli.common import (_fail, app, assignments, bar_progress, console, err, keep_serving, machine_output,
                              narrow_table, writable)
@@ -283,12 +284,13 @@ def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="s
                 validate_file(f)
             except TwinError as exc:
                 bad += 1
-                err.print(f"[red]✗[/] {exc}", highlight=False)
+                err.print(f"[red]✗[/] {escape(str(exc))}", highlight=False, markup=True)
             else:
                 said = f" ({len(warned.said)} warning(s))" if warned.said else ""
-                console.print(f"[green]✓[/] {escape(str(f))}{said}", highlight=False, soft_wrap=True)
+                console.print(f"[green]✓[/] {escape(str(f))}{said}", highlight=False, soft_wrap=True, markup=True)
             for text in warned.said:
-                err.print(f"[yellow]![/] {escape(str(f))}: warning: {escape(text)}", highlight=False, soft_wrap=True)
+                err.print(f"[yellow]![/] {escape(str(f))}: warning: {escape(text)}", highlight=False, soft_wrap=True,
+                          markup=True)
     finally:  # in-process callers (tests, a notebook) keep no handler of this command's
         logging.getLogger().removeHandler(warned)
     if bad:
@@ -323,7 +325,7 @@ def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<
         if not dbs:
             _fail(TwinError(f"{journal}: no journals (<campaign>.db) here"))
         for db in dbs:
-            console.print(f"[bold]{db.stem}[/] ({db})", highlight=False)
+            console.print(f"[bold]{escape(db.stem)}[/] ({escape(str(db))})", highlight=False, markup=True)
             _report(db, resume_with=journal)
         return
     _report(journal)
@@ -401,10 +403,10 @@ def devices(
         return
     table = narrow_table(header)  # on a terminal cells wrap, never cut; piped, each driver is one whole line
     for row in drivers:
-        table.add_row(*row[:4], f"[red]{escape(row[4])}[/]" if row[4].startswith("failed to load") else row[4])
+        table.add_row(*row[:4], Text(row[4], style="red") if row[4].startswith("failed to load") else row[4])
     if console.is_terminal:
         console.print(table)
     else:
         from rich.console import Console
 
-        Console(width=1000, no_color=True, emoji=False).print(table)
+        Console(width=1000, no_color=True, emoji=False, markup=False).print(table)

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any, Callable, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.segment import Segment
 
 from twin.core.errors import TwinError
@@ -31,8 +32,10 @@ app.add_typer(driver_app, name="driver")
 app.add_typer(scheduler_app, name="scheduler")
 security_app = typer.Typer(help="Certificates and access control for a lab's bus.", no_args_is_help=True)
 app.add_typer(security_app, name="security")
-console = Console(emoji=False)  # a name like "raising:Boom:" is not an emoji code
-err = Console(stderr=True, soft_wrap=True, emoji=False)
+# emoji off: a name like "raising:Boom:" is not an emoji code; markup off: a path, a SMILES ("c1cc[nH]c1") or an
+# error quoting either prints as it is, never read as rich's [tags] (the few styled lines ask for markup=True)
+console = Console(emoji=False, markup=False)
+err = Console(stderr=True, soft_wrap=True, emoji=False, markup=False)
 
 
 Command = TypeVar("Command", bound=Callable[..., Any])
@@ -76,7 +79,7 @@ def writable(option: str, *paths: Path | None) -> None:
 
 
 def _fail(exc: TwinError) -> None:
-    err.print(f"[bold red]error:[/] {exc}", highlight=False)
+    err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, markup=True)
     raise typer.Exit(2)
 
 

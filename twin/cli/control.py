@@ -54,7 +54,7 @@ def _send(command: str, lab: str, connect: list[str], security: Path | None, as_
         print(json.dumps(answer, indent=2))
     if not answer.get("ok"):
         if not as_json:
-            err.print(f"[bold red]refused:[/] {escape(str(answer.get('error')))}", highlight=False)
+            err.print(f"[bold red]refused:[/] {escape(str(answer.get('error')))}", highlight=False, markup=True)
         raise typer.Exit(1)
     return answer
 
@@ -76,7 +76,7 @@ def _lab_status(answer: dict) -> None:
     table = narrow_table(["campaign", "owner", "prio", "state", "done", "aband.", "in lab", "budget"],
                          caption="twin ctl status --campaign NAME: one campaign in full")
     for c in answer["campaigns"]:
-        table.add_row(escape(c["campaign"]), escape(c["owner"]), str(c["priority"]), escape(c["state"]),
+        table.add_row(c["campaign"], c["owner"], str(c["priority"]), c["state"],
                       str(c["done"]), str(c["abandoned"]), str(c["in_progress"]), str(c["budget"]))
     print_table(table)
 

@@ -99,21 +99,21 @@ def device_health(
 
 def render_health(answers: list[dict]) -> None:
     """One row per device: whether it answered, what it runs, what it dropped, what its driver says."""
-    from rich.markup import escape
     from rich.table import Table
+    from rich.text import Text
 
     table = Table("device", "answered", "running", "dropped", "driver", caption="driver: its own health() report")
     for a in answers:
         r = a["report"]
         if r is None:
-            table.add_row(escape(a["device"]), "[red]no[/]", "", "", "")
+            table.add_row(a["device"], Text("no", style="red"), "", "", "")
             continue
         running = r.get("running")
         running = "#".join(map(str, running)) if isinstance(running, list) else str(running or "idle")[:20]
         driver = r.get("driver", "")
         ok = driver.get("ok") if isinstance(driver, dict) else None
-        shown = ("[red]" if ok is False else "") + escape(str(driver)[:60]) + ("[/]" if ok is False else "")
-        table.add_row(escape(a["device"]), "yes", escape(running), escape(str(r.get("dropped", ""))[:12]), shown)
+        shown = Text(str(driver)[:60], style="red" if ok is False else "")
+        table.add_row(a["device"], "yes", running, str(r.get("dropped", ""))[:12], shown)
     console.print(table)
 
 

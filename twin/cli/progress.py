@@ -22,7 +22,7 @@ def bar_progress(console: Console, transient: bool = False, fields: tuple[str, .
         return PlainProgress(console, fields, every_s)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+    return Progress(TextColumn("{task.description}", style="bold", markup=False), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                     *(TextColumn(f) for f in fields), console=console, transient=transient, disable=disable)
 
 

@@ -138,7 +138,7 @@ def submit(
     except TwinError as exc:
         _fail(exc)
     if not answer.get("ok"):
-        err.print(f"[bold red]refused:[/] {escape(str(answer.get('error')))}", highlight=False)
+        err.print(f"[bold red]refused:[/] {escape(str(answer.get('error')))}", highlight=False, markup=True)
         raise typer.Exit(1)
     console.print(f"campaign {entry.name} started on lab {lab_name} at lab {answer['lab_hours']:.2f} h; its journal: "
                   f"{answer['journal']}", highlight=False, markup=False)

@@ -90,7 +90,7 @@ def interrupted(path: str | Path) -> dict[str, Any]:
         statuses = dict(db.execute("SELECT status, COUNT(*) FROM experiments GROUP BY status").fetchall())
     if t_lab is not None and not finite(t_lab):
         read_events(path)  # names the damaged row
-    name = read_run(path).get("scenario", {}).get("name", "?")
+    name = read_run(path, needs=("scenario",))["scenario"].get("name", "?")
     return {"scenario": str(name), "events": events, "lab_hours": (t_lab or 0.0) / 3600 if finite(t_lab) else 0.0,
             "experiments": statuses}
 

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
+from rich.text import Text
 
 from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text, losses_text
 
@@ -23,8 +26,16 @@ def degraded(s: Summary) -> str:
     return f"{s.degraded_samples} [dim]— waited longer than chemistry.stability_s before {steps}[/]"
 
 
+class _Marked(Table):
+    """A table whose text cells are rich markup (their names and reasons escaped where they are made), read as
+    such on any console: the command line's prints everything else as it is."""
+
+    def add_row(self, *cells: Any, **options: Any) -> None:
+        super().add_row(*(Text.from_markup(c) if isinstance(c, str) else c for c in cells), **options)
+
+
 def render_summary(s: Summary, console: Console) -> None:
-    t = Table(title=f"{s.scenario} — seed {s.seed}", show_header=False, title_justify="left")
+    t = _Marked(title=f"{s.scenario} — seed {s.seed}", show_header=False, title_justify="left")
     t.add_column(style="bold")
     t.add_column()
     t.add_row("experiments", f"{s.done} done, {s.abandoned} abandoned, {s.pending} pending (of {s.proposed} proposed)")
@@ -68,13 +79,13 @@ def render_summary(s: Summary, console: Console) -> None:
     if s.stopped:
         t.add_row("stopped", escape(s.stopped))
     console.print(t)
-    console.print(f"journal: {s.journal}  (twin report {s.journal})", soft_wrap=True, highlight=False)
+    console.print(f"journal: {s.journal}  (twin report {s.journal})", soft_wrap=True, highlight=False, markup=False)
 
 
 def render_lab_summary(s: LabSummary, console: Console) -> None:
     """A lab that served several campaigns: one row per campaign (times are lab hours from the lab's start),
     then the lab's devices."""
-    t = Table(title=f"{s.lab} — seed {s.seed}: {len(s.campaigns)} campaign(s) sharing the lab", title_justify="left",
+    t = _Marked(title=f"{s.lab} — seed {s.seed}: {len(s.campaigns)} campaign(s) sharing the lab", title_justify="left",
               caption="times in lab hours from the lab's start; targets: when met", caption_justify="left")
     for header in ("campaign", "prio", "from", "to", "done", "aband.", "pend.", "targets met"):
         t.add_column(header, overflow="fold", justify="right" if header not in ("campaign", "targets met") else "left")
@@ -89,6 +100,6 @@ def render_lab_summary(s: LabSummary, console: Console) -> None:
     console.print(t)
     busy = ", ".join(f"{d} {100 * u:.0f} %" for d, u in s.utilisation.items())
     console.print(f"lab time {s.lab_hours:.2f} h ({s.wall_s:.2f} s wall); devices busy: {busy}", highlight=False,
-                  soft_wrap=True)
+                  soft_wrap=True, markup=False)
     console.print(f"journals: {s.journals}/<campaign>.db  (twin report {s.journals})", highlight=False,
-                  soft_wrap=True)
+                  soft_wrap=True, markup=False)
