@@ -236,3 +236,20 @@ def test_work_with_no_usable_instance_left_is_said_at_once_and_given_up_after_a_
     (gone,) = notes(out, "experiment.abandoned")
     assert "no usable spectrometer" in gone.detail["reason"] and "give_up_after_s" in gone.detail["reason"]
     assert of(out, Finished)  # nothing left: the campaign ends instead of waiting for max_lab_hours
+
+
+def test_a_wait_answered_on_a_view_the_lab_has_since_left_is_asked_again(scenario_of):
+    """The scheduler saw a step still running and said wait; the step ended before its answer came. Ending the
+    pass on that stale "wait" left nothing running and nobody to ask: the lab idled until
+    campaign.max_lab_hours (a job shop with a zero-length operation, the rl agent in the bench's process)."""
+    core, out = started(scenario_of, **{"campaign.budget": 2, "devices.synthesiser.instances": 2})
+    core.feed(Proposed([Proposal({**QD, "concentration_mm": 1}), Proposal({**QD, "concentration_mm": 2})]))
+    ask = of(core.advance(0.0), Ask)[0]
+    core.feed(Decided([Assignment("e0s0", "synthesiser-1")]))
+    (ask,) = of(core.advance(0.0), Ask)
+    assert [r.task for r in ask.view.ready] == ["e1s0"] and "synthesiser-2" in [d.name for d in ask.view.free]
+    core.feed(msg(Kind.RESULT, "synthesiser-1", "e0s0", 1, outputs={}, sample={"t_made": 60.0}))  # before the answer
+    core.advance(60.0)
+    core.feed(Decided([]))  # "wait", on the view in which synthesiser-1 was busy
+    (again,) = of(core.advance(60.0), Ask)
+    assert again.what == "schedule" and {r.task for r in again.view.ready} == {"e0s1", "e1s0"}

@@ -207,3 +207,15 @@ def test_a_shop_scenario_s_devices_section_changes_its_machines_and_the_command_
     path.write_text(path.read_text().replace("m3:", "robot:"))
     with pytest.raises(ScenarioError, match=r"devices\.robot: not in the scenario; devices has m0, m1, m2, m3, m4, m5"):
         prepare(path, bus="memory")
+
+
+def test_a_shop_with_zero_length_operations_ends_at_its_optimum_with_the_rl_agent_in_process(tmp_path):
+    """A zero-length operation ends in the instant it starts, while the scheduler decides what else to start:
+    the policy's "wait", answered on the view where it still ran, stalled the lab until max_lab_hours."""
+    from twin.tools.scheduler_bench import load_variant, one
+
+    shop = tmp_path / "zero.txt"
+    shop.write_text("2 2\n0 0 1 5\n1 3 0 0\n")
+    s = load_variant(ROOT / "scenarios" / "jobshop.yaml", str(shop))
+    for scheduler in ("mwkr", f"rl:{ROOT / 'agents' / 'policies' / 'jobshop_scheduler.zip'}"):
+        assert one(s, scheduler, 0).makespan_s == 8.0, scheduler  # job 1 on m1 (3), then job 0's 5

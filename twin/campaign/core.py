@@ -252,6 +252,7 @@ class CampaignCore:
                 c = self.s.campaign
                 self._ask(Ask("schedule", view=dispatch.view(self.now, self.ready.values(), self.devices,
                                                              self.finished_count, c.budget, len(self.active), dry)))
+                self._wake = False  # set again by whatever changes the lab before the answer comes
                 return
             self._end_pass()
         if not self.stopping and self.starved:
@@ -324,7 +325,14 @@ class CampaignCore:
                 continue
             self._dispatch(task, self.devices[a.device])
             sent += 1
-        if not sent:
+        if self._wake:
+            # the lab changed while the scheduler looked at it (a step ended, a device came back): the view it
+            # answered is stale, so the pass goes on from the lab as it is, the planner's turn included; ending
+            # it on a stale "wait" could leave nothing running and nobody to ask again
+            self._filled = False
+        elif sent:
+            self._wake = True  # more may pair now
+        else:
             self._end_pass()
 
     # -- experiments and steps ------------------------------------------------------
