@@ -102,3 +102,61 @@ def test_in_a_lab_of_several_campaigns_too(tmp_path, caplog, clock):
                                                 if n != "dots")
     noted = [e for e in read_events(tmp_path / "dots.db") if e["kind"] == "scheduler.fallback"]
     assert any("model file missing" in e["detail"] for e in noted)
+
+
+class Patient:
+    """Starts a step only while another runs: with nothing running it waits, for an event that never comes."""
+
+    def decide(self, view):
+        if not any(d.busy_until is not None for d in view.devices):
+            return []
+        return [Assignment(view.ready[0].task, d.name) for d in view.free
+                if d.device_type == view.ready[0].device_type][:1]
+
+
+class FirstThenPatient(Patient):
+    """Starts the first step, then is Patient: it waits while that one runs (legitimately), then for nothing."""
+
+    def __init__(self):
+        self.started = False
+
+    def decide(self, view):
+        if not self.started:
+            self.started = True
+            r = view.ready[0]
+            return [Assignment(r.task, next(d.name for d in view.free if d.device_type == r.device_type))]
+        return super().decide(view)
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_a_scheduler_that_waits_with_nothing_running_ends_the_campaign_saying_so_not_at_max_lab_hours(
+        tmp_path, runtime):
+    """A wait with no device busy and nothing due waits for nothing: the lab jumped to campaign.max_lab_hours
+    (10,000 lab-h) and ended "max_lab_hours reached" with its experiments pending. Now it ends at once, naming the
+    scheduler; a wait while a step runs is a wait like any other."""
+    for scheduler, ran in (("Patient", 0), ("FirstThenPatient", 1)):
+        lab = parse(qd_lab(**{"campaign.scheduler": f"tests.twin.test_bad_schedulers:{scheduler}",
+                              "campaign.budget": 3, "campaign.max_lab_hours": 5000}))
+        summary = run(lab, journal=tmp_path / f"{scheduler}.db", runtime=runtime)
+        assert "answered wait with no device busy and nothing due" in summary.stopped, summary.stopped
+        assert f"test_bad_schedulers:{scheduler}" in summary.stopped
+        assert summary.lab_hours < 1 and summary.attempts == ran
+        assert summary.proposed == summary.done + summary.abandoned + summary.pending  # accounted for
+
+
+def test_a_live_lab_whose_scheduler_waits_for_nothing_says_so_once_and_stays_open_to_its_operator(scenario_of):
+    """On a live clock an operator (or an instrument coming back) can still move the lab: the stall is an alert
+    in the journal and the log, not an end."""
+    from twin.campaign import Ask, CampaignCore, Decided, Note, Presence, Proposed
+    from twin.campaign.decisions import Proposal
+
+    core = CampaignCore(scenario_of(**{"clock": {"mode": "scaled", "speed": 3600}, "campaign.budget": 1}))
+    core.start(0.0)
+    for name in core.devices:
+        core.feed(Presence(name, True))
+    core.advance(0.0)
+    core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
+    assert [a for a in core.advance(0.0) if isinstance(a, Ask)][0].what == "schedule"
+    core.feed(Decided([]))
+    notes = [a for a in core.advance(0.0) if isinstance(a, Note)]
+    assert [n.kind for n in notes] == ["scheduler.stalled"] and not core.stopping

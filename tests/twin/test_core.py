@@ -213,7 +213,8 @@ def test_presence_that_flaps_within_a_lease_does_not_fail_a_second_attempt(scena
 
 def test_work_with_no_usable_instance_left_is_said_at_once_and_given_up_after_a_while(scenario_of):
     core, _ = started(scenario_of, **{"campaign.budget": 1, "devices.spectrometer.instances": 1,
-                                      "campaign.give_up_after_s": 5000})
+                                      "campaign.give_up_after_s": 5000,
+                                      "clock": {"mode": "scaled", "speed": 3600}})  # its wait at 100 stalls a virtual lab
     core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
     core.advance(0.0)
     core.feed(Decided([Assignment("e0s0", "synthesiser")]))

@@ -17,7 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from twin.campaign.events import CancelTimer, Status, TimerKey, TimerKind
+from twin.campaign.events import Status, TimerKey, TimerKind
 from twin.campaign.ledger import Task
 
 EPS = 1e-9
@@ -215,7 +215,7 @@ def refill(core: CampaignCore, item: str, amount_: float | None, who: str) -> No
     """Refill ``item`` (a stock, or every instance's stock of an item each holds); the steps that waited for it
     go back in the queue (one still short waits on, and says so)."""
     for stock in core.stocks.refill(item, amount_):
-        core._out.append(CancelTimer(TimerKey(TimerKind.REFILL, stock.name)))
+        core.cancel_timer(TimerKey(TimerKind.REFILL, stock.name))
         core._note("consumable.refilled", detail={"item": stock.name, "amount": amount_,
                                                   "level": round(stock.level, 6), "unit": stock.unit, "who": who})
     requeue(core)

@@ -90,6 +90,9 @@ class CampaignCore:
         self._asking: Ask | None = None
         self._answer: Proposed | Decided | None = None
         self._wake = False
+        self._timers: set[TimerKey] = set()  # set and not yet fired or cancelled
+        self._stall_said = False
+        self.alone = True  # no other campaign shares the lab (whose steps ending could wake this one)
         self._filled = False  # the planner had its say in this pass
         self._retrying: dict[str, Task] = {}  # waiting out their back-off
         self._availability = Availability()
@@ -196,7 +199,12 @@ class CampaignCore:
         self._out.append(Note(self.now, kind, experiment, task, attempt, device, detail))
 
     def _timer(self, key: TimerKey, delay: float) -> None:
+        self._timers.add(key)
         self._out.append(SetTimer(key, max(0.0, delay)))
+
+    def cancel_timer(self, key: TimerKey) -> None:
+        self._timers.discard(key)
+        self._out.append(CancelTimer(key))
 
     def _send(self, dev: str, kind: Kind, task: str, attempt: int, body: dict[str, Any], token: str) -> None:
         self._out.append(Send(dev, kind, task, attempt, body, token))
@@ -212,6 +220,7 @@ class CampaignCore:
         elif isinstance(ev, Presence):
             device_events.presence(self, ev.device, ev.alive)
         elif isinstance(ev, TimerFired):
+            self._timers.discard(ev.key)
             timers.fired(self, ev.key)
         elif isinstance(ev, Operator):
             operator.act(self, ev)
@@ -334,6 +343,25 @@ class CampaignCore:
             self._wake = True  # more may pair now
         else:
             self._end_pass()
+            if not d.assignments and self._idle():
+                self._stalled()
+
+    def _idle(self) -> bool:
+        """Whether nothing can happen but the campaign's time limit: every device on the bus and idle, none that
+        crashes now and then (and comes back, which asks again), no timer but the limit's. A "wait" then waits for
+        nothing."""
+        return (self.alone and not self.stopping and all(d.online and d.state == "idle" for d in self.devices.values())
+                and not any(spec.faults.mtbc_h for spec in self.s.devices.values())
+                and self._timers <= {TimerKey(TimerKind.LIMIT), TimerKey(TimerKind.STARTUP)})
+
+    def _stalled(self) -> None:
+        why = (f"the scheduler ({self.s.campaign.scheduler}) answered wait with no device busy and nothing due, so no "
+               "event would ask it again: a scheduler must start a step when nothing runs")
+        if self.s.clock.mode == "virtual":  # nothing else can happen: end now, not at campaign.max_lab_hours
+            self._on_stop(why)
+        elif not self._stall_said:  # a live lab: an operator, or an instrument's return, may still move it
+            self._stall_said = True
+            self._note("scheduler.stalled", detail=why)
 
     # -- experiments and steps ------------------------------------------------------
     def _add_experiment(self, p: Proposal) -> None:
@@ -438,7 +466,7 @@ class CampaignCore:
             att = dev.attempt
             if att is not None and not att.resolved:
                 att.resolved = True
-                self._out.append(CancelTimer(TimerKey(TimerKind.DEADLINE, f"{att.task.id}#{att.n}")))
+                self.cancel_timer(TimerKey(TimerKind.DEADLINE, f"{att.task.id}#{att.n}"))
                 dev.busy_s += self.now - att.t_sent
                 dev.attempt = None
                 if dev.name not in self.people:

@@ -8,7 +8,7 @@ from __future__ import annotations
 from typing import Any
 
 from twin.campaign import outcomes, provenance, results
-from twin.campaign.events import CancelTimer, Code, DeviceMessage, RecordMessage, TimerKey, TimerKind
+from twin.campaign.events import Code, DeviceMessage, RecordMessage, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt
 from twin.core.messages import Kind
 
@@ -62,7 +62,7 @@ def _after_resolved(core: CampaignCore, att: Attempt, m: DeviceMessage) -> None:
     acked = dev.cancelling is att and final
     if acked:
         dev.cancelling = None
-        core._out.append(CancelTimer(TimerKey(TimerKind.CANCEL_GRACE, dev.name)))
+        core.cancel_timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name))
         core._wake = True
     if acked and m.kind == Kind.FAULT and m.body.get("code") == Code.CANCELLED:
         core._note("attempt.cancel_acknowledged", att.task.experiment.id, att.task.id, att.n, dev.name)
@@ -89,12 +89,12 @@ def presence(core: CampaignCore, name: str, alive: bool) -> None:
         dev.unanswered = None
         if dev.cancelling is not None:
             dev.cancelling = None
-            core._out.append(CancelTimer(TimerKey(TimerKind.CANCEL_GRACE, dev.name)))
+            core.cancel_timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name))
         if dev.attempt is not None:
             core.counts.steps_lost += 1
             outcomes.resolve(core, dev.attempt, Code.DEVICE_LOST,
                              {"reason": f"{dev.name} left the bus (liveliness lost)"})
     if not core._running and all(d.online for d in core.devices.values()):
-        core._out.append(CancelTimer(TimerKey(TimerKind.STARTUP)))
+        core.cancel_timer(TimerKey(TimerKind.STARTUP))
         core._begin()
     core._wake = True

@@ -37,7 +37,7 @@ class Code(StrEnum):
 
 #: Notes a runtime also logs as warnings (``alert_text``), on the ``ALERT_LOGGER`` logger: the lab cannot go on as
 #: it is, or a device sends what the campaign cannot use.
-ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "output.unscored"})
+ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "output.unscored", "scheduler.stalled"})
 ALERT_LOGGER = "twin.alerts"
 #: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, a device type gone, an
 #: operator's act

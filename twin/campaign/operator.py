@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from twin.campaign import consumables, human, questions
-from twin.campaign.events import CancelTimer, Operator, Status, TimerKey, TimerKind
+from twin.campaign.events import Operator, Status, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt
 from twin.core.messages import Kind
 
@@ -77,7 +77,7 @@ def _abort(core: CampaignCore, op: Operator) -> str:
         del core.starved[task_id]
     for task_id in [t for t, task in core._retrying.items() if task.experiment is e]:
         del core._retrying[task_id]
-        core._out.append(CancelTimer(TimerKey(TimerKind.RETRY, task_id)))
+        core.cancel_timer(TimerKey(TimerKind.RETRY, task_id))
     core._finish(e, Status.ABANDONED, f"aborted by {op.who}" + (f": {op.reason}" if op.reason else ""))
     return ""
 
@@ -93,7 +93,7 @@ def _retry(core: CampaignCore, op: Operator) -> str:
     if waiting:
         for task in waiting:
             del core._retrying[task.id]
-            core._out.append(CancelTimer(TimerKey(TimerKind.RETRY, task.id)))
+            core.cancel_timer(TimerKey(TimerKind.RETRY, task.id))
             core._make_ready(e, task)
         return ""
     if e.status != Status.ABANDONED:
@@ -150,7 +150,7 @@ def _cancel(core: CampaignCore, att: Attempt, why: str) -> None:
     has said it stopped (or its cancel grace is over)."""
     dev = core.devices[att.device]
     att.resolved = True
-    core._out.append(CancelTimer(TimerKey(TimerKind.DEADLINE, f"{att.task.id}#{att.n}")))
+    core.cancel_timer(TimerKey(TimerKind.DEADLINE, f"{att.task.id}#{att.n}"))
     dev.busy_s += core.now - att.t_sent
     dev.attempt = None
     dev.cancelling = att

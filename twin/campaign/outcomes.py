@@ -10,7 +10,7 @@ from typing import Any
 
 from twin.campaign import policy, questions
 from twin.campaign.decisions import Outcome
-from twin.campaign.events import CancelTimer, Code, RecordExperiment, Status, TimerKey, TimerKind
+from twin.campaign.events import Code, RecordExperiment, Status, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt, Device, Experiment, Task
 from twin.core.messages import Kind
 from twin.scenario.targets import scores, unscorable
@@ -25,7 +25,7 @@ def resolve(core: CampaignCore, att: Attempt, code: str, body: dict[str, Any]) -
     task, dev = att.task, core.devices[att.device]
     e = task.experiment
     if code != Code.TIMED_OUT:
-        core._out.append(CancelTimer(TimerKey(TimerKind.DEADLINE, f"{task.id}#{att.n}")))
+        core.cancel_timer(TimerKey(TimerKind.DEADLINE, f"{task.id}#{att.n}"))
     dev.attempt = None
     dev.busy_s += core.now - att.t_sent
     core._note(f"attempt.{'done' if code == Code.OK else 'failed'}", e.id, task.id, att.n, dev.name,

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from twin.campaign.events import CancelTimer, Operator, Status, TimerKey, TimerKind
+from twin.campaign.events import Operator, Status, TimerKey, TimerKind
 from twin.campaign.ledger import Task
 
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
@@ -88,8 +88,8 @@ def on_timer(core: CampaignCore, kind: TimerKind, qid: str) -> None:
 
 def _close(core: CampaignCore, q: Question) -> None:
     del core.questions[q.id]
-    core._out.append(CancelTimer(TimerKey(TimerKind.QUESTION, q.id)))
-    core._out.append(CancelTimer(TimerKey(TimerKind.ANSWER, q.id)))
+    core.cancel_timer(TimerKey(TimerKind.QUESTION, q.id))
+    core.cancel_timer(TimerKey(TimerKind.ANSWER, q.id))
 
 
 def withdraw(core: CampaignCore, why: str, experiment: Any = None) -> None:

@@ -61,7 +61,7 @@ class SharedLab:
         self.cores = {name: CampaignCore(s, name, (secrets or {}).get(name)) for name, s in scenarios.items()}
         self.stocks = Stocks(lab.consumables, lab.instance_names)
         for core in self.cores.values():
-            core.stocks = self.stocks
+            core.stocks, core.alone = self.stocks, False
         self.online = {name: False for dtype in lab.devices for name in lab.instance_names(dtype)}
         self.started: list[str] = []  # in the order they were submitted
         self.submitted_at: dict[str, float] = {}
@@ -117,7 +117,7 @@ class SharedLab:
         if self._stopping:
             raise ValueError(f"the lab is stopping ({self._stopping}): it takes no more campaigns")
         core = CampaignCore(scenario, entry.name, secret)
-        core.stocks = self.stocks
+        core.stocks, core.alone = self.stocks, False
         self.entries[entry.name] = entry
         self.cores[entry.name] = core
         self._submit(entry.name)

@@ -8,7 +8,7 @@ from __future__ import annotations
 from typing import Any
 
 from twin.campaign import outcomes
-from twin.campaign.events import CancelTimer, Status, TimerKey, TimerKind
+from twin.campaign.events import Status, TimerKey, TimerKind
 
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
 
@@ -29,7 +29,7 @@ def review(core: CampaignCore) -> None:
                        detail={"type": dtype, "experiments": sorted(waiting[dtype]), "give_up_after_s": after})
             core._timer(TimerKey(TimerKind.GIVE_UP, dtype), after)
             continue
-        core._out.append(CancelTimer(TimerKey(TimerKind.GIVE_UP, dtype)))
+        core.cancel_timer(TimerKey(TimerKind.GIVE_UP, dtype))
         if what == "available":
             core._note("devices.available", device=dtype, detail={"type": dtype})
 
@@ -42,7 +42,7 @@ def give_up(core: CampaignCore, dtype: str) -> None:
     for t in [t for t in [*core.ready.values(), *core._retrying.values()] if t.step.device == dtype]:
         core.ready.pop(t.id, None)
         core._retrying.pop(t.id, None)
-        core._out.append(CancelTimer(TimerKey(TimerKind.RETRY, t.id)))
+        core.cancel_timer(TimerKey(TimerKind.RETRY, t.id))
         outcomes.finish(core, t.experiment, Status.ABANDONED, f"no usable {dtype} (lost or quarantined) for "
                                                               f"{after:.0f} lab-s (campaign.give_up_after_s)")
     core._wake = True
