@@ -41,6 +41,20 @@ class NotJson(Raises):
         return StepResult({"peak_nm": object()}, sample)
 
 
+class Huge(Raises):
+    """A raw trace of 200,000 points as an output: over a message's 1 MiB, every receiver dropped the result and
+    the step waited out its deadline ("timed_out": raise the duration, said the summary)."""
+
+    async def run(self, step, params, sample, ctx):
+        return StepResult({"peak_nm": 600.0, "trace": [0.123456789] * 200_000}, sample)
+
+
+class HugeTelemetry(Raises):
+    async def run(self, step, params, sample, ctx):
+        ctx.telemetry({f"channel_{i}": 1.0 for i in range(100_000)})
+        return StepResult({"peak_nm": 600.0}, sample)
+
+
 class SafeStateRaises(Raises):
     async def safe_state(self):
         raise RuntimeError("arm stuck")
@@ -56,7 +70,9 @@ class Never(Raises):
                                                    "StepResult(outputs, sample)"),
                                        ("Pair", "Pair.run() returned tuple ({'peak_nm': 600.0}"),
                                        ("Pair", "a tuple (outputs, sample)? return StepResult(outputs, sample)"),
-                                       ("Never", "no result within"), ("SafeStateRaises", "arm stuck")])
+                                       ("Never", "no result within"), ("SafeStateRaises", "arm stuck"),
+                                       ("Huge", "TooLarge: the result message would be 2,"),
+                                       ("HugeTelemetry", "TooLarge: the telemetry message would be ")])
 @pytest.mark.parametrize("runtime", ["auto", "asyncio"])  # auto: fast, unless the driver awaits asyncio
 def test_a_bad_driver_is_isolated_and_reported_by_name_and_nothing_is_lost(tmp_path, bad, says, runtime):
     lab = qd_lab(**{

@@ -174,6 +174,18 @@ def pack(kind: Kind, body: dict[str, Any], *, id: str, sender: str, t_lab: float
                             attempt=attempt, token=token))
 
 
+class TooLarge(ValueError):
+    """A device's message over ``MAX_MESSAGE_BYTES``, refused where it is made: its step fails with this reason
+    at once, rather than every receiver dropping the message and the step waiting out its deadline."""
+
+
+def within_limit(kind: Kind, payload: bytes) -> bytes:
+    if len(payload) > MAX_MESSAGE_BYTES:
+        raise TooLarge(f"the {kind} message would be {len(payload):,} bytes, over the {MAX_MESSAGE_BYTES:,} of one "
+                       "message: send less (a summary of the data, or the data in a file and its path as an output)")
+    return payload
+
+
 def without_token(env: Envelope) -> bytes:
     """The wire form of a received envelope less its token: what a journal keeps (tokens are secrets)."""
     return to_wire(envelope(env.kind, env.body, id=env.id, sender=env.sender, t_lab=env.t_lab,

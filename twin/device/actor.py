@@ -24,7 +24,7 @@ from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits, timed
 from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults, step_result
 from twin.core.errors import Refused
-from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack
+from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack, within_limit
 
 log = logging.getLogger(__name__)
 
@@ -169,8 +169,9 @@ class DeviceActor:
     # -- messages ---------------------------------------------------------
     def _emit(self, kind: Kind, body: dict, task: str, attempt: int, campaign: str, token: str,
               key: str | None = None) -> None:
-        payload = pack(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name,
-                       t_lab=self._clock.now(), campaign=campaign, task=task, attempt=attempt, token=token)
+        payload = within_limit(kind, pack(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name,
+                                          t_lab=self._clock.now(), campaign=campaign, task=task, attempt=attempt,
+                                          token=token))
         if kind in (Kind.RESULT, Kind.FAULT):
             self._recent.append((task, attempt, payload))  # a campaign that died may ask for it (twin resume)
         self._bus.publish(key or self._evt_key, payload)

@@ -22,7 +22,7 @@ from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits
 from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults, step_result
 from twin.core.errors import DriverError, Refused
-from twin.core.messages import Dropped, InvalidMessage, Kind, decode, envelope, excerpt, to_wire
+from twin.core.messages import Dropped, InvalidMessage, Kind, decode, envelope, excerpt, to_wire, within_limit
 from twin.view.observer import WATCHED
 from twin.runtime.queue import EventQueue, Park, QueueClock, Sleep, Timer
 
@@ -117,7 +117,7 @@ class FastDevice:
         env = envelope(kind, body, id=f"{self.name}:{next(self._ids)}", sender=self.name, t_lab=self._q.now,
                        campaign=campaign, task=task, attempt=attempt)
         # encoded once, as the journal stores it; a body that cannot go on the wire fails here, as on a bus
-        payload = to_wire(env)
+        payload = within_limit(kind, to_wire(env))
         if kind in _DRIVERS_WORDS:  # checked as a receiver on a bus checks it (a NaN reading goes as null)
             try:
                 # what enters the ledger is what the wire carries (numpy → numbers, tuples → lists)
