@@ -129,6 +129,12 @@ def test_a_campaign_journal_is_a_journal_like_any_other(tmp_path):
     assert out.exit_code == 0, out.output
     rows = [json.loads(line) for line in (tmp_path / "x" / "experiments.jsonl").read_text().splitlines()]
     assert len(rows) == 6 and all("param.concentration_mm" in r and "param.temperature_k" not in r for r in rows)
+    # the lab's directory, as `twin report DIR` takes it: each campaign's tables in a directory of its own
+    whole = twin_cli("export", str(tmp_path), "--what", "experiments", "--out", str(tmp_path / "all"), columns=80)
+    assert whole.exit_code == 0, whole.output
+    for name, n in (("dots", 6), ("catalyst", 4)):
+        assert len((tmp_path / "all" / name / "experiments.csv").read_text().splitlines()) == n + 1  # + header
+        assert (tmp_path / "all" / name / "provenance.json").is_file()
 
 
 @pytest.mark.process

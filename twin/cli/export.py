@@ -14,7 +14,8 @@ from twin.tools.export import WHAT
 
 @app.command("export")
 def export_run(
-    journal: Annotated[Path, typer.Argument(help="the run's journal, e.g. runs/quantum_dots-seed0-….db")],
+    journal: Annotated[Path, typer.Argument(help="the run's journal, e.g. runs/quantum_dots-seed0-….db (or a lab's "
+                                                 "directory of journals: each campaign's, to OUT/<campaign>)")],
     fmt: Annotated[str, typer.Option("--format", help="csv | parquet | jsonl")] = "csv",
     what: Annotated[str, typer.Option(help="the tables, comma-separated: experiments, attempts, devices, "
                                            "consumables, decisions, operator")] = ",".join(WHAT),
@@ -26,9 +27,16 @@ def export_run(
     provenance.json."""
     from twin.tools.export import export
 
-    target = out or journal.with_name(f"{journal.stem}-export")
+    tables = [w.strip() for w in what.split(",") if w.strip()]
+    target = out or journal.with_name(f"{journal.stem if journal.is_file() else journal.name}-export")
     try:
-        written = export(journal, target, fmt, [w.strip() for w in what.split(",") if w.strip()])
+        if journal.is_dir():  # a lab of several campaigns: each campaign's journal, to a directory of its own
+            dbs = sorted(journal.glob("*.db"))
+            if not dbs:
+                raise TwinError(f"{journal}: no journals (<campaign>.db) here")
+            written = [path for db in dbs for path in export(db, target / db.stem, fmt, tables)]
+        else:
+            written = export(journal, target, fmt, tables)
     except TwinError as exc:
         _fail(exc)
     for path in written:
