@@ -148,7 +148,9 @@ def test_train_an_unknown_agent_lists_what_is_installed(tmp_path):
 
 
 @pytest.mark.process
-def test_ctrl_c_stops_training_and_says_what_was_kept(tmp_path):
+@pytest.mark.parametrize("sig, code, said", [(signal.SIGINT, 130, "interrupted"),
+                                             (signal.SIGTERM, 143, "terminated (SIGTERM)")])
+def test_ctrl_c_or_sigterm_stops_training_and_says_what_was_kept(tmp_path, sig, code, said):
     out = tmp_path / "s.zip"
     proc = subprocess.Popen([*TWIN, "train", "scenarios/jobshop.yaml", "--steps", "1000000", "--eval-every", "512",
                              "--out", str(out), "--set", "training.jobshop_sizes=[[6,6]]"],  # small shops: CP-SAT is quick
@@ -158,12 +160,13 @@ def test_ctrl_c_stops_training_and_says_what_was_kept(tmp_path):
         lines.append(line)
         if " steps " in line and "the reference:" not in line:  # not the line that says CP-SAT starts planning
             break
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(sig)
     rest = proc.communicate(timeout=60)[1]
-    assert proc.returncode == 130, "".join(lines) + rest
+    assert proc.returncode == code, "".join(lines) + rest
     # before its first evaluation nothing is kept yet, and it says so (CP-SAT has run in this process by then,
-    # so its own SIGINT handler, were it installed, would have killed the command without a word)
-    assert "interrupted; no policy saved yet" in rest and "Traceback" not in rest
+    # so its own SIGINT handler, were it installed, would have killed the command without a word; SIGTERM
+    # killed it so, its workers dying of broken pipes)
+    assert f"{said}; no policy saved yet" in rest and "Traceback" not in rest
     assert not out.exists()
 
 

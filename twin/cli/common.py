@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import re
 import signal
+import threading
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Iterator, TypeVar
 
 import typer
 from rich.console import Console
@@ -42,20 +44,55 @@ Command = TypeVar("Command", bound=Callable[..., Any])
 
 
 def interruptible(command: Command) -> Command:
-    """A command of many runs in worker processes (a bench, `twin whatif`): Ctrl-C stops them (``WorkerPool``)
-    and says so, and an error raised in a worker is one line, instead of a traceback or a silent exit."""
+    """A command of many runs in worker processes (a bench, `twin whatif`): Ctrl-C or SIGTERM stops them
+    (``WorkerPool``) and says so, and an error raised in a worker is one line, instead of a traceback or a silent
+    exit."""
     @functools.wraps(command)
     def stopping(*args: Any, **kwargs: Any) -> Any:
         try:
-            return command(*args, **kwargs)
+            with sigterm_unwinds():
+                return command(*args, **kwargs)
         except TwinError as exc:  # raised in a worker, past the checks made before it started
             _fail(exc)
-        except KeyboardInterrupt:
-            err.print("interrupted: the runs still going were stopped; no --csv, --json or --save file was written",
-                      highlight=False)
-            raise typer.Exit(130) from None
+        except KeyboardInterrupt as stop:
+            err.print(f"{stopped_by(stop)}: the runs still going were stopped; no --csv, --json or --save file was "
+                      "written", highlight=False)
+            raise typer.Exit(exit_status(stop)) from None
 
     return stopping  # type: ignore[return-value]
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where Ctrl-C raises KeyboardInterrupt, so that a command unwinds the same way: left to
+    Python's default, SIGTERM ended a bench or a training at once, and its worker processes lived on, orphaned,
+    waiting for work that would never come."""
+
+
+@contextlib.contextmanager
+def sigterm_unwinds() -> Iterator[None]:
+    """SIGTERM raises ``Terminated`` while inside (unless something else already handles it)."""
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        yield
+        return
+    signal.signal(signal.SIGTERM, _terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def _terminated(*_: Any) -> None:
+    raise Terminated
+
+
+def stopped_by(stop: BaseException) -> str:
+    return "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
+
+
+def exit_status(stop: BaseException) -> int:
+    """A shell's status for a command ended by a signal: 128 + the signal's number."""
+    return 128 + (signal.SIGTERM if isinstance(stop, Terminated) else signal.SIGINT)
 
 
 def writable(option: str, *paths: Path | None) -> None:

@@ -11,7 +11,8 @@ from twin.core import plugins
 from twin.runtime import lab
 from twin.runtime.checks import checked
 from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
-                             machine_output, narrow_table, print_table, say_ended_early, writable)
+                             exit_status, machine_output, narrow_table, print_table, say_ended_early, sigterm_unwinds,
+                             stopped_by, writable)
 from twin.core.errors import TwinError
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.tools.planner_bench import DEFAULT_PLANNERS
@@ -68,7 +69,7 @@ def train(
                 log_curve(recording, done, numbers, f"training/{result['policy'].split(':')[0].replace(' ', '_')}")
             progress.console.print(f"{done:>9,} steps  {result['policy']:14} {fields}", highlight=False)
 
-    with progress:
+    with progress, sigterm_unwinds():
         bar = progress.add_task(f"training the {agent} on {s.name}", total=steps)
         try:
             path = trainer(s, steps, out, seed=seed, envs=envs, eval_every=eval_every, on_progress=report,
@@ -80,12 +81,13 @@ def train(
                                              if exc.device_type else "")))
         except (TwinError, ValueError) as exc:
             _fail(TwinError(str(exc)))
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as stop:
             progress.stop()
             kept = out.with_suffix(".zip")
-            err.print(f"interrupted; {'the best policy so far is ' + str(kept) if kept.exists() else 'no policy saved yet'}",
+            err.print(f"{stopped_by(stop)}; "
+                      f"{'the best policy so far is ' + str(kept) if kept.exists() else 'no policy saved yet'}",
                       highlight=False)
-            raise typer.Exit(130) from None
+            raise typer.Exit(exit_status(stop)) from None
         finally:
             if recording is not None:
                 recording.close()
