@@ -144,6 +144,18 @@ def test_a_scheduler_that_waits_with_nothing_running_ends_the_campaign_saying_so
         assert summary.proposed == summary.done + summary.abandoned + summary.pending  # accounted for
 
 
+def test_a_bench_counts_a_stalled_run_at_the_campaigns_limit_not_as_the_shortest():
+    """Ended at once, a stall would read as a makespan of nothing: the best scheduler of the bench."""
+    from twin.tools.planner_bench import trial
+    from twin.tools.scheduler_bench import one
+
+    lab = parse(qd_lab(**{"campaign.budget": 3, "campaign.max_lab_hours": 5000}))
+    stalled = one(lab, "tests.twin.test_bad_schedulers:Patient", 0)
+    assert stalled.makespan_s == 5000 * 3600 and "answered wait" in stalled.stopped
+    assert one(lab, "fifo", 0).makespan_s < 5 * 3600
+    assert trial(lab, "random@tests.twin.test_bad_schedulers:Patient", 0).lab_hours == 5000
+
+
 def test_a_live_lab_whose_scheduler_waits_for_nothing_says_so_once_and_stays_open_to_its_operator(scenario_of):
     """On a live clock an operator (or an instrument coming back) can still move the lab: the stall is an alert
     in the journal and the log, not an end."""

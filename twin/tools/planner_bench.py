@@ -61,7 +61,8 @@ def trial(scenario: Scenario, planner: str, seed: int) -> Trial:
     reached = all(t in s.targets_met_h for t in targets)
     return Trial(planner, seed, reached,
                  max(s.targets_met_after.values()) if reached else s.proposed,
-                 max(s.targets_met_h.values()) if reached else s.lab_hours, s.proposed,
+                 max(s.targets_met_h.values()) if reached else s.hours_compared(scenario.campaign.max_lab_hours),
+                 s.proposed,
                  max(s.targets_met_cost.values()) if reached else s.cost, s.stopped)
 
 

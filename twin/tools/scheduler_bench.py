@@ -45,7 +45,8 @@ def one(scenario: Scenario, scheduler: str, seed: int) -> Run:
         s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual",
                 overrides={"campaign.scheduler": scheduler, **rollouts}, agent_in_process=True)
     util = statistics.mean(s.utilisation.values()) if s.utilisation else 0.0
-    return Run(scheduler, seed, s.lab_hours * 3600, util, s.degraded_samples, s.abandoned, s.scheduler_fallbacks,
+    hours = s.hours_compared(scenario.campaign.max_lab_hours)
+    return Run(scheduler, seed, hours * 3600, util, s.degraded_samples, s.abandoned, s.scheduler_fallbacks,
                s.decision_ms.get("p50", 0.0), s.decision_ms.get("p99", 0.0), s.stopped)
 
 

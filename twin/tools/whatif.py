@@ -137,8 +137,8 @@ def one(scenario: Scenario, variant: Variant, seed: int) -> Outcome:
     for dtype in lab.devices:
         values = [s.utilisation.get(name, 0.0) for name in lab.instance_names(dtype)]
         per_type[dtype] = statistics.mean(values) if values else 0.0
-    return Outcome(variant.label, seed, reached,
-                   max(s.targets_met_h.values()) if reached else s.lab_hours, s.lab_hours,
+    hours = s.hours_compared(lab.campaign.max_lab_hours)
+    return Outcome(variant.label, seed, reached, max(s.targets_met_h.values()) if reached else hours, hours,
                    max(s.targets_met_cost.values()) if reached else s.cost,
                    max(s.targets_met_after.values()) if reached else s.proposed,
                    s.abandoned, s.degraded_samples, per_type, stopped=s.stopped)
