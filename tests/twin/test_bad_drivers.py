@@ -55,6 +55,13 @@ class HugeTelemetry(Raises):
         return StepResult({"peak_nm": 600.0}, sample)
 
 
+class Exits(Raises):
+    """An instrument SDK that gives up with sys.exit: it ended the whole lab, no summary, on both runtimes."""
+
+    async def run(self, step, params, sample, ctx):
+        raise SystemExit("instrument SDK gave up")
+
+
 class SafeStateRaises(Raises):
     async def safe_state(self):
         raise RuntimeError("arm stuck")
@@ -71,6 +78,7 @@ class Never(Raises):
                                        ("Pair", "Pair.run() returned tuple ({'peak_nm': 600.0}"),
                                        ("Pair", "a tuple (outputs, sample)? return StepResult(outputs, sample)"),
                                        ("Never", "no result within"), ("SafeStateRaises", "arm stuck"),
+                                       ("Exits", "SystemExit: instrument SDK gave up"),
                                        ("Huge", "TooLarge: the result message would be 2,"),
                                        ("HugeTelemetry", "TooLarge: the telemetry message would be ")])
 @pytest.mark.parametrize("runtime", ["auto", "asyncio"])  # auto: fast, unless the driver awaits asyncio

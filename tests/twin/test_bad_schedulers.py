@@ -172,3 +172,26 @@ def test_a_live_lab_whose_scheduler_waits_for_nothing_says_so_once_and_stays_ope
     core.feed(Decided([]))
     notes = [a for a in core.advance(0.0) if isinstance(a, Note)]
     assert [n.kind for n in notes] == ["scheduler.stalled"] and not core.stopping
+
+
+class ExitingScheduler:
+    def decide(self, view):
+        raise SystemExit(3)
+
+
+class ExitingPlanner:
+    def propose(self, n, history, pending):
+        raise SystemExit("no licence")
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_a_plugin_that_calls_sys_exit_is_covered_like_one_that_raises(tmp_path, runtime):
+    """SystemExit is no Exception: a scheduler or planner that called sys.exit ended the lab, summary unwritten."""
+    lab = parse(qd_lab(**{"campaign.scheduler": "tests.twin.test_bad_schedulers:ExitingScheduler",
+                          "campaign.budget": 3}))
+    summary = run(lab, journal=tmp_path / "s.db", runtime=runtime)
+    assert summary.done == 3 and summary.scheduler_fallbacks == summary.decisions > 0
+    lab = parse(qd_lab(**{"campaign.planner": "tests.twin.test_bad_schedulers:ExitingPlanner",
+                          "campaign.budget": 3}))
+    summary = run(lab, journal=tmp_path / "p.db", runtime=runtime)
+    assert "SystemExit('no licence')" in summary.stopped and summary.proposed == 0

@@ -7,6 +7,12 @@ Every message says what went wrong and what to do next.
 from typing import Any
 
 
+#: What a plugin's code (a driver, planner or scheduler) may raise and the lab survives: any error, and
+#: ``SystemExit`` too — an instrument's SDK that calls ``sys.exit`` must fail its step, not end the lab. Never
+#: ``KeyboardInterrupt``: that is the user's Ctrl-C.
+PLUGIN_ERRORS: tuple[type[BaseException], ...] = (Exception, SystemExit)
+
+
 class TwinError(Exception):
     """Root of every error labtwin raises on purpose. It crosses a process pool whole (a bench's or a sweep's
     worker): pickling rebuilds it from its message and attributes, not by calling its ``__init__`` again, which

@@ -23,7 +23,7 @@ from twin.core.clock import LabClock, wait_cancelled
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits, timed
 from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults, step_result
-from twin.core.errors import Refused
+from twin.core.errors import PLUGIN_ERRORS, Refused
 from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack, within_limit
 
 log = logging.getLogger(__name__)
@@ -92,7 +92,7 @@ class DeviceActor:
         except TimeoutError:  # a driver that never returns must not keep the lab from ending
             log.error("%s: safe_state() did not return within %g lab-s at shutdown (orchestrator.cancel_grace_s); "
                       "the lab stopped without it: check the instrument by hand", self.name, self.stop_grace_s)
-        except Exception as exc:  # stopping goes on: the token goes, the other devices stop too
+        except PLUGIN_ERRORS as exc:  # stopping goes on: the token goes, the other devices stop too
             log.error("%s: safe_state() failed at shutdown: %r; check the instrument by hand", self.name, exc)
         self._offline()
         if self._health is not None:
@@ -112,7 +112,7 @@ class DeviceActor:
         if check is not None:
             try:
                 report["driver"] = await check()
-            except Exception as exc:  # a failing health check is itself the answer
+            except PLUGIN_ERRORS as exc:  # a failing health check is itself the answer
                 report["driver"] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
         return json.dumps(report).encode()
 
@@ -284,7 +284,7 @@ class DeviceActor:
                 raise
         except Refused as no:
             emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
-        except Exception as exc:  # a driver bug must never take the actor down
+        except PLUGIN_ERRORS as exc:  # a driver bug must never take the actor down
             log.warning("%s: driver raised during %s: %r", self.name, cmd.step, exc)
             await self.driver.safe_state()
             emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(exc).__name__}: {exc}"})

@@ -18,7 +18,7 @@ from twin.core import plugins
 from twin.core.bus import Bus, open_bus, security
 from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
-from twin.core.errors import BusError, DriverError, PluginError, ScenarioError, TwinError
+from twin.core.errors import PLUGIN_ERRORS, BusError, DriverError, PluginError, ScenarioError, TwinError
 from twin.device.actor import DeviceActor
 from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature, talks_to_instrument
 from twin.runtime.off_loop import OffLoopScheduler
@@ -184,7 +184,7 @@ def load_driver(s: Scenario, device_type: str, name: str, simulated: bool | None
     setup = DriverSetup(name, device_type, given, s.chemistry, spec.duration, s.campaign.seed)
     try:
         instance = cls(setup)
-    except Exception as exc:
+    except PLUGIN_ERRORS as exc:
         said = str(exc) if isinstance(exc, TwinError) else f"{type(exc).__name__}: {exc}"  # KeyError: 'x', not 'x'
         raise DriverError(f"driver {driver!r} for {name} failed to start: {said}") from exc
     caps = capabilities(instance, f"{field}.driver: {driver!r}")
@@ -236,7 +236,7 @@ def make_planner(s: Scenario) -> Any:
                                      targets=s.chemistry.targets, budget=s.campaign.budget), {**options, **own})
     except TwinError:
         raise
-    except Exception as exc:
+    except PLUGIN_ERRORS as exc:
         raise PluginError(f"planner {s.campaign.planner!r} failed to start: {type(exc).__name__}: {exc}"
                           + _given(exc, "parameters, seed, targets, budget and planner_options")) from exc
 
@@ -256,7 +256,7 @@ def constructed(cls: Any, given: dict[str, Any], options: dict[str, Any]) -> Any
     return cls(**given, **options)
 
 
-def _given(exc: Exception, what: str) -> str:
+def _given(exc: BaseException, what: str) -> str:
     """For a constructor that wanted other arguments: what the kernel gives (docs/plugins.md)."""
     return (f" (its constructor is given, by keyword, those of {what} it names: docs/plugins.md)"
             if isinstance(exc, TypeError) else "")
@@ -312,7 +312,7 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
         return constructed(cls, dict(scenario=s, seed=s.campaign.seed), options)
     except TwinError:
         raise
-    except Exception as exc:
+    except PLUGIN_ERRORS as exc:
         raise PluginError(f"scheduler {spec!r} failed to start: {type(exc).__name__}: {exc}"
                           + _given(exc, "scenario and seed")) from exc
 

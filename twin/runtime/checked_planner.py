@@ -10,6 +10,7 @@ from typing import Any
 
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
 from twin.campaign.events import Proposed
+from twin.core.errors import PLUGIN_ERRORS
 from twin.runtime.checked_scheduler import listed
 
 log = logging.getLogger(__name__)
@@ -26,7 +27,7 @@ class CheckedPlanner:
             return Proposed([], self.failed)
         try:
             return self._checked(self.inner.propose(n, history, pending))
-        except Exception as exc:
+        except PLUGIN_ERRORS as exc:
             return self._fail(f"planner {self.name!r} raised {exc!r}"[:300])
 
     def _checked(self, answer: Any) -> Proposed:

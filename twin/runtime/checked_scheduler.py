@@ -11,6 +11,7 @@ import inspect
 from typing import Any
 
 from twin.campaign.decisions import Assignment, LabView
+from twin.core.errors import PLUGIN_ERRORS
 from twin.runtime.remote_scheduler import Fallback
 
 
@@ -24,7 +25,7 @@ class CheckedScheduler:
     def decide(self, view: LabView) -> Any:
         try:
             decided = self.inner.decide(view)
-        except Exception as exc:
+        except PLUGIN_ERRORS as exc:
             return self.fallback.decide(view, "raised", f"scheduler {self.name!r} raised {exc!r}"[:300])
         if inspect.isawaitable(decided):  # an agent: its answer is checked where it arrives
             return decided

@@ -21,7 +21,7 @@ from twin.campaign import DeviceMessage, InvalidInput, Presence
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits
 from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults, step_result
-from twin.core.errors import DriverError, Refused
+from twin.core.errors import PLUGIN_ERRORS, DriverError, Refused
 from twin.core.messages import Dropped, InvalidMessage, Kind, decode, envelope, excerpt, to_wire, within_limit
 from twin.view.observer import WATCHED
 from twin.runtime.queue import EventQueue, Park, QueueClock, Sleep, Timer
@@ -85,7 +85,7 @@ class FastDevice:
             _complete(self.driver.safe_state(), self.name, self.device_type)
         except FastRuntimeRefused:
             raise
-        except Exception as exc:  # the campaign is over; say so, and let the others stop too
+        except PLUGIN_ERRORS as exc:  # the campaign is over; say so, and let the others stop too
             log.error("%s: safe_state() failed at shutdown: %r; check the instrument by hand", self.name, exc)
         self.online = False
 
@@ -157,7 +157,7 @@ class FastDevice:
                 req = job.send(None) if exc is None else job.throw(exc)
             except (StopIteration, asyncio.CancelledError):
                 return
-            except Exception as err:  # the step died in the device's own handling (a safe_state that raised)
+            except PLUGIN_ERRORS as err:  # the step died in the device's own handling (a safe_state that raised)
                 log.error("%s: step %s died in the device's own handling: %r; reported as a driver error",
                           self.name, current, err)
                 if current is not None:
@@ -235,7 +235,7 @@ class FastDevice:
                 raise
         except Refused as no:
             emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
-        except Exception as exc:  # a driver bug must never take the lab down
+        except PLUGIN_ERRORS as exc:  # a driver bug must never take the lab down
             self._log_raised("%s: driver raised during %s: %r", self.name, step, exc)
             await self.driver.safe_state()
             emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(exc).__name__}: {exc}"})
