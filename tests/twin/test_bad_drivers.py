@@ -400,3 +400,42 @@ def test_progress_without_a_note_is_reported_not_a_fault(tmp_path, runtime):
     assert summary.done == 4 and summary.failed_attempts == 0
     notes = [json.loads(e["detail"])["body"]["note"] for e in read_events(tmp_path / "j.db", "msg.progress")]
     assert notes.count("") == 12 and notes.count("scanned") == 4
+
+
+class BadConnect(Raises):
+    async def connect(self, presence):
+        raise ConnectionRefusedError(111, "Connection refused")
+
+    async def disconnect(self):
+        pass
+
+    async def run(self, step, params, sample, ctx):
+        return StepResult({"peak_nm": 600.0}, sample)
+
+
+class BadDisconnect(BadConnect):
+    async def connect(self, presence):
+        presence(True)
+
+    async def disconnect(self):
+        raise RuntimeError("socket already closed")
+
+
+def test_an_instrument_that_cannot_connect_or_disconnect_is_named_not_a_traceback(tmp_path, caplog):
+    """connect() raising was a traceback out of the lab's start; disconnect() raising, one out of its end, the
+    finished campaign's summary never printed."""
+    from twin.core.errors import DriverError
+
+    def lab(cls):
+        return parse(qd_lab(**{
+            "devices.inst": {"driver": f"tests.twin.test_bad_drivers:{cls}", "instances": 1, "steps": ["measure"],
+                             "duration": {"mean_s": 60}},
+            "workflow": [{"step": "synthesise", "device": "synthesiser"}, {"step": "measure", "device": "inst"}],
+            "campaign.budget": 2, "clock": {"mode": "scaled", "speed": 2000}}))
+
+    with pytest.raises(DriverError, match=r"inst: its driver's connect\(\) failed: ConnectionRefusedError: "
+                                          r"\[Errno 111\] Connection refused; the lab did not start"):
+        run(lab("BadConnect"), journal=tmp_path / "c.db", bus="memory")
+    summary = run(lab("BadDisconnect"), journal=tmp_path / "d.db", bus="memory")
+    assert summary.done == 2
+    assert "inst: disconnect() failed at shutdown: RuntimeError('socket already closed')" in caplog.text

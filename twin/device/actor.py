@@ -23,7 +23,7 @@ from twin.core.clock import LabClock, wait_cancelled
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits, timed
 from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults, step_result
-from twin.core.errors import PLUGIN_ERRORS, Refused
+from twin.core.errors import PLUGIN_ERRORS, DriverError, Refused
 from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack, within_limit
 
 log = logging.getLogger(__name__)
@@ -69,7 +69,12 @@ class DeviceActor:
         self._boss = self._bus.watch_tokens(keys.orchestrator(self._lab), self._on_orchestrator)
         connect = feature(self.driver, "connect")
         if connect is not None:  # an instrument with presence of its own (MQTT last will, say)
-            await connect(self._instrument_presence)
+            try:
+                await connect(self._instrument_presence)
+            except PLUGIN_ERRORS as exc:
+                raise DriverError(f"{self.name}: its driver's connect() failed: {type(exc).__name__}: {exc}; the "
+                                  "lab did not start: check that the instrument is on and can be reached, then "
+                                  "start again") from exc
         else:
             self._online()
         if self.spec.faults.mtbc_h > 0:
@@ -99,7 +104,11 @@ class DeviceActor:
             self._health.close()
         disconnect = feature(self.driver, "disconnect")
         if disconnect is not None:
-            await disconnect()
+            try:
+                await disconnect()
+            except PLUGIN_ERRORS as exc:  # the lab has ended: its summary and the other devices' stops go on
+                log.error("%s: disconnect() failed at shutdown: %r; check the instrument's connection by hand",
+                          self.name, exc)
 
     async def _report_health(self, key: str, payload: bytes) -> bytes:
         """``labtwin/<lab>/dev/<name>/health``: the actor's state and, if it has ``health()``, the driver's."""
