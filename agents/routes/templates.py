@@ -272,6 +272,9 @@ def load(path: Path = TEMPLATES) -> tuple[Template, ...]:
             text = path.read_text()
     except (OSError, EOFError) as exc:
         raise TemplateError(f"{path}: cannot read the template file ({getattr(exc, 'strerror', None) or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise TemplateError(f"{path}: not UTF-8 text (byte {exc.start}): a template file is this package's YAML "
+                            "or an AiZynthFinder-style CSV/TSV table, saved as UTF-8") from None
     if path.name.endswith((".csv", ".tsv", ".csv.gz", ".tsv.gz")):
         return tuple(parse_retro_table(text, str(path)))
     return tuple(parse(text, str(path)))

@@ -67,6 +67,7 @@ def test_exit_codes_and_what_they_say(args, code, says):
 
 @pytest.mark.parametrize("damage,says", [
     ("stock not text", "stock.csv: not a text file (byte 17 is not UTF-8)"),
+    ("templates not text", "templates.yaml: not UTF-8 text (byte 0)"),
     ("description not JSON", "prior.json: not a route prior's description"),
     ("description a list", "prior.json: not a route prior's description"),
     ("weights not torch's", "prior.pt: not this prior's weights"),
@@ -79,6 +80,9 @@ def test_damaged_files_are_one_line_errors_naming_them(tmp_path, damage, says):
     if damage == "stock not text":
         stock.write_bytes(b"smiles,name\nCCO,e\xff\xfe\n")
         args += ["--stock", str(stock)]
+    elif damage == "templates not text":
+        (tmp_path / "templates.yaml").write_bytes(b"\xff\xfetemplates: []\n")
+        args += ["--templates", str(tmp_path / "templates.yaml")]
     elif damage == "description not JSON":
         (tmp_path / "prior.json").write_text('{"kind": ')
     elif damage == "description a list":
