@@ -166,3 +166,24 @@ def test_a_route_the_lab_cannot_run_abandons_its_experiment_before_anything_is_s
     assert summary.abandoned == summary.proposed == 3 and summary.attempts == 0 and not summary.stopped
     said = [e["detail"] for e in read_events(tmp_path / "j.db", "planner.invalid")]
     assert len(said) == 3 and all("route step 1: no device type 'nowhere' in the lab" in s for s in said)
+
+
+class NumpyPlanner:
+    """Proposes as a GP library hands its numbers back: numpy float32 and int64, a 0-d array, a float32 cost."""
+
+    def __init__(self, parameters, seed):
+        import numpy as np
+
+        self.np, self.box = np, parameters
+
+    def propose(self, n, history, pending):
+        np = self.np
+        return [Proposal({"concentration_mm": np.float32(10.5), "temperature_c": np.int64(250),
+                          "time_s": np.array(100.0)}, cost=np.float32(2.5)) for _ in range(n)]
+
+
+def test_numpy_numbers_from_a_planner_are_numbers(tmp_path):
+    """np.float32 is no Python float: each such proposal was abandoned, "'10.5' is not a number"."""
+    lab = parse(qd_lab(**{"campaign.planner": "tests.twin.test_bad_planners:NumpyPlanner", "campaign.budget": 3}))
+    summary = run(lab, journal=tmp_path / "j.db")
+    assert summary.done == 3 and summary.abandoned == 0 and summary.cost >= 3 * 2.5

@@ -195,3 +195,13 @@ def test_a_plugin_that_calls_sys_exit_is_covered_like_one_that_raises(tmp_path, 
                           "campaign.budget": 3}))
     summary = run(lab, journal=tmp_path / "p.db", runtime=runtime)
     assert "SystemExit('no licence')" in summary.stopped and summary.proposed == 0
+
+
+def test_names_held_as_numpy_strings_are_names():
+    """A scheduler that picks names out of a numpy array answers np.str_: every decision went to the fallback."""
+    import numpy as np
+
+    names = np.array(["e0s0", "synthesiser-1"])
+    (a,) = assignments([Assignment(names[0], names[1])])
+    assert (a.task, a.device) == ("e0s0", "synthesiser-1") and type(a.task) is type(a.device) is str
+    assert assignments([Assignment(np.int64(3), "synthesiser-1")]) is None

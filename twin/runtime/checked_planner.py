@@ -6,6 +6,7 @@ budget, never an experiment in the lab."""
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from typing import Any
 
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
@@ -39,7 +40,7 @@ class CheckedPlanner:
             wrong = _malformed(p)
             if wrong:
                 return self._fail(f"planner {self.name!r} answered a malformed proposal (item {i}): {wrong}")
-        return Proposed(proposals)
+        return Proposed([_plain_values(p) for p in proposals])
 
     def _fail(self, reason: str) -> Proposed:
         self.failed = reason
@@ -66,6 +67,21 @@ def _malformed(p: Proposal) -> str:
                 and isinstance(r.params, dict)):
             return f"route item {j} is {str(r)[:60]!r}, not a RouteStep(step, device_type, params={{}})"
     return ""
+
+
+def _plain_values(p: Proposal) -> Proposal:
+    """``p`` with numpy's (or torch's) scalars as Python numbers: a GP library's float32 was "not a number" to the
+    core, and every experiment proposed so was abandoned."""
+    route = None if p.route is None else tuple(replace(r, params=_plain(r.params)) for r in p.route)
+    return replace(p, params=_plain(p.params), route=route, cost=_number(p.cost))
+
+
+def _plain(params: dict[str, Any]) -> dict[str, Any]:
+    return {k: _number(v) for k, v in params.items()}
+
+
+def _number(v: Any) -> Any:
+    return v.item() if getattr(v, "shape", None) == () and hasattr(v, "item") else v
 
 
 def _proposals(answer: Any) -> list[Proposal] | None:

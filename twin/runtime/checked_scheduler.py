@@ -46,9 +46,9 @@ def assignments(decided: Any) -> list[Assignment] | None:
     out = []
     for a in items:
         task, device = getattr(a, "task", None), getattr(a, "device", None)
-        if type(task) is not str or type(device) is not str:
+        if not isinstance(task, str) or not isinstance(device, str):  # numpy's str_ is a str
             return None
-        out.append(a if type(a) is Assignment else Assignment(task, device))
+        out.append(a if type(a) is Assignment and type(task) is type(device) is str else Assignment(str(task), str(device)))
     return out
 
 
