@@ -380,6 +380,22 @@ def test_a_wait_that_is_not_a_number_is_the_drivers_error_on_both_runtimes(tmp_p
 
 
 
+class NumpySleep(Raises):
+    async def run(self, step, params, sample, ctx):
+        import numpy as np
+
+        await ctx.clock.sleep(np.float32(45.5))  # a duration from a float32 array: a number like any other
+        await ctx.clock.sleep(np.int64(14))
+        return StepResult({"peak_nm": 600.0}, sample)
+
+
+def test_a_wait_of_numpy_seconds_is_a_wait():
+    """np.float32 is no Python float: the wait failed its step, "lab seconds must be a number, not float32"."""
+    from twin.tools.testing import run_step
+
+    assert run_step(NumpySleep(None), "measure", {})[1] == pytest.approx(59.5)
+
+
 class ProgressWithoutNote(Raises):
     """Reports progress as `ctx.progress(done / total)`: the note is optional (run_step and the planning
     environment took it so, while the lab's devices failed every step with a TypeError)."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import numbers
 import selectors
 import signal
 import threading
@@ -40,7 +41,7 @@ IN_FLIGHT_PATIENCE_S = 5.0
 def lab_seconds(seconds: Any, call: str = "sleep") -> float:
     """A wait in lab seconds as a float; a driver's wait that is not a number (or is NaN) is its bug, said at
     the call (a negative wait is no wait; an infinite one lasts until the step is cancelled)."""
-    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or seconds != seconds:
+    if isinstance(seconds, bool) or not isinstance(seconds, numbers.Real) or seconds != seconds:  # numpy's are Real
         raise TypeError(f"clock.{call}({str(seconds)[:40]!r}): lab seconds must be a number, not "
                         f"{'NaN' if seconds != seconds else type(seconds).__name__}")
     return float(seconds)
