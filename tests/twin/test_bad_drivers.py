@@ -62,6 +62,14 @@ class Exits(Raises):
         raise SystemExit("instrument SDK gave up")
 
 
+class Verbose(Raises):
+    """An SDK error carrying a whole trace dump: the log printed it twice a failure (4 MB a line), and the fault
+    it made was over a message's size, so the step failed as "TooLarge" instead of with the driver's words."""
+
+    async def run(self, step, params, sample, ctx):
+        raise RuntimeError("trace dump: " + "x" * 2_000_000)
+
+
 class SafeStateRaises(Raises):
     async def safe_state(self):
         raise RuntimeError("arm stuck")
@@ -79,6 +87,8 @@ class Never(Raises):
                                        ("Pair", "a tuple (outputs, sample)? return StepResult(outputs, sample)"),
                                        ("Never", "no result within"), ("SafeStateRaises", "arm stuck"),
                                        ("Exits", "SystemExit: instrument SDK gave up"),
+                                       ("Verbose", "RuntimeError: trace dump: xxx"),
+                                       ("Verbose", "… (2,000,026 characters)"),
                                        ("Huge", "TooLarge: the result message would be 2,"),
                                        ("HugeTelemetry", "TooLarge: the telemetry message would be ")])
 @pytest.mark.parametrize("runtime", ["auto", "asyncio"])  # auto: fast, unless the driver awaits asyncio

@@ -22,7 +22,8 @@ from twin.core.bus import Bus, Closable
 from twin.core.clock import LabClock, wait_cancelled
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits, timed
-from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults, step_result
+from twin.device.driver import (Driver, StepContext, busy_with, fault_text, feature, simulated_faults,
+                                step_result)
 from twin.core.errors import PLUGIN_ERRORS, DriverError, Refused
 from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack, within_limit
 
@@ -217,10 +218,10 @@ class DeviceActor:
         if job.cancelled() or job.exception() is None:
             return
         exc = job.exception()
-        log.error("%s: step %s#%d died in the device's own handling: %r; reported as a driver error", self.name,
-                  task, attempt, exc)
-        self._emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(exc).__name__}: {exc}"[:500]}, task,
-                   attempt, campaign, token)
+        log.error("%s: step %s#%d died in the device's own handling: %s; reported as a driver error", self.name,
+                  task, attempt, fault_text(exc))
+        self._emit(Kind.FAULT, {"code": "driver_error", "reason": fault_text(exc, 500)}, task, attempt, campaign,
+                   token)
 
     def _crash_loop_ended(self, loop_task: asyncio.Future) -> None:
         if loop_task.cancelled() or loop_task.exception() is None:
@@ -294,8 +295,8 @@ class DeviceActor:
         except Refused as no:
             emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
         except PLUGIN_ERRORS as exc:  # a driver bug must never take the actor down
-            log.warning("%s: driver raised during %s: %r", self.name, cmd.step, exc)
+            log.warning("%s: driver raised during %s: %s", self.name, cmd.step, fault_text(exc))
             await self.driver.safe_state()
-            emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(exc).__name__}: {exc}"})
+            emit(Kind.FAULT, {"code": "driver_error", "reason": fault_text(exc)})
         finally:
             self._job, self._current, self._cancel_reason = None, None, ""

@@ -45,6 +45,13 @@ def talks_to_instrument(driver: Any) -> bool:
     return bool(feature(driver, "realtime")) or callable(feature(driver, "connect"))
 
 
+def fault_text(exc: BaseException, most: int = 1000) -> str:
+    """What a driver raised, as its step's fault and the log say it: type and message, cut to ``most`` characters
+    (a driver that put a whole trace in its message flooded the log, and its fault went over a message's size)."""
+    text = f"{type(exc).__name__}: {exc}"
+    return text if len(text) <= most else f"{text[:most]}… ({len(text):,} characters)"
+
+
 def step_result(result: Any, driver: Any) -> StepResult:
     """What ``driver.run`` returned, if it is a ``StepResult`` (or has its two fields); else the driver's error,
     saying what to return."""

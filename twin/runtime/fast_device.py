@@ -20,7 +20,8 @@ from typing import Any
 from twin.campaign import DeviceMessage, InvalidInput, Presence
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits
-from twin.device.driver import Driver, StepContext, busy_with, feature, simulated_faults, step_result
+from twin.device.driver import (Driver, StepContext, busy_with, fault_text, feature, simulated_faults,
+                                step_result)
 from twin.core.errors import PLUGIN_ERRORS, DriverError, Refused
 from twin.core.messages import Dropped, InvalidMessage, Kind, decode, envelope, excerpt, to_wire, within_limit
 from twin.view.observer import WATCHED
@@ -158,11 +159,10 @@ class FastDevice:
             except (StopIteration, asyncio.CancelledError):
                 return
             except PLUGIN_ERRORS as err:  # the step died in the device's own handling (a safe_state that raised)
-                log.error("%s: step %s died in the device's own handling: %r; reported as a driver error",
-                          self.name, current, err)
+                log.error("%s: step %s died in the device's own handling: %s; reported as a driver error",
+                          self.name, current, fault_text(err))
                 if current is not None:
-                    self._emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(err).__name__}: {err}"[:500]},
-                               *current, token)
+                    self._emit(Kind.FAULT, {"code": "driver_error", "reason": fault_text(err, 500)}, *current, token)
                 return
             finally:
                 if clock() - since > watch.blocking_s:  # inline: the call is only made for a driver that blocked
@@ -236,9 +236,9 @@ class FastDevice:
         except Refused as no:
             emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
         except PLUGIN_ERRORS as exc:  # a driver bug must never take the lab down
-            self._log_raised("%s: driver raised during %s: %r", self.name, step, exc)
+            self._log_raised("%s: driver raised during %s: %s", self.name, step, fault_text(exc))
             await self.driver.safe_state()
-            emit(Kind.FAULT, {"code": "driver_error", "reason": f"{type(exc).__name__}: {exc}"})
+            emit(Kind.FAULT, {"code": "driver_error", "reason": fault_text(exc)})
         finally:
             self._job = self._current = None
             self._cancel_reason = ""
