@@ -153,6 +153,15 @@ class Healthy(Raises):
         return {"ok": True, "lamp_hours": 1234}
 
 
+class NumpyHealth(Raises):
+    """An SDK's readings as numpy numbers, then an object: the query failed; `twin devices` said it never answered."""
+
+    async def health(self):
+        import numpy as np
+
+        return {"ok": True, "lamp_temp_c": np.float32(41.5), "errors": [self] if getattr(self, "odd", 0) else []}
+
+
 async def test_a_device_answers_health_requests_with_its_drivers_report(virtual_clock):
     from twin.core import keys
     from twin.device.actor import DeviceActor
@@ -173,6 +182,27 @@ async def test_a_device_answers_health_requests_with_its_drivers_report(virtual_
     assert "driver" not in two and two["on_bus"]
     for a in actors:
         await a.stop()
+    await bus.close()
+
+
+async def test_a_health_report_of_numpy_numbers_or_what_is_not_json_is_an_answer(virtual_clock):
+    from twin.core import keys
+    from twin.core.bus import open_bus
+    from twin.device.actor import DeviceActor
+
+    s = parse(qd_lab())
+    bus = open_bus("memory", virtual_clock)
+    await bus.start()
+    driver = NumpyHealth(None)
+    actor = DeviceActor("spectrometer-1", s.devices["spectrometer"], driver, bus, virtual_clock, s.lab, 0)
+    await actor.start()
+    ask = keys.health(s.lab, "spectrometer-1")
+    assert json.loads(await bus.request(ask, b"", timeout=5))["driver"] == {"ok": True, "lamp_temp_c": 41.5,
+                                                                              "errors": []}
+    driver.odd = 1
+    said = json.loads(await bus.request(ask, b"", timeout=5))["driver"]
+    assert said["ok"] is False and said["error"].startswith("health() returned what is not JSON: ")
+    await actor.stop()
     await bus.close()
 
 

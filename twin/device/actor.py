@@ -13,7 +13,6 @@ import asyncio
 import collections
 import functools
 import itertools
-import json
 import logging
 from typing import Any
 
@@ -25,7 +24,7 @@ from twin.device.habits import Habits, timed
 from twin.device.driver import (Driver, StepContext, busy_with, fault_text, feature, simulated_faults,
                                 step_result)
 from twin.core.errors import PLUGIN_ERRORS, DriverError, Refused
-from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack, within_limit
+from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack, to_wire, within_limit
 
 log = logging.getLogger(__name__)
 
@@ -123,8 +122,12 @@ class DeviceActor:
             try:
                 report["driver"] = await check()
             except PLUGIN_ERRORS as exc:  # a failing health check is itself the answer
-                report["driver"] = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
-        return json.dumps(report).encode()
+                report["driver"] = {"ok": False, "error": fault_text(exc)}
+        try:
+            return to_wire(report)  # numpy's numbers as numbers
+        except (TypeError, ValueError, OverflowError) as exc:  # what health() returned cannot be JSON
+            report["driver"] = {"ok": False, "error": f"health() returned what is not JSON: {fault_text(exc, 200)}"}
+            return to_wire(report)
 
     def _on_orchestrator(self, key: str, alive: bool) -> None:
         """The campaign came or went: a step it can no longer supervise is stopped after a grace period."""
