@@ -317,3 +317,38 @@ def test_twin_ctl_as_the_operator_pauses_and_stops_a_campaign_through_the_secure
             lab.wait()
     assert [e["kind"] for e in read_events(db) if e["kind"].startswith("operator.")] == ["operator.pause",
                                                                                          "operator.stop"]
+
+
+def test_a_damaged_or_expired_certificate_is_named_with_how_to_make_it_again(tmp_path):
+    """Zenoh said "peer sent no certificates at /root/.cargo/git/checkouts/...": now the file and the fix."""
+    import datetime
+    import shutil
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    root = tmp_path / "lab"
+    init(root, LAB, ["spectrometer-1"])
+    device = Identity("device", LAB, "spectrometer-1")
+    (device.folder(root) / "cert.pem").write_text("copied from a chat window\n")
+    with pytest.raises(BusError, match=r"cert.pem: not a PEM certificate \(overwritten or cut short\).*remove "
+                                       r".*spectrometer-1 and make it again with `twin security init .* --lab t "
+                                       r"--device spectrometer-1`"):
+        session_config(root, device)
+    shutil.rmtree(device.folder(root))  # as it says
+    init(root, LAB, ["spectrometer-1"])
+    assert session_config(root, device)
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "old")])
+    now = datetime.datetime.now(datetime.timezone.utc)
+    old = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
+           .serial_number(1).not_valid_before(now - datetime.timedelta(days=400))
+           .not_valid_after(now - datetime.timedelta(days=35)).sign(key, hashes.SHA256()))
+    from cryptography.hazmat.primitives.serialization import Encoding
+
+    (root / "ca.pem").write_bytes(old.public_bytes(Encoding.PEM))
+    with pytest.raises(BusError, match=r"ca.pem: the certificate expired on .* UTC.*remove .*lab and make them "
+                                       r"all again"):
+        session_config(root, device)

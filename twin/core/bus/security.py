@@ -87,11 +87,42 @@ def files(root: str | Path, who: Identity) -> dict[str, Path]:
     folder = who.folder(root)
     found = {"ca": root / "ca.pem", "cert": folder / "cert.pem", "key": folder / "key.pem"}
     missing = [str(p) for p in found.values() if not p.is_file()]
+    add = f" --device {who.name}" if who.role == "device" else ""
     if missing:
-        add = f" --device {who.name}" if who.role == "device" else ""
         raise BusError(f"no certificate for the {who} of lab {who.lab} in {root} ({', '.join(missing)} missing): "
                        f"add it with `twin security init {root} --lab {who.lab}{add}` (the CA is reused)")
+    for what, path in found.items():
+        why = _unusable(path, what)
+        if why:
+            again = (f"remove {root} and make them all again" if what == "ca" else
+                     f"remove {folder} and make it again") + f" with `twin security init {root} --lab {who.lab}{add}`"
+            raise BusError(f"{path}: {why}, so TLS would fail with Zenoh's words alone: {again}")
     return found
+
+
+def _unusable(path: Path, what: str) -> str:
+    """Why a PEM file of a security directory cannot serve ('' if it can): not a certificate or key (overwritten,
+    cut short), or a certificate outside its dates."""
+    import datetime
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+
+    data = path.read_bytes()[:1 << 20]
+    try:
+        if what == "key":
+            serialization.load_pem_private_key(data, password=None)
+            return ""
+        cert = x509.load_pem_x509_certificate(data)
+    except (ValueError, TypeError):
+        return f"not a PEM {'private key' if what == 'key' else 'certificate'} (overwritten or cut short)"
+    now = datetime.datetime.now(datetime.timezone.utc)
+    if cert.not_valid_after_utc < now:
+        return f"the certificate expired on {cert.not_valid_after_utc:%Y-%m-%d %H:%M} UTC"
+    if cert.not_valid_before_utc > now:
+        return (f"the certificate is valid only from {cert.not_valid_before_utc:%Y-%m-%d %H:%M} UTC: this machine's "
+                "clock is behind the one that made it")
+    return ""
 
 
 def session_config(root: str | Path, who: Identity) -> dict[str, Any]:
