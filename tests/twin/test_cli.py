@@ -425,3 +425,24 @@ def test_paths_and_smiles_print_as_they_are_never_as_rich_markup(tmp_path):
         assert res.exit_code == 2 and f"{odd}: 1 problem(s)" in res.output, res.output
     res = twin_cli("route", "c1ccc2[nH]ccc2c1")
     assert res.exit_code == 0 and "c1ccc2[nH]ccc2c1:" in res.output, res.output
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_a_journal_whose_disk_fills_stops_the_run_with_what_to_do(tmp_path, monkeypatch, runtime):
+    """SQLite's "database or disk is full" was a traceback out of the runtime's loop (on a live clock, logged with
+    "the campaign stopped on an error" first). The disk is filled here as SQLite sees it: a page limit."""
+    from twin.campaign import journal
+
+    opened = journal.Journal.__init__
+
+    def small(self, *args, **kwargs):
+        opened(self, *args, **kwargs)
+        self._db.execute("PRAGMA max_page_count = 40")
+
+    monkeypatch.setattr(journal.Journal, "__init__", small)
+    db = tmp_path / "j.db"
+    res = twin_cli("run", ROOT / "scenarios" / "flaky_lab.yaml", "--journal", db, "--bus", "memory", "--runtime",
+                   runtime)
+    out = " ".join(res.output.split())
+    assert res.exit_code == 2 and f"cannot write the journal {db}: database or disk is full" in out, out
+    assert "give --journal a file on another disk" in out and "Traceback" not in out

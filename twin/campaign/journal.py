@@ -8,9 +8,11 @@ are buffered and committed in batches; ``close`` flushes everything.
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import os
+import shutil
 import sqlite3
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -73,6 +75,7 @@ class Journal:
         self._seq = self._db.execute("SELECT COALESCE(MAX(seq), 0) FROM events").fetchone()[0]
         self._inputs: list[tuple] = []
         self.closed = False
+        self.failed = ""  # why a write failed (a full disk): later writes are dropped, the first error stands
 
     def event(self, t_lab: float, kind: str, experiment: int | None = None, task: str | None = None,
               attempt: int | None = None, device: str | None = None, detail: Any = None) -> int:
@@ -115,8 +118,13 @@ class Journal:
 
     def set(self, key: str, value: Any) -> None:
         """A fact of the run (scenario, seed, summary), on disk at once: a run killed later can be resumed."""
-        self._db.execute("INSERT OR REPLACE INTO run VALUES (?, ?)", (key, json.dumps(value, default=str)))
-        self._db.commit()
+        if self.failed:
+            return
+        try:
+            self._db.execute("INSERT OR REPLACE INTO run VALUES (?, ?)", (key, json.dumps(value, default=str)))
+            self._db.commit()
+        except sqlite3.Error as exc:
+            raise self._failing(exc) from None
 
     def get(self, key: str) -> Any:
         """A fact of the run set before (None if it was not)."""
@@ -124,6 +132,17 @@ class Journal:
         return json.loads(row[0]) if row else None
 
     def flush(self) -> None:
+        if self.failed:  # what follows a failed write (the stop's own rows, the summary) is dropped, not raised again
+            self._events.clear()
+            self._inputs.clear()
+            self._experiments.clear()
+            return
+        try:
+            self._flush()
+        except sqlite3.Error as exc:
+            raise self._failing(exc) from None
+
+    def _flush(self) -> None:
         if self._inputs:
             self._db.executemany("INSERT INTO inputs (t_lab, batch) VALUES (?,?)", self._inputs)
             self._inputs.clear()
@@ -148,10 +167,22 @@ class Journal:
     def close(self) -> None:
         if self.closed:
             return
-        self.flush()
-        self._db.close()
-        self.closed = True
-        _release(self._lock)
+        try:
+            self.flush()
+        finally:
+            self._db.close()
+            self.closed = True
+            _release(self._lock)
+
+    def _failing(self, exc: sqlite3.Error) -> JournalError:
+        """A write that failed (its disk full, say): the campaign stops with what to do, said once."""
+        with contextlib.suppress(sqlite3.Error):
+            self._db.rollback()
+        self.failed = str(exc)
+        free = shutil.disk_usage(self.path.parent).free
+        return JournalError(f"cannot write the journal {self.path}: {exc} ({free:,} bytes free on its disk): it "
+                            "lacks what came after, and a campaign still running stopped there; free some space, or "
+                            "give --journal a file on another disk, and run it again")
 
 
 def _writer_lock(path: Path) -> Any:
@@ -230,6 +261,10 @@ class NullJournal(Journal):
 
     def close(self) -> None:
         self.closed = True
+
+
+class JournalError(TwinError):
+    """A journal that could not be written (its disk full): the campaign stops."""
 
 
 class NotAJournal(TwinError):

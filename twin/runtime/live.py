@@ -31,6 +31,7 @@ from twin.core.clock import LabClock
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.bus import NoReplyError
+from twin.core.errors import TwinError
 from twin.core.messages import Dropped, InvalidMessage, Kind, decode, excerpt, pack, without_token
 from twin.runtime.checked_planner import covered
 from twin.runtime.checked_scheduler import fallbacks
@@ -245,7 +246,8 @@ class LiveCampaign:
                 if self.clock.is_virtual:
                     break  # the next advance waits until the loop is idle again, as in the fast runtime
         except Exception as exc:  # a bug must end the campaign with its error, never leave it waiting silently
-            log.exception("the campaign stopped on an error")
+            if not isinstance(exc, TwinError):  # one said on purpose (a journal's disk full) is said as it is
+                log.exception("the campaign stopped on an error")
             if self._done is not None and not self._done.done():
                 self._done.set_exception(exc)
 
