@@ -446,3 +446,36 @@ def test_a_journal_whose_disk_fills_stops_the_run_with_what_to_do(tmp_path, monk
     out = " ".join(res.output.split())
     assert res.exit_code == 2 and f"cannot write the journal {db}: database or disk is full" in out, out
     assert "give --journal a file on another disk" in out and "Traceback" not in out
+
+
+def test_a_full_disk_is_said_for_the_recording_and_the_tables_not_a_traceback_or_a_hang(tmp_path, monkeypatch):
+    """A full disk: Rerun's file sink hung when opened on one, and only logged a write that failed at the
+    recording's end ("recording saved" after it); export died with OSError. (Free space is what the OS reports;
+    here it is reported as the OS would on a full disk.)"""
+    import errno
+
+    from twin.cli import common
+    from twin.tools import export
+    from twin.view import recorder
+
+    lab = ROOT / "scenarios" / "quantum_dots.yaml"
+    monkeypatch.setattr(common, "free_bytes", lambda path: 0)
+    res = twin_cli("run", lab, "--save", tmp_path / "r.rrd", "--set", "campaign.budget=3")
+    assert res.exit_code == 2 and f"--save {tmp_path / 'r.rrd'}: its disk is full (0 bytes free)" in res.output
+    assert not (tmp_path / "r.rrd").exists() and "runs/" not in res.output  # nothing ran
+    monkeypatch.setattr(common, "free_bytes", lambda path: 10 << 30)
+    monkeypatch.setattr(recorder, "free_bytes", lambda path: 0)  # full once the recording is written
+    res = twin_cli("run", lab, "--save", tmp_path / "r.rrd", "--set", "campaign.budget=3", "--journal",
+                   tmp_path / "j.db")
+    out = " ".join(res.output.split())
+    assert res.exit_code == 2 and "so its end may be cut short" in out and "recording saved" not in out, out
+    assert f"twin replay {tmp_path / 'j.db'} --save FILE" in out
+
+    def no_space(*_):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(export, "_write_table", no_space)
+    res = twin_cli("export", tmp_path / "j.db", "--out", tmp_path / "x")
+    assert res.exit_code == 2 and f"cannot write {tmp_path / 'x' / 'experiments.csv'}: No space left on device" in \
+        " ".join(res.output.split())
+    assert not list((tmp_path / "x").iterdir())  # no partial file left

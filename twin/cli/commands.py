@@ -184,7 +184,11 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
     else:
         render_summary(summary, console)
     if recording is not None:
-        recording.close()
+        try:
+            recording.close()
+        except TwinError as exc:
+            recording.stop_serving()
+            _fail(TwinError(f"{exc} (twin replay {summary.journal} --save FILE)"))
         if record.save:
             err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
         keep_serving(recording, summary.stopped)

@@ -16,6 +16,7 @@ from rich.markup import escape
 from rich.segment import Segment
 
 from twin.core.errors import TwinError
+from twin.core.whole_files import FULL_BYTES, free_bytes
 
 if TYPE_CHECKING:
     from rich.table import Table
@@ -113,6 +114,10 @@ def writable(option: str, *paths: Path | None) -> None:
                             "(nothing has run)"))
         if not existed:
             path.unlink()
+        free = free_bytes(path)
+        if free < FULL_BYTES:  # a file sink opened on a full disk hangs Rerun; any other file would be cut short
+            _fail(TwinError(f"{option} {path}: its disk is full ({free:,} bytes free); free some space, or give a file "
+                            "on another disk (nothing has run)"))
 
 
 def _fail(exc: TwinError) -> None:

@@ -3,9 +3,21 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
+
+from twin.core.errors import TwinError
+
+
+FULL_BYTES = 1 << 16  # free space under which a disk counts as full
+
+
+def free_bytes(path: Path) -> int:
+    """The free space of the disk a file at ``path`` is (to be) written on."""
+    return shutil.disk_usage(Path(path).resolve().parent).free
 
 
 @contextlib.contextmanager
@@ -16,6 +28,12 @@ def written_whole(path: Path) -> Iterator[Path]:
     try:
         yield partial
         os.replace(partial, path)
+    except OSError as exc:
+        partial.unlink(missing_ok=True)
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise TwinError(f"cannot write {path}: {exc.strerror}; free some space, or write it on another disk "
+                            "(a file written before it is whole)") from None
+        raise
     except BaseException:
         partial.unlink(missing_ok=True)
         raise

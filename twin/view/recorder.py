@@ -21,6 +21,8 @@ import pyarrow as pa
 import rerun as rr
 import rerun.blueprint as rrb
 
+from twin.core.errors import TwinError
+from twin.core.whole_files import FULL_BYTES, free_bytes
 from twin.view import viewer_process
 from twin.view.observer import STATES
 
@@ -295,13 +297,24 @@ class Recording:
     server: subprocess.Popen | None = None
     url: str = ""
     before_close: list[Callable[[], None]] = field(default_factory=list)  # what draws its last rows first
+    save: str = ""  # the file it is saved to, if any
 
     def close(self) -> None:
         for draw in self.before_close:
             draw()
         self.canvas.flush()
-        self.rec.flush()
+        again = "free some space, or --save it on another disk; `twin replay` rebuilds it from the run's journal"
+        try:
+            self.rec.flush()
+        except RuntimeError as exc:  # Rerun's file writer stopped (a full disk, most likely); disconnect would hang
+            raise TwinError(f"the recording {self.save} could not be written ({exc}): is its disk full? {again}") \
+                from None
         self.rec.disconnect()
+        if self.save:  # Rerun only logs a write that failed at the end: a full disk is the sign of one
+            free = free_bytes(Path(self.save))
+            if free < FULL_BYTES:
+                raise TwinError(f"the disk of the recording {self.save} is full ({free:,} bytes free), so its end may "
+                                f"be cut short: {again}")
 
     def lay_out(self, campaigns: list[str]) -> None:
         """The layout of a lab these campaigns share (sent again as campaigns come)."""
@@ -328,7 +341,7 @@ def open_recording(recording_id: str, save: str | Path | None = None, viewer: bo
     rec = rr.RecordingStream("labtwin", recording_id=recording_id)
     rec.set_log_time_enabled(False)  # only lab time: a replay then equals the live recording
     rec.set_log_tick_enabled(False)
-    out = Recording(rec, RerunCanvas(rec))
+    out = Recording(rec, RerunCanvas(rec), save=str(save or ""))
     sinks: list[Any] = []
     if save:
         Path(save).parent.mkdir(parents=True, exist_ok=True)
