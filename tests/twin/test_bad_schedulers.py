@@ -205,3 +205,16 @@ def test_names_held_as_numpy_strings_are_names():
     (a,) = assignments([Assignment(names[0], names[1])])
     assert (a.task, a.device) == ("e0s0", "synthesiser-1") and type(a.task) is type(a.device) is str
     assert assignments([Assignment(np.int64(3), "synthesiser-1")]) is None
+
+
+def test_a_class_that_is_no_plugin_is_sent_to_the_page_that_says_what_one_is():
+    """A scheduler or planner was sent to docs/drivers.md and docs/architecture.md, which do not say."""
+    from twin.core import plugins
+    from twin.core.errors import DriverError, PluginError
+
+    here = "tests.twin.test_bad_schedulers"
+    for kind, cls, error, page in (("planners", "Patient", PluginError, "docs/plugins.md"),
+                                   ("schedulers", "ExitingPlanner", PluginError, "docs/plugins.md"),
+                                   ("devices", "Patient", DriverError, "docs/drivers.md")):
+        with pytest.raises(error, match=rf"is the class {cls}, not a .* \(see {page}\)$"):
+            plugins.load(kind, f"{here}:{cls}")

@@ -13,8 +13,9 @@ from twin.core.errors import DriverError, PluginError
 
 GROUPS = {"devices": "labtwin.devices", "planners": "labtwin.planners", "schedulers": "labtwin.schedulers",
           "trainers": "labtwin.trainers", "routes": "labtwin.routes", "route_targets": "labtwin.route_targets"}
-#: What a plugin of each kind must have (its protocol in docs/drivers.md and docs/architecture.md).
+#: What a plugin of each kind must have, and where its protocol is written.
 _NAMES = {"devices": "driver", "routes": "route planner", "route_targets": "route target set"}  # in errors
+_DOCS = {"devices": "docs/drivers.md", "routes": "docs/routes.md", "route_targets": "docs/routes.md"}
 PROTOCOLS = {"devices": ("run", "safe_state"), "planners": ("propose",), "schedulers": ("decide",)}
 
 
@@ -42,8 +43,7 @@ def load(kind: str, name: str) -> Any:
         error = DriverError if kind == "devices" else PluginError
         what = kind[:-1] if kind != "devices" else "driver"
         raise error(f"{name!r} is {_what_it_is(obj)}, not a {what}: a {what} is a class with "
-                    f"{', '.join(m + '()' for m in PROTOCOLS.get(kind, ()))} (see docs/drivers.md and "
-                    "docs/architecture.md)")
+                    f"{', '.join(m + '()' for m in PROTOCOLS.get(kind, ()))} (see {_DOCS.get(kind, 'docs/plugins.md')})")
     if kind == "devices":
         plain = [m for m in PROTOCOLS["devices"] if not inspect.iscoroutinefunction(getattr(obj, m))]
         if plain:
