@@ -295,6 +295,10 @@ def _not_ours(path: str | Path, exc: Exception) -> NotAJournal:
         return NotAJournal(f"{path}: a damaged database ({type(exc).__name__}: {exc}): cut short or overwritten in "
                            "part, so not a labtwin journal that can be read; if it was copied while its run wrote "
                            "it, copy it again (with its -wal file) once the run has ended")
+    if "no such table" in str(exc):  # SQLite, without a journal's tables
+        return NotAJournal(f"{path}: holds none of a labtwin journal's tables ({exc}): a run that has only just "
+                           "started writing it (try again in a moment), or another program's database; twin run "
+                           "writes journals to runs/")
     return NotAJournal(f"{path}: not a labtwin journal ({type(exc).__name__}: {exc}); twin run writes them to runs/")
 
 
