@@ -483,3 +483,22 @@ def test_a_full_disk_is_said_for_the_recording_and_the_tables_not_a_traceback_or
     assert res.exit_code == 2 and f"cannot write {tmp_path / 'x' / 'experiments.csv'}: No space left on device" in \
         " ".join(res.output.split())
     assert not list((tmp_path / "x").iterdir())  # no partial file left
+
+
+@pytest.mark.parametrize("command", [
+    ["router", "--listen", "{at}"],
+    ["run", "scenarios/quantum_dots.yaml", "--clock", "scaled", "--speed", "3600", "--listen", "{at}"],
+])
+def test_a_port_another_program_listens_on_is_named_as_taken(command):
+    """A second lab or router on a port printed Zenoh's "Can not create a new TCP listener … at
+    /root/.cargo/git/checkouts/…"."""
+    import socket
+
+    with socket.socket() as other:
+        other.bind(("127.0.0.1", 0))
+        other.listen()
+        at = f"tcp/127.0.0.1:{other.getsockname()[1]}"
+        res = twin_cli(*[a.format(at=at) for a in command], columns=300)
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and f"{at} is taken: another lab, router or program listens there" in said, said
+    assert "cargo" not in said

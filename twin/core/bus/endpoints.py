@@ -17,3 +17,11 @@ def not_endpoints(endpoints: list[str]) -> list[str]:
         if m is None or (m.group(3) is not None and int(m.group(3)) > 65535):
             bad.append(str(e)[:80])
     return bad
+
+
+def taken(error: Exception) -> str:
+    """The endpoint Zenoh could not listen on because something else does ('' if that was not why), said as a
+    person would say it: a second lab or router on the port got Zenoh's words and its Rust source paths."""
+    m = re.search(r"bound to (\S+?):? .*Address already in use", str(error))
+    return (f"{m.group(1)} is taken: another lab, router or program listens there (`ss -ltnp` names it); stop "
+            "it, or listen on another port") if m else ""

@@ -10,6 +10,7 @@ from collections.abc import Callable
 import zenoh
 
 from twin.core.bus import security
+from twin.core.bus.endpoints import taken
 from twin.core.bus.zenoh_config import ZenohOptions
 from twin.core.errors import BusError
 
@@ -33,6 +34,8 @@ def run_router(listen: list[str], lease_ms: int = 1000, extra: dict[str, object]
     try:
         session = zenoh.open(options.config())
     except Exception as exc:
+        if taken(exc):
+            raise BusError(f"the router could not listen: {taken(exc)}") from None
         raise BusError(f"the router could not listen on {listen}: {exc}") from exc
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -27,6 +27,7 @@ from typing import Any
 import zenoh
 
 from twin.core.bus.base import Closable, Handler, NoReplyError, Replier, TokenHandler, key_matches, keys_intersect
+from twin.core.bus.endpoints import taken
 from twin.core.bus.zenoh_config import ZenohOptions
 from twin.core.clock import LabClock
 from twin.core.errors import BusError, ClockError
@@ -144,6 +145,8 @@ class ZenohBus:
                     f"{self.options.connect_timeout_ms / 1000:g} s: is the router (twin router --listen ...) or the "
                     "lab running there, and is the endpoint right (protocol, host, port)?"
                     + (f" {self.options.wait_longer}" if self.options.wait_longer else "")) from None
+            if taken(exc):
+                raise BusError(taken(exc)) from None
             raise BusError(
                 f"could not open a Zenoh session (listen={self.options.listen}, "
                 f"connect={self.options.connect}): {exc}. Check that the endpoints are "
