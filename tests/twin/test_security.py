@@ -352,3 +352,26 @@ def test_a_damaged_or_expired_certificate_is_named_with_how_to_make_it_again(tmp
     with pytest.raises(BusError, match=r"ca.pem: the certificate expired on .* UTC.*remove .*lab and make them "
                                        r"all again"):
         session_config(root, device)
+
+
+def test_nothing_answering_over_tls_names_the_router_certificates_hosts_too(tmp_path):
+    """A host the router's certificate does not name fails as "Timeout!" in Zenoh, like a router that is not
+    there: over TLS the error says to check the certificate's names as well, and how to add one."""
+    from twin.core.bus import open_bus
+    from twin.core.clock import LabClock
+
+    init(tmp_path / "lab", LAB, [])
+    clock = LabClock("wall")
+
+    async def connect(endpoint, extra):
+        bus = open_bus("zenoh", clock, mode="client", listen=[], connect=[endpoint], extra=extra,
+                       connect_timeout_ms=1000)
+        await bus.start()
+
+    tls = session_config(tmp_path / "lab", Identity("watcher", LAB))
+    for endpoint, extra, hint in ((f"tls/127.0.0.1:{free_port()}", tls, True), (f"tcp/127.0.0.1:{free_port()}", {}, False)):
+        with pytest.raises(BusError) as said:
+            clock.run(connect(endpoint, extra))
+        assert f"nothing answered at {endpoint}" in str(said.value)
+        assert ("the host must also be one the router's certificate names" in str(said.value)) == hint
+        assert ("--host HOST" in str(said.value)) == hint

@@ -144,6 +144,9 @@ class ZenohBus:
                     f"nothing answered at {', '.join(self.options.connect)} within "
                     f"{self.options.connect_timeout_ms / 1000:g} s: is the router (twin router --listen ...) or the "
                     "lab running there, and is the endpoint right (protocol, host, port)?"
+                    + (" Over TLS the host must also be one the router's certificate names: remove DIR/router and "
+                       "run `twin security init DIR --lab LAB --host HOST ...` to name more (the CA is kept)."
+                       if any(e.startswith(("tls/", "quic/")) for e in self.options.connect) else "")
                     + (f" {self.options.wait_longer}" if self.options.wait_longer else "")) from None
             if taken(exc):
                 raise BusError(taken(exc)) from None
