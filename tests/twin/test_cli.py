@@ -502,3 +502,12 @@ def test_a_port_another_program_listens_on_is_named_as_taken(command):
     said = " ".join(res.output.split())
     assert res.exit_code == 2 and f"{at} is taken: another lab, router or program listens there" in said, said
     assert "cargo" not in said
+
+
+def test_twin_version_names_labtwin_and_the_libraries_a_run_records():
+    from twin.runtime.run_record import versions
+
+    res = twin_cli("--version")
+    known = versions()
+    assert res.exit_code == 0 and res.output.startswith(f"labtwin {known['labtwin']} (python {known['python']}")
+    assert f"eclipse-zenoh {known['eclipse-zenoh']}" in res.output and f"torch {known['torch']}" in res.output

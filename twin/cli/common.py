@@ -8,7 +8,7 @@ import re
 import signal
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Iterator, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Callable, Iterator, TypeVar
 
 import typer
 from rich.console import Console
@@ -23,6 +23,25 @@ if TYPE_CHECKING:
 
 app = typer.Typer(help="labtwin: a digital twin of a self-driving lab.", no_args_is_help=True,
                   pretty_exceptions_enable=False, add_completion=False)
+
+
+def _say_version(asked: bool) -> None:
+    if asked:
+        from twin.runtime.run_record import versions
+
+        known = versions()
+        print(f"labtwin {known.pop('labtwin', '?')} ("
+              + ", ".join(f"{name} {v}" for name, v in known.items()) + ")")
+        raise typer.Exit()
+
+
+@app.callback()
+def _top(version: Annotated[bool, typer.Option("--version", callback=_say_version, is_eager=True,
+                                               help="print labtwin's version and its libraries', and exit")]
+         = False) -> None:
+    """labtwin: a digital twin of a self-driving lab."""
+
+
 device_app = typer.Typer(help="Run one device actor in this process.", no_args_is_help=True)
 lab_app = typer.Typer(help="Serve a lab that several campaigns share.", no_args_is_help=True)
 app.add_typer(device_app, name="device")
