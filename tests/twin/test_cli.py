@@ -358,6 +358,7 @@ def test_every_repeatable_option_says_what_it_takes_not_its_python_type():
     ["train", "scenarios/quantum_dots.yaml", "--agent", "planner", "--steps", "100", "--out", "{bad}/p.zip"],
     ["devices", "--csv", "{bad}/d.csv"],
     ["route", "CCO", "--save", "{bad}/r.svg"],
+    ["resume", "missing.db", "--save", "{bad}/r.rrd"],
 ])
 def test_a_file_to_write_that_cannot_be_is_refused_before_anything_runs(args, tmp_path, monkeypatch):
     """A whatif or a bench ran to its end and then died with a traceback on its --csv (and training would have

@@ -125,6 +125,7 @@ def resume(
     from twin.runtime.resume_lab import recorded_lab
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    writable("--save", save)
     if journal.is_dir():  # the journals of a lab several campaigns share
         try:
             s = recorded_lab(journal)[0]
