@@ -91,7 +91,8 @@ def render_lab_summary(s: LabSummary, console: Console) -> None:
         t.add_column(header, overflow="fold", justify="right" if header not in ("campaign", "targets met") else "left")
     for name, c in s.campaigns.items():
         start = s.submitted_h.get(name, 0.0)
-        met = ", ".join(f"{k} {start + h:.2f}" for k, h in sorted(c.targets_met_h.items(), key=lambda kv: kv[1]))
+        met = ", ".join(f"{escape(k)} {start + h:.2f}"
+                        for k, h in sorted(c.targets_met_h.items(), key=lambda kv: kv[1]))
         owner = f" ({escape(s.owner[name])})" if s.owner.get(name) else ""
         t.add_row(f"{escape(name)}{owner}", str(s.priority.get(name, 0)), f"{start:.2f}",
                   f"{s.ended_h.get(name, 0.0):.2f}", str(c.done), str(c.abandoned), str(c.pending), met or "—")
