@@ -411,3 +411,12 @@ def test_an_override_keeps_each_campaigns_seed_the_labs_plus_its_place():
                                                                                              "catalyst": 4}
     pinned = prepare(prepare(load(LAB), overrides={"campaigns.1.campaign.seed": 9}), seed=3)
     assert campaign_scenarios(pinned, pinned.name)["catalyst"].campaign.seed == 9
+
+
+def test_a_target_named_with_brackets_is_printed_as_named(tmp_path):
+    """The lab's summary read its targets' names as rich markup: "[red]R" lost its bracket (and coloured the rest)."""
+    res = twin_cli("run", LAB, "--journal", tmp_path, "--set", 'campaigns.0.chemistry.targets.0.name="[red]R"',
+                   "--set", "campaigns.0.campaign.budget=8", "--set", "campaigns.1.campaign.budget=2", columns=200)
+    assert res.exit_code == 0, res.output
+    row = next(line for line in res.output.splitlines() if line.startswith("│ dots"))
+    assert "[red]R " in row, row
