@@ -226,3 +226,39 @@ def test_ctrl_c_while_a_campaign_runs_in_its_own_thread_cancels_it_there_and_is_
     finally:
         finished.set()
     assert unwound == ["labtwin-campaign"]
+
+
+@pytest.mark.process
+def test_ctrl_c_reaches_a_campaign_on_its_own_thread_even_where_sigint_restarts_what_it_interrupts(tmp_path):
+    """An asyncio loop's signal handler sets SA_RESTART on SIGINT: the wait for the campaign's thread was then
+    restarted, not interrupted, and Ctrl-C was never raised (a CI run hung in the test above). Run apart: on the
+    code before, it hangs for good."""
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "restart.py"
+    script.write_text(
+        "import asyncio, signal, threading, time\n"
+        "from twin.core.clock import _in_own_thread\n"
+        "started, unwound = threading.Event(), []\n"
+        "async def campaign():\n"
+        "    started.set()\n"
+        "    try:\n"
+        "        await asyncio.Event().wait()\n"
+        "    finally:\n"
+        "        unwound.append(1)\n"
+        "def interrupt():\n"
+        "    started.wait()\n"
+        "    time.sleep(0.2)\n"
+        "    signal.siginterrupt(signal.SIGINT, False)  # as asyncio's add_signal_handler leaves it\n"
+        "    signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)\n"
+        "threading.Thread(target=interrupt, daemon=True).start()\n"
+        "try:\n"
+        "    _in_own_thread(asyncio.new_event_loop, campaign())\n"
+        "except KeyboardInterrupt:\n"
+        "    print('raised', unwound)\n")
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60, cwd=root,
+                         env={**os.environ, "PYTHONPATH": str(root)})
+    assert out.stdout.strip() == "raised [1]", out.stdout + out.stderr

@@ -336,13 +336,13 @@ def _in_own_thread(loop_factory: Callable[[], asyncio.AbstractEventLoop], main: 
     try:
         with _ctrl_c_raises():
             thread.start()
-            done.wait()
+            _until(done)
     except KeyboardInterrupt:
         interrupted = True
         interrupt(cancel=False)
         try:
             with _ctrl_c_raises():
-                done.wait()  # the campaign stops cleanly and returns its summary, as on the main thread
+                _until(done)  # the campaign stops cleanly and returns its summary, as on the main thread
         except KeyboardInterrupt:  # a second Ctrl-C: no waiting for a clean stop
             interrupt(cancel=True)
             done.wait()
@@ -352,6 +352,14 @@ def _in_own_thread(loop_factory: Callable[[], asyncio.AbstractEventLoop], main: 
             raise KeyboardInterrupt
         raise box["error"]
     return box["result"]
+
+
+def _until(event: threading.Event) -> None:
+    """Wait for ``event``, waking every 0.1 s wall: Ctrl-C's handler runs at a wake-up even where a library set
+    SA_RESTART on SIGINT (an asyncio loop's signal handler does), which restarts an endless wait instead of
+    interrupting it. (Once, a CI run hung here, its Ctrl-C delivered and never raised.)"""
+    while not event.wait(0.1):
+        pass
 
 
 @contextlib.contextmanager
