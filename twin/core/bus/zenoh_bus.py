@@ -144,9 +144,7 @@ class ZenohBus:
                     f"nothing answered at {', '.join(self.options.connect)} within "
                     f"{self.options.connect_timeout_ms / 1000:g} s: is the router (twin router --listen ...) or the "
                     "lab running there, and is the endpoint right (protocol, host, port)?"
-                    + (" Over TLS the host must also be one the router's certificate names: remove DIR/router and "
-                       "run `twin security init DIR --lab LAB --host HOST ...` to name more (the CA is kept)."
-                       if any(e.startswith(("tls/", "quic/")) for e in self.options.connect) else "")
+                    + self._tls_hint()
                     + (f" {self.options.wait_longer}" if self.options.wait_longer else "")) from None
             if taken(exc):
                 raise BusError(taken(exc)) from None
@@ -155,6 +153,16 @@ class ZenohBus:
                 f"connect={self.options.connect}): {exc}. Check that the endpoints are "
                 "free and well formed, e.g. tcp/127.0.0.1:7447."
             ) from exc
+
+    def _tls_hint(self) -> str:
+        """What else to check when nothing answered at a TLS endpoint."""
+        if not any(e.startswith(("tls/", "quic/")) for e in self.options.connect):
+            return ""
+        if not any(str(k).endswith("connect_certificate") for k in self.options.extra):
+            return (" A tls/ endpoint is a lab with security: give its security directory (--security DIR), whose "
+                    "certificate the router asks for.")
+        return (" Over TLS the host must also be one the router's certificate names: remove DIR/router and run "
+                "`twin security init DIR --lab LAB --host HOST ...` to name more (the CA is kept).")
 
     async def _open(self) -> zenoh.Session:
         """``zenoh.open``; a client's wait for its router or lab in tries of at most a second, with a turn of
