@@ -218,3 +218,12 @@ def test_a_class_that_is_no_plugin_is_sent_to_the_page_that_says_what_one_is():
                                    ("devices", "Patient", DriverError, "docs/drivers.md")):
         with pytest.raises(error, match=rf"is the class {cls}, not a .* \(see {page}\)$"):
             plugins.load(kind, f"{here}:{cls}")
+
+
+def test_every_alert_is_a_warning_or_an_error_in_the_viewer_log():
+    """What a runtime logs as an alert (a stalled scheduler among them) the viewer's log does not file as INFO."""
+    from twin.campaign.events import ALERTS
+    from twin.view.observer import _level
+
+    assert "scheduler.stalled" in ALERTS
+    assert {kind: _level(kind) for kind in ALERTS if _level(kind) not in ("WARN", "ERROR")} == {}

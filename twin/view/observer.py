@@ -23,7 +23,8 @@ STATES = ("offline", "idle", "failed", "quarantined", "busy")
 WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.invalid", "result.late",
               "device.flapping", "devices.unavailable", "devices.missing", "campaign.stopping", "attempt.cancelled",
               "operator.pause", "operator.abort", "operator.stop", "operator.refused", "question.asked",
-              "question.withdrawn", "consumable.low", "output.unscored", "planner.invalid", "device.clock_off"}
+              "question.withdrawn", "consumable.low", "output.unscored", "planner.invalid", "device.clock_off",
+              "scheduler.stalled"}
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned",
                "consumable.depleted", "planner.failed"}
 log = logging.getLogger(__name__)
