@@ -17,13 +17,13 @@ import secrets
 from typing import Any
 
 from twin.campaign import (consumables, device_events, dispatch, human, operator, outcomes, policy, provenance,
-                           questions, stranded, timers)
+                           questions, shutdown, stall, stranded, timers)
 from twin.campaign.consumables import Stocks
 from twin.campaign.availability import Availability
-from twin.campaign.events import (Action, Ask, CancelTimer, Decided, DeviceMessage, Event, Finished, InvalidInput,
+from twin.campaign.events import (Action, Ask, CancelTimer, Decided, DeviceMessage, Event, InvalidInput,
                                   Note, Operator, Presence, Proposed, RecordExperiment, Send, SetTimer, Status, Stop,
                                   TimerFired, TimerKey, TimerKind)
-from twin.campaign.ledger import UNRUNNABLE, Attempt, Counters, Device, Experiment, Task, check_accounting
+from twin.campaign.ledger import UNRUNNABLE, Attempt, Counters, Device, Experiment, Task
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
 from twin.core.messages import Kind
 from twin.scenario.model import Scenario, expected_duration
@@ -343,25 +343,8 @@ class CampaignCore:
             self._wake = True  # more may pair now
         else:
             self._end_pass()
-            if not d.assignments and self._idle():
-                self._stalled()
-
-    def _idle(self) -> bool:
-        """Whether nothing can happen but the campaign's time limit: every device on the bus and idle, none that
-        crashes now and then (and comes back, which asks again), no timer but the limit's. A "wait" then waits for
-        nothing."""
-        return (self.alone and not self.stopping and all(d.online and d.state == "idle" for d in self.devices.values())
-                and not any(spec.faults.mtbc_h for spec in self.s.devices.values())
-                and self._timers <= {TimerKey(TimerKind.LIMIT), TimerKey(TimerKind.STARTUP)})
-
-    def _stalled(self) -> None:
-        why = (f"the scheduler ({self.s.campaign.scheduler}) answered wait with no device busy and nothing due, so no "
-               "event would ask it again: a scheduler must start a step when nothing runs")
-        if self.s.clock.mode == "virtual":  # nothing else can happen: end now, not at campaign.max_lab_hours
-            self._on_stop(why)
-        elif not self._stall_said:  # a live lab: an operator, or an instrument's return, may still move it
-            self._stall_said = True
-            self._note("scheduler.stalled", detail=why)
+            if not d.assignments and stall.waits_for_nothing(self):
+                stall.say(self)
 
     # -- experiments and steps ------------------------------------------------------
     def _add_experiment(self, p: Proposal) -> None:
@@ -462,23 +445,4 @@ class CampaignCore:
 
     # -- shutdown ---------------------------------------------------------------------
     def _shutdown(self) -> None:
-        for dev in self.devices.values():
-            att = dev.attempt
-            if att is not None and not att.resolved:
-                att.resolved = True
-                self.cancel_timer(TimerKey(TimerKind.DEADLINE, f"{att.task.id}#{att.n}"))
-                dev.busy_s += self.now - att.t_sent
-                dev.attempt = None
-                if dev.name not in self.people:
-                    self._send(dev.name, Kind.CANCEL, att.task.id, att.n, {"reason": "campaign stopped"}, att.token)
-                self._note("attempt.cancelled", att.task.experiment.id, att.task.id, att.n, dev.name,
-                           detail=self.stopping)
-        questions.withdraw(self, self.stopping or "the campaign ended")
-        for e in self.active.values():
-            if e.status == Status.RUNNING:
-                e.status = Status.PENDING
-                e.reason = f"in the lab at shutdown ({self.stopping})" if self.stopping else "in the lab at shutdown"
-                self._out.append(RecordExperiment(e))
-        check_accounting(self.experiments, len(self.experiments))
-        self.finished = True
-        self._out.append(Finished(self.stopping))
+        shutdown.end(self)

@@ -12,6 +12,7 @@ from typing import Any
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
 from twin.campaign.events import Proposed
 from twin.core.errors import PLUGIN_ERRORS
+from twin.core.messages import plain_value
 from twin.runtime.checked_scheduler import listed
 
 log = logging.getLogger(__name__)
@@ -81,7 +82,7 @@ def _plain(params: dict[str, Any]) -> dict[str, Any]:
 
 
 def _number(v: Any) -> Any:
-    return v.item() if getattr(v, "shape", None) == () and hasattr(v, "item") else v
+    return plain_value(v) if getattr(v, "shape", None) == () else v  # a scalar, as a message would carry it
 
 
 def _proposals(answer: Any) -> list[Proposal] | None:

@@ -1,0 +1,35 @@
+"""A scheduler's "wait" that waits for nothing: no device busy and nothing due, so no event would ask it again.
+
+In virtual time nothing else can happen, so the campaign ends at once, naming the scheduler (it idled to
+``campaign.max_lab_hours``); on a live clock an operator, or an instrument coming back, may still move the lab, so
+it is an alert (``scheduler.stalled``), said once.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from twin.campaign.events import TimerKey, TimerKind
+
+if TYPE_CHECKING:
+    from twin.campaign.core import CampaignCore
+
+_NOT_EVENTS = frozenset({TimerKey(TimerKind.LIMIT), TimerKey(TimerKind.STARTUP)})
+
+
+def waits_for_nothing(core: CampaignCore) -> bool:
+    """Whether nothing can happen but the campaign's time limit: every device on the bus and idle, none that
+    crashes now and then (and comes back, which asks again), no timer but the limit's, no other campaign sharing
+    the lab (whose steps ending could wake this one)."""
+    return (core.alone and not core.stopping and all(d.online and d.state == "idle" for d in core.devices.values())
+            and not any(spec.faults.mtbc_h for spec in core.s.devices.values()) and core._timers <= _NOT_EVENTS)
+
+
+def say(core: CampaignCore) -> None:
+    why = (f"the scheduler ({core.s.campaign.scheduler}) answered wait with no device busy and nothing due, so no "
+           "event would ask it again: a scheduler must start a step when nothing runs")
+    if core.s.clock.mode == "virtual":
+        core._on_stop(why)
+    elif not core._stall_said:
+        core._stall_said = True
+        core._note("scheduler.stalled", detail=why)
