@@ -1,0 +1,109 @@
+"""A driver's side of the instrument: its health report and its connection (connect, disconnect), answered or
+named, never a traceback."""
+
+import json
+
+import pytest
+
+from tests.conftest import qd_lab
+from tests.twin.test_bad_drivers import Raises
+from twin.device.driver import StepResult
+from twin.runtime.lab import run
+from twin.scenario import parse
+
+
+class Healthy(Raises):
+    async def health(self):
+        return {"ok": True, "lamp_hours": 1234}
+
+
+class NumpyHealth(Raises):
+    """An SDK's readings as numpy numbers, then an object: the query failed; `twin devices` said it never answered."""
+
+    async def health(self):
+        import numpy as np
+
+        return {"ok": True, "lamp_temp_c": np.float32(41.5), "errors": [self] if getattr(self, "odd", 0) else []}
+
+
+async def test_a_device_answers_health_requests_with_its_drivers_report(virtual_clock):
+    from twin.core import keys
+    from twin.device.actor import DeviceActor
+    from twin.core.bus import open_bus
+
+    s = parse(qd_lab())
+    bus = open_bus("memory", virtual_clock)
+    await bus.start()
+    actors = [DeviceActor(name, s.devices["spectrometer"], drv, bus, virtual_clock, s.lab, 0)
+              for name, drv in (("spectrometer-1", Healthy(None)), ("spectrometer-2", Raises(None)))]
+    for a in actors:
+        await a.start()
+    one = json.loads(await bus.request(keys.health(s.lab, "spectrometer-1"), b"", timeout=5))
+    two = json.loads(await bus.request(keys.health(s.lab, "spectrometer-2"), b"", timeout=5))
+    assert one == {"device": "spectrometer-1", "on_bus": True, "dropped": 0, "running": None, "recent": [],
+                   "t_lab": virtual_clock.now(), "clock": {"mode": "virtual", "speed": 1.0, "in_lab_time": True},
+                   "driver": {"ok": True, "lamp_hours": 1234}}
+    assert "driver" not in two and two["on_bus"]
+    for a in actors:
+        await a.stop()
+    await bus.close()
+
+
+async def test_a_health_report_of_numpy_numbers_or_what_is_not_json_is_an_answer(virtual_clock):
+    from twin.core import keys
+    from twin.core.bus import open_bus
+    from twin.device.actor import DeviceActor
+
+    s = parse(qd_lab())
+    bus = open_bus("memory", virtual_clock)
+    await bus.start()
+    driver = NumpyHealth(None)
+    actor = DeviceActor("spectrometer-1", s.devices["spectrometer"], driver, bus, virtual_clock, s.lab, 0)
+    await actor.start()
+    ask = keys.health(s.lab, "spectrometer-1")
+    assert json.loads(await bus.request(ask, b"", timeout=5))["driver"] == {"ok": True, "lamp_temp_c": 41.5,
+                                                                              "errors": []}
+    driver.odd = 1
+    said = json.loads(await bus.request(ask, b"", timeout=5))["driver"]
+    assert said["ok"] is False and said["error"].startswith("health() returned what is not JSON: ")
+    await actor.stop()
+    await bus.close()
+
+
+class BadConnect(Raises):
+    async def connect(self, presence):
+        raise ConnectionRefusedError(111, "Connection refused")
+
+    async def disconnect(self):
+        pass
+
+    async def run(self, step, params, sample, ctx):
+        return StepResult({"peak_nm": 600.0}, sample)
+
+
+class BadDisconnect(BadConnect):
+    async def connect(self, presence):
+        presence(True)
+
+    async def disconnect(self):
+        raise RuntimeError("socket already closed")
+
+
+def test_an_instrument_that_cannot_connect_or_disconnect_is_named_not_a_traceback(tmp_path, caplog):
+    """connect() raising was a traceback out of the lab's start; disconnect() raising, one out of its end, the
+    finished campaign's summary never printed."""
+    from twin.core.errors import DriverError
+
+    def lab(cls):
+        return parse(qd_lab(**{
+            "devices.inst": {"driver": f"tests.twin.test_instrument_links:{cls}", "instances": 1, "steps": ["measure"],
+                             "duration": {"mean_s": 60}},
+            "workflow": [{"step": "synthesise", "device": "synthesiser"}, {"step": "measure", "device": "inst"}],
+            "campaign.budget": 2, "clock": {"mode": "scaled", "speed": 2000}}))
+
+    with pytest.raises(DriverError, match=r"inst: its driver's connect\(\) failed: ConnectionRefusedError: "
+                                          r"\[Errno 111\] Connection refused; the lab did not start"):
+        run(lab("BadConnect"), journal=tmp_path / "c.db", bus="memory")
+    summary = run(lab("BadDisconnect"), journal=tmp_path / "d.db", bus="memory")
+    assert summary.done == 2
+    assert "inst: disconnect() failed at shutdown: RuntimeError('socket already closed')" in caplog.text
