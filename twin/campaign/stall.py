@@ -7,12 +7,11 @@ it is an alert (``scheduler.stalled``), said once.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Any
 
 from twin.campaign.events import TimerKey, TimerKind
 
-if TYPE_CHECKING:
-    from twin.campaign.core import CampaignCore
+CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
 
 _NOT_EVENTS = frozenset({TimerKey(TimerKind.LIMIT), TimerKey(TimerKind.STARTUP)})
 
