@@ -292,9 +292,13 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
             stack.callback(scheduler.close)
         if service is not None:
             stack.callback(service.stop)
-        for actor in build_actors(s, drivers, bus, clock):
-            await actor.start()
-            stack.push_async_callback(actor.stop)
+        try:
+            for actor in build_actors(s, drivers, bus, clock):
+                await actor.start()
+                stack.push_async_callback(actor.stop)
+        except TwinError as exc:  # the journal's summary says why the lab never ran
+            camp.never_started(str(exc))
+            raise
         if handle_signals:
             stack.enter_context(stop_on_loop_signals(camp.stop))
         if observer is not None and not clock.is_virtual:

@@ -158,6 +158,11 @@ class LiveCampaign:
         """Stop proposing and dispatching; what is in the lab is cancelled, the rest stays pending."""
         self._feed(Stop(reason))
 
+    def never_started(self, why: str) -> None:
+        """The lab failed before the campaign began: its summary and journal say why."""
+        self.core.stopping = why if "did not start" in why else f"the lab did not start: {why}"
+        self.note("campaign.stopping", self.core.stopping)
+
     def note(self, kind: str, detail: Any = None) -> None:
         """A runtime's own remark (a scheduler agent missing, say): journalled and published like the core's."""
         self._remark(Note(self.clock.now(), kind, detail=detail))

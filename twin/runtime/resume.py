@@ -76,6 +76,10 @@ def recorded(path: str | Path) -> tuple[Scenario, list[tuple]]:
     path = Path(path)
     data = read_run(path)
     if "summary" in data:
+        stopped = data["summary"].get("stopped") if isinstance(data["summary"], dict) else None
+        if stopped:
+            raise ResumeError(f"{path}: the campaign was stopped ({stopped}); only a killed one resumes: run it "
+                              f"again (twin run), and twin report {path} shows how far it got")
         raise ResumeError(f"{path}: the campaign finished; nothing to resume (twin report {path} shows it)")
     if "scenario" not in data:
         raise ResumeError(f"{path}: the journal holds no scenario; it was killed before it began")
