@@ -172,6 +172,19 @@ def test_a_live_lab_whose_scheduler_waits_for_nothing_says_so_once_and_stays_ope
     core.feed(Decided([]))
     notes = [a for a in core.advance(0.0) if isinstance(a, Note)]
     assert [n.kind for n in notes] == ["scheduler.stalled"] and not core.stopping
+    from twin.campaign.decisions import Assignment
+    from twin.campaign.events import Operator
+    from twin.campaign.operator import status
+
+    assert "answered wait with no device busy" in status(core, 0.0)["stalled"]  # `twin ctl status` says it
+    core.feed(Operator("pause", "alice"))
+    core.feed(Operator("resume", "alice"))  # the lab is asked again; this time the scheduler starts the step
+    ask = [a for a in core.advance(10.0) if isinstance(a, Ask) and a.what == "schedule"][0]
+    step = ask.view.ready[0]
+    device = next(d for d in ask.view.free if d.device_type == step.device_type)
+    core.feed(Decided([Assignment(step.task, device.name)]))
+    core.advance(10.0)
+    assert status(core, 10.0)["stalled"] == ""  # a stall a later wait for nothing would say again
 
 
 class ExitingScheduler:

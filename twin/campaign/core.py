@@ -91,7 +91,7 @@ class CampaignCore:
         self._answer: Proposed | Decided | None = None
         self._wake = False
         self._timers: set[TimerKey] = set()  # set and not yet fired or cancelled
-        self._stall_said = False
+        self.stalled = ""  # a live scheduler's wait for nothing, until it next starts a step
         self.alone = True  # no other campaign shares the lab (whose steps ending could wake this one)
         self._filled = False  # the planner had its say in this pass
         self._retrying: dict[str, Task] = {}  # waiting out their back-off
@@ -334,6 +334,8 @@ class CampaignCore:
                 continue
             self._dispatch(task, self.devices[a.device])
             sent += 1
+        if sent:
+            self.stalled = ""
         if self._wake:
             # the lab changed while the scheduler looked at it (a step ended, a device came back): the view it
             # answered is stale, so the pass goes on from the lab as it is, the planner's turn included; ending

@@ -2,7 +2,8 @@
 
 In virtual time nothing else can happen, so the campaign ends at once, naming the scheduler (it idled to
 ``campaign.max_lab_hours``); on a live clock an operator, or an instrument coming back, may still move the lab, so
-it is an alert (``scheduler.stalled``), said once.
+it is an alert (``scheduler.stalled``), said once until the scheduler starts a step again, and ``twin ctl status``
+shows it meanwhile.
 """
 
 from __future__ import annotations
@@ -29,6 +30,6 @@ def say(core: CampaignCore) -> None:
            "event would ask it again: a scheduler must start a step when nothing runs")
     if core.s.clock.mode == "virtual":
         core._on_stop(why)
-    elif not core._stall_said:
-        core._stall_said = True
+    elif not core.stalled:  # said once, until the scheduler starts a step again
+        core.stalled = why
         core._note("scheduler.stalled", detail=why)

@@ -95,6 +95,9 @@ def ctl_status(lab: Lab, connect: Connect, security: Security = None,
     paused = f" by {st['paused_by']}" if st["paused_by"] else ""
     console.print(f"{st['scenario']} (campaign {st['campaign']}, lab {st['lab']}): {st['state']}{paused} at lab "
                   f"{st['lab_hours']:.2f} h", highlight=False, markup=False)
+    if st.get("stalled"):
+        console.print(f"stalled: {st['stalled']} (the lab waits; twin ctl stop, and run it with another scheduler)",
+                      style="yellow", highlight=False, markup=False)
     counts = st["experiments"]
     console.print(f"experiments: {counts['done']} done, {counts['abandoned']} abandoned, "
                   f"{counts['pending'] + counts['running']} in progress, of a budget of {st['budget']}",
