@@ -219,3 +219,54 @@ def test_a_shop_with_zero_length_operations_ends_at_its_optimum_with_the_rl_agen
     s = load_variant(ROOT / "scenarios" / "jobshop.yaml", str(shop))
     for scheduler in ("mwkr", f"rl:{ROOT / 'agents' / 'policies' / 'jobshop_scheduler.zip'}"):
         assert one(s, scheduler, 0).makespan_s == 8.0, scheduler  # job 1 on m1 (3), then job 0's 5
+
+
+def _collection(tmp_path, names=("ft06", "la01"), file="jobshop1.txt") -> Path:
+    """Instances as OR-Library's jobshop1.txt holds them: a rule, 'instance NAME', a rule, a description, the
+    instance, and a rule after the last."""
+    parts = []
+    for name in names:
+        standard = [ln for ln in (ROOT / "scenarios" / "jobshop" / f"{name}.txt").read_text().splitlines()
+                    if not ln.startswith("#")]
+        parts += [" +++++++++++++++++++++++++++++", " ", f" instance {name}", " ",
+                  " +++++++++++++++++++++++++++++", f" {name}, as OR-Library lists it", *standard]
+    path = tmp_path / file
+    path.write_text("\n".join([*parts, " +++++++++++++++++++++++++++++", ""]))
+    return path
+
+
+def test_a_collection_of_shops_runs_the_instance_it_names_and_a_bench_runs_each(tmp_path):
+    """OR-Library's jobshop1.txt (82 instances in one file) failed at its first rule between instances, and one
+    instance copied from it with its closing rule failed likewise."""
+    from twin.core.errors import ScenarioError
+    from twin.runtime.lab import prepare
+    from twin.tools.scheduler_bench import shops
+
+    both = _collection(tmp_path)
+    with pytest.raises(ScenarioError, match=r"holds 2 instances \(ft06, la01\): name one with jobshop.instance "
+                                            r"\(--set jobshop.instance=ft06\)"):
+        read(both)
+    la01 = read(ROOT / "scenarios" / "jobshop" / "la01.txt")
+    picked = read(both, "la01")
+    assert (picked.name, picked.machines, picked.jobs) == ("la01", la01.machines, la01.jobs)
+    with pytest.raises(ScenarioError, match=r"no instance 'la02' in the file; it holds ft06, la01"):
+        read(both, "la02")
+    with pytest.raises(ScenarioError, match=r"no instance 'ft06' in the file; it holds one instance"):
+        read(ROOT / "scenarios" / "jobshop" / "ft06.txt", "ft06")
+    one = _collection(tmp_path, names=("ft06",), file="ft06.txt")
+    assert read(one).jobs == read(ROOT / "scenarios" / "jobshop" / "ft06.txt").jobs  # its closing rule is no row
+    s = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={"jobshop.file": str(both),
+                                                                  "jobshop.instance": "la01"})
+    assert s.name == "jobshop_la01" and len(s.campaign.planner_options["proposals"]) == len(la01.jobs)
+    assert shops(ROOT / "scenarios" / "jobshop.yaml", [str(both), "jobshop/la02.txt"]) == [
+        (str(both), "ft06"), (str(both), "la01"), ("jobshop/la02.txt", None)]
+
+
+def test_a_flexible_job_shop_is_named_as_one(tmp_path):
+    """Brandimarte's .fjs layout was "line 2: an odd count of numbers"."""
+    from twin.core.errors import ScenarioError
+
+    fjs = tmp_path / "mk.fjs"
+    fjs.write_text("3 3 1.5\n2 2 1 5 2 4 1 3 2\n3 1 1 3 2 2 4 3 6 1 2 1\n2 1 3 2 2 2 1 2 3\n")
+    with pytest.raises(ScenarioError, match=r"mk\.fjs(?s:.*)this is a flexible job shop \(Brandimarte's \.fjs"):
+        read(fjs)

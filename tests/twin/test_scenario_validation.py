@@ -143,7 +143,7 @@ def test_a_lab_without_devices_says_so_and_a_device_type_it_lacks_says_there_are
 
 
 @pytest.mark.parametrize("changes, says", [
-    ({"jobshop": "ft06.txt"}, "jobshop: should be a mapping of its fields: file "),
+    ({"jobshop": "ft06.txt"}, "jobshop: should be a mapping of its fields: file, instance "),
     ({"devices.synthesiser.duration": 600}, "devices.synthesiser.duration: should be a mapping of its fields: "
                                             "mean_s, cv, "),
 ])

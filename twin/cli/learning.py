@@ -152,7 +152,8 @@ def bench_schedulers(
     seeds: Annotated[int, typer.Option(min=1, help="seeds per scheduler (a deterministic job shop runs once)")] = 20,
     schedulers: Annotated[str, typer.Option(help="comma-separated: rules, cp-sat, rl:POLICY.zip")] = "fifo,spt,mwkr,least-loaded,oldest-sample",
     jobshop: Annotated[Optional[str], typer.Option(help="job-shop files to run instead of the scenario's, comma-separated "
-                                                       "(e.g. jobshop/la01.txt,jobshop/ft10.txt)")] = None,
+                                                       "(e.g. jobshop/la01.txt,jobshop/ft10.txt); a collection "
+                                                       "(OR-Library's jobshop1.txt) runs each of its instances")] = None,
     workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
     budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",
@@ -175,7 +176,8 @@ def bench_schedulers(
     from dataclasses import asdict
 
     from twin.tools.planner_bench import bench_pool
-    from twin.tools.scheduler_bench import COUNTS, HEADER, bench, bound, caption, deterministic, load_variant, rows
+    from twin.tools.scheduler_bench import (COUNTS, HEADER, bench, bound, caption, deterministic, load_variant, rows,
+                                            shops)
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if shapes:
@@ -184,17 +186,21 @@ def bench_schedulers(
         return
     tables: list[dict] = []
     all_runs: list[dict] = []
-    files = [f.strip() for f in jobshop.split(",")] if jobshop else [None]
+    try:  # a collection of shops (OR-Library's jobshop1.txt) is each of its instances
+        files: list = shops(scenario, [f.strip() for f in jobshop.split(",")]) if jobshop else [(None, None)]
+    except TwinError as exc:
+        _fail(exc)
     with bench_pool(workers) as pool:  # one set of workers for every shop
-        for file in files:
+        for file, instance in files:
             try:
-                s = checked(load_variant(scenario, file, budget, assignments(set_ or [])), scenario, benched=True)
+                s = checked(load_variant(scenario, file, budget, assignments(set_ or []), instance), scenario,
+                            benched=True)
                 for name in names:
                     lab.make_scheduler(s, name)
             except TwinError as exc:
                 _fail(exc)
             optimum = bound(s)
-            title = f"{Path(file).stem if file else s.name}"
+            title = instance or f"{Path(file).stem if file else s.name}"
             progress = bar_progress(as_json)
             with progress:
                 bar = progress.add_task(f"{title}: {len(names)} schedulers",

@@ -1,6 +1,6 @@
 """Job-shop instances as labs: one device per machine, deterministic durations, no faults.
 
-Two text formats are read, one instance per file, ``#`` starting a comment:
+Two text formats are read, ``#`` starting a comment:
 
 - the standard one (JSPLIB, OR-Library): ``jobs machines``, then one line per
   job of ``machine duration`` pairs in processing order, machines numbered from
@@ -9,6 +9,10 @@ Two text formats are read, one instance per file, ``#`` starting a comment:
   jobs' durations as a jobs × machines matrix, then the machines they visit in
   that order, numbered from 1 — with or without the ``Times``/``Machines`` labels
   and the line of words above of Taillard's own files.
+
+A file holds one instance, or is a collection of the standard format as OR-Library's ``jobshop1.txt`` is: each
+instance after a line ``instance NAME``, one named by ``jobshop.instance``. Rules of ``+``, ``-``, ``=`` or ``*``
+between them are skipped.
 
 One time unit is one lab-second.
 """
@@ -38,19 +42,62 @@ FORMATS = ("expected 'jobs machines', then per job a line of 'machine duration' 
            "Taillard's durations matrix then machines matrix with machines from 1")
 
 
-def read(path: str | Path) -> Instance:
-    """An instance in either format of the module's docstring; an error names the file and the line."""
+_TITLE = re.compile(r"instance\s+(\S+)", re.IGNORECASE)  # OR-Library's title of an instance in a collection
+_RULE = re.compile(r"[-+=*_~]{3,}")
+
+
+def _lines(path: Path) -> list[tuple[int, str]]:
+    """The file's lines that say something: (line number, text) without comments, blanks and rules."""
+    lines = [(i, ln.split("#")[0].strip()) for i, ln in enumerate(read_text(path, "job-shop").splitlines(), 1)]
+    return [(i, ln) for i, ln in lines if ln and not _RULE.fullmatch(ln)]
+
+
+def _titles(lines: list[tuple[int, str]]) -> list[tuple[int, str]]:
+    return [(k, m.group(1)) for k, (_, ln) in enumerate(lines) if (m := _TITLE.fullmatch(ln))]
+
+
+def instances(path: str | Path) -> list[str]:
+    """The names of the instances a collection holds (``instance NAME`` lines); [] for a file of one."""
+    titles = _titles(_lines(Path(path)))
+    return [name for _, name in titles] if len(titles) > 1 else []
+
+
+def _one_of(where: str, lines: list[tuple[int, str]], instance: str | None) -> tuple[list[tuple[int, str]], str | None]:
+    """The lines of the instance named ``instance`` (or of the file's only one), and its name if it has one."""
+    titles = _titles(lines)
+    names = [name for _, name in titles]
+    listed = ", ".join(names[:12]) + (f", ... ({len(names)} in all)" if len(names) > 12 else "")
+    if instance is None:
+        if len(titles) > 1:
+            raise ScenarioError(where, [f"holds {len(titles)} instances ({listed}): name one with jobshop.instance "
+                                        f"(--set jobshop.instance={names[0]}), or give each its own file"])
+        return lines, None
+    if instance not in names:
+        held = f"it holds {listed}" if names else "it holds one instance, with no 'instance NAME' line: leave " \
+                                                  "jobshop.instance out"
+        raise ScenarioError(where, [f"jobshop.instance: no instance {instance!r} in the file; {held}"])
+    k = names.index(instance)
+    end = titles[k + 1][0] if k + 1 < len(titles) else len(lines)
+    return lines[titles[k][0] + 1:end], instance
+
+
+def read(path: str | Path, instance: str | None = None) -> Instance:
+    """An instance in either format of the module's docstring (``instance``: which one of a collection); an error
+    names the file and the line."""
     path = Path(path)
     where = str(path)
-    lines = [(i, ln.split("#")[0].strip()) for i, ln in enumerate(read_text(path, "job-shop").splitlines(), 1)]
-    lines = [(i, ln) for i, ln in lines if ln]
+    lines = _lines(path)
     if not lines:
         raise ScenarioError(where, ["empty job-shop file: expected 'jobs machines' then one line per job"])
-    labels = [k for k, (_, ln) in enumerate(lines) if ln.lower().rstrip(":") in ("times", "machines")]
-    if labels:
-        n_jobs, n_machines, jobs = _taillard_labelled(where, lines, labels)
-    else:
-        n_jobs, n_machines, jobs = _unlabelled(where, lines)
+    lines, name = _one_of(where, lines, instance)
+    try:
+        n_jobs, n_machines, jobs = _parsed(where, lines)
+    except ScenarioError:
+        if _flexible(lines):
+            raise ScenarioError(where, ["this is a flexible job shop (Brandimarte's .fjs layout: each operation "
+                                        "lists the machines that may run it, each with its own duration); labtwin "
+                                        f"reads classic job shops, one machine per operation ({FORMATS})"]) from None
+        raise
     if not (1 <= n_jobs <= MAX_JOBS and 1 <= n_machines <= MAX_MACHINES):
         raise ScenarioError(where, [f"{n_jobs} jobs on {n_machines} machines; expected 1-{MAX_JOBS} jobs "
                                     f"on 1-{MAX_MACHINES} machines"])
@@ -67,7 +114,40 @@ def read(path: str | Path) -> Instance:
     bad = [(j, d) for j, job in enumerate(jobs) for _, d in job if not 0 <= d <= MAX_DURATION]
     if bad:
         raise ScenarioError(where, [f"job {bad[0][0]}: duration {bad[0][1]} is outside 0..{MAX_DURATION:,}"])
-    return Instance(path.stem, n_machines, jobs)
+    return Instance(name or path.stem, n_machines, jobs)
+
+
+def _parsed(where: str, lines: list[tuple[int, str]]) -> tuple[int, int, list]:
+    labels = [k for k, (_, ln) in enumerate(lines) if ln.lower().rstrip(":") in ("times", "machines")]
+    if labels:
+        n_jobs, n_machines, jobs = _taillard_labelled(where, lines, labels)
+    else:
+        n_jobs, n_machines, jobs = _unlabelled(where, lines)
+    return n_jobs, n_machines, jobs
+
+
+def _flexible(lines: list[tuple[int, str]]) -> bool:
+    """Whether the lines are a flexible job shop: 'jobs machines mean-machines-per-operation', then per job its
+    operation count and, per operation, how many machines may run it and that many 'machine duration' pairs."""
+    head = lines[0][1].split() if lines else []
+    if len(head) != 3 or _integers(" ".join(head[:2])) is None or len(lines) < 2:
+        return False
+    try:
+        float(head[2])
+    except ValueError:
+        return False
+    for _, text in lines[1:]:
+        row = _integers(text)
+        if not row or len(row) < 2:
+            return False
+        k, ops = 1, row[0]
+        for _ in range(ops):
+            if k >= len(row):
+                return False
+            k += 1 + 2 * row[k]
+        if k != len(row):
+            return False
+    return True
 
 
 def _integers(text: str) -> list[int] | None:
@@ -159,7 +239,7 @@ def expand(scenario: Scenario, base_dir: Path, source: str = "") -> Scenario:
         raise ScenarioError(source or scenario.name, [
             f"campaign.planner: {scenario.campaign.planner!r} cannot plan a job shop: its experiments are the jobs of "
             f"{scenario.jobshop.file}, in order (planner fixed); leave campaign.planner out"])
-    lab = as_lab(scenario, read(base_dir / scenario.jobshop.file), rename=False)
+    lab = as_lab(scenario, read(base_dir / scenario.jobshop.file, scenario.jobshop.instance), rename=False)
     kept: dict[str, Any] = {k: min(getattr(scenario.campaign, k), lab.campaign.budget)
                             for k in ("budget", "max_in_flight") if k in asked}
     if "budget" in kept:  # the shop is its first jobs: what a bound or a plan of it reads too

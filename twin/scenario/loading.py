@@ -85,15 +85,17 @@ def _resolved(scenario: Scenario, base: Path, source: str) -> Scenario:
 
 
 def _named_after_its_shop(raw: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
-    """A job-shop file given on the command line (``--set jobshop.file=jobshop/la02.txt``) names the run after it
-    (``jobshop_la02``: its summary and journal), unless the command line names it too."""
-    file = overrides.get("jobshop.file")
-    if not isinstance(file, str) or "name" in overrides:
+    """A job-shop file given on the command line (``--set jobshop.file=jobshop/la02.txt``), or an instance of a
+    collection (``--set jobshop.instance=ft10``), names the run after it (``jobshop_la02``: its summary and
+    journal), unless the command line names it too."""
+    file, instance = overrides.get("jobshop.file"), overrides.get("jobshop.instance")
+    shop = instance if isinstance(instance, str) else Path(file).stem if isinstance(file, str) else None
+    if shop is None or "name" in overrides:
         return overrides
     from twin.scenario.jobshop import run_name
 
     lab = raw.get("lab") if isinstance(raw.get("lab"), str) else "jobshop"
-    return {**overrides, "name": run_name(lab, Path(file).stem)}
+    return {**overrides, "name": run_name(lab, shop)}
 
 
 def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str, lab_only: bool = False) -> Scenario:

@@ -241,6 +241,8 @@ class BusSpec(Spec):
 class JobShop(Spec):
     file: str = Field(max_length=1024, description="a job-shop instance in the standard text format or "
                       "Taillard's, relative to the scenario")
+    instance: str | None = Field(default=None, max_length=128, description="which instance of a file that holds "
+                                    "several, by the name on its 'instance NAME' line (OR-Library's jobshop1.txt)")
 
 
 class SharedCampaign(Spec):

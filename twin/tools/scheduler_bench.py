@@ -115,6 +115,18 @@ def rows(results: dict[str, list[Run]], optimum: float | None, unit_s: float) ->
     return out
 
 
+def shops(scenario: str | Path, files: list[str]) -> list[tuple[str, str | None]]:
+    """The shops ``--jobshop`` names: each file's (file, None), or a collection's (file, instance) for each of its
+    instances. A relative file is the scenario's, as ``jobshop.file`` is."""
+    from twin.scenario.jobshop import instances
+
+    out: list[tuple[str, str | None]] = []
+    for file in files:
+        names = instances(file if Path(file).is_absolute() else Path(scenario).parent / file)
+        out += [(file, name) for name in names] or [(file, None)]
+    return out
+
+
 def _figure(x: float) -> str:
     """A makespan with the decimals its size needs: 46.37 lab-h, 930.5 or 1999999 lab-s (two decimals on a
     seven-figure number squeezed the scheduler's name to five letters a line at 80 columns)."""
@@ -122,10 +134,12 @@ def _figure(x: float) -> str:
 
 
 def load_variant(path: str | Path, jobshop_file: str | None = None, budget: int | None = None,
-                 changes: dict | None = None) -> Scenario:
+                 changes: dict | None = None, instance: str | None = None) -> Scenario:
     over = dict(changes or {})
     if jobshop_file:
         over["jobshop.file"] = jobshop_file
+    if instance:
+        over["jobshop.instance"] = instance
     if budget:
         over["campaign.budget"] = budget
     return prepare(path, overrides=over or None)
