@@ -1,6 +1,7 @@
 """Several campaigns sharing one lab (scenario ``campaigns:``): holds, turns, priorities, one scheduler."""
 
 import json
+import re
 import sqlite3
 
 import pytest
@@ -11,7 +12,7 @@ from twin.runtime.shared_run import run_shared
 from twin.scenario import load
 from twin.core.errors import ScenarioError
 from tests.twin.shared_labs import (LAB, NO_FAULTS, ROOT, SMALL, assert_accounted, assert_one_step_at_a_time,
-                                    device_jobs, events, kill_all, lines_until, wait_until_ended)
+                                    device_jobs, events, kill_all, lines_until)
 
 
 def test_two_campaigns_share_the_lab_each_with_its_own_ledger(tmp_path):
@@ -249,7 +250,18 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         paused = ctl("ctl", "pause", "--campaign", "catalyst", "--as", "alice")
         assert paused.exit_code == 0 and "paused" in paused.output, paused.output
         assert ctl("ctl", "resume", "--campaign", "catalyst").exit_code == 0
-        wait_until_ended(lambda: json.loads(ctl("ctl", "status", "--json").output), 2)
+        assert "name one with --campaign (dots, catalyst)" in ctl("ctl", "wait").output
+        for name, budget in (("catalyst", 3), ("dots", 4)):  # a script's way to wait for a campaign's end
+            waited = ctl("ctl", "wait", "--campaign", name)
+            ended = re.match(rf"campaign {name} ended: (\d+) done, (\d+) abandoned", waited.stdout)
+            assert waited.exit_code == 0 and ended and int(ended[1]) + int(ended[2]) == budget, waited.output
+        assert {c["state"] for c in json.loads(ctl("ctl", "status", "--json").output)["campaigns"]} == {"ended"}
+        late = yaml.safe_load((tmp_path / "catalyst.yaml").read_text())
+        late["name"], late["campaign"]["budget"] = "late", 1
+        (tmp_path / "late.yaml").write_text(yaml.safe_dump(late))
+        waited = ctl("submit", str(tmp_path / "late.yaml"), "--wait")  # submitted, and its end waited for
+        assert waited.exit_code == 0 and "campaign late ended: " in waited.stdout, waited.output
+        assert "campaign late: 0 done" in waited.stderr
         lab.send_signal(signal.SIGTERM)
         out, err = lab.communicate(timeout=60)
         lines_until(watcher.stdout, {"campaign dots ended: 4 experiments", "campaign catalyst ended: 3 experiments"})

@@ -237,3 +237,72 @@ def ctl_confirm(task: Annotated[str, typer.Argument(help="the human step done, e
                 campaign: CampaignOpt = None, as_json: AsJson = False) -> None:
     """Confirm a human step (a device type whose driver is `operator`) is done: the experiment goes on."""
     _acted(_send("confirm", lab, connect, security, as_json, campaign=campaign, who=_who(who), task=task), as_json)
+
+
+@ctl_app.command("wait")
+def ctl_wait(lab: Lab, connect: Connect, security: Security = None, campaign: CampaignOpt = None) -> None:
+    """Wait until the campaign has ended, saying how it goes (on stderr); then print its counts. For scripts: exit
+    0 when it has ended, 1 if its lab stops answering first, 130 on Ctrl-C (the campaign goes on)."""
+    until_ended(lab, list(connect), str(security) if security else None, campaign)
+
+
+def until_ended(lab: str, connect: list[str], security: str | None, campaign: str | None = None,
+                journal: str = "", every_s: float = 1.0) -> None:
+    """Ask the lab every ``every_s`` seconds until ``campaign`` (a lab's only one, if not named) has ended; each
+    change of its counts is said on stderr, its end on stdout. A campaign run on its own ends with its process:
+    its lab no longer answering then is its end."""
+    import time
+
+    from twin.tools.control import request
+
+    said, alone = None, False
+    journal_said = f"; its journal: {journal}" if journal else ""
+    try:
+        while True:
+            try:
+                answer = request(lab, "status", {}, connect, security)
+            except TwinError as exc:
+                if alone:
+                    console.print(f"campaign {campaign} of lab {lab} has ended: its lab no longer answers (twin "
+                                  "report on its journal says how it ended)", highlight=False, markup=False)
+                    return
+                _fail(exc if said is None else TwinError(f"the lab stopped answering while campaign {campaign} ran "
+                                                         f"({exc}){journal_said}"))
+            if not answer.get("ok"):
+                _fail(TwinError(f"lab {lab} refused: {answer.get('error')}"))
+            if "campaigns" in answer:
+                row, hours = _campaign_row(answer, lab, campaign), answer["lab_hours"]
+            else:  # a campaign run on its own
+                alone, st = True, answer["status"]
+                row = {"campaign": st["scenario"], "done": st["experiments"]["done"],
+                       "abandoned": st["experiments"]["abandoned"],
+                       "in_progress": st["experiments"]["pending"] + st["experiments"]["running"],
+                       "budget": st["budget"], "state": "ended" if st["state"] == "finished" else st["state"]}
+                hours = st["lab_hours"]
+            campaign = campaign or row["campaign"]
+            if row["state"] == "ended":
+                met = f"; targets met: {', '.join(row['targets_met'])}" if row.get("targets_met") else ""
+                console.print(f"campaign {campaign} ended: {row['done']} done, {row['abandoned']} abandoned"
+                              f"{met}{journal_said}", highlight=False, markup=False)
+                return
+            now = (f"campaign {campaign}: {row['done']} done, {row['abandoned']} abandoned, {row['in_progress']} in "
+                   f"progress, of a budget of {row['budget']} ({row['state']}, lab {hours:.2f} h)")
+            if now != said:
+                err.print(now, highlight=False, markup=False)
+                said = now
+            time.sleep(every_s)
+    except KeyboardInterrupt:
+        err.print(f"stopped waiting; the campaign goes on in lab {lab} (twin ctl status)", highlight=False,
+                  markup=False)
+        raise typer.Exit(130) from None
+
+
+def _campaign_row(answer: dict, lab: str, campaign: str | None) -> dict:
+    rows = answer["campaigns"]
+    if campaign is None and len(rows) != 1:
+        _fail(TwinError(f"lab {lab} runs {len(rows)} campaigns: name one with --campaign "
+                        f"({', '.join(c['campaign'] for c in rows) or 'none yet'})"))
+    row = next((c for c in rows if campaign is None or c["campaign"] == campaign), None)
+    if row is None:
+        _fail(TwinError(f"lab {lab} has no campaign {campaign!r} ({', '.join(c['campaign'] for c in rows)})"))
+    return row

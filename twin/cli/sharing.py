@@ -124,6 +124,8 @@ def submit(
     security: Annotated[Optional[Path], typer.Option(help="the lab's security directory: submit as its "
                                                           "operator")] = None,
     who: Annotated[Optional[str], typer.Option("--as", help="the name the journal records")] = None,
+    wait: Annotated[bool, typer.Option(help="wait until the campaign has ended, saying how it goes, then print "
+                                            "its counts (for scripts: exit 0 when it ends)")] = False,
 ) -> None:
     """Add a campaign to a lab served with `twin lab serve`; it starts at once, sharing the lab's devices."""
     from twin.cli.control import _who
@@ -142,3 +144,8 @@ def submit(
         raise typer.Exit(1)
     console.print(f"campaign {entry.name} started on lab {lab_name} at lab {answer['lab_hours']:.2f} h; its journal: "
                   f"{answer['journal']}", highlight=False, markup=False)
+    if wait:
+        from twin.cli.control import until_ended
+
+        until_ended(lab_name, list(connect), str(security) if security else None, entry.name, answer["journal"])
+
