@@ -252,9 +252,19 @@ def test_the_ctl_commands_say_what_they_did_and_a_refusal_exits_1(tmp_path):
         assert wrong.exit_code == 2 and "no campaign of lab 'tt' answered" in wrong.output
         assert "(labs on it now: t)" in wrong.output, wrong.output
         assert json.loads(lab.ctl("status", "--json").output)["status"]["paused_by"] == "alice"
-        res = lab.ctl("stop", "--as", "alice")
-        assert res.exit_code == 0 and "operator.stop by alice" in res.output, res.output
+        waiting = subprocess.Popen(TWIN + ["ctl", "wait", "--lab", "t", "--connect", lab.endpoint], cwd=ROOT,
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            assert "campaign test_lab: " in waiting.stderr.readline()  # it asked, and said how the campaign goes
+            res = lab.ctl("stop", "--as", "alice")
+            assert res.exit_code == 0 and "operator.stop by alice" in res.output, res.output
+            out, _ = waiting.communicate(timeout=60)
+        finally:
+            waiting.kill()
         assert lab.finished()["stopped"] == "stopped by alice"
+        # a campaign run on its own ends with its process
+        assert waiting.returncode == 0 and "campaign test_lab of lab t has ended: its lab no longer answers" in \
+            " ".join(out.split()), out
 
 
 @pytest.mark.process
