@@ -287,3 +287,29 @@ def test_an_unsafe_name_is_explained_not_shown_as_a_regex(tmp_path):
         validate_file(path)
     text = str(info.value)
     assert "devices.plate reader: 'plate reader' is not a valid name (key)" in text and "^[" not in text
+
+
+def test_a_named_pipe_is_read_when_written_and_refused_when_nothing_writes(tmp_path, monkeypatch):
+    """`twin validate FIFO` with no writer waited for ever; `<(cat lab.yaml)` is a pipe too, and must still work."""
+    import os
+    import threading
+
+    from twin.scenario import files
+
+    pipe = tmp_path / "lab.yaml"
+    os.mkfifo(pipe)
+    text = (ROOT / "scenarios" / "flaky_lab.yaml").read_bytes()
+
+    def write():
+        with open(pipe, "wb") as f:  # opens once the reader has; the text in two parts
+            f.write(text[:100])
+            f.flush()
+            f.write(text[100:])
+
+    writer = threading.Thread(target=write)
+    writer.start()
+    assert files.read_text(pipe) == text.decode()
+    writer.join()
+    monkeypatch.setattr(files, "PIPE_WAIT_S", 0.2)
+    with pytest.raises(TwinError, match=r"lab\.yaml(?s:.*)is a named pipe that nothing wrote to within 0.2 s"):
+        validate_file(pipe)

@@ -9,6 +9,10 @@ file, and the line where there is one.
 
 from __future__ import annotations
 
+import os
+import select
+import stat
+import time
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +24,7 @@ MAX_BYTES = 1 << 20  # a scenario is a few KB; the largest public job shops are 
 MAX_DEPTH = 32
 MAX_VALUES = 100_000
 MAX_ALIASES = 1_000
+PIPE_WAIT_S = 10.0  # a named pipe nobody writes to is refused after this, not waited on for ever
 
 
 def read_text(path: str | Path, what: str = "scenario") -> str:
@@ -29,8 +34,11 @@ def read_text(path: str | Path, what: str = "scenario") -> str:
     try:
         if path.is_dir():
             raise ScenarioError(where, [f"is a directory: give a {what} file"])
-        with path.open("rb") as f:
-            data = f.read(MAX_BYTES + 1)
+        if stat.S_ISFIFO(path.stat().st_mode):
+            data = _from_pipe(path, where, what)
+        else:
+            with path.open("rb") as f:
+                data = f.read(MAX_BYTES + 1)
     except FileNotFoundError:
         raise ScenarioError(where, [f"file not found: check the path ({what} files are usually in scenarios/)"]) from None
     except OSError as exc:
@@ -44,6 +52,30 @@ def read_text(path: str | Path, what: str = "scenario") -> str:
         kind = "UTF-16 text" if data[:2] in (b"\xff\xfe", b"\xfe\xff") else "binary data, or text in another encoding"
         raise ScenarioError(where, [f"not UTF-8 text (byte {exc.start} is {data[exc.start]:#04x}; it looks like {kind}): "
                                     "save it as UTF-8"]) from None
+
+
+def _from_pipe(path: Path, where: str, what: str) -> bytes:
+    """What a named pipe (``<(...)``, a mkfifo) holds, up to ``MAX_BYTES + 1``; one that nobody writes to within
+    ``PIPE_WAIT_S`` (at the start, or since what it last wrote) is refused: a blocking open would wait for a
+    writer for ever."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        chunks: list[bytes] = []
+        size, deadline = 0, time.monotonic() + PIPE_WAIT_S
+        while size <= MAX_BYTES:
+            left = deadline - time.monotonic()
+            if left <= 0 or not select.select([fd], [], [], left)[0]:
+                raise ScenarioError(where, [f"is a named pipe that nothing wrote to within {PIPE_WAIT_S:g} s: give "
+                                            f"a {what} file, or write it into the pipe"])
+            chunk = os.read(fd, 1 << 16)
+            if not chunk:  # its writer closed it: the whole text
+                break
+            chunks.append(chunk)
+            size += len(chunk)
+            deadline = time.monotonic() + PIPE_WAIT_S
+        return b"".join(chunks)
+    finally:
+        os.close(fd)
 
 
 def read_yaml(path: str | Path) -> Any:
