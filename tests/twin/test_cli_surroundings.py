@@ -23,6 +23,20 @@ def test_paths_and_smiles_print_as_they_are_never_as_rich_markup(tmp_path):
     assert res.exit_code == 0 and "c1ccc2[nH]ccc2c1:" in res.output, res.output
 
 
+def test_a_terminal_that_cannot_show_every_character_shows_the_rest(tmp_path):
+    """Under PYTHONIOENCODING=ascii (or a Latin-1 console) the summary's dash ended `twin run` and `twin report`
+    in a UnicodeEncodeError, after the campaign had run."""
+    from typer.testing import CliRunner
+
+    from twin.cli import app
+
+    db = tmp_path / "j.db"
+    for args in (["run", ROOT / "scenarios" / "quantum_dots.yaml", "--budget", "4", "--journal", db], ["report", db]):
+        res = CliRunner(charset="ascii").invoke(app, [str(a) for a in args], env={"COLUMNS": "100"})
+        assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
+        assert res.exit_code == 0 and "quantum_dots ? seed 0" in res.stdout, res.output  # the dash as '?'
+
+
 @pytest.mark.parametrize("runtime", ["auto", "asyncio"])
 def test_a_journal_whose_disk_fills_stops_the_run_with_what_to_do(tmp_path, monkeypatch, runtime):
     """SQLite's "database or disk is full" was a traceback out of the runtime's loop (on a live clock, logged with

@@ -6,6 +6,7 @@ import contextlib
 import functools
 import re
 import signal
+import sys
 import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Callable, Iterator, TypeVar
@@ -40,6 +41,17 @@ def _top(version: Annotated[bool, typer.Option("--version", callback=_say_versio
                                                help="print labtwin's version and its libraries', and exit")]
          = False) -> None:
     """labtwin: a digital twin of a self-driving lab."""
+    _printable_anywhere()
+
+
+def _printable_anywhere() -> None:
+    """A terminal that cannot show every character (PYTHONIOENCODING=ascii, a Latin-1 console) shows '?' for
+    the ones it cannot, where a summary's dash or a unit's 'µ' ended the command in a UnicodeEncodeError."""
+    for stream in (sys.stdout, sys.stderr):
+        encoding = (getattr(stream, "encoding", None) or "").lower().replace("-", "").replace("_", "")
+        if not encoding.startswith("utf") and hasattr(stream, "reconfigure"):
+            with contextlib.suppress(ValueError, OSError):
+                stream.reconfigure(errors="replace")
 
 
 device_app = typer.Typer(help="Run one device actor in this process.", no_args_is_help=True)
