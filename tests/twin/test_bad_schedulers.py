@@ -40,6 +40,31 @@ class OddScheduler:
         return out
 
 
+class SlowOddScheduler(OddScheduler):
+    """One that takes its time (a model behind it), so that a live lab asks it off the event loop."""
+
+    runs_long = True
+
+
+def test_a_slow_scheduler_covered_in_its_worker_thread_is_journalled_by_the_loop(tmp_path):
+    """On a scaled clock a slow scheduler is asked in a worker thread, where its checks fell back and noted that
+    from the thread: a shared lab's journal (SQLite) refused the write ("objects created in a thread can only be
+    used in that same thread") and the lab stopped on a JournalError. Found on a busy machine, where the
+    OddScheduler's decisions took over 5 ms and so moved to the worker."""
+    from tests.twin.shared_labs import LAB, SMALL, assert_accounted
+    from twin.runtime.lab import prepare
+    from twin.runtime.shared_run import run_shared
+
+    slow = {**SMALL, "campaigns.0.campaign.scheduler": "tests.twin.test_bad_schedulers:SlowOddScheduler"}
+    s = prepare(LAB, seed=1, clock="scaled", speed=20_000, bus="memory", overrides=slow)
+    out = run_shared(s, tmp_path, handle_signals=False)
+    assert_accounted(out)
+    dots = out.campaigns["dots"]
+    assert dots.done + dots.abandoned == 6 and not dots.stopped and dots.scheduler_fallbacks > 0, dots
+    said = [e["detail"] for e in read_events(tmp_path / "dots.db", "scheduler.fallback")]
+    assert any("raised RuntimeError('model file missing')" in s for s in said), said
+
+
 @pytest.mark.parametrize("runtime", ["auto", "asyncio"])
 def test_a_scheduler_that_raises_or_answers_garbage_is_covered_by_the_fallback_rule(tmp_path, runtime):
     lab = parse(qd_lab(**{"campaign.scheduler": "tests.twin.test_bad_schedulers:OddScheduler",

@@ -129,12 +129,16 @@ class LiveCampaign:
         ``observer``: a ``LabObserver`` in this process, handed the core's notes and the devices' results and
         telemetry as they are decoded here (not a second subscription that parses them again)."""
         self.observer = observer
+        try:
+            self._loop: asyncio.AbstractEventLoop | None = asyncio.get_running_loop()
+        except RuntimeError:  # made outside a loop (a test's core): notes are taken where they are made
+            self._loop = None
         self.s, self.bus, self.clock, self.journal = scenario, bus, clock, journal
         self.planner = covered(planner, scenario.campaign.planner)
         self.scheduler, self.on_progress = scheduler, on_progress
         for rule in fallbacks(scheduler):  # a scheduler's mistakes covered: journalled when the reason changes
-            rule.on_fallback = lambda reason: self.note("scheduler.fallback", reason)
-            rule.on_recovered = lambda message: self.note("scheduler.recovered", message)
+            rule.on_fallback = lambda reason: self._note_from_any_thread("scheduler.fallback", reason)
+            rule.on_recovered = lambda message: self._note_from_any_thread("scheduler.recovered", message)
         self.core = rebuilt.core if rebuilt is not None else core or CampaignCore(scenario, campaign_id)
         self._rebuilt = rebuilt
         # a live campaign journals its core's inputs, so that a killed one can be rebuilt (virtual time re-runs)
@@ -162,6 +166,18 @@ class LiveCampaign:
         """The lab failed before the campaign began: its summary and journal say why."""
         self.core.stopping = why if "did not start" in why else f"the lab did not start: {why}"
         self.note("campaign.stopping", self.core.stopping)
+
+    def _note_from_any_thread(self, kind: str, detail: Any) -> None:
+        """``note`` from a scheduler asked off the loop (twin/runtime/off_loop.py), whose checks fall back in its
+        worker thread: the journal is the loop's (SQLite refused the write, and the campaign stopped)."""
+        try:
+            on_loop = asyncio.get_running_loop() is self._loop
+        except RuntimeError:
+            on_loop = self._loop is None
+        if on_loop or self._loop is None:
+            self.note(kind, detail)
+        else:
+            self._loop.call_soon_threadsafe(self.note, kind, detail)
 
     def note(self, kind: str, detail: Any = None) -> None:
         """A runtime's own remark (a scheduler agent missing, say): journalled and published like the core's."""
