@@ -27,9 +27,10 @@ def workers_for(workers: int) -> Any:
 
 
 def spawn_pool(workers: int) -> Any:
-    """Spawned workers, started with Ctrl-C held back until all are: one landing while a worker is handed its
-    start-up data leaves the worker reading half of it (a traceback after "interrupted"), and a pool half-built
-    is not stopped (``Pool`` cleans up only on ``Exception``)."""
+    """Spawned workers, started with Ctrl-C (and a SIGTERM that unwinds, as `twin train`'s does) held back until
+    all are: one landing while a worker is handed its start-up data leaves the worker reading half of it (a
+    traceback after "interrupted"), and a pool half-built is not stopped (``Pool`` cleans up only on
+    ``Exception``). The signal held is then handled as it would have been, once the workers are stopped."""
     import multiprocessing
     import signal
     import threading
@@ -38,14 +39,22 @@ def spawn_pool(workers: int) -> Any:
     if threading.current_thread() is not threading.main_thread():
         return start(workers, initializer=_quiet_worker)
     held: list[Any] = []
-    previous = signal.signal(signal.SIGINT, lambda *sig: held.append(sig))
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    saved = {sig: h for sig, h in saved.items() if sig == signal.SIGINT or callable(h)}  # SIGTERM's default: dies
+    for sig in saved:
+        signal.signal(sig, lambda *got: held.append(got))
     try:
         pool = start(workers, initializer=_quiet_worker)
     finally:
-        signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
+        for sig, handler in saved.items():
+            signal.signal(sig, handler if handler is not None else signal.default_int_handler)
     if held:
         pool.terminate()
         pool.join()
+        signum, frame = held[0]
+        handler = saved[signum]
+        if callable(handler):
+            handler(signum, frame)  # raises what it would have (KeyboardInterrupt, or `twin train`'s Terminated)
         raise KeyboardInterrupt
     return pool
 

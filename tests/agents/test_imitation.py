@@ -191,24 +191,28 @@ def test_rl_without_a_policy_says_how_to_train_one_and_names_a_shipped_one_that_
     assert campaign(lab, 0, agent.decide).done == 4
 
 
-def test_ctrl_c_while_the_training_workers_start_lets_them_start_then_stops_them(monkeypatch):
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_or_sigterm_while_the_training_workers_start_lets_them_start_then_stops_them(monkeypatch, sig):
     """Ctrl-C landing while a worker was handed its start-up data left it reading half of it: a traceback after
-    "interrupted" (seen once in CI), and a half-built pool nobody stopped."""
+    "interrupted" (seen once in CI), and a half-built pool nobody stopped. `twin train`'s SIGTERM, which unwinds
+    as Ctrl-C does, was not held back: "terminated (SIGTERM)", then a worker's EOFError (seen in CI)."""
     import multiprocessing
     import signal
 
     from agents import training_workers
+    from twin.cli.common import Terminated, sigterm_unwinds
 
     kind = type(multiprocessing.get_context("spawn"))
     real, built = kind.Pool, []
 
     def pool(self, *args, **kwargs):
-        signal.raise_signal(signal.SIGINT)  # as the workers start
+        signal.raise_signal(getattr(signal, sig))  # as the workers start
         built.append(real(self, *args, **kwargs))
         return built[-1]
 
     monkeypatch.setattr(kind, "Pool", pool)
-    with pytest.raises(KeyboardInterrupt):
+    with sigterm_unwinds(), pytest.raises(Terminated if sig == "SIGTERM" else KeyboardInterrupt):
         training_workers.spawn_pool(2)
     assert built and not any(worker.is_alive() for worker in built[0]._pool)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Ctrl-C is Ctrl-C again
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
