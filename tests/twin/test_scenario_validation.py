@@ -142,6 +142,25 @@ def test_a_lab_without_devices_says_so_and_a_device_type_it_lacks_says_there_are
     assert err.value.problems[1] == "workflow.0.device: 'robot' is not a device type of this lab (it has none)"
 
 
+def test_a_lab_of_machines_needs_no_chemistry_model_and_one_that_simulates_names_it(tmp_path):
+    """A parameter box for a lab whose devices only keep time was "chemistry.model: required field is missing",
+    with no word of the model ('none') such a lab has."""
+    from twin.runtime.lab import run
+
+    machine = {"driver": "machine", "options": {"steps": ["mix"]}, "steps": ["mix"], "duration": {"mean_s": 300}}
+    lab = {"name": "mixing", "devices": {"mixer": machine}, "workflow": [{"step": "mix", "device": "mixer"}],
+           "chemistry": {"parameters": {"x": {"low": 0, "high": 1}}},
+           "campaign": {"budget": 3, "planner": "random", "scheduler": "fifo"}}
+    assert run(write(tmp_path, lab), journal=tmp_path / "j.db").done == 3
+    simulating = qd_lab()
+    simulating["chemistry"] = {k: v for k, v in simulating["chemistry"].items() if k != "model"}
+    res = twin_cli("validate", write(tmp_path, simulating))
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and "bad.yaml: 1 problem(s)" in said, said
+    assert "chemistry.model: none given, and the 'spectrometer' driver of devices.spectrometer simulates a " \
+           "chemistry: give chemistry.model, one of ['bandgap', 'catalyst', 'quantum_dots', 'synthesis']" in said
+
+
 @pytest.mark.parametrize("changes, says", [
     ({"jobshop": "ft06.txt"}, "jobshop: should be a mapping of its fields: file, instance "),
     ({"devices.synthesiser.duration": 600}, "devices.synthesiser.duration: should be a mapping of its fields: "

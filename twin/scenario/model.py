@@ -126,7 +126,8 @@ class Target(Spec):
 
 
 class Chemistry(Spec):
-    model: Label = Field(description="the physical model the simulated devices share")
+    model: Label = Field(default="none", description="the physical model the simulated devices share ('none': "
+                         "none, for a lab whose devices only keep time, as the machine driver does)")
     parameters: dict[Label, Parameter] = Field(default_factory=dict, max_length=64, description="the box the planner "
                                                "proposes experiments in: parameter -> its range")
     targets: list[Target] = Field(default_factory=list, max_length=64, description="what the campaign looks for; "
@@ -271,7 +272,7 @@ class Scenario(Spec):
     lab: str = Field(default="lab", pattern=r"^[A-Za-z0-9_-]{1,64}$", description="bus prefix")
     devices: dict[Name, DeviceType] = Field(default_factory=dict, max_length=256, description="the lab: device "
                                             "type -> its driver, instances, steps, durations and faults")
-    chemistry: Chemistry = Field(default=Chemistry(model="none"), description="the physical model "
+    chemistry: Chemistry = Field(default=Chemistry(), description="the physical model "
                                  "the simulated devices share, the parameter box and the targets")
     workflow: list[WorkflowStep] = Field(default_factory=list, description="the steps of every experiment, in order")
     campaign: Campaign = Field(default=Campaign(), description="budget, planner, scheduler and seed")
