@@ -123,11 +123,15 @@ def test_people_take_no_twin():
         parse(qd_lab(**{"devices.spectrometer.driver": "operator", "devices.spectrometer.twin": {"driver": "machine"}}))
 
 
-def test_a_driver_that_runs_the_steps_its_options_list_says_so_when_they_are_not_listed():
-    lab = parse(qd_lab(**{"devices.washer": {"driver": "machine", "steps": ["wash"],
-                                             "duration": {"mean_s": 60, "cv": 0}}}))
-    with pytest.raises(ScenarioError, match=r"'machine' runs \['op'\], but the scenario asks it for \['wash'\]; it "
-                                            r"runs the steps its options list: devices.washer.options.steps: \['wash'\]"):
+def test_a_driver_that_runs_the_steps_its_options_list_runs_the_types_steps_unless_they_list_others():
+    """A machine ran only "op" unless its options listed the steps its device type had just been given."""
+    from twin.runtime.assembly import load_driver
+
+    washer = {"driver": "machine", "steps": ["wash", "rinse"], "duration": {"mean_s": 60, "cv": 0}}
+    lab = parse(qd_lab(**{"devices.washer": washer}))
+    assert load_driver(lab, "washer", "washer-1").capabilities == {"wash", "rinse"}
+    lab = parse(qd_lab(**{"devices.washer": {**washer, "options": {"steps": ["wash"]}}}))
+    with pytest.raises(ScenarioError, match=r"'machine' runs \['wash'\], but the scenario asks it for \['rinse'\]"):
         checked(lab, "lab.yaml")
 
 

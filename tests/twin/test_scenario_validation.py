@@ -144,10 +144,11 @@ def test_a_lab_without_devices_says_so_and_a_device_type_it_lacks_says_there_are
 
 def test_a_lab_of_machines_needs_no_chemistry_model_and_one_that_simulates_names_it(tmp_path):
     """A parameter box for a lab whose devices only keep time was "chemistry.model: required field is missing",
-    with no word of the model ('none') such a lab has."""
+    with no word of the model ('none') such a lab has; and a machine ran only "op" unless its options listed the
+    steps the scenario had just given it."""
     from twin.runtime.lab import run
 
-    machine = {"driver": "machine", "options": {"steps": ["mix"]}, "steps": ["mix"], "duration": {"mean_s": 300}}
+    machine = {"driver": "machine", "steps": ["mix"], "duration": {"mean_s": 300}}
     lab = {"name": "mixing", "devices": {"mixer": machine}, "workflow": [{"step": "mix", "device": "mixer"}],
            "chemistry": {"parameters": {"x": {"low": 0, "high": 1}}},
            "campaign": {"budget": 3, "planner": "random", "scheduler": "fifo"}}

@@ -177,6 +177,8 @@ def load_driver(s: Scenario, device_type: str, name: str, simulated: bool | None
         raise DriverError(f"chemistry.model: the {driver!r} driver of {field} simulates "
                           f"{sorted(models)}, not {s.chemistry.model[:64]!r}: use one of those, or a driver of yours")
     names = feature(cls, "option_names")
+    if "steps" in (names or ()) and "steps" not in given:  # a driver that runs the steps it is told: the type's
+        given = {**given, "steps": sorted(spec.steps)}
     stray = sorted(set(given) - set(names)) if names is not None else []
     if stray:
         raise DriverError(f"{field}.options.{stray[0]}: the {driver!r} driver takes no option "
@@ -190,10 +192,8 @@ def load_driver(s: Scenario, device_type: str, name: str, simulated: bool | None
     caps = capabilities(instance, f"{field}.driver: {driver!r}")
     missing = set(spec.steps) - caps
     if missing:
-        hint = (f"; it runs the steps its options list: {field}.options.steps: {sorted(spec.steps)}"
-                if "steps" in (names or ()) and "steps" not in given else "")
         raise DriverError(f"{field}.driver: {driver!r} runs {sorted(caps)}, but the scenario asks it for "
-                          f"{sorted(missing)}{hint}")
+                          f"{sorted(missing)}")
     return instance
 
 
