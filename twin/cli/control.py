@@ -274,6 +274,9 @@ def until_ended(lab: str, connect: list[str], security: str | None, campaign: st
                 row, hours = _campaign_row(answer, lab, campaign), answer["lab_hours"]
             else:  # a campaign run on its own
                 alone, st = True, answer["status"]
+                if campaign not in (None, st["scenario"]):
+                    _fail(TwinError(f"lab {lab} runs one campaign, {st['scenario']!r}, not {campaign!r}: leave "
+                                    "--campaign out"))
                 row = {"campaign": st["scenario"], "done": st["experiments"]["done"],
                        "abandoned": st["experiments"]["abandoned"],
                        "in_progress": st["experiments"]["pending"] + st["experiments"]["running"],
