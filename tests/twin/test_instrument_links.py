@@ -115,3 +115,21 @@ def test_an_instrument_that_cannot_connect_or_disconnect_is_named_not_a_tracebac
     summary = run(lab("BadDisconnect"), journal=tmp_path / "d.db", bus="memory")
     assert summary.done == 2
     assert "inst: disconnect() failed at shutdown: RuntimeError('socket already closed')" in caplog.text
+
+
+def test_a_shared_lab_whose_instrument_cannot_connect_says_so_in_each_campaigns_journal(tmp_path):
+    """Its journals read as killed: `twin report` said "interrupted ... Continue it with: twin resume"."""
+    from tests.conftest import twin_cli
+    from tests.twin.shared_labs import LAB, SMALL
+    from twin.core.errors import DriverError
+    from twin.runtime.lab import prepare
+    from twin.runtime.shared_run import run_shared
+
+    s = prepare(LAB, clock="scaled", speed=3000, bus="memory",
+                overrides={**SMALL, "devices.spectrometer.driver": "tests.twin.test_instrument_links:BadConnect"})
+    with pytest.raises(DriverError, match="its driver's connect\\(\\) failed"):
+        run_shared(s, tmp_path / "lab", handle_signals=False)
+    said = " ".join(twin_cli("report", tmp_path / "lab").output.split())
+    for name in (c.name for c in s.campaigns):
+        assert f"{tmp_path / 'lab' / name}.db: never started — spectrometer: its driver's connect() failed" in said
+    assert "interrupted" not in said, said

@@ -20,7 +20,7 @@ from twin.core.whole_files import written_whole
 from twin.runtime import lab
 from twin.runtime.checks import checked, validate_file
 from twin.core.errors import TwinError
-from twin.campaign.journal import no_such_journal, read_run
+from twin.campaign.journal import no_such_journal, read_events, read_run
 from twin.view.report import lab_span, render_summary
 from twin.scenario import json_schema
 from twin.campaign.summary import Summary
@@ -342,8 +342,16 @@ def _report(journal: Path, resume_with: Path | None = None) -> None:
     try:
         data = read_run(journal)
         got = interrupted(journal) if "summary" not in data else {}
+        never = [] if "summary" in data else read_events(journal, "campaign.not_started")
     except TwinError as exc:
         _fail(exc)
+    if never:  # a campaign of a lab that stopped, or failed to start, before it began
+        try:
+            why = json.loads(never[-1]["detail"])
+        except (TypeError, ValueError):
+            why = never[-1]["detail"]
+        console.print(f"{journal}: never started — {why}", highlight=False, soft_wrap=True)
+        return
     if "summary" not in data:
         shown = {"pending": "not finished", "running": "not finished"}
         counts: dict[str, int] = {}

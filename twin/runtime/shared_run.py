@@ -12,7 +12,7 @@ from pathlib import Path
 from twin.campaign.sharing import SharedLab
 from twin.campaign.summary import LabSummary, Summary
 from twin.core.clock import LabClock
-from twin.core.errors import ClockError, DriverError
+from twin.core.errors import ClockError, DriverError, TwinError
 from twin.runtime.fast_lab import FastLab
 from twin.runtime.lab_claim import refuse_if_taken
 from twin.campaign.journal import Journal
@@ -195,9 +195,15 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
                       adopt if serving is not None else None, observer, inputs, rebuilt, one)
         if observer is not None:
             stack.callback(asyncio.ensure_future(flush_live(clock, observer)).cancel)
-        for actor in actors:
-            await actor.start()
-            stack.push_async_callback(actor.stop)
+        try:
+            for actor in actors:
+                await actor.start()
+                stack.push_async_callback(actor.stop)
+        except TwinError as exc:  # each campaign's journal says why it never ran (it read as killed)
+            for name in lab.parts:
+                lab.shared.unsubmitted.setdefault(name, str(exc))
+            lab_summaries(lab.shared, lab.parts, wall0, clock.now())
+            raise
         if handle_signals:
             stack.enter_context(stop_on_loop_signals(lab.stop))
         if on_start is not None:
