@@ -102,14 +102,15 @@ def test_an_instrument_that_cannot_connect_or_disconnect_is_named_not_a_tracebac
             "campaign.budget": 2, "clock": {"mode": "scaled", "speed": 2000}}))
 
     with pytest.raises(DriverError, match=r"inst: its driver's connect\(\) failed: ConnectionRefusedError: "
-                                          r"\[Errno 111\] Connection refused; the lab did not start"):
+                                          r"\[Errno 111\] Connection refused; it did not start"):
         run(lab("BadConnect"), journal=tmp_path / "c.db", bus="memory")
     from twin.campaign.journal import read_run
     from twin.runtime.resume import ResumeError, resume
 
     stopped = read_run(tmp_path / "c.db")["summary"]["stopped"]  # `twin report` said nothing of why
-    assert stopped.startswith("inst: its driver's connect() failed: ConnectionRefusedError")
-    with pytest.raises(ResumeError, match=r"the campaign was stopped \(inst: its driver's connect\(\) failed.*run it "
+    assert stopped.startswith("the lab did not start: inst: its driver's connect() failed: ConnectionRefusedError")
+    with pytest.raises(ResumeError, match=r"the campaign was stopped \(the lab did not start: inst: its driver's "
+                                          r"connect\(\) failed.*run it "
                                           r"again \(twin run\)"):  # it said "the campaign finished"
         resume(tmp_path / "c.db")
     summary = run(lab("BadDisconnect"), journal=tmp_path / "d.db", bus="memory")

@@ -72,9 +72,9 @@ class DeviceActor:
             try:
                 await connect(self._instrument_presence)
             except PLUGIN_ERRORS as exc:
-                raise DriverError(f"{self.name}: its driver's connect() failed: {type(exc).__name__}: {exc}; the "
-                                  "lab did not start: check that the instrument is on and can be reached, then "
-                                  "start again") from exc
+                raise DriverError(f"{self.name}: its driver's connect() failed: {type(exc).__name__}: {exc}; it "
+                                  "did not start: check that the instrument is on and can be reached, then start "
+                                  "again") from exc
         else:
             self._online()
         if self.spec.faults.mtbc_h > 0:

@@ -164,7 +164,7 @@ class LiveCampaign:
 
     def never_started(self, why: str) -> None:
         """The lab failed before the campaign began: its summary and journal say why."""
-        self.core.stopping = why if "did not start" in why else f"the lab did not start: {why}"
+        self.core.stopping = f"the lab did not start: {why}"
         self.note("campaign.stopping", self.core.stopping)
 
     def _note_from_any_thread(self, kind: str, detail: Any) -> None:
