@@ -203,7 +203,8 @@ def test_a_shop_scenario_s_devices_section_changes_its_machines_and_the_command_
     with pytest.raises(ScenarioError) as refused:
         prepare(path, bus="memory")
     assert [str(p) for p in refused.value.problems] == [
-        "devices.m3.faults.p_fail: unknown field (check the spelling; `twin schema` lists the fields)"]
+        "devices.m3.faults.p_fail: unknown field; did you mean devices.m3.faults.fail_p? (`twin schema` lists the "
+        "fields)"]
     path.write_text(path.read_text().replace("m3:", "robot:"))
     with pytest.raises(ScenarioError, match=r"devices\.robot: not in the scenario; devices has m0, m1, m2, m3, m4, m5"):
         prepare(path, bus="memory")

@@ -47,6 +47,21 @@ def test_each_bad_field_is_named_with_its_value(tmp_path, changes, field, shown)
     assert str(path) in text and field in text and shown in text
 
 
+@pytest.mark.parametrize("changes, says", [
+    ({"campaign.budgett": 3}, "campaign.budgett: unknown field; did you mean campaign.budget?"),
+    ({"devices.synthesiser.faults": {"fial_p": 0.1}},
+     "devices.synthesiser.faults.fial_p: unknown field; did you mean devices.synthesiser.faults.fail_p?"),
+    ({"workflow": [{"step": "synthesise", "device": "synthesiser", "parms": {}}]},
+     "workflow.0.parms: unknown field; did you mean workflow.0.params?"),
+    ({"colour": "red"}, "colour: unknown field; the top level has bus, campaign, campaigns, chemistry, clock"),
+])
+def test_an_unknown_field_is_shown_with_the_field_it_was_likely_meant_to_be(tmp_path, changes, says):
+    """It said only "unknown field (check the spelling)", leaving the user to find the name in `twin schema`."""
+    with pytest.raises(ScenarioError) as info:
+        load(write(tmp_path, qd_lab(**changes)))
+    assert any(p.startswith(says) for p in info.value.problems), info.value.problems
+
+
 def test_every_problem_is_reported_not_just_the_first(tmp_path):
     path = write(tmp_path, qd_lab(**{"campaign.budget": -1, "campaign.seed": "x", "clock.speed": 0}))
     with pytest.raises(ScenarioError) as info:

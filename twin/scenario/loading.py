@@ -146,6 +146,29 @@ def _misspelt(raw: dict[str, Any], dotted: str) -> str | None:
     return None
 
 
+def _known_near(loc: tuple, model: Any) -> str:
+    """'; did you mean campaign.budget?' for a misspelt field of ``model``'s, or the fields its section has."""
+    for p in loc[:-1]:
+        if model is None or isinstance(p, int):
+            continue  # a list's item: the same model
+        field = getattr(model, "model_fields", {}).get(p)
+        if field is None:  # a mapping's key (devices.<type>): its values' model was taken already
+            continue
+        annotation = field.annotation
+        for arg in (annotation, *getattr(annotation, "__args__", ())):
+            if getattr(arg, "__origin__", None) in (dict, list):
+                annotation = arg.__args__[-1]
+        model = model_of(annotation)
+    names = sorted(getattr(model, "model_fields", {}))
+    if not names:
+        return ""
+    where = ".".join(str(p) for p in loc[:-1])
+    close = difflib.get_close_matches(str(loc[-1]), names, n=1)
+    if close:
+        return f"; did you mean {where + '.' if where else ''}{close[0]}?"
+    return f"; {where or 'the top level'} has {', '.join(names[:16])}{', …' if len(names) > 16 else ''}"
+
+
 def model_of(annotation: Any) -> Any:
     """The pydantic model a field holds (``Bus``, or ``Training | None``'s), if any."""
     for arg in (annotation, *getattr(annotation, "__args__", ())):
@@ -161,15 +184,15 @@ def parse(raw: dict[str, Any], source: str = "<scenario>", lab_only: bool = Fals
         raise ScenarioError(source, problems_of(exc, raw)) from None
 
 
-def problems_of(exc: ValidationError, raw: Any) -> list[str]:
-    """One line per problem, each naming its field."""
-    return [line for e in exc.errors() for line in describe(e, raw).split("\n")]
+def problems_of(exc: ValidationError, raw: Any, root: Any = None) -> list[str]:
+    """One line per problem, each naming its field; ``root``: the model validated (a scenario by default)."""
+    return [line for e in exc.errors() for line in describe(e, raw, root).split("\n")]
 
 
-def describe(err: Any, raw: dict[str, Any]) -> str:
+def describe(err: Any, raw: dict[str, Any], root: Any = None) -> str:
     loc = ".".join(str(p) for p in err["loc"])
     if err["type"] == "extra_forbidden":
-        return f"{loc}: unknown field (check the spelling; `twin schema` lists the fields)"
+        return f"{loc}: unknown field{_known_near(err['loc'], root or Scenario)} (`twin schema` lists the fields)"
     if err["type"] == "missing":
         return f"{loc}: required field is missing"
     if err["type"] == "string_pattern_mismatch":

@@ -54,4 +54,4 @@ def parse_campaign(raw: Any, source: str = "<campaign>") -> SharedCampaign:
     try:
         return SharedCampaign.model_validate(raw)
     except ValidationError as exc:
-        raise ScenarioError(source, problems_of(exc, raw)) from None
+        raise ScenarioError(source, problems_of(exc, raw, SharedCampaign)) from None
