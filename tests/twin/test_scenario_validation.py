@@ -62,6 +62,15 @@ def test_an_unknown_field_is_shown_with_the_field_it_was_likely_meant_to_be(tmp_
     assert any(p.startswith(says) for p in info.value.problems), info.value.problems
 
 
+def test_validate_checks_a_file_with_the_overrides_a_run_would_be_given():
+    """`twin validate FILE --set ...` was "No such option: --set": an override was checked only by running it."""
+    path = ROOT / "scenarios" / "quantum_dots.yaml"
+    bad = twin_cli("validate", path, "--set", "devices.synthesiser.instances=100000")
+    said = " ".join(bad.output.split())
+    assert bad.exit_code == 2 and "devices.synthesiser.instances: Input should be less than or equal to 64" in said
+    assert twin_cli("validate", path, "--set", "devices.synthesiser.instances=3").exit_code == 0
+
+
 def test_every_problem_is_reported_not_just_the_first(tmp_path):
     path = write(tmp_path, qd_lab(**{"campaign.budget": -1, "campaign.seed": "x", "clock.speed": 0}))
     with pytest.raises(ScenarioError) as info:

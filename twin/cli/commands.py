@@ -277,8 +277,13 @@ def replay(
 
 
 @app.command()
-def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="scenario files")]) -> None:
+def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="scenario files")],
+             set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",
+                                                               help="check the files with a field overridden, as "
+                                                                    "`twin run --set` would run them; repeatable")]
+             = None) -> None:
     """Check scenario files; every problem names its file, field and value, and every warning its file."""
+    overrides = assignments(set_ or [])
     warned = _Warnings()
     logging.getLogger().addHandler(warned)
     bad = 0
@@ -286,7 +291,7 @@ def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="s
         for f in files:
             warned.said.clear()
             try:
-                validate_file(f)
+                validate_file(f, overrides)
             except TwinError as exc:
                 bad += 1
                 err.print(f"[red]✗[/] {escape(str(exc))}", highlight=False, markup=True)

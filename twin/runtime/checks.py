@@ -124,9 +124,10 @@ def _at(field: str, make: Callable[..., Any], *args: Any) -> Any:
         raise ScenarioError("", [text if text.startswith(field.split(".")[0]) else f"{field}: {text}"]) from None
 
 
-def validate_file(path: str | Path) -> Scenario:
-    """``twin validate``: the scenario file read, checked field by field, and against the installed plugins."""
-    return checked(load(path), path)
+def validate_file(path: str | Path, overrides: dict | None = None) -> Scenario:
+    """``twin validate``: the scenario file read (with the command line's ``--set`` overrides), checked field by
+    field, and against the installed plugins."""
+    return checked(load(path, overrides), path)
 
 
 def checked(s: Scenario, path: str | Path, external: Collection[str] = (), benched: bool = False) -> Scenario:
