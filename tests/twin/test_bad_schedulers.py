@@ -169,6 +169,28 @@ def test_a_scheduler_that_waits_with_nothing_running_ends_the_campaign_saying_so
         assert summary.proposed == summary.done + summary.abandoned + summary.pending  # accounted for
 
 
+@pytest.mark.parametrize("stalled", [("dots",), ("dots", "catalyst")])
+def test_a_shared_lab_whose_schedulers_wait_for_nothing_ends_in_virtual_time(tmp_path, stalled):
+    """A lab of several campaigns idled to max_lab_hours (10,001 lab-h) when every campaign still running had
+    steps ready and a scheduler that waited with the whole lab idle. It ends once the others are done (or have
+    started: catalyst starts at 1 lab-h), naming each stalled campaign's scheduler."""
+    from tests.twin.shared_labs import LAB, SMALL
+    from twin.runtime.lab import prepare
+    from twin.runtime.shared_run import run_shared
+
+    patient = {f"campaigns.{['dots', 'catalyst'].index(n)}.campaign.scheduler":
+               "tests.twin.test_bad_schedulers:Patient" for n in stalled}
+    s = prepare(LAB, seed=1, clock="virtual", bus="memory", overrides={**SMALL, **patient})
+    out = run_shared(s, tmp_path, handle_signals=False)
+    assert out.lab_hours < 24
+    for name, c in out.campaigns.items():
+        if name in stalled:
+            assert c.done == 0 and c.pending > 0 and "answered wait with no device busy" in c.stopped, c
+            assert f"{name}: tests.twin.test_bad_schedulers:Patient" in c.stopped
+        else:
+            assert c.done + c.abandoned == 4 and c.pending == 0, c
+
+
 def test_a_bench_counts_a_stalled_run_at_the_campaigns_limit_not_as_the_shortest():
     """Ended at once, a stall would read as a makespan of nothing: the best scheduler of the bench."""
     from twin.tools.planner_bench import trial

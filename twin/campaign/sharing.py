@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from twin.campaign import consumables, dispatch
+from twin.campaign import consumables, dispatch, stall
 from twin.campaign.consumables import Stocks
 from twin.campaign.core import CampaignCore
 from twin.campaign.decisions import Assignment, CampaignState, DeviceState, LabView
@@ -182,6 +182,19 @@ class SharedLab:
         if self._deciding:
             return self.cores[self._deciding].wants_to_decide
         return bool(self._due) or any(c.wants_to_decide for c in cores)
+
+    def stalled(self) -> str:
+        """Why nothing can happen but the campaigns' time limits, or "": every campaign started (none queued, no
+        submissions to come), and each one not finished has steps ready that its scheduler, asked, left waiting
+        with the whole lab idle. Only a virtual clock acts on it (live, an operator may still move the lab)."""
+        if (self.serving or self._due or self.one_scheduler or self._stopping
+                or len(self.started) + len(self.unsubmitted) != len(self.entries)):
+            return ""
+        live = {n: self.cores[n] for n in self.started if not self.cores[n].finished}
+        if not live or not all(c.ready and c.waiting is None and not c.has_events and stall.idle(c)
+                               for c in live.values()):
+            return ""
+        return stall.say_for_lab({n: c.s.campaign.scheduler for n, c in live.items()})
 
     @property
     def waiting(self) -> Any:

@@ -18,11 +18,23 @@ _NOT_EVENTS = frozenset({TimerKey(TimerKind.LIMIT), TimerKey(TimerKind.STARTUP)}
 
 
 def waits_for_nothing(core: CampaignCore) -> bool:
-    """Whether nothing can happen but the campaign's time limit: every device on the bus and idle, none that
-    crashes now and then (and comes back, which asks again), no timer but the limit's, no other campaign sharing
-    the lab (whose steps ending could wake this one)."""
-    return (core.alone and not core.stopping and all(d.online and d.state == "idle" for d in core.devices.values())
+    """Whether nothing can happen but the campaign's time limit: it is ``idle`` and no other campaign shares the
+    lab (whose steps ending could wake this one; a shared lab asks ``idle`` of all its campaigns at once)."""
+    return core.alone and idle(core)
+
+
+def idle(core: CampaignCore) -> bool:
+    """Every device on the bus and idle, none that crashes now and then (and comes back, which asks again), no
+    timer but the limit's."""
+    return (not core.stopping and all(d.online and d.state == "idle" for d in core.devices.values())
             and not any(spec.faults.mtbc_h for spec in core.s.devices.values()) and core._timers <= _NOT_EVENTS)
+
+
+def say_for_lab(names: dict[str, str]) -> str:
+    """Why a shared lab in virtual time ends: each campaign's scheduler (campaign -> scheduler) waits for nothing."""
+    which = ", ".join(f"{c}: {s}" for c, s in names.items())
+    return (f"the schedulers ({which}) answered wait with no device busy and nothing due, so no event would ask "
+            "them again: a scheduler must start a step when nothing runs")
 
 
 def say(core: CampaignCore) -> None:
