@@ -1,7 +1,7 @@
 """A machine that only keeps time: each step lasts its drawn duration and hands the sample on unchanged. A
 job shop's machines are these (step `op`), and so is a twin that stands in for a real instrument when only
-its timing matters (`twin: {driver: machine, options: {steps: [measure]}}`: training a scheduler, a what-if of
-device counts)."""
+its timing matters (`twin: {driver: machine}`: training a scheduler, a what-if of device counts). It runs the
+steps `options.steps` lists, which the lab fills with its device type's `steps` when the scenario gives none."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ class Machine:
     outputs: frozenset[str] = frozenset()
 
     def __init__(self, setup: DriverSetup) -> None:
-        steps = setup.options.get("steps", ["op"])
+        steps = setup.options.get("steps")
         if not isinstance(steps, list) or not steps or not all(isinstance(s, str) and s for s in steps):
             raise ValueError(f"options.steps must be a list of step names, e.g. [measure] (got {steps!r:.80})")
         self.capabilities = frozenset(steps)

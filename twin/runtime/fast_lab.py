@@ -75,8 +75,8 @@ class FastLab:
                 q.run_ready()
                 if shared.has_work:
                     self._perform(shared.advance(q.now))
-                elif shared.waiting is None and shared.stalled():
-                    shared.stop(shared.stalled())  # it would idle to the campaigns' max_lab_hours
+                elif shared.waiting is None and (stalled := shared.stalled()):
+                    shared.stop(stalled)  # it would idle to the campaigns' max_lab_hours
                 elif shared.waiting is None and not q.jump():
                     shared.stop("nothing left to happen")
                     if not shared.has_work:  # nothing started, nothing to stop

@@ -200,8 +200,7 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
                 await actor.start()
                 stack.push_async_callback(actor.stop)
         except TwinError as exc:  # each campaign's journal says why it never ran (it read as killed)
-            for name in lab.parts:
-                lab.shared.unsubmitted.setdefault(name, str(exc))
+            lab.shared.stop(str(exc))
             lab_summaries(lab.shared, lab.parts, wall0, clock.now())
             raise
         if handle_signals:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import os
 import select
 import stat
-import time
 from pathlib import Path
 from typing import Any
 
@@ -61,10 +60,9 @@ def _from_pipe(path: Path, where: str, what: str) -> bytes:
     fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     try:
         chunks: list[bytes] = []
-        size, deadline = 0, time.monotonic() + PIPE_WAIT_S
+        size = 0
         while size <= MAX_BYTES:
-            left = deadline - time.monotonic()
-            if left <= 0 or not select.select([fd], [], [], left)[0]:
+            if not select.select([fd], [], [], PIPE_WAIT_S)[0]:
                 raise ScenarioError(where, [f"is a named pipe that nothing wrote to within {PIPE_WAIT_S:g} s: give "
                                             f"a {what} file, or write it into the pipe"])
             chunk = os.read(fd, 1 << 16)
@@ -72,7 +70,6 @@ def _from_pipe(path: Path, where: str, what: str) -> bytes:
                 break
             chunks.append(chunk)
             size += len(chunk)
-            deadline = time.monotonic() + PIPE_WAIT_S
         return b"".join(chunks)
     finally:
         os.close(fd)

@@ -119,11 +119,7 @@ def read(path: str | Path, instance: str | None = None) -> Instance:
 
 def _parsed(where: str, lines: list[tuple[int, str]]) -> tuple[int, int, list]:
     labels = [k for k, (_, ln) in enumerate(lines) if ln.lower().rstrip(":") in ("times", "machines")]
-    if labels:
-        n_jobs, n_machines, jobs = _taillard_labelled(where, lines, labels)
-    else:
-        n_jobs, n_machines, jobs = _unlabelled(where, lines)
-    return n_jobs, n_machines, jobs
+    return _taillard_labelled(where, lines, labels) if labels else _unlabelled(where, lines)
 
 
 def _flexible(lines: list[tuple[int, str]]) -> bool:
