@@ -288,10 +288,11 @@ def until_ended(lab: str, connect: list[str], security: str | None, campaign: st
                 console.print(f"campaign {campaign} ended: {row['done']} done, {row['abandoned']} abandoned"
                               f"{met}{journal_said}", highlight=False, markup=False)
                 return
-            now = (f"campaign {campaign}: {row['done']} done, {row['abandoned']} abandoned, {row['in_progress']} in "
-                   f"progress, of a budget of {row['budget']} ({row['state']}, lab {hours:.2f} h)")
-            if now != said:
-                err.print(now, highlight=False, markup=False)
+            now = (row["done"], row["abandoned"], row["in_progress"], row["state"])
+            if now != said:  # the counts or the state changed (not only the lab's time)
+                err.print(f"campaign {campaign}: {row['done']} done, {row['abandoned']} abandoned, "
+                          f"{row['in_progress']} in progress, of a budget of {row['budget']} ({row['state']}, lab "
+                          f"{hours:.2f} h)", highlight=False, markup=False)
                 said = now
             time.sleep(every_s)
     except KeyboardInterrupt:
