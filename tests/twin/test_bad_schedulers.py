@@ -287,3 +287,37 @@ def test_every_alert_is_a_warning_or_an_error_in_the_viewer_log():
 
     assert "scheduler.stalled" in ALERTS
     assert {kind: _level(kind) for kind in ALERTS if _level(kind) not in ("WARN", "ERROR")} == {}
+
+
+def test_a_live_shared_lab_whose_schedulers_wait_for_nothing_says_so_in_each_journal(tmp_path):
+    """On a live clock a shared lab stalled silently until the campaigns' max_lab_hours. Now each stalled campaign
+    notes scheduler.stalled (an alert, not an end: an operator may still move the lab), once, naming each
+    scheduler, and not before the second campaign (at 1 lab-h) has started (its steps could have woken the
+    first); the campaigns still end at their limit with their experiments accounted for. The alert is one of
+    the lab's inputs, so a lab killed before its campaigns' journals had it gets it back on resuming."""
+    import sqlite3
+
+    from tests.twin.shared_labs import LAB, SMALL
+    from twin.runtime.lab import prepare
+    from twin.runtime.resume_lab import resume_lab
+    from twin.runtime.shared_run import run_shared
+
+    patient = {f"campaigns.{i}.campaign.scheduler": "tests.twin.test_bad_schedulers:Patient" for i in (0, 1)}
+    limits = {f"campaigns.{i}.campaign.max_lab_hours": 2 for i in (0, 1)}
+    s = prepare(LAB, seed=1, clock="scaled", speed=20_000, bus="memory", overrides={**SMALL, **patient, **limits})
+    out = run_shared(s, tmp_path, handle_signals=False)
+    for name, c in out.campaigns.items():
+        assert c.done == 0 and c.pending > 0 and "max_lab_hours" in c.stopped, c
+        said = [e for e in read_events(tmp_path / f"{name}.db") if e["kind"] == "scheduler.stalled"]
+        assert len(said) == 1 and said[0]["t_lab"] >= 3600, said
+        assert "dots: tests.twin.test_bad_schedulers:Patient" in said[0]["detail"]
+        assert "catalyst: tests.twin.test_bad_schedulers:Patient" in said[0]["detail"]
+    for db in tmp_path.glob("*.db"):  # as if killed before the campaigns' journals had the alert
+        with sqlite3.connect(db) as c:
+            c.execute("DELETE FROM run WHERE key='summary'")
+            c.execute("DELETE FROM events WHERE seq >= (SELECT seq FROM events WHERE kind='scheduler.stalled')")
+    resume_lab(tmp_path, handle_signals=False)
+    for name in out.campaigns:
+        kinds = [e["kind"] for e in read_events(tmp_path / f"{name}.db")]
+        assert kinds.count("scheduler.stalled") == 1 and kinds.index("scheduler.stalled") < kinds.index(
+            "campaign.resumed"), kinds

@@ -180,8 +180,12 @@ class LiveCampaign:
             self._loop.call_soon_threadsafe(self.note, kind, detail)
 
     def note(self, kind: str, detail: Any = None) -> None:
-        """A runtime's own remark (a scheduler agent missing, say): journalled and published like the core's."""
-        self._remark(Note(self.clock.now(), kind, detail=detail))
+        """A runtime's own remark (a scheduler agent missing, say): journalled and published like the core's, and
+        logged if it is an alert."""
+        n = Note(self.clock.now(), kind, detail=detail)
+        self._remark(n)
+        if kind in ALERTS:
+            alerts_log.warning("%s", alert_text(n))
 
     def _remark(self, n: Note) -> None:
         self._decided(n)

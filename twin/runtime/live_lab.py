@@ -213,7 +213,8 @@ class LiveLab:
         for name, entry in shared.entries.items():
             core = shared.cores[name]
             state = ("ended" if core.finished else "queued" if name not in shared.started else
-                     f"paused by {core.paused_by}" if core.paused_by else "stopping" if core.stopping else "running")
+                     f"paused by {core.paused_by}" if core.paused_by else "stopping" if core.stopping else
+                     "stalled" if core.stalled else "running")
             counts = {k: sum(1 for e in core.experiments if e.status == k) for k in ("done", "abandoned")}
             rows.append({"campaign": name, "owner": entry.owner, "priority": entry.priority, "state": state,
                          "submitted_h": shared.submitted_at.get(name, 0.0) / 3600, **counts,
@@ -253,6 +254,10 @@ class LiveLab:
                 self._perform(self._advance(self.clock.now()))
                 if self.clock.is_virtual:
                     break
+            if not self.clock.is_virtual and self.shared.waiting is None and not self.shared.finished:
+                why, stalled = self.shared.newly_stalled()
+                for name in stalled:  # a remark in the lab's inputs, so that a rebuilt journal has it too
+                    self.seats[name].note("scheduler.stalled", why)
             self._check_done()
         except Exception as exc:  # a bug must end the lab with its error, never leave it waiting silently
             if self._done is not None and not self._done.done():
