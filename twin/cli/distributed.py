@@ -13,6 +13,17 @@ from twin.core.errors import TwinError
 
 SecurityOpt = Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
                                                           "join through its router with this process's certificate")]
+# what a process serving one part of a lab (a device, the scheduler agent) is given
+LabEndpoints = Annotated[list[str], typer.Option("--connect", metavar="ENDPOINT",
+                                                 help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")]
+ClockInsisted = Annotated[Optional[str], typer.Option(help="scaled | wall: insist on this clock (default: follow "
+                                                           "the lab's, whatever it is)")]
+SpeedInsisted = Annotated[Optional[float], typer.Option(help="insist on this many lab seconds per wall second "
+                                                             "(default: the lab's)")]
+ConnectWait = Annotated[Optional[float], typer.Option(min=0.1, max=86400, metavar="SECONDS",
+                                                      help="how long --connect may take to answer: a lab or router "
+                                                           "started after this process (default: the scenario's "
+                                                           "bus.connect_timeout_ms, 5 s)")]
 
 
 def _serving(serve, *args) -> None:
@@ -28,17 +39,11 @@ def _serving(serve, *args) -> None:
 def device_serve(
     scenario: Annotated[Path, typer.Argument(help="the scenario the device belongs to")],
     name: Annotated[str, typer.Option("--id", help="the device instance, e.g. spectrometer-2")],
-    connect: Annotated[list[str], typer.Option(metavar="ENDPOINT",
-                                               help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
-    clock: Annotated[Optional[str], typer.Option(help="scaled | wall: insist on this clock (default: follow the "
-                                                      "lab's, whatever it is)")] = None,
-    speed: Annotated[Optional[float], typer.Option(help="insist on this many lab seconds per wall second "
-                                                        "(default: the lab's)")] = None,
+    connect: LabEndpoints,
+    clock: ClockInsisted = None,
+    speed: SpeedInsisted = None,
     security: SecurityOpt = None,
-    wait: Annotated[Optional[float], typer.Option(min=0.1, max=86400, metavar="SECONDS",
-                                                  help="how long --connect may take to answer: a lab or router "
-                                                       "started after this process (default: the scenario's "
-                                                       "bus.connect_timeout_ms, 5 s)")] = None,
+    wait: ConnectWait = None,
 ) -> None:
     """Serve one device actor of a scenario in this process until SIGINT/SIGTERM, on the lab's clock (commands
     are refused until the lab's clock is heard)."""
@@ -79,8 +84,7 @@ def security_init(
 @device_app.command("health")
 def device_health(
     scenario: Annotated[Path, typer.Argument(help="the scenario the devices belong to")],
-    connect: Annotated[list[str], typer.Option(metavar="ENDPOINT",
-                                               help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
+    connect: LabEndpoints,
     ids: Annotated[Optional[list[str]], typer.Option("--id", metavar="DEVICE",
                                                      help="a device instance (repeat; default: all)")] = None,
     security: SecurityOpt = None,
@@ -171,17 +175,11 @@ def router(
 def scheduler_serve(
     scenario: Annotated[Path, typer.Argument(help="the scenario of the lab to schedule")],
     scheduler: Annotated[str, typer.Option(help="rl:POLICY.zip or a rule (fifo, spt, mwkr, least-loaded, ...)")],
-    connect: Annotated[list[str], typer.Option(metavar="ENDPOINT",
-                                               help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
-    clock: Annotated[Optional[str], typer.Option(help="scaled | wall: insist on this clock (default: follow the "
-                                                      "lab's, whatever it is)")] = None,
-    speed: Annotated[Optional[float], typer.Option(help="insist on this many lab seconds per wall second "
-                                                        "(default: the lab's)")] = None,
+    connect: LabEndpoints,
+    clock: ClockInsisted = None,
+    speed: SpeedInsisted = None,
     security: SecurityOpt = None,
-    wait: Annotated[Optional[float], typer.Option(min=0.1, max=86400, metavar="SECONDS",
-                                                  help="how long --connect may take to answer: a lab or router "
-                                                       "started after this process (default: the scenario's "
-                                                       "bus.connect_timeout_ms, 5 s)")] = None,
+    wait: ConnectWait = None,
 ) -> None:
     """Serve scheduling decisions to a lab whose campaign.scheduler is `remote`, until SIGINT/SIGTERM."""
     from twin.runtime.serve import serve_scheduler
