@@ -315,7 +315,7 @@ def test_run_set_changes_any_field_and_a_bad_one_is_named(tmp_path):
         "spectrometer-1", "spectrometer-2", "spectrometer-3"]
     for item, says in (("campaign.budget=-4", "campaign.budget"), ("budget", "expected FIELD=VALUE"),
                        ("campaign.budget=[", "not YAML")):
-        bad = twin_cli("run", "scenarios/flaky_lab.yaml", "--set", item, "--quiet")
+        bad = twin_cli("run", "scenarios/flaky_lab.yaml", "--set", item, "-q")
         assert bad.exit_code == 2 and says in bad.output, bad.output
 
 

@@ -34,7 +34,7 @@ ViewerOpt = Annotated[bool, typer.Option(help="open the Rerun viewer and stream 
 ServeOpt = Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1 (URL printed)")]
 ServePortOpt = Annotated[int, typer.Option(min=0, max=65535, help="gRPC port for --serve (0: any free one)")]
 WebPortOpt = Annotated[int, typer.Option(min=0, max=65535, help="web viewer port for --serve (0: any free one)")]
-QuietOpt = Annotated[bool, typer.Option(help="no progress bar")]
+QuietOpt = Annotated[bool, typer.Option("--quiet/--no-quiet", "-q", help="no progress bar")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="print the summary as JSON")]
 RuntimeOpt = Annotated[str, typer.Option(help="fast | asyncio | auto (fast for a virtual clock on the memory bus)")]
 
