@@ -299,6 +299,11 @@ def test_an_override_through_a_misspelt_name_says_which_was_meant(tmp_path, dott
     with pytest.raises(ScenarioError) as from_scenario:  # a variant of a loaded scenario (twin whatif, benches)
         prepare(load(path), overrides={dotted: 3})
     assert says in str(from_file.value) and says in str(from_scenario.value)
+    misspelt = says.split(":")[0] if ":" in says else dotted.rsplit(".", 1)[0]
+    for caught in (from_file, from_scenario):  # said once, not echoed by what it would lack as a new entry
+        first, *rest = caught.value.problems
+        assert first.startswith(misspelt + ": not in the scenario; did you mean"), first
+        assert not any(p.startswith((misspelt + ".", misspelt + ":")) for p in rest), rest
     new = load(path, {"devices.centrifuge.instances": 2, "devices.centrifuge.driver": "synthesiser",
                       "devices.centrifuge.steps": ["spin"], "devices.centrifuge.duration.mean_s": 60})
     assert new.devices["centrifuge"].instances == 2  # a name far from every other is a new entry, not a typo

@@ -109,7 +109,10 @@ def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str
     except ScenarioError as exc:
         if not hints:
             raise
-        raise ScenarioError(exc.source, [*hints, *exc.problems]) from None  # the cause first
+        # the cause first; what a likely misspelt name lacks as a new entry (devices.spectromter.driver:
+        # missing) only echoes it (a name near none may be a new entry: what it needs is said)
+        made = tuple(hint.split(":", 1)[0] + end for hint in hints if "did you mean" in hint for end in ".:")
+        raise ScenarioError(exc.source, [*hints, *(p for p in exc.problems if not p.startswith(made))]) from None
 
 
 def _misspelt(raw: dict[str, Any], dotted: str) -> str | None:
