@@ -374,3 +374,17 @@ def test_errors_cross_a_process_pool_whole():
     again = pickle.loads(pickle.dumps(InvalidMessage("spectrometer-1", "no body")))
     assert (again.sender, again.reason, str(again)) == ("spectrometer-1", "no body",
                                                         "invalid message from spectrometer-1: no body")
+
+
+def test_an_unknown_plugin_name_near_an_installed_one_says_which_was_meant():
+    """`--planner gp_bo` and `--schedulers mwrk` listed what was installed without pointing at the near one."""
+    from twin.core import plugins
+    from twin.core.errors import PluginError
+
+    for kind, name, meant in (("planners", "gp_bo", "gp-bo"), ("schedulers", "mwrk", "mwkr")):
+        with pytest.raises(PluginError) as caught:
+            plugins.load(kind, name)
+        assert f"{name!r} (did you mean {meant!r}?). Installed: " in str(caught.value), caught.value
+    with pytest.raises(PluginError) as caught:
+        plugins.load("planners", "zzz")
+    assert "did you mean" not in str(caught.value) and "Installed: fixed, gp-bo" in str(caught.value)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import difflib
+
 import functools
 import importlib
 import inspect
@@ -64,8 +66,10 @@ def _load(kind: str, name: str) -> Any:
     eps = installed(kind)
     if name not in eps:
         have = ", ".join(sorted(eps)) or "none"
+        near = difflib.get_close_matches(name, list(eps), n=1)
         raise error(
-            f"unknown {_NAMES.get(kind, kind[:-1])} {name!r}. Installed: {have}. "
+            f"unknown {_NAMES.get(kind, kind[:-1])} {name!r}{f' (did you mean {near[0]!r}?)' if near else ''}. "
+            f"Installed: {have}. "
             f"Use one of those, or a 'package.module:{'function' if kind in ('routes', 'route_targets') else 'Class'}' string"
             + ("; `twin devices` lists drivers." if kind == "devices" else ".")
         )
