@@ -54,6 +54,9 @@ def test_each_bad_field_is_named_with_its_value(tmp_path, changes, field, shown)
     ({"workflow": [{"step": "synthesise", "device": "synthesiser", "parms": {}}]},
      "workflow.0.parms: unknown field; did you mean workflow.0.params?"),
     ({"colour": "red"}, "colour: unknown field; the top level has bus, campaign, campaigns, chemistry, clock"),
+    ({"targets": []}, "targets: unknown field; did you mean chemistry.targets?"),  # a field in the wrong section
+    ({"campaign.model": "none"}, "campaign.model: unknown field; did you mean chemistry.model?"),
+    ({"fail_p": 0.1}, "fail_p: unknown field; did you mean devices.<name>.faults.fail_p?"),
 ])
 def test_an_unknown_field_is_shown_with_the_field_it_was_likely_meant_to_be(tmp_path, changes, says):
     """It said only "unknown field (check the spelling)", leaving the user to find the name in `twin schema`."""

@@ -150,7 +150,9 @@ def _misspelt(raw: dict[str, Any], dotted: str) -> str | None:
 
 
 def _known_near(loc: tuple, model: Any) -> str:
-    """'; did you mean campaign.budget?' for a misspelt field of ``model``'s, or the fields its section has."""
+    """'; did you mean campaign.budget?' for a misspelt field of ``model``'s, or for one of a section where it
+    does not belong (``targets`` at the top: chemistry.targets), or the fields its section has."""
+    root_model = model
     for p in loc[:-1]:
         if model is None or isinstance(p, int):
             continue  # a list's item: the same model
@@ -169,7 +171,32 @@ def _known_near(loc: tuple, model: Any) -> str:
     close = difflib.get_close_matches(str(loc[-1]), names, n=1)
     if close:
         return f"; did you mean {where + '.' if where else ''}{close[0]}?"
+    elsewhere = _fields_named(str(loc[-1]), root_model)
+    if elsewhere:
+        nearest = [p for p in elsewhere if p.count(".") == min(q.count(".") for q in elsewhere)]
+        return f"; did you mean {' or '.join(nearest[:3])}?"
     return f"; {where or 'the top level'} has {', '.join(names[:16])}{', …' if len(names) > 16 else ''}"
+
+
+def _fields_named(name: str, model: Any, prefix: str = "", depth: int = 3) -> list[str]:
+    """The dotted paths of the fields called ``name`` in ``model``'s sections (``targets`` ->
+    ``chemistry.targets``); a mapping's or list's values are written ``<name>`` or ``<n>``."""
+    found: list[str] = []
+    for field_name, field in getattr(model, "model_fields", {}).items():
+        path = f"{prefix}{field_name}"
+        if field_name == name:
+            found.append(path)
+        if depth <= 1:
+            continue
+        annotation, inner = field.annotation, ""
+        for arg in (annotation, *getattr(annotation, "__args__", ())):
+            origin = getattr(arg, "__origin__", None)
+            if origin in (dict, list):
+                annotation, inner = arg.__args__[-1], ".<name>" if origin is dict else ".<n>"
+        sub = model_of(annotation)
+        if sub is not None and sub is not model:
+            found += _fields_named(name, sub, f"{path}{inner}.", depth - 1)
+    return found
 
 
 def model_of(annotation: Any) -> Any:
