@@ -169,7 +169,7 @@ def test_a_scheduler_that_waits_with_nothing_running_ends_the_campaign_saying_so
         assert summary.proposed == summary.done + summary.abandoned + summary.pending  # accounted for
 
 
-@pytest.mark.parametrize("stalled", [("dots",), ("dots", "catalyst")])
+@pytest.mark.parametrize("stalled", [("dots",), ("dots", "catalyst"), "lab"])
 def test_a_shared_lab_whose_schedulers_wait_for_nothing_ends_in_virtual_time(tmp_path, stalled):
     """A lab of several campaigns idled to max_lab_hours (10,001 lab-h) when every campaign still running had
     steps ready and a scheduler that waited with the whole lab idle. It ends once the others are done (or have
@@ -178,11 +178,19 @@ def test_a_shared_lab_whose_schedulers_wait_for_nothing_ends_in_virtual_time(tmp
     from twin.runtime.lab import prepare
     from twin.runtime.shared_run import run_shared
 
-    patient = {f"campaigns.{['dots', 'catalyst'].index(n)}.campaign.scheduler":
-               "tests.twin.test_bad_schedulers:Patient" for n in stalled}
+    if stalled == "lab":  # one scheduler for the lab (orchestrator.lab_scheduler) that waits: both stall
+        patient, stalled = {"orchestrator.lab_scheduler": "tests.twin.test_bad_schedulers:Patient"}, ()
+    else:
+        patient = {f"campaigns.{['dots', 'catalyst'].index(n)}.campaign.scheduler":
+                   "tests.twin.test_bad_schedulers:Patient" for n in stalled}
     s = prepare(LAB, seed=1, clock="virtual", bus="memory", overrides={**SMALL, **patient})
     out = run_shared(s, tmp_path, handle_signals=False)
     assert out.lab_hours < 24
+    if not stalled:
+        for c in out.campaigns.values():
+            assert c.done == 0 and c.pending > 0, c
+            assert "the lab's scheduler (tests.twin.test_bad_schedulers:Patient) answered wait" in c.stopped
+        return
     for name, c in out.campaigns.items():
         if name in stalled:
             assert c.done == 0 and c.pending > 0 and "answered wait with no device busy" in c.stopped, c
@@ -289,12 +297,14 @@ def test_every_alert_is_a_warning_or_an_error_in_the_viewer_log():
     assert {kind: _level(kind) for kind in ALERTS if _level(kind) not in ("WARN", "ERROR")} == {}
 
 
-def test_a_live_shared_lab_whose_schedulers_wait_for_nothing_says_so_in_each_journal(tmp_path):
+@pytest.mark.parametrize("lab_scheduler", [False, True])
+def test_a_live_shared_lab_whose_schedulers_wait_for_nothing_says_so_in_each_journal(tmp_path, lab_scheduler):
     """On a live clock a shared lab stalled silently until the campaigns' max_lab_hours. Now each stalled campaign
     notes scheduler.stalled (an alert, not an end: an operator may still move the lab), once, naming each
     scheduler, and not before the second campaign (at 1 lab-h) has started (its steps could have woken the
     first); the campaigns still end at their limit with their experiments accounted for. The alert is one of
-    the lab's inputs, so a lab killed before its campaigns' journals had it gets it back on resuming."""
+    the lab's inputs, so a lab killed before its campaigns' journals had it gets it back on resuming. The same
+    with one scheduler for the lab (orchestrator.lab_scheduler), named instead."""
     import sqlite3
 
     from tests.twin.shared_labs import LAB, SMALL
@@ -302,7 +312,9 @@ def test_a_live_shared_lab_whose_schedulers_wait_for_nothing_says_so_in_each_jou
     from twin.runtime.resume_lab import resume_lab
     from twin.runtime.shared_run import run_shared
 
-    patient = {f"campaigns.{i}.campaign.scheduler": "tests.twin.test_bad_schedulers:Patient" for i in (0, 1)}
+    who = "tests.twin.test_bad_schedulers:Patient"
+    patient = {"orchestrator.lab_scheduler": who} if lab_scheduler else {
+        f"campaigns.{i}.campaign.scheduler": who for i in (0, 1)}
     limits = {f"campaigns.{i}.campaign.max_lab_hours": 2 for i in (0, 1)}
     s = prepare(LAB, seed=1, clock="scaled", speed=20_000, bus="memory", overrides={**SMALL, **patient, **limits})
     out = run_shared(s, tmp_path, handle_signals=False)
@@ -310,8 +322,10 @@ def test_a_live_shared_lab_whose_schedulers_wait_for_nothing_says_so_in_each_jou
         assert c.done == 0 and c.pending > 0 and "max_lab_hours" in c.stopped, c
         said = [e for e in read_events(tmp_path / f"{name}.db") if e["kind"] == "scheduler.stalled"]
         assert len(said) == 1 and said[0]["t_lab"] >= 3600, said
-        assert "dots: tests.twin.test_bad_schedulers:Patient" in said[0]["detail"]
-        assert "catalyst: tests.twin.test_bad_schedulers:Patient" in said[0]["detail"]
+        if lab_scheduler:
+            assert f"the lab's scheduler ({who}) answered wait" in said[0]["detail"]
+        else:
+            assert f"dots: {who}" in said[0]["detail"] and f"catalyst: {who}" in said[0]["detail"]
     for db in tmp_path.glob("*.db"):  # as if killed before the campaigns' journals had the alert
         with sqlite3.connect(db) as c:
             c.execute("DELETE FROM run WHERE key='summary'")

@@ -186,15 +186,16 @@ class SharedLab:
     def stalled(self) -> str:
         """Why nothing can happen but the campaigns' time limits, or "": every campaign started (none queued, no
         submissions to come), and each one not finished has steps ready that its scheduler, asked, left waiting
-        with the whole lab idle. A virtual clock ends the lab on it; a live one only alerts (``newly_stalled``)."""
-        return "" if self.serving or self.one_scheduler else self._stuck()
+        with the whole lab idle (or the lab's one scheduler did). A virtual clock ends the lab on it; a live one only
+        alerts (``newly_stalled``)."""
+        return "" if self.serving else self._stuck()
 
     def newly_stalled(self) -> tuple[str, list[str]]:
         """On a live clock, when nothing is left to do (``has_work`` false): the stall ``stalled`` describes is an
         alert, not an end (an operator, or an instrument coming back, may still move the lab; a served lab may be
         given more campaigns). Why, and the campaigns not stalled before (each one's ``stalled`` is set, for
         ``twin ctl status``, until the lab moves again): the runtime notes ``scheduler.stalled`` for each."""
-        why = "" if self.one_scheduler else self._stuck()  # a served lab too: it may never be given another
+        why = self._stuck()  # a served lab too: it may never be given another
         fresh = []
         for name in self.started:
             core = self.cores[name]
@@ -206,14 +207,17 @@ class SharedLab:
         return why, fresh
 
     def _stuck(self) -> str:
-        """Each campaign started and not finished has steps ready that its scheduler, asked, left waiting with the
-        whole lab idle; none is due or yet to start (its steps could wake the others)."""
-        if self._due or self._stopping or len(self.started) + len(self.unsubmitted) != len(self.entries):
+        """Each campaign started and not finished has steps ready that its scheduler (or the lab's one), asked,
+        left waiting with the whole lab idle; none is due or yet to start (its steps could wake the others)."""
+        if (self._due or self._stopping or self._asks or self._lab_ask is not None
+                or len(self.started) + len(self.unsubmitted) != len(self.entries)):
             return ""
         live = {n: self.cores[n] for n in self.started if not self.cores[n].finished}
         if not live or not all(c.ready and c.waiting is None and not c.has_events and stall.idle(c)
                                for c in live.values()):
             return ""
+        if self.one_scheduler:
+            return stall.say_for_lab({}, self.lab.orchestrator.lab_scheduler)
         return stall.say_for_lab({n: c.s.campaign.scheduler for n, c in live.items()})
 
     @property

@@ -30,8 +30,12 @@ def idle(core: CampaignCore) -> bool:
             and not any(spec.faults.mtbc_h for spec in core.s.devices.values()) and core._timers <= _NOT_EVENTS)
 
 
-def say_for_lab(names: dict[str, str]) -> str:
-    """Why a shared lab in virtual time ends: each campaign's scheduler (campaign -> scheduler) waits for nothing."""
+def say_for_lab(names: dict[str, str], lab_scheduler: str = "") -> str:
+    """Why a shared lab stalls: each campaign's scheduler (campaign -> scheduler), or the lab's one, waits for
+    nothing."""
+    if lab_scheduler:
+        return (f"the lab's scheduler ({lab_scheduler}) answered wait with no device busy and nothing due, so no "
+                "event would ask it again: a scheduler must start a step when nothing runs")
     which = ", ".join(f"{c}: {s}" for c, s in names.items())
     return (f"the schedulers ({which}) answered wait with no device busy and nothing due, so no event would ask "
             "them again: a scheduler must start a step when nothing runs")
