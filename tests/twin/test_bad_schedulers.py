@@ -335,3 +335,43 @@ def test_a_live_shared_lab_whose_schedulers_wait_for_nothing_says_so_in_each_jou
         kinds = [e["kind"] for e in read_events(tmp_path / f"{name}.db")]
         assert kinds.count("scheduler.stalled") == 1 and kinds.index("scheduler.stalled") < kinds.index(
             "campaign.resumed"), kinds
+
+
+def test_a_paused_campaign_of_a_shared_lab_is_not_called_stalled():
+    """Waiting because an operator paused it is not a scheduler's wait for nothing: with one campaign paused, the
+    lab is not said to stall (its operator resumes it), and the alert comes back only if it does again."""
+    from tests.twin.shared_labs import LAB, SMALL
+    from twin.campaign import Ask, Decided, Presence, Proposed
+    from twin.campaign.decisions import Proposal
+    from twin.campaign.events import Operator
+    from twin.campaign.sharing import SharedLab
+    from twin.runtime.lab import prepare
+    from twin.scenario.sharing import campaign_scenarios
+
+    who = "tests.twin.test_bad_schedulers:Patient"
+    lab = prepare(LAB, seed=1, overrides={**SMALL, "campaigns.1.start_h": 0, "clock.mode": "scaled",
+                                          **{f"campaigns.{i}.campaign.scheduler": who for i in (0, 1)}})
+    shared = SharedLab(lab, campaign_scenarios(lab))
+    shared.start(0.0)
+    for device in shared.online:
+        shared.feed_device(Presence(device, True))
+
+    def settle(now: float) -> None:  # every question answered: mid-box proposals, and the schedulers' wait
+        while shared.has_work:
+            for name, a in shared.advance(now):
+                if type(a) is Ask and a.what == "plan":
+                    box = shared.cores[name].s.chemistry.parameters
+                    mid = {k: (p.low + p.high) / 2 for k, p in box.items()}
+                    shared.feed(name, Proposed([Proposal(dict(mid)) for _ in range(a.n)]))
+                elif type(a) is Ask:
+                    shared.feed(name, Decided([]))
+
+    settle(1.0)
+    why, stalled = shared.newly_stalled()
+    assert stalled == ["dots", "catalyst"] and f"dots: {who}, catalyst: {who}" in why
+    shared.feed("dots", Operator("pause", "alice"))
+    settle(2.0)
+    assert shared.newly_stalled() == ("", []) and all(not c.stalled for c in shared.cores.values())
+    shared.feed("dots", Operator("resume", "alice"))
+    settle(3.0)
+    assert shared.newly_stalled()[1] == ["dots", "catalyst"]

@@ -213,8 +213,8 @@ class SharedLab:
                 or len(self.started) + len(self.unsubmitted) != len(self.entries)):
             return ""
         live = {n: self.cores[n] for n in self.started if not self.cores[n].finished}
-        if not live or not all(c.ready and c.waiting is None and not c.has_events and stall.idle(c)
-                               for c in live.values()):
+        if not live or not all(c.ready and c.waiting is None and not c.has_events and not c.paused_by
+                               and stall.idle(c) for c in live.values()):  # paused: its operator resumes it
             return ""
         if self.one_scheduler:
             return stall.say_for_lab({}, self.lab.orchestrator.lab_scheduler)
