@@ -298,6 +298,11 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
                 overrides={"campaigns.0.campaign.budget": 2, "campaigns.0.campaign.planner": "random",
                            "campaigns": [load(LAB).campaigns[0].model_dump(exclude_none=True)],
                            "orchestrator.lab_scheduler": "fair-share"}, lab_only=True)
+    def by_module(name: str, field: str, spec: str) -> bytes:  # a campaign valid but for naming a module to import
+        c = load(LAB).campaigns[0].model_dump(mode="json", exclude_none=True)
+        c["name"], c["campaign"][field] = name, spec
+        return json.dumps({"file": json.dumps(c)}).encode()
+
     bomb = "a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
         f"{k}: &{k} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
         for p, k in zip("abcdefg", "bcdefgh"))
@@ -311,6 +316,9 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
         json.dumps({"file": "name: dots\n"}).encode(): "has a campaign 'dots' already",
         json.dumps({"file": "name: y\nafter: dots\n"}).encode(): "after / start_h",
         json.dumps({"file": "name: z\nworkflow: [{step: melt, device: furnace}]\n"}).encode(): "furnace",
+        by_module("m", "scheduler", "tests.twin.test_bad_schedulers:Patient"):
+            "campaign.scheduler: 'tests.twin.test_bad_schedulers:Patient' is a module path, which the lab would import",
+        by_module("n", "planner", "antigravity:Planner"): "campaign.planner: 'antigravity:Planner' is a module path",
         b"{" + b" " * (1 << 21) + b"}": "bytes; at most",
     }
     answers: dict = {}
@@ -329,6 +337,42 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
         answer = answers[payload]
         assert answer["ok"] is False and words in answer["error"], (payload[:60], answer)
     assert list(out.campaigns) == ["dots"] and sorted(p.stem for p in tmp_path.glob("*.db")) == ["dots"]
+
+
+@pytest.mark.parametrize("trust", [False, True])
+def test_a_submitted_campaign_names_a_module_only_if_the_lab_file_does_or_the_lab_trusts_modules(tmp_path, trust):
+    """A module path in a submitted campaign is code the lab imports for whoever submitted it: taken when the lab
+    file names the same one, or when the lab is served with --trust-modules, and refused otherwise."""
+    import asyncio
+
+    from twin.runtime.shared_run import serve_lab
+
+    first = load(LAB).campaigns[0].model_dump(mode="json", exclude_none=True)
+    first["campaign"].update(budget=2, planner="random", scheduler="agents.schedulers:MwkrScheduler")
+    s = prepare(LAB, clock="scaled", speed=50_000, bus="memory", overrides={"campaigns": [first]}, lab_only=True)
+
+    def submission(name: str, scheduler: str) -> bytes:
+        c = {**first, "name": name, "campaign": {**first["campaign"], "scheduler": scheduler}}
+        return json.dumps({"file": json.dumps(c)}).encode()
+
+    answers: dict = {}
+
+    def started(lab) -> None:
+        async def ask() -> None:
+            for name, scheduler in (("same", "agents.schedulers:MwkrScheduler"),
+                                    ("other", "agents.schedulers:SptScheduler")):
+                answers[name] = json.loads(await lab.desk.serve("labtwin/shared/control/submit",
+                                                                submission(name, scheduler)))
+            lab.stop("test over")
+        asyncio.ensure_future(ask())
+
+    serve_lab(s, tmp_path, handle_signals=False, on_start=started, trust_modules=trust)
+    assert answers["same"]["ok"] is True, answers["same"]
+    if trust:
+        assert answers["other"]["ok"] is True, answers["other"]
+    else:
+        assert answers["other"]["ok"] is False and "--trust-modules" in answers["other"]["error"]
+    assert (tmp_path / "other.db").exists() == trust
 
 
 def test_a_device_one_campaign_quarantined_is_kept_from_the_others_until_its_probe(tmp_path):

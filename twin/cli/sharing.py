@@ -86,6 +86,9 @@ def lab_serve(
     external: Annotated[Optional[list[str]], typer.Option(metavar="DEVICE",
                                                           help="a device served by another process")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="at the end, print the summary as JSON")] = False,
+    trust_modules: Annotated[bool, typer.Option(help="let a submitted campaign name 'package.module:Class' "
+                                                     "planners and schedulers, which the lab imports (default: "
+                                                     "installed ones and those the lab file names)")] = False,
 ) -> None:
     """Serve a lab that several campaigns share, until Ctrl-C or SIGTERM: its devices, the campaigns of its file,
     and those submitted with `twin submit`; then print each campaign's summary."""
@@ -108,7 +111,7 @@ def lab_serve(
                       f"{f', {s.clock.speed:g}x' if s.clock.mode == 'scaled' else ''}) with "
                       f"{len(s.campaigns)} campaign(s); `twin submit CAMPAIGN.yaml --lab {s.lab} --connect ...` adds "
                       "one, Ctrl-C stops", highlight=False)
-        summary = serve_lab(s, journal, set(external or ()), on_start=started)
+        summary = serve_lab(s, journal, set(external or ()), on_start=started, trust_modules=trust_modules)
     except TwinError as exc:
         _fail(exc)
     _show(summary, json_out)

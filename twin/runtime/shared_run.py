@@ -12,7 +12,7 @@ from pathlib import Path
 from twin.campaign.sharing import SharedLab
 from twin.campaign.summary import LabSummary, Summary
 from twin.core.clock import LabClock
-from twin.core.errors import ClockError, DriverError, TwinError
+from twin.core.errors import ClockError, DriverError, PluginError, TwinError
 from twin.runtime.fast_lab import FastLab
 from twin.runtime.lab_claim import refuse_if_taken
 from twin.campaign.journal import Journal
@@ -73,10 +73,12 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
 
 
 def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices: Collection[str] = frozenset(),
-              handle_signals: bool = True, on_start: Callable[[Any], None] | None = None) -> LabSummary:
+              handle_signals: bool = True, on_start: Callable[[Any], None] | None = None,
+              trust_modules: bool = False) -> LabSummary:
     """``twin lab serve``: the lab's devices and the campaigns of its file, taking more as they are submitted
     (``twin submit``), until it is stopped (Ctrl-C, SIGTERM). A lab file without campaigns gives the chemistry
-    its simulated devices simulate by default."""
+    its simulated devices simulate by default. ``trust_modules``: a submitted campaign may name
+    'package.module:Class' plugins the lab file does not."""
     if s.clock.mode == "virtual":
         raise ClockError(f"{s.name}: a lab that serves waits for campaigns in real time: use --clock scaled or wall")
     _lab_scheduler(s)  # a scheduler that cannot start is said before anything does
@@ -92,7 +94,7 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
     parts = {name: _parts(cs, where / f"{name}.db", external_devices, s) for name, cs in scenarios.items()}
     clock = make_clock(s)
     return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals,
-                           serving=external_devices, on_start=on_start))
+                           serving=external_devices, on_start=on_start, trust_modules=trust_modules))
 
 
 def _standby_drivers(s: Scenario, skip: Collection[str]) -> list[tuple[str, str, Any]]:
@@ -135,6 +137,27 @@ def _refuse_agents(scenarios: dict[str, Scenario]) -> None:
                          "several, give each campaign an in-process scheduler")
 
 
+_PLUGIN_FIELDS = (("planner", "planners"), ("scheduler", "schedulers"), ("fallback_scheduler", "schedulers"))
+
+
+def module_plugins(cs: Scenario) -> dict[str, str]:
+    """The campaign's fields that name a 'package.module:Class' plugin (not an installed name, nor rl:POLICY)."""
+    specs = {f"campaign.{field}": (kind, getattr(cs.campaign, field)) for field, kind in _PLUGIN_FIELDS}
+    return {field: spec for field, (kind, spec) in specs.items() if ":" in plugins.with_policy(kind, spec)[0]}
+
+
+def refuse_module_plugins(name: str, cs: Scenario, trusted: Collection[str]) -> None:
+    """A submitted campaign names installed plugins (or those ``trusted``: the lab file's own): a module path
+    would have the lab import, and run, whatever module anyone who can submit names."""
+    for field, spec in module_plugins(cs).items():
+        if spec not in trusted:
+            raise PluginError(
+                f"campaign {name}: {field}: {spec!r} is a module path, which the lab would import for whoever "
+                "submitted it; a submitted campaign names installed plugins (an entry point: docs/plugins.md, "
+                "'Installed by name') or the ones the lab file names. Where everyone who can submit is trusted, "
+                "serve the lab with --trust-modules")
+
+
 def _parts(s: Scenario, path: Path, external: Collection[str], lab: Scenario | None = None,
            make_journal: JournalFactory = Journal) -> tuple:
     """A campaign's journal (with the lab file it ran in, for ``twin resume`` of the lab), planner and
@@ -153,9 +176,9 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
                 parts: dict, where: Path, wall0: float, handle_signals: bool,
                 serving: Collection[str] | None = None, on_start: Callable[[Any], None] | None = None,
                 observer: SharedLabObserver | None = None, rebuilt: RebuiltLab | None = None,
-                external: Collection[str] = ()) -> LabSummary:
+                external: Collection[str] = (), trust_modules: bool = False) -> LabSummary:
     """``serving``: None, or the external devices of a lab that takes campaigns as they are submitted;
-    ``rebuilt``: a killed lab to take over (``twin resume``)."""
+    ``rebuilt``: a killed lab to take over (``twin resume``); ``trust_modules``: see ``serve_lab``."""
     async with contextlib.AsyncExitStack() as stack:
         inputs = Journal(where / LAB_INPUTS, append=rebuilt is not None)
         stack.callback(inputs.close)
@@ -176,8 +199,12 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
         def seat_parts(name: str, cs: Scenario, made: tuple) -> tuple:
             return made[0], made[1], live_scheduler(cs, made[2], bus, clock)[0]
 
+        trusted = {spec for cs in scenarios.values() for spec in module_plugins(cs).values()}
+
         def adopt(name: str, cs: Scenario) -> tuple:
             _refuse_agents({name: cs})
+            if not trust_modules:
+                refuse_module_plugins(name, cs, trusted)
             check_campaign(cs)
             mine = {a.name for a in actors}
             _, per = shared_drivers({name: cs}, only=mine) if mine else ([], {})
