@@ -373,6 +373,9 @@ def test_a_submitted_campaign_names_a_module_only_if_the_lab_file_does_or_the_la
     else:
         assert answers["other"]["ok"] is False and "--trust-modules" in answers["other"]["error"]
     assert (tmp_path / "other.db").exists() == trust
+    from twin.campaign.journal import read_run
+
+    assert read_run(tmp_path / "lab.inputs")["trust_modules"] is trust  # what `twin resume` serves on with
 
 
 def test_a_device_one_campaign_quarantined_is_kept_from_the_others_until_its_probe(tmp_path):

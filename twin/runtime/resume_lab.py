@@ -163,6 +163,7 @@ def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], han
     clock = LabClock(s.clock.mode, s.clock.speed, start=rebuilt.now)
     return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, time.perf_counter(),
                            handle_signals, serving=external if serving else None, on_start=on_start,
+                           trust_modules=bool(run_data.get("trust_modules")),
                            observer=observer, rebuilt=rebuilt, external=external))
 
 

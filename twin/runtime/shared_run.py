@@ -185,6 +185,7 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
         if rebuilt is None:
             inputs.set("lab", s.model_dump(exclude_unset=True))
             inputs.set("serving", serving is not None)
+            inputs.set("trust_modules", trust_modules)  # a resumed lab takes what it took
             inputs.set("external", sorted(serving if serving is not None else external))
         bus = make_bus(s, clock)
         await bus.start()
