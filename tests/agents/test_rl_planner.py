@@ -178,3 +178,48 @@ def test_a_driver_that_is_never_ready_is_named_in_a_workcell():
     with pytest.raises(DriverError, match="kiln driver answered 'not now' to 'anneal' 3 times in a row in a "
                                           "workcell \\(last: warming up\\)"):
         cell.run({**{n: p.low for n, p in lab.chemistry.parameters.items()}, "anneal_c": 700})
+
+
+class CloggingKiln(HotKiln):
+    """A driver whose step fails (raises), as the docs' faults do: every other attempt, and always above 900 C."""
+
+    calls = 0
+
+    async def run(self, step, params, sample, ctx):
+        from twin import DriverError, StepResult
+
+        CloggingKiln.calls += 1
+        if params["anneal_c"] > 900 or CloggingKiln.calls % 2:
+            raise DriverError("column clogged")
+        await ctx.clock.sleep(600)
+        return StepResult({"anneal_c": params["anneal_c"]}, sample)
+
+
+def test_a_driver_fault_in_the_planning_env_is_taken_as_a_campaign_takes_it():
+    """A driver's own error (`raise DriverError("column clogged")`, as docs/drivers.md has faults) ended `twin train
+    --agent planner` with "error: column clogged". Now the step is tried again (a campaign retries it), and an
+    experiment whose every attempt fails measures nothing, marked failed; only a driver that has failed every
+    experiment so far (ten) stops the training, named."""
+    from twin import DriverError, open_workcell
+
+    lab = prepare(kiln_lab(), overrides={"devices.kiln.driver": "tests.agents.test_rl_planner:CloggingKiln"})
+    cell = open_workcell(lab)
+    at = {n: p.low for n, p in lab.chemistry.parameters.items()}
+    CloggingKiln.calls = 0
+    ok = cell.run({**at, "anneal_c": 700})
+    assert ok.outputs and not ok.failed and CloggingKiln.calls == 2  # the first attempt failed, the second ran
+    hot = cell.run({**at, "anneal_c": 920})
+    assert hot.outputs == {} and hot.failed == "kiln failed 'anneal': DriverError: column clogged (3 attempts)"
+    env = PlanningEnv(lab)
+    env.action_space.seed(1)
+    env.reset(seed=1)
+    measured, run = [], env.workcell.run
+    env.workcell.run = lambda params: measured.append(run(params)) or measured[-1]
+    rewards = [env.step(env.action_space.sample())[1] for _ in range(30)]
+    assert all(r == r and abs(r) < 100 for r in rewards)  # finite, though some experiments measured nothing
+    assert any(m.failed for m in measured) and any(m.outputs for m in measured)
+    broken = open_workcell(lab)  # one that has never measured anything
+    with pytest.raises(DriverError, match="the first 10 experiments in a workcell all failed; the last: kiln failed "
+                                          "'anneal'"):
+        for _ in range(10):
+            broken.run({**at, "anneal_c": 920})

@@ -9,7 +9,9 @@ times are the orchestrator's and actors' business and are left out.
 
 A driver's refusal is taken as a campaign takes it: ``Refused(infeasible=True)`` ends the experiment with no
 outputs, marked ``infeasible``; a "not now" is asked again after the scenario's retry back-off, lab time
-passing, up to ``orchestrator.retry.max_attempts`` times.
+passing, up to ``orchestrator.retry.max_attempts`` times. So is its fault (it raised, or returned what is not a
+``StepResult``): the step is tried again, up to ``max_attempts`` times, and then the experiment ends with no
+outputs, marked ``failed``; a driver that has failed every experiment, ten of them, is named.
 """
 
 from __future__ import annotations
@@ -50,6 +52,15 @@ class Measured:
     outputs: dict[str, Any]  # the last step's outputs, as a planner would see them
     lab_s: float  # lab time the workflow took
     infeasible: str = ""  # why a device refused these parameters for good (then no outputs)
+    failed: str = ""  # the driver's fault, each attempt failing (then no outputs)
+
+
+#: experiments failed, none measured yet, before the workcell says the driver cannot run at all
+FAILED_FROM_THE_START = 10
+
+
+class _Failed(Exception):
+    """A step whose every attempt failed (the driver raised): the experiment is abandoned, as in a campaign."""
 
 
 class Workcell:
@@ -58,6 +69,7 @@ class Workcell:
     def __init__(self, scenario: Scenario, drivers: dict[str, Any], seed: int = 0) -> None:
         self.scenario, self.drivers = scenario, drivers
         self.clock = SteppedClock()
+        self._failed, self._measured = 0, False
         self.reseed(seed)
 
     def reseed(self, seed: int) -> None:
@@ -75,24 +87,43 @@ class Workcell:
                 result = self._step(w, params, sample, ctx)
             except Refused as refused:
                 return Measured({}, self.clock.t - start, infeasible=f"{w.device} refused {w.step!r}: {refused.reason}")
+            except _Failed as failed:
+                self._failed += 1
+                if not self._measured and self._failed >= FAILED_FROM_THE_START:
+                    raise DriverError(f"the first {self._failed} experiments in a workcell all failed; the last: "
+                                      f"{failed}. Fix the driver, or give devices.{w.device}.twin a simulated "
+                                      "driver that stands in for it") from None
+                return Measured({}, self.clock.t - start, failed=str(failed))
             sample, outputs = result.sample, result.outputs
+        self._measured = True
         return Measured({k: v for k, v in outputs.items() if k != "spectrum"}, self.clock.t - start)
 
     def _step(self, w: Any, params: dict[str, Any], sample: Any, ctx: StepContext) -> Any:
         """The step's result; a "not now" asked again later. Raises ``Refused`` only for good."""
-        retry = self.scenario.orchestrator.retry
+        retry, driver = self.scenario.orchestrator.retry, self.drivers[w.device]
+        fault = ""
         for attempt in range(retry.max_attempts):
             try:
-                return step_result(_complete(self.drivers[w.device].run(w.step, params, sample, ctx), w.device),
-                                   self.drivers[w.device])
+                return step_result(_complete(driver.run(w.step, params, sample, ctx), w.device), driver)
             except Refused as refused:
                 if refused.infeasible:
                     raise
                 reason = refused.reason
                 self.clock.t += min(retry.backoff_s * 2 ** attempt, retry.backoff_max_s)
+            except _NotStepped:
+                raise
+            except (Exception, SystemExit) as exc:  # the driver's fault: a campaign tries the step again, later
+                fault = f"{w.device} failed {w.step!r}: {type(exc).__name__}: {exc}"
+                self.clock.t += min(retry.backoff_s * 2 ** attempt, retry.backoff_max_s)
+        if fault:
+            raise _Failed(f"{fault} ({retry.max_attempts} attempts)")
         raise DriverError(f"the {w.device} driver answered 'not now' to {w.step!r} {retry.max_attempts} times in a "
                           f"row in a workcell (last: {reason}); a workcell has nothing else to wait for: raise "
                           "orchestrator.retry.max_attempts or backoff_s, or make the driver ready sooner")
+
+
+class _NotStepped(DriverError):
+    """A driver that waits on something other than the lab clock: no attempt would do better."""
 
 
 def _complete(coro: Any, device: str) -> Any:
@@ -101,7 +132,7 @@ def _complete(coro: Any, device: str) -> Any:
     except StopIteration as done:
         return done.value
     coro.close()
-    raise DriverError(f"the {device} driver waited on something other than the lab clock; it cannot run in a "
+    raise _NotStepped(f"the {device} driver waited on something other than the lab clock; it cannot run in a "
                       f"workcell: give devices.{device}.twin: {{driver: NAME}}, a simulated driver that stands in "
                       "for it (docs/drivers.md)")
 
