@@ -147,6 +147,27 @@ def test_a_lab_of_several_campaigns_shows_each_campaigns_hours_one_after_the_oth
     assert all(len(line) <= 80 for line in out.splitlines())
 
 
+def test_a_lab_whose_scheduler_stalls_counts_at_the_campaigns_limit_not_as_the_shortest(tmp_path):
+    """A shared lab's stall ends it at once in virtual time: `twin whatif` showed such a variant at 0.0 lab-h, the
+    best of the table. As a bench does for a campaign on its own, each stalled campaign counts at its limit."""
+    import yaml
+
+    raw = yaml.safe_load((ROOT / "scenarios" / "shared_lab.yaml").read_text())
+    for c, budget in zip(raw["campaigns"], (6, 4)):
+        c["campaign"].update(budget=budget, planner="random", max_lab_hours=50)
+    lab = tmp_path / "lab.yaml"
+    lab.write_text(yaml.safe_dump(raw))
+    code, out = whatif(str(lab), "--vary", "orchestrator.lab_scheduler=,tests.twin.test_bad_schedulers:Patient",
+                       "--seeds", "2", "--json")
+    assert code == 0, out
+    data = json.loads(out[out.index("{"):])
+    stalled = [r for r in data["runs"] if r["variant"] != "as written"]
+    assert stalled and all("answered wait with no device busy" in r["stopped"] for r in stalled)
+    assert all(r["lab_hours"] >= 50 and r["per_campaign"]["dots"] == 50 for r in stalled), stalled
+    written = [r for r in data["runs"] if r["variant"] == "as written"]
+    assert all(r["lab_hours"] < 50 for r in written)
+
+
 def test_a_job_shop_of_minutes_reads_in_lab_seconds_and_a_played_ahead_run_saves_them(tmp_path):
     """Playing the shop ahead (campaign.rollouts) shortens it by seconds of a shop of minutes: shown as such, not
     as '0.224' and '-0.007' lab-h (nor, before that, '0.2' and '-0.0')."""

@@ -146,13 +146,17 @@ def one(scenario: Scenario, variant: Variant, seed: int) -> Outcome:
 
 def _shared(lab: Scenario, variant: Variant, seed: int) -> Outcome:
     """A lab of several campaigns: reached when every campaign met every target; lab-hours (from the lab's
-    start) until the last of them, else until the last campaign ended; cost, experiments and losses summed."""
+    start) until the last of them, else until the last campaign ended (one that stalled: at its max_lab_hours);
+    cost, experiments and losses summed."""
     with tempfile.TemporaryDirectory() as d:
         out = run_shared(prepare(lab, seed=seed), Path(d), handle_signals=False)
-    reached, last = True, 0.0
+    reached, last, hours, spans = True, 0.0, out.lab_hours, {}
     for c in lab.campaigns:
         summary = out.campaigns.get(c.name)
         scenario = campaign_scenario(lab, c, 0)
+        if summary is not None:  # a campaign stopped with experiments unfinished (a stall) counts at its limit
+            spans[c.name] = summary.hours_compared(scenario.campaign.max_lab_hours)
+            hours = max(hours, out.submitted_h.get(c.name, 0.0) + spans[c.name])
         names = [t.name for t in scenario.chemistry.targets]
         if summary is None or not names or not all(t in summary.targets_met_h for t in names):
             reached = False
@@ -161,10 +165,9 @@ def _shared(lab: Scenario, variant: Variant, seed: int) -> Outcome:
     runs = list(out.campaigns.values())
     per_type = {dtype: statistics.mean(out.utilisation.get(n, 0.0) for n in lab.instance_names(dtype))
                 for dtype in lab.devices}
-    return Outcome(variant.label, seed, reached, last if reached else out.lab_hours, out.lab_hours,
+    return Outcome(variant.label, seed, reached, last if reached else hours, hours,
                    sum(r.cost for r in runs), sum(r.proposed for r in runs), sum(r.abandoned for r in runs),
-                   sum(r.degraded_samples for r in runs), per_type,
-                   {n: c.lab_hours for n, c in out.campaigns.items()},
+                   sum(r.degraded_samples for r in runs), per_type, spans,
                    "; ".join(f"{n}: {c.stopped}" for n, c in out.campaigns.items() if c.stopped))
 
 
