@@ -173,3 +173,41 @@ def test_fixed_proposals_in_another_form_are_refused_naming_the_entry_and_the_fo
                 overrides={"campaign.planner": "fixed", "campaign.planner_options": {"proposals": proposals}})
     with pytest.raises(ScenarioError, match=re.escape(says)):
         check(s)
+
+
+class CrashingPlanner:
+    """Proposes the box's centre twice, then raises: the campaign ends early, short of every target."""
+
+    def __init__(self, parameters, seed):
+        self.box, self.asked = parameters, 0
+
+    def propose(self, n, history, pending):
+        from twin import Proposal
+
+        self.asked += 1
+        if self.asked > 2:
+            raise RuntimeError("GP exploded")
+        return [Proposal({k: (p.low + p.high) / 2 for k, p in self.box.items()}) for _ in range(n)]
+
+
+def test_a_planner_that_fails_early_is_counted_at_the_budget_not_as_the_fastest():
+    """A run its failed planner ended after 4 experiments read as '≥4 experiments, ≥1.3 lab-h' and an
+    acceleration of '≥30×' over random: the best row of the bench. It now counts at the budget and
+    campaign.max_lab_hours, as a stall does; and an acceleration over a censored row is an upper bound (≤),
+    or nothing at all when random's is censored too."""
+    from twin.tools.planner_bench import rows
+
+    lab = prepare(ROOT / "scenarios" / "quantum_dots.yaml", overrides={"campaign.budget": 40,
+                                                                        "campaign.max_lab_hours": 500})
+    failed = trial(lab, "tests.agents.test_planners:CrashingPlanner", 0)
+    assert "GP exploded" in failed.stopped and failed.experiments_run < 10
+    assert not failed.reached and failed.experiments == 40 and failed.lab_hours == 500
+    results = {"random": [trial(lab, "random", s) for s in (0, 1)], "gp-bo": [trial(lab, "gp-bo", s) for s in (0, 1)],
+               "crash": [failed, trial(lab, "tests.agents.test_planners:CrashingPlanner", 1)]}
+    table = {row[0]: row for row in rows(results)}
+    random_censored = sum(t.reached for t in results["random"]) / 2 < 0.5
+    assert table["crash"][1].startswith("≥40")
+    assert (table["crash"][-1] == "—") if random_censored else table["crash"][-1].startswith("≤")
+    assert all(t.reached for t in results["gp-bo"])  # not censored: its ratio a bound only by random's
+    first = table["gp-bo"][-1][0]
+    assert (first == "≥") if random_censored else first.isdigit()

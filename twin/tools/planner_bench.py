@@ -59,11 +59,15 @@ def trial(scenario: Scenario, planner: str, seed: int) -> Trial:
         s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual", overrides=overrides, agent_in_process=True)
     targets = [t.name for t in scenario.chemistry.targets]
     reached = all(t in s.targets_met_h for t in targets)
-    return Trial(planner, seed, reached,
-                 max(s.targets_met_after.values()) if reached else s.proposed,
-                 max(s.targets_met_h.values()) if reached else s.hours_compared(scenario.campaign.max_lab_hours),
-                 s.proposed,
-                 max(s.targets_met_cost.values()) if reached else s.cost, s.stopped)
+    limit_h = scenario.campaign.max_lab_hours
+    if reached:
+        return Trial(planner, seed, True, max(s.targets_met_after.values()), max(s.targets_met_h.values()),
+                     s.proposed, max(s.targets_met_cost.values()), s.stopped)
+    if s.stopped:  # ended early (its planner failed, a stall): at the limits it would have run to, not its end
+        return Trial(planner, seed, False, max(s.proposed, scenario.campaign.budget), limit_h, s.proposed, s.cost,
+                     s.stopped)
+    return Trial(planner, seed, False, s.proposed, s.hours_compared(limit_h), s.proposed, s.cost, s.stopped)
+
 
 
 def _trial(args: tuple) -> Trial:
@@ -128,13 +132,13 @@ def rows(results: dict[str, list[Trial]], baseline: str = "random") -> list[list
         censored = "≥" if success < 0.5 else ""
         mine = statistics.median(measure(t) for t in trials)
         accel = base_median / mine if mine else math.nan
-        base_censored = "≥" if base and sum(t.reached for t in base) / len(base) < 0.5 else ""
+        base_censored = bool(base) and sum(t.reached for t in base) / len(base) < 0.5
         if planner == baseline:
             speedup = "1.0×"
-        elif math.isnan(accel):
-            speedup = "—"  # no baseline row (or no experiment to divide by)
-        else:
-            speedup = f"{base_censored}{accel:.1f}×"
+        elif math.isnan(accel) or (censored and base_censored):
+            speedup = "—"  # no baseline row, no experiment to divide by, or two lower bounds: nothing to say
+        else:  # the baseline's count a lower bound: so is the ratio; this planner's: the ratio an upper one
+            speedup = f"{'≥' if base_censored else '≤' if censored else ''}{accel:.1f}×"
         out.append([label(planner), f"{censored}{e[1]:.0f} [{e[0]:.0f}–{e[2]:.0f}]", f"{censored}{h[1]:.1f} [{h[0]:.1f}–{h[2]:.1f}]",
                     f"{statistics.mean(t.experiments_run for t in trials):.0f}",
                     f"{statistics.median(t.cost for t in trials):,.0f}", f"{100 * success:.0f} %",
@@ -162,5 +166,6 @@ def caption(costs: bool = True) -> str:
     cost = ("cost: at the last target (median)" if costs else
             "no device costs anything (devices.*.cost, cost_per_hour), so no cost column")
     return ("medians [IQR]; ≥: censored by the budget (reached in under half the runs, where the budget or the run's "
-            f"end is counted); exp. run: experiments run in all (mean); {cost}; reached: runs that met every target; "
-            "accel.: random's median experiments (cost, where experiments cost) ÷ this planner's")
+            "end is counted; a run ended early, at the budget and campaign.max_lab_hours); exp. run: experiments run "
+            f"in all (mean); {cost}; reached: runs that met every target; accel.: random's median experiments (cost, "
+            "where experiments cost) ÷ this planner's (≥ or ≤ where one side is censored; — where both are)")
