@@ -59,10 +59,10 @@ class Summary:
         return asdict(self)
 
     def hours_compared(self, max_lab_hours: float) -> float:
-        """The lab-hours a bench counts this run for: its own, or, for a run stopped with experiments unfinished
-        (a scheduler that waited for nothing, ended at once), the campaign's limit, which it would have run to:
-        a stall must not read as the shortest run of all."""
-        return max_lab_hours if self.stopped and self.pending else self.lab_hours
+        """The lab-hours a bench counts this run for: its own, or, for a run that ended early (a scheduler that
+        waited for nothing, a planner that failed), the campaign's limit, which it would have run to: an early
+        end must not read as the shortest run of all."""
+        return max_lab_hours if self.stopped else self.lab_hours
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Summary:

@@ -59,14 +59,13 @@ def trial(scenario: Scenario, planner: str, seed: int) -> Trial:
         s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual", overrides=overrides, agent_in_process=True)
     targets = [t.name for t in scenario.chemistry.targets]
     reached = all(t in s.targets_met_h for t in targets)
-    limit_h = scenario.campaign.max_lab_hours
     if reached:
         return Trial(planner, seed, True, max(s.targets_met_after.values()), max(s.targets_met_h.values()),
                      s.proposed, max(s.targets_met_cost.values()), s.stopped)
-    if s.stopped:  # ended early (its planner failed, a stall): at the limits it would have run to, not its end
-        return Trial(planner, seed, False, max(s.proposed, scenario.campaign.budget), limit_h, s.proposed, s.cost,
-                     s.stopped)
-    return Trial(planner, seed, False, s.proposed, s.hours_compared(limit_h), s.proposed, s.cost, s.stopped)
+    # ended early (its planner failed, a stall): at the budget it would have run to, not its end
+    experiments = max(s.proposed, scenario.campaign.budget) if s.stopped else s.proposed
+    return Trial(planner, seed, False, experiments, s.hours_compared(scenario.campaign.max_lab_hours), s.proposed,
+                 s.cost, s.stopped)
 
 
 

@@ -154,7 +154,7 @@ def _shared(lab: Scenario, variant: Variant, seed: int) -> Outcome:
     for c in lab.campaigns:
         summary = out.campaigns.get(c.name)
         scenario = campaign_scenario(lab, c, 0)
-        if summary is not None:  # a campaign stopped with experiments unfinished (a stall) counts at its limit
+        if summary is not None:  # a campaign that ended early (a stall) counts at its limit
             spans[c.name] = summary.hours_compared(scenario.campaign.max_lab_hours)
             hours = max(hours, out.submitted_h.get(c.name, 0.0) + spans[c.name])
         names = [t.name for t in scenario.chemistry.targets]
