@@ -14,6 +14,9 @@ from twin.campaign.events import TimerKey, TimerKind
 
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
 
+_WHY = ("answered wait with no device busy and nothing due, so no event would ask {} again: a scheduler must start a "
+        "step when nothing runs")
+
 _NOT_EVENTS = frozenset({TimerKey(TimerKind.LIMIT), TimerKey(TimerKind.STARTUP)})
 
 
@@ -34,16 +37,13 @@ def say_for_lab(names: dict[str, str], lab_scheduler: str = "") -> str:
     """Why a shared lab stalls: each campaign's scheduler (campaign -> scheduler), or the lab's one, waits for
     nothing."""
     if lab_scheduler:
-        return (f"the lab's scheduler ({lab_scheduler}) answered wait with no device busy and nothing due, so no "
-                "event would ask it again: a scheduler must start a step when nothing runs")
+        return f"the lab's scheduler ({lab_scheduler}) " + _WHY.format("it")
     which = ", ".join(f"{c}: {s}" for c, s in names.items())
-    return (f"the schedulers ({which}) answered wait with no device busy and nothing due, so no event would ask "
-            "them again: a scheduler must start a step when nothing runs")
+    return f"the schedulers ({which}) " + _WHY.format("them")
 
 
 def say(core: CampaignCore) -> None:
-    why = (f"the scheduler ({core.s.campaign.scheduler}) answered wait with no device busy and nothing due, so no "
-           "event would ask it again: a scheduler must start a step when nothing runs")
+    why = f"the scheduler ({core.s.campaign.scheduler}) " + _WHY.format("it")
     if core.s.clock.mode == "virtual":
         core._on_stop(why)
     elif not core.stalled:  # said once, until the scheduler starts a step again
