@@ -294,7 +294,7 @@ def until_ended(lab: str, connect: list[str], security: str | None, campaign: st
                           f"{row['in_progress']} in progress, of a budget of {row['budget']} ({row['state']}, lab "
                           f"{hours:.2f} h)", highlight=False, markup=False)
                 said = now
-            time.sleep(every_s)
+            time.sleep(every_s)  # a client's poll of another process, in its user's seconds: no lab clock here
     except KeyboardInterrupt:
         err.print(f"stopped waiting; the campaign goes on in lab {lab} (twin ctl status)", highlight=False,
                   markup=False)
