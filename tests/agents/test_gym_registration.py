@@ -28,3 +28,20 @@ def test_scenario_still_overrides_the_default():
 
 def test_the_route_env_is_registered_too():
     assert "labtwin/SynthesisRoute-v0" in gym.registry
+
+
+@pytest.mark.process
+def test_worker_processes_make_the_env_from_the_module_qualified_id():
+    """A vectorised env's spawned workers have not imported agents: the id that names the module (as README
+    says) imports it there, and each worker's lab is the one a plain make gives."""
+    import numpy as np
+
+    vec = gym.vector.AsyncVectorEnv([lambda: gym.make("agents:labtwin/Scheduling-v0")] * 2, context="spawn")
+    try:
+        obs, _ = vec.reset(seed=[0, 1])
+    finally:
+        vec.close()
+    single = gym.make("labtwin/Scheduling-v0")
+    first, _ = single.reset(seed=0)
+    single.close()
+    assert np.array_equal(obs[0], first) and not np.array_equal(obs[0], obs[1])
