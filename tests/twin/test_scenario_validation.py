@@ -74,6 +74,20 @@ def test_validate_checks_a_file_with_the_overrides_a_run_would_be_given():
     assert twin_cli("validate", path, "--set", "devices.synthesiser.instances=3").exit_code == 0
 
 
+def test_a_number_written_with_an_exponent_is_a_number_in_a_file_in_set_and_in_vary(tmp_path):
+    """PyYAML reads YAML 1.1, where 1e3 is text: `mean_s: 1e3` was refused as "not a valid number (got '1e3')"."""
+    from twin.tools.whatif import parse_vary
+
+    text = yaml.safe_dump(qd_lab()).replace("budget: 8", "budget: 8\n  max_lab_hours: 2.5e1")
+    text = text.replace("mean_s: 60", "mean_s: 6E+1", 1)
+    s = load(write(tmp_path, text))
+    assert s.campaign.max_lab_hours == 25.0 and s.devices["synthesiser"].duration.mean_s == 60.0
+    ok = twin_cli("validate", write(tmp_path, text), "--set", "devices.spectrometer.duration.mean_s=1e3")
+    assert ok.exit_code == 0, ok.output
+    assert parse_vary(["devices.spectrometer.duration.mean_s=1e3,1.5e3,-2e-1,1e"]) == [
+        ("devices.spectrometer.duration.mean_s", [1000.0, 1500.0, -0.2, "1e"])]
+
+
 def test_every_problem_is_reported_not_just_the_first(tmp_path):
     path = write(tmp_path, qd_lab(**{"campaign.budget": -1, "campaign.seed": "x", "clock.speed": 0}))
     with pytest.raises(ScenarioError) as info:

@@ -160,13 +160,15 @@ def assignments(items: list[str]) -> dict:
     """``--set`` options, ``["a.b=1", "c=x"]`` → ``{"a.b": 1, "c": "x"}`` (values read as YAML)."""
     import yaml
 
+    from twin.scenario.files import yaml_value
+
     out = {}
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             _fail(TwinError(f"--set {item!r}: expected FIELD=VALUE, e.g. devices.reactor.instances=1"))
         try:
-            out[key.strip()] = yaml.safe_load(value)
+            out[key.strip()] = yaml_value(value)
         except yaml.YAMLError as exc:
             _fail(TwinError(f"--set {item!r}: the value is not YAML ({str(exc).splitlines()[0]})"))
     return out

@@ -10,6 +10,7 @@ file, and the line where there is one.
 from __future__ import annotations
 
 import os
+import re
 import select
 import stat
 from pathlib import Path
@@ -103,7 +104,21 @@ def parse_yaml(text: str, path: str = "<text>") -> Any:
         raise ScenarioError(str(path), [f"{where}not valid YAML: {problem}"]) from None
 
 
-class _BoundedLoader(yaml.SafeLoader):
+class NumbersLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, with YAML 1.2's floats: PyYAML reads YAML 1.1, whose floats need a dot and a signed
+    exponent, so ``1e3`` and ``2.5e-4`` were text (and refused as "not a valid number")."""
+
+
+NumbersLoader.add_implicit_resolver("tag:yaml.org,2002:float",
+                                    re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"), list("-+0123456789"))
+
+
+def yaml_value(text: str) -> Any:
+    """A value given on the command line (``--set``, ``--vary``), read as the same text in a scenario file is."""
+    return yaml.load(text, Loader=NumbersLoader)  # noqa: S506  (a safe loader)
+
+
+class _BoundedLoader(NumbersLoader):
     def __init__(self, stream: str) -> None:
         super().__init__(stream)
         self._depth = 0

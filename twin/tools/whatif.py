@@ -26,6 +26,7 @@ from twin.runtime.lab import make_scheduler, prepare, run
 from twin.runtime.shared_run import run_shared
 from twin.tools.planner_bench import bench_pool, quartiles, short
 from twin.scenario import Scenario
+from twin.scenario.files import yaml_value
 from twin.scenario.sharing import campaign_scenario
 
 AS_WRITTEN = "as written"
@@ -57,7 +58,7 @@ class Outcome:
 
 def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
     """``["devices.spectrometer.instances=1,2,3"]`` → ``[("devices.spectrometer.instances", [1, 2, 3])]``; values
-    are read as YAML scalars (``2`` an int, ``0.1`` a float, ``true`` a bool, else text)."""
+    are read as YAML scalars (``2`` an int, ``0.1`` or ``1e3`` a float, ``true`` a bool, else text)."""
     out: list[tuple[str, list[Any]]] = []
     for item in items:
         name, eq, values = item.partition("=")
@@ -67,7 +68,7 @@ def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
         parsed = []
         for v in values.split(","):
             try:
-                parsed.append(yaml.safe_load(v.strip()))
+                parsed.append(yaml_value(v.strip()))
             except yaml.YAMLError:
                 parsed.append(v.strip())
         if any(name == n for n, _ in out):
