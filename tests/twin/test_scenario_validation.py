@@ -84,6 +84,9 @@ def test_a_number_written_with_an_exponent_is_a_number_in_a_file_in_set_and_in_v
     assert s.campaign.max_lab_hours == 25.0 and s.devices["synthesiser"].duration.mean_s == 60.0
     ok = twin_cli("validate", write(tmp_path, text), "--set", "devices.spectrometer.duration.mean_s=1e3")
     assert ok.exit_code == 0, ok.output
+    count = twin_cli("validate", write(tmp_path, text), "--set", "campaign.budget=1e2")
+    assert count.exit_code == 2 and "campaign.budget: Input should be a valid integer (got 100.0): write it as a " \
+        "whole number, 100" in " ".join(count.output.split()), count.output
     assert parse_vary(["devices.spectrometer.duration.mean_s=1e3,1.5e3,-2e-1,1e"]) == [
         ("devices.spectrometer.duration.mean_s", [1000.0, 1500.0, -0.2, "1e"])]
 

@@ -243,6 +243,8 @@ def describe(err: Any, raw: dict[str, Any], root: Any = None) -> str:
         msg = f"should be a mapping{_of_fields(str(err.get('ctx', {}).get('class_name', '')))}"
     if not loc:  # the scenario's own checks across fields: each line names its field
         return msg
+    if err["type"] == "int_type" and isinstance(value, float) and value.is_integer() and abs(value) < 1e18:
+        shown += f": write it as a whole number, {int(value)}"  # 1e2 or 100.0 where a count goes
     return f"{loc}: {msg}{shown}"
 
 
