@@ -59,6 +59,28 @@ def test_the_recording_has_every_panel(live):
     assert queue and all(len(row) == 3 and row[0] >= row[1] >= 0 for row in queue)  # ready steps ≥ samples waiting
 
 
+def test_the_recording_carries_its_layout_and_each_panel_looks_where_the_campaign_drew(live):
+    """The layout is what a viewer opens with: no test read it back, so a recording without it, or a panel
+    over a path nothing is drawn on, would have passed."""
+    from rerun.chunk import RrdReader
+
+    d, _, rrd = live
+    reader = RrdReader(d / "live.rrd")
+    (layout,) = reader.blueprints()
+    views = {}
+    for chunk in reader.store(store=layout).stream():
+        rb = chunk.to_record_batch()
+        if "ViewBlueprint:display_name" in rb.schema.names:
+            views[rb.column("ViewBlueprint:display_name")[0].as_py()[0]] = (
+                rb.column("ViewBlueprint:space_origin")[0].as_py()[0].strip("/"))
+    drawn = {"Devices", "Decisions and faults", "Summary", "Utilisation", "Queue", "Telemetry",
+             "Objective (0 = target met) and best so far", "Spectra (latest, with targets)", "Measured outputs",
+             "Proposals (normalised box)"}
+    assert drawn <= set(views), views
+    for name in drawn:
+        assert any(path == views[name] or path.startswith(views[name] + "/") for path in rrd), (name, views[name])
+
+
 def test_one_spectrum_per_measurement_at_the_same_lab_times(live):
     d, _, rrd = live
     journal = measurements(d / "j.db")
