@@ -120,6 +120,24 @@ def test_fields_in_lists_vary_and_columns_say_which_field_they_are(tmp_path):
     assert res.exit_code == 2 and "'3' is not an index of it (0-0)" in res.output
 
 
+def test_a_whole_section_or_list_varies_and_commas_inside_it_do_not_split_values():
+    """`--vary devices.spectrometer.faults={fail_p: 0.0},{fail_p: 0.3, hang_p: 0.1}` was cut at every comma into
+    '{fail_p: 0.0}', '{fail_p: 0.3' and ' hang_p: 0.1}', each refused as not a mapping."""
+    code, out = whatif(FLAKY, "--vary", "devices.spectrometer.faults={fail_p: 0.0},{fail_p: 0.3, hang_p: 0.1}",
+                       "--seeds", "3", "--json")
+    assert code == 0, out
+    rows = {r["variant"]: r for r in json.loads(out)["variants"]}
+    assert set(rows) == {"as written", "devices.spectrometer.faults={'fail_p': 0.0}",
+                         "devices.spectrometer.faults={'fail_p': 0.3, 'hang_p': 0.1}"}, list(rows)
+    never, often = rows["devices.spectrometer.faults={'fail_p': 0.0}"], \
+        rows["devices.spectrometer.faults={'fail_p': 0.3, 'hang_p': 0.1}"]
+    assert never["abandoned"] <= rows["as written"]["abandoned"] <= often["abandoned"] and often["abandoned"] > 0
+    from twin.tools.whatif import parse_vary
+
+    assert parse_vary(["training.duration_scale=[0.5, 1.5],[0.7,1.3]", "campaign.planner='a,b',random"]) == [
+        ("training.duration_scale", [[0.5, 1.5], [0.7, 1.3]]), ("campaign.planner", ["a,b", "random"])]
+
+
 def test_a_lab_of_several_campaigns_shows_each_campaigns_hours_one_after_the_other_adding_up(tmp_path):
     """Catalysis after quantum dots: in every run the lab's hours are the two campaigns' own, end to end; both at
     once, neither campaign's own hours exceed the lab's. The table and the CSV give each campaign's median."""

@@ -25,8 +25,10 @@ def whatif(
     scenario: Annotated[Path, typer.Argument(help="the scenario as written, e.g. scenarios/flaky_lab.yaml")],
     vary: Annotated[Optional[list[str]], typer.Option(metavar="FIELD=V1,V2,...",
                                                       help="values of a field to try, e.g. devices.spectrometer.instances=1,2,3 "
-                                                           "or devices.reactor.faults.fail_p=0,0.1; repeatable: "
-                                                           "every combination runs")] = None,
+                                                           "or devices.reactor.faults.fail_p=0,0.1; a whole section or list "
+                                                           "too, '{fail_p: 0.1},{fail_p: 0.3, hang_p: 0.1}' (commas in "
+                                                           "brackets do not split); repeatable: every combination "
+                                                           "runs")] = None,
     schedulers: Annotated[Optional[str], typer.Option(help="comma-separated schedulers to vary too")] = None,
     planners: Annotated[Optional[str], typer.Option(help="comma-separated planners to vary too")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",

@@ -58,7 +58,8 @@ class Outcome:
 
 def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
     """``["devices.spectrometer.instances=1,2,3"]`` → ``[("devices.spectrometer.instances", [1, 2, 3])]``; values
-    are read as YAML scalars (``2`` an int, ``0.1`` or ``1e3`` a float, ``true`` a bool, else text)."""
+    are read as YAML (``2`` an int, ``0.1`` or ``1e3`` a float, ``true`` a bool, ``[0.5, 1.5]`` a list,
+    ``{fail_p: 0.1}`` a mapping, else text); a comma inside brackets or quotes does not split values."""
     out: list[tuple[str, list[Any]]] = []
     for item in items:
         name, eq, values = item.partition("=")
@@ -66,7 +67,7 @@ def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
         if not eq or not name or not values.strip():
             raise ScenarioError("--vary", [f"{item!r}: expected FIELD=V1,V2,... (e.g. devices.spectrometer.instances=1,2,3)"])
         parsed = []
-        for v in values.split(","):
+        for v in _split_values(values):
             try:
                 parsed.append(yaml_value(v.strip()))
             except yaml.YAMLError:
@@ -75,6 +76,24 @@ def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
             raise ScenarioError("--vary", [f"{name} is varied twice: give all its values in one --vary"])
         out.append((name, parsed))
     return out
+
+
+def _split_values(text: str) -> list[str]:
+    """``1,[2,3],{a: 4, b: 5},'x,y'`` → ``["1", "[2,3]", "{a: 4, b: 5}", "'x,y'"]``."""
+    parts, depth, quote, start = [], 0, "", 0
+    for i, ch in enumerate(text):
+        if quote:
+            quote = "" if ch == quote else quote
+        elif ch in "'\"":
+            quote = ch
+        elif ch in "[{":
+            depth += 1
+        elif ch in "]}":
+            depth = max(depth - 1, 0)
+        elif ch == "," and depth == 0:
+            parts.append(text[start:i])
+            start = i + 1
+    return parts + [text[start:]]
 
 
 def axes_of(vary: list[tuple[str, list[Any]]], schedulers: list[str] | None, planners: list[str] | None
