@@ -124,7 +124,7 @@ def test_a_whole_section_or_list_varies_and_commas_inside_it_do_not_split_values
     """`--vary devices.spectrometer.faults={fail_p: 0.0},{fail_p: 0.3, hang_p: 0.1}` was cut at every comma into
     '{fail_p: 0.0}', '{fail_p: 0.3' and ' hang_p: 0.1}', each refused as not a mapping."""
     code, out = whatif(FLAKY, "--vary", "devices.spectrometer.faults={fail_p: 0.0},{fail_p: 0.3, hang_p: 0.1}",
-                       "--seeds", "3", "--json")
+                       "--set", "campaign.budget=24", "--seeds", "3", "--json")
     assert code == 0, out
     rows = {r["variant"]: r for r in json.loads(out)["variants"]}
     assert set(rows) == {"as written", "devices.spectrometer.faults={'fail_p': 0.0}",
