@@ -398,3 +398,31 @@ def test_progress_without_a_note_is_reported_not_a_fault(tmp_path, runtime):
     assert summary.done == 4 and summary.failed_attempts == 0
     notes = [json.loads(e["detail"])["body"]["note"] for e in read_events(tmp_path / "j.db", "msg.progress")]
     assert notes.count("") == 12 and notes.count("scanned") == 4
+
+
+class TerminalTricks(Raises):
+    """Its error would clear the screen, retitle the window and print a green tick over the line's start."""
+
+    async def run(self, step, params, sample, ctx):
+        from twin import DriverError
+
+        raise DriverError("\x1b[2J\x1b]0;owned\x07every target met \x1b[32m✓\x1b[0m\rX\u202e")
+
+
+def test_a_drivers_error_reaches_the_terminal_as_escapes_and_the_journal_as_it_was(tmp_path):
+    import logging
+    import yaml
+
+    from tests.conftest import twin_cli
+
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_drivers:TerminalTricks",
+                                             "campaign.budget": 2, "orchestrator.retry.max_attempts": 1})))
+    res = twin_cli("run", path, "--journal", tmp_path / "j.db")
+    assert res.exit_code == 0, res.output
+    assert "\x1b" not in res.output and "\r" not in res.output and "\u202e" not in res.output
+    assert "\\x1b[2J\\x1b]0;owned\\x07every" in "".join(res.output.split()).replace("│", "")
+    failed = [json.loads(e["detail"]) for e in read_events(tmp_path / "j.db", "attempt.failed")]
+    assert failed and all("\x1b[2J\x1b]0;owned\x07every target met" in d["reason"] for d in failed)
+    record = logging.LogRecord("twin", logging.WARNING, __file__, 1, "driver raised: %s", ("\x1b[2J\rX",), None)
+    assert logging.lastResort.format(record) == "driver raised: \\x1b[2J\\x0dX"  # set by importing twin.cli

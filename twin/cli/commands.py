@@ -14,6 +14,7 @@ from rich.text import Text
 
 from twin.cli.common import (_fail, app, assignments, bar_progress, console, err, keep_serving, machine_output,
                              narrow_table, writable)
+from twin.cli.printable import log_to_stderr
 from twin.cli.sharing import shared_lab
 from twin.core import plugins
 from twin.core.whole_files import written_whole
@@ -72,7 +73,7 @@ def run(
     runtime: RuntimeOpt = "auto",
 ) -> None:
     """Run a campaign and print its summary."""
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    log_to_stderr(logging.WARNING)
     overrides: dict = assignments(set_ or [])
     overrides |= {f"campaign.{k}": v for k, v in (("budget", budget), ("planner", planner),
                                                    ("scheduler", scheduler)) if v is not None}
@@ -124,7 +125,7 @@ def resume(
     from twin.runtime.resume import resume as resume_journal
     from twin.runtime.resume_lab import recorded_lab
 
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    log_to_stderr(logging.WARNING)
     writable("--save", save)
     if journal.is_dir():  # the journals of a lab several campaigns share
         try:

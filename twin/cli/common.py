@@ -12,10 +12,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Callable, Iterator, TypeVar
 
 import typer
-from rich.console import Console
 from rich.markup import escape
 from rich.segment import Segment
 
+from twin.cli.printable import PrintableConsole
 from twin.core.errors import TwinError
 from twin.core.whole_files import FULL_BYTES, free_bytes
 
@@ -68,8 +68,9 @@ security_app = typer.Typer(help="Certificates and access control for a lab's bus
 app.add_typer(security_app, name="security")
 # emoji off: a name like "raising:Boom:" is not an emoji code; markup off: a path, a SMILES ("c1cc[nH]c1") or an
 # error quoting either prints as it is, never read as rich's [tags] (the few styled lines ask for markup=True)
-console = Console(emoji=False, markup=False)
-err = Console(stderr=True, soft_wrap=True, emoji=False, markup=False)
+# and control characters in text from elsewhere (a driver's error, an operator's reason) shown as escapes
+console = PrintableConsole(emoji=False, markup=False)
+err = PrintableConsole(stderr=True, soft_wrap=True, emoji=False, markup=False)
 
 
 Command = TypeVar("Command", bound=Callable[..., Any])

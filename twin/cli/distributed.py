@@ -9,6 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from twin.cli.common import _fail, app, console, device_app, driver_app, scheduler_app, security_app
+from twin.cli.printable import log_to_stderr
 from twin.core.errors import TwinError
 
 SecurityOpt = Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
@@ -28,7 +29,7 @@ ConnectWait = Annotated[Optional[float], typer.Option(min=0.1, max=86400, metava
 
 def _serving(serve, *args) -> None:
     """Run a serve function with INFO logging; its errors end the command with one clear line."""
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    log_to_stderr(logging.INFO)
     try:
         serve(*args)
     except TwinError as exc:

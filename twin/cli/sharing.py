@@ -12,6 +12,7 @@ import typer
 from rich.markup import escape
 
 from twin.cli.common import _fail, app, console, err, keep_serving, lab_app
+from twin.cli.printable import log_to_stderr
 from twin.core.errors import TwinError
 from twin.runtime.checks import check
 from twin.runtime.lab import recording_id
@@ -25,7 +26,7 @@ from twin.view.watch import RecordOptions, open_lab_observer
 def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: bool, json_out: bool,
                external: list[str] | None, resuming: Path | None = None) -> None:
     """``twin run LAB.yaml`` (or, with ``resuming``, ``twin resume`` of its journals' directory)."""
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    log_to_stderr(logging.WARNING)
     recording = None
     try:
         if s.campaigns or resuming is None:  # a served lab resumed may have had none yet
@@ -95,7 +96,7 @@ def lab_serve(
     from twin.runtime import lab
     from twin.runtime.shared_run import serve_lab
 
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    log_to_stderr(logging.WARNING)
     overrides: dict = {}
     if listen:
         overrides["bus.listen"] = list(listen)

@@ -10,6 +10,7 @@ from rich.table import Table
 from rich.text import Text
 
 from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text, losses_text
+from twin.core.printable import printable
 
 
 def lab_span(seconds: float, digits: int = 2, prefix: str = "") -> str:
@@ -31,7 +32,7 @@ class _Marked(Table):
     such on any console: the command line's prints everything else as it is."""
 
     def add_row(self, *cells: Any, **options: Any) -> None:
-        super().add_row(*(Text.from_markup(c) if isinstance(c, str) else c for c in cells), **options)
+        super().add_row(*(Text.from_markup(printable(c)) if isinstance(c, str) else c for c in cells), **options)
 
 
 def render_summary(s: Summary, console: Console) -> None:

@@ -1,0 +1,15 @@
+"""Text from elsewhere shown on a terminal: a driver's error, a remote device's reason, an operator's words.
+
+Written raw, a control character in it would act on the terminal: ``ESC [2J`` clears the screen, ``ESC ]0;``
+retitles the window, ``CR`` overwrites the line it is on, a bidirectional override reorders what follows.
+``printable`` shows each as its escape (``\\x1b``) instead; newlines and tabs stay.
+"""
+
+from __future__ import annotations
+
+_ESCAPED = {c: f"\\x{c:02x}" for c in (*range(0x20), 0x7F, *range(0x80, 0xA0)) if chr(c) not in "\n\t"}
+_ESCAPED |= {c: f"\\u{c:04x}" for c in (*range(0x202A, 0x202F), *range(0x2066, 0x206A))}
+
+
+def printable(text: str) -> str:
+    return text.translate(_ESCAPED)
