@@ -15,6 +15,7 @@ from rich.text import Text
 from twin.cli.common import (_fail, app, assignments, bar_progress, console, err, keep_serving, machine_output,
                              narrow_table, writable)
 from twin.cli.printable import log_to_stderr
+from twin.core.printable import printable
 from twin.cli.sharing import shared_lab
 from twin.core import plugins
 from twin.core.whole_files import written_whole
@@ -422,7 +423,7 @@ def devices(
         return
     table = narrow_table(header)  # on a terminal cells wrap, never cut; piped, each driver is one whole line
     for row in drivers:
-        table.add_row(*row[:4], Text(row[4], style="red") if row[4].startswith("failed to load") else row[4])
+        table.add_row(*row[:4], Text(printable(row[4]), style="red") if row[4].startswith("failed to load") else row[4])
     if console.is_terminal:
         console.print(table)
     else:

@@ -10,6 +10,7 @@ import typer
 
 from twin.cli.common import _fail, app, console, device_app, driver_app, scheduler_app, security_app
 from twin.cli.printable import log_to_stderr
+from twin.core.printable import printable
 from twin.core.errors import TwinError
 
 SecurityOpt = Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
@@ -117,7 +118,7 @@ def render_health(answers: list[dict]) -> None:
         running = "#".join(map(str, running)) if isinstance(running, list) else str(running or "idle")[:20]
         driver = r.get("driver", "")
         ok = driver.get("ok") if isinstance(driver, dict) else None
-        shown = Text(str(driver)[:60], style="red" if ok is False else "")
+        shown = Text(printable(str(driver)[:60]), style="red" if ok is False else "")
         table.add_row(a["device"], "yes", running, str(r.get("dropped", ""))[:12], shown)
     console.print(table)
 
