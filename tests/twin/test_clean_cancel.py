@@ -45,7 +45,7 @@ def _lab(**changes) -> dict:
         "devices.spectrometer": {"driver": "tests.twin.test_clean_cancel:SlowToStop", "instances": 1,
                                  "steps": ["measure"], "duration": {"mean_s": 60, "cv": 0}},
         "campaign.budget": 3, "campaign.max_in_flight": 3,
-        "orchestrator.timeout_factor": 1, "orchestrator.timeout_slack_s": 10, "orchestrator.cancel_grace_s": 60,
+        "orchestrator.timeout_factor": 1, "orchestrator.timeout_slack_s": 60, "orchestrator.cancel_grace_s": 60,
         "orchestrator.retry": {"max_attempts": 2, "backoff_s": 0, "jitter": 0},
         "orchestrator.quarantine_after": 100, **changes})
 
