@@ -1,12 +1,6 @@
-import os
 from pathlib import Path
 
 import pytest
-
-# pytest-xdist's workers (the `process` tests run on two) start with COLUMNS=80 and LINES=24; the CLI's
-# console fixes its width from COLUMNS when twin.cli is imported, so each test's own width would be ignored
-for _size in ("COLUMNS", "LINES"):
-    os.environ.pop(_size, None)
 
 from twin.core.bus import open_bus
 from twin.core.clock import LabClock
