@@ -62,6 +62,7 @@ def train_controller(scenario: Scenario, steps: int, out: Path, seed: int = 0, e
                      eval_every: int = 20_000, on_progress: Callable[[int, dict | None], None] | None = None,
                      mode: str = "pure") -> Path:
     from stable_baselines3 import PPO
+    from stable_baselines3.common.logger import Logger
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     torch.set_num_threads(1)
@@ -72,6 +73,7 @@ def train_controller(scenario: Scenario, steps: int, out: Path, seed: int = 0, e
     if mode == "residual":  # start close to the PID: a unit-variance correction of ±RESIDUAL_K is mostly noise
         settings["policy_kwargs"] = {**settings["policy_kwargs"], "log_std_init": -1.5}
     model = PPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **settings)
+    model.set_logger(Logger(folder=None, output_formats=[]))  # SB3's own makes an empty /tmp/SB3-<time> per learn()
 
     def measured(policy: Any, label: str) -> dict[str, Any]:
         make = (lambda sp: thermal.Pid(**gains)) if policy is None else (

@@ -6,6 +6,7 @@ import signal
 import sqlite3
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -128,6 +129,9 @@ def test_train_prints_its_evaluation_curve_and_saves_a_policy_with_its_sidecar(t
     out = tmp_path / "heater.zip"
     rrd = tmp_path / "curve.rrd"
     monkeypatch.chdir(ROOT)
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))  # where SB3's default logger makes SB3-<time>/
     res = twin_cli("train", "scenarios/catalyst.yaml", "--agent", "controller", "--steps", "2880",
                    "--eval-every", "1440", "--out", str(out), "--save", str(rrd), columns=80)
     assert res.exit_code == 0, res.output
@@ -142,6 +146,7 @@ def test_train_prints_its_evaluation_curve_and_saves_a_policy_with_its_sidecar(t
     curve = read_rrd(rrd)
     ppo = sorted(r["training_steps"] for r in curve["training/ppo-pure/return"])
     assert ppo == [1440, 2880] and [r["training_steps"] for r in curve["training/pid/return"]] == [0]
+    assert not list(scratch.glob("SB3-*"))  # no empty log directory per evaluation, as SB3 makes by default
 
 
 def test_train_an_unknown_agent_lists_what_is_installed(tmp_path):
