@@ -25,7 +25,8 @@ STANDARD = {"campaign.budget": 400, "campaign.stop_on_target": False,
             "devices.synthesiser.faults.mtbc_h": 0, "devices.reactor.faults.mtbc_h": 0,
             "devices.spectrometer.faults.mtbc_h": 0}
 s = prepare(Path(sys.argv[1]) / "scenarios/flaky_lab.yaml", overrides=STANDARD, bus="memory")
-d = Path(tempfile.mkdtemp())
+kept = tempfile.TemporaryDirectory()  # removed as the child exits
+d = Path(kept.name)
 kw = {"runtime": sys.argv[2]} if sys.argv[2] != "-" else {}
 run(s, journal=d / "w.db", overrides={"campaign.budget": 2}, **kw)
 best = float("inf")
@@ -44,7 +45,8 @@ from pathlib import Path
 from twin import prepare, run
 jobs, machines = int(sys.argv[2]), int(sys.argv[3])
 rng = random.Random(1)
-d = Path(tempfile.mkdtemp())
+kept = tempfile.TemporaryDirectory()  # removed as the child exits
+d = Path(kept.name)
 lines = [f"{jobs} {machines}"]
 for _ in range(jobs):
     order = rng.sample(range(machines), machines)

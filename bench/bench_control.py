@@ -16,7 +16,6 @@ import json
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.scratch import scratch  # noqa: E402
 from bench.tables import free_port, table  # noqa: E402
 from tests.conftest import qd_lab  # noqa: E402
 from twin.core import keys  # noqa: E402
@@ -74,7 +74,7 @@ def main() -> None:
     ap.add_argument("--pairs", type=int, default=50)
     args = ap.parse_args()
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    d = Path(tempfile.mkdtemp())
+    d = scratch()
     lab = qd_lab(**{"campaign.budget": 100000, "campaign.max_in_flight": 3, "clock": {"mode": "scaled", "speed": 60},
                     "bus": {"kind": "zenoh", "listen": [endpoint]}})
     (d / "lab.yaml").write_text(yaml.safe_dump(lab))

@@ -17,7 +17,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -26,6 +25,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from bench.scratch import scratch  # noqa: E402
 from bench.tables import free_port, table  # noqa: E402
 from twin.core import keys  # noqa: E402
 from twin.core.bus.zenoh_bus import ZenohBus  # noqa: E402
@@ -144,7 +144,7 @@ async def measure_link(topology: str, router: str | None) -> dict[str, float]:
 def mosquitto() -> tuple[subprocess.Popen, str]:
     binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
     port = free_port()
-    conf = Path(tempfile.mkdtemp()) / "mosquitto.conf"
+    conf = scratch() / "mosquitto.conf"
     conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\npersistence false\nset_tcp_nodelay true\n")
     proc = subprocess.Popen([binary, "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     for _ in range(100):
@@ -190,7 +190,7 @@ async def mqtt_vs_native(router: str, broker: str) -> dict[str, list[float]]:
                        "reader": {"driver": "mqtt", "steps": ["measure"], "duration": {"mean_s": 0, "cv": 0},
                                   "options": {"broker": broker, "topic": "bench/reader", "steps": ["measure"]}}},
            "workflow": [{"step": "op", "device": "m"}, {"step": "measure", "device": "reader"}]}
-    path = Path(tempfile.mkdtemp()) / "lab.yaml"
+    path = scratch() / "lab.yaml"
     path.write_text(yaml.safe_dump(lab))
     instrument = subprocess.Popen([sys.executable, "examples/mqtt_instrument.py", "--broker", broker, "--topic",
                                    "bench/reader", "--seconds", "0"], cwd=ROOT, stdout=subprocess.PIPE)

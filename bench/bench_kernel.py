@@ -13,7 +13,6 @@ import signal
 import statistics
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -24,6 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench import simpy_lab  # noqa: E402
+from bench.scratch import scratch  # noqa: E402
 from bench.tables import free_port, table  # noqa: E402
 from twin.core.bus.zenoh_bus import ZenohBus  # noqa: E402
 from twin.core.bus.zenoh_config import ZenohOptions  # noqa: E402
@@ -60,7 +60,7 @@ def machines_only(s):
 def bench_speed() -> None:
     s = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides=STANDARD, bus="memory")
     bare = machines_only(s)
-    d = Path(tempfile.mkdtemp())
+    d = scratch()
     run(s, journal=d / "warm.db", overrides={"campaign.budget": 2})  # imports are paid once, not timed
     n = s.campaign.budget
 
@@ -361,7 +361,7 @@ def bench_resume(cycles: int = 100) -> None:
             return (c.execute("SELECT * FROM events ORDER BY seq").fetchall(),
                     c.execute("SELECT * FROM experiments ORDER BY id").fetchall())
 
-    rng, d = random.Random(0), Path(tempfile.mkdtemp())
+    rng, d = random.Random(0), scratch()
     labs = {name: prepare(ROOT / "scenarios" / f"{name}.yaml", bus="memory", overrides={"campaign.budget": 30})
             for name in ("flaky_lab", "quantum_dots")}
     whole = {}

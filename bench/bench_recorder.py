@@ -21,6 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.bench_kernel import STANDARD  # noqa: E402
+from bench.scratch import scratch  # noqa: E402
 from bench.tables import table  # noqa: E402
 from twin.runtime.lab import prepare, run  # noqa: E402
 from twin.view.observer import LabObserver  # noqa: E402
@@ -50,8 +51,8 @@ def campaign(bus: str, record: bool) -> tuple[float, float, int]:
 def interleaved(bus: str, pairs: int) -> tuple[list, list, int]:
     """(CPU s, wall s) off and on, alternating, so that load on the shared machine hits both alike."""
     off, on, size = [], [], 0
-    run(ROOT / "scenarios" / "quantum_dots.yaml", journal=Path(tempfile.mkdtemp()) / "w.db", bus=bus,
-        overrides={"campaign.budget": 5}, record=RecordOptions(save=Path(tempfile.mkdtemp()) / "w.rrd"))  # warm-up
+    run(ROOT / "scenarios" / "quantum_dots.yaml", journal=scratch() / "w.db", bus=bus,
+        overrides={"campaign.budget": 5}, record=RecordOptions(save=scratch() / "w.rrd"))  # warm-up
     for _ in range(pairs):
         off.append(campaign(bus, False)[:2])
         cpu, wall, size = campaign(bus, True)
