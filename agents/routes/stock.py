@@ -72,7 +72,7 @@ def parse(text: str, source: str = "<stock>") -> Stock:
 @lru_cache(maxsize=8)
 def load(path: Path = STOCK) -> Stock:
     try:
-        text = Path(path).read_text()
+        text = Path(path).read_text(encoding="utf-8-sig")  # a spreadsheet's "CSV UTF-8" starts with a byte-order mark
     except OSError as exc:
         raise StockError(f"{path}: cannot read the stock file ({exc.strerror})") from None
     except UnicodeDecodeError as exc:

@@ -267,9 +267,9 @@ def load(path: Path = TEMPLATES) -> tuple[Template, ...]:
         if path.name.endswith(".gz"):
             import gzip
 
-            text = gzip.decompress(path.read_bytes()).decode()
+            text = gzip.decompress(path.read_bytes()).decode("utf-8-sig")
         else:
-            text = path.read_text()
+            text = path.read_text(encoding="utf-8-sig")  # a byte-order mark first, as spreadsheets save CSV, is dropped
     except (OSError, EOFError) as exc:
         raise TemplateError(f"{path}: cannot read the template file ({getattr(exc, 'strerror', None) or exc})") from None
     except UnicodeDecodeError as exc:

@@ -80,9 +80,13 @@ def test_a_broken_stock_file_is_refused_naming_the_line(text, says):
     assert says in str(err.value), str(err.value)
 
 
-def test_a_stock_of_your_own_needs_only_smiles():
+def test_a_stock_of_your_own_needs_only_smiles(tmp_path):
     mine = stock_file.parse("# my shelf\nsmiles\nCCO\nc1ccccc1N\n", "shelf.csv")
     assert len(mine) == 2 and "Nc1ccccc1" in mine and mine.get("CCO").eur_per_g is None
+    excel = tmp_path / "shelf.csv"  # as a spreadsheet saves "CSV UTF-8": a byte-order mark first, CR LF
+    excel.write_bytes(b"\xef\xbb\xbfsmiles,name,eur_per_g\r\nCCO,ethanol,0.02\r\nc1ccccc1N,aniline,\r\n")
+    again = stock_file.load(excel)
+    assert len(again) == 2 and again.get("CCO").eur_per_g == 0.02 and again.get("Nc1ccccc1").name == "aniline"
 
 
 def test_an_aizynthfinder_style_template_table_is_searched_like_our_own(tmp_path):
@@ -98,6 +102,10 @@ def test_an_aizynthfinder_style_template_table_is_searched_like_our_own(tmp_path
     table.write_bytes(gzip.compress("\n".join(rows).encode()))
     (only,) = load(table)
     assert only.name == "1.2.1 Amide coupling #17" and only.yield_pct == (50.0, 90.0)
+    first = ["\t".join(row.split("\t")[i] for i in (3, 1, 2, 4)) for row in rows]  # retro_template first
+    excel = tmp_path / "uspto_templates.tsv"  # as a spreadsheet saves it: a byte-order mark first, CR LF
+    excel.write_bytes(b"\xef\xbb\xbf" + "\r\n".join(first).encode())
+    assert [(t.name, t.smarts) for t in load(excel)] == [(only.name, only.smarts)]
     route = plan_breadth_first("CC(=O)Nc1ccc(O)cc1", templates=table)
     assert route["solved"] and route["steps"][0]["reaction"] == only.name
     assert sorted(route["steps"][0]["reactants"]) == sorted(["CC(=O)O", "Nc1ccc(O)cc1"])

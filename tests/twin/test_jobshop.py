@@ -83,8 +83,10 @@ def test_taillard_and_or_library_layouts_read_as_the_standard_one(tmp_path, name
     (tmp_path / "orlib.txt").write_text("\n".join([" +++++", f" instance {name}", " +++++",
                                                    " An instance, as OR-Library lists it", *standard]) + "\n")
     for f in ("labelled.txt", "bare.txt", "orlib.txt"):
-        again = read(tmp_path / f)
-        assert (again.machines, again.jobs) == (inst.machines, inst.jobs), f
+        (tmp_path / f"notepad-{f}").write_bytes(b"\xef\xbb\xbf" + (tmp_path / f).read_bytes().replace(b"\n", b"\r\n"))
+        for as_saved in (f, f"notepad-{f}"):  # and as Windows' Notepad saves it: a byte-order mark, CR LF
+            again = read(tmp_path / as_saved)
+            assert (again.machines, again.jobs) == (inst.machines, inst.jobs), as_saved
 
 
 @pytest.mark.parametrize("text, says", [

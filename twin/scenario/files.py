@@ -47,11 +47,12 @@ def read_text(path: str | Path, what: str = "scenario") -> str:
         raise ScenarioError(where, [f"larger than {MAX_BYTES // 1024} KiB: a {what} file is text of a few KB; "
                                     "is this the right file?"])
     try:
-        return data.decode("utf-8")
+        text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         kind = "UTF-16 text" if data[:2] in (b"\xff\xfe", b"\xfe\xff") else "binary data, or text in another encoding"
         raise ScenarioError(where, [f"not UTF-8 text (byte {exc.start} is {data[exc.start]:#04x}; it looks like {kind}): "
                                     "save it as UTF-8"]) from None
+    return text.removeprefix("\ufeff")  # the byte-order mark Windows editors put first
 
 
 def _from_pipe(path: Path, where: str, what: str) -> bytes:
