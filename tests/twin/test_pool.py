@@ -1,6 +1,7 @@
 """The benches' and `twin whatif`'s worker pool: Ctrl-C stops the runs going at once, and a stopped worker starts
 none of the runs already queued to it."""
 
+import tempfile
 import time
 from pathlib import Path
 
@@ -35,3 +36,31 @@ def test_ctrl_c_stops_the_runs_going_and_no_worker_starts_one_queued_to_it(tmp_p
     assert time.monotonic() - started < STOP_S
     # nothing of the pool runs on to race the interpreter's exit (a traceback after "interrupted")
     assert not manager.is_alive()
+
+
+def _leaves(started: str) -> None:
+    """A run whose temporary directory is left when it is stopped: as one stopped inside
+    ``tempfile.TemporaryDirectory()`` itself, or killed, leaves its own."""
+    Path(tempfile.mkdtemp(), "journal.db").write_text("running")
+    Path(started, str(time.monotonic_ns())).touch()
+    time.sleep(60)
+
+
+@pytest.mark.process
+def test_the_runs_temporary_files_go_when_the_pool_ends_however_they_were_stopped(tmp_path, monkeypatch):
+    scratch, started = tmp_path / "tmp", tmp_path / "started"
+    scratch.mkdir()
+    started.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    with pytest.raises(KeyboardInterrupt):
+        with WorkerPool(2) as pool:
+            for _ in range(2):
+                pool.submit(_leaves, str(started))
+            while len(list(started.iterdir())) < 2:
+                time.sleep(0.01)
+            assert len(list(Path(pool.scratch).iterdir())) == 2  # each run's directory, in the pool's own
+            raise KeyboardInterrupt
+    assert list(scratch.iterdir()) == []
+    with WorkerPool(1) as pool:  # and when every run ended well
+        assert pool.submit(tempfile.gettempdir).result() == pool.scratch
+    assert list(scratch.iterdir()) == []

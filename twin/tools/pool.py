@@ -8,13 +8,19 @@ among them), drops the runs not started and stops the running ones with SIGTERM,
 that ``SystemExit`` as the run's failure and would take the next run already queued to it (half-started, then
 killed when ``STOP_S`` ran out, leaving its files; or a traceback from a queue closed under it): a stopped worker
 leaves as soon as its run has unwound.
+
+A run's temporary files go in a directory the pool makes and removes when it ends, whatever its workers were
+doing: a stop that lands inside ``tempfile.TemporaryDirectory()`` itself (the directory made, its removal not yet
+arranged) or during that removal, or a worker killed when ``STOP_S`` ran out, would otherwise leave them behind.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -25,7 +31,13 @@ STOP_S = 10.0  # how long the stopped workers have to clean up before they are k
 
 class WorkerPool(ProcessPoolExecutor):
     def __init__(self, workers: int, initializer: Callable[[], None] | None = None) -> None:
-        super().__init__(max_workers=max(1, workers), initializer=_start_worker, initargs=(initializer,))
+        self.scratch = tempfile.mkdtemp(prefix="labtwin-workers-")
+        super().__init__(max_workers=max(1, workers), initializer=_start_worker, initargs=(initializer, self.scratch))
+
+    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
+        super().shutdown(wait, cancel_futures=cancel_futures)
+        if wait:
+            shutil.rmtree(self.scratch, ignore_errors=True)
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
         return super().submit(_run, fn, *args, **kwargs)
@@ -48,12 +60,14 @@ class WorkerPool(ProcessPoolExecutor):
         # 3.11 writes to that pipe unlocked, and a close in between is a traceback ("Bad file descriptor")
         if manager is not None:
             manager.join(STOP_S)
+        shutil.rmtree(self.scratch, ignore_errors=True)
         return False
 
 
-def _start_worker(then: Callable[[], None] | None) -> None:
+def _start_worker(then: Callable[[], None] | None, scratch: str) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _exit)
+    tempfile.tempdir = os.environ["TMPDIR"] = scratch  # SQLite's own temporary files too
     if then is not None:
         then()
 
