@@ -64,3 +64,33 @@ def test_the_runs_temporary_files_go_when_the_pool_ends_however_they_were_stoppe
     with WorkerPool(1) as pool:  # and when every run ended well
         assert pool.submit(tempfile.gettempdir).result() == pool.scratch
     assert list(scratch.iterdir()) == []
+
+
+STARTS_SLOWLY = """
+import time
+from twin.tools.pool import WorkerPool
+
+def starts_slowly():
+    time.sleep(2)  # wall time: a worker's set-up (imports, models) that a stop lands in
+
+started = time.monotonic()
+try:
+    with WorkerPool(2, initializer=starts_slowly) as pool:
+        for i in range(20):
+            pool.submit(time.sleep, 0.1)
+        time.sleep(0.5)
+        raise KeyboardInterrupt
+except KeyboardInterrupt:
+    print(time.monotonic() - started)
+"""
+
+
+@pytest.mark.process
+def test_a_stop_while_the_workers_start_is_quiet_and_at_once():
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", STARTS_SLOWLY], capture_output=True, text=True, timeout=60,
+                          cwd=Path(__file__).resolve().parents[2])
+    assert done.returncode == 0 and float(done.stdout) < STOP_S, done
+    assert "Traceback" not in done.stderr and "Exception in initializer" not in done.stderr, done.stderr

@@ -278,7 +278,7 @@ def test_ctrl_c_or_sigterm_stops_the_workers_at_once_and_says_so(tmp_path, stop,
                             env={**os.environ, "TMPDIR": str(scratch)}, cwd=ROOT)
     children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
     deadline = time.monotonic() + 60
-    while len(children.read_text().split()) < 2 or not any(scratch.iterdir()):  # workers running campaigns
+    while len(children.read_text().split()) < 2 or not any(scratch.glob("labtwin-workers-*/*")):  # runs going
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
         time.sleep(0.05)
     workers = children.read_text().split()

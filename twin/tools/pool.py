@@ -73,19 +73,29 @@ def _start_worker(then: Callable[[], None] | None, scratch: str) -> None:
 
 
 _stopped = False  # this worker was sent SIGTERM
+_running = False  # this worker is in a run (a SIGTERM unwinds it)
 
 
 def _run(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+    global _running
+    _running = True
     try:
         return fn(*args, **kwargs)
     finally:
+        _running = False
         if _stopped:  # the run has unwound (its files removed): leave, not on to the next run queued here
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os._exit(143)
+            _leave()
 
 
 def _exit(*_: Any) -> None:
     global _stopped
     _stopped = True
+    if not _running:  # starting (the executor would print its SystemExit as a failed initializer) or between runs
+        _leave()
     sys.exit(143)
+
+
+def _leave() -> None:
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(143)
