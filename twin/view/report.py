@@ -73,7 +73,7 @@ def render_summary(s: Summary, console: Console) -> None:
         short = " [red](short: work waits for a refill)[/]" if c.get("short") else ""
         t.add_row(f"  {escape(name)}", f"{c['left']:g} {escape(c['unit'])} left, {c['used']:g} used{short}")
     for name, b in s.best.items():
-        shown = ", ".join(f"{escape(k)}={v:.4g}" for k, v in b["outputs"].items())
+        shown = ", ".join(f"{escape(k)}={_measured(v)}" for k, v in b["outputs"].items())
         met = s.targets_met_h.get(name)
         status = f"[green]met at {met:.2f} lab-h[/]" if met is not None else f"best score {b['score']:.3g}"
         t.add_row(f"target {escape(name)}", f"{status} — experiment {b['experiment']}: {shown}")
@@ -81,6 +81,11 @@ def render_summary(s: Summary, console: Console) -> None:
         t.add_row("stopped", escape(s.stopped))
     console.print(t)
     console.print(f"journal: {s.journal}  (twin report {s.journal})", soft_wrap=True, highlight=False, markup=False)
+
+
+def _measured(value: float) -> str:
+    """An output as the summary shows it: a yes/no one as true or false (not 1 or 0)."""
+    return str(value).lower() if isinstance(value, bool) else f"{value:.4g}"
 
 
 def render_lab_summary(s: LabSummary, console: Console) -> None:
