@@ -34,17 +34,19 @@ class WorkerPool(ProcessPoolExecutor):
         self.scratch = tempfile.mkdtemp(prefix="labtwin-workers-")
         super().__init__(max_workers=max(1, workers), initializer=_start_worker, initargs=(initializer, self.scratch))
 
-    def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
-        super().shutdown(wait, cancel_futures=cancel_futures)
-        if wait:
-            shutil.rmtree(self.scratch, ignore_errors=True)
-
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
         return super().submit(_run, fn, *args, **kwargs)
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> bool:
-        if exc_type is None:
-            return bool(super().__exit__(exc_type, exc, tb))
+        try:
+            if exc_type is None:
+                return bool(super().__exit__(exc_type, exc, tb))
+            self._stop()
+            return False
+        finally:
+            shutil.rmtree(self.scratch, ignore_errors=True)
+
+    def _stop(self) -> None:
         workers = list((self._processes or {}).values())
         manager = getattr(self, "_executor_manager_thread", None)  # shutdown forgets it (typeshed mistypes it)
         self.shutdown(wait=False, cancel_futures=True)
@@ -60,8 +62,6 @@ class WorkerPool(ProcessPoolExecutor):
         # 3.11 writes to that pipe unlocked, and a close in between is a traceback ("Bad file descriptor")
         if manager is not None:
             manager.join(STOP_S)
-        shutil.rmtree(self.scratch, ignore_errors=True)
-        return False
 
 
 def _start_worker(then: Callable[[], None] | None, scratch: str) -> None:
@@ -78,8 +78,8 @@ _running = False  # this worker is in a run (a SIGTERM unwinds it)
 
 def _run(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
     global _running
-    _running = True
     try:
+        _running = True  # inside the try: a stop that lands here still leaves through the finally
         return fn(*args, **kwargs)
     finally:
         _running = False
