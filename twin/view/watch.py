@@ -166,7 +166,7 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
     stop = stop or asyncio.Event()
     recording = None
     try:
-        first = await _first_page(bus, clock, lab, stop)
+        first = await _first_page(bus, clock, lab, stop, presence)
         if first is not None and first.get("shared"):
             observer, recording = open_lab_observer(options, f"watch-{lab}", [], {}, dedupe=True)
             shared = _SharedWatch(bus, clock, lab, observer)
@@ -189,7 +189,7 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
                     for name in names:
                         await shared.catch_up(name)
                 else:
-                    again = await _first_page(bus, clock, lab, stop)
+                    again = await _first_page(bus, clock, lab, stop, presence)
                     if again is not None:
                         await _pages(bus, clock, keys.campaign(lab, "*", "history"), again, observer.on_message)
                 held: list = waiting or []
@@ -290,13 +290,14 @@ class _SharedWatch:
             self.observer.on_message(key, payload)
 
 
-async def _first_page(bus: Bus, clock: LabClock, lab: str, stop: asyncio.Event,
+async def _first_page(bus: Bus, clock: LabClock, lab: str, stop: asyncio.Event, presence: _Presence,
                       patience_s: float = 30.0) -> dict | None:
     """The first page of the running campaign's history (of one of them, in a shared lab); waits for it to come
-    up, and gives up after ``patience_s`` or when ``stop`` is set."""
+    up, and gives up after ``patience_s``, when ``stop`` is set, or when the lab's presence has been gone for the
+    grace (a lab killed as it started: the caller tells it gone)."""
     key = keys.campaign(lab, "*", "history")
     for _ in range(int(patience_s / 0.5)):
-        if stop.is_set():
+        if stop.is_set() or presence.gone_for(clock.now()) > _GONE_GRACE_S * clock.speed:
             return None
         try:
             return json.loads(await bus.request(key, b"", timeout=2.0 * clock.speed))

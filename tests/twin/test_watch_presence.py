@@ -1,0 +1,29 @@
+"""A watcher still waiting for a lab's history gives up as soon as the lab's presence is gone for good."""
+
+import asyncio
+
+from twin.core import keys
+from twin.core.bus import MemoryBus
+from twin.core.clock import LabClock
+from twin.view.watch import RecordOptions, watch_async
+
+
+def test_a_lab_that_dies_before_giving_its_history_ends_the_watch_within_the_grace(tmp_path):
+    clock = LabClock("virtual")
+    bus = MemoryBus()  # the lab's presence, and no history served yet: a lab killed while it starts
+    gone: list[float] = []
+
+    async def main():
+        await bus.start()
+        token = bus.declare_token(keys.orchestrator("qd"))
+        watcher = asyncio.ensure_future(watch_async(bus, clock, "qd", RecordOptions(save=tmp_path / "w.rrd"),
+                                                    on_gone=lambda: gone.append(clock.now())))
+        await clock.sleep(5.0)
+        killed = clock.now()
+        token.close()
+        observer = await asyncio.wait_for(watcher, timeout=None)
+        return killed, observer
+
+    killed, observer = clock.run(main())
+    assert len(gone) == 1 and not observer.done
+    assert gone[0] - killed < 5.0, f"told {gone[0] - killed:.1f} s after the lab went"  # the grace is 2 s; was 25
