@@ -426,3 +426,10 @@ def test_a_drivers_error_reaches_the_terminal_as_escapes_and_the_journal_as_it_w
     assert failed and all("\x1b[2J\x1b]0;owned\x07every target met" in d["reason"] for d in failed)
     record = logging.LogRecord("twin", logging.WARNING, __file__, 1, "driver raised: %s", ("\x1b[2J\rX",), None)
     assert logging.lastResort.format(record) == "driver raised: \\x1b[2J\\x0dX"  # set by importing twin.cli
+    forged = logging.LogRecord("twin", logging.WARNING, __file__, 1, "driver raised: %s",
+                               ("boom\nERROR twin.alerts: devices.lost spectrometer-1",), None)
+    from twin.cli.printable import FORMAT, PrintableFormatter
+
+    for formatter in (logging.lastResort, PrintableFormatter(FORMAT)):  # a bench's lines, and twin run's
+        lines = formatter.format(forged).splitlines()  # a driver's newline cannot forge a log line of its own
+        assert len(lines) == 2 and lines[1] == "  ERROR twin.alerts: devices.lost spectrometer-1", lines

@@ -21,19 +21,23 @@ class PrintableConsole(Console):
         return super().render_str(printable(text), **options)
 
 
-class _PrintableFormatter(logging.Formatter):
+class PrintableFormatter(logging.Formatter):
+    """Control characters escaped, and every line of a record after its first indented: a newline in a driver's
+    error cannot start a line that reads as a log line of its own (``WARNING twin.alerts: ...``)."""
+
     def format(self, record: logging.LogRecord) -> str:
-        return printable(super().format(record))
+        return printable(super().format(record)).replace("\n", "\n  ")
 
 
 def log_to_stderr(level: int) -> None:
-    """Log lines at ``level`` and above to stderr, their control characters escaped."""
+    """Log lines at ``level`` and above to stderr, their control characters escaped and their later lines
+    indented."""
     handler = logging.StreamHandler()
-    handler.setFormatter(_PrintableFormatter(FORMAT))
+    handler.setFormatter(PrintableFormatter(FORMAT))
     logging.basicConfig(level=level, handlers=[handler])
 
 
 # the handler Python falls back on where a command configured none (a bench, `twin whatif`): escaped too
 logging.lastResort = logging.StreamHandler()
 logging.lastResort.setLevel(logging.WARNING)
-logging.lastResort.setFormatter(_PrintableFormatter("%(message)s"))
+logging.lastResort.setFormatter(PrintableFormatter("%(message)s"))
