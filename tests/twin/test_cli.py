@@ -424,6 +424,25 @@ def test_an_endpoint_that_is_not_one_is_named_with_how_to_write_it_before_anythi
     assert "cargo" not in said and "Json5Err" not in said
 
 
+@pytest.mark.parametrize("command", [
+    ["ctl", "status", "--lab", "{lab}", "--connect", "tcp/127.0.0.1:1"],
+    ["ctl", "pause", "--lab", "{lab}", "--connect", "tcp/127.0.0.1:1"],
+    ["watch", "--lab", "{lab}", "--connect", "tcp/127.0.0.1:1", "--save", "{tmp}/w.rrd"],
+    ["submit", "{tmp}/c.yaml", "--lab", "{lab}", "--connect", "tcp/127.0.0.1:1"],
+    ["devices", "--connect", "tcp/127.0.0.1:1", "--lab", "{lab}"],
+])
+@pytest.mark.parametrize("lab", ["qd/**", "*", "a b", "qd/campaign/x"])
+def test_a_lab_name_that_is_not_one_is_refused_before_anything_opens(tmp_path, command, lab):
+    """A lab's name is a chunk of its bus keys: `twin watch --lab '*'` subscribed to every lab's keys at once, and
+    `--lab 'qd/**'` waited forever for a lab no scenario can name."""
+    (tmp_path / "c.yaml").write_text("name: c\n")
+    res = twin_cli(*[a.format(lab=lab, tmp=tmp_path) for a in command], columns=300)
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2, said
+    assert f"'{lab}' is not a lab's name: a scenario's `lab` is letters, digits, '_' or '-', at most 64" in said, said
+    assert not (tmp_path / "w.rrd").exists()
+
+
 def test_twin_version_names_labtwin_and_the_libraries_a_run_records():
     from twin.runtime.run_record import versions
 

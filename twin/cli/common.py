@@ -16,6 +16,7 @@ from rich.markup import escape
 from rich.segment import Segment
 
 from twin.cli.printable import PrintableConsole
+from twin.core import keys
 from twin.core.errors import TwinError
 from twin.core.whole_files import FULL_BYTES, free_bytes
 
@@ -155,6 +156,15 @@ def writable(option: str, *paths: Path | None) -> None:
 def _fail(exc: TwinError) -> None:
     err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, markup=True)
     raise typer.Exit(2)
+
+
+def lab_name(value: str | None) -> str | None:
+    """Every ``--lab``: a name a scenario's ``lab`` could have. A '/' or a wildcard would make the lab's keys
+    another lab's, or every lab's."""
+    if value is not None and not re.fullmatch(keys.LAB_NAME, value):
+        raise typer.BadParameter(f"{value[:80]!r} is not a lab's name: a scenario's `lab` is letters, digits, '_' "
+                                 "or '-', at most 64 (twin validate FILE shows it)")
+    return value
 
 
 def assignments(items: list[str]) -> dict:

@@ -1,6 +1,7 @@
 """Zenoh key expressions: one lab per prefix (DESIGN.md, "Messages")."""
 
 PREFIX = "labtwin"
+LAB_NAME = r"^[A-Za-z0-9_-]{1,64}$"  # a lab's name is one chunk of its every key (no '/', '*', '$') and a directory
 
 
 def cmd(lab: str, device: str) -> str:

@@ -13,6 +13,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, StringConstraints, ValidationInfo, field_validator, model_validator
 
+from twin.core import keys
 from twin.core.bus.endpoints import HOW, not_endpoints
 from twin.scenario.operations import Consumable, Orchestration
 from twin.scenario.spec import MAX_S, MAX_VALUE, Label, Name, Spec
@@ -269,7 +270,7 @@ class Scenario(Spec):
     name: Name = Field(description="names the run's journal (runs/<name>-seed<N>-<time>.db): letters, digits, "
                        "'_', '-', '.'")
     description: str = Field(default="", max_length=4096, description="one line about the scenario, for people")
-    lab: str = Field(default="lab", pattern=r"^[A-Za-z0-9_-]{1,64}$", description="bus prefix")
+    lab: str = Field(default="lab", pattern=keys.LAB_NAME, description="bus prefix")
     devices: dict[Name, DeviceType] = Field(default_factory=dict, max_length=256, description="the lab: device "
                                             "type -> its driver, instances, steps, durations and faults")
     chemistry: Chemistry = Field(default=Chemistry(), description="the physical model "
