@@ -27,3 +27,33 @@ def test_a_lab_that_dies_before_giving_its_history_ends_the_watch_within_the_gra
     killed, observer = clock.run(main())
     assert len(gone) == 1 and not observer.done
     assert gone[0] - killed < 5.0, f"told {gone[0] - killed:.1f} s after the lab went"  # the grace is 2 s; was 25
+
+
+def test_a_lab_that_never_answers_for_its_history_is_given_the_patience_in_lab_time_then_recorded_live(tmp_path,
+                                                                                                      caplog):
+    """Each ask waits up to 2 s for its answer: counting asks, 30 s of patience was up to 150 s."""
+    clock = LabClock("virtual")
+    bus = MemoryBus()
+    asked: list[float] = []
+
+    async def hangs(key: str, payload: bytes) -> bytes:
+        asked.append(clock.now())
+        await asyncio.Event().wait()
+        return b""
+
+    async def main():
+        await bus.start()
+        token = bus.declare_token(keys.orchestrator("qd"))
+        served = bus.serve(keys.campaign("qd", "c", "history"), hangs)
+        stop = asyncio.Event()
+        watcher = asyncio.ensure_future(watch_async(bus, clock, "qd", RecordOptions(save=tmp_path / "w.rrd"),
+                                                    stop=stop))
+        await clock.sleep(90.0)
+        stop.set()
+        await watcher
+        served.close()
+        token.close()
+
+    clock.run(main())
+    assert asked and max(asked) < 30.0, asked
+    assert "lab 'qd' did not answer for its history in 30 s: recording from now on" in caplog.text

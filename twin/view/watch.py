@@ -296,11 +296,13 @@ async def _first_page(bus: Bus, clock: LabClock, lab: str, stop: asyncio.Event, 
     up, and gives up after ``patience_s``, when ``stop`` is set, or when the lab's presence has been gone for the
     grace (a lab killed as it started: the caller tells it gone)."""
     key = keys.campaign(lab, "*", "history")
-    for _ in range(int(patience_s / 0.5)):
+    given_up_at = clock.now() + patience_s * clock.speed
+    while clock.now() < given_up_at:
         if stop.is_set() or presence.gone_for(clock.now()) > _GONE_GRACE_S * clock.speed:
             return None
         try:
-            return json.loads(await bus.request(key, b"", timeout=2.0 * clock.speed))
+            return json.loads(await bus.request(key, b"", timeout=min(2.0 * clock.speed,
+                                                                      max(given_up_at - clock.now(), 0.0))))
         except (NoReplyError, ValueError, TwinError):
             await clock.sleep(0.5 * clock.speed)
     log.warning("lab %r did not answer for its history in %.0f s: recording from now on", lab, patience_s)
