@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import ast
 import difflib
 
 import functools
 import importlib
+import importlib.util
 import inspect
 from pathlib import Path
 from importlib.metadata import EntryPoint, entry_points
@@ -52,6 +54,38 @@ def load(kind: str, name: str) -> Any:
             raise DriverError(f"{name!r}: {' and '.join(m + '()' for m in plain)} must be `async def`: the lab "
                               f"awaits {'it' if len(plain) == 1 else 'them'} (see docs/drivers.md)")
     return obj
+
+
+def parameters_unimported(kind: str, name: str) -> tuple[list[str], bool] | None:
+    """An installed plugin's constructor, read from its source without importing it (a planner's module may import
+    scikit-learn, torch or RDKit: seconds): the names it takes by keyword, and whether it takes any keyword (a
+    ``**kwargs`` not named ``_``). None where the source does not say plainly (a class without an ``__init__`` of
+    its own, a decorated one, a name the module imports from elsewhere, no source): load it to know."""
+    ep = installed(kind).get(name)
+    module, _, attr = ep.value.partition(":") if ep is not None else ("", "", "")
+    if not attr.strip().isidentifier():
+        return None
+    try:
+        spec = importlib.util.find_spec(module.strip())
+        tree = ast.parse(Path(spec.origin).read_bytes()) if spec and spec.origin and spec.origin.endswith(".py") \
+            else None
+    except (ImportError, ValueError, OSError, SyntaxError):
+        return None
+    found = [n for n in (tree.body if tree else ()) if isinstance(n, (ast.ClassDef, ast.FunctionDef))
+             and n.name == attr.strip()]
+    if len(found) != 1 or found[0].decorator_list:
+        return None
+    if isinstance(found[0], ast.ClassDef):
+        inits = [n for n in found[0].body if isinstance(n, ast.FunctionDef) and n.name == "__init__"]
+        if len(inits) != 1 or inits[0].decorator_list or found[0].bases or found[0].keywords:
+            return None
+        args = inits[0].args
+        positional = [*args.posonlyargs, *args.args][1:]  # without self
+    else:
+        args = found[0].args
+        positional = [*args.posonlyargs, *args.args]
+    named = [a.arg for a in (*positional, *args.kwonlyargs) if a not in args.posonlyargs]
+    return named, args.kwarg is not None and args.kwarg.arg != "_"
 
 
 def _what_it_is(obj: Any) -> str:

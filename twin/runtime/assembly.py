@@ -278,10 +278,16 @@ def _options_not_taken(cls: Any, options: dict[str, Any], given: frozenset[str])
 
 def _another_planner_takes(option: str, but: str) -> bool:
     """Whether an installed planner other than ``but`` names ``option`` (or may read any): the scenario's options
-    may be for its own planner while a bench or ``--planner`` runs another. Imports them: only for an option the
-    planner running does not take."""
+    may be for its own planner while a bench or ``--planner`` runs another. Each is read from its source, and
+    imported only where that does not say (importing all took seconds: scikit-learn, torch, RDKit)."""
     for other in plugins.installed("planners"):
         if other == but:
+            continue
+        read = plugins.parameters_unimported("planners", other)
+        if read is not None:
+            named, takes_any = read
+            if takes_any or (option in named and option not in PLANNER_ARGUMENTS):
+                return True
             continue
         try:
             unknown, _ = _options_not_taken(plugins.load("planners", other), {option: None}, PLANNER_ARGUMENTS)
