@@ -164,6 +164,7 @@ def test_a_shared_lab_killed_with_a_step_on_a_device_of_another_process_adopts_i
         c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
     raw["devices"]["spectrometer"]["duration"] = {"mean_s": 1500, "cv": 0.0}
     raw["devices"]["synthesiser"]["duration"] = {"mean_s": 200, "cv": 0.0}
+    raw["campaigns"][1]["chemistry"]["parameters"]["time_s"].update(low=60, high=600)  # a reaction, not 1.5 lab-h
     for d in raw["devices"].values():
         d["faults"] = {}
     raw.update(clock={"mode": "scaled", "speed": speed},
