@@ -39,19 +39,42 @@ class Fields:
 
 def factory(parameters, seed, gamma=0):
     return Plain(parameters, seed)
+
+
+class Made:
+    def __new__(cls, parameters, seed, delta=0):
+        return object.__new__(cls)
+
+    def __init__(self, parameters, seed, delta=0):
+        pass
+
+
+class Wrapped:
+    def __init__(self, parameters, seed):
+        pass
+
+
+Wrapped = factory
+
+
+class Signed:
+    __signature__ = None  # what inspect would read instead
+
+    def __init__(self, parameters, seed):
+        pass
 '''
 
 
 def test_a_constructors_names_are_read_from_its_source_or_left_to_an_import(tmp_path, monkeypatch):
     (tmp_path / "my_planners.py").write_text(MODULE)
     monkeypatch.syspath_prepend(str(tmp_path))
-    names = ["Plain", "Open", "Child", "Fields", "factory", "Imported", "Missing"]
+    names = ["Plain", "Open", "Child", "Fields", "factory", "Imported", "Missing", "Made", "Wrapped", "Signed"]
     eps = {n: EntryPoint(n, f"my_planners:{n}", "labtwin.planners") for n in names}
     monkeypatch.setattr(plugins, "installed", lambda kind: eps)
     read = {n: plugins.parameters_unimported("planners", n) for n in names}
     assert read == {"Plain": (["parameters", "seed", "alpha", "beta"], False), "Open": (["parameters", "seed"], True),
                     "Child": None, "Fields": None, "factory": (["parameters", "seed", "gamma"], False),
-                    "Imported": None, "Missing": None}
+                    "Imported": None, "Missing": None, "Made": None, "Wrapped": None, "Signed": None}
     assert "a_module_that_is_not_installed" not in sys.modules
 
 

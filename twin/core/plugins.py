@@ -59,33 +59,45 @@ def load(kind: str, name: str) -> Any:
 def parameters_unimported(kind: str, name: str) -> tuple[list[str], bool] | None:
     """An installed plugin's constructor, read from its source without importing it (a planner's module may import
     scikit-learn, torch or RDKit: seconds): the names it takes by keyword, and whether it takes any keyword (a
-    ``**kwargs`` not named ``_``). None where the source does not say plainly (a class without an ``__init__`` of
-    its own, a decorated one, a name the module imports from elsewhere, no source): load it to know."""
+    ``**kwargs`` not named ``_``). None where the source does not say plainly (a class with bases, a metaclass, a
+    ``__new__`` or no ``__init__`` of its own, a decorated one, a name bound again or imported from elsewhere, no
+    source): load it to know."""
     ep = installed(kind).get(name)
-    module, _, attr = ep.value.partition(":") if ep is not None else ("", "", "")
-    if not attr.strip().isidentifier():
+    module, _, attr = (ep.value.partition(":") if ep is not None else ("", "", ""))
+    module, attr = module.strip(), attr.strip()
+    if not attr.isidentifier():
         return None
     try:
-        spec = importlib.util.find_spec(module.strip())
-        tree = ast.parse(Path(spec.origin).read_bytes()) if spec and spec.origin and spec.origin.endswith(".py") \
-            else None
+        spec = importlib.util.find_spec(module)
+        if spec is None or not spec.origin or not spec.origin.endswith(".py"):
+            return None
+        body = ast.parse(Path(spec.origin).read_bytes()).body
     except (ImportError, ValueError, OSError, SyntaxError):
         return None
-    found = [n for n in (tree.body if tree else ()) if isinstance(n, (ast.ClassDef, ast.FunctionDef))
-             and n.name == attr.strip()]
-    if len(found) != 1 or found[0].decorator_list:
+    defined = [n for n in body if isinstance(n, (ast.ClassDef, ast.FunctionDef)) and n.name == attr]
+    bound = [n for n in body if isinstance(n, (ast.Assign, ast.AnnAssign, ast.AugAssign)) and attr in _targets(n)]
+    if len(defined) != 1 or bound or defined[0].decorator_list:
         return None
-    if isinstance(found[0], ast.ClassDef):
-        inits = [n for n in found[0].body if isinstance(n, ast.FunctionDef) and n.name == "__init__"]
-        if len(inits) != 1 or inits[0].decorator_list or found[0].bases or found[0].keywords:
+    found = defined[0]
+    if isinstance(found, ast.ClassDef):
+        own = {n.name for n in found.body if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
+        own |= {t for n in found.body if isinstance(n, (ast.Assign, ast.AnnAssign)) for t in _targets(n)}
+        inits = [n for n in found.body if isinstance(n, ast.FunctionDef) and n.name == "__init__"]
+        if len(inits) != 1 or inits[0].decorator_list or found.bases or found.keywords or own & {"__new__",
+                                                                                                  "__signature__"}:
             return None
         args = inits[0].args
         positional = [*args.posonlyargs, *args.args][1:]  # without self
     else:
-        args = found[0].args
+        args = found.args
         positional = [*args.posonlyargs, *args.args]
     named = [a.arg for a in (*positional, *args.kwonlyargs) if a not in args.posonlyargs]
     return named, args.kwarg is not None and args.kwarg.arg != "_"
+
+
+def _targets(node: ast.Assign | ast.AnnAssign | ast.AugAssign) -> set[str]:
+    return {t.id for t in (node.targets if isinstance(node, ast.Assign) else [node.target])
+            if isinstance(t, ast.Name)}
 
 
 def _what_it_is(obj: Any) -> str:
