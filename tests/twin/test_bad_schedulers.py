@@ -114,7 +114,8 @@ def test_in_a_lab_of_several_campaigns_too(tmp_path, caplog, clock):
     from twin.runtime.lab import prepare
     from twin.runtime.shared_run import run_shared
 
-    odd = {**SMALL, "campaigns.0.campaign.scheduler": "tests.twin.test_bad_schedulers:OddScheduler"}
+    odd = {**SMALL, "campaigns.0.campaign.scheduler": "tests.twin.test_bad_schedulers:OddScheduler",
+           "campaigns.0.campaign.stop_on_target": False}  # its whole budget, however soon a run meets R, G and B
     s = prepare(LAB, seed=1, clock=clock, speed=50_000, bus="memory", overrides=odd)
     with caplog.at_level(logging.WARNING):
         out = run_shared(s, tmp_path, handle_signals=False)
