@@ -12,7 +12,7 @@ import typer
 from rich.markup import escape
 from rich.text import Text
 
-from twin.cli.common import (_fail, app, assignments, bar_progress, console, err, keep_serving, lab_name,
+from twin.cli.common import (_fail, app, assignments, bar_progress, check_lab_name, console, err, keep_serving,
                              machine_output, narrow_table, writable)
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
@@ -199,8 +199,8 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
 
 @app.command()
 def watch(
-    lab_name: Annotated[str, typer.Option("--lab", callback=lab_name,
-                                                   help="the lab to watch (the scenario's `lab` field)")],
+    lab_name: Annotated[str, typer.Option("--lab", callback=check_lab_name,
+                                          help="the lab to watch (the scenario's `lab` field)")],
     connect: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT",
                                                          help="Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")] = None,
     listen: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT",
@@ -382,8 +382,8 @@ def devices(
                                                          help="instead, list the devices on a running lab's bus "
                                                               "(a Zenoh endpoint, e.g. tcp/127.0.0.1:7447), with "
                                                               "their health")] = None,
-    lab_name: Annotated[Optional[str], typer.Option("--lab", callback=lab_name,
-                                                             help="the lab (the scenario's `lab`), with --connect")] = None,
+    lab_name: Annotated[Optional[str], typer.Option("--lab", callback=check_lab_name,
+                                                    help="the lab (the scenario's `lab`), with --connect")] = None,
     security: Annotated[Optional[Path], typer.Option(help="the lab's security directory, with --connect")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="the installed drivers as JSON")] = False,
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write the installed drivers to this CSV file")] = None,

@@ -158,7 +158,7 @@ def _fail(exc: TwinError) -> None:
     raise typer.Exit(2)
 
 
-def lab_name(value: str | None) -> str | None:
+def check_lab_name(value: str | None) -> str | None:
     """Every ``--lab``: a name a scenario's ``lab`` could have. A '/' or a wildcard would make the lab's keys
     another lab's, or every lab's."""
     if value is not None and not re.fullmatch(keys.LAB_NAME, value):

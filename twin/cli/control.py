@@ -10,7 +10,7 @@ from typing import Annotated, Any, Optional
 import typer
 from rich.markup import escape
 
-from twin.cli.common import _fail, app, console, err, lab_name, narrow_table, print_table
+from twin.cli.common import _fail, app, check_lab_name, console, err, narrow_table, print_table
 from twin.core.errors import TwinError
 
 ctl_app = typer.Typer(help="Operate a running campaign: status, pause, resume, abort, retry, stop; answer "
@@ -19,7 +19,8 @@ ctl_app = typer.Typer(help="Operate a running campaign: status, pause, resume, a
                       no_args_is_help=True)
 app.add_typer(ctl_app, name="ctl")
 
-Lab = Annotated[str, typer.Option("--lab", callback=lab_name, help="the lab (the scenario's `lab` field)")]
+Lab = Annotated[str, typer.Option("--lab", callback=check_lab_name,
+                                  help="the lab (the scenario's `lab` field)")]
 Connect = Annotated[list[str], typer.Option(metavar="ENDPOINT",
                                             help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447 (the "
                                                  "campaign's --listen, or the lab's router)")]

@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 import typer
 from rich.markup import escape
 
-from twin.cli.common import _fail, app, console, err, keep_serving, lab_app, lab_name
+from twin.cli.common import _fail, app, check_lab_name, console, err, keep_serving, lab_app
 from twin.cli.printable import log_to_stderr
 from twin.core.errors import TwinError
 from twin.runtime.checks import check
@@ -122,7 +122,7 @@ def lab_serve(
 def submit(
     campaign_file: Annotated[Path, typer.Argument(help="a campaign: name, and any of owner, priority, share, "
                                                        "chemistry, workflow, campaign")],
-    lab_name: Annotated[str, typer.Option("--lab", callback=lab_name, help="the lab (its file's `lab` field)")],
+    lab_name: Annotated[str, typer.Option("--lab", callback=check_lab_name, help="the lab (its file's `lab` field)")],
     connect: Annotated[list[str], typer.Option(metavar="ENDPOINT",
                                                help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")],
     security: Annotated[Optional[Path], typer.Option(help="the lab's security directory: submit as its "
