@@ -256,6 +256,8 @@ def test_a_workflow_that_measures_before_it_reacts_is_refused_per_experiment_wit
     ("UPDATE events SET detail = 'not json {' WHERE seq = 3", "event 3 is damaged (its detail is not JSON"),
     ("UPDATE events SET experiment = 'zz' WHERE seq = 4", "event 4 is damaged (its experiment is 'zz'"),
     ("UPDATE events SET t_lab = 'noon' WHERE seq = 5", "event 5 is damaged (its lab time is 'noon'"),
+    ("DELETE FROM events WHERE seq IN (6, 7)", "event 6 is missing (the next is 8)"),  # replayed without them
+    ("DELETE FROM events WHERE seq = 1", "event 1 is missing (the next is 2)"),
 ])
 def test_a_journal_altered_row_by_row_is_refused_naming_the_row(tmp_path, damage, says):
     """SQLite keeps whatever a row is given: replay and export check each row instead of failing on it later."""
@@ -291,6 +293,7 @@ _KILLED = "DELETE FROM run WHERE key = 'summary'; "  # as a run killed before it
     (_KILLED + "DELETE FROM run WHERE key = 'scenario'", ["report", "resume"], "before it began"),
     (_KILLED + "UPDATE events SET t_lab = 'noon' WHERE seq = 5", ["resume", "report"],
      "event 5 is damaged (its lab time is 'noon'"),
+    (_KILLED + "DELETE FROM events WHERE seq = 9", ["resume"], "event 9 is missing (the next is 10)"),
     (_KILLED + "UPDATE run SET value = '{\"name\": 5}' WHERE key = 'scenario'", ["resume"],
      "the journal's scenario: 1 problem(s) - name: Input should be a valid string"),
 ])

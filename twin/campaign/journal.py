@@ -338,8 +338,8 @@ _EXPERIMENT_SHAPES = {"params": lambda v: isinstance(v, dict), "outputs": lambda
                           and (len(s) == 2 or s[2] is None or isinstance(s[2], dict)) for s in v)}
 _EXPERIMENT_WORDS = {"params": "a mapping", "outputs": "a mapping", "scores": "a mapping",
                      "route": "a list of [step, device type, params]"}
-_ALTERED = ("labtwin never writes such a row, so the journal was altered or corrupted: run the campaign again (twin "
-            "run); a finished run's summary is still shown by twin report")
+_WHAT_NOW = "run the campaign again (twin run); a finished run's summary is still shown by twin report"
+_ALTERED = f"labtwin never writes such a row, so the journal was altered or corrupted: {_WHAT_NOW}"
 
 
 def read_experiments(path: str | Path) -> list[dict[str, Any]]:
@@ -376,6 +376,12 @@ def read_events(path: str | Path, kind_like: str = "%") -> list[dict[str, Any]]:
         damage = _damage(row)
         if damage:
             raise NotAJournal(f"{path}: event {row.get('seq')} is damaged ({damage}); {_ALTERED}")
+    if kind_like == "%":
+        for expected, row in enumerate(rows, 1):
+            if row.get("seq") != expected:
+                raise NotAJournal(f"{path}: event {expected} is missing (the next is {str(row.get('seq'))[:20]}); "
+                                  "labtwin numbers a journal's events 1, 2, 3, ... and never deletes one, so the "
+                                  f"journal was altered or corrupted: {_WHAT_NOW}")
     return rows
 
 
