@@ -293,7 +293,7 @@ _KILLED = "DELETE FROM run WHERE key = 'summary'; "  # as a run killed before it
     (_KILLED + "DELETE FROM run WHERE key = 'scenario'", ["report", "resume"], "before it began"),
     (_KILLED + "UPDATE events SET t_lab = 'noon' WHERE seq = 5", ["resume", "report"],
      "event 5 is damaged (its lab time is 'noon'"),
-    (_KILLED + "DELETE FROM events WHERE seq = 9", ["resume"], "event 9 is missing (the next is 10)"),
+    (_KILLED + "DELETE FROM events WHERE seq = 9", ["resume", "report"], "event 9 is missing (the next is 10)"),
     (_KILLED + "UPDATE run SET value = '{\"name\": 5}' WHERE key = 'scenario'", ["resume"],
      "the journal's scenario: 1 problem(s) - name: Input should be a valid string"),
 ])

@@ -90,10 +90,10 @@ def recorded(path: str | Path) -> tuple[Scenario, list[tuple]]:
 def interrupted(path: str | Path) -> dict[str, Any]:
     """How far a killed run got, from what its journal committed."""
     with reading(path) as db:
-        events, t_lab = db.execute("SELECT COUNT(*), MAX(t_lab) FROM events").fetchone()
+        events, t_lab, last = db.execute("SELECT COUNT(*), MAX(t_lab), MAX(seq) FROM events").fetchone()
         statuses = dict(db.execute("SELECT status, COUNT(*) FROM experiments GROUP BY status").fetchall())
-    if t_lab is not None and not finite(t_lab):
-        read_events(path)  # names the damaged row
+    if (t_lab is not None and not finite(t_lab)) or (last or 0) != events:
+        read_events(path)  # names the damaged row, or the first missing one
     name = read_run(path, needs=("scenario",))["scenario"].get("name", "?")
     return {"scenario": str(name), "events": events, "lab_hours": (t_lab or 0.0) / 3600 if finite(t_lab) else 0.0,
             "experiments": statuses}
