@@ -210,7 +210,7 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
             if presence.gone_at is not None and (cut or (relinked_at is not None and clock.now() - relinked_at
                                                          < _RELINK_GRACE_S * clock.speed)):
                 presence.gone_at = clock.now()  # gone from here only, as far as we know, until the lab could relink
-            if presence.gone_for(clock.now()) > _GONE_GRACE_S * clock.speed and not observer.done:
+            if presence.gone(clock) and not observer.done:
                 presence.gone_at = None
                 if on_gone is not None:
                     on_gone()
@@ -247,8 +247,9 @@ class _Presence:
         self.lost = not alive
         return returned
 
-    def gone_for(self, now: float) -> float:
-        return 0.0 if self.gone_at is None else now - self.gone_at
+    def gone(self, clock: LabClock) -> bool:
+        """Gone for longer than the grace."""
+        return self.gone_at is not None and clock.now() - self.gone_at > _GONE_GRACE_S * clock.speed
 
 
 class _SharedWatch:
@@ -298,11 +299,10 @@ async def _first_page(bus: Bus, clock: LabClock, lab: str, stop: asyncio.Event, 
     key = keys.campaign(lab, "*", "history")
     given_up_at = clock.now() + patience_s * clock.speed
     while clock.now() < given_up_at:
-        if stop.is_set() or presence.gone_for(clock.now()) > _GONE_GRACE_S * clock.speed:
+        if stop.is_set() or presence.gone(clock):
             return None
         try:
-            return json.loads(await bus.request(key, b"", timeout=min(2.0 * clock.speed,
-                                                                      max(given_up_at - clock.now(), 0.0))))
+            return json.loads(await bus.request(key, b"", timeout=min(2.0 * clock.speed, given_up_at - clock.now())))
         except (NoReplyError, ValueError, TwinError):
             await clock.sleep(0.5 * clock.speed)
     log.warning("lab %r did not answer for its history in %.0f s: recording from now on", lab, patience_s)
