@@ -94,3 +94,69 @@ def test_a_stop_while_the_workers_start_is_quiet_and_at_once():
                           cwd=Path(__file__).resolve().parents[2])
     assert done.returncode == 0 and float(done.stdout) < STOP_S, done
     assert "Traceback" not in done.stderr and "Exception in initializer" not in done.stderr, done.stderr
+
+
+def _went_on(reached: list[str]) -> None:
+    """A Python call: where a signal's handler runs if it was not only noted."""
+    reached.append("went on")
+
+
+@pytest.mark.process
+@pytest.mark.parametrize("sig, raised", [("SIGINT", KeyboardInterrupt), ("SIGTERM", "Terminated")])
+def test_a_signal_while_the_pool_is_open_is_raised_where_the_runs_are_waited_for(tmp_path, sig, raised):
+    """Raised wherever the main thread was, a Ctrl-C or SIGTERM could land inside the executor's own locking
+    (``submit``, ``as_completed``) and leave a lock held: the command then never ended."""
+    import os
+    import signal
+
+    from twin.cli.common import Terminated, sigterm_unwinds
+
+    expected = Terminated if raised == "Terminated" else raised
+    reached: list[str] = []
+    with sigterm_unwinds(), pytest.raises(expected):
+        with WorkerPool(2) as pool:
+            futures = [pool.submit(_holds, str(tmp_path / f"run{i}")) for i in range(4)]
+            while len(list(tmp_path.iterdir())) < 2:
+                time.sleep(0.01)
+            os.kill(os.getpid(), getattr(signal, sig))
+            _went_on(reached)
+            assert reached == ["went on"]
+            for _ in pool.completed(futures):
+                reached.append("a run ended")
+    assert reached == ["went on"] and list(tmp_path.iterdir()) == []  # raised at the wait, the runs stopped
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+SIGTERM_BY_DEFAULT = """
+import os, signal, sys, time
+from pathlib import Path
+from twin.tools.pool import WorkerPool
+
+def holds(path):
+    Path(path).write_text("running")
+    try:
+        time.sleep(60)
+    finally:
+        Path(path).unlink()
+
+with WorkerPool(1) as pool:
+    runs = pool.map(holds, [sys.argv[1]])
+    while not Path(sys.argv[1]).exists():
+        time.sleep(0.01)
+    os.kill(os.getpid(), signal.SIGTERM)
+    print("went on", flush=True)
+    list(runs)
+print("not reached")
+"""
+
+
+@pytest.mark.process
+def test_a_sigterm_left_to_the_default_ends_the_command_through_the_pool_which_stops_its_runs(tmp_path):
+    import subprocess
+    import sys
+
+    run = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-c", SIGTERM_BY_DEFAULT, str(run)], capture_output=True, text=True,
+                          timeout=60, cwd=Path(__file__).resolve().parents[2])
+    assert done.returncode == 143 and done.stdout == "went on\n", done
+    assert not run.exists() and "Traceback" not in done.stderr

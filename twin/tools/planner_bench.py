@@ -15,7 +15,6 @@ import math
 import statistics
 import tempfile
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -88,7 +87,7 @@ def bench_pool(workers: int) -> WorkerPool:
 
 
 def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str], seeds: int, workers: int,
-               on_each: Callable[[Any], None] | None, pool: ProcessPoolExecutor | None = None) -> dict[str, list[Any]]:
+               on_each: Callable[[Any], None] | None, pool: WorkerPool | None = None) -> dict[str, list[Any]]:
     """``one((scenario, name, seed))`` for every name and seed, in parallel processes (``pool``, or new ones),
     grouped by name."""
     results: dict[str, list[Any]] = {name: [] for name in names}

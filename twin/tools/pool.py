@@ -12,6 +12,12 @@ leaves as soon as its run has unwound.
 A run's temporary files go in a directory the pool makes and removes when it ends, whatever its workers were
 doing: a stop that lands inside ``tempfile.TemporaryDirectory()`` itself (the directory made, its removal not yet
 arranged) or during that removal, or a worker killed when ``STOP_S`` ran out, would otherwise leave them behind.
+
+While the pool is open, Ctrl-C and SIGTERM are only noted, and raised where the command waits for its runs
+(``completed``, ``map``). Raised wherever the main thread happened to be, they could land inside the executor's
+own locking (``submit`` holding its queue's lock, ``as_completed`` taking each future's lock in turn) and leave a
+lock held for good: the executor's thread then waited on it, and so did the command's exit, forever (one SIGTERM
+in a few hundred did it: a whatif said it had stopped and never ended).
 """
 
 from __future__ import annotations
@@ -21,12 +27,15 @@ import shutil
 import signal
 import sys
 import tempfile
+import threading
 import time
-from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ALL_COMPLETED, FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from types import FrameType
 from typing import Any
 
 STOP_S = 10.0  # how long the stopped workers have to clean up before they are killed
+CHECK_S = 0.1  # how often a wait for runs looks for a Ctrl-C or SIGTERM noted meanwhile
 
 
 class WorkerPool(ProcessPoolExecutor):
@@ -34,17 +43,51 @@ class WorkerPool(ProcessPoolExecutor):
         self.scratch = tempfile.mkdtemp(prefix="labtwin-workers-")
         super().__init__(max_workers=max(1, workers), initializer=_start_worker, initargs=(initializer, self.scratch))
 
+        self._signals = _NotedSignals()
+
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
         return super().submit(_run, fn, *args, **kwargs)
 
-    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> bool:
+    def completed(self, futures: Iterable[Future]) -> Iterator[Future]:
+        """``concurrent.futures.as_completed``, raising a Ctrl-C or SIGTERM noted while it waits."""
+        pending = set(futures)
+        while pending:
+            done, pending = self._wait(pending, FIRST_COMPLETED)
+            yield from done
+
+    def map(self, fn: Callable[..., Any], *iterables: Iterable[Any], timeout: float | None = None,
+            chunksize: int = 1) -> Iterator[Any]:
+        """The results in the order of the arguments, raising a Ctrl-C or SIGTERM noted while it waits."""
+        futures = [self.submit(fn, *args) for args in zip(*iterables)]
+
+        def in_order() -> Iterator[Any]:
+            for future in futures:
+                self._wait({future}, ALL_COMPLETED)
+                yield future.result()
+        return in_order()
+
+    def _wait(self, futures: set[Future], until: str) -> tuple[set[Future], set[Future]]:
+        while True:
+            done, pending = wait(futures, CHECK_S, until)
+            self._signals.raise_noted()
+            if done:
+                return done, pending
+
+    def __enter__(self) -> WorkerPool:
+        self._signals.note()
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         try:
             if exc_type is None:
-                return bool(super().__exit__(exc_type, exc, tb))
-            self._stop()
-            return False
+                super().__exit__(exc_type, exc, tb)
+            else:
+                self._stop()
         finally:
             shutil.rmtree(self.scratch, ignore_errors=True)
+            self._signals.restore()
+        if exc_type is None:
+            self._signals.raise_noted()  # came after the last wait
 
     def _stop(self) -> None:
         workers = list((self._processes or {}).values())
@@ -62,6 +105,49 @@ class WorkerPool(ProcessPoolExecutor):
         # 3.11 writes to that pipe unlocked, and a close in between is a traceback ("Bad file descriptor")
         if manager is not None:
             manager.join(STOP_S)
+
+
+class _NotedSignals:
+    """Ctrl-C and SIGTERM noted, to be raised by ``raise_noted`` as their handlers before would have raised them (a
+    SIGTERM left to the default becomes ``SystemExit(143)``, so that the pool stops its workers on the way out). A
+    worker forked before its own handlers are set leaves at a SIGTERM and ignores a Ctrl-C (the pool stops it)."""
+
+    def __init__(self) -> None:
+        self._before: dict[int, Any] = {}
+        self._noted: list[int] = []
+        self._pid = os.getpid()
+
+    def note(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return  # only the main thread takes signals, and sets their handlers
+        self._before = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            before = signal.getsignal(sig)
+            if callable(before) or (sig == signal.SIGTERM and before == signal.SIG_DFL):
+                self._before[sig] = before
+                signal.signal(sig, self._noting)
+
+    def _noting(self, sig: int, _: FrameType | None) -> None:
+        if os.getpid() != self._pid:
+            if sig == signal.SIGTERM:
+                _leave()
+            return
+        self._noted.append(sig)
+
+    def raise_noted(self) -> None:
+        if not self._noted:
+            return
+        sig = self._noted[0]
+        self._noted.clear()
+        before = self._before.get(sig, signal.SIG_DFL)
+        if callable(before):
+            before(sig, None)  # raises KeyboardInterrupt, or the command's Terminated
+            return
+        raise SystemExit(128 + sig)
+
+    def restore(self) -> None:
+        for sig, before in self._before.items():
+            signal.signal(sig, before)
 
 
 def _start_worker(then: Callable[[], None] | None, scratch: str) -> None:

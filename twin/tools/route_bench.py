@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import statistics
-from concurrent.futures import as_completed
 from typing import Any, Callable
 
 from twin.core import plugins
@@ -60,7 +59,7 @@ def bench(methods: list[str], chosen: list[dict[str, Any]], seconds: float, work
     jobs = [(m, t, seconds) for m in methods for t in chosen]
     results = []
     with WorkerPool(workers, initializer=_single_threaded) as pool:
-        for fut in as_completed([pool.submit(_one, job) for job in jobs]):
+        for fut in pool.completed([pool.submit(_one, job) for job in jobs]):
             results.append(fut.result())
             on_done(results[-1])
     order = {m: i for i, m in enumerate(methods)}

@@ -12,7 +12,6 @@ from __future__ import annotations
 import statistics
 import tempfile
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from twin.core import plugins
 from twin.runtime.assembly import plays_ahead
 from twin.runtime.lab import prepare, run
 from twin.tools.planner_bench import label, over_seeds
+from twin.tools.pool import WorkerPool
 from twin.scenario import Scenario, why_runs_vary
 
 RULES = ("fifo", "spt", "mwkr", "least-loaded", "oldest-sample")
@@ -72,7 +72,7 @@ def bound(s: Scenario) -> float | None:
 
 
 def bench(scenario: Scenario, schedulers: list[str], seeds: int, workers: int = 2,
-          on_run: Callable[[Run], None] | None = None, pool: ProcessPoolExecutor | None = None) -> dict[str, list[Run]]:
+          on_run: Callable[[Run], None] | None = None, pool: WorkerPool | None = None) -> dict[str, list[Run]]:
     return over_seeds(_one, scenario, schedulers, 1 if deterministic(scenario) else seeds, workers, on_run, pool)
 
 

@@ -13,7 +13,6 @@ import itertools
 import statistics
 import tempfile
 from collections.abc import Callable
-from concurrent.futures import as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -212,7 +211,7 @@ def whatif(scenario: Scenario, chosen: list[Variant], seeds: int, workers: int =
     jobs = [(scenario, v, seed) for v in chosen for seed in range(seeds)]
     results = []
     with bench_pool(workers) as pool:
-        for fut in as_completed([pool.submit(_one, job) for job in jobs]):
+        for fut in pool.completed([pool.submit(_one, job) for job in jobs]):
             results.append(fut.result())
             on_run(results[-1])
     order = {v.label: i for i, v in enumerate(chosen)}
