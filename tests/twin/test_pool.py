@@ -1,6 +1,7 @@
 """The benches' and `twin whatif`'s worker pool: Ctrl-C stops the runs going at once, and a stopped worker starts
 none of the runs already queued to it."""
 
+import contextlib
 import tempfile
 import time
 from pathlib import Path
@@ -160,3 +161,41 @@ def test_a_sigterm_left_to_the_default_ends_the_command_through_the_pool_which_s
                           timeout=60, cwd=Path(__file__).resolve().parents[2])
     assert done.returncode == 143 and done.stdout == "went on\n", done
     assert not run.exists() and "Traceback" not in done.stderr
+
+
+def _runs_then_marks(marker: str, budget: int) -> None:
+    """A what-if's run of a long campaign, then a mark that it returned."""
+    from twin.runtime.lab import prepare
+    from twin.tools.whatif import Variant, one
+
+    lab = prepare(Path(__file__).resolve().parents[2] / "scenarios" / "quantum_dots.yaml",
+                  overrides={"campaign.budget": budget, "campaign.stop_on_target": False,
+                             "campaign.planner": "random"})
+    one(lab, Variant("as written", ()), 0)
+    Path(marker).touch()
+
+
+def _events(journal: Path) -> int:
+    import sqlite3
+
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{journal}?mode=ro", uri=True)) as db:
+            return int(db.execute("SELECT COUNT(*) FROM events").fetchone()[0])
+    except sqlite3.Error:  # not made yet
+        return 0
+
+
+@pytest.mark.process
+def test_a_run_stopped_in_its_campaign_ends_there_and_does_not_finish_it(tmp_path):
+    """A bench's campaign in a worker took the pool's SIGTERM as its own clean stop (or, raised in the planner as
+    SystemExit, as the planner's failure) and finished what was in its lab first: seconds of a stop, and a run that
+    returned as if nothing had happened."""
+    marker = tmp_path / "returned"
+    with pytest.raises(KeyboardInterrupt):
+        with WorkerPool(1) as pool:
+            pool.submit(_runs_then_marks, str(marker), 400)
+            while not any(_events(j) > 30 for j in Path(pool.scratch).glob("*/j.db")):  # well into its campaign
+                assert not marker.exists()
+                time.sleep(0.05)
+            raise KeyboardInterrupt
+    assert not marker.exists()

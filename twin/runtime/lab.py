@@ -85,7 +85,8 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         external_devices: Collection[str] = frozenset(),
         on_progress: Callable[[CampaignCore], None] | None = None,
         record: RecordOptions | None = None, observer: LabObserver | None = None, runtime: str = "auto",
-        make_journal: JournalFactory = Journal, agent_in_process: bool = False, **overrides: Any) -> Summary:
+        make_journal: JournalFactory = Journal, agent_in_process: bool = False, handle_signals: bool = True,
+        **overrides: Any) -> Summary:
     """Run one campaign to its end and return its summary.
 
     ``overrides`` are ``seed``, ``clock``, ``speed``, ``bus`` or ``overrides``
@@ -97,6 +98,8 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
     (everything else), or ``auto``: fast where it can. ``make_journal`` opens the journal at a path.
     ``agent_in_process``: a scheduler that is an agent on the bus (rl) is asked in this process instead, so the
     fast runtime can run the campaign: the same decisions without a bus round trip each (benches, what-if).
+    ``handle_signals``: SIGINT and SIGTERM stop the campaign cleanly, its journal and summary written (off where
+    the caller handles them: a bench's worker, which its pool stops).
     """
     s = prepare(scenario, **overrides)
     why_not = fast_refused(s, external_devices, agent_in_process)
@@ -114,8 +117,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
                 log.warning("%s", message)
         if runtime == "fast" or (runtime == "auto" and not why_not):
             try:
-                return run_fast(s, journal, on_progress, make_journal=make_journal,
-                                observer=observer, agent_in_process=agent_in_process)
+                return run_fast(s, journal, on_progress, handle_signals, make_journal, observer, agent_in_process)
             except FastRuntimeRefused as exc:
                 if runtime == "fast":
                     raise
@@ -126,7 +128,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
                     observer, recording = open_observer(record, recording_id(s))
         clock = make_clock(s)
         return clock.run(run_async(s, clock, journal, external_devices, on_progress, observer,
-                                   make_journal=make_journal))
+                                   handle_signals=handle_signals, make_journal=make_journal))
     except BaseException:
         if claimed and Path(journal).exists() and not Path(journal).stat().st_size:
             Path(journal).unlink()  # nothing was written: the name goes back

@@ -55,7 +55,8 @@ def trial(scenario: Scenario, planner: str, seed: int) -> Trial:
     if variant == "seq":
         overrides["campaign.max_in_flight"] = 1
     with tempfile.TemporaryDirectory() as d:
-        s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual", overrides=overrides, agent_in_process=True)
+        s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual", overrides=overrides,
+                agent_in_process=True, handle_signals=False)
     targets = [t.name for t in scenario.chemistry.targets]
     reached = all(t in s.targets_met_h for t in targets)
     if reached:

@@ -4,10 +4,12 @@ Ctrl-C reaches the whole process group. A worker of a plain ``ProcessPoolExecuto
 run it was in and went on to the next, and the pool's exit waited for every run submitted: a bench went on for
 its whole length, silently. Here the workers ignore SIGINT; the pool, left by an exception (KeyboardInterrupt
 among them), drops the runs not started and stops the running ones with SIGTERM, which a worker turns into
-``SystemExit`` so that its run's temporary files are removed on the way out. The executor's worker loop catches
-that ``SystemExit`` as the run's failure and would take the next run already queued to it (half-started, then
-killed when ``STOP_S`` ran out, leaving its files; or a traceback from a queue closed under it): a stopped worker
-leaves as soon as its run has unwound.
+``KeyboardInterrupt`` so that its run's temporary files are removed on the way out. (Not ``SystemExit``: the lab
+takes that, raised in a planner or a driver, as the plugin's failure, and runs on; a bench's runs also leave
+SIGTERM to the pool, ``run(handle_signals=False)``, or the campaign would take it as a clean stop.) The executor's
+worker loop catches the interrupt as the run's failure and would take the next run already queued to it
+(half-started, then killed when ``STOP_S`` ran out, leaving its files; or a traceback from a queue closed under
+it): a stopped worker leaves as soon as its run has unwound.
 
 A run's temporary files go in a directory the pool makes and removes when it ends, whatever its workers were
 doing: a stop that lands inside ``tempfile.TemporaryDirectory()`` itself (the directory made, its removal not yet
@@ -176,9 +178,9 @@ def _run(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
 def _exit(*_: Any) -> None:
     global _stopped
     _stopped = True
-    if not _running:  # starting (the executor would print its SystemExit as a failed initializer) or between runs
+    if not _running:  # starting (the executor would print the interrupt as a failed initializer) or between runs
         _leave()
-    sys.exit(143)
+    raise KeyboardInterrupt
 
 
 def _leave() -> None:

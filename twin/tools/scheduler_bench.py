@@ -43,7 +43,7 @@ def one(scenario: Scenario, scheduler: str, seed: int) -> Run:
     with tempfile.TemporaryDirectory() as d:
         rollouts = {} if plays_ahead(scheduler) else {"campaign.rollouts": 1}  # a rule runs as it goes
         s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual",
-                overrides={"campaign.scheduler": scheduler, **rollouts}, agent_in_process=True)
+                overrides={"campaign.scheduler": scheduler, **rollouts}, agent_in_process=True, handle_signals=False)
     util = statistics.mean(s.utilisation.values()) if s.utilisation else 0.0
     hours = s.hours_compared(scenario.campaign.max_lab_hours)
     return Run(scheduler, seed, hours * 3600, util, s.degraded_samples, s.abandoned, s.scheduler_fallbacks,
