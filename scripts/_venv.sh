@@ -9,7 +9,7 @@ if [ ! -x .venv/bin/python ]; then
 fi
 stamp=".venv/.labtwin-$(sha256sum pyproject.toml | cut -c1-16)"
 if [ ! -f "$stamp" ]; then
-  echo "labtwin: installing labtwin and its dependencies into .venv (a few minutes the first time)" >&2
+  echo "labtwin: installing labtwin and its dependencies into .venv (about a minute the first time)" >&2
   # torch comes in the same command as stable-baselines3, pinned to the CPU build on disk. uv, given pip's
   # indexes, wheels and caps, installs in ~20 s what pip takes ~65 s for; pip is the fallback
   if .venv/bin/python -m pip install --quiet --disable-pip-version-check uv > /dev/null 2>&1 &&
