@@ -44,7 +44,6 @@ class WorkerPool(ProcessPoolExecutor):
     def __init__(self, workers: int, initializer: Callable[[], None] | None = None) -> None:
         self.scratch = tempfile.mkdtemp(prefix="labtwin-workers-")
         super().__init__(max_workers=max(1, workers), initializer=_start_worker, initargs=(initializer, self.scratch))
-
         self._signals = _NotedSignals()
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
