@@ -216,3 +216,46 @@ def test_ctrl_c_or_sigterm_while_the_training_workers_start_lets_them_start_then
     assert built and not any(worker.is_alive() for worker in built[0]._pool)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # Ctrl-C is Ctrl-C again
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+HELD_IN_THE_WAIT = """
+import math, signal, sys, time
+from multiprocessing.pool import IMapIterator
+from agents.training_workers import spawn_pool
+
+real = IMapIterator.next
+
+def next_with_a_signal(self, timeout=None):
+    if next_with_a_signal.calls == 1:  # the second wait, results streaming in
+        self._cond.acquire()
+        time.sleep(0.5)  # wall time: the pool's result thread, results coming, now waits for the lock
+        signal.raise_signal(getattr(signal, sys.argv[1]))  # as it can land inside the wait, the lock taken
+        self._cond.release()
+    next_with_a_signal.calls += 1
+    return real(self, timeout)
+
+next_with_a_signal.calls = 0
+IMapIterator.next = IMapIterator.__next__ = next_with_a_signal
+try:
+    with spawn_pool(2) as pool:
+        for _ in pool.imap_unordered(math.sqrt, range(200_000)):
+            pass
+    print("ended")
+except KeyboardInterrupt:
+    print("interrupted")
+"""
+
+
+@pytest.mark.process
+def test_ctrl_c_while_the_training_waits_for_its_rollouts_stops_its_workers_and_ends():
+    """Raised inside the wait for a rollout, Ctrl-C could leave the wait's lock taken; the pool's result thread,
+    then the pool's terminate, waited on it for good: the training said nothing more and never ended."""
+    import subprocess
+    import sys
+
+    try:
+        done = subprocess.run([sys.executable, "-c", HELD_IN_THE_WAIT, "SIGINT"], capture_output=True, text=True,
+                              timeout=60, cwd=ROOT)
+    except subprocess.TimeoutExpired as hung:
+        raise AssertionError(f"the training never ended after Ctrl-C: {hung.stdout!r}") from None
+    assert done.returncode == 0 and done.stdout == "interrupted\n", done
