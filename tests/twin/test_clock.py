@@ -262,3 +262,45 @@ def test_ctrl_c_reaches_a_campaign_on_its_own_thread_even_where_sigint_restarts_
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60, cwd=root,
                          env={**os.environ, "PYTHONPATH": str(root)})
     assert out.stdout.strip() == "raised [1]", out.stdout + out.stderr
+
+
+@pytest.mark.process
+def test_ctrl_c_landing_inside_the_wait_for_a_campaigns_thread_stops_it_and_never_hangs(tmp_path):
+    """Raised where it landed, Ctrl-C could come inside ``Event.wait`` with the event's lock taken: the campaign's
+    thread could then never set the event, and the next wait waited on its own lock, for good. Run apart: on the
+    code before, it hangs."""
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "inside.py"
+    script.write_text(
+        "import asyncio, signal, threading\n"
+        "from twin.core.clock import _in_own_thread\n"
+        "started, unwound, fired = threading.Event(), [], []\n"
+        "class Event(threading.Event):\n"
+        "    def wait(self, timeout=None):\n"
+        "        if started.is_set() and threading.current_thread() is threading.main_thread() and not fired:\n"
+        "            fired.append(1)\n"
+        "            self._cond.acquire()\n"
+        "            signal.raise_signal(signal.SIGINT)  # as it can land inside the wait, the lock taken\n"
+        "            self._cond.release()\n"
+        "        return super().wait(timeout)\n"
+        "threading.Event = Event\n"
+        "async def campaign():\n"
+        "    started.set()\n"
+        "    try:\n"
+        "        await asyncio.Event().wait()\n"
+        "    finally:\n"
+        "        unwound.append(1)\n"
+        "try:\n"
+        "    _in_own_thread(asyncio.new_event_loop, campaign())\n"
+        "except KeyboardInterrupt:\n"
+        "    print('raised', unwound)\n")
+    root = Path(__file__).resolve().parents[2]
+    try:
+        out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60, cwd=root,
+                             env={**os.environ, "PYTHONPATH": str(root)})
+    except subprocess.TimeoutExpired:
+        raise AssertionError("the wait never ended after Ctrl-C") from None
+    assert out.stdout.strip() == "raised [1]", out.stdout + out.stderr

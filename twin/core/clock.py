@@ -26,7 +26,7 @@ import selectors
 import signal
 import threading
 import time
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable, Coroutine, Iterator
 from typing import Any, Literal, Protocol, TypeVar
 
 log = logging.getLogger(__name__)
@@ -333,20 +333,15 @@ def _in_own_thread(loop_factory: Callable[[], asyncio.AbstractEventLoop], main: 
     # second join returns at once
     thread = threading.Thread(target=body, name="labtwin-campaign", daemon=True)
     interrupted = False
-    try:
-        with _ctrl_c_raises():
-            thread.start()
-            _until(done)
-    except KeyboardInterrupt:
-        interrupted = True
-        interrupt(cancel=False)
-        try:
-            with _ctrl_c_raises():
-                _until(done)  # the campaign stops cleanly and returns its summary, as on the main thread
-        except KeyboardInterrupt:  # a second Ctrl-C: no waiting for a clean stop
-            interrupt(cancel=True)
-            done.wait()
-            raise
+    with _ctrl_c_noted() as ctrl_c:
+        thread.start()
+        if _until(done, ctrl_c):
+            interrupted = True
+            interrupt(cancel=False)
+            if _until(done, ctrl_c):  # the campaign stops cleanly and returns its summary, as on the main thread
+                interrupt(cancel=True)  # a second Ctrl-C: no waiting for a clean stop
+                done.wait()
+                raise KeyboardInterrupt
     if "error" in box:
         if interrupted and isinstance(box["error"], asyncio.CancelledError):
             raise KeyboardInterrupt
@@ -354,23 +349,30 @@ def _in_own_thread(loop_factory: Callable[[], asyncio.AbstractEventLoop], main: 
     return box["result"]
 
 
-def _until(event: threading.Event) -> None:
-    """Wait for ``event``, waking every 0.1 s wall: Ctrl-C's handler runs at a wake-up even where a library set
-    SA_RESTART on SIGINT (an asyncio loop's signal handler does), which restarts an endless wait instead of
-    interrupting it. (Once, a CI run hung here, its Ctrl-C delivered and never raised.)"""
+def _until(event: threading.Event, ctrl_c: list[int]) -> bool:
+    """Wait for ``event`` (False), or until a Ctrl-C is noted (True, and the note taken), waking every 0.1 s wall:
+    Ctrl-C's handler runs at a wake-up even where a library set SA_RESTART on SIGINT (an asyncio loop's signal
+    handler does), which restarts an endless wait instead of interrupting it. (Once, a CI run hung here, its
+    Ctrl-C delivered and never raised.)"""
     while not event.wait(0.1):
-        pass
+        if ctrl_c:
+            ctrl_c.clear()
+            return True
+    return False
 
 
 @contextlib.contextmanager
-def _ctrl_c_raises():
-    """Ctrl-C raises KeyboardInterrupt here: the loop this thread runs (``asyncio.run``'s) would only cancel its
-    task, which waits without awaiting, and the campaign would run on to its end."""
+def _ctrl_c_noted() -> Iterator[list[int]]:
+    """Ctrl-C noted in the list yielded, for the wait to see: the loop this thread runs (``asyncio.run``'s) would
+    only cancel its task, which waits without awaiting, and the campaign would run on to its end. Only noted, not
+    raised where it lands: inside ``Event.wait``, with its lock taken, the campaign's thread could never set the
+    event, and this wait would wait on its own lock for good."""
+    noted: list[int] = []
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield noted
         return
-    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    previous = signal.signal(signal.SIGINT, lambda sig, _: noted.append(sig))
     try:
-        yield
+        yield noted
     finally:
         signal.signal(signal.SIGINT, previous)
