@@ -228,65 +228,19 @@ def test_ctrl_c_while_a_campaign_runs_in_its_own_thread_cancels_it_there_and_is_
     assert unwound == ["labtwin-campaign"]
 
 
-@pytest.mark.process
-def test_ctrl_c_reaches_a_campaign_on_its_own_thread_even_where_sigint_restarts_what_it_interrupts(tmp_path):
-    """An asyncio loop's signal handler sets SA_RESTART on SIGINT: the wait for the campaign's thread was then
-    restarted, not interrupted, and Ctrl-C was never raised (a CI run hung in the test above). Run apart: on the
-    code before, it hangs for good."""
+def _campaign_on_its_own_thread_interrupted(tmp_path: Path, interrupting: str) -> str:
+    """What a script prints that runs, in a process of its own, a campaign without an end on its own thread, with
+    ``interrupting`` (code defining how Ctrl-C comes) run first; it hangs for good if Ctrl-C never stops it."""
     import os
     import subprocess
     import sys
 
-    script = tmp_path / "restart.py"
+    script = tmp_path / "interrupted.py"
     script.write_text(
         "import asyncio, signal, threading, time\n"
         "from twin.core.clock import _in_own_thread\n"
         "started, unwound = threading.Event(), []\n"
-        "async def campaign():\n"
-        "    started.set()\n"
-        "    try:\n"
-        "        await asyncio.Event().wait()\n"
-        "    finally:\n"
-        "        unwound.append(1)\n"
-        "def interrupt():\n"
-        "    started.wait()\n"
-        "    time.sleep(0.2)\n"
-        "    signal.siginterrupt(signal.SIGINT, False)  # as asyncio's add_signal_handler leaves it\n"
-        "    signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)\n"
-        "threading.Thread(target=interrupt, daemon=True).start()\n"
-        "try:\n"
-        "    _in_own_thread(asyncio.new_event_loop, campaign())\n"
-        "except KeyboardInterrupt:\n"
-        "    print('raised', unwound)\n")
-    root = Path(__file__).resolve().parents[2]
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60, cwd=root,
-                         env={**os.environ, "PYTHONPATH": str(root)})
-    assert out.stdout.strip() == "raised [1]", out.stdout + out.stderr
-
-
-@pytest.mark.process
-def test_ctrl_c_landing_inside_the_wait_for_a_campaigns_thread_stops_it_and_never_hangs(tmp_path):
-    """Raised where it landed, Ctrl-C could come inside ``Event.wait`` with the event's lock taken: the campaign's
-    thread could then never set the event, and the next wait waited on its own lock, for good. Run apart: on the
-    code before, it hangs."""
-    import os
-    import subprocess
-    import sys
-
-    script = tmp_path / "inside.py"
-    script.write_text(
-        "import asyncio, signal, threading\n"
-        "from twin.core.clock import _in_own_thread\n"
-        "started, unwound, fired = threading.Event(), [], []\n"
-        "class Event(threading.Event):\n"
-        "    def wait(self, timeout=None):\n"
-        "        if started.is_set() and threading.current_thread() is threading.main_thread() and not fired:\n"
-        "            fired.append(1)\n"
-        "            self._cond.acquire()\n"
-        "            signal.raise_signal(signal.SIGINT)  # as it can land inside the wait, the lock taken\n"
-        "            self._cond.release()\n"
-        "        return super().wait(timeout)\n"
-        "threading.Event = Event\n"
+        f"{interrupting}"
         "async def campaign():\n"
         "    started.set()\n"
         "    try:\n"
@@ -303,4 +257,38 @@ def test_ctrl_c_landing_inside_the_wait_for_a_campaigns_thread_stops_it_and_neve
                              env={**os.environ, "PYTHONPATH": str(root)})
     except subprocess.TimeoutExpired:
         raise AssertionError("the wait never ended after Ctrl-C") from None
-    assert out.stdout.strip() == "raised [1]", out.stdout + out.stderr
+    return out.stdout + out.stderr
+
+
+@pytest.mark.process
+def test_ctrl_c_reaches_a_campaign_on_its_own_thread_even_where_sigint_restarts_what_it_interrupts(tmp_path):
+    """An asyncio loop's signal handler sets SA_RESTART on SIGINT: the wait for the campaign's thread was then
+    restarted, not interrupted, and Ctrl-C was never raised (a CI run hung in the test above). Run apart: on the
+    code before, it hangs for good."""
+    said = _campaign_on_its_own_thread_interrupted(tmp_path, (
+        "def interrupt():\n"
+        "    started.wait()\n"
+        "    time.sleep(0.2)\n"
+        "    signal.siginterrupt(signal.SIGINT, False)  # as asyncio's add_signal_handler leaves it\n"
+        "    signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)\n"
+        "threading.Thread(target=interrupt, daemon=True).start()\n"))
+    assert said.strip() == "raised [1]", said
+
+
+@pytest.mark.process
+def test_ctrl_c_landing_inside_the_wait_for_a_campaigns_thread_stops_it_and_never_hangs(tmp_path):
+    """Raised where it landed, Ctrl-C could come inside ``Event.wait`` with the event's lock taken: the campaign's
+    thread could then never set the event, and the next wait waited on its own lock, for good. Run apart: on the
+    code before, it hangs."""
+    said = _campaign_on_its_own_thread_interrupted(tmp_path, (
+        "fired = []\n"
+        "class Event(threading.Event):\n"
+        "    def wait(self, timeout=None):\n"
+        "        if started.is_set() and threading.current_thread() is threading.main_thread() and not fired:\n"
+        "            fired.append(1)\n"
+        "            self._cond.acquire()\n"
+        "            signal.raise_signal(signal.SIGINT)  # as it can land inside the wait, the lock taken\n"
+        "            self._cond.release()\n"
+        "        return super().wait(timeout)\n"
+        "threading.Event = Event\n"))
+    assert said.strip() == "raised [1]", said
