@@ -1,3 +1,4 @@
+import signal
 from pathlib import Path
 
 import pytest
@@ -5,6 +6,14 @@ import pytest
 from twin.core.bus import open_bus
 from twin.core.clock import LabClock
 from twin.scenario import set_dotted
+
+
+def pytest_configure(config) -> None:
+    """Ctrl-C as a user's shell gives it. A background command of a script (`scripts/test` runs the `process` tests
+    so) starts with SIGINT ignored, and so would every process a test starts from it: the tests of what Ctrl-C does
+    then passed or failed by whether an earlier test had set Ctrl-C's handler (`scripts/test -k pool` failed)."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture
