@@ -199,3 +199,43 @@ def test_a_run_stopped_in_its_campaign_ends_there_and_does_not_finish_it(tmp_pat
                 time.sleep(0.05)
             raise KeyboardInterrupt
     assert not marker.exists()
+
+
+KILLED = """
+import os, signal, sys, time
+from pathlib import Path
+from twin.tools.pool import WorkerPool
+
+def holds(path):
+    Path(path).write_text(str(os.getpid()))
+    time.sleep(60)
+
+with WorkerPool(1) as pool:
+    pool.submit(holds, sys.argv[1])
+    while not Path(sys.argv[1]).exists() or not Path(sys.argv[1]).read_text():
+        time.sleep(0.01)
+    os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+@pytest.mark.process
+def test_a_worker_ends_with_its_pool_even_when_that_is_killed(tmp_path):
+    """SIGKILL cannot be handled: the worker was orphaned and, once its run ended, waited for work for good."""
+    import subprocess
+    import sys
+
+    run = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-c", KILLED, str(run)], capture_output=True, text=True, timeout=60,
+                          cwd=Path(__file__).resolve().parents[2])
+    assert done.returncode == -9, done
+    worker = Path(f"/proc/{run.read_text()}/status")
+
+    def alive() -> bool:
+        try:
+            return "zombie" not in worker.read_text()
+        except FileNotFoundError:
+            return False
+    deadline = time.monotonic() + STOP_S
+    while alive() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not alive(), "the worker outlived its pool"

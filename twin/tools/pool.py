@@ -24,6 +24,7 @@ in a few hundred did it: a whatif said it had stopped and never ended).
 
 from __future__ import annotations
 
+import ctypes
 import os
 import shutil
 import signal
@@ -43,7 +44,8 @@ CHECK_S = 0.1  # how often a wait for runs looks for a Ctrl-C or SIGTERM noted m
 class WorkerPool(ProcessPoolExecutor):
     def __init__(self, workers: int, initializer: Callable[[], None] | None = None) -> None:
         self.scratch = tempfile.mkdtemp(prefix="labtwin-workers-")
-        super().__init__(max_workers=max(1, workers), initializer=_start_worker, initargs=(initializer, self.scratch))
+        super().__init__(max_workers=max(1, workers), initializer=_start_worker,
+                         initargs=(initializer, self.scratch, os.getpid()))
         self._signals = _NotedSignals()
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
@@ -151,12 +153,24 @@ class _NotedSignals:
             signal.signal(sig, before)
 
 
-def _start_worker(then: Callable[[], None] | None, scratch: str) -> None:
+def _start_worker(then: Callable[[], None] | None, scratch: str, pool: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _exit)
+    _ends_with(pool)
     tempfile.tempdir = os.environ["TMPDIR"] = scratch  # SQLite's own temporary files too
     if then is not None:
         then()
+
+
+def _ends_with(pool: int) -> None:
+    """SIGTERM when the pool's process dies, even by SIGKILL (Linux): the worker holds a copy of its work queue's
+    write end, so the queue never tells it, and an orphaned worker waited for work for good."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: left as it was
+        return
+    if os.getppid() != pool:  # it died before that was set
+        _leave()
 
 
 _stopped = False  # this worker was sent SIGTERM
