@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from agents.cpsat import Op, solve
+from agents.cpsat import Op, Solution, solve
 from twin import time_scale
 from twin import Assignment, LabView, capable
 
@@ -27,11 +27,17 @@ class CpSatScheduler:
     @staticmethod
     def offline_bound(scenario: Any, time_limit_s: float = 120.0) -> float:
         """The optimum (or best found) makespan of a deterministic lab whose experiments are all known (a job shop)."""
+        return float(CpSatScheduler.offline_solution(scenario, time_limit_s).makespan)
+
+    @staticmethod
+    def offline_solution(scenario: Any, time_limit_s: float = 120.0) -> Solution:
+        """The best schedule found in ``time_limit_s`` of a deterministic lab whose experiments are all known (a job
+        shop), and whether it is proven optimal."""
         jobs = [[Op(step["device"], round(float(step.get("params", {}).get("duration_s", 0))))
                  for step in p["route"]] for p in scenario.campaign.planner_options.get("proposals", [])]
         if not jobs:
             raise ValueError(f"{scenario.name}: an offline bound needs every experiment known in advance (a job shop)")
-        return float(solve(jobs, {t: d.instances for t, d in scenario.devices.items()}, time_limit_s).makespan)
+        return solve(jobs, {t: d.instances for t, d in scenario.devices.items()}, time_limit_s)
 
     def _ticks(self, seconds: float) -> int:
         return max(1, round(seconds / self.unit))

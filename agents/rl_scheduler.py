@@ -17,12 +17,12 @@ import torch
 from agents import candidates, scheduling_features
 from twin import Assignment, LabView
 from twin import PluginError
-from twin import load_policy, read_meta, why_runs_vary
+from twin import PLUGIN_CHECKS_LOGGER, load_policy, read_meta, why_runs_vary
 
 if TYPE_CHECKING:
     from agents.rollout_plan import Plan, PlanFollower
 
-log = logging.getLogger(__name__)
+log = logging.getLogger(PLUGIN_CHECKS_LOGGER)
 _warned: set[str] = set()  # one warning per text: the CLI checks a scheduler before the lab builds its own
 _plans: dict[tuple, "Plan"] = {}  # campaign.rollouts' plans, by policy file and lab
 

@@ -15,6 +15,7 @@ from twin.core.bus import Bus, MemoryBus, open_bus
 from twin.core.clock import Clock, LabClock, sleep_wall
 from twin.core.errors import (AccountingError, BusError, ClockError, DriverError, PluginError, Refused,
                               ScenarioError, TwinError)
+from twin.core.plugins import CHECKS_LOGGER as PLUGIN_CHECKS_LOGGER
 from twin.core.plugins import load as load_plugin
 from twin.core.streams import keyed_uniforms, seeded
 from twin.device.actor import DeviceActor
@@ -40,7 +41,8 @@ from twin.view.watch import RecordOptions
 __all__ = [
     "ANY_WORKFLOW", "AccountingError", "Assignment", "Bus", "BusError", "CampaignCore", "CampaignState", "Clock", "ClockError", "DeviceActor",
     "DeviceState", "Driver", "DriverError", "DriverFeatures", "DriverSetup", "FastCampaign", "FreeDevice",
-    "LabClock", "LabSummary", "LabView", "LiveCampaign", "MemoryBus", "Outcome", "Planner", "PluginError", "Proposal",
+    "LabClock", "LabSummary", "LabView", "LiveCampaign", "MemoryBus", "Outcome", "PLUGIN_CHECKS_LOGGER", "Planner",
+    "PluginError", "Proposal",
     "ReadyStep", "RecordOptions", "Refused", "RouteStep", "Scenario", "ScenarioError", "Scheduler", "StepContext", "StepResult",
     "SteppedCampaign", "SteppedLab", "Summary", "TwinError", "campaign_scenarios", "time_scale", "weighted_objective", "capable", "drawn_at_random", "driver_setup", "expected_duration", "jobshop_as_lab",
     "json_schema", "keyed_uniforms", "lab_span", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",

@@ -57,6 +57,55 @@ def test_lines_thin_out_as_a_long_run_goes_on_and_none_repeat_a_count():
     assert len(counts) == len(set(counts)) and counts[-1] == "3600000/3600000"
 
 
+class Timers:
+    """Timers that go off when the test says, at the test's clock."""
+
+    def __init__(self) -> None:
+        self.set: list[tuple[float, object]] = []
+
+    def __call__(self, wait: float, then):
+        timers = self
+
+        class Timer:
+            daemon = False
+            cancelled = False
+
+            def start(self) -> None:
+                timers.set.append((wait, self))
+
+            def cancel(self) -> None:
+                self.cancelled = True
+
+            def go_off(self) -> None:
+                if not self.cancelled:
+                    then()
+
+        return Timer()
+
+
+def test_a_move_with_no_update_after_it_is_said_when_it_is_due():
+    out, clock, timers = io.StringIO(), Clock(), Timers()
+    progress = PlainProgress(Console(file=out, width=200), every_s=10, clock=clock, timer=timers)
+    with progress:
+        task = progress.add_task("r30x20: 4 schedulers", total=4)
+        clock.now = 101
+        progress.advance(task)
+        clock.now = 102
+        progress.advance(task)  # two quick runs, then one that takes minutes
+        assert out.getvalue().splitlines() == ["r30x20: 4 schedulers: 0/4  0:00:00"]
+        assert [wait for wait, _ in timers.set] == [9]  # one timer, for when a line is due
+        clock.now = 110
+        timers.set[0][1].go_off()
+        assert out.getvalue().splitlines()[-1] == "r30x20: 4 schedulers: 2/4  0:00:10"
+        clock.now = 300
+        progress.advance(task)
+        clock.now = 301
+        progress.advance(task)
+        assert len(timers.set) == 2 and not timers.set[1][1].cancelled  # 4/4 not due yet: said by the timer or the end
+    assert timers.set[1][1].cancelled  # the end said it, and the timer will not
+    assert out.getvalue().splitlines()[-2:] == ["r30x20: 4 schedulers: 3/4  0:03:20", "r30x20: 4 schedulers: 4/4  0:03:21"]
+
+
 def test_a_terminal_gets_the_live_bar_and_a_pipe_the_lines():
     assert isinstance(bar_progress(Console(file=io.StringIO())), PlainProgress)
     live = bar_progress(Console(file=io.StringIO(), force_terminal=True, force_interactive=True))

@@ -139,8 +139,8 @@ def test_a_budget_or_a_number_in_the_lab_given_for_a_shop_is_kept_and_a_planner_
 
     first_five = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={**la02, "campaign.budget": 5})
     assert len(first_five.campaign.planner_options["proposals"]) == 5  # the shop is its first five jobs
-    assert bound(first_five) <= five.lab_hours * 3600 < bound(prepare(ROOT / "scenarios" / "jobshop.yaml",
-                                                                       overrides=la02))  # not la02's 655
+    assert bound(first_five).lab_s <= five.lab_hours * 3600 < bound(prepare(ROOT / "scenarios" / "jobshop.yaml",
+                                                                             overrides=la02)).lab_s  # not la02's 655
     assert bound(prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={**la02, "campaign.max_in_flight": 3})) is None
     written = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides=la02)
     assert written.campaign.budget == written.campaign.max_in_flight == 10  # not given: the whole shop at once
@@ -273,3 +273,23 @@ def test_a_flexible_job_shop_is_named_as_one(tmp_path):
     fjs.write_text("3 3 1.5\n2 2 1 5 2 4 1 3 2\n3 1 1 3 2 2 4 3 6 1 2 1\n2 1 3 2 2 2 1 2 3\n")
     with pytest.raises(ScenarioError, match=r"mk\.fjs(?s:.*)this is a flexible job shop \(Brandimarte's \.fjs"):
         read(fjs)
+
+
+def test_a_bound_cp_sat_did_not_prove_is_not_called_the_optimum(tmp_path):
+    """A 30x20 shop's bound is CP-SAT's best in its time, which the bench's table called the optimum."""
+    import random
+
+    from twin.runtime.lab import prepare
+    from twin.tools.scheduler_bench import bound, caption
+
+    ft06 = bound(prepare(ROOT / "scenarios" / "jobshop.yaml"))
+    assert (ft06.lab_s, ft06.proven, ft06.title()) == (55, True, "CP-SAT optimum 55 lab-s")
+    assert "vs bound: gap to CP-SAT's optimum;" in caption("lab-s", ft06)
+    rng = random.Random(3)
+    rows = [" ".join(f"{m} {rng.randint(1, 99)}" for m in rng.sample(range(20), 20)) for _ in range(30)]
+    (tmp_path / "big.txt").write_text("30 20\n" + "\n".join(rows) + "\n")
+    big = bound(prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={"jobshop.file": str(tmp_path / "big.txt")}),
+                seconds=0.5)
+    assert big is not None and not big.proven
+    assert big.title() == f"CP-SAT's best in 0.5 s {big.lab_s:.0f} lab-s, not proven optimal"
+    assert "which it did not prove optimal (the gap to the optimum is at least this)" in caption("lab-s", big)

@@ -62,6 +62,24 @@ def test_a_bench_keeps_device_alerts_out_of_its_output_that_a_single_run_prints(
     assert any(line.split()[:1] == ["fifo"] for line in raising.stdout.splitlines()), raising.stdout
 
 
+@pytest.mark.process  # the workers' own stderr
+def test_a_bench_of_several_shops_warns_of_a_policy_s_misfit_once_per_shop(tmp_path):
+    """The workers made the scheduler again for each run and repeated the command's warning for every shop after
+    the first (the first's they had inherited, forked after it)."""
+    files = []
+    for name in ("two_a", "two_b", "two_c"):
+        (tmp_path / f"{name}.txt").write_text("2 2\n0 3 1 4\n1 2 0 5\n")
+        files.append(str(tmp_path / f"{name}.txt"))
+    res = subprocess.run([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/jobshop.yaml", "--jobshop",
+                          ",".join(files), "--workers", "2", "--schedulers",
+                          "fifo,mwkr,rl:agents/policies/jobshop_scheduler.zip"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120, env={"COLUMNS": "200", "PATH": "/usr/bin:/bin"})
+    assert res.returncode == 0, res.stderr
+    for name in ("two_a", "two_b", "two_c"):
+        assert res.stderr.count(f"trained on labs unlike 'jobshop_{name}'") == 1, res.stderr
+        assert f"{name} — 1 run(s) per scheduler; CP-SAT optimum 8 lab-s" in res.stdout, res.stdout
+
+
 def test_shapes_give_every_run_and_every_comparison_to_machines(tmp_path):
     import csv
     import json

@@ -176,8 +176,8 @@ def bench_schedulers(
     from dataclasses import asdict
 
     from twin.tools.planner_bench import bench_pool
-    from twin.tools.scheduler_bench import (COUNTS, HEADER, bench, bound, caption, deterministic, load_variant, rows,
-                                            shops)
+    from twin.tools.scheduler_bench import (BOUND_S, COUNTS, HEADER, bench, bound, bound_takes_long, caption,
+                                            deterministic, load_variant, rows, shops)
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if shapes:
@@ -199,8 +199,11 @@ def bench_schedulers(
                     lab.make_scheduler(s, name)
             except TwinError as exc:
                 _fail(exc)
-            optimum = bound(s)
             title = instance or f"{Path(file).stem if file else s.name}"
+            if not as_json and deterministic(s) and bound_takes_long(s) and "cp-sat" in plugins.installed("schedulers"):
+                err.print(f"{title}: CP-SAT solving the shop for the bound (up to {BOUND_S:.0f} s) ...", highlight=False)
+            best = bound(s)
+            optimum = best.lab_s if best else None
             progress = bar_progress(as_json)
             with progress:
                 bar = progress.add_task(f"{title}: {len(names)} schedulers",
@@ -209,15 +212,16 @@ def bench_schedulers(
             runs = len(next(iter(results.values())))
             table_rows = rows(results, optimum, 1.0 if s.jobshop else 3600.0)
             all_runs += [{"lab": title, **asdict(r)} for v in results.values() for r in v]
-            tables.append({"lab": title, "bound_s": optimum, "rows": [dict(zip(HEADER, r)) for r in table_rows]})
+            tables.append({"lab": title, "bound_s": optimum, "bound_proven": best.proven if best else None,
+                           "rows": [dict(zip(HEADER, r)) for r in table_rows]})
             if as_json:
                 continue
             # no bound: no column; counts that are nought for every scheduler (a job shop's) leave the room to names
             silent = {h for i, h in enumerate(HEADER) if h in COUNTS and all(float(r[i]) == 0 for r in table_rows)}
             shown = [i for i, h in enumerate(HEADER) if (optimum or h != "vs bound") and h not in silent]
             table = narrow_table([HEADER[i] for i in shown], f"{title} — {runs} run(s) per scheduler" +
-                                 (f"; CP-SAT bound {optimum:.0f} lab-s" if optimum else ""),
-                                 caption("lab-s" if s.jobshop else "lab-h", bound=bool(optimum), silent=silent))
+                                 (f"; {best.title()}" if best else ""),
+                                 caption("lab-s" if s.jobshop else "lab-h", bound=best, silent=silent))
             for row in table_rows:
                 table.add_row(*(row[i] for i in shown))
             print_table(table)

@@ -1,10 +1,13 @@
 """Progress on stderr: rich's live bar on a terminal; on a pipe or a log file, where a live bar shows nothing until
 it ends, a plain line when work starts, every ``every_s`` seconds (or a sixth of the time so far, if longer) while
-it moves, and when it ends."""
+it moves, and when it ends. A move with no update after it (two runs done quickly, then one that takes minutes) is
+said when it is due, by a timer, not when the next update comes."""
 
 from __future__ import annotations
 
+import threading
 import time
+from collections.abc import Callable
 from types import SimpleNamespace
 from typing import Any
 
@@ -30,10 +33,13 @@ class PlainProgress:
     """The part of rich's ``Progress`` the commands use, written as lines: ``description: done/total  fields  0:01:05``."""
 
     def __init__(self, console: Console, fields: tuple[str, ...] = (), every_s: float = PLAIN_EVERY_S,
-                 clock=time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 timer: Callable[[float, Callable[[], None]], Any] = threading.Timer) -> None:
         self.console = console
-        self._fields, self._every_s, self._clock = fields, every_s, clock
+        self._fields, self._every_s, self._clock, self._timer = fields, every_s, clock, timer
         self._tasks: list[dict[str, Any]] = []
+        self._lock = threading.RLock()  # the timer's thread says lines too
+        self._pending: Any = None  # the timer that will say a move not said yet
 
     def __enter__(self) -> PlainProgress:
         return self
@@ -42,40 +48,62 @@ class PlainProgress:
         self.stop()
 
     def add_task(self, description: str, total: float | None = None, **fields: Any) -> int:
-        now = self._clock()
-        self._tasks.append({"description": description, "total": total, "completed": 0, "fields": fields,
-                            "started": now, "said": now, "said_what": None, "stopped": False})
-        self._say(self._tasks[-1], now)
-        return len(self._tasks) - 1
+        with self._lock:
+            now = self._clock()
+            self._tasks.append({"description": description, "total": total, "completed": 0, "fields": fields,
+                                "started": now, "said": now, "said_what": None, "stopped": False})
+            self._say(self._tasks[-1], now)
+            return len(self._tasks) - 1
 
     def update(self, task_id: int, *, completed: float | None = None, total: float | None = None,
                advance: float | None = None, description: str | None = None, **fields: Any) -> None:
-        task = self._tasks[task_id]
-        if total is not None:
-            task["total"] = total
-        if completed is not None:
-            task["completed"] = completed
-        if advance is not None:
-            task["completed"] += advance
-        if description is not None:
-            task["description"] = description
-        task["fields"].update(fields)
-        now = self._clock()
+        with self._lock:
+            task = self._tasks[task_id]
+            if total is not None:
+                task["total"] = total
+            if completed is not None:
+                task["completed"] = completed
+            if advance is not None:
+                task["completed"] += advance
+            if description is not None:
+                task["description"] = description
+            task["fields"].update(fields)
+            self._due(task, self._clock())
+
+    def _due(self, task: dict[str, Any], now: float) -> None:
+        """Say the task if it moved and a line is due; if it moved and none is due yet, say it when one is."""
+        if task["stopped"] or not self._moved(task):
+            return
         # every every_s at first, then less often as the work goes on: a few dozen lines for a night's campaign
-        due = max(self._every_s, (now - task["started"]) / 6)
-        if now - task["said"] >= due and self._moved(task):
+        wait = task["said"] + max(self._every_s, (now - task["started"]) / 6) - now
+        if wait <= 0:
             self._say(task, now)
+        elif self._pending is None:
+            self._pending = self._timer(wait, self._overdue)
+            self._pending.daemon = True
+            self._pending.start()
+
+    def _overdue(self) -> None:
+        with self._lock:
+            self._pending = None
+            now = self._clock()
+            for task in self._tasks:
+                self._due(task, now)
 
     def advance(self, task_id: int, advance: float = 1) -> None:
         self.update(task_id, advance=advance)
 
     def stop(self) -> None:
         """Say where each task ended (once), unless the last line already did."""
-        now = self._clock()
-        for task in self._tasks:
-            if not task["stopped"] and self._moved(task):
-                self._say(task, now)
-            task["stopped"] = True
+        with self._lock:
+            if self._pending is not None:
+                self._pending.cancel()
+                self._pending = None
+            now = self._clock()
+            for task in self._tasks:
+                if not task["stopped"] and self._moved(task):
+                    self._say(task, now)
+                task["stopped"] = True
 
     @staticmethod
     def _moved(task: dict[str, Any]) -> bool:

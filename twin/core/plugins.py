@@ -21,6 +21,10 @@ GROUPS = {"devices": "labtwin.devices", "planners": "labtwin.planners", "schedul
 _NAMES = {"devices": "driver", "routes": "route planner", "route_targets": "route target set"}  # in errors
 _DOCS = {"devices": "docs/drivers.md", "routes": "docs/routes.md", "route_targets": "docs/routes.md"}
 PROTOCOLS = {"devices": ("run", "safe_state"), "planners": ("propose",), "schedulers": ("decide",)}
+#: The logger of what a plugin warns of when it is made for a lab (a policy trained on other labs). A command makes
+#: each plugin once to check it before its runs, and the warning is given then; a bench's or a what-if's workers,
+#: which make the plugin again for every run, keep it quiet rather than repeat it.
+CHECKS_LOGGER = "twin.plugin_checks"
 
 
 @functools.cache
