@@ -372,18 +372,19 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     with workers_for(workers) as pool:
         while done < steps:
             left = steps - done
-            if rnd > 0 and left < min(eval_every, done) / 4:
+            modes = ("self",) if itself else ("teacher",) if rnd == 0 else ("greedy", "sample", "sample")
+            if rnd > 0 and left < max(min(eval_every, done) / 4, per_shop * len(modes) * workers / 2):
                 break  # rounds gather about as many labels as asked: a last round of a few would cost a whole fit
             want = left if left < 1.5 * eval_every else eval_every
             state = None if rnd == 0 and init is None else {k: v.detach().clone() for k, v in net.state_dict().items()}
-            modes = ("self",) if itself else ("teacher",) if rnd == 0 else ("greedy", "sample", "sample")
             beta = 0.0 if rnd == 0 else 0.5 ** rnd
-            count = max(workers, round(want / (per_shop * len(modes))))
-            got, measured, losses = 0, [], []
-            while got < want:  # once, but for self-pg: a few labs on the policy as it is now, a gradient pass, again
-                labs = PG_LABS if gradient else count
+            got, asked, measured, losses = 0, 0, [], []
+            while got < want:  # a few labs, then more as their labels are counted; for self-pg, a gradient pass each
                 if gradient:
+                    labs = PG_LABS
                     state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+                else:  # the first round's labels a lab are a guess (150): half of it is asked before they are counted
+                    labs = max(workers, round((want - got) / (per_shop * len(modes)) / (2 if rnd == asked == 0 else 1)))
                 fresh: list[Sample] = []
                 for samples, info in pool.imap_unordered(
                         task, [(scenario, shop + i, modes, state, beta, encoding) for i in range(labs)]):
@@ -397,10 +398,13 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
                     if on_progress:
                         on_progress(min(steps, done + got), None)
                 shop += labs
+                asked += labs
                 if not gradient:
                     data += fresh
-                    per_shop = got / (count * len(modes))
-                    break
+                    per_shop = got / (asked * len(modes))
+                    if want - got < per_shop * len(modes) * workers / 2:
+                        break  # more labs would overshoot by more than they fill
+                    continue
                 net.train()
                 losses.append(fit(net, fresh, 1, optimizer, batch_size=PG_BATCH, seed=seed + shop))
                 net.eval()
