@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -314,3 +315,24 @@ def test_a_column_of_noughts_is_left_out_and_a_crowded_table_keeps_the_busiest_t
     assert "no run abandoned an experiment (no aband. column)" in " ".join(out.split())
     rows = [line for line in lines if line.split()[:1] and line.split()[0].rstrip("*") in ("1", "2", "3")]
     assert len(rows) == 5 and all(row.split()[-1] == "reactor" or row.split()[-1].endswith("%") for row in rows)
+
+
+def test_a_policy_varied_beside_a_field_is_shown_whole_and_folds_only_when_the_table_would_not_fit():
+    """At 80 columns the scheduler column was cut to 13 letters: "rl:flaky_sche" over "duler"."""
+    budget = ["--set", "campaign.budget=8", "--seeds", "1"]
+    policy = "rl:agents/policies/flaky_scheduler.zip"
+    code, out = whatif(FLAKY, "--vary", "devices.spectrometer.instances=1,2", "--schedulers", f"fifo,{policy}", *budget)
+    assert code == 0, out
+    assert max(len(line) for line in out.splitlines()) <= 80
+    words = out.split()
+    assert words.count("rl:flaky_scheduler") == 2 and "oldest-sample*" in words
+    # three varied columns leave no room for the name whole: it folds, and each variant's busiest type keeps its
+    # share on screen (rich had cut "reactor 86%" to "reactor 86" at the edge)
+    code, out = whatif(FLAKY, "--vary", "devices.spectrometer.instances=1,2", "--vary",
+                       "devices.reactor.duration.mean_s=300,400", "--schedulers", f"fifo,{policy}", *budget)
+    assert code == 0, out
+    assert max(len(line) for line in out.splitlines()) <= 80
+    lines = out.splitlines()
+    rule = next(i for i, line in enumerate(lines) if line.strip().startswith("─"))
+    table = "\n".join(lines[rule + 1:next(i for i, line in enumerate(lines) if line.startswith("*: the scenario"))])
+    assert len(re.findall(r"\b\d+%", table)) == 9 and table.count("reactor") == 9, table

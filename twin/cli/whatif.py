@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+from rich import box
 from rich.table import Table
 
 from twin.cli.common import (_fail, app, assignments, bar_progress, console, interruptible, say_ended_early,
@@ -17,6 +18,51 @@ from twin.cli.common import (_fail, app, assignments, bar_progress, console, int
 from twin.core.errors import TwinError
 from twin.runtime import lab
 from twin.runtime.checks import checked
+
+
+def _variants_table(head: list[str], table_rows: list[list[str]], axes: int, whole_values: int) -> Table:
+    table = Table(box=box.SIMPLE_HEAD, collapse_padding=True, pad_edge=False)
+    for i, h in enumerate(head):
+        # a varied field's name and values (up to ``whole_values`` wide) and the busiest type's name stay whole:
+        # "reactor" over "92%", never squeezed away
+        whole = [h] if i < axes else [row[i] for row in table_rows] if h == "busiest" else []
+        widest = max((len(w) for text in whole for w in text.split()), default=0)
+        if i < axes:
+            widest = max(widest, min(whole_values, max(len(w) for row in table_rows for w in row[i].split())))
+        table.add_column(h, overflow="fold", no_wrap=i >= axes and h not in ("busiest", "IQR"), min_width=widest or None)
+    for row in table_rows:
+        table.add_row(*row)
+    return table
+
+
+def _fitting_table(head: list[str], table_rows: list[list[str]], axes: int) -> Table:
+    """The first of these that fits the terminal: the varied values whole; a policy broken after its kind ("rl:"
+    over "flaky_scheduler") and values up to WHOLE_VALUE wide whole; the values folded; and the busiest type over
+    its share too."""
+    def broken(cell: str) -> str:
+        return cell.replace(":", ":\n", 1) if ":" in cell and len(cell) > 12 else cell
+
+    split = [[*map(broken, row[:axes]), *row[axes:]] for row in table_rows]
+    stacked = [[*row[:-1], row[-1].replace(" ", "\n")] for row in split]
+    for cells, whole_values in ((table_rows, 10**6), (split, WHOLE_VALUE), (split, 0), (stacked, 0)):
+        table = _variants_table(head, cells, axes, whole_values)
+        if _fits(table, [row[-1] for row in table_rows]):
+            break
+    return table
+
+
+def _fits(table: Table, last: list[str]) -> bool:
+    """Whether the table, printed at the terminal's width, shows its last column whole (rich cuts a table that
+    its columns' least widths make wider than the terminal at the terminal's edge)."""
+    with console.capture() as shown:
+        console.print(table)
+    text = shown.get()
+    return all(word in text for cell in last for word in cell.split())
+
+
+#: How wide a varied value may keep a column at 80 columns: a policy's name ("flaky_scheduler") whole, a longer
+#: one (a plugin's module:Class) folded rather than the table cut at the terminal's edge.
+WHOLE_VALUE = 15
 
 
 @app.command()
@@ -49,8 +95,6 @@ def whatif(
     written; for a lab of several campaigns, each campaign's lab-hours from its start to its end too."""
     writable("--csv", csv_out)
     writable("--save", save)
-    from rich import box
-
     from twin.tools.whatif import (AS_WRITTEN, axes_of, campaign_rows, caption, cheapest_within,
                                    has_targets as any_targets, header, in_seconds, measures, parse_vary, rows,
                                    runs_alike, summarise, variants, written_values)
@@ -98,15 +142,8 @@ def whatif(
     seconds = in_seconds(summary)
     # the title above the table, not in it: a narrow table would fold it ("2 variants × 20" over "seed(s)")
     console.print(f"{s.name}: what if — {len(chosen)} variants × {seeds} seed(s)", highlight=False)
-    table = Table(box=box.SIMPLE_HEAD, collapse_padding=True, pad_edge=False)
     table_rows = rows(summary, axes, written_values(s, axes), has_targets, shown)
-    for i, h in enumerate(header(axes, shown, seconds)):
-        # a varied field's name and the busiest type's name stay whole: "reactor" over "92%", never squeezed away
-        whole = [h] if i < len(axes) else [row[i] for row in table_rows] if h == "busiest" else []
-        table.add_column(h, overflow="fold", no_wrap=i >= len(axes) and h not in ("busiest", "IQR"),
-                         min_width=max((len(w) for text in whole for w in text.split()), default=0) or None)
-    for row in table_rows:
-        table.add_row(*row)
+    table = _fitting_table(header(axes, shown, seconds), table_rows, len(axes))
     console.print(table)
     console.print(caption(has_targets, seeds, shown, seconds, alike), highlight=False)  # wrapped at the terminal, not the table
     say_ended_early([(o.variant, o.stopped) for o in results])
