@@ -10,9 +10,10 @@ Two text formats are read, ``#`` starting a comment:
   that order, numbered from 1 — with or without the ``Times``/``Machines`` labels
   and the line of words above of Taillard's own files.
 
-A file holds one instance, or is a collection of the standard format as OR-Library's ``jobshop1.txt`` is: each
-instance after a line ``instance NAME``, one named by ``jobshop.instance``. Rules of ``+``, ``-``, ``=`` or ``*``
-between them are skipped.
+A file holds one instance, or is a collection: of the standard format as OR-Library's ``jobshop1.txt`` is, each
+instance after a line ``instance NAME``; or of Taillard's, as his own files are (``tai15_15.txt``: ten instances,
+each under its ``Nb of jobs, Nb of Machines, ...`` line), the k-th named ``STEM-k`` after the file
+(``tai15_15-3``). ``jobshop.instance`` names one. Rules of ``+``, ``-``, ``=`` or ``*`` between them are skipped.
 
 One time unit is one lab-second.
 """
@@ -43,6 +44,7 @@ FORMATS = ("expected 'jobs machines', then per job a line of 'machine duration' 
 
 
 _TITLE = re.compile(r"instance\s+(\S+)", re.IGNORECASE)  # OR-Library's title of an instance in a collection
+_TAILLARD = re.compile(r"nb\s+of\s+jobs\b", re.IGNORECASE)  # the line above each instance of Taillard's files
 _RULE = re.compile(r"[-+=*_~]{3,}")
 
 
@@ -52,19 +54,25 @@ def _lines(path: Path) -> list[tuple[int, str]]:
     return [(i, ln) for i, ln in lines if ln and not _RULE.fullmatch(ln)]
 
 
-def _titles(lines: list[tuple[int, str]]) -> list[tuple[int, str]]:
-    return [(k, m.group(1)) for k, (_, ln) in enumerate(lines) if (m := _TITLE.fullmatch(ln))]
+def _titles(lines: list[tuple[int, str]], stem: str) -> list[tuple[int, str]]:
+    """Where each instance of a collection starts, and its name: OR-Library's ``instance NAME`` lines, or else
+    Taillard's ``Nb of jobs, ...`` lines, the k-th named ``STEM-k``."""
+    titles = [(k, m.group(1)) for k, (_, ln) in enumerate(lines) if (m := _TITLE.fullmatch(ln))]
+    if titles:
+        return titles
+    heads = [k for k, (_, ln) in enumerate(lines) if _TAILLARD.match(ln)]
+    return [(k, f"{stem}-{n}") for n, k in enumerate(heads, 1)] if len(heads) > 1 else []
 
 
 def instances(path: str | Path) -> list[str]:
-    """The names of the instances a collection holds (``instance NAME`` lines); [] for a file of one."""
-    titles = _titles(_lines(Path(path)))
+    """The names of the instances a collection holds; [] for a file of one."""
+    titles = _titles(_lines(Path(path)), Path(path).stem)
     return [name for _, name in titles] if len(titles) > 1 else []
 
 
 def _one_of(where: str, lines: list[tuple[int, str]], instance: str | None) -> tuple[list[tuple[int, str]], str | None]:
     """The lines of the instance named ``instance`` (or of the file's only one), and its name if it has one."""
-    titles = _titles(lines)
+    titles = _titles(lines, Path(where).stem)
     names = [name for _, name in titles]
     listed = ", ".join(names[:12]) + (f", ... ({len(names)} in all)" if len(names) > 12 else "")
     if instance is None:
@@ -195,8 +203,9 @@ def _taillard_labelled(where: str, lines: list[tuple[int, str]], labels: list[in
     names = [lines[k][1].lower().rstrip(":") for k in labels]
     if names != ["times", "machines"]:
         raise ScenarioError(where, [f"line {lines[labels[2 if len(labels) > 2 else 0]][0]}: found "
-                                    f"{len(names)} 'Times'/'Machines' labels; a file holds one instance (Taillard's "
-                                    "own files hold ten: give each its own file)"])
+                                    f"{len(names)} 'Times'/'Machines' labels; a file holds one instance, or several "
+                                    "each under its own 'Nb of jobs, Nb of Machines, ...' line, as Taillard's own "
+                                    "files have them"])
     t, m = labels
     head = [row for _, row in ((i, _integers(ln)) for i, ln in lines[:t]) if row]
     if not head or len(head[-1]) < 2:
