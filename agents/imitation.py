@@ -368,7 +368,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     if init is not None:
         judge(model, 0, fits, "start (--init)")
     data: list[Sample] = []
-    done, rnd, shop, per_shop = 0, 0, seed * 1_000_000, 150.0
+    done, rnd, shop, per_shop, counted = 0, 0, seed * 1_000_000, 150.0, 0  # counted: lab runs whose labels were counted
     with workers_for(workers) as pool:
         while done < steps:
             left = steps - done
@@ -383,8 +383,11 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
                 if gradient:
                     labs = PG_LABS
                     state = {k: v.detach().clone() for k, v in net.state_dict().items()}
-                else:  # the first round's labels a lab are a guess (150): half of it is asked before they are counted
-                    labs = max(workers, round((want - got) / (per_shop * len(modes)) / (2 if rnd == asked == 0 else 1)))
+                elif counted == 0:  # what a lab gives is a guess (150) until some labs are counted: one each
+                    labs = workers
+                else:  # counted on a few labs only (random shops differ in size): half of what is left, then the rest
+                    share = 2 if counted < 4 * workers else 1
+                    labs = max(workers, round((want - got) / (per_shop * len(modes)) / share))
                 fresh: list[Sample] = []
                 for samples, info in pool.imap_unordered(
                         task, [(scenario, shop + i, modes, state, beta, encoding) for i in range(labs)]):
@@ -399,6 +402,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
                         on_progress(min(steps, done + got), None)
                 shop += labs
                 asked += labs
+                counted += labs * len(modes)
                 if not gradient:
                     data += fresh
                     per_shop = got / (asked * len(modes))

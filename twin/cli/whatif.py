@@ -29,7 +29,8 @@ def _variants_table(head: list[str], table_rows: list[list[str]], axes: int, who
         widest = max((len(w) for text in whole for w in text.split()), default=0)
         if i < axes:
             widest = max(widest, min(whole_values, max(len(w) for row in table_rows for w in row[i].split())))
-        table.add_column(h, overflow="fold", no_wrap=i >= axes and h not in ("busiest", "IQR"), min_width=widest or None)
+        table.add_column(h, overflow="fold", no_wrap=i >= axes and h not in ("busiest", "IQR"),
+                         min_width=widest or None)
     for row in table_rows:
         table.add_row(*row)
     return table

@@ -202,9 +202,9 @@ def _taillard_labelled(where: str, lines: list[tuple[int, str]], labels: list[in
     'Machines', the machines' matrix (numbered from 1)."""
     names = [lines[k][1].lower().rstrip(":") for k in labels]
     if len(names) <= 2 and names != ["times", "machines"]:
-        raise ScenarioError(where, [f"line {lines[labels[0]][0]}: Taillard's layout has 'Times' and its durations, then "
-                                    f"'Machines' and the machines; this one has {' then '.join(repr(lines[k][1]) for k in labels)}"
-                                    f"{' only' if len(labels) == 1 else ''}"])
+        has = " then ".join(repr(lines[k][1]) for k in labels) + (" only" if len(labels) == 1 else "")
+        raise ScenarioError(where, [f"line {lines[labels[0]][0]}: Taillard's layout has 'Times' and its durations, "
+                                    f"then 'Machines' and the machines; this one has {has}"])
     if names != ["times", "machines"]:
         raise ScenarioError(where, [f"line {lines[labels[2 if len(labels) > 2 else 0]][0]}: found "
                                     f"{len(names)} 'Times'/'Machines' labels; a file holds one instance, or several "
