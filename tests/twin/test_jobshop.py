@@ -338,3 +338,28 @@ def test_taillards_own_file_of_several_instances_is_a_collection_named_after_it(
         [f"m{m}" for m, _ in job] for job in made[1]]
     one = _taillard_file(tmp_path, made[:1], 3)
     assert read(one).jobs == made[0]  # a file of one is no collection
+
+
+def test_a_shop_named_from_the_current_directory_or_a_directory_of_shops_is_found(tmp_path, monkeypatch):
+    """`twin bench schedulers scenarios/jobshop.yaml --jobshop my_shop.txt` looked for scenarios/my_shop.txt only
+    ("file not found"); a directory of shops was refused."""
+    from twin.core.errors import ScenarioError, TwinError
+    from twin.runtime.lab import prepare
+    from twin.tools.scheduler_bench import shops
+
+    scenario = ROOT / "scenarios" / "jobshop.yaml"
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "two.txt").write_text("2 2\n0 3 1 4\n1 2 0 5\n")
+    (tmp_path / "mine" / "one").write_text("1 1\n0 7\n")  # JSPLIB's files have no extension
+    (tmp_path / "mine" / "README.md").write_text("# my shops\n")
+    (tmp_path / "empty").mkdir()
+    monkeypatch.chdir(tmp_path)
+    s = prepare(scenario, overrides={"jobshop.file": "mine/two.txt"})
+    assert s.name == "jobshop_two" and len(s.campaign.planner_options["proposals"]) == 2
+    assert shops(scenario, ["mine", "jobshop/la02.txt"]) == [
+        (str(tmp_path / "mine" / "one"), None), (str(tmp_path / "mine" / "two.txt"), None), ("jobshop/la02.txt", None)]
+    with pytest.raises(TwinError, match="--jobshop empty: the directory holds no job-shop file"):
+        shops(scenario, ["empty"])
+    with pytest.raises(ScenarioError, match=r"file not found, neither beside the scenario \(.*scenarios/nosuch.txt\) "
+                                            r"nor in the current directory \(.*/nosuch.txt\)"):
+        prepare(scenario, overrides={"jobshop.file": "nosuch.txt"})

@@ -152,8 +152,10 @@ def bench_schedulers(
     seeds: Annotated[int, typer.Option(min=1, help="seeds per scheduler (a deterministic job shop runs once)")] = 20,
     schedulers: Annotated[str, typer.Option(help="comma-separated: rules, cp-sat, rl:POLICY.zip")] = "fifo,spt,mwkr,least-loaded,oldest-sample",
     jobshop: Annotated[Optional[str], typer.Option(help="job-shop files to run instead of the scenario's, comma-separated "
-                                                       "(e.g. jobshop/la01.txt,jobshop/ft10.txt); a collection "
-                                                       "(OR-Library's jobshop1.txt) runs each of its instances")] = None,
+                                                       "(e.g. jobshop/la01.txt,jobshop/ft10.txt), beside the scenario "
+                                                       "or in the current directory; a collection (OR-Library's "
+                                                       "jobshop1.txt, Taillard's tai15_15.txt) runs each of its "
+                                                       "instances, a directory each of its files")] = None,
     workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
     budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",

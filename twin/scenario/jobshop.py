@@ -239,6 +239,20 @@ def _jobs(times: list[list[int]], machines: list[list[int]]) -> list[list[tuple[
     return [list(zip(ms, ts)) for ts, ms in zip(times, machines)]
 
 
+def shop_path(base_dir: Path, file: str | Path) -> Path:
+    """A job-shop file as a scenario or a command line names it: beside the scenario (``jobshop/la02.txt`` of
+    ``scenarios/jobshop.yaml``), or else in the current directory (a shop of the user's own, named from where the
+    command runs); one in neither is refused naming both places."""
+    beside = base_dir / file
+    if beside.exists() or Path(file).is_absolute():
+        return beside
+    here = Path(file)
+    if here.exists():
+        return here
+    raise ScenarioError(str(file), [f"file not found, neither beside the scenario ({beside}) nor in the current "
+                                    f"directory ({Path.cwd() / file}): check the path"])
+
+
 def expand(scenario: Scenario, base_dir: Path, source: str = "") -> Scenario:
     """The lab and the fixed list of experiments (one per job) of the scenario's instance. A budget or a number in
     the lab the scenario (or the command line) gives is kept: the first ``budget`` jobs, ``max_in_flight`` of them
@@ -248,7 +262,7 @@ def expand(scenario: Scenario, base_dir: Path, source: str = "") -> Scenario:
         raise ScenarioError(source or scenario.name, [
             f"campaign.planner: {scenario.campaign.planner!r} cannot plan a job shop: its experiments are the jobs of "
             f"{scenario.jobshop.file}, in order (planner fixed); leave campaign.planner out"])
-    lab = as_lab(scenario, read(base_dir / scenario.jobshop.file, scenario.jobshop.instance), rename=False)
+    lab = as_lab(scenario, read(shop_path(base_dir, scenario.jobshop.file), scenario.jobshop.instance), rename=False)
     kept: dict[str, Any] = {k: min(getattr(scenario.campaign, k), lab.campaign.budget)
                             for k in ("budget", "max_in_flight") if k in asked}
     if "budget" in kept:  # the shop is its first jobs: what a bound or a plan of it reads too

@@ -242,7 +242,7 @@ class BusSpec(Spec):
 
 class JobShop(Spec):
     file: str = Field(max_length=1024, description="a job-shop instance in the standard text format or "
-                      "Taillard's, relative to the scenario")
+                      "Taillard's, relative to the scenario (or else to the current directory)")
     instance: str | None = Field(default=None, max_length=128, description="which instance of a file that holds "
                                     "several, by the name on its 'instance NAME' line (OR-Library's jobshop1.txt), "
                                     "or FILE-k for the k-th of Taillard's own files (tai15_15-3)")

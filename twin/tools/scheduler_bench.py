@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from twin.core import plugins
+from twin.core.errors import TwinError
 from twin.runtime.assembly import plays_ahead
 from twin.runtime.lab import prepare, run
 from twin.tools.planner_bench import label, over_seeds
@@ -144,15 +145,29 @@ def rows(results: dict[str, list[Run]], optimum: float | None, unit_s: float) ->
     return out
 
 
+#: What a directory of shops also holds that is not a shop: its notes, lists and tables.
+NOT_SHOPS = {".md", ".json", ".yaml", ".yml", ".csv", ".py", ".sh"}
+
+
 def shops(scenario: str | Path, files: list[str]) -> list[tuple[str, str | None]]:
     """The shops ``--jobshop`` names: each file's (file, None), or a collection's (file, instance) for each of its
-    instances. A relative file is the scenario's, as ``jobshop.file`` is."""
-    from twin.scenario.jobshop import instances
+    instances; a directory's files in name order (not its notes and tables, ``NOT_SHOPS``). A relative file is
+    the scenario's, as ``jobshop.file`` is, or else the current directory's."""
+    from twin.scenario.jobshop import instances, shop_path
 
     out: list[tuple[str, str | None]] = []
     for file in files:
-        names = instances(file if Path(file).is_absolute() else Path(scenario).parent / file)
-        out += [(file, name) for name in names] or [(file, None)]
+        path = shop_path(Path(scenario).parent, file)
+        if path.is_dir():
+            inside = sorted(str(f) for f in path.iterdir()
+                            if f.is_file() and not f.name.startswith(".") and f.suffix.lower() not in NOT_SHOPS)
+            if not inside:
+                raise TwinError(f"--jobshop {file}: the directory holds no job-shop file")
+            out += shops(scenario, inside)
+            continue
+        names = instances(path)
+        shown = file if path == Path(scenario).parent / file else str(path.resolve())  # as the lab will find it
+        out += [(shown, name) for name in names] or [(shown, None)]
     return out
 
 
