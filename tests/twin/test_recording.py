@@ -264,6 +264,27 @@ def test_a_watcher_whose_router_restarts_waits_for_it_and_records_the_whole_camp
 
 
 @pytest.mark.process
+def _lines_until(stream, text: str, seconds: float = 120) -> list[str]:
+    """A process's lines up to the first holding ``text``, read on a thread so that the wait has a deadline."""
+    import queue
+    import threading
+
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(line) for line in iter(stream.readline, "")] + [lines.put("")],
+                     daemon=True).start()
+    seen: list[str] = []
+    deadline = time.monotonic() + seconds
+    while not seen or text not in seen[-1]:
+        try:
+            line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
+        except queue.Empty:
+            pytest.fail(f"no line with {text!r} in {seconds:g} s: {seen}")
+        if not line:
+            pytest.fail(f"the stream ended with no line with {text!r}: {seen}")
+        seen.append(line)
+    return seen
+
+
 def test_a_watched_lab_that_dies_ends_the_watch_by_its_presence_and_a_following_watcher_records_its_resume(tmp_path):
     port = free_port()
     db = tmp_path / "j.db"
@@ -296,18 +317,12 @@ def test_a_watched_lab_that_dies_ends_the_watch_by_its_presence_and_a_following_
         drawn = len(read_rrd(tmp_path / "once.rrd").get("spectra/measurement", []))  # saved, with what it had
         assert drawn < 6 and f"recorded {drawn} spectra" in err, err
 
-        said = []
-        for line in following.stderr:
-            said.append(line)
-            if "left the bus" in line:
-                break
+        said = _lines_until(following.stderr, "left the bus")  # within a deadline: a miss hung CI once
         assert "still watching, for it to come back (twin resume)" in said[-1], said
         resumed = subprocess.run([*TWIN, "resume", str(db), "--quiet"], capture_output=True, text=True, cwd=ROOT,
                                  timeout=180)
         assert resumed.returncode == 0, resumed.stderr[-2000:]
-        for line in following.stdout:
-            if "campaign ended" in line:
-                break
+        line = _lines_until(following.stdout, "campaign ended")[-1]
         assert "campaign ended: 6 experiments finished" in line, line
         following.send_signal(signal.SIGINT)
         _, err = following.communicate(timeout=60)
