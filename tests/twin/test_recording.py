@@ -263,7 +263,6 @@ def test_a_watcher_whose_router_restarts_waits_for_it_and_records_the_whole_camp
     assert len(rrd["spectra/measurement"]) == len(measurements(db)) == 6
 
 
-@pytest.mark.process
 def _lines_until(stream, text: str, seconds: float = 120) -> list[str]:
     """A process's lines up to the first holding ``text``, read on a thread so that the wait has a deadline."""
     import queue
@@ -285,6 +284,7 @@ def _lines_until(stream, text: str, seconds: float = 120) -> list[str]:
     return seen
 
 
+@pytest.mark.process
 def test_a_watched_lab_that_dies_ends_the_watch_by_its_presence_and_a_following_watcher_records_its_resume(tmp_path):
     port = free_port()
     db = tmp_path / "j.db"
