@@ -73,7 +73,8 @@ def wait_until_ended(status, campaigns: int, seconds: float = 90) -> dict:
 
 
 def lines_until(stream, wanted: set[str], seconds: float = 60) -> list[str]:
-    """Read a process's text ``stream`` until a line starting with each of ``wanted`` has come (or fail)."""
+    """Read a process's text ``stream`` until a line holding each of ``wanted`` has come (or fail: none came, or
+    ``seconds`` passed with no line); the lines read."""
     import queue
     import threading
 
@@ -89,9 +90,9 @@ def lines_until(stream, wanted: set[str], seconds: float = 60) -> list[str]:
         if not line:
             break
         seen.append(line)
-        missing -= {w for w in missing if line.startswith(w)}
+        missing -= {w for w in missing if w in line}
     if missing:
-        pytest.fail(f"no line starting with {sorted(missing)} in {seen}")
+        pytest.fail(f"no line with {sorted(missing)} in {seen}")
     return seen
 
 

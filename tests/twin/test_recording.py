@@ -14,6 +14,7 @@ import pytest
 
 from tests.conftest import twin_cli
 from tests.rrd import read_rrd, series
+from tests.twin.shared_labs import lines_until
 from twin.campaign.journal import NotAJournal, read_events, read_experiments
 from twin.runtime.lab import run
 from twin.view.watch import RecordOptions
@@ -263,27 +264,6 @@ def test_a_watcher_whose_router_restarts_waits_for_it_and_records_the_whole_camp
     assert len(rrd["spectra/measurement"]) == len(measurements(db)) == 6
 
 
-def _lines_until(stream, text: str, seconds: float = 120) -> list[str]:
-    """A process's lines up to the first holding ``text``, read on a thread so that the wait has a deadline."""
-    import queue
-    import threading
-
-    lines: queue.Queue = queue.Queue()
-    threading.Thread(target=lambda: [lines.put(line) for line in iter(stream.readline, "")] + [lines.put("")],
-                     daemon=True).start()
-    seen: list[str] = []
-    deadline = time.monotonic() + seconds
-    while not seen or text not in seen[-1]:
-        try:
-            line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
-        except queue.Empty:
-            pytest.fail(f"no line with {text!r} in {seconds:g} s: {seen}")
-        if not line:
-            pytest.fail(f"the stream ended with no line with {text!r}: {seen}")
-        seen.append(line)
-    return seen
-
-
 @pytest.mark.process
 def test_a_watched_lab_that_dies_ends_the_watch_by_its_presence_and_a_following_watcher_records_its_resume(tmp_path):
     port = free_port()
@@ -317,12 +297,12 @@ def test_a_watched_lab_that_dies_ends_the_watch_by_its_presence_and_a_following_
         drawn = len(read_rrd(tmp_path / "once.rrd").get("spectra/measurement", []))  # saved, with what it had
         assert drawn < 6 and f"recorded {drawn} spectra" in err, err
 
-        said = _lines_until(following.stderr, "left the bus")  # within a deadline: a miss hung CI once
+        said = lines_until(following.stderr, {"left the bus"}, 120)  # within a deadline: a miss hung CI once
         assert "still watching, for it to come back (twin resume)" in said[-1], said
         resumed = subprocess.run([*TWIN, "resume", str(db), "--quiet"], capture_output=True, text=True, cwd=ROOT,
                                  timeout=180)
         assert resumed.returncode == 0, resumed.stderr[-2000:]
-        line = _lines_until(following.stdout, "campaign ended")[-1]
+        line = lines_until(following.stdout, {"campaign ended"}, 120)[-1]
         assert "campaign ended: 6 experiments finished" in line, line
         following.send_signal(signal.SIGINT)
         _, err = following.communicate(timeout=60)
