@@ -178,8 +178,8 @@ def bench_schedulers(
     from dataclasses import asdict
 
     from twin.tools.planner_bench import bench_pool
-    from twin.tools.scheduler_bench import (BOUND_S, COUNTS, HEADER, bench, bound, bound_takes_long, caption,
-                                            deterministic, load_variant, rows, shops)
+    from twin.tools.scheduler_bench import (BOUND_S, COUNTS, HEADER, bench, bound, caption, deterministic,
+                                            load_variant, rows, shops)
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if shapes:
@@ -202,9 +202,8 @@ def bench_schedulers(
             except TwinError as exc:
                 _fail(exc)
             title = instance or f"{Path(file).stem if file else s.name}"
-            if not as_json and deterministic(s) and bound_takes_long(s) and "cp-sat" in plugins.installed("schedulers"):
-                err.print(f"{title}: CP-SAT solving the shop for the bound (up to {BOUND_S:.0f} s) ...", highlight=False)
-            best = bound(s)
+            best = bound(s, on_long=None if as_json else lambda: err.print(
+                f"{title}: CP-SAT solving the shop for the bound (up to {BOUND_S:.0f} s) ...", highlight=False))
             optimum = best.lab_s if best else None
             progress = bar_progress(as_json)
             with progress:

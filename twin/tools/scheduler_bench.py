@@ -80,19 +80,17 @@ class Bound:
                 "(the gap to the optimum is at least this); ")
 
 
-def bound_takes_long(s: Scenario) -> bool:
-    """Whether CP-SAT's bound of the shop may take a while (more than 100 operations): worth saying before."""
-    return sum(len(p["route"]) for p in s.campaign.planner_options.get("proposals", [])) > 100
-
-
-def bound(s: Scenario, seconds: float = BOUND_S) -> Bound | None:
+def bound(s: Scenario, seconds: float = BOUND_S, on_long: Callable[[], None] | None = None) -> Bound | None:
     """CP-SAT's optimum makespan (lab-s) for a deterministic job shop, or its best in ``seconds``; None without
     OR-Tools or a job shop, or for a shop whose jobs may not all be in the lab at once (its optimum is another
-    problem's)."""
+    problem's). ``on_long`` is called first for a shop of more than 100 operations, whose solve may take a while."""
     if not deterministic(s) or "cp-sat" not in plugins.installed("schedulers"):
         return None
-    if s.campaign.max_in_flight < len(s.campaign.planner_options.get("proposals", [])):
+    jobs = s.campaign.planner_options.get("proposals", [])
+    if s.campaign.max_in_flight < len(jobs):
         return None
+    if on_long is not None and sum(len(p["route"]) for p in jobs) > 100:
+        on_long()
     try:
         best = plugins.load("schedulers", "cp-sat").offline_solution(s, seconds)
     except (ImportError, RuntimeError):  # RuntimeError: no schedule found in the time (a shop of thousands of steps)
