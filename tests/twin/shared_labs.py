@@ -1,6 +1,8 @@
 """What the tests of labs shared by several campaigns share: the lab file, journal readers, the invariants."""
 
+import queue
 import sqlite3
+import threading
 from pathlib import Path
 
 import pytest
@@ -74,13 +76,8 @@ def wait_until_ended(status, campaigns: int, seconds: float = 90) -> dict:
 
 def lines_until(stream, wanted: set[str], seconds: float = 60) -> list[str]:
     """Read a process's text ``stream`` until a line holding each of ``wanted`` has come (or fail: none came, or
-    ``seconds`` passed with no line); the lines read."""
-    import queue
-    import threading
-
-    lines: queue.Queue = queue.Queue()
-    threading.Thread(target=lambda: [lines.put(line) for line in iter(stream.readline, "")] + [lines.put("")],
-                     daemon=True).start()
+    ``seconds`` passed with no line); the lines read. Called again on the same stream, it goes on from there."""
+    lines = _line_queue(stream)
     seen, missing = [], set(wanted)
     while missing:
         try:
@@ -88,12 +85,37 @@ def lines_until(stream, wanted: set[str], seconds: float = 60) -> list[str]:
         except queue.Empty:
             break
         if not line:
+            lines.put("")  # the end, for a later call too
             break
         seen.append(line)
         missing -= {w for w in missing if w in line}
     if missing:
         pytest.fail(f"no line with {sorted(missing)} in {seen}")
     return seen
+
+
+def rest_of(stream, seconds: float = 60) -> str:
+    """What is left of a stream :func:`lines_until` has read from, to its end (or ``seconds`` with no line)."""
+    lines, rest = _line_queue(stream), []
+    try:
+        while (line := lines.get(timeout=seconds)):
+            rest.append(line)
+        lines.put("")
+    except queue.Empty:
+        rest.append(f"(no more in {seconds:g} s, and no end)")
+    return "".join(rest)
+
+
+_readers: dict = {}  # stream -> its lines, read by one thread (two would each take some of its lines)
+
+
+def _line_queue(stream) -> queue.Queue:
+    if stream not in _readers:
+        lines: queue.Queue = queue.Queue()
+        _readers[stream] = lines
+        threading.Thread(target=lambda: [lines.put(line) for line in iter(stream.readline, "")] + [lines.put("")],
+                         daemon=True).start()
+    return _readers[stream]
 
 
 def kill_all(*procs) -> None:

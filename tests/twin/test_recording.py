@@ -14,7 +14,7 @@ import pytest
 
 from tests.conftest import twin_cli
 from tests.rrd import read_rrd, series
-from tests.twin.shared_labs import lines_until
+from tests.twin.shared_labs import lines_until, rest_of
 from twin.campaign.journal import NotAJournal, read_events, read_experiments
 from twin.runtime.lab import run
 from twin.view.watch import RecordOptions
@@ -274,7 +274,7 @@ def test_a_watched_lab_that_dies_ends_the_watch_by_its_presence_and_a_following_
     following = subprocess.Popen([*watch, "--save", str(tmp_path / "all.rrd"), "--follow"], stdout=subprocess.PIPE,
                                  stderr=subprocess.PIPE, text=True, cwd=ROOT)
     lab = subprocess.Popen([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "6", "--planner", "random",
-                            "--clock", "scaled", "--speed", "3000", "--listen", f"tcp/127.0.0.1:{port}", "--journal",
+                            "--clock", "scaled", "--speed", "1000", "--listen", f"tcp/127.0.0.1:{port}", "--journal",
                             str(db), "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
 
     def measured() -> bool:  # a spectrum measured
@@ -284,13 +284,19 @@ def test_a_watched_lab_that_dies_ends_the_watch_by_its_presence_and_a_following_
             return False
 
     try:
+        # each watcher has seen the lab before it is killed: one that connected an instant before the kill, too
+        # late for the lab's presence to reach it, never saw a lab, and rightly waits for one
+        for watcher in (once, following):
+            said = lines_until(watcher.stdout, {"is on the bus"}, 120)
+            assert "lab 'qd' is on the bus: recording it" in said[-1], said
         deadline = time.monotonic() + 120
         while not measured():
             assert lab.poll() is None and time.monotonic() < deadline, lab.stderr.read() if lab.poll() else "slow"
             time.sleep(0.05)
         lab.kill()
         lab.wait()
-        _, err = once.communicate(timeout=60)  # no --follow: it ends by itself, the lab's presence gone
+        once.wait(timeout=60)  # no --follow: it ends by itself, the lab's presence gone
+        err = once.stderr.read()
         assert once.returncode == 1, err
         assert "lab 'qd' left the bus before its campaigns ended" in err and "twin resume JOURNAL" in err, err
         assert "Traceback" not in err and "did not answer for its history" not in err, err  # gone, not waited for
@@ -305,7 +311,8 @@ def test_a_watched_lab_that_dies_ends_the_watch_by_its_presence_and_a_following_
         line = lines_until(following.stdout, {"campaign ended"}, 120)[-1]
         assert "campaign ended: 6 experiments finished" in line, line
         following.send_signal(signal.SIGINT)
-        _, err = following.communicate(timeout=60)
+        following.wait(timeout=60)
+        err = rest_of(following.stderr)
     finally:
         for p in (lab, once, following):
             p.kill()

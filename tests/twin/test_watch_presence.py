@@ -57,3 +57,31 @@ def test_a_lab_that_never_answers_for_its_history_is_given_the_patience_in_lab_t
     clock.run(main())
     assert asked and max(asked) < 30.0, asked
     assert "lab 'qd' did not answer for its history in 30 s: recording from now on" in caplog.text
+
+
+def test_a_following_watcher_is_told_when_its_lab_comes_and_when_it_comes_back(tmp_path):
+    clock = LabClock("virtual")
+    bus = MemoryBus()
+    told: list[tuple[float, str]] = []
+
+    async def main():
+        await bus.start()
+        stop = asyncio.Event()
+        watcher = asyncio.ensure_future(watch_async(
+            bus, clock, "qd", RecordOptions(save=tmp_path / "w.rrd"), follow=True, stop=stop,
+            on_gone=lambda: told.append((clock.now(), "gone")),
+            on_present=lambda back: told.append((clock.now(), "back" if back else "found"))))
+        await clock.sleep(3.0)  # started before its lab
+        token = bus.declare_token(keys.orchestrator("qd"))
+        await clock.sleep(5.0)
+        token.close()  # killed
+        await clock.sleep(10.0)
+        token = bus.declare_token(keys.orchestrator("qd"))  # resumed
+        await clock.sleep(5.0)
+        stop.set()
+        await watcher
+        token.close()
+
+    clock.run(main())
+    assert [what for _, what in told] == ["found", "gone", "back"], told
+    assert [round(t) for t, _ in told][::2] == [3, 18]

@@ -233,6 +233,10 @@ def watch(
                                               "of several campaigns: their directory); twin replay JOURNAL then "
                                               "draws all of it"), highlight=False)
 
+    def present(back: bool) -> None:
+        print(f"lab {lab_name!r} is back on the bus: reading what it did meanwhile from its history" if back else
+              f"lab {lab_name!r} is on the bus: recording it", flush=True)
+
     def link(cut: bool) -> None:
         where = ", ".join(connect or listen or [])
         err.print(f"lost the connection to {where} (a router restarted, a network down): the lab may be running "
@@ -240,7 +244,7 @@ def watch(
                   f"connected to {where} again: what the lab did meanwhile is read from its history", highlight=False)
     try:
         observer = watch_lab(lab_name, record, list(connect or []), list(listen or []), follow,
-                             str(security) if security else None, wait, lab_gone, link)
+                             str(security) if security else None, wait, lab_gone, link, present)
     except TwinError as exc:
         _fail(exc)
     except KeyboardInterrupt:  # once connected, Ctrl-C ends the watch and saves; this is before, while it waits

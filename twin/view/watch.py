@@ -122,14 +122,16 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
                       stop: asyncio.Event | None = None,
                       on_ended: Callable[[str, Any], None] | None = None,
                       on_gone: Callable[[], None] | None = None,
-                      on_cut: Callable[[bool], None] | None = None) -> LabObserver | SharedLabObserver:
+                      on_cut: Callable[[bool], None] | None = None,
+                      on_present: Callable[[bool], None] | None = None) -> LabObserver | SharedLabObserver:
     """Record a lab that runs elsewhere until its campaign ends (or ``stop`` is set). A lab several campaigns
     share is drawn as ``twin run LAB.yaml --save`` draws it, each campaign found by its token as it comes.
     ``on_ended(name, observer)``: told once of each campaign whose summary has been drawn ("" for a lab's one
     campaign). ``on_gone()``: the lab's process left the bus (its presence gone) before its campaigns ended; the
     watch then ends too, unless ``follow`` (a resumed lab comes back). ``on_cut(True)``: the router the watcher
     reached the lab through is gone (restarting, its network down), so the lab is not called gone meanwhile;
-    ``on_cut(False)``: it is back."""
+    ``on_cut(False)``: it is back. ``on_present(back)``: the lab's presence came, the first time (``back``
+    False) or after it had gone; a lab that ends before its presence reaches the watcher is never seen."""
     told: set[str] = set()
     presence = _Presence()
     cut, relinked_at = False, None  # the watcher's router gone; when it came back
@@ -158,8 +160,11 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
 
     def on_lab(key: str, alive: bool) -> None:
         nonlocal waiting
-        if presence.changed(alive, clock.now()) and waiting is None:
+        back = presence.changed(alive, clock.now())
+        if back and waiting is None:
             waiting = []  # back: what it sends waits until what it did before is read again
+        if alive and on_present is not None:
+            on_present(back)
 
     handles = [*attach(bus, lab, on_message), bus.watch_tokens(keys.campaign(lab, "*", "seat"), on_seat),
                bus.watch_tokens(keys.orchestrator(lab), on_lab)]
@@ -323,11 +328,12 @@ async def _pages(bus: Bus, clock: LabClock, key: str, page: dict, on_message) ->
 def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str], follow: bool = False,
           security_dir: str | None = None, wait_s: float = 30.0,
           on_gone: Callable[[], None] | None = None,
-          on_cut: Callable[[bool], None] | None = None) -> LabObserver | SharedLabObserver:
+          on_cut: Callable[[bool], None] | None = None,
+          on_present: Callable[[bool], None] | None = None) -> LabObserver | SharedLabObserver:
     """``twin watch``: a wall-clock Zenoh session that records another process's lab; with ``security_dir``,
     a client of the lab's router with the lab's watcher certificate (which may read, nothing else). ``wait_s``:
-    how long ``connect`` may take to answer (a lab or router started after the watcher). ``on_gone``, ``on_cut``:
-    as :func:`watch_async`'s."""
+    how long ``connect`` may take to answer (a lab or router started after the watcher). ``on_gone``, ``on_cut``,
+    ``on_present``: as :func:`watch_async`'s."""
     from twin.core.bus import open_bus, security
     from twin.core.bus.presence import elsewhere, labs_on
 
@@ -358,7 +364,7 @@ def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str
             print(f"campaign {name + ' ' if name else ''}ended: {seen.finished} experiments finished, "
                   "its summary drawn", flush=True)
         try:
-            return await watch_async(bus, clock, lab, options, follow, stop, ended, on_gone, on_cut)
+            return await watch_async(bus, clock, lab, options, follow, stop, ended, on_gone, on_cut, on_present)
         finally:
             await bus.close()
 
