@@ -82,7 +82,8 @@ def solve(jobs: list[list[Op]], capacity: dict[str, int], time_limit_s: float = 
                     [[int(solver.value(s)) for s in row] for row in starts])
 
 
-def jobshop(jobs: list[list[tuple[int, int]]], machines: int, time_limit_s: float = 60.0) -> Solution:
+def jobshop(jobs: list[list[tuple[int, int]]], machines: int, time_limit_s: float = 60.0,
+            workers: int = 2) -> Solution:
     """A job-shop instance (per job: (machine, duration) in order), machines numbered 0..machines-1."""
     return solve([[Op(f"m{m}", d) for m, d in job] for job in jobs], {f"m{m}": 1 for m in range(machines)},
-                 time_limit_s)
+                 time_limit_s, workers)

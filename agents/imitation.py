@@ -50,9 +50,9 @@ from agents.cpsat import jobshop
 from agents.lockstep import SAMPLE_TEMPERATURES, lockstep
 from agents.scheduling_env import randomised
 from agents.schedulers import rules_for
-from agents.teachers import PlanTeacher, RuleTeacher, solve_time
+from agents.teachers import PlanTeacher, RuleTeacher, solve_time, solve_workers
 from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, initial_state, objective, started_from
-from agents.training_workers import workers_for
+from agents.training_workers import numbered, workers_for
 from twin import PluginError, Scenario, jobshop_as_lab, load_plugin, prepare, random_jobshop, stepped
 
 
@@ -126,7 +126,8 @@ def shop_task(args: tuple) -> tuple[list[Sample], dict]:
     low, high = (int(x) for x in (base.training.operation_s or (1, 10)))
     inst = random_jobshop(n_jobs, n_machines, low, high, rng)
     lab = prepare(jobshop_as_lab(base, inst), seed=0)
-    plan = jobshop(inst.jobs, inst.machines, time_limit_s=solve_time(n_jobs, n_machines))
+    plan = jobshop(inst.jobs, inst.machines, time_limit_s=solve_time(n_jobs, n_machines),
+                   workers=solve_workers(n_jobs, n_machines))
     samples, spans = _rollouts(lab, PlanTeacher(inst.jobs, plan.starts), modes, _scorer(state, seed), beta, rng,
                                lambda summary: summary.lab_hours * 3600 / plan.makespan, encoding)
     return samples, {"size": f"{n_jobs}x{n_machines}", "plan": plan.makespan, "optimal": plan.optimal, **spans}
@@ -388,18 +389,21 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
                 else:  # counted on a few labs only (random shops differ in size): half of what is left, then the rest
                     share = 2 if counted < 4 * workers else 1
                     labs = max(workers, round((want - got) / (per_shop * len(modes)) / share))
+                arrived: list[tuple[int, tuple[list[Sample], dict]]] = []
+                for i, result in pool.imap_unordered(
+                        numbered, [(task, i, (scenario, shop + i, modes, state, beta, encoding)) for i in range(labs)]):
+                    arrived.append((i, result))
+                    got += len(result[0])
+                    if on_progress:
+                        on_progress(min(steps, done + got), None)
                 fresh: list[Sample] = []
-                for samples, info in pool.imap_unordered(
-                        task, [(scenario, shop + i, modes, state, beta, encoding) for i in range(labs)]):
-                    fresh += samples
+                for _, (samples, info) in sorted(arrived, key=lambda a: a[0]):  # as asked, not as the workers ended:
+                    fresh += samples  # a seed trains the same policy again
                     for sample in samples:
                         trained_on.add(sample.rows, sample.glob)
-                    got += len(samples)
                     measured.append(info)
                     if "shape" in info:
                         fits = widen(fits, info["shape"])
-                    if on_progress:
-                        on_progress(min(steps, done + got), None)
                 shop += labs
                 asked += labs
                 counted += labs * len(modes)

@@ -21,6 +21,12 @@ class _InProcess:
         return map(task, jobs)
 
 
+def numbered(job: tuple) -> tuple[int, Any]:
+    """Worker: ``(task, i, args)`` -> ``(i, task(args))``, so that results taken as they come can be put in order."""
+    task, i, args = job
+    return i, task(args)
+
+
 def workers_for(workers: int) -> Any:
     """A pool with ``imap_unordered``: spawned processes, or for one worker the trainer's own process."""
     return _InProcess() if workers <= 1 else spawn_pool(workers)
