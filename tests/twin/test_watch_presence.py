@@ -1,6 +1,7 @@
-"""A watcher still waiting for a lab's history gives up as soon as the lab's presence is gone for good."""
+"""A watcher and its lab's presence: told when it comes, waited for until it does, given up on when it is gone."""
 
 import asyncio
+import json
 
 from twin.core import keys
 from twin.core.bus import MemoryBus
@@ -85,3 +86,67 @@ def test_a_following_watcher_is_told_when_its_lab_comes_and_when_it_comes_back(t
     clock.run(main())
     assert [what for _, what in told] == ["found", "gone", "back"], told
     assert [round(t) for t, _ in told][::2] == [3, 18]
+
+
+def test_a_watcher_waits_for_a_lab_that_comes_late_and_reads_its_history_when_it_does(tmp_path, caplog):
+    """Whether a lab is shared is known from its history's first page: a watcher that stopped asking for it 30 s
+    after it started drew a shared lab that came later as one campaign."""
+    clock = LabClock("virtual")
+    bus = MemoryBus()
+    asked: list[float] = []
+
+    async def history(key: str, payload: bytes) -> bytes:
+        asked.append(clock.now())
+        return json.dumps({"items": [], "next": None, "shared": True, "campaign": "dots"}).encode()
+
+    async def main():
+        await bus.start()
+        stop = asyncio.Event()
+        watcher = asyncio.ensure_future(watch_async(bus, clock, "qd", RecordOptions(save=tmp_path / "w.rrd"),
+                                                    stop=stop))
+        await clock.sleep(45.0)  # the lab comes after the watcher's 30 s of patience
+        token = bus.declare_token(keys.orchestrator("qd"))
+        served = bus.serve(keys.campaign("qd", "dots", "history"), history)
+        await clock.sleep(5.0)
+        stop.set()
+        observer = await watcher
+        served.close()
+        token.close()
+        return observer
+
+    observer = clock.run(main())
+    assert asked and min(asked) >= 45.0, asked
+    assert type(observer).__name__ == "SharedLabObserver" and "dots" in observer.campaigns
+    assert "did not answer for its history" not in caplog.text
+
+
+def test_a_following_watcher_reads_the_history_of_a_lab_that_comes_back_long_after_it_first_came(tmp_path):
+    clock = LabClock("virtual")
+    bus = MemoryBus()
+    asked: list[float] = []
+
+    async def history(key: str, payload: bytes) -> bytes:
+        asked.append(clock.now())
+        return json.dumps({"items": [], "next": None}).encode()
+
+    async def main():
+        await bus.start()
+        stop = asyncio.Event()
+        token = bus.declare_token(keys.orchestrator("qd"))
+        served = bus.serve(keys.campaign("qd", "c", "history"), history)
+        watcher = asyncio.ensure_future(watch_async(bus, clock, "qd", RecordOptions(save=tmp_path / "w.rrd"),
+                                                    follow=True, stop=stop))
+        await clock.sleep(5.0)
+        token.close()  # killed
+        served.close()
+        await clock.sleep(55.0)
+        token = bus.declare_token(keys.orchestrator("qd"))  # resumed, a minute after the lab first came
+        served = bus.serve(keys.campaign("qd", "c", "history"), history)
+        await clock.sleep(5.0)
+        stop.set()
+        await watcher
+        served.close()
+        token.close()
+
+    clock.run(main())
+    assert len(asked) == 2 and asked[0] < 1.0 and 60.0 <= asked[1] < 62.0, asked  # patience from its return

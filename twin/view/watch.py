@@ -243,10 +243,13 @@ class _Presence:
     gone_at: float | None = None
     lost: bool = False
     back: bool = False
+    came_at: float | None = None  # when it last came
 
     def changed(self, alive: bool, now: float) -> bool:
         """The token came (``alive``) or went at ``now``; True when it came back after going."""
         self.gone_at = None if alive else now
+        if alive:
+            self.came_at = now
         returned = alive and self.lost
         self.back = self.back or returned
         self.lost = not alive
@@ -299,15 +302,21 @@ class _SharedWatch:
 async def _first_page(bus: Bus, clock: LabClock, lab: str, stop: asyncio.Event, presence: _Presence,
                       patience_s: float = 30.0) -> dict | None:
     """The first page of the running campaign's history (of one of them, in a shared lab); waits for it to come
-    up, and gives up after ``patience_s``, when ``stop`` is set, or when the lab's presence has been gone for the
-    grace (a lab killed as it started: the caller tells it gone)."""
+    up, and gives up ``patience_s`` after the lab's presence last came (a lab not there yet is waited for:
+    whether it is a shared lab is known from its first page), when ``stop`` is set, or when the lab's presence
+    has been gone for the grace (a lab killed as it started: the caller tells it gone)."""
     key = keys.campaign(lab, "*", "history")
-    given_up_at = clock.now() + patience_s * clock.speed
-    while clock.now() < given_up_at:
+    given_up_at = None
+    while True:
         if stop.is_set() or presence.gone(clock):
             return None
+        if given_up_at is None and presence.came_at is not None:
+            given_up_at = presence.came_at + patience_s * clock.speed
+        if given_up_at is not None and clock.now() >= given_up_at:
+            break
+        wait = 2.0 * clock.speed if given_up_at is None else min(2.0 * clock.speed, given_up_at - clock.now())
         try:
-            return json.loads(await bus.request(key, b"", timeout=min(2.0 * clock.speed, given_up_at - clock.now())))
+            return json.loads(await bus.request(key, b"", timeout=wait))
         except (NoReplyError, ValueError, TwinError):
             await clock.sleep(0.5 * clock.speed)
     log.warning("lab %r did not answer for its history in %.0f s: recording from now on", lab, patience_s)
