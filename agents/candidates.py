@@ -355,6 +355,25 @@ def widen(fits: dict | None, more: dict) -> dict:
             "instances": [1, max(a["instances"][1], b["instances"][1])]}
 
 
+def fits_of(meta: dict, where: str) -> dict | None:
+    """The range of shapes a policy file records it was trained on (None if it says none); ``where`` names the file
+    in the error if it is not one."""
+    fits = meta.get("fits")
+    if fits is None:
+        return None
+
+    def whole_range(v: Any) -> bool:
+        return (isinstance(v, list) and len(v) == 2 and all(isinstance(x, int) and not isinstance(x, bool) for x in v)
+                and 0 <= v[0] <= v[1])
+    if not (isinstance(fits, dict) and isinstance(fits.get("steps"), list)
+            and all(isinstance(step, str) for step in fits["steps"])
+            and whole_range(fits.get("device_types")) and whole_range(fits.get("instances"))):
+        raise ValueError(f"{where}: its 'fits' is not the shapes a policy was trained on ({{'steps': [step types], "
+                         "'device_types': [least, most], 'instances': [least, most]}); policies are saved by "
+                         "`twin train`")
+    return fits
+
+
 def outside(fits: dict, shape: dict) -> list[str]:
     """Why a lab of ``shape`` is outside what a policy was trained on (empty: inside)."""
     why = []

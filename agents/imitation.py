@@ -45,7 +45,7 @@ import numpy as np
 import torch
 
 from agents.candidates import (ENCODING, FEATURES, GLOBALS, MAX_CANDIDATES, WAIT, CandidateEncoder, Observed,
-                               lab_shape, widen)
+                               fits_of, lab_shape, widen)
 from agents.cpsat import jobshop
 from agents.lockstep import SAMPLE_TEMPERATURES, lockstep
 from agents.scheduling_env import randomised
@@ -350,7 +350,10 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     fits = None
     if init is not None:
         net.load_state_dict(initial_state(Path(init), scenario, encoding, part="action_net"))
-        fits = read_meta(Path(init)).get("fits")
+        try:
+            fits = fits_of(read_meta(Path(init)), str(Path(init).with_suffix(".json")))
+        except ValueError as exc:
+            raise PluginError(str(exc)) from None
     optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
     judge = Judge(scenario, out, encoding, eval_seeds or EVAL_SEEDS, held_out_count, on_progress,
                   method="imitate", teacher=scenario.training.teacher, **started_from(init))

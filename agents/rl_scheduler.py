@@ -37,7 +37,10 @@ def encoder_for(scenario: Any, encoding: str) -> Any:
 def _check_fit(path: Path, meta: dict, scenario: Any) -> str:
     """Why ``scenario`` is outside the shapes the policy was trained on ("" if inside, or if the policy does not
     say); per ``campaign.policy_fit`` a warning, or a refusal."""
-    fits = meta.get("fits")
+    try:
+        fits = candidates.fits_of(meta, str(path.with_suffix(".json")))
+    except ValueError as exc:
+        raise PluginError(str(exc)) from None
     if not fits:
         return ""
     why = candidates.outside(fits, candidates.lab_shape(scenario))

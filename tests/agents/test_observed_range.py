@@ -12,7 +12,7 @@ import torch
 from agents.candidates import GLOBALS, MAX_CANDIDATES, WIDTHS, Observed
 from agents.observed_range import observe
 from agents.rl_scheduler import RlScheduler
-from agents.train_scheduler import campaign
+from agents.train_scheduler import campaign, train_scheduler
 from twin import PluginError, jobshop_as_lab, load_plugin, random_jobshop
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -73,17 +73,26 @@ def test_inside_the_range_the_decisions_are_unchanged(ft06):
         assert made["held"] == made["unheld"]
 
 
-@pytest.mark.parametrize("damage", [{"rows": [[0.0], [1.0]], "globals": [[0.0] * GLOBALS, [1.0] * GLOBALS]},
-                                    {"rows": "wide"}, [1, 2],
-                                    {"rows": [[1.0] * 29, [0.0] * 29], "globals": [[0.0] * GLOBALS] * 2}])
-def test_a_damaged_range_is_refused_naming_the_file(ft06, tmp_path, damage):
+@pytest.mark.parametrize("field, damage", [
+    ("observed", {"rows": [[0.0], [1.0]], "globals": [[0.0] * GLOBALS, [1.0] * GLOBALS]}),
+    ("observed", {"rows": "wide"}), ("observed", [1, 2]),
+    ("observed", {"rows": [[1.0] * 29, [0.0] * 29], "globals": [[0.0] * GLOBALS] * 2}),
+    ("fits", "oops"), ("fits", {"steps": ["op"], "device_types": [5, 6]}),
+    ("fits", {"steps": "op", "device_types": [5, 6], "instances": [1, 1]}),
+    ("fits", {"steps": ["op"], "device_types": [6, 5], "instances": [1, 1]}),
+    ("fits", {"steps": ["op"], "device_types": [5, 6], "instances": [1, 1.5]})])
+def test_a_damaged_record_of_what_it_saw_is_refused_naming_the_file(ft06, tmp_path, field, damage):
     copy = tmp_path / "p.zip"
     shutil.copy(POLICY, copy)
     meta = json.loads(POLICY.with_suffix(".json").read_text())
-    meta["observed"] = damage
+    meta[field] = damage
     copy.with_suffix(".json").write_text(json.dumps(meta))
-    with pytest.raises(PluginError, match=r"p\.json: its 'observed' is not two ranges of finite numbers"):
+    said = {"observed": "is not two ranges of finite numbers", "fits": "is not the shapes a policy was trained on"}
+    with pytest.raises(PluginError, match=rf"p\.json: its '{field}' {said[field]}"):  # was a TypeError for 'fits'
         RlScheduler(ft06, str(copy))
+    if field == "fits":  # and a training that starts from it
+        with pytest.raises(PluginError, match=rf"p\.json: its 'fits' {said[field]}"):
+            train_scheduler(ft06, 100, tmp_path / "next.zip", init=str(copy), envs=1)
 
 
 def test_a_policy_saved_before_ranges_were_kept_gets_one_from_its_labs(ft06, tmp_path):
