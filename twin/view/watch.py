@@ -10,6 +10,7 @@ import asyncio
 import heapq
 import json
 import logging
+import re
 import signal
 import sys
 from collections.abc import Callable
@@ -22,6 +23,7 @@ from twin.core.bus import Bus, Closable, NoReplyError
 from twin.core.clock import LabClock
 from twin.core.errors import TwinError
 from twin.campaign.journal import as_messages, no_such_journal, read_events, read_run
+from twin.scenario.spec import NAME
 from twin.view.lab_observer import SharedLabObserver
 from twin.view.observer import LabObserver
 
@@ -180,7 +182,7 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
         else:
             observer, recording = open_observer(options, f"watch-{lab}", dedupe=True)
             if first is not None:
-                await _pages(bus, clock, keys.campaign(lab, "*", "history"), first, observer.on_message)
+                await _read_history(bus, clock, lab, first, observer.on_message)
             feed = observer.on_message
         for key, payload in waiting:
             feed(key, payload)  # repeats of the history are dropped by id
@@ -196,7 +198,7 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
                 else:
                     again = await _first_page(bus, clock, lab, stop, presence)
                     if again is not None:
-                        await _pages(bus, clock, keys.campaign(lab, "*", "history"), again, observer.on_message)
+                        await _read_history(bus, clock, lab, again, observer.on_message)
                 held: list = waiting or []
                 waiting = None
                 for key, payload in held:
@@ -276,7 +278,7 @@ class _SharedWatch:
         key = keys.campaign(self.lab, name, "history")
         try:
             if first is None:
-                first = json.loads(await self.bus.request(key, b"", timeout=2.0 * self.clock.speed))
+                first = history_page(await self.bus.request(key, b"", timeout=2.0 * self.clock.speed), 0)
             await _pages(self.bus, self.clock, key, first, self.observer.campaign(name).on_message)
         except (NoReplyError, ValueError, TwinError) as exc:
             log.warning("campaign %r of lab %r did not give its history (%s): recording it from now on", name,
@@ -306,7 +308,7 @@ async def _first_page(bus: Bus, clock: LabClock, lab: str, stop: asyncio.Event, 
     whether it is a shared lab is known from its first page), when ``stop`` is set, or when the lab's presence
     has been gone for the grace (a lab killed as it started: the caller tells it gone)."""
     key = keys.campaign(lab, "*", "history")
-    given_up_at = None
+    given_up_at, why = None, ""
     while True:
         if stop.is_set() or presence.gone(clock):
             return None
@@ -316,22 +318,64 @@ async def _first_page(bus: Bus, clock: LabClock, lab: str, stop: asyncio.Event, 
             break
         wait = 2.0 * clock.speed if given_up_at is None else min(2.0 * clock.speed, given_up_at - clock.now())
         try:
-            return json.loads(await bus.request(key, b"", timeout=wait))
-        except (NoReplyError, ValueError, TwinError):
-            await clock.sleep(0.5 * clock.speed)
-    log.warning("lab %r did not answer for its history in %.0f s: recording from now on", lab, patience_s)
+            return history_page(await bus.request(key, b"", timeout=wait), 0)
+        except MalformedPage as exc:
+            why = f" (its last answer: {exc})"
+        except (NoReplyError, TwinError):
+            pass
+        await clock.sleep(0.5 * clock.speed)
+    log.warning("lab %r did not answer for its history in %.0f s%s: recording from now on", lab, patience_s, why)
     return None
 
 
+async def _read_history(bus: Bus, clock: LabClock, lab: str, first: dict, on_message) -> None:
+    """A lab's history from its first page on; one that stops answering, or answers with a malformed page, is
+    recorded from now on."""
+    try:
+        await _pages(bus, clock, keys.campaign(lab, "*", "history"), first, on_message)
+    except (NoReplyError, ValueError, TwinError) as exc:
+        log.warning("lab %r did not give all of its history (%s): recording it from now on", lab, exc)
+
+
 async def _pages(bus: Bus, clock: LabClock, key: str, page: dict, on_message) -> None:
-    """Feed a history's items, page after page, from ``page`` on."""
+    """Feed a history's items, page after page, from ``page`` on (a checked page: :func:`history_page`)."""
     while True:
-        for payload in page.get("items") or []:
+        for payload in page["items"]:
             on_message("", payload)
-        if page.get("next") is None:
+        after = page["next"]
+        if after is None:
             return
-        page = json.loads(await bus.request(key, json.dumps({"after": page["next"]}).encode(),
-                                            timeout=2.0 * clock.speed))
+        page = history_page(await bus.request(key, json.dumps({"after": after}).encode(), timeout=2.0 * clock.speed),
+                            after)
+
+
+class MalformedPage(ValueError):
+    """A history page that is not one a lab sends: a rogue or broken server answered for the lab."""
+
+
+def history_page(raw: bytes, after: int) -> dict:
+    """A page of a campaign's history, as asked for with ``{"after": after}``, checked: its items are messages
+    (text), its ``next`` lies beyond ``after`` (a page that does not move on would be asked for forever), its
+    campaign is a name. Raises :class:`MalformedPage` saying what is wrong."""
+    try:
+        page = json.loads(raw)
+    except ValueError:
+        raise MalformedPage(f"not JSON: {bytes(raw[:40])!r}") from None
+    if not isinstance(page, dict):
+        raise MalformedPage(f"not a page but a {type(page).__name__}")
+    if "error" in page:
+        raise MalformedPage(f"an error: {str(page['error'])[:120]}")
+    items, following = page.get("items", []), page.get("next")
+    if not isinstance(items, list) or not all(isinstance(item, str) for item in items):
+        raise MalformedPage("its items are not a list of messages")
+    if following is not None and (isinstance(following, bool) or not isinstance(following, int)
+                                  or following <= after or not items):
+        raise MalformedPage(f"its next page ({str(following)[:40]}) does not follow page {after}")
+    campaign = page.get("campaign", "")
+    if not isinstance(campaign, str) or not isinstance(page.get("shared", False), bool) or \
+            (page.get("shared") and not re.match(NAME, campaign)):
+        raise MalformedPage(f"its campaign ({str(campaign)[:40]!r}) is not a campaign's name")
+    return {**page, "items": items, "next": following}
 
 
 def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str], follow: bool = False,
