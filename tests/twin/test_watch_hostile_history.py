@@ -1,15 +1,13 @@
 """A watcher answered for its lab's history by a rogue or broken server: it says what was wrong with the answer and
 records from then on — no crash, and no page asked for forever."""
 
-import asyncio
 import json
 
 import pytest
 
 from twin.core import keys
-from twin.core.bus import MemoryBus
 from twin.core.clock import LabClock
-from twin.view.watch import RecordOptions, watch_async
+from tests.twin.test_watch_presence import watching
 
 MESSAGE = json.dumps({"kind": "note"})  # a message, as far as a page's shape goes (the observer drops what it is not)
 
@@ -18,7 +16,6 @@ def watched(tmp_path, answer):
     """The lab's presence, its history answered by ``answer(payload) -> bytes``, a watcher for 40 lab-s; what the
     watcher returned and how often it asked."""
     clock = LabClock("virtual")
-    bus = MemoryBus()
     asked: list[bytes] = []
 
     async def history(key: str, payload: bytes) -> bytes:
@@ -27,21 +24,13 @@ def watched(tmp_path, answer):
             return json.dumps({"items": [], "next": None}).encode()
         return answer(payload)
 
-    async def main():
-        await bus.start()
-        token = bus.declare_token(keys.orchestrator("qd"))
-        served = bus.serve(keys.campaign("qd", "c", "history"), history)
-        stop = asyncio.Event()
-        watcher = asyncio.ensure_future(watch_async(bus, clock, "qd", RecordOptions(save=tmp_path / "w.rrd"),
-                                                    stop=stop))
+    async def lab(bus):
+        left_open = [bus.declare_token(keys.orchestrator("qd")),
+                     bus.serve(keys.campaign("qd", "c", "history"), history)]
         await clock.sleep(40.0)
-        stop.set()
-        observer = await watcher
-        served.close()
-        token.close()
-        return observer
+        return left_open
 
-    return clock.run(main()), asked
+    return watching(tmp_path, clock, lab), asked
 
 
 @pytest.mark.parametrize("reply, says", [
