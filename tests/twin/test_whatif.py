@@ -67,6 +67,14 @@ def test_the_table_fits_80_columns_and_names_the_busiest_device():
     (["--vary", "devices.spectrometer.driver=spectrometer,reactor"],
      "--vary devices.spectrometer.driver=reactor: 1 problem(s) - devices.spectrometer.driver: 'reactor' runs"),
     (["--vary", "campaign.planner=random,nope"], "--vary campaign.planner=nope"),
+    # seeds are the paired runs' own: a varied or set seed would be overwritten in every run, silently
+    (["--vary", "campaign.seed=1,2"], "'campaign.seed=1,2': the runs' seeds are 0 to N−1 (--seeds N)"),
+    (["--vary", "devices.reactor.instances=3", "--set", "campaign.seed=4"], "--set campaign.seed: the runs' seeds"),
+    (["--vary", "devices.reactor.instances=1,,3"], "an empty value"),
+    (["--vary", "devices.reactor.instances=3,"], "an empty value"),
+    (["--vary", "devices.reactor.instances=3,3.0"], "3.0 is given twice"),
+    (["--vary", "devices.reactor.instances=3", "--budget-hours", "-1"], "--budget-hours -1: give the lab-hours"),
+    (["--vary", "devices.reactor.instances=3", "--budget-hours", "nan"], "--budget-hours nan: give the lab-hours"),
 ])
 def test_what_cannot_run_is_refused_before_anything_runs(args, says):
     code, out = whatif(FLAKY, *args)
@@ -83,6 +91,15 @@ def test_the_cheapest_variant_within_the_hours_must_meet_every_target_in_every_r
     assert cheapest_within(summary, 8)["variant"] == "fast, cheaper"
     assert cheapest_within(summary, 12)["variant"] == "slow, cheap"
     assert cheapest_within(summary, 4) is None
+    free = [row("as written", 10, 0), row("faster", 6, 0), row("fastest", 5, 0)]
+    assert cheapest_within(free, 8)["variant"] == "fastest"  # of equal costs, the fewest lab-hours
+
+
+def test_a_bench_refuses_a_seed_set_for_all_its_runs():
+    for args in (["planners", ROOT / "scenarios" / "quantum_dots.yaml"], ["schedulers", FLAKY, "--shapes"],
+                 ["schedulers", FLAKY]):
+        res = twin_cli("bench", *args, "--set", "campaign.seed=3", "--seeds", "2")
+        assert res.exit_code == 2 and "--set campaign.seed: the runs' seeds are 0 to N−1" in res.output, res.output
 
 
 def test_each_instance_costs_its_hours_busy_or_not_and_the_cheapest_variant_weighs_them(tmp_path):

@@ -185,6 +185,16 @@ def assignments(items: list[str]) -> dict:
     return out
 
 
+def paired_assignments(items: list[str]) -> dict:
+    """``--set`` options of a bench or a what-if, which choose the runs' seeds themselves."""
+    from twin.tools.planner_bench import SEEDS_PAIRED
+
+    out = assignments(items)
+    if "campaign.seed" in out:
+        _fail(TwinError(f"--set campaign.seed: {SEEDS_PAIRED}"))
+    return out
+
+
 def bar_progress(transient: bool = False, **options: Any) -> Any:
     """The progress every long command shows on stderr (a bar on a terminal, lines in a log); ``options``:
     ``fields`` and ``disable`` of ``twin.cli.progress.bar_progress``."""

@@ -11,8 +11,8 @@ from twin.core import plugins
 from twin.runtime import lab
 from twin.runtime.checks import checked
 from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
-                             exit_status, machine_output, narrow_table, print_table, say_ended_early, sigterm_unwinds,
-                             stopped_by, writable)
+                             exit_status, machine_output, narrow_table, paired_assignments, print_table,
+                             say_ended_early, sigterm_unwinds, stopped_by, writable)
 from twin.core.errors import TwinError
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.tools.planner_bench import DEFAULT_PLANNERS
@@ -116,7 +116,7 @@ def bench_planners(
     from twin.tools.planner_bench import HEADER, bench, caption, parse, rows
 
     names = [p.strip() for p in planners.split(",") if p.strip()]
-    overrides = {**assignments(set_ or []), **({"campaign.budget": budget} if budget else {})}
+    overrides = {**paired_assignments(set_ or []), **({"campaign.budget": budget} if budget else {})}
     try:
         s = checked(lab.prepare(scenario, overrides=overrides), scenario)
         for name in names:
@@ -183,8 +183,8 @@ def bench_schedulers(
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if shapes:
-        _bench_shapes(scenario, names, seeds, workers, budget, assignments(set_ or []), random_labs, as_json, csv_out,
-                      by)
+        _bench_shapes(scenario, names, seeds, workers, budget, paired_assignments(set_ or []), random_labs, as_json,
+                      csv_out, by)
         return
     tables: list[dict] = []
     all_runs: list[dict] = []
@@ -195,7 +195,7 @@ def bench_schedulers(
     with bench_pool(workers) as pool:  # one set of workers for every shop
         for file, instance in files:
             try:
-                s = checked(load_variant(scenario, file, budget, assignments(set_ or []), instance), scenario,
+                s = checked(load_variant(scenario, file, budget, paired_assignments(set_ or []), instance), scenario,
                             benched=True)
                 for name in names:
                     lab.make_scheduler(s, name)

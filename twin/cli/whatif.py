@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from dataclasses import asdict
 from pathlib import Path
 from typing import Annotated, Optional
@@ -13,7 +14,7 @@ import typer
 from rich import box
 from rich.table import Table
 
-from twin.cli.common import (_fail, app, assignments, bar_progress, console, interruptible, say_ended_early,
+from twin.cli.common import (_fail, app, bar_progress, console, interruptible, paired_assignments, say_ended_early,
                              writable)
 from twin.core.errors import TwinError
 from twin.runtime import lab
@@ -96,14 +97,17 @@ def whatif(
     written; for a lab of several campaigns, each campaign's lab-hours from its start to its end too."""
     writable("--csv", csv_out)
     writable("--save", save)
-    from twin.tools.whatif import (AS_WRITTEN, axes_of, campaign_rows, caption, cheapest_within,
+    if budget_hours is not None and not 0 < budget_hours < math.inf:
+        _fail(TwinError(f"--budget-hours {budget_hours:g}: give the lab-hours the targets must be met within, a "
+                        "number above 0 (e.g. 5)"))
+    from twin.tools.whatif import (AS_WRITTEN, axes_of, campaign_rows, caption, cheapest_within, costs_anything,
                                    has_targets as any_targets, header, in_seconds, measures, parse_vary, rows,
                                    runs_alike, summarise, variants, written_values)
     from twin.tools.whatif import whatif as run_whatif
 
     split = lambda text: [x.strip() for x in text.split(",") if x.strip()] if text else None  # noqa: E731
     try:
-        s = checked(lab.prepare(scenario, overrides=assignments(set_ or [])), scenario)
+        s = checked(lab.prepare(scenario, overrides=paired_assignments(set_ or [])), scenario)
         varied = parse_vary(vary or [])
         chosen = variants(s, varied, split(schedulers), split(planners))
         axes = [name for name, _ in axes_of(varied, split(schedulers), split(planners))]
@@ -162,9 +166,11 @@ def whatif(
     console.print(f"as written, the busiest device type is {base['bottleneck']} "
                   f"({100 * base['utilisation'].get(base['bottleneck'], 0):.0f} % busy)", highlight=False)
     if budget_hours is not None:
-        console.print(f"cheapest within {budget_hours:g} lab-h (median; every target met in every run): " + (
-            f"{best['variant']} (cost {best['cost'][1]:,.0f}, {best['lab_hours'][1]:.1f} lab-h)" if best else
-            "none of these variants"), highlight=False)
+        costs = costs_anything(summary)
+        found = best and (f"{best['variant']} (" + (f"cost {best['cost'][1]:,.0f}, " if costs else "") +
+                          f"{best['lab_hours'][1]:.1f} lab-h)")
+        console.print(f"{'cheapest' if costs else 'fastest (nothing costs anything)'} within {budget_hours:g} lab-h "
+                      f"(median; every target met in every run): {found or 'none of these variants'}", highlight=False)
     for path in (csv_out, save):
         if path is not None:
             console.print(f"wrote {path}", highlight=False)

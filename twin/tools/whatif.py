@@ -23,7 +23,7 @@ from twin.core.errors import ScenarioError, TwinError
 from twin.runtime.checks import check
 from twin.runtime.lab import make_scheduler, prepare, run
 from twin.runtime.shared_run import run_shared
-from twin.tools.planner_bench import bench_pool, quartiles, short
+from twin.tools.planner_bench import SEEDS_PAIRED, bench_pool, quartiles, short
 from twin.scenario import Scenario
 from twin.scenario.files import yaml_value
 from twin.scenario.sharing import campaign_scenario
@@ -65,12 +65,19 @@ def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
         name = name.strip()
         if not eq or not name or not values.strip():
             raise ScenarioError("--vary", [f"{item!r}: expected FIELD=V1,V2,... (e.g. devices.spectrometer.instances=1,2,3)"])
-        parsed = []
+        if name == "campaign.seed":
+            raise ScenarioError("--vary", [f"{item!r}: {SEEDS_PAIRED}"])
+        parsed: list[Any] = []
         for v in _split_values(values):
+            if not v.strip():
+                raise ScenarioError("--vary", [f"{item!r}: an empty value (two commas together, or one at an end)"])
             try:
-                parsed.append(yaml_value(v.strip()))
+                value = yaml_value(v.strip())
             except yaml.YAMLError:
-                parsed.append(v.strip())
+                value = v.strip()
+            if value in parsed:
+                raise ScenarioError("--vary", [f"{item!r}: {v.strip()} is given twice (each value is a variant)"])
+            parsed.append(value)
         if any(name == n for n, _ in out):
             raise ScenarioError("--vary", [f"{name} is varied twice: give all its values in one --vary"])
         out.append((name, parsed))
@@ -249,8 +256,8 @@ def summarise(results: list[Outcome], chosen: list[Variant]) -> list[dict[str, A
 
 
 def cheapest_within(summary: list[dict[str, Any]], hours: float) -> dict[str, Any] | None:
-    """The variant of least median cost whose median lab-hours to target are within ``hours`` and that reached
-    the targets in every run; None if none does."""
+    """The variant of least median cost (of equal costs, the fewest lab-hours) whose median lab-hours to target
+    are within ``hours`` and that reached the targets in every run; None if none does."""
     fits = [row for row in summary if row["reached"] == row["runs"] and row["lab_hours"][1] <= hours]
     return min(fits, key=lambda row: (row["cost"][1], row["lab_hours"][1])) if fits else None
 
