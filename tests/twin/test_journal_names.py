@@ -1,6 +1,7 @@
 """Default journal names: campaigns of one scenario and seed started in the same second (a sweep run in parallel)
 each get their own journal; one that fails before it writes anything leaves no file behind."""
 
+import os
 from pathlib import Path
 
 import pytest
@@ -90,7 +91,6 @@ def test_an_empty_journal_a_killed_run_claimed_says_so(tmp_path, command, monkey
 def test_a_journal_being_written_is_not_replaced_by_a_second_run_given_its_name(tmp_path):
     """`--journal x.db` given to two runs at once: the second replaced the file under the first, which died of a
     disk I/O error with its campaign lost. Now the second is refused, naming the first's process."""
-    import os
 
     from twin.campaign.journal import Journal
     from twin.core.errors import TwinError
@@ -126,6 +126,12 @@ def test_a_journal_being_written_is_not_resumed_under_its_run(tmp_path):
         with pytest.raises(TwinError, match="j.db is being written by another run"):
             resume(path)
         assert not (tmp_path / "j.db.resuming").exists()
+        # `twin report` called it killed and told the user to resume it
+        told = " ".join(twin_cli("report", path).output.split())
+        assert f"j.db: running — process {os.getpid()} is writing it now" in told and "resume" not in told, told
     finally:
         writer.close()
+    Path(f"{path}-lock").write_text("4194304")  # a killed run's lock file: nothing holds it
+    told = " ".join(twin_cli("report", path).output.split())
+    assert "interrupted" in told and f"Continue it with: twin resume {path}" in told, told
     assert resume(path).done == 4  # once it has ended (killed), it resumes

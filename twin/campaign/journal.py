@@ -206,6 +206,23 @@ def _writer_lock(path: Path) -> Any:
     return lock
 
 
+def writer(path: str | Path) -> str | None:
+    """The process writing the journal at ``path`` now (its pid as text, "" if it did not say), or None if no run
+    holds it: a killed run's lock file holds nothing. Asked with a shared lock that is let go at once (a run
+    starting on the journal in that instant is refused, as if this were a run: nothing is lost)."""
+    try:
+        lock = open(f"{path}-lock")
+    except OSError:
+        return None
+    with lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return lock.read().strip()
+        fcntl.flock(lock, fcntl.LOCK_UN)
+    return None
+
+
 @contextmanager
 def held(path: Path) -> Iterator[None]:
     """The journal at ``path`` kept from every other writer while the block runs (``twin resume``, which reads it

@@ -22,7 +22,7 @@ from twin.core.whole_files import written_whole
 from twin.runtime import lab
 from twin.runtime.checks import checked, validate_file
 from twin.core.errors import TwinError
-from twin.campaign.journal import no_such_journal, read_events, read_run
+from twin.campaign.journal import no_such_journal, read_events, read_run, writer
 from twin.view.report import lab_span, render_summary
 from twin.scenario import json_schema
 from twin.campaign.summary import Summary
@@ -370,9 +370,15 @@ def _report(journal: Path, resume_with: Path | None = None) -> None:
         for status, n in got["experiments"].items():
             counts[shown.get(status, status)] = counts.get(shown.get(status, status), 0) + n
         states = ", ".join(f"{n} {status}" for status, n in sorted(counts.items())) or "none proposed yet"
+        so_far = f"{got['lab_hours']:.2f} lab-h with {got['events']} events on disk; experiments: {states}"
+        holder = writer(journal)
+        if holder is not None:
+            console.print(f"{journal}: running — {f'process {holder}' if holder else 'another process'} is writing "
+                          f"it now. The run of {got['scenario']} has got to {so_far}. Report it again when it ends",
+                          highlight=False, soft_wrap=True)
+            return
         console.print(f"{journal}: interrupted — the run of {got['scenario']} was killed before it finished. It got "
-                      f"to {got['lab_hours']:.2f} lab-h with {got['events']} events on disk; experiments: {states}. "
-                      f"Continue it with: twin resume {resume_with or journal}",
+                      f"to {so_far}. Continue it with: twin resume {resume_with or journal}",
                       highlight=False, soft_wrap=True)
         return
     summary = Summary.from_dict(data["summary"])
