@@ -289,6 +289,8 @@ def test_a_file_to_write_that_cannot_be_is_refused_before_anything_runs(args, tm
      "--eval-every"),
     (["bench", "planners", "scenarios/quantum_dots.yaml", "--seeds", "0"], "--seeds"),
     (["bench", "schedulers", "scenarios/flaky_lab.yaml", "--workers", "0"], "--workers"),
+    (["run", "scenarios/quantum_dots.yaml", "--runtime", "fastest"], "--runtime"),  # refused once the run began
+    (["resume", "p.db", "--runtime", "fastest"], "--runtime"),
 ])
 def test_counts_below_one_are_refused_by_name(args, option, tmp_path, monkeypatch):
     """--steps 0 saved an untrained policy, --envs 0 was an IndexError, --eval-every 0 evaluated at step 0 for ever."""
