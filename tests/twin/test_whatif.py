@@ -70,8 +70,8 @@ def test_the_table_fits_80_columns_and_names_the_busiest_device():
     # seeds are the paired runs' own: a varied or set seed would be overwritten in every run, silently
     (["--vary", "campaign.seed=1,2"], "'campaign.seed=1,2': the runs' seeds are 0 to N−1 (--seeds N)"),
     (["--vary", "devices.reactor.instances=3", "--set", "campaign.seed=4"], "--set campaign.seed: the runs' seeds"),
-    (["--vary", "devices.reactor.instances=1,,3"], "an empty value"),
-    (["--vary", "devices.reactor.instances=3,"], "an empty value"),
+    (["--vary", "devices.reactor.instances=1,,3"], "reactor.instances: Input should be a valid integer (got None)"),
+    (["--vary", "campaigns.0.after=,,dots"], "an empty value (null) is given twice"),
     (["--vary", "devices.reactor.instances=3,3.0"], "3.0 is given twice"),
     (["--vary", "devices.reactor.instances=3", "--budget-hours", "-1"], "--budget-hours -1: give the lab-hours"),
     (["--vary", "devices.reactor.instances=3", "--budget-hours", "nan"], "--budget-hours nan: give the lab-hours"),

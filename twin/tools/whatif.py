@@ -68,15 +68,14 @@ def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
         if name == "campaign.seed":
             raise ScenarioError("--vary", [f"{item!r}: {SEEDS_PAIRED}"])
         parsed: list[Any] = []
-        for v in _split_values(values):
-            if not v.strip():
-                raise ScenarioError("--vary", [f"{item!r}: an empty value (two commas together, or one at an end)"])
+        for v in _split_values(values):  # an empty value is YAML's null: `campaigns.1.after=,dots` unsets it first
             try:
                 value = yaml_value(v.strip())
             except yaml.YAMLError:
                 value = v.strip()
             if value in parsed:
-                raise ScenarioError("--vary", [f"{item!r}: {v.strip()} is given twice (each value is a variant)"])
+                raise ScenarioError("--vary", [f"{item!r}: {v.strip() or 'an empty value (null)'} is given twice (each "
+                                               "value is a variant)"])
             parsed.append(value)
         if any(name == n for n, _ in out):
             raise ScenarioError("--vary", [f"{name} is varied twice: give all its values in one --vary"])
