@@ -301,6 +301,14 @@ def test_counts_below_one_are_refused_by_name(args, option, tmp_path, monkeypatc
     assert not (tmp_path / "p.zip").exists()
 
 
+def test_a_directory_as_the_trained_policys_file_is_refused(tmp_path):
+    """--out runs (a directory) saved runs.zip and runs.json beside it, after the whole training."""
+    res = twin_cli("train", ROOT / "scenarios" / "quantum_dots.yaml", "--out", tmp_path, "--steps", "10")
+    assert res.exit_code == 2 and f"--out {tmp_path} is a directory: give the policy's file, e.g. " \
+        f"{tmp_path / 'policy.zip'}" in " ".join(res.output.split()), res.output
+    assert not tmp_path.with_suffix(".zip").exists() and not tmp_path.with_suffix(".json").exists()
+
+
 def test_a_port_past_65535_is_refused_by_name(tmp_path, monkeypatch):
     """It was an OverflowError from bind() after the campaign had started."""
     monkeypatch.chdir(tmp_path)

@@ -59,6 +59,8 @@ def test_a_bad_smiles_exits_2_from_a_real_process():
     (["CCO", "--prior", "missing"], 2, "python -m agents.routes.train --out missing"),
     (["C1CC2CCC1C2", "--seconds", "5"], 1, "no route to C1CC2CCC1C2"),
     (["OC(=O)c1ccccc1O"], 0, "the target is in stock; nothing to make"),
+    (["CCO", "--seconds", "-1"], 2, "--seconds -1: give the search a budget above 0"),  # was "no route", exit 1
+    (["CCO", "--seconds", "nan"], 2, "--seconds nan: give the search a budget above 0"),
 ])
 def test_exit_codes_and_what_they_say(args, code, says):
     exit_code, out = in_process(*args)

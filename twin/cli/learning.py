@@ -38,6 +38,8 @@ def train(
                                                            "training.teacher=self; repeatable")] = None,
 ) -> None:
     """Train an agent in the twin; the evaluation curve is printed as it goes (and recorded to Rerun if asked)."""
+    if out.is_dir():  # its name would get the suffix: --out runs saved runs.zip beside the directory
+        _fail(TwinError(f"--out {out} is a directory: give the policy's file, e.g. {out / 'policy.zip'}"))
     writable("--out", out.with_suffix(".zip"), out.with_suffix(".json"))
     writable("--save", save)
     try:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -35,6 +36,8 @@ def route(
     except TwinError as exc:
         _fail(exc)
     try:
+        if not 0 < seconds < math.inf:
+            raise ValueError(f"--seconds {seconds:g}: give the search a budget above 0, in wall seconds (e.g. 10)")
         if save is not None and save.suffix.lower() not in (".svg", ".png"):
             raise ValueError(f"--save {save}: a route is drawn as SVG or PNG; give a file name ending in .svg or .png")
         data = planner(smiles, stock=stock, templates=templates, prior=prior, seconds=seconds,
