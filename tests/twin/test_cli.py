@@ -356,6 +356,22 @@ def test_a_lab_name_that_is_not_one_is_refused_before_anything_opens(tmp_path, c
     assert not (tmp_path / "w.rrd").exists()
 
 
+@pytest.mark.parametrize("args,says", [
+    # a lab's scenario sent as a campaign: five "unknown field" lines, none saying what a campaign file is
+    (["submit", "scenarios/quantum_dots.yaml", "--lab", "qd", "--connect", "tcp/127.0.0.1:1"],
+     "this is a lab's scenario (devices, lab, orchestrator), not a campaign for a lab: a campaign file keeps only"),
+    (["security", "init", "/proc/labsec", "--lab", "qd"],  # a traceback from mkdir
+     "/proc/labsec: cannot write the security directory there (No such file or directory)"),
+    (["bench", "planners", "scenarios/quantum_dots.yaml", "--planners", ","],  # an empty table
+     "--planners ',': name at least one planner"),
+    (["bench", "schedulers", "scenarios/flaky_lab.yaml", "--schedulers", ""], "name at least one scheduler"),
+])
+def test_what_a_command_cannot_do_is_said_before_it_starts(args, says):
+    res = twin_cli(*[str(ROOT / a) if a.startswith("scenarios/") else a for a in args], columns=300)
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and says in said and "Traceback" not in said, said
+
+
 def test_twin_version_names_labtwin_and_the_libraries_a_run_records():
     from twin.runtime.run_record import versions
 

@@ -66,7 +66,7 @@ def security_init(
                                                       help="a name or address the router is reached at (repeat; "
                                                            "default localhost and 127.0.0.1)")] = None,
     endpoint: Annotated[str, typer.Option(help="the router's endpoint, written into the configs")] = "tls/127.0.0.1:7447",
-    days: Annotated[int, typer.Option(help="how long the certificates are valid")] = 365,
+    days: Annotated[int, typer.Option(min=1, help="how long the certificates are valid")] = 365,
 ) -> None:
     """Create (or extend) a lab's security directory: a CA, certificates, the router's access control."""
     from twin.tools.security_init import init
@@ -75,6 +75,9 @@ def security_init(
         written = init(directory, lab, list(device or []), list(host or []), days, endpoint)
     except TwinError as exc:
         _fail(exc)
+    except OSError as exc:
+        _fail(TwinError(f"{directory}: cannot write the security directory there ({exc.strerror or exc}): give a "
+                        "directory you can write"))
     console.print(f"wrote {len(written)} files to {directory}\n"
                   f"  router:  twin router --listen {endpoint} --security {directory}\n"
                   f"  lab:     bus: {{kind: zenoh, connect: [{endpoint}], security: {directory}}} in the scenario\n"

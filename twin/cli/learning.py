@@ -118,6 +118,8 @@ def bench_planners(
     from twin.tools.planner_bench import HEADER, bench, caption, parse, rows
 
     names = [p.strip() for p in planners.split(",") if p.strip()]
+    if not names:
+        _fail(TwinError(f"--planners {planners!r}: name at least one planner, e.g. --planners random,gp-bo"))
     overrides = {**paired_assignments(set_ or []), **({"campaign.budget": budget} if budget else {})}
     try:
         s = checked(lab.prepare(scenario, overrides=overrides), scenario)
@@ -184,6 +186,8 @@ def bench_schedulers(
                                             load_variant, rows, shops)
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
+    if not names:
+        _fail(TwinError(f"--schedulers {schedulers!r}: name at least one scheduler, e.g. --schedulers fifo,mwkr"))
     if shapes:
         _bench_shapes(scenario, names, seeds, workers, budget, paired_assignments(set_ or []), random_labs, as_json,
                       csv_out, by)

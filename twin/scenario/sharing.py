@@ -54,4 +54,10 @@ def parse_campaign(raw: Any, source: str = "<campaign>") -> SharedCampaign:
     try:
         return SharedCampaign.model_validate(raw)
     except ValidationError as exc:
-        raise ScenarioError(source, problems_of(exc, raw, SharedCampaign)) from None
+        problems = problems_of(exc, raw, SharedCampaign)
+        lab_only = sorted(k for k in ("lab", "devices", "bus", "clock", "orchestrator", "campaigns") if k in raw)
+        if lab_only:  # a whole scenario (twin run's file) sent as a campaign: say so once, then the fields
+            problems.insert(0, f"this is a lab's scenario ({', '.join(lab_only)}), not a campaign for a lab: a "
+                               "campaign file keeps only name, and any of owner, priority, share, chemistry, "
+                               "workflow, campaign (the lab has the devices); copy those into a file of their own")
+        raise ScenarioError(source, problems) from None
