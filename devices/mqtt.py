@@ -43,7 +43,7 @@ import aiomqtt
 from aiomqtt.exceptions import MqttConnectError
 
 from devices import mqtt_protocol as proto
-from twin import DriverError, DriverSetup, Refused, StepContext, StepResult, sleep_wall
+from twin import DriverError, DriverSetup, Refused, StepContext, StepResult, sleep_wall, wall_on_loop
 
 log = logging.getLogger(__name__)
 NODELAY = ((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),)  # without it p99 round trips were ~40 ms
@@ -93,9 +93,11 @@ class MqttInstrument:
 
     async def _open(self) -> None:
         """A session with the broker, subscribed to the instrument's topics; a DriverError says why not."""
+        # aiomqtt times a connect and a subscription on the running loop, whose time is lab time: at 100× the
+        # 10 s the option means were 0.1 s of wall time, and a busy broker missed them
         client = aiomqtt.Client(self.host, self.port, identifier=f"labtwin-{self.name}-{id(self):x}",
                                 socket_options=NODELAY, username=self.username, password=self.password,
-                                tls_params=self.tls, timeout=self.connect_timeout_s)
+                                tls_params=self.tls, timeout=wall_on_loop(self.connect_timeout_s))
         where = f"the MQTT broker at {self.host}:{self.port}"
         try:
             await client.__aenter__()

@@ -12,7 +12,7 @@ from twin.campaign.decisions import (Assignment, CampaignState, DeviceState, Fre
                                      Proposal, ReadyStep, RouteStep, Scheduler, capable)
 from twin.campaign.summary import LabSummary, Summary
 from twin.core.bus import Bus, MemoryBus, open_bus
-from twin.core.clock import Clock, LabClock, sleep_wall
+from twin.core.clock import Clock, LabClock, sleep_wall, wall_on_loop
 from twin.core.errors import (AccountingError, BusError, ClockError, DriverError, PluginError, Refused,
                               ScenarioError, TwinError)
 from twin.core.plugins import CHECKS_LOGGER as PLUGIN_CHECKS_LOGGER
@@ -47,5 +47,5 @@ __all__ = [
     "SteppedCampaign", "SteppedLab", "Summary", "TwinError", "campaign_scenarios", "time_scale", "weighted_objective", "capable", "drawn_at_random", "driver_setup", "expected_duration", "jobshop_as_lab",
     "json_schema", "keyed_uniforms", "lab_span", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
     "prepare", "random_jobshop", "random_lab", "read_meta", "resume", "run", "run_async", "run_scenario", "run_step",
-    "save_policy", "score", "seeded", "sleep_wall", "stepped", "why_runs_vary",
+    "save_policy", "score", "seeded", "sleep_wall", "stepped", "wall_on_loop", "why_runs_vary",
 ]

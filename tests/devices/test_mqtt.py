@@ -160,3 +160,17 @@ def test_the_adapter_comes_back_with_its_broker_and_nothing_is_lost(tmp_path, pr
     assert summary.done == 6 and summary.abandoned == 0
     assert any(e["kind"] == "attempt.done" and e["device"].startswith("spectrometer") and e["t_lab"] > seen["down"]
                + 300 for e in events)
+
+
+def test_the_brokers_patience_is_wall_seconds_however_fast_the_lab_clock_runs(mosquitto, prefix):
+    """aiomqtt times a connect and its subscriptions on the running loop, whose time is lab time: at these tests'
+    100× the 10 s of connect_timeout_s were 0.1 s of wall time, and a busy machine's broker missed them (a CI run
+    failed so); at 10⁶× no broker can answer in time."""
+    from twin.runtime.assembly import load_driver
+
+    async def connected(driver) -> None:
+        await driver.connect(lambda present: None)
+        await driver.disconnect()
+
+    s = parse(mqtt_lab(mosquitto, prefix, **{"clock.speed": 1e6}))
+    make_clock(s).run(connected(load_driver(s, "spectrometer", "spectrometer-1")))

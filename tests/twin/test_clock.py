@@ -105,6 +105,23 @@ def test_scaled_clock_runs_lab_time_faster_than_wall():
     assert wall < 1.0
 
 
+def test_a_timeout_in_wall_seconds_lasts_them_on_a_scaled_clocks_loop():
+    """The loop measures a timeout in lab time: an operator's act had 5 "wall" seconds to be taken, 5 ms at 1000×;
+    an MQTT instrument's connect 10, and missed them (tests/devices/test_mqtt.py)."""
+    from twin.core.clock import wall_on_loop
+
+    async def patience():
+        w0 = time.monotonic()
+        with pytest.raises(TimeoutError):
+            async with asyncio.timeout(wall_on_loop(0.2)):
+                await asyncio.Event().wait()
+        return wall_on_loop(2.0), time.monotonic() - w0
+
+    lab_s, waited = LabClock("scaled", speed=1000).run(patience())
+    assert lab_s == 2000.0 and 0.19 < waited < 5.0
+    assert asyncio.run(patience())[0] == 2.0  # a loop of wall time: as given
+
+
 def test_unknown_mode_is_refused():
     with pytest.raises(ValueError, match="virtual, scaled or wall"):
         LabClock("sundial")

@@ -187,11 +187,17 @@ class LabEventLoop(asyncio.SelectorEventLoop):
         return getattr(self._base, "speed", 1.0)
 
 
+def wall_on_loop(seconds: float) -> float:
+    """``seconds`` of wall time in the running loop's time (lab seconds on a lab's loop; as they are on a virtual
+    one): what a timeout (``asyncio.timeout``, a library's own) given in wall seconds must be told, since the loop
+    measures it."""
+    return max(0.0, seconds) * getattr(asyncio.get_running_loop(), "speed", 1.0)
+
+
 async def sleep_wall(seconds: float) -> None:
     """Wait ``seconds`` of wall time on the running loop (lab seconds on a virtual one): for code that deals
     with the world outside the lab, a real instrument's patience, say."""
-    loop = asyncio.get_running_loop()
-    await asyncio.sleep(max(0.0, seconds) * getattr(loop, "speed", 1.0))
+    await asyncio.sleep(wall_on_loop(seconds))
 
 
 class LabClock:

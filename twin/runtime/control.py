@@ -19,7 +19,7 @@ from typing import Any
 from twin.campaign import CampaignCore, Note, Operator
 from twin.campaign.events import OPERATOR_COMMANDS
 from twin.campaign.operator import status
-from twin.core.clock import LabClock
+from twin.core.clock import LabClock, wall_on_loop
 
 MAX_REQUEST = 4096
 WHO = re.compile(r"^[A-Za-z0-9_.@-]{1,64}$")
@@ -87,7 +87,7 @@ class ControlDesk:
                             request["question"], request["option"], request["item"], request["amount"],
                             request["task"]))
         try:
-            note = await asyncio.wait_for(fut, ANSWER_S)
+            note = await asyncio.wait_for(fut, wall_on_loop(ANSWER_S))
         except asyncio.TimeoutError:
             self._waiting.pop(ref, None)
             raise ValueError(f"the campaign did not take the {command} within {ANSWER_S:.0f} s; "
