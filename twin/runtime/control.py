@@ -50,12 +50,12 @@ class ControlDesk:
     async def drain(self, seconds: float = 2.0) -> None:
         """Before the campaign closes its bus: let the answers being written go out (a ``stop`` ends the
         campaign before its own answer has left). Each is a reply once its coroutine returns, so this waits for
-        the count of them to reach 0, at most ``seconds`` of the loop's time."""
+        the count of them to reach 0, at most ``seconds`` of wall time (lab time on a virtual clock)."""
         if not self._answering:
             return
         self._quiet = asyncio.Event()
         with contextlib.suppress(asyncio.TimeoutError):
-            await asyncio.wait_for(self._quiet.wait(), seconds)
+            await asyncio.wait_for(self._quiet.wait(), wall_on_loop(seconds))
         await asyncio.sleep(0)  # the last reply is sent as its coroutine returns: one more turn of the loop
 
     def noted(self, note: Note) -> None:
