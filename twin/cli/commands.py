@@ -38,6 +38,8 @@ ServePortOpt = Annotated[int, typer.Option(min=0, max=65535, help="gRPC port for
 WebPortOpt = Annotated[int, typer.Option(min=0, max=65535, help="web viewer port for --serve (0: any free one)")]
 QuietOpt = Annotated[bool, typer.Option("--quiet/--no-quiet", "-q", help="no progress bar")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="print the summary as JSON")]
+
+
 def _runtime(value: str) -> str:
     if value not in lab.RUNTIMES:
         raise typer.BadParameter(f"{value[:40]!r} is not a runtime: use one of {', '.join(lab.RUNTIMES)}")
