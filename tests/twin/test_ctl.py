@@ -329,3 +329,27 @@ def test_a_human_step_waits_for_twin_ctl_confirm(tmp_path):
         assert lab.finished()["done"] == 1
     confirmed = [json.loads(e["detail"]) for e in read_events(lab.db) if e["kind"] == "attempt.confirmed"]
     assert confirmed == [{"who": "alice"}]
+
+
+def test_the_answers_being_written_get_their_wall_seconds_before_a_fast_campaign_closes_its_bus():
+    """drain waited 2 lab-seconds for the operator's answers to go out: 2 µs at 10⁶×, so a `stop`'s own answer was
+    cut off by the campaign's end."""
+    from twin.core.clock import sleep_wall
+    from twin.runtime.control import ControlDesk
+
+    clock = LabClock("scaled", speed=1e6)
+    desk = ControlDesk(None, clock, lambda event: None, lambda: None)
+
+    async def answering(command, payload):
+        await sleep_wall(0.05)  # the answer takes a moment of wall time to be written
+        return {"ok": True}
+
+    desk._answer = answering
+
+    async def stop_then_drain():
+        answer = asyncio.ensure_future(desk.serve("labtwin/t/control/stop", b"{}"))
+        await asyncio.sleep(0)  # the answer is being written
+        await desk.drain()
+        return answer.done()
+
+    assert clock.run(stop_then_drain())
