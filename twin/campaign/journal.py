@@ -9,7 +9,6 @@ are buffered and committed in batches; ``close`` flushes everything.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import json
 import os
 import shutil
@@ -21,6 +20,7 @@ from typing import Any
 
 import msgspec
 
+from twin.campaign.journal_lock import claim, release
 from twin.core.errors import TwinError
 from twin.core.numbers import finite
 from twin.core.messages import plain_value
@@ -59,7 +59,7 @@ class Journal:
         self.label = str(path)  # how summaries name it
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._lock = _writer_lock(self.path)
+            self._lock = claim(self.path)
             if self.path.exists() and not append and self.path.stat().st_size:
                 for old in (self.path, Path(f"{self.path}-wal"), Path(f"{self.path}-shm")):
                     old.unlink(missing_ok=True)
@@ -172,7 +172,7 @@ class Journal:
         finally:
             self._db.close()
             self.closed = True
-            _release(self._lock)
+            release(self._lock)
 
     def _failing(self, exc: sqlite3.Error) -> JournalError:
         """A write that failed (its disk full, say): the campaign stops with what to do, said once."""
@@ -183,63 +183,6 @@ class Journal:
         return JournalError(f"cannot write the journal {self.path}: {exc} ({free:,} bytes free on its disk): it "
                             "lacks what came after, and a campaign still running stopped there; free some space, or "
                             "give --journal a file on another disk, and run it again")
-
-
-def _writer_lock(path: Path) -> Any:
-    """``<journal>-lock``, locked while this process writes the journal: a second run given the same journal
-    (``--journal`` twice, a resume of a run still going) is refused, where it replaced the file under the first,
-    which then died of a disk I/O error with its campaign lost. Released when the journal closes or the process
-    ends (a lock left by a killed run holds nothing)."""
-    lock = open(f"{path}-lock", "a+")
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        lock.seek(0)
-        holder = lock.read().strip()
-        lock.close()
-        raise TwinError(f"{path} is being written by another run{f' (process {holder})' if holder else ''}: wait "
-                        "for that run to end, or give --journal another file (nothing has run yet)") from None
-    lock.seek(0)
-    lock.truncate()
-    lock.write(str(os.getpid()))
-    lock.flush()
-    return lock
-
-
-def writer(path: str | Path) -> str | None:
-    """The process writing the journal at ``path`` now (its pid as text, "" if it did not say), or None if no run
-    holds it: a killed run's lock file holds nothing. Asked with a shared lock that is let go at once (a run
-    starting on the journal in that instant is refused, as if this were a run: nothing is lost)."""
-    try:
-        lock = open(f"{path}-lock")
-    except OSError:
-        return None
-    with lock:
-        try:
-            fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except BlockingIOError:
-            return lock.read().strip()
-        fcntl.flock(lock, fcntl.LOCK_UN)
-    return None
-
-
-@contextmanager
-def held(path: Path) -> Iterator[None]:
-    """The journal at ``path`` kept from every other writer while the block runs (``twin resume``, which reads it
-    and then replaces it); refused, naming the process, if a run is writing it now."""
-    lock = _writer_lock(path)
-    try:
-        yield
-    finally:
-        _release(lock)
-
-
-def _release(lock: Any) -> None:
-    try:
-        os.unlink(lock.name)  # before unlocking: a run waiting for the name then makes a new lock, not this one
-    except OSError:
-        pass
-    lock.close()
 
 
 class NullJournal(Journal):
