@@ -95,7 +95,7 @@ class RlScheduler:
         # warm up torch
         self.model.predict(np.zeros(sign["observation_size"], np.float32), action_masks=np.ones(sign["actions"], bool))
         self.follower: PlanFollower | None = None
-        if scenario.campaign.rollouts > 1:
+        if scenario.campaign.plays_ahead:
             from agents import rollout_plan  # it reads the training objective, whose module reads this one
 
             self.follower = rollout_plan.PlanFollower(self._plan(path, scenario, encoding))
@@ -105,18 +105,19 @@ class RlScheduler:
 
     def _plan(self, path: Path, scenario: Any, encoding: str | None) -> Plan:
         """``campaign.rollouts`` runs of the lab in the twin, the best kept (once per policy and lab: the CLI makes
-        a scheduler to check it before the lab makes its own)."""
+        a scheduler to check it before the lab makes its own), then ``campaign.local_search``'s swaps on it."""
         from agents.rollout_plan import lab_time, plan
 
+        asked = scenario.campaign.plays_ahead
+        off = "campaign.rollouts: 1" if scenario.campaign.rollouts > 1 else "campaign.local_search: 0"
         if not isinstance(self.encoder, candidates.CandidateEncoder):
-            raise PluginError(f"campaign.rollouts: {scenario.campaign.rollouts}: {path} reads labs as fixed slots (the "
-                              "earlier kind of policy), and only a policy that scores candidates plays a lab ahead: "
-                              "train one with `twin train SCENARIO`, or set campaign.rollouts: 1")
+            raise PluginError(f"{asked}: {path} reads labs as fixed slots (the earlier kind of policy), and only a "
+                              "policy that scores candidates plays a lab ahead: train one with `twin train SCENARIO`, "
+                              f"or set {off}")
         why = why_runs_vary(scenario)
         if why:
-            raise PluginError(f"campaign.rollouts: {scenario.campaign.rollouts} plays the lab ahead in the twin, and "
-                              f"{scenario.name!r} would not run as played: {why}. Set campaign.rollouts: 1 to decide "
-                              "as the lab goes")
+            raise PluginError(f"{asked} plays the lab ahead in the twin, and {scenario.name!r} would not run as "
+                              f"played: {why}. Set {off} to decide as the lab goes")
         key = (str(path.resolve()), path.stat().st_mtime_ns, scenario.model_dump_json())
         if key not in _plans:  # told on stderr: planning a large shop many times takes a while
             what = scenario.name  # a shop's file would be stale for a shop generated in memory (benches, training)
@@ -131,8 +132,12 @@ class RlScheduler:
             def going(share: float, seconds: float) -> None:
                 print(f"rl: {100 * share:.0f} % played, {seconds:.0f} s so far", file=sys.stderr, flush=True)
 
+            def searching(swaps: int, best_h: float, seconds: float) -> None:
+                print(f"rl: {swaps:,} of {scenario.campaign.local_search:,} swaps tried, the shortest plan so far "
+                      f"{lab_time(best_h)}, {seconds:.0f} s so far", file=sys.stderr, flush=True)
+
             _plans[key] = plan(scenario, self.model.policy.action_net, rollouts, str(encoding), played,
-                               self.encoder.held, going)
+                               self.encoder.held, going, searching)
             print(f"rl: {_plans[key].describe()}; the lab follows it", file=sys.stderr, flush=True)
         return _plans[key]
 

@@ -36,7 +36,7 @@ import torch
 from agents.candidates import CandidateEncoder, Observed
 from agents.lockstep import SAMPLE_TEMPERATURES, lockstep
 from agents.train_scheduler import count, objective
-from twin import Assignment, LabView, Scenario, lab_span, prepare
+from twin import Assignment, LabView, Scenario, lab_span, prepare, weighted_objective
 
 if TYPE_CHECKING:
     from agents.active_search import ActiveSearch
@@ -62,6 +62,9 @@ class Plan:
     backwards: int = 0  # of the runs, those played on the shop backwards
     degraded: tuple[int, int] = (0, 0)  # degraded samples, its and the greedy run's
     abandoned: tuple[int, int] = (0, 0)  # abandoned experiments, its and the greedy run's
+    searched: int | str = 0  # campaign.local_search: the swaps tried on its orders, or why none were
+    played_h: float = 0.0  # the best run's lab-hours as played, before the search
+    shortest: bool = False  # the search found a plan that no order of the devices' steps beats
 
     def describe(self) -> str:
         gain = 100 * (1 - self.best / self.greedy) if self.greedy else 0.0
@@ -71,9 +74,17 @@ class Plan:
         # what else the objective weighs, where the runs differ in it (lab time alike, fewer degraded samples)
         also = "".join(f", {what} {mine} against {greedy}" for what, (mine, greedy) in
                        (("degraded samples", self.degraded), ("abandoned experiments", self.abandoned)) if mine != greedy)
-        return (f"the best of {self.rollouts} rollouts in the twin{how} takes {lab_time(self.best_h)} against the "
-                f"greedy run's {lab_time(self.greedy_h)}{also} (objective {gain:.1f} % lower; {self.seconds:.1f} s "
-                f"of planning)")
+        ran = (f"the best of {self.rollouts} rollouts in the twin{how}" if self.rollouts > 1
+               else "the greedy run in the twin")
+        if isinstance(self.searched, str):
+            ran += f" (campaign.local_search left out: it needs {self.searched})"
+        elif self.searched:
+            ran += f", {lab_time(self.played_h)} as played, then {self.searched:,} tabu-search swaps on its orders"
+            ran += " (the shortest plan there is: its longest path is one device's work alone)," if self.shortest \
+                else ","
+        versus = f" against the greedy run's {lab_time(self.greedy_h)}{also} (objective {gain:.1f} % lower;" \
+            if self.rollouts > 1 or self.searched else " ("
+        return f"{ran} takes {lab_time(self.best_h)}{versus} {self.seconds:.1f} s of planning)"
 
 
 def lab_time(hours: float) -> str:
@@ -83,12 +94,14 @@ def lab_time(hours: float) -> str:
 
 def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
          on_batch: Callable[[int, float], None] | None = None, held: Observed | None = None,
-         on_share: Callable[[float, float], None] | None = None) -> Plan:
+         on_share: Callable[[float, float], None] | None = None,
+         on_search: Callable[[int, float, float], None] | None = None) -> Plan:
     """Play ``s`` ``rollouts`` times with the policy whose candidate scores ``scorer`` gives; the best run's plan.
     ``on_batch(played, best lab-hours so far)`` after each batch but the last; ``on_share(share of the steps
     played, wall seconds)`` every ``HEARTBEAT_S`` of wall time. ``held``: the range the policy's inputs are held in
     (its file's), so that the greedy run played is the one the lab would run. ``campaign.rollout_search:
-    active`` plays the runs in rounds, tuning a copy of the policy on this lab between them (``agents.active_search``)."""
+    active`` plays the runs in rounds, tuning a copy of the policy on this lab between them (``agents.active_search``).
+    ``on_search(swaps, the shortest lab-hours so far, wall seconds)`` every ``HEARTBEAT_S`` of ``campaign.local_search``."""
     t0 = time.perf_counter()
     lab = prepare(s, clock="virtual", bus="memory")
     draws = torch.Generator().manual_seed(s.campaign.seed)  # the same lab and seed, the same plan
@@ -126,10 +139,44 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
             on_batch(len(summaries), min(summary.lab_hours for summary in summaries))
     best = min(range(rollouts), key=scores.__getitem__)
     order = forwards(orders[best], steps_per_job(lab)) if ways[best] else orders[best]  # only the run kept is read back
-    return Plan(order, rollouts, scores[best], scores[0], summaries[best].lab_hours, summaries[0].lab_hours,
+    kept = Plan(order, rollouts, scores[best], scores[0], summaries[best].lab_hours, summaries[0].lab_hours,
                 time.perf_counter() - t0, s.campaign.rollout_search,
                 ways.count(1),
                 *((count(summaries[best], what), count(summaries[0], what)) for what in ("degraded_samples", "abandoned")))
+    if s.campaign.local_search:
+        _search_orders(kept, lab, pure=back is not None, seed=s.campaign.seed, tell=on_search)
+        kept.seconds = time.perf_counter() - t0
+    return kept
+
+
+def _search_orders(kept: Plan, lab: Scenario, pure: bool, seed: int,
+                   tell: Callable[[int, float, float], None] | None = None) -> None:
+    """``campaign.local_search``: the plan's orders shortened by a tabu search (``agents.order_search``), on a pure
+    job shop whose steps last as its duration models say; elsewhere the plan stays the best run's, and says why."""
+    from agents.order_search import improve, shop_of
+
+    swaps = lab.campaign.local_search
+    if not pure:
+        kept.searched = ("a pure job shop only (every experiment a fixed route, all in the lab from the start, no "
+                         "set-up, cleaning, shelf life or consumables)")
+        log.warning("campaign.local_search: %d: the tabu search orders %s; the plan is the best run's as played",
+                    swaps, kept.searched)
+        return
+    shop = shop_of(lab)
+    played_s = kept.best_h * 3600
+    found = improve(shop, kept.orders, swaps, seed, None if tell is None else
+                    lambda done, best_s, seconds: tell(done, best_s / 3600, seconds), HEARTBEAT_S)
+    if found.start_length > played_s * (1 + 1e-9) + 1e-6:  # its steps took less than their models say: not ours
+        kept.searched = (f"steps as long as their devices' duration models say, and the best run's orders come to "
+                         f"{lab_time(found.start_length / 3600)} by them against the {lab_time(kept.best_h)} played")
+        log.warning("campaign.local_search: %d: the tabu search needs %s; the plan is the best run's as played",
+                    swaps, kept.searched)
+        return
+    kept.searched, kept.shortest, kept.played_h = found.iterations, found.shortest, kept.best_h
+    if found.length < played_s:
+        kept.orders = found.orders
+        kept.best_h = found.length / 3600
+        kept.best = weighted_objective(lab, found.length, *(n for n, _ in (kept.degraded, kept.abandoned)))
 
 
 def backwards(lab: Scenario) -> Scenario | None:

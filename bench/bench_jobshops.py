@@ -11,7 +11,9 @@ each scheduler's decision time (wall ms) is measured over every decision it made
 rl policy, the lab run with ``campaign.rollouts: K`` (the best of K runs played ahead in the twin — the greedy one and
 K−1 sampled from the policy — followed): an improvement at decision time that only a deterministic lab allows,
 reported apart from the greedy policy; `--search active` plays them with the policy tuned on each shop between
-rounds (``campaign.rollout_search: active``).
+rounds (``campaign.rollout_search: active``). `--local-search N` adds, for each rl column, its plan shortened by N
+tabu-search swaps (``campaign.local_search: N``), and the same search from MWKR's schedule: what the search does
+with a rule's start instead of the policy's.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from agents.cpsat_scheduler import CpSatScheduler  # noqa: E402
+from agents.order_search import improve, shop_of  # noqa: E402
 from agents.train_scheduler import campaign  # noqa: E402
 from bench.tables import table  # noqa: E402
 from twin import jobshop_as_lab, random_jobshop  # noqa: E402
@@ -46,14 +49,39 @@ SCENARIO = ROOT / "scenarios" / "jobshop.yaml"
 
 
 def run(s, name: str, times: list[float], search: str = "sample") -> float:
+    if name.startswith("ls-"):  # campaign.local_search: N swaps on the plan; on a rule's run, the same search
+        n, _, name = name[len("ls-"):].partition(":")
+        if name.startswith(("rl:", "best-of-")):
+            s = prepare(s, overrides={"campaign.local_search": int(n)})
+        else:
+            return searched(s, name, int(n), times)
     if name.startswith("best-of-"):  # campaign.rollouts: K runs played ahead in the twin (before the campaign and
         k, _, name = name[len("best-of-"):].partition(":")  # its clock), the best one followed
         s = prepare(s, overrides={"campaign.rollouts": int(k), "campaign.rollout_search": search})
-    scheduler = make_scheduler(s, name)
+    return run_rule(s, make_scheduler(s, name).decide, times)
 
+
+def searched(s, rule: str, swaps: int, times: list[float]) -> float:
+    """The rule's run of the shop, its devices' orders then shortened as ``campaign.local_search`` shortens a
+    plan's: how far the search goes from a rule's schedule (the lab-s of the orders found)."""
+    orders: dict[str, list[str]] = {}
+
+    def kept(view):
+        out = scheduler(view)
+        for a in out:
+            orders.setdefault(a.device, []).append(a.task)
+        return out
+
+    scheduler = make_scheduler(s, rule).decide
+    played = run_rule(s, kept, times)
+    found = improve(shop_of(s), orders, swaps, s.campaign.seed)
+    return min(played, found.length)
+
+
+def run_rule(s, decide, times: list[float]) -> float:
     def timed(view):
         t0 = time.perf_counter()
-        out = scheduler.decide(view)
+        out = decide(view)
         times.append(time.perf_counter() - t0)
         return out
 
@@ -104,15 +132,23 @@ def main() -> None:
                                                            "(deterministic shops only), as its own column")
     ap.add_argument("--search", choices=("sample", "active"), default="sample", help="how the K rollouts are played "
                                                                                      "(campaign.rollout_search)")
+    ap.add_argument("--local-search", type=int, default=0, help="also N tabu-search swaps on each rl column's plan "
+                                                                  "(campaign.local_search), and on MWKR's schedule, "
+                                                                  "each as its own column")
     args = ap.parse_args()
     torch.set_num_threads(1)
     names = [n.strip() for n in args.schedulers.split(",") if n.strip()]
     if args.samples > 1:
         names += [f"best-of-{args.samples}:{n}" for n in names if n.startswith("rl:")]
+    if args.local_search:
+        names += [f"ls-{args.local_search}:{n}" for n in dict.fromkeys([*names, "mwkr"])
+                  if n.startswith(("rl:", "best-of-")) or n == "mwkr"]
     short = {n: (Path(n.partition(":")[2]).stem if n.startswith("rl:") else n) for n in names}
-    searched = " (active)" if args.search == "active" else ""
-    short.update({n: f"{Path(n.rpartition(':')[2]).stem} best of {args.samples}{searched}" for n in names
+    active = " (active)" if args.search == "active" else ""
+    short.update({n: f"{Path(n.rpartition(':')[2]).stem} best of {args.samples}{active}" for n in names
                   if n.startswith("best-of-")})
+    short.update({n: f"{short.get(n.partition(':')[2], 'mwkr')} + {args.local_search} swaps" for n in names
+                  if n.startswith("ls-")})
     times: dict[str, list[float]] = {n: [] for n in names}
     gaps: dict[str, dict[str, float]] = {n: {} for n in names}
     sizes: dict[str, str] = {}

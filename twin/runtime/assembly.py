@@ -305,7 +305,7 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
     """The scheduler named by ``spec`` (default: the scenario's, which must play the lab ahead if
     ``campaign.rollouts`` asks it to; a bench's or a fallback's need not); ``REMOTE`` for an agent elsewhere."""
     own, spec = spec is None, spec or s.campaign.scheduler
-    if own and s.campaign.rollouts > 1:
+    if own and s.campaign.plays_ahead:
         _plays_ahead(s, spec)
     if spec == REMOTE:
         return REMOTE
@@ -331,10 +331,13 @@ def plays_ahead(spec: str) -> bool:
 
 
 def _plays_ahead(s: Scenario, spec: str) -> None:
-    """``campaign.rollouts`` above 1 asks the lab's own scheduler to play the lab ahead: refused unless it can."""
+    """``campaign.rollouts`` above 1 (or ``campaign.local_search``) asks the lab's own scheduler to play the lab
+    ahead: refused unless it can."""
     if not plays_ahead(spec):
-        raise PluginError(f"campaign.rollouts: {s.campaign.rollouts}: only the rl scheduler plays a lab ahead, and "
-                          f"{spec!r} decides as the lab goes; set campaign.rollouts: 1, or --scheduler rl:POLICY.zip")
+        asked = s.campaign.plays_ahead
+        off = "campaign.rollouts: 1" if s.campaign.rollouts > 1 else "campaign.local_search: 0"
+        raise PluginError(f"{asked}: only the rl scheduler plays a lab ahead, and {spec!r} decides as the lab goes; "
+                          f"set {off}, or --scheduler rl:POLICY.zip")
 
 
 def live_scheduler(s: Scenario, chosen: Any, bus: Bus, clock: LabClock,

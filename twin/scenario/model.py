@@ -194,6 +194,11 @@ class Campaign(Spec):
                                                          "the runs played: from a few hundred rollouts up, a "
                                                          "better plan than sampling's; the policy file is not "
                                                          "changed); with rollouts 1, nothing is played ahead")
+    local_search: int = Field(default=0, ge=0, le=1_000_000, description="the rl scheduler's plan of a pure job "
+                              "shop (every experiment a fixed route, all in the lab from the start, no set-up, "
+                              "cleaning, shelf life or consumables): this many tabu-search swaps of two steps on "
+                              "the best run's longest path, each device's order kept as it is shortened (about a "
+                              "second per 10,000 swaps on a 10x10 shop); 0: the best run's orders as played")
     give_up_after_s: float = Field(default=4 * 3600, gt=0, le=MAX_S, description="lab seconds the experiments "
                                    "that need a device type wait when none of its instances is usable (lost, "
                                    "quarantined) before they are abandoned; an instance that comes back resumes them")
@@ -203,6 +208,13 @@ class Campaign(Spec):
     scheduler_deadline_ms: float = Field(default=2000, gt=0, le=3_600_000, description="wall ms a scheduler has "
                                          "per decision on a scaled or wall clock (an agent on the bus, or one in a "
                                          "worker thread); past it the fallback scheduler decides that time")
+
+    @property
+    def plays_ahead(self) -> str:
+        """What asks the scheduler to play the lab ahead before it starts (``campaign.rollouts: 64``), or ''."""
+        if self.rollouts > 1:
+            return f"campaign.rollouts: {self.rollouts}"
+        return f"campaign.local_search: {self.local_search}" if self.local_search else ""
 
 
 class ClockSpec(Spec):

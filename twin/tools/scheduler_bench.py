@@ -42,7 +42,8 @@ class Run:
 
 def one(scenario: Scenario, scheduler: str, seed: int) -> Run:
     with tempfile.TemporaryDirectory() as d:
-        rollouts = {} if plays_ahead(scheduler) else {"campaign.rollouts": 1}  # a rule runs as it goes
+        # a rule runs as it goes
+        rollouts = {} if plays_ahead(scheduler) else {"campaign.rollouts": 1, "campaign.local_search": 0}
         s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual",
                 overrides={"campaign.scheduler": scheduler, **rollouts}, agent_in_process=True, handle_signals=False)
     util = statistics.mean(s.utilisation.values()) if s.utilisation else 0.0

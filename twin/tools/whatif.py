@@ -204,7 +204,7 @@ def runs_alike(scenario: Scenario, chosen: list[Variant]) -> bool:
 
     for v in chosen:
         lab = prepare(scenario, overrides=dict(v.changes) or None)
-        if not deterministic(lab) or lab.campaign.rollouts > 1:
+        if not deterministic(lab) or lab.campaign.plays_ahead:
             return False
     return True
 

@@ -1,0 +1,139 @@
+"""campaign.local_search: a tabu search shortens a plan's device orders; the lab that follows them ends when the
+search said, on labs it may search, and says why it did not search elsewhere."""
+
+import logging
+import random
+from pathlib import Path
+
+import pytest
+import torch
+
+from agents.order_search import Shop, improve, shop_of
+from agents.rl_scheduler import RlScheduler
+from agents.rollout_plan import Plan, _search_orders
+from twin import ScenarioError, jobshop_as_lab, random_jobshop
+from twin.runtime.checks import check
+from twin.runtime.lab import prepare, run
+from twin.scenario.jobshop import read
+
+ROOT = Path(__file__).resolve().parents[2]
+POLICY = ROOT / "agents" / "policies" / "jobshop_scheduler.zip"
+torch.set_num_threads(1)
+
+
+@pytest.fixture(scope="module")
+def shop():
+    base = prepare(ROOT / "scenarios" / "jobshop.yaml")
+    return jobshop_as_lab(base, random_jobshop(10, 6, 1, 99, random.Random("local-search:1")))
+
+
+def ft06() -> tuple[Shop, dict[str, list[str]]]:
+    """Fisher and Thompson's 6×6 shop (optimum 55), each machine taking its jobs in the reverse of their numbers:
+    an order that is valid (no job waits on itself) and far from the best."""
+    inst = read(ROOT / "scenarios" / "jobshop" / "ft06.txt")
+    shop = Shop.of_jobs([[(f"e{j}s{k}", d) for k, (_, d) in enumerate(job)] for j, job in enumerate(inst.jobs)])
+    orders: dict[str, list[str]] = {f"m{m}": [] for m in range(inst.machines)}
+    for j in reversed(range(len(inst.jobs))):
+        for k, (m, _) in enumerate(inst.jobs[j]):
+            orders[f"m{m}"].append(f"e{j}s{k}")
+    return shop, orders
+
+
+def longest_path(shop: Shop, orders: dict[str, list[str]]) -> float:
+    """The length of a schedule that starts every step once its job's and its device's previous steps end,
+    computed here on its own (by repeated relaxation), not with the module's."""
+    start = {t: 0.0 for t in shop.tasks}
+    dur = dict(zip(shop.tasks, shop.duration))
+    arcs = [(shop.tasks[i], shop.tasks[j]) for i, j in enumerate(shop.job_next) if j >= 0]
+    arcs += [(a, b) for seq in orders.values() for a, b in zip(seq, seq[1:])]
+    for _ in range(len(shop.tasks) + 1):
+        moved = False
+        for a, b in arcs:
+            if start[a] + dur[a] > start[b]:
+                start[b], moved = start[a] + dur[a], True
+        if not moved:
+            return max(start[t] + dur[t] for t in shop.tasks)
+    raise AssertionError("the orders close a cycle")
+
+
+def test_the_search_finds_ft06s_optimum_from_a_poor_order_and_keeps_every_step_on_its_device():
+    shop, orders = ft06()
+    found = improve(shop, orders, 3000, seed=0)
+    assert found.start_length == longest_path(shop, orders) > 70
+    assert found.length == longest_path(shop, found.orders) == 55
+    assert {d: sorted(ts) for d, ts in found.orders.items()} == {d: sorted(ts) for d, ts in orders.items()}
+
+
+def test_the_search_never_lengthens_and_repeats_for_a_seed():
+    shop, orders = ft06()
+    short = improve(shop, orders, 20, seed=3)
+    assert short.length <= short.start_length and short.iterations == 20
+    assert improve(shop, orders, 20, seed=3).orders == short.orders
+
+
+def test_orders_that_close_a_cycle_are_refused():
+    shop = Shop.of_jobs([[("e0s0", 1), ("e0s1", 1)], [("e1s0", 1), ("e1s1", 1)]])
+    # m0 runs e0s1 before e1s0 and m1 e1s1 before e0s0: each job waits on the other
+    with pytest.raises(ValueError, match="cycle"):
+        improve(shop, {"m0": ["e0s1", "e1s0"], "m1": ["e1s1", "e0s0"]}, 10)
+
+
+def test_the_lab_follows_the_searched_plan_to_the_lab_second_on_either_runtime(shop, tmp_path, capsys):
+    searched = prepare(shop, overrides={"campaign.scheduler": f"rl:{POLICY}", "campaign.local_search": 3000})
+    plan = RlScheduler(searched, str(POLICY)).follower.plan
+    assert plan.rollouts == 1 and (plan.searched == 3000 or plan.shortest and 0 < plan.searched < 3000)
+    assert plan.best_h < plan.played_h == plan.greedy_h  # the greedy run, shortened
+    assert "the greedy run in the twin" in capsys.readouterr().err
+    greedy = run(prepare(searched, overrides={"campaign.local_search": 0}), journal=tmp_path / "g.db")
+    assert greedy.lab_hours == pytest.approx(plan.greedy_h)
+    for runtime in ("auto", "asyncio"):  # auto: the fast runtime, the agent asked in-process
+        followed = run(searched, journal=tmp_path / f"{runtime}.db", runtime=runtime)
+        assert followed.lab_hours == pytest.approx(plan.best_h) and followed.done == 10
+    assert plan.best_h * 3600 == pytest.approx(longest_path(shop_of(shop), plan.orders))
+
+
+def test_after_rollouts_the_search_starts_from_the_best_run(shop, capsys):
+    both = prepare(shop, overrides={"campaign.rollouts": 8, "campaign.local_search": 500})
+    plan = RlScheduler(both, str(POLICY)).follower.plan
+    alone = RlScheduler(prepare(both, overrides={"campaign.local_search": 0}), str(POLICY)).follower.plan
+    assert plan.played_h == alone.best_h and plan.best_h <= alone.best_h
+    assert "the best of 8 rollouts in the twin" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("field, value", [("devices.m0.setup_s", 5.0), ("chemistry.stability_s", 100.0)])
+def test_a_lab_that_is_not_a_pure_job_shop_keeps_its_best_run_and_says_why(shop, field, value, caplog, capsys):
+    lab = prepare(shop, overrides={field: value, "campaign.local_search": 500})
+    with caplog.at_level(logging.WARNING, logger="agents.rollout_plan"):
+        plan = RlScheduler(lab, str(POLICY)).follower.plan
+    assert "a pure job shop only" in caplog.text and isinstance(plan.searched, str)
+    assert plan.best_h == plan.greedy_h
+    assert "campaign.local_search left out: it needs a pure job shop only" in capsys.readouterr().err
+
+
+def test_steps_shorter_than_their_models_leave_the_plan_as_played(shop, caplog):
+    """A driver whose steps end sooner than its duration model says: the search's lengths would not be the lab's."""
+    orders = RlScheduler(prepare(shop, overrides={"campaign.rollouts": 2}), str(POLICY)).follower.plan.orders
+    played = Plan(orders, 1, 1.0, 1.0, 0.01, 0.01, 0.0)  # a run of 36 lab-s: far shorter than the models say
+    with caplog.at_level(logging.WARNING, logger="agents.rollout_plan"):
+        _search_orders(played, prepare(shop, overrides={"campaign.local_search": 100}), pure=True, seed=0)
+    assert played.orders == orders and "duration models" in caplog.text and isinstance(played.searched, str)
+
+
+def test_a_rule_asked_to_search_is_refused_naming_the_field(shop):
+    s = prepare(shop, overrides={"campaign.scheduler": "mwkr", "campaign.local_search": 100})
+    with pytest.raises(ScenarioError, match="campaign.local_search: 100: only the rl scheduler plays a lab ahead") \
+            as exc:
+        check(s)
+    assert "set campaign.local_search: 0" in str(exc.value)
+
+
+def test_a_long_search_says_how_far_it_has_got(shop, monkeypatch, capsys):
+    from agents import rollout_plan
+
+    monkeypatch.setattr(rollout_plan, "HEARTBEAT_S", 0.0)
+    RlScheduler(prepare(shop, overrides={"campaign.local_search": 1000, "campaign.seed": 1}), str(POLICY))
+    told = [line for line in capsys.readouterr().err.splitlines() if " swaps tried, the shortest plan so far " in line]
+    swaps = [int(line.split()[1].replace(",", "")) for line in told]
+    shortest = [int(line.split("so far ")[1].split()[0].replace(",", "")) for line in told]
+    assert len(told) >= 3 and swaps == sorted(swaps) and shortest == sorted(shortest, reverse=True)
+    assert all(line.startswith("rl: ") and line.endswith(" s so far") and " of 1,000 swaps" in line for line in told)
