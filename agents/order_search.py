@@ -32,19 +32,21 @@ class Shop:
     duration: list[float]
     job_prev: list[int]
     job_next: list[int]
+    job: list[int]  # each step's job
 
     @classmethod
     def of_jobs(cls, jobs: list[list[tuple[str, float]]]) -> Shop:
         """From each job's steps in order, as (task, duration)."""
-        tasks, duration, prev, nxt = [], [], [], []
-        for job in jobs:
+        tasks, duration, prev, nxt, of = [], [], [], [], []
+        for j, job in enumerate(jobs):
             for k, (task, d) in enumerate(job):
                 i = len(tasks)
                 tasks.append(task)
                 duration.append(float(d))
                 prev.append(i - 1 if k else -1)
                 nxt.append(i + 1 if k + 1 < len(job) else -1)
-        return cls(tasks, duration, prev, nxt)
+                of.append(j)
+        return cls(tasks, duration, prev, nxt, of)
 
 
 @dataclass
@@ -145,7 +147,7 @@ class _Orders:
             i = nxt
 
 
-def _moves(blocks: list[list[int]]) -> list[tuple[int, int]]:
+def _moves(blocks: list[list[int]], job: list[int]) -> list[tuple[int, int]]:
     """N5: the first two and the last two steps of each run, but not the first two of the path's first run nor the
     last two of its last (swapping those cannot shorten the path)."""
     moves = []
@@ -157,7 +159,7 @@ def _moves(blocks: list[list[int]]) -> list[tuple[int, int]]:
             moves.append((block[0], block[1]))
         if b < last:
             moves.append((block[-2], block[-1]))
-    return list(dict.fromkeys(moves))
+    return [(u, v) for u, v in dict.fromkeys(moves) if job[u] != job[v]]  # a job's own steps keep their order
 
 
 def _estimate(o: _Orders, head: list[float], tail: list[float], u: int, v: int) -> float:
@@ -198,21 +200,29 @@ def improve(shop: Shop, orders: dict[str, list[str]], iterations: int, seed: int
         if tell is not None and not it % 64 and time.perf_counter() - told >= every_s:
             told = time.perf_counter()
             tell(it, best, told - t0)
-        moves = _moves(o.critical_blocks(head, tail, length))
-        if not moves:  # one run of one device is the whole path: no order is shorter
+        blocks = o.critical_blocks(head, tail, length)
+        if len(blocks) == 1:  # one device's work is the whole path: no order is shorter
             return Result({dev: [shop.tasks[i] for i in seq] for dev, seq in zip(devices, o.seqs)}, length, start,
                           it - 1, True)
+        moves = _moves(blocks, shop.job)
+        if not moves:
+            break
         allowed, forbidden = [], []
         for u, v in moves:
             cost = _estimate(o, head, tail, u, v)
             (forbidden if tabu.get((v, u), 0) > it and cost >= best - EPS else allowed).append((cost, u, v))
-        if allowed:
-            cost, u, v = min(allowed)
-        else:  # every move tabu: the one whose ban ends first
-            cost, u, v = min(forbidden, key=lambda m: tabu[m[2], m[1]])
-        o.swap(u, v)
+        # every move tabu: the one whose ban ends first
+        ranked = sorted(allowed) + sorted(forbidden, key=lambda m: tabu[m[2], m[1]])
+        for _, u, v in ranked:
+            o.swap(u, v)
+            ht = o.heads_tails()
+            if ht is not None:
+                break
+            o.swap(v, u)  # a cycle: another path from u to v (steps of no length tie with the one swapped)
+        else:
+            break
         tabu[(u, v)] = it + tenure + rng.randrange(tenure + 1)
-        head, tail, length = o.heads_tails()  # type: ignore[misc]  # an adjacent swap on the path keeps it acyclic
+        head, tail, length = ht
         if length < best - EPS:
             best, best_seqs, stall = length, [list(seq) for seq in o.seqs], 0
             continue
@@ -221,11 +231,16 @@ def improve(shop: Shop, orders: dict[str, list[str]], iterations: int, seed: int
             o = _Orders(shop, [list(seq) for seq in best_seqs])
             head, tail, length = o.heads_tails()  # type: ignore[misc]
             for _ in range(3):
-                kick = _moves(o.critical_blocks(head, tail, length))
+                kick = _moves(o.critical_blocks(head, tail, length), shop.job)
                 if not kick:
                     break
-                o.swap(*rng.choice(kick))
-                head, tail, length = o.heads_tails()  # type: ignore[misc]
+                u, v = rng.choice(kick)
+                o.swap(u, v)
+                ht = o.heads_tails()
+                if ht is None:
+                    o.swap(v, u)
+                    break
+                head, tail, length = ht
             tabu.clear()
             stall = 0
     return Result({dev: [shop.tasks[i] for i in seq] for dev, seq in zip(devices, best_seqs)}, best, start, it)

@@ -137,3 +137,46 @@ def test_a_long_search_says_how_far_it_has_got(shop, monkeypatch, capsys):
     shortest = [int(line.split("so far ")[1].split()[0].replace(",", "")) for line in told]
     assert len(told) >= 3 and swaps == sorted(swaps) and shortest == sorted(shortest, reverse=True)
     assert all(line.startswith("rl: ") and line.endswith(" s so far") and " of 1,000 swaps" in line for line in told)
+
+
+def shops():
+    """Small shops of any form a file may hold: jobs that visit a device twice, even back to back, steps of no
+    length, a job of one step; and a valid order for each (a random list schedule's), as (shop, orders)."""
+    from hypothesis import strategies as st
+
+    step = st.tuples(st.integers(0, 3), st.sampled_from([0, 0, 1, 2, 5, 9]))
+    return st.tuples(st.lists(st.lists(step, min_size=1, max_size=6), min_size=1, max_size=6), st.randoms())
+
+
+def list_schedule(jobs: list[list[tuple[int, float]]], rng: random.Random) -> dict[str, list[str]]:
+    """Each device's order in a run that starts, at random, any job's next step: an order no job waits on itself in."""
+    nxt = [0] * len(jobs)
+    orders: dict[str, list[str]] = {}
+    while any(k < len(job) for k, job in zip(nxt, jobs)):
+        j = rng.choice([j for j, job in enumerate(jobs) if nxt[j] < len(job)])
+        orders.setdefault(f"m{jobs[j][nxt[j]][0]}", []).append(f"e{j}s{nxt[j]}")
+        nxt[j] += 1
+    return orders
+
+
+def test_on_any_small_shop_the_search_keeps_a_plan_the_lab_can_follow_and_never_a_longer_one():
+    from hypothesis import given, settings
+
+    @settings(max_examples=300, deadline=None)
+    @given(shops())
+    def check_one(drawn):
+        jobs, rng = drawn
+        shop = Shop.of_jobs([[(f"e{j}s{k}", d) for k, (_, d) in enumerate(job)] for j, job in enumerate(jobs)])
+        orders = list_schedule(jobs, rng)
+        found = improve(shop, orders, 200, seed=rng.randrange(100))
+        assert found.start_length == longest_path(shop, orders)
+        assert found.length == longest_path(shop, found.orders) <= found.start_length
+        assert {d: sorted(ts) for d, ts in found.orders.items()} == {d: sorted(ts) for d, ts in orders.items()}
+        if found.shortest:  # a lower bound: some device's work
+            loads: dict[int, float] = {}
+            for job in jobs:
+                for m, d in job:
+                    loads[m] = loads.get(m, 0) + d
+            assert found.length == max(loads.values())
+
+    check_one()
