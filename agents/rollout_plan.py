@@ -62,7 +62,7 @@ class Plan:
     backwards: int = 0  # of the runs, those played on the shop backwards
     degraded: tuple[int, int] = (0, 0)  # degraded samples, its and the greedy run's
     abandoned: tuple[int, int] = (0, 0)  # abandoned experiments, its and the greedy run's
-    searched: int | str = 0  # campaign.local_search: the swaps tried on its orders, or why none were
+    searched: int | str | None = None  # campaign.local_search: the swaps tried on its orders, or why none were
     played_h: float = 0.0  # the best run's lab-hours as played, before the search
     shortest: bool = False  # the search found a plan that no order of the devices' steps beats
 
@@ -78,12 +78,12 @@ class Plan:
                else "the greedy run in the twin")
         if isinstance(self.searched, str):
             ran += f" (campaign.local_search left out: it needs {self.searched})"
-        elif self.searched:
+        elif self.searched is not None:
             ran += f", {lab_time(self.played_h)} as played, then {self.searched:,} tabu-search swaps on its orders"
             ran += " (the shortest plan there is: its longest path is one device's work alone)," if self.shortest \
                 else ","
         versus = f" against the greedy run's {lab_time(self.greedy_h)}{also} (objective {gain:.1f} % lower;" \
-            if self.rollouts > 1 or self.searched else " ("
+            if self.rollouts > 1 or self.searched is not None else " ("
         return f"{ran} takes {lab_time(self.best_h)}{versus} {self.seconds:.1f} s of planning)"
 
 

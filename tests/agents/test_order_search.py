@@ -180,3 +180,15 @@ def test_on_any_small_shop_the_search_keeps_a_plan_the_lab_can_follow_and_never_
             assert found.length == max(loads.values())
 
     check_one()
+
+
+def test_a_plan_that_is_one_devices_work_says_it_is_the_shortest(tmp_path, capsys):
+    """A shop whose greedy run already takes exactly its busiest device's work: the search stops at once."""
+    (tmp_path / "shop.txt").write_text("3 3\n0 5 0 3 1 4\n1 2 2 0 0 6\n2 4 1 3 1 2\n")  # m0's work: 14
+    lab = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={"jobshop.file": str(tmp_path / "shop.txt"),
+                                                                  "campaign.local_search": 1000})
+    plan = RlScheduler(lab, str(POLICY)).follower.plan
+    assert plan.best_h * 3600 == pytest.approx(14) and plan.shortest and plan.searched == 0
+    told = capsys.readouterr().err
+    assert "14 lab-s as played, then 0 tabu-search swaps on its orders (the shortest plan there is: its longest " \
+           "path is one device's work alone), takes 14 lab-s against the greedy run's 14 lab-s" in told
