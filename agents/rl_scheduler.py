@@ -17,7 +17,7 @@ import torch
 from agents import candidates, scheduling_features
 from twin import Assignment, LabView
 from twin import PluginError
-from twin import PLUGIN_CHECKS_LOGGER, load_policy, read_meta, why_runs_vary
+from twin import PLUGIN_CHECKS_LOGGER, load_policy, read_meta, tells_progress, why_runs_vary
 
 if TYPE_CHECKING:
     from agents.rollout_plan import Plan, PlanFollower
@@ -120,25 +120,29 @@ class RlScheduler:
                               f"played: {why}. Set {off} to decide as the lab goes")
         key = (str(path.resolve()), path.stat().st_mtime_ns, scenario.model_dump_json())
         if key not in _plans:  # told on stderr: planning a large shop many times takes a while
+            def tell(line: str) -> None:
+                if tells_progress():  # not in a bench's workers: the command told it once, checking the plugin
+                    print(line, file=sys.stderr, flush=True)
+
             what = scenario.name  # a shop's file would be stale for a shop generated in memory (benches, training)
             if scenario.jobshop is not None:
                 what += f" ({scenario.campaign.budget} jobs on {len(scenario.devices)} machines)"
-            print(f"rl: playing {what} {scenario.campaign.rollouts} times in the twin ...", file=sys.stderr, flush=True)
+            tell(f"rl: playing {what} {scenario.campaign.rollouts} times in the twin ...")
             rollouts = scenario.campaign.rollouts
 
             def played(n: int, best_h: float) -> None:
-                print(f"rl: {n} of {rollouts} played, the shortest so far {lab_time(best_h)}", file=sys.stderr, flush=True)
+                tell(f"rl: {n} of {rollouts} played, the shortest so far {lab_time(best_h)}")
 
             def going(share: float, seconds: float) -> None:
-                print(f"rl: {100 * share:.0f} % played, {seconds:.0f} s so far", file=sys.stderr, flush=True)
+                tell(f"rl: {100 * share:.0f} % played, {seconds:.0f} s so far")
 
             def searching(swaps: int, best_h: float, seconds: float) -> None:
-                print(f"rl: {swaps:,} of {scenario.campaign.local_search:,} swaps tried, the shortest plan so far "
-                      f"{lab_time(best_h)}, {seconds:.0f} s so far", file=sys.stderr, flush=True)
+                tell(f"rl: {swaps:,} of {scenario.campaign.local_search:,} swaps tried, the shortest plan so far "
+                     f"{lab_time(best_h)}, {seconds:.0f} s so far")
 
             _plans[key] = plan(scenario, self.model.policy.action_net, rollouts, str(encoding), played,
                                self.encoder.held, going, searching)
-            print(f"rl: {_plans[key].describe()}; the lab follows it", file=sys.stderr, flush=True)
+            tell(f"rl: {_plans[key].describe()}; the lab follows it")
         return _plans[key]
 
     @classmethod

@@ -18,6 +18,7 @@ from twin.core.errors import (AccountingError, BusError, ClockError, DriverError
 from twin.core.plugins import CHECKS_LOGGER as PLUGIN_CHECKS_LOGGER
 from twin.core.plugins import load as load_plugin
 from twin.core.streams import keyed_uniforms, seeded
+from twin.core.telling import tells_progress
 from twin.device.actor import DeviceActor
 from twin.device.driver import Driver, DriverFeatures, DriverSetup, StepContext, StepResult
 from twin.learning.policies import load_policy, read_meta, save_policy
@@ -44,7 +45,7 @@ __all__ = [
     "LabClock", "LabSummary", "LabView", "LiveCampaign", "MemoryBus", "Outcome", "PLUGIN_CHECKS_LOGGER", "Planner",
     "PluginError", "Proposal",
     "ReadyStep", "RecordOptions", "Refused", "RouteStep", "Scenario", "ScenarioError", "Scheduler", "StepContext", "StepResult",
-    "SteppedCampaign", "SteppedLab", "Summary", "TwinError", "campaign_scenarios", "time_scale", "weighted_objective", "capable", "drawn_at_random", "driver_setup", "expected_duration", "jobshop_as_lab",
+    "SteppedCampaign", "SteppedLab", "Summary", "TwinError", "campaign_scenarios", "time_scale", "weighted_objective", "capable", "drawn_at_random", "driver_setup", "expected_duration", "jobshop_as_lab", "tells_progress",
     "json_schema", "keyed_uniforms", "lab_span", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
     "prepare", "random_jobshop", "random_lab", "read_meta", "resume", "run", "run_async", "run_scenario", "run_step",
     "save_policy", "score", "seeded", "sleep_wall", "stepped", "wall_on_loop", "why_runs_vary",

@@ -353,3 +353,24 @@ def test_a_policy_varied_beside_a_field_is_shown_whole_and_folds_only_when_the_t
     rule = next(i for i, line in enumerate(lines) if line.strip().startswith("─"))
     table = "\n".join(lines[rule + 1:next(i for i, line in enumerate(lines) if line.startswith("*: the scenario"))])
     assert len(re.findall(r"\b\d+%", table)) == 9 and table.count("reactor") == 9, table
+
+
+@pytest.mark.process
+def test_a_plan_is_told_once_by_the_command_not_by_every_workers_run(tmp_path):
+    """Each worker's run of an rl scheduler that plans (campaign.local_search, campaign.rollouts) printed its two
+    planning lines: 2 variants × 3 seeds buried the progress bar under a dozen of them. (A real process: the
+    workers of one run in this one write to their copies of the test's captured stream.)"""
+    import os
+    import subprocess
+    import sys
+
+    shop = tmp_path / "la02.yaml"
+    shop.write_text(f"name: la02\nlab: jobshop\njobshop: {{file: {ROOT / 'scenarios' / 'jobshop' / 'la02.txt'}}}\n"
+                    f"campaign: {{scheduler: 'rl:{ROOT / 'agents' / 'policies' / 'jobshop_scheduler.zip'}'}}\n")
+    done = subprocess.run([sys.executable, "-m", "twin", "whatif", str(shop), "--vary", "campaign.local_search=200,300",
+                           "--seeds", "3"], capture_output=True, text=True, cwd=ROOT, timeout=120,
+                          env={**os.environ, "COLUMNS": "80"})
+    assert done.returncode == 0, done.stderr
+    assert 1 <= done.stderr.count("rl: playing la02") <= 2, done.stderr  # the command's check of each plan it makes
+    assert done.stderr.count("tabu-search swaps on its orders") == done.stderr.count("rl: playing la02")
+    assert "300 " in done.stdout and "lab-s" in done.stdout

@@ -21,6 +21,7 @@ from typing import Any
 
 from twin.campaign.events import ALERT_LOGGER
 from twin.core.plugins import CHECKS_LOGGER
+from twin.core.telling import quiet_progress
 from twin.runtime.lab import prepare, run
 from twin.scenario import Scenario
 from twin.tools.pool import WorkerPool
@@ -81,10 +82,12 @@ def quiet_alerts() -> None:
     """A bench runs hundreds of campaigns and its table counts what they lost: a warning for every device type
     gone, or every step a driver failed by raising, in every campaign would bury the progress bar under
     hundreds of lines (a training run logs those at debug for the same reason). What a plugin warns of when it is
-    made (a policy trained on other labs) the command said when it checked the plugin, before the runs."""
+    made (a policy trained on other labs) or tells as it plans (the rl scheduler playing a lab ahead) the command
+    said when it checked the plugin, before the runs."""
     logging.getLogger(ALERT_LOGGER).setLevel(logging.ERROR)
     logging.getLogger(CHECKS_LOGGER).setLevel(logging.ERROR)
     logging.getLogger("twin.runtime.fast_device").setLevel(logging.ERROR)
+    quiet_progress()
 
 
 def bench_pool(workers: int) -> WorkerPool:
