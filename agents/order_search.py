@@ -1,4 +1,5 @@
-"""`campaign.local_search`: a tabu search over each device's order of steps in the best run played ahead.
+"""`campaign.local_search`: a tabu search over each device's order of steps in the run played ahead (the greedy
+run, or the best of ``campaign.rollouts``).
 
 A pure job shop's plan (``agents.rollout_plan``) is each device's order of steps; the lab follows it, each step
 starting as soon as its job's previous step and its device's previous one have ended, so the lab's length is the
@@ -6,8 +7,11 @@ longest path through the jobs' and the devices' orders. This module shortens tha
 neighbourhood (N5: on the longest path, swap the first two or the last two steps of each run of steps on one
 device), each swap priced by the heads-and-tails estimate, the best swap not tabu taken (or a tabu one that beats
 the best found), a swap's reverse tabu for a while, and after a long stall a restart from the best orders found
-with a few random swaps on their longest path. Swapping two adjacent steps of the longest path never closes a
-cycle, so every order it keeps is one the lab can follow. Deterministic for a seed.
+with a few random swaps on their longest path. Swapping two adjacent steps of the longest path closes no cycle
+when every step takes time; two steps of one job (a job that visits a device twice) are never swapped, and a swap
+that closes a cycle through steps of no length (which tie paths) is undone, so every order it keeps is one the lab
+can follow. It stops early at a path that is one device's or one job's work alone: no order is shorter.
+Deterministic for a seed.
 """
 
 from __future__ import annotations
@@ -55,7 +59,7 @@ class Result:
     length: float  # the longest path through the orders kept
     start_length: float  # through the orders given
     iterations: int
-    shortest: bool = False  # the search stopped at a path that is one device's work alone: no order is shorter
+    shortest: bool = False  # the search stopped at a path that is one device's or one job's work: none is shorter
 
 
 class _Orders:
@@ -201,7 +205,8 @@ def improve(shop: Shop, orders: dict[str, list[str]], iterations: int, seed: int
             told = time.perf_counter()
             tell(it, best, told - t0)
         blocks = o.critical_blocks(head, tail, length)
-        if len(blocks) == 1:  # one device's work is the whole path: no order is shorter
+        if len(blocks) == 1 or all(len(b) == 1 for b in blocks):  # the path is one device's work alone, or one
+            # job's (every arc on it its job's): no order is shorter
             return Result({dev: [shop.tasks[i] for i in seq] for dev, seq in zip(devices, o.seqs)}, length, start,
                           it - 1, True)
         moves = _moves(blocks, shop.job)

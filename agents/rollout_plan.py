@@ -80,7 +80,7 @@ class Plan:
             ran += f" (campaign.local_search left out: it needs {self.searched})"
         elif self.searched is not None:
             ran += f", {lab_time(self.played_h)} as played, then {self.searched:,} tabu-search swaps on its orders"
-            ran += " (the shortest plan there is: its longest path is one device's work alone)," if self.shortest \
+            ran += " (the shortest plan there is: its longest path is one device's or one job's work alone)," if self.shortest \
                 else ","
         versus = f" against the greedy run's {lab_time(self.greedy_h)}{also} (objective {gain:.1f} % lower;" \
             if self.rollouts > 1 or self.searched is not None else " ("
