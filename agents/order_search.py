@@ -1,7 +1,7 @@
 """`campaign.local_search`: a tabu search over each device's order of steps in the run played ahead (the greedy
 run, or the best of ``campaign.rollouts``).
 
-A pure job shop's plan (``agents.rollout_plan``) is each device's order of steps; the lab follows it, each step
+A job shop's plan (``agents.rollout_plan``) is each device's order of steps; the lab follows it, each step
 starting as soon as its job's previous step and its device's previous one have ended, so the lab's length is the
 longest path through the jobs' and the devices' orders. This module shortens that path: Nowicki and Smutnicki's
 neighbourhood (N5: on the longest path, swap the first two or the last two steps of each run of steps on one
@@ -252,8 +252,9 @@ def improve(shop: Shop, orders: dict[str, list[str]], iterations: int, seed: int
 
 
 def shop_of(lab: Scenario) -> Shop:
-    """A pure job shop's steps (``e<j>s<k>``: experiment j's k-th, experiments numbered from 0 in the fixed
-    planner's order), each as long as its device type's duration model says for the experiment's parameters."""
+    """A job shop's steps (``e<j>s<k>``: experiment j's k-th, experiments numbered from 0 in the fixed
+    planner's order), each as long as its device type's duration model says for the experiment's parameters, with its
+    set-up and cleaning (the sample goes on after both)."""
     from twin import expected_duration
 
     proposals = lab.campaign.planner_options["proposals"][:lab.campaign.budget]

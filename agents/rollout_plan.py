@@ -144,21 +144,22 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
                 ways.count(1),
                 *((count(summaries[best], what), count(summaries[0], what)) for what in ("degraded_samples", "abandoned")))
     if s.campaign.local_search:
-        _search_orders(kept, lab, pure=back is not None, seed=s.campaign.seed, tell=on_search)
+        _search_orders(kept, lab, pure=fixed_routes(lab), seed=s.campaign.seed, tell=on_search)
         kept.seconds = time.perf_counter() - t0
     return kept
 
 
 def _search_orders(kept: Plan, lab: Scenario, pure: bool, seed: int,
                    tell: Callable[[int, float, float], None] | None = None) -> None:
-    """``campaign.local_search``: the plan's orders shortened by a tabu search (``agents.order_search``), on a pure
-    job shop whose steps last as its duration models say; elsewhere the plan stays the best run's, and says why."""
+    """``campaign.local_search``: the plan's orders shortened by a tabu search (``agents.order_search``), on a job
+    shop (``fixed_routes``) whose steps last as its duration models say; elsewhere the plan stays the best run's,
+    and says why."""
     from agents.order_search import improve, shop_of
 
     swaps = lab.campaign.local_search
     if not pure:
-        kept.searched = ("a pure job shop only (every experiment a fixed route, all in the lab from the start, no "
-                         "set-up, cleaning, shelf life or consumables)")
+        kept.searched = ("a job shop only (every experiment a fixed route, all in the lab from the start, no shelf "
+                         "life or consumables)")
         log.warning("campaign.local_search: %d: the tabu search orders %s; the plan is the best run's as played",
                     swaps, kept.searched)
         return
@@ -179,14 +180,20 @@ def _search_orders(kept: Plan, lab: Scenario, pure: bool, seed: int,
         kept.best = weighted_objective(lab, found.length, *(n for n, _ in (kept.degraded, kept.abandoned)))
 
 
-def backwards(lab: Scenario) -> Scenario | None:
-    """``lab`` with every experiment's route reversed, if it is a pure job shop (see the module's doc), else None."""
+def fixed_routes(lab: Scenario) -> bool:
+    """Whether ``lab`` is a job shop: every experiment a fixed route, all in the lab from the start, nothing that
+    degrades or runs out (set-up and cleaning are part of each step's time on its device)."""
     c = lab.campaign
     proposals = (c.planner_options.get("proposals") or [])[:c.budget]
-    if (c.planner != "fixed" or not proposals or c.max_in_flight < len(proposals) or lab.consumables
-            or lab.chemistry.stability_s or not all(p.get("route") for p in proposals)
-            or any(d.setup_s or d.clean_s for d in lab.devices.values())):
+    return not (c.planner != "fixed" or not proposals or c.max_in_flight < len(proposals) or lab.consumables
+                or lab.chemistry.stability_s or not all(p.get("route") for p in proposals))
+
+
+def backwards(lab: Scenario) -> Scenario | None:
+    """``lab`` with every experiment's route reversed, if it is a pure job shop (see the module's doc), else None."""
+    if not fixed_routes(lab) or any(d.setup_s or d.clean_s for d in lab.devices.values()):
         return None
+    proposals = lab.campaign.planner_options["proposals"][:lab.campaign.budget]
     reversed_proposals = [{**p, "route": list(reversed(p["route"]))} for p in proposals]
     return prepare(lab, overrides={"campaign.planner_options.proposals": reversed_proposals})
 
