@@ -10,7 +10,8 @@ the best found), a swap's reverse tabu for a while, and after a long stall a res
 with a few random swaps on their longest path. Swapping two adjacent steps of the longest path closes no cycle
 when every step takes time; two steps of one job (a job that visits a device twice) are never swapped, and a swap
 that closes a cycle through steps of no length (which tie paths) is undone, so every order it keeps is one the lab
-can follow. It stops early at a path that is one device's or one job's work alone: no order is shorter.
+can follow. It stops early at a path that is one job's work alone, or one device's with no other of its type: no
+plan is shorter.
 Deterministic for a seed.
 """
 
@@ -180,12 +181,18 @@ def _estimate(o: _Orders, head: list[float], tail: list[float], u: int, v: int) 
 
 
 def improve(shop: Shop, orders: dict[str, list[str]], iterations: int, seed: int = 0,
-            tell: Callable[[int, float, float], None] | None = None, every_s: float = 10.0) -> Result:
+            tell: Callable[[int, float, float], None] | None = None, every_s: float = 10.0,
+            kinds: dict[str, str] | None = None) -> Result:
     """``orders`` (device → its steps, every step of ``shop`` once) with a path no longer, after ``iterations``
-    swaps tried. ``tell(swaps so far, the shortest path so far, wall seconds)`` every ``every_s``."""
+    swaps tried. ``tell(swaps so far, the shortest path so far, wall seconds)`` every ``every_s``. ``kinds``: each
+    device's type, where devices of one type could run each other's steps (None: none could). Steps stay on their
+    devices; the types only keep the search from calling a plan the shortest when another instance could have
+    taken some of the work on its path."""
     t0 = told = time.perf_counter()
     index = {task: i for i, task in enumerate(shop.tasks)}
     devices = list(orders)
+    kinds = kinds or {}
+    alike = {dev: sum(kinds.get(other, other) == kinds.get(dev, dev) for other in kinds) for dev in devices}
     o = _Orders(shop, [[index[t] for t in orders[dev]] for dev in devices])
     ht = o.heads_tails()
     if ht is None:
@@ -205,8 +212,8 @@ def improve(shop: Shop, orders: dict[str, list[str]], iterations: int, seed: int
             told = time.perf_counter()
             tell(it, best, told - t0)
         blocks = o.critical_blocks(head, tail, length)
-        if len(blocks) == 1 or all(len(b) == 1 for b in blocks):  # the path is one device's work alone, or one
-            # job's (every arc on it its job's): no order is shorter
+        # the path is one job's work alone (every arc on it its job's), or one device's with no other of its type
+        if all(len(b) == 1 for b in blocks) or len(blocks) == 1 and alike[devices[o.machine[blocks[0][0]]]] <= 1:
             return Result({dev: [shop.tasks[i] for i in seq] for dev, seq in zip(devices, o.seqs)}, length, start,
                           it - 1, True)
         moves = _moves(blocks, shop.job)

@@ -80,7 +80,8 @@ class Plan:
             ran += f" (campaign.local_search left out: it needs {self.searched})"
         elif self.searched is not None:
             ran += f", {lab_time(self.played_h)} as played, then {self.searched:,} tabu-search swaps on its orders"
-            ran += " (the shortest plan there is: its longest path is one device's or one job's work alone)," if self.shortest \
+            ran += " (the shortest plan there is: its longest path is one job's work, or one device's with no other of " \
+                "its type)," if self.shortest \
                 else ","
         versus = f" against the greedy run's {lab_time(self.greedy_h)}{also} (objective {gain:.1f} % lower;" \
             if self.rollouts > 1 or self.searched is not None else " ("
@@ -165,8 +166,9 @@ def _search_orders(kept: Plan, lab: Scenario, pure: bool, seed: int,
         return
     shop = shop_of(lab)
     played_s = kept.best_h * 3600
+    kinds = {name: dtype for dtype in lab.devices for name in lab.instance_names(dtype)}
     found = improve(shop, kept.orders, swaps, seed, None if tell is None else
-                    lambda done, best_s, seconds: tell(done, best_s / 3600, seconds), HEARTBEAT_S)
+                    lambda done, best_s, seconds: tell(done, best_s / 3600, seconds), HEARTBEAT_S, kinds)
     if found.start_length > played_s * (1 + 1e-9) + 1e-6:  # its steps took less than their models say: not ours
         kept.searched = (f"steps as long as their devices' duration models say, and the best run's orders come to "
                          f"{lab_time(found.start_length / 3600)} by them against the {lab_time(kept.best_h)} played")

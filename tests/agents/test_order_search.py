@@ -71,6 +71,14 @@ def test_the_search_never_lengthens_and_repeats_for_a_seed():
     assert improve(shop, orders, 20, seed=3).orders == short.orders
 
 
+def test_a_path_of_one_devices_work_is_the_shortest_only_where_no_other_device_could_take_it():
+    shop = Shop.of_jobs([[(f"e{j}s0", 10)] for j in range(4)])  # four one-step jobs, all on m-1
+    orders = {"m-1": ["e0s0", "e1s0", "e2s0", "e3s0"]}
+    assert improve(shop, orders, 50).shortest
+    twice = improve(shop, orders, 50, kinds={"m-1": "m", "m-2": "m"})  # a second m, idle: m-1's work could be shared
+    assert not twice.shortest and twice.length == 40
+
+
 def test_orders_that_close_a_cycle_are_refused():
     shop = Shop.of_jobs([[("e0s0", 1), ("e0s1", 1)], [("e1s0", 1), ("e1s1", 1)]])
     # m0 runs e0s1 before e1s0 and m1 e1s1 before e0s0: each job waits on the other
@@ -202,4 +210,5 @@ def test_a_plan_that_is_one_devices_work_says_it_is_the_shortest(tmp_path, capsy
     assert plan.best_h * 3600 == pytest.approx(14) and plan.shortest and plan.searched == 0
     told = capsys.readouterr().err
     assert "14 lab-s as played, then 0 tabu-search swaps on its orders (the shortest plan there is: its longest " \
-           "path is one device's or one job's work alone), takes 14 lab-s against the greedy run's 14 lab-s" in told
+           "path is one job's work, or one device's with no other of its type), takes 14 lab-s against the greedy " \
+           "run's 14 lab-s" in told
