@@ -183,7 +183,7 @@ def bench_schedulers(
 
     from twin.tools.planner_bench import bench_pool
     from twin.tools.scheduler_bench import (BOUND_S, COUNTS, HEADER, bench, bound, caption, deterministic,
-                                            load_variant, rows, shops)
+                                            load_variant, played_ahead, rows, shops)
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if not names:
@@ -219,8 +219,9 @@ def bench_schedulers(
             runs = len(next(iter(results.values())))
             table_rows = rows(results, optimum, 1.0 if s.jobshop else 3600.0)
             all_runs += [{"lab": title, **asdict(r)} for v in results.values() for r in v]
+            ahead = played_ahead(s, names)
             tables.append({"lab": title, "bound_s": optimum, "bound_proven": best.proven if best else None,
-                           "rows": [dict(zip(HEADER, r)) for r in table_rows]})
+                           "played_ahead": ahead, "rows": [dict(zip(HEADER, r)) for r in table_rows]})
             if as_json:
                 continue
             # no bound: no column; counts that are nought for every scheduler (a job shop's) leave the room to names
@@ -228,7 +229,7 @@ def bench_schedulers(
             shown = [i for i, h in enumerate(HEADER) if (optimum or h != "vs bound") and h not in silent]
             table = narrow_table([HEADER[i] for i in shown], f"{title} — {runs} run(s) per scheduler" +
                                  (f"; {best.title()}" if best else ""),
-                                 caption("lab-s" if s.jobshop else "lab-h", bound=best, silent=silent))
+                                 caption("lab-s" if s.jobshop else "lab-h", bound=best, silent=silent, ahead=ahead))
             for row in table_rows:
                 table.add_row(*(row[i] for i in shown))
             print_table(table)

@@ -113,7 +113,9 @@ COUNTS = {"degr.": ("degraded samples", "degraded a sample"), "lost": ("abandone
           "fallb.": ("decisions the fallback rule made (an agent absent or late)", "needed the fallback rule")}
 
 
-def caption(unit: str, bound: Bound | None = None, silent: set[str] | frozenset[str] = frozenset()) -> str:
+def caption(unit: str, bound: Bound | None = None, silent: set[str] | frozenset[str] = frozenset(),
+            ahead: str = "") -> str:
+    """``ahead``: the schedulers that played the lab ahead and followed their plan, and what asked them to."""
     counts = "".join(f"{h}: {what}; " for h, (what, _) in COUNTS.items() if h not in silent)
     nothing = [did for h, (_, did) in COUNTS.items() if h in silent]
     none = f"no run {', '.join(nothing[:-1])}{' or ' if len(nothing) > 1 else ''}{nothing[-1]} (not shown); " if (
@@ -121,7 +123,19 @@ def caption(unit: str, bound: Bound | None = None, silent: set[str] | frozenset[
     return (f"mean, median: makespan ({unit}); " + (bound.caption() if bound else "") + "vs best "
             f"rule: against the rule with the lowest mean; busy: mean utilisation; {counts}{none}ms: wall time per "
             "decision, median p50 / worst p99 (an rl agent is asked in the bench's process: the same decisions as "
-            "over the bus, without its round trip)")
+            "over the bus, without its round trip)" + (f"; {ahead}" if ahead else ""))
+
+
+def played_ahead(s: Scenario, names: list[str]) -> str:
+    """What the table should say of the schedulers that play ``s`` ahead (``campaign.rollouts``,
+    ``campaign.local_search``) and follow their plan: their rows are the plan's, not the policy deciding as the lab
+    goes; '' when none does."""
+    asked = s.campaign.plays_ahead
+    ahead = [label(n) for n in names if asked and plays_ahead(n)]
+    if not ahead:
+        return ""
+    return (f"{', '.join(ahead)}: the lab played ahead in the twin ({asked}) and the plan followed, not the "
+            "policy deciding as the lab goes; the rules ran as they go")
 
 
 def rows(results: dict[str, list[Run]], optimum: float | None, unit_s: float) -> list[list[str]]:
