@@ -91,40 +91,52 @@ class _Orders:
         self.pos[u], self.pos[v] = pu + 1, pu
 
     def heads_tails(self) -> tuple[list[float], list[float], float] | None:
-        """Each step's earliest start and the longest path after its end; the longest path. None for a cycle."""
+        """Each step's earliest start and the longest path after its end; the longest path. None for a cycle.
+        (The search's inner loop: written out for speed, no tuples or generators per step.)"""
         s = self.shop
         n = len(s.tasks)
+        jprev, jnext, d = s.job_prev, s.job_next, s.duration
         mprev = [-1] * n
         mnext = [-1] * n
         for seq in self.seqs:
             for a, b in zip(seq, seq[1:]):
-                mprev[b], mnext[a] = a, b
-        indegree = [(s.job_prev[i] >= 0) + (mprev[i] >= 0) for i in range(n)]
+                mprev[b] = a
+                mnext[a] = b
+        indegree = [(jprev[i] >= 0) + (mprev[i] >= 0) for i in range(n)]
         order = [i for i in range(n) if not indegree[i]]
         head = [0.0] * n
-        d = s.duration
-        k = 0
-        while k < len(order):
-            i = order[k]
-            k += 1
+        for i in order:  # the list grows as steps become free: a breadth-first topological order
             end = head[i] + d[i]
-            for j in (s.job_next[i], mnext[i]):
-                if j >= 0:
-                    if end > head[j]:
-                        head[j] = end
-                    indegree[j] -= 1
-                    if not indegree[j]:
-                        order.append(j)
+            j = jnext[i]
+            if j >= 0:
+                if end > head[j]:
+                    head[j] = end
+                indegree[j] -= 1
+                if not indegree[j]:
+                    order.append(j)
+            j = mnext[i]
+            if j >= 0:
+                if end > head[j]:
+                    head[j] = end
+                indegree[j] -= 1
+                if not indegree[j]:
+                    order.append(j)
         if len(order) < n:
             return None
         tail = [0.0] * n
+        length = 0.0
         for i in reversed(order):
             after = 0.0
-            for j in (s.job_next[i], mnext[i]):
-                if j >= 0 and d[j] + tail[j] > after:
-                    after = d[j] + tail[j]
+            j = jnext[i]
+            if j >= 0:
+                after = d[j] + tail[j]
+            j = mnext[i]
+            if j >= 0 and d[j] + tail[j] > after:
+                after = d[j] + tail[j]
             tail[i] = after
-        return head, tail, max(head[i] + d[i] + tail[i] for i in range(n))
+            if head[i] + d[i] + after > length:
+                length = head[i] + d[i] + after
+        return head, tail, length
 
     def critical_blocks(self, head: list[float], tail: list[float], length: float) -> list[list[int]]:
         """One longest path, as its runs of consecutive steps on one device."""
