@@ -12,8 +12,8 @@ import typer
 from rich.markup import escape
 from rich.text import Text
 
-from twin.cli.common import (_fail, app, assignments, bar_progress, check_lab_name, console, err, keep_serving,
-                             machine_output, narrow_table, writable)
+from twin.cli.common import (_fail, app, assignments, bar_progress, check_lab_name, console, err, exit_status,
+                             keep_serving, machine_output, narrow_table, sigterm_unwinds, stopped_by, writable)
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
 from twin.cli.sharing import shared_lab
@@ -107,9 +107,15 @@ def run(
         shared_lab(s, journal, record, quiet, json_out, external)
         return
     try:
-        checked(s, scenario, external or ())
+        with sigterm_unwinds():  # the check makes the scheduler, which may plan the lab ahead for a while
+            checked(s, scenario, external or ())
     except TwinError as exc:
         _fail(exc)
+    except KeyboardInterrupt as stop:
+        err.print(f"{stopped_by(stop)} while the lab was being checked"
+                  f"{' and its scheduler planned it ahead' if s.campaign.plays_ahead else ''}: nothing ran, and no "
+                  "journal was written", highlight=False)
+        raise typer.Exit(exit_status(stop)) from None
     _campaign(s, record, quiet, json_out, lambda on_progress, observer: lab.run(
         s, journal=journal, external_devices=set(external or ()), on_progress=on_progress, observer=observer,
         runtime=runtime))
