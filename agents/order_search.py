@@ -9,10 +9,10 @@ device), each swap priced by the heads-and-tails estimate, the best swap not tab
 the best found), a swap's reverse tabu for a while, and after a long stall a restart from the best orders found
 with a few random swaps on their longest path. Swapping two adjacent steps of the longest path closes no cycle
 when every step takes time; two steps of one job (a job that visits a device twice) are never swapped, and a swap
-that closes a cycle through steps of no length (which tie paths) is undone, so every order it keeps is one the lab
-can follow. It stops early at a path that is one job's work alone, or one device's with no other of its type: no
-plan is shorter.
-Deterministic for a seed.
+that would close a cycle through steps of no length (which tie paths) is refused, so every order it keeps is one
+the lab can follow. It stops early at a path that is one job's work alone, or one device's with no other of its
+type: no plan is shorter. Each swap updates a topological order of the steps (Pearce and Kelly) and only the
+starts and tails that change, rather than computing the path afresh. Deterministic for a seed.
 """
 
 from __future__ import annotations
@@ -64,44 +64,40 @@ class Result:
 
 
 class _Orders:
-    """Each device's order as step indices, with each step's device, place in it and neighbours there."""
+    """Each device's order as step indices, with each step's device, place in it and neighbours there; a
+    topological order of the steps, and each step's earliest start (head) and longest path after its end (tail),
+    kept up to date as steps are swapped."""
 
     def __init__(self, shop: Shop, sequences: list[list[int]]) -> None:
         self.shop, self.seqs = shop, sequences
         n = len(shop.tasks)
         self.machine = [-1] * n
         self.pos = [0] * n
+        self.mprev = [-1] * n
+        self.mnext = [-1] * n
         for m, seq in enumerate(sequences):
             for p, i in enumerate(seq):
                 self.machine[i], self.pos[i] = m, p
+            for a, b in zip(seq, seq[1:]):
+                self.mprev[b] = a
+                self.mnext[a] = b
+        self.acyclic = self._full()
 
     def prev(self, i: int) -> int:
-        p = self.pos[i]
-        return self.seqs[self.machine[i]][p - 1] if p else -1
+        return self.mprev[i]
 
     def next(self, i: int) -> int:
-        seq = self.seqs[self.machine[i]]
-        p = self.pos[i] + 1
-        return seq[p] if p < len(seq) else -1
-
-    def swap(self, u: int, v: int) -> None:
-        """``u`` just before ``v`` on their device: ``v`` before ``u``."""
-        seq, pu = self.seqs[self.machine[u]], self.pos[u]
-        seq[pu], seq[pu + 1] = v, u
-        self.pos[u], self.pos[v] = pu + 1, pu
+        return self.mnext[i]
 
     def heads_tails(self) -> tuple[list[float], list[float], float] | None:
-        """Each step's earliest start and the longest path after its end; the longest path. None for a cycle.
-        (The search's inner loop: written out for speed, no tuples or generators per step.)"""
+        """Each step's earliest start and the longest path after its end; the longest path. None for a cycle."""
+        return (self.head, self.tail, self.length) if self.acyclic else None
+
+    def _full(self) -> bool:
+        """Everything computed afresh (Kahn's order); False for orders that close a cycle."""
         s = self.shop
         n = len(s.tasks)
-        jprev, jnext, d = s.job_prev, s.job_next, s.duration
-        mprev = [-1] * n
-        mnext = [-1] * n
-        for seq in self.seqs:
-            for a, b in zip(seq, seq[1:]):
-                mprev[b] = a
-                mnext[a] = b
+        jprev, jnext, d, mprev, mnext = s.job_prev, s.job_next, s.duration, self.mprev, self.mnext
         indegree = [(jprev[i] >= 0) + (mprev[i] >= 0) for i in range(n)]
         order = [i for i in range(n) if not indegree[i]]
         head = [0.0] * n
@@ -122,21 +118,108 @@ class _Orders:
                 if not indegree[j]:
                     order.append(j)
         if len(order) < n:
-            return None
-        tail = [0.0] * n
-        length = 0.0
-        for i in reversed(order):
-            after = 0.0
-            j = jnext[i]
-            if j >= 0:
-                after = d[j] + tail[j]
-            j = mnext[i]
-            if j >= 0 and d[j] + tail[j] > after:
-                after = d[j] + tail[j]
-            tail[i] = after
-            if head[i] + d[i] + after > length:
-                length = head[i] + d[i] + after
-        return head, tail, length
+            return False
+        self.order, self.head = order, head
+        self.rank = [0] * n
+        for r, i in enumerate(order):
+            self.rank[i] = r
+        self.tail = [0.0] * n
+        self._tails(n - 1, set(range(n)))
+        self._length()
+        return True
+
+    def _length(self) -> None:
+        head, tail, d = self.head, self.tail, self.shop.duration
+        self.length = max([head[i] + d[i] + tail[i] for i in range(len(d))], default=0.0)
+
+    def _heads(self, first: int, dirty: set[int]) -> None:
+        """Heads again from place ``first`` of the order on, for ``dirty`` steps and whatever their change reaches."""
+        jprev, jnext, d = self.shop.job_prev, self.shop.job_next, self.shop.duration
+        mprev, mnext, head, order = self.mprev, self.mnext, self.head, self.order
+        for p in range(first, len(order)):
+            if not dirty:
+                return
+            i = order[p]
+            if i not in dirty:
+                continue
+            dirty.discard(i)
+            a, b = jprev[i], mprev[i]
+            h = head[a] + d[a] if a >= 0 else 0.0
+            if b >= 0 and head[b] + d[b] > h:
+                h = head[b] + d[b]
+            if h != head[i]:
+                head[i] = h
+                if jnext[i] >= 0:
+                    dirty.add(jnext[i])
+                if mnext[i] >= 0:
+                    dirty.add(mnext[i])
+
+    def _tails(self, last: int, dirty: set[int]) -> None:
+        """Tails again from place ``last`` of the order back, for ``dirty`` steps and whatever their change reaches."""
+        jprev, jnext, d = self.shop.job_prev, self.shop.job_next, self.shop.duration
+        mprev, mnext, tail, order = self.mprev, self.mnext, self.tail, self.order
+        for p in range(last, -1, -1):
+            if not dirty:
+                return
+            i = order[p]
+            if i not in dirty:
+                continue
+            dirty.discard(i)
+            a, b = jnext[i], mnext[i]
+            t = d[a] + tail[a] if a >= 0 else 0.0
+            if b >= 0 and d[b] + tail[b] > t:
+                t = d[b] + tail[b]
+            if t != tail[i]:
+                tail[i] = t
+                if jprev[i] >= 0:
+                    dirty.add(jprev[i])
+                if mprev[i] >= 0:
+                    dirty.add(mprev[i])
+
+    def swap(self, u: int, v: int) -> bool:
+        """``u`` just before ``v`` on their device: ``v`` before ``u``, the order and the paths kept up to date
+        (Pearce and Kelly's reordering of the steps between them). False, and nothing changed, if that would
+        close a cycle: another path from ``u`` to ``v`` (steps of no length tie paths)."""
+        jprev, jnext = self.shop.job_prev, self.shop.job_next
+        mprev, mnext, rank, order = self.mprev, self.mnext, self.rank, self.order
+        a, b = mprev[u], mnext[v]
+        lo, hi = rank[u], rank[v]
+        # the steps after u (by the arcs as they will be) placed no later than v: reaching v is a cycle
+        after, stack = {u}, [jnext[u], b]
+        while stack:
+            i = stack.pop()
+            if i < 0 or i in after or rank[i] > hi:
+                continue
+            if i == v:
+                return False
+            after.add(i)
+            stack += (jnext[i], mnext[i])
+        before, stack = {v}, [jprev[v], a]  # the steps before v placed no earlier than u
+        while stack:
+            i = stack.pop()
+            if i < 0 or i in before or rank[i] < lo:
+                continue
+            before.add(i)
+            stack += (jprev[i], mprev[i])  # u is not among them: the search after u would have met v
+        # the arcs: a -> v -> u -> b for a -> u -> v -> b
+        if a >= 0:
+            mnext[a] = v
+        mprev[v], mnext[v], mprev[u], mnext[u] = a, u, v, b
+        if b >= 0:
+            mprev[b] = u
+        seq, pu = self.seqs[self.machine[u]], self.pos[u]
+        seq[pu], seq[pu + 1] = v, u
+        self.pos[u], self.pos[v] = pu + 1, pu
+        places = sorted(rank[i] for i in before) + sorted(rank[i] for i in after)
+        moved = sorted(before, key=rank.__getitem__) + sorted(after, key=rank.__getitem__)
+        places.sort()
+        for p, i in zip(places, moved):
+            order[p] = i
+            rank[i] = p
+        self._heads(places[0], {u, v} | ({b} if b >= 0 else set()))
+        self._tails(places[-1], {u, v} | ({a} if a >= 0 else set()))
+        self._length()
+        return True
 
     def critical_blocks(self, head: list[float], tail: list[float], length: float) -> list[list[int]]:
         """One longest path, as its runs of consecutive steps on one device."""
@@ -231,40 +314,34 @@ def improve(shop: Shop, orders: dict[str, list[str]], iterations: int, seed: int
         moves = _moves(blocks, shop.job)
         if not moves:
             break
-        allowed, forbidden = [], []
+        allowed: list[tuple[float, int, int]] = []
+        forbidden: list[tuple[float, int, int]] = []
         for u, v in moves:
             cost = _estimate(o, head, tail, u, v)
             (forbidden if tabu.get((v, u), 0) > it and cost >= best - EPS else allowed).append((cost, u, v))
         # every move tabu: the one whose ban ends first
         ranked = sorted(allowed) + sorted(forbidden, key=lambda m: tabu[m[2], m[1]])
         for _, u, v in ranked:
-            o.swap(u, v)
-            ht = o.heads_tails()
-            if ht is not None:
+            if o.swap(u, v):  # not if it would close a cycle: then the next best
                 break
-            o.swap(v, u)  # a cycle: another path from u to v (steps of no length tie with the one swapped)
         else:
             break
         tabu[(u, v)] = it + tenure + rng.randrange(tenure + 1)
-        head, tail, length = ht
+        head, tail, length = o.head, o.tail, o.length
         if length < best - EPS:
             best, best_seqs, stall = length, [list(seq) for seq in o.seqs], 0
             continue
         stall += 1
         if stall >= stall_limit:  # from the best again, shaken
             o = _Orders(shop, [list(seq) for seq in best_seqs])
-            head, tail, length = o.heads_tails()  # type: ignore[misc]
+            head, tail, length = o.head, o.tail, o.length
             for _ in range(3):
                 kick = _moves(o.critical_blocks(head, tail, length), shop.job)
                 if not kick:
                     break
-                u, v = rng.choice(kick)
-                o.swap(u, v)
-                ht = o.heads_tails()
-                if ht is None:
-                    o.swap(v, u)
+                if not o.swap(*rng.choice(kick)):
                     break
-                head, tail, length = ht
+                head, tail, length = o.head, o.tail, o.length
             tabu.clear()
             stall = 0
     return Result({dev: [shop.tasks[i] for i in seq] for dev, seq in zip(devices, best_seqs)}, best, start, it)

@@ -256,3 +256,38 @@ def test_a_run_stopped_while_its_scheduler_plans_says_so_and_leaves_no_journal(t
     assert f"{said} while the lab was being checked and its scheduler planned it ahead: nothing ran, and no journal " \
            "was written" in " ".join(rest.split()), rest
     assert not list(tmp_path.rglob("*.db"))
+
+
+def test_the_paths_kept_up_to_date_swap_by_swap_equal_the_paths_computed_afresh():
+    """The search updates each step's earliest start and the path after it as it swaps, instead of computing them
+    all again each time: after every swap they must equal a fresh computation, and a swap it refuses as closing a
+    cycle must be one that does."""
+    from hypothesis import given, settings
+
+    from agents.order_search import _Orders
+
+    @settings(max_examples=150, deadline=None)
+    @given(shops())
+    def check_one(drawn):
+        jobs, rng = drawn
+        shop = Shop.of_jobs([[(f"e{j}s{k}", d) for k, (_, d) in enumerate(job)] for j, job in enumerate(jobs)])
+        index = {t: i for i, t in enumerate(shop.tasks)}
+        kept = _Orders(shop, [[index[t] for t in seq] for seq in list_schedule(jobs, rng).values()])
+        for _ in range(30):
+            pairs = [(seq[p], seq[p + 1]) for seq in kept.seqs for p in range(len(seq) - 1)]
+            if not pairs:
+                return
+            u, v = rng.choice(pairs)
+            swapped = [list(seq) for seq in kept.seqs]
+            for seq in swapped:
+                if u in seq:
+                    p = seq.index(u)
+                    seq[p], seq[p + 1] = v, u
+            fresh = _Orders(shop, swapped)
+            if kept.swap(u, v):
+                assert fresh.acyclic and (kept.head, kept.tail, kept.length) == (fresh.head, fresh.tail, fresh.length)
+                assert kept.seqs == fresh.seqs
+            else:
+                assert not fresh.acyclic
+
+    check_one()
