@@ -8,7 +8,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from twin.cli.common import _fail, app, console, device_app, driver_app, scheduler_app, security_app
+from twin.cli.common import (_fail, app, console, device_app, driver_app, err, exit_status, scheduler_app,
+                             security_app, sigterm_unwinds, stopped_by)
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
 from twin.core.errors import TwinError
@@ -29,12 +30,19 @@ ConnectWait = Annotated[Optional[float], typer.Option(min=0.1, max=86400, metava
 
 
 def _serving(serve, *args) -> None:
-    """Run a serve function with INFO logging; its errors end the command with one clear line."""
+    """Run a serve function with INFO logging; its errors end the command with one clear line, and so does Ctrl-C
+    or SIGTERM before it serves (while it joins the lab, or its scheduler plans the lab ahead); once it serves, they
+    end it cleanly."""
     log_to_stderr(logging.INFO)
     try:
-        serve(*args)
+        with sigterm_unwinds():
+            serve(*args)
     except TwinError as exc:
         _fail(exc)
+    except KeyboardInterrupt as stop:
+        err.print(f"{stopped_by(stop)} before it served (joining the lab, or its scheduler planning the lab ahead): "
+                  "nothing was served", highlight=False)
+        raise typer.Exit(exit_status(stop)) from None
 
 
 @device_app.command("serve")
