@@ -79,13 +79,14 @@ class Plan:
         if isinstance(self.searched, str):
             ran += f" (campaign.local_search left out: it needs {self.searched})"
         elif self.searched is not None:
-            ran += f", {lab_time(self.played_h)} as played, then {self.searched:,} tabu-search swaps on its orders"
-            ran += " (the shortest plan there is: its longest path is one job's work, or one device's with no other of " \
-                "its type)," if self.shortest \
-                else ","
-        versus = f" against the greedy run's {lab_time(self.greedy_h)}{also} (objective {gain:.1f} % lower;" \
-            if self.rollouts > 1 or self.searched is not None else " ("
-        return f"{ran} takes {lab_time(self.best_h)}{versus} {self.seconds:.1f} s of planning)"
+            shortest = (" (the shortest plan there is: its longest path is one job's work, or one device's with no "
+                        "other of its type)") if self.shortest else ""
+            ran += f", {lab_time(self.played_h)} as played, then {self.searched:,} tabu-search swaps on its orders" \
+                   f"{shortest},"
+        if self.rollouts == 1 and self.searched is None:
+            return f"{ran} takes {lab_time(self.best_h)} ({self.seconds:.1f} s of planning)"
+        return (f"{ran} takes {lab_time(self.best_h)} against the greedy run's {lab_time(self.greedy_h)}{also} "
+                f"(objective {gain:.1f} % lower; {self.seconds:.1f} s of planning)")
 
 
 def lab_time(hours: float) -> str:
@@ -145,12 +146,12 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
                 ways.count(1),
                 *((count(summaries[best], what), count(summaries[0], what)) for what in ("degraded_samples", "abandoned")))
     if s.campaign.local_search:
-        _search_orders(kept, lab, pure=fixed_routes(lab), seed=s.campaign.seed, tell=on_search)
+        _search_orders(kept, lab, fixed_routes(lab), s.campaign.seed, on_search)
         kept.seconds = time.perf_counter() - t0
     return kept
 
 
-def _search_orders(kept: Plan, lab: Scenario, pure: bool, seed: int,
+def _search_orders(kept: Plan, lab: Scenario, job_shop: bool, seed: int,
                    tell: Callable[[int, float, float], None] | None = None) -> None:
     """``campaign.local_search``: the plan's orders shortened by a tabu search (``agents.order_search``), on a job
     shop (``fixed_routes``) whose steps last as its duration models say; elsewhere the plan stays the best run's,
@@ -158,7 +159,7 @@ def _search_orders(kept: Plan, lab: Scenario, pure: bool, seed: int,
     from agents.order_search import improve, shop_of
 
     swaps = lab.campaign.local_search
-    if not pure:
+    if not job_shop:
         kept.searched = ("a job shop only (every experiment a fixed route, all in the lab from the start, no shelf "
                          "life or consumables)")
         log.warning("campaign.local_search: %d: the tabu search orders %s; the plan is the best run's as played",

@@ -134,7 +134,7 @@ def test_steps_shorter_than_their_models_leave_the_plan_as_played(shop, caplog):
     orders = RlScheduler(prepare(shop, overrides={"campaign.rollouts": 2}), str(POLICY)).follower.plan.orders
     played = Plan(orders, 1, 1.0, 1.0, 0.01, 0.01, 0.0)  # a run of 36 lab-s: far shorter than the models say
     with caplog.at_level(logging.WARNING, logger="agents.rollout_plan"):
-        _search_orders(played, prepare(shop, overrides={"campaign.local_search": 100}), pure=True, seed=0)
+        _search_orders(played, prepare(shop, overrides={"campaign.local_search": 100}), job_shop=True, seed=0)
     assert played.orders == orders and "duration models" in caplog.text and isinstance(played.searched, str)
 
 
