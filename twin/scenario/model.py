@@ -197,8 +197,9 @@ class Campaign(Spec):
     local_search: int = Field(default=0, ge=0, le=1_000_000, description="the rl scheduler's plan of a job shop "
                               "(every experiment a fixed route, all in the lab from the start, no shelf life or "
                               "consumables): this many tabu-search swaps of two steps on "
-                              "the best run's longest path, each device's order kept as it is shortened (about a "
-                              "second per 10,000 swaps on a 10x10 shop); 0: the best run's orders as played")
+                              "the best run's longest path (the greedy run's with rollouts 1), and the lab follows "
+                              "the shortened orders (about half a second per 10,000 swaps on a 10x10 shop); 0: the "
+                              "best run's orders as played")
     give_up_after_s: float = Field(default=4 * 3600, gt=0, le=MAX_S, description="lab seconds the experiments "
                                    "that need a device type wait when none of its instances is usable (lost, "
                                    "quarantined) before they are abandoned; an instance that comes back resumes them")
