@@ -97,33 +97,22 @@ class _Orders:
         """Everything computed afresh (Kahn's order); False for orders that close a cycle."""
         s = self.shop
         n = len(s.tasks)
-        jprev, jnext, d, mprev, mnext = s.job_prev, s.job_next, s.duration, self.mprev, self.mnext
-        indegree = [(jprev[i] >= 0) + (mprev[i] >= 0) for i in range(n)]
+        indegree = [(s.job_prev[i] >= 0) + (self.mprev[i] >= 0) for i in range(n)]
         order = [i for i in range(n) if not indegree[i]]
-        head = [0.0] * n
         for i in order:  # the list grows as steps become free: a breadth-first topological order
-            end = head[i] + d[i]
-            j = jnext[i]
-            if j >= 0:
-                if end > head[j]:
-                    head[j] = end
-                indegree[j] -= 1
-                if not indegree[j]:
-                    order.append(j)
-            j = mnext[i]
-            if j >= 0:
-                if end > head[j]:
-                    head[j] = end
-                indegree[j] -= 1
-                if not indegree[j]:
-                    order.append(j)
+            for j in (s.job_next[i], self.mnext[i]):
+                if j >= 0:
+                    indegree[j] -= 1
+                    if not indegree[j]:
+                        order.append(j)
         if len(order) < n:
             return False
-        self.order, self.head = order, head
+        self.order = order
         self.rank = [0] * n
         for r, i in enumerate(order):
             self.rank[i] = r
-        self.tail = [0.0] * n
+        self.head, self.tail = [0.0] * n, [0.0] * n
+        self._heads(0, set(range(n)))
         self._tails(n - 1, set(range(n)))
         self._length()
         return True
@@ -134,47 +123,39 @@ class _Orders:
 
     def _heads(self, first: int, dirty: set[int]) -> None:
         """Heads again from place ``first`` of the order on, for ``dirty`` steps and whatever their change reaches."""
-        jprev, jnext, d = self.shop.job_prev, self.shop.job_next, self.shop.duration
-        mprev, mnext, head, order = self.mprev, self.mnext, self.head, self.order
-        for p in range(first, len(order)):
-            if not dirty:
-                return
-            i = order[p]
-            if i not in dirty:
-                continue
-            dirty.discard(i)
-            a, b = jprev[i], mprev[i]
-            h = head[a] + d[a] if a >= 0 else 0.0
-            if b >= 0 and head[b] + d[b] > h:
-                h = head[b] + d[b]
-            if h != head[i]:
-                head[i] = h
-                if jnext[i] >= 0:
-                    dirty.add(jnext[i])
-                if mnext[i] >= 0:
-                    dirty.add(mnext[i])
+        s = self.shop
+        self._relax(range(first, len(self.order)), dirty, self.head, (s.job_prev, self.mprev), (s.job_next, self.mnext))
 
     def _tails(self, last: int, dirty: set[int]) -> None:
         """Tails again from place ``last`` of the order back, for ``dirty`` steps and whatever their change reaches."""
-        jprev, jnext, d = self.shop.job_prev, self.shop.job_next, self.shop.duration
-        mprev, mnext, tail, order = self.mprev, self.mnext, self.tail, self.order
-        for p in range(last, -1, -1):
+        s = self.shop
+        self._relax(range(last, -1, -1), dirty, self.tail, (s.job_next, self.mnext), (s.job_prev, self.mprev))
+
+    def _relax(self, places: range, dirty: set[int], value: list[float], ins: tuple[list[int], list[int]],
+               outs: tuple[list[int], list[int]]) -> None:
+        """``value`` (heads, or tails) of the ``dirty`` steps again, in the order's ``places``: the most of a
+        neighbour's value plus its duration over the step's neighbours ``ins`` (job's, device's); a step whose value
+        changes makes its neighbours ``outs`` dirty."""
+        d, order = self.shop.duration, self.order
+        job_in, device_in = ins
+        job_out, device_out = outs
+        for p in places:
             if not dirty:
                 return
             i = order[p]
             if i not in dirty:
                 continue
             dirty.discard(i)
-            a, b = jnext[i], mnext[i]
-            t = d[a] + tail[a] if a >= 0 else 0.0
-            if b >= 0 and d[b] + tail[b] > t:
-                t = d[b] + tail[b]
-            if t != tail[i]:
-                tail[i] = t
-                if jprev[i] >= 0:
-                    dirty.add(jprev[i])
-                if mprev[i] >= 0:
-                    dirty.add(mprev[i])
+            a, b = job_in[i], device_in[i]
+            x = value[a] + d[a] if a >= 0 else 0.0
+            if b >= 0 and value[b] + d[b] > x:
+                x = value[b] + d[b]
+            if x != value[i]:
+                value[i] = x
+                if job_out[i] >= 0:
+                    dirty.add(job_out[i])
+                if device_out[i] >= 0:
+                    dirty.add(device_out[i])
 
     def swap(self, u: int, v: int) -> bool:
         """``u`` just before ``v`` on their device: ``v`` before ``u``, the order and the paths kept up to date
