@@ -279,7 +279,9 @@ def improve(shop: Shop, orders: dict[str, list[str]], iterations: int, seed: int
     rng = random.Random(seed)
     n_ops, n_dev = len(shop.tasks), max(1, len(devices))
     tenure = 2 + n_ops // n_dev // 2
-    stall_limit = max(200, 2 * n_ops)
+    # swaps without a better plan before a restart: 8 per step (34 reference shops, 10,000 swaps, three seeds: 1.27 %
+    # from the optimum, against 1.43 with 4 and 1.68 with 2; 100,000 swaps 0.40 against 0.96 with 2)
+    stall_limit = max(200, 8 * n_ops)
     tabu: dict[tuple[int, int], int] = {}
     stall = 0
     it = 0
