@@ -83,12 +83,6 @@ class _Orders:
                 self.mnext[a] = b
         self.acyclic = self._full()
 
-    def prev(self, i: int) -> int:
-        return self.mprev[i]
-
-    def next(self, i: int) -> int:
-        return self.mnext[i]
-
     def heads_tails(self) -> tuple[list[float], list[float], float] | None:
         """Each step's earliest start and the longest path after its end; the longest path. None for a cycle."""
         return (self.head, self.tail, self.length) if self.acyclic else None
@@ -191,9 +185,8 @@ class _Orders:
         seq, pu = self.seqs[self.machine[u]], self.pos[u]
         seq[pu], seq[pu + 1] = v, u
         self.pos[u], self.pos[v] = pu + 1, pu
-        places = sorted(rank[i] for i in before) + sorted(rank[i] for i in after)
+        places = sorted(rank[i] for i in before | after)
         moved = sorted(before, key=rank.__getitem__) + sorted(after, key=rank.__getitem__)
-        places.sort()
         for p, i in zip(places, moved):
             order[p] = i
             rank[i] = p
@@ -213,7 +206,7 @@ class _Orders:
         while True:
             end = head[i] + d[i]
             nxt = -1
-            for j, same in ((self.next(i), True), (s.job_next[i], False)):
+            for j, same in ((self.mnext[i], True), (s.job_next[i], False)):
                 if j >= 0 and abs(head[j] - end) <= tol and abs(head[j] + d[j] + tail[j] - length) <= tol:
                     nxt = j
                     break
@@ -247,7 +240,7 @@ def _estimate(o: _Orders, head: list[float], tail: list[float], u: int, v: int) 
     """The longest path through ``u`` or ``v`` once ``v`` goes before ``u`` (Taillard's estimate; exact for a path
     through them)."""
     s, d = o.shop, o.shop.duration
-    a, b = o.prev(u), o.next(v)
+    a, b = o.mprev[u], o.mnext[v]
     pu, pv, su, sv = s.job_prev[u], s.job_prev[v], s.job_next[u], s.job_next[v]
     hv = max(head[pv] + d[pv] if pv >= 0 else 0.0, head[a] + d[a] if a >= 0 else 0.0)
     hu = max(head[pu] + d[pu] if pu >= 0 else 0.0, hv + d[v])

@@ -109,7 +109,7 @@ class RlScheduler:
         from agents.rollout_plan import lab_time, plan
 
         asked = scenario.campaign.plays_ahead
-        off = "campaign.rollouts: 1" if scenario.campaign.rollouts > 1 else "campaign.local_search: 0"
+        off = scenario.campaign.decides_as_it_goes
         if not isinstance(self.encoder, candidates.CandidateEncoder):
             raise PluginError(f"{asked}: {path} reads labs as fixed slots (the earlier kind of policy), and only a "
                               "policy that scores candidates plays a lab ahead: train one with `twin train SCENARIO`, "

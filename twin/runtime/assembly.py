@@ -335,7 +335,7 @@ def _plays_ahead(s: Scenario, spec: str) -> None:
     ahead: refused unless it can."""
     if not plays_ahead(spec):
         asked = s.campaign.plays_ahead
-        off = "campaign.rollouts: 1" if s.campaign.rollouts > 1 else "campaign.local_search: 0"
+        off = s.campaign.decides_as_it_goes
         raise PluginError(f"{asked}: only the rl scheduler plays a lab ahead, and {spec!r} decides as the lab goes; "
                           f"set {off}, or --scheduler rl:POLICY.zip")
 

@@ -217,6 +217,11 @@ class Campaign(Spec):
             return f"campaign.rollouts: {self.rollouts}"
         return f"campaign.local_search: {self.local_search}" if self.local_search else ""
 
+    @property
+    def decides_as_it_goes(self) -> str:
+        """The setting that stops ``plays_ahead``'s asking (``campaign.rollouts: 1``)."""
+        return "campaign.rollouts: 1" if self.rollouts > 1 else "campaign.local_search: 0"
+
 
 class ClockSpec(Spec):
     mode: Literal["virtual", "scaled", "wall"] = Field(default="virtual", description="virtual: as fast as the CPU "
