@@ -37,7 +37,7 @@ def lockstep(lab: Scenario, scorer: torch.nn.Module, k: int, temperatures: tuple
     for encoder, _ in runs:
         encoder.held = held
     try:
-        live = list(range(k))
+        live = [i for i in range(k) if not runs[i][1].done]  # a lab that ends before any decision asks none
         while live:
             encoded = [runs[i][0].encode(runs[i][1].view) for i in live]
             mask = torch.as_tensor(np.stack([m for _, m in encoded]))

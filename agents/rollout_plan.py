@@ -166,6 +166,13 @@ def _search_orders(kept: Plan, lab: Scenario, job_shop: bool, seed: int,
                     swaps, kept.searched)
         return
     shop = shop_of(lab)
+    planned = {task for tasks in kept.orders.values() for task in tasks}
+    if planned != set(shop.tasks):  # an experiment the run abandoned (refused, infeasible) has steps no device ran
+        kept.searched = (f"a run that started every step, and the best run started {len(planned)} of the shop's "
+                         f"{len(shop.tasks)} (it abandoned experiments)")
+        log.warning("campaign.local_search: %d: the tabu search needs %s; the plan is the best run's as played",
+                    swaps, kept.searched)
+        return
     played_s = kept.best_h * 3600
     kinds = {name: dtype for dtype in lab.devices for name in lab.instance_names(dtype)}
     found = improve(shop, kept.orders, swaps, seed, None if tell is None else
