@@ -2,6 +2,7 @@
 search said, on labs it may search, and says why it did not search elsewhere."""
 
 import logging
+import statistics
 import random
 from pathlib import Path
 
@@ -300,3 +301,36 @@ def test_the_paths_kept_up_to_date_swap_by_swap_equal_the_paths_computed_afresh(
                 assert not fresh.acyclic
 
     check_one()
+
+
+def test_a_lab_whose_every_experiment_is_abandoned_is_planned_without_a_crash_and_the_search_says_why(shop, capsys):
+    """A lab whose experiments the planner's checks all refuse (a parameter no proposal gives) asks no decision:
+    playing it ahead crashed on a view it never had ('NoneType' object has no attribute 'now')."""
+    refused = prepare(shop, overrides={"chemistry.parameters": {"strength": {"low": 0, "high": 1}}})
+    assert RlScheduler(prepare(refused, overrides={"campaign.rollouts": 4}), str(POLICY)).follower.plan.best_h == 0
+    plan = RlScheduler(prepare(refused, overrides={"campaign.local_search": 100}), str(POLICY)).follower.plan
+    assert isinstance(plan.searched, str) and "the best run started 0 of the shop's 60" in plan.searched
+    assert "campaign.local_search left out: it needs a run that started every step" in capsys.readouterr().err
+
+
+def test_a_labs_typical_step_on_fixed_routes_is_what_its_devices_take(tmp_path):
+    """A lab of fixed routes whose steps last what their devices' duration models say (not a job-shop file's
+    `duration_s`) had a typical step of 1e-6 lab-s: every time feature the policy reads was scaled by it, and a
+    scaled clock warned of steps of "0.0 lab-s"."""
+    import yaml
+
+    from twin.scenario.objective import typical_step
+
+    routes = [{"params": {"extra_s": 10}, "route": [{"step": "bake", "device": "oven"}, {"step": "look", "device": "camera"}]},
+              {"params": {"extra_s": 0}, "route": [{"step": "bake", "device": "oven", "params": {"extra_s": 30}}]}]
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump({
+        "name": "bakery", "lab": "bakery",
+        "devices": {"oven": {"driver": "machine", "steps": ["bake"], "setup_s": 4,
+                             "duration": {"mean_s": 20, "cv": 0, "plus_param": "extra_s"}},
+                    "camera": {"driver": "machine", "steps": ["look"], "duration": {"mean_s": 6, "cv": 0}}},
+        "workflow": [{"step": "bake", "device": "oven"}],
+        "chemistry": {"model": "none", "parameters": {"extra_s": {"low": 0, "high": 100}}},
+        "campaign": {"planner": "fixed", "budget": 2, "max_in_flight": 2, "planner_options": {"proposals": routes}}}))
+    assert typical_step(prepare(tmp_path / "lab.yaml")) == pytest.approx((34 + 6 + 54) / 3)  # 20+4+10; 6; 20+4+30
+    assert typical_step(prepare(ROOT / "scenarios" / "jobshop.yaml")) == pytest.approx(
+        statistics.mean(d for job in read(ROOT / "scenarios" / "jobshop" / "ft06.txt").jobs for _, d in job))

@@ -25,8 +25,14 @@ def typical_step(s: Scenario) -> float | None:
     if s.campaigns:
         return statistics.mean(time_scale(c) for c in campaign_scenarios(s, s.name).values())
     durations = []
-    for p in s.campaign.planner_options.get("proposals", []):  # a job shop's fixed routes
-        durations += [float(step.get("params", {}).get("duration_s", 0.0)) for step in p.get("route", [])]
+    for p in s.campaign.planner_options.get("proposals", []):  # fixed routes (a job shop's): each step on its device
+        for step in p.get("route") or []:
+            d = s.devices.get(step.get("device"))
+            try:
+                durations.append(expected_duration(d.duration, {**p.get("params", {}), **step.get("params", {})},
+                                                   d.setup_s, d.clean_s))
+            except (AttributeError, TypeError, ValueError):  # a step the planner's checks refuse, by name
+                continue
     if not durations:
         for w in s.workflow:
             d = s.devices[w.device]
