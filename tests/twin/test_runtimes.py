@@ -135,3 +135,50 @@ def test_an_rl_agent_asked_in_process_decides_as_it_does_over_the_bus(tmp_path):
                agent_in_process=True)
     assert here.decisions > 20 and lab_facts(here) == lab_facts(bus)
     assert journal(tmp_path / "here.db")[1] == journal(tmp_path / "bus.db")[1]  # every experiment, as it ended
+
+
+class MeasuresAfterIo:
+    """The shipped spectrometer behind a call in a thread (a vendor's SDK): only the asyncio runtime can serve it."""
+
+    def __init__(self, setup):
+        from devices.spectrometer import Spectrometer
+
+        self.inner = Spectrometer(setup)
+        self.capabilities, self.outputs = self.inner.capabilities, self.inner.outputs
+
+    async def run(self, step, params, sample, ctx):
+        import asyncio
+
+        await asyncio.to_thread(lambda: None)
+        return await self.inner.run(step, params, sample, ctx)
+
+    async def safe_state(self):
+        pass
+
+
+def test_a_lab_of_several_campaigns_runs_a_driver_the_fast_runtime_cannot_on_the_asyncio_one(tmp_path, caplog):
+    """A lab file with campaigns ran only on the fast runtime in virtual time: such a driver stopped it, with advice
+    (--runtime asyncio) that changed nothing. Now auto runs it again on the asyncio runtime from the start, as a
+    single campaign does, and --runtime asyncio runs it there at once: the same journals as a lab of drivers that
+    keep to the lab clock."""
+    from tests.twin.shared_labs import LAB, SMALL, journal_tables
+    from twin.runtime.lab import prepare
+    from twin.runtime.shared_run import run_shared
+
+    plain = prepare(LAB, seed=3, overrides=SMALL)
+    sdk = prepare(LAB, seed=3, overrides={**SMALL, "devices.spectrometer.driver":
+                                          "tests.twin.test_runtimes:MeasuresAfterIo"})
+    expected = run_shared(plain, tmp_path / "plain", handle_signals=False)
+    with pytest.raises(DriverError, match=r"spectrometer: the spectrometer driver awaited .* --runtime asyncio"):
+        run_shared(sdk, tmp_path / "fast", handle_signals=False, runtime="fast")
+    with caplog.at_level("WARNING", logger="twin.runtime.fallback"):
+        auto = run_shared(sdk, tmp_path / "auto", handle_signals=False)
+    said = [r.getMessage() for r in caplog.records if r.name == "twin.runtime.fallback"]
+    assert len(said) == 1 and "running the lab again, from the start, on the asyncio runtime" in said[0]
+    direct = run_shared(sdk, tmp_path / "asyncio", handle_signals=False, runtime="asyncio")
+    tables = journal_tables(tmp_path / "plain")
+    assert sum(c.done for c in expected.campaigns.values()) == 10
+    for out, where in ((auto, "auto"), (direct, "asyncio")):
+        assert out.lab_hours == expected.lab_hours
+        assert {n: c.done for n, c in out.campaigns.items()} == {n: c.done for n, c in expected.campaigns.items()}
+        assert journal_tables(tmp_path / where) == tables

@@ -374,3 +374,32 @@ def test_a_plan_is_told_once_by_the_command_not_by_every_workers_run(tmp_path):
     assert 1 <= done.stderr.count("rl: playing la02") <= 2, done.stderr  # the command's check of each plan it makes
     assert done.stderr.count("tabu-search swaps on its orders") == done.stderr.count("rl: playing la02")
     assert "300 " in done.stdout and "lab-s" in done.stdout
+
+
+@pytest.mark.process
+def test_a_driver_the_fast_runtime_cannot_run_is_said_once_by_the_command_not_by_every_run(tmp_path):
+    """Every worker's run of a lab whose driver calls an SDK in a thread said that the fast runtime could not run
+    it and that the campaign ran again on the asyncio runtime: 2 variants × 3 seeds printed it six times. The
+    workers now hand it to the command, which says it once (for a lab of several campaigns too)."""
+    import os
+    import subprocess
+    import sys
+
+    import yaml
+
+    from tests.twin.test_device_twins import sdk_lab
+
+    single = tmp_path / "sdk.yaml"
+    single.write_text(yaml.safe_dump(sdk_lab()))
+    shared = yaml.safe_load((ROOT / "scenarios" / "shared_lab.yaml").read_text())
+    shared["devices"]["spectrometer"]["driver"] = "tests.twin.test_runtimes:MeasuresAfterIo"
+    for c, budget in zip(shared["campaigns"], (4, 3)):
+        c["campaign"]["budget"] = budget
+    (tmp_path / "shared.yaml").write_text(yaml.safe_dump(shared))
+    for lab, vary in ((single, "devices.synthesiser.instances=1,2"), (tmp_path / "shared.yaml",
+                                                                      "devices.reactor.instances=1,2")):
+        done = subprocess.run([sys.executable, "-m", "twin", "whatif", str(lab), "--vary", vary, "--seeds", "3"],
+                              capture_output=True, text=True, cwd=ROOT, timeout=180, env={**os.environ, "COLUMNS": "80"})
+        assert done.returncode == 0, done.stderr
+        assert done.stderr.count("awaited an asyncio future") == 1, done.stderr
+        assert "on the asyncio runtime" in done.stderr and "*: the scenario as written" in done.stdout

@@ -104,7 +104,7 @@ def run(
         err.print(f"the clock is virtual, so twins stand in: {', '.join(twins)} (devices.*.twin; --clock scaled "
                   "runs the lab's own drivers)", highlight=False)
     if s.campaigns:
-        shared_lab(s, journal, record, quiet, json_out, external)
+        shared_lab(s, journal, record, quiet, json_out, external, runtime=runtime)
         return
     try:
         with sigterm_unwinds():  # the check makes the scheduler, which may plan the lab ahead for a while
@@ -147,7 +147,7 @@ def resume(
         except TwinError as exc:
             _fail(exc)
         shared_lab(s, None, RecordOptions(save, viewer, serve, serve_port, web_port), quiet, json_out, None,
-                   resuming=journal)
+                   resuming=journal, runtime=runtime)
         return
     try:
         s, prefix = recorded(journal)

@@ -24,20 +24,27 @@ from twin.view.watch import RecordOptions, open_lab_observer
 
 
 def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: bool, json_out: bool,
-               external: list[str] | None, resuming: Path | None = None) -> None:
+               external: list[str] | None, resuming: Path | None = None, runtime: str = "auto") -> None:
     """``twin run LAB.yaml`` (or, with ``resuming``, ``twin resume`` of its journals' directory)."""
     log_to_stderr(logging.WARNING)
     recording = None
+
+    def reopen():
+        """A recording of the lab from its start (again, when the lab runs again on another runtime)."""
+        nonlocal recording
+        if recording is not None:
+            recording.close()
+            recording.stop_serving()
+        devices = {name: dtype for dtype in s.devices for name in s.instance_names(dtype)}
+        observer, recording = open_lab_observer(record, recording_id(s), [c.name for c in s.campaigns], devices)
+        for message in recording.messages:
+            err.print(message, highlight=False)
+        return observer
+
     try:
         if s.campaigns or resuming is None:  # a served lab resumed may have had none yet
             check(s, external or ())
-        observer = None
-        if record.wanted:
-            devices = {name: dtype for dtype in s.devices for name in s.instance_names(dtype)}
-            observer, recording = open_lab_observer(record, recording_id(s), [c.name for c in s.campaigns],
-                                                    devices)
-            for message in recording.messages:
-                err.print(message, highlight=False)
+        observer = reopen() if record.wanted else None
         if not quiet and not json_out:
             how = (f"{s.name}: {len(s.campaigns)} campaigns sharing the lab" if resuming is None else
                    f"resuming {resuming}: the lab re-runs and each campaign's recorded events are checked"
@@ -46,9 +53,10 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
             names = ", ".join(c.name for c in s.campaigns) or "no campaign of its file"
             err.print(f"{how} ({names}), {s.clock.mode} clock …", highlight=False)
         if resuming is not None:
-            summary = resume_lab(resuming, observer=observer, on_start=_resumed)
+            summary = resume_lab(resuming, observer=observer, on_start=_resumed, runtime=runtime, reopen=reopen)
         else:
-            summary = run_shared(s, journal, external_devices=set(external or ()), observer=observer)
+            summary = run_shared(s, journal, external_devices=set(external or ()), observer=observer,
+                                 runtime=runtime, reopen=reopen)
     except TwinError as exc:
         if recording is not None:
             recording.stop_serving()

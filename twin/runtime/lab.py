@@ -38,6 +38,9 @@ from twin.view.observer import LabObserver
 from twin.view.watch import RecordOptions, open_observer
 
 log = logging.getLogger(__name__)
+#: The fast runtime refusing a driver, and the campaign run again on the asyncio runtime: a bench's or a what-if's
+#: workers, whose every run would say it, hand it to the command, which says it once (``twin.tools.pool``)
+FALLBACK_LOGGER = "twin.runtime.fallback"
 
 
 WALL_CLOCK_FIELDS = ("wall_s", "journal", "decision_ms")  # differ between identical runs
@@ -121,7 +124,8 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
             except FastRuntimeRefused as exc:
                 if runtime == "fast":
                     raise
-                log.warning("%s — running the campaign again, from the start, on the asyncio runtime", exc)
+                logging.getLogger(FALLBACK_LOGGER).warning(
+                    "%s — running the campaign again, from the start, on the asyncio runtime", exc)
                 if recording is not None:  # the recording starts again with the campaign
                     recording.close()
                     recording.stop_serving()

@@ -65,8 +65,10 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
 
 
 def resume_lab(path: str | Path, handle_signals: bool = True, observer: SharedLabObserver | None = None,
-               on_start: Callable[[Any], None] | None = None) -> LabSummary:
-    """Continue a killed virtual-time lab from its journals (``twin resume JOURNALS/``); see the module."""
+               on_start: Callable[[Any], None] | None = None, runtime: str = "auto",
+               reopen: Callable[[], SharedLabObserver] | None = None) -> LabSummary:
+    """Continue a killed virtual-time lab from its journals (``twin resume JOURNALS/``); see the module.
+    ``runtime`` and ``reopen``: as ``run_shared`` takes them, for the re-run of a virtual-time lab."""
     from twin.runtime.shared_run import run_shared
 
     where = Path(path)
@@ -82,7 +84,8 @@ def resume_lab(path: str | Path, handle_signals: bool = True, observer: SharedLa
         return checked[p.stem]
 
     try:
-        summary = run_shared(s, resuming, handle_signals=handle_signals, observer=observer, make_journal=make)
+        summary = run_shared(s, resuming, handle_signals=handle_signals, observer=observer, make_journal=make,
+                             runtime=runtime, reopen=reopen)
         for name, prefix in prefixes.items():
             done = checked[name].checked if name in checked else 0
             if done < len(prefix):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import time
 from collections.abc import Callable, Collection
 from typing import Any
@@ -13,14 +14,15 @@ from twin.campaign.sharing import SharedLab
 from twin.campaign.summary import LabSummary, Summary
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError, PluginError, TwinError
+from twin.runtime.fast_device import FastRuntimeRefused
 from twin.runtime.fast_lab import FastLab
 from twin.runtime.lab_claim import refuse_if_taken
 from twin.campaign.journal import Journal
 from twin.campaign.lab_replay import RebuiltLab
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_driver,
                                    load_drivers, make_bus, make_clock, make_planner, make_scheduler)
-from twin.runtime.lab import (JournalFactory, default_journals, finish, flush_live, noted, open_journal, refuse_realtime,
-                              stop_on_loop_signals, stop_on_signals)
+from twin.runtime.lab import (FALLBACK_LOGGER, RUNTIMES, JournalFactory, default_journals, finish, flush_live, noted,
+                              open_journal, refuse_realtime, stop_on_loop_signals, stop_on_signals)
 from twin.runtime.checks import check_campaign
 from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.labtime import LabTimeSource
@@ -38,14 +40,21 @@ LAB_INPUTS = "lab.inputs"  # beside the campaigns' journals: what a live lab was
 
 def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: bool = True,
                external_devices: Collection[str] = frozenset(),
-               observer: SharedLabObserver | None = None, make_journal: JournalFactory = Journal) -> LabSummary:
+               observer: SharedLabObserver | None = None, make_journal: JournalFactory = Journal,
+               runtime: str = "auto", reopen: Callable[[], SharedLabObserver] | None = None) -> LabSummary:
     """Every campaign of ``s`` on its shared lab; each writes ``<journals>/<campaign>.db``. Virtual time on the
-    fast runtime; a scaled or wall clock on the asyncio runtime, over the scenario's bus, with
-    ``external_devices`` served by other processes (``twin device serve``). ``observer`` (``open_lab_observer``)
-    is handed what the lab and each campaign do as it happens."""
+    fast runtime (``runtime`` auto or fast; auto runs the lab again on the asyncio runtime if a driver needs it,
+    with a new observer from ``reopen``); a scaled or wall clock, or ``runtime`` asyncio, on the asyncio runtime,
+    over the scenario's bus, with ``external_devices`` served by other processes (``twin device serve``).
+    ``observer`` (``open_lab_observer``) is handed what the lab and each campaign do as it happens."""
+    if runtime not in RUNTIMES:
+        raise TwinError(f"unknown runtime {runtime!r}: use one of {', '.join(RUNTIMES)}")
     if external_devices and s.clock.mode == "virtual":
         raise ClockError(f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
                          "see messages in flight: use --clock scaled or --clock wall")
+    if runtime == "fast" and s.clock.mode != "virtual":
+        raise ClockError(f"the fast runtime cannot run this lab: the clock is {s.clock.mode} (the fast runtime keeps "
+                         "virtual time only). Use --runtime asyncio (or auto).")
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
     _refuse_agents(scenarios)
@@ -57,19 +66,36 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
     where.mkdir(parents=True, exist_ok=True)
     parts = {name: _parts(cs, where / f"{name}.db", external_devices, s, make_journal)
              for name, cs in scenarios.items()}
-    if s.clock.mode == "virtual":
-        lab: Any = FastLab(s, scenarios, drivers, per_device, parts, observer=observer,
-                           lab_scheduler=one)
-        with stop_on_signals(lab.stop, handle_signals):
-            try:
-                lab.run()
-            finally:
-                notes = {n: noted(parts[n][0], observer.campaign(n), lab.now) for n in parts} if observer else None
-                summaries = lab_summaries(lab.shared, parts, wall0, lab.now, notes)
-        return lab_summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
+    if s.clock.mode == "virtual" and runtime != "asyncio":
+        try:
+            return _fast(s, scenarios, drivers, per_device, parts, where, wall0, handle_signals, observer, one)
+        except FastRuntimeRefused as exc:
+            if runtime == "fast":
+                raise
+            logging.getLogger(FALLBACK_LOGGER).warning(
+                "%s — running the lab again, from the start, on the asyncio runtime", exc)
+        for journal, _, _ in parts.values():
+            journal.close()
+        drivers, per_device = shared_drivers(scenarios, skip=external_devices)  # afresh: the first run's hold state
+        parts = {name: _parts(cs, where / f"{name}.db", external_devices, s, make_journal)
+                 for name, cs in scenarios.items()}
+        if observer is not None and reopen is not None:  # the recording starts again with the lab
+            observer = reopen()
     clock = make_clock(s)
     return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals,
                            observer=observer, external=external_devices))
+
+
+def _fast(s: Scenario, scenarios: dict[str, Scenario], drivers: list, per_device: dict, parts: dict, where: Path,
+          wall0: float, handle_signals: bool, observer: SharedLabObserver | None, one: Any) -> LabSummary:
+    lab = FastLab(s, scenarios, drivers, per_device, parts, observer=observer, lab_scheduler=one)
+    with stop_on_signals(lab.stop, handle_signals):
+        try:
+            lab.run()
+        finally:
+            notes = {n: noted(parts[n][0], observer.campaign(n), lab.now) for n in parts} if observer else None
+            summaries = lab_summaries(lab.shared, parts, wall0, lab.now, notes)
+    return lab_summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
 
 
 def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices: Collection[str] = frozenset(),

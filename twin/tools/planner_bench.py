@@ -22,7 +22,7 @@ from typing import Any
 from twin.campaign.events import ALERT_LOGGER
 from twin.core.plugins import CHECKS_LOGGER
 from twin.core.telling import quiet_progress
-from twin.runtime.lab import prepare, run
+from twin.runtime.lab import FALLBACK_LOGGER, prepare, run
 from twin.scenario import Scenario
 from twin.tools.pool import WorkerPool
 
@@ -93,7 +93,7 @@ def quiet_alerts() -> None:
 def bench_pool(workers: int) -> WorkerPool:
     """The worker processes of a bench (alerts quiet; Ctrl-C stops them at once); one pool serves a bench of
     several labs, which would otherwise start (and import everything in) new workers for each."""
-    return WorkerPool(workers, initializer=quiet_alerts)
+    return WorkerPool(workers, initializer=quiet_alerts, once=[FALLBACK_LOGGER])
 
 
 def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str], seeds: int, workers: int,

@@ -11,6 +11,10 @@ worker loop catches the interrupt as the run's failure and would take the next r
 (half-started, then killed when ``STOP_S`` ran out, leaving its files; or a traceback from a queue closed under
 it): a stopped worker leaves as soon as its run has unwound.
 
+What every worker would say of its runs (the fast runtime refusing a driver, each run then going on the asyncio
+runtime) is said once, by the command: the records of the loggers named in ``once`` go from the workers to the
+pool's process, which logs each distinct message once, where each worker would have printed it for every run.
+
 A run's temporary files go in a directory the pool makes and removes when it ends, whatever its workers were
 doing: a stop that lands inside ``tempfile.TemporaryDirectory()`` itself (the directory made, its removal not yet
 arranged) or during that removal, or a worker killed when ``STOP_S`` ran out, would otherwise leave them behind.
@@ -25,6 +29,8 @@ in a few hundred did it: a whatif said it had stopped and never ended).
 from __future__ import annotations
 
 import ctypes
+import logging
+import multiprocessing
 import os
 import shutil
 import signal
@@ -32,8 +38,9 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator
 from concurrent.futures import ALL_COMPLETED, FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from logging.handlers import QueueHandler, QueueListener
 from types import FrameType
 from typing import Any
 
@@ -42,11 +49,13 @@ CHECK_S = 0.1  # how often a wait for runs looks for a Ctrl-C or SIGTERM noted m
 
 
 class WorkerPool(ProcessPoolExecutor):
-    def __init__(self, workers: int, initializer: Callable[[], None] | None = None) -> None:
+    def __init__(self, workers: int, initializer: Callable[[], None] | None = None, once: Collection[str] = ()) -> None:
         self.scratch = tempfile.mkdtemp(prefix="labtwin-workers-")
+        self._said: Any = multiprocessing.Queue() if once else None
         super().__init__(max_workers=max(1, workers), initializer=_start_worker,
-                         initargs=(initializer, self.scratch, os.getpid()))
+                         initargs=(initializer, self.scratch, os.getpid(), tuple(once), self._said))
         self._signals = _NotedSignals()
+        self._listener = QueueListener(self._said, _Once()) if once else None
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
         return super().submit(_run, fn, *args, **kwargs)
@@ -78,6 +87,8 @@ class WorkerPool(ProcessPoolExecutor):
 
     def __enter__(self) -> WorkerPool:
         self._signals.note()
+        if self._listener is not None:
+            self._listener.start()
         return self
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
@@ -87,6 +98,8 @@ class WorkerPool(ProcessPoolExecutor):
             else:
                 self._stop()
         finally:
+            if self._listener is not None:  # after the workers: what they said is in the queue, before its end
+                self._listener.stop()
             shutil.rmtree(self.scratch, ignore_errors=True)
             self._signals.restore()
         if exc_type is None:
@@ -153,11 +166,29 @@ class _NotedSignals:
             signal.signal(sig, before)
 
 
-def _start_worker(then: Callable[[], None] | None, scratch: str, pool: int) -> None:
+class _Once(logging.Handler):
+    """Logs each distinct message the workers handed over once, through its own logger in this process."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._seen: set[tuple[str, str]] = set()
+
+    def emit(self, record: logging.LogRecord) -> None:
+        key = (record.name, record.getMessage())
+        if key not in self._seen:
+            self._seen.add(key)
+            logging.getLogger(record.name).handle(record)
+
+
+def _start_worker(then: Callable[[], None] | None, scratch: str, pool: int, once: tuple[str, ...], said: Any) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _exit)
     _ends_with(pool)
     tempfile.tempdir = os.environ["TMPDIR"] = scratch  # SQLite's own temporary files too
+    for name in once:
+        logger = logging.getLogger(name)
+        logger.handlers = [QueueHandler(said)]
+        logger.propagate = False
     if then is not None:
         then()
 
