@@ -125,7 +125,7 @@ def kill_all(*procs) -> None:
             proc.communicate()
 
 
-def recorded_lab(s, where: Path):
+def recorded_lab(s, where: Path, runtime: str = "auto"):
     """Run ``s`` with its recording saved, and read the recording back."""
     from tests.rrd import read_rrd
     from twin.view.watch import RecordOptions, open_lab_observer
@@ -134,7 +134,7 @@ def recorded_lab(s, where: Path):
     observer, recording = open_lab_observer(RecordOptions(save=where / "lab.rrd"), "t",
                                             [c.name for c in s.campaigns], devices)
     try:
-        out = run_shared(s, where / "runs", handle_signals=False, observer=observer)
+        out = run_shared(s, where / "runs", handle_signals=False, observer=observer, runtime=runtime)
     finally:
         recording.close()
     return out, read_rrd(where / "lab.rrd", row_ids=True)

@@ -247,7 +247,7 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
                 stack.callback(one.close)
         lab = LiveLab(s, scenarios, bus, clock, {n: seat_parts(n, scenarios[n], p) for n, p in parts.items()},
                       adopt if serving is not None else None, observer, inputs, rebuilt, one)
-        if observer is not None:
+        if observer is not None and not clock.is_virtual:  # a virtual clock has no live viewer to keep up with
             stack.callback(asyncio.ensure_future(flush_live(clock, observer)).cancel)
         try:
             for actor in actors:
