@@ -182,3 +182,26 @@ def test_a_lab_of_several_campaigns_runs_a_driver_the_fast_runtime_cannot_on_the
         assert out.lab_hours == expected.lab_hours
         assert {n: c.done for n, c in out.campaigns.items()} == {n: c.done for n, c in expected.campaigns.items()}
         assert journal_tables(tmp_path / where) == tables
+
+
+def test_a_lab_run_again_on_the_asyncio_runtime_is_recorded_from_its_start_once(tmp_path, caplog):
+    """`twin run LAB.yaml --save`: the recording of the first try (on the fast runtime, up to the driver that
+    stopped it) is replaced by the lab's run from the start, so it equals the replay of the journals."""
+    import subprocess
+    import sys
+
+    from tests.conftest import twin_cli
+    from tests.twin.shared_labs import LAB, SMALL
+
+    overrides = [a for k, v in SMALL.items() for a in ("--set", f"{k}={v}")]
+    with caplog.at_level("WARNING", logger="twin.runtime.fallback"):
+        res = twin_cli("run", LAB, *overrides, "--set",
+                       "devices.spectrometer.driver=tests.twin.test_runtimes:MeasuresAfterIo", "--bus", "memory",
+                       "--journal", tmp_path / "lab", "--save", tmp_path / "live.rrd")
+    assert res.exit_code == 0, res.output
+    assert "running the lab again, from the start, on the asyncio runtime" in caplog.text
+    assert twin_cli("replay", tmp_path / "lab", "--save", tmp_path / "replay.rrd").exit_code == 0
+    same = subprocess.run([str(Path(sys.executable).parent / "rerun"), "rrd", "compare", "--unordered",
+                           str(tmp_path / "live.rrd"), str(tmp_path / "replay.rrd")], capture_output=True, text=True,
+                          timeout=120)
+    assert same.returncode == 0, same.stdout[-2000:] + same.stderr[-2000:]
