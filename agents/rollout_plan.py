@@ -7,8 +7,8 @@ experiments, weighted by ``training.weights``) gives each device its order of st
 orders: a device starts the next step of its order as soon as that step is ready, and waits for it otherwise.
 Each step then starts no later than it did in the run planned, so a lab that keeps to the plan ends no later.
 Where the lab leaves the plan — a step the plan never held (a retry, an experiment it did not foresee), a device
-of the plan that is down, nothing running and no device's next step ready, a campaign resumed part-way — the policy
-decides from then on, greedily.
+of the plan that is down, nothing running and no device's next step ready — the policy decides from then on,
+greedily. A campaign resumed part-way keeps to the plan with the steps it has not started.
 
 A pure job shop (every experiment a fixed route, all in the lab from the start, no set-up or cleaning, nothing that
 degrades or runs out) is also played backwards: every job's route reversed, the same shop in time reversed. A run of
@@ -23,6 +23,7 @@ its best decided: such a lab (``twin.why_runs_vary``) is refused, with the field
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -218,9 +219,14 @@ def forwards(order: dict[str, list[str]], steps: list[int]) -> dict[str, list[st
     the end, job j's k-th step from the end (``e<j>s<k>``) its k-th from the start (``steps``: each job's steps)."""
     flipped = {}
     for device, tasks in order.items():
-        flipped[device] = [f"e{j}s{steps[int(j)] - 1 - int(k)}"
-                           for j, k in (task[1:].split("s", 1) for task in reversed(tasks))]
+        flipped[device] = [f"e{j}s{steps[int(j)] - 1 - k}" for j, k in map(_job_step, reversed(tasks))]
     return flipped
+
+
+def _job_step(task: str) -> tuple[str, int]:
+    """A job shop's step ``e<j>s<k>`` as (j, k)."""
+    job, k = task[1:].split("s", 1)
+    return job, int(k)
 
 
 def _keep(orders: list[dict[str, list[str]]], heartbeat: _Heartbeat, search: ActiveSearch | None, i: int,
@@ -268,17 +274,27 @@ class PlanFollower:
     queues: dict[str, deque[str]] = field(init=False)
     left: set[str] = field(init=False)  # the plan's steps not started yet
     fresh: bool = field(init=False, default=True)  # no decision asked yet
+    guessed: set[str] = field(init=False, default_factory=set)  # taken for done when a resumed campaign began
 
     def __post_init__(self) -> None:
-        self.queues = {device: deque(tasks) for device, tasks in self.plan.orders.items()}
         self.left = {task for tasks in self.plan.orders.values() for task in tasks}
+        self._queue()
+
+    def _queue(self) -> None:
+        """Each device's steps of the plan not started yet, in the plan's order."""
+        self.queues = {device: deque(t for t in tasks if t in self.left) for device, tasks in self.plan.orders.items()}
 
     def decide(self, view: LabView) -> list[Assignment] | None:
         if self.fresh:
             self.fresh = False
             if any(d.attempts for d in view.devices):  # a resumed campaign: some of the plan is done or running
-                return self._left_plan(view, "the campaign had started before the plan was made (resumed)")
+                why = self._resume(view)
+                if why:
+                    return self._left_plan(view, why)
         strays = [r.task for r in view.ready if r.task not in self.left]
+        if strays and set(strays) <= self.guessed:
+            self._unguess(strays)
+            strays = []
         if strays:
             return self._left_plan(view, f"step {strays[0]} is ready and the plan does not hold it (still)")
         online = {d.name for d in view.devices if d.online}
@@ -293,11 +309,49 @@ class PlanFollower:
                 task = queue.popleft()
                 self.left.discard(task)
                 out.append(Assignment(task, device.name))
-        if not out and ready and not any(d.busy_until is not None for d in view.devices):
-            # a plan kept to always has a step to start when nothing runs: the earliest one not started
+        if not out and ready and not self.guessed and not any(d.busy_until is not None for d in view.devices):
+            # a plan kept to always has a step to start when nothing runs: the earliest one not started (unless a
+            # step it took for done or started when the campaign resumed is in a retry's back-off)
             return self._left_plan(view, "nothing runs and no device's next step is ready (an experiment it "
                                          "counted on ended early?)")
         return out
+
+    def _resume(self, view: LabView) -> str:
+        """A campaign resumed part-way: the steps it has started come off the devices' orders, and the plan goes on
+        with the rest. A job's steps before the one ready or running are done; a job with no step ready or running
+        is taken for done, and a step running for started. Either may be retried (a deadline passed while the
+        campaign was dead): such a step, ready again, is put back where the plan had it, with its job's later
+        steps. Returns why the plan cannot go on, or ''."""
+        at: dict[str, float] = {}  # each job with a step ready or running: that step's place in the job
+        running = set()
+        for d in view.devices:
+            if d.busy_until is not None:
+                if not d.task:
+                    return f"the campaign had started before the plan was made (resumed), and {d.name} runs a step " \
+                           "the lab does not name"
+                running.add(d.task)
+        for task in [r.task for r in view.ready] + sorted(running):
+            if task not in self.left:
+                return f"the campaign resumed with step {task} ready or running, which the plan does not hold"
+            job, k = _job_step(task)
+            at[job] = min(at.get(job, k), k)
+        # a step running then may come back too: its deadline may have passed while the campaign was dead
+        self.guessed = running | {t for t in self.left if _job_step(t)[0] not in at}
+        self.left -= self.guessed | {t for t in self.left if _job_step(t)[1] < at.get(_job_step(t)[0], 0)}
+        self._queue()
+        log.info("the campaign resumed at %.0f lab-s: the plan goes on with its %d steps not started", view.now,
+                 len(self.left))
+        return ""
+
+    def _unguess(self, ready: list[str]) -> None:
+        """Steps taken for done when the campaign resumed are ready after all: they, and their jobs' later steps,
+        go back into the plan where it had them."""
+        for task in ready:
+            job, k = _job_step(task)
+            back = {t for t in self.guessed if _job_step(t)[0] == job and _job_step(t)[1] >= k}
+            self.guessed -= back
+            self.left |= back
+        self._queue()
 
     def _left_plan(self, view: LabView, why: str) -> None:
         log.warning("the lab left the plan at %.0f lab-s: %s; the policy decides from here", view.now, why)

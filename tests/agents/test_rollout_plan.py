@@ -77,7 +77,36 @@ def test_a_stray_step_or_a_device_down_ends_the_plan():
     assert follower.decide(view(["e0s0"])) is None  # e0s0 again (a retry): not in the plan any more
     assert PlanFollower(plan).decide(view(["e0s0"], m1_online=False)) is None  # m1 has e1s1 still to run
     assert PlanFollower(plan).decide(view(["e1s0"], m1_busy=False)) is None  # nothing runs: e0s0 will never come
-    assert PlanFollower(plan).decide(view(["e0s0"], attempts=3)) is None  # resumed: the plan's start is past
+    assert PlanFollower(plan).decide(view(["e0s0"], attempts=3)) is None  # resumed, m1 running a step not named
+
+
+def test_a_resumed_campaign_goes_on_with_the_steps_of_the_plan_it_had_not_started():
+    """`twin resume` of a live campaign whose rl scheduler planned it: the plan was dropped at once ("the campaign
+    had started before the plan was made"), and ft10 resumed part-way ended at 1,245 lab-s against the plan's 945.
+    A step whose deadline passed while the campaign was dead is retried after a back-off: neither ready nor running
+    when the campaign resumes, its job looks done until it comes back."""
+    from agents.rollout_plan import Plan
+
+    plan = Plan({"m0": ["e3s0", "e0s0", "e1s0", "e2s1"], "m1": ["e2s0", "e0s1", "e1s1"]}, 1, 1.0, 1.0, 1.0, 1.0, 0.0)
+
+    def view(ready, running="e0s1"):
+        steps = tuple(ReadyStep(t, int(t[1]), "op", "m0", 0.0, None, 1.0, 1.0) for t in ready)
+        devices = (DeviceState("m0", "m0", True, True, None, 3, 0, 0.0),
+                   DeviceState("m1", "m1", False, True, 9.0, 2, 0, 0.0, (), running))
+        return LabView(5.0, steps, (FreeDevice("m0", "m0"),), devices)
+
+    # job 3 has nothing ready or running (done), e0s0 and e2s0 came before steps ready or running (done), e0s1 runs
+    follower = PlanFollower(plan)
+    assert follower.decide(view(["e2s1", "e1s0"])) == [Assignment("e1s0", "m0")]
+    assert list(follower.queues["m0"]) == ["e2s1"] and list(follower.queues["m1"]) == ["e1s1"]
+    assert follower.left == {"e2s1", "e1s1"}
+    # job 3 was in a retry's back-off, not done: its step comes back where the plan had it, and the plan goes on
+    assert follower.decide(view(["e2s1", "e3s0"])) == [Assignment("e3s0", "m0")]
+    assert list(follower.queues["m0"]) == ["e2s1"] and follower.left == {"e2s1", "e1s1"}
+    assert follower.decide(view(["e0s1"], running="e2s1")) == []  # e0s1 retried: back to m1, which is busy
+    assert list(follower.queues["m1"]) == ["e0s1", "e1s1"]
+    assert follower.decide(view(["e9s9"])) is None  # a step the plan never held still ends it
+    assert PlanFollower(plan).decide(view(["e2s1", "e1s0"], running="e9s0")) is None  # a step the plan never held
 
 
 @pytest.mark.parametrize("rule", ["mwkr", "fifo", "spt"])

@@ -162,3 +162,34 @@ def test_a_campaign_still_running_is_not_resumed_a_second_time(tmp_path):
         router_proc.wait()
     assert second.returncode == 2
     assert "still running" in second.stderr and "orchestrator/alive" in second.stderr
+
+
+@pytest.mark.process
+def test_a_killed_live_job_shop_resumes_on_the_plan_its_scheduler_made(tmp_path):
+    """The rl scheduler plays a job shop ahead and the lab follows the plan. Resumed after SIGKILL, it dropped the
+    plan at once ("the campaign had started before the plan was made") and the policy decided the rest; now the
+    plan goes on with the steps not started, and those in the lab when the process died are put back where the plan
+    had them when they come back from their retries."""
+    lab = {"name": "ft06", "lab": "ft06", "jobshop": {"file": str(ROOT / "scenarios" / "jobshop" / "ft06.txt")},
+           "clock": {"mode": "scaled", "speed": 15}, "orchestrator": {"timeout_slack_s": 5},
+           "campaign": {"scheduler": f"rl:{ROOT / 'agents' / 'policies' / 'jobshop_scheduler.zip'}",
+                        "local_search": 500}}
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(lab))
+    db = tmp_path / "j.db"
+    proc = subprocess.Popen(TWIN + ["run", str(path), "--journal", str(db), "--quiet"], cwd=ROOT,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while proc.poll() is None and time.monotonic() < deadline:  # kill it with steps done and steps in the lab
+        if _count(db, "SELECT COUNT(*) FROM events WHERE kind='attempt.done'") >= 8:
+            break
+        time.sleep(0.01)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert "summary" not in read_run(db), "the campaign finished before it could be killed"
+    resumed = subprocess.run(TWIN + ["resume", str(db), "--json"], cwd=ROOT, capture_output=True, text=True,
+                             timeout=120)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert "left the plan" not in resumed.stderr, resumed.stderr[-3000:]
+    summary = json.loads(resumed.stdout)
+    assert summary["done"] == 6 and summary["abandoned"] == 0

@@ -75,6 +75,7 @@ class DeviceState:
     failures: int
     busy_s: float
     then: tuple[tuple[str, float], ...] = ()  # its running experiment's later steps, if busy
+    task: str = ""  # the step it runs now, if busy (a plan kept by the scheduler can go on after a resume)
 
 
 @dataclass(frozen=True)

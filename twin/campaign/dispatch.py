@@ -45,7 +45,7 @@ def view(now: float, ready: Iterable[Task], devices: dict[str, Device], finished
     states = tuple(
         DeviceState(d.name, d.type, d.free, d.online,
                     d.attempt.t_sent + d.attempt.task.expected_s if d.attempt else None, d.attempts, d.failures,
-                    d.busy_s, d.attempt.task.then if d.attempt else ())
+                    d.busy_s, d.attempt.task.then if d.attempt else (), d.attempt.task.id if d.attempt else "")
         for d in devs
     )
     return LabView(now, steps, free, states, finished, budget, in_lab)

@@ -358,15 +358,16 @@ class SharedLab:
             for d in self.cores[name].devices.values():
                 until = d.attempt.t_sent + d.attempt.task.expected_s if d.attempt else None
                 then = d.attempt.task.then if d.attempt else ()
+                task = d.attempt.task.id if d.attempt else ""
                 seen = states.get(d.name)
                 if seen is None:
                     states[d.name] = DeviceState(d.name, d.type, d.name in free, d.online, until, d.attempts,
-                                                 d.failures, d.busy_s, then)
+                                                 d.failures, d.busy_s, then, task)
                 else:
                     states[d.name] = dataclasses.replace(
                         seen, attempts=seen.attempts + d.attempts, failures=seen.failures + d.failures,
                         busy_s=seen.busy_s + d.busy_s, busy_until=seen.busy_until if until is None else until,
-                        then=seen.then or then)
+                        then=seen.then or then, task=seen.task or task)
         return tuple(states.values())
 
     def _answered(self, d: Decided) -> None:
