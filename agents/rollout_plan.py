@@ -23,7 +23,6 @@ its best decided: such a lab (``twin.why_runs_vary``) is refused, with the field
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections import deque
 from collections.abc import Callable

@@ -27,25 +27,35 @@ def _count(db, sql):
         return 0
 
 
-@pytest.mark.process
-def test_a_killed_live_campaign_resumes_where_it_was(tmp_path):
-    lab = qd_lab(**{"campaign.budget": 8, "clock": {"mode": "scaled", "speed": 600},
-                    "devices.spectrometer.duration": {"mean_s": 120, "cv": 0.0}})
-    path = tmp_path / "lab.yaml"
+def _killed(lab: dict, db: Path, when) -> None:
+    """``twin run`` of ``lab`` (a scenario's mapping) on journal ``db``, SIGKILLed once ``when()`` holds."""
+    path = db.with_name("lab.yaml")
     path.write_text(yaml.safe_dump(lab))
-    db = tmp_path / "j.db"
     proc = subprocess.Popen(TWIN + ["run", str(path), "--journal", str(db), "--quiet"], cwd=ROOT,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 60
-    in_lab = "SELECT COUNT(*) FROM events WHERE kind='attempt.running' AND task LIKE '%s1'"
-    while proc.poll() is None and time.monotonic() < deadline:  # kill it with a measurement in the lab
-        if _count(db, "SELECT COUNT(*) FROM events WHERE kind='experiment.done'") >= 2 and \
-                _count(db, in_lab) > _count(db, "SELECT COUNT(*) FROM events WHERE kind='attempt.done' AND task LIKE '%s1'"):
+    while proc.poll() is None and time.monotonic() < deadline:
+        if when():
             break
         time.sleep(0.01)
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     assert "summary" not in read_run(db), "the campaign finished before it could be killed"
+
+
+@pytest.mark.process
+def test_a_killed_live_campaign_resumes_where_it_was(tmp_path):
+    lab = qd_lab(**{"campaign.budget": 8, "clock": {"mode": "scaled", "speed": 600},
+                    "devices.spectrometer.duration": {"mean_s": 120, "cv": 0.0}})
+    db = tmp_path / "j.db"
+    in_lab = "SELECT COUNT(*) FROM events WHERE kind='attempt.running' AND task LIKE '%s1'"
+    measured = "SELECT COUNT(*) FROM events WHERE kind='attempt.done' AND task LIKE '%s1'"
+
+    def measuring() -> bool:  # two experiments done, and a measurement in the lab
+        return _count(db, "SELECT COUNT(*) FROM events WHERE kind='experiment.done'") >= 2 and \
+            _count(db, in_lab) > _count(db, measured)
+
+    _killed(lab, db, measuring)
     before = read_events(db)
     done_before = {e["experiment"] for e in before if e["kind"] == "experiment.done"}
 
@@ -174,19 +184,8 @@ def test_a_killed_live_job_shop_resumes_on_the_plan_its_scheduler_made(tmp_path)
            "clock": {"mode": "scaled", "speed": 15}, "orchestrator": {"timeout_slack_s": 5},
            "campaign": {"scheduler": f"rl:{ROOT / 'agents' / 'policies' / 'jobshop_scheduler.zip'}",
                         "local_search": 500}}
-    path = tmp_path / "lab.yaml"
-    path.write_text(yaml.safe_dump(lab))
     db = tmp_path / "j.db"
-    proc = subprocess.Popen(TWIN + ["run", str(path), "--journal", str(db), "--quiet"], cwd=ROOT,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 60
-    while proc.poll() is None and time.monotonic() < deadline:  # kill it with steps done and steps in the lab
-        if _count(db, "SELECT COUNT(*) FROM events WHERE kind='attempt.done'") >= 8:
-            break
-        time.sleep(0.01)
-    os.kill(proc.pid, signal.SIGKILL)
-    proc.wait()
-    assert "summary" not in read_run(db), "the campaign finished before it could be killed"
+    _killed(lab, db, lambda: _count(db, "SELECT COUNT(*) FROM events WHERE kind='attempt.done'") >= 8)
     resumed = subprocess.run(TWIN + ["resume", str(db), "--json"], cwd=ROOT, capture_output=True, text=True,
                              timeout=120)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
