@@ -55,6 +55,8 @@ def test_levels_never_go_negative_and_every_depletion_pauses_its_work_once(tmp_p
     depleted: dict[str, set[str]] = {k: set() for k in full}  # an episode's tasks that found the stock short
     episodes = dict.fromkeys(full, 0)
     starved: set[str] = set()  # tasks waiting for a refill (every stock they could use short)
+    out_since: dict[str, float] = {}
+    out_s = dict.fromkeys(full, 0.0)  # how long each stock was out, from its depletion note to its refill
     for e in events:
         d = json.loads(e["detail"]) if e["detail"] else {}
         if e["kind"] == "attempt.dispatched":
@@ -71,6 +73,7 @@ def test_levels_never_go_negative_and_every_depletion_pauses_its_work_once(tmp_p
             assert d["needed"] > d["level"]
             depleted[item].add(e["task"])
             episodes[item] += 1
+            out_since[item] = e["t_lab"]
             if "@" not in item or all(depleted[k] for k in full if "@" in k):
                 starved.add(e["task"])
         elif e["kind"] == "consumable.refilled":
@@ -79,7 +82,13 @@ def test_levels_never_go_negative_and_every_depletion_pauses_its_work_once(tmp_p
             assert d["who"] == "simulated operator" and refill_after is not None
             depleted[item] = set()
             starved = set()
+            out_s[item] += e["t_lab"] - out_since.pop(item, e["t_lab"])
+        elif e["kind"] == "campaign.summary":
+            for item, since in out_since.items():  # out still at the end
+                out_s[item] += e["t_lab"] - since
     assert all(c["left"] >= 0 for c in summary.consumables.values())
+    assert {k: c["out_h"] for k, c in summary.consumables.items()} == pytest.approx(
+        {k: v / 3600 for k, v in out_s.items()}, abs=1e-5)
     if refill_after is None and sum(episodes.values()):
         assert any(c["short"] for c in summary.consumables.values())
 

@@ -267,6 +267,29 @@ def test_set_changes_the_lab_every_variant_starts_from_and_degraded_samples_get_
     assert "degr.: samples degraded (mean)" in " ".join(out.split())
 
 
+def test_a_stock_that_runs_out_is_named_with_how_long_it_was_out(tmp_path):
+    """A lab whose vials run out, refilled after a while: the busiest device is not the whole story, so what
+    if says which stock was out and for how long (the summary's out_h), and a quicker refill shortens it."""
+    import yaml
+
+    from tests.conftest import qd_lab
+
+    lab = qd_lab(**{"campaign.budget": 12, "campaign.planner": "random", "consumables": {
+        "vials": {"unit": "vials", "level": 4, "used_by": {"measure": 1}, "simulate_refill": {"after_s": 1800}}}})
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(lab))
+    code, out = whatif(tmp_path / "lab.yaml", "--vary", "consumables.vials.simulate_refill.after_s=600", "--seeds",
+                       "3", "--json")
+    assert code == 0, out
+    rows = {r["variant"]: r for r in json.loads(out)["variants"]}
+    slow, quick = rows["as written"]["stock_out"]["vials"], rows["consumables.vials.simulate_refill.after_s=600"]
+    assert slow >= 2 * 1800 / 3600 - 1e-9 and 0 < quick["stock_out"]["vials"] < slow  # 12 vials needed, 4 a rack
+    code, out = whatif(tmp_path / "lab.yaml", "--vary", "consumables.vials.simulate_refill.after_s=600", "--seeds",
+                       "3")
+    assert f"vials was out of stock for {slow:.2f} lab-h (mean), until its refill" in " ".join(out.split())
+    code, out = whatif(FLAKY, "--vary", "devices.reactor.instances=3", "--seeds", "2")
+    assert code == 0 and "out of stock" not in out  # no stock, nothing said
+
+
 def test_a_lab_whose_samples_never_degrade_has_no_degraded_column():
     code, out = whatif(FLAKY, "--set", "chemistry.stability_s=0", "--vary", "devices.reactor.instances=3",
                        "--seeds", "2")

@@ -33,10 +33,16 @@ class Stock:
     level: float
     used: float = 0.0
     depleted: bool = False  # a step found it short: one depletion at a time, until a refill
+    out_since: float | None = None  # lab time it was found short, until the refill
+    out_s: float = 0.0  # lab seconds it was out before the last refill
     low: bool = False  # below the reorder point (said once per crossing)
     uses: dict[str, Any] = field(default_factory=dict)  # step type -> amount (number, or {fixed, per})
     item: str = ""  # the scenario's name of the item
     holder: str | None = None  # the instance whose own stock this is (None: the lab's)
+
+    def out_hours(self, now: float) -> float:
+        """Lab hours it has been out (found short, not yet refilled) up to ``now``."""
+        return (self.out_s + (now - self.out_since if self.out_since is not None else 0.0)) / 3600
 
 
 def amount(use: Any, params: dict[str, Any]) -> float:
@@ -132,13 +138,15 @@ class Stocks:
                 crossed.append(stock)
         return crossed
 
-    def refill(self, name: str, amount_: float | None) -> list[Stock]:
-        """Refill stock ``name``, or every instance's stock of item ``name``."""
+    def refill(self, name: str, amount_: float | None, now: float) -> list[Stock]:
+        """Refill stock ``name``, or every instance's stock of item ``name``, at lab time ``now``."""
         out = []
         for key in ([name] if name in self.items else self.of[name]):
             stock = self.items[key]
             stock.level = stock.full if amount_ is None else stock.level + amount_
             stock.depleted = False
+            stock.out_s = stock.out_hours(now) * 3600
+            stock.out_since = None
             stock.low = stock.level < stock.reorder_at
             out.append(stock)
         return out
@@ -203,6 +211,7 @@ def _depleted(core: CampaignCore, task: Task, short: list[str], needs: dict[str,
         if stock.depleted:
             continue
         stock.depleted = True
+        stock.out_since = core.now
         core._note("consumable.depleted", task.experiment.id, task.id,
                    detail={"item": name, "level": round(stock.level, 6), "unit": stock.unit,
                            "needed": round(needs[stock.item], 6)})
@@ -214,7 +223,7 @@ def _depleted(core: CampaignCore, task: Task, short: list[str], needs: dict[str,
 def refill(core: CampaignCore, item: str, amount_: float | None, who: str) -> None:
     """Refill ``item`` (a stock, or every instance's stock of an item each holds); the steps that waited for it
     go back in the queue (one still short waits on, and says so)."""
-    for stock in core.stocks.refill(item, amount_):
+    for stock in core.stocks.refill(item, amount_, core.now):
         core.cancel_timer(TimerKey(TimerKind.REFILL, stock.name))
         core._note("consumable.refilled", detail={"item": stock.name, "amount": amount_,
                                                   "level": round(stock.level, 6), "unit": stock.unit, "who": who})

@@ -51,7 +51,7 @@ class Summary:
     decisions: int = 0
     scheduler_fallbacks: int = 0  # decisions the fallback rule made for an absent, late or wrong agent
     decision_ms: dict[str, float] = field(default_factory=dict)  # wall time per scheduler decision: p50, p99, max
-    consumables: dict[str, dict[str, Any]] = field(default_factory=dict)  # item -> left, used, unit, short
+    consumables: dict[str, dict[str, Any]] = field(default_factory=dict)  # item -> left, used, unit, short, out_h
     degraded_before: dict[str, int] = field(default_factory=dict)  # step -> samples that waited for it too long
     device_types: dict[str, str] = field(default_factory=dict)  # device -> its type
 
@@ -178,7 +178,8 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         decisions=len(core.decision_wall_s), decision_ms=_percentiles(core.decision_wall_s),
         degraded_before=dict(Counter(e.degraded_before for e in exps if e.degraded and e.status == "done")),
         consumables={name: {"left": round(st.level, 6), "used": round(st.used, 6), "unit": st.unit,
-                            "short": st.depleted} for name, st in core.stocks.items.items()},
+                            "short": st.depleted, "out_h": round(st.out_hours(core.now), 6)}
+                     for name, st in core.stocks.items.items()},
     )
 
 

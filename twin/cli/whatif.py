@@ -163,8 +163,11 @@ def whatif(
             per.add_row(*row)
         console.print(per)
     base = next(r for r in summary if r["variant"] == AS_WRITTEN)
+    out = max(base["stock_out"].items(), key=lambda kv: kv[1], default=("", 0.0))
     console.print(f"as written, the busiest device type is {base['bottleneck']} "
-                  f"({100 * base['utilisation'].get(base['bottleneck'], 0):.0f} % busy)", highlight=False)
+                  f"({100 * base['utilisation'].get(base['bottleneck'], 0):.0f} % busy)" +
+                  (f", and {out[0]} was out of stock for {out[1]:.2f} lab-h (mean), until its refill" if out[1] > 0
+                   else ""), highlight=False)
     if budget_hours is not None:
         costs = costs_anything(summary)
         found = best and (f"{best['variant']} (" + (f"cost {best['cost'][1]:,.0f}, " if costs else "") +

@@ -53,6 +53,7 @@ class Outcome:
     utilisation: dict[str, float] = field(default_factory=dict)  # per device type: mean over its instances
     per_campaign: dict[str, float] = field(default_factory=dict)  # a lab of several: each one's lab-h, start to end
     stopped: str = ""  # why the campaign (or a campaign of the lab) ended early, if it did
+    stock_out: dict[str, float] = field(default_factory=dict)  # per stock: lab-h it was out, waiting for a refill
 
 
 def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
@@ -167,7 +168,7 @@ def one(scenario: Scenario, variant: Variant, seed: int) -> Outcome:
     return Outcome(variant.label, seed, reached, max(s.targets_met_h.values()) if reached else hours, hours,
                    max(s.targets_met_cost.values()) if reached else s.cost,
                    max(s.targets_met_after.values()) if reached else s.proposed,
-                   s.abandoned, s.degraded_samples, per_type, stopped=s.stopped)
+                   s.abandoned, s.degraded_samples, per_type, stopped=s.stopped, stock_out=_stock_out([s]))
 
 
 def _shared(lab: Scenario, variant: Variant, seed: int) -> Outcome:
@@ -194,7 +195,16 @@ def _shared(lab: Scenario, variant: Variant, seed: int) -> Outcome:
     return Outcome(variant.label, seed, reached, last if reached else hours, hours,
                    sum(r.cost for r in runs), sum(r.proposed for r in runs), sum(r.abandoned for r in runs),
                    sum(r.degraded_samples for r in runs), per_type, spans,
-                   "; ".join(f"{n}: {c.stopped}" for n, c in out.campaigns.items() if c.stopped))
+                   "; ".join(f"{n}: {c.stopped}" for n, c in out.campaigns.items() if c.stopped), _stock_out(runs))
+
+
+def _stock_out(summaries: list) -> dict[str, float]:
+    """Each stock's lab-hours out of stock (the lab's stocks, as every campaign that shares them reports them)."""
+    out: dict[str, float] = {}
+    for s in summaries:
+        for name, c in s.consumables.items():
+            out[name] = max(out.get(name, 0.0), c.get("out_h", 0.0))
+    return out
 
 
 def runs_alike(scenario: Scenario, chosen: list[Variant]) -> bool:
@@ -248,6 +258,8 @@ def summarise(results: list[Outcome], chosen: list[Variant]) -> list[dict[str, A
             "degraded": statistics.mean(o.degraded for o in mine),
             "utilisation": util,
             "bottleneck": max(util, key=util.get) if util else "",
+            "stock_out": {n: statistics.mean(o.stock_out.get(n, 0.0) for o in mine)
+                          for n in dict.fromkeys(n for o in mine for n in o.stock_out)},
             "per_campaign": {n: statistics.median(o.per_campaign[n] for o in mine if n in o.per_campaign)
                              for n in dict.fromkeys(n for o in mine for n in o.per_campaign)},
         })

@@ -71,7 +71,8 @@ def render_summary(s: Summary, console: Console) -> None:
         t.add_row(f"  {escape(name)}", u)
     for name, c in s.consumables.items():
         short = " [red](short: work waits for a refill)[/]" if c.get("short") else ""
-        t.add_row(f"  {escape(name)}", f"{c['left']:g} {escape(c['unit'])} left, {c['used']:g} used{short}")
+        out = f", out {lab_span(c['out_h'] * 3600)}" if c.get("out_h") else ""
+        t.add_row(f"  {escape(name)}", f"{c['left']:g} {escape(c['unit'])} left, {c['used']:g} used{out}{short}")
     for name, b in s.best.items():
         shown = ", ".join(f"{escape(k)}={_measured(v)}" for k, v in b["outputs"].items())
         met = s.targets_met_h.get(name)
