@@ -192,3 +192,9 @@ def test_a_killed_live_job_shop_resumes_on_the_plan_its_scheduler_made(tmp_path)
     assert "left the plan" not in resumed.stderr, resumed.stderr[-3000:]
     summary = json.loads(resumed.stdout)
     assert summary["done"] == 6 and summary["abandoned"] == 0
+    # the steps in the lab died with the process: asked about before their deadlines are re-armed, they are lost
+    # and retried at once, not timed out and cancelled (a cancel nobody answers held each device 60 lab-s)
+    events = read_events(db)
+    resumed_at = next(e["seq"] for e in events if e["kind"] == "campaign.resumed")
+    after = [e["kind"] for e in events if e["seq"] > resumed_at]
+    assert "attempt.cancel_unanswered" not in after and after.count("task.retry") >= 1

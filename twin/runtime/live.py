@@ -282,13 +282,18 @@ class LiveCampaign:
         now = self.clock.now()
         self.note("campaign.resumed", {"inputs_replayed": True, "timers": len(rebuilt.timers),
                                        "in_lab": [d.attempt.task.id for d in self.core.devices.values() if d.attempt]})
-        for key, due in rebuilt.timers.items():
-            self._timers[key] = self.clock.call_later(max(0.0, due - now), functools.partial(self._on_timer, key))
         if rebuilt.asked is not None:
             self._answer(rebuilt.asked)
+        # asked before the deadlines are re-armed: a step whose deadline passed while the campaign was dead, on a
+        # device that no longer runs it, is lost and retried at once, rather than timed out and cancelled (a cancel
+        # nobody answers holds the device for orchestrator.cancel_grace_s)
         for dev in list(self.core.devices.values()):
             if dev.attempt is not None:
                 await self._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n)
+        now = self.clock.now()
+        for key, due in rebuilt.timers.items():
+            if key not in self._timers:  # one the answers set again (a retry's back-off) stands
+                self._timers[key] = self.clock.call_later(max(0.0, due - now), functools.partial(self._on_timer, key))
         self._kick_soon()
 
     async def _ask_about(self, device: str, task: str, attempt: int) -> None:
