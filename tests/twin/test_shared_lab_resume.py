@@ -138,6 +138,8 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
         events_now = journal_tables(where)[name][0]
         assert events_now[:len(held[name][0])] == held[name][0], name  # what the journal held is kept
         assert len([e for e in events_now if e[2] == "campaign.resumed"]) == kills, name
+        # the steps in the lab died with the process: lost and retried, no cancel left unanswered
+        assert "attempt.cancel_unanswered" not in [e[2] for e in events_now[len(held[name][0]):]], name
     assert_one_step_at_a_time(where)
 
 

@@ -310,15 +310,9 @@ class LiveLab:
 
     # -- taking over a killed lab -----------------------------------------------------------
     async def _take_over(self, rebuilt: RebuiltLab) -> None:
-        """Re-arm what the dead process left pending, then find out what became of the steps it had in the lab
-        (still running, finished — its result is taken — or lost, and retried)."""
-        now = self.clock.now()
-        for (name, key), due in rebuilt.timers.items():
-            if name == LAB:
-                self._timers[key] = self.clock.call_later(max(0.0, due - now), functools.partial(self._on_timer, key))
-            else:
-                seat = self.seats[name]
-                seat._timers[key] = self.clock.call_later(max(0.0, due - now), functools.partial(seat._on_timer, key))
+        """Find out what became of the steps it had in the lab (still running, finished — its result is taken — or
+        lost, and retried), then re-arm what the dead process left pending: asked first, as a single campaign
+        does (``LiveCampaign._take_over``), so a step lost while its deadline passed is retried at once."""
         for name, seat in self.seats.items():
             in_lab = [d.attempt.task.id for d in seat.core.devices.values() if d.attempt is not None]
             seat.note("campaign.resumed", {"inputs_replayed": True, "in_lab": in_lab})
@@ -331,4 +325,10 @@ class LiveLab:
             for dev in list(seat.core.devices.values()):
                 if dev.attempt is not None:
                     await seat._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n)
+        now = self.clock.now()
+        for (name, key), due in rebuilt.timers.items():
+            timers, fire = (self._timers, self._on_timer) if name == LAB else \
+                (self.seats[name]._timers, self.seats[name]._on_timer)
+            if key not in timers:  # one the answers set again (a retry's back-off) stands
+                timers[key] = self.clock.call_later(max(0.0, due - now), functools.partial(fire, key))
         self.kick_soon()
