@@ -32,6 +32,7 @@ import ctypes
 import logging
 import multiprocessing
 import os
+import queue
 import shutil
 import signal
 import sys
@@ -40,7 +41,7 @@ import threading
 import time
 from collections.abc import Callable, Collection, Iterable, Iterator
 from concurrent.futures import ALL_COMPLETED, FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from logging.handlers import QueueHandler, QueueListener
+from logging.handlers import QueueHandler
 from types import FrameType
 from typing import Any
 
@@ -55,7 +56,7 @@ class WorkerPool(ProcessPoolExecutor):
         super().__init__(max_workers=max(1, workers), initializer=_start_worker,
                          initargs=(initializer, self.scratch, os.getpid(), tuple(once), self._said))
         self._signals = _NotedSignals()
-        self._listener = QueueListener(self._said, _Once()) if once else None
+        self._listener = _SaidOnce(self._said) if once else None
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
         return super().submit(_run, fn, *args, **kwargs)
@@ -166,18 +167,36 @@ class _NotedSignals:
             signal.signal(sig, before)
 
 
-class _Once(logging.Handler):
-    """Logs each distinct message the workers handed over once, through its own logger in this process."""
+class _SaidOnce(threading.Thread):
+    """Logs each distinct message the workers hand over once, through its own logger in this process. It only
+    reads the queue (polling, and stopped by an event): a worker killed while it wrote holds the queue's write
+    lock for good, and a sentinel put here would wait on that lock for ever."""
 
-    def __init__(self) -> None:
-        super().__init__()
+    def __init__(self, said: Any) -> None:
+        super().__init__(daemon=True)
+        self._said, self._stopping = said, threading.Event()
         self._seen: set[tuple[str, str]] = set()
 
-    def emit(self, record: logging.LogRecord) -> None:
+    def run(self) -> None:
+        while not self._stopping.is_set():
+            self._take(timeout=0.1)
+        while self._take(timeout=0.0):  # what came before the stop
+            pass
+
+    def _take(self, timeout: float) -> bool:
+        try:
+            record = self._said.get(timeout=timeout) if timeout else self._said.get_nowait()
+        except queue.Empty:
+            return False
         key = (record.name, record.getMessage())
         if key not in self._seen:
             self._seen.add(key)
             logging.getLogger(record.name).handle(record)
+        return True
+
+    def stop(self) -> None:
+        self._stopping.set()
+        self.join(1.0)
 
 
 def _start_worker(then: Callable[[], None] | None, scratch: str, pool: int, once: tuple[str, ...], said: Any) -> None:
