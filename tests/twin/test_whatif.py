@@ -284,8 +284,11 @@ def test_a_stock_that_runs_out_is_named_with_how_long_it_was_out(tmp_path):
     slow, quick = rows["as written"]["stock_out"]["vials"], rows["consumables.vials.simulate_refill.after_s=600"]
     assert slow >= 2 * 1800 / 3600 - 1e-9 and 0 < quick["stock_out"]["vials"] < slow  # 12 vials needed, 4 a rack
     code, out = whatif(tmp_path / "lab.yaml", "--vary", "consumables.vials.simulate_refill.after_s=600", "--seeds",
-                       "3")
+                       "3", "--csv", tmp_path / "w.csv")
     assert f"vials was out of stock for {slow:.2f} lab-h (mean), until its refill" in " ".join(out.split())
+    with open(tmp_path / "w.csv") as f:
+        assert [float(r["out_of_stock_h_vials"]) for r in csv.DictReader(f)] == pytest.approx(
+            [slow, quick["stock_out"]["vials"]], abs=1e-4)
     code, out = whatif(FLAKY, "--vary", "devices.reactor.instances=3", "--seeds", "2")
     assert code == 0 and "out of stock" not in out  # no stock, nothing said
 

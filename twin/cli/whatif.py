@@ -182,11 +182,13 @@ def whatif(
 def _write_csv(path: Path, summary: list[dict]) -> None:
     types = sorted({t for row in summary for t in row["utilisation"]})
     names = list(dict.fromkeys(n for row in summary for n in row["per_campaign"]))
+    stocks = list(dict.fromkeys(n for row in summary for n in row["stock_out"]))
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["variant", "runs", "reached", "lab_h_q1", "lab_h_median", "lab_h_q3", "lab_h_change_median",
                     "cost_median", "cost_change_median", "experiments_median", "abandoned_mean", "degraded_mean",
-                    *[f"utilisation_{t}" for t in types], "busiest", *[f"campaign_h_{n}" for n in names]])
+                    *[f"utilisation_{t}" for t in types], "busiest", *[f"campaign_h_{n}" for n in names],
+                    *[f"out_of_stock_h_{n}" for n in stocks]])
         for row in summary:
             change, cost_change = row["lab_hours_change"], row["cost_change"]
             w.writerow([row["variant"], row["runs"], row["reached"], *[round(x, 4) for x in row["lab_hours"]],
@@ -194,4 +196,5 @@ def _write_csv(path: Path, summary: list[dict]) -> None:
                         round(cost_change[1], 2) if cost_change else "", row["experiments"],
                         round(row["abandoned"], 3), round(row["degraded"], 3),
                         *[round(row["utilisation"].get(t, 0.0), 4) for t in types], row["bottleneck"],
-                        *[round(row["per_campaign"][n], 4) if n in row["per_campaign"] else "" for n in names]])
+                        *[round(row["per_campaign"][n], 4) if n in row["per_campaign"] else "" for n in names],
+                        *[round(row["stock_out"].get(n, 0.0), 4) for n in stocks]])
