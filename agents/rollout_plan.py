@@ -308,9 +308,10 @@ class PlanFollower:
                 task = queue.popleft()
                 self.left.discard(task)
                 out.append(Assignment(task, device.name))
-        if not out and ready and not self.guessed and not any(d.busy_until is not None for d in view.devices):
-            # a plan kept to always has a step to start when nothing runs: the earliest one not started (unless a
-            # step it took for done or started when the campaign resumed is in a retry's back-off)
+        if not out and ready and not any(d.busy_until is not None for d in view.devices) and \
+                len({_job_step(t)[0] for t in ready}) >= view.in_lab:
+            # a plan kept to always has a step to start when nothing runs: the earliest one not started (unless an
+            # experiment in the lab has no step ready, nor running: one in a retry's back-off, which will come)
             return self._left_plan(view, "nothing runs and no device's next step is ready (an experiment it "
                                          "counted on ended early?)")
         return out

@@ -106,6 +106,19 @@ def test_a_resumed_campaign_goes_on_with_the_steps_of_the_plan_it_had_not_starte
     assert follower.decide(view(["e0s1"], running="e2s1")) == []  # e0s1 retried: back to m1, which is busy
     assert list(follower.queues["m1"]) == ["e0s1", "e1s1"]
     assert follower.decide(view(["e9s9"])) is None  # a step the plan never held still ends it
+
+    def idle(ready, in_lab):
+        steps = tuple(ReadyStep(t, int(t[1]), "op", "m0", 0.0, None, 1.0, 1.0) for t in ready)
+        return LabView(5.0, steps, (FreeDevice("m0", "m0"), FreeDevice("m1", "m1")),
+                       (DeviceState("m0", "m0", True, True, None, 0, 0, 0.0), DeviceState("m1", "m1", True, True,
+                                                                                           None, 0, 0, 0.0)),
+                       in_lab=in_lab)
+
+    # nothing runs and neither device's next step (e3s0, e2s0) is ready: while another experiment in the lab has no
+    # step ready (one in a retry's back-off), its step will come and the plan waits; with only e2 in the lab, the plan
+    # ends
+    waiting = PlanFollower(plan)
+    assert waiting.decide(idle(["e2s1"], 3)) == [] and waiting.decide(idle(["e2s1"], 1)) is None
     assert PlanFollower(plan).decide(view(["e2s1", "e1s0"], running="e9s0")) is None  # a step the plan never held
 
 
