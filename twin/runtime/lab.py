@@ -106,10 +106,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
     """
     s = prepare(scenario, **overrides)
     why_not = fast_refused(s, external_devices, agent_in_process)
-    if runtime not in RUNTIMES:
-        raise TwinError(f"unknown runtime {runtime!r}: use one of {', '.join(RUNTIMES)}")
-    if runtime == "fast" and why_not:
-        raise ClockError(f"the fast runtime cannot run this campaign: {why_not}. Use --runtime asyncio (or auto).")
+    check_runtime(runtime, why_not)
     claimed = journal is None
     journal = journal or default_journal(s)
     recording = None
@@ -141,6 +138,14 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         if recording is not None:
             recording.close()
             recording.stop_serving()
+
+
+def check_runtime(runtime: str, why_not: str, what: str = "campaign") -> None:
+    """``runtime`` is one there is, and the fast one is asked for only where it can run (``why_not``: why not)."""
+    if runtime not in RUNTIMES:
+        raise TwinError(f"unknown runtime {runtime!r}: use one of {', '.join(RUNTIMES)}")
+    if runtime == "fast" and why_not:
+        raise ClockError(f"the fast runtime cannot run this {what}: {why_not}. Use --runtime asyncio (or auto).")
 
 
 def fast_refused(s: Scenario, external_devices: Collection[str] = frozenset(), agent_in_process: bool = False) -> str:

@@ -118,6 +118,14 @@ class EventDecoder:
             self._on_clock_off(detail)
 
 
+def rearm(clock: LabClock, timers: dict[TimerKey, Any], key: TimerKey, due: float,
+          fire: Callable[[TimerKey], None]) -> None:
+    """A timer the killed process left pending, due at lab time ``due``, set again — unless what the resumed
+    campaign heard since (the answers about its steps in the lab) set it already (a retry's back-off)."""
+    if key not in timers:
+        timers[key] = clock.call_later(max(0.0, due - clock.now()), functools.partial(fire, key))
+
+
 class LiveCampaign:
     """One campaign of ``scenario`` on ``bus`` and ``clock``; ``await run()`` drives it to its end."""
 
@@ -279,7 +287,6 @@ class LiveCampaign:
     # -- taking over a killed campaign --------------------------------------------------
     async def _take_over(self, rebuilt: Rebuilt) -> None:
         """Re-arm what the dead process left pending, then find out what became of the steps it had in the lab."""
-        now = self.clock.now()
         self.note("campaign.resumed", {"inputs_replayed": True, "timers": len(rebuilt.timers),
                                        "in_lab": [d.attempt.task.id for d in self.core.devices.values() if d.attempt]})
         if rebuilt.asked is not None:
@@ -290,10 +297,8 @@ class LiveCampaign:
         for dev in list(self.core.devices.values()):
             if dev.attempt is not None:
                 await self._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n)
-        now = self.clock.now()
         for key, due in rebuilt.timers.items():
-            if key not in self._timers:  # one the answers set again (a retry's back-off) stands
-                self._timers[key] = self.clock.call_later(max(0.0, due - now), functools.partial(self._on_timer, key))
+            rearm(self.clock, self._timers, key, due, self._on_timer)
         self._kick_soon()
 
     async def _ask_about(self, device: str, task: str, attempt: int) -> None:

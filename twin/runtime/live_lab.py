@@ -20,7 +20,7 @@ from twin.core.clock import LabClock
 from twin.campaign import Presence
 from twin.core.errors import ScenarioError, TwinError
 from twin.runtime.lab_desk import LabDesk
-from twin.runtime.live import EventDecoder, LiveCampaign, ask_scheduler
+from twin.runtime.live import EventDecoder, LiveCampaign, ask_scheduler, rearm
 from twin.scenario import Scenario
 from twin.scenario.files import parse_yaml
 from twin.scenario.sharing import campaign_scenario, parse_campaign
@@ -325,10 +325,7 @@ class LiveLab:
             for dev in list(seat.core.devices.values()):
                 if dev.attempt is not None:
                     await seat._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n)
-        now = self.clock.now()
         for (name, key), due in rebuilt.timers.items():
-            timers, fire = (self._timers, self._on_timer) if name == LAB else \
-                (self.seats[name]._timers, self.seats[name]._on_timer)
-            if key not in timers:  # one the answers set again (a retry's back-off) stands
-                timers[key] = self.clock.call_later(max(0.0, due - now), functools.partial(fire, key))
+            owner = self if name == LAB else self.seats[name]
+            rearm(self.clock, owner._timers, key, due, owner._on_timer)
         self.kick_soon()

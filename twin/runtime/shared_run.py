@@ -21,8 +21,8 @@ from twin.campaign.journal import Journal
 from twin.campaign.lab_replay import RebuiltLab
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_driver,
                                    load_drivers, make_bus, make_clock, make_planner, make_scheduler)
-from twin.runtime.lab import (FALLBACK_LOGGER, RUNTIMES, JournalFactory, default_journals, finish, flush_live, noted,
-                              open_journal, refuse_realtime, stop_on_loop_signals, stop_on_signals)
+from twin.runtime.lab import (FALLBACK_LOGGER, JournalFactory, check_runtime, default_journals, finish, flush_live,
+                              noted, open_journal, refuse_realtime, stop_on_loop_signals, stop_on_signals)
 from twin.runtime.checks import check_campaign
 from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.labtime import LabTimeSource
@@ -47,25 +47,27 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
     with a new observer from ``reopen``); a scaled or wall clock, or ``runtime`` asyncio, on the asyncio runtime,
     over the scenario's bus, with ``external_devices`` served by other processes (``twin device serve``).
     ``observer`` (``open_lab_observer``) is handed what the lab and each campaign do as it happens."""
-    if runtime not in RUNTIMES:
-        raise TwinError(f"unknown runtime {runtime!r}: use one of {', '.join(RUNTIMES)}")
+    check_runtime(runtime, "" if s.clock.mode == "virtual" else
+                  f"the clock is {s.clock.mode} (the fast runtime keeps virtual time only)", "lab")
     if external_devices and s.clock.mode == "virtual":
         raise ClockError(f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
                          "see messages in flight: use --clock scaled or --clock wall")
-    if runtime == "fast" and s.clock.mode != "virtual":
-        raise ClockError(f"the fast runtime cannot run this lab: the clock is {s.clock.mode} (the fast runtime keeps "
-                         "virtual time only). Use --runtime asyncio (or auto).")
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
     _refuse_agents(scenarios)
     one = _lab_scheduler(s)  # a policy that does not fit the lab is said before a journal is made
-    drivers, per_device = shared_drivers(scenarios, skip=external_devices)
-    if s.clock.mode == "virtual":
-        refuse_realtime(drivers)
     where = Path(journals) if journals is not None else default_journals(s)
-    where.mkdir(parents=True, exist_ok=True)
-    parts = {name: _parts(cs, where / f"{name}.db", external_devices, s, make_journal)
-             for name, cs in scenarios.items()}
+
+    def assemble() -> tuple[list, dict, dict]:
+        """The lab's drivers and each campaign's journal, planner and scheduler, made afresh."""
+        drivers, per_device = shared_drivers(scenarios, skip=external_devices)
+        if s.clock.mode == "virtual":
+            refuse_realtime(drivers)
+        where.mkdir(parents=True, exist_ok=True)
+        return drivers, per_device, {name: _parts(cs, where / f"{name}.db", external_devices, s, make_journal)
+                                     for name, cs in scenarios.items()}
+
+    drivers, per_device, parts = assemble()
     if s.clock.mode == "virtual" and runtime != "asyncio":
         try:
             return _fast(s, scenarios, drivers, per_device, parts, where, wall0, handle_signals, observer, one)
@@ -76,9 +78,7 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
                 "%s — running the lab again, from the start, on the asyncio runtime", exc)
         for journal, _, _ in parts.values():
             journal.close()
-        drivers, per_device = shared_drivers(scenarios, skip=external_devices)  # afresh: the first run's hold state
-        parts = {name: _parts(cs, where / f"{name}.db", external_devices, s, make_journal)
-                 for name, cs in scenarios.items()}
+        drivers, per_device, parts = assemble()  # the first run's drivers hold its state
         if observer is not None and reopen is not None:  # the recording starts again with the lab
             observer = reopen()
     clock = make_clock(s)
