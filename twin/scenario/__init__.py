@@ -1,7 +1,8 @@
 """Scenarios: the model, reading files, job shops as labs, and targets."""
 
 from twin.scenario.loading import json_schema, load, load_mapping, parse, parse_overridden, set_dotted
-from twin.scenario.model import (BusSpec, Campaign, Chemistry, ClockSpec, Condition, DeviceType, Duration, Faults,
+from twin.scenario.campaign import Campaign
+from twin.scenario.model import (BusSpec, Chemistry, ClockSpec, Condition, DeviceType, Duration, Faults,
                                  JobShop, Parameter, Scenario, Target, WorkflowStep, expected_duration,
                                  why_runs_vary)
 from twin.scenario.operations import Orchestration, Retry

@@ -53,7 +53,7 @@ class Outcome:
     utilisation: dict[str, float] = field(default_factory=dict)  # per device type: mean over its instances
     per_campaign: dict[str, float] = field(default_factory=dict)  # a lab of several: each one's lab-h, start to end
     stopped: str = ""  # why the campaign (or a campaign of the lab) ended early, if it did
-    stock_out: dict[str, float] = field(default_factory=dict)  # per stock: lab-h it was out, waiting for a refill
+    stock_out: dict[str, float] = field(default_factory=dict)  # per stock: lab-h it was out (found short, until a refill)
 
 
 def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
