@@ -264,3 +264,15 @@ def test_a_step_barred_from_the_only_instance_with_stock_waits_for_a_refill(scen
     assert short.detail["item"] == "vials@spectrometer-2" and short.task == "e0s0"
     out = op(core, "refill", 30.0, item="vials@spectrometer-2")
     assert "e0s0" in core.ready and not core.starved
+
+
+def test_a_stock_that_runs_out_is_said_on_the_log_with_the_refill_to_make(tmp_path, caplog):
+    """On a live clock nobody but a person refills a stock, and the lab waited for one without a word on the
+    terminal (only the journal and `twin ctl pending` had it): the depletion is an alert now, naming the item and
+    the command; here in virtual time, with its simulated refill."""
+    lab = parse(qd_lab(**{"campaign.budget": 4, "consumables": stocked(100, 1, refill_after=600)}), "lab.yaml")
+    with caplog.at_level("WARNING", logger="twin.alerts"):
+        run(lab, journal=tmp_path / "j.db")
+    said = [r.getMessage() for r in caplog.records if r.name == "twin.alerts"]
+    assert len(said) == len(read_events(tmp_path / "j.db", "consumable.depleted")) > 0
+    assert said[0].startswith("vials is out (0 vials left, 1 needed by e") and "`twin ctl refill vials`" in said[0]

@@ -37,7 +37,8 @@ class Code(StrEnum):
 
 #: Notes a runtime also logs as warnings (``alert_text``), on the ``ALERT_LOGGER`` logger: the lab cannot go on as
 #: it is, or a device sends what the campaign cannot use.
-ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "output.unscored", "scheduler.stalled"})
+ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "output.unscored", "scheduler.stalled",
+                    "consumable.depleted"})
 ALERT_LOGGER = "twin.alerts"
 #: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, a device type gone, an
 #: operator's act
@@ -232,5 +233,10 @@ Action = Send | SetTimer | CancelTimer | Ask | Note | RecordMessage | RecordExpe
 
 def alert_text(n: Note) -> str:
     """An alert's line in the log: what, on which device or experiment, and the detail."""
+    if n.kind == "consumable.depleted" and isinstance(n.detail, dict):  # on a live clock, a person must refill it
+        d = n.detail
+        return (f"{d.get('item')} is out ({d.get('level', 0):g} {d.get('unit', '')} left, {d.get('needed', 0):g} needed "
+                f"by {n.task}): its steps go to another instance that has some, or wait for `twin ctl refill "
+                f"{d.get('item')}` (in virtual time, its simulate_refill)")
     where = f" {n.device}" if n.device else f" (experiment {n.experiment})" if n.experiment is not None else ""
     return f"{n.kind}{where}: {n.detail}"
