@@ -243,6 +243,69 @@ def test_a_live_lab_whose_scheduler_waits_for_nothing_says_so_once_and_stays_ope
     assert status(core, 10.0)["stalled"] == ""  # a stall a later wait for nothing would say again
 
 
+class WrongDevices:
+    """Every step to a free device of another type: pairs of which none can run, on every decision."""
+
+    def decide(self, view):
+        return [Assignment(r.task, d.name) for r in view.ready for d in view.free
+                if d.device_type != r.device_type][:2]
+
+
+class OneGoodOneBad(WrongDevices):
+    """A pair that can run, and one that cannot: the first is carried out, the second refused."""
+
+    def decide(self, view):
+        good = [Assignment(r.task, d.name) for r in view.ready for d in view.free if d.device_type == r.device_type]
+        return good[:1] + [Assignment("e999s0", good[0].device)] if good else []
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_a_scheduler_whose_pairs_cannot_run_is_covered_by_the_fallback_rule(tmp_path, runtime):
+    """Each pair was refused (scheduler.invalid) and nothing else happened: the lab idled to
+    campaign.max_lab_hours, 10,000 lab-h, and ended "max_lab_hours reached" with every experiment pending, the
+    scheduler unnamed. An answer of which no pair can run is a mistake the fallback rule covers, as a garbled one."""
+    lab = parse(qd_lab(**{"campaign.scheduler": "tests.twin.test_bad_schedulers:WrongDevices",
+                          "campaign.budget": 4}))
+    summary = run(lab, journal=tmp_path / "w.db", runtime=runtime)
+    assert summary.done == 4 and summary.lab_hours < 24 and not summary.stopped, summary
+    assert summary.scheduler_fallbacks == summary.decisions > 0
+    (said,) = [e["detail"] for e in read_events(tmp_path / "w.db", "scheduler.fallback")]  # once, not per decision
+    assert "scheduler 'tests.twin.test_bad_schedulers:WrongDevices' answered nothing that can run (e0s0 → " in said
+    assert "the step needs a synthesiser" in said, said
+    assert not read_events(tmp_path / "w.db", "scheduler.invalid")
+
+    lab = parse(qd_lab(**{"campaign.scheduler": "tests.twin.test_bad_schedulers:OneGoodOneBad",
+                          "campaign.budget": 4}))
+    summary = run(lab, journal=tmp_path / "g.db", runtime=runtime)
+    assert summary.done == 4 and summary.scheduler_fallbacks == 0
+    refused = read_events(tmp_path / "g.db", "scheduler.invalid")
+    assert refused and all("'e999s0' is not ready" in e["detail"] for e in refused)
+
+
+def test_a_scheduler_whose_pairs_the_orchestrator_refuses_with_the_lab_idle_is_stalled_not_waited_for(scenario_of):
+    """The pairs the view cannot judge (a device an operator barred, a stock gone) are refused by the
+    orchestrator; when all of an answer's are and nothing runs, no event would ask again: a stall, as a wait is."""
+    from twin.campaign import Ask, CampaignCore, Decided, Note, Presence, Proposed
+    from twin.campaign.decisions import Proposal
+
+    for mode, speed in (("virtual", 1.0), ("scaled", 3600.0)):
+        core = CampaignCore(scenario_of(**{"clock": {"mode": mode, "speed": speed}, "campaign.budget": 1}))
+        core.start(0.0)
+        for name in core.devices:
+            core.feed(Presence(name, True))
+        core.advance(0.0)
+        core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
+        ask = [a for a in core.advance(0.0) if isinstance(a, Ask) and a.what == "schedule"][0]
+        core.feed(Decided([Assignment(ask.view.ready[0].task, "nowhere-1")]))
+        notes = [a for a in core.advance(0.0) if isinstance(a, Note)]
+        assert notes[0].kind == "scheduler.invalid", notes
+        if mode == "virtual":
+            assert "answered only pairs that cannot be carried out (1 refused" in core.stopping, core.stopping
+        else:
+            assert notes[-1].kind == "scheduler.stalled" and not core.stopping
+            assert "answered only pairs that cannot be carried out" in notes[-1].detail
+
+
 class ExitingScheduler:
     def decide(self, view):
         raise SystemExit(3)

@@ -125,7 +125,8 @@ def no_more_experiments(core, out, t):
 
 def test_an_instance_whose_own_stock_is_short_gets_no_step_and_the_other_takes_it(scenario_of):
     c = stocked(100, 1, vials_per_spectrometer=True)
-    core = running(scenario_of, **{"consumables": c, "campaign.budget": 3})
+    # a live clock: the refused answer below leaves the lab idle, which in virtual time would end it (a stall)
+    core = running(scenario_of, **{"consumables": c, "campaign.budget": 3, "clock": {"mode": "scaled", "speed": 3600}})
     assert set(core.stocks.items) == {"precursor", "vials@spectrometer-1", "vials@spectrometer-2"}
     core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0}))
     core.advance(60.0)
@@ -149,6 +150,7 @@ def test_an_instance_whose_own_stock_is_short_gets_no_step_and_the_other_takes_i
     (invalid,) = notes(out, "scheduler.invalid")
     assert "spectrometer-1" in invalid.detail and "its own stock" in invalid.detail
     assert "e1s1" in core.ready and not notes(out, "attempt.dispatched")  # nothing valid: the pass ends
+    assert "answered only pairs that cannot be carried out" in notes(out, "scheduler.stalled")[0].detail
     out = op(core, "refill", 130.0, item="vials@spectrometer-2", amount=4)  # one instance's stock
     (one,) = notes(out, "consumable.refilled")
     assert one.detail["item"] == "vials@spectrometer-2" and one.detail["level"] == 5.0

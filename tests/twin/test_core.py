@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 from twin.campaign import (Ask, CampaignCore, Decided, DeviceMessage, Finished, Note, Presence, Proposed, Send,
                            SetTimer, TimerFired)
-from twin.campaign.events import TimerKey, TimerKind
+from twin.campaign.events import TimerKey, TimerKind, alert_text
 from twin.campaign.decisions import Assignment, Proposal
 from twin.core.messages import Kind
 
@@ -207,8 +207,26 @@ def test_presence_that_flaps_within_a_lease_does_not_fail_a_second_attempt(scena
     core.feed(Presence("synthesiser", False))  # again, 0.5 lab-s after the first loss: within the lease (1 s)
     out = core.advance(10.5)
     assert notes(out, "device.flapping") and not notes(out, "attempt.failed")
+    assert alert_text(notes(out, "device.flapping")[0]) == (  # said on the log in words, not as a dict
+        "device.flapping synthesiser: left the bus again within 1 lab-s of its last loss (a bad link, or another "
+        "process announcing its name); its running step keeps its deadline")
     assert core.counts.flaps == 1 and core.counts.device_lost == 1
     assert core.devices["synthesiser"].attempt.n == 2  # left to its deadline, or to its result
+
+
+def test_a_device_not_on_the_bus_at_the_end_of_startup_is_named_and_the_campaign_starts_without_it(scenario_of):
+    core = CampaignCore(scenario_of(**{"devices.spectrometer.instances": 2}), secret=SECRET)
+    core.start(0.0)
+    for name in core.devices:
+        if name != "spectrometer-2":
+            core.feed(Presence(name, True))
+    core.advance(0.0)
+    core.feed(TimerFired(TimerKey(TimerKind.STARTUP)))
+    out = core.advance(60.0)
+    (missing,) = notes(out, "devices.missing")
+    assert missing.detail == ["spectrometer-2"] and of(out, Ask)[0].what == "plan"  # it starts without it
+    assert alert_text(missing).startswith("devices.missing: spectrometer-2 not on the bus within "
+                                          "orchestrator.startup_s: the campaign starts without them")
 
 
 def test_work_with_no_usable_instance_left_is_said_at_once_and_given_up_after_a_while(scenario_of):
@@ -224,6 +242,9 @@ def test_work_with_no_usable_instance_left_is_said_at_once_and_given_up_after_a_
     out = core.advance(60.0)
     (said,) = notes(out, "devices.unavailable")
     assert said.detail == {"type": "spectrometer", "experiments": [0], "give_up_after_s": 5000}
+    assert alert_text(said).startswith("devices.unavailable spectrometer: no spectrometer is usable (each lost or "
+                                       "quarantined); experiments 0 wait for one, and are abandoned if none is back "
+                                       "within 5000 lab-s (campaign.give_up_after_s)")
     assert TimerKey(TimerKind.GIVE_UP, "spectrometer") in [a.key for a in of(out, SetTimer)]
     core.feed(Presence("spectrometer", True))  # it comes back: the work resumes
     out = core.advance(100.0)

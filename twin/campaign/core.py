@@ -321,11 +321,12 @@ class CampaignCore:
 
     def _decided(self, d: Decided) -> None:
         self.decision_wall_s.append(d.wall_s)
-        sent = 0
+        sent = refused = 0
         for a in d.assignments if not self.stopping else ():
             why = dispatch.problem(a, self.ready, self.devices, self.dry)
             if why:
                 self._note("scheduler.invalid", task=a.task, device=a.device, detail=why)
+                refused += 1
                 continue
             task = self.ready.pop(a.task)
             short = self.stocks.short(self._needs(task), a.device) if self.stocks else []
@@ -345,8 +346,8 @@ class CampaignCore:
             self._wake = True  # more may pair now
         else:
             self._end_pass()
-            if not d.assignments and stall.waits_for_nothing(self):
-                stall.say(self)
+            if refused == len(d.assignments) and stall.waits_for_nothing(self):  # a wait, or only refused pairs
+                stall.say(self, refused)
 
     # -- experiments and steps ------------------------------------------------------
     def _add_experiment(self, p: Proposal) -> None:

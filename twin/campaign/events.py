@@ -239,4 +239,23 @@ def alert_text(n: Note) -> str:
                 f"by {n.task}): its steps go to another instance that has some, or wait for `twin ctl refill "
                 f"{d.get('item')}` (in virtual time, its simulate_refill)")
     where = f" {n.device}" if n.device else f" (experiment {n.experiment})" if n.experiment is not None else ""
-    return f"{n.kind}{where}: {n.detail}"
+    return f"{n.kind}{where}: {_alert_words(n)}"
+
+
+def _alert_words(n: Note) -> str:
+    """A detail written for a person: what happened, what the lab does about it, and what one can do."""
+    d = n.detail
+    if n.kind == "devices.unavailable" and isinstance(d, dict):
+        ids = [str(e) for e in d.get("experiments", ())]
+        waiting = ", ".join(ids[:10]) + (f" and {len(ids) - 10} more" if len(ids) > 10 else "")
+        return (f"no {d.get('type')} is usable (each lost or quarantined); experiments {waiting} wait for one, and "
+                f"are abandoned if none is back within {d.get('give_up_after_s', 0):g} lab-s "
+                f"(campaign.give_up_after_s); a quarantined one is given work again after orchestrator.probe_after_s")
+    if n.kind == "devices.missing" and isinstance(d, list):
+        return (f"{', '.join(map(str, d))} not on the bus within orchestrator.startup_s: the campaign starts without "
+                f"them, and each takes work once its driver joins the bus (one in another process: `twin device "
+                f"serve`, connected to the lab's address)")
+    if n.kind == "device.flapping" and isinstance(d, dict):
+        return (f"left the bus again within {d.get('within_s', 0):g} lab-s of its last loss (a bad link, or another "
+                f"process announcing its name); its running step keeps its deadline")
+    return str(d)

@@ -42,8 +42,14 @@ def say_for_lab(names: dict[str, str], lab_scheduler: str = "") -> str:
     return f"the schedulers ({which}) " + _WHY.format("them")
 
 
-def say(core: CampaignCore) -> None:
+def say(core: CampaignCore, refused: int = 0) -> None:
+    """``refused``: the scheduler's answer was pairs that could not be carried out (``scheduler.invalid``), not a
+    wait, and it is as stuck."""
     why = f"the scheduler ({core.s.campaign.scheduler}) " + _WHY.format("it")
+    if refused:
+        why = (f"the scheduler ({core.s.campaign.scheduler}) answered only pairs that cannot be carried out "
+               f"({refused} refused: scheduler.invalid in the journal) with no device busy and nothing due, so no "
+               f"event would ask it again: a scheduler must start a step when nothing runs")
     if core.s.clock.mode == "virtual":
         core._on_stop(why)
     elif not core.stalled:  # said once, until the scheduler starts a step again

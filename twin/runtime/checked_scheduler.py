@@ -1,7 +1,8 @@
 """An in-process scheduler whose mistakes the fallback rule covers, as it covers an agent's on the bus.
 
-A ``decide`` that raises, or answers something other than a list of ``Assignment(task, device)``, is decided
-that time by ``campaign.fallback_scheduler``; the reason is noted once per change (``scheduler.fallback``) and
+A ``decide`` that raises, answers something other than a list of ``Assignment(task, device)``, or answers pairs of
+which none can be carried out (a step that is not ready, a device that is not free or not of the step's type), is
+decided that time by ``campaign.fallback_scheduler``; the reason is noted once per change (``scheduler.fallback``) and
 the summary counts the decisions it made. The campaign goes on: a plugin's bug costs decisions, not samples.
 """
 
@@ -33,8 +34,32 @@ class CheckedScheduler:
         if items is None:
             return self.fallback.decide(view, "invalid", f"scheduler {self.name!r} answered "
                                         f"{str(decided)[:80]!r}, not a list of Assignment(task, device)")
+        why = impossible(view, items)
+        if why:
+            return self.fallback.decide(view, "impossible", f"scheduler {self.name!r} answered nothing that can "
+                                                            f"run ({why})")
         self.fallback.recovered(f"scheduler {self.name!r} decides again")
         return items
+
+
+def impossible(view: LabView, items: list[Assignment]) -> str:
+    """Why none of ``items`` can be carried out on ``view`` (the first pair's reason), or '' if one can or there
+    are none (a wait). Only what the view settles: the orchestrator checks the rest (an operator's bar, a stock)
+    and journals each pair it refuses as ``scheduler.invalid``."""
+    first = ""
+    for a in items:  # a scan, not dicts: on every decision, and the first pair is nearly always sound
+        step = next((r for r in view.ready if r.task == a.task), None)
+        dev = next((f for f in view.free if f.name == a.device), None)
+        if step is None:
+            why = f"{a.task} → {a.device}: step {a.task!r} is not ready"
+        elif dev is None:
+            why = f"{a.task} → {a.device}: device {a.device!r} is not free"
+        elif dev.device_type != step.device_type:
+            why = f"{a.task} → {a.device}: {a.device} is a {dev.device_type}, the step needs a {step.device_type}"
+        else:
+            return ""
+        first = first or why
+    return first
 
 
 def assignments(decided: Any) -> list[Assignment] | None:
