@@ -15,6 +15,7 @@ from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, c
                              say_ended_early, sigterm_unwinds, stopped_by, writable)
 from twin.core.errors import TwinError
 from twin.runtime.fast_device import FastRuntimeRefused
+from twin.scenario import Scenario
 from twin.tools.planner_bench import DEFAULT_PLANNERS
 
 
@@ -96,6 +97,18 @@ def train(
     console.print(f"saved {path} (and {path.with_suffix('.json').name})")
 
 
+def one_campaign(s: Scenario, path: Path, what: str) -> Scenario:
+    """``s``, unless it is a lab of several campaigns: a bench runs one campaign's lab (it failed on the lab's own
+    sections, "chemistry.parameters: empty", which the campaigns fill), and `twin whatif` compares the lab."""
+    if not s.campaigns:
+        return s
+    names = ", ".join(c.name for c in s.campaigns)
+    raise TwinError(f"{path}: a lab of {len(s.campaigns)} campaigns ({names}), and `twin bench {what}` compares "
+                    f"{what} on one campaign; `twin whatif {path} --{what} A,B` runs the lab with each (in every "
+                    f"campaign) and gives each campaign's lab-hours, or bench one campaign's own scenario (its "
+                    f"chemistry, workflow and campaign with the lab's devices)")
+
+
 @bench_app.command("planners")
 @interruptible
 def bench_planners(
@@ -122,7 +135,7 @@ def bench_planners(
         _fail(TwinError(f"--planners {planners!r}: name at least one planner, e.g. --planners random,gp-bo"))
     overrides = {**paired_assignments(set_ or []), **({"campaign.budget": budget} if budget else {})}
     try:
-        s = checked(lab.prepare(scenario, overrides=overrides), scenario)
+        s = one_campaign(checked(lab.prepare(scenario, overrides=overrides), scenario), scenario, "planners")
         for name in names:
             planner, scheduler, _ = parse(name)
             lab.make_planner(s.model_copy(update={"campaign": s.campaign.model_copy(update={"planner": planner})}))
@@ -201,8 +214,8 @@ def bench_schedulers(
     with bench_pool(workers) as pool:  # one set of workers for every shop
         for file, instance in files:
             try:
-                s = checked(load_variant(scenario, file, budget, paired_assignments(set_ or []), instance), scenario,
-                            benched=True)
+                s = one_campaign(checked(load_variant(scenario, file, budget, paired_assignments(set_ or []), instance),
+                                         scenario, benched=True), scenario, "schedulers")
                 for name in names:
                     lab.make_scheduler(s, name)
             except TwinError as exc:
@@ -247,7 +260,8 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     from twin.tools.shape_bench import measure, shapes, variants, verdict
 
     try:
-        s = checked(load_variant(scenario, None, budget, changes), scenario, benched=True)
+        s = one_campaign(checked(load_variant(scenario, None, budget, changes), scenario, benched=True), scenario,
+                         "schedulers")
         measure(s, by)  # said before the progress bar
         for name in names:
             lab.make_scheduler(s, name)

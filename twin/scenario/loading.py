@@ -102,7 +102,7 @@ def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str
     """``raw`` with the command line's dotted ``overrides`` set, validated; an override through a name the
     scenario nearly has (``devices.spectrometr.instances``) adds "did you mean" to the problems it makes."""
     hints = [hint for dotted in overrides if (hint := _misspelt(raw, dotted))]
-    for dotted, value in overrides.items():
+    for dotted, value in {**_to_each_campaign(raw, overrides), **overrides}.items():
         set_dotted(raw, dotted, value)
     try:
         return parse(raw, source, lab_only)
@@ -113,6 +113,24 @@ def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str
         # missing) only echoes it (a name near none may be a new entry: what it needs is said)
         made = tuple(hint.split(":", 1)[0] + end for hint in hints if "did you mean" in hint for end in ".:")
         raise ScenarioError(exc.source, [*hints, *(p for p in exc.problems if not p.startswith(made))]) from None
+
+
+def _to_each_campaign(raw: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """In a lab of several campaigns, an override of the lab's ``campaign.FIELD`` (``--scheduler``, ``--set
+    campaign.max_in_flight=2``, ``twin whatif --planners``) also set in each campaign that has a ``campaign:`` of
+    its own, which replaces the lab's: it was silently ignored there. Not the seed: each campaign's is the lab's
+    plus its place. An override of one campaign's field (``campaigns.1.campaign.scheduler``) still wins."""
+    campaigns = raw.get("campaigns")
+    if not isinstance(campaigns, list):
+        return {}
+    out = {}
+    for dotted, value in overrides.items():
+        if not dotted.startswith("campaign.") or dotted == "campaign.seed" or dotted.startswith("campaign.seed."):
+            continue
+        for i, c in enumerate(campaigns):
+            if isinstance(c, dict) and isinstance(c.get("campaign"), dict):
+                out[f"campaigns.{i}.{dotted}"] = value
+    return out
 
 
 def _misspelt(raw: dict[str, Any], dotted: str) -> str | None:

@@ -113,18 +113,30 @@ def axes_of(vary: list[tuple[str, list[Any]]], schedulers: list[str] | None, pla
 
 
 def written_values(scenario: Scenario, names: list[str]) -> dict[str, Any]:
-    """What the scenario as written says for each dotted field."""
+    """What the scenario as written says for each dotted field. In a lab of several campaigns, a field of
+    ``campaign`` is what its campaigns run with (a campaign's own section replaces the lab's): their one value, or
+    theirs joined by '/' (``oldest-sample/fifo``), which no variant equals."""
     data = scenario.model_dump()
+    runs = [campaign_scenario(scenario, c, i).model_dump() for i, c in enumerate(scenario.campaigns)]
     out = {}
     for name in names:
-        node: Any = data
-        for part in name.split("."):
-            if isinstance(node, list):
-                node = node[int(part)] if part.isdigit() and int(part) < len(node) else None
-            else:
-                node = node.get(part) if isinstance(node, dict) else None
-        out[name] = node
+        if runs and name.startswith("campaign."):
+            theirs = [_at(r, name) for r in runs]
+            distinct = [v for i, v in enumerate(theirs) if v not in theirs[:i]]
+            out[name] = distinct[0] if len(distinct) == 1 else "/".join(_shown(v) for v in distinct)
+        else:
+            out[name] = _at(data, name)
     return out
+
+
+def _at(data: Any, name: str) -> Any:
+    node: Any = data
+    for part in name.split("."):
+        if isinstance(node, list):
+            node = node[int(part)] if part.isdigit() and int(part) < len(node) else None
+        else:
+            node = node.get(part) if isinstance(node, dict) else None
+    return node
 
 
 def variants(scenario: Scenario, vary: list[tuple[str, list[Any]]], schedulers: list[str] | None = None,
