@@ -105,6 +105,10 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
     the caller handles them: a bench's worker, which its pool stops).
     """
     s = prepare(scenario, **overrides)
+    if s.campaigns:  # its own sections are the campaigns' defaults, not a campaign: it failed on a missing model
+        raise TwinError(f"{s.name} is a lab of {len(s.campaigns)} campaigns ({', '.join(c.name for c in s.campaigns)})"
+                        f": twin.run runs one campaign; twin.run_lab runs the lab and returns its LabSummary (each "
+                        f"campaign's Summary in .campaigns)")
     why_not = fast_refused(s, external_devices, agent_in_process)
     check_runtime(runtime, why_not)
     claimed = journal is None

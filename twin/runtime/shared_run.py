@@ -22,7 +22,7 @@ from twin.campaign.lab_replay import RebuiltLab
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_driver,
                                    load_drivers, make_bus, make_clock, make_planner, make_scheduler)
 from twin.runtime.lab import (FALLBACK_LOGGER, JournalFactory, check_runtime, default_journals, finish, flush_live,
-                              noted, open_journal, refuse_realtime, stop_on_loop_signals, stop_on_signals)
+                              noted, open_journal, prepare, refuse_realtime, stop_on_loop_signals, stop_on_signals)
 from twin.runtime.checks import check_campaign
 from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.labtime import LabTimeSource
@@ -36,6 +36,17 @@ from twin.view.lab_observer import SharedLabObserver
 
 
 LAB_INPUTS = "lab.inputs"  # beside the campaigns' journals: what a live lab was given (twin.campaign.lab_replay)
+
+
+def run_lab(scenario: str | Path | Scenario | dict[str, Any], *, journals: str | Path | None = None,
+            runtime: str = "auto", handle_signals: bool = True, **overrides: Any) -> LabSummary:
+    """Run a lab of several campaigns (a scenario with ``campaigns:``) to its end, as ``twin run`` does, and
+    return its ``LabSummary`` (each campaign's ``Summary`` in ``.campaigns``). ``journals``: the directory of the
+    campaigns' journals (default ``runs/<lab>-seed<N>-<time>/``); ``overrides`` as ``twin.run`` takes them."""
+    s = prepare(scenario, **overrides)
+    if not s.campaigns:
+        raise TwinError(f"{s.name} is one campaign (no campaigns: list): twin.run runs it")
+    return run_shared(s, journals, handle_signals=handle_signals, runtime=runtime)
 
 
 def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: bool = True,
