@@ -99,6 +99,10 @@ class PlanningEnv(gym.Env):
                  seed: int = 0) -> None:
         """``scenario``: a Scenario, a file or the mapping a file holds (default: ``scenarios/quantum_dots.yaml``)."""
         scenario = default_scenario(scenario, "quantum_dots.yaml")
+        if scenario.campaigns:  # its own chemistry is only the campaigns' default: "targets on the same outputs; []"
+            raise ValueError(f"{scenario.name}: a lab of several campaigns ({', '.join(c.name for c in scenario.campaigns)})"
+                             f"; this environment plans one campaign's experiments: give it one of "
+                             f"twin.campaign_scenarios(twin.prepare(LAB)) (by name), with the lab's devices")
         target_shape(scenario)
         self.scenario, self.horizon, self.random_goals = scenario, horizon, random_goals
         self.box = UnitBox(scenario.chemistry.parameters)

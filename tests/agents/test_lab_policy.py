@@ -181,6 +181,21 @@ def test_the_gym_environment_refuses_a_lab_of_several_campaigns_with_what_to_use
         SchedulingEnv(prepare(BUSY)).reset(seed=0)
 
 
+def test_the_planning_environment_refuses_a_lab_of_several_campaigns_and_takes_one_of_them():
+    """It said "the rl planner needs targets on the same outputs; got []": the lab's own chemistry is empty."""
+    from agents.planning_env import PlanningEnv
+    from twin import campaign_scenarios
+
+    with pytest.raises(ValueError, match=r"a lab of several campaigns \(dots, catalyst\).*campaign_scenarios"):
+        PlanningEnv(prepare(LAB))
+    env = PlanningEnv(campaign_scenarios(prepare(LAB))["dots"])
+    try:
+        obs, _ = env.reset(seed=0)
+        assert obs.shape == env.observation_space.shape
+    finally:
+        env.close()
+
+
 def test_each_campaigns_samples_age_by_its_own_stability_also_one_submitted_later():
     lab = prepare(LAB)
     made = ReadyStep("x/t", 0, "measure", "spectrometer", 0.0, 100.0, 60.0, 60.0, campaign="x")
