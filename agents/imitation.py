@@ -48,6 +48,7 @@ from agents.candidates import (ENCODING, FEATURES, GLOBALS, MAX_CANDIDATES, WAIT
                                fits_of, lab_shape, widen)
 from agents.cpsat import jobshop
 from agents.lockstep import SAMPLE_TEMPERATURES, lockstep
+from agents.planned_labs import planned
 from agents.scheduling_env import randomised
 from agents.schedulers import rules_for
 from agents.teachers import PlanTeacher, RuleTeacher, solve_time, solve_workers
@@ -139,7 +140,7 @@ def lab_task(args: tuple) -> tuple[list[Sample], dict]:
     base, seed, modes, state, beta, encoding = args
     torch.set_num_threads(1)
     rng = random.Random(f"imitate:{seed}")
-    lab = prepare(randomised(base, seed), seed=seed)
+    lab = planned(prepare(randomised(base, seed), seed=seed))
     scores = {r: objective(campaign(lab, seed, load_plugin("schedulers", r)().decide), lab) for r in rules_for(lab)}
     rule = min(scores, key=scores.get)
     samples, ratios = _rollouts(lab, RuleTeacher(rule), modes, _scorer(state, seed), beta, rng,
@@ -185,7 +186,7 @@ def self_task(args: tuple) -> tuple[list[Sample], dict]:
         lab = prepare(jobshop_as_lab(base, random_jobshop(n_jobs, n_machines, low, high, rng)), seed=0)
         shape = None
     else:
-        lab = prepare(randomised(base, seed), seed=seed)
+        lab = planned(prepare(randomised(base, seed), seed=seed))
         shape = lab_shape(lab)
     if base.training.teacher == "self-pg":
         samples, info = _reinforced(lab, _scorer(state, seed), base.training.samples, seed, encoding)

@@ -30,6 +30,7 @@ from twin import save_policy
 from twin import Scenario, time_scale, weighted_objective
 from twin import LabSummary, SteppedCampaign, SteppedLab
 from agents.lab_scheduling import lab_objective
+from agents.planned_labs import planned
 
 log = logging.getLogger(__name__)
 EVAL_SEEDS = tuple(range(100_000, 100_005))
@@ -46,7 +47,7 @@ TURNS = "turns"  # a lab of several campaigns without one scheduler: each campai
 def campaign(scenario: Scenario, seed: int, decide: Callable[[LabView], list[Assignment]] | None) -> Any:
     """One whole campaign, scheduled by ``decide``; its summary. A lab of several campaigns: every campaign,
     ``decide`` the lab's one scheduler (None: each campaign's own, in turns); a ``LabSummary``."""
-    lab = prepare(scenario, seed=seed)
+    lab = planned(prepare(scenario, seed=seed))
     c: Any = SteppedLab(lab, one_scheduler=decide is not None) if lab.campaigns else SteppedCampaign(lab)
     try:
         while not c.done:
