@@ -243,7 +243,7 @@ def test_work_with_no_usable_instance_left_is_said_at_once_and_given_up_after_a_
     (said,) = notes(out, "devices.unavailable")
     assert said.detail == {"type": "spectrometer", "experiments": [0], "give_up_after_s": 5000}
     assert alert_text(said).startswith("devices.unavailable spectrometer: no spectrometer is usable (each lost or "
-                                       "quarantined); experiments 0 wait for one, and are abandoned if none is back "
+                                       "quarantined); experiment 0 waits for one, and is abandoned if none is back "
                                        "within 5000 lab-s (campaign.give_up_after_s)")
     assert TimerKey(TimerKind.GIVE_UP, "spectrometer") in [a.key for a in of(out, SetTimer)]
     core.feed(Presence("spectrometer", True))  # it comes back: the work resumes

@@ -248,8 +248,10 @@ def _alert_words(n: Note) -> str:
     if n.kind == "devices.unavailable" and isinstance(d, dict):
         ids = [str(e) for e in d.get("experiments", ())]
         waiting = ", ".join(ids[:10]) + (f" and {len(ids) - 10} more" if len(ids) > 10 else "")
-        return (f"no {d.get('type')} is usable (each lost or quarantined); experiments {waiting} wait for one, and "
-                f"are abandoned if none is back within {d.get('give_up_after_s', 0):g} lab-s "
+        waits = f"experiment {waiting} waits for one, and is" if len(ids) == 1 else \
+            f"experiments {waiting} wait for one, and are"
+        return (f"no {d.get('type')} is usable (each lost or quarantined); {waits} abandoned if none is back within "
+                f"{d.get('give_up_after_s', 0):g} lab-s "
                 f"(campaign.give_up_after_s); a quarantined one is given work again after orchestrator.probe_after_s")
     if n.kind == "devices.missing" and isinstance(d, list):
         return (f"{', '.join(map(str, d))} not on the bus within orchestrator.startup_s: the campaign starts without "
