@@ -287,6 +287,11 @@ def test_an_unsafe_name_is_explained_not_shown_as_a_regex(tmp_path):
         validate_file(path)
     text = str(info.value)
     assert "devices.plate reader: 'plate reader' is not a valid name (key)" in text and "^[" not in text
+    raw = shipped("quantum_dots")
+    raw["name"] = "müller-lab"  # a letter, but not one a bus key or every file system takes: the words say so
+    path.write_text(yaml.safe_dump(raw, allow_unicode=True))
+    with pytest.raises(TwinError, match=r"name: 'müller-lab' is not a valid name \(value\): use ASCII letters"):
+        validate_file(path)
 
 
 def test_a_named_pipe_is_read_when_written_and_refused_when_nothing_writes(tmp_path, monkeypatch):

@@ -246,8 +246,8 @@ def describe(err: Any, raw: dict[str, Any], root: Any = None) -> str:
     if err["type"] == "string_pattern_mismatch":
         where = loc.removesuffix(".[key]")
         what = "key" if loc.endswith("[key]") else "value"
-        allowed = ("letters, digits, '_' or '-', at most 64" if where == "lab" else
-                   "letters, digits, '_', '-' or '.', at most 63, starting with a letter, digit or '_'")
+        allowed = ("ASCII letters, digits, '_' or '-', at most 64" if where == "lab" else
+                   "ASCII letters, digits, '_', '-' or '.', at most 63, starting with a letter, digit or '_'")
         return (f"{where}: {str(err.get('input'))[:80]!r} is not a valid name ({what}): use {allowed} (names "
                 "become bus keys and file names)")
     value = err.get("input")
