@@ -4,10 +4,12 @@ campaign.max_in_flight=2` and `twin whatif LAB --planners random,gp-bo` changed 
 
 import json
 
+import pytest
 import yaml
 
 from tests.conftest import twin_cli
 from tests.twin.shared_labs import LAB
+from twin.core.errors import ScenarioError
 from twin.runtime.lab import prepare
 from twin.scenario.sharing import campaign_scenarios
 from twin.tools.whatif import variants
@@ -27,6 +29,9 @@ def test_a_lab_wide_campaign_field_reaches_every_campaign_and_one_campaigns_own_
         assert [s.campaign.budget for s in runs.values()] == [s.campaign.budget for s in written.values()]
     seeded = campaign_scenarios(prepare(LAB, overrides={"campaign.seed": 5}))
     assert [s.campaign.seed for s in seeded.values()] == [5, 6]  # the lab's seed plus each campaign's place
+    with pytest.raises(ScenarioError) as bad:  # a bad value is said once, not again for each campaign
+        prepare(LAB, overrides={"campaign.max_in_flight": 0})
+    assert bad.value.problems == ["campaign.max_in_flight: Input should be greater than or equal to 1 (got 0)"]
 
 
 def test_whatif_of_a_lab_compares_what_its_campaigns_run_with(tmp_path):

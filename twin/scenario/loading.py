@@ -102,17 +102,24 @@ def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str
     """``raw`` with the command line's dotted ``overrides`` set, validated; an override through a name the
     scenario nearly has (``devices.spectrometr.instances``) adds "did you mean" to the problems it makes."""
     hints = [hint for dotted in overrides if (hint := _misspelt(raw, dotted))]
-    for dotted, value in {**_to_each_campaign(raw, overrides), **overrides}.items():
+    spread = _to_each_campaign(raw, overrides)
+    for dotted, value in {**spread, **overrides}.items():
         set_dotted(raw, dotted, value)
     try:
         return parse(raw, source, lab_only)
     except ScenarioError as exc:
+        # a value spread to every campaign: its problem said once, as the lab's field's
+        echoes = tuple(f"{k}:" for k in spread)
+        own = {p.partition(":")[2] for p in exc.problems if not p.startswith(echoes)}
+        problems = [p for p in exc.problems if not (p.startswith(echoes) and p.partition(":")[2] in own)]
         if not hints:
+            if len(problems) < len(exc.problems):
+                raise ScenarioError(exc.source, problems) from None
             raise
         # the cause first; what a likely misspelt name lacks as a new entry (devices.spectromter.driver:
         # missing) only echoes it (a name near none may be a new entry: what it needs is said)
         made = tuple(hint.split(":", 1)[0] + end for hint in hints if "did you mean" in hint for end in ".:")
-        raise ScenarioError(exc.source, [*hints, *(p for p in exc.problems if not p.startswith(made))]) from None
+        raise ScenarioError(exc.source, [*hints, *(p for p in problems if not p.startswith(made))]) from None
 
 
 def _to_each_campaign(raw: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
