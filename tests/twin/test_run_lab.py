@@ -20,3 +20,10 @@ def test_run_names_run_lab_for_a_lab_of_several_campaigns_and_run_lab_runs_it(tm
     assert sorted(p.name for p in (tmp_path / "lab").glob("*.db")) == ["catalyst.db", "dots.db"]
     with pytest.raises(twin.TwinError, match="no campaigns: list"):
         twin.run_lab(twin.campaign_scenarios(twin.prepare(LAB))["dots"], journals=tmp_path / "one")
+
+
+def test_a_policy_given_to_each_campaign_of_a_lab_is_refused_naming_the_lab_scheduler(tmp_path):
+    policy = "rl:agents/policies/flaky_scheduler.zip"
+    with pytest.raises(twin.ClockError, match=r"their scheduler \(rl:agents/policies/flaky_scheduler.zip\) is an "
+                                              r"agent on the bus.*--set orchestrator.lab_scheduler=rl:agents/policies"):
+        twin.run_lab(LAB, journals=tmp_path / "lab", overrides={**SMALL, "campaign.scheduler": policy})

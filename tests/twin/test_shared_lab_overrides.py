@@ -51,6 +51,13 @@ def test_whatif_of_a_lab_compares_what_its_campaigns_run_with(tmp_path):
     assert rows["as written"]["per_campaign"] != rows["campaign.planner=random"]["per_campaign"]
     res = twin_cli("whatif", small, "--schedulers", "fifo", "--seeds", "1", columns=80)
     assert res.exit_code == 0 and "oldest-sample/fifo*" in res.output, res.output  # the two as written
+    # a policy for each campaign, asked in the worker's process as for a lab of one (its run refused it: "an agent
+    # on the bus serves one campaign", after the other variants had run)
+    res = twin_cli("whatif", small, "--schedulers", "rl:agents/policies/flaky_scheduler.zip", "--seeds", "1",
+                   "--json")
+    assert res.exit_code == 0, res.output
+    (rl,) = [r for r in json.loads(res.stdout)["variants"] if r["variant"] != "as written"]
+    assert rl["variant"] == "campaign.scheduler=rl:agents/policies/flaky_scheduler.zip" and rl["per_campaign"]
 
 
 def test_a_bench_of_a_lab_of_several_campaigns_says_what_to_run_instead():

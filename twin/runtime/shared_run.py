@@ -52,12 +52,15 @@ def run_lab(scenario: str | Path | Scenario | dict[str, Any], *, journals: str |
 def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: bool = True,
                external_devices: Collection[str] = frozenset(),
                observer: SharedLabObserver | None = None, make_journal: JournalFactory = Journal,
-               runtime: str = "auto", reopen: Callable[[], SharedLabObserver] | None = None) -> LabSummary:
+               runtime: str = "auto", reopen: Callable[[], SharedLabObserver] | None = None,
+               agent_in_process: bool = False) -> LabSummary:
     """Every campaign of ``s`` on its shared lab; each writes ``<journals>/<campaign>.db``. Virtual time on the
     fast runtime (``runtime`` auto or fast; auto runs the lab again on the asyncio runtime if a driver needs it,
     with a new observer from ``reopen``); a scaled or wall clock, or ``runtime`` asyncio, on the asyncio runtime,
     over the scenario's bus, with ``external_devices`` served by other processes (``twin device serve``).
-    ``observer`` (``open_lab_observer``) is handed what the lab and each campaign do as it happens."""
+    ``observer`` (``open_lab_observer``) is handed what the lab and each campaign do as it happens.
+    ``agent_in_process``: a campaign's scheduler that is an agent on the bus (rl) is asked in this process, as
+    ``run`` asks one in benches and what-if; otherwise it is refused."""
     check_runtime(runtime, "" if s.clock.mode == "virtual" else
                   f"the clock is {s.clock.mode} (the fast runtime keeps virtual time only)", "lab")
     if external_devices and s.clock.mode == "virtual":
@@ -65,7 +68,8 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
                          "see messages in flight: use --clock scaled or --clock wall")
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
-    _refuse_agents(scenarios)
+    if not agent_in_process:
+        _refuse_agents(scenarios)
     one = _lab_scheduler(s)  # a policy that does not fit the lab is said before a journal is made
     where = Path(journals) if journals is not None else default_journals(s)
 
@@ -168,10 +172,13 @@ def _lab_scheduler(s: Scenario) -> Any:
 
 
 def _refuse_agents(scenarios: dict[str, Scenario]) -> None:
-    agents = [n for n, cs in scenarios.items() if agent_on_bus(cs.campaign.scheduler)]
+    agents = {n: cs.campaign.scheduler for n, cs in scenarios.items() if agent_on_bus(cs.campaign.scheduler)}
     if agents:
-        raise ClockError(f"campaigns {agents}: a scheduler agent on the bus serves one campaign; in a lab of "
-                         "several, give each campaign an in-process scheduler")
+        spec = next(iter(agents.values()))
+        raise ClockError(f"campaigns {list(agents)}: their scheduler ({spec}) is an agent on the bus, which serves "
+                         f"one campaign; in a lab of several, a policy schedules as the lab's one scheduler, seeing "
+                         f"every campaign's steps (--set orchestrator.lab_scheduler={spec}), or give each campaign "
+                         f"a rule (fifo, mwkr, ...)")
 
 
 _PLUGIN_FIELDS = (("planner", "planners"), ("scheduler", "schedulers"), ("fallback_scheduler", "schedulers"))
