@@ -16,7 +16,7 @@ import hashlib
 from collections import OrderedDict
 from typing import Any
 
-from twin import Scenario, SteppedCampaign, load_plugin, prepare
+from twin import Scenario, SteppedCampaign, SteppedLab, campaign_scenarios, load_plugin, prepare
 
 #: planners that cost next to nothing: run as they are
 CHEAP = frozenset({"fixed", "random", "lhs"})
@@ -25,40 +25,62 @@ _RECORDED: OrderedDict[str, list[dict[str, Any]]] = OrderedDict()
 
 
 def planned(lab: Scenario) -> Scenario:
-    """``lab`` (prepared with its seed) with its planner's proposals recorded once and replayed; as it is if its
-    planner is cheap, or it is a job shop (its jobs are fixed already) or a lab of several campaigns."""
-    if lab.campaigns or lab.jobshop is not None or lab.campaign.planner in CHEAP:
+    """``lab`` (prepared with its seed) with its planner's proposals recorded once and replayed; in a lab of several
+    campaigns, each campaign's whose planner is costly. As it is if no planner is costly, or it is a job shop (its
+    jobs are fixed already)."""
+    runs = campaign_scenarios(lab) if lab.campaigns else {"": lab}
+    costly = [name for name, s in runs.items() if s.campaign.planner not in CHEAP]
+    if lab.jobshop is not None or not costly:
         return lab
     key = hashlib.sha256(lab.model_dump_json().encode()).hexdigest()
-    proposals = _RECORDED.get(key)
-    if proposals is None:
-        proposals = _RECORDED[key] = record(lab)
+    recorded = _RECORDED.get(key)
+    if recorded is None:
+        recorded = _RECORDED[key] = record(lab)
         if len(_RECORDED) > _KEPT:
             _RECORDED.popitem(last=False)
     else:
         _RECORDED.move_to_end(key)
-    if not proposals:  # the planner proposed nothing: nothing to replay
-        return lab
-    return prepare(lab, overrides={"campaign.planner": "fixed", "campaign.planner_options": {"proposals": proposals}})
+    over: dict[str, Any] = {}
+    for i, name in enumerate(runs):
+        if name not in costly or not recorded.get(name):  # a planner that proposed nothing: nothing to replay
+            continue
+        fixed = {"planner": "fixed", "planner_options": {"proposals": recorded[name]}}
+        if not lab.campaigns:
+            over.update({f"campaign.{k}": v for k, v in fixed.items()})
+        else:  # the campaign's whole section, as it runs (its seed included): a section of its own replaces the lab's
+            over[f"campaigns.{i}.campaign"] = {**runs[name].campaign.model_dump(exclude_none=True), **fixed}
+    return prepare(lab, overrides=over) if over else lab
 
 
-def record(lab: Scenario) -> list[dict[str, Any]]:
-    """What ``lab``'s planner proposes in one campaign of it: each experiment's parameters, and its route when the
+def record(lab: Scenario) -> dict[str, list[dict[str, Any]]]:
+    """What ``lab``'s planners propose in one run of it (each campaign's own scheduler as written, or FIFO where
+    that is no plain rule): by campaign ('' for a lab of one), each experiment's parameters, and its route when the
     planner gave one (a route planner's)."""
     from agents.schedulers import RULES
 
+    if lab.campaigns:
+        shared = SteppedLab(lab, one_scheduler=False)  # each campaign's own scheduler: runs to its end at once
+        try:
+            return {name: _proposed(core.experiments, s) for (name, core), s
+                    in zip(shared.cores.items(), campaign_scenarios(lab).values())}
+        finally:
+            shared.close()
     rule = lab.campaign.scheduler if lab.campaign.scheduler in RULES else "fifo"
     decide = load_plugin("schedulers", rule)().decide
     c = SteppedCampaign(lab)
     try:
         while not c.done:
             c.answer(decide(c.view))
-        workflow = tuple((w.step, w.device, dict(w.params)) for w in lab.workflow)
-        out = []
-        for e in c.core.experiments:
-            route = tuple((s.step, s.device, dict(s.params)) for s in e.route)
-            out.append({"params": dict(e.params)} if route == workflow else
-                       {"params": dict(e.params), "route": [{"step": s, "device": d, "params": p} for s, d, p in route]})
-        return out
+        return {"": _proposed(c.core.experiments, lab)}
     finally:
         c.close()
+
+
+def _proposed(experiments: list[Any], s: Scenario) -> list[dict[str, Any]]:
+    workflow = tuple((w.step, w.device, dict(w.params)) for w in s.workflow)
+    out = []
+    for e in experiments:
+        route = tuple((r.step, r.device, dict(r.params)) for r in e.route)
+        out.append({"params": dict(e.params)} if route == workflow else
+                   {"params": dict(e.params), "route": [{"step": st, "device": d, "params": p} for st, d, p in route]})
+    return out

@@ -45,3 +45,23 @@ def test_a_lab_is_recorded_once_per_seed_and_a_cheap_planners_lab_runs_as_it_is(
     assert len(calls) == 2
     cheap = prepare(qd_lab(**{"campaign.planner": "random"}))
     assert planned(cheap) is cheap and len(calls) == 2
+
+
+def test_in_a_lab_of_several_campaigns_each_campaigns_planner_is_replayed_its_own_settings_kept():
+    from tests.twin.shared_labs import LAB
+    from twin import SteppedLab, campaign_scenarios
+
+    lab = prepare(LAB, seed=2, overrides={"campaigns.0.campaign.budget": 5, "campaigns.1.campaign.budget": 4})
+    live = SteppedLab(lab, one_scheduler=False)  # each campaign's own scheduler, as the recording runs it
+    proposed = {name: [e.params for e in core.experiments] for name, core in live.cores.items()}
+    live.close()
+    written, replayed = campaign_scenarios(lab), campaign_scenarios(planned(lab))
+    for name, s in replayed.items():
+        assert s.campaign.planner == "fixed" and written[name].campaign.planner == "gp-bo"
+        assert [p["params"] for p in s.campaign.planner_options["proposals"]] == proposed[name]
+        assert s.campaign.model_dump(exclude={"planner", "planner_options"}) == \
+            written[name].campaign.model_dump(exclude={"planner", "planner_options"})  # seed, budget, scheduler kept
+    again = SteppedLab(planned(lab), one_scheduler=False)
+    assert {name: [e.params for e in core.experiments] for name, core in again.cores.items()} == proposed
+    assert again.summary.lab_hours == live.summary.lab_hours
+    again.close()

@@ -96,6 +96,11 @@ class SteppedLab(_Stepped):
         self.view = None
         self._next()
 
+    @property
+    def cores(self) -> dict[str, Any]:
+        """Each campaign's core (its ledger: ``experiments``), by campaign."""
+        return self._run.shared.cores
+
     def close(self) -> None:
         for journal, _, _ in self._parts.values():
             journal.close()
