@@ -95,8 +95,8 @@ def _with_fields(s: Scenario, extra: dict[str, Any]) -> Scenario | None:
         if section not in _SIMPLE or not leaf or "." in leaf:
             return None
         sections.setdefault(section, {})[leaf] = value
-    if "campaign" in sections and s.campaigns:  # a lab's campaigns with their own campaign section take it too
-        return None
+    if s.campaigns and set(sections.get("campaign", ())) - {"seed"}:  # campaigns with a section of their own take
+        return None  # it too (the lab's seed is only the base of theirs)
     update = {}
     for section, fields in sections.items():
         sub = getattr(s, section)
