@@ -433,3 +433,36 @@ def test_a_drivers_error_reaches_the_terminal_as_escapes_and_the_journal_as_it_w
     for formatter in (logging.lastResort, PrintableFormatter(FORMAT)):  # a bench's lines, and twin run's
         lines = formatter.format(forged).splitlines()  # a driver's newline cannot forge a log line of its own
         assert len(lines) == 2 and lines[1] == "  ERROR twin.alerts: devices.lost spectrometer-1", lines
+
+
+class SwallowsCancels(Raises):
+    """Every other step never ends and ignores the lab's cancels (`except CancelledError: pass`, a vendor SDK's
+    retry loop): the campaign finished, and the process then waited for the step for ever, on both runtimes."""
+
+    def __init__(self, setup):
+        self.n = 0
+
+    async def run(self, step, params, sample, ctx):
+        self.n += 1
+        if self.n % 2:
+            await ctx.clock.sleep(30)
+            return StepResult({"peak_nm": 600.0}, sample)
+        while True:
+            try:
+                await ctx.clock.sleep(10)
+            except asyncio.CancelledError:
+                pass
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_a_driver_that_swallows_the_cancel_of_its_step_does_not_keep_the_lab_from_ending(tmp_path, runtime, caplog):
+    import logging
+
+    lab = qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_drivers:SwallowsCancels",
+                    "devices.spectrometer.instances": 1, "campaign.budget": 3})
+    with caplog.at_level(logging.ERROR):
+        summary = run(parse(lab), journal=tmp_path / "j.db", runtime=runtime)
+    assert summary.done + summary.abandoned == summary.proposed == 3 and summary.done >= 1
+    said = [r.getMessage() for r in caplog.records if "went on after the lab cancelled its step" in r.getMessage()]
+    assert len(said) == 1 and said[0].startswith("spectrometer: its driver") and "re-raise" in said[0]
+    assert not [r for r in caplog.records if "died in the device's own handling" in r.getMessage()]

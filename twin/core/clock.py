@@ -287,11 +287,23 @@ class LabClock:
 
 
 async def wait_cancelled(task: asyncio.Task, seconds: float = 1.0) -> None:
-    """Cancel ``task`` and wait for it, up to ``seconds`` of lab time."""
+    """Cancel ``task`` and wait for it, up to ``seconds`` of lab time. Not ``await task`` under a timeout: the
+    timeout's cancel would go to ``task`` too, and a task that swallows cancels would then be waited for ever."""
     task.cancel()
-    with contextlib.suppress(asyncio.CancelledError, TimeoutError, Exception):
-        async with asyncio.timeout(seconds):
-            await task
+    await asyncio.wait({task}, timeout=seconds)
+    if task.done() and not task.cancelled():
+        task.exception()  # taken: what it raised on the way out is its own business
+
+
+def end_by_force(task: asyncio.Task) -> None:
+    """End a task whose coroutine swallowed its cancel and went on (a driver's ``except CancelledError: pass``, a
+    bare ``except:``): the loop could never end, since it cancels and waits for every task left. Its coroutine is
+    closed (``GeneratorExit`` at its ``await``, which those do not catch; ``finally`` blocks run) and the task
+    cancelled; what it then raises is taken, not logged."""
+    task.add_done_callback(lambda t: t.cancelled() or t.exception())
+    with contextlib.suppress(RuntimeError):  # one that awaits again even then cannot be ended
+        task.get_coro().close()
+    task.cancel()
 
 
 

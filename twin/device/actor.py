@@ -18,11 +18,11 @@ from typing import Any
 
 from twin.core import keys
 from twin.core.bus import Bus, Closable
-from twin.core.clock import LabClock, wait_cancelled
+from twin.core.clock import LabClock, end_by_force, wait_cancelled
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits, timed
-from twin.device.driver import (Driver, StepContext, busy_with, fault_text, feature, simulated_faults,
-                                step_result)
+from twin.device.driver import (SWALLOWED, Driver, StepContext, busy_with, fault_text, feature,
+                                simulated_faults, step_result)
 from twin.core.errors import PLUGIN_ERRORS, DriverError, Refused
 from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack, to_wire, within_limit
 
@@ -52,6 +52,7 @@ class DeviceActor:
         self._current: tuple[str, int] | None = None
         self._token_of_current = ""
         self._cancel_reason = ""
+        self._forced: asyncio.Future | None = None  # a step ended by force (its driver swallowed the cancel)
         self._sub: Closable | None = None
         self._token: Closable | None = None
         self._health: Closable | None = None
@@ -88,9 +89,14 @@ class DeviceActor:
             self._orphan_timer.cancel()
         if self._crasher:
             await wait_cancelled(self._crasher)
-        if self._job is not None:
+        job = self._job
+        if job is not None:
             self._cancel_reason = "stop"
-            await wait_cancelled(self._job)
+            await wait_cancelled(job)
+            if not job.done():
+                log.error("%s: %s", self.name, SWALLOWED)
+                self._forced = job
+                end_by_force(job)
         try:
             async with asyncio.timeout(self.stop_grace_s):  # lab time: on a virtual clock, no wait at all
                 await self.driver.safe_state()
@@ -218,7 +224,7 @@ class DeviceActor:
 
     def _job_ended(self, task: str, attempt: int, campaign: str, token: str, job: asyncio.Future) -> None:
         """A step that died in the actor's own handling (a safe_state() that raised, say) is reported, not lost."""
-        if job.cancelled() or job.exception() is None:
+        if job.cancelled() or job.exception() is None or job is self._forced:  # forced: said already
             return
         exc = job.exception()
         log.error("%s: step %s#%d died in the device's own handling: %s; reported as a driver error", self.name,

@@ -147,6 +147,12 @@ def capabilities(driver: Any, who: str) -> frozenset[str]:
     return frozenset(caps)
 
 
+#: said of a device whose driver went on after its step was cancelled, when the lab stops
+SWALLOWED = ("its driver went on after the lab cancelled its step (run() caught asyncio.CancelledError and did not "
+             "re-raise it, or a bare except: did); the step was ended by force at shutdown. Stop the instrument in "
+             "`except CancelledError:` and re-raise (docs/drivers.md)")
+
+
 def busy_with(running: tuple[str, int]) -> dict[str, str]:
     """The "not now" a device answers while it runs a step (one at a time: the lab retries it later)."""
     task, attempt = running

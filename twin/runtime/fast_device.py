@@ -10,6 +10,7 @@ and messages are the same envelopes, passed as dicts.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import logging
 import time
@@ -20,8 +21,8 @@ from typing import Any
 from twin.campaign import DeviceMessage, InvalidInput, Presence
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits
-from twin.device.driver import (Driver, StepContext, busy_with, fault_text, feature, simulated_faults,
-                                step_result)
+from twin.device.driver import (SWALLOWED, Driver, StepContext, busy_with, fault_text, feature,
+                                simulated_faults, step_result)
 from twin.core.errors import PLUGIN_ERRORS, DriverError, Refused
 from twin.core.messages import Dropped, InvalidMessage, Kind, decode, envelope, excerpt, to_wire, within_limit
 from twin.view.observer import WATCHED
@@ -82,6 +83,14 @@ class FastDevice:
         if self._job is not None:
             self._cancel_reason = "stop"
             self._throw_cancel()
+        job = self._job
+        if job is not None:  # it swallowed the cancel and waits again: the queue would never empty
+            log.error("%s: %s", self.name, SWALLOWED)
+            if self._timer is not None:
+                self._timer.cancel()
+            self._job = self._current = self._timer = None
+            with contextlib.suppress(RuntimeError):  # GeneratorExit at its await, which those do not catch
+                job.close()
         try:
             _complete(self.driver.safe_state(), self.name, self.device_type)
         except FastRuntimeRefused:
