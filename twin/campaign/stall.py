@@ -14,8 +14,8 @@ from twin.campaign.events import TimerKey, TimerKind
 
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
 
-_WHY = ("answered wait with no device busy and nothing due, so no event would ask {} again: a scheduler must start a "
-        "step when nothing runs")
+_WHY = ("answered {what} with no device busy and nothing due, so no event would ask {who} again: a scheduler must "
+        "start a step when nothing runs")
 
 _NOT_EVENTS = frozenset({TimerKey(TimerKind.LIMIT), TimerKey(TimerKind.STARTUP)})
 
@@ -37,19 +37,17 @@ def say_for_lab(names: dict[str, str], lab_scheduler: str = "") -> str:
     """Why a shared lab stalls: each campaign's scheduler (campaign -> scheduler), or the lab's one, waits for
     nothing."""
     if lab_scheduler:
-        return f"the lab's scheduler ({lab_scheduler}) " + _WHY.format("it")
+        return f"the lab's scheduler ({lab_scheduler}) " + _WHY.format(what="wait", who="it")
     which = ", ".join(f"{c}: {s}" for c, s in names.items())
-    return f"the schedulers ({which}) " + _WHY.format("them")
+    return f"the schedulers ({which}) " + _WHY.format(what="wait", who="them")
 
 
 def say(core: CampaignCore, refused: int = 0) -> None:
     """``refused``: the scheduler's answer was pairs that could not be carried out (``scheduler.invalid``), not a
     wait, and it is as stuck."""
-    why = f"the scheduler ({core.s.campaign.scheduler}) " + _WHY.format("it")
-    if refused:
-        why = (f"the scheduler ({core.s.campaign.scheduler}) answered only pairs that cannot be carried out "
-               f"({refused} refused: scheduler.invalid in the journal) with no device busy and nothing due, so no "
-               f"event would ask it again: a scheduler must start a step when nothing runs")
+    what = (f"only pairs that cannot be carried out ({refused} refused: scheduler.invalid in the journal)"
+            if refused else "wait")
+    why = f"the scheduler ({core.s.campaign.scheduler}) " + _WHY.format(what=what, who="it")
     if core.s.clock.mode == "virtual":
         core._on_stop(why)
     elif not core.stalled:  # said once, until the scheduler starts a step again

@@ -113,9 +113,7 @@ def parse_overridden(raw: dict[str, Any], overrides: dict[str, Any], source: str
         own = {p.partition(":")[2] for p in exc.problems if not p.startswith(echoes)}
         problems = [p for p in exc.problems if not (p.startswith(echoes) and p.partition(":")[2] in own)]
         if not hints:
-            if len(problems) < len(exc.problems):
-                raise ScenarioError(exc.source, problems) from None
-            raise
+            raise ScenarioError(exc.source, problems) from None
         # the cause first; what a likely misspelt name lacks as a new entry (devices.spectromter.driver:
         # missing) only echoes it (a name near none may be a new entry: what it needs is said)
         made = tuple(hint.split(":", 1)[0] + end for hint in hints if "did you mean" in hint for end in ".:")
@@ -132,7 +130,7 @@ def _to_each_campaign(raw: dict[str, Any], overrides: dict[str, Any]) -> dict[st
         return {}
     out = {}
     for dotted, value in overrides.items():
-        if not dotted.startswith("campaign.") or dotted == "campaign.seed" or dotted.startswith("campaign.seed."):
+        if not dotted.startswith("campaign.") or dotted == "campaign.seed":
             continue
         for i, c in enumerate(campaigns):
             if isinstance(c, dict) and isinstance(c.get("campaign"), dict):
