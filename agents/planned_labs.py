@@ -20,26 +20,33 @@ from twin import Scenario, SteppedCampaign, SteppedLab, campaign_scenarios, load
 
 #: planners that cost next to nothing: run as they are
 CHEAP = frozenset({"fixed", "random", "lhs"})
-_KEPT = 512  # recordings held per process (one per lab and seed drawn; a few KB each)
-_RECORDED: OrderedDict[str, list[dict[str, Any]]] = OrderedDict()
+_KEPT = 256  # labs held per process (one per lab and seed drawn)
+_PLANNED: OrderedDict[str, Scenario] = OrderedDict()
 
 
 def planned(lab: Scenario) -> Scenario:
     """``lab`` (prepared with its seed) with its planner's proposals recorded once and replayed; in a lab of several
     campaigns, each campaign's whose planner is costly. As it is if no planner is costly, or it is a job shop (its
-    jobs are fixed already)."""
+    jobs are fixed already). The lab made is kept: every later run of the same lab costs a hash."""
+    if lab.jobshop is not None or (not lab.campaigns and lab.campaign.planner in CHEAP):
+        return lab  # the common case, and a lab already replayed: no hash
+    key = hashlib.sha256(lab.model_dump_json().encode()).hexdigest()
+    made = _PLANNED.get(key)
+    if made is None:
+        made = _PLANNED[key] = _replayed(lab)
+        if len(_PLANNED) > _KEPT:
+            _PLANNED.popitem(last=False)
+    else:
+        _PLANNED.move_to_end(key)
+    return made
+
+
+def _replayed(lab: Scenario) -> Scenario:
     runs = campaign_scenarios(lab) if lab.campaigns else {"": lab}
     costly = [name for name, s in runs.items() if s.campaign.planner not in CHEAP]
-    if lab.jobshop is not None or not costly:
+    if not costly:
         return lab
-    key = hashlib.sha256(lab.model_dump_json().encode()).hexdigest()
-    recorded = _RECORDED.get(key)
-    if recorded is None:
-        recorded = _RECORDED[key] = record(lab)
-        if len(_RECORDED) > _KEPT:
-            _RECORDED.popitem(last=False)
-    else:
-        _RECORDED.move_to_end(key)
+    recorded = record(lab)
     over: dict[str, Any] = {}
     for i, name in enumerate(runs):
         if name not in costly or not recorded.get(name):  # a planner that proposed nothing: nothing to replay

@@ -37,7 +37,7 @@ def one_lab(base, seed: int, replay: bool) -> tuple[int, float]:
     real = planned_labs.planned
     way = real if replay else (lambda lab: lab)
     imitation.planned = train_scheduler.planned = way
-    planned_labs._RECORDED.clear()  # each lab is new to the trainer's worker
+    planned_labs._PLANNED.clear()  # each lab is new to the trainer's worker
     try:
         t = time.perf_counter()
         samples, _ = imitation.lab_task((base, seed, ("teacher",), None, 1.0, ENCODING))

@@ -36,7 +36,7 @@ def test_the_lab_replays_what_its_planner_proposed_under_its_own_scheduler():
 def test_a_lab_is_recorded_once_per_seed_and_a_cheap_planners_lab_runs_as_it_is(monkeypatch):
     calls = []
     monkeypatch.setattr(planned_labs, "record", lambda lab: calls.append(lab) or record(lab))
-    monkeypatch.setattr(planned_labs, "_RECORDED", type(planned_labs._RECORDED)())
+    monkeypatch.setattr(planned_labs, "_PLANNED", type(planned_labs._PLANNED)())
     lab = gp_lab(**{"campaign.budget": 6})
     for _ in range(3):
         campaign(lab, 4, load_plugin("schedulers", "fifo")().decide)  # the trainer's campaigns of one lab and seed
