@@ -123,3 +123,14 @@ class Scheduler(Protocol):
 def capable(step: ReadyStep, free: tuple[FreeDevice, ...]) -> list[FreeDevice]:
     """Free devices of the step's type that it need not avoid."""
     return [d for d in free if d.device_type == step.device_type and d.name not in step.avoid]
+
+
+def unfit(a: Assignment, step: ReadyStep | None, device: FreeDevice | None) -> str:
+    """Why the view rules out ``a`` (``step`` and ``device``: what the view holds under its names), or ''."""
+    if step is None:
+        return f"{a.task} → {a.device}: step {a.task!r} is not ready"
+    if device is None:
+        return f"{a.task} → {a.device}: device {a.device!r} is not free"
+    if device.device_type != step.device_type:
+        return f"{a.task} → {a.device}: {a.device} is a {device.device_type}, the step needs a {step.device_type}"
+    return ""

@@ -11,7 +11,7 @@ from __future__ import annotations
 import inspect
 from typing import Any
 
-from twin.campaign.decisions import Assignment, LabView
+from twin.campaign.decisions import Assignment, LabView, unfit
 from twin.core.errors import PLUGIN_ERRORS
 from twin.runtime.remote_scheduler import Fallback
 
@@ -48,15 +48,9 @@ def impossible(view: LabView, items: list[Assignment]) -> str:
     and journals each pair it refuses as ``scheduler.invalid``."""
     first = ""
     for a in items:  # a scan, not dicts: on every decision, and the first pair is nearly always sound
-        step = next((r for r in view.ready if r.task == a.task), None)
-        dev = next((f for f in view.free if f.name == a.device), None)
-        if step is None:
-            why = f"{a.task} → {a.device}: step {a.task!r} is not ready"
-        elif dev is None:
-            why = f"{a.task} → {a.device}: device {a.device!r} is not free"
-        elif dev.device_type != step.device_type:
-            why = f"{a.task} → {a.device}: {a.device} is a {dev.device_type}, the step needs a {step.device_type}"
-        else:
+        why = unfit(a, next((r for r in view.ready if r.task == a.task), None),
+                    next((f for f in view.free if f.name == a.device), None))
+        if not why:
             return ""
         first = first or why
     return first

@@ -23,7 +23,7 @@ import msgspec
 
 from twin.core.bus import Bus
 from twin.core.bus.base import NoReplyError
-from twin.campaign.decisions import Assignment, LabView, capable
+from twin.campaign.decisions import Assignment, LabView, capable, unfit
 from twin.core.keys import PREFIX
 
 log = logging.getLogger(__name__)
@@ -64,8 +64,11 @@ def check(view: LabView, reply: bytes) -> tuple[list[Assignment], str]:
     free, used = {f.name: f for f in view.free}, set()
     for a in items:
         step, dev = ready.get(a.task), free.get(a.device)
-        if step is None or dev is None or a.device in used or dev not in capable(step, (dev,)):
-            return [], f"invalid decision {a.task} → {a.device}"
+        why = unfit(a, step, dev) or (f"{a.task} → {a.device}: {a.device} is assigned twice" if a.device in used else
+                                      f"{a.task} → {a.device}: the step avoids {a.device}"
+                                      if step and dev and dev not in capable(step, (dev,)) else "")
+        if why:
+            return [], f"invalid decision {why}"
         used.add(a.device)
     return items, ""
 
