@@ -16,8 +16,8 @@ from __future__ import annotations
 import secrets
 from typing import Any
 
-from twin.campaign import (consumables, device_events, dispatch, human, operator, outcomes, policy, provenance,
-                           questions, shutdown, stall, stranded, timers)
+from twin.campaign import (answered, consumables, device_events, dispatch, human, operator, outcomes, policy,
+                           provenance, questions, shutdown, stranded, timers)
 from twin.campaign.consumables import Stocks
 from twin.campaign.availability import Availability
 from twin.campaign.events import (Action, Ask, CancelTimer, Decided, DeviceMessage, Event, InvalidInput,
@@ -138,7 +138,7 @@ class CampaignCore:
             if isinstance(answer, Proposed) and asked is not None and asked.what == "plan":
                 self._proposed(answer.proposals[:asked.n], answer.failed)
             elif isinstance(answer, Decided) and asked is not None and asked.what == "schedule":
-                self._decided(answer)
+                answered.carry_out(self, answer)
         if self._running and self._asking is None:
             self._decide()
         out, self._out = self._out, []
@@ -318,36 +318,6 @@ class CampaignCore:
             return
         for p in proposals:
             self._add_experiment(p)
-
-    def _decided(self, d: Decided) -> None:
-        self.decision_wall_s.append(d.wall_s)
-        sent = refused = 0
-        for a in d.assignments if not self.stopping else ():
-            why = dispatch.problem(a, self.ready, self.devices, self.dry)
-            if why:
-                self._note("scheduler.invalid", task=a.task, device=a.device, detail=why)
-                refused += 1
-                continue
-            task = self.ready.pop(a.task)
-            short = self.stocks.short(self._needs(task), a.device) if self.stocks else []
-            if short:  # an assignment earlier in this answer used up what this one needs
-                self._starve(task, short)
-                continue
-            self._dispatch(task, self.devices[a.device])
-            sent += 1
-        if sent:
-            self.stalled = ""
-        if self._wake:
-            # the lab changed while the scheduler looked at it (a step ended, a device came back): the view it
-            # answered is stale, so the pass goes on from the lab as it is, the planner's turn included; ending
-            # it on a stale "wait" could leave nothing running and nobody to ask again
-            self._filled = False
-        elif sent:
-            self._wake = True  # more may pair now
-        else:
-            self._end_pass()
-            if refused == len(d.assignments) and stall.waits_for_nothing(self):  # a wait, or only refused pairs
-                stall.say(self, refused)
 
     # -- experiments and steps ------------------------------------------------------
     def _add_experiment(self, p: Proposal) -> None:
