@@ -22,8 +22,8 @@ from typing import Any
 
 from twin.core import keys
 from twin.core.bus import Bus
-from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, DeviceMessage, Finished, InvalidInput, Note,
-                           Presence, Proposed, RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
+from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Presence, Proposed,
+                           RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
 from twin.campaign import replay
 from twin.campaign.events import ALERT_LOGGER, ALERTS, PROGRESS_KINDS, TimerKey, alert_text
 from twin.campaign.replay import Rebuilt
@@ -32,12 +32,13 @@ from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.bus import NoReplyError
 from twin.core.errors import TwinError
-from twin.core.messages import Dropped, InvalidMessage, Kind, decode, excerpt, pack, without_token
+from twin.core.messages import Kind, pack
 from twin.runtime.checked_planner import covered
 from twin.runtime.checked_scheduler import fallbacks
 from twin.runtime.control import ControlDesk
 from twin.runtime.decision_stream import SENDER, DecisionStream
-from twin.view.observer import UNDRAWN, WATCHED
+from twin.runtime.event_decoder import EventDecoder
+from twin.view.observer import UNDRAWN
 from twin.scenario import Scenario
 
 log = logging.getLogger(__name__)
@@ -68,54 +69,6 @@ def ask_scheduler(scheduler: Any, ask: Ask, answer: Callable[[Decided, bool], No
 
     pending.add_done_callback(answered)
     return pending
-
-
-CLOCK_OFF_S, CLOCK_OFF_WALL_S = 60.0, 5.0  # a device stamping times further than both from the lab's: another clock
-
-
-class EventDecoder:
-    """A device's message off the bus: a ``DeviceMessage`` (shown to an in-process observer as it is decoded),
-    or an ``InvalidInput`` that names the sender and the reason. With ``clock`` (a live lab's), a device whose
-    messages say a lab time far from the lab's is told of once: ``on_clock_off(detail)``, and the log."""
-
-    def __init__(self, observer: Any = None, clock: LabClock | None = None,
-                 on_clock_off: Callable[[dict[str, Any]], None] | None = None) -> None:
-        self.observer = observer
-        self.dropped = Dropped(log)
-        self._clock = clock if clock is not None and not clock.is_virtual else None
-        self._on_clock_off, self._clock_off = on_clock_off, set[str]()
-
-    def event(self, key: str, payload: bytes) -> DeviceMessage | InvalidInput:
-        on_key = keys.device_of(key)
-        try:
-            env, body = decode(payload, sender_hint=on_key)
-        except InvalidMessage as exc:
-            self.dropped.said(f"on {key}", exc)
-            return InvalidInput(exc.sender, exc.reason, key, excerpt(payload))
-        if self._clock is not None and env.sender == on_key and env.sender not in self._clock_off \
-                and env.kind != Kind.REJECTED:  # "no clock yet" is one reason to refuse a command
-            self._check_time(env.sender, env.t_lab)
-        kept = without_token(env) if env.token else payload
-        plain = body.to_dict()
-        if self.observer is not None and env.kind in WATCHED:
-            self.observer.on_envelope({"kind": env.kind, "id": env.id, "sender": env.sender, "task": env.task,
-                                       "campaign": env.campaign or "", "t_lab": env.t_lab, "body": plain})
-        return DeviceMessage(env.kind, env.sender, env.task, env.attempt, plain, kept, on_key, env.token,
-                             env.campaign or "")
-
-    def _check_time(self, sender: str, t_lab: float) -> None:
-        assert self._clock is not None
-        now = self._clock.now()
-        off = t_lab - now
-        if abs(off) <= max(CLOCK_OFF_S, CLOCK_OFF_WALL_S * self._clock.speed) or len(self._clock_off) >= 64:
-            return
-        self._clock_off.add(sender)
-        detail = {"sender": sender, "t_lab": t_lab, "lab_now": round(now, 3), "off_s": round(off, 3)}
-        log.warning("%s stamps its messages %+.0f lab-s off the lab's time (t_lab %.1f against %.1f): it keeps "
-                    "another clock. t_lab is the lab's time (docs/wire.md, 'Lab time'); the viewer draws what "
-                    "it sends at the times it says", sender, off, t_lab, now)
-        if self._on_clock_off is not None:
-            self._on_clock_off(detail)
 
 
 def rearm(clock: LabClock, timers: dict[TimerKey, Any], key: TimerKey, due: float,

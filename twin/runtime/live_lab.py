@@ -20,7 +20,8 @@ from twin.core.clock import LabClock
 from twin.campaign import Presence
 from twin.core.errors import ScenarioError, TwinError
 from twin.runtime.lab_desk import LabDesk
-from twin.runtime.live import EventDecoder, LiveCampaign, ask_scheduler, rearm
+from twin.runtime.event_decoder import EventDecoder
+from twin.runtime.live import LiveCampaign, ask_scheduler, rearm
 from twin.scenario import Scenario
 from twin.scenario.files import parse_yaml
 from twin.scenario.sharing import campaign_scenario, parse_campaign
