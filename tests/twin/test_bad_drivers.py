@@ -314,3 +314,58 @@ def test_a_driver_that_swallows_the_cancel_of_its_step_does_not_keep_the_lab_fro
     said = [r.getMessage() for r in caplog.records if "went on after the lab cancelled its step" in r.getMessage()]
     assert len(said) == 1 and said[0].startswith("spectrometer: its driver") and "re-raise" in said[0]
     assert not [r for r in caplog.records if "died in the device's own handling" in r.getMessage()]
+
+
+class StuckOnce(Raises):
+    """The first instance's first step never ends and ignores the lab's cancel; the other instance is sound. The lab
+    offered the stuck one a step every cancel grace, each answered "busy", and abandoned an experiment after 100 of
+    them while the sound instance stood free."""
+
+    def __init__(self, setup):
+        self.name, self.n = setup.name, 0
+
+    async def run(self, step, params, sample, ctx):
+        self.n += 1
+        while self.name in ("spectrometer", "spectrometer-1") and self.n == 1:
+            try:
+                await ctx.clock.sleep(10)
+            except asyncio.CancelledError:
+                pass
+        await ctx.clock.sleep(30)
+        return StepResult({"peak_nm": 600.0}, sample)
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_a_device_still_running_a_cancelled_step_is_quarantined_and_its_work_goes_elsewhere(tmp_path, runtime,
+                                                                                            caplog):
+    import logging
+
+    lab = qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_drivers:StuckOnce",
+                    "devices.spectrometer.instances": 2, "campaign.budget": 12, "campaign.stop_on_target": False})
+    with caplog.at_level(logging.WARNING):
+        summary = run(parse(lab), journal=tmp_path / "j.db", runtime=runtime)
+    assert summary.done == summary.proposed == 12 and summary.abandoned == 0
+    events = read_events(tmp_path / "j.db")
+    stuck = [e for e in events if e["kind"] == "device.stuck"]
+    assert [(e["device"], e["task"]) for e in stuck] == [("spectrometer-1", "e0s1")]
+    # asked again only at its probes, never once per grace: one "busy" per probe at most
+    probes = sum(e["kind"] == "device.probe" for e in events)
+    assert 1 <= summary.stuck == summary.refused_now <= probes + 1
+    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("device.stuck spectrometer-1")]
+    assert len(said) == 1 and "e0s1" in said[0] and "orchestrator.cancel_grace_s" in said[0] and "re-raise" in said[0]
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_work_waiting_for_the_only_instance_still_running_a_cancelled_step_is_given_up_on_in_time(tmp_path, runtime):
+    lab = qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_drivers:StuckOnce",
+                    "devices.spectrometer.instances": 1, "campaign.budget": 6, "campaign.stop_on_target": False,
+                    "campaign.give_up_after_s": 7200, "orchestrator.probe_after_s": 1800})
+    summary = run(parse(lab), journal=tmp_path / "j.db", runtime=runtime)
+    assert summary.abandoned == summary.proposed - summary.done >= 1
+    assert all(r.startswith("no usable spectrometer") for r in summary.abandoned_reasons), summary.abandoned_reasons
+    events = read_events(tmp_path / "j.db")
+    # its probes (every 1800 lab-s) did not count as the type being back: said once, given up after 7200 lab-s
+    assert sum(e["kind"] == "device.probe" for e in events) >= 3
+    assert [e["kind"] for e in events].count("devices.unavailable") == 1
+    assert "devices.available" not in [e["kind"] for e in events]
+    assert summary.lab_hours < 8

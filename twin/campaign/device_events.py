@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from twin.campaign import outcomes, provenance, results
+from twin.campaign import outcomes, provenance, results, stuck
 from twin.campaign.events import Code, DeviceMessage, RecordMessage, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt
 from twin.core.messages import Kind
@@ -57,10 +57,12 @@ def _after_resolved(core: CampaignCore, att: Attempt, m: DeviceMessage) -> None:
     """A message about an attempt already decided: the answer to a cancel, or late."""
     dev = core.devices[att.device]
     final = m.kind in (Kind.FAULT, Kind.RESULT, Kind.REJECTED)
+    acked = final and att in (dev.cancelling, dev.unanswered)  # after the grace too: a cancel answered late
     if final and dev.unanswered is att:
         dev.unanswered = None
-    acked = dev.cancelling is att and final
-    if acked:
+    if final and dev.stuck is att:
+        stuck.ended(core, dev, "it answered the cancel")
+    if acked and dev.cancelling is att:
         dev.cancelling = None
         core.cancel_timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name))
         core._wake = True
@@ -87,6 +89,7 @@ def presence(core: CampaignCore, name: str, alive: bool) -> None:
             return
         core.counts.device_lost += 1
         dev.unanswered = None
+        stuck.ended(core, dev, "it left the bus, which ended the step it did not stop")
         if dev.cancelling is not None:
             dev.cancelling = None
             core.cancel_timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name))

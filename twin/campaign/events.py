@@ -37,8 +37,8 @@ class Code(StrEnum):
 
 #: Notes a runtime also logs as warnings (``alert_text``), on the ``ALERT_LOGGER`` logger: the lab cannot go on as
 #: it is, or a device sends what the campaign cannot use.
-ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "output.unscored", "scheduler.stalled",
-                    "consumable.depleted"})
+ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "device.stuck", "output.unscored",
+                    "scheduler.stalled", "consumable.depleted"})
 ALERT_LOGGER = "twin.alerts"
 #: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, a device type gone, an
 #: operator's act
@@ -260,4 +260,11 @@ def _alert_words(n: Note) -> str:
     if n.kind == "device.flapping" and isinstance(d, dict):
         return (f"left the bus again within {d.get('within_s', 0):g} lab-s of its last loss (a bad link, or another "
                 f"process announcing its name); its running step keeps its deadline")
+    if n.kind == "device.stuck" and isinstance(d, dict):
+        return (f"refused work ({d.get('reason', '')}) while still running {n.task} (attempt {n.attempt}), whose "
+                f"cancel it left unanswered for over {d.get('grace_s', 0):g} lab-s (orchestrator.cancel_grace_s): its "
+                f"driver did not stop. It is quarantined until it answers the cancel, and asked again every "
+                f"{d.get('probe_after_s', 0):g} lab-s (orchestrator.probe_after_s). A driver must re-raise "
+                f"asyncio.CancelledError once the instrument is stopped (docs/drivers.md); one that only needs longer "
+                f"to stop needs a larger orchestrator.cancel_grace_s; restarting the device ends the step")
     return str(d)

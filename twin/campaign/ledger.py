@@ -79,6 +79,9 @@ class Device:
     attempt: Attempt | None = None
     cancelling: Attempt | None = None  # timed out; the device is not reused before it answers the cancel
     unanswered: Attempt | None = None  # a cancel it never answered: a "not now" from it means it is still busy
+    stuck: Attempt | None = None  # refused work with that cancel unanswered: quarantined until it answers (stuck.py)
+    said_stuck: bool = False  # the alert device.stuck was given for it (once a campaign)
+    probing: bool = False  # stuck, and out of quarantine for a probe: back only once a step is done on it
     consecutive_failures: int = 0
     busy_s: float = 0.0
     failures: int = 0
@@ -124,6 +127,7 @@ class Counters:
     quarantined: int = 0
     degraded: int = 0
     cancels_unanswered: int = 0
+    stuck: int = 0  # quarantines of a device still running a step it was told to cancel
 
 
 def check_accounting(experiments: list[Experiment], proposed: int) -> None:

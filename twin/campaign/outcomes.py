@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from twin.campaign import policy, questions
+from twin.campaign import policy, questions, stuck
 from twin.campaign.decisions import Outcome
 from twin.campaign.events import Code, RecordExperiment, Status, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt, Device, Experiment, Task
@@ -38,7 +38,7 @@ def resolve(core: CampaignCore, att: Attempt, code: str, body: dict[str, Any]) -
         core._timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name), core.s.orchestrator.cancel_grace_s)
         core._send(dev.name, Kind.CANCEL, task.id, att.n, {"reason": body["reason"]}, att.token)
     if code == Code.OK:
-        dev.consecutive_failures = 0
+        dev.consecutive_failures, dev.probing = 0, False
         dev.steps_done += 1
         advance(core, task, body)
     elif code == Code.REJECTED:
@@ -56,10 +56,8 @@ def refused(core: CampaignCore, task: Task, dev: Device, reason: str, infeasible
         finish_infeasible(core, e, f"{dev.name} refused {task.step.step!r}: {reason}")
         return
     core.counts.refused_now += 1
-    if dev.unanswered is not None:  # still stopping the step it was told to cancel: wait for it again
-        dev.cancelling, dev.unanswered = dev.unanswered, None
-        core._timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name), o.cancel_grace_s)
-        core._note("device.still_cancelling", device=dev.name, detail={"reason": reason})
+    if dev.unanswered is not None:  # still running the step it was told to cancel: no work until it stops
+        quarantine(core, dev, stuck.held(core, dev, reason))
     # "not now" does not use up one of the step's attempts; its number is not used again, so an answer that
     # comes later for the refused attempt can never count for the next one
     task.excused += 1
@@ -139,11 +137,12 @@ def _retrying_since(core: CampaignCore, task: Task) -> float:
     return task.retrying_since
 
 
-def quarantine(core: CampaignCore, dev: Device) -> None:
-    dev.quarantined = True
+def quarantine(core: CampaignCore, dev: Device, why: str = "") -> None:
+    dev.quarantined, dev.probing = True, False
     core.counts.quarantined += 1
     probe = core.s.orchestrator.probe_after_s
-    core._note("device.quarantined", device=dev.name, detail={"probe_after_s": probe})
+    core._note("device.quarantined", device=dev.name,
+               detail={"probe_after_s": probe, "reason": why} if why else {"probe_after_s": probe})
     core._timer(TimerKey(TimerKind.PROBE, dev.name), probe)
 
 

@@ -16,8 +16,12 @@ CampaignCore = Any  # the core calls in here with itself (an import of it would 
 def review(core: CampaignCore) -> None:
     """Say at once when the work waiting for a device type has no usable instance left, and give it
     ``campaign.give_up_after_s`` before abandoning it; an instance that comes back resumes it."""
-    usable = {d.type for d in core.devices.values() if d.online and not d.quarantined}
-    if usable.issuperset(core.s.devices) and not (core._availability.stranded or core._availability.given_up):
+    # a stuck device (stuck.py) probed is back once a step is done on it: a probe it refuses, still stuck, must
+    # not reset the give-up timer, nor say the type is back and gone again (a probe that fails uses an attempt)
+    gone = core._availability.stranded | core._availability.given_up
+    usable = {d.type for d in core.devices.values()
+              if d.online and not d.quarantined and not (d.probing and d.type in gone)}
+    if usable.issuperset(core.s.devices) and not gone:
         return  # every type has a usable instance and none was stranded: nothing to say (the common case)
     waiting: dict[str, list[int]] = {}
     for t in [*core.ready.values(), *core._retrying.values()]:

@@ -35,6 +35,7 @@ class Summary:
     infeasible: int = 0  # experiments a device refused, or its safe envelope excluded
     refused_now: int = 0  # attempts a device answered "not now" (busy, warming up, still stopping): no attempt used
     presence_flaps: int = 0
+    stuck: int = 0  # of ``quarantines``, those of a device still running a step it was told to cancel (stuck.py)
     steps_lost: int | None = None  # attempts failed because their device left (None: a journal from before)
     abandoned_reasons: dict[str, int] = field(default_factory=dict)
     abandoned_examples: dict[str, str] = field(default_factory=dict)  # each kind of reason: its first in full
@@ -115,6 +116,12 @@ def losses_text(devices_lost: Any, steps_lost: Any) -> str:
     return lost + (f" ({steps_lost} running steps lost with them)" if devices_lost and steps_lost is not None else "")
 
 
+def quarantines_text(quarantines: Any, stuck: Any) -> str:
+    """How often devices were quarantined, and how often for a step they did not stop when cancelled."""
+    return f"{quarantines} quarantines" + (f" ({stuck} of a device still running a step it was told to cancel)"
+                                           if stuck else "")
+
+
 def summary_markdown(s: dict[str, Any]) -> str:
     """A summary (as ``Summary.to_dict`` gives it, or as journalled) as a markdown table: the viewer's summary
     panel, and a notebook's view of a ``Summary``."""
@@ -123,8 +130,8 @@ def summary_markdown(s: dict[str, Any]) -> str:
              f"(of {s.get('proposed')}) |",
              f"| attempts | {s.get('attempts')} ({s.get('failed_attempts')} failed, {s.get('retried')} retried, "
              f"{s.get('timed_out')} timed out) |",
-             f"| faults | {losses_text(s.get('devices_lost'), s.get('steps_lost'))}, {s.get('quarantines')} "
-             "quarantines |",
+             f"| faults | {losses_text(s.get('devices_lost'), s.get('steps_lost'))}, "
+             f"{quarantines_text(s.get('quarantines'), s.get('stuck'))} |",
              f"| samples degraded | {s.get('degraded_samples')}{_cell(_waited_for(s.get('degraded_before')))} |",
              f"| lab time | {s.get('lab_hours', 0):.2f} h |"]
     if s.get("cost"):
@@ -166,6 +173,7 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         failed_attempts=c.failed, retried=c.retried, timed_out=c.timed_out,
         devices_lost=c.device_lost, quarantines=c.quarantined, invalid_messages=c.invalid,
         late_results=c.late, degraded_samples=c.degraded, rejected_messages=c.rejected, presence_flaps=c.flaps,
+        stuck=c.stuck,
         infeasible=c.infeasible, refused_now=c.refused_now, steps_lost=c.steps_lost,
         abandoned_reasons=dict(reasons), abandoned_examples=examples,
         utilisation={d.name: round(d.busy_s / elapsed, 4) for d in core.devices.values()},

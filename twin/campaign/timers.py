@@ -27,7 +27,7 @@ def fired(core: CampaignCore, key: TimerKey) -> None:
             core._make_ready(waiting.experiment, waiting)
     elif kind == TimerKind.PROBE:
         dev = core.devices[key.ref]
-        dev.quarantined = False
+        dev.quarantined, dev.probing = False, dev.stuck is not None
         core._note("device.probe", device=dev.name)
         core._wake = True
     elif kind == TimerKind.CANCEL_GRACE:

@@ -25,7 +25,7 @@ WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.inva
               "operator.pause", "operator.abort", "operator.stop", "operator.refused", "question.asked",
               "question.withdrawn", "consumable.low", "output.unscored", "planner.invalid", "device.clock_off",
               "scheduler.stalled"}
-ERROR_KINDS = {"message.rejected", "device.quarantined", "device.lost", "experiment.abandoned",
+ERROR_KINDS = {"message.rejected", "device.quarantined", "device.stuck", "device.lost", "experiment.abandoned",
                "consumable.depleted", "planner.failed"}
 log = logging.getLogger(__name__)
 QUEUE_SERIES = ("ready steps", "samples waiting", "oldest sample's age (h)")

@@ -9,7 +9,7 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text, losses_text
+from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text, losses_text, quarantines_text
 from twin.core.printable import printable
 
 
@@ -45,14 +45,15 @@ def render_summary(s: Summary, console: Console) -> None:
                           f"{not_now})")
     for reason, n in sorted(s.abandoned_reasons.items()):
         example = s.abandoned_examples.get(reason, "")
-        t.add_row("  abandoned", f"{n} × {escape(reason)}" + (f" [dim]— e.g. {escape(example)}[/]" if example else ""))
+        t.add_row("  abandoned", f"{n} × {escape(reason)}" + (f" [dim]— e.g. {escape(example)}[/]"
+                                                                 if example and example != reason else ""))
     timed_out = sorted(r.split(":")[0] for r in s.abandoned_reasons if r.endswith(": timed_out"))
     if timed_out:
         t.add_row("  why?", f"timed_out: the last attempt at {', '.join(timed_out)} ran past its deadline. If the "
                             "step is slower than the scenario says, raise its device type's duration (or plus_param "
                             "for a time parameter): a deadline is the expected duration × "
                             "orchestrator.timeout_factor + orchestrator.timeout_slack_s")
-    t.add_row("faults", f"{losses_text(s.devices_lost, s.steps_lost)}, {s.quarantines} quarantines, "
+    t.add_row("faults", f"{losses_text(s.devices_lost, s.steps_lost)}, {quarantines_text(s.quarantines, s.stuck)}, "
                         f"{s.invalid_messages} invalid messages, {s.late_results} late results")
     if s.rejected_messages or s.presence_flaps:
         t.add_row("refused", f"{s.rejected_messages} messages without the attempt's provenance (message.rejected), "
