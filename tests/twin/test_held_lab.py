@@ -1,0 +1,90 @@
+"""A driver whose call never returns holds the whole lab: the log says so while it still does, naming the device
+and the driver's line, and Ctrl-C (or SIGTERM) ends the call and stops the lab cleanly, on both runtimes."""
+
+import json
+import logging
+import os
+import signal
+import threading
+
+import pytest
+
+from tests.conftest import qd_lab
+from twin.campaign.journal import read_events
+from twin.device import habits
+from twin.device.driver import StepResult
+from twin.runtime.lab import run
+from twin.scenario import parse
+
+RELEASE = threading.Event()
+
+
+class HoldsTheLab:
+    """Its first step blocks in a synchronous call (a vendor SDK reading a socket with no timeout) until the test
+    releases it, or 60 s have passed."""
+
+    capabilities = frozenset({"measure"})
+
+    def __init__(self, setup):
+        self.n = 0
+
+    async def run(self, step, params, sample, ctx):
+        self.n += 1
+        if self.n == 1:
+            RELEASE.wait(60)  # the line the warning names
+        await ctx.clock.sleep(30)
+        return StepResult({"peak_nm": 600.0}, sample)
+
+    async def safe_state(self):
+        pass
+
+
+class _OnWarning(logging.Handler):
+    """Does ``then`` when the warning comes: it must come while the call still blocks."""
+
+    def __init__(self, then):
+        super().__init__()
+        self.said, self.then = [], then
+
+    def emit(self, record):
+        if "has held the lab" in record.getMessage():
+            self.said.append(record.getMessage())
+            self.then()
+
+
+def _run(tmp_path, runtime, monkeypatch, then):
+    monkeypatch.setattr(habits, "HELD_S", 0.5)
+    RELEASE.clear()
+    handler = _OnWarning(then)
+    logging.getLogger(habits.__name__).addHandler(handler)
+    try:
+        lab = qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_held_lab:HoldsTheLab",
+                        "devices.spectrometer.instances": 1, "campaign.budget": 2,
+                        "orchestrator.timeout_slack_s": 600})
+        summary = run(parse(lab), journal=tmp_path / "j.db", runtime=runtime)
+    finally:
+        logging.getLogger(habits.__name__).removeHandler(handler)
+    assert len(handler.said) == 1, handler.said  # said once
+    said = handler.said[0]
+    assert said.startswith("spectrometer: its driver has held the lab for")
+    assert "test_held_lab.py:" in said and "in run" in said and "asyncio.to_thread" in said and "Ctrl-C" in said
+    return summary
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+def test_a_driver_holding_the_lab_is_said_while_it_holds_it(tmp_path, runtime, monkeypatch):
+    summary = _run(tmp_path, runtime, monkeypatch, RELEASE.set)
+    assert RELEASE.is_set()  # the warning released the call: it came while the call blocked
+    assert summary.done == summary.proposed == 2  # the lab went on once the call returned
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_ends_a_call_that_holds_the_lab_and_stops_it_cleanly(tmp_path, runtime, sig, monkeypatch):
+    summary = _run(tmp_path, runtime, monkeypatch, lambda: os.kill(os.getpid(), sig))
+    assert not RELEASE.is_set()
+    assert summary.stopped == f"interrupted ({sig.name})"
+    assert summary.done + summary.abandoned + summary.pending == summary.proposed >= 1  # kept for a resume
+    failed = [json.loads(e["detail"]) for e in read_events(tmp_path / "j.db") if e["kind"] == "attempt.failed"]
+    assert [f["code"] for f in failed] == ["driver_error"]
+    assert f"interrupted ({sig.name}) while spectrometer's driver held the lab" in failed[0]["reason"]
