@@ -1,5 +1,5 @@
-"""A driver whose call never returns holds the whole lab: the log says so while it still does, naming the device
-and the driver's line, and Ctrl-C (or SIGTERM) ends the call and stops the lab cleanly, on both runtimes."""
+"""A driver's, scheduler's or planner's call that never returns holds the whole lab: the log says so while it still
+does, naming who and its line, and Ctrl-C (or SIGTERM) ends the call and stops the lab cleanly, on both runtimes."""
 
 import json
 import logging
@@ -11,7 +11,8 @@ import pytest
 
 from tests.conftest import qd_lab
 from twin.campaign.journal import read_events
-from twin.device import habits
+from twin.core import held
+from twin.campaign.decisions import Assignment
 from twin.device.driver import StepResult
 from twin.runtime.lab import run
 from twin.scenario import parse
@@ -39,6 +40,26 @@ class HoldsTheLab:
         pass
 
 
+class HoldsTheLabDeciding:
+    """A scheduler whose third decision blocks (a search with no time limit) until the test releases it."""
+
+    def __init__(self):
+        self.n = 0
+
+    def decide(self, view):
+        self.n += 1
+        if self.n == 3:
+            RELEASE.wait(60)  # the line the warning names
+        free = list(view.free)
+        out = []
+        for r in view.ready:
+            fit = next((f for f in free if f.device_type == r.device_type), None)
+            if fit is not None:
+                free.remove(fit)
+                out.append(Assignment(r.task, fit.name))
+        return out
+
+
 class _OnWarning(logging.Handler):
     """Does ``then`` when the warning comes: it must come while the call still blocks."""
 
@@ -52,35 +73,40 @@ class _OnWarning(logging.Handler):
             self.then()
 
 
-def _run(tmp_path, runtime, monkeypatch, then):
-    monkeypatch.setattr(habits, "HELD_S", 0.5)
+def _run(tmp_path, runtime, monkeypatch, then, holder="driver"):
+    monkeypatch.setattr(held, "HELD_S", 0.5)
     RELEASE.clear()
     handler = _OnWarning(then)
-    logging.getLogger(habits.__name__).addHandler(handler)
+    logging.getLogger(held.__name__).addHandler(handler)
     try:
-        lab = qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_held_lab:HoldsTheLab",
-                        "devices.spectrometer.instances": 1, "campaign.budget": 2,
-                        "orchestrator.timeout_slack_s": 600})
+        changes = {"devices.spectrometer.driver": "tests.twin.test_held_lab:HoldsTheLab"} if holder == "driver" else \
+            {"campaign.scheduler": "tests.twin.test_held_lab:HoldsTheLabDeciding"}
+        lab = qd_lab(**{"devices.spectrometer.instances": 1, "campaign.budget": 2,
+                        "orchestrator.timeout_slack_s": 600, **changes})
         summary = run(parse(lab), journal=tmp_path / "j.db", runtime=runtime)
     finally:
-        logging.getLogger(habits.__name__).removeHandler(handler)
+        logging.getLogger(held.__name__).removeHandler(handler)
     assert len(handler.said) == 1, handler.said  # said once
     said = handler.said[0]
-    assert said.startswith("spectrometer: its driver has held the lab for")
-    assert "test_held_lab.py:" in said and "in run" in said and "asyncio.to_thread" in said and "Ctrl-C" in said
+    who = "spectrometer's driver" if holder == "driver" else \
+        "scheduler 'tests.twin.test_held_lab:HoldsTheLabDeciding'"
+    assert said.startswith(f"{who} has held the lab for"), said
+    assert "test_held_lab.py:" in said and ("in run" if holder == "driver" else "in decide") in said
+    assert ("asyncio.to_thread" if holder == "driver" else "twin scheduler serve") in said and "Ctrl-C" in said
     return summary
 
 
 @pytest.mark.parametrize("runtime", ["fast", "asyncio"])
-def test_a_driver_holding_the_lab_is_said_while_it_holds_it(tmp_path, runtime, monkeypatch):
-    summary = _run(tmp_path, runtime, monkeypatch, RELEASE.set)
+@pytest.mark.parametrize("holder", ["driver", "scheduler"])
+def test_a_call_holding_the_lab_is_said_while_it_holds_it(tmp_path, runtime, holder, monkeypatch):
+    summary = _run(tmp_path, runtime, monkeypatch, RELEASE.set, holder)
     assert RELEASE.is_set()  # the warning released the call: it came while the call blocked
     assert summary.done == summary.proposed == 2  # the lab went on once the call returned
 
 
 @pytest.mark.parametrize("runtime", ["fast", "asyncio"])
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_ctrl_c_ends_a_call_that_holds_the_lab_and_stops_it_cleanly(tmp_path, runtime, sig, monkeypatch):
+def test_ctrl_c_ends_a_drivers_call_that_holds_the_lab_and_stops_it_cleanly(tmp_path, runtime, sig, monkeypatch):
     summary = _run(tmp_path, runtime, monkeypatch, lambda: os.kill(os.getpid(), sig))
     assert not RELEASE.is_set()
     assert summary.stopped == f"interrupted ({sig.name})"
@@ -88,3 +114,13 @@ def test_ctrl_c_ends_a_call_that_holds_the_lab_and_stops_it_cleanly(tmp_path, ru
     failed = [json.loads(e["detail"]) for e in read_events(tmp_path / "j.db") if e["kind"] == "attempt.failed"]
     assert [f["code"] for f in failed] == ["driver_error"]
     assert f"interrupted ({sig.name}) while spectrometer's driver held the lab" in failed[0]["reason"]
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+def test_ctrl_c_ends_a_decision_that_holds_the_lab_and_the_fallback_rule_makes_it(tmp_path, runtime, monkeypatch):
+    summary = _run(tmp_path, runtime, monkeypatch, lambda: os.kill(os.getpid(), signal.SIGINT), "scheduler")
+    assert not RELEASE.is_set()
+    assert summary.stopped == "interrupted (SIGINT)" and summary.scheduler_fallbacks >= 1
+    assert summary.done + summary.abandoned + summary.pending == summary.proposed >= 1
+    fallback = [json.loads(e["detail"]) for e in read_events(tmp_path / "j.db") if e["kind"] == "scheduler.fallback"]
+    assert "interrupted (SIGINT) while scheduler" in str(fallback[0]), fallback

@@ -4,10 +4,8 @@
   the process between two of its awaits: every other device, the orchestrator's deadlines and the bus wait
   meanwhile, and on a virtual clock no lab time passes for it. The runtimes time each stretch a driver runs
   between awaits and warn when one passes ``BLOCKING_S`` of wall time.
-- **Holding.** A blocking call that does not return (a vendor SDK waiting on a socket without a timeout, a loop
-  that never awaits) holds the lab for good, and the warning above would never come. One daemon thread per
-  process looks at which driver is running every second, and when one has held the process past ``HELD_S`` of wall
-  time, says so while it still does: the device, where its code is, and what to do.
+- **Holding.** A blocking call that does not return holds the lab for good, and the warning above would never come:
+  each stretch is run as ``twin.core.held`` holding, which says it while it lasts and lets Ctrl-C end it.
 - **Chatter.** Telemetry or progress reported in a loop that does not wait: every report is a message and a
   journal row (100,000 readings in a step made a 97 MB journal for three experiments). The runtimes warn when
   ``SAME_INSTANT`` reports come at one lab instant.
@@ -16,32 +14,26 @@
 from __future__ import annotations
 
 import logging
-import os
-import sys
-import threading
 import time
 import types
 from collections.abc import Awaitable, Generator
 from typing import Any
 
+from twin.core import held
+
 log = logging.getLogger(__name__)
 BLOCKING_S = 2.0  # wall seconds between two awaits: past this a driver is said to block the lab
 SAME_INSTANT = 100  # telemetry or progress reports at one lab instant: past this a driver reports in a loop
-HELD_S = 30.0  # wall seconds a driver may hold the process before the log says so while it still does
-_TWIN = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # a frame in here is the lab's, not the driver's
-
-#: the driver running now, as (its Habits, since when (time.perf_counter), its thread), or None: set around each
-#: stretch it runs, read by the watcher thread
-held: tuple[Habits, float, int] | None = None
-_watcher: threading.Thread | None = None
+DRIVER_ADVICE = ("A call to the instrument needs a timeout, and a blocking one a thread: `await "
+                 "asyncio.to_thread(call)` (docs/drivers.md)")
 
 
 class Habits:
     def __init__(self, device: str) -> None:
         self.device = device
         self.blocking_s = BLOCKING_S
-        _watch()
-        self._blocking_said = False
+        self.holder = held.Holder(f"{device}'s driver", DRIVER_ADVICE)  # said blocking: once per device
+        held.watch()
         self._chatter_said = False
         self._instant: float | None = None
         self._readings = 0
@@ -61,76 +53,12 @@ class Habits:
     def ran(self, since: float) -> None:
         """A driver's stretch that began at ``since`` (``time.perf_counter``) has ended."""
         took = time.perf_counter() - since
-        if took > self.blocking_s and not self._blocking_said:
-            self._blocking_said = True
+        if took > self.blocking_s and not self.holder.said:
+            self.holder.said = True
             log.warning("%s: its driver ran %.1f s of wall time without awaiting (a blocking call: time.sleep, a "
                         "vendor SDK?); every other device and the orchestrator waited meanwhile. Wait for the "
                         "instrument with `await ctx.clock.sleep(...)` and run a blocking call in a thread, `await "
                         "asyncio.to_thread(call)` (docs/drivers.md); said once per device", self.device, took)
-
-
-class Interrupted(Exception):
-    """Raised inside a driver's call by SIGINT or SIGTERM while it holds the lab: the lab is stopping, and only an
-    exception ends a call that does not return (its step fails as the driver's error)."""
-
-
-def interrupt_held(why: str) -> None:
-    """Called by a signal handler: if a driver holds this thread, end its call with ``Interrupted``."""
-    now = held
-    if now is not None and now[2] == threading.get_ident():
-        raise Interrupted(f"{why} while {now[0].device}'s driver held the lab for {time.perf_counter() - now[1]:.0f} "
-                          "s of wall time without awaiting")
-
-
-def holding(watch: Habits, since: float) -> None:
-    """``watch``'s driver runs from ``since`` until ``released``."""
-    global held
-    held = (watch, since, threading.get_ident())
-
-
-def released() -> None:
-    global held
-    held = None
-
-
-def _watch() -> None:
-    """Start the one watcher thread of this process, if it is not running."""
-    global _watcher
-    if _watcher is None or not _watcher.is_alive():
-        _watcher = threading.Thread(target=_watching, name="labtwin-driver-watch", daemon=True)
-        _watcher.start()
-
-
-def _watching() -> None:
-    said = None
-    while True:
-        time.sleep(min(1.0, HELD_S / 4))
-        now = held
-        if now is None or now is said or time.perf_counter() - now[1] < HELD_S:
-            continue
-        said = now
-        watch, since, thread = now
-        watch._blocking_said = True  # this says more than the warning at the stretch's end would
-        log.warning("%s: its driver has held the lab for %.0f s of wall time without awaiting, at %s; nothing else "
-                    "runs until it returns (no device, no deadline, no message). A call to the instrument needs a "
-                    "timeout, and a blocking one a thread: `await asyncio.to_thread(call)` (docs/drivers.md). "
-                    "Ctrl-C ends the call (an exception in the driver) and stops the lab; its journal keeps every "
-                    "experiment (`twin run --resume JOURNAL`)",
-                    watch.device, time.perf_counter() - since, _where(thread))
-
-
-def _where(thread: int) -> str:
-    """The innermost line of ``thread``'s stack outside labtwin and the standard library: the driver's."""
-    frame = sys._current_frames().get(thread)
-    first = None
-    while frame is not None:
-        name = frame.f_code.co_filename
-        if first is None:
-            first = frame
-        if not name.startswith((_TWIN, os.path.dirname(os.__file__))):
-            return f"{name}:{frame.f_lineno} in {frame.f_code.co_name}"
-        frame = frame.f_back
-    return f"{first.f_code.co_filename}:{first.f_lineno}" if first is not None else "an unknown line"
 
 
 @types.coroutine
@@ -143,13 +71,13 @@ def timed(step: Awaitable[Any], watch: Habits) -> Generator[Any, Any, Any]:
     while True:
         since = time.perf_counter()
         try:
-            holding(watch, since)
+            held.holding(watch.holder, since)
             asked = inner.send(sent) if thrown is None else inner.throw(thrown)
         except StopIteration as done:
             watch.ran(since)
             return done.value
         finally:
-            released()
+            held.released()
         watch.ran(since)
         sent, thrown = None, None
         try:

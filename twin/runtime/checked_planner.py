@@ -6,29 +6,42 @@ budget, never an experiment in the lab."""
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import replace
 from typing import Any
 
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
 from twin.campaign.events import Proposed
+from twin.core import held
 from twin.core.errors import PLUGIN_ERRORS
 from twin.core.messages import plain_value
 from twin.runtime.checked_scheduler import listed
 
 log = logging.getLogger(__name__)
+#: what to do about a planner whose call has held the lab long
+PROPOSAL_ADVICE = ("A proposal must return: give a long search or fit a time limit of its own (on a scaled or wall "
+                   "clock the lab asks the planner off its loop, and goes on without a late answer: "
+                   "campaign.planner_deadline_s)")
 
 
 class CheckedPlanner:
     def __init__(self, inner: Any, name: str) -> None:
         self.inner, self.name = inner, name
         self.failed = ""
+        self.holder = held.Holder(f"planner {name!r}", PROPOSAL_ADVICE)
+        held.watch()
 
     def answer(self, n: int, history: list[Outcome], pending: list[dict[str, Any]]) -> Proposed:
         """The planner's answer for the campaign core, or why it can give none."""
         if self.failed:
             return Proposed([], self.failed)
         try:
-            return self._checked(self.inner.propose(n, history, pending))
+            held.holding(self.holder, time.perf_counter())
+            try:
+                answer = self.inner.propose(n, history, pending)
+            finally:
+                held.released()
+            return self._checked(answer)
         except PLUGIN_ERRORS as exc:
             return self._fail(f"planner {self.name!r} raised {exc!r}"[:300])
 

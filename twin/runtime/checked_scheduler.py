@@ -9,25 +9,37 @@ the summary counts the decisions it made. The campaign goes on: a plugin's bug c
 from __future__ import annotations
 
 import inspect
+import time
 from typing import Any
 
 from twin.campaign.decisions import Assignment, LabView, unfit
+from twin.core import held
 from twin.core.errors import PLUGIN_ERRORS
 from twin.runtime.remote_scheduler import Fallback
+
+
+#: what to do about a scheduler whose decision has held the lab long
+DECISION_ADVICE = ("A decision must return: give a long search a time limit of its own, or run the scheduler as an "
+                   "agent (`twin scheduler serve`), for which the lab does not wait")
 
 
 class CheckedScheduler:
     def __init__(self, inner: Any, fallback: Fallback, name: str) -> None:
         self.inner, self.fallback, self.name = inner, fallback, name
+        self.holder = held.Holder(f"scheduler {name!r}", DECISION_ADVICE)
+        held.watch()
 
     def __getattr__(self, attr: str) -> Any:  # the scheduler's own attributes (serve_on_bus, its policy, ...)
         return getattr(self.inner, attr)
 
     def decide(self, view: LabView) -> Any:
         try:
+            held.holding(self.holder, time.perf_counter())
             decided = self.inner.decide(view)
         except PLUGIN_ERRORS as exc:
             return self.fallback.decide(view, "raised", f"scheduler {self.name!r} raised {exc!r}"[:300])
+        finally:
+            held.released()
         if inspect.isawaitable(decided):  # an agent: its answer is checked where it arrives
             return decided
         items = assignments(decided)

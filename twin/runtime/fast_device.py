@@ -20,7 +20,7 @@ from typing import Any
 
 from twin.campaign import DeviceMessage, InvalidInput, Presence
 from twin.core.streams import KeyedGenerator, seeded
-from twin.device import habits
+from twin.core import held
 from twin.device.habits import Habits
 from twin.device.driver import (SWALLOWED, Driver, StepContext, busy_with, fault_text, feature,
                                 simulated_faults, step_result)
@@ -165,7 +165,7 @@ class FastDevice:
         while True:
             since = clock()
             try:
-                habits.holding(watch, since)
+                held.holding(watch.holder, since)
                 req = job.send(None) if exc is None else job.throw(exc)
             except (StopIteration, asyncio.CancelledError):
                 return
@@ -176,7 +176,7 @@ class FastDevice:
                     self._emit(Kind.FAULT, {"code": "driver_error", "reason": fault_text(err, 500)}, *current, token)
                 return
             finally:
-                habits.released()
+                held.released()
                 if clock() - since > watch.blocking_s:  # inline: the call is only made for a driver that blocked
                     watch.ran(since)
             exc = None

@@ -21,7 +21,7 @@ from twin.campaign.replay import Rebuilt
 from twin.campaign.summary import Summary, from_core
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, TwinError
-from twin.device import habits
+from twin.core import held
 from twin.device.driver import feature
 from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_drivers,
@@ -257,7 +257,7 @@ def stop_on_signals(stop: Callable[[str], None], enabled: bool):
     def stopped(sig: int, frame: Any) -> None:
         why = f"interrupted ({signal.Signals(sig).name})"
         stop(why)
-        habits.interrupt_held(why)  # a driver's call that does not return would keep the stop from ever running
+        held.interrupt_held(why)  # a driver's call that does not return would keep the stop from ever running
 
     for sig in previous:
         signal.signal(sig, stopped)
@@ -344,7 +344,7 @@ def stop_on_loop_signals(stop: Callable[[str], None]) -> Iterator[None]:
             added.append(sig)
             # the loop runs ``stop`` when it next has control; a driver's call that does not return keeps it from
             # ever having it, so the handler that signal calls in this thread ends such a call too
-            signal.signal(sig, lambda *_, n=name: habits.interrupt_held(f"interrupted ({n})"))
+            signal.signal(sig, lambda *_, n=name: held.interrupt_held(f"interrupted ({n})"))
     interrupts = getattr(loop, "on_interrupt", [])  # on a thread of its own (twin.run in a notebook)
 
     def interrupted() -> None:
