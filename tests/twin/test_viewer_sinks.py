@@ -52,7 +52,7 @@ def test_serve_binds_loopback_and_keeps_serving_until_ctrl_c_or_sigterm(tmp_path
         url, line = None, "-"
         while url is None and line:  # readline returns "" once the command has exited
             line = proc.stderr.readline()
-            m = re.search(r"served at (http://\S+)", line)
+            m = re.search(r"the finished campaign is served at (http://\S+)", line)
             url = m.group(1) if m else None
         assert url and url.startswith("http://127.0.0.1:")
         with urllib.request.urlopen(url, timeout=10) as page:

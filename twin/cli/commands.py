@@ -12,8 +12,9 @@ import typer
 from rich.markup import escape
 from rich.text import Text
 
-from twin.cli.common import (_fail, app, assignments, bar_progress, check_lab_name, console, err, exit_status,
-                             keep_serving, machine_output, narrow_table, sigterm_unwinds, stopped_by, writable)
+from twin.cli.common import (_fail, app, assignments, bar_progress, check_lab_name, console, err, exit_if_interrupted,
+                             exit_status, keep_serving, machine_output, narrow_table, sigterm_unwinds, stopped_by,
+                             writable)
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
 from twin.cli.sharing import shared_lab
@@ -208,6 +209,7 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
         if record.save:
             err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
         keep_serving(recording, summary.stopped)
+    exit_if_interrupted(summary.stopped)
 
 
 @app.command()

@@ -129,6 +129,15 @@ def exit_status(stop: BaseException) -> int:
     return 128 + (signal.SIGTERM if isinstance(stop, Terminated) else signal.SIGINT)
 
 
+def exit_if_interrupted(*stopped: str) -> None:
+    """A run whose summary says a signal stopped it (``stopped``: "interrupted (SIGINT)") exits as a command ended
+    by that signal, once its summary is printed and its journal and recording written: a shell loop or script over
+    runs then stops with it instead of starting the next."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if any(why.startswith(f"interrupted ({sig.name})") for why in stopped):
+            raise typer.Exit(128 + sig)
+
+
 def writable(option: str, *paths: Path | None) -> None:
     """Refuse, before any work, a file to write that cannot be: the runs, the training or the campaign would be
     lost at their end (its directory is made, as a recording's is; a file made to try is removed)."""

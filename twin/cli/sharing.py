@@ -11,7 +11,7 @@ from typing import Annotated, Optional
 import typer
 from rich.markup import escape
 
-from twin.cli.common import _fail, app, check_lab_name, console, err, keep_serving, lab_app
+from twin.cli.common import _fail, app, check_lab_name, console, err, exit_if_interrupted, keep_serving, lab_app
 from twin.cli.printable import log_to_stderr
 from twin.core.errors import TwinError
 from twin.runtime.checks import check
@@ -67,6 +67,7 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
         if record.save:
             err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
         keep_serving(recording, " ".join(c.stopped for c in summary.campaigns.values()))
+    exit_if_interrupted(*(c.stopped for c in summary.campaigns.values()))
 
 
 def _resumed(live) -> None:
