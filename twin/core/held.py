@@ -86,8 +86,8 @@ def _watching() -> None:
             holder.said = True
             log.warning("%s has held the lab for %.0f s of wall time without returning, at %s; nothing else runs "
                         "until it returns (no device, no deadline, no message). %s. Ctrl-C ends the call (an "
-                        "exception in it) and stops the lab; its journal keeps every experiment (`twin run --resume "
-                        "JOURNAL`)", holder.who, now - since, _where(thread), holder.advice)
+                        "exception in it) and stops the lab cleanly, its journal written (`twin report JOURNAL`)",
+                        holder.who, now - since, _where(thread), holder.advice)
 
 
 def _where(thread: int) -> str:
