@@ -124,3 +124,35 @@ def test_ctrl_c_ends_a_decision_that_holds_the_lab_and_the_fallback_rule_makes_i
     assert summary.done + summary.abandoned + summary.pending == summary.proposed >= 1
     fallback = [json.loads(e["detail"]) for e in read_events(tmp_path / "j.db") if e["kind"] == "scheduler.fallback"]
     assert "interrupted (SIGINT) while scheduler" in str(fallback[0]), fallback
+
+
+class HoldsTheLabStopping(HoldsTheLab):
+    """Its first step never ends; told to cancel it, its safe_state blocks (an instrument's synchronous stop)."""
+
+    async def run(self, step, params, sample, ctx):
+        self.n += 1
+        if self.n == 1:
+            await ctx.clock.sleep(10**6)
+        await ctx.clock.sleep(30)
+        return StepResult({"peak_nm": 600.0}, sample)
+
+    async def safe_state(self):
+        if not RELEASE.is_set():
+            RELEASE.wait(60)  # the line the warning names
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+def test_a_safe_state_holding_the_lab_is_said_while_it_holds_it(tmp_path, runtime, monkeypatch):
+    monkeypatch.setattr(held, "HELD_S", 0.5)
+    RELEASE.clear()
+    handler = _OnWarning(RELEASE.set)
+    logging.getLogger(held.__name__).addHandler(handler)
+    try:
+        lab = qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_held_lab:HoldsTheLabStopping",
+                        "devices.spectrometer.instances": 1, "campaign.budget": 2})
+        summary = run(parse(lab), journal=tmp_path / "j.db", runtime=runtime)
+    finally:
+        logging.getLogger(held.__name__).removeHandler(handler)
+    assert RELEASE.is_set() and len(handler.said) == 1, handler.said
+    assert handler.said[0].startswith("spectrometer's driver has held the lab") and "in safe_state" in handler.said[0]
+    assert summary.done == summary.proposed == 2 and summary.timed_out == 1

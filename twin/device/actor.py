@@ -71,7 +71,7 @@ class DeviceActor:
         connect = feature(self.driver, "connect")
         if connect is not None:  # an instrument with presence of its own (MQTT last will, say)
             try:
-                await connect(self._instrument_presence)
+                await timed(connect(self._instrument_presence), self._habits)
             except PLUGIN_ERRORS as exc:
                 raise DriverError(f"{self.name}: its driver's connect() failed: {type(exc).__name__}: {exc}; it "
                                   "did not start: check that the instrument is on and can be reached, then start "
@@ -99,7 +99,7 @@ class DeviceActor:
                 end_by_force(job)
         try:
             async with asyncio.timeout(self.stop_grace_s):  # lab time: on a virtual clock, no wait at all
-                await self.driver.safe_state()
+                await timed(self.driver.safe_state(), self._habits)
         except TimeoutError:  # a driver that never returns must not keep the lab from ending
             log.error("%s: safe_state() did not return within %g lab-s at shutdown (orchestrator.cancel_grace_s); "
                       "the lab stopped without it: check the instrument by hand", self.name, self.stop_grace_s)
@@ -111,7 +111,7 @@ class DeviceActor:
         disconnect = feature(self.driver, "disconnect")
         if disconnect is not None:
             try:
-                await disconnect()
+                await timed(disconnect(), self._habits)
             except PLUGIN_ERRORS as exc:  # the lab has ended: its summary and the other devices' stops go on
                 log.error("%s: disconnect() failed at shutdown: %r; check the instrument's connection by hand",
                           self.name, exc)
@@ -293,10 +293,10 @@ class DeviceActor:
                 emit(Kind.RESULT, {"outputs": result.outputs, "sample": result.sample})
         except asyncio.CancelledError:
             if self._cancel_reason == "cancel":
-                await self.driver.safe_state()
+                await timed(self.driver.safe_state(), self._habits)
                 emit(Kind.FAULT, {"code": "cancelled", "reason": f"{cmd.step} cancelled on {self.name}"})
             elif self._cancel_reason == "orphaned":
-                await self.driver.safe_state()
+                await timed(self.driver.safe_state(), self._habits)
                 emit(Kind.FAULT, {"code": "cancelled", "reason": f"{cmd.step} stopped on {self.name}: the "
                                   f"orchestrator was gone for {self.orphan_grace_s:.0f} lab-s"})
             else:
@@ -305,7 +305,7 @@ class DeviceActor:
             emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
         except PLUGIN_ERRORS as exc:  # a driver bug must never take the actor down
             log.warning("%s: driver raised during %s: %s", self.name, cmd.step, fault_text(exc))
-            await self.driver.safe_state()
+            await timed(self.driver.safe_state(), self._habits)
             emit(Kind.FAULT, {"code": "driver_error", "reason": fault_text(exc)})
         finally:
             self._job, self._current, self._cancel_reason = None, None, ""
