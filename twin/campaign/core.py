@@ -16,8 +16,8 @@ from __future__ import annotations
 import secrets
 from typing import Any
 
-from twin.campaign import (answered, consumables, device_events, dispatch, human, operator, outcomes, policy,
-                           provenance, questions, shutdown, stranded, timers)
+from twin.campaign import (answered, consumables, device_events, dispatch, floods, human, operator, outcomes,
+                           policy, provenance, questions, shutdown, stranded, timers)
 from twin.campaign.consumables import Stocks
 from twin.campaign.availability import Availability
 from twin.campaign.events import (Action, Ask, CancelTimer, Decided, DeviceMessage, Event, InvalidInput,
@@ -225,9 +225,12 @@ class CampaignCore:
         elif isinstance(ev, Operator):
             operator.act(self, ev)
         elif isinstance(ev, InvalidInput):
-            self.counts.invalid += 1
-            self._note("message.invalid", device=ev.sender,
-                       detail={"key": ev.key, "sender": ev.sender, "reason": ev.reason, "excerpt": ev.excerpt})
+            before = self.counts.invalid
+            self.counts.invalid += ev.count
+            more = floods.left_out(before, self.counts.invalid)
+            if more is not None:
+                detail = {"key": ev.key, "sender": ev.sender, "reason": ev.reason, "excerpt": ev.excerpt}
+                self._note("message.invalid", device=ev.sender, detail={**detail, "left_out": more} if more else detail)
         elif isinstance(ev, Stop):
             if not self.stopping:
                 self.stopping = ev.reason

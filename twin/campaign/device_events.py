@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from twin.campaign import outcomes, provenance, results, stuck
+from twin.campaign import floods, outcomes, provenance, results, stuck
 from twin.campaign.events import Code, DeviceMessage, RecordMessage, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt
 from twin.core.messages import Kind
@@ -50,7 +50,11 @@ def message(core: CampaignCore, m: DeviceMessage) -> None:
 
 def _reject(core: CampaignCore, m: DeviceMessage, why: str) -> None:
     core.counts.rejected += 1
-    core._note("message.rejected", device=m.key or m.device, detail=provenance.rejection(m, why, core.s.lab))
+    more = floods.left_out(core.counts.rejected - 1, core.counts.rejected)
+    if more is not None:
+        detail = provenance.rejection(m, why, core.s.lab)
+        core._note("message.rejected", device=m.key or m.device,
+                   detail={**detail, "left_out": more} if more else detail)
 
 
 def _after_resolved(core: CampaignCore, att: Attempt, m: DeviceMessage) -> None:

@@ -95,6 +95,7 @@ class InvalidInput:
     reason: str
     key: str = ""
     excerpt: str = ""  # the start of the payload, for the journal
+    count: int = 1  # the messages it stands for: a journal's run of them, replayed as one (floods.py)
 
 
 @dataclass(frozen=True, slots=True)

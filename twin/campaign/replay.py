@@ -32,7 +32,8 @@ def encode(event: Any) -> list[Any]:
     if t is TimerFired:
         return ["timer", str(event.key.kind), event.key.ref]
     if t is InvalidInput:
-        return ["invalid", event.sender, event.reason, event.key, event.excerpt]
+        return ["invalid", event.sender, event.reason, event.key, event.excerpt, *([event.count] if event.count > 1
+                                                                                   else [])]
     if t is Stop:
         return ["stop", event.reason]
     if t is Operator:
@@ -45,6 +46,30 @@ def encode(event: Any) -> list[Any]:
     if t is Decided:
         return ["decided", [[a.task, a.device] for a in event.assignments], event.wall_s]
     raise TypeError(f"not a core input: {event!r}")
+
+
+def encode_all(events: list[Any]) -> list[list[Any]]:
+    """Inputs as JSON-able data, the undecodable messages of each sender as one entry with their count, where the
+    first was (a flood of them made a journal entry each): they change nothing but the count, which the core keeps
+    the same replayed; it notes them as floods.py says."""
+    out: list[list[Any]] = []
+    invalid: dict[str, list[Any]] = {}  # sender -> its entry
+    for event in events:
+        if type(event) is not InvalidInput:
+            out.append(encode(event))
+        elif event.sender in invalid:
+            merged(invalid[event.sender], event.count)
+        else:
+            out.append(entry := encode(event))
+            invalid[event.sender] = entry
+    return out
+
+
+def merged(entry: list[Any], count: int) -> None:
+    """``entry`` (an encoded undecodable message, or a run of them) standing for ``count`` more."""
+    if len(entry) == 5:
+        entry.append(1)
+    entry[5] += count
 
 
 def decode_input(data: list[Any]) -> Any:
@@ -62,7 +87,7 @@ def decode_input(data: list[Any]) -> Any:
     if kind == "timer":
         return TimerFired(TimerKey(TimerKind(data[1]), data[2]))
     if kind == "invalid":
-        return InvalidInput(*data[1:5])
+        return InvalidInput(*data[1:6])
     if kind == "stop":
         return Stop(data[1])
     if kind == "operator":

@@ -132,7 +132,7 @@ class Dropped:
     def said(self, where: str, exc: InvalidMessage) -> None:
         self.count += 1
         if self.count <= 10 or self.count % 1000 == 0:
-            self.log.warning("dropped a message %s: %s (%d so far; the journal has each)", where, exc, self.count)
+            self.log.warning("dropped a message %s: %s (%d so far; the journal has the first 1,000, then one row in 1,000)", where, exc, self.count)
 
 
 def envelope(kind: Kind, body: dict[str, Any], *, id: str, sender: str, t_lab: float,

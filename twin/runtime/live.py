@@ -117,7 +117,6 @@ class LiveCampaign:
         self._planning: asyncio.Future | None = None  # a proposal being computed in the worker thread
         self._spare: Proposed | None = None  # an answer that came after the lab went on without it
         self._late: asyncio.TimerHandle | None = None
-        self._rejected = 0
 
     def stop(self, reason: str) -> None:
         """Stop proposing and dispatching; what is in the lab is cancelled, the rest stays pending."""
@@ -226,7 +225,7 @@ class LiveCampaign:
             while self.core.has_work and not self.core.finished:
                 now = self.clock.now()
                 if self._recording:
-                    self.journal.inputs(now, {"events": [replay.encode(e) for e in self._fed]})
+                    self.journal.inputs(now, {"events": replay.encode_all(self._fed)})
                     self._fed.clear()
                 self._perform(self.core.advance(now))
                 if self.clock.is_virtual:
@@ -293,11 +292,11 @@ class LiveCampaign:
                     self.desk.noted(a)
                 if a.kind in ALERTS:
                     alerts_log.warning("%s", alert_text(a))
-                elif a.kind == "message.rejected":
-                    self._rejected += 1
-                    if self._rejected <= 10 or self._rejected % 1000 == 0:  # a device of your own echoes tokens?
-                        log.warning("rejected a message on %s: %s (%d so far; the journal has each)",
-                                    a.detail["key"], a.detail["reason"], self._rejected)
+                elif a.kind == "message.rejected":  # a device of your own echoes tokens? the first ten, then sparingly
+                    rejected = self.core.counts.rejected
+                    if rejected <= 10 or a.detail.get("left_out"):
+                        log.warning("rejected a message on %s: %s (%d so far; the journal has the first 1,000, then "
+                                    "one row in 1,000)", a.detail["key"], a.detail["reason"], rejected)
                 progressed = progressed or a.kind.startswith(PROGRESS_KINDS)
             elif t is RecordMessage:
                 self.journal.received(a)

@@ -11,6 +11,7 @@ from typing import Any
 
 from twin.campaign.events import Ask, Decided, Note, TimerFired, TimerKey
 from twin.campaign.lab_replay import RebuiltLab, encode
+from twin.campaign.replay import merged
 from twin.campaign.journal import Journal
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.sharing import LAB, SharedLab, by_campaign
@@ -102,8 +103,15 @@ class LiveLab:
         return self.observer.campaign(name) if self.observer is not None else None
 
     def record(self, item: list[Any]) -> None:
-        """An input for the lab's journal, written before the next advance."""
-        if self._inputs is not None:
+        """An input for the lab's journal, written before the next advance (a run of undecodable messages as one
+        entry with their count: replay.encode_all)."""
+        if self._inputs is None:
+            return
+        last = self._fed[-1] if self._fed else None
+        if (last is not None and item[0] == last[0] == "dev" and item[1][0] == last[1][0] == "invalid"
+                and item[1][1] == last[1][1]):  # one sender: routed to the same campaign (sharing._owner)
+            merged(last[1], item[1][5] if len(item[1]) > 5 else 1)
+        else:
             self._fed.append(item)
 
     def _advance(self, now: float) -> list[tuple[str, Any]]:
