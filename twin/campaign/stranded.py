@@ -18,10 +18,10 @@ def review(core: CampaignCore) -> None:
     ``campaign.give_up_after_s`` before abandoning it; an instance that comes back resumes it."""
     # a stuck device (stuck.py) probed is back once a step is done on it: a probe it refuses, still stuck, must
     # not reset the give-up timer, nor say the type is back and gone again (a probe that fails uses an attempt)
-    gone = core._availability.stranded | core._availability.given_up
+    stranded, given_up = core._availability.stranded, core._availability.given_up
     usable = {d.type for d in core.devices.values()
-              if d.online and not d.quarantined and not (d.probing and d.type in gone)}
-    if usable.issuperset(core.s.devices) and not gone:
+              if d.online and not d.quarantined and not (d.probing and (d.type in stranded or d.type in given_up))}
+    if usable.issuperset(core.s.devices) and not (stranded or given_up):
         return  # every type has a usable instance and none was stranded: nothing to say (the common case)
     waiting: dict[str, list[int]] = {}
     for t in [*core.ready.values(), *core._retrying.values()]:
