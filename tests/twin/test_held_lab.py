@@ -4,6 +4,7 @@ does, naming who and its line, and Ctrl-C (or SIGTERM) ends the call and stops t
 import json
 import logging
 import os
+import random
 import signal
 import threading
 
@@ -12,7 +13,7 @@ import pytest
 from tests.conftest import qd_lab
 from twin.campaign.journal import read_events
 from twin.core import held
-from twin.campaign.decisions import Assignment
+from twin.campaign.decisions import Assignment, Proposal
 from twin.device.driver import StepResult
 from twin.runtime.lab import run
 from twin.scenario import parse
@@ -60,6 +61,19 @@ class HoldsTheLabDeciding:
         return out
 
 
+class HoldsTheLabProposing:
+    """A planner whose second proposal blocks (a fit with no time limit) until the test releases it."""
+
+    def __init__(self, parameters, seed=0):
+        self.box, self.n, self.rng = parameters, 0, random.Random(seed)
+
+    def propose(self, n, history, pending):
+        self.n += 1
+        if self.n == 2:
+            RELEASE.wait(60)  # the line the warning names
+        return [Proposal({k: self.rng.uniform(p.low, p.high) for k, p in self.box.items()}) for _ in range(n)]
+
+
 class _OnWarning(logging.Handler):
     """Does ``then`` when the warning comes: it must come while the call still blocks."""
 
@@ -79,8 +93,10 @@ def _run(tmp_path, runtime, monkeypatch, then, holder="driver"):
     handler = _OnWarning(then)
     logging.getLogger(held.__name__).addHandler(handler)
     try:
-        changes = {"devices.spectrometer.driver": "tests.twin.test_held_lab:HoldsTheLab"} if holder == "driver" else \
-            {"campaign.scheduler": "tests.twin.test_held_lab:HoldsTheLabDeciding"}
+        changes = {"driver": {"devices.spectrometer.driver": "tests.twin.test_held_lab:HoldsTheLab"},
+                   "scheduler": {"campaign.scheduler": "tests.twin.test_held_lab:HoldsTheLabDeciding"},
+                   "planner": {"campaign.planner": "tests.twin.test_held_lab:HoldsTheLabProposing",
+                               "campaign.max_in_flight": 1}}[holder]  # a proposal asked for each experiment
         lab = qd_lab(**{"devices.spectrometer.instances": 1, "campaign.budget": 2,
                         "orchestrator.timeout_slack_s": 600, **changes})
         summary = run(parse(lab), journal=tmp_path / "j.db", runtime=runtime)
@@ -88,16 +104,18 @@ def _run(tmp_path, runtime, monkeypatch, then, holder="driver"):
         logging.getLogger(held.__name__).removeHandler(handler)
     assert len(handler.said) == 1, handler.said  # said once
     said = handler.said[0]
-    who = "spectrometer's driver" if holder == "driver" else \
-        "scheduler 'tests.twin.test_held_lab:HoldsTheLabDeciding'"
+    who, line, advice = {"driver": ("spectrometer's driver", "in run", "asyncio.to_thread"),
+                         "scheduler": ("scheduler 'tests.twin.test_held_lab:HoldsTheLabDeciding'", "in decide",
+                                       "twin scheduler serve"),
+                         "planner": ("planner 'tests.twin.test_held_lab:HoldsTheLabProposing'", "in propose",
+                                     "campaign.planner_deadline_s")}[holder]
     assert said.startswith(f"{who} has held the lab for"), said
-    assert "test_held_lab.py:" in said and ("in run" if holder == "driver" else "in decide") in said
-    assert ("asyncio.to_thread" if holder == "driver" else "twin scheduler serve") in said and "Ctrl-C" in said
+    assert "test_held_lab.py:" in said and line in said and advice in said and "Ctrl-C" in said
     return summary
 
 
 @pytest.mark.parametrize("runtime", ["fast", "asyncio"])
-@pytest.mark.parametrize("holder", ["driver", "scheduler"])
+@pytest.mark.parametrize("holder", ["driver", "scheduler", "planner"])
 def test_a_call_holding_the_lab_is_said_while_it_holds_it(tmp_path, runtime, holder, monkeypatch):
     summary = _run(tmp_path, runtime, monkeypatch, RELEASE.set, holder)
     assert RELEASE.is_set()  # the warning released the call: it came while the call blocked
@@ -156,3 +174,11 @@ def test_a_safe_state_holding_the_lab_is_said_while_it_holds_it(tmp_path, runtim
     assert RELEASE.is_set() and len(handler.said) == 1, handler.said
     assert handler.said[0].startswith("spectrometer's driver has held the lab") and "in safe_state" in handler.said[0]
     assert summary.done == summary.proposed == 2 and summary.timed_out == 1
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+def test_ctrl_c_ends_a_proposal_that_holds_the_lab(tmp_path, runtime, monkeypatch):
+    summary = _run(tmp_path, runtime, monkeypatch, lambda: os.kill(os.getpid(), signal.SIGINT), "planner")
+    assert not RELEASE.is_set()
+    assert summary.stopped == "interrupted (SIGINT)"
+    assert summary.proposed == 1 and summary.done + summary.abandoned + summary.pending == 1  # the second never came
