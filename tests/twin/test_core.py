@@ -4,7 +4,8 @@ from types import SimpleNamespace
 
 from twin.campaign import (Ask, CampaignCore, Decided, DeviceMessage, Finished, Note, Presence, Proposed, Send,
                            SetTimer, TimerFired)
-from twin.campaign.events import TimerKey, TimerKind, alert_text
+from twin.campaign import operator
+from twin.campaign.events import CancelTimer, TimerKey, TimerKind, alert_text
 from twin.campaign.decisions import Assignment, Proposal
 from twin.core.messages import Kind
 
@@ -94,6 +95,34 @@ def test_a_cancel_never_answered_frees_the_device_after_the_grace_period(scenari
     out = core.advance(542.0)
     assert notes(out, "attempt.cancel_unanswered") and core.counts.cancels_unanswered == 1
     assert core.devices["spectrometer"].free
+
+
+def test_a_device_that_refuses_work_with_its_cancel_unanswered_is_quarantined_until_it_answers(scenario_of):
+    core, _ = started(scenario_of, **{"campaign.budget": 2, "devices.spectrometer.instances": 1,
+                                      "workflow": [{"step": "measure", "device": "spectrometer"}]})
+    core.feed(Proposed([Proposal({**QD, "concentration_mm": 1}), Proposal({**QD, "concentration_mm": 2})]))
+    core.advance(0.0)
+    core.feed(Decided([Assignment("e0s0", "spectrometer")]))
+    core.advance(0.0)
+    core.feed(TimerFired(TimerKey(TimerKind.DEADLINE, "e0s0#1")))
+    core.advance(500.0)
+    core.feed(TimerFired(TimerKey(TimerKind.CANCEL_GRACE, "spectrometer")))
+    ask = of(core.advance(560.0), Ask)[0]
+    core.feed(Decided([Assignment(ask.view.ready[0].task, "spectrometer")]))
+    (send,) = [s for s in of(core.advance(560.0), Send) if s.kind == Kind.COMMAND]
+    core.feed(msg(Kind.REJECTED, "spectrometer", send.task, send.attempt, reason="busy with e0s0 (attempt 1)"))
+    out = core.advance(560.0)
+    (said,) = notes(out, "device.stuck")
+    assert (said.device, said.task, said.attempt) == ("spectrometer", "e0s0", 1)
+    assert "busy with e0s0" in alert_text(said) and "orchestrator.cancel_grace_s" in alert_text(said)
+    assert core.devices["spectrometer"].state == "quarantined" and not of(out, Ask)
+    assert operator.status(core)["stuck"] == {"spectrometer": {"task": "e0s0", "attempt": 1}}
+    core.feed(msg(Kind.FAULT, "spectrometer", "e0s0", 1, code="cancelled", reason="stopped at last"))
+    out = core.advance(900.0)  # the cancel answered: out of quarantine at once, not at its probe
+    assert notes(out, "attempt.cancel_acknowledged") and core.counts.late == 0
+    assert [n.detail for n in notes(out, "device.probe")] == [{"after": "it answered the cancel"}]
+    assert TimerKey(TimerKind.PROBE, "spectrometer") in [a.key for a in of(out, CancelTimer)]
+    assert core.devices["spectrometer"].free and operator.status(core)["stuck"] == {}
 
 
 def test_events_of_one_instant_give_the_same_actions_whatever_order_they_came_in(scenario_of):

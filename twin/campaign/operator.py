@@ -188,4 +188,6 @@ def status(core: CampaignCore, now: float | None = None) -> dict[str, Any]:
             "questions": [{"id": q.id, "experiment": q.task.experiment.id, "task": q.task.id, "device": q.device,
                            "fault": q.fault, "why": q.why, "options": list(q.options), "default": q.default,
                            "default_in_s": round(q.deadline - now, 1)} for q in core.questions.values()],
-            "devices": {d.name: d.state for d in core.devices.values()}}
+            "devices": {d.name: d.state for d in core.devices.values()},
+            "stuck": {d.name: {"task": d.stuck.task.id, "attempt": d.stuck.n} for d in core.devices.values()
+                      if d.stuck is not None}}

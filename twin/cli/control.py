@@ -104,10 +104,12 @@ def ctl_status(lab: Lab, connect: Connect, security: Security = None,
                   f"{counts['pending'] + counts['running']} in progress, of a budget of {st['budget']}",
                   highlight=False, markup=False)
     table = narrow_table(["device", "state", "step", "for lab-s"])
-    running = {r["device"]: r for r in st["in_lab"]}
+    running, stuck = {r["device"]: r for r in st["in_lab"]}, st.get("stuck") or {}
     for name, state in st["devices"].items():
-        r = running.get(name)
-        table.add_row(name, state, f"{r['task']} #{r['attempt']}" if r else "", f"{r['for_s']:.0f}" if r else "")
+        r, held = running.get(name), stuck.get(name)
+        step = f"{r['task']} #{r['attempt']}" if r else \
+            f"{held['task']} #{held['attempt']}: cancelled, still running" if held else ""
+        table.add_row(name, state, step, f"{r['for_s']:.0f}" if r else "")
     print_table(table)
     if st.get("consumables"):
         console.print(_stock_table(st["consumables"]))
