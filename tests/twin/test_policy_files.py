@@ -143,3 +143,35 @@ print(any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters(
 """
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert res.stdout.split() == ["False", "True"], res.stderr
+
+
+def test_a_policy_file_that_would_unpack_to_gigabytes_is_refused_before_it_is_read(tmp_path):
+    from agents.rl_scheduler import RlScheduler
+    from twin.learning import policy_file
+
+    src, bomb = POLICIES / "jobshop_scheduler.zip", tmp_path / "bomb.zip"
+    shutil.copy(src.with_suffix(".json"), bomb.with_suffix(".json"))
+    zeros = bytes(2**20)
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(bomb, "w", zipfile.ZIP_DEFLATED) as zout:
+        for item in zin.infolist():
+            if item.filename != "policy.pth":
+                zout.writestr(item.filename, zin.read(item.filename))
+        with zout.open("policy.pth", "w", force_zip64=True) as big:  # a few hundred kB on disk
+            for _ in range(policy_file.MAX_UNPACKED_BYTES // len(zeros) + 1):
+                big.write(zeros)
+    assert bomb.stat().st_size < 2**20
+    with pytest.raises(PluginError, match=r"bomb\.zip: would unpack to 513 MB, more than a policy file does"):
+        RlScheduler(load_scenario(ROOT / "scenarios" / "jobshop.yaml"), policy=str(bomb))
+
+
+def test_a_policy_description_of_gigabytes_is_refused_unread(tmp_path, monkeypatch):
+    from agents.rl_scheduler import RlScheduler
+    from twin.learning import policies
+
+    src, bad = POLICIES / "jobshop_scheduler.zip", tmp_path / "bad.zip"
+    shutil.copy(src, bad)
+    shutil.copy(src.with_suffix(".json"), bad.with_suffix(".json"))
+    monkeypatch.setattr(policies, "MAX_DESCRIPTION_BYTES", 100)  # as a 16 MB limit meets a 17 MB file
+    with pytest.raises(PluginError, match=r"bad\.json: not a policy description \([\d,]+ bytes, more than a "
+                                          r"description has"):
+        RlScheduler(load_scenario(ROOT / "scenarios" / "jobshop.yaml"), policy=str(bad))

@@ -14,6 +14,9 @@ from twin.learning.policy_file import safe_objects
 from twin.runtime.run_record import versions
 from twin.scenario import Scenario
 
+MAX_DESCRIPTION_BYTES = 16 * 2**20  # a policy's .json: a few kB as `twin train` writes it
+
+
 def scenario_hash(scenario: Scenario) -> str:
     return hashlib.sha256(scenario.model_dump_json().encode()).hexdigest()[:16]
 
@@ -37,6 +40,9 @@ def read_meta(path: str | Path) -> dict[str, Any]:
     if not side.exists():
         raise PluginError(f"{path}: no {side.name} beside it; policies are saved by `twin train`")
     try:
+        if side.stat().st_size > MAX_DESCRIPTION_BYTES:
+            raise ValueError(f"{side.stat().st_size:,} bytes, more than a description has: `twin train` writes a "
+                             f"few kB, and {MAX_DESCRIPTION_BYTES:,} is the most read")
         meta = json.loads(side.read_text())
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise PluginError(f"{side}: not a policy description ({exc}); policies are saved by `twin train`") from exc

@@ -23,6 +23,10 @@ from typing import Any
 
 from twin.core.errors import PluginError
 
+#: what a policy file may unpack to: this project's are 0.15-0.25 MB; a zip "bomb" of a few kB can unpack to
+#: gigabytes, read into memory by the checks below and then by SB3's load
+MAX_UNPACKED_BYTES = 512 * 2**20
+
 # what numpy, gymnasium and SB3 themselves pickle, resolved by exact name
 _EXACT = {
     ("numpy", "ndarray"), ("numpy._core.numeric", "_frombuffer"), ("numpy.core.numeric", "_frombuffer"),
@@ -89,6 +93,11 @@ def safe_objects(path: Path) -> dict[str, Any]:
     handed to ``load`` as ``custom_objects``. Raises ``PluginError`` for a file that asks for anything else."""
     try:
         with zipfile.ZipFile(path) as archive:
+            unpacked = sum(item.file_size for item in archive.infolist())
+            if unpacked > MAX_UNPACKED_BYTES:
+                raise PluginError(f"{path}: would unpack to {unpacked / 2**20:,.0f} MB, more than a policy file "
+                                  f"does ({MAX_UNPACKED_BYTES / 2**20:,.0f} MB at most; a zip bomb?); nothing was "
+                                  "loaded. Use a policy saved by `twin train`")
             data = json.loads(archive.read("data"))
     except (zipfile.BadZipFile, KeyError, OSError, UnicodeDecodeError, ValueError) as exc:
         raise PluginError(f"{path}: not an SB3 policy file ({exc}); policies are saved by `twin train`") from exc
