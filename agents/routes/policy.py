@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import random
+import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -25,6 +26,8 @@ from agents.routes.templates import Template
 
 BITS = 2048
 HIDDEN = 256
+MAX_WEIGHTS_BYTES = 256 * 2**20  # what a prior's .pt may unpack to: the shipped one is 2.1 MB
+MAX_DESCRIPTION_BYTES = 16 * 2**20  # its .json: a few kB as training writes it
 _MORGAN = rdFingerprintGenerator.GetMorganGenerator(radius=2, fpSize=BITS)
 
 
@@ -109,6 +112,15 @@ def save_prior(scorer: TemplateScorer, templates: tuple[Template, ...], path: Pa
         {"kind": "route-prior", "templates": [t.name for t in templates], "bits": BITS, **meta}, indent=1))
 
 
+def _unpacked_bytes(weights: Path) -> int:
+    """What torch's zip of weights would unpack to (its entries may be deflated: a few kB can say gigabytes)."""
+    try:
+        with zipfile.ZipFile(weights) as archive:
+            return sum(item.file_size for item in archive.infolist())
+    except (zipfile.BadZipFile, OSError):
+        return 0  # not a zip: torch.load says what is wrong with it
+
+
 def load_prior(path: Path, templates: tuple[Template, ...]) -> LearnedPrior:
     path = Path(path)
     meta_file = path.with_suffix(".json")
@@ -116,6 +128,8 @@ def load_prior(path: Path, templates: tuple[Template, ...]) -> LearnedPrior:
         raise FileNotFoundError(f"{path}: a route prior is a .pt file with a .json beside it; train one with "
                                 f"`python -m agents.routes.train --out {path}`")
     try:
+        if meta_file.stat().st_size > MAX_DESCRIPTION_BYTES:
+            raise ValueError(f"{meta_file.stat().st_size:,} bytes, where training writes a few kB")
         meta = json.loads(meta_file.read_text())
     except (UnicodeDecodeError, ValueError) as exc:
         raise ValueError(f"{meta_file}: not a route prior's description ({exc})") from None
@@ -129,9 +143,14 @@ def load_prior(path: Path, templates: tuple[Template, ...]) -> LearnedPrior:
         raise ValueError(f"{path} was trained on other templates: it does not know {missing[:3]}"
                          f"{' …' if len(missing) > 3 else ''}; retrain it on this template file (python -m "
                          f"agents.routes.train --templates FILE --out P) or search without one (--prior none)")
+    weights = path.with_suffix(".pt")
+    unpacked = _unpacked_bytes(weights)
+    if unpacked > MAX_WEIGHTS_BYTES:
+        raise ValueError(f"{weights}: would unpack to {unpacked / 2**20:,.0f} MB, more than a route prior does "
+                         f"({MAX_WEIGHTS_BYTES / 2**20:,.0f} MB at most; a zip bomb?); nothing was loaded")
     scorer = TemplateScorer(len(names))
     try:
-        scorer.load_state_dict(torch.load(path.with_suffix(".pt"), weights_only=True))
+        scorer.load_state_dict(torch.load(weights, weights_only=True))
     except Exception as exc:  # torch's errors for a damaged or foreign file are of many types
         raise ValueError(f"{path.with_suffix('.pt')}: not this prior's weights ({type(exc).__name__}); "
                          "train it again with `python -m agents.routes.train`") from None

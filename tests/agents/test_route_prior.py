@@ -61,3 +61,19 @@ def test_the_shipped_prior_loads_and_says_how_it_was_trained():
     meta = json.loads(path.with_suffix(".json").read_text())
     assert meta["command"].startswith("python -m agents.routes.train") and meta["held_out_top5"] > 0.8
     assert isinstance(load_prior(path, TEMPLATES), LearnedPrior)
+
+
+def test_a_prior_that_would_unpack_to_gigabytes_is_refused_before_it_is_read(trained, tmp_path):
+    import zipfile
+
+    from agents.routes import policy
+
+    bomb = tmp_path / "bomb"
+    bomb.with_suffix(".json").write_text(trained.with_suffix(".json").read_text())
+    zeros = bytes(2**20)
+    with zipfile.ZipFile(bomb.with_suffix(".pt"), "w", zipfile.ZIP_DEFLATED) as zout:
+        with zout.open("bomb/data/0", "w", force_zip64=True) as big:  # a few hundred kB on disk
+            for _ in range(policy.MAX_WEIGHTS_BYTES // len(zeros) + 1):
+                big.write(zeros)
+    with pytest.raises(ValueError, match=r"bomb\.pt: would unpack to 257 MB, more than a route prior does"):
+        load_prior(bomb, TEMPLATES)
