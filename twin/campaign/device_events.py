@@ -61,7 +61,7 @@ def _after_resolved(core: CampaignCore, att: Attempt, m: DeviceMessage) -> None:
     """A message about an attempt already decided: the answer to a cancel, or late."""
     dev = core.devices[att.device]
     final = m.kind in (Kind.FAULT, Kind.RESULT, Kind.REJECTED)
-    acked = final and att in (dev.cancelling, dev.unanswered)  # after the grace too: a cancel answered late
+    acked = final and (dev.cancelling is att or dev.unanswered is att)  # after the grace too: answered late
     if final and dev.unanswered is att:
         dev.unanswered = None
     if final and dev.stuck is att:
