@@ -73,6 +73,7 @@ def test_ctrl_c_stops_cleanly_and_flushes_the_journal(tmp_path, sig):
     assert cancelled >= 1, "work in the lab at shutdown is cancelled, not forgotten"
     report = subprocess.run([*TWIN, "report", str(db)], capture_output=True, text=True, cwd=ROOT)
     assert report.returncode == 0 and "interrupted" in report.stdout
+    assert f"continue it with twin resume {db}" in report.stdout.replace("\n", ""), report.stdout
 
 
 def _has_experiments(db: Path) -> bool:

@@ -193,6 +193,13 @@ async def test_hostile_requests_are_refused_by_field_and_never_reach_the_journal
     ops = [(e["kind"], json.loads(e["detail"]).get("who")) for e in events if e["kind"].startswith("operator.")]
     assert ops == [("operator.refused", "a"), ("operator.stop", "carol")]  # the rest never got past the desk
     assert read_run(db)["summary"]["stopped"] == "stopped by carol: test over"
+    # as Ctrl-C's, an operator's stop is undone by twin resume: the campaign goes on from before it
+    resumed = subprocess.run(TWIN + ["resume", str(db), "--json"], cwd=ROOT, capture_output=True, text=True,
+                             timeout=120)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert json.loads(resumed.stdout)["done"] == 4
+    again = [json.loads(e["detail"]) for e in read_events(db) if e["kind"] == "campaign.resumed"]
+    assert [r["after"] for r in again] == ["stopped by carol: test over"]
 
 
 class Lab:

@@ -109,7 +109,7 @@ def test_an_instrument_that_cannot_connect_or_disconnect_is_named_not_a_tracebac
 
     stopped = read_run(tmp_path / "c.db")["summary"]["stopped"]  # `twin report` said nothing of why
     assert stopped.startswith("the lab did not start: inst: its driver's connect() failed: ConnectionRefusedError")
-    with pytest.raises(ResumeError, match=r"the campaign was stopped \(the lab did not start: inst: its driver's "
+    with pytest.raises(ResumeError, match=r"the campaign ended \(the lab did not start: inst: its driver's "
                                           r"connect\(\) failed.*run it "
                                           r"again \(twin run\)"):  # it said "the campaign finished"
         resume(tmp_path / "c.db")

@@ -76,6 +76,44 @@ def test_killed_anywhere_and_resumed_the_journal_is_the_unkilled_one(tmp_path_fa
     assert summary.journal == str(db) and read_run(db)["summary"]["done"] == summary.done
 
 
+def _stopped_at(s, db, row):
+    """Run the campaign and SIGINT this process when the journal writes event ``row`` (Ctrl-C at that point)."""
+    append = Journal._append
+
+    def interrupting(self, *r):
+        if self._seq + 1 == row:
+            os.kill(os.getpid(), signal.SIGINT)
+        append(self, *r)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Journal, "_append", interrupting)
+        return run(s, journal=db)
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(name=st.sampled_from(sorted(CAMPAIGNS)), seed=st.integers(0, 3), at=st.floats(0.0, 0.95))
+def test_stopped_by_ctrl_c_anywhere_and_resumed_the_journal_is_the_unstopped_one(tmp_path_factory, name, seed, at):
+    tmp = tmp_path_factory.mktemp("stopped")
+    whole = unkilled(name, seed, tmp_path_factory.getbasetemp())
+    db = tmp / "stopped.db"
+    stopped = _stopped_at(scenario(name, seed), db, 1 + int(at * (len(whole[0]) - 1)))
+    assert stopped.stopped == "interrupted (SIGINT)" and stopped.resumable
+    assert tables(db) != whole
+    summary = resume(db)
+    assert tables(db) == whole
+    assert not summary.stopped and read_run(db)["summary"]["done"] == summary.done
+
+
+def test_a_campaign_that_stopped_itself_is_not_resumed(tmp_path):
+    db = tmp_path / "j.db"
+    summary = run(prepare(ROOT / "scenarios" / "flaky_lab.yaml", seed=0, bus="memory",
+                          overrides={"campaign.max_lab_hours": 2}), journal=db)
+    assert summary.stopped == "max_lab_hours reached" and not summary.resumable
+    with pytest.raises(ResumeError, match=r"ended \(max_lab_hours reached\), not stopped from outside \(Ctrl-C, "
+                                          r"SIGTERM, twin ctl stop\): resumed, it would end the same way"):
+        resume(db)
+
+
 def test_a_resume_that_diverges_names_the_first_differing_event_and_keeps_the_journal(tmp_path):
     db = tmp_path / "j.db"
     run(scenario("flaky_lab", 1), journal=db)

@@ -31,16 +31,21 @@ def _killed(lab: dict, db: Path, when) -> None:
     """``twin run`` of ``lab`` (a scenario's mapping) on journal ``db``, SIGKILLed once ``when()`` holds."""
     path = db.with_name("lab.yaml")
     path.write_text(yaml.safe_dump(lab))
-    proc = subprocess.Popen(TWIN + ["run", str(path), "--journal", str(db), "--quiet"], cwd=ROOT,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _signalled(["run", str(path), "--journal", str(db)], when, signal.SIGKILL)
+    assert "summary" not in read_run(db), "the campaign finished before it could be killed"
+
+
+def _signalled(args: list[str], when, sig: int) -> int:
+    """``twin ARGS --quiet``, sent ``sig`` once ``when()`` holds; its exit status."""
+    proc = subprocess.Popen(TWIN + args + ["--quiet"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 60
     while proc.poll() is None and time.monotonic() < deadline:
         if when():
             break
         time.sleep(0.01)
-    os.kill(proc.pid, signal.SIGKILL)
+    os.kill(proc.pid, sig)
     proc.wait()
-    assert "summary" not in read_run(db), "the campaign finished before it could be killed"
+    return proc.returncode
 
 
 @pytest.mark.process
@@ -76,6 +81,42 @@ def test_a_killed_live_campaign_resumes_where_it_was(tmp_path):
             and "when the campaign resumed" in (e["detail"] or "")]
     assert lost, "the in-process device died with the campaign: its step must be found lost and retried"
     assert all(any(x["kind"] == "attempt.done" and x["task"] == e["task"] for x in events) for e in lost)
+
+
+@pytest.mark.process
+def test_ctrl_c_resumed_killed_and_resumed_again_sends_its_cancelled_steps_again_without_a_strike(tmp_path):
+    lab = qd_lab(**{"campaign.budget": 10, "clock": {"mode": "scaled", "speed": 600},
+                    "devices.spectrometer.duration": {"mean_s": 120, "cv": 0.0}})
+    db = tmp_path / "j.db"
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(lab))
+
+    def measuring(done: int):  # experiments done, and a measurement in the lab
+        return lambda: _count(db, "SELECT COUNT(*) FROM events WHERE kind='experiment.done'") >= done and _count(
+            db, "SELECT COUNT(*) FROM events WHERE kind='attempt.running' AND task LIKE '%s1'") > _count(
+            db, "SELECT COUNT(*) FROM events WHERE kind='attempt.done' AND task LIKE '%s1'")
+
+    assert _signalled(["run", str(path), "--journal", str(db)], measuring(2), signal.SIGINT) == 130
+    first = read_run(db)["summary"]
+    assert first["stopped"] == "interrupted (SIGINT)" and first["resumable"] and first["pending"] > 0
+    assert _signalled(["resume", str(db)], measuring(4), signal.SIGKILL) == -signal.SIGKILL
+    assert "summary" not in read_run(db), "a resumed campaign killed reads as killed, not as the stop before"
+    resumed = subprocess.run(TWIN + ["resume", str(db), "--json"], cwd=ROOT, capture_output=True, text=True,
+                             timeout=120)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    summary = json.loads(resumed.stdout)
+    assert summary["done"] == summary["proposed"] == 10 and not summary["stopped"], summary
+    events = read_events(db)
+    finals = [e["experiment"] for e in events if e["kind"] in ("experiment.done", "experiment.abandoned")]
+    assert sorted(finals) == list(range(10)), "each experiment finished once"
+    cancelled = [e["task"] for e in events if e["kind"] == "attempt.cancelled"]
+    assert cancelled, "the stop cancelled what was in the lab"
+    sent_again = [e for e in events if e["kind"] == "task.refused" and "when the campaign was stopped" in e["detail"]]
+    assert sorted(e["task"] for e in sent_again) == sorted(cancelled)  # a "not now": no attempt used, no strike
+    assert all(any(x["kind"] == "attempt.done" and x["task"] == t for x in events) for t in cancelled)
+    assert [json.loads(e["detail"]).get("after") for e in events if e["kind"] == "campaign.resumed"] == [
+        "interrupted (SIGINT)", None]
+    assert not [e for e in events if e["kind"] == "attempt.failed" and '"cancelled"' in e["detail"]]
 
 
 @pytest.mark.process

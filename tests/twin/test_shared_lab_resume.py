@@ -309,3 +309,29 @@ def test_damaged_lab_inputs_are_named(batches, words):
     s = prepare(LAB, clock="scaled", bus="memory")
     with pytest.raises(ReplayError, match=words):
         rebuild_lab(s, campaign_scenarios(s, s.name), batches, lambda name, cs: NullJournal())
+
+
+def test_a_lab_stopped_by_ctrl_c_is_not_resumed_and_says_why_and_a_campaign_of_it_names_the_lab(tmp_path):
+    import os
+    import signal
+
+    from twin.campaign.journal import Journal
+    from twin.runtime.resume import ResumeError, resume
+    from twin.runtime.resume_lab import resume_lab
+
+    append = Journal._append
+
+    def interrupting(self, *r):
+        if self._seq + 1 == 100:
+            os.kill(os.getpid(), signal.SIGINT)
+        append(self, *r)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Journal, "_append", interrupting)
+        run_shared(prepare(LAB, seed=3, overrides=SMALL), tmp_path / "lab")
+    with pytest.raises(ResumeError, match=r"the lab was stopped \(interrupted \(SIGINT\)\); a lab of several "
+                                          r"campaigns resumes only when killed"):
+        resume_lab(tmp_path / "lab", handle_signals=False)
+    with pytest.raises(ResumeError, match=rf"a campaign of a lab of several, which resumes as one: twin resume "
+                                          rf"{tmp_path / 'lab'}"):
+        resume(tmp_path / "lab" / "dots.db")

@@ -76,6 +76,7 @@ class CampaignCore:
         self.planner_exhausted = False
         self.planner_failed = ""  # why the planner can propose no more: the campaign finishes what is in the lab
         self.stopping = ""
+        self.resumable = False  # the stop came from outside (Stop.outside): twin resume continues the campaign
         self.paused_by = ""  # an operator paused the campaign: nothing new is proposed or dispatched
         self.questions: dict[str, questions.Question] = {}  # failed steps an operator is asked about
         self.replaced = 0  # experiments an operator had the planner replace ('alternative'): beyond the budget
@@ -115,7 +116,7 @@ class CampaignCore:
             self._inbox.append(event)
 
     def stop(self, reason: str) -> None:
-        self.feed(Stop(reason))
+        self.feed(Stop(reason, outside=True))
 
     def advance(self, now: float, decide: bool = True) -> list[Action]:
         """Handle what was fed, then decide; returns the actions to perform, in order. ``decide=False``: only
@@ -233,15 +234,15 @@ class CampaignCore:
                 self._note("message.invalid", device=ev.sender, detail={**detail, "left_out": more} if more else detail)
         elif isinstance(ev, Stop):
             if not self.stopping:
-                self.stopping = ev.reason
+                self.stopping, self.resumable = ev.reason, ev.outside
                 self._note("campaign.stopping", detail=ev.reason)
             if not self._running:
                 self._begin()
             self._asking = None  # a question still open is moot now; its answer will be ignored
             self._wake = True
 
-    def _on_stop(self, reason: str) -> None:
-        self._handle(Stop(reason))
+    def _on_stop(self, reason: str, outside: bool = False) -> None:
+        self._handle(Stop(reason, outside))
 
     def _begin(self) -> None:
         self._running = True

@@ -111,7 +111,12 @@ class TimerFired:
 
 @dataclass(frozen=True, slots=True)
 class Stop:
+    """``outside``: the stop came from outside the campaign (a signal, an operator, a caller's ``stop``), and
+    ``twin resume`` continues the campaign; otherwise it is the campaign's own end (its lab hours spent, a stall),
+    which a resume would only meet again."""
+
     reason: str
+    outside: bool = False
 
 
 @dataclass(frozen=True, slots=True)

@@ -126,6 +126,16 @@ class Journal:
         except sqlite3.Error as exc:
             raise self._failing(exc) from None
 
+    def unset(self, key: str) -> None:
+        """A fact of the run no longer true (a stopped campaign's summary, when ``twin resume`` continues it)."""
+        if self.failed:
+            return
+        try:
+            self._db.execute("DELETE FROM run WHERE key = ?", (key,))
+            self._db.commit()
+        except sqlite3.Error as exc:
+            raise self._failing(exc) from None
+
     def get(self, key: str) -> Any:
         """A fact of the run set before (None if it was not)."""
         row = self._db.execute("SELECT value FROM run WHERE key = ?", (key,)).fetchone()
@@ -208,6 +218,9 @@ class NullJournal(Journal):
         pass
 
     def set(self, key: str, value: Any) -> None:
+        pass
+
+    def unset(self, key: str) -> None:
         pass
 
     def get(self, key: str) -> Any:

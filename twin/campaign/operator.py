@@ -115,10 +115,15 @@ def _retry(core: CampaignCore, op: Operator) -> str:
     return ""
 
 
+def stop_reason(who: str, reason: str) -> str:
+    """How a campaign an operator stopped says why."""
+    return f"stopped by {who}" + (f": {reason}" if reason else "")
+
+
 def _stop(core: CampaignCore, op: Operator) -> str:
     if core.stopping:
         return f"the campaign is already stopping ({core.stopping})"
-    core._on_stop(f"stopped by {op.who}" + (f": {op.reason}" if op.reason else ""))
+    core._on_stop(stop_reason(op.who, op.reason), outside=True)
     return ""
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from twin.campaign import operator
 from twin.campaign.core import CampaignCore
 from twin.campaign.events import (Ask, CancelTimer, Decided, DeviceMessage, InvalidInput, Operator, Presence,
                                   Proposed, SetTimer, Stop, TimerFired, TimerKey, TimerKind)
@@ -35,7 +36,7 @@ def encode(event: Any) -> list[Any]:
         return ["invalid", event.sender, event.reason, event.key, event.excerpt, *([event.count] if event.count > 1
                                                                                    else [])]
     if t is Stop:
-        return ["stop", event.reason]
+        return ["stop", event.reason, *([] if event.outside else [False])]
     if t is Operator:
         return ["operator", event.command, event.who, event.ref, event.experiment, event.now, event.reason,
                 event.question, event.option, event.item, event.amount, event.task]
@@ -89,7 +90,7 @@ def decode_input(data: list[Any]) -> Any:
     if kind == "invalid":
         return InvalidInput(*data[1:6])
     if kind == "stop":
-        return Stop(data[1])
+        return Stop(data[1], data[2] if len(data) > 2 else True)  # only a stop from outside is an input
     if kind == "operator":
         return Operator(*data[1:12])
     if kind == "proposed":
@@ -106,6 +107,7 @@ class Rebuilt:
     now: float  # the lab time of the last input
     timers: dict[TimerKey, float] = field(default_factory=dict)  # pending timers: due lab time
     asked: Ask | None = None  # a question the core still waits on
+    stopped: str = ""  # the stop the run ended with, left out (``unstopped``): its steps in the lab were cancelled
 
 
 class ReplayError(TwinError):
@@ -117,8 +119,46 @@ def rebuild(s: Scenario, batches: list[tuple[float, dict[str, Any]]], campaign_i
     """Feed a recorded campaign's inputs to a new core, batch by batch; its actions are not performed again.
     ``secret``: the one the campaign's attempt tokens came from (journalled as ``attempt_secret``)."""
     out = Rebuilt(CampaignCore(s, campaign_id, secret), 0.0)
+    batches, out.stopped = unstopped(batches)
     replay_batches(batches, lambda now, batch: _replay(out, now, batch), "input batch", "the campaign")
     return out
+
+
+#: the batch a resumed campaign journals first when it continues a stopped run: the stop before it was undone
+RESUMED = "resumed"
+
+
+def unstopped(batches: list[tuple[float, Any]]) -> tuple[list[tuple[float, Any]], str]:
+    """The inputs without the stops ``twin resume`` undid: from a stop from outside (a signal's, an operator's) to
+    the ``RESUMED`` batch after it, or to the end, nothing is replayed (the cancels the stop sent and what came
+    back are moot: the resumed campaign asks its devices again). Also: the last stop left out with no resume after
+    it ("" if none), whose steps in the lab were cancelled."""
+    out: list[tuple[float, Any]] = []
+    stopped = ""
+    for now, batch in batches:
+        if stopped:
+            if isinstance(batch, dict) and RESUMED in batch:
+                stopped = ""
+            continue
+        items = batch.get("events") if isinstance(batch, dict) else None
+        at = next((i for i, item in enumerate(items or ()) if _stops(item)), None)
+        if at is None:
+            if not (isinstance(batch, dict) and RESUMED in batch):
+                out.append((now, batch))
+            continue
+        item = items[at]
+        stopped = str(item[1]) if item[0] == "stop" else operator.stop_reason(item[2], item[6] if len(item) > 6 else "")
+        if at:
+            out.append((now, {**batch, "events": items[:at]}))
+    return out, stopped
+
+
+def _stops(item: Any) -> bool:
+    """A journalled input that stopped the campaign from outside: a signal's (``stop``) or an operator's."""
+    if not isinstance(item, list) or len(item) < 2:
+        return False
+    return (item[0] == "stop" and (len(item) < 3 or item[2] is not False)) or (item[0] == "operator"
+                                                                               and item[1] == "stop")
 
 
 def replay_batches(batches: list[tuple[float, Any]], replay: Any, what: str, who: str) -> None:

@@ -124,8 +124,9 @@ def run(
 
 @app.command()
 def resume(
-    journal: Annotated[Path, typer.Argument(help="the journal of a killed run, runs/<run>.db (or the directory of "
-                                                 "a lab's journals, runs/<lab>-seed<N>-<time>/)")],
+    journal: Annotated[Path, typer.Argument(help="the journal of a killed or interrupted run, runs/<run>.db (or "
+                                                 "the directory of a killed lab's journals, "
+                                                 "runs/<lab>-seed<N>-<time>/)")],
     save: SaveOpt = None,
     viewer: ViewerOpt = False,
     serve: ServeOpt = False,
@@ -135,7 +136,8 @@ def resume(
     json_out: JsonOpt = False,
     runtime: RuntimeOpt = "auto",
 ) -> None:
-    """Continue a killed campaign from its journal (virtual time: re-run and checked; live: rebuilt)."""
+    """Continue a killed campaign, or one stopped by Ctrl-C, SIGTERM or twin ctl stop, from its journal (virtual
+    time: re-run and checked; live: rebuilt)."""
     from twin.runtime.resume import recorded
     from twin.runtime.resume import resume as resume_journal
     from twin.runtime.resume_lab import recorded_lab

@@ -170,7 +170,7 @@ class FastCampaign:
         self.core.feed(Decided(list(assignments)))
 
     def stop(self, reason: str) -> None:
-        self.core.feed(Stop(reason))
+        self.core.feed(Stop(reason, outside=True))
 
     @property
     def now(self) -> float:

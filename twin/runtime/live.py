@@ -26,7 +26,7 @@ from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, No
                            RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
 from twin.campaign import replay
 from twin.campaign.events import ALERT_LOGGER, ALERTS, PROGRESS_KINDS, TimerKey, alert_text
-from twin.campaign.replay import Rebuilt
+from twin.campaign.replay import RESUMED, Rebuilt
 from twin.core.clock import LabClock
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
@@ -69,6 +69,15 @@ def ask_scheduler(scheduler: Any, ask: Ask, answer: Callable[[Decided, bool], No
 
     pending.add_done_callback(answered)
     return pending
+
+
+def _cancelled(payload: str) -> bool:
+    """A device's answer that it cancelled its step (the stop's cancel): not a result to adopt."""
+    try:
+        env = json.loads(payload)
+        return env.get("kind") == Kind.FAULT and env.get("body", {}).get("code") == "cancelled"
+    except (ValueError, AttributeError):
+        return False
 
 
 def rearm(clock: LabClock, timers: dict[TimerKey, Any], key: TimerKey, due: float,
@@ -120,7 +129,7 @@ class LiveCampaign:
 
     def stop(self, reason: str) -> None:
         """Stop proposing and dispatching; what is in the lab is cancelled, the rest stays pending."""
-        self._feed(Stop(reason))
+        self._feed(Stop(reason, outside=True))
 
     def never_started(self, why: str) -> None:
         """The lab failed before the campaign began: its summary and journal say why."""
@@ -239,8 +248,12 @@ class LiveCampaign:
     # -- taking over a killed campaign --------------------------------------------------
     async def _take_over(self, rebuilt: Rebuilt) -> None:
         """Re-arm what the dead process left pending, then find out what became of the steps it had in the lab."""
+        if rebuilt.stopped:  # the stop is undone: a later rebuild skips it and what followed (replay.unstopped)
+            self.journal.inputs(self.clock.now(), {RESUMED: rebuilt.stopped})
+            self.journal.unset("summary")
         self.note("campaign.resumed", {"inputs_replayed": True, "timers": len(rebuilt.timers),
-                                       "in_lab": [d.attempt.task.id for d in self.core.devices.values() if d.attempt]})
+                                       "in_lab": [d.attempt.task.id for d in self.core.devices.values() if d.attempt],
+                                       **({"after": rebuilt.stopped} if rebuilt.stopped else {})})
         if rebuilt.asked is not None:
             self._answer(rebuilt.asked)
         # asked before the deadlines are re-armed: a step whose deadline passed while the campaign was dead, on a
@@ -248,13 +261,15 @@ class LiveCampaign:
         # nobody answers holds the device for orchestrator.cancel_grace_s)
         for dev in list(self.core.devices.values()):
             if dev.attempt is not None:
-                await self._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n)
+                await self._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n, rebuilt.stopped)
         for key, due in rebuilt.timers.items():
             rearm(self.clock, self._timers, key, due, self._on_timer)
         self._kick_soon()
 
-    async def _ask_about(self, device: str, task: str, attempt: int) -> None:
-        """An attempt in the lab when the campaign died: still running, finished (its result is taken), or lost."""
+    async def _ask_about(self, device: str, task: str, attempt: int, stopped: str = "") -> None:
+        """An attempt in the lab when the campaign died: still running, finished (its result is taken), or lost.
+        ``stopped``: the stop the campaign ended with, which cancelled it: unless it finished first, it is sent
+        again as after a "not now" (no attempt used, no strike against the device)."""
         wait = 5.0 * (1.0 if self.clock.is_virtual else self.clock.speed)
         try:
             report = json.loads(await self.bus.request(keys.health(self.s.lab, device), b"", wait))
@@ -265,14 +280,18 @@ class LiveCampaign:
         if report.get("running") == [task, attempt]:
             return  # still at it: its result will come, or its re-armed deadline will pass
         for t, n, payload in report.get("recent") or []:
-            if (t, n) == (task, attempt):
+            if (t, n) == (task, attempt) and not (stopped and _cancelled(payload)):
                 self._on_event(keys.evt(self.s.lab, device), payload.encode())
                 return
-        reason = f"{device} was not running {task}#{attempt} when the campaign resumed"
+        if stopped:
+            kind, body = Kind.REJECTED, {"reason": f"cancelled when the campaign was stopped ({stopped}); sent "
+                                                   "again now it is resumed"}
+        else:
+            kind, body = Kind.FAULT, {"code": "device_lost",
+                                      "reason": f"{device} was not running {task}#{attempt} when the campaign resumed"}
         self._on_event(keys.evt(self.s.lab, device), pack(
-            Kind.FAULT, {"code": "device_lost", "reason": reason}, id=f"{SENDER}:resume:{task}#{attempt}",
-            sender=device, t_lab=self.clock.now(), campaign=self.core.campaign_id, task=task, attempt=attempt,
-            token=self.core.token(task, attempt)))
+            kind, body, id=f"{SENDER}:resume:{task}#{attempt}", sender=device, t_lab=self.clock.now(),
+            campaign=self.core.campaign_id, task=task, attempt=attempt, token=self.core.token(task, attempt)))
 
     # -- actions out ------------------------------------------------------------------
     def _perform(self, actions: list[Any]) -> None:

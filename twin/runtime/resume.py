@@ -1,15 +1,18 @@
-"""``twin resume RUN.db``: continue a campaign that was killed, from its journal.
+"""``twin resume RUN.db``: continue a campaign that was killed, or stopped from outside (Ctrl-C, SIGTERM,
+``twin ctl stop``), from its journal.
 
-A virtual-time campaign is deterministic, so it is re-executed from the
-start on the scenario and seed the journal recorded, and every event is
-checked against the journal's prefix as it is written: the first that
-differs stops the resume with an error naming it (the code, a driver or a
-plugin changed since the run), and the killed journal is left as it was.
-The resumed journal replaces the killed one only when the campaign ends,
-and equals the journal of the same campaign never killed.
+A virtual-time campaign is deterministic, so it is re-executed from
+the start on the scenario and seed the journal recorded, and every event is
+checked against the journal's prefix as it is written (a stopped one's up to its
+stop): the first that differs stops the resume with an error naming it (the code, a driver or a
+plugin changed since the run), and the journal is left as it was.
+The resumed journal replaces it only when the campaign ends,
+and equals the journal of the same campaign never killed or stopped.
 
 A scaled or wall-clock campaign is rebuilt from the inputs it journalled
-(``twin.campaign.replay``) and taken over by the asyncio runtime.
+(``twin.campaign.replay``; a stopped one as it was just before its stop) and taken over by the asyncio runtime;
+the journal goes on, its stop kept in the history.
+A campaign that stopped itself (its lab hours spent, a stall) would only stop again, and is refused.
 """
 
 from __future__ import annotations
@@ -73,18 +76,25 @@ def _short(detail: Any, n: int = 80) -> str:
 
 
 def recorded(path: str | Path) -> tuple[Scenario, list[tuple]]:
-    """The scenario and the events a killed run's journal holds."""
+    """The scenario and the events a killed run's journal holds; a stopped run's, up to its stop."""
     path = Path(path)
     data = read_run(path)
-    if "summary" in data:
-        stopped = data["summary"].get("stopped") if isinstance(data["summary"], dict) else None
-        if stopped:
-            raise ResumeError(f"{path}: the campaign was stopped ({stopped}); only a killed one resumes: run it "
-                              f"again (twin run), and twin report {path} shows how far it got")
-        raise ResumeError(f"{path}: the campaign finished; nothing to resume (twin report {path} shows it)")
+    if "lab" in data:
+        raise ResumeError(f"{path}: a campaign of a lab of several, which resumes as one: twin resume {path.parent}")
+    summary = data.get("summary")
+    if summary is not None:
+        stopped = summary.get("stopped") if isinstance(summary, dict) else None
+        if stopped and not summary.get("resumable"):
+            raise ResumeError(f"{path}: the campaign ended ({stopped}), not stopped from outside (Ctrl-C, SIGTERM, "
+                              f"twin ctl stop): resumed, it would end the same way; run it again (twin run) with what "
+                              f"it lacked, and twin report {path} shows how far it got")
+        if not stopped:
+            raise ResumeError(f"{path}: the campaign finished; nothing to resume (twin report {path} shows it)")
     if "scenario" not in data:
         raise ResumeError(f"{path}: the journal holds no scenario; it was killed before it began")
     prefix = [tuple(row.values()) for row in read_events(path)]  # in the table's column order; damage is named
+    if summary is not None:  # a re-run goes on where the stop came
+        prefix = prefix[:next((i for i, row in enumerate(prefix) if row[2] == "campaign.stopping"), len(prefix))]
     return parse(data["scenario"], f"{path}: the journal's scenario"), prefix
 
 
@@ -109,7 +119,7 @@ def replace(resumed: Path, killed: Path) -> None:
 def resume(path: str | Path, *, on_progress: Callable[[CampaignCore], None] | None = None,
            record: RecordOptions | None = None, observer: LabObserver | None = None,
            runtime: str = "auto") -> Summary:
-    """Continue a killed virtual-time campaign from its journal (``twin resume``); see ``twin.runtime.resume``."""
+    """Continue a killed or stopped campaign from its journal (``twin resume``); see ``twin.runtime.resume``."""
     path = Path(path)
     s, prefix = recorded(path)
     if s.clock.mode != "virtual":
@@ -144,8 +154,9 @@ def _resume_virtual(path: Path, s: Scenario, prefix: list, on_progress: Callable
 
 def _resume_live(path: Path, s: Scenario, on_progress: Callable[[CampaignCore], None] | None,
                  observer: LabObserver | None) -> Summary:
-    """A scaled or wall-clock campaign: its core rebuilt from the inputs it journalled; lab time goes on from there;
-    the steps it had in the lab are asked after (still running, finished, or lost and retried)."""
+    """A scaled or wall-clock campaign: its core rebuilt from the inputs it journalled (a stopped one's up to its
+    stop); lab time goes on from there; the steps it had in the lab are asked after (still running, finished, or
+    lost and retried; cancelled by the stop: sent again)."""
     try:
         batches = read_inputs(path)
     except ValueError as exc:

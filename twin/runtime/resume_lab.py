@@ -41,7 +41,7 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
     if not dbs:
         raise ResumeError(f"{where}: no campaign journals (<campaign>.db) here; a lab's journals are written to "
                           "runs/<lab>-seed<N>-<time>/ by default")
-    lab, prefixes, ended, scenarios = None, {}, [], {}
+    lab, prefixes, ended, scenarios, stopped = None, {}, [], {}, ""
     for db in dbs:
         data = read_run(db)
         prefixes[db.stem] = [tuple(row.values()) for row in read_events(db)]  # damage is named
@@ -52,6 +52,12 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
         scenarios[db.stem] = data.get("scenario")
         if "summary" in data:
             ended.append(db.stem)
+            why = data["summary"].get("stopped") if isinstance(data["summary"], dict) else ""
+            stopped = stopped or (why if str(why).startswith(("interrupted (", "stopped by ")) else "")
+    if len(ended) == len(dbs) and stopped:
+        raise ResumeError(f"{where}: the lab was stopped ({stopped}); a lab of several campaigns resumes only when "
+                          f"killed (a campaign run on its own resumes after Ctrl-C too): run it again (twin run), "
+                          f"and twin report {dbs[0]} shows how far one got")
     if len(ended) == len(dbs):
         raise ResumeError(f"{where}: every campaign of the lab finished; nothing to resume (twin report "
                           f"{dbs[0]} shows one)")

@@ -82,7 +82,9 @@ def render_summary(s: Summary, console: Console) -> None:
     if s.stopped:
         t.add_row("stopped", escape(s.stopped))
     console.print(t)
-    console.print(f"journal: {s.journal}  (twin report {s.journal})", soft_wrap=True, highlight=False, markup=False)
+    more = f"; continue it with twin resume {s.journal}" if s.resumable else ""
+    console.print(f"journal: {s.journal}  (twin report {s.journal}{more})", soft_wrap=True, highlight=False,
+                  markup=False)
 
 
 def _measured(value: float) -> str:
