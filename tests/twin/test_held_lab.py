@@ -41,6 +41,22 @@ class HoldsTheLab:
         pass
 
 
+class HoldsTheLabRetrying(HoldsTheLab):
+    """As HoldsTheLab, inside an SDK's retry loop that swallows every error (``except Exception``)."""
+
+    swallowed = 0
+
+    async def run(self, step, params, sample, ctx):
+        self.n += 1
+        for _ in range(2 if self.n == 1 else 0):
+            try:
+                RELEASE.wait(5)  # the line the warning names
+            except Exception:
+                HoldsTheLabRetrying.swallowed += 1
+        await ctx.clock.sleep(30)
+        return StepResult({"peak_nm": 600.0}, sample)
+
+
 class HoldsTheLabDeciding:
     """A scheduler whose third decision blocks (a search with no time limit) until the test releases it."""
 
@@ -94,6 +110,7 @@ def _run(tmp_path, runtime, monkeypatch, then, holder="driver"):
     logging.getLogger(held.__name__).addHandler(handler)
     try:
         changes = {"driver": {"devices.spectrometer.driver": "tests.twin.test_held_lab:HoldsTheLab"},
+                   "retrying driver": {"devices.spectrometer.driver": "tests.twin.test_held_lab:HoldsTheLabRetrying"},
                    "scheduler": {"campaign.scheduler": "tests.twin.test_held_lab:HoldsTheLabDeciding"},
                    "planner": {"campaign.planner": "tests.twin.test_held_lab:HoldsTheLabProposing",
                                "campaign.max_in_flight": 1}}[holder]  # a proposal asked for each experiment
@@ -105,6 +122,7 @@ def _run(tmp_path, runtime, monkeypatch, then, holder="driver"):
     assert len(handler.said) == 1, handler.said  # said once
     said = handler.said[0]
     who, line, advice = {"driver": ("spectrometer's driver", "in run", "asyncio.to_thread"),
+                         "retrying driver": ("spectrometer's driver", "in run", "asyncio.to_thread"),
                          "scheduler": ("scheduler 'tests.twin.test_held_lab:HoldsTheLabDeciding'", "in decide",
                                        "twin scheduler serve"),
                          "planner": ("planner 'tests.twin.test_held_lab:HoldsTheLabProposing'", "in propose",
@@ -132,6 +150,17 @@ def test_ctrl_c_ends_a_drivers_call_that_holds_the_lab_and_stops_it_cleanly(tmp_
     failed = [json.loads(e["detail"]) for e in read_events(tmp_path / "j.db") if e["kind"] == "attempt.failed"]
     assert [f["code"] for f in failed] == ["driver_error"]
     assert f"interrupted ({sig.name}) while spectrometer's driver held the lab" in failed[0]["reason"]
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+def test_ctrl_c_is_not_swallowed_by_a_drivers_except_exception(tmp_path, runtime, monkeypatch):
+    HoldsTheLabRetrying.swallowed = 0
+    summary = _run(tmp_path, runtime, monkeypatch, lambda: os.kill(os.getpid(), signal.SIGINT), "retrying driver")
+    assert HoldsTheLabRetrying.swallowed == 0  # it would have waited again, and Ctrl-C would never end the call
+    assert summary.stopped == "interrupted (SIGINT)" and summary.done == 0
+    failed = [json.loads(e["detail"]) for e in read_events(tmp_path / "j.db") if e["kind"] == "attempt.failed"]
+    assert [f["code"] for f in failed] == ["driver_error"]
+    assert "interrupted (SIGINT) while spectrometer's driver held the lab" in failed[0]["reason"]
 
 
 @pytest.mark.parametrize("runtime", ["fast", "asyncio"])

@@ -7,10 +7,17 @@ Every message says what went wrong and what to do next.
 from typing import Any
 
 
+class Interrupted(BaseException):
+    """Raised inside a plugin's call that holds the lab by SIGINT or SIGTERM (``twin.core.held``): the lab is
+    stopping, and only an exception ends a call that does not return (a driver's step then fails as its error; a
+    scheduler's decision is the fallback rule's; a planner proposes nothing more). Not an ``Exception``, as
+    ``KeyboardInterrupt`` is not: a driver's or its SDK's ``except Exception`` (a retry loop) does not keep it."""
+
+
 #: What a plugin's code (a driver, planner or scheduler) may raise and the lab survives: any error, and
-#: ``SystemExit`` too — an instrument's SDK that calls ``sys.exit`` must fail its step, not end the lab. Never
-#: ``KeyboardInterrupt``: that is the user's Ctrl-C.
-PLUGIN_ERRORS: tuple[type[BaseException], ...] = (Exception, SystemExit)
+#: ``SystemExit`` too — an instrument's SDK that calls ``sys.exit`` must fail its step, not end the lab — and
+#: ``Interrupted``, which the lab's own Ctrl-C raised in it. Never ``KeyboardInterrupt``: that is the user's Ctrl-C.
+PLUGIN_ERRORS: tuple[type[BaseException], ...] = (Exception, SystemExit, Interrupted)
 
 
 class TwinError(Exception):

@@ -17,6 +17,8 @@ import sys
 import threading
 import time
 
+from twin.core.errors import Interrupted
+
 log = logging.getLogger(__name__)
 HELD_S = 30.0  # wall seconds a call may hold its thread before the log says so while it still does
 _TWIN = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # a frame in here is the lab's, not the plugin's
@@ -34,12 +36,6 @@ class Holder:
     def __init__(self, who: str, advice: str) -> None:
         self.who, self.advice, self.said = who, advice, False
         self.thread = threading.get_ident()
-
-
-class Interrupted(Exception):
-    """Raised inside a call that holds the lab by SIGINT or SIGTERM: the lab is stopping, and only an exception ends
-    a call that does not return (a driver's step then fails as its error; a scheduler's decision is the fallback
-    rule's; a planner proposes nothing more)."""
 
 
 #: each thread's call that holds it now: thread id -> (its Holder, since when (time.perf_counter))
