@@ -168,7 +168,8 @@ def test_a_result_finished_while_the_campaign_was_dead_is_adopted_once(tmp_path)
     assert summary["done"] + summary["abandoned"] + summary["pending"] == summary["proposed"] == 6
 
 
-@pytest.mark.parametrize("damage", ['{"events": [["bogus", 1]]}', '{"events": [["msg"]]}', "not json"])
+@pytest.mark.parametrize("damage", ['{"events": [["bogus", 1]]}', '{"events": [["msg"]]}', "not json",
+                                    '{"events": [["operator", "stop"]]}', '{"events": [["stop"]]}'])
 def test_damaged_inputs_are_named_and_nothing_runs(tmp_path, damage):
     from twin.core.errors import TwinError
     from twin.runtime.lab import run
@@ -239,3 +240,17 @@ def test_a_killed_live_job_shop_resumes_on_the_plan_its_scheduler_made(tmp_path)
     resumed_at = next(e["seq"] for e in events if e["kind"] == "campaign.resumed")
     after = [e["kind"] for e in events if e["seq"] > resumed_at]
     assert "attempt.cancel_unanswered" not in after and after.count("task.retry") >= 1
+
+
+def test_a_rebuild_leaves_out_each_stop_that_was_resumed_and_the_last_one():
+    from twin.campaign.replay import RESUMED, unstopped
+
+    msg, op_stop = ["presence", "a", True], ["operator", "stop", "carol", "", None, False, "lunch", "", "", "", 0, ""]
+    batches = [(0.0, {"start": True}), (1.0, {"events": [msg, ["stop", "interrupted (SIGINT)"], msg]}),
+               (2.0, {"events": [msg]}), (3.0, {RESUMED: "interrupted (SIGINT)"}), (4.0, {"events": [msg]}),
+               (5.0, {"events": [op_stop]}), (6.0, {"events": [msg]})]
+    kept, stopped = unstopped(batches)
+    assert kept == [(0.0, {"start": True}), (1.0, {"events": [msg]}), (4.0, {"events": [msg]})]
+    assert stopped == "stopped by carol: lunch"  # the last stop, not yet resumed: its steps were cancelled
+    kept, stopped = unstopped(batches[:4] + [(4.0, {"events": [msg, ["stop", "nothing left", False]]})])
+    assert stopped == "" and kept[-1] == (4.0, {"events": [msg, ["stop", "nothing left", False]]})

@@ -147,18 +147,20 @@ def unstopped(batches: list[tuple[float, Any]]) -> tuple[list[tuple[float, Any]]
                 out.append((now, batch))
             continue
         item = items[at]
-        stopped = str(item[1]) if item[0] == "stop" else operator.stop_reason(item[2], item[6] if len(item) > 6 else "")
+        stopped = item[1] if item[0] == "stop" else operator.stop_reason(str(item[2]), str(item[6] or ""))
         if at:
             out.append((now, {**batch, "events": items[:at]}))
     return out, stopped
 
 
 def _stops(item: Any) -> bool:
-    """A journalled input that stopped the campaign from outside: a signal's (``stop``) or an operator's."""
-    if not isinstance(item, list) or len(item) < 2:
+    """A journalled input that stopped the campaign from outside: a signal's (``stop``) or an operator's. One
+    malformed is not: the replay names it as damage."""
+    if not isinstance(item, list) or not item:
         return False
-    return (item[0] == "stop" and (len(item) < 3 or item[2] is not False)) or (item[0] == "operator"
-                                                                               and item[1] == "stop")
+    if item[0] == "stop":
+        return len(item) in (2, 3) and isinstance(item[1], str) and item[-1] is not False
+    return item[0] == "operator" and len(item) >= 7 and item[1] == "stop"
 
 
 def replay_batches(batches: list[tuple[float, Any]], replay: Any, what: str, who: str) -> None:
