@@ -27,12 +27,14 @@ def events(db: Path, *kinds: str) -> list[tuple]:
 def device_jobs(journals: Path) -> dict[str, list[tuple[float, float, str]]]:
     """Per device, (accepted at, ended at, campaign) of every step it ran, from every campaign's journal: a step
     ends with its result or fault, when its device leaves the bus, or when its campaign cancels it (at the end,
-    or at its deadline: an in-process device stops at once, and a campaign that ends then journals no answer)."""
+    or at its deadline: an in-process device stops at once, and a campaign that ends then journals no answer), or
+    with a "not now" (a lab resumed after Ctrl-C sends the steps the stop cancelled again so)."""
     jobs: dict[str, list[tuple[float, float, str]]] = {}
     for db in journals.glob("*.db"):
         started: dict[tuple, tuple[float, str]] = {}
         for t, kind, _, task, attempt, device, detail, _ in events(
-                db, "msg.accepted", "msg.result", "msg.fault", "device.lost", "attempt.cancelled", "attempt.failed"):
+                db, "msg.accepted", "msg.result", "msg.fault", "msg.rejected", "device.lost", "attempt.cancelled",
+                "attempt.failed"):
             if kind == "attempt.failed" and "timed_out" not in detail:
                 continue
             if kind == "msg.accepted":

@@ -79,14 +79,16 @@ def test_twin_resume_of_a_finished_lab_says_so(tmp_path):
 
 
 @pytest.mark.process
-@pytest.mark.parametrize("kills, one", [(1, None), (2, "rl:agents/policies/flaky_scheduler.zip")])
-def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what_its_journals_held(tmp_path, kills,
+@pytest.mark.parametrize("ends, one", [(("KILL",), None), (("KILL", "KILL"), "rl:agents/policies/flaky_scheduler.zip"),
+                                       (("INT", "KILL"), None)])
+def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what_its_journals_held(tmp_path, ends,
                                                                                                   one):
     """A lab on a scaled clock, SIGKILLed once experiments have finished (and, the second time, its resumed
     process SIGKILLed too), is rebuilt by `twin resume` from the inputs it journalled: every campaign's journal
     keeps what it held, the steps it had in the lab are asked after (here its in-process devices died with it:
     the steps are retried), and every campaign ends with its accounting invariant and no device running two
-    steps. ``one``: the lab's one scheduler (``orchestrator.lab_scheduler``), whose answers are replayed too."""
+    steps. ``one``: the lab's one scheduler (``orchestrator.lab_scheduler``), whose answers are replayed too.
+    ``INT``: the lab is first stopped by Ctrl-C; resumed, the steps the stop cancelled are sent again."""
     import signal
     import subprocess
     import sys
@@ -114,8 +116,9 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
                 pass
         return n
 
+    kills = len(ends)
     try:
-        for kill in range(kills):
+        for kill, end in enumerate(ends):
             if kill:  # the resumed lab dies too, once it finished more
                 lab = subprocess.Popen([sys.executable, "-m", "twin", "resume", str(where), "--quiet"],
                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
@@ -123,8 +126,12 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
             while finished() < wanted and time.monotonic() < deadline and lab.poll() is None:
                 time.sleep(0.05)
             assert lab.poll() is None, "the lab ended before it could be killed: " + lab.stderr.read()[-1000:]
-            lab.send_signal(signal.SIGKILL)
+            lab.send_signal(getattr(signal, f"SIG{end}"))
             lab.communicate(timeout=30)
+            assert lab.returncode == (130 if end == "INT" else -signal.SIGKILL)
+            if end == "INT":
+                told = twin_cli("report", str(where / "dots.db"), columns=300)
+                assert "interrupted (SIGINT)" in told.output and read_run(where / "dots.db")["summary"]["resumable"]
     finally:
         kill_all(lab)
     held = journal_tables(where)
@@ -140,6 +147,13 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
         assert len([e for e in events_now if e[2] == "campaign.resumed"]) == kills, name
         # the steps in the lab died with the process: lost and retried, no cancel left unanswered
         assert "attempt.cancel_unanswered" not in [e[2] for e in events_now[len(held[name][0]):]], name
+        if "INT" in ends:  # the rebuilt journal has no stop: the steps it cancelled were sent again, no attempt used
+            assert not [e for e in events_now if e[2] == "campaign.stopping" and "SIGINT" in (e[7] or "")], name
+            assert not [e for e in events_now if e[2] == "attempt.failed" and '"cancelled"' in (e[7] or "")], name
+    if "INT" in ends:
+        sent_again = [e for n in ("dots", "catalyst") for e in journal_tables(where)[n][0]
+                      if e[2] == "task.refused" and "campaign was stopped" in e[7]]
+        assert sent_again, "the steps the stop cancelled are sent again"
     assert_one_step_at_a_time(where)
 
 
@@ -311,7 +325,10 @@ def test_damaged_lab_inputs_are_named(batches, words):
         rebuild_lab(s, campaign_scenarios(s, s.name), batches, lambda name, cs: NullJournal())
 
 
-def test_a_lab_stopped_by_ctrl_c_is_not_resumed_and_says_why_and_a_campaign_of_it_names_the_lab(tmp_path):
+@pytest.mark.parametrize("row", [30, 100])
+def test_a_lab_stopped_by_ctrl_c_resumes_to_the_journals_of_the_unstopped_one(tmp_path, row):
+    """At row 30 of a journal the second campaign has not started (it starts 1 lab-h in): it says so, and the
+    resumed lab starts it."""
     import os
     import signal
 
@@ -319,19 +336,38 @@ def test_a_lab_stopped_by_ctrl_c_is_not_resumed_and_says_why_and_a_campaign_of_i
     from twin.runtime.resume import ResumeError, resume
     from twin.runtime.resume_lab import resume_lab
 
+    s = prepare(LAB, seed=3, overrides=SMALL)
+    run_shared(s, tmp_path / "whole", handle_signals=False)
+    whole = journal_tables(tmp_path / "whole")
     append = Journal._append
 
     def interrupting(self, *r):
-        if self._seq + 1 == 100:
+        if self._seq + 1 == row:
             os.kill(os.getpid(), signal.SIGINT)
         append(self, *r)
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(Journal, "_append", interrupting)
-        run_shared(prepare(LAB, seed=3, overrides=SMALL), tmp_path / "lab")
-    with pytest.raises(ResumeError, match=r"the lab was stopped \(interrupted \(SIGINT\)\); a lab of several "
-                                          r"campaigns resumes only when killed"):
-        resume_lab(tmp_path / "lab", handle_signals=False)
+        stopped = run_shared(s, tmp_path / "lab")
+    assert any(c.stopped == "interrupted (SIGINT)" and c.resumable for c in stopped.campaigns.values())
+    assert bool(stopped.not_started) == (row == 30)
+    cut_short = next(n for n, c in stopped.campaigns.items() if c.resumable)
+    for shown in (tmp_path / "lab", tmp_path / "lab" / f"{cut_short}.db"):  # a campaign's journal names its lab
+        told = twin_cli("report", str(shown), columns=300).output
+        assert f"continue it with twin resume {tmp_path / 'lab'})" in told and f"{cut_short}.db)" not in \
+            told.split("continue it with")[-1], told
     with pytest.raises(ResumeError, match=rf"a campaign of a lab of several, which resumes as one: twin resume "
                                           rf"{tmp_path / 'lab'}"):
         resume(tmp_path / "lab" / "dots.db")
+    resume_lab(tmp_path / "lab", handle_signals=False)
+    assert journal_tables(tmp_path / "lab") == whole
+
+
+def test_a_lab_that_ended_itself_is_not_resumed_and_says_why(tmp_path):
+    from twin.runtime.resume import ResumeError
+    from twin.runtime.resume_lab import resume_lab
+
+    run_shared(prepare(LAB, seed=3, overrides={**SMALL, "campaigns.0.campaign.max_lab_hours": 0.5}), tmp_path,
+               handle_signals=False)
+    with pytest.raises(ResumeError, match=r"the lab ended \(max_lab_hours reached\), not stopped from outside"):
+        resume_lab(tmp_path, handle_signals=False)

@@ -12,7 +12,8 @@ Items of a batch: ``["dev", input]``, ``["lab", input]``, ``["seat", campaign, i
 scenario, secret]``, ``["stop", reason]``, ``["note", campaign, kind, detail, t_lab]`` (``input`` as
 ``twin.campaign.replay.encode`` writes it). The first batch is ``{"start": true, "secrets": {campaign: hex}}``;
 a batch with ``"advance": false`` (a remark written ahead of the campaign's journal) is taken in without an
-advance.
+advance. A stop that ``twin resume`` undid is left out with what followed it, up to the ``{"resumed": why}``
+batch the resumed lab wrote (``replay.unstopped``).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from typing import Any
 from twin.campaign.events import (Ask, CancelTimer, Decided, Note, Proposed, RecordExperiment, RecordMessage,
                                   SetTimer, TimerFired, TimerKey)
 from twin.campaign.journal import Journal
-from twin.campaign.replay import ReplayError, decode_input, encode, replay_batches
+from twin.campaign.replay import ReplayError, decode_input, encode, replay_batches, unstopped
 from twin.campaign.sharing import LAB, SharedLab
 from twin.scenario.model import Scenario, SharedCampaign
 
@@ -38,6 +39,7 @@ class RebuiltLab:
     scenarios: dict[str, Scenario]  # every campaign's, those submitted included
     timers: dict[tuple[str, TimerKey], float] = field(default_factory=dict)  # (campaign or LAB, key) -> due
     asked: dict[str, Ask] = field(default_factory=dict)  # a question a campaign still waits on
+    stopped: str = ""  # the stop (a Ctrl-C's) the lab ended with, left out: its steps in the lab were cancelled
 
 
 def rebuild_lab(lab: Scenario, scenarios: dict[str, Scenario], batches: list[tuple[float, Any]],
@@ -48,10 +50,17 @@ def rebuild_lab(lab: Scenario, scenarios: dict[str, Scenario], batches: list[tup
         raise ReplayError("the lab's inputs do not begin with its start: run the lab again (twin run)")
     secrets = {n: bytes.fromhex(h) for n, h in (batches[0][1].get("secrets") or {}).items()}
     out = RebuiltLab(SharedLab(lab, scenarios, secrets, serving), 0.0, dict(scenarios))
+    batches, out.stopped = unstopped(batches, "items", _lab_stop)
     journals = {name: journal_for(name, s) for name, s in scenarios.items()}
     replay_batches(batches, lambda now, batch: _replay(out, journals, journal_for, now, batch), "lab input batch",
                    "the lab")
     return out
+
+
+def _lab_stop(item: Any) -> str:
+    """Why a lab input stopped the lab (a Ctrl-C's, journalled by ``LiveLab.stop``), or ""."""
+    ok = isinstance(item, list) and len(item) == 2 and item[0] == "stop" and isinstance(item[1], str)
+    return item[1] if ok else ""
 
 
 def _replay(out: RebuiltLab, journals: dict[str, Journal], journal_for: Callable[[str, Scenario], Journal],
@@ -85,7 +94,7 @@ def _replay(out: RebuiltLab, journals: dict[str, Journal], journal_for: Callable
             out.scenarios[entry.name] = scenario
             journals[entry.name] = journal_for(entry.name, scenario)
         elif what == "stop":
-            shared.stop(item[1])
+            shared.stop(item[1], outside=True)  # only a Ctrl-C's is journalled (LiveLab.stop)
         elif what == "note":
             journals[item[1]].note(Note(item[4], item[2], detail=item[3]))
         else:

@@ -9,6 +9,7 @@ had asked and not had answered.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -128,11 +129,14 @@ def rebuild(s: Scenario, batches: list[tuple[float, dict[str, Any]]], campaign_i
 RESUMED = "resumed"
 
 
-def unstopped(batches: list[tuple[float, Any]]) -> tuple[list[tuple[float, Any]], str]:
+def unstopped(batches: list[tuple[float, Any]], items: str = "events",
+              stop: Callable[[Any], str] | None = None) -> tuple[list[tuple[float, Any]], str]:
     """The inputs without the stops ``twin resume`` undid: from a stop from outside (a signal's, an operator's) to
     the ``RESUMED`` batch after it, or to the end, nothing is replayed (the cancels the stop sent and what came
     back are moot: the resumed campaign asks its devices again). Also: the last stop left out with no resume after
-    it ("" if none), whose steps in the lab were cancelled."""
+    it ("" if none), whose steps in the lab were cancelled. ``items``: the key of a batch's inputs; ``stop``: why
+    an input stopped the run from outside, or "" (a campaign's own, by default; a lab's are ``lab_replay``'s)."""
+    stop = stop or _stop_of
     out: list[tuple[float, Any]] = []
     stopped = ""
     for now, batch in batches:
@@ -140,27 +144,30 @@ def unstopped(batches: list[tuple[float, Any]]) -> tuple[list[tuple[float, Any]]
             if isinstance(batch, dict) and RESUMED in batch:
                 stopped = ""
             continue
-        items = batch.get("events") if isinstance(batch, dict) else None
-        at = next((i for i, item in enumerate(items or ()) if _stops(item)), None)
+        inputs = batch.get(items) if isinstance(batch, dict) else None
+        inputs = inputs if isinstance(inputs, list) else None  # damage: the replay names it
+        why = ""
+        at = next((i for i, item in enumerate(inputs or ()) if (why := stop(item))), None)
         if at is None:
             if not (isinstance(batch, dict) and RESUMED in batch):
                 out.append((now, batch))
             continue
-        item = items[at]
-        stopped = item[1] if item[0] == "stop" else operator.stop_reason(str(item[2]), str(item[6] or ""))
+        stopped = why
         if at:
-            out.append((now, {**batch, "events": items[:at]}))
+            out.append((now, {**batch, items: inputs[:at]}))
     return out, stopped
 
 
-def _stops(item: Any) -> bool:
-    """A journalled input that stopped the campaign from outside: a signal's (``stop``) or an operator's. One
-    malformed is not: the replay names it as damage."""
+def _stop_of(item: Any) -> str:
+    """Why a journalled input stopped the campaign from outside (a signal's ``stop``, an operator's), or "". One
+    malformed did not: the replay names it as damage."""
     if not isinstance(item, list) or not item:
-        return False
-    if item[0] == "stop":
-        return len(item) in (2, 3) and isinstance(item[1], str) and item[-1] is not False
-    return item[0] == "operator" and len(item) >= 7 and item[1] == "stop"
+        return ""
+    if item[0] == "stop" and len(item) in (2, 3) and isinstance(item[1], str) and item[-1] is not False:
+        return item[1]
+    if item[0] == "operator" and len(item) >= 7 and item[1] == "stop":
+        return operator.stop_reason(str(item[2]), str(item[6] or ""))
+    return ""
 
 
 def replay_batches(batches: list[tuple[float, Any]], replay: Any, what: str, who: str) -> None:

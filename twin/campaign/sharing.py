@@ -123,14 +123,15 @@ class SharedLab:
         self._submit(entry.name)
         return core
 
-    def stop(self, reason: str) -> None:
+    def stop(self, reason: str, outside: bool = False) -> None:
+        """Stop every campaign (``outside``: as ``Stop.outside`` says; a Ctrl-C is, the lab's own end is not)."""
         if not self._stopping:
             self._stopping = reason
             for name in self.entries:
                 if name not in self.started and name not in self._due:
                     self.unsubmitted[name] = reason
         for name in self.started:
-            self.cores[name].feed(Stop(reason))
+            self.cores[name].feed(Stop(reason, outside))
         for name in self._due:
             self.unsubmitted[name] = reason
         self._due.clear()

@@ -70,4 +70,4 @@ def _report(journal: Path, resume_with: Path | None = None) -> None:
         return
     summary = Summary.from_dict(data["summary"])
     summary.journal = str(journal)  # the file read: a journal copied or moved names where it was written
-    render_summary(summary, console)
+    render_summary(summary, console, resume_with or (journal.parent if "lab" in data else None))

@@ -93,7 +93,7 @@ class FastLab:
         self.shared.feed(LAB, Decided(list(assignments), wall_s))
 
     def stop(self, reason: str) -> None:
-        self.shared.stop(reason)
+        self.shared.stop(reason, outside=True)
 
     def _perform(self, tagged: list[tuple[str, Any]]) -> None:
         for name, actions in by_campaign(tagged):

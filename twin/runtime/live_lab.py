@@ -11,7 +11,7 @@ from typing import Any
 
 from twin.campaign.events import Ask, Decided, Note, TimerFired, TimerKey
 from twin.campaign.lab_replay import RebuiltLab, encode
-from twin.campaign.replay import merged
+from twin.campaign.replay import RESUMED, merged
 from twin.campaign.journal import Journal
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.sharing import LAB, SharedLab, by_campaign
@@ -135,7 +135,7 @@ class LiveLab:
 
     def stop(self, reason: str) -> None:
         self.record(["stop", reason])
-        self.shared.stop(reason)
+        self.shared.stop(reason, outside=True)
         self.kick_soon()
 
     async def run(self) -> None:
@@ -320,11 +320,16 @@ class LiveLab:
     # -- taking over a killed lab -----------------------------------------------------------
     async def _take_over(self, rebuilt: RebuiltLab) -> None:
         """Find out what became of the steps it had in the lab (still running, finished — its result is taken — or
-        lost, and retried), then re-arm what the dead process left pending: asked first, as a single campaign
-        does (``LiveCampaign._take_over``), so a step lost while its deadline passed is retried at once."""
+        lost, and retried; cancelled by the Ctrl-C the lab was stopped with: sent again), then re-arm what the dead
+        process left pending: asked first, as a single campaign does (``LiveCampaign._take_over``), so a step lost
+        while its deadline passed is retried at once."""
+        if rebuilt.stopped and self._inputs is not None:  # the stop is undone: a later rebuild skips it again
+            self._inputs.inputs(self.clock.now(), {RESUMED: rebuilt.stopped})
+            self._inputs.flush()
         for name, seat in self.seats.items():
             in_lab = [d.attempt.task.id for d in seat.core.devices.values() if d.attempt is not None]
-            seat.note("campaign.resumed", {"inputs_replayed": True, "in_lab": in_lab})
+            seat.note("campaign.resumed", {"inputs_replayed": True, "in_lab": in_lab,
+                                           **({"after": rebuilt.stopped} if rebuilt.stopped else {})})
         for name, ask in rebuilt.asked.items():
             if name == LAB:
                 self._ask_lab(ask)
@@ -333,7 +338,7 @@ class LiveLab:
         for seat in self.seats.values():
             for dev in list(seat.core.devices.values()):
                 if dev.attempt is not None:
-                    await seat._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n)
+                    await seat._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n, rebuilt.stopped)
         for (name, key), due in rebuilt.timers.items():
             owner = self if name == LAB else self.seats[name]
             rearm(self.clock, owner._timers, key, due, owner._on_timer)

@@ -1,9 +1,12 @@
-"""``twin resume JOURNALS/``: continue a lab of several campaigns that was killed, from its campaigns' journals.
+"""``twin resume JOURNALS/``: continue a lab of several campaigns that was killed, or stopped by Ctrl-C or SIGTERM,
+from its campaigns' journals.
 
 In virtual time the lab is deterministic, as one campaign is (``twin.runtime.resume``): it is re-executed from
 the start on the lab file and seed its journals recorded, every campaign's events checked against its journal's
-prefix as they are written; the first that differs stops the resume with an error naming the campaign and the
-event, and the killed journals are left as they were. The resumed journals replace them only when the lab ends.
+prefix as they are written (a stopped lab's up to its stop); the first that differs stops the resume with an error
+naming the campaign and the event, and the journals are left as they were. The resumed journals replace them only
+when the lab ends. On a live clock the lab is rebuilt from the inputs it journalled (``twin.campaign.lab_replay``;
+a stopped lab's without its stop).
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
     if not dbs:
         raise ResumeError(f"{where}: no campaign journals (<campaign>.db) here; a lab's journals are written to "
                           "runs/<lab>-seed<N>-<time>/ by default")
-    lab, prefixes, ended, scenarios, stopped = None, {}, [], {}, ""
+    lab, prefixes, ended, scenarios, stopped, resumable = None, {}, [], {}, "", ""
     for db in dbs:
         data = read_run(db)
         prefixes[db.stem] = [tuple(row.values()) for row in read_events(db)]  # damage is named
@@ -50,15 +53,17 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
                               f"twin resume {db}; or a lab run before labs journalled it: run it again)")
         lab = lab or data["lab"]
         scenarios[db.stem] = data.get("scenario")
-        if "summary" in data:
+        summary = data.get("summary")
+        if summary is not None:
             ended.append(db.stem)
-            why = data["summary"].get("stopped") if isinstance(data["summary"], dict) else ""
-            stopped = stopped or (why if str(why).startswith(("interrupted (", "stopped by ")) else "")
-    if len(ended) == len(dbs) and stopped:
-        raise ResumeError(f"{where}: the lab was stopped ({stopped}); a lab of several campaigns resumes only when "
-                          f"killed (a campaign run on its own resumes after Ctrl-C too): run it again (twin run), "
-                          f"and twin report {dbs[0]} shows how far one got")
-    if len(ended) == len(dbs):
+            why = str(summary.get("stopped") or "") if isinstance(summary, dict) else ""
+            stopped = stopped or why
+            resumable = resumable or (why if isinstance(summary, dict) and summary.get("resumable") else "")
+    if len(ended) == len(dbs) and stopped and not resumable:
+        raise ResumeError(f"{where}: the lab ended ({stopped}), not stopped from outside (Ctrl-C, SIGTERM): resumed, "
+                          f"it would end the same way; run it again (twin run), and twin report {dbs[0]} shows how "
+                          "far one got")
+    if len(ended) == len(dbs) and not resumable:
         raise ResumeError(f"{where}: every campaign of the lab finished; nothing to resume (twin report "
                           f"{dbs[0]} shows one)")
     s = parse(lab, f"{dbs[0]}: the journal's lab file", lab_only=True)  # a served lab's file may have no workflow
@@ -67,7 +72,16 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
                                        ).model_dump() != cs.model_dump():
             raise ResumeError(f"{where / (name + '.db')}: the campaign's scenario differs from what its lab file "
                               "makes of it now (the code changed since the run); run the lab again instead (twin run)")
+    if resumable:  # a re-run goes on where the stop came
+        prefixes = {name: _before_stop(prefix) for name, prefix in prefixes.items()}
     return s, prefixes
+
+
+def _before_stop(prefix: list[tuple]) -> list[tuple]:
+    """A stopped lab's campaign's events up to its stop, or to where it was said never to have started, or to its
+    summary (a campaign that had finished is summed up when the lab ends, at the stop)."""
+    ends = ("campaign.stopping", "campaign.not_started", "campaign.summary")
+    return prefix[:next((i for i, row in enumerate(prefix) if row[2] in ends), len(prefix))]
 
 
 def resume_lab(path: str | Path, handle_signals: bool = True, observer: SharedLabObserver | None = None,

@@ -35,7 +35,8 @@ class _Marked(Table):
         super().add_row(*(Text.from_markup(printable(c)) if isinstance(c, str) else c for c in cells), **options)
 
 
-def render_summary(s: Summary, console: Console) -> None:
+def render_summary(s: Summary, console: Console, resume_with: Any = None) -> None:
+    """``resume_with``: what ``twin resume`` takes to continue it, if not its journal (a lab's directory)."""
     t = _Marked(title=f"{s.scenario} — seed {s.seed}", show_header=False, title_justify="left")
     t.add_column(style="bold")
     t.add_column()
@@ -82,7 +83,7 @@ def render_summary(s: Summary, console: Console) -> None:
     if s.stopped:
         t.add_row("stopped", escape(s.stopped))
     console.print(t)
-    more = f"; continue it with twin resume {s.journal}" if s.resumable else ""
+    more = f"; continue it with twin resume {resume_with or s.journal}" if s.resumable else ""
     console.print(f"journal: {s.journal}  (twin report {s.journal}{more})", soft_wrap=True, highlight=False,
                   markup=False)
 
@@ -112,5 +113,6 @@ def render_lab_summary(s: LabSummary, console: Console) -> None:
     busy = ", ".join(f"{d} {100 * u:.0f} %" for d, u in s.utilisation.items())
     console.print(f"lab time {s.lab_hours:.2f} h ({s.wall_s:.2f} s wall); devices busy: {busy}", highlight=False,
                   soft_wrap=True, markup=False)
-    console.print(f"journals: {s.journals}/<campaign>.db  (twin report {s.journals})", highlight=False,
+    more = f"; continue it with twin resume {s.journals}" if any(c.resumable for c in s.campaigns.values()) else ""
+    console.print(f"journals: {s.journals}/<campaign>.db  (twin report {s.journals}{more})", highlight=False,
                   soft_wrap=True, markup=False)
