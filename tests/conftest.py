@@ -1,3 +1,5 @@
+import contextlib
+import os
 import signal
 from pathlib import Path
 
@@ -137,3 +139,20 @@ def assert_adopted_once(events: list[dict], task: str, device: str) -> None:
     assert len(done) == 1 and done[0]["device"] == device, "the finished result is adopted, once"
     assert done[0]["t_lab"] >= next(e["t_lab"] for e in events if e["kind"] == "campaign.resumed")
     assert not [e for e in events if e["kind"] == "attempt.failed" and e["task"] == task]
+
+
+@contextlib.contextmanager
+def ctrl_c_at(row: int):
+    """A run inside the block gets SIGINT (Ctrl-C) when a journal of it writes its event ``row``."""
+    from twin.campaign.journal import Journal
+
+    append = Journal._append
+
+    def interrupting(self, *r):
+        if self._seq + 1 == row:
+            os.kill(os.getpid(), signal.SIGINT)
+        append(self, *r)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(Journal, "_append", interrupting)
+        yield

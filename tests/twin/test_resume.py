@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tests.conftest import twin_cli
+from tests.conftest import ctrl_c_at, twin_cli
 from twin.campaign.journal import Journal, read_run
 from twin.runtime.lab import prepare, run
 from twin.runtime.resume import ResumeError, resume
@@ -76,27 +76,14 @@ def test_killed_anywhere_and_resumed_the_journal_is_the_unkilled_one(tmp_path_fa
     assert summary.journal == str(db) and read_run(db)["summary"]["done"] == summary.done
 
 
-def _stopped_at(s, db, row):
-    """Run the campaign and SIGINT this process when the journal writes event ``row`` (Ctrl-C at that point)."""
-    append = Journal._append
-
-    def interrupting(self, *r):
-        if self._seq + 1 == row:
-            os.kill(os.getpid(), signal.SIGINT)
-        append(self, *r)
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(Journal, "_append", interrupting)
-        return run(s, journal=db)
-
-
 @settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(name=st.sampled_from(sorted(CAMPAIGNS)), seed=st.integers(0, 3), at=st.floats(0.0, 0.95))
 def test_stopped_by_ctrl_c_anywhere_and_resumed_the_journal_is_the_unstopped_one(tmp_path_factory, name, seed, at):
     tmp = tmp_path_factory.mktemp("stopped")
     whole = unkilled(name, seed, tmp_path_factory.getbasetemp())
     db = tmp / "stopped.db"
-    stopped = _stopped_at(scenario(name, seed), db, 1 + int(at * (len(whole[0]) - 1)))
+    with ctrl_c_at(1 + int(at * (len(whole[0]) - 1))):
+        stopped = run(scenario(name, seed), journal=db)
     assert stopped.stopped == "interrupted (SIGINT)" and stopped.resumable
     assert tables(db) != whole
     summary = resume(db)

@@ -11,7 +11,7 @@ from twin.runtime.shared_run import run_shared
 
 from twin.campaign.journal import read_run
 from tests.twin.shared_labs import (LAB, ROOT, SMALL, assert_one_step_at_a_time, journal_tables, kill_all, wait_until_ended)
-from tests.conftest import assert_adopted_once, twin_cli
+from tests.conftest import assert_adopted_once, ctrl_c_at, twin_cli
 
 
 def _lab_killed_at(s, where: Path, row: int) -> None:
@@ -329,25 +329,13 @@ def test_damaged_lab_inputs_are_named(batches, words):
 def test_a_lab_stopped_by_ctrl_c_resumes_to_the_journals_of_the_unstopped_one(tmp_path, row):
     """At row 30 of a journal the second campaign has not started (it starts 1 lab-h in): it says so, and the
     resumed lab starts it."""
-    import os
-    import signal
-
-    from twin.campaign.journal import Journal
     from twin.runtime.resume import ResumeError, resume
     from twin.runtime.resume_lab import resume_lab
 
     s = prepare(LAB, seed=3, overrides=SMALL)
     run_shared(s, tmp_path / "whole", handle_signals=False)
     whole = journal_tables(tmp_path / "whole")
-    append = Journal._append
-
-    def interrupting(self, *r):
-        if self._seq + 1 == row:
-            os.kill(os.getpid(), signal.SIGINT)
-        append(self, *r)
-
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(Journal, "_append", interrupting)
+    with ctrl_c_at(row):
         stopped = run_shared(s, tmp_path / "lab")
     assert any(c.stopped == "interrupted (SIGINT)" and c.resumable for c in stopped.campaigns.values())
     assert bool(stopped.not_started) == (row == 30)
