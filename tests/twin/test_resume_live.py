@@ -14,6 +14,7 @@ import yaml
 
 from tests.conftest import assert_adopted_once, qd_lab
 from twin.campaign.journal import read_events, read_run
+from twin.runtime.resume import resume
 
 ROOT = Path(__file__).resolve().parents[2]
 TWIN = [sys.executable, "-m", "twin"]
@@ -101,10 +102,11 @@ def test_ctrl_c_resumed_killed_and_resumed_again_sends_its_cancelled_steps_again
     assert first["stopped"] == "interrupted (SIGINT)" and first["resumable"] and first["pending"] > 0
     assert _signalled(["resume", str(db)], measuring(4), signal.SIGKILL) == -signal.SIGKILL
     assert "summary" not in read_run(db), "a resumed campaign killed reads as killed, not as the stop before"
-    resumed = subprocess.run(TWIN + ["resume", str(db), "--json"], cwd=ROOT, capture_output=True, text=True,
-                             timeout=120)
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
-    summary = json.loads(resumed.stdout)
+    done_before = _count(db, "SELECT COUNT(*) FROM events WHERE kind='experiment.done'")
+    progress: list[tuple[int, int]] = []
+    summary = resume(db, on_progress=lambda core: progress.append(
+        (core.finished_count, sum(d.attempt is not None for d in core.devices.values())))).to_dict()
+    assert progress[0][0] == done_before >= 4 and progress[0][1] >= 1, "a progress bar starts where it was"
     assert summary["done"] == summary["proposed"] == 10 and not summary["stopped"], summary
     events = read_events(db)
     finals = [e["experiment"] for e in events if e["kind"] in ("experiment.done", "experiment.abandoned")]

@@ -264,6 +264,8 @@ class LiveCampaign:
                 await self._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n, rebuilt.stopped)
         for key, due in rebuilt.timers.items():
             rearm(self.clock, self._timers, key, due, self._on_timer)
+        if self.on_progress is not None:  # a progress bar starts where the campaign was, not at nothing done
+            self.on_progress(self.core)
         self._kick_soon()
 
     async def _ask_about(self, device: str, task: str, attempt: int, stopped: str = "") -> None:
