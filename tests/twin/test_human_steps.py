@@ -2,6 +2,16 @@
 operator's, or in virtual time the simulated operator's after the step's expected time), with a deadline."""
 
 import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
 
 from tests.conftest import qd_lab
 from tests.twin.test_core import notes, of
@@ -9,10 +19,12 @@ from twin.campaign import CampaignCore, Decided, Operator, Presence, Proposed, S
 from twin.campaign.decisions import Assignment, Proposal
 from twin.campaign.events import TimerKey, TimerKind
 from twin.campaign.journal import read_events
+from twin.core.errors import TwinError
 from twin.runtime.checks import check
 from twin.runtime.lab import run
 from twin.scenario import parse
 
+ROOT = Path(__file__).resolve().parents[2]
 HUMAN = {"devices.operator": {"driver": "operator", "instances": 1, "steps": ["load_rack"],
                               "duration": {"mean_s": 300, "cv": 0},
                               "options": {"instructions": "load the precursor rack into bay 2"}},
@@ -85,3 +97,37 @@ def test_a_misspelt_option_for_people_is_named():
     with pytest.raises(ScenarioError, match=r"devices\.operator\.options\.instrutions: people \('operator'\) take "
                                             "only instructions"):
         check(parse(qd_lab(**misspelt), "lab.yaml"))
+
+
+@pytest.mark.process
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
+def test_a_human_step_waiting_when_the_campaign_died_or_stopped_still_waits_for_its_person_when_resumed(tmp_path, sig):
+    """People have no health key to ask: a resume once asked, heard nothing and declared the person gone
+    ("left the bus"), abandoning the step and leaving every later human step without anyone to give it to."""
+    lab = qd_lab(**{**HUMAN, "campaign.budget": 1, "clock": {"mode": "scaled", "speed": 600},
+                    "orchestrator.retry.max_attempts": 1})
+    path, db = tmp_path / "lab.yaml", tmp_path / "j.db"
+    path.write_text(yaml.safe_dump(lab))
+    proc = subprocess.Popen([sys.executable, "-m", "twin", "run", str(path), "--journal", str(db), "--quiet"],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            env={**os.environ, "LABTWIN_FLUSH_EVERY": "1"})
+    while proc.poll() is None and not any(e["kind"] == "operator.step" for e in _events(db)):
+        time.sleep(0.01)
+    proc.send_signal(sig)
+    proc.wait()
+    assert proc.returncode in (-signal.SIGKILL, 130)
+    assert not any(e["kind"] == "attempt.failed" for e in _events(db)), "the step ended before the campaign did"
+    resumed = subprocess.run([sys.executable, "-m", "twin", "resume", str(db), "--json"], cwd=ROOT,
+                             capture_output=True, text=True, timeout=120)
+    assert resumed.returncode == 0 and "does not answer" not in resumed.stderr, resumed.stderr[-2000:]
+    events = read_events(db)
+    assert not [e for e in events if e["kind"] == "device.lost"]
+    ended = [json.loads(e["detail"])["code"] for e in events if e["kind"] == "attempt.failed"]
+    assert ended == ["timed_out"], ended  # nobody confirmed it: its deadline, as for any step
+
+
+def _events(db):
+    try:
+        return read_events(db)
+    except (TwinError, sqlite3.Error):  # not written yet
+        return []

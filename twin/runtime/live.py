@@ -260,7 +260,7 @@ class LiveCampaign:
         # device that no longer runs it, is lost and retried at once, rather than timed out and cancelled (a cancel
         # nobody answers holds the device for orchestrator.cancel_grace_s)
         for dev in list(self.core.devices.values()):
-            if dev.attempt is not None:
+            if dev.attempt is not None and dev.name not in self.core.people:  # people: still theirs to confirm
                 await self._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n, rebuilt.stopped)
         for key, due in rebuilt.timers.items():
             rearm(self.clock, self._timers, key, due, self._on_timer)
