@@ -357,5 +357,52 @@ def test_a_lab_that_ended_itself_is_not_resumed_and_says_why(tmp_path):
 
     run_shared(prepare(LAB, seed=3, overrides={**SMALL, "campaigns.0.campaign.max_lab_hours": 0.5}), tmp_path,
                handle_signals=False)
-    with pytest.raises(ResumeError, match=r"the lab ended \(max_lab_hours reached\), not stopped from outside"):
+    with pytest.raises(ResumeError, match=r"the lab ended \(max_lab_hours reached\): its campaigns ended on their "
+                                          r"own or their operators stopped them, not the lab as a whole by Ctrl-C"):
         resume_lab(tmp_path, handle_signals=False)
+
+
+@pytest.mark.process
+def test_an_operator_stopping_each_campaign_of_a_lab_is_answered_and_the_lab_is_not_resumed(tmp_path):
+    """The last stop ends the lab, whose campaign journals close at once: the answer's flush had found the journal
+    closed and the operator was told the journal could not be written (a full disk?). A campaign its operator
+    stopped stays stopped: the lab says nothing of resuming, and its resume is refused."""
+    import subprocess
+    import sys
+    import time
+
+    import yaml
+
+    from tests.twin.test_device_process import free_port
+
+    port, where = free_port(), tmp_path / "j"
+    raw = yaml.safe_load(LAB.read_text())
+    for c in raw["campaigns"]:
+        c["campaign"].update(budget=40, planner="random", stop_on_target=False)
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
+    lab = subprocess.Popen([sys.executable, "-m", "twin", "run", str(tmp_path / "lab.yaml"), "--clock", "scaled",
+                            "--speed", "500", "--listen", f"tcp/127.0.0.1:{port}", "--journal", str(where),
+                            "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
+    connect = ["--lab", "shared", "--connect", f"tcp/127.0.0.1:{port}"]
+    try:
+        deadline = time.monotonic() + 60
+        while len(_status(connect)["campaigns"]) < 2 and time.monotonic() < deadline:  # until it answers
+            time.sleep(0.2)
+        for name in ("dots", "catalyst"):
+            stopped = twin_cli("ctl", "stop", "--campaign", name, "--as", "alice", *connect, columns=200)
+            assert stopped.exit_code == 0 and "operator.stop by alice" in stopped.output, stopped.output
+        out, err = lab.communicate(timeout=60)
+    finally:
+        kill_all(lab)
+    assert lab.returncode == 0, err[-2000:]
+    assert "twin resume" not in out and "cannot write the journal" not in err
+    refused = twin_cli("resume", str(where), columns=300)
+    assert refused.exit_code == 2 and "the lab ended (stopped by alice): its campaigns ended on their own or their " \
+        "operators stopped them" in " ".join(refused.output.split()), refused.output
+
+
+def _status(connect: list[str]) -> dict:
+    import json
+
+    answer = twin_cli("ctl", "status", "--json", *connect, columns=200)
+    return json.loads(answer.output) if answer.exit_code == 0 else {"campaigns": []}

@@ -142,6 +142,8 @@ class Journal:
         return json.loads(row[0]) if row else None
 
     def flush(self) -> None:
+        if self.closed and not (self._events or self._inputs or self._experiments):
+            return  # its close wrote it all (an operator's answer flushed after the act ended the campaign)
         if self.failed:  # what follows a failed write (the stop's own rows, the summary) is dropped, not raised again
             self._events.clear()
             self._inputs.clear()

@@ -123,7 +123,8 @@ def stop_reason(who: str, reason: str) -> str:
 def _stop(core: CampaignCore, op: Operator) -> str:
     if core.stopping:
         return f"the campaign is already stopping ({core.stopping})"
-    core._on_stop(stop_reason(op.who, op.reason), outside=True)
+    # a campaign of a lab of several stays stopped when the lab resumes (only the lab's own stop is undone)
+    core._on_stop(stop_reason(op.who, op.reason), outside=core.alone)
     return ""
 
 

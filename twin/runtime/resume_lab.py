@@ -60,9 +60,9 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
             stopped = stopped or why
             resumable = resumable or (why if isinstance(summary, dict) and summary.get("resumable") else "")
     if len(ended) == len(dbs) and stopped and not resumable:
-        raise ResumeError(f"{where}: the lab ended ({stopped}), not stopped from outside (Ctrl-C, SIGTERM): resumed, "
-                          f"it would end the same way; run it again (twin run), and twin report {dbs[0]} shows how "
-                          "far one got")
+        raise ResumeError(f"{where}: the lab ended ({stopped}): its campaigns ended on their own or their operators "
+                          "stopped them, not the lab as a whole by Ctrl-C or SIGTERM, and resumed it would end the "
+                          f"same way; run it again (twin run), and twin report {dbs[0]} shows how far one got")
     if len(ended) == len(dbs) and not resumable:
         raise ResumeError(f"{where}: every campaign of the lab finished; nothing to resume (twin report "
                           f"{dbs[0]} shows one)")
@@ -159,6 +159,9 @@ def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], han
 
     try:
         rebuilt = rebuild_lab(s, campaign_scenarios(s, s.name), batches, journal_for, serving)
+        if rebuilt.shared.finished:  # its campaigns ended on their own, or their operators stopped each
+            raise ResumeError(f"{where}: every campaign of the lab had ended (finished, or stopped by its operator: "
+                              f"twin ctl stop --campaign is not undone); nothing to resume (twin report {where})")
         for name, prefix in prefixes.items():
             done = checked[name].checked if name in checked else 0
             if done < len(prefix):
