@@ -118,6 +118,8 @@ def test_ctrl_c_resumed_killed_and_resumed_again_sends_its_cancelled_steps_again
     assert all(any(x["kind"] == "attempt.done" and x["task"] == t for x in events) for t in cancelled)
     assert [json.loads(e["detail"]).get("after") for e in events if e["kind"] == "campaign.resumed"] == [
         "interrupted (SIGINT)", None]
+    stopped_at = next(e["t_lab"] for e in events if e["kind"] == "campaign.stopping")
+    assert next(e["t_lab"] for e in events if e["kind"] == "campaign.resumed") >= stopped_at  # lab time went on
     assert not [e for e in events if e["kind"] == "attempt.failed" and '"cancelled"' in e["detail"]]
 
 
@@ -251,8 +253,8 @@ def test_a_rebuild_leaves_out_each_stop_that_was_resumed_and_the_last_one():
     batches = [(0.0, {"start": True}), (1.0, {"events": [msg, ["stop", "interrupted (SIGINT)"], msg]}),
                (2.0, {"events": [msg]}), (3.0, {RESUMED: "interrupted (SIGINT)"}), (4.0, {"events": [msg]}),
                (5.0, {"events": [op_stop]}), (6.0, {"events": [msg]})]
-    kept, stopped = unstopped(batches)
+    kept, stopped, at = unstopped(batches)
     assert kept == [(0.0, {"start": True}), (1.0, {"events": [msg]}), (4.0, {"events": [msg]})]
-    assert stopped == "stopped by carol: lunch"  # the last stop, not yet resumed: its steps were cancelled
-    kept, stopped = unstopped(batches[:4] + [(4.0, {"events": [msg, ["stop", "nothing left", False]]})])
-    assert stopped == "" and kept[-1] == (4.0, {"events": [msg, ["stop", "nothing left", False]]})
+    assert (stopped, at) == ("stopped by carol: lunch", 5.0)  # the last stop, not yet resumed: its steps cancelled
+    kept, stopped, at = unstopped(batches[:4] + [(4.0, {"events": [msg, ["stop", "nothing left", False]]})])
+    assert (stopped, at) == ("", 0.0) and kept[-1] == (4.0, {"events": [msg, ["stop", "nothing left", False]]})

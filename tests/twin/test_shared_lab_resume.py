@@ -154,6 +154,12 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
         sent_again = [e for n in ("dots", "catalyst") for e in journal_tables(where)[n][0]
                       if e[2] == "task.refused" and "campaign was stopped" in e[7]]
         assert sent_again, "the steps the stop cancelled are sent again"
+        from twin.campaign.journal import read_inputs
+
+        stopped_at = next(t for t, b in read_inputs(where / "lab.inputs") if ["stop", "interrupted (SIGINT)"] in
+                          b.get("items", []))
+        resumed_at = min(e[1] for e in journal_tables(where)["dots"][0] if e[2] == "campaign.resumed")
+        assert resumed_at >= stopped_at, "lab time went on to the stop; the resumed lab starts there"
     assert_one_step_at_a_time(where)
 
 

@@ -50,10 +50,11 @@ def rebuild_lab(lab: Scenario, scenarios: dict[str, Scenario], batches: list[tup
         raise ReplayError("the lab's inputs do not begin with its start: run the lab again (twin run)")
     secrets = {n: bytes.fromhex(h) for n, h in (batches[0][1].get("secrets") or {}).items()}
     out = RebuiltLab(SharedLab(lab, scenarios, secrets, serving), 0.0, dict(scenarios))
-    batches, out.stopped = unstopped(batches, "items", _lab_stop)
+    batches, out.stopped, stopped_at = unstopped(batches, "items", _lab_stop)
     journals = {name: journal_for(name, s) for name, s in scenarios.items()}
     replay_batches(batches, lambda now, batch: _replay(out, journals, journal_for, now, batch), "lab input batch",
                    "the lab")
+    out.now = max(out.now, stopped_at)  # lab time went on to the stop: the resumed clock starts there
     return out
 
 

@@ -120,8 +120,9 @@ def rebuild(s: Scenario, batches: list[tuple[float, dict[str, Any]]], campaign_i
     """Feed a recorded campaign's inputs to a new core, batch by batch; its actions are not performed again.
     ``secret``: the one the campaign's attempt tokens came from (journalled as ``attempt_secret``)."""
     out = Rebuilt(CampaignCore(s, campaign_id, secret), 0.0)
-    batches, out.stopped = unstopped(batches)
+    batches, out.stopped, stopped_at = unstopped(batches)
     replay_batches(batches, lambda now, batch: _replay(out, now, batch), "input batch", "the campaign")
+    out.now = max(out.now, stopped_at)  # lab time went on to the stop: the resumed clock starts there
     return out
 
 
@@ -130,15 +131,16 @@ RESUMED = "resumed"
 
 
 def unstopped(batches: list[tuple[float, Any]], items: str = "events",
-              stop: Callable[[Any], str] | None = None) -> tuple[list[tuple[float, Any]], str]:
+              stop: Callable[[Any], str] | None = None) -> tuple[list[tuple[float, Any]], str, float]:
     """The inputs without the stops ``twin resume`` undid: from a stop from outside (a signal's, an operator's) to
     the ``RESUMED`` batch after it, or to the end, nothing is replayed (the cancels the stop sent and what came
     back are moot: the resumed campaign asks its devices again). Also: the last stop left out with no resume after
-    it ("" if none), whose steps in the lab were cancelled. ``items``: the key of a batch's inputs; ``stop``: why
-    an input stopped the run from outside, or "" (a campaign's own, by default; a lab's are ``lab_replay``'s)."""
+    it ("" if none), whose steps in the lab were cancelled, and its lab time (0.0 if none). ``items``: the key of a
+    batch's inputs; ``stop``: why an input stopped the run from outside, or "" (a campaign's own, by default; a
+    lab's are ``lab_replay``'s)."""
     stop = stop or _stop_of
     out: list[tuple[float, Any]] = []
-    stopped = ""
+    stopped, stopped_at = "", 0.0
     for now, batch in batches:
         if stopped:
             if isinstance(batch, dict) and RESUMED in batch:
@@ -152,10 +154,10 @@ def unstopped(batches: list[tuple[float, Any]], items: str = "events",
             if not (isinstance(batch, dict) and RESUMED in batch):
                 out.append((now, batch))
             continue
-        stopped = why
+        stopped, stopped_at = why, now
         if at:
             out.append((now, {**batch, items: inputs[:at]}))
-    return out, stopped
+    return out, stopped, stopped_at if stopped else 0.0
 
 
 def _stop_of(item: Any) -> str:

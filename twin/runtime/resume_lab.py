@@ -159,9 +159,6 @@ def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], han
 
     try:
         rebuilt = rebuild_lab(s, campaign_scenarios(s, s.name), batches, journal_for, serving)
-        if rebuilt.shared.finished:  # its campaigns ended on their own, or their operators stopped each
-            raise ResumeError(f"{where}: every campaign of the lab had ended (finished, or stopped by its operator: "
-                              f"twin ctl stop --campaign is not undone); nothing to resume (twin report {where})")
         for name, prefix in prefixes.items():
             done = checked[name].checked if name in checked else 0
             if done < len(prefix):
