@@ -211,3 +211,26 @@ def test_ctrl_c_ends_a_proposal_that_holds_the_lab(tmp_path, runtime, monkeypatc
     assert not RELEASE.is_set()
     assert summary.stopped == "interrupted (SIGINT)"
     assert summary.proposed == 1 and summary.done + summary.abandoned + summary.pending == 1  # the second never came
+
+
+class InterruptedWhileProposing(HoldsTheLabProposing):
+    """A planner whose second proposal is a short computation (a GP fit) during which Ctrl-C comes."""
+
+    def propose(self, n, history, pending):
+        if self.n == 1:
+            os.kill(os.getpid(), signal.SIGINT)  # the handler runs here, inside the call
+        self.n += 1
+        return [Proposal({k: self.rng.uniform(p.low, p.high) for k, p in self.box.items()}) for _ in range(n)]
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+def test_ctrl_c_during_a_short_call_lets_it_finish_and_stops_the_lab_after(tmp_path, runtime, caplog):
+    """Ctrl-C ends only a call that has held the lab for a while (held.INTERRUPT_AFTER_S): one that landed in a GP
+    fit of a few ms had the planner declared failed ("raised Interrupted ... held the lab for 0 s")."""
+    lab = qd_lab(**{"devices.spectrometer.instances": 1, "campaign.budget": 4, "campaign.max_in_flight": 1,
+                    "campaign.planner": "tests.twin.test_held_lab:InterruptedWhileProposing"})
+    summary = run(parse(lab), journal=tmp_path / "j.db", runtime=runtime)
+    assert summary.stopped == "interrupted (SIGINT)" and summary.resumable
+    events = read_events(tmp_path / "j.db")
+    assert not [e for e in events if e["kind"] == "planner.failed" or "Interrupted" in (e["detail"] or "")]
+    assert "Interrupted" not in caplog.text  # not "planner raised Interrupted: proposes nothing more"

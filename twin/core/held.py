@@ -21,6 +21,9 @@ from twin.core.errors import Interrupted
 
 log = logging.getLogger(__name__)
 HELD_S = 30.0  # wall seconds a call may hold its thread before the log says so while it still does
+#: wall seconds a call must have held its thread for a signal to end it: a shorter one (a GP fit, a stretch of a
+#: driver's step) is let finish, and the stop runs when it returns
+INTERRUPT_AFTER_S = 1.0
 _TWIN = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # a frame in here is the lab's, not the plugin's
 _STDLIB = os.path.dirname(os.__file__)
 
@@ -55,9 +58,10 @@ def released() -> None:
 
 
 def interrupt_held(why: str) -> None:
-    """Called by a signal handler: if a call holds this thread, end it with ``Interrupted``."""
+    """Called by a signal handler: if a call has held this thread for ``INTERRUPT_AFTER_S`` (or ``HELD_S``, if
+    shorter), end it with ``Interrupted``."""
     now = _held.get(threading.get_ident())
-    if now is not None:
+    if now is not None and time.perf_counter() - now[1] >= min(INTERRUPT_AFTER_S, HELD_S):
         raise Interrupted(f"{why} while {now[0].who} held the lab for {time.perf_counter() - now[1]:.0f} s of wall "
                           "time")
 
