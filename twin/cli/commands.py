@@ -125,7 +125,7 @@ def run(
 @app.command()
 def resume(
     journal: Annotated[Path, typer.Argument(help="the journal of a killed or interrupted run, runs/<run>.db (or "
-                                                 "the directory of a killed lab's journals, "
+                                                 "the directory of a lab's journals, "
                                                  "runs/<lab>-seed<N>-<time>/)")],
     save: SaveOpt = None,
     viewer: ViewerOpt = False,
