@@ -7,12 +7,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from devices.spectrometer import Spectrometer
 from tests.conftest import qd_lab
 from tests.twin.test_core import QD, msg, notes
 from tests.twin.test_operator import op, running
 from twin.campaign import Decided, Operator, Proposed
 from twin.campaign.decisions import Assignment, Proposal
 from twin.campaign.journal import read_events
+from twin import Refused
 from twin.core.errors import ScenarioError
 from twin.core.messages import Kind
 from twin.runtime.lab import run
@@ -76,6 +78,9 @@ def test_levels_never_go_negative_and_every_depletion_pauses_its_work_once(tmp_p
             out_since[item] = e["t_lab"]
             if "@" not in item or all(depleted[k] for k in full if "@" in k):
                 starved.add(e["task"])
+        elif e["kind"] == "consumable.returned":  # a step refused: it never ran
+            level[d["item"]] = min(full[d["item"]], level[d["item"]] + d["amount"])
+            assert abs(d["level"] - level[d["item"]]) < 1e-5
         elif e["kind"] == "consumable.refilled":
             item = d["item"]
             level[item] = full[item] if d["amount"] is None else level[item] + d["amount"]
@@ -113,6 +118,58 @@ def test_a_short_step_waits_for_the_operators_refill_and_the_lab_goes_on(scenari
     assert notes(out, "consumable.refilled")[0].detail == {"item": "vials", "amount": 5, "level": 5.0,
                                                            "unit": "vials", "who": "alice"}
     assert "e1s1" in core.ready and not core.starved and not core.stocks.items["vials"].depleted
+
+
+@pytest.mark.parametrize("began", [False, True])
+def test_a_step_refused_gives_back_what_its_dispatch_took_unless_it_had_begun(scenario_of, began):
+    core = running(scenario_of, **{"consumables": stocked(100, 3), "campaign.budget": 2})
+    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0}))
+    core.advance(60.0)
+    core.feed(Decided([Assignment("e0s1", "spectrometer-1")]))
+    core.advance(60.0)
+    vials = core.stocks.items["vials"]
+    assert (vials.level, vials.used) == (2, 1)
+    core.feed(msg(Kind.REJECTED, "spectrometer-1", "e0s1", 1, reason="warming up", infeasible=False,
+                  **({"began": True} if began else {})))
+    out = core.advance(70.0)
+    assert notes(out, "task.refused")  # sent again later, as any "not now"
+    if began:  # a step a stop cancelled, sent again at the resume: it had used its vial
+        assert not notes(out, "consumable.returned") and (vials.level, vials.used) == (2, 1)
+    else:
+        (back,) = notes(out, "consumable.returned")
+        assert back.detail == {"item": "vials", "amount": 1, "level": 3.0, "unit": "vials"} and back.task == "e0s1"
+        assert (vials.level, vials.used) == (3, 0)
+
+
+class Warming(Spectrometer):
+    """A spectrometer that answers "not now" (warming up) to its first three steps."""
+
+    refusals = 0
+
+    async def run(self, step, params, sample, ctx):
+        if Warming.refusals < 3:
+            Warming.refusals += 1
+            raise Refused("warming up", infeasible=False)
+        return await super().run(step, params, sample, ctx)
+
+
+@pytest.mark.parametrize("runtime", ["fast", "asyncio"])
+def test_a_device_answering_not_now_uses_up_no_vials(tmp_path, runtime):
+    """Three "not now" answers had taken three vials for measurements that never ran: 8 used for 5 done."""
+    s = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_consumables:Warming",
+                        "devices.spectrometer.instances": 1, "campaign.budget": 5,
+                        "consumables": {"vials": {"unit": "vials", "level": 10, "used_by": {"measure": 1}}}}))
+    Warming.refusals = 0
+    summary = run(s, journal=tmp_path / "j.db", runtime=runtime)
+    assert summary.done == 5 and summary.refused_now == 3
+    assert summary.consumables["vials"]["used"] == 5 and summary.consumables["vials"]["left"] == 5
+    from twin.campaign.journal import read_run
+    from twin.tools.export import consumable_rows
+
+    db = tmp_path / "j.db"
+    rows = [r for r in consumable_rows(read_run(db), read_events(db)) if r["why"] != "start"]
+    assert sum(r["change"] for r in rows) == -5 and rows[-1]["level"] == 5  # twin export's table says the same
+    assert sum(r["why"].startswith("returned") for r in rows) == 3
 
 
 def no_more_experiments(core, out, t):

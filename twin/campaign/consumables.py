@@ -4,7 +4,8 @@ The scenario's ``consumables`` section gives each item a unit, a starting level,
 step type uses (a fixed amount plus amounts per experiment parameter); an item may be held by each instance of a
 device type (``device``: a stock per instance, ``ITEM@INSTANCE``, used by the steps that run on it; a step goes
 only to an instance with enough of its own). The core takes a step's amounts when it
-dispatches the step — never more than is left, so a level is never negative. A step that needs more than is left
+dispatches the step — never more than is left, so a level is never negative — and gives them back if its device
+refuses it (it never ran). A step that needs more than is left
 is not dispatched: it waits (``consumable.depleted``, once per item until it is refilled, and `twin ctl pending`
 lists it), the rest of the lab goes on, and ``twin ctl refill ITEM`` (or, in virtual time, the scenario's
 simulated refill) brings it back. Crossing the reorder point is a ``consumable.low`` note with the level and
@@ -18,7 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from twin.campaign.events import Status, TimerKey, TimerKind
-from twin.campaign.ledger import Task
+from twin.campaign.ledger import Attempt, Task
 
 EPS = 1e-9
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
@@ -138,6 +139,17 @@ class Stocks:
                 crossed.append(stock)
         return crossed
 
+    def give_back(self, needs: dict[str, float], device: str) -> list[Stock]:
+        """What ``take`` took for a step on ``device`` that never ran, back in stock (never above a full stock);
+        the reorder point's note is not said again for it."""
+        out = []
+        for item, n in needs.items():
+            stock = self.stock(item, device)
+            stock.level = min(stock.full, stock.level + n)
+            stock.used = max(0.0, stock.used - n)
+            out.append(stock)
+        return out
+
     def refill(self, name: str, amount_: float | None, now: float) -> list[Stock]:
         """Refill stock ``name``, or every instance's stock of item ``name``, at lab time ``now``."""
         out = []
@@ -178,6 +190,22 @@ def take(core: CampaignCore, task: Task, device: str) -> dict[str, Any]:
     stocks = {item: core.stocks.stock(item, device) for item in needs}
     return {"used": {stocks[k].name: n for k, n in needs.items()},
             "left": {st.name: round(st.level, 6) for st in stocks.values()}}
+
+
+def give_back(core: CampaignCore, att: Attempt) -> None:
+    """A step its device refused ("not now", or infeasible) never ran: what its dispatch took goes back
+    (``consumable.returned``), and the steps that waited for it are looked at again. A device answering "not now"
+    while it warmed up had used up the campaign's vials with its answers. A refusal that says the step had begun
+    (``began``: a step a stop cancelled, sent again when the campaign resumes) keeps what it used."""
+    needs = core._needs(att.task)
+    if not needs:
+        return
+    for stock, n in zip(core.stocks.give_back(needs, att.device), needs.values()):
+        core._note("consumable.returned", att.task.experiment.id, att.task.id, att.n, att.device,
+                   detail={"item": stock.name, "amount": round(n, 6), "level": round(stock.level, 6),
+                           "unit": stock.unit})
+    if core.starved:
+        requeue(core)
 
 
 def starve(core: CampaignCore, task: Task, short: list[str]) -> None:

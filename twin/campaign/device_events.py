@@ -44,8 +44,9 @@ def message(core: CampaignCore, m: DeviceMessage) -> None:
     elif m.kind == Kind.FAULT:
         outcomes.resolve(core, att, m.body.get("code", Code.FAILED), {"reason": m.body.get("reason", "")})
     elif m.kind == Kind.REJECTED:
+        began = {"began": True} if m.body.get("began") else {}
         outcomes.resolve(core, att, Code.REJECTED, {"reason": m.body.get("reason", ""),
-                                           "infeasible": bool(m.body.get("infeasible", False))})
+                                           "infeasible": bool(m.body.get("infeasible", False)), **began})
 
 
 def _reject(core: CampaignCore, m: DeviceMessage, why: str) -> None:

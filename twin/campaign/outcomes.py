@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from twin.campaign import policy, questions, stuck
+from twin.campaign import consumables, policy, questions, stuck
 from twin.campaign.decisions import Outcome
 from twin.campaign.events import Code, RecordExperiment, Status, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt, Device, Experiment, Task
@@ -42,6 +42,8 @@ def resolve(core: CampaignCore, att: Attempt, code: str, body: dict[str, Any]) -
         dev.steps_done += 1
         advance(core, task, body)
     elif code == Code.REJECTED:
+        if core.stocks and not body.get("began"):  # a step refused never ran: it used nothing
+            consumables.give_back(core, att)
         refused(core, task, dev, body.get("reason", ""), bool(body.get("infeasible")))
     else:
         failed(core, task, dev, str(code), body.get("reason", ""))

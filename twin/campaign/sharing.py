@@ -249,7 +249,7 @@ class SharedLab:
                 self._asks[name] = a  # the lab's scheduler answers it, with the other campaigns' steps in view
                 continue
             self._out.append((name, a))
-            refilled = refilled or getattr(a, "kind", None) == "consumable.refilled"
+            refilled = refilled or getattr(a, "kind", None) in ("consumable.refilled", "consumable.returned")
         if refilled:
             for other in self.started:
                 if other != name and self.cores[other].starved:

@@ -55,6 +55,7 @@ class AcceptedBody(_Body):
 class RejectedBody(_Body):
     reason: str
     infeasible: bool = False  # never with these parameters (else: only now)
+    began: bool = False  # the step had begun: what it used stays used (else: it is given back)
 
 
 class ProgressBody(_Body):

@@ -287,7 +287,7 @@ class LiveCampaign:
                 return
         if stopped:
             kind, body = Kind.REJECTED, {"reason": f"cancelled when the campaign was stopped ({stopped}); sent "
-                                                   "again now it is resumed"}
+                                                   "again now it is resumed", "began": True}
         else:
             kind, body = Kind.FAULT, {"code": "device_lost",
                                       "reason": f"{device} was not running {task}#{attempt} when the campaign resumed"}

@@ -137,7 +137,8 @@ def consumable_rows(run: dict[str, Any], events: list[dict[str, Any]]) -> list[d
              "why": "start", "task": None, "who": None}
             for name, c in stocks.items() for stock in _stocks_of(name, c, scenario.get("devices") or {})]
     for e in events:
-        d = _json(e["detail"]) if e["kind"] in ("attempt.dispatched", "consumable.refilled") else None
+        d = _json(e["detail"]) if e["kind"] in ("attempt.dispatched", "consumable.refilled",
+                                                 "consumable.returned") else None
         if e["kind"] == "attempt.dispatched" and isinstance(d, dict):
             for item, used in (d.get("used") or {}).items():
                 unit = stocks.get(item.split("@")[0], {}).get("unit", "")
@@ -147,6 +148,10 @@ def consumable_rows(run: dict[str, Any], events: list[dict[str, Any]]) -> list[d
         elif e["kind"] == "consumable.refilled" and isinstance(d, dict):
             rows.append({"t_lab_s": e["t_lab"], "item": d["item"], "unit": d.get("unit", ""), "level": d["level"],
                          "change": d["amount"], "why": "refilled", "task": None, "who": d.get("who")})
+        elif e["kind"] == "consumable.returned" and isinstance(d, dict):
+            rows.append({"t_lab_s": e["t_lab"], "item": d["item"], "unit": d.get("unit", ""), "level": d["level"],
+                         "change": d["amount"], "why": "returned (refused before it began)", "task": e["task"],
+                         "who": e["device"]})
     return rows
 
 

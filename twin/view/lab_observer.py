@@ -21,7 +21,7 @@ from twin.view.observer import Canvas, LabObserver, drawable
 #: The decisions that change what a device is doing, whichever campaign notes them.
 DEVICE_KINDS = frozenset({"attempt.dispatched", "attempt.done", "attempt.failed", "attempt.cancelled",
                           "device.quarantined", "device.probe", "device.online", "device.lost",
-                          "consumable.refilled"})
+                          "consumable.refilled", "consumable.returned"})
 
 
 class PrefixedCanvas:

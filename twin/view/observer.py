@@ -283,6 +283,8 @@ class LabObserver:
     def _consumable_refilled(self, t: float, n: Note, info: dict) -> None:
         self.c.scalar(_stock_path(info["item"]), t, float(info["level"]))
 
+    _consumable_returned = _consumable_refilled
+
     def _attempt_dispatched(self, t: float, n: Note, info: Any) -> None:
         if self._route is not None:
             self._route.running(t, n.experiment, n.device)
