@@ -105,7 +105,7 @@ def decode_input(data: list[Any]) -> Any:
 @dataclass
 class Rebuilt:
     core: CampaignCore
-    now: float  # the lab time of the last input
+    now: float  # the lab time of the last input (of the stop left out, if later)
     timers: dict[TimerKey, float] = field(default_factory=dict)  # pending timers: due lab time
     asked: Ask | None = None  # a question the core still waits on
     stopped: str = ""  # the stop the run ended with, left out (``unstopped``): its steps in the lab were cancelled

@@ -245,9 +245,10 @@ class LiveCampaign:
             if self._done is not None and not self._done.done():
                 self._done.set_exception(exc)
 
-    # -- taking over a killed campaign --------------------------------------------------
+    # -- taking over a killed or stopped campaign ---------------------------------------
     async def _take_over(self, rebuilt: Rebuilt) -> None:
-        """Re-arm what the dead process left pending, then find out what became of the steps it had in the lab."""
+        """Re-arm what the dead (or stopped) process left pending, then find out what became of the steps it had
+        in the lab."""
         if rebuilt.stopped:  # the stop is undone: a later rebuild skips it and what followed (replay.unstopped)
             self.journal.inputs(self.clock.now(), {RESUMED: rebuilt.stopped})
             self.journal.unset("summary")
