@@ -258,3 +258,22 @@ def test_a_rebuild_leaves_out_each_stop_that_was_resumed_and_the_last_one():
     assert (stopped, at) == ("stopped by carol: lunch", 5.0)  # the last stop, not yet resumed: its steps cancelled
     kept, stopped, at = unstopped(batches[:4] + [(4.0, {"events": [msg, ["stop", "nothing left", False]]})])
     assert (stopped, at) == ("", 0.0) and kept[-1] == (4.0, {"events": [msg, ["stop", "nothing left", False]]})
+
+
+@pytest.mark.parametrize("report", [[1, 2], "x", None, {"recent": 5}, {"recent": [[1]]}, {"recent": [["e0s1", 1, 7]]},
+                                    {"running": "yes", "recent": [None, "e0s1"]}, {"recent": {"e0s1": 1}}])
+def test_a_health_report_of_another_shape_says_nothing_of_the_step(report):
+    """A device that is not ours may answer `health` with anything: the resume had unpacked it blindly."""
+    from twin.runtime.live import reported
+
+    assert reported(report, "e0s1", 1) == (False, None)
+
+
+def test_a_health_report_says_the_step_runs_or_how_it_ended():
+    from twin.runtime.live import reported
+
+    done, cancelled = '{"kind": "result"}', '{"kind": "fault", "body": {"code": "cancelled"}}'
+    assert reported({"running": ["e0s1", 1]}, "e0s1", 1) == (True, None)
+    assert reported({"recent": [["e0s0", 1, "x"], ["e0s1", 1, done]]}, "e0s1", 1) == (False, done)
+    assert reported({"recent": [["e0s1", 1, cancelled]]}, "e0s1", 1) == (False, cancelled)  # killed: taken
+    assert reported({"recent": [["e0s1", 1, cancelled]]}, "e0s1", 1, "interrupted (SIGINT)") == (False, None)

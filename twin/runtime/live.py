@@ -71,6 +71,22 @@ def ask_scheduler(scheduler: Any, ask: Ask, answer: Callable[[Decided, bool], No
     return pending
 
 
+def reported(report: Any, task: str, attempt: int, stopped: str = "") -> tuple[bool, str | None]:
+    """What a device's health report says of attempt ``task#attempt``: whether it still runs it, and the message it
+    ended it with (its JSON text, to take), if it has one; a step a stop (``stopped``) cancelled ended with nothing to
+    take. A report of another shape (a device that is not ours) says nothing of it."""
+    if not isinstance(report, dict):
+        return False, None
+    if report.get("running") == [task, attempt]:
+        return True, None
+    recent = report.get("recent")
+    for entry in recent if isinstance(recent, list) else ():
+        if (isinstance(entry, list) and len(entry) == 3 and entry[:2] == [task, attempt] and isinstance(entry[2], str)
+                and not (stopped and _cancelled(entry[2]))):
+            return False, entry[2]
+    return False, None
+
+
 def _cancelled(payload: str) -> bool:
     """A device's answer that it cancelled its step (the stop's cancel): not a result to adopt."""
     try:
@@ -280,12 +296,12 @@ class LiveCampaign:
             log.warning("resume: %s does not answer (%s); its step %s#%d is lost", device, exc, task, attempt)
             self._give(Presence(device, False))
             return
-        if report.get("running") == [task, attempt]:
+        running, payload = reported(report, task, attempt, stopped)
+        if running:
             return  # still at it: its result will come, or its re-armed deadline will pass
-        for t, n, payload in report.get("recent") or []:
-            if (t, n) == (task, attempt) and not (stopped and _cancelled(payload)):
-                self._on_event(keys.evt(self.s.lab, device), payload.encode())
-                return
+        if payload is not None:
+            self._on_event(keys.evt(self.s.lab, device), payload.encode())
+            return
         if stopped:
             kind, body = Kind.REJECTED, {"reason": f"cancelled when the campaign was stopped ({stopped}); sent "
                                                    "again now it is resumed", "began": True}
