@@ -183,7 +183,7 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         targets_met_after=dict(core.met_after), targets_met_cost=dict(core.met_cost),
         stopped=core.stopping or (f"the planner failed ({core.planner_failed}); the experiments it had proposed "
                                   "were run to their end" if core.planner_failed else ""),
-        resumable=bool(core.stopping) and core.resumable,
+        resumable=core.resumable,
         cost=core.cost, hours_cost=core.hours_cost, wall_s=wall_s, events=events,
         decisions=len(core.decision_wall_s), decision_ms=_percentiles(core.decision_wall_s),
         degraded_before=dict(Counter(e.degraded_before for e in exps if e.degraded and e.status == "done")),

@@ -277,7 +277,7 @@ class LiveCampaign:
         # device that no longer runs it, is lost and retried at once, rather than timed out and cancelled (a cancel
         # nobody answers holds the device for orchestrator.cancel_grace_s)
         for dev in list(self.core.devices.values()):
-            if dev.attempt is not None and dev.name not in self.core.people:  # people: still theirs to confirm
+            if dev.attempt is not None:
                 await self._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n, rebuilt.stopped)
         for key, due in rebuilt.timers.items():
             rearm(self.clock, self._timers, key, due, self._on_timer)
@@ -288,7 +288,10 @@ class LiveCampaign:
     async def _ask_about(self, device: str, task: str, attempt: int, stopped: str = "") -> None:
         """An attempt in the lab when the campaign died: still running, finished (its result is taken), or lost.
         ``stopped``: the stop the campaign ended with, which cancelled it: unless it finished first, it is sent
-        again as after a "not now" (no attempt used, no strike against the device)."""
+        again as after a "not now" (no attempt used, no strike against the device). People are not asked: they
+        have no health key, and their step still waits for its confirmation."""
+        if device in self.core.people:
+            return
         wait = 5.0 * (1.0 if self.clock.is_virtual else self.clock.speed)
         try:
             report = json.loads(await self.bus.request(keys.health(self.s.lab, device), b"", wait))

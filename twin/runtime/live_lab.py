@@ -337,7 +337,7 @@ class LiveLab:
                 self.seats[name]._answer(ask)
         for seat in self.seats.values():
             for dev in list(seat.core.devices.values()):
-                if dev.attempt is not None and dev.name not in seat.core.people:  # people: theirs to confirm
+                if dev.attempt is not None:
                     await seat._ask_about(dev.name, dev.attempt.task.id, dev.attempt.n, rebuilt.stopped)
         for (name, key), due in rebuilt.timers.items():
             owner = self if name == LAB else self.seats[name]

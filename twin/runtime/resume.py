@@ -94,8 +94,16 @@ def recorded(path: str | Path) -> tuple[Scenario, list[tuple]]:
         raise ResumeError(f"{path}: the journal holds no scenario; it was killed before it began")
     prefix = [tuple(row.values()) for row in read_events(path)]  # in the table's column order; damage is named
     if summary is not None:  # a re-run goes on where the stop came
-        prefix = prefix[:next((i for i, row in enumerate(prefix) if row[2] == "campaign.stopping"), len(prefix))]
+        prefix = before_stop(prefix)
     return parse(data["scenario"], f"{path}: the journal's scenario"), prefix
+
+
+def before_stop(prefix: list[tuple]) -> list[tuple]:
+    """A stopped campaign's journalled events up to its stop: those a re-run must make again. A campaign of a lab
+    stops there too, or where it was said never to have started, or at its summary (one that had finished is summed
+    up when the lab ends, at the stop)."""
+    ends = ("campaign.stopping", "campaign.not_started", "campaign.summary")
+    return prefix[:next((i for i, row in enumerate(prefix) if row[2] in ends), len(prefix))]
 
 
 def interrupted(path: str | Path) -> dict[str, Any]:

@@ -22,7 +22,7 @@ from pathlib import Path
 from twin.campaign.journal import Journal, read_events, read_inputs, read_run
 from twin.campaign.lab_replay import rebuild_lab
 from twin.campaign.summary import LabSummary
-from twin.runtime.resume import CheckedJournal, ResumeError, replace
+from twin.runtime.resume import CheckedJournal, ResumeError, before_stop, replace
 from twin.scenario import Scenario, parse
 from twin.scenario.sharing import campaign_scenarios
 from twin.view.lab_observer import SharedLabObserver
@@ -73,15 +73,8 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
             raise ResumeError(f"{where / (name + '.db')}: the campaign's scenario differs from what its lab file "
                               "makes of it now (the code changed since the run); run the lab again instead (twin run)")
     if resumable:  # a re-run goes on where the stop came
-        prefixes = {name: _before_stop(prefix) for name, prefix in prefixes.items()}
+        prefixes = {name: before_stop(prefix) for name, prefix in prefixes.items()}
     return s, prefixes
-
-
-def _before_stop(prefix: list[tuple]) -> list[tuple]:
-    """A stopped lab's campaign's events up to its stop, or to where it was said never to have started, or to its
-    summary (a campaign that had finished is summed up when the lab ends, at the stop)."""
-    ends = ("campaign.stopping", "campaign.not_started", "campaign.summary")
-    return prefix[:next((i for i, row in enumerate(prefix) if row[2] in ends), len(prefix))]
 
 
 def resume_lab(path: str | Path, handle_signals: bool = True, observer: SharedLabObserver | None = None,
