@@ -335,3 +335,4 @@ def test_a_stock_that_runs_out_is_said_on_the_log_with_the_refill_to_make(tmp_pa
     said = [r.getMessage() for r in caplog.records if r.name == "twin.alerts"]
     assert len(said) == len(read_events(tmp_path / "j.db", "consumable.depleted")) > 0
     assert said[0].startswith("vials is out (0 vials left, 1 needed by e") and "`twin ctl refill vials`" in said[0]
+    assert "another instance" not in said[0]  # the lab's one stock: no instance has its own

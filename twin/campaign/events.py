@@ -241,9 +241,10 @@ def alert_text(n: Note) -> str:
     """An alert's line in the log: what, on which device or experiment, and the detail."""
     if n.kind == "consumable.depleted" and isinstance(n.detail, dict):  # on a live clock, a person must refill it
         d = n.detail
+        elsewhere = "go to another instance that has some, or " if "@" in str(d.get("item")) else ""  # its own stock
         return (f"{d.get('item')} is out ({d.get('level', 0):g} {d.get('unit', '')} left, {d.get('needed', 0):g} needed "
-                f"by {n.task}): its steps go to another instance that has some, or wait for `twin ctl refill "
-                f"{d.get('item')}` (in virtual time, its simulate_refill)")
+                f"by {n.task}): its steps {elsewhere}wait for `twin ctl refill {d.get('item')}` (in virtual time, its "
+                "simulate_refill)")
     where = f" {n.device}" if n.device else f" (experiment {n.experiment})" if n.experiment is not None else ""
     return f"{n.kind}{where}: {_alert_words(n)}"
 
