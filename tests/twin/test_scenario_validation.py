@@ -91,6 +91,16 @@ def test_a_number_written_with_an_exponent_is_a_number_in_a_file_in_set_and_in_v
         ("devices.spectrometer.duration.mean_s", [1000.0, 1500.0, -0.2, "1e"])]
 
 
+def test_a_single_value_where_a_list_goes_is_shown_as_the_list_to_write():
+    """`--set bus.listen=tcp/127.0.0.1:7500` said only "Input should be a valid list", not how to write one there."""
+    bad = twin_cli("validate", ROOT / "scenarios" / "quantum_dots.yaml", "--set", "bus.listen=tcp/127.0.0.1:7500")
+    said = " ".join(bad.output.split())
+    assert bad.exit_code == 2 and "bus.listen: Input should be a valid list (got 'tcp/127.0.0.1:7500'): write a " \
+        "list, [tcp/127.0.0.1:7500] (quoted on a command line: --set 'bus.listen=[tcp/127.0.0.1:7500]')" in said, said
+    fixed = twin_cli("validate", ROOT / "scenarios" / "quantum_dots.yaml", "--set", "bus.listen=[tcp/127.0.0.1:7500]")
+    assert fixed.exit_code == 0, fixed.output
+
+
 def test_every_problem_is_reported_not_just_the_first(tmp_path):
     path = write(tmp_path, qd_lab(**{"campaign.budget": -1, "campaign.seed": "x", "clock.speed": 0}))
     with pytest.raises(ScenarioError) as info:

@@ -268,6 +268,8 @@ def describe(err: Any, raw: dict[str, Any], root: Any = None) -> str:
         return msg
     if err["type"] == "int_type" and isinstance(value, float) and value.is_integer() and abs(value) < 1e18:
         shown += f": write it as a whole number, {int(value)}"  # 1e2 or 100.0 where a count goes
+    if err["type"] == "list_type" and isinstance(value, (str, int, float)):  # `--set bus.listen=tcp/…:7447`
+        shown += f": write a list, [{value}] (quoted on a command line: --set '{loc}=[{value}]')"
     return f"{loc}: {msg}{shown}"
 
 
