@@ -122,23 +122,24 @@ def test_a_short_step_waits_for_the_operators_refill_and_the_lab_goes_on(scenari
 
 @pytest.mark.parametrize("began", [False, True])
 def test_a_step_refused_gives_back_what_its_dispatch_took_unless_it_had_begun(scenario_of, began):
-    core = running(scenario_of, **{"consumables": stocked(100, 3), "campaign.budget": 2})
+    core = running(scenario_of, **{"consumables": stocked(100, 3), "campaign.budget": 2,
+                                   "devices.spectrometer.cost": 5})
     core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0}))
     core.advance(60.0)
     core.feed(Decided([Assignment("e0s1", "spectrometer-1")]))
     core.advance(60.0)
     vials = core.stocks.items["vials"]
-    assert (vials.level, vials.used) == (2, 1)
+    assert (vials.level, vials.used) == (2, 1) and core.cost == 5
     core.feed(msg(Kind.REJECTED, "spectrometer-1", "e0s1", 1, reason="warming up", infeasible=False,
                   **({"began": True} if began else {})))
     out = core.advance(70.0)
     assert notes(out, "task.refused")  # sent again later, as any "not now"
     if began:  # a step a stop cancelled, sent again at the resume: it had used its vial
-        assert not notes(out, "consumable.returned") and (vials.level, vials.used) == (2, 1)
+        assert not notes(out, "consumable.returned") and (vials.level, vials.used) == (2, 1) and core.cost == 5
     else:
         (back,) = notes(out, "consumable.returned")
         assert back.detail == {"item": "vials", "amount": 1, "level": 3.0, "unit": "vials"} and back.task == "e0s1"
-        assert (vials.level, vials.used) == (3, 0)
+        assert (vials.level, vials.used) == (3, 0) and core.cost == 0  # nor did it cost the spectrometer's time
 
 
 class Warming(Spectrometer):
@@ -154,14 +155,15 @@ class Warming(Spectrometer):
 
 
 @pytest.mark.parametrize("runtime", ["fast", "asyncio"])
-def test_a_device_answering_not_now_uses_up_no_vials(tmp_path, runtime):
-    """Three "not now" answers had taken three vials for measurements that never ran: 8 used for 5 done."""
+def test_a_device_answering_not_now_uses_up_no_vials_and_costs_nothing(tmp_path, runtime):
+    """Three "not now" answers had taken three vials for measurements that never ran: 8 used for 5 done; and each
+    was charged the spectrometer's cost per attempt."""
     s = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_consumables:Warming",
-                        "devices.spectrometer.instances": 1, "campaign.budget": 5,
+                        "devices.spectrometer.instances": 1, "campaign.budget": 5, "devices.spectrometer.cost": 7,
                         "consumables": {"vials": {"unit": "vials", "level": 10, "used_by": {"measure": 1}}}}))
     Warming.refusals = 0
     summary = run(s, journal=tmp_path / "j.db", runtime=runtime)
-    assert summary.done == 5 and summary.refused_now == 3
+    assert summary.done == 5 and summary.refused_now == 3 and summary.cost == 5 * 7
     assert summary.consumables["vials"]["used"] == 5 and summary.consumables["vials"]["left"] == 5
     from twin.campaign.journal import read_run
     from twin.tools.export import consumable_rows

@@ -42,8 +42,10 @@ def resolve(core: CampaignCore, att: Attempt, code: str, body: dict[str, Any]) -
         dev.steps_done += 1
         advance(core, task, body)
     elif code == Code.REJECTED:
-        if core.stocks and not body.get("began"):  # a step refused never ran: it used nothing
-            consumables.give_back(core, att)
+        if not body.get("began"):  # a step refused never ran: it used nothing, and costs nothing
+            core.spent -= core.s.devices[dev.type].cost
+            if core.stocks:
+                consumables.give_back(core, att)
         refused(core, task, dev, body.get("reason", ""), bool(body.get("infeasible")))
     else:
         failed(core, task, dev, str(code), body.get("reason", ""))

@@ -73,8 +73,8 @@ class DeviceType(Spec):
                            "includes it")
     faults: Faults = Field(default=Faults(), description="simulated faults, injected by the twin around the "
                            "driver for rehearsing failures")
-    cost: float = Field(default=0, ge=0, le=MAX_VALUE, description="charged for every attempt dispatched to "
-                        "this device type")
+    cost: float = Field(default=0, ge=0, le=MAX_VALUE, description="charged for every attempt this device type "
+                        "runs (a step it refuses, \"not now\" or infeasible, never ran and costs nothing)")
     cost_per_hour: float = Field(default=0, ge=0, le=MAX_VALUE, description="charged for each instance of this "
                                  "type for every lab-hour the campaign runs, busy or not (its rent, upkeep, an "
                                  "operator's time): `twin whatif` then weighs more instances against the hours "
