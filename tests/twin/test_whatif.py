@@ -75,6 +75,8 @@ def test_the_table_fits_80_columns_and_names_the_busiest_device():
     (["--vary", "devices.reactor.instances=3,3.0"], "3.0 is given twice"),
     (["--vary", "devices.reactor.instances=3", "--budget-hours", "-1"], "--budget-hours -1: give the lab-hours"),
     (["--vary", "devices.reactor.instances=3", "--budget-hours", "nan"], "--budget-hours nan: give the lab-hours"),
+    (["--vary", "devices.reactor.instances=3", "--save", "w.jpg"], "--save w.jpg: give a Rerun recording, w.rrd, or a "
+     "picture, w.png (nothing has run)"),  # it wrote a recording named w.jpg
 ])
 def test_what_cannot_run_is_refused_before_anything_runs(args, says):
     code, out = whatif(FLAKY, *args)
@@ -429,3 +431,39 @@ def test_a_driver_the_fast_runtime_cannot_run_is_said_once_by_the_command_not_by
         assert done.returncode == 0, done.stderr
         assert done.stderr.count("awaited an asyncio future") == 1, done.stderr
         assert "on the asyncio runtime" in done.stderr and "*: the scenario as written" in done.stdout
+
+
+def test_a_picture_of_the_trade_offs_draws_each_variants_numbers(tmp_path):
+    """`--save whatif.png` wrote a Rerun recording under the picture's name ("wrote whatif.png")."""
+    from PIL import Image
+
+    from twin.view.whatif_picture import bars_box, legend, utilisation_bars
+
+    code, out = whatif(FLAKY, "--vary", "devices.reactor.instances=1,3", "--set", "campaign.budget=12",
+                       "--set", "devices.reactor.cost=40", "--seeds", "2", "--json", "--save", str(tmp_path / "w.png"))
+    assert code == 0, out
+    summary = json.loads(out)["variants"]
+    picture = Image.open(tmp_path / "w.png")
+    assert picture.format == "PNG" and picture.width == 1200
+    bars = utilisation_bars(summary, bars_box(summary))
+    assert {(b.variant, b.device_type) for b in bars} == {(i, t) for i in range(3) for t in summary[0]["utilisation"]}
+    for bar in bars:  # each bar stands as tall as its utilisation, in its type's colour
+        use = summary[bar.variant]["utilisation"][bar.device_type]
+        box = bars_box(summary)
+        assert abs((bar.y1 - bar.y0) - use * (box[3] - box[1])) <= 1
+        if bar.y1 - bar.y0 > 2:
+            colour = "#%02X%02X%02X" % picture.getpixel(((bar.x0 + bar.x1) // 2, (bar.y0 + bar.y1) // 2))
+            assert colour == bar.colour
+    one, three = (next(r for r in summary if r["variant"] == f"devices.reactor.instances={n}") for n in (1, 3))
+    reactor = [b for b in bars if b.device_type == "reactor"]
+    assert reactor[summary.index(one)].y0 < reactor[summary.index(three)].y0  # one reactor is the busier
+    lines = legend(summary, costs=True, seconds=False)
+    assert lines[0].startswith("0: as written: lab-h ") and "cost " in lines[0] and "busiest reactor" in lines[0]
+
+
+def test_a_recording_is_saved_only_under_a_recordings_name(tmp_path):
+    """`twin run --save run.png` wrote a Rerun recording named as a picture."""
+    res = twin_cli("run", FLAKY, "--save", str(tmp_path / "run.png"), columns=80)
+    assert res.exit_code == 2 and f"this writes a Rerun recording, so name it {tmp_path / 'run.rrd'}" in \
+        " ".join(res.output.split()), res.output
+    assert not list(tmp_path.iterdir())

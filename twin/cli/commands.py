@@ -13,8 +13,8 @@ from rich.markup import escape
 from rich.text import Text
 
 from twin.cli.common import (_fail, app, assignments, bar_progress, check_lab_name, console, err, exit_if_interrupted,
-                             exit_status, keep_serving, machine_output, narrow_table, sigterm_unwinds, stopped_by,
-                             writable)
+                             exit_status, keep_serving, machine_output, narrow_table, recording_file, sigterm_unwinds,
+                             stopped_by, writable)
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
 from twin.cli.sharing import shared_lab
@@ -95,7 +95,7 @@ def run(
     if insecure:
         overrides["bus.insecure"] = True
     record = RecordOptions(save, viewer, serve, serve_port, web_port)
-    writable("--save", save)
+    recording_file("--save", save)
     try:
         s = lab.prepare(scenario, seed=seed, clock=clock, speed=speed, bus=bus, overrides=overrides)
     except TwinError as exc:
@@ -143,7 +143,7 @@ def resume(
     from twin.runtime.resume_lab import recorded_lab
 
     log_to_stderr(logging.WARNING)
-    writable("--save", save)
+    recording_file("--save", save)
     if journal.is_dir():  # the journals of a lab several campaigns share
         try:
             s = recorded_lab(journal)[0]
@@ -234,7 +234,7 @@ def watch(
                                              "after the watcher")] = 30.0,
 ) -> None:
     """Attach to a lab running in another process and record what it does."""
-    writable("--save", save)
+    recording_file("--save", save)
     if not (connect or listen):
         _fail(TwinError("give --connect ENDPOINT (where the lab listens: twin run --listen ...) or --listen ENDPOINT"))
     record = RecordOptions(save, viewer, serve)
@@ -283,7 +283,7 @@ def replay(
     serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,
 ) -> None:
     """Rebuild a run's Rerun recording from its journal alone."""
-    writable("--save", save)
+    recording_file("--save", save)
     if not (save or viewer or serve):
         _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
     # written whole or not at all: an interrupted replay leaves no recording that looks like the run's

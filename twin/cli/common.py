@@ -162,6 +162,15 @@ def writable(option: str, *paths: Path | None) -> None:
                             "on another disk (nothing has run)"))
 
 
+def recording_file(option: str, path: Path | None) -> None:
+    """Refuse, before any work, a Rerun recording to a file that cannot be written or is not named ``.rrd``:
+    ``--save run.png`` wrote a recording that any tool would take for a broken picture."""
+    writable(option, path)
+    if path is not None and path.suffix.lower() != ".rrd":
+        _fail(TwinError(f"{option} {path}: this writes a Rerun recording, so name it {path.with_suffix('.rrd')} "
+                        "(nothing has run)"))
+
+
 def _fail(exc: TwinError) -> None:
     err.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, markup=True)
     raise typer.Exit(2)

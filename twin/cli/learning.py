@@ -12,7 +12,7 @@ from twin.runtime import lab
 from twin.runtime.checks import checked
 from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
                              exit_status, machine_output, narrow_table, paired_assignments, print_table,
-                             say_ended_early, sigterm_unwinds, stopped_by, writable)
+                             recording_file, say_ended_early, sigterm_unwinds, stopped_by, writable)
 from twin.core.errors import TwinError
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.scenario import Scenario
@@ -42,7 +42,7 @@ def train(
     if out.is_dir():  # its name would get the suffix: --out runs saved runs.zip beside the directory
         _fail(TwinError(f"--out {out} is a directory: give the policy's file, e.g. {out / 'policy.zip'}"))
     writable("--out", out.with_suffix(".zip"), out.with_suffix(".json"))
-    writable("--save", save)
+    recording_file("--save", save)
     try:
         s = checked(lab.prepare(scenario, overrides=assignments(set_ or [])), scenario)
         trainer = plugins.load("trainers", agent)

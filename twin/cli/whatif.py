@@ -90,13 +90,17 @@ def whatif(
                                                                "lab-hours to them within this many")] = None,
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write a row per variant to this CSV file")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print every variant and run as JSON instead of the table")] = False,
-    save: Annotated[Optional[Path], typer.Option(help="draw the trade-offs into a Rerun recording, e.g. whatif.rrd")] = None,
+    save: Annotated[Optional[Path], typer.Option(help="draw the trade-offs into a Rerun recording, whatif.rrd, or a "
+                                                     "picture, whatif.png")] = None,
 ) -> None:
     """The scenario as written and each variant, over the same seeds: lab-hours and cost to target, abandoned
     experiments and degraded samples (where any), the busiest device type, and the change against the scenario as
     written; for a lab of several campaigns, each campaign's lab-hours from its start to its end too."""
     writable("--csv", csv_out)
     writable("--save", save)
+    if save is not None and save.suffix.lower() not in (".rrd", ".png"):
+        _fail(TwinError(f"--save {save}: give a Rerun recording, {save.with_suffix('.rrd')}, or a picture, "
+                        f"{save.with_suffix('.png')} (nothing has run)"))
     if budget_hours is not None and not 0 < budget_hours < math.inf:
         _fail(TwinError(f"--budget-hours {budget_hours:g}: give the lab-hours the targets must be met within, a "
                         "number above 0 (e.g. 5)"))
@@ -134,7 +138,11 @@ def whatif(
     best = cheapest_within(summary, budget_hours) if budget_hours is not None else None
     if csv_out is not None:
         _write_csv(csv_out, summary)
-    if save is not None:
+    if save is not None and save.suffix.lower() == ".png":
+        from twin.view.whatif_picture import save_whatif_png
+
+        save_whatif_png(save, s.name, summary, seeds, costs_anything(summary), in_seconds(summary), any_targets(s))
+    elif save is not None:
         from twin.view.recorder import save_whatif
 
         save_whatif(save, s.name, summary)
