@@ -141,20 +141,21 @@ def save_whatif_png(path: str | Path, scenario: str, summary: list[dict[str, Any
     y = MARGIN + PANEL_H + 10
     draw.text((MARGIN, y), ("a hollow point did not meet every target in every run; " if targets else "") +
               "numbers: medians [IQR]", fill="#444444", font=small)
-    for i, line in enumerate(legend(summary, costs, seconds)):
+    for i, line in enumerate(legend(summary, costs, seconds, targets)):
         draw.text((MARGIN, y + LINE_H * (i + 1)), line[:170], fill="black", font=small)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     image.save(path, format="PNG")
 
 
-def legend(summary: list[dict[str, Any]], costs: bool, seconds: bool) -> list[str]:
-    """A line per variant, as the picture's bottom says it."""
+def legend(summary: list[dict[str, Any]], costs: bool, seconds: bool, targets: bool = True) -> list[str]:
+    """A line per variant, as the picture's bottom says it (">=": not met in every run, as the table's "≥")."""
     unit, scale = ("lab-s", 3600.0) if seconds else ("lab-h", 1.0)
     out = []
     for i, row in enumerate(summary):
         q1, median, q3 = (v * scale for v in row["lab_hours"])
         busiest = row["bottleneck"]
-        line = (f"{i}: {row['variant']}: {unit} {median:,.4g}" + (f" [{q1:,.4g} to {q3:,.4g}]" if q3 > q1 else "")
+        short = ">= " if targets and row["reached"] < row["runs"] else ""
+        line = (f"{i}: {row['variant']}: {unit} {short}{median:,.4g}" + (f" [{q1:,.4g} to {q3:,.4g}]" if q3 > q1 else "")
                 + (f", cost {row['cost'][1]:,.0f}" if costs else "")
                 + (f", busiest {busiest} {100 * row['utilisation'].get(busiest, 0.0):.0f} %" if busiest else ""))
         out.append(line)
