@@ -363,6 +363,24 @@ def test_twin_schema_gives_every_field_its_meaning():
     assert "the sample waits (and ages)" in models["DeviceType"]["properties"]["clean_s"]["description"]
 
 
+def test_a_json_schema_validator_takes_every_shipped_scenario_by_twin_schema_and_names_each_mistake():
+    """Editors check scenario files against `twin schema` with a JSON Schema validator, not labtwin's: a schema that
+    refused a valid file, or let a misspelt field by, would mislead them as they type."""
+    import json
+
+    import jsonschema
+
+    validator = jsonschema.Draft202012Validator(json.loads(twin_cli("schema").stdout))
+    for path in sorted((ROOT / "scenarios").glob("*.yaml")):
+        assert not [e.message for e in validator.iter_errors(yaml.safe_load(path.read_text()))], path
+    doc = yaml.safe_load((ROOT / "scenarios" / "quantum_dots.yaml").read_text())
+    doc["devices"]["synthesiser"]["instancs"] = 2
+    doc["campaign"]["budget"] = -3
+    doc["lab"] = "bad lab/x"
+    assert {tuple(e.path) for e in validator.iter_errors(doc)} == {("lab",), ("devices", "synthesiser"),
+                                                                   ("campaign", "budget")}
+
+
 def test_a_job_shop_file_given_as_a_scenario_says_how_to_run_it(tmp_path):
     import re
     import shlex
