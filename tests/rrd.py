@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections import defaultdict
 from pathlib import Path
 
@@ -42,3 +44,10 @@ def read_rrd(path: str | Path, row_ids: bool = False) -> dict[str, list[dict]]:
 
 def series(rows: list[dict], column: str = "Scalars:scalars") -> list[tuple[float, float]]:
     return [(r["lab_time"], r[column][0]) for r in rows if column in r]
+
+
+def rerun_verify(path: str | Path) -> subprocess.CompletedProcess:
+    """`rerun rrd verify PATH`: whether Rerun's own tools load the recording and read every column as its archetype
+    says (exit 0), as the viewer will."""
+    return subprocess.run([str(Path(sys.executable).parent / "rerun"), "rrd", "verify", str(path)],
+                          capture_output=True, text=True, timeout=120)

@@ -128,8 +128,8 @@ def kill_all(*procs) -> None:
 
 
 def recorded_lab(s, where: Path, runtime: str = "auto"):
-    """Run ``s`` with its recording saved, and read the recording back."""
-    from tests.rrd import read_rrd
+    """Run ``s`` with its recording saved, and read the recording back (Rerun's own `rrd verify` passing it)."""
+    from tests.rrd import read_rrd, rerun_verify
     from twin.view.watch import RecordOptions, open_lab_observer
 
     devices = {name: dtype for dtype in s.devices for name in s.instance_names(dtype)}
@@ -139,6 +139,8 @@ def recorded_lab(s, where: Path, runtime: str = "auto"):
         out = run_shared(s, where / "runs", handle_signals=False, observer=observer, runtime=runtime)
     finally:
         recording.close()
+    verified = rerun_verify(where / "lab.rrd")
+    assert verified.returncode == 0, verified.stdout[-2000:] + verified.stderr[-2000:]
     return out, read_rrd(where / "lab.rrd", row_ids=True)
 
 

@@ -102,8 +102,9 @@ def test_train_prints_its_evaluation_curve_and_saves_a_policy_with_its_sidecar(t
     meta = json.loads(out.with_suffix(".json").read_text())
     assert out.exists() and meta["kind"] == "controller" and meta["scenario"] == "catalyst"
     assert meta["versions"]["torch"].startswith("2.13.0")
-    from tests.rrd import read_rrd
+    from tests.rrd import read_rrd, rerun_verify
 
+    assert rerun_verify(rrd).returncode == 0
     curve = read_rrd(rrd)
     ppo = sorted(r["training_steps"] for r in curve["training/ppo-pure/return"])
     assert ppo == [1440, 2880] and [r["training_steps"] for r in curve["training/pid/return"]] == [0]

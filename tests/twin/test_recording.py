@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import twin_cli
-from tests.rrd import read_rrd, series
+from tests.rrd import read_rrd, rerun_verify, series
 from tests.twin.shared_labs import lines_until, rest_of
 from twin.campaign.journal import NotAJournal, read_events, read_experiments
 from twin.runtime.lab import run
@@ -155,6 +155,19 @@ def test_replay_from_the_journal_equals_the_live_recording(live):
     run(ROOT / "scenarios" / "flaky_lab.yaml", journal=d / "other.db", seed=6, overrides={"campaign.budget": 16},
         record=RecordOptions(save=d / "other.rrd"))
     assert compare(d / "live.rrd", d / "other.rrd").returncode != 0
+
+
+def test_rerun_verifies_the_live_and_the_replayed_recording_and_not_a_cut_one(live):
+    """What a client that is not ours makes of a recording: Rerun's own `rrd verify` loads it and checks every
+    column against its archetype (a recording cut short, as a killed process leaves one, fails it)."""
+    d, _, _ = live
+    assert twin_cli("replay", d / "j.db", "--save", d / "again.rrd").exit_code == 0
+    for path in (d / "live.rrd", d / "again.rrd"):
+        verified = rerun_verify(path)
+        assert verified.returncode == 0, verified.stdout[-2000:] + verified.stderr[-2000:]
+    data = (d / "live.rrd").read_bytes()
+    (d / "cut.rrd").write_bytes(data[:len(data) // 2])
+    assert rerun_verify(d / "cut.rrd").returncode != 0
 
 
 def test_an_interrupted_replay_leaves_the_file_it_was_to_replace_as_it_was(live, monkeypatch):

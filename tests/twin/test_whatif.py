@@ -40,8 +40,9 @@ def test_more_of_the_bottleneck_saves_lab_hours_and_more_of_another_type_does_no
         table = list(csv.DictReader(f))
     assert [r["variant"] for r in table] == list(rows) and float(table[0]["utilisation_reactor"]) > 0.5
 
-    from tests.rrd import read_rrd
+    from tests.rrd import read_rrd, rerun_verify
 
+    assert rerun_verify(tmp_path / "w.rrd").returncode == 0
     rrd = read_rrd(tmp_path / "w.rrd")
     labels = rrd["whatif/tradeoff"][0]["Points2D:labels"]
     assert len(labels) == 3 and labels[0] == "0: as written"
