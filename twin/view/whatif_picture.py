@@ -109,16 +109,16 @@ def save_whatif_png(path: str | Path, scenario: str, summary: list[dict[str, Any
         u, _ = at(x, yt[0])
         draw.line((u, py1, u, py1 - 5), fill="#888888")
         draw.text((u, py1 + 4), f"{x:,.0f}" if costs else str(x), fill="black", font=small, anchor="mt")
-    labels: dict[tuple[int, int], list[str]] = {}  # variants drawn at one spot share a label: "1, 2"
+    labels: dict[tuple[int, int], tuple[float, float, list[str]]] = {}  # variants at one spot share a label: "1, 2"
     for i, (row, x) in enumerate(zip(summary, xs)):
         q1, median, q3 = (v * scale for v in row["lab_hours"])
         u, v = at(x, median)
         draw.line((u, at(x, q1)[1], u, at(x, q3)[1]), fill="#444444", width=2)
         met = not targets or row["reached"] == row["runs"]
         draw.ellipse((u - 5, v - 5, u + 5, v + 5), outline="black", fill="black" if met else "white", width=2)
-        labels.setdefault((round(u / 6), round(v / 6)), []).append(str(i))
-    for (u, v), names in labels.items():
-        draw.text((6 * u + 8, 6 * v - 8), ", ".join(names), fill="black", font=small)
+        labels.setdefault((round(u / 6), round(v / 6)), (u, v, []))[2].append(str(i))
+    for u, v, names in labels.values():
+        draw.text((u + 10, v), ", ".join(names), fill="black", font=small, anchor="lm")
 
     types = _types(summary)
     box = bars_box(summary)
