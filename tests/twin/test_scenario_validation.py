@@ -1,5 +1,6 @@
 """Each class of bad scenario gets one message per problem naming file, field and value; exit 2, no traceback."""
 
+import json
 import logging
 import os
 import subprocess
@@ -379,6 +380,22 @@ def test_a_json_schema_validator_takes_every_shipped_scenario_by_twin_schema_and
     doc["lab"] = "bad lab/x"
     assert {tuple(e.path) for e in validator.iter_errors(doc)} == {("lab",), ("devices", "synthesiser"),
                                                                    ("campaign", "budget")}
+
+
+def test_a_scenario_given_as_dash_is_read_from_standard_input_and_its_paths_from_the_current_directory(tmp_path):
+    """`cat lab.yaml | twin run -` said "-: file not found"."""
+    def twin(*args, text, cwd=ROOT):
+        return subprocess.run([sys.executable, "-m", "twin", *args], input=text, capture_output=True, text=True,
+                              timeout=120, cwd=cwd)
+
+    ok = twin("validate", "-", text=(ROOT / "scenarios" / "quantum_dots.yaml").read_text())
+    assert ok.returncode == 0 and ok.stdout.startswith("✓ -"), ok.stdout + ok.stderr
+    bad = twin("validate", "-", text="lab: x\n")
+    assert bad.returncode == 2 and "-: 1 problem(s)" in bad.stderr and "name: required field is missing" in bad.stderr
+    shop = twin("run", "-", "--bus", "memory", "--json", "--journal", str(tmp_path / "j.db"),
+                text=(ROOT / "scenarios" / "jobshop.yaml").read_text(), cwd=ROOT / "scenarios")  # jobshop/ft06.txt
+    assert shop.returncode == 0, shop.stderr
+    assert json.loads(shop.stdout)["scenario"] == "jobshop_ft06"
 
 
 def test_a_job_shop_file_given_as_a_scenario_says_how_to_run_it(tmp_path):

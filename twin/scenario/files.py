@@ -13,6 +13,7 @@ import os
 import re
 import select
 import stat
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -28,13 +29,16 @@ PIPE_WAIT_S = 10.0  # a named pipe nobody writes to is refused after this, not w
 
 
 def read_text(path: str | Path, what: str = "scenario") -> str:
-    """The file's text: refused (with what to do) if missing, a directory, too large, or not UTF-8."""
+    """The file's text: refused (with what to do) if missing, a directory, too large, or not UTF-8. ``-`` is
+    standard input (its relative paths are then the current directory's)."""
     path = Path(path)
     where = str(path)
     try:
-        if path.is_dir():
+        if where == "-":
+            data = sys.stdin.buffer.read(MAX_BYTES + 1)
+        elif path.is_dir():
             raise ScenarioError(where, [f"is a directory: give a {what} file"])
-        if stat.S_ISFIFO(path.stat().st_mode):
+        elif stat.S_ISFIFO(path.stat().st_mode):
             data = _from_pipe(path, where, what)
         else:
             with path.open("rb") as f:
