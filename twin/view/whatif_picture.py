@@ -155,7 +155,8 @@ def legend(summary: list[dict[str, Any]], costs: bool, seconds: bool, targets: b
         q1, median, q3 = (v * scale for v in row["lab_hours"])
         busiest = row["bottleneck"]
         short = ">= " if targets and row["reached"] < row["runs"] else ""
-        line = (f"{i}: {row['variant']}: {unit} {short}{median:,.4g}" + (f" [{q1:,.4g} to {q3:,.4g}]" if q3 > q1 else "")
+        spread = f" [{q1:,.4g} to {q3:,.4g}]" if q3 > q1 else ""
+        line = (f"{i}: {row['variant']}: {unit} {short}{median:,.4g}{spread}"
                 + (f", cost {row['cost'][1]:,.0f}" if costs else "")
                 + (f", busiest {busiest} {100 * row['utilisation'].get(busiest, 0.0):.0f} %" if busiest else ""))
         out.append(line)
