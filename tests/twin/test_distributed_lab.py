@@ -1,6 +1,8 @@
 """A lab spread over processes through a `twin router`: kill one device, freeze another, restart the first."""
 
 import asyncio
+import csv
+import json
 import os
 import signal
 import subprocess
@@ -122,6 +124,12 @@ def test_twin_device_health_asks_the_devices_of_a_running_lab(tmp_path):
                                 capture_output=True, text=True, cwd=ROOT, env=env, timeout=60)
         other = subprocess.run([sys.executable, "-m", "twin", "devices", "--connect", router, "--lab", "elsewhere"],
                                capture_output=True, text=True, cwd=ROOT, env=env, timeout=60)
+        # for a monitor: --json had been ignored with --connect (a table came out), and `device health` had none
+        as_json = subprocess.run([*ask, "--id", "spectrometer-2", "--id", "spectrometer-1", "--json"],
+                                 capture_output=True, text=True, cwd=ROOT, env=env, timeout=60)
+        as_csv = subprocess.run([sys.executable, "-m", "twin", "devices", "--connect", router, "--lab", "t", "--json",
+                                 "--csv", str(tmp_path / "d.csv")], capture_output=True, text=True, cwd=ROOT, env=env,
+                                timeout=60)
     finally:
         for p in procs:
             p.terminate()
@@ -137,3 +145,12 @@ def test_twin_device_health_asks_the_devices_of_a_running_lab(tmp_path):
     assert len(rows) == 1 and "spectrometer-2" in rows[0] and "yes" in rows[0] and "idle" in rows[0]
     assert other.returncode == 1 and "no device of lab 'elsewhere'" in other.stdout
     assert "(labs on it now: t)" in " ".join(other.stdout.split()), other.stdout  # what a mistyped name meant
+    assert as_json.returncode == 1, as_json.stderr  # one did not answer
+    reports = {d["device"]: d for d in json.loads(as_json.stdout)["devices"]}
+    assert reports["spectrometer-1"] == {"device": "spectrometer-1", "answered": False, "report": None}
+    assert reports["spectrometer-2"]["answered"] and reports["spectrometer-2"]["report"]["running"] is None
+    assert as_csv.returncode == 0, as_csv.stderr
+    assert [d["device"] for d in json.loads(as_csv.stdout)["devices"]] == ["spectrometer-2"]
+    with open(tmp_path / "d.csv") as f:
+        (row,) = list(csv.DictReader(f))
+    assert row["device"] == "spectrometer-2" and row["answered"] == "True" and row["running"] == ""

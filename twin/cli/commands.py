@@ -357,15 +357,17 @@ def devices(
     lab_name: Annotated[Optional[str], typer.Option("--lab", callback=check_lab_name,
                                                     help="the lab (the scenario's `lab`), with --connect")] = None,
     security: Annotated[Optional[Path], typer.Option(help="the lab's security directory, with --connect")] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="the installed drivers as JSON")] = False,
-    csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write the installed drivers to this CSV file")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="the installed drivers as JSON (with --connect: each "
+                                                         "device's whole health report)")] = False,
+    csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write the installed drivers (with --connect: the "
+                                                                   "devices) to this CSV file")] = None,
 ) -> None:
     """List the installed device drivers (name, where from, package and version, capabilities), or with
     --connect the devices of a running lab and their health."""
     writable("--csv", csv_out)
 
     if connect:
-        from twin.cli.distributed import render_health
+        from twin.cli.distributed import show_health
         from twin.core.bus.presence import elsewhere
         from twin.runtime.serve import roster
 
@@ -379,9 +381,7 @@ def devices(
             console.print(f"no device of lab {lab_name!r} is on the bus at {', '.join(connect)} ({elsewhere(labs)})",
                           highlight=False)
             raise typer.Exit(1)
-        render_health(answers)
-        if any(a["report"] is None for a in answers):
-            raise typer.Exit(1)
+        show_health(answers, as_json, csv_out)
         return
 
     header = ["driver", "class", "package", "version", "runs"]

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 
 from twin.cli.common import (_fail, app, console, device_app, driver_app, err, exit_status, scheduler_app,
-                             security_app, sigterm_unwinds, stopped_by)
+                             security_app, sigterm_unwinds, stopped_by, writable)
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
 from twin.core.errors import TwinError
@@ -101,15 +101,43 @@ def device_health(
     ids: Annotated[Optional[list[str]], typer.Option("--id", metavar="DEVICE",
                                                      help="a device instance (repeat; default: all)")] = None,
     security: SecurityOpt = None,
+    as_json: Annotated[bool, typer.Option("--json", help="each device's whole report as JSON, for a monitor")] = False,
+    csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write a row per device to this CSV file")] = None,
 ) -> None:
-    """Ask devices of a running lab for their health: on the bus, running what, messages dropped, the driver's own."""
+    """Ask devices of a running lab for their health: on the bus, running what, messages dropped, the driver's own.
+    Exit 1 if one did not answer."""
     from twin.runtime.serve import health
 
+    writable("--csv", csv_out)
     try:
         answers = health(scenario, list(ids or []), connect, str(security) if security else None)
     except TwinError as exc:
         _fail(exc)
-    render_health(answers)
+    show_health(answers, as_json, csv_out)
+
+
+def show_health(answers: list[dict], as_json: bool = False, csv_out: Path | None = None) -> None:
+    """The devices' health reports as a table (or ``--json``: each whole; ``--csv``: a row each, the driver's report
+    as JSON text); exit 1 if one did not answer."""
+    import csv
+    import json
+
+    if csv_out is not None:
+        with open(csv_out, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["device", "answered", "running", "dropped", "driver"])
+            for a in answers:
+                r = a["report"] if isinstance(a["report"], dict) else {}
+                running = r.get("running")
+                running = "#".join(map(str, running)) if isinstance(running, list) else str(running or "")
+                w.writerow([a["device"], a["report"] is not None, running, r.get("dropped", ""),
+                            json.dumps(r.get("driver"), default=str)])
+        err.print(f"wrote {csv_out} ({len(answers)} devices)", highlight=False)
+    if as_json:
+        console.print_json(json.dumps({"devices": [{"device": a["device"], "answered": a["report"] is not None,
+                                                    "report": a["report"]} for a in answers]}, default=str))
+    else:
+        render_health(answers)
     if any(a["report"] is None for a in answers):
         raise typer.Exit(1)
 
