@@ -28,6 +28,7 @@ import numpy as np
 
 from agents import default_scenario
 from agents.box import UnitBox
+from agents.rendering import METADATA, points_picture, render_mode_of
 from twin import Scenario
 from twin import score
 from twin import open_workcell
@@ -93,11 +94,15 @@ class _Point:
 
 
 class PlanningEnv(gym.Env):
-    metadata = {"render_modes": []}
+    metadata = METADATA
 
     def __init__(self, scenario: Scenario | str | Path | None = None, horizon: int = 30, random_goals: float = 0.5,
-                 seed: int = 0) -> None:
-        """``scenario``: a Scenario, a file or the mapping a file holds (default: ``scenarios/quantum_dots.yaml``)."""
+                 seed: int = 0, render_mode: str | None = None) -> None:
+        """``scenario``: a Scenario, a file or the mapping a file holds (default: ``scenarios/quantum_dots.yaml``).
+        ``render_mode`` ``"rgb_array"``: ``render()`` draws the episode's experiments in the box's first two
+        parameters, green as they near the target, the best ringed."""
+        self.render_mode = render_mode_of(render_mode)
+        self._tried: list[_Point] = []
         scenario = default_scenario(scenario, "quantum_dots.yaml")
         if scenario.campaigns:  # its own chemistry is only the campaigns' default: "targets on the same outputs; []"
             raise ValueError(f"{scenario.name}: a lab of several campaigns ({', '.join(c.name for c in scenario.campaigns)})"
@@ -121,6 +126,7 @@ class PlanningEnv(gym.Env):
             self.workcell.reseed(seed)
         self.target = self._goal() if (options or {}).get("target") is None else options["target"]
         self._n = 0
+        self._tried = []
         self._best = self._last = self._experiment(self.np_random.random(self.box.dims))
         return self._obs(), {"distance": self._best.distance}
 
@@ -135,11 +141,21 @@ class PlanningEnv(gym.Env):
         truncated = not met and self._n >= self.horizon
         return self._obs(), float(reward), met, truncated, {"distance": self._best.distance, "experiments": self._n}
 
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array":
+            return None
+        points = [(float(p.u[0]), float(p.u[1]) if len(p.u) > 1 else 0.5, math.log1p(min(p.distance, MISS)) /
+                   math.log1p(MISS)) for p in self._tried]
+        return points_picture(points, next((i for i, p in enumerate(self._tried) if p is self._best), None))
+
     # -- internals -------------------------------------------------------------
     def _experiment(self, u: np.ndarray) -> _Point:
         self._n += 1
         outputs = self.workcell.run(self.box.params(u)).outputs
-        return _Point(u, outputs, score(outputs, self.target))
+        point = _Point(u, outputs, score(outputs, self.target))
+        if self.render_mode is not None:
+            self._tried.append(point)
+        return point
 
     def _goal(self) -> Any:
         target = self.targets[int(self.np_random.integers(len(self.targets)))]

@@ -27,6 +27,7 @@ import gymnasium as gym
 import numpy as np
 
 from agents import candidates, default_scenario, lab_scheduling, scheduling_features
+from agents.rendering import METADATA, Spans, render_mode_of
 from twin import jobshop_as_lab, random_jobshop, random_lab
 from twin import prepare
 from twin import Scenario
@@ -82,13 +83,16 @@ def _redraw(job: dict, t: Any, rng: random.Random) -> dict:
 
 
 class SchedulingEnv(gym.Env):
-    metadata = {"render_modes": []}
+    metadata = METADATA
 
     def __init__(self, scenario: Scenario | str | Path | None = None, randomise: bool = True,
-                 encoding: str = "candidates") -> None:
+                 encoding: str = "candidates", render_mode: str | None = None) -> None:
         """``scenario``: a Scenario, a file or the mapping a file holds (default: ``scenarios/flaky_lab.yaml``). ``encoding``:
         ``candidates`` (one row per allowed pair, ``agents.candidates``; or a version of it, ``candidates-v3``)
-        or ``slots`` (the fixed grid of ``agents.scheduling_features``, kept as a baseline)."""
+        or ``slots`` (the fixed grid of ``agents.scheduling_features``, kept as a baseline). ``render_mode``
+        ``"rgb_array"``: ``render()`` draws each device's states over the episode's lab time."""
+        self.render_mode = render_mode_of(render_mode)
+        self._spans = Spans()
         scenario = default_scenario(scenario, "flaky_lab.yaml")
         self.base, self.randomise = scenario, randomise
         candidates_of = encoding.startswith("candidates")  # "candidates" (this labtwin's) or a version of it
@@ -115,6 +119,7 @@ class SchedulingEnv(gym.Env):
         self.fits = candidates.widen(self.fits, candidates.lab_shape(lab))  # what a policy trained here has seen
         self.close()
         self.campaign = SteppedCampaign(lab)
+        self._spans = Spans()
         self._marks = self._counts()
         return self._observe(), {"lab_s": self.campaign.now}
 
@@ -138,6 +143,11 @@ class SchedulingEnv(gym.Env):
     def action_masks(self) -> np.ndarray:
         return self._mask.copy()
 
+    def render(self) -> np.ndarray | None:
+        """``rgb_array``: a row per device, its states (busy green, idle blue, offline grey, quarantined orange) from
+        the episode's start to now, as they stood at each decision."""
+        return self._spans.picture() if self.render_mode == "rgb_array" else None
+
     def close(self) -> None:
         if self.campaign is not None:
             self.campaign.close()
@@ -149,6 +159,11 @@ class SchedulingEnv(gym.Env):
         return sum(e.degraded for e in core.experiments), sum(e.status == "abandoned" for e in core.experiments)
 
     def _observe(self) -> np.ndarray:
+        if self.render_mode is not None:
+            core = self.campaign.core
+            self._spans.snapshot(self.campaign.now, {d.name: "quarantined" if d.quarantined else "offline" if not
+                                                     d.online else "busy" if d.attempt else "idle"
+                                                     for d in core.devices.values()})
         if self.campaign.view is None:  # the campaign is over
             self._mask = np.zeros(self.features.ACTIONS, bool)
             self._mask[-1] = True

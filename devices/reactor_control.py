@@ -59,12 +59,19 @@ def command(mode: str, action: float, pid: thermal.Pid, error: float, dt: float)
 
 
 class ReactorControlEnv(gym.Env):
-    metadata = {"render_modes": []}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(self, mode: str = "pure", pid: dict[str, float] | None = None, dt_s: float = 10.0,
-                 hold_s: float = 3600.0) -> None:
+                 hold_s: float = 3600.0, render_mode: str | None = None) -> None:
+        """``render_mode`` ``"rgb_array"``: ``render()`` draws the episode's temperature (red) against its
+        set-point (dark grey), and the heater's command (light blue, from nothing at the bottom to its most at the
+        top)."""
         if mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, not {mode!r}")
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode {render_mode!r}: this environment draws rgb_array pictures (or give None)")
+        self.render_mode = render_mode
+        self._trace: list[tuple[float, float]] = []
         self.mode, self.pid_gains, self.dt, self.steps = mode, dict(pid or {}), dt_s, int(hold_s / dt_s)
         self.observation_space = gym.spaces.Box(-10.0, 10.0, (5,), np.float32)
         self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
@@ -76,13 +83,34 @@ class ReactorControlEnv(gym.Env):
         self.u = 0.0
         self.pid = thermal.Pid(**self.pid_gains)
         self.n = 0
+        self._trace = [(self.t, self.u)]
         return self._obs(), {}
 
     def step(self, action):
         self.u = command(self.mode, float(np.asarray(action).reshape(-1)[0]), self.pid, self.setpoint - self.t, self.dt)
         self.t_prev, self.t = self.t, thermal.advance(self.t, self.u, self.dt)
         self.n += 1
+        if self.render_mode is not None:
+            self._trace.append((self.t, self.u))
         return self._obs(), step_reward(self.setpoint, self.t), False, self.n >= self.steps, {"temperature_k": self.t}
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array":
+            return None
+        from PIL import Image, ImageDraw
+
+        width, height, margin = 480, 240, 6
+        image = Image.new("RGB", (width, height), "white")
+        draw = ImageDraw.Draw(image)
+        lo, hi = thermal.T_AMBIENT_K, max(self.setpoint, *(t for t, _ in self._trace)) + 20.0
+        x = lambda i: margin + (width - 2 * margin) * i / max(1, self.steps)  # noqa: E731
+        y = lambda value, low, high: height - margin - (height - 2 * margin) * (value - low) / (high - low)  # noqa: E731
+        draw.line((margin, y(self.setpoint, lo, hi), width - margin, y(self.setpoint, lo, hi)), fill=(60, 60, 60))
+        if len(self._trace) > 1:
+            draw.line([(x(i), y(u, 0.0, thermal.U_MAX_K)) for i, (_, u) in enumerate(self._trace)],
+                      fill=(140, 175, 225))
+            draw.line([(x(i), y(t, lo, hi)) for i, (t, _) in enumerate(self._trace)], fill=(228, 87, 86), width=2)
+        return np.asarray(image, dtype=np.uint8)
 
     def _obs(self) -> np.ndarray:
         return control_observation(self.setpoint, self.t, self.t_prev, self.u, self.dt)

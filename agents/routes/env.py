@@ -22,6 +22,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from agents.rendering import METADATA, render_mode_of
 from agents.routes import stock as stock_file
 from agents.routes import templates as template_file
 from agents.routes.policy import BITS, fingerprint
@@ -34,12 +35,15 @@ ENV_ID = "labtwin/SynthesisRoute-v0"
 
 
 class SynthesisRouteEnv(gym.Env):
-    metadata = {"render_modes": []}
+    metadata = METADATA
 
     def __init__(self, templates: tuple[Template, ...] | None = None, stock: Stock | None = None,
                  targets: list[str] | None = None, n_targets: int = 200, max_steps: int = 6,
                  step_penalty: float = 0.1, cost_weight: float = 0.05, seed: int = 0,
-                 expander: Expander | None = None) -> None:
+                 expander: Expander | None = None, render_mode: str | None = None) -> None:
+        """``render_mode`` ``"rgb_array"``: ``render()`` draws the target, the molecules still to make and those
+        bought so far (RDKit)."""
+        self.render_mode = render_mode_of(render_mode)
         self.templates = templates or template_file.load()
         self.stock = stock or stock_file.load()
         self.targets = list(targets) if targets else [t.smiles for t in target_set(self.templates, self.stock,
@@ -94,6 +98,18 @@ class SynthesisRouteEnv(gym.Env):
         if not self.action_masks().any():
             return self._obs(), -1.0, True, False, self._info(f"no template applies to {self.open[0]}")
         return self._obs(), 0.0, False, False, self._info("")
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array":
+            return None
+        from rdkit import Chem
+        from rdkit.Chem import Draw
+
+        shown = [(self.target, "target"), *((m, "to make") for m in self.open if m != self.target),
+                 *((m, "bought") for m in sorted(self.bought))][:8]
+        image = Draw.MolsToGridImage([Chem.MolFromSmiles(m) for m, _ in shown], molsPerRow=4, subImgSize=(160, 160),
+                                     legends=[why for _, why in shown])
+        return np.asarray(image.convert("RGB"), dtype=np.uint8)
 
     def _solved_reward(self) -> float:
         eur = sum((self.stock.get(x).eur_per_g or 0.0) for x in self.bought)

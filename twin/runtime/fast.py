@@ -13,6 +13,7 @@ its ``LabView`` (``None`` at the end), ``answer()`` gives the assignments.
 from __future__ import annotations
 
 import asyncio
+import atexit
 import contextlib
 import logging
 import time
@@ -204,6 +205,7 @@ def asyncio_tripwire() -> Iterator[None]:
         return
     if _TRIPWIRE is None:
         _TRIPWIRE = asyncio.new_event_loop()
+        atexit.register(_TRIPWIRE.close)  # one per process, kept: closed at exit, not left to a ResourceWarning
     asyncio._set_running_loop(_TRIPWIRE)
     try:
         yield
