@@ -4,7 +4,6 @@ every environment, and what a video recorder records: small RGB pictures as ``(h
 from __future__ import annotations
 
 import numpy as np
-from PIL import Image, ImageDraw
 
 WIDTH, ROW_H, MARGIN = 480, 14, 6
 STATE_COLOURS = {"busy": (84, 162, 75), "idle": (76, 120, 168), "offline": (128, 128, 128),
@@ -39,6 +38,8 @@ class Spans:
 
     def picture(self) -> np.ndarray:
         """A row per device, lab time left to right (0 to now), each span in its state's colour."""
+        from PIL import Image, ImageDraw  # only when drawn: ~40 ms of imports a training never needs
+
         names = sorted(self.rows)
         image = Image.new("RGB", (WIDTH, 2 * MARGIN + ROW_H * max(1, len(names))), "white")
         draw = ImageDraw.Draw(image)
@@ -53,6 +54,8 @@ class Spans:
 
 def points_picture(points: list[tuple[float, float, float]], best: int | None, size: int = 240) -> np.ndarray:
     """Points in the unit square (x, y, badness in [0, 1]: green when 0, red when 1), the ``best`` one ringed."""
+    from PIL import Image, ImageDraw
+
     image = Image.new("RGB", (size, size), "white")
     draw = ImageDraw.Draw(image)
     inner = size - 2 * MARGIN
