@@ -24,7 +24,7 @@ def documented(name: str) -> str:
     """The Python block of docs/wire.md whose first line is ``# name``."""
     blocks = {b.split("\n", 1)[0].removeprefix("# "): b
               for b in re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "wire.md").read_text(), re.S)}
-    assert set(blocks) == {"device.py", "agent.py"}, sorted(blocks)
+    assert set(blocks) == {"device.py", "agent.py", "monitor.py"}, sorted(blocks)
     assert set(re.findall(r"^(?:import|from) (\w+)", blocks[name], re.M)) <= {"json", "queue", "signal", "sys",
                                                                               "time", "zenoh"}
     return blocks[name]
@@ -102,3 +102,19 @@ def test_a_device_that_stamps_unix_time_is_named_once_and_its_results_still_coun
     off = [json.loads(e["detail"]) for e in read_events(db, "device.clock_off")]
     assert len(off) == 1 and off[0]["sender"] == "spectrometer" and off[0]["off_s"] > 1e9, off
     assert sum("spectrometer stamps its messages" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_the_documented_monitor_prints_what_a_person_should_hear_of_as_the_journal_has_it(tmp_path):
+    """A spectrometer left to another process that never comes: the lab says it is missing, then unavailable,
+    gives up on the experiments waiting for it, and ends. The monitor hears it all from the decisions stream."""
+    summary, db, out = run_with(tmp_path, "monitor.py", [], {"spectrometer"}, **{
+        "campaign.budget": 2, "devices.spectrometer.instances": 1, "orchestrator.startup_s": 300,
+        "campaign.give_up_after_s": 400, "devices.synthesiser.duration": {"mean_s": 30, "cv": 0.0}})
+    assert summary.abandoned == 2, summary
+    heard = [json.loads(line) for line in out.splitlines()]
+    kinds = {"devices.missing", "devices.unavailable", "experiment.abandoned", "campaign.summary"}
+    journalled = [(e["kind"], e["t_lab"], e["experiment"]) for e in read_events(db) if e["kind"] in kinds]
+    assert {k for k, _, _ in journalled} == kinds
+    assert [(h["what"], h["t_lab"], h["experiment"]) for h in heard] == journalled
+    ours = {json.loads(e["detail"])["campaign"] for e in read_events(db) if e["kind"] == "msg.result"}
+    assert len(ours) == 1 and {h["campaign"] for h in heard} == ours  # the campaign its devices' messages name
