@@ -103,8 +103,12 @@ class ReactorControlEnv(gym.Env):
         image = Image.new("RGB", (width, height), "white")
         draw = ImageDraw.Draw(image)
         lo, hi = thermal.T_AMBIENT_K, max(self.setpoint, *(t for t, _ in self._trace)) + 20.0
-        x = lambda i: margin + (width - 2 * margin) * i / max(1, self.steps)  # noqa: E731
-        y = lambda value, low, high: height - margin - (height - 2 * margin) * (value - low) / (high - low)  # noqa: E731
+        def x(i: int) -> float:
+            return margin + (width - 2 * margin) * i / max(1, self.steps)
+
+        def y(value: float, low: float, high: float) -> float:
+            return height - margin - (height - 2 * margin) * (value - low) / (high - low)
+
         draw.line((margin, y(self.setpoint, lo, hi), width - margin, y(self.setpoint, lo, hi)), fill=(60, 60, 60))
         if len(self._trace) > 1:
             draw.line([(x(i), y(u, 0.0, thermal.U_MAX_K)) for i, (_, u) in enumerate(self._trace)],
