@@ -396,3 +396,33 @@ def test_a_message_stamped_far_off_neither_stops_a_watcher_forgetting_nor_hides_
         assert seen.fresh(f"lab:{i}", float(i)), i  # drawn: the odd one made no later message look forgotten
     assert len(seen) <= 2 * 10 + 1 and 80 <= seen.floor < 99  # still forgetting
     assert not any(seen.fresh(f"lab:{i}", float(i)) for i in range(100))  # a history read again: nothing twice
+
+
+@pytest.mark.process
+def test_twin_watch_log_prints_the_decisions_and_faults_as_the_journal_has_them_and_nothing_else_on_stdout(tmp_path):
+    """For a terminal with no display: `twin watch --log` (no recording) prints the viewer's log, a line each."""
+    import re
+
+    port = free_port()
+    db = tmp_path / "j.db"
+    watcher = subprocess.Popen([*TWIN, "watch", "--lab", "qd", "--connect", f"tcp/127.0.0.1:{port}", "--wait", "60",
+                                "--log"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    lab = subprocess.Popen([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "6", "--planner", "random",
+                            "--clock", "scaled", "--speed", "1000", "--listen", f"tcp/127.0.0.1:{port}", "--journal",
+                            str(db), "--quiet"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        out, err = watcher.communicate(timeout=180)
+        lab.wait(timeout=60)
+    finally:
+        for p in (lab, watcher):
+            p.kill()
+    assert watcher.returncode == 0, err
+    lines = out.splitlines()
+    shape = re.compile(r"^ *\d+\.\d{3} h  (INFO |WARN |ERROR)  \S")
+    assert lines and all(shape.match(line) for line in lines), lines  # stdout is the log's alone
+    assert "watched 6 spectra, 6 finished experiments" in err and "campaign ended" in err, err
+    done = [line for line in lines if " experiment.done e" in line]
+    journalled = [e for e in read_events(db) if e["kind"] == "experiment.done"]
+    assert [float(line.split()[0]) for line in done] == [round(e["t_lab"] / 3600, 3) for e in journalled]
+    assert not [line for line in lines if "attempt.dispatched" in line]  # each dispatch: a debug row, left out
+    assert any("campaign quantum_dots started" in line for line in lines)

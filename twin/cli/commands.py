@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import sys
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -232,14 +233,17 @@ def watch(
     wait: Annotated[float, typer.Option(min=0.1, max=600, metavar="SECONDS",
                                         help="how long --connect may take to answer: a lab or router started "
                                              "after the watcher")] = 30.0,
+    log: Annotated[bool, typer.Option("--log", help="print the decisions and faults on stdout, a line each as they "
+                                                    "come (the viewer's log without each dispatch): for a terminal "
+                                                    "with no display; with or without a recording")] = False,
 ) -> None:
-    """Attach to a lab running in another process and record what it does."""
+    """Attach to a lab running in another process and record what it does (or print its log)."""
     recording_file("--save", save)
     if not (connect or listen):
         _fail(TwinError("give --connect ENDPOINT (where the lab listens: twin run --listen ...) or --listen ENDPOINT"))
-    record = RecordOptions(save, viewer, serve)
+    record = RecordOptions(save, viewer, serve, log=(lambda line: print(line, flush=True)) if log else None)
     if not record.wanted:
-        _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
+        _fail(TwinError("nothing to do: give --save FILE, --viewer, --serve or --log"))
     gone: list[bool] = []
 
     def lab_gone() -> None:
@@ -250,9 +254,10 @@ def watch(
                                               "of several campaigns: their directory); twin replay JOURNAL then "
                                               "draws all of it"), highlight=False)
 
-    def present(back: bool) -> None:
+    def present(back: bool) -> None:  # on stderr when stdout is the log's
         print(f"lab {lab_name!r} is back on the bus: reading what it did meanwhile from its history" if back else
-              f"lab {lab_name!r} is on the bus: recording it", flush=True)
+              f"lab {lab_name!r} is on the bus: {'watching' if log and not record.recorded else 'recording'} it",
+              flush=True, file=sys.stderr if log else sys.stdout)
 
     def link(cut: bool) -> None:
         where = ", ".join(connect or listen or [])
@@ -268,8 +273,8 @@ def watch(
         err.print(f"interrupted while waiting for {', '.join(connect or listen or [])} to answer: nothing recorded",
                   highlight=False)
         raise typer.Exit(130) from None
-    err.print(f"recorded {observer.spectra} spectra, {observer.finished} finished experiments"
-              + (f" to {save}" if save else ""), highlight=False)
+    err.print(f"{'recorded' if record.recorded else 'watched'} {observer.spectra} spectra, {observer.finished} "
+              "finished experiments" + (f" to {save}" if save else ""), highlight=False)
     if gone and not follow:
         raise typer.Exit(1)
 

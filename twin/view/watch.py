@@ -32,26 +32,43 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class RecordOptions:
-    """Where a recording goes: a file, a spawned viewer, a loopback web viewer."""
+    """Where a recording goes: a file, a spawned viewer, a loopback web viewer; ``log``: where the log of decisions
+    and faults goes as lines too (``twin watch --log``), with a recording or without one."""
 
     save: str | Path | None = None
     viewer: bool = False
     serve: bool = False
     serve_port: int = 0
     web_port: int = 0
+    log: Callable[[str], None] | None = None
+
+    @property
+    def recorded(self) -> bool:
+        return bool(self.save or self.viewer or self.serve)
 
     @property
     def wanted(self) -> bool:
-        return bool(self.save or self.viewer or self.serve)
+        return self.recorded or self.log is not None
+
+
+def _recording(options: RecordOptions, recording_id: str, campaigns: list[str] | None = None) -> tuple[Any, Any]:
+    """(the recording, or an ``Unrecorded`` where only the log is wanted; the canvas to draw on)."""
+    from twin.view.log_canvas import LogCanvas, Unrecorded
+
+    if not options.recorded:
+        return Unrecorded(), LogCanvas(options.log or (lambda line: None))
+    from twin.view.recorder import open_recording
+
+    recording = open_recording(recording_id, options.save, options.viewer, options.serve, options.serve_port,
+                               options.web_port, campaigns=campaigns)
+    return recording, recording.canvas if options.log is None else LogCanvas(options.log, recording.canvas)
 
 
 def open_observer(options: RecordOptions, recording_id: str, dedupe: bool = False):
-    """An observer drawing on a new Rerun recording; the recording is returned to be closed."""
-    from twin.view.recorder import open_recording
-
-    recording = open_recording(recording_id, options.save, options.viewer, options.serve,
-                               options.serve_port, options.web_port)
-    observer = LabObserver(recording.canvas, dedupe=dedupe)
+    """An observer drawing on a new Rerun recording (and the log, if asked); the recording is returned to be
+    closed."""
+    recording, canvas = _recording(options, recording_id)
+    observer = LabObserver(canvas, dedupe=dedupe)
     recording.before_close.append(observer.finish)
     return observer, recording
 
@@ -60,11 +77,8 @@ def open_lab_observer(options: RecordOptions, recording_id: str, campaigns: list
                       dedupe: bool = False):
     """A ``SharedLabObserver`` of a lab these campaigns share, drawing on a new recording (returned to be closed);
     the recording's layout gains a tab for each campaign that comes later."""
-    from twin.view.recorder import open_recording
-
-    recording = open_recording(recording_id, options.save, options.viewer, options.serve,
-                               options.serve_port, options.web_port, campaigns=campaigns)
-    observer = SharedLabObserver(recording.canvas, devices, dedupe=dedupe, on_campaign=recording.lay_out)
+    recording, canvas = _recording(options, recording_id, campaigns)
+    observer = SharedLabObserver(canvas, devices, dedupe=dedupe, on_campaign=recording.lay_out)
     recording.before_close.append(observer.finish)
     return observer, recording
 
@@ -407,15 +421,16 @@ def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
-        print(f"watching lab {lab!r}", flush=True)
+        say = sys.stderr if options.log else sys.stdout  # stdout is the log's, if it is printed
+        print(f"watching lab {lab!r}", flush=True, file=say)
         labs = await labs_on(bus)
         if lab not in labs:
             print(f"no campaign of lab {lab!r} is on this bus yet ({elsewhere(labs)}): waiting for one (Ctrl-C to "
-                  "stop)", flush=True)
+                  "stop)", flush=True, file=say)
 
         def ended(name: str, seen: Any) -> None:
             print(f"campaign {name + ' ' if name else ''}ended: {seen.finished} experiments finished, "
-                  "its summary drawn", flush=True)
+                  "its summary drawn", flush=True, file=say)
         try:
             return await watch_async(bus, clock, lab, options, follow, stop, ended, on_gone, on_cut, on_present)
         finally:
