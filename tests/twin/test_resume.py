@@ -1,5 +1,6 @@
 """A campaign killed at any point and resumed from its journal ends with the journal it would have had."""
 
+import json
 import multiprocessing
 import os
 import signal
@@ -143,8 +144,13 @@ def test_twin_report_on_a_sigkilled_run_says_how_far_it_got_and_twin_resume_fini
     report = twin_cli("report", str(db))
     assert report.exit_code == 0, report.output
     assert "interrupted" in report.output and f"twin resume {db}" in report.output.replace("\n", "")
+    said = json.loads(twin_cli("report", str(db), "--json").stdout)  # for a script: `twin report` had no --json
+    assert said["state"] == "interrupted" and said["resume_with"] == str(db) and said["so_far"]["events"] > 200
     resumed = twin_cli("resume", str(db), "--json", columns=80)
     assert resumed.exit_code == 0, resumed.output
+    again = json.loads(twin_cli("report", str(db), "--json").stdout)
+    assert again["state"] == "finished" and again["resume_with"] is None
+    assert again["summary"] == json.loads(resumed.stdout)  # as `twin resume --json` (and `twin run --json`) print it
     fresh = tmp_path / "fresh.db"
     assert twin_cli(*args[:5] + [str(fresh)] + args[6:], columns=80).exit_code == 0
     assert tables(db) == tables(fresh)

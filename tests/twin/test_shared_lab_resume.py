@@ -350,6 +350,11 @@ def test_a_lab_stopped_by_ctrl_c_resumes_to_the_journals_of_the_unstopped_one(tm
         told = twin_cli("report", str(shown), columns=300).output
         assert f"continue it with twin resume {tmp_path / 'lab'})" in told and f"{cut_short}.db)" not in \
             told.split("continue it with")[-1], told
+    said = json.loads(twin_cli("report", str(tmp_path / "lab"), "--json").stdout)["campaigns"]
+    assert said[cut_short]["state"] == "finished" and said[cut_short]["resume_with"] == str(tmp_path / "lab")
+    assert said[cut_short]["summary"]["stopped"] == "interrupted (SIGINT)"
+    assert set(said) == {"dots", "catalyst"} and all(c["state"] in ("finished", "never_started")
+                                                     for c in said.values())
     with pytest.raises(ResumeError, match=rf"a campaign of a lab of several, which resumes as one: twin resume "
                                           rf"{tmp_path / 'lab'}"):
         resume(tmp_path / "lab" / "dots.db")
