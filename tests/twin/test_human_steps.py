@@ -124,6 +124,11 @@ def test_a_human_step_waiting_when_the_campaign_died_or_stopped_still_waits_for_
     assert not [e for e in events if e["kind"] == "device.lost"]
     ended = [json.loads(e["detail"])["code"] for e in events if e["kind"] == "attempt.failed"]
     assert ended == ["timed_out"], ended  # nobody confirmed it: its deadline, as for any step
+    # and the step is announced again when the campaign resumes, for whoever pages people from the announcements
+    said = [(e["task"], e["attempt"], json.loads(e["detail"])) for e in events if e["kind"] == "operator.step"]
+    assert len(said) == 2 and said[0][:2] == said[1][:2] and "again" not in said[0][2], said
+    assert said[1][2]["again"].startswith("the campaign was resumed") and said[1][2]["step"] == said[0][2]["step"]
+    assert said[1][2]["instructions"] == said[0][2]["instructions"] and said[1][2]["params"] == said[0][2]["params"]
 
 
 def _events(db):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from twin.campaign.events import Code, Operator, TimerKey, TimerKind
+from twin.campaign.events import Code, Note, Operator, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt
 
 DRIVER = "operator"
@@ -24,12 +24,24 @@ def people(s: Any) -> set[str]:
 
 def dispatched(core: CampaignCore, att: Attempt, body: dict[str, Any]) -> None:
     """A step given to people: say what to do; in virtual time, the simulated operator confirms it in time."""
-    dtype = core.devices[att.device].type
     core._note("operator.step", att.task.experiment.id, att.task.id, att.n, att.device,
                detail={"step": body["step"], "params": body["params"], "deadline_s": body["deadline_s"],
-                       "instructions": str(core.s.devices[dtype].options.get("instructions", ""))[:500]})
+                       "instructions": _instructions(core, att)})
     if core.s.clock.mode == "virtual":
         core._timer(TimerKey(TimerKind.CONFIRM, f"{att.task.id}#{att.n}"), att.task.expected_s)
+
+
+def said_again(core: CampaignCore, att: Attempt, t_lab: float, why: str) -> Note:
+    """A human step still waiting for its person, announced again (a resumed campaign's: whoever pages people
+    from the ``operator.step`` notes hears of it afresh); ``why`` says why it is said again."""
+    task = att.task
+    return Note(t_lab, "operator.step", task.experiment.id, task.id, att.n, att.device,
+                {"step": task.step.step, "params": {**task.experiment.params, **task.step.params},
+                 "instructions": _instructions(core, att), "again": why})
+
+
+def _instructions(core: CampaignCore, att: Attempt) -> str:
+    return str(core.s.devices[core.devices[att.device].type].options.get("instructions", ""))[:500]
 
 
 def confirm(core: CampaignCore, op: Operator) -> str:

@@ -24,7 +24,7 @@ from twin.core import keys
 from twin.core.bus import Bus
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Presence, Proposed,
                            RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
-from twin.campaign import replay
+from twin.campaign import human, replay
 from twin.campaign.events import ALERT_LOGGER, ALERTS, PROGRESS_KINDS, TimerKey, alert_text
 from twin.campaign.replay import RESUMED, Rebuilt
 from twin.core.clock import LabClock
@@ -290,7 +290,10 @@ class LiveCampaign:
         ``stopped``: the stop the campaign ended with, which cancelled it: unless it finished first, it is sent
         again as after a "not now" (no attempt used, no strike against the device). People are not asked: they
         have no health key, and their step still waits for its confirmation."""
-        if device in self.core.people:
+        if device in self.core.people:  # said again, for whoever tells people what waits for them
+            att = self.core.attempts[(task, attempt)]
+            self._remark(human.said_again(self.core, att, self.clock.now(), "the campaign was resumed; the step "
+                                                                            "still waits for twin ctl confirm"))
             return
         wait = 5.0 * (1.0 if self.clock.is_virtual else self.clock.speed)
         try:
