@@ -468,3 +468,25 @@ def test_a_recording_is_saved_only_under_a_recordings_name(tmp_path):
     assert res.exit_code == 2 and f"this writes a Rerun recording, so name it {tmp_path / 'run.rrd'}" in \
         " ".join(res.output.split()), res.output
     assert not list(tmp_path.iterdir())
+
+
+def test_the_picture_rings_the_variant_budget_hours_names(tmp_path):
+    import numpy as np
+    from PIL import Image
+
+    from twin.view.whatif_picture import CHOSEN
+
+    qd = str(ROOT / "scenarios" / "quantum_dots.yaml")
+    code, out = whatif(qd, "--vary", "devices.synthesiser.instances=3", "--set", "devices.synthesiser.cost_per_hour=50",
+                       "--seeds", "2", "--budget-hours", "50", "--json", "--save", str(tmp_path / "w.png"))
+    assert code == 0, out
+    named = json.loads(out)["cheapest_within"]
+    assert named == "as written"  # two synthesisers cost less, and both meet the targets well within 50 lab-h
+    red = [int(CHOSEN[i:i + 2], 16) for i in (1, 3, 5)]
+
+    def reds(path):
+        return int((np.asarray(Image.open(path).convert("RGB")) == red).all(axis=2).sum())
+
+    assert reds(tmp_path / "w.png") > 50  # the ring and its line
+    code, _ = whatif(qd, "--vary", "devices.synthesiser.instances=3", "--seeds", "2", "--save", str(tmp_path / "n.png"))
+    assert code == 0 and reds(tmp_path / "n.png") == 0

@@ -141,7 +141,9 @@ def whatif(
     if save is not None and save.suffix.lower() == ".png":
         from twin.view.whatif_picture import save_whatif_png
 
-        save_whatif_png(save, s.name, summary, seeds, costs_anything(summary), in_seconds(summary), any_targets(s))
+        chosen_within = (summary.index(best), budget_hours) if best else None
+        save_whatif_png(save, s.name, summary, seeds, costs_anything(summary), in_seconds(summary), any_targets(s),
+                        chosen_within)
     elif save is not None:
         from twin.view.recorder import save_whatif
 

@@ -16,6 +16,7 @@ from typing import Any
 from PIL import Image, ImageDraw, ImageFont
 
 WIDTH, PANEL_H, LINE_H, MARGIN = 1200, 440, 20, 60
+CHOSEN = "#E45756"
 PALETTE = ["#4C78A8", "#F58518", "#54A24B", "#E45756", "#72B7B2", "#B279A2", "#FF9DA6", "#9D755D", "#BAB0AC",
            "#EECA3B"]
 
@@ -75,12 +76,14 @@ def bars_box(summary: list[dict[str, Any]]) -> tuple[int, int, int, int]:
 
 
 def save_whatif_png(path: str | Path, scenario: str, summary: list[dict[str, Any]], seeds: int,
-                    costs: bool, seconds: bool, targets: bool = True) -> None:
+                    costs: bool, seconds: bool, targets: bool = True,
+                    chosen: tuple[int, float] | None = None) -> None:
     """The picture of ``summary`` (the rows `twin whatif --json` prints as ``variants``) as a PNG at ``path``;
     ``costs``: something costs (else variants are placed by number); ``seconds``: read in lab-seconds;
-    ``targets``: the lab has targets (else its hours are to the campaign's end)."""
+    ``targets``: the lab has targets (else its hours are to the campaign's end); ``chosen``: the variant
+    `--budget-hours H` named and H, ringed and said."""
     font, small = ImageFont.load_default(size=15), ImageFont.load_default(size=12)
-    image = Image.new("RGB", (WIDTH, MARGIN + PANEL_H + 30 + LINE_H * (len(summary) + 2)), "white")
+    image = Image.new("RGB", (WIDTH, MARGIN + PANEL_H + 30 + LINE_H * (len(summary) + 3)), "white")
     draw = ImageDraw.Draw(image)
     draw.text((MARGIN, 12), f"{scenario}: what if - {len(summary)} variants x {seeds} seed(s), medians [IQR]",
               fill="black", font=font)
@@ -116,6 +119,8 @@ def save_whatif_png(path: str | Path, scenario: str, summary: list[dict[str, Any
         draw.line((u, at(x, q1)[1], u, at(x, q3)[1]), fill="#444444", width=2)
         met = not targets or row["reached"] == row["runs"]
         draw.ellipse((u - 5, v - 5, u + 5, v + 5), outline="black", fill="black" if met else "white", width=2)
+        if chosen is not None and i == chosen[0]:
+            draw.ellipse((u - 10, v - 10, u + 10, v + 10), outline=CHOSEN, width=3)
         labels.setdefault((round(u / 6), round(v / 6)), (u, v, []))[2].append(str(i))
     for u, v, names in labels.values():
         draw.text((u + 10, v), ", ".join(names), fill="black", font=small, anchor="lm")
@@ -143,6 +148,10 @@ def save_whatif_png(path: str | Path, scenario: str, summary: list[dict[str, Any
               "numbers: medians [IQR]", fill="#444444", font=small)
     for i, line in enumerate(legend(summary, costs, seconds, targets)):
         draw.text((MARGIN, y + LINE_H * (i + 1)), line[:170], fill="black", font=small)
+    if chosen is not None:
+        draw.text((MARGIN, y + LINE_H * (len(summary) + 1)),
+                  f"ringed: {'the cheapest' if costs else 'the fastest'} within {chosen[1]:g} lab-h "
+                  f"(median; every target met in every run): {chosen[0]}", fill=CHOSEN, font=small)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     image.save(path, format="PNG")
 
