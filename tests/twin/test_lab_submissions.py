@@ -62,8 +62,9 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
                                     f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd"), "--follow"],
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
         assert "watching lab" in watcher.stdout.readline()
-        sub = ctl("submit", str(tmp_path / "catalyst.yaml"))
-        assert sub.exit_code == 0 and "campaign catalyst started on lab shared" in sub.output, sub.output
+        sub = subprocess.run([sys.executable, "-m", "twin", "submit", "-", *connect], cwd=ROOT, capture_output=True,
+                             text=True, timeout=60, input=(tmp_path / "catalyst.yaml").read_text())  # stdin, read once
+        assert sub.returncode == 0 and "campaign catalyst started on lab shared" in sub.stdout, sub.stderr
         again = ctl("submit", str(tmp_path / "dots.yaml"))
         assert again.exit_code == 1 and "has a campaign 'dots' already" in again.output
         (tmp_path / "bare.yaml").write_text("name: bare\nworkflow: [{step: measure, device: spectrometer}]\n")

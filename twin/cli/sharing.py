@@ -142,13 +142,14 @@ def submit(
 ) -> None:
     """Add a campaign to a lab served with `twin lab serve`; it starts at once, sharing the lab's devices."""
     from twin.cli.control import _who
-    from twin.scenario.files import read_text
-    from twin.scenario.sharing import load_campaign
+    from twin.scenario.files import parse_yaml, read_text
+    from twin.scenario.sharing import parse_campaign
     from twin.tools.control import request
 
     try:
-        entry = load_campaign(campaign_file)  # a bad file is named here, before anything is sent
-        answer = request(lab_name, "submit", {"file": read_text(campaign_file), "who": _who(who)}, list(connect),
+        text = read_text(campaign_file)  # once: `-` is standard input
+        entry = parse_campaign(parse_yaml(text, str(campaign_file)), str(campaign_file))  # a bad file named here
+        answer = request(lab_name, "submit", {"file": text, "who": _who(who)}, list(connect),
                          str(security) if security else None)
     except TwinError as exc:
         _fail(exc)

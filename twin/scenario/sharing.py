@@ -8,13 +8,11 @@ place in the list, so two campaigns of the same chemistry do not propose the sam
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 from pydantic import ValidationError
 
 from twin.core.errors import ScenarioError
-from twin.scenario.files import read_yaml
 from twin.scenario.loading import parse, problems_of
 from twin.scenario.model import Scenario, SharedCampaign
 
@@ -39,12 +37,6 @@ def campaign_scenario(lab: Scenario, c: SharedCampaign, index: int, source: str 
 def campaign_scenarios(lab: Scenario, source: str = "<lab>") -> dict[str, Scenario]:
     """Every campaign's scenario, by name; a ScenarioError names the campaign and the field."""
     return {c.name: campaign_scenario(lab, c, i, source) for i, c in enumerate(lab.campaigns)}
-
-
-def load_campaign(path: str | Path) -> SharedCampaign:
-    """A campaign file (``twin submit``): a name and the sections of a campaign (priority, owner, chemistry,
-    workflow, campaign)."""
-    return parse_campaign(read_yaml(Path(path)), str(path))
 
 
 def parse_campaign(raw: Any, source: str = "<campaign>") -> SharedCampaign:
