@@ -3,6 +3,7 @@
 import json
 import multiprocessing
 import os
+import shutil
 import signal
 import sqlite3
 import subprocess
@@ -146,6 +147,13 @@ def test_twin_report_on_a_sigkilled_run_says_how_far_it_got_and_twin_resume_fini
     assert "interrupted" in report.output and f"twin resume {db}" in report.output.replace("\n", "")
     said = json.loads(twin_cli("report", str(db), "--json").stdout)  # for a script: `twin report` had no --json
     assert said["state"] == "interrupted" and said["resume_with"] == str(db) and said["so_far"]["events"] > 200
+    several = tmp_path / "several"  # a directory of journals that is not a lab's: each resumes on its own
+    several.mkdir()
+    for suffix in ("", "-wal", "-shm"):
+        if Path(f"{db}{suffix}").exists():
+            shutil.copy(f"{db}{suffix}", f"{several / 'a.db'}{suffix}")
+    told = " ".join(twin_cli("report", str(several), columns=300).output.split())
+    assert f"Continue it with: twin resume {several / 'a.db'}" in told, told  # it named the directory
     resumed = twin_cli("resume", str(db), "--json", columns=80)
     assert resumed.exit_code == 0, resumed.output
     again = json.loads(twin_cli("report", str(db), "--json").stdout)

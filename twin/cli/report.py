@@ -31,7 +31,7 @@ def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<
         dbs = sorted(journal.glob("*.db"))
         if not dbs:
             _fail(TwinError(f"{journal}: no journals (<campaign>.db) here"))
-        states = {db.stem: _state(db, resume_with=journal) for db in dbs}
+        states = {db.stem: _state(db) for db in dbs}
         if as_json:
             console.print_json(json.dumps({"lab": str(journal), "campaigns": {name: _plain(state) for name, state
                                                                                 in states.items()}}))
@@ -55,9 +55,11 @@ def _plain(state: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def _state(journal: Path, resume_with: Path | None = None) -> dict[str, Any]:
+def _state(journal: Path) -> dict[str, Any]:
     """What a journal says of its run: ``state`` finished (with its ``summary``), running or interrupted (with
-    ``so_far``), or never_started (with ``why``); ``resume_with``: what `twin resume` takes to go on with it."""
+    ``so_far``), or never_started (with ``why``); ``resume_with``: what `twin resume` takes to go on with it — the
+    journal, or for a campaign of a lab of several, the lab's directory (a directory of other journals is not
+    one)."""
     from twin.runtime.resume import interrupted
 
     try:
@@ -67,6 +69,7 @@ def _state(journal: Path, resume_with: Path | None = None) -> dict[str, Any]:
     except TwinError as exc:
         _fail(exc)
     out: dict[str, Any] = {"journal": str(journal)}
+    home = journal.parent if "lab" in data else None  # a lab's campaign: the lab resumes as one
     if never:  # a campaign of a lab that stopped, or failed to start, before it began
         try:
             why = json.loads(never[-1]["detail"])
@@ -77,12 +80,11 @@ def _state(journal: Path, resume_with: Path | None = None) -> dict[str, Any]:
         holder = writer(journal)
         running = holder is not None
         return {**out, "state": "running" if running else "interrupted", "so_far": got,
-                "writer": holder or None, "resume_with": None if running else str(resume_with or journal)}
+                "writer": holder or None, "resume_with": None if running else str(home or journal)}
     summary = Summary.from_dict(data["summary"])
     summary.journal = str(journal)  # the file read: a journal copied or moved names where it was written
-    again = resume_with or (journal.parent if "lab" in data else None)
     return {**out, "state": "finished", "summary": summary, "resume_with":
-            str(again or journal) if summary.resumable else None, "_again": again}
+            str(home or journal) if summary.resumable else None, "_again": home}
 
 
 def _render(state: dict[str, Any]) -> None:
