@@ -24,9 +24,7 @@ def people(s: Any) -> set[str]:
 
 def dispatched(core: CampaignCore, att: Attempt, body: dict[str, Any]) -> None:
     """A step given to people: say what to do; in virtual time, the simulated operator confirms it in time."""
-    core._note("operator.step", att.task.experiment.id, att.task.id, att.n, att.device,
-               detail={"step": body["step"], "params": body["params"], "deadline_s": body["deadline_s"],
-                       "instructions": _instructions(core, att)})
+    core._out.append(_announced(core, att, core.now, deadline_s=body["deadline_s"]))
     if core.s.clock.mode == "virtual":
         core._timer(TimerKey(TimerKind.CONFIRM, f"{att.task.id}#{att.n}"), att.task.expected_s)
 
@@ -34,14 +32,16 @@ def dispatched(core: CampaignCore, att: Attempt, body: dict[str, Any]) -> None:
 def said_again(core: CampaignCore, att: Attempt, t_lab: float, why: str) -> Note:
     """A human step still waiting for its person, announced again (a resumed campaign's: whoever pages people
     from the ``operator.step`` notes hears of it afresh); ``why`` says why it is said again."""
+    return _announced(core, att, t_lab, again=why)
+
+
+def _announced(core: CampaignCore, att: Attempt, t_lab: float, **extra: Any) -> Note:
+    """The ``operator.step`` note of a human step: what to do, with what, and where the scenario says how."""
     task = att.task
+    instructions = str(core.s.devices[core.devices[att.device].type].options.get("instructions", ""))[:500]
     return Note(t_lab, "operator.step", task.experiment.id, task.id, att.n, att.device,
-                {"step": task.step.step, "params": {**task.experiment.params, **task.step.params},
-                 "instructions": _instructions(core, att), "again": why})
-
-
-def _instructions(core: CampaignCore, att: Attempt) -> str:
-    return str(core.s.devices[core.devices[att.device].type].options.get("instructions", ""))[:500]
+                {"step": task.step.step, "params": {**task.experiment.params, **task.step.params}, **extra,
+                 "instructions": instructions})
 
 
 def confirm(core: CampaignCore, op: Operator) -> str:

@@ -49,10 +49,7 @@ def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<
 
 def _plain(state: dict[str, Any]) -> dict[str, Any]:
     """A state as JSON holds it: the summary as ``twin run --json`` prints it."""
-    out = {k: v for k, v in state.items() if not k.startswith("_")}
-    if "summary" in out:
-        out["summary"] = out["summary"].to_dict()
-    return out
+    return {**state, "summary": state["summary"].to_dict()} if "summary" in state else state
 
 
 def _state(journal: Path) -> dict[str, Any]:
@@ -84,7 +81,7 @@ def _state(journal: Path) -> dict[str, Any]:
     summary = Summary.from_dict(data["summary"])
     summary.journal = str(journal)  # the file read: a journal copied or moved names where it was written
     return {**out, "state": "finished", "summary": summary, "resume_with":
-            str(home or journal) if summary.resumable else None, "_again": home}
+            str(home or journal) if summary.resumable else None}
 
 
 def _render(state: dict[str, Any]) -> None:
@@ -110,4 +107,4 @@ def _render(state: dict[str, Any]) -> None:
                       f"to {so_far}. Continue it with: twin resume {state['resume_with']}",
                       highlight=False, soft_wrap=True)
         return
-    render_summary(state["summary"], console, state["_again"])
+    render_summary(state["summary"], console, state["resume_with"])
