@@ -162,13 +162,15 @@ def writable(option: str, *paths: Path | None) -> None:
                             "on another disk (nothing has run)"))
 
 
-def recording_file(option: str, path: Path | None) -> None:
-    """Refuse, before any work, a Rerun recording to a file that cannot be written or is not named ``.rrd``:
-    ``--save run.png`` wrote a recording that any tool would take for a broken picture."""
+def recording_file(option: str, path: Path | None, or_picture: bool = False) -> None:
+    """Refuse, before any work, a Rerun recording to a file that cannot be written or is not named ``.rrd`` (or,
+    ``or_picture``, ``.png``): ``--save run.png`` wrote a recording that any tool would take for a broken picture."""
     writable(option, path)
-    if path is not None and path.suffix.lower() != ".rrd":
-        _fail(TwinError(f"{option} {path}: this writes a Rerun recording, so name it {path.with_suffix('.rrd')} "
-                        "(nothing has run)"))
+    if path is None or path.suffix.lower() in ((".rrd", ".png") if or_picture else (".rrd",)):
+        return
+    rrd, png = path.with_suffix(".rrd"), path.with_suffix(".png")
+    _fail(TwinError(f"{option} {path}: " + (f"give a Rerun recording, {rrd}, or a picture, {png}" if or_picture else
+                                             f"this writes a Rerun recording, so name it {rrd}") + " (nothing has run)"))
 
 
 def _fail(exc: TwinError) -> None:

@@ -14,8 +14,8 @@ import typer
 from rich import box
 from rich.table import Table
 
-from twin.cli.common import (_fail, app, bar_progress, console, interruptible, paired_assignments, say_ended_early,
-                             writable)
+from twin.cli.common import (_fail, app, bar_progress, console, interruptible, paired_assignments, recording_file,
+                             say_ended_early, writable)
 from twin.core.errors import TwinError
 from twin.runtime import lab
 from twin.runtime.checks import checked
@@ -97,10 +97,7 @@ def whatif(
     experiments and degraded samples (where any), the busiest device type, and the change against the scenario as
     written; for a lab of several campaigns, each campaign's lab-hours from its start to its end too."""
     writable("--csv", csv_out)
-    writable("--save", save)
-    if save is not None and save.suffix.lower() not in (".rrd", ".png"):
-        _fail(TwinError(f"--save {save}: give a Rerun recording, {save.with_suffix('.rrd')}, or a picture, "
-                        f"{save.with_suffix('.png')} (nothing has run)"))
+    recording_file("--save", save, or_picture=True)
     if budget_hours is not None and not 0 < budget_hours < math.inf:
         _fail(TwinError(f"--budget-hours {budget_hours:g}: give the lab-hours the targets must be met within, a "
                         "number above 0 (e.g. 5)"))
