@@ -1,0 +1,135 @@
+"""The plugins a scenario names — drivers, planners, schedulers, policy files — checked before anything runs: each
+one that cannot be loaded, or is given what it does not take, is named with its file, field and the fix."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import qd_lab, twin_cli
+from twin.core.errors import DriverError, ScenarioError, TwinError
+from twin.runtime.checks import check
+from twin.runtime.assembly import load_driver
+from twin.scenario import load
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def write(tmp_path, raw, name="bad.yaml"):
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(raw) if not isinstance(raw, str) else raw)
+    return path
+
+
+def test_unknown_driver_lists_the_installed_ones(tmp_path):
+    s = load(write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "robot9000"})))
+    with pytest.raises(DriverError) as info:
+        load_driver(s, "synthesiser", "synthesiser")
+    for name in ("robot9000", "synthesiser", "reactor", "spectrometer"):
+        assert name in str(info.value)
+
+
+def test_a_misspelt_planner_option_is_named_and_another_planners_option_is_not_refused(tmp_path):
+    """planner_options went to the planner's constructor, whose **_ swallowed a typo (n_int for n_init) silently."""
+    from twin.runtime.lab import make_planner, prepare
+
+    typo = load(write(tmp_path, qd_lab(**{"campaign.planner": "gp-bo", "campaign.planner_options": {"n_int": 4}})))
+    with pytest.raises(ScenarioError, match=r"campaign\.planner_options\.n_int: no installed planner takes an option "
+                                          r"'n_int' \('gp-bo' takes n_init, "):
+        check(typo)
+    kept = load(write(tmp_path, qd_lab(**{"campaign.planner": "gp-bo", "campaign.planner_options": {"n_init": 4}}),
+                      "ok.yaml"))
+    assert make_planner(kept).n_init == 4
+    swapped = prepare(kept, overrides={"campaign.planner": "random"})  # --planner random, or a bench's row
+    assert make_planner(swapped).propose(1, [], [])  # gp-bo's option is not random's: not used, not refused
+
+
+def test_a_policy_file_given_to_a_rule_is_refused_not_ignored():
+    """`--scheduler mwkr:P.zip` ran MWKR and never read P.zip; `--planner lhs:P.zip` likewise."""
+    from twin.runtime.lab import make_planner, make_scheduler, prepare
+
+    root = Path(__file__).resolve().parents[2]
+    shop = prepare(root / "scenarios" / "jobshop.yaml")
+    policy = root / "agents" / "policies" / "jobshop_scheduler.zip"
+    with pytest.raises(TwinError, match=rf"'mwkr' reads no policy file; a trained scheduler is rl:PATH "
+                                        rf"\(`--scheduler rl:{policy}`\)"):
+        make_scheduler(shop, f"mwkr:{policy}")
+    assert make_scheduler(shop, f"rl:{policy}").follower is None  # a policy through rl: is read
+    dots = prepare(root / "scenarios" / "quantum_dots.yaml")
+    with pytest.raises(TwinError, match="planner 'lhs' reads no policy file"):
+        make_planner(prepare(dots, overrides={"campaign.planner": "lhs:agents/policies/quantum_dots.zip"}))
+
+
+def test_a_misspelt_driver_option_is_named_where_the_driver_lists_its_options(tmp_path):
+    """`devices.reactor.options.kq` (for kp) reached the reactor, which read kp's default and said nothing."""
+    from twin.runtime.lab import prepare
+
+    catalyst = prepare(Path(__file__).resolve().parents[2] / "scenarios" / "catalyst.yaml")
+    typo = prepare(catalyst, overrides={"devices.reactor.options": {"kp": 6.0, "kq": 3.0}})
+    with pytest.raises(DriverError, match=r"devices\.reactor\.options\.kq: the 'reactor' driver takes no option 'kq' "
+                                          r"\(it takes controller, dt_s, kd, ki, kp, telemetry_s\)"):
+        load_driver(typo, "reactor", "reactor")
+    assert load_driver(catalyst, "reactor", "reactor").pid["kp"] == 6.0
+    plain = load(write(tmp_path, qd_lab(**{"devices.spectrometer.options": {"anything": 1}})))
+    with pytest.raises(DriverError, match=r"takes no option 'anything' \(it takes none\)"):
+        load_driver(plain, "spectrometer", "spectrometer")
+
+
+def test_a_class_string_that_does_not_import_says_why(tmp_path):
+    s = load(write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "nowhere.module:Robot"})))
+    with pytest.raises(DriverError, match="could not import 'nowhere.module'"):
+        load_driver(s, "synthesiser", "synthesiser")
+
+
+def test_a_driver_module_beside_the_scenario_is_not_imported_and_the_error_says_how(tmp_path):
+    """A scenario may come from anyone: a .py beside it is not run; the error names it and says how to let it.
+    (The `twin` command, as installed: `python -m` would put the folder on the path itself.)"""
+    (tmp_path / "mine_robot.py").write_text("import sys\nsys.exit('the module ran')\n")
+    path = write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "mine_robot:Robot"}))
+    command = Path(sys.executable).parent / "twin"
+    res = subprocess.run([str(command), "validate", path.name], capture_output=True, text=True, cwd=tmp_path)
+    assert res.returncode == 2 and "the module ran" not in res.stdout + res.stderr
+    assert "mine_robot.py is in this folder" in res.stderr and "PYTHONPATH=." in res.stderr
+    ok = subprocess.run([str(command), "validate", path.name], capture_output=True, text=True, cwd=tmp_path,
+                        env={**os.environ, "PYTHONPATH": "."})
+    assert "the module ran" in ok.stderr  # as told: now it is imported
+
+
+def test_twin_run_names_the_file_and_field_of_a_driver_it_cannot_load_before_running(tmp_path):
+    path = write(tmp_path, qd_lab(**{"devices.spectrometer.driver": "robot9000"}), "lab.yaml")
+    journal = tmp_path / "j.db"
+    res = twin_cli("run", path, "--bus", "memory", "--journal", journal)
+    assert res.exit_code == 2
+    assert f"{path}: 1 problem(s)" in res.stderr and "devices.spectrometer.driver: unknown driver 'robot9000'" in (
+        res.stderr)
+    assert "lab 0 s" not in res.stderr and not journal.exists()  # refused before the progress bar, the journal
+
+
+def test_a_device_type_served_elsewhere_is_not_loaded_here(tmp_path):
+    """Its driver may be installed only where it is served (`twin device serve`); what it outputs is not known
+    here, so targets are not checked against it. Not every instance elsewhere: this process loads it."""
+    s = load(write(tmp_path, qd_lab(**{"devices.spectrometer.driver": "robot9000"})))
+    check(s, external=s.instance_names("spectrometer"))
+    with pytest.raises(ScenarioError, match="devices.spectrometer.driver"):
+        check(s)
+    two = load(write(tmp_path, qd_lab(**{"devices.spectrometer.driver": "robot9000",
+                                        "devices.spectrometer.instances": 2}), "two.yaml"))
+    with pytest.raises(ScenarioError, match="devices.spectrometer.driver"):
+        check(two, external=two.instance_names("spectrometer")[:1])
+
+
+def test_an_unknown_plugin_name_near_an_installed_one_says_which_was_meant():
+    """`--planner gp_bo` and `--schedulers mwrk` listed what was installed without pointing at the near one."""
+    from twin.core import plugins
+    from twin.core.errors import PluginError
+
+    for kind, name, meant in (("planners", "gp_bo", "gp-bo"), ("schedulers", "mwrk", "mwkr")):
+        with pytest.raises(PluginError) as caught:
+            plugins.load(kind, name)
+        assert f"{name!r} (did you mean {meant!r}?). Installed: " in str(caught.value), caught.value
+    with pytest.raises(PluginError) as caught:
+        plugins.load("planners", "zzz")
+    assert "did you mean" not in str(caught.value) and "Installed: fixed, gp-bo" in str(caught.value)
