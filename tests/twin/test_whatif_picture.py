@@ -4,17 +4,9 @@ under a recording's name."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 from tests.conftest import twin_cli
-
-ROOT = Path(__file__).resolve().parents[2]
-FLAKY = str(ROOT / "scenarios" / "flaky_lab.yaml")
-
-
-def whatif(*args):
-    res = twin_cli("whatif", *args, columns=80)
-    return res.exit_code, res.stdout if "--json" in args else res.output  # progress lines go to stderr
+from tests.twin.test_whatif import FLAKY, ROOT, whatif
 
 
 def test_a_picture_of_the_trade_offs_draws_each_variants_numbers(tmp_path):
