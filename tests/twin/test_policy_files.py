@@ -1,6 +1,7 @@
 """A policy file from someone else: loading it runs none of its code, and a damaged one is a clear error."""
 
 import base64
+import io
 import json
 import os
 import pickle
@@ -115,6 +116,32 @@ def test_a_damaged_policy_file_is_a_clear_error(tmp_path, damage):
     with pytest.raises(PluginError, match=r"bad\.(zip|json): not an SB3 policy file|bad.json: not a policy "
                                           r"description|bad.zip: its 'action_space' cannot be read"):
         RlScheduler(load_scenario(ROOT / "scenarios" / "jobshop.yaml"), policy=str(bad))
+
+
+def test_weights_that_would_run_a_command_are_refused_without_torchs_advice_to_trust_them(tmp_path):
+    """The weights (policy.pth, itself a zip around a pickle) are read as weights only; torch's error for a pickle
+    of more than tensors advises loading it unchecked, which the message leaves out."""
+    from agents.rl_scheduler import RlScheduler
+
+    marker, src, bad = tmp_path / "ran", POLICIES / "jobshop_scheduler.zip", tmp_path / "bad.zip"
+    with zipfile.ZipFile(src) as zin, zipfile.ZipFile(bad, "w") as zout:
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            if item.filename == "policy.pth":
+                weights = io.BytesIO()
+                with zipfile.ZipFile(io.BytesIO(data)) as win, zipfile.ZipFile(weights, "w") as wout:
+                    for w in win.infolist():
+                        wout.writestr(w, pickle.dumps(_Runs(f"touch {marker}"), protocol=2) if w.filename.endswith("data.pkl")
+                                      else win.read(w.filename))
+                data = weights.getvalue()
+            zout.writestr(item, data)
+    shutil.copy(src.with_suffix(".json"), bad.with_suffix(".json"))
+    with pytest.raises(PluginError) as refused:
+        RlScheduler(load_scenario(ROOT / "scenarios" / "jobshop.yaml"), policy=str(bad))
+    said = str(refused.value)
+    assert "bad.zip: the policy's weights are damaged or hold more than tensors" in said
+    assert "system" in said and "weights_only" not in said and "trusted source" not in said
+    assert not marker.exists()
 
 
 def test_twin_run_with_a_hostile_policy_says_why_and_runs_nothing(tmp_path):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import pickle
 import time
 from pathlib import Path
 from typing import Any
@@ -75,9 +76,20 @@ def load_policy(path: str | Path, kind: str, signature: dict[str, Any]) -> Any:
     _optimizer_without_dynamo()
     try:
         return algorithm.load(path, device="cpu", custom_objects=objects)
+    except pickle.UnpicklingError as exc:  # torch's own words would suggest weights_only=False: running the file
+        raise PluginError(f"{path}: the policy's weights are damaged or hold more than tensors, and labtwin runs no "
+                          f"code a policy file holds (read as weights only: {_unpickler_said(exc)}); save it again with "
+                          "`twin train`") from exc
     except Exception as exc:
         raise PluginError(f"{path}: the policy cannot be loaded ({type(exc).__name__}: {exc}); "
                           "save it again with `twin train`") from exc
+
+
+def _unpickler_said(exc: Exception) -> str:
+    """What torch's weights-only reader found, without the advice around it (to load the file unchecked)."""
+    text = str(exc).partition("Check the documentation")[0]
+    said = text.partition("WeightsUnpickler error:")[2] or (text.split("\n", 1)[1] if "\n" in text else "")
+    return " ".join(said.partition("Please use")[0].split())[:200] or "not a pickle of tensors"
 
 
 @functools.cache  # once per process: the classes are torch's, the same for every policy loaded
