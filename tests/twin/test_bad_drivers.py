@@ -369,3 +369,8 @@ def test_work_waiting_for_the_only_instance_still_running_a_cancelled_step_is_gi
     assert [e["kind"] for e in events].count("devices.unavailable") == 1
     assert "devices.available" not in [e["kind"] for e in events]
     assert summary.lab_hours < 8
+    # the rest of the budget was never proposed: said, and a bench counts the run as one that ended early
+    left = 6 - summary.proposed
+    assert left >= 1 and summary.stopped == (f"no usable spectrometer for 7200 lab-s (campaign.give_up_after_s), "
+                                             f"so {left} experiment(s) of the budget were never proposed")
+    assert summary.hours_compared(50.0) == 50.0

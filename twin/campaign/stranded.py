@@ -50,3 +50,21 @@ def give_up(core: CampaignCore, dtype: str) -> None:
         outcomes.finish(core, t.experiment, Status.ABANDONED, f"no usable {dtype} (lost or quarantined) for "
                                                               f"{after:.0f} lab-s (campaign.give_up_after_s)")
     core._wake = True
+
+
+def cut_short(core: CampaignCore) -> str:
+    """Why a campaign that ended on its own left some of its budget unproposed, when the reason is a device type
+    its workflow needs given up on (no other limit would have ended it); '' otherwise. A bench counts such a run
+    as one that ended early, not as a short one."""
+    c = core.s.campaign
+    lost = [t for t in dict.fromkeys(step.device for step in core._workflow) if t in core._availability.given_up]
+    left = c.budget + core.replaced - len(core.experiments)
+    if not lost or left <= 0 or core.stopping or core.planner_exhausted:
+        return ""
+    if c.max_cost is not None and core.cost >= c.max_cost:
+        return ""
+    targets = core.s.chemistry.targets
+    if c.stop_on_target and targets and len(core.met_at) == len(targets):
+        return ""
+    return (f"no usable {', '.join(lost)} for {c.give_up_after_s:g} lab-s (campaign.give_up_after_s), so {left} "
+            f"experiment(s) of the budget were never proposed")

@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from twin.campaign.ledger import UNRUNNABLE
+from twin.campaign.stranded import cut_short
 
 
 EXAMPLE_CHARS = 240
@@ -182,7 +183,7 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         best=best, targets_met_h={k: v / 3600 for k, v in core.met_at.items()},
         targets_met_after=dict(core.met_after), targets_met_cost=dict(core.met_cost),
         stopped=core.stopping or (f"the planner failed ({core.planner_failed}); the experiments it had proposed "
-                                  "were run to their end" if core.planner_failed else ""),
+                                  "were run to their end" if core.planner_failed else cut_short(core)),
         resumable=core.resumable,
         cost=core.cost, hours_cost=core.hours_cost, wall_s=wall_s, events=events,
         decisions=len(core.decision_wall_s), decision_ms=_percentiles(core.decision_wall_s),

@@ -53,7 +53,8 @@ class Campaign(Spec):
                               "best run's orders as played")
     give_up_after_s: float = Field(default=4 * 3600, gt=0, le=MAX_S, description="lab seconds the experiments "
                                    "that need a device type wait when none of its instances is usable (lost, "
-                                   "quarantined) before they are abandoned; an instance that comes back resumes them")
+                                   "quarantined) before they are abandoned; an instance that comes back resumes them (past it, no "
+                                   "experiment that needs the type is proposed, and the summary says so)")
     planner_deadline_s: float = Field(default=300, gt=0, le=MAX_S, description="lab seconds a planner may think "
                                       "(on a scaled or wall clock, in a worker thread) before the lab goes on "
                                       "without its answer; it is used when it comes")
