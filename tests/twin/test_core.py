@@ -42,6 +42,25 @@ def msg(kind, device, task, attempt, token=None, key="", **body):
     return DeviceMessage(kind, device, task, attempt, body, b"{}", key, token)
 
 
+def test_the_campaign_starts_when_every_device_is_present_whatever_their_order_and_comings_and_goings(scenario_of):
+    """Every device but one ("last") arrives, one of them ("leaver") leaves again, the last arrives: still one short;
+    the leaver back: the campaign begins (each pair, as a set of the devices still to come sees them in any order)."""
+    lab = scenario_of(**{"devices.synthesiser.instances": 3, "devices.spectrometer.instances": 2})
+    names = sorted(CampaignCore(lab, secret=SECRET).devices)
+    began = lambda out: bool(of(out, Ask))  # noqa: E731
+    for last in names:
+        for leaver in [n for n in names if n != last]:
+            core = CampaignCore(lab, secret=SECRET)
+            core.start(0.0)
+            order = [(n, True) for n in names if n != last] + [(leaver, False), (last, True)]
+            for t, (name, alive) in enumerate(order, 1):
+                core.feed(Presence(name, alive))
+                assert not began(core.advance(float(t))), (last, leaver, name, alive)
+            core.feed(Presence(leaver, True))
+            out = core.advance(10.0)
+            assert began(out) and CancelTimer(TimerKey(TimerKind.STARTUP)) in out, (last, leaver)
+
+
 def test_a_step_goes_out_when_the_scheduler_assigns_it_and_finishes_with_its_result(scenario_of):
     core, out = started(scenario_of, **{"campaign.budget": 1})
     (ask,) = of(out, Ask)

@@ -76,6 +76,7 @@ class CampaignCore:
         self.planner_exhausted = False
         self.planner_failed = ""  # why the planner can propose no more: the campaign finishes what is in the lab
         self.stopping = ""
+        self.awaited: set[str] | None = None  # before the start: devices maybe still offline (device_events)
         self.resumable = False  # the stop came from outside (Stop.outside): twin resume continues the campaign
         self.paused_by = ""  # an operator paused the campaign: nothing new is proposed or dispatched
         self.questions: dict[str, questions.Question] = {}  # failed steps an operator is asked about

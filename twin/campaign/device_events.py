@@ -83,6 +83,8 @@ def presence(core: CampaignCore, name: str, alive: bool) -> None:
     if dev is None or dev.online == alive:
         return
     dev.online = alive
+    if not alive and core.awaited is not None:
+        core.awaited.add(name)
     core._note("device.online" if alive else "device.lost", device=dev.name)
     if not alive:
         flap = dev.lost_at is not None and core.now - dev.lost_at < core._flap_s
@@ -102,7 +104,21 @@ def presence(core: CampaignCore, name: str, alive: bool) -> None:
             core.counts.steps_lost += 1
             outcomes.resolve(core, dev.attempt, Code.DEVICE_LOST,
                              {"reason": f"{dev.name} left the bus (liveliness lost)"})
-    if not core._running and all(d.online for d in core.devices.values()):
+    if not core._running and _all_online(core):
         core.cancel_timer(TimerKey(TimerKind.STARTUP))
         core._begin()
     core._wake = True
+
+
+def _all_online(core: CampaignCore) -> bool:
+    """Whether every device is online, as the campaign waits to start. Each arrival checked them all, which is
+    quadratic in the lab's size (a lab of thousands of instances took seconds to start); the devices still to
+    come are kept instead, each checked off once it is seen online."""
+    if core.awaited is None:
+        core.awaited = {d.name for d in core.devices.values() if not d.online}
+    while core.awaited:
+        first = next(iter(core.awaited))
+        if not core.devices[first].online:
+            return False
+        core.awaited.discard(first)
+    return True
