@@ -74,6 +74,10 @@ def test_the_table_fits_80_columns_and_names_the_busiest_device():
     (["--vary", "devices.reactor.instances=1,,3"], "reactor.instances: Input should be a valid integer (got None)"),
     (["--vary", "campaigns.0.after=,,dots"], "an empty value (null) is given twice"),
     (["--vary", "devices.reactor.instances=3,3.0"], "3.0 is given twice"),
+    # --planners replaced the values --vary gave the same field: every "random" row ran gp-bo
+    (["--vary", "campaign.planner=random,lhs", "--planners", "gp-bo"],
+     "--vary campaign.planner and --planners both vary campaign.planner: give all its values once"),
+    (["--vary", "campaign.scheduler=fifo", "--schedulers", "mwkr"], "both vary campaign.scheduler"),
     (["--vary", "devices.reactor.instances=3", "--budget-hours", "-1"], "--budget-hours -1: give the lab-hours"),
     (["--vary", "devices.reactor.instances=3", "--budget-hours", "nan"], "--budget-hours nan: give the lab-hours"),
     (["--vary", "devices.reactor.instances=3", "--save", "w.jpg"], "--save w.jpg: give a Rerun recording, w.rrd, or a "

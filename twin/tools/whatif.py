@@ -105,10 +105,14 @@ def _split_values(text: str) -> list[str]:
 def axes_of(vary: list[tuple[str, list[Any]]], schedulers: list[str] | None, planners: list[str] | None
             ) -> list[tuple[str, list[Any]]]:
     out = list(vary)
-    if schedulers:
-        out.append(("campaign.scheduler", schedulers))
-    if planners:
-        out.append(("campaign.planner", planners))
+    for name, option, values in (("campaign.scheduler", "--schedulers", schedulers),
+                                 ("campaign.planner", "--planners", planners)):
+        if not values:
+            continue
+        if any(field == name for field, _ in vary):
+            raise TwinError(f"--vary {name} and {option} both vary {name}: give all its values once "
+                            f"({option} {','.join(map(str, values))},… or --vary {name}=…,{','.join(map(str, values))})")
+        out.append((name, values))
     return out
 
 
