@@ -205,13 +205,18 @@ def assignments(items: list[str]) -> dict:
     return out
 
 
-def paired_assignments(items: list[str]) -> dict:
-    """``--set`` options of a bench or a what-if, which choose the runs' seeds themselves."""
+def paired_assignments(items: list[str], compared: tuple[str, str] | None = None) -> dict:
+    """``--set`` options of a bench or a what-if, which choose the runs' seeds themselves; ``compared``: the field
+    a bench runs each of an option's values in, and that option (a --set of it would be replaced in every run)."""
     from twin.tools.planner_bench import SEEDS_PAIRED
 
     out = assignments(items)
     if "campaign.seed" in out:
         _fail(TwinError(f"--set campaign.seed: {SEEDS_PAIRED}"))
+    if compared is not None and compared[0] in out:
+        field, option = compared
+        _fail(TwinError(f"--set {field}: this bench runs each of {option} in its place, so it would be replaced in "
+                        f"every run; name it in {option} instead"))
     return out
 
 

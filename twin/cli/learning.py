@@ -133,7 +133,8 @@ def bench_planners(
     names = [p.strip() for p in planners.split(",") if p.strip()]
     if not names:
         _fail(TwinError(f"--planners {planners!r}: name at least one planner, e.g. --planners random,gp-bo"))
-    overrides = {**paired_assignments(set_ or []), **({"campaign.budget": budget} if budget else {})}
+    overrides = {**paired_assignments(set_ or [], ("campaign.planner", "--planners")),
+                 **({"campaign.budget": budget} if budget else {})}
     try:
         s = one_campaign(checked(lab.prepare(scenario, overrides=overrides), scenario), scenario, "planners")
         for name in names:
@@ -160,6 +161,9 @@ def bench_planners(
         table.add_row(*(row[i] for i in shown))
     print_table(table)
     say_ended_early([(t.planner, t.stopped) for trials in results.values() for t in trials])
+
+
+BENCHED = ("campaign.scheduler", "--schedulers")  # what a scheduler bench runs each of
 
 
 @bench_app.command("schedulers")
@@ -202,8 +206,8 @@ def bench_schedulers(
     if not names:
         _fail(TwinError(f"--schedulers {schedulers!r}: name at least one scheduler, e.g. --schedulers fifo,mwkr"))
     if shapes:
-        _bench_shapes(scenario, names, seeds, workers, budget, paired_assignments(set_ or []), random_labs, as_json,
-                      csv_out, by)
+        _bench_shapes(scenario, names, seeds, workers, budget, paired_assignments(set_ or [], BENCHED), random_labs,
+                      as_json, csv_out, by)
         return
     tables: list[dict] = []
     all_runs: list[dict] = []
@@ -214,7 +218,8 @@ def bench_schedulers(
     with bench_pool(workers) as pool:  # one set of workers for every shop
         for file, instance in files:
             try:
-                s = one_campaign(checked(load_variant(scenario, file, budget, paired_assignments(set_ or []), instance),
+                s = one_campaign(checked(load_variant(scenario, file, budget, paired_assignments(set_ or [], BENCHED),
+                                                      instance),
                                          scenario, benched=True), scenario, "schedulers")
                 for name in names:
                     lab.make_scheduler(s, name)
