@@ -229,6 +229,23 @@ def test_run_set_changes_any_field_and_a_bad_one_is_named(tmp_path):
         assert bad.exit_code == 2 and says in bad.output, bad.output
 
 
+def test_an_option_and_a_set_of_its_field_that_disagree_are_refused_and_agreeing_ones_run(tmp_path):
+    """--seed 3 --set campaign.seed=5 ran seed 3 without a word (the option won); each such pair is refused now."""
+    for args, says in ((["--seed", "3", "--set", "campaign.seed=5"], "--seed 3 and --set campaign.seed=5 disagree"),
+                       (["--scheduler", "fifo", "--set", "campaign.scheduler=mwkr"],
+                        "--scheduler fifo and --set campaign.scheduler=mwkr disagree"),
+                       (["--clock", "scaled", "--speed", "60", "--set", "clock.speed=3600"],
+                        "--speed 60 and --set clock.speed=3600 disagree"),
+                       (["--listen", "tcp/127.0.0.1:7000", "--set", "bus.listen=[tcp/127.0.0.1:7001]"],
+                        "--listen tcp/127.0.0.1:7000 and --set bus.listen=[tcp/127.0.0.1:7001] disagree")):
+        bad = twin_cli("run", "scenarios/flaky_lab.yaml", *args, "--journal", str(tmp_path / "bad.db"))
+        assert bad.exit_code == 2 and says in " ".join(bad.output.split()), bad.output
+        assert not (tmp_path / "bad.db").exists()
+    res = twin_cli("run", "scenarios/flaky_lab.yaml", "--seed", "3", "--set", "campaign.seed=3", "--budget", "2",
+                   "--journal", str(tmp_path / "j.db"), "--json")
+    assert res.exit_code == 0 and json.loads(res.stdout)["seed"] == 3, res.output
+
+
 def test_the_command_list_shows_each_summary_as_one_paragraph():
     """typer's rich mode kept a docstring's line breaks in `twin --help`'s list: "as tables (one file" over
     "each) and its provenance"."""

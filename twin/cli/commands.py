@@ -14,8 +14,8 @@ from rich.markup import escape
 from rich.text import Text
 
 from twin.cli.common import (_fail, app, assignments, bar_progress, check_lab_name, console, err, exit_if_interrupted,
-                             exit_status, keep_serving, machine_output, narrow_table, recording_file, sigterm_unwinds,
-                             stopped_by, writable)
+                             exit_status, keep_serving, machine_output, narrow_table, recording_file, refuse_disagreeing,
+                             sigterm_unwinds, stopped_by, writable)
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
 from twin.cli.sharing import shared_lab
@@ -85,6 +85,11 @@ def run(
     """Run a campaign and print its summary."""
     log_to_stderr(logging.WARNING)
     overrides: dict = assignments(set_ or [])
+    refuse_disagreeing(overrides, {
+        "campaign.seed": ("--seed", seed), "clock.mode": ("--clock", clock), "clock.speed": ("--speed", speed),
+        "bus.kind": ("--bus", bus), "campaign.budget": ("--budget", budget), "campaign.planner": ("--planner", planner),
+        "campaign.scheduler": ("--scheduler", scheduler), "bus.listen": ("--listen", listen and list(listen)),
+        "bus.connect": ("--connect", connect and list(connect))})
     overrides |= {f"campaign.{k}": v for k, v in (("budget", budget), ("planner", planner),
                                                    ("scheduler", scheduler)) if v is not None}
     if listen:

@@ -205,6 +205,21 @@ def assignments(items: list[str]) -> dict:
     return out
 
 
+def refuse_disagreeing(sets: dict, options: dict[str, tuple[str, Any]]) -> None:
+    """A command's own option and a --set of the same field that say different things (``options``: field ->
+    (option, its value or None when not given)) are refused, naming both: the option won without a word."""
+    def shown(value: Any, joiner: str) -> str:
+        if isinstance(value, list):
+            return joiner.join(map(str, value))
+        return f"{value:g}" if isinstance(value, float) else str(value)
+
+    for field, (option, value) in options.items():
+        if value is not None and field in sets and sets[field] != value:
+            said = sets[field]
+            said_text = f"[{shown(said, ', ')}]" if isinstance(said, list) else shown(said, "")
+            _fail(TwinError(f"{option} {shown(value, ' ')} and --set {field}={said_text} disagree: give one of them"))
+
+
 def paired_assignments(items: list[str], compared: tuple[str, str] | None = None) -> dict:
     """``--set`` options of a bench or a what-if, which choose the runs' seeds themselves; ``compared``: the field
     a bench runs each of an option's values in, and that option (a --set of it would be replaced in every run)."""
