@@ -37,8 +37,11 @@ def _killed(lab: dict, db: Path, when) -> None:
 
 
 def _signalled(args: list[str], when, sig: int) -> int:
-    """``twin ARGS --quiet``, sent ``sig`` once ``when()`` holds; its exit status."""
-    proc = subprocess.Popen(TWIN + args + ["--quiet"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    """``twin ARGS --quiet``, sent ``sig`` once ``when()`` holds; its exit status. Its journal is committed row by
+    row: a live run's rows wait for its next command otherwise, and ``when()`` would read the lab as it was (on a
+    busy machine the experiments it waited for were journalled only as the campaign ended)."""
+    proc = subprocess.Popen(TWIN + args + ["--quiet"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            env={**os.environ, "LABTWIN_FLUSH_EVERY": "1"})
     deadline = time.monotonic() + 60
     while proc.poll() is None and time.monotonic() < deadline:
         if when():
