@@ -109,7 +109,7 @@ def test_a_bench_refuses_a_seed_set_for_all_its_runs():
         assert res.exit_code == 2 and "--set campaign.seed: the runs' seeds are 0 to N−1" in res.output, res.output
 
 
-def test_a_bench_refuses_a_set_of_the_field_it_compares_which_every_run_would_replace():
+def test_a_bench_refuses_a_set_of_the_field_it_compares_or_of_the_budget_its_option_gives_otherwise():
     qd = ROOT / "scenarios" / "quantum_dots.yaml"
     for args, field, option in ((["planners", qd], "campaign.planner", "--planners"),
                                 (["schedulers", FLAKY, "--shapes"], "campaign.scheduler", "--schedulers"),
@@ -118,6 +118,8 @@ def test_a_bench_refuses_a_set_of_the_field_it_compares_which_every_run_would_re
                        "--seeds", "2")
         said = " ".join(res.output.split())
         assert res.exit_code == 2 and f"--set {field}: this bench runs each of {option} in its place" in said, said
+        budget = twin_cli("bench", *args, "--set", "campaign.budget=5", "--budget", "6", "--seeds", "2")
+        assert budget.exit_code == 2 and "--budget 6 and --set campaign.budget=5 disagree" in budget.output
 
 
 def test_each_instance_costs_its_hours_busy_or_not_and_the_cheapest_variant_weighs_them(tmp_path):

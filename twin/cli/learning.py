@@ -12,7 +12,7 @@ from twin.runtime import lab
 from twin.runtime.checks import checked
 from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
                              exit_status, machine_output, narrow_table, paired_assignments, print_table,
-                             recording_file, say_ended_early, sigterm_unwinds, stopped_by, writable)
+                             recording_file, refuse_disagreeing, say_ended_early, sigterm_unwinds, stopped_by, writable)
 from twin.core.errors import TwinError
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.scenario import Scenario
@@ -133,8 +133,9 @@ def bench_planners(
     names = [p.strip() for p in planners.split(",") if p.strip()]
     if not names:
         _fail(TwinError(f"--planners {planners!r}: name at least one planner, e.g. --planners random,gp-bo"))
-    overrides = {**paired_assignments(set_ or [], ("campaign.planner", "--planners")),
-                 **({"campaign.budget": budget} if budget else {})}
+    sets = paired_assignments(set_ or [], ("campaign.planner", "--planners"))
+    refuse_disagreeing(sets, {"campaign.budget": ("--budget", budget)})
+    overrides = {**sets, **({"campaign.budget": budget} if budget else {})}
     try:
         s = one_campaign(checked(lab.prepare(scenario, overrides=overrides), scenario), scenario, "planners")
         for name in names:
@@ -205,9 +206,10 @@ def bench_schedulers(
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if not names:
         _fail(TwinError(f"--schedulers {schedulers!r}: name at least one scheduler, e.g. --schedulers fifo,mwkr"))
+    sets = paired_assignments(set_ or [], BENCHED)
+    refuse_disagreeing(sets, {"campaign.budget": ("--budget", budget)})
     if shapes:
-        _bench_shapes(scenario, names, seeds, workers, budget, paired_assignments(set_ or [], BENCHED), random_labs,
-                      as_json, csv_out, by)
+        _bench_shapes(scenario, names, seeds, workers, budget, sets, random_labs, as_json, csv_out, by)
         return
     tables: list[dict] = []
     all_runs: list[dict] = []
@@ -218,9 +220,8 @@ def bench_schedulers(
     with bench_pool(workers) as pool:  # one set of workers for every shop
         for file, instance in files:
             try:
-                s = one_campaign(checked(load_variant(scenario, file, budget, paired_assignments(set_ or [], BENCHED),
-                                                      instance),
-                                         scenario, benched=True), scenario, "schedulers")
+                s = one_campaign(checked(load_variant(scenario, file, budget, sets, instance), scenario, benched=True),
+                                 scenario, "schedulers")
                 for name in names:
                     lab.make_scheduler(s, name)
             except TwinError as exc:
