@@ -246,6 +246,23 @@ def test_an_option_and_a_set_of_its_field_that_disagree_are_refused_and_agreeing
     assert res.exit_code == 0 and json.loads(res.stdout)["seed"] == 3, res.output
 
 
+def test_a_speed_alone_asks_for_a_scaled_clock_and_one_for_another_clock_is_refused(tmp_path):
+    """--speed 100 on quantum_dots (a virtual clock) ran in virtual time without a word."""
+    from twin.campaign.journal import read_run
+
+    res = twin_cli("run", "scenarios/quantum_dots.yaml", "--speed", "200000", "--budget", "1", "--bus", "memory",
+                   "--journal", str(tmp_path / "j.db"), "--json")
+    assert res.exit_code == 0, res.output
+    assert read_run(tmp_path / "j.db")["scenario"]["clock"] == {"mode": "scaled", "speed": 200000.0}
+    for args, clock in ((["--clock", "virtual"], "virtual"), (["--set", "clock.mode=wall"], "wall")):
+        bad = twin_cli("run", "scenarios/quantum_dots.yaml", "--speed", "5", *args, "--journal", str(tmp_path / "b.db"))
+        said = " ".join(bad.output.split())
+        assert bad.exit_code == 2 and f"--speed 5 paces a scaled clock, and this lab's clock is {clock}" in said, said
+        assert not (tmp_path / "b.db").exists()
+    served = twin_cli("lab", "serve", "scenarios/shared_lab.yaml", "--clock", "wall", "--speed", "3")
+    assert served.exit_code == 2 and "--speed 3 paces a scaled clock, and this lab's clock is wall" in served.output
+
+
 def test_the_command_list_shows_each_summary_as_one_paragraph():
     """typer's rich mode kept a docstring's line breaks in `twin --help`'s list: "as tables (one file" over
     "each) and its provenance"."""

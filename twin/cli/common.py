@@ -220,6 +220,14 @@ def refuse_disagreeing(sets: dict, options: dict[str, tuple[str, Any]]) -> None:
             _fail(TwinError(f"{option} {shown(value, ' ')} and --set {field}={said_text} disagree: give one of them"))
 
 
+def speed_heeded(speed: float | None, mode: str) -> None:
+    """--speed paces a scaled clock; given for another (a virtual one runs as fast as it can, a wall one at 1), it
+    would be ignored without a word, so it is refused."""
+    if speed is not None and mode != "scaled":
+        raise TwinError(f"--speed {speed:g} paces a scaled clock, and this lab's clock is {mode}: add --clock scaled "
+                        f"to run it at {speed:g} lab-seconds per second, or leave --speed out")
+
+
 def paired_assignments(items: list[str], compared: tuple[str, str] | None = None) -> dict:
     """``--set`` options of a bench or a what-if, which choose the runs' seeds themselves; ``compared``: the field
     a bench runs each of an option's values in, and that option (a --set of it would be replaced in every run)."""

@@ -11,7 +11,8 @@ from typing import Annotated, Optional
 import typer
 from rich.markup import escape
 
-from twin.cli.common import _fail, app, check_lab_name, console, err, exit_if_interrupted, keep_serving, lab_app
+from twin.cli.common import (_fail, app, check_lab_name, console, err, exit_if_interrupted, keep_serving, lab_app,
+                             speed_heeded)
 from twin.cli.printable import log_to_stderr
 from twin.core.errors import TwinError
 from twin.runtime.checks import check
@@ -113,6 +114,7 @@ def lab_serve(
         overrides["bus.connect"] = list(connect)
     try:
         s = lab.prepare(lab_file, clock=clock, speed=speed, bus="zenoh", overrides=overrides, lab_only=True)
+        speed_heeded(speed, s.clock.mode)
         if s.campaigns:
             check(s, external or ())
 
