@@ -98,6 +98,7 @@ def test_train_prints_its_evaluation_curve_and_saves_a_policy_with_its_sidecar(t
     assert res.exit_code == 0, res.output
     curve = [ln for ln in res.stderr.splitlines() if " steps " in ln]
     assert [ln.split()[0] for ln in curve] == ["0", "1,440", "2,880"], res.stderr
+    assert "training goes in rounds" not in res.stderr  # as many steps as asked: nothing to explain
     assert "pid" in curve[0] and "ppo-pure" in curve[1]
     meta = json.loads(out.with_suffix(".json").read_text())
     assert out.exists() and meta["kind"] == "controller" and meta["scenario"] == "catalyst"
@@ -261,6 +262,28 @@ def test_a_speed_alone_asks_for_a_scaled_clock_and_one_for_another_clock_is_refu
         assert not (tmp_path / "b.db").exists()
     served = twin_cli("lab", "serve", "scenarios/shared_lab.yaml", "--clock", "wall", "--speed", "3")
     assert served.exit_code == 2 and "--speed 3 paces a scaled clock, and this lab's clock is wall" in served.output
+
+
+TINY = """
+name: tiny
+lab: tiny
+devices:
+  a: {driver: machine, instances: 1, steps: [one], duration: {mean_s: 60, cv: 0.2}}
+  b: {driver: machine, instances: 2, steps: [two], duration: {mean_s: 90, cv: 0.2}}
+chemistry: {parameters: {x: {low: 0, high: 1}}}
+workflow: [{step: one, device: a}, {step: two, device: b}]
+campaign: {budget: 3, planner: random, scheduler: fifo, seed: 0}
+"""
+
+
+def test_training_past_its_steps_says_why(tmp_path):
+    """--steps 5 trained a whole episode of 6 decisions and the bar jumped from 5/5 to 6/6 without a word."""
+    (tmp_path / "tiny.yaml").write_text(TINY)
+    res = twin_cli("train", tmp_path / "tiny.yaml", "--steps", "5", "--envs", "1", "--eval-every", "5",
+                   "--out", tmp_path / "p.zip")
+    assert res.exit_code == 0 and (tmp_path / "p.zip").exists(), res.output
+    said = " ".join(res.stderr.split())
+    assert re.search(r"trained (\d+) steps for --steps 5: training goes in rounds", said), said
 
 
 def test_the_command_list_shows_each_summary_as_one_paragraph():

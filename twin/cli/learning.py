@@ -62,7 +62,10 @@ def train(
             err.print(message, highlight=False)
     progress = bar_progress()
 
+    trained = [0]
+
     def report(done: int, result: dict | None) -> None:
+        trained[0] = max(trained[0], done)
         progress.update(bar, completed=done, total=max(steps, done))  # rounds of labels can end a little past it
         if result:
             fields = "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
@@ -95,6 +98,9 @@ def train(
             if recording is not None:
                 recording.close()
     console.print(f"saved {path} (and {path.with_suffix('.json').name})")
+    if trained[0] > steps:
+        err.print(f"trained {trained[0]:,} steps for --steps {steps:,}: training goes in rounds (of whole episodes, "
+                  "or of PPO's rollouts on every environment), and a round begun is finished", highlight=False)
 
 
 def one_campaign(s: Scenario, path: Path, what: str) -> Scenario:
