@@ -286,6 +286,20 @@ def test_training_past_its_steps_says_why(tmp_path):
     assert re.search(r"trained (\d+) steps for --steps 5: training goes in rounds", said), said
 
 
+def test_a_lab_on_the_memory_bus_refuses_what_only_a_bus_with_sockets_could_do(tmp_path):
+    """staffed_lab (bus: memory) with --listen ran, and twin ctl found nothing there; --external waited for a
+    device that could never join, then abandoned its work."""
+    res = twin_cli("run", "scenarios/staffed_lab.yaml", "--clock", "scaled", "--listen", "tcp/127.0.0.1:7447",
+                   "--journal", tmp_path / "a.db")
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and "--listen tcp/127.0.0.1:7447: the bus is memory (no sockets)" in said, said
+    res = twin_cli("run", "scenarios/quantum_dots.yaml", "--bus", "memory", "--clock", "scaled", "--external",
+                   "spectrometer", "--journal", tmp_path / "b.db")
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and "devices ['spectrometer'] run in other processes, and the bus is memory" in said
+    assert not list(tmp_path.iterdir())
+
+
 def test_the_command_list_shows_each_summary_as_one_paragraph():
     """typer's rich mode kept a docstring's line breaks in `twin --help`'s list: "as tables (one file" over
     "each) and its provenance"."""

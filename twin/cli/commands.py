@@ -108,6 +108,11 @@ def run(
     try:
         s = lab.prepare(scenario, seed=seed, clock=clock, speed=speed, bus=bus, overrides=overrides)
         speed_heeded(speed, s.clock.mode)
+        if (listen or connect) and s.bus.kind == "memory":
+            given = " ".join(f"--{name} {' '.join(ends)}" for name, ends in (("listen", listen), ("connect", connect))
+                             if ends)
+            raise TwinError(f"{given}: the bus is memory (no sockets), so nothing would listen or connect and `twin "
+                            "ctl`, `twin watch` and devices elsewhere could not reach the lab; add --bus zenoh")
     except TwinError as exc:
         _fail(exc)
     twins = [f"{d} by {spec.twin.driver}" for d, spec in s.devices.items() if spec.twin is not None]

@@ -166,6 +166,18 @@ def fast_refused(s: Scenario, external_devices: Collection[str] = frozenset(), a
     return ""
 
 
+def refuse_external(s: Scenario, external_devices: Collection[str]) -> None:
+    """Devices served by other processes need a lab they can reach and a clock that sees their messages."""
+    if not external_devices:
+        return
+    if s.clock.mode == "virtual":
+        raise ClockError(f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
+                         "see messages in flight: use --clock scaled or --clock wall")
+    if s.bus.kind == "memory":
+        raise TwinError(f"devices {sorted(external_devices)} run in other processes, and the bus is memory (no "
+                        "sockets): none of them could join; use --bus zenoh")
+
+
 def recording_id(s: Scenario) -> str:
     return f"{s.name}-seed{s.campaign.seed}"
 
@@ -279,11 +291,7 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
     ``handle_signals``: SIGINT/SIGTERM stop the campaign cleanly (off for the campaigns a training
     loop runs, where Ctrl-C must stop the training).
     """
-    if external_devices and clock.is_virtual:
-        raise ClockError(
-            f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
-            "see messages in flight: use --clock scaled or --clock wall"
-        )
+    refuse_external(s, external_devices)
     wall0 = time.perf_counter()
     drivers = load_drivers(s, skip=set(external_devices))  # bad drivers fail before the bus opens
     if clock.is_virtual:

@@ -22,7 +22,8 @@ from twin.campaign.lab_replay import RebuiltLab
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_driver,
                                    load_drivers, make_bus, make_clock, make_planner, make_scheduler)
 from twin.runtime.lab import (FALLBACK_LOGGER, JournalFactory, check_runtime, default_journals, finish, flush_live,
-                              noted, open_journal, prepare, refuse_realtime, stop_on_loop_signals, stop_on_signals)
+                              noted, open_journal, prepare, refuse_external, refuse_realtime, stop_on_loop_signals,
+                              stop_on_signals)
 from twin.runtime.checks import check_campaign
 from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.labtime import LabTimeSource
@@ -63,9 +64,7 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
     ``run`` asks one in benches and what-if; otherwise it is refused."""
     check_runtime(runtime, "" if s.clock.mode == "virtual" else
                   f"the clock is {s.clock.mode} (the fast runtime keeps virtual time only)", "lab")
-    if external_devices and s.clock.mode == "virtual":
-        raise ClockError(f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
-                         "see messages in flight: use --clock scaled or --clock wall")
+    refuse_external(s, external_devices)
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
     if not agent_in_process:
