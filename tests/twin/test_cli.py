@@ -300,6 +300,24 @@ def test_a_lab_on_the_memory_bus_refuses_what_only_a_bus_with_sockets_could_do(t
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("args,says", [
+    (["run", "scenarios/quantum_dots.yaml", "--serve-port", "9000"], "--serve-port 9000: the port of --serve's server"),
+    (["resume", "nowhere.db", "--web-port", "9001"], "--web-port 9001: the port of --serve's server"),
+    (["bench", "schedulers", "scenarios/flaky_lab.yaml", "--random-labs", "2"], "--random-labs 2: an option of "
+                                                                               "--shapes"),
+    (["bench", "schedulers", "scenarios/flaky_lab.yaml", "--by", "objective"], "--by objective: an option of --shapes"),
+    (["bench", "schedulers", "scenarios/flaky_lab.yaml", "--jobshop", "jobshop/ft06.txt"],
+     "scenarios/flaky_lab.yaml has no `jobshop:` section"),
+])
+def test_an_option_that_would_be_ignored_is_refused_before_anything_runs(args, says, tmp_path, monkeypatch):
+    """Each ran as if the option had not been given (a bench of flaky_lab with --jobshop: six problems with its
+    workflow instead)."""
+    monkeypatch.chdir(ROOT)
+    res = twin_cli(*args)
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and says in said, said
+
+
 def test_the_command_list_shows_each_summary_as_one_paragraph():
     """typer's rich mode kept a docstring's line breaks in `twin --help`'s list: "as tables (one file" over
     "each) and its provenance"."""

@@ -100,6 +100,9 @@ def test_the_cheapest_variant_within_the_hours_must_meet_every_target_in_every_r
     assert cheapest_within(summary, 4) is None
     free = [row("as written", 10, 0), row("faster", 6, 0), row("fastest", 5, 0)]
     assert cheapest_within(free, 8)["variant"] == "fastest"  # of equal costs, the fewest lab-hours
+    # a lab without targets (a job shop) is judged by its whole campaign: a run reached nothing, yet it ended
+    shops = [row("as written", 10, 500, reached=0), row("two m0", 7, 800, reached=0), row("three", 6, 900, reached=0)]
+    assert cheapest_within(shops, 8) is None and cheapest_within(shops, 8, targets=False)["variant"] == "two m0"
 
 
 def test_a_bench_refuses_a_seed_set_for_all_its_runs():

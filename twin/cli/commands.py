@@ -103,7 +103,7 @@ def run(
         overrides["bus.security"] = str(security.resolve())
     if insecure:
         overrides["bus.insecure"] = True
-    record = RecordOptions(save, viewer, serve, serve_port, web_port)
+    record = _record(save, viewer, serve, serve_port, web_port)
     recording_file("--save", save)
     try:
         s = lab.prepare(scenario, seed=seed, clock=clock, speed=speed, bus=bus, overrides=overrides)
@@ -159,12 +159,13 @@ def resume(
 
     log_to_stderr(logging.WARNING)
     recording_file("--save", save)
+    record = _record(save, viewer, serve, serve_port, web_port)
     if journal.is_dir():  # the journals of a lab several campaigns share
         try:
             s = recorded_lab(journal)[0]
         except TwinError as exc:
             _fail(exc)
-        shared_lab(s, None, RecordOptions(save, viewer, serve, serve_port, web_port), quiet, json_out, None,
+        shared_lab(s, None, record, quiet, json_out, None,
                    resuming=journal, runtime=runtime)
         return
     try:
@@ -176,9 +177,18 @@ def resume(
                "had in the lab" if s.clock.mode != "virtual" else
                f"{len(prefix)} recorded events are checked as the campaign re-runs")
         err.print(f"resuming {journal}: {how}", highlight=False)
-    _campaign(s, RecordOptions(save, viewer, serve, serve_port, web_port), quiet, json_out,
+    _campaign(s, record, quiet, json_out,
               lambda on_progress, observer: resume_journal(journal, on_progress=on_progress, observer=observer,
                                                        runtime=runtime))
+
+
+def _record(save: Path | None, viewer: bool, serve: bool, serve_port: int, web_port: int) -> RecordOptions:
+    """What to record; a port of --serve's server given without --serve would be ignored, so it is refused."""
+    ports = [f"--{name} {port}" for name, port in (("serve-port", serve_port), ("web-port", web_port)) if port]
+    if ports and not serve:
+        _fail(TwinError(f"{' and '.join(ports)}: the port{'s' if len(ports) > 1 else ''} of --serve's server, and "
+                        "nothing is served: add --serve"))
+    return RecordOptions(save, viewer, serve, serve_port, web_port)
 
 
 def waiting_for(device_types: list[str], paused_by: str = "") -> str:

@@ -202,6 +202,11 @@ def bench_schedulers(
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write every run to this CSV file")] = None,
 ) -> None:
     """Makespan, gap to the CP-SAT bound, utilisation, degraded and lost samples, decision latency per scheduler."""
+    shapes_only = [f"--{name} {value}" for name, value, default in (("random-labs", random_labs, 0),
+                                                                    ("by", by, "makespan")) if value != default]
+    if shapes_only and not shapes:
+        _fail(TwinError(f"{' and '.join(shapes_only)}: {'options' if len(shapes_only) > 1 else 'an option'} of "
+                        "--shapes, which this bench is not: add --shapes"))
     writable("--csv", csv_out)
     from dataclasses import asdict
 
@@ -220,6 +225,9 @@ def bench_schedulers(
     tables: list[dict] = []
     all_runs: list[dict] = []
     try:  # a collection of shops (OR-Library's jobshop1.txt) is each of its instances
+        if jobshop and lab.prepare(scenario).jobshop is None:
+            raise TwinError(f"--jobshop runs job shops in a job-shop scenario's lab, and {scenario} has no `jobshop:` "
+                            "section: give one, e.g. scenarios/jobshop.yaml")
         files: list = shops(scenario, [f.strip() for f in jobshop.split(",")]) if jobshop else [(None, None)]
     except TwinError as exc:
         _fail(exc)

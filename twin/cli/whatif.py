@@ -87,7 +87,8 @@ def whatif(
     workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
     budget_hours: Annotated[Optional[float], typer.Option(help="also name the cheapest variant (median cost) "
                                                                "that met every target in every run, its median "
-                                                               "lab-hours to them within this many")] = None,
+                                                               "lab-hours to them within this many (a lab without "
+                                                               "targets: its whole campaign's)")] = None,
     csv_out: Annotated[Optional[Path], typer.Option("--csv", help="write a row per variant to this CSV file")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="print every variant and run as JSON instead of the table")] = False,
     save: Annotated[Optional[Path], typer.Option(help="draw the trade-offs into a Rerun recording, whatif.rrd, or a "
@@ -132,7 +133,7 @@ def whatif(
         bar = progress.add_task(f"{s.name}: {len(chosen)} variants × {seeds} seed(s)", total=len(chosen) * seeds)
         results = run_whatif(s, chosen, seeds, workers, on_run=lambda o: progress.advance(bar))
     summary = summarise(results, chosen)
-    best = cheapest_within(summary, budget_hours) if budget_hours is not None else None
+    best = cheapest_within(summary, budget_hours, any_targets(s)) if budget_hours is not None else None
     if csv_out is not None:
         _write_csv(csv_out, summary)
     if save is not None and save.suffix.lower() == ".png":
@@ -179,8 +180,9 @@ def whatif(
         costs = costs_anything(summary)
         found = best and (f"{best['variant']} (" + (f"cost {best['cost'][1]:,.0f}, " if costs else "") +
                           f"{best['lab_hours'][1]:.1f} lab-h)")
+        judged = "every target met in every run" if any_targets(s) else "the whole campaign: the lab has no targets"
         console.print(f"{'cheapest' if costs else 'fastest (nothing costs anything)'} within {budget_hours:g} lab-h "
-                      f"(median; every target met in every run): {found or 'none of these variants'}", highlight=False)
+                      f"(median; {judged}): {found or 'none of these variants'}", highlight=False)
     for path in (csv_out, save):
         if path is not None:
             console.print(f"wrote {path}", highlight=False)

@@ -282,10 +282,11 @@ def summarise(results: list[Outcome], chosen: list[Variant]) -> list[dict[str, A
     return out
 
 
-def cheapest_within(summary: list[dict[str, Any]], hours: float) -> dict[str, Any] | None:
+def cheapest_within(summary: list[dict[str, Any]], hours: float, targets: bool = True) -> dict[str, Any] | None:
     """The variant of least median cost (of equal costs, the fewest lab-hours) whose median lab-hours to target
-    are within ``hours`` and that reached the targets in every run; None if none does."""
-    fits = [row for row in summary if row["reached"] == row["runs"] and row["lab_hours"][1] <= hours]
+    are within ``hours`` and that reached the targets in every run; None if none does. A lab without ``targets``
+    (a job shop, a lab that only keeps time) is judged by its whole campaign's median lab-hours."""
+    fits = [row for row in summary if (row["reached"] == row["runs"] or not targets) and row["lab_hours"][1] <= hours]
     return min(fits, key=lambda row: (row["cost"][1], row["lab_hours"][1])) if fits else None
 
 
