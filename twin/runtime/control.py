@@ -22,6 +22,7 @@ from twin.campaign.operator import status
 from twin.core.clock import LabClock, wall_on_loop
 
 MAX_REQUEST = 4096
+MAX_EXPERIMENT = 2**31  # the journal keeps an experiment in a 64-bit column: a larger one failed every later write
 WHO = re.compile(r"^[A-Za-z0-9_.@-]{1,64}$")
 ANSWER_S = 5.0  # wall seconds for the core to take an act (it takes milliseconds; a stuck loop is reported)
 
@@ -118,8 +119,9 @@ def _request(payload: bytes) -> dict[str, Any]:
     if not isinstance(who, str) or not WHO.match(who):
         raise ValueError(f"who: {who!r} is not a name (1-64 letters, digits, '_', '.', '@', '-')")
     experiment = data.get("experiment")
-    if experiment is not None and (isinstance(experiment, bool) or not isinstance(experiment, int) or experiment < 0):
-        raise ValueError(f"experiment: {experiment!r} is not an experiment number")
+    if experiment is not None and (isinstance(experiment, bool) or not isinstance(experiment, int)
+                                   or not 0 <= experiment < MAX_EXPERIMENT):
+        raise ValueError(f"experiment: {str(experiment)[:40]!r} is not an experiment number")
     now = data.get("now", False)
     if not isinstance(now, bool):
         raise ValueError(f"now: {now!r} is not true or false")
