@@ -170,6 +170,12 @@ def refuse_external(s: Scenario, external_devices: Collection[str]) -> None:
     """Devices served by other processes need a lab they can reach and a clock that sees their messages."""
     if not external_devices:
         return
+    devices = [name for dtype in s.devices for name in s.instance_names(dtype)]
+    unknown = sorted(set(external_devices) - set(devices))
+    if unknown:
+        raise TwinError(f"--external {', '.join(unknown)}: not {'a device' if len(unknown) == 1 else 'devices'} of "
+                        f"lab {s.lab} (its devices: {', '.join(devices)}; a type of several instances is named by "
+                        "each instance)")
     if s.clock.mode == "virtual":
         raise ClockError(f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
                          "see messages in flight: use --clock scaled or --clock wall")
