@@ -297,6 +297,11 @@ def test_a_scenario_given_as_dash_is_read_from_standard_input_and_its_paths_from
                 text=(ROOT / "scenarios" / "jobshop.yaml").read_text(), cwd=ROOT / "scenarios")  # jobshop/ft06.txt
     assert shop.returncode == 0, shop.stderr
     assert json.loads(shop.stdout)["scenario"] == "jobshop_ft06"
+    # a bench loads its scenario once per shop: the second load read an empty stream ("-: 1 problem(s)")
+    shops = twin("bench", "schedulers", "-", "--jobshop", "jobshop/ft06.txt,jobshop/la01.txt", "--schedulers", "mwkr",
+                 "--json", text=(ROOT / "scenarios" / "jobshop.yaml").read_text(), cwd=ROOT / "scenarios")
+    assert shops.returncode == 0, shops.stderr
+    assert [t["lab"] for t in json.loads(shops.stdout)["labs"]] == ["ft06", "la01"]
 
 
 def test_a_job_shop_file_given_as_a_scenario_says_how_to_run_it(tmp_path):

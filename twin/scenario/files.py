@@ -25,7 +25,16 @@ MAX_BYTES = 1 << 20  # a scenario is a few KB; the largest public job shops are 
 MAX_DEPTH = 32
 MAX_VALUES = 100_000
 MAX_ALIASES = 1_000
+_STDIN: dict[str, Any] = {}  # the standard input read, and the stream it was read from
 PIPE_WAIT_S = 10.0  # a named pipe nobody writes to is refused after this, not waited on for ever
+
+
+def _standard_input() -> bytes:
+    """Standard input, read once: a command that loads its scenario again (a bench, once per shop) gets the same
+    text, not an empty stream (a new stream, a test's, is read afresh)."""
+    if _STDIN.get("stream") is not sys.stdin:
+        _STDIN.update(stream=sys.stdin, data=sys.stdin.buffer.read(MAX_BYTES + 1))
+    return _STDIN["data"]
 
 
 def read_text(path: str | Path, what: str = "scenario") -> str:
@@ -35,7 +44,7 @@ def read_text(path: str | Path, what: str = "scenario") -> str:
     where = str(path)
     try:
         if where == "-":
-            data = sys.stdin.buffer.read(MAX_BYTES + 1)
+            data = _standard_input()
         elif path.is_dir():
             raise ScenarioError(where, [f"is a directory: give a {what} file"])
         elif stat.S_ISFIFO(path.stat().st_mode):
