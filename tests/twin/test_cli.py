@@ -308,6 +308,8 @@ def test_a_lab_on_the_memory_bus_refuses_what_only_a_bus_with_sockets_could_do(t
     (["bench", "schedulers", "scenarios/flaky_lab.yaml", "--by", "objective"], "--by objective: an option of --shapes"),
     (["bench", "schedulers", "scenarios/flaky_lab.yaml", "--jobshop", "jobshop/ft06.txt"],
      "scenarios/flaky_lab.yaml has no `jobshop:` section"),
+    (["bench", "planners", "scenarios/quantum_dots.yaml", "--budget", "0"], "Invalid value for '--budget'"),
+    (["bench", "schedulers", "scenarios/flaky_lab.yaml", "--budget", "0"], "Invalid value for '--budget'"),
     # a type's name, not its instances': both synthesisers ran in the lab's process as if it had not been given
     (["run", "scenarios/quantum_dots.yaml", "--clock", "scaled", "--external", "synthesiser"],
      "--external synthesiser: not a device of lab qd (its devices: synthesiser-1, synthesiser-2, spectrometer"),

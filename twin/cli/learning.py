@@ -123,7 +123,8 @@ def bench_planners(
     planners: Annotated[str, typer.Option(help="comma-separated; name~seq runs one experiment at a time, "
                                                 "name@SCHEDULER with another scheduler (gp-bo@fifo~seq)")] = ",".join(DEFAULT_PLANNERS),
     workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
-    budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget (a larger one censors less)")] = None,
+    budget: Annotated[Optional[int], typer.Option(min=1, help="override the scenario's budget (a larger one censors "
+                                                              "less)")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",
                                                       help="override a scenario field, e.g. "
                                                            "campaign.max_in_flight=2; repeatable")] = None,
@@ -185,7 +186,7 @@ def bench_schedulers(
                                                        "jobshop1.txt, Taillard's tai15_15.txt) runs each of its "
                                                        "instances, a directory each of its files")] = None,
     workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
-    budget: Annotated[Optional[int], typer.Option(help="override the scenario's budget")] = None,
+    budget: Annotated[Optional[int], typer.Option(min=1, help="override the scenario's budget")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",
                                                       help="override a scenario field, e.g. "
                                                            "devices.reactor.instances=1 (another lab shape); repeatable")] = None,
