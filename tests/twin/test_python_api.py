@@ -43,6 +43,12 @@ def test_a_scenario_field_given_as_a_keyword_is_named_in_full():
         twin.run(FLAKY, colour="red")
     with pytest.raises(TypeError, match=r"overrides must be a dict .* \(got list\)"):
         twin.run(FLAKY, overrides=["campaign.budget=5"])
+    # the keyword won without a word, where `twin run --seed 3 --set campaign.seed=5` is refused
+    with pytest.raises(TypeError, match=r"seed=3 and overrides\['campaign.seed'\]=5 disagree"):
+        twin.run(FLAKY, seed=3, overrides={"campaign.seed": 5})
+    with pytest.raises(TypeError, match=r"bus='memory' and overrides\['bus.kind'\]='zenoh' disagree"):
+        twin.prepare(FLAKY, bus="memory", overrides={"bus.kind": "zenoh"})
+    assert twin.prepare(FLAKY, seed=3, overrides={"campaign.seed": 3}).campaign.seed == 3
 
 
 def test_the_gym_environments_take_a_mapping_too():

@@ -42,6 +42,10 @@ def prepare(scenario: str | Path | Scenario | dict[str, Any], *, seed: int | Non
         raise TypeError(f"overrides must be a dict of dotted scenario fields, e.g. {{'campaign.budget': 5}} "
                         f"(got {type(overrides).__name__})")
     extra = dict(overrides or {})
+    for name, value, field in (("seed", seed, "campaign.seed"), ("clock", clock, "clock.mode"),
+                               ("speed", speed, "clock.speed"), ("bus", bus, "bus.kind")):
+        if value is not None and field in extra and extra[field] != value:
+            raise TypeError(f"{name}={value!r} and overrides[{field!r}]={extra[field]!r} disagree: give one of them")
     if seed is not None:
         extra["campaign.seed"] = seed
     if clock is not None:
