@@ -309,6 +309,9 @@ def test_a_lab_on_the_memory_bus_refuses_what_only_a_bus_with_sockets_could_do(t
     (["bench", "schedulers", "scenarios/flaky_lab.yaml", "--jobshop", "jobshop/ft06.txt"],
      "scenarios/flaky_lab.yaml has no `jobshop:` section"),
     (["bench", "planners", "scenarios/quantum_dots.yaml", "--budget", "0"], "Invalid value for '--budget'"),
+    # read as no --speed: the device followed the lab's clock
+    (["device", "serve", "scenarios/quantum_dots.yaml", "--id", "spectrometer", "--connect", "tcp/127.0.0.1:9",
+      "--speed", "0"], "Invalid value for '--speed': 0: give lab seconds per wall second"),
     (["bench", "schedulers", "scenarios/flaky_lab.yaml", "--budget", "0"], "Invalid value for '--budget'"),
     # a type's name, not its instances': both synthesisers ran in the lab's process as if it had not been given
     (["run", "scenarios/quantum_dots.yaml", "--clock", "scaled", "--external", "synthesiser"],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -21,8 +22,14 @@ LabEndpoints = Annotated[list[str], typer.Option("--connect", metavar="ENDPOINT"
                                                  help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")]
 ClockInsisted = Annotated[Optional[str], typer.Option(help="scaled | wall: insist on this clock (default: follow "
                                                            "the lab's, whatever it is)")]
-SpeedInsisted = Annotated[Optional[float], typer.Option(help="insist on this many lab seconds per wall second "
-                                                             "(default: the lab's)")]
+def _pace(value: float | None) -> float | None:
+    if value is not None and not 0 < value < math.inf:
+        raise typer.BadParameter(f"{value:g}: give lab seconds per wall second, a number above 0")
+    return value
+
+
+SpeedInsisted = Annotated[Optional[float], typer.Option(callback=_pace, help="insist on this many lab seconds per "
+                                                                             "wall second (default: the lab's)")]
 ConnectWait = Annotated[Optional[float], typer.Option(min=0.1, max=86400, metavar="SECONDS",
                                                       help="how long --connect may take to answer: a lab or router "
                                                            "started after this process (default: the scenario's "
@@ -59,7 +66,7 @@ def device_serve(
     are refused until the lab's clock is heard)."""
     from twin.runtime.serve import serve_device
 
-    _serving(serve_device, scenario, name, connect, clock or ("scaled" if speed else None), speed,
+    _serving(serve_device, scenario, name, connect, clock or ("scaled" if speed is not None else None), speed,
              str(security) if security else None, wait)
 
 
@@ -225,5 +232,5 @@ def scheduler_serve(
     """Serve scheduling decisions to a lab whose campaign.scheduler is `remote`, until SIGINT/SIGTERM."""
     from twin.runtime.serve import serve_scheduler
 
-    _serving(serve_scheduler, scenario, scheduler, connect, clock or ("scaled" if speed else None), speed,
+    _serving(serve_scheduler, scenario, scheduler, connect, clock or ("scaled" if speed is not None else None), speed,
              str(security) if security else None, wait)
