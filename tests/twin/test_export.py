@@ -121,6 +121,22 @@ def test_bad_requests_name_what_to_do(flaky, tmp_path):
     assert len(res.output.splitlines()) == len(WHAT) + 1
 
 
+def test_an_export_or_a_replay_of_a_journal_a_run_still_writes_says_it_holds_what_was_written_so_far(flaky, tmp_path):
+    """Both wrote what a running campaign had journalled so far, as if it were the run's."""
+    from twin.campaign.journal_lock import claim, release
+
+    lock = claim(flaky)  # as the run writing it holds it
+    try:
+        for args, what in ((["export", flaky, "--out", tmp_path / "ex"], "the export"),
+                           (["replay", flaky, "--save", tmp_path / "r.rrd"], "the recording")):
+            res = twin_cli(*args)
+            said = " ".join(res.stderr.split())
+            assert res.exit_code == 0 and f"is still writing it, so {what} holds what it had written by now" in said
+    finally:
+        release(lock)
+    assert "still writing" not in twin_cli("export", flaky, "--out", tmp_path / "ex2").stderr
+
+
 def test_consumables_come_out_as_levels_over_time(tmp_path):
     from tests.conftest import qd_lab
     from tests.twin.test_consumables import stocked

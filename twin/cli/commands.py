@@ -15,7 +15,7 @@ from rich.text import Text
 
 from twin.cli.common import (_fail, app, assignments, bar_progress, check_lab_name, console, err, exit_if_interrupted,
                              exit_status, keep_serving, machine_output, narrow_table, recording_file, refuse_disagreeing,
-                             sigterm_unwinds, speed_heeded, stopped_by, writable)
+                             say_if_still_written, sigterm_unwinds, speed_heeded, stopped_by, writable)
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
 from twin.cli.sharing import shared_lab
@@ -327,6 +327,7 @@ def replay(
         raise typer.Exit(130) from None
     err.print(f"replayed {observer.spectra} spectra, {observer.finished} finished experiments"
               + (f" to {save}" if save else ""), highlight=False)
+    say_if_still_written(journal, "the recording")
 
 
 @app.command()

@@ -220,6 +220,18 @@ def refuse_disagreeing(sets: dict, options: dict[str, tuple[str, Any]]) -> None:
             _fail(TwinError(f"{option} {shown(value, ' ')} and --set {field}={said_text} disagree: give one of them"))
 
 
+def say_if_still_written(journal: Path, what: str) -> None:
+    """Under an export or a replay of a journal (or a lab's directory of them) a run is still writing: what was
+    made holds what the run had written by then, which nothing else would tell."""
+    from twin.campaign.journal_lock import writer
+
+    for path in sorted(journal.glob("*.db")) if journal.is_dir() else [journal]:
+        holder = writer(path)
+        if holder is not None:
+            err.print(f"{path}: a run{f' (process {holder})' if holder else ''} is still writing it, so {what} holds "
+                      "what it had written by now; make it again when the run has ended", highlight=False)
+
+
 def speed_heeded(speed: float | None, mode: str) -> None:
     """--speed paces a scaled clock; given for another (a virtual one runs as fast as it can, a wall one at 1), it
     would be ignored without a word, so it is refused."""

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from twin.cli.common import _fail, app
+from twin.cli.common import _fail, app, say_if_still_written
 from twin.core.errors import TwinError
 from twin.tools.export import WHAT
 
@@ -41,3 +41,4 @@ def export_run(
         _fail(exc)
     for path in written:
         print(path)  # whole paths, for scripts: never wrapped to the terminal
+    say_if_still_written(journal, "the export")
