@@ -300,14 +300,21 @@ class CampaignCore:
         return self._per_hour * self.elapsed_s / 3600
 
     def _can_propose(self) -> bool:
+        return not self.why_no_proposals()
+
+    def why_no_proposals(self) -> str:
+        """Why no more experiments are proposed ('' when they may be): "budget", "planner", "cost", "targets" or,
+        when nothing else holds them back, stranded.GIVEN_UP (a device type an experiment would wait for was given up on)."""
         c = self.s.campaign
-        if self.planner_exhausted or len(self.experiments) >= c.budget + self.replaced:
-            return False
-        if self._availability.blocks(step.device for step in self._workflow):
-            return False  # an experiment would wait for a device type given up on
+        if len(self.experiments) >= c.budget + self.replaced:
+            return "budget"
+        if self.planner_exhausted:
+            return "planner"
         if c.max_cost is not None and self.cost >= c.max_cost:
-            return False
-        return not (c.stop_on_target and self.s.chemistry.targets and len(self.met_at) == len(self.s.chemistry.targets))
+            return "cost"
+        if c.stop_on_target and self.s.chemistry.targets and len(self.met_at) == len(self.s.chemistry.targets):
+            return "targets"
+        return stranded.GIVEN_UP if self._availability.blocks(step.device for step in self._workflow) else ""
 
     def _proposed(self, proposals: list[Proposal], failed: str = "") -> None:
         if failed:

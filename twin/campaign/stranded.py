@@ -11,6 +11,7 @@ from twin.campaign import outcomes
 from twin.campaign.events import Status, TimerKey, TimerKind
 
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
+GIVEN_UP = "given up"  # CampaignCore.why_no_proposals: a device type the workflow needs was given up on
 
 
 def review(core: CampaignCore) -> None:
@@ -56,15 +57,9 @@ def cut_short(core: CampaignCore) -> str:
     """Why a campaign that ended on its own left some of its budget unproposed, when the reason is a device type
     its workflow needs given up on (no other limit would have ended it); '' otherwise. A bench counts such a run
     as one that ended early, not as a short one."""
+    if core.stopping or core.why_no_proposals() != GIVEN_UP:
+        return ""
     c = core.s.campaign
     lost = [t for t in dict.fromkeys(step.device for step in core._workflow) if t in core._availability.given_up]
-    left = c.budget + core.replaced - len(core.experiments)
-    if not lost or left <= 0 or core.stopping or core.planner_exhausted:
-        return ""
-    if c.max_cost is not None and core.cost >= c.max_cost:
-        return ""
-    targets = core.s.chemistry.targets
-    if c.stop_on_target and targets and len(core.met_at) == len(targets):
-        return ""
-    return (f"no usable {', '.join(lost)} for {c.give_up_after_s:g} lab-s (campaign.give_up_after_s), so {left} "
-            f"experiment(s) of the budget were never proposed")
+    return (f"no usable {', '.join(lost)} for {c.give_up_after_s:g} lab-s (campaign.give_up_after_s), so "
+            f"{c.budget + core.replaced - len(core.experiments)} experiment(s) of the budget were never proposed")
