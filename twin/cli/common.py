@@ -19,6 +19,7 @@ from twin.cli.printable import PrintableConsole
 from twin.core import keys
 from twin.core.errors import TwinError
 from twin.core.whole_files import FULL_BYTES, free_bytes
+from twin.scenario.loading import disagreeing
 
 if TYPE_CHECKING:
     from rich.table import Table
@@ -213,11 +214,10 @@ def refuse_disagreeing(sets: dict, options: dict[str, tuple[str, Any]]) -> None:
             return joiner.join(map(str, value))
         return f"{value:g}" if isinstance(value, float) else str(value)
 
-    for field, (option, value) in options.items():
-        if value is not None and field in sets and sets[field] != value:
-            said = sets[field]
-            said_text = f"[{shown(said, ', ')}]" if isinstance(said, list) else shown(said, "")
-            _fail(TwinError(f"{option} {shown(value, ' ')} and --set {field}={said_text} disagree: give one of them"))
+    for field in disagreeing({field: value for field, (_, value) in options.items()}, sets)[:1]:
+        (option, value), said = options[field], sets[field]
+        said_text = f"[{shown(said, ', ')}]" if isinstance(said, list) else shown(said, "")
+        _fail(TwinError(f"{option} {shown(value, ' ')} and --set {field}={said_text} disagree: give one of them"))
 
 
 def say_if_still_written(journal: Path, what: str) -> None:

@@ -24,7 +24,7 @@ from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature, t
 from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
 from twin.scenario import Scenario, load, load_mapping, parse_overridden
-from twin.scenario.loading import model_of
+from twin.scenario.loading import disagreeing, model_of
 from twin.scenario.objective import typical_step
 
 log = logging.getLogger(__name__)
@@ -42,10 +42,11 @@ def prepare(scenario: str | Path | Scenario | dict[str, Any], *, seed: int | Non
         raise TypeError(f"overrides must be a dict of dotted scenario fields, e.g. {{'campaign.budget': 5}} "
                         f"(got {type(overrides).__name__})")
     extra = dict(overrides or {})
-    for name, value, field in (("seed", seed, "campaign.seed"), ("clock", clock, "clock.mode"),
-                               ("speed", speed, "clock.speed"), ("bus", bus, "bus.kind")):
-        if value is not None and field in extra and extra[field] != value:
-            raise TypeError(f"{name}={value!r} and overrides[{field!r}]={extra[field]!r} disagree: give one of them")
+    given = {"campaign.seed": ("seed", seed), "clock.mode": ("clock", clock), "clock.speed": ("speed", speed),
+             "bus.kind": ("bus", bus)}
+    for field in disagreeing({field: value for field, (_, value) in given.items()}, extra)[:1]:
+        name, value = given[field]
+        raise TypeError(f"{name}={value!r} and overrides[{field!r}]={extra[field]!r} disagree: give one of them")
     if seed is not None:
         extra["campaign.seed"] = seed
     if clock is not None:

@@ -15,6 +15,13 @@ from twin.scenario.model import Scenario
 from twin.scenario.spec import Spec
 
 
+def disagreeing(given: dict[str, Any], overrides: dict[str, Any]) -> list[str]:
+    """The dotted fields a caller's own arguments (``given``: field -> value, None where not given) set otherwise
+    than its ``overrides`` do: one of the two would win without a word."""
+    return [field for field, value in given.items()
+            if value is not None and field in overrides and overrides[field] != value]
+
+
 def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bool = False) -> Scenario:
     """Read and validate a scenario file; ``ScenarioError`` lists every problem. ``lab_only``: a lab that takes
     its campaigns later (``twin lab serve``) may have no workflow."""
