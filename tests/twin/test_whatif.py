@@ -105,26 +105,6 @@ def test_the_cheapest_variant_within_the_hours_must_meet_every_target_in_every_r
     assert cheapest_within(shops, 8) is None and cheapest_within(shops, 8, targets=False)["variant"] == "two m0"
 
 
-def test_a_bench_refuses_a_seed_set_for_all_its_runs():
-    for args in (["planners", ROOT / "scenarios" / "quantum_dots.yaml"], ["schedulers", FLAKY, "--shapes"],
-                 ["schedulers", FLAKY]):
-        res = twin_cli("bench", *args, "--set", "campaign.seed=3", "--seeds", "2")
-        assert res.exit_code == 2 and "--set campaign.seed: the runs' seeds are 0 to N−1" in res.output, res.output
-
-
-def test_a_bench_refuses_a_set_of_the_field_it_compares_or_of_the_budget_its_option_gives_otherwise():
-    qd = ROOT / "scenarios" / "quantum_dots.yaml"
-    for args, field, option in ((["planners", qd], "campaign.planner", "--planners"),
-                                (["schedulers", FLAKY, "--shapes"], "campaign.scheduler", "--schedulers"),
-                                (["schedulers", FLAKY], "campaign.scheduler", "--schedulers")):
-        res = twin_cli("bench", *args, "--set", f"{field}=random" if "planner" in field else f"{field}=mwkr",
-                       "--seeds", "2")
-        said = " ".join(res.output.split())
-        assert res.exit_code == 2 and f"--set {field}: this bench runs each of {option} in its place" in said, said
-        budget = twin_cli("bench", *args, "--set", "campaign.budget=5", "--budget", "6", "--seeds", "2")
-        assert budget.exit_code == 2 and "--budget 6 and --set campaign.budget=5 disagree" in budget.output
-
-
 def test_each_instance_costs_its_hours_busy_or_not_and_the_cheapest_variant_weighs_them(tmp_path):
     from twin import run
 
