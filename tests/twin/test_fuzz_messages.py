@@ -68,42 +68,59 @@ def test_ten_thousand_malformed_messages_at_a_live_lab(tmp_path):
     sent = {"evt": 0, "cmd": 0, "oversized": 0}
     seen = {}
 
-    def fuzz():
+    def connect() -> zenoh.Session:
+        """A session that has heard of the lab's subscribers: one of its devices answered a query."""
         cfg = zenoh.Config()
         cfg.insert_json5("mode", '"peer"')
         cfg.insert_json5("scouting/multicast/enabled", "false")
         cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
         session = zenoh.open(cfg)
-        try:
-            names = ["spectrometer-1", "spectrometer-2", "synthesiser", "ghost", "a" * 60]
-            for _ in range(3):  # oversized, first (among the journal's first 1,000): refused before decoding
-                session.put(keys.evt(LAB, "spectrometer-1"), b"x" * (MAX_MESSAGE_BYTES + 1),
-                            congestion_control=zenoh.CongestionControl.BLOCK)
-                sent["oversized"] += 1
-            for i in range(N):
-                payload = malformed(rng, i)
-                where = rng.random()
-                if where < 0.8:
-                    key, counted = rng.choice([keys.evt, keys.telemetry])(LAB, rng.choice(names)), "evt"
-                else:
-                    key, counted = keys.cmd(LAB, rng.choice(names[:3])), "cmd"
-                attachment = rng.randbytes(rng.randint(0, 12)) if rng.random() < 0.3 else None
-                session.put(key, payload, attachment=attachment, congestion_control=zenoh.CongestionControl.BLOCK)
-                sent[counted] += 1
-        finally:
-            session.close()
+        for _ in range(100):
+            if any(reply.ok is not None for reply in session.get(keys.health(LAB, "synthesiser"), timeout=1.0)):
+                return session
+        session.close()
+        raise AssertionError("the lab's synthesiser never answered a health query")
+
+    def send_oversized(session: zenoh.Session) -> None:
+        for _ in range(3):  # refused before decoding
+            session.put(keys.evt(LAB, "spectrometer-1"), b"x" * (MAX_MESSAGE_BYTES + 1),
+                        congestion_control=zenoh.CongestionControl.BLOCK)
+            sent["oversized"] += 1
+
+    def flood(session: zenoh.Session) -> None:
+        names = ["spectrometer-1", "spectrometer-2", "synthesiser", "ghost", "a" * 60]
+        for i in range(N):
+            payload = malformed(rng, i)
+            if rng.random() < 0.8:
+                key, counted = rng.choice([keys.evt, keys.telemetry])(LAB, rng.choice(names)), "evt"
+            else:
+                key, counted = keys.cmd(LAB, rng.choice(names[:3])), "cmd"
+            attachment = rng.randbytes(rng.randint(0, 12)) if rng.random() < 0.3 else None
+            session.put(key, payload, attachment=attachment, congestion_control=zenoh.CongestionControl.BLOCK)
+            sent[counted] += 1
+
+    async def until_counted(core, expected: int) -> None:
+        """Wall time for the last of them to cross the loopback link; a minute is plenty on a loaded machine."""
+        for _ in range(1200):
+            if core.counts.invalid + core.counts.rejected >= expected:
+                return
+            await asyncio.sleep(0.05 * s.clock.speed)  # the loop keeps lab time: 50 ms of wall time
+        raise AssertionError(f"{core.counts.invalid} invalid and {core.counts.rejected} rejected messages "
+                             f"counted a minute after the last of {expected} was sent")
 
     async def main():
         campaign = asyncio.ensure_future(run_async(s, clock, db, on_start=lambda c: seen.setdefault("camp", c)))
         while "camp" not in seen:
             await asyncio.sleep(0.05 * s.clock.speed)  # the loop keeps lab time: 50 ms of wall time
-        await asyncio.to_thread(fuzz)
         core = seen["camp"].core
-        expected = sent["evt"] + sent["oversized"]
-        for _ in range(400):  # wall time for the last of them to cross the loopback link
-            if core.counts.invalid + core.counts.rejected >= expected:
-                break
-            await asyncio.sleep(0.05 * s.clock.speed)  # the loop keeps lab time: 50 ms of wall time
+        session = await asyncio.to_thread(connect)
+        try:
+            await asyncio.to_thread(send_oversized, session)
+            await until_counted(core, sent["oversized"])  # among the journal's first 1,000, whatever the flood's batches
+            await asyncio.to_thread(flood, session)
+        finally:
+            session.close()
+        await until_counted(core, sent["evt"] + sent["oversized"])
         for _ in range(400):  # and for the lab to finish some experiments of its own despite the flood
             if sum(e.status == "done" for e in core.experiments) >= 3:
                 break
