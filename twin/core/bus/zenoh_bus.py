@@ -127,6 +127,7 @@ class ZenohBus:
         self._token_seq: dict[tuple[str, bool], int] = {}
         self._expected_changes: dict[tuple[int, str, bool], int] = defaultdict(int)
         self._routes: dict[str, int] = {}
+        self._foreign_attachments = 0
         self._pending_requests: set[asyncio.Future] = set()
         self._remove_idle_hook: Callable[[], object] = lambda: None
 
@@ -310,8 +311,12 @@ class ZenohBus:
             return _LAST
         raw = att.to_bytes()
         if len(raw) != _STAMP.size:
-            log.warning("a message on %s carries a %d-byte attachment that is not a labtwin bus's stamp: "
-                        "delivered as from outside", sample.key_expr, len(raw))
+            self._foreign_attachments += 1
+            n = self._foreign_attachments
+            if n <= 10 or n % 1000 == 0:  # a flood of them must not flood the log too
+                log.warning("a message on %s carries a %d-byte attachment that is not a labtwin bus's stamp: "
+                            "delivered as from outside (%d so far; the first ten said, then every thousandth)",
+                            sample.key_expr, len(raw), n)
             return _LAST
         seq, bus_id = _STAMP.unpack(raw)
         return seq if bus_id == self._bus_id else _LAST
