@@ -129,7 +129,9 @@ class LiveCampaign:
         self._rebuilt = rebuilt
         # a live campaign journals its core's inputs, so that a killed one can be rebuilt (virtual time re-runs)
         self._recording = not clock.is_virtual and core is None
-        self._decoder = EventDecoder(observer, clock, lambda detail: self.note("device.clock_off", detail))
+        self._decoder = EventDecoder(observer, clock, lambda detail: self.note("device.clock_off", detail),
+                                     until_accepted=True)
+        self._shown: dict[bytes, dict[str, Any]] = {}  # of the messages the core handles now, what to draw
         self._fed: list[Any] = []
         self.decisions = DecisionStream(journal, bus, clock, scenario.lab, campaign_id)
         self.desk = ControlDesk(self.core, clock, self._feed, journal.flush)
@@ -252,6 +254,7 @@ class LiveCampaign:
                 if self._recording:
                     self.journal.inputs(now, {"events": replay.encode_all(self._fed)})
                     self._fed.clear()
+                self._shown = self._decoder.take()  # drawn as the core journals them; what it refuses, never
                 self._perform(self.core.advance(now))
                 if self.clock.is_virtual:
                     break  # the next advance waits until the loop is idle again, as in the fast runtime
@@ -344,6 +347,10 @@ class LiveCampaign:
                 progressed = progressed or a.kind.startswith(PROGRESS_KINDS)
             elif t is RecordMessage:
                 self.journal.received(a)
+                if self._shown:
+                    shown = self._shown.pop(a.payload, None)
+                    if shown is not None:
+                        self.observer.on_envelope(shown)
             elif t is Send:
                 self.bus.publish(keys.cmd(self.s.lab, a.device),
                                  pack(a.kind, a.body, id=f"{SENDER}:{next(self._ids)}", sender=SENDER,

@@ -91,7 +91,7 @@ class LiveLab:
                                      core=self.shared.cores[name], observer=self._feed(name))
                       for name in scenarios}
         self.desk = LabDesk(self)
-        self._decoder = EventDecoder(observer, clock)
+        self._decoder = EventDecoder(observer, clock, until_accepted=True)
         self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
         self._handles: list[Any] = []
         self._done: asyncio.Future | None = None
@@ -260,6 +260,9 @@ class LiveLab:
         self._kicked = False
         try:
             while self.shared.has_work and not self.shared.finished:
+                shown = self._decoder.take()  # drawn by the campaign that journals each; what it refuses, never
+                for seat in self.seats.values():
+                    seat._shown = shown
                 self._perform(self._advance(self.clock.now()))
                 if self.clock.is_virtual:
                     break
