@@ -29,6 +29,8 @@ ERROR_KINDS = {"message.rejected", "device.quarantined", "device.stuck", "device
                "consumable.depleted", "planner.failed"}
 log = logging.getLogger(__name__)
 QUEUE_SERIES = ("ready steps", "samples waiting", "oldest sample's age (h)")
+#: Telemetry series a viewer draws at most: a driver that names a reading afresh each time would make one each.
+MAX_TELEMETRY_SERIES = 1_000
 #: What an observer draws of a device's messages (an in-process runtime hands it only these).
 WATCHED = frozenset({"result", "telemetry"})
 #: Decisions drawn elsewhere and not repeated in the text log.
@@ -123,6 +125,7 @@ class LabObserver:
         self.t0: float | None = None
         self.spectra = 0
         self.undrawn = 0  # messages and decisions the viewer could not draw
+        self.undrawn_series = 0  # readings of names past MAX_TELEMETRY_SERIES
         self.done = False
         self._last_queue: tuple | None = None
         self._queue_at: float | None = None  # the queue changed at this lab time; drawn when time moves on
@@ -176,10 +179,21 @@ class LabObserver:
             for name, value in env.get("body", {}).get("readings", {}).items():
                 path = paths.get((sender, name))
                 if path is None:
+                    if len(paths) >= MAX_TELEMETRY_SERIES:
+                        self._too_many_series(sender, name)
+                        continue
                     path = paths[sender, name] = f"telemetry/{sender}/{name}"
                 self.c.scalar(path, t, float(value))
         elif kind == "result":
             self._spectrum(t, env)
+
+    def _too_many_series(self, sender: str, name: str) -> None:
+        if self.undrawn_series == 0:
+            log.warning("viewer: %s's reading %r would be telemetry series number %d, over the %d a viewer draws "
+                        "(a driver naming its readings afresh, with a time or a counter in the name?): readings "
+                        "of new names are not drawn, and the journal has them all", sender, str(name)[:80],
+                        MAX_TELEMETRY_SERIES + 1, MAX_TELEMETRY_SERIES)
+        self.undrawn_series += 1
 
     def _fresh(self, message: dict[str, Any]) -> bool:
         """False for a message drawn before (a watcher gets some twice: in the history and live)."""
