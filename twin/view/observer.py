@@ -29,8 +29,9 @@ ERROR_KINDS = {"message.rejected", "device.quarantined", "device.stuck", "device
                "consumable.depleted", "planner.failed"}
 log = logging.getLogger(__name__)
 QUEUE_SERIES = ("ready steps", "samples waiting", "oldest sample's age (h)")
-#: Telemetry series a viewer draws at most: a driver that names a reading afresh each time would make one each.
-MAX_TELEMETRY_SERIES = 1_000
+#: Telemetry series a viewer draws of one device at most: a driver that names a reading afresh each time would make
+#: one each.
+MAX_TELEMETRY_SERIES = 256
 #: What an observer draws of a device's messages (an in-process runtime hands it only these).
 WATCHED = frozenset({"result", "telemetry"})
 #: Decisions drawn elsewhere and not repeated in the text log.
@@ -125,7 +126,9 @@ class LabObserver:
         self.t0: float | None = None
         self.spectra = 0
         self.undrawn = 0  # messages and decisions the viewer could not draw
-        self.undrawn_series = 0  # readings of names past MAX_TELEMETRY_SERIES
+        self.undrawn_series = 0  # readings of names past a device's MAX_TELEMETRY_SERIES
+        self._series_of: dict[str, int] = {}  # a device's telemetry series so far
+        self._too_many: set[str] = set()  # devices said to have more
         self.done = False
         self._last_queue: tuple | None = None
         self._queue_at: float | None = None  # the queue changed at this lab time; drawn when time moves on
@@ -179,20 +182,23 @@ class LabObserver:
             for name, value in env.get("body", {}).get("readings", {}).items():
                 path = paths.get((sender, name))
                 if path is None:
-                    if len(paths) >= MAX_TELEMETRY_SERIES:
+                    drawn = self._series_of.get(sender, 0)
+                    if drawn >= MAX_TELEMETRY_SERIES:
                         self._too_many_series(sender, name)
                         continue
+                    self._series_of[sender] = drawn + 1
                     path = paths[sender, name] = f"telemetry/{sender}/{name}"
                 self.c.scalar(path, t, float(value))
         elif kind == "result":
             self._spectrum(t, env)
 
     def _too_many_series(self, sender: str, name: str) -> None:
-        if self.undrawn_series == 0:
-            log.warning("viewer: %s's reading %r would be telemetry series number %d, over the %d a viewer draws "
-                        "(a driver naming its readings afresh, with a time or a counter in the name?): readings "
-                        "of new names are not drawn, and the journal has them all", sender, str(name)[:80],
-                        MAX_TELEMETRY_SERIES + 1, MAX_TELEMETRY_SERIES)
+        if sender not in self._too_many and len(self._too_many) < 10:
+            self._too_many.add(sender)
+            log.warning("viewer: %s's reading %r would be its telemetry series number %d, over the %d a viewer draws "
+                        "of one device (a driver naming its readings afresh, with a time or a counter in the name?): "
+                        "its readings of new names are not drawn, and the journal has them all", sender,
+                        str(name)[:80], MAX_TELEMETRY_SERIES + 1, MAX_TELEMETRY_SERIES)
         self.undrawn_series += 1
 
     def _fresh(self, message: dict[str, Any]) -> bool:
