@@ -36,6 +36,7 @@ def twin(*args):
         ({"chemistry.parameters.time_s": {"low": 10, "high": 5}}, "chemistry.parameters.time_s", "below high"),
         ({"clock.mode": "sundial"}, "clock.mode", "'sundial'"),
         ({"devices.synthesiser.cost": {"per_hour": 40}}, "devices.synthesiser.cost", "got a mapping of per_hour"),
+        ({"devices.synthesiser.instances": {}}, "devices.synthesiser.instances", "got an empty mapping, {}"),
     ],
 )
 def test_each_bad_field_is_named_with_its_value(tmp_path, changes, field, shown):

@@ -267,7 +267,8 @@ def describe(err: Any, raw: dict[str, Any], root: Any = None) -> str:
     shown = f" (got {text if len(text) <= 80 else text[:79] + '…'})"
     if isinstance(value, dict):  # a section's own problems name its fields; a mapping where a value goes, its keys
         keys = ", ".join(map(str, value))[:80]
-        shown = f" (got a mapping of {keys})" if err["type"].endswith(("_type", "_parsing")) and value else ""
+        shown = "" if not err["type"].endswith(("_type", "_parsing")) else f" (got a mapping of {keys})" if value \
+            else " (got an empty mapping, {})"
     msg = err["msg"].removeprefix("Value error, ")
     if err["type"] == "model_type":  # pydantic says "a valid dictionary or instance of JobShop"
         msg = f"should be a mapping{_of_fields(str(err.get('ctx', {}).get('class_name', '')))}"
