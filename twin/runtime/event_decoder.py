@@ -20,21 +20,20 @@ CLOCK_OFF_S, CLOCK_OFF_WALL_S = 60.0, 5.0  # a device stamping times further tha
 
 
 class EventDecoder:
-    """A device's message off the bus: a ``DeviceMessage`` (shown to an in-process observer as it is decoded),
-    or an ``InvalidInput`` that names the sender and the reason. With ``clock`` (a live lab's), a device whose
-    messages say a lab time far from the lab's is told of once: ``on_clock_off(detail)``, and the log.
+    """A device's message off the bus: a ``DeviceMessage``, or an ``InvalidInput`` that names the sender and the
+    reason. With ``clock`` (a live lab's), a device whose messages say a lab time far from the lab's is told of
+    once: ``on_clock_off(detail)``, and the log.
 
-    ``until_accepted``: what the observer is shown waits until the campaign accepts the message (``take``, then
-    the campaign shows those it journals): a result forged on a device's key, refused for its provenance, is
-    drawn neither live nor in the replay of the journal."""
+    What an in-process observer is to be shown of a result or a reading waits until the campaign accepts the
+    message (``take``; the campaign shows those it journals): a result forged on a device's key, refused for its
+    provenance, is drawn neither live nor in the replay of the journal."""
 
     def __init__(self, observer: Any = None, clock: LabClock | None = None,
-                 on_clock_off: Callable[[dict[str, Any]], None] | None = None, until_accepted: bool = False) -> None:
+                 on_clock_off: Callable[[dict[str, Any]], None] | None = None) -> None:
         self.observer = observer
         self.dropped = Dropped(log)
         self._clock = clock if clock is not None and not clock.is_virtual else None
         self._on_clock_off, self._clock_off = on_clock_off, set[str]()
-        self._until_accepted = until_accepted
         self._held: dict[bytes, dict[str, Any]] = {}  # a message as kept for the journal -> what the observer is shown
 
     def take(self) -> dict[bytes, dict[str, Any]]:
@@ -56,13 +55,9 @@ class EventDecoder:
         kept = without_token(env) if env.token else payload
         plain = body.to_dict()
         if self.observer is not None and env.kind in WATCHED:
-            shown = {"kind": env.kind, "id": env.id, "sender": env.sender, "task": env.task,
-                     "campaign": env.campaign or "", "t_lab": env.t_lab, "body": plain}
-            if self._until_accepted:
-                if len(self._held) < MAX_HELD:  # more before the campaign's next turn: a flood, not drawn
-                    self._held[kept] = shown
-            else:
-                self.observer.on_envelope(shown)
+            if len(self._held) < MAX_HELD:  # more before the campaign's next turn: a flood, not drawn
+                self._held[kept] = {"kind": env.kind, "id": env.id, "sender": env.sender, "task": env.task,
+                                    "campaign": env.campaign or "", "t_lab": env.t_lab, "body": plain}
         return DeviceMessage(env.kind, env.sender, env.task, env.attempt, plain, kept, on_key, env.token,
                              env.campaign or "")
 

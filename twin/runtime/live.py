@@ -113,7 +113,7 @@ class LiveCampaign:
         """``rebuilt``: the core of a killed live campaign, rebuilt from its journal (``twin resume``). ``core``:
         one made elsewhere (a campaign of a shared lab, which the lab drives: its inputs are not journalled).
         ``observer``: a ``LabObserver`` in this process, handed the core's notes and the devices' results and
-        telemetry as they are decoded here (not a second subscription that parses them again)."""
+        telemetry as the campaign accepts them, decoded once here (not a second subscription that parses them again)."""
         self.observer = observer
         try:
             self._loop: asyncio.AbstractEventLoop | None = asyncio.get_running_loop()
@@ -129,8 +129,7 @@ class LiveCampaign:
         self._rebuilt = rebuilt
         # a live campaign journals its core's inputs, so that a killed one can be rebuilt (virtual time re-runs)
         self._recording = not clock.is_virtual and core is None
-        self._decoder = EventDecoder(observer, clock, lambda detail: self.note("device.clock_off", detail),
-                                     until_accepted=True)
+        self._decoder = EventDecoder(observer, clock, lambda detail: self.note("device.clock_off", detail))
         self._shown: dict[bytes, dict[str, Any]] = {}  # of the messages the core handles now, what to draw
         self._fed: list[Any] = []
         self.decisions = DecisionStream(journal, bus, clock, scenario.lab, campaign_id)

@@ -91,7 +91,7 @@ class LiveLab:
                                      core=self.shared.cores[name], observer=self._feed(name))
                       for name in scenarios}
         self.desk = LabDesk(self)
-        self._decoder = EventDecoder(observer, clock, until_accepted=True)
+        self._decoder = EventDecoder(observer, clock)
         self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
         self._handles: list[Any] = []
         self._done: asyncio.Future | None = None
