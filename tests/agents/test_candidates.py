@@ -107,12 +107,12 @@ def test_a_policy_knows_the_labs_it_fits_and_warns_or_refuses_outside_them(ft06,
     with caplog.at_level("WARNING"):
         warned = RlScheduler(flaky, str(trained)).misfit
     assert "step type(s) ['measure', 'prepare', 'react'] never seen" in warned and warned in caplog.text
-    assert "3 device types (trained on 6–6)" in warned
+    assert "3 device types (trained on 6)" in warned
     assert "2 instances of one type (trained on at most 1)" in warned
     with pytest.raises(PluginError, match=r"trained on labs unlike 'flaky_lab'.*policy_fit: refuse"):
         RlScheduler(prepare(flaky, overrides={"campaign.policy_fit": "refuse"}), str(trained))
     bigger = jobshop_as_lab(ft06, random_jobshop(10, 8, 1, 10, __import__("random").Random(0)))
-    assert "8 device types (trained on 6–6)" in RlScheduler(bigger, str(trained)).misfit
+    assert "8 device types (trained on 6)" in RlScheduler(bigger, str(trained)).misfit
 
 
 def test_a_policy_of_an_older_encoding_is_refused_with_what_to_do(ft06, trained, tmp_path):
