@@ -382,7 +382,8 @@ def outside(fits: dict, shape: dict) -> list[str]:
         why.append(f"step type(s) {unseen} never seen in training (trained on {fits['steps']})")
     lo, hi = fits["device_types"]
     if not lo <= shape["device_types"] <= hi:
-        why.append(f"{shape['device_types']} device types (trained on {lo if lo == hi else f'{lo}–{hi}'})")
+        n = shape["device_types"]
+        why.append(f"{n} device type{'' if n == 1 else 's'} (trained on {lo if lo == hi else f'{lo}–{hi}'})")
     if shape["instances"] > fits["instances"][1]:
         why.append(f"{shape['instances']} instances of one type (trained on at most {fits['instances'][1]})")
     return why
