@@ -9,6 +9,7 @@ import zenoh
 
 from tests.conftest import qd_lab
 from tests.twin.test_device_process import free_port
+from tests.twin.zenoh_clients import open_session, until_answered
 from twin.campaign import floods
 from twin.campaign.journal import read_events
 from twin.core import keys
@@ -70,16 +71,13 @@ def test_ten_thousand_malformed_messages_at_a_live_lab(tmp_path):
 
     def connect() -> zenoh.Session:
         """A session that has heard of the lab's subscribers: one of its devices answered a query."""
-        cfg = zenoh.Config()
-        cfg.insert_json5("mode", '"peer"')
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-        cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
-        session = zenoh.open(cfg)
-        for _ in range(100):
-            if any(reply.ok is not None for reply in session.get(keys.health(LAB, "synthesiser"), timeout=1.0)):
-                return session
-        session.close()
-        raise AssertionError("the lab's synthesiser never answered a health query")
+        session = open_session(connect=endpoint)
+        try:
+            until_answered(session, keys.health(LAB, "synthesiser"))
+        except AssertionError:
+            session.close()
+            raise
+        return session
 
     def send_oversized(session: zenoh.Session) -> None:
         for _ in range(3):  # refused before decoding

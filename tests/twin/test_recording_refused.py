@@ -9,6 +9,7 @@ import zenoh
 from tests.conftest import qd_lab
 from tests.rrd import read_rrd
 from tests.twin.test_device_process import free_port
+from tests.twin.zenoh_clients import open_session, until_answered
 from twin.campaign.journal import read_events
 from twin.core import keys
 from twin.core.messages import Kind, pack
@@ -35,15 +36,9 @@ def test_a_forged_result_and_reading_are_refused_and_drawn_neither_live_nor_repl
     seen = {}
 
     def forge() -> None:
-        cfg = zenoh.Config()
-        cfg.insert_json5("mode", '"peer"')
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-        cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
-        session = zenoh.open(cfg)
+        session = open_session(connect=endpoint)
         try:
-            for _ in range(100):  # until a device of the lab answers: its subscribers are known
-                if any(r.ok is not None for r in session.get(keys.health(LAB, "synthesiser"), timeout=1.0)):
-                    break
+            until_answered(session, keys.health(LAB, "synthesiser"))
             for i in range(5):  # well formed, on a real device's key, without the attempt's token
                 session.put(keys.evt(LAB, "spectrometer-1"), pack(
                     Kind.RESULT, {"outputs": {"peak_nm": 630.0, "intensity": 1.0,
@@ -78,3 +73,42 @@ def test_a_forged_result_and_reading_are_refused_and_drawn_neither_live_nor_repl
         ys = {point[1] for row in drawn for strip in row["LineStrips2D:strips"] for point in strip}
         assert 300.0 * (1.0 - FORGED_Y[0]) not in ys and len(ys) > 100, name  # the viewer draws y as 300·(1 − y) px
         assert not [path for path in rrd if "forged_reading" in path], name
+
+
+def test_a_lab_of_several_campaigns_draws_no_forged_result_either(tmp_path):
+    import threading
+
+    from tests.twin.shared_labs import LAB as SHARED
+    from tests.twin.shared_labs import recorded_lab
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    s = prepare(SHARED, clock="scaled", speed=2000, bus="zenoh", seed=3,
+                overrides={"bus.connect": [endpoint], "campaigns.0.campaign.budget": 3,
+                           "campaigns.1.campaign.budget": 2})
+    spectrometer = s.instance_names("spectrometer")[0]
+    session = open_session(listen=endpoint)  # the forger is there first, and the lab connects to it
+    sent = []
+
+    def forge() -> None:
+        until_answered(session, keys.health(s.lab, spectrometer))
+        for i in range(5):
+            session.put(keys.evt(s.lab, spectrometer), pack(
+                Kind.RESULT, {"outputs": {"peak_nm": 630.0, "intensity": 1.0,
+                                          "spectrum": {"start_nm": 400.0, "step_nm": 2.0, "y": FORGED_Y}},
+                              "sample": None},
+                id=f"forged:{i}", sender=spectrometer, t_lab=60.0, campaign="dots", task="e0s1", attempt=1,
+                token="0" * 32), congestion_control=zenoh.CongestionControl.BLOCK)
+            sent.append(i)
+
+    forger = threading.Thread(target=forge)
+    forger.start()
+    try:
+        out, rrd = recorded_lab(s, tmp_path)
+    finally:
+        forger.join()
+        session.close()
+    assert len(sent) == 5 and out.campaigns["dots"].rejected_messages == 5
+    drawn = rrd["campaigns/dots/spectra/measurement"]
+    assert len(drawn) == measurements(tmp_path / "runs" / "dots.db") >= 1
+    assert 300.0 * (1.0 - FORGED_Y[0]) not in {p[1] for row in drawn for strip in row["LineStrips2D:strips"]
+                                                for p in strip}
