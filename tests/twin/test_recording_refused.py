@@ -112,3 +112,22 @@ def test_a_lab_of_several_campaigns_draws_no_forged_result_either(tmp_path):
     assert len(drawn) == measurements(tmp_path / "runs" / "dots.db") >= 1
     assert 300.0 * (1.0 - FORGED_Y[0]) not in {p[1] for row in drawn for strip in row["LineStrips2D:strips"]
                                                 for p in strip}
+
+
+def test_what_waits_for_the_campaigns_next_turn_is_bounded_and_the_bound_said_once(caplog):
+    from twin.runtime.event_decoder import MAX_HELD, EventDecoder
+
+    decoder = EventDecoder(observer=object())
+
+    def reading(i: int) -> bytes:
+        return pack(Kind.TELEMETRY, {"readings": {"temperature_c": float(i)}}, id=f"t:{i}", sender="reactor",
+                    t_lab=float(i))
+
+    with caplog.at_level("WARNING"):
+        for i in range(MAX_HELD + 50):
+            decoder.event(keys.telemetry(LAB, "reactor"), reading(i))
+        held = decoder.take()
+        decoder.event(keys.telemetry(LAB, "reactor"), reading(-1))  # the campaign took its turn: held again
+    assert len(held) == MAX_HELD and len(decoder.take()) == 1
+    said = [r.getMessage() for r in caplog.records if "between two turns" in r.getMessage()]
+    assert len(said) == 1 and "the journal has every one it accepts" in said[0]

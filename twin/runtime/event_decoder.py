@@ -35,6 +35,7 @@ class EventDecoder:
         self._clock = clock if clock is not None and not clock.is_virtual else None
         self._on_clock_off, self._clock_off = on_clock_off, set[str]()
         self._held: dict[bytes, dict[str, Any]] = {}  # a message as kept for the journal -> what the observer is shown
+        self._overflowed = False
 
     def take(self) -> dict[bytes, dict[str, Any]]:
         """What the observer is to be shown of the messages decoded since the last call, by the message as the
@@ -55,9 +56,13 @@ class EventDecoder:
         kept = without_token(env) if env.token else payload
         plain = body.to_dict()
         if self.observer is not None and env.kind in WATCHED:
-            if len(self._held) < MAX_HELD:  # more before the campaign's next turn: a flood, not drawn
+            if len(self._held) < MAX_HELD:
                 self._held[kept] = {"kind": env.kind, "id": env.id, "sender": env.sender, "task": env.task,
                                     "campaign": env.campaign or "", "t_lab": env.t_lab, "body": plain}
+            elif not self._overflowed:  # more before the campaign's next turn: a flood
+                self._overflowed = True
+                log.warning("viewer: over %d results and readings came between two turns of the campaign; those "
+                            "past them are not drawn (the journal has every one it accepts)", MAX_HELD)
         return DeviceMessage(env.kind, env.sender, env.task, env.attempt, plain, kept, on_key, env.token,
                              env.campaign or "")
 
