@@ -11,6 +11,8 @@ from twin import Outcome, Proposal, RouteStep
 class RandomPlanner:
     """Uniform draws inside the parameter box: the baseline every planner must beat."""
 
+    plans_routes = False  # every experiment runs the workflow as written
+
     def __init__(self, parameters: dict[str, Any], seed: int, **_: Any) -> None:
         self._box = {name: (p.low, p.high) for name, p in parameters.items()}
         self._rng = random.Random(f"random-planner:{seed}")
@@ -66,6 +68,8 @@ def _check_proposals(proposals: Any) -> None:
 
 class LhsPlanner:
     """A Latin-hypercube design over the budget, proposed in order: space-filling, not adaptive."""
+
+    plans_routes = False  # every experiment runs the workflow as written
 
     def __init__(self, parameters: dict[str, Any], seed: int, budget: int = 30, **_: Any) -> None:
         self._names = list(parameters)

@@ -30,6 +30,8 @@ SAME = 1e-4  # two points closer than this in the unit box are the same experime
 
 
 class RlPlanner:
+    plans_routes = False  # every experiment runs the workflow as written
+
     def __init__(self, parameters: dict[str, Any], seed: int, targets: list[Any] = (), policy: str | None = None,
                  n_init: int = 3, horizon: int = 30, **_: Any) -> None:
         if not policy:

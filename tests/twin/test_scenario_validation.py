@@ -189,6 +189,23 @@ def test_shipped_scenarios_validate(caplog):
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text  # a process prints these
 
 
+def test_a_device_type_no_step_runs_on_is_warned_of_when_the_planner_runs_the_workflow_as_written(tmp_path):
+    """A second spectrometer type the workflow never names stays idle: said before the run, naming it. Not for a
+    planner that may propose routes of its own (bandgap's multi-fidelity one sends work to `dft`, which no
+    workflow step names), nor for people."""
+    spare = {"driver": "spectrometer", "instances": 2, "steps": ["measure"], "duration": {"mean_s": 60}}
+    person = {"driver": "operator", "instances": 1, "steps": ["load"], "duration": {"mean_s": 60}}
+    lab = write(tmp_path, qd_lab(**{"devices.spare": spare, "devices.technician": person,
+                                    "campaign.planner": "gp-bo"}), "lab.yaml")
+    res = twin_cli("validate", lab, str(ROOT / "scenarios" / "bandgap.yaml"))
+    assert res.exit_code == 0, res.stderr
+    warnings = [line for line in res.stderr.splitlines() if "warning:" in line]
+    assert len(warnings) == 1 and "devices.spare: no workflow step runs on it" in warnings[0], res.stderr
+    assert "its 2 instance(s) will stay idle" in warnings[0] and str(lab) in warnings[0]
+    routed = twin_cli("validate", str(ROOT / "scenarios" / "bandgap.yaml"), "--set", "campaign.planner=gp-bo")
+    assert "devices.dft: no workflow step runs on it" in routed.stderr  # gp-bo sends nothing to dft
+
+
 def test_validate_shows_each_warning_under_the_file_that_gave_it(tmp_path):
     """A lab whose measuring device only keeps time in the twin (the `machine` driver) can meet no target on a
     virtual clock: valid, warned of, and the warning names its file — not the other file checked beside it."""

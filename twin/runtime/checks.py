@@ -55,7 +55,10 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
                and dtype not in elsewhere}
     twins = {dtype: _at(f"devices.{dtype}.twin.driver", load_driver, s, dtype, s.instance_names(dtype)[0], True)
              for dtype in drivers if s.devices[dtype].twin is not None}
-    _at("campaign.planner", make_planner, s)
+    planner = _at("campaign.planner", make_planner, s)
+    if types is None:
+        for problem in _idle_types(s, planner):
+            log.warning("%s", problem)
     if not benched:  # a bench runs the schedulers it names, not the scenario's (nor loads its policy to warn of it)
         _at("campaign.scheduler", make_scheduler, s)
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
@@ -75,6 +78,17 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         from twin.core.bus.zenoh_config import check_config
 
         check_config(s.bus.zenoh)
+
+
+def _idle_types(s: Scenario, planner: Any) -> list[str]:
+    """Device types no step will run on: the workflow names none of their steps and the planner, one that says it
+    proposes no routes of its own (``plans_routes = False``), adds none. A planner that does not say may."""
+    if getattr(planner, "plans_routes", None) is not False or s.jobshop is not None:
+        return []
+    used = {w.device for w in s.workflow}
+    return [f"devices.{dtype}: no workflow step runs on it (each step runs on the device type its `device:` names), "
+            f"so its {len(s.instance_names(dtype))} instance(s) will stay idle; name it in a step, or leave it out"
+            for dtype, spec in s.devices.items() if dtype not in used and spec.driver != HUMAN]
 
 
 def _short_deadline(s: Scenario, dtype: str, driver: Any) -> str:
