@@ -103,8 +103,11 @@ def test_ten_thousand_malformed_messages_at_a_live_lab(tmp_path):
             if core.counts.invalid + core.counts.rejected >= expected:
                 return
             await asyncio.sleep(0.05 * s.clock.speed)  # the loop keeps lab time: 50 ms of wall time
+        bus = seen["camp"].bus  # where the rest could be: still queued here, or never arrived
         raise AssertionError(f"{core.counts.invalid} invalid and {core.counts.rejected} rejected messages "
-                             f"counted a minute after the last of {expected} was sent")
+                             f"counted a minute after the last of {expected} was sent; the campaign "
+                             f"{'finished' if core.finished else 'running'}, {len(core._inbox)} inputs in its "
+                             f"inbox, {len(getattr(bus, '_inbox', ()))} messages in the bus's")
 
     async def main():
         campaign = asyncio.ensure_future(run_async(s, clock, db, on_start=lambda c: seen.setdefault("camp", c)))
