@@ -323,3 +323,34 @@ def test_a_wait_answered_on_a_view_the_lab_has_since_left_is_asked_again(scenari
     core.feed(Decided([]))  # "wait", on the view in which synthesiser-1 was busy
     (again,) = of(core.advance(60.0), Ask)
     assert again.what == "schedule" and {r.task for r in again.view.ready} == {"e0s1", "e1s0"}
+
+
+def test_people_no_one_can_use_are_said_to_be_away_or_set_aside_not_lost(scenario_of):
+    """A technician whose steps nobody confirms is set aside as a failing device is; the words for it are a
+    person's, and say how to confirm, where a device's say lost or quarantined."""
+    core = CampaignCore(scenario_of(**{
+        "campaign.budget": 1, "devices.spectrometer.instances": 1, "devices.spectrometer.driver": "operator",
+        "campaign.give_up_after_s": 5000, "orchestrator.quarantine_after": 1,
+        "clock": {"mode": "scaled", "speed": 3600}}), secret=SECRET)  # nobody confirms for it
+    core.start(0.0)
+    core.feed(Presence("synthesiser", True))
+    core.advance(0.0)
+    core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
+    core.advance(0.0)
+    core.feed(Decided([Assignment("e0s0", "synthesiser")]))
+    core.advance(0.0)
+    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0}))
+    core.advance(60.0)
+    core.feed(Decided([Assignment("e0s1", "spectrometer")]))
+    core.advance(60.0)
+    core.feed(TimerFired(TimerKey(TimerKind.DEADLINE, "e0s1#1")))  # the step's time is up, unconfirmed
+    out = core.advance(1000.0)
+    assert notes(out, "device.quarantined")
+    (said,) = notes(out, "devices.unavailable")
+    assert said.detail["people"] is True
+    assert "no spectrometer is usable (each away, or set aside after steps nobody confirmed in time: `twin ctl " \
+           "confirm` confirms one)" in alert_text(said)
+    core.feed(TimerFired(TimerKey(TimerKind.GIVE_UP, "spectrometer")))
+    (gone,) = notes(core.advance(6000.0), "experiment.abandoned")
+    assert gone.detail["reason"].startswith("no usable spectrometer (away, or set aside after steps nobody "
+                                            "confirmed in time")

@@ -249,6 +249,12 @@ def alert_text(n: Note) -> str:
     return f"{n.kind}{where}: {_alert_words(n)}"
 
 
+#: How a device type's instances became unusable (True: people, who are not lost: one whose steps nobody confirmed
+#: in time is set aside as a failing device is).
+UNUSABLE = {False: "lost or quarantined",
+            True: "away, or set aside after steps nobody confirmed in time: `twin ctl confirm` confirms one"}
+
+
 def _alert_words(n: Note) -> str:
     """A detail written for a person: what happened, what the lab does about it, and what one can do."""
     d = n.detail
@@ -257,9 +263,9 @@ def _alert_words(n: Note) -> str:
         waiting = ", ".join(ids[:10]) + (f" and {len(ids) - 10} more" if len(ids) > 10 else "")
         waits = f"experiment {waiting} waits for one, and is" if len(ids) == 1 else \
             f"experiments {waiting} wait for one, and are"
-        return (f"no {d.get('type')} is usable (each lost or quarantined); {waits} abandoned if none is back within "
-                f"{d.get('give_up_after_s', 0):g} lab-s "
-                f"(campaign.give_up_after_s); a quarantined one is given work again after orchestrator.probe_after_s")
+        return (f"no {d.get('type')} is usable (each {UNUSABLE[bool(d.get('people'))]}); {waits} abandoned if none "
+                f"is back within {d.get('give_up_after_s', 0):g} lab-s (campaign.give_up_after_s); a quarantined "
+                f"one is given work again after orchestrator.probe_after_s")
     if n.kind == "devices.missing" and isinstance(d, list):
         return (f"{', '.join(map(str, d))} not on the bus within orchestrator.startup_s: the campaign starts without "
                 f"them, and each takes work once its driver joins the bus (one in another process: `twin device "

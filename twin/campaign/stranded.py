@@ -8,7 +8,8 @@ from __future__ import annotations
 from typing import Any
 
 from twin.campaign import outcomes
-from twin.campaign.events import Status, TimerKey, TimerKind
+from twin.campaign.events import UNUSABLE, Status, TimerKey, TimerKind
+from twin.campaign.human import DRIVER as PERSON
 
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
 GIVEN_UP = "given up"  # CampaignCore.why_no_proposals: a device type the workflow needs was given up on
@@ -30,8 +31,10 @@ def review(core: CampaignCore) -> None:
     after = core.s.campaign.give_up_after_s
     for what, dtype in core._availability.review(waiting, usable, bool(core.stopping)):
         if what == "unavailable":
-            core._note("devices.unavailable", device=dtype,
-                       detail={"type": dtype, "experiments": sorted(waiting[dtype]), "give_up_after_s": after})
+            detail = {"type": dtype, "experiments": sorted(waiting[dtype]), "give_up_after_s": after}
+            if core.s.devices[dtype].driver == PERSON:
+                detail["people"] = True  # said as a person's absence, not a device's loss
+            core._note("devices.unavailable", device=dtype, detail=detail)
             core._timer(TimerKey(TimerKind.GIVE_UP, dtype), after)
             continue
         core.cancel_timer(TimerKey(TimerKind.GIVE_UP, dtype))
@@ -48,9 +51,14 @@ def give_up(core: CampaignCore, dtype: str) -> None:
         core.ready.pop(t.id, None)
         core._retrying.pop(t.id, None)
         core.cancel_timer(TimerKey(TimerKind.RETRY, t.id))
-        outcomes.finish(core, t.experiment, Status.ABANDONED, f"no usable {dtype} (lost or quarantined) for "
+        outcomes.finish(core, t.experiment, Status.ABANDONED, f"no usable {dtype} ({unusable(core, dtype)}) for "
                                                               f"{after:.0f} lab-s (campaign.give_up_after_s)")
     core._wake = True
+
+
+def unusable(core: CampaignCore, dtype: str) -> str:
+    """How the instances of ``dtype`` became unusable, in words for what they are."""
+    return UNUSABLE[core.s.devices[dtype].driver == PERSON]
 
 
 def cut_short(core: CampaignCore) -> str:
