@@ -333,17 +333,14 @@ def test_people_no_one_can_use_are_said_to_be_away_or_set_aside_not_lost(scenari
         "campaign.give_up_after_s": 5000, "orchestrator.quarantine_after": 1,
         "clock": {"mode": "scaled", "speed": 3600}}), secret=SECRET)  # nobody confirms for it
     core.start(0.0)
-    core.feed(Presence("synthesiser", True))
-    core.advance(0.0)
-    core.feed(Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})]))
-    core.advance(0.0)
-    core.feed(Decided([Assignment("e0s0", "synthesiser")]))
-    core.advance(0.0)
-    core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0}))
-    core.advance(60.0)
-    core.feed(Decided([Assignment("e0s1", "spectrometer")]))
-    core.advance(60.0)
-    core.feed(TimerFired(TimerKey(TimerKind.DEADLINE, "e0s1#1")))  # the step's time is up, unconfirmed
+    for t, event in ((0.0, Presence("synthesiser", True)),  # people are not on the bus
+                     (0.0, Proposed([Proposal({"concentration_mm": 5, "temperature_c": 250, "time_s": 60})])),
+                     (0.0, Decided([Assignment("e0s0", "synthesiser")])),
+                     (60.0, msg(Kind.RESULT, "synthesiser", "e0s0", 1, outputs={}, sample={"t_made": 60.0})),
+                     (60.0, Decided([Assignment("e0s1", "spectrometer")]))):  # the technician's step
+        core.feed(event)
+        core.advance(t)
+    core.feed(TimerFired(TimerKey(TimerKind.DEADLINE, "e0s1#1")))  # its time is up, unconfirmed
     out = core.advance(1000.0)
     assert notes(out, "device.quarantined")
     (said,) = notes(out, "devices.unavailable")
