@@ -16,6 +16,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 from msgspec import Meta, Struct
 
+from twin.core import log_floods
 from twin.core.errors import TwinError
 
 VERSION = 1
@@ -132,7 +133,7 @@ class Dropped:
 
     def said(self, where: str, exc: InvalidMessage) -> None:
         self.count += 1
-        if self.count <= 10 or self.count % 1000 == 0:
+        if log_floods.said(self.count):
             self.log.warning("dropped a message %s: %s (%d so far; the journal has the first 1,000, then one row in 1,000)", where, exc, self.count)
 
 

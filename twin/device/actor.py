@@ -16,7 +16,7 @@ import itertools
 import logging
 from typing import Any
 
-from twin.core import keys
+from twin.core import keys, log_floods
 from twin.core.bus import Bus, Closable
 from twin.core.clock import LabClock, end_by_force, wait_cancelled
 from twin.core.streams import KeyedGenerator, seeded
@@ -241,7 +241,7 @@ class DeviceActor:
 
     def _drop(self, what: str) -> None:
         self.dropped += 1  # the health report has the count
-        if self.dropped <= 10 or self.dropped % 1000 == 0:  # a flood must not flood the log too
+        if log_floods.said(self.dropped):
             log.warning("%s dropped %s (%d so far)", self.name, what, self.dropped)
 
     def _driver_for(self, campaign: str) -> Driver:

@@ -29,6 +29,7 @@ import zenoh
 from twin.core.bus.base import Closable, Handler, NoReplyError, Replier, TokenHandler, key_matches, keys_intersect
 from twin.core.bus.endpoints import taken
 from twin.core.bus.zenoh_config import ZenohOptions
+from twin.core import log_floods
 from twin.core.clock import LabClock
 from twin.core.errors import BusError, ClockError
 
@@ -312,11 +313,10 @@ class ZenohBus:
         raw = att.to_bytes()
         if len(raw) != _STAMP.size:
             self._foreign_attachments += 1
-            n = self._foreign_attachments
-            if n <= 10 or n % 1000 == 0:  # a flood of them must not flood the log too
+            if log_floods.said(self._foreign_attachments):
                 log.warning("a message on %s carries a %d-byte attachment that is not a labtwin bus's stamp: "
                             "delivered as from outside (%d so far; the first ten said, then every thousandth)",
-                            sample.key_expr, len(raw), n)
+                            sample.key_expr, len(raw), self._foreign_attachments)
             return _LAST
         seq, bus_id = _STAMP.unpack(raw)
         return seq if bus_id == self._bus_id else _LAST
