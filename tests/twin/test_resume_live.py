@@ -267,13 +267,13 @@ def test_a_rebuild_leaves_out_each_stop_that_was_resumed_and_the_last_one():
                                     {"running": "yes", "recent": [None, "e0s1"]}, {"recent": {"e0s1": 1}}])
 def test_a_health_report_of_another_shape_says_nothing_of_the_step(report):
     """A device that is not ours may answer `health` with anything: the resume had unpacked it blindly."""
-    from twin.runtime.live import reported
+    from twin.runtime.take_over import reported
 
     assert reported(report, "e0s1", 1) == (False, None)
 
 
 def test_a_health_report_says_the_step_runs_or_how_it_ended():
-    from twin.runtime.live import reported
+    from twin.runtime.take_over import reported
 
     done, cancelled = '{"kind": "result"}', '{"kind": "fault", "body": {"code": "cancelled"}}'
     assert reported({"running": ["e0s1", 1]}, "e0s1", 1) == (True, None)

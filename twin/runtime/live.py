@@ -38,6 +38,7 @@ from twin.runtime.checked_scheduler import fallbacks
 from twin.runtime.control import ControlDesk
 from twin.runtime.decision_stream import SENDER, DecisionStream
 from twin.runtime.event_decoder import EventDecoder
+from twin.runtime.take_over import rearm, reported
 from twin.view.observer import UNDRAWN
 from twin.scenario import Scenario
 
@@ -69,39 +70,6 @@ def ask_scheduler(scheduler: Any, ask: Ask, answer: Callable[[Decided, bool], No
 
     pending.add_done_callback(answered)
     return pending
-
-
-def reported(report: Any, task: str, attempt: int, stopped: str = "") -> tuple[bool, str | None]:
-    """What a device's health report says of attempt ``task#attempt``: whether it still runs it, and the message it
-    ended it with (its JSON text, to take), if it has one; a step a stop (``stopped``) cancelled ended with nothing to
-    take. A report of another shape (a device that is not ours) says nothing of it."""
-    if not isinstance(report, dict):
-        return False, None
-    if report.get("running") == [task, attempt]:
-        return True, None
-    recent = report.get("recent")
-    for entry in recent if isinstance(recent, list) else ():
-        if (isinstance(entry, list) and len(entry) == 3 and entry[:2] == [task, attempt] and isinstance(entry[2], str)
-                and not (stopped and _cancelled(entry[2]))):
-            return False, entry[2]
-    return False, None
-
-
-def _cancelled(payload: str) -> bool:
-    """A device's answer that it cancelled its step (the stop's cancel): not a result to adopt."""
-    try:
-        env = json.loads(payload)
-        return env.get("kind") == Kind.FAULT and env.get("body", {}).get("code") == "cancelled"
-    except (ValueError, AttributeError):
-        return False
-
-
-def rearm(clock: LabClock, timers: dict[TimerKey, Any], key: TimerKey, due: float,
-          fire: Callable[[TimerKey], None]) -> None:
-    """A timer the killed process left pending, due at lab time ``due``, set again — unless what the resumed
-    campaign heard since (the answers about its steps in the lab) set it already (a retry's back-off)."""
-    if key not in timers:
-        timers[key] = clock.call_later(max(0.0, due - clock.now()), functools.partial(fire, key))
 
 
 class LiveCampaign:
@@ -245,6 +213,11 @@ class LiveCampaign:
             return True
         return False
 
+    def to_draw(self, held: dict[bytes, dict[str, Any]]) -> None:
+        """What the observer is shown of the messages the core handles next, each when the core journals it (one
+        it refuses, never)."""
+        self._shown = held
+
     def _kick(self) -> None:
         self._kicked = False
         try:
@@ -253,7 +226,7 @@ class LiveCampaign:
                 if self._recording:
                     self.journal.inputs(now, {"events": replay.encode_all(self._fed)})
                     self._fed.clear()
-                self._shown = self._decoder.take()  # drawn as the core journals them; what it refuses, never
+                self.to_draw(self._decoder.take())
                 self._perform(self.core.advance(now))
                 if self.clock.is_virtual:
                     break  # the next advance waits until the loop is idle again, as in the fast runtime

@@ -22,7 +22,8 @@ from twin.campaign import Presence
 from twin.core.errors import ScenarioError, TwinError
 from twin.runtime.lab_desk import LabDesk
 from twin.runtime.event_decoder import EventDecoder
-from twin.runtime.live import LiveCampaign, ask_scheduler, rearm
+from twin.runtime.live import LiveCampaign, ask_scheduler
+from twin.runtime.take_over import rearm
 from twin.scenario import Scenario
 from twin.scenario.files import parse_yaml
 from twin.scenario.sharing import campaign_scenario, parse_campaign
@@ -260,9 +261,9 @@ class LiveLab:
         self._kicked = False
         try:
             while self.shared.has_work and not self.shared.finished:
-                shown = self._decoder.take()  # drawn by the campaign that journals each; what it refuses, never
+                held = self._decoder.take()  # each drawn by the campaign that journals it
                 for seat in self.seats.values():
-                    seat._shown = shown
+                    seat.to_draw(held)
                 self._perform(self._advance(self.clock.now()))
                 if self.clock.is_virtual:
                     break
