@@ -427,25 +427,3 @@ def test_twin_watch_log_prints_the_decisions_and_faults_as_the_journal_has_them_
     assert not [line for line in lines if "attempt.dispatched" in line]  # each dispatch: a debug row, left out
     assert any("campaign quantum_dots started" in line for line in lines)
 
-
-def test_a_driver_naming_its_readings_afresh_draws_a_bounded_number_of_series_and_says_so_once(tmp_path, caplog):
-    from twin.core.messages import Kind, pack
-    from twin.view.observer import MAX_TELEMETRY_SERIES
-    from twin.view.watch import open_observer
-
-    observer, recording = open_observer(RecordOptions(save=tmp_path / "r.rrd"), "fresh-names")
-    n = MAX_TELEMETRY_SERIES + 300
-    with caplog.at_level("WARNING"):
-        for i in range(n):  # a reading named by its time, beside one that keeps its name
-            observer.on_message("", pack(Kind.TELEMETRY, {"readings": {"temperature_c": 20.0 + i, f"t{i}": 1.0}},
-                                         id=f"r:{i}", sender="reactor", t_lab=float(i)))
-            observer.on_message("", pack(Kind.TELEMETRY, {"readings": {"pressure_bar": 1.0, "stir_rpm": 300.0}},
-                                         id=f"p:{i}", sender="reactor-2", t_lab=float(i)))  # a device that does not
-        recording.close()
-    rrd = read_rrd(tmp_path / "r.rrd")
-    assert len([p for p in rrd if p.startswith("telemetry/reactor/")]) == MAX_TELEMETRY_SERIES
-    assert len(rrd["telemetry/reactor/temperature_c"]) == n  # the first name: every row
-    assert len(rrd["telemetry/reactor-2/pressure_bar"]) == len(rrd["telemetry/reactor-2/stir_rpm"]) == n
-    said = [r.getMessage() for r in caplog.records if "telemetry series" in r.getMessage()]
-    assert len(said) == 1 and "reactor's" in said[0] and "the journal has them all" in said[0]
-    assert observer.undrawn_series == n - (MAX_TELEMETRY_SERIES - 1)

@@ -1,5 +1,6 @@
-"""What the lab refuses is not drawn: a result or a reading forged on a device's key, refused for its provenance,
-appears in neither the live recording nor its replay, which draw each measurement the journal holds once."""
+"""What a recording leaves out. What the lab refuses: a result or a reading forged on a device's key, refused for its
+provenance, appears in neither the live recording nor its replay, which draw each measurement the journal holds
+once. And what would swamp it: readings past a bound, said once in the log."""
 
 import asyncio
 import json
@@ -131,3 +132,24 @@ def test_what_waits_for_the_campaigns_next_turn_is_bounded_and_the_bound_said_on
     assert len(held) == MAX_HELD and len(decoder.take()) == 1
     said = [r.getMessage() for r in caplog.records if "between two turns" in r.getMessage()]
     assert len(said) == 1 and "the journal has every one it accepts" in said[0]
+
+
+def test_a_driver_naming_its_readings_afresh_draws_a_bounded_number_of_series_and_says_so_once(tmp_path, caplog):
+    from twin.view.observer import MAX_TELEMETRY_SERIES
+
+    observer, recording = open_observer(RecordOptions(save=tmp_path / "r.rrd"), "fresh-names")
+    n = MAX_TELEMETRY_SERIES + 300
+    with caplog.at_level("WARNING"):
+        for i in range(n):  # a reading named by its time, beside one that keeps its name
+            observer.on_message("", pack(Kind.TELEMETRY, {"readings": {"temperature_c": 20.0 + i, f"t{i}": 1.0}},
+                                         id=f"r:{i}", sender="reactor", t_lab=float(i)))
+            observer.on_message("", pack(Kind.TELEMETRY, {"readings": {"pressure_bar": 1.0, "stir_rpm": 300.0}},
+                                         id=f"p:{i}", sender="reactor-2", t_lab=float(i)))  # a device that does not
+        recording.close()
+    rrd = read_rrd(tmp_path / "r.rrd")
+    assert len([p for p in rrd if p.startswith("telemetry/reactor/")]) == MAX_TELEMETRY_SERIES
+    assert len(rrd["telemetry/reactor/temperature_c"]) == n  # the first name: every row
+    assert len(rrd["telemetry/reactor-2/pressure_bar"]) == len(rrd["telemetry/reactor-2/stir_rpm"]) == n
+    said = [r.getMessage() for r in caplog.records if "telemetry series" in r.getMessage()]
+    assert len(said) == 1 and "reactor's" in said[0] and "the journal has them all" in said[0]
+    assert observer.undrawn_series == n - (MAX_TELEMETRY_SERIES - 1)
