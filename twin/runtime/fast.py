@@ -29,6 +29,7 @@ from twin.campaign.journal import Journal
 from twin.core.messages import Kind
 from twin.runtime.checked_planner import covered
 from twin.runtime.checked_scheduler import fallbacks
+from twin.runtime.draw_later import DrawLater
 from twin.runtime.fast_device import FastDevice
 from twin.runtime.queue import EventQueue, Timer
 from twin.scenario import Scenario
@@ -45,10 +46,11 @@ class Seat:
 
     def __init__(self, core: CampaignCore, journal: Journal, planner: Planner, scheduler: Scheduler | None,
                  queue: EventQueue, devices: dict[str, FastDevice], on_progress: Progress | None = None,
-                 alerts: bool = True, observer: Any = None) -> None:
+                 alerts: bool = True, draw: Callable[[Note], None] | None = None) -> None:
+        """``draw``: given the notes an observer draws (``UNDRAWN`` kept back)."""
         self.core, self.journal, self.scheduler = core, journal, scheduler
         self.planner = covered(planner, core.s.campaign.planner)
-        self.queue, self.devices, self.on_progress, self.observer = queue, devices, on_progress, observer
+        self.queue, self.devices, self.on_progress, self.draw = queue, devices, on_progress, draw
         self.alerts = ALERTS if alerts else frozenset()
         self.timers: dict[TimerKey, Timer] = {}
         self.view: LabView | None = None  # a decision the caller of next_decision() is to make
@@ -64,13 +66,13 @@ class Seat:
 
     def perform(self, actions: list[Any]) -> None:
         journal, progressed, watched = self.journal, False, self.on_progress is not None
-        note, received, observer = journal.note, journal.received, self.observer
+        note, received, draw = journal.note, journal.received, self.draw
         for a in actions:
             t = type(a)
             if t is Note:
                 note(a)
-                if observer is not None and a.kind not in UNDRAWN:
-                    observer.on_note(a)
+                if draw is not None and a.kind not in UNDRAWN:
+                    draw(a)
                 if a.kind in self.alerts:
                     alerts_log.warning("%s", alert_text(a))
                 if watched and not progressed:
@@ -128,17 +130,18 @@ class FastCampaign:
                  on_progress: Progress | None = None, alerts: bool = True, observer: Any = None) -> None:
         """``alerts``: log the campaign's alerts (a device type gone, say) as warnings; a training run's
         thousands of campaigns keep them in their journals only. ``observer``: a ``LabObserver`` in this
-        process, handed the core's notes and the devices' results and telemetry as they happen (no bus, no
-        second parse)."""
+        process, handed the core's notes and the devices' results and telemetry (no bus, no second parse), in
+        batches (``drawing``: ``drain`` it before drawing anything else)."""
         self.s, self.journal, self.planner, self.scheduler = scenario, journal, planner, scheduler
         self.queue = EventQueue()
         self.core = CampaignCore(scenario, campaign_id)
-        watch = observer.on_envelope if observer is not None else None
+        self.drawing = DrawLater()
+        watch = self.drawing.hand(observer.on_envelope) if observer is not None else None
         self.devices = {name: FastDevice(name, dtype, scenario.devices[dtype], drv, self.queue,
                                          scenario.campaign.seed, self.core.feed, watch, warn=alerts)
                         for name, dtype, drv in drivers}
         self.seat = Seat(self.core, journal, planner, scheduler, self.queue, self.devices, on_progress, alerts,
-                         observer)
+                         self.drawing.hand(observer.on_note) if observer is not None else None)
         self._started = False
 
     # -- driving ----------------------------------------------------------------------

@@ -11,6 +11,7 @@ from twin.campaign.events import Ask, Decided, TimerFired, TimerKey
 from twin.campaign.decisions import Assignment, LabView, Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.campaign.sharing import LAB, SharedLab, by_campaign
+from twin.runtime.draw_later import DrawLater
 from twin.runtime.fast import Progress, Seat, asyncio_tripwire
 from twin.runtime.fast_device import FastDevice
 from twin.runtime.queue import EventQueue, Timer
@@ -29,20 +30,22 @@ class FastLab:
         """``scenarios``: each campaign's; ``per_device``: each instance's driver for each campaign (a simulated
         device simulates the chemistry of the campaign whose step it runs); ``parts``: each campaign's journal,
         planner and scheduler; ``observer``: handed the lab's devices' results and telemetry and each campaign's
-        notes as they happen (a recording); ``lab_scheduler``: the one scheduler of a lab whose
+        notes (a recording), in batches (``drawing``); ``lab_scheduler``: the one scheduler of a lab whose
         ``orchestrator.lab_scheduler`` is set (it answers the lab's questions, with every campaign's steps);
         ``alerts``: log the campaigns' alerts as warnings (a training episode's are never read);
         ``one_scheduler``: ask one scheduler (``lab_scheduler``, or the caller of ``next_decision``) whatever the
         lab file says (``SharedLab``)."""
         self.lab, self.queue, self.lab_scheduler = lab, EventQueue(), lab_scheduler
         self.shared = SharedLab(lab, scenarios, one_scheduler=one_scheduler)
-        watch = observer.on_envelope if observer is not None else None
+        self.drawing = DrawLater()  # ``drain`` it before drawing anything else
+        watch = self.drawing.hand(observer.on_envelope) if observer is not None else None
         self.devices = {name: FastDevice(name, dtype, lab.devices[dtype], drv, self.queue, lab.campaign.seed,
                                          self.shared.feed_device, watch, shared=per_device[name], warn=alerts)
                         for name, dtype, drv in sorted(drivers)}
         self.seats = {name: Seat(self.shared.cores[name], *parts[name], self.queue, self.devices,
                                  on_progress(name) if on_progress else None, alerts,
-                                 observer=observer.campaign(name) if observer is not None else None)
+                                 draw=self.drawing.hand(observer.campaign(name).on_note) if observer is not None
+                                 else None)
                       for name in scenarios}
         self._lab_timers: dict[TimerKey, Timer] = {}
         self._started = False

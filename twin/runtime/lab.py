@@ -207,6 +207,7 @@ def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[Campa
         try:
             camp.run()
         finally:
+            camp.drawing.drain()
             summary = finish(camp.core, journal, wall0, camp.now, noted(journal, observer, camp.now),
                              checked.fallback.count)
     return summary

@@ -107,6 +107,7 @@ def _fast(s: Scenario, scenarios: dict[str, Scenario], drivers: list, per_device
         try:
             lab.run()
         finally:
+            lab.drawing.drain()
             notes = {n: noted(parts[n][0], observer.campaign(n), lab.now) for n in parts} if observer else None
             summaries = lab_summaries(lab.shared, parts, wall0, lab.now, notes)
     return lab_summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
