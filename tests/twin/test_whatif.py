@@ -57,6 +57,14 @@ def test_the_table_fits_80_columns_and_names_the_busiest_device():
     assert any(line.split()[:1] == ["2*"] for line in out.splitlines())  # the scenario's own value, marked
 
 
+def test_a_number_is_shown_as_the_scenario_and_the_variants_give_it():
+    code, out = whatif(FLAKY, "--vary", "devices.spectrometer.duration.mean_s=240,480.5", "--set", "campaign.budget=4",
+                       "--seeds", "1")
+    assert code == 0, out
+    firsts = [line.split()[0] for line in out.splitlines() if line.split()[:1] and line.split()[0][:1].isdigit()]
+    assert firsts[:2] == ["240*", "480.5"], out  # the model reads 240 as 240.0
+
+
 @pytest.mark.parametrize("args,says", [
     (["--vary", "devices.nope.instances=1,2"], "devices.nope"),
     (["--vary", "devices.reactor.instances"], "expected FIELD=V1,V2"),

@@ -367,7 +367,9 @@ def campaign_rows(summary: list[dict[str, Any]], axes: list[str], written: dict[
 
 def _shown(value: Any) -> str:
     """A variant's value in the table: a policy by its file's name (``rl:jobshop_scheduler``; --json and --csv
-    keep the path)."""
+    keep the path), a whole number as one (the scenario's 600 s, read as 600.0, beside a variant's 900)."""
+    if type(value) is float and value.is_integer() and abs(value) < 1e15:
+        return str(int(value))
     return "none" if value is None else short(value) if isinstance(value, str) else str(value)
 
 
