@@ -86,6 +86,25 @@ def test_words_a_spreadsheet_would_run_as_a_formula_are_inert_in_csv_and_as_writ
         assert [r["t_lab_s"] for r in csv.DictReader(f)][:2] == ["0.0", "1.0"]  # numbers as they are
 
 
+def test_what_remote_devices_report_is_inert_in_the_health_csv(tmp_path):
+    """`twin device health --csv`: a device's name and what it says it runs come from the bus; numbers stay."""
+    import typer
+
+    from twin.cli.distributed import show_health
+
+    answers = [{"device": "@SUM(1,2)", "report": {"running": '=HYPERLINK("http://example.invalid")', "dropped": 3,
+                                                  "driver": {"temp": -0.5}}},
+               {"device": "reader-1", "report": {"running": ["e1s0", 1], "dropped": "-2", "driver": "+cmd"}},
+               {"device": "reader-2", "report": None}]
+    with pytest.raises(typer.Exit) as ended:  # one did not answer
+        show_health(answers, csv_out=tmp_path / "h.csv")
+    assert ended.value.exit_code == 1
+    with open(tmp_path / "h.csv", newline="") as f:
+        rows = [[r["device"], r["running"], r["dropped"], r["driver"]] for r in csv.DictReader(f)]
+    assert rows == [["'@SUM(1,2)", "'=HYPERLINK(\"http://example.invalid\")", "3", '{"temp": -0.5}'],
+                    ["reader-1", "e1s0#1", "-2", '"+cmd"'], ["reader-2", "", "", "null"]]
+
+
 def test_provenance_names_the_scenario_hash_versions_and_operator_acts(flaky, tmp_path):
     export(flaky, tmp_path, "csv", ["operator"])
     record = json.loads((tmp_path / "provenance.json").read_text())

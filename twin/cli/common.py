@@ -18,6 +18,7 @@ from rich.segment import Segment
 from twin.cli.printable import PrintableConsole
 from twin.core import keys
 from twin.core.errors import TwinError
+from twin.core.printable import inert
 from twin.core.whole_files import FULL_BYTES, free_bytes
 from twin.scenario.loading import disagreeing
 
@@ -364,7 +365,7 @@ def machine_output(as_json: bool, csv_path: Path | None, header: list[str], rows
         with open(csv_path, "w", newline="") as f:
             w = csv.DictWriter(f, fields)
             w.writeheader()
-            w.writerows(runs)
+            w.writerows({k: inert(v) for k, v in run.items()} for run in runs)
         err.print(f"wrote {csv_path} ({len(runs)} runs)", highlight=False)
     if as_json:
         console.print_json(json.dumps({**extra, "columns": header, "rows": [dict(zip(header, r)) for r in rows],

@@ -12,7 +12,7 @@ import typer
 from twin.cli.common import (_fail, app, console, device_app, driver_app, err, exit_status, scheduler_app,
                              security_app, sigterm_unwinds, stopped_by, writable)
 from twin.cli.printable import log_to_stderr
-from twin.core.printable import printable
+from twin.core.printable import inert, printable
 from twin.core.errors import TwinError
 
 SecurityOpt = Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
@@ -137,8 +137,8 @@ def show_health(answers: list[dict], as_json: bool = False, csv_out: Path | None
                 r = a["report"] if isinstance(a["report"], dict) else {}
                 running = r.get("running")
                 running = "#".join(map(str, running)) if isinstance(running, list) else str(running or "")
-                w.writerow([a["device"], a["report"] is not None, running, r.get("dropped", ""),
-                            json.dumps(r.get("driver"), default=str)])
+                w.writerow([inert(x) for x in (a["device"], a["report"] is not None, running, r.get("dropped", ""),
+                                               json.dumps(r.get("driver"), default=str))])
         err.print(f"wrote {csv_out} ({len(answers)} devices)", highlight=False)
     if as_json:
         console.print_json(json.dumps({"devices": [{"device": a["device"], "answered": a["report"] is not None,

@@ -17,6 +17,7 @@ from rich.table import Table
 from twin.cli.common import (_fail, app, bar_progress, console, interruptible, paired_assignments, recording_file,
                              say_ended_early, writable)
 from twin.core.errors import TwinError
+from twin.core.printable import inert
 from twin.runtime import lab
 from twin.runtime.checks import checked
 
@@ -200,7 +201,7 @@ def _write_csv(path: Path, summary: list[dict]) -> None:
                     *[f"out_of_stock_h_{n}" for n in stocks]])
         for row in summary:
             change, cost_change = row["lab_hours_change"], row["cost_change"]
-            w.writerow([row["variant"], row["runs"], row["reached"], *[round(x, 4) for x in row["lab_hours"]],
+            w.writerow([inert(row["variant"]), row["runs"], row["reached"], *[round(x, 4) for x in row["lab_hours"]],
                         round(change[1], 4) if change else "", round(row["cost"][1], 2),
                         round(cost_change[1], 2) if cost_change else "", row["experiments"],
                         round(row["abandoned"], 3), round(row["degraded"], 3),

@@ -1,8 +1,11 @@
-"""Text from elsewhere shown on a terminal: a driver's error, a remote device's reason, an operator's words.
+"""Text from elsewhere shown on a terminal, or written to a CSV file: a driver's error, a remote device's reason,
+an operator's words.
 
 Written raw, a control character in it would act on the terminal: ``ESC [2J`` clears the screen, ``ESC ]0;``
 retitles the window, ``CR`` overwrites the line it is on, a bidirectional override reorders what follows.
-``printable`` shows each as its escape (``\\x1b``) instead; newlines and tabs stay.
+``printable`` shows each as its escape (``\\x1b``) instead; newlines and tabs stay. In a CSV cell, text starting
+with =, +, -, @, a tab or a carriage return runs as a formula when a spreadsheet opens the file: ``inert`` puts a '
+before it.
 """
 
 from __future__ import annotations
@@ -13,3 +16,14 @@ _ESCAPED |= {c: f"\\u{c:04x}" for c in (*range(0x202A, 0x202F), *range(0x2066, 0
 
 def printable(text: str) -> str:
     return text.translate(_ESCAPED)
+
+
+def inert(value: object) -> object:
+    """A CSV cell a spreadsheet shows and does not run (OWASP's advice for CSV); numbers, and text that reads as
+    one (-0.5), as they are."""
+    if isinstance(value, str) and value[:1] in ("=", "+", "-", "@", "\t", "\r"):
+        try:
+            float(value)
+        except ValueError:
+            return "'" + value
+    return value

@@ -21,6 +21,7 @@ from typing import Any
 
 from twin.campaign.journal import no_such_journal, read_events, read_experiments, read_run
 from twin.core.errors import TwinError
+from twin.core.printable import inert
 from twin.core.whole_files import written_whole
 from twin.scenario.model import instance_names
 
@@ -188,13 +189,6 @@ def _columns(rows: list[dict[str, Any]]) -> list[str]:
     return list(cols)
 
 
-def _inert(value: Any) -> Any:
-    """Text a spreadsheet would run as a formula (a driver's or an operator's words starting with =, +, -, @, a tab
-    or a carriage return) with a ' before it, as OWASP advises for CSV; numbers, Parquet and JSON lines as they
-    are."""
-    return "'" + value if isinstance(value, str) and value[:1] in ("=", "+", "-", "@", "\t", "\r") else value
-
-
 def _write(path: Path, rows: list[dict[str, Any]], fmt: str) -> Path:
     with written_whole(path) as partial:
         _write_table(partial, rows, fmt)
@@ -207,7 +201,7 @@ def _write_table(path: Path, rows: list[dict[str, Any]], fmt: str) -> None:
         with open(path, "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=cols)
             w.writeheader()
-            w.writerows({k: _inert(v) for k, v in r.items()} for r in rows)
+            w.writerows({k: inert(v) for k, v in r.items()} for r in rows)
     elif fmt == "jsonl":
         with open(path, "w") as f:
             for r in rows:
