@@ -262,18 +262,40 @@ def test_the_command_list_shows_each_summary_as_one_paragraph():
     assert "or with --connect the devices of a running lab and their health" in text
 
 
+def commands(group, path: list[str]):
+    """Every command of typer's click ``group`` (a group is what has commands), with its words."""
+    for name, command in group.commands.items():
+        if hasattr(command, "commands"):
+            yield from commands(command, [*path, name])
+        else:
+            yield " ".join([*path, name]), command
+
+
+def test_every_help_fits_80_columns_whole():
+    """rich's panels cut an option's help at 80 columns ("e.g. devices.spectromete…") and click a group's summary
+    at 45 characters ("abort,..."): every command's and group's help is whole at 80."""
+    from typer.main import get_command
+    from twin.cli import app
+
+    paths = [path.split() for path, _ in commands(get_command(app), [])]
+    paths += [[group] for group in {p[0] for p in paths if len(p) > 1}] + [[]]
+    assert len(paths) > 40
+    for path in paths:
+        res = twin_cli(*path, "--help", columns=80)
+        assert res.exit_code == 0, res.output
+        lines = res.output.splitlines()
+        listed = "".join(res.output.split("Commands:")[1:]).splitlines()  # a summary cut short ends in "..."
+        assert max(map(len, lines)) <= 80 and not any(line.rstrip().endswith("…") for line in lines) and not any(
+            line.rstrip().endswith("...") for line in listed), f"twin {' '.join(path)} --help:\n{res.output}"
+    listed = " ".join(twin_cli("--help", columns=80).output.split())
+    assert "confirm human steps (pending, answer, refill, confirm)" in listed
+
+
 def test_every_repeatable_option_says_what_it_takes_not_its_python_type():
     """typer shows a repeatable option's type as `<list[str]>`, which reads as if a list were typed; each says
     what one use takes instead (`--set FIELD=VALUE`, `--connect ENDPOINT`)."""
     from typer.main import get_command
     from twin.cli import app
-
-    def commands(group, path: list[str]):  # typer's own click: a group is what has commands
-        for name, command in group.commands.items():
-            if hasattr(command, "commands"):
-                yield from commands(command, [*path, name])
-            else:
-                yield " ".join([*path, name]), command
 
     repeatable = {(path, p.name): p.metavar for path, command in commands(get_command(app), [])
                   for p in command.params if getattr(p, "multiple", False)}

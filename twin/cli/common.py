@@ -25,8 +25,14 @@ from twin.scenario.loading import disagreeing
 if TYPE_CHECKING:
     from rich.table import Table
 
-app = typer.Typer(help="labtwin: a digital twin of a self-driving lab.", no_args_is_help=True,
-                  pretty_exceptions_enable=False, add_completion=False)
+def command_group(help: str, **settings: Any) -> typer.Typer:
+    """Commands whose help and errors are click's plain text, wrapped to the terminal's width: rich's panels cut
+    an option's help short at 80 columns ("e.g. devices.spectromete…")."""
+    return typer.Typer(help=help, no_args_is_help=True, rich_markup_mode=None, **settings)
+
+
+app = command_group("labtwin: a digital twin of a self-driving lab.", pretty_exceptions_enable=False,
+                    add_completion=False)
 
 
 def _say_version(asked: bool) -> None:
@@ -57,17 +63,17 @@ def _printable_anywhere() -> None:
                 stream.reconfigure(errors="replace")
 
 
-device_app = typer.Typer(help="Run one device actor in this process.", no_args_is_help=True)
-lab_app = typer.Typer(help="Serve a lab that several campaigns share.", no_args_is_help=True)
+device_app = command_group("Run one device actor in this process.")
+lab_app = command_group("Serve a lab that several campaigns share.")
 app.add_typer(device_app, name="device")
 app.add_typer(lab_app, name="lab")
-bench_app = typer.Typer(help="Compare planners and schedulers over many seeds.", no_args_is_help=True)
+bench_app = command_group("Compare planners and schedulers over many seeds.")
 app.add_typer(bench_app, name="bench")
-scheduler_app = typer.Typer(help="Run a scheduler agent in this process.", no_args_is_help=True)
-driver_app = typer.Typer(help="Write your own device drivers.", no_args_is_help=True)
+scheduler_app = command_group("Run a scheduler agent in this process.")
+driver_app = command_group("Write your own device drivers.")
 app.add_typer(driver_app, name="driver")
 app.add_typer(scheduler_app, name="scheduler")
-security_app = typer.Typer(help="Certificates and access control for a lab's bus.", no_args_is_help=True)
+security_app = command_group("Certificates and access control for a lab's bus.")
 app.add_typer(security_app, name="security")
 # emoji off: a name like "raising:Boom:" is not an emoji code; markup off: a path, a SMILES ("c1cc[nH]c1") or an
 # error quoting either prints as it is, never read as rich's [tags] (the few styled lines ask for markup=True)

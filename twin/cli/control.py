@@ -10,13 +10,11 @@ from typing import Annotated, Any, Optional
 import typer
 from rich.markup import escape
 
-from twin.cli.common import _fail, app, check_lab_name, console, err, narrow_table, print_table
+from twin.cli.common import _fail, app, check_lab_name, command_group, console, err, narrow_table, print_table
 from twin.core.errors import TwinError
 
-ctl_app = typer.Typer(help="Operate a running campaign: status, pause, resume, abort, retry, stop; answer "
-                           "its questions, refill its consumables, confirm human steps (pending, answer, refill, "
-                           "confirm).",
-                      no_args_is_help=True)
+ctl_app = command_group("Operate a running campaign: status, pause, resume, abort, retry, stop; answer its "
+                        "questions, refill its consumables, confirm human steps (pending, answer, refill, confirm).")
 app.add_typer(ctl_app, name="ctl")
 
 Lab = Annotated[str, typer.Option("--lab", callback=check_lab_name,
