@@ -38,3 +38,23 @@ def test_a_shared_lab_drawn_in_batches_is_the_recording_drawn_call_by_call(tmp_p
         drawn[limit] = as_logged(rrd)
     assert any(path.startswith("campaigns/") for path in drawn[1])
     assert drawn[5] == drawn[1]
+
+
+def test_an_observer_that_raises_when_its_calls_are_made_leaves_the_journal_whole(tmp_path):
+    """The calls kept for an observer are made as the campaign ends: one that raises then (an observer of the
+    caller's own; the shipped one draws what it can and logs the rest) is raised after the summary is written."""
+    import pytest
+
+    from twin.campaign.journal import read_run
+    from twin.view.log_canvas import LogCanvas
+    from twin.view.observer import LabObserver
+
+    class Raising(LabObserver):
+        def on_note(self, note):
+            if note.kind != "campaign.summary":
+                raise RuntimeError("observer failed")
+
+    with pytest.raises(RuntimeError, match="observer failed"):
+        run(ROOT / "scenarios" / "flaky_lab.yaml", journal=tmp_path / "j.db", bus="memory", runtime="fast",
+            overrides={"campaign.budget": 3}, observer=Raising(LogCanvas(lambda line: None)))
+    assert read_run(tmp_path / "j.db")["summary"]["done"] == 3

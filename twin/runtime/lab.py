@@ -207,9 +207,11 @@ def run_fast(s: Scenario, journal_path: str | Path, on_progress: Callable[[Campa
         try:
             camp.run()
         finally:
-            camp.drawing.drain()
-            summary = finish(camp.core, journal, wall0, camp.now, noted(journal, observer, camp.now),
-                             checked.fallback.count)
+            try:
+                camp.drawing.drain()
+            finally:  # an observer that raised does not cost the journal its summary
+                summary = finish(camp.core, journal, wall0, camp.now, noted(journal, observer, camp.now),
+                                 checked.fallback.count)
     return summary
 
 

@@ -107,9 +107,11 @@ def _fast(s: Scenario, scenarios: dict[str, Scenario], drivers: list, per_device
         try:
             lab.run()
         finally:
-            lab.drawing.drain()
-            notes = {n: noted(parts[n][0], observer.campaign(n), lab.now) for n in parts} if observer else None
-            summaries = lab_summaries(lab.shared, parts, wall0, lab.now, notes)
+            try:
+                lab.drawing.drain()
+            finally:  # an observer that raised does not cost the journals their summaries
+                notes = {n: noted(parts[n][0], observer.campaign(n), lab.now) for n in parts} if observer else None
+                summaries = lab_summaries(lab.shared, parts, wall0, lab.now, notes)
     return lab_summary(s, lab.shared, summaries, where, time.perf_counter() - wall0)
 
 
