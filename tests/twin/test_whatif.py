@@ -54,7 +54,11 @@ def test_the_table_fits_80_columns_and_names_the_busiest_device():
     assert code == 0, out
     assert max(len(line) for line in out.splitlines()) <= 80
     assert "as written, the busiest device type is reactor" in " ".join(out.split())
-    assert any(line.split()[:1] == ["2*"] for line in out.splitlines())  # the scenario's own value, marked
+    written = next(line.split() for line in out.splitlines() if line.split()[:1] == ["2*"])  # the scenario's own
+    # its experiments to target, as --json has them: value, lab-h, IQR, Δ, exp.
+    assert "exp." in out and "exp.: experiments to the last target" in " ".join(out.split())
+    code, as_json = whatif(FLAKY, "--vary", "devices.reactor.instances=1,3", "--seeds", "2", "--json")
+    assert float(written[4]) == json.loads(as_json)["variants"][0]["experiments"] > 0
 
 
 def test_a_number_is_shown_as_the_scenario_and_the_variants_give_it():
@@ -367,6 +371,7 @@ def test_a_column_of_noughts_is_left_out_and_a_crowded_table_keeps_the_busiest_t
     head = next(line for line in lines if "lab-h" in line and "IQR" in line).split()
     assert "aband." not in head and head[-2:] == ["degr.", "busiest"]
     assert "no run abandoned an experiment (no aband. column)" in " ".join(out.split())
+    assert "exp." not in head and "no exp. column (experiments to target) at this width" in " ".join(out.split())
     rows = [line for line in lines if line.split()[:1] and line.split()[0].rstrip("*") in ("1", "2", "3")]
     assert len(rows) == 5 and all(row.split()[-1] == "reactor" or row.split()[-1].endswith("%") for row in rows)
 

@@ -38,29 +38,32 @@ def _variants_table(head: list[str], table_rows: list[list[str]], axes: int, who
     return table
 
 
-def _fitting_table(head: list[str], table_rows: list[list[str]], axes: int) -> Table:
+def _fitting_table(head: list[str], table_rows: list[list[str]], axes: int) -> tuple[Table, bool]:
     """The first of these that fits the terminal: the varied values whole; a policy broken after its kind ("rl:"
     over "flaky_scheduler") and values up to WHOLE_VALUE wide whole; the values folded; and the busiest type over
-    its share too."""
+    its share too. True with it when it is the first, every header whole too."""
     def broken(cell: str) -> str:
         return cell.replace(":", ":\n", 1) if ":" in cell and len(cell) > 12 else cell
 
     split = [[*map(broken, row[:axes]), *row[axes:]] for row in table_rows]
     stacked = [[*row[:-1], row[-1].replace(" ", "\n")] for row in split]
-    for cells, whole_values in ((table_rows, 10**6), (split, WHOLE_VALUE), (split, 0), (stacked, 0)):
+    for first, (cells, whole_values) in enumerate(((table_rows, 10**6), (split, WHOLE_VALUE), (split, 0),
+                                                    (stacked, 0))):
         table = _variants_table(head, cells, axes, whole_values)
-        if _fits(table, [row[-1] for row in table_rows]):
-            break
-    return table
+        shown = _shown(table)
+        if all(word in shown.split() for row in table_rows for word in row[-1].split()):
+            # whole: each busiest type beside its share, each header unfolded ("bus" over "iest")
+            return table, first == 0 and all(row[-1] in shown for row in table_rows) and all(
+                h in shown.split() for h in head[axes:] if " " not in h)
+    return table, False
 
 
-def _fits(table: Table, last: list[str]) -> bool:
-    """Whether the table, printed at the terminal's width, shows its last column whole (rich cuts a table that
-    its columns' least widths make wider than the terminal at the terminal's edge)."""
+def _shown(table: Table) -> str:
+    """The table as printed at the terminal's width (rich cuts a table that its columns' least widths make wider
+    than the terminal at the terminal's edge)."""
     with console.capture() as shown:
         console.print(table)
-    text = shown.get()
-    return all(word in text for cell in last for word in cell.split())
+    return shown.get()
 
 
 #: How wide a varied value may keep a column at 80 columns: a policy's name ("flaky_scheduler") whole, a longer
@@ -157,7 +160,11 @@ def whatif(
     # the title above the table, not in it: a narrow table would fold it ("2 variants × 20" over "seed(s)")
     console.print(f"{s.name}: what if — {len(chosen)} variants × {seeds} seed(s)", highlight=False)
     table_rows = rows(summary, axes, written_values(s, axes), has_targets, shown)
-    table = _fitting_table(header(axes, shown, seconds), table_rows, len(axes))
+    table, whole = _fitting_table(header(axes, shown, seconds), table_rows, len(axes))
+    if not whole:  # the experiments' column gives its room to the values and the busiest type
+        shown -= {"experiments"}
+        table_rows = rows(summary, axes, written_values(s, axes), has_targets, shown)
+        table, _ = _fitting_table(header(axes, shown, seconds), table_rows, len(axes))
     console.print(table)
     console.print(caption(has_targets, seeds, shown, seconds, alike), highlight=False)  # wrapped at the terminal, not the table
     say_ended_early([(o.variant, o.stopped) for o in results])

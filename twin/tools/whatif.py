@@ -297,9 +297,9 @@ def in_seconds(summary: list[dict[str, Any]]) -> bool:
 
 
 def measures(summary: list[dict[str, Any]]) -> frozenset[str]:
-    """The measures worth a column: cost if something costs, abandoned and degraded if some run had any (a
-    column of noughts takes the room a varied field's values need)."""
-    return frozenset(name for name, worth in (("cost", costs_anything(summary)),
+    """The measures worth a column: experiments, cost if something costs, abandoned and degraded if some run had
+    any (a column of noughts takes the room a varied field's values need)."""
+    return frozenset(name for name, worth in (("experiments", True), ("cost", costs_anything(summary)),
                                               ("abandoned", any(row["abandoned"] > 0 for row in summary)),
                                               ("degraded", any(row["degraded"] > 0 for row in summary))) if worth)
 
@@ -310,6 +310,7 @@ def header(axes: list[str], shown: frozenset[str] = frozenset({"cost", "abandone
     unit = "lab-s" if seconds else "lab-h"
     return [_short(name, axes) for name in axes] + \
         [unit, "IQR", f"Δ {unit}", *(["cost", "Δ cost"] if "cost" in shown else []),
+         *(["exp."] if "experiments" in shown else []),
          *(["aband."] if "abandoned" in shown else []), *(["degr."] if "degraded" in shown else []), "busiest"]
 
 
@@ -348,6 +349,7 @@ def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any]
             "—" if base or change is None else f"{change[1]:+.{d}f}",
             *([f"{row['cost'][1]:,.0f}", "—" if base or cost_change is None else f"{cost_change[1]:+,.0f}"]
               if "cost" in shown else []),
+            *([f"{row['experiments']:g}"] if "experiments" in shown else []),
             *([f"{row['abandoned']:.1f}"] if "abandoned" in shown else []),
             *([f"{row['degraded']:.1f}"] if "degraded" in shown else []),
             f"{busiest} {100 * row['utilisation'].get(busiest, 0):.0f}%" if busiest else "",
@@ -388,7 +390,9 @@ def caption(targets: bool, seeds: int, shown: frozenset[str] = frozenset({"cost"
             if alike else f"Medians and IQR over {seeds} paired seeds")
     cost = ("cost: at the last target (else all spent)" if "cost" in shown else
             "no device costs anything (devices.*.cost, cost_per_hour), so no cost columns")
-    counts = [("aband.: experiments abandoned (mean)" if "abandoned" in shown else
+    counts = [f"exp.: experiments {'to the last target (else all run)' if targets else 'run'} (median)"
+              if "experiments" in shown else "no exp. column (experiments to target) at this width",
+              ("aband.: experiments abandoned (mean)" if "abandoned" in shown else
                "no run abandoned an experiment (no aband. column)"),
               *(["degr.: samples degraded (mean)"] if "degraded" in shown else [])]
     return (f"*: the scenario as written. {runs}. {what}; Δ: " + ("the change" if alike else "median of the per-seed "
