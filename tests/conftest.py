@@ -92,15 +92,6 @@ def scenario_of():
     return lambda **changes: parse(qd_lab(**changes))
 
 
-def _ends_with_the_tests() -> None:
-    """In a broker's process: SIGTERM when the test process dies, even killed (Linux's PR_SET_PDEATHSIG), where a
-    pytest stopped by SIGKILL left its brokers running."""
-    import ctypes
-    import signal
-
-    ctypes.CDLL(None).prctl(1, signal.SIGTERM)
-
-
 def start_mosquitto(directory: Path, settings: str):
     """A real mosquitto on a free loopback port with ``settings`` added to its config; returns (process, port)."""
     import shutil
@@ -119,8 +110,11 @@ def start_mosquitto(directory: Path, settings: str):
     # mosquitto drops to the "mosquitto" user, which cannot read a test's private files: stay root
     conf.write_text(f"user root\nlistener {port} 127.0.0.1\npersistence false\nset_tcp_nodelay true\n"
                     f"log_dest file {directory / 'log'}\n{settings}")
-    proc = subprocess.Popen([binary, "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            preexec_fn=_ends_with_the_tests)
+    # SIGTERM when the test process dies, even killed (PR_SET_PDEATHSIG), where a pytest stopped by SIGKILL left its
+    # brokers running; set by util-linux's setpriv, not a preexec_fn (unsafe in a process with Zenoh's threads)
+    ends_with_us = [setpriv, "--pdeathsig", "TERM"] if (setpriv := shutil.which("setpriv")) else []
+    proc = subprocess.Popen([*ends_with_us, binary, "-c", str(conf)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
     deadline = time.monotonic() + 10
     while True:
         try:

@@ -122,8 +122,7 @@ def test_the_adapter_comes_back_with_its_broker_and_nothing_is_lost(tmp_path, pr
 
     def restart_broker() -> None:
         nonlocal proc
-        proc = subprocess.Popen([proc.args[0], "-c", str(tmp_path / "mosquitto.conf")], stdout=subprocess.DEVNULL,
-                                stderr=subprocess.PIPE)
+        proc = subprocess.Popen(proc.args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # as it first started
         deadline = time.monotonic() + 10
         while True:
             try:
