@@ -16,7 +16,7 @@ from twin.core import keys
 from twin.core.messages import Kind, pack
 from twin.runtime.lab import make_clock, prepare, run_async
 from twin.scenario import parse
-from twin.view.watch import RecordOptions, open_observer, replay
+from twin.view.watch import RecordOptions, open_observer, replay, watch_async
 
 LAB = "forged"
 FORGED_Y = [7.0] * 50  # a spectrum no simulated measurement draws
@@ -58,8 +58,13 @@ def test_a_forged_result_and_reading_are_refused_and_drawn_neither_live_nor_repl
                                                    on_start=lambda c: seen.setdefault("camp", c)))
         while "camp" not in seen:
             await asyncio.sleep(0.05 * s.clock.speed)  # the loop keeps lab time: 50 ms of wall time
+        # and a watcher, as `twin watch` in another process: it hears the forged results too
+        watcher = asyncio.ensure_future(watch_async(seen["camp"].bus, clock, LAB,
+                                                    RecordOptions(save=tmp_path / "watch.rrd")))
         await asyncio.to_thread(forge)
-        return await campaign
+        done = await campaign
+        await watcher
+        return done
 
     try:
         summary = clock.run(main())
@@ -67,13 +72,14 @@ def test_a_forged_result_and_reading_are_refused_and_drawn_neither_live_nor_repl
         recording.close()
     assert summary.rejected_messages == 6 and summary.done == 4
     replay(db, RecordOptions(save=tmp_path / "replay.rrd"))
-    for name in ("live.rrd", "replay.rrd"):
+    for name in ("live.rrd", "replay.rrd", "watch.rrd"):
         rrd = read_rrd(tmp_path / name)
         drawn = rrd["spectra/measurement"]
         assert len(drawn) == measurements(db) >= 4, name
         ys = {point[1] for row in drawn for strip in row["LineStrips2D:strips"] for point in strip}
         assert 300.0 * (1.0 - FORGED_Y[0]) not in ys and len(ys) > 100, name  # the viewer draws y as 300·(1 − y) px
-        assert not [path for path in rrd if "forged_reading" in path], name
+        # a watcher draws readings as devices publish them: only the lab's own recordings leave the forged one out
+        assert name == "watch.rrd" or not [path for path in rrd if "forged_reading" in path], name
 
 
 def test_a_lab_of_several_campaigns_draws_no_forged_result_either(tmp_path):

@@ -9,6 +9,7 @@ and the reason, so a receiver can log it and drop it without crashing.
 
 from __future__ import annotations
 
+import hashlib
 import re
 from enum import StrEnum
 from typing import Annotated, Any, Literal
@@ -192,6 +193,17 @@ def without_token(env: Envelope) -> bytes:
     """The wire form of a received envelope less its token: what a journal keeps (tokens are secrets)."""
     return to_wire(envelope(env.kind, env.body, id=env.id, sender=env.sender, t_lab=env.t_lab,
                             campaign=env.campaign, task=env.task, attempt=env.attempt))
+
+
+def kept(env: Envelope, payload: bytes) -> bytes:
+    """A received message as a journal keeps it: less its token, if it carries one; else as it came."""
+    return without_token(env) if env.token else payload
+
+
+def fingerprint(kept_payload: bytes) -> str:
+    """How the decisions stream names a result its campaign accepted (``accepted``), from the message as kept: a
+    watcher in another process, which cannot tell tokens, draws a result it heard only once it is named."""
+    return hashlib.blake2b(kept_payload, digest_size=8).hexdigest()
 
 
 def decode(payload: bytes, sender_hint: str = "?") -> tuple[Envelope, _Body]:

@@ -20,7 +20,7 @@ from twin.core.bus import Bus
 from twin.campaign import Note
 from twin.core.clock import LabClock
 from twin.campaign.journal import Journal, as_messages, decision_id
-from twin.core.messages import Kind, pack
+from twin.core.messages import Kind, fingerprint, pack
 
 SENDER = "orchestrator"
 PAGE_ROWS = 500
@@ -33,6 +33,7 @@ class DecisionStream:
         self.key = keys.campaign(lab, campaign_id, "decisions")
         self.history_key = keys.campaign(lab, campaign_id, "history")
         self._outbox: list[dict[str, Any]] = []
+        self._accepted: list[str] = []  # the fingerprints of the results accepted since the last message
         self._batches = itertools.count(1)
         self.shared = False  # one campaign of a lab several share (a watcher then draws each on its own)
 
@@ -40,17 +41,24 @@ class DecisionStream:
         self._outbox.append({"id": decision_id(seq), "t_lab": n.t_lab, "what": n.kind, "detail": {
             "experiment": n.experiment, "task": n.task, "attempt": n.attempt, "device": n.device, "info": n.detail}})
 
+    def accepted(self, kept_payload: bytes) -> None:
+        """A device's result the campaign took (journalled as it is kept): named in the next message."""
+        self._accepted.append(fingerprint(kept_payload))
+
     def publish(self) -> None:
-        """Send the decisions added so far as one message."""
-        if not self._outbox:
+        """Send the decisions added so far as one message, with the results accepted meanwhile (``accepted``)."""
+        if not self._outbox and not self._accepted:
             return
         if not self.bus.wants(self.key):  # nobody watches: the journal keeps the decisions, skip encoding them
             self._outbox.clear()
+            self._accepted.clear()
             return
         items, self._outbox = self._outbox, []
-        body = {"what": "decisions", "detail": {"items": items}}
+        accepted, self._accepted = self._accepted, []
+        body = {"what": "decisions", "detail": {"items": items, "accepted": accepted}}
         self.bus.publish(self.key, pack(Kind.DECISION, body, id=f"{SENDER}:b{next(self._batches)}", sender=SENDER,
-                                        t_lab=items[0]["t_lab"], campaign=self.campaign_id))
+                                        t_lab=items[0]["t_lab"] if items else self.clock.now(),
+                                        campaign=self.campaign_id))
 
     async def history(self, key: str, payload: bytes) -> bytes:
         """A page of what was observed so far, for a watcher that joins late (``twin watch``)."""

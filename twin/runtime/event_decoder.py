@@ -10,7 +10,7 @@ from typing import Any
 from twin.campaign import DeviceMessage, InvalidInput
 from twin.core import keys
 from twin.core.clock import LabClock
-from twin.core.messages import Dropped, InvalidMessage, Kind, decode, excerpt, without_token
+from twin.core.messages import Dropped, InvalidMessage, Kind, decode, excerpt, kept
 from twin.view.observer import WATCHED
 
 log = logging.getLogger(__name__)
@@ -53,17 +53,17 @@ class EventDecoder:
         if self._clock is not None and env.sender == on_key and env.sender not in self._clock_off \
                 and env.kind != Kind.REJECTED:  # "no clock yet" is one reason to refuse a command
             self._check_time(env.sender, env.t_lab)
-        kept = without_token(env) if env.token else payload
+        as_kept = kept(env, payload)
         plain = body.to_dict()
         if self.observer is not None and env.kind in WATCHED:
             if len(self._held) < MAX_HELD:
-                self._held[kept] = {"kind": env.kind, "id": env.id, "sender": env.sender, "task": env.task,
+                self._held[as_kept] = {"kind": env.kind, "id": env.id, "sender": env.sender, "task": env.task,
                                     "campaign": env.campaign or "", "t_lab": env.t_lab, "body": plain}
             elif not self._overflowed:  # more before the campaign's next turn: a flood
                 self._overflowed = True
                 log.warning("viewer: over %d results and readings came between two turns of the campaign; those "
                             "past them are not drawn (the journal has every one it accepts)", MAX_HELD)
-        return DeviceMessage(env.kind, env.sender, env.task, env.attempt, plain, kept, on_key, env.token,
+        return DeviceMessage(env.kind, env.sender, env.task, env.attempt, plain, as_kept, on_key, env.token,
                              env.campaign or "")
 
     def _check_time(self, sender: str, t_lab: float) -> None:

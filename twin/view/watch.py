@@ -26,6 +26,7 @@ from twin.campaign.journal import as_messages, no_such_journal, read_events, rea
 from twin.scenario.spec import NAME
 from twin.view.lab_observer import SharedLabObserver
 from twin.view.observer import LabObserver
+from twin.view.vouched import Vouched
 
 log = logging.getLogger(__name__)
 
@@ -192,12 +193,12 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
             observer, recording = open_lab_observer(options, f"watch-{lab}", [], {}, dedupe=True)
             shared = _SharedWatch(bus, clock, lab, observer)
             await shared.catch_up(str(first.get("campaign")), first)
-            feed = shared.on_message
+            feed = Vouched(shared.on_message)  # a result heard live: drawn once its campaign names it
         else:
             observer, recording = open_observer(options, f"watch-{lab}", dedupe=True)
             if first is not None:
                 await _read_history(bus, clock, lab, first, observer.on_message)
-            feed = observer.on_message
+            feed = Vouched(observer.on_message)
         for key, payload in waiting:
             feed(key, payload)  # repeats of the history are dropped by id
         waiting = None

@@ -1,0 +1,88 @@
+"""Results a watcher in another process hears from devices, drawn only once their campaign has said it took them.
+
+A watcher cannot tell an attempt's token, so a result forged on a device's key (on a bus without security) would
+look like a measurement. Each decisions message names the results its campaign accepted since the one before
+(``accepted``: their fingerprints, ``twin.core.messages.fingerprint``): a result heard live waits here until it
+is named (or passes at once if it was named first), and one never named is never drawn. A lab whose decisions
+name nothing (``accepted`` absent: an older labtwin) has its results drawn as they come. Readings are drawn as
+devices publish them.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+
+from twin.core.messages import InvalidMessage, decode, fingerprint, kept
+
+#: Results waiting to be named, and names not yet heard, kept at most (the oldest go first): forged results never
+#: named would otherwise pile up.
+MAX_KEPT = 10_000
+
+
+class Vouched:
+    def __init__(self, feed: Callable[[str, bytes], None]) -> None:
+        self.feed = feed
+        self._waiting: dict[str, tuple[str, bytes]] = {}  # fingerprint -> the result heard
+        self._named: dict[str, None] = {}  # named before they were heard
+        self._trusting = False  # the lab names nothing
+
+    def __call__(self, key: str, payload: bytes) -> None:
+        if b'"result"' in payload and not self._trusting and _kind(payload) == "result":
+            name = _fingerprint(payload)
+            if name is None:
+                return  # nothing a campaign could accept
+            if name in self._named:
+                del self._named[name]
+                self.feed(key, payload)
+            else:
+                _keep(self._waiting, name, (key, payload))
+            return
+        if b'"decisions"' in payload:
+            self._names(payload)
+        self.feed(key, payload)
+
+    def _names(self, payload: bytes) -> None:
+        """The results a decisions message names: drawn now if heard, else remembered."""
+        try:
+            env = json.loads(payload)
+            detail = env["body"]["detail"] if env.get("kind") == "decision" else None
+        except (ValueError, KeyError, TypeError, AttributeError):
+            return
+        if not isinstance(detail, dict) or env["body"].get("what") != "decisions":
+            return
+        names = detail.get("accepted")
+        if names is None:  # a lab that does not name what it accepted
+            self._trusting = True
+            waiting, self._waiting = self._waiting, {}
+            for key, result in waiting.values():
+                self.feed(key, result)
+            return
+        for name in names if isinstance(names, list) else ():
+            heard = self._waiting.pop(name, None) if isinstance(name, str) else None
+            if heard is not None:
+                self.feed(*heard)
+            elif isinstance(name, str):
+                _keep(self._named, name, None)
+
+
+def _kind(payload: bytes) -> object:
+    try:
+        env = json.loads(payload)
+    except ValueError:
+        return None
+    return env.get("kind") if isinstance(env, dict) else None
+
+
+def _fingerprint(payload: bytes) -> str | None:
+    try:
+        env, _ = decode(payload)
+    except InvalidMessage:
+        return None
+    return fingerprint(kept(env, payload))
+
+
+def _keep(kept_so_far: dict, name: str, value: object) -> None:
+    kept_so_far[name] = value
+    if len(kept_so_far) > MAX_KEPT:
+        del kept_so_far[next(iter(kept_so_far))]
