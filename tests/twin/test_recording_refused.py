@@ -58,7 +58,7 @@ def test_a_forged_result_and_reading_are_refused_and_drawn_neither_live_nor_repl
                                                    on_start=lambda c: seen.setdefault("camp", c)))
         while "camp" not in seen:
             await asyncio.sleep(0.05 * s.clock.speed)  # the loop keeps lab time: 50 ms of wall time
-        # and a watcher, as `twin watch` in another process: it hears the forged results too
+        # and a watcher, as `twin watch` in another process: it hears the forged messages too
         watcher = asyncio.ensure_future(watch_async(seen["camp"].bus, clock, LAB,
                                                     RecordOptions(save=tmp_path / "watch.rrd")))
         await asyncio.to_thread(forge)
@@ -78,8 +78,34 @@ def test_a_forged_result_and_reading_are_refused_and_drawn_neither_live_nor_repl
         assert len(drawn) == measurements(db) >= 4, name
         ys = {point[1] for row in drawn for strip in row["LineStrips2D:strips"] for point in strip}
         assert 300.0 * (1.0 - FORGED_Y[0]) not in ys and len(ys) > 100, name  # the viewer draws y as 300·(1 − y) px
-        # a watcher draws readings as devices publish them: only the lab's own recordings leave the forged one out
-        assert name == "watch.rrd" or not [path for path in rrd if "forged_reading" in path], name
+        assert not [path for path in rrd if "forged_reading" in path], name
+
+
+def test_a_watcher_draws_each_reading_its_campaign_took_once_it_is_named(tmp_path):
+    """Readings are named with the campaign's next decisions (a result sends them at once): a watcher draws every
+    reading the journal holds, once, though it holds each until its campaign names it."""
+    from pathlib import Path
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    s = prepare(Path(__file__).resolve().parents[2] / "scenarios" / "catalyst.yaml", clock="scaled", speed=2000,
+                bus="zenoh", overrides={"campaign.budget": 2, "campaign.planner": "random", "bus.listen": [endpoint]})
+    clock, db, seen = make_clock(s), tmp_path / "j.db", {}
+
+    async def main():
+        campaign = asyncio.ensure_future(run_async(s, clock, db, on_start=lambda c: seen.setdefault("camp", c)))
+        while "camp" not in seen:
+            await asyncio.sleep(0.05 * s.clock.speed)
+        watcher = asyncio.ensure_future(watch_async(seen["camp"].bus, clock, s.lab,
+                                                    RecordOptions(save=tmp_path / "watch.rrd")))
+        done = await campaign
+        await watcher
+        return done
+
+    assert clock.run(main()).done == 2
+    rrd = read_rrd(tmp_path / "watch.rrd")
+    drawn = sum(len(rows) for path, rows in rrd.items() if path.startswith("telemetry/"))
+    readings = sum(len(json.loads(e["detail"])["body"]["readings"]) for e in read_events(db, "msg.telemetry"))
+    assert drawn == readings > 0
 
 
 def test_a_lab_of_several_campaigns_draws_no_forged_result_either(tmp_path):

@@ -33,7 +33,8 @@ class DecisionStream:
         self.key = keys.campaign(lab, campaign_id, "decisions")
         self.history_key = keys.campaign(lab, campaign_id, "history")
         self._outbox: list[dict[str, Any]] = []
-        self._accepted: list[str] = []  # the fingerprints of the results accepted since the last message
+        self._accepted: list[str] = []  # the fingerprints of the results and readings accepted since the last message
+        self._due = False  # a result among them: a message goes now
         self._batches = itertools.count(1)
         self.shared = False  # one campaign of a lab several share (a watcher then draws each on its own)
 
@@ -41,14 +42,19 @@ class DecisionStream:
         self._outbox.append({"id": decision_id(seq), "t_lab": n.t_lab, "what": n.kind, "detail": {
             "experiment": n.experiment, "task": n.task, "attempt": n.attempt, "device": n.device, "info": n.detail}})
 
-    def accepted(self, kept_payload: bytes) -> None:
-        """A device's result the campaign took (journalled as it is kept): named in the next message."""
+    def accepted(self, kept_payload: bytes, reading: bool = False) -> None:
+        """A device's result or reading the campaign took (as journalled): named in the next message. A result
+        sends one at once; readings ride with the next decisions (one of their own for each would double the
+        messages of a lab that reports every few lab-minutes)."""
         self._accepted.append(fingerprint(kept_payload))
+        self._due = self._due or not reading
 
     def publish(self) -> None:
-        """Send the decisions added so far as one message, with the results accepted meanwhile (``accepted``)."""
-        if not self._outbox and not self._accepted:
+        """Send the decisions added so far as one message, with the results and readings accepted meanwhile
+        (``accepted``)."""
+        if not self._outbox and not self._due:
             return
+        self._due = False
         if not self.bus.wants(self.key):  # nobody watches: the journal keeps the decisions, skip encoding them
             self._outbox.clear()
             self._accepted.clear()

@@ -319,8 +319,8 @@ class LiveCampaign:
                 progressed = progressed or a.kind.startswith(PROGRESS_KINDS)
             elif t is RecordMessage:
                 self.journal.received(a)
-                if a.kind == "msg.result":
-                    self.decisions.accepted(a.payload)
+                if a.kind in ("msg.result", "msg.telemetry"):
+                    self.decisions.accepted(a.payload, reading=a.kind == "msg.telemetry")
                 if self._shown:
                     shown = self._shown.pop(a.payload, None)
                     if shown is not None:

@@ -1,11 +1,13 @@
-"""Results a watcher in another process hears from devices, drawn only once their campaign has said it took them.
+"""Results and readings a watcher in another process hears from devices, drawn only once their campaign has said
+it took them.
 
 A watcher cannot tell an attempt's token, so a result forged on a device's key (on a bus without security) would
-look like a measurement. Each decisions message names the results its campaign accepted since the one before
-(``accepted``: their fingerprints, ``twin.core.messages.fingerprint``): a result heard live waits here until it
-is named (or passes at once if it was named first), and one never named is never drawn. A lab whose decisions
-name nothing (``accepted`` absent: an older labtwin) has its results drawn as they come. Readings are drawn as
-devices publish them.
+look like a measurement, and a reading forged on it like the device's. Each decisions message names the results
+and readings its campaign accepted since the one before (``accepted``: their fingerprints,
+``twin.core.messages.fingerprint``; readings ride with the next decisions, results send one at once): what is
+heard live waits here until it is named (or passes at once if it was named first), and what is never named is
+never drawn. A lab whose decisions name nothing (``accepted`` absent: an older labtwin) has everything drawn as it
+comes.
 """
 
 from __future__ import annotations
@@ -15,20 +17,21 @@ from collections.abc import Callable
 
 from twin.core.messages import InvalidMessage, decode, fingerprint, kept
 
-#: Results waiting to be named, and names not yet heard, kept at most (the oldest go first): forged results never
-#: named would otherwise pile up.
+#: What waits to be named, and names not yet heard, kept at most (the oldest go first): forged messages never named
+#: would otherwise pile up.
 MAX_KEPT = 10_000
+HELD = ("result", "telemetry")
 
 
 class Vouched:
     def __init__(self, feed: Callable[[str, bytes], None]) -> None:
         self.feed = feed
-        self._waiting: dict[str, tuple[str, bytes]] = {}  # fingerprint -> the result heard
+        self._waiting: dict[str, tuple[str, bytes]] = {}  # fingerprint -> the result or reading heard
         self._named: dict[str, None] = {}  # named before they were heard
         self._trusting = False  # the lab names nothing
 
     def __call__(self, key: str, payload: bytes) -> None:
-        if b'"result"' in payload and not self._trusting and _kind(payload) == "result":
+        if not self._trusting and (b'"result"' in payload or b'"telemetry"' in payload) and _kind(payload) in HELD:
             name = _fingerprint(payload)
             if name is None:
                 return  # nothing a campaign could accept
