@@ -5,6 +5,7 @@ from pathlib import Path
 
 import pytest
 
+from twin.campaign.journal import read_events
 from twin.runtime.lab import prepare
 
 from tests.twin.shared_labs import (LAB, ROOT, SMALL, busy_spells, kill_all, recorded_lab, states)
@@ -102,6 +103,10 @@ def test_twin_watch_of_a_served_lab_draws_each_campaign_even_one_submitted_after
         mine = [sp for c in out.campaigns for sp in busy_spells(drawn.get(f"campaigns/{c}/devices/{device}", []))]
         assert sorted(lab_spells) == sorted(mine), device
     assert set(watched["observer"].campaigns) == {"dots", "catalyst", "late"}
+    # every reading the campaigns took, live or from the histories, once (a watcher holds each until it is named)
+    readings = sum(len(json.loads(e["detail"])["body"]["readings"]) for db in (tmp_path / "runs").glob("*.db")
+                   for e in read_events(db, "msg.telemetry"))
+    assert sum(len(rows) for path, rows in drawn.items() if path.startswith("telemetry/")) == readings > 0
 
 
 @pytest.mark.parametrize("seed, overrides, runtime", [(1, {}, "auto"), (3, {"campaigns.1.start_h": 1.5}, "auto"),
