@@ -52,3 +52,15 @@ def test_a_lab_that_names_nothing_has_its_results_drawn_and_unnamed_ones_are_for
     oldest, newest = result(10), result(10 + MAX_KEPT + 4)
     flood("decisions", decisions([name_of(oldest), name_of(newest)]))
     assert drawn[:-1] == [newest]  # the oldest was forgotten; the decisions message follows
+
+
+def test_a_result_that_fails_validation_is_never_drawn_and_what_is_not_a_message_passes_on():
+    fed: list[bytes] = []
+    watch = Vouched(lambda key, payload: fed.append(payload))
+    broken = result(1).replace(b'"t_lab":60.0', b'"t_lab":"soon"')  # JSON, a result, but not a valid message
+    assert broken != result(1)
+    watch("evt", broken)
+    watch("decisions", decisions(None))
+    watch("evt", broken)  # not from a lab that names nothing either
+    watch("evt", b"not json, mentions a result")
+    assert broken not in fed and fed[-1] == b"not json, mentions a result"

@@ -50,15 +50,16 @@ def _fitting_table(head: list[str], table_rows: list[list[str]], axes: int) -> t
     for first, (cells, whole_values) in enumerate(((table_rows, 10**6), (split, WHOLE_VALUE), (split, 0),
                                                     (stacked, 0))):
         table = _variants_table(head, cells, axes, whole_values)
-        shown = _shown(table)
-        if all(word in shown.split() for row in table_rows for word in row[-1].split()):
+        printed = _printed(table)
+        words = set(printed.split())
+        if all(word in words for row in table_rows for word in row[-1].split()):
             # whole: each busiest type beside its share, each header unfolded ("bus" over "iest")
-            return table, first == 0 and all(row[-1] in shown for row in table_rows) and all(
-                h in shown.split() for h in head[axes:] if " " not in h)
+            return table, first == 0 and all(row[-1] in printed for row in table_rows) and all(
+                h in words for h in head[axes:] if " " not in h)
     return table, False
 
 
-def _shown(table: Table) -> str:
+def _printed(table: Table) -> str:
     """The table as printed at the terminal's width (rich cuts a table that its columns' least widths make wider
     than the terminal at the terminal's edge)."""
     with console.capture() as shown:

@@ -33,7 +33,7 @@ class DecisionStream:
         self.key = keys.campaign(lab, campaign_id, "decisions")
         self.history_key = keys.campaign(lab, campaign_id, "history")
         self._outbox: list[dict[str, Any]] = []
-        self._accepted: list[str] = []  # the fingerprints of the results and readings accepted since the last message
+        self._accepted: list[bytes] = []  # the results and readings accepted since the last message, as kept
         self._due = False  # a result among them: a message goes now
         self._batches = itertools.count(1)
         self.shared = False  # one campaign of a lab several share (a watcher then draws each on its own)
@@ -43,10 +43,10 @@ class DecisionStream:
             "experiment": n.experiment, "task": n.task, "attempt": n.attempt, "device": n.device, "info": n.detail}})
 
     def accepted(self, kept_payload: bytes, reading: bool = False) -> None:
-        """A device's result or reading the campaign took (as journalled): named in the next message. A result
-        sends one at once; readings ride with the next decisions (one of their own for each would double the
-        messages of a lab that reports every few lab-minutes)."""
-        self._accepted.append(fingerprint(kept_payload))
+        """A device's result or reading the campaign took (as journalled): named in the next message (fingerprinted
+        only if someone watches). A result sends one at once; readings ride with the next decisions (one of their
+        own for each would double the messages of a lab that reports every few lab-minutes)."""
+        self._accepted.append(kept_payload)
         self._due = self._due or not reading
 
     def publish(self) -> None:
@@ -60,7 +60,7 @@ class DecisionStream:
             self._accepted.clear()
             return
         items, self._outbox = self._outbox, []
-        accepted, self._accepted = self._accepted, []
+        accepted, self._accepted = [fingerprint(p) for p in self._accepted], []
         body = {"what": "decisions", "detail": {"items": items, "accepted": accepted}}
         self.bus.publish(self.key, pack(Kind.DECISION, body, id=f"{SENDER}:b{next(self._batches)}", sender=SENDER,
                                         t_lab=items[0]["t_lab"] if items else self.clock.now(),

@@ -31,10 +31,10 @@ class Vouched:
         self._trusting = False  # the lab names nothing
 
     def __call__(self, key: str, payload: bytes) -> None:
-        if not self._trusting and (b'"result"' in payload or b'"telemetry"' in payload) and _kind(payload) in HELD:
-            name = _fingerprint(payload)
-            if name is None:
-                return  # nothing a campaign could accept
+        name = _held_as(payload)
+        if name == "":
+            return  # never drawn
+        if name is not None and not self._trusting:
             if name in self._named:
                 del self._named[name]
                 self.feed(key, payload)
@@ -69,20 +69,20 @@ class Vouched:
                 _keep(self._named, name, None)
 
 
-def _kind(payload: bytes) -> object:
-    try:
-        env = json.loads(payload)
-    except ValueError:
+def _held_as(payload: bytes) -> str | None:
+    """The fingerprint of a result or reading, to be held until named ("" for one no campaign could accept: it
+    fails validation); None for anything else."""
+    if b'"result"' not in payload and b'"telemetry"' not in payload:
         return None
-    return env.get("kind") if isinstance(env, dict) else None
-
-
-def _fingerprint(payload: bytes) -> str | None:
     try:
         env, _ = decode(payload)
     except InvalidMessage:
-        return None
-    return fingerprint(kept(env, payload))
+        try:
+            claimed = json.loads(payload)
+        except ValueError:
+            return None  # not a message: the observer skips it
+        return "" if isinstance(claimed, dict) and claimed.get("kind") in HELD else None
+    return fingerprint(kept(env, payload)) if env.kind in HELD else None
 
 
 def _keep(kept_so_far: dict, name: str, value: object) -> None:
