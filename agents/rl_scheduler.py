@@ -48,7 +48,8 @@ def _check_fit(path: Path, meta: dict, scenario: Any) -> str:
         return ""
     held = " (what it sees beyond the range it was judged on is held at that range's edge)" if "observed" in meta else ""
     text = (f"{path} was trained on labs unlike {scenario.name!r}: {'; '.join(why)}. It may schedule it poorly"
-            f"{held}; train on this lab's shapes (its `training` section) to be sure")
+            f"{held}; to be sure, train one on this lab (`twin train SCENARIO --out P.zip`; its `training` section "
+            f"sets the shapes drawn)")
     if scenario.campaign.policy_fit == "refuse":
         raise PluginError(text + " (campaign.policy_fit: refuse)")
     _warn_once(text)

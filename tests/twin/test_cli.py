@@ -311,3 +311,18 @@ def test_twin_version_names_labtwin_and_the_libraries_a_run_records():
     known = versions()
     assert res.exit_code == 0 and res.output.startswith(f"labtwin {known['labtwin']} (python {known['python']}")
     assert f"eclipse-zenoh {known['eclipse-zenoh']}" in res.output and f"torch {known['torch']}" in res.output
+
+
+def test_a_lab_that_refuses_its_misfit_policy_can_still_train_one(tmp_path):
+    """The misfit refusal says "train one on this lab", and `twin train` refused the same way: it loaded the
+    scenario's own scheduler, the policy that does not fit, before training a new one."""
+    wide = TINY.replace("instances: 2", "instances: 9").replace(
+        "scheduler: fifo", f"scheduler: 'rl:{ROOT / 'agents' / 'policies' / 'flaky_scheduler.zip'}', "
+                           "policy_fit: refuse")
+    (tmp_path / "wide.yaml").write_text(wide)
+    ran = twin_cli("run", tmp_path / "wide.yaml", "--bus", "memory", "-q")
+    said = " ".join(ran.output.split())
+    assert ran.exit_code != 0 and "9 instances of one type" in said and "twin train SCENARIO" in said, said
+    res = twin_cli("train", tmp_path / "wide.yaml", "--steps", "5", "--envs", "1", "--eval-every", "5",
+                   "--out", tmp_path / "p.zip")
+    assert res.exit_code == 0 and (tmp_path / "p.zip").exists(), res.output

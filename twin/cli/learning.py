@@ -44,7 +44,9 @@ def train(
     writable("--out", out.with_suffix(".zip"), out.with_suffix(".json"))
     recording_file("--save", save)
     try:
-        s = checked(lab.prepare(scenario, overrides=assignments(set_ or [])), scenario)
+        # a scheduler's training makes a new policy: the scenario's own scheduler (say a policy that does not fit
+        # this lab, which the misfit message tells the user to train) is not loaded
+        s = checked(lab.prepare(scenario, overrides=assignments(set_ or [])), scenario, benched=agent == "scheduler")
         trainer = plugins.load("trainers", agent)
         if init is not None and agent not in ("scheduler", "route"):
             raise TwinError(f"--init starts the scheduler's or the route prior's training from a policy; the {agent} "

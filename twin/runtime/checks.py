@@ -26,7 +26,7 @@ def check(s: Scenario, external: Collection[str] = (), benched: bool = False) ->
     its Zenoh settings make a config. A lab of several campaigns: each campaign's, on the device types its
     workflow uses. ``external``: instances served by other processes, whose drivers need not be installed here
     (a device type all of whose instances are external is not loaded). ``benched``: a bench names the schedulers
-    to run and checks them itself, so the scenario's own is not loaded."""
+    to run and checks them itself, and a scheduler's training makes one, so the scenario's own is not loaded."""
     if not s.campaigns:
         _check(s, external=external, benched=benched)
         return
