@@ -250,6 +250,11 @@ def test_training_past_its_steps_says_why(tmp_path):
     assert res.exit_code == 0 and (tmp_path / "p.zip").exists(), res.output
     said = " ".join(res.stderr.split())
     assert re.search(r"trained (\d+) steps for --steps 5: training goes in rounds", said), said
+    meta = json.loads((tmp_path / "p.json").read_text())
+    kept = min(meta["curve"], key=lambda c: c["score"])
+    assert f"kept the round at {kept['steps']:,} steps: score {kept['score']:.3f}" in said, said
+    assert (f"twin bench schedulers {tmp_path / 'tiny.yaml'} --shapes --seeds 40 --schedulers "
+            f"{meta['best_rule']},rl:{tmp_path / 'p.zip'}") in said, said
 
 
 def test_the_command_list_shows_each_summary_as_one_paragraph():
@@ -326,3 +331,20 @@ def test_a_lab_that_refuses_its_misfit_policy_can_still_train_one(tmp_path):
     res = twin_cli("train", tmp_path / "wide.yaml", "--steps", "5", "--envs", "1", "--eval-every", "5",
                    "--out", tmp_path / "p.zip")
     assert res.exit_code == 0 and (tmp_path / "p.zip").exists(), res.output
+
+
+def test_what_a_training_kept_is_said_with_the_comparison_that_fits_the_lab():
+    from twin.cli.learning import kept_round
+    from twin.runtime.lab import prepare
+
+    policies = ROOT / "agents" / "policies"
+    for scenario, policy, verdict, compare in (
+            ("jobshop.yaml", "jobshop_scheduler.zip", "it did better than the rule", "--jobshop DIR --schedulers mwkr"),
+            ("shared_lab.yaml", "lab_scheduler.zip", "", "twin whatif"),
+            ("flaky_lab.yaml", "flaky_scheduler.zip", "the rule did better", "--shapes --seeds 40")):
+        meta = json.loads((policies / policy).with_suffix(".json").read_text())
+        best = min(c["score"] for c in meta["curve"])
+        said = kept_round(policies / policy, prepare(ROOT / "scenarios" / scenario), ROOT / "scenarios" / scenario)
+        assert f"score {best:.3f}" in said and verdict in said and compare in said, said
+    assert kept_round(policies / "quantum_dots.zip", prepare(ROOT / "scenarios" / "quantum_dots.yaml"),
+                      ROOT / "scenarios" / "quantum_dots.yaml") == ""  # a planner's policy: no rule to beat

@@ -100,9 +100,37 @@ def train(
             if recording is not None:
                 recording.close()
     console.print(f"saved {path} (and {path.with_suffix('.json').name})")
+    verdict = kept_round(path, s, scenario)
+    if verdict:
+        err.print(verdict, highlight=False)
     if trained[0] > steps:
         err.print(f"trained {trained[0]:,} steps for --steps {steps:,}: training goes in rounds (of whole episodes, "
                   "or of PPO's rollouts on every environment), and a round begun is finished", highlight=False)
+
+
+def kept_round(path: Path, s: Scenario, scenario: Path) -> str:
+    """Which evaluation round a scheduler's training kept, what its score says, and how to compare it with the
+    rule on more runs ("" for a policy whose file keeps no rule-relative curve: a planner, a controller)."""
+    from twin.learning.policies import read_meta
+
+    meta = read_meta(path)
+    scored = [c for c in meta.get("curve", []) if isinstance(c.get("score"), (int, float))]
+    rule = meta.get("best_rule")
+    if not scored or not rule:
+        return ""
+    best = min(scored, key=lambda c: c["score"])
+    verdict = ("it did better than the rule" if best["score"] < 0.995 else "level with the rule"
+               if best["score"] <= 1.005 else "the rule did better (train longer, or keep the rule)")
+    if s.campaigns:
+        compare = f"in each campaign of the lab: twin whatif {scenario} --schedulers {rule},rl:{path}"
+    elif s.jobshop is not None:
+        compare = f"on shops it never trained on: twin bench schedulers {scenario} --jobshop DIR --schedulers " \
+                  f"{rule},rl:{path}"
+    else:
+        compare = (f"on the lab's variants, 40 paired seeds: twin bench schedulers {scenario} --shapes --seeds 40 "
+                   f"--schedulers {rule},rl:{path}")
+    return (f"kept the round at {best['steps']:,} steps: score {best['score']:.3f}, its objective ÷ the best rule's "
+            f"({rule}) on the evaluation runs (below 1 is better): {verdict}. Compare them {compare}")
 
 
 def one_campaign(s: Scenario, path: Path, what: str) -> Scenario:
