@@ -85,7 +85,6 @@ class Device:
     consecutive_failures: int = 0
     busy_s: float = 0.0
     failures: int = 0
-    steps_done: int = 0
     attempts: int = 0
     lost_at: float | None = None  # when it last left the bus: a loss sooner than a lease after is a flap
     held_by: str = ""  # another campaign of a shared lab has a step on it

@@ -39,7 +39,6 @@ def resolve(core: CampaignCore, att: Attempt, code: str, body: dict[str, Any]) -
         core._send(dev.name, Kind.CANCEL, task.id, att.n, {"reason": body["reason"]}, att.token)
     if code == Code.OK:
         dev.consecutive_failures, dev.probing = 0, False
-        dev.steps_done += 1
         advance(core, task, body)
     elif code == Code.REJECTED:
         if not body.get("began"):  # a step refused never ran: it used nothing, and costs nothing
