@@ -64,3 +64,21 @@ def test_a_result_that_fails_validation_is_never_drawn_and_what_is_not_a_message
     watch("evt", broken)  # not from a lab that names nothing either
     watch("evt", b"not json, mentions a result")
     assert broken not in fed and fed[-1] == b"not json, mentions a result"
+
+
+def test_a_decisions_message_without_names_does_not_turn_off_the_naming_of_a_lab_that_names():
+    """One forged decisions message without `accepted` (anyone can publish one on a bus without security) made the
+    watcher take the lab for an older one and draw everything after it, forged results included."""
+    fed: list[bytes] = []
+    watch = Vouched(lambda key, payload: fed.append(payload))
+    watch("decisions", decisions([]))
+    watch("decisions", decisions(None))  # the forger's
+    forged = result(3)
+    watch("evt", forged)
+    assert forged not in fed
+    older: list[bytes] = []
+    lab = Vouched(lambda key, payload: older.append(payload))
+    lab("decisions", decisions(None))  # an older lab, or a forger first ...
+    lab("decisions", decisions([]))  # ... until the lab names: held again from then on
+    lab("evt", forged)
+    assert forged not in older

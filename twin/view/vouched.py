@@ -7,7 +7,8 @@ and readings its campaign accepted since the one before (``accepted``: their fin
 ``twin.core.messages.fingerprint``; readings ride with the next decisions, results send one at once): what is
 heard live waits here until it is named (or passes at once if it was named first), and what is never named is
 never drawn. A lab whose decisions name nothing (``accepted`` absent: an older labtwin) has everything drawn as it
-comes.
+comes — until a decisions message names something: from then on a decisions message without names (forged on a bus
+without security, where anyone can publish on the campaign's keys) changes nothing.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ class Vouched:
         self._waiting: dict[str, tuple[str, bytes]] = {}  # fingerprint -> the result or reading heard
         self._named: dict[str, None] = {}  # named before they were heard
         self._trusting = False  # the lab names nothing
+        self._naming = False  # the lab has named what it accepted: it is never trusted again
 
     def __call__(self, key: str, payload: bytes) -> None:
         name = _held_as(payload)
@@ -56,11 +58,14 @@ class Vouched:
             return
         names = detail.get("accepted")
         if names is None:  # a lab that does not name what it accepted
+            if self._naming:
+                return
             self._trusting = True
             waiting, self._waiting = self._waiting, {}
             for key, result in waiting.values():
                 self.feed(key, result)
             return
+        self._naming, self._trusting = True, False
         for name in names if isinstance(names, list) else ():
             heard = self._waiting.pop(name, None) if isinstance(name, str) else None
             if heard is not None:
