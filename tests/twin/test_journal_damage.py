@@ -53,6 +53,7 @@ def test_a_journal_cut_short_is_called_damaged_not_foreign(tmp_path, command, mo
     ("UPDATE events SET detail = 'not json {' WHERE seq = 3", "event 3 is damaged (its detail is not JSON"),
     ("UPDATE events SET experiment = 'zz' WHERE seq = 4", "event 4 is damaged (its experiment is 'zz'"),
     ("UPDATE events SET t_lab = 'noon' WHERE seq = 5", "event 5 is damaged (its lab time is 'noon'"),
+    ("UPDATE events SET t_lab = 1e308 WHERE seq = 5", "event 5 is damaged (its lab time is 1e+308 s, beyond any"),
     ("DELETE FROM events WHERE seq IN (6, 7)", "event 6 is missing (the next is 8)"),  # replayed without them
     ("DELETE FROM events WHERE seq = 1", "event 1 is missing (the next is 2)"),
 ])
@@ -83,6 +84,14 @@ _KILLED = "DELETE FROM run WHERE key = 'summary'; "  # as a run killed before it
     ("DELETE FROM run WHERE key = 'scenario'", ["export"], "its run table has no 'scenario'"),
     ("UPDATE experiments SET params = '[1, 2]' WHERE id = 0", ["export"],
      "experiment 0 is damaged (its params is '[1, 2]', not a mapping)"),
+    ("UPDATE experiments SET status = 'exploded' WHERE id = 1", ["export"],
+     "experiment 1 is damaged (its status is 'exploded', not one of pending, running, done, abandoned)"),
+    ("UPDATE experiments SET attempts = 'many' WHERE id = 1", ["export"],
+     "experiment 1 is damaged (its attempts is 'many', not a whole number of them)"),
+    ("UPDATE experiments SET t_done = -1e300 WHERE id = 1", ["export"],
+     "experiment 1 is damaged (its t_done is '-1e+300', not a lab time)"),
+    ("ALTER TABLE experiments RENAME TO old; CREATE VIEW experiments AS SELECT id, params FROM old", ["export"],
+     "its experiments table has no route, status, reason"),
     ("UPDATE experiments SET route = '[[1, 2]]' WHERE id = 1", ["export"],
      "experiment 1 is damaged (its route is '[[1, 2]]', not a list of [step, device type, params])"),
     ("UPDATE run SET value = '{' WHERE key = 'summary'", ["report", "replay", "export", "resume"],

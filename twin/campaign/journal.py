@@ -20,6 +20,7 @@ from typing import Any
 
 import msgspec
 
+from twin.campaign.events import Status
 from twin.campaign.journal_lock import claim, release
 from twin.core.errors import TwinError
 from twin.core.numbers import finite
@@ -317,14 +318,31 @@ _WHAT_NOW = "run the campaign again (twin run); a finished run's summary is stil
 _ALTERED = f"labtwin never writes such a row, so the journal was altered or corrupted: {_WHAT_NOW}"
 
 
+_EXPERIMENT_COLUMNS = ("id", "params", "route", "status", "reason", "outputs", "scores", "attempts", "retries",
+                       "degraded", "t_proposed", "t_done")
+_STATUSES = tuple(status.value for status in Status)
+_EVENT_COLUMNS = ("seq", "t_lab", "kind", "experiment", "task", "attempt", "device", "detail")
+#: Past any campaign's lab time (``campaign.max_lab_hours`` is at most a million hours), and within what a recording's
+#: timeline holds (nanoseconds in 64 bits: 9.2e9 s).
+LATEST_LAB_S = 4.0e9
+
+
+def _columns(path: str | Path, table: str, rows: list[dict[str, Any]], columns: tuple[str, ...]) -> None:
+    missing = [c for c in columns if rows and c not in rows[0]]
+    if missing:
+        raise NotAJournal(f"{path}: its {table} table has no {', '.join(missing)} column; labtwin never writes such a "
+                          f"table, so the journal was altered or corrupted: {_WHAT_NOW}")
+
+
 def read_experiments(path: str | Path) -> list[dict[str, Any]]:
     """The journal's experiments in order; a row no labtwin wrote (an id that is not a whole number, a column
-    that should be JSON and is not) raises ``NotAJournal`` naming it."""
+    that should be JSON and is not, a status or count of another kind) raises ``NotAJournal`` naming it."""
     with reading(path) as db:
         db.row_factory = sqlite3.Row
         rows = [dict(r) for r in db.execute("SELECT * FROM experiments ORDER BY id")]
+    _columns(path, "experiments", rows, _EXPERIMENT_COLUMNS)
     for row in rows:
-        damage = "its id is not a whole number" if type(row.get("id")) is not int else ""
+        damage = "its id is not a whole number" if type(row.get("id")) is not int else _experiment_damage(row)
         for column in _EXPERIMENT_JSON:
             text = row.get(column)
             if damage or text is None:
@@ -341,12 +359,32 @@ def read_experiments(path: str | Path) -> list[dict[str, Any]]:
     return rows
 
 
+def _experiment_damage(row: dict[str, Any]) -> str:
+    """What is wrong with an experiment row's plain columns, or ''."""
+    if row["status"] not in _STATUSES:
+        return f"its status is {str(row['status'])[:20]!r}, not one of {', '.join(_STATUSES)}"
+    if type(row["reason"]) is not str:
+        return "its reason is not text"
+    for column in ("attempts", "retries", "degraded"):
+        if type(row[column]) is not int or row[column] < 0:
+            return f"its {column} is {str(row[column])[:20]!r}, not a whole number of them"
+    for column in ("t_proposed", "t_done"):
+        if (row[column] is not None or column == "t_proposed") and not _lab_time(row[column]):
+            return f"its {column} is {str(row[column])[:20]!r}, not a lab time"
+    return ""
+
+
+def _lab_time(t: Any) -> bool:
+    return finite(t) and -1.0 <= t <= LATEST_LAB_S
+
+
 def read_events(path: str | Path, kind_like: str = "%") -> list[dict[str, Any]]:
     """The journal's events in order; a row no labtwin wrote (a time that is not a number, a detail that is not
     JSON, ...) raises ``NotAJournal`` naming it, rather than failing whatever reads the rows after."""
     with reading(path) as db:
         db.row_factory = sqlite3.Row
         rows = [dict(r) for r in db.execute("SELECT * FROM events WHERE kind LIKE ? ORDER BY seq", (kind_like,))]
+    _columns(path, "events", rows, _EVENT_COLUMNS)
     for row in rows:
         damage = _damage(row)
         if damage:
@@ -365,6 +403,8 @@ def _damage(row: dict[str, Any]) -> str:
     t = row.get("t_lab")
     if not finite(t):
         return f"its lab time is {str(t)[:20]!r}, not a number"
+    if not _lab_time(t):
+        return f"its lab time is {t:g} s, beyond any campaign's"
     if type(row.get("kind")) is not str or not row["kind"]:
         return "it has no kind"
     for field in ("experiment", "attempt"):
