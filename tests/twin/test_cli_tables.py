@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from tests.conftest import twin_cli
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -136,3 +138,28 @@ def test_a_narrow_table_with_more_header_words_than_80_columns_hold_breaks_them_
     # "least-l" over "oaded" before)
     assert {"synthesiser", "bottleneck", "instances", "duration)"} <= set(words)
     assert {"least-", "loaded", "oldest-", "sample", "flaky_", "scheduler"} <= set(words)
+
+
+@pytest.mark.parametrize("schedulers,lines_per_comparison", [
+    ("fifo,rl:agents/policies/flaky_scheduler.zip", 1),
+    ("fifo,spt,mwkr,least-loaded,oldest-sample,rl:agents/policies/flaky_scheduler.zip", 3)])
+def test_the_shapes_bench_at_80_columns_never_breaks_a_comparison_inside_a_line(schedulers, lines_per_comparison):
+    """Six schedulers at 80 columns folded each "+2.84 ± 2.77 worse" into "+2.84 ±" over "2.77" over "worse": the
+    comparisons now go on one line, on two, or with the difference, its interval and the verdict on a line each."""
+    args = ["bench", "schedulers", "scenarios/flaky_lab.yaml", "--shapes", "--seeds", "2", "--workers", "1",
+            "--schedulers", schedulers, "--set", "campaign.budget=8"]
+    shown = twin_cli(*args, columns=80)
+    data = json.loads(twin_cli(*args, "--json").stdout)
+    assert shown.exit_code == 0, shown.stderr
+    lines = shown.stdout.splitlines()
+    assert max(map(len, lines)) <= 80 and not any(line.rstrip().endswith("±") for line in lines)
+    words = shown.stdout.split()
+    assert {"synthesiser", "spectrometer", "bottleneck"} <= set(words)  # the shapes' words whole
+    for c in data["comparisons"]:
+        if c["scheduler"] == c["best_rule"]:
+            continue
+        diff, ci, said = f"{c['diff_h']:+.2f}", f"{c['ci95_h']:.2f}", c["verdict"]
+        if lines_per_comparison == 1:
+            assert f"{diff} ± {ci} {said}" in shown.stdout, (c, shown.stdout)
+        else:
+            assert f"± {ci}" in shown.stdout and diff in words and said in words, c

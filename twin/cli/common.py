@@ -312,13 +312,13 @@ def print_table(table: Table) -> None:
             column.header, column._cells = name, list(text)
             words = [len(w) for c in text if isinstance(c, str) for w in c.split()] if whole else []
             column.min_width = max(least, *words, *(len(w) for w in name.split()))
-        width = _fitted(table)
+        width = fitted_width(table)
         if width is not None:
             break
     else:  # whole words leave no room: let them fold, as the numbers may not
         for column, name, text, least in zip(table.columns, headers, contents, numbers_only):
             column.header, column._cells, column.min_width = name, text, least
-        width = _fitted(table) or console.width
+        width = fitted_width(table) or console.width
     console.print(table, width=width)
 
 
@@ -330,7 +330,7 @@ def _broken(text: Any) -> Any:
 _WORD_BREAK = re.compile(r"(?<=[^\W\d_][-_/])(?=[^\W\d_])")
 
 
-def _fitted(table: Table) -> int | None:
+def fitted_width(table: Table) -> int | None:
     """The width to render ``table`` at so that it fits the terminal, or None if it cannot. Rich narrows the
     widest columns to fit and only then widens each to its min_width, so the table can come out wider than the
     terminal (and its caption cropped): ask it for less until it fits."""

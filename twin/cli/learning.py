@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
+from rich.table import Table
 
 from twin.core import plugins
 from twin.runtime import lab
 from twin.runtime.checks import checked
 from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
-                             exit_status, machine_output, narrow_table, paired_assignments, print_table,
+                             exit_status, fitted_width, machine_output, narrow_table, paired_assignments, print_table,
                              recording_file, refuse_disagreeing, say_ended_early, sigterm_unwinds, stopped_by, writable)
 from twin.core.errors import TwinError
 from twin.runtime.fast_device import FastRuntimeRefused
@@ -106,6 +108,27 @@ def train(
     if trained[0] > steps:
         err.print(f"trained {trained[0]:,} steps for --steps {steps:,}: training goes in rounds (of whole episodes, "
                   "or of PPO's rollouts on every environment), and a round begun is finished", highlight=False)
+
+
+def _compared_table(header: list[str], title: str, caption: str, rows: list[list[str]], first_compared: int) -> Table:
+    """The shapes table with each comparison ("+0.30 ± 0.55\nsame") on one line, else over two, else the
+    difference, its interval and the verdict each on a line of its own: the first that fits the terminal with no
+    line of a comparison broken (where rich would fold "+0.30 ± 0.55 same" into "+0.30 ±" over "0.55 same")."""
+    def laid_out(layout: Callable[[str], str], whole_words: bool) -> Table:
+        table = narrow_table(header, title, caption)
+        for row in rows:
+            table.add_row(*row[:first_compared], *map(layout, row[first_compared:]))
+        for i, column in enumerate(table.columns):  # print_table keeps a column at least this wide
+            if i >= first_compared or whole_words:  # a comparison's lines whole; a shape's words too, to fit
+                parts = [p for cell in column._cells for p in str(cell).split("\n" if i >= first_compared else None)]
+                column.min_width = max(len(part) for part in parts)
+        return table
+
+    for layout in (lambda cell: cell.replace("\n", " "), lambda cell: cell):
+        table = laid_out(layout, whole_words=True)
+        if fitted_width(table) is not None:
+            return table
+    return laid_out(lambda cell: cell.replace(" ± ", "\n± "), whole_words=False)
 
 
 def kept_round(path: Path, s: Scenario, scenario: Path) -> str:
@@ -332,8 +355,7 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
               "first depends on the order they ran, so chance weighs on every row; --set "
               "campaign.stop_on_target=false compares the schedulers on the whole budget"
               if s.chemistry.targets and s.campaign.stop_on_target else "")
-    table = narrow_table(shown, f"{s.name}: each scheduler minus the shape's best rule, {what} "
-                                f"(mean of {seeds} paired seeds ± 95 % CI)", chance)
+    title = f"{s.name}: each scheduler minus the shape's best rule, {what} (mean of {seeds} paired seeds ± 95 % CI)"
     progress = bar_progress(as_json)
     with progress:
         bar = progress.add_task(f"{s.name}: shapes", total=len(variants(s, random_labs)))
@@ -344,16 +366,14 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
         cells = []
         for n in others:
             diff, half = c.diffs[n]
-            cells.append("—" if n == c.best_rule else f"{diff / 3600:+.2f} ± {half / 3600:.2f} {verdict(diff, half)}")
+            cells.append("—" if n == c.best_rule else f"{diff / 3600:+.2f} ± {half / 3600:.2f}\n{verdict(diff, half)}")
             comparisons.append({"shape": c.shape, "scheduler": n, "by": by, "best_rule": c.best_rule,
                                 "best_rule_mean_h": c.best_mean_s / 3600, "diff_h": diff / 3600,
                                 "ci95_h": half / 3600, "verdict": verdict(diff, half)})
             runs += [{"shape": c.shape, **asdict(r), "makespan_h": r.makespan_s / 3600} for r in c.runs[n]]
         table_rows.append([c.shape, label(c.best_rule), f"{c.best_mean_s / 3600:.2f}", *cells])
-    if machine_output(as_json, csv_out, header, table_rows, runs, scenario=s.name, seeds=seeds,
-                      comparisons=comparisons):
+    if machine_output(as_json, csv_out, header, [[cell.replace("\n", " ") for cell in row] for row in table_rows],
+                      runs, scenario=s.name, seeds=seeds, comparisons=comparisons):
         return
-    for row in table_rows:
-        table.add_row(*row)
-    print_table(table)
+    print_table(_compared_table(shown, title, chance, table_rows, first_compared=3))
     say_ended_early([(n, r.stopped) for c in results for n in others for r in c.runs[n]])
