@@ -174,6 +174,8 @@ class MqttInstrument:
         text = payload.decode(errors="replace").strip().strip('"')
         if text == "offline":
             self._set_present(False)
+            if self._answer is not None and not self._answer.done():  # the command died with it: end the step now
+                self._answer.set_exception(DriverError(f"{self.name}: the instrument went offline during the step"))
         elif text != "online":
             self._invalid("status", f"{text[:40]!r}, not online or offline")
         elif not retained:

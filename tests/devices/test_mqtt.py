@@ -87,6 +87,41 @@ def test_a_killed_instrument_leaves_the_bus_by_its_last_will_and_its_work_moves(
     assert summary.done == 4 and summary.devices_lost >= 1
 
 
+def test_an_instrument_killed_mid_step_and_started_again_takes_work_at_once(mosquitto, prefix, tmp_path):
+    """The adapter kept waiting for the dead instrument's answer: back on the bus, the device refused every step as
+    "busy with" the lost one until a cancel nobody answered had waited out its 10 s of wall time."""
+    topic = f"{prefix}/spectrometer"  # the one instance is named after its type
+    procs = [instrument(mosquitto, topic, seconds=1.0)]
+    lab = mqtt_lab(mosquitto, prefix, **{"campaign.budget": 3, "campaign.max_in_flight": 1})
+    lab["devices"]["spectrometer"]["instances"] = 1
+    s = prepare(parse(lab))
+    clock, db, seen = make_clock(s), tmp_path / "j.db", {}
+
+    async def main():
+        campaign = asyncio.ensure_future(run_async(s, clock, db, on_start=lambda o: seen.setdefault("orch", o.core)))
+        while not campaign.done():
+            dev = seen["orch"].devices["spectrometer"] if "orch" in seen else None
+            if "killed" not in seen and dev is not None and dev.attempt is not None and dev.attempt.t_accepted:
+                os.kill(procs[0].pid, signal.SIGKILL)
+                seen["killed"] = clock.now()
+            elif "killed" in seen and "again" not in seen and dev is not None and not dev.online:
+                procs.append(await asyncio.to_thread(instrument, mosquitto, topic, 1.0))
+                seen["again"] = clock.now()
+            await clock.sleep(1)
+        return await campaign
+
+    try:
+        summary = clock.run(main())
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+    assert "again" in seen, "the instrument was never killed and started again"
+    events = read_events(db)
+    busy = [e for e in events if e["kind"] == "attempt.failed" and "busy with" in (e["detail"] or "")]
+    assert busy == [] and summary.done == 3 and summary.devices_lost == 1, busy[:2]
+
+
 def test_an_instrument_error_is_a_fault_with_its_reason_and_nothing_is_lost(mosquitto, prefix, tmp_path):
     procs = [instrument(mosquitto, f"{prefix}/spectrometer-{i}", seconds=0.05) for i in (1, 2)]
     lab = mqtt_lab(mosquitto, prefix, **{"campaign.budget": 2, "workflow": [{"step": "measure", "device": "spectrometer"}]})
