@@ -22,11 +22,12 @@ from typing import Any
 
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, RecordExperiment,
                            RecordMessage, Send, SetTimer, Stop, TimerFired)
-from twin.campaign.events import ALERT_LOGGER, ALERTS, PROGRESS_KINDS, TimerKey, alert_text
+from twin.campaign.events import ALERTS, PROGRESS_KINDS, TimerKey
 from twin.campaign.decisions import Assignment, LabView, Planner, Scheduler
 from twin.core.errors import ClockError
 from twin.campaign.journal import Journal
 from twin.core.messages import Kind
+from twin.runtime.alert_log import AlertLog
 from twin.runtime.checked_planner import covered
 from twin.runtime.checked_scheduler import fallbacks
 from twin.runtime.draw_later import DrawLater
@@ -36,7 +37,6 @@ from twin.scenario import Scenario
 from twin.view.observer import UNDRAWN
 
 log = logging.getLogger(__name__)
-alerts_log = logging.getLogger(ALERT_LOGGER)
 Progress = Callable[[CampaignCore], None]
 
 
@@ -52,6 +52,7 @@ class Seat:
         self.planner = covered(planner, core.s.campaign.planner)
         self.queue, self.devices, self.on_progress, self.draw = queue, devices, on_progress, draw
         self.alerts = ALERTS if alerts else frozenset()
+        self.alert_log = AlertLog()
         self.timers: dict[TimerKey, Timer] = {}
         self.view: LabView | None = None  # a decision the caller of next_decision() is to make
         for rule in fallbacks(scheduler):  # a scheduler's mistakes covered: journalled when the reason changes
@@ -74,7 +75,7 @@ class Seat:
                 if draw is not None and a.kind not in UNDRAWN:
                     draw(a)
                 if a.kind in self.alerts:
-                    alerts_log.warning("%s", alert_text(a))
+                    self.alert_log(a)
                 if watched and not progressed:
                     progressed = a.kind.startswith(PROGRESS_KINDS)
             elif t is RecordMessage:

@@ -25,7 +25,7 @@ from twin.core.bus import Bus
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Presence, Proposed,
                            RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
 from twin.campaign import human, replay
-from twin.campaign.events import ALERT_LOGGER, ALERTS, PROGRESS_KINDS, TimerKey, alert_text
+from twin.campaign.events import ALERTS, PROGRESS_KINDS, TimerKey
 from twin.campaign.replay import RESUMED, Rebuilt
 from twin.core.clock import LabClock
 from twin.campaign.decisions import Planner, Scheduler
@@ -33,6 +33,7 @@ from twin.campaign.journal import Journal
 from twin.core.bus import NoReplyError
 from twin.core.errors import TwinError
 from twin.core.messages import Kind, pack
+from twin.runtime.alert_log import AlertLog
 from twin.runtime.checked_planner import covered
 from twin.runtime.checked_scheduler import fallbacks
 from twin.runtime.control import ControlDesk
@@ -43,7 +44,6 @@ from twin.view.observer import UNDRAWN
 from twin.scenario import Scenario
 
 log = logging.getLogger(__name__)
-alerts_log = logging.getLogger(ALERT_LOGGER)
 
 Progress = Callable[[CampaignCore], None]
 
@@ -90,6 +90,7 @@ class LiveCampaign:
         self.s, self.bus, self.clock, self.journal = scenario, bus, clock, journal
         self.planner = covered(planner, scenario.campaign.planner)
         self.scheduler, self.on_progress = scheduler, on_progress
+        self.alert_log = AlertLog(virtual=clock.is_virtual)
         for rule in fallbacks(scheduler):  # a scheduler's mistakes covered: journalled when the reason changes
             rule.on_fallback = lambda reason: self._note_from_any_thread("scheduler.fallback", reason)
             rule.on_recovered = lambda message: self._note_from_any_thread("scheduler.recovered", message)
@@ -139,7 +140,7 @@ class LiveCampaign:
         n = Note(self.clock.now(), kind, detail=detail)
         self._remark(n)
         if kind in ALERTS:
-            alerts_log.warning("%s", alert_text(n))
+            self.alert_log(n)
 
     def _remark(self, n: Note) -> None:
         self._decided(n)
@@ -310,7 +311,7 @@ class LiveCampaign:
                 if a.kind.startswith("operator."):
                     self.desk.noted(a)
                 if a.kind in ALERTS:
-                    alerts_log.warning("%s", alert_text(a))
+                    self.alert_log(a)
                 elif a.kind == "message.rejected":  # a device of your own echoes tokens? the first ten, then sparingly
                     rejected = self.core.counts.rejected
                     if rejected <= 10 or a.detail.get("left_out"):

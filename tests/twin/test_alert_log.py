@@ -1,0 +1,36 @@
+"""The same alert, again and again, is said in full a few times and then by its count in virtual time; on a live
+clock every one is said (a person may have to act on it); the journal keeps all of them either way."""
+
+import logging
+from pathlib import Path
+
+from twin.campaign.events import Note
+from twin.campaign.journal import read_events
+from twin.runtime.alert_log import IN_FULL, AlertLog
+from twin.runtime.lab import run
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_a_lab_whose_steps_all_fail_says_each_alert_a_few_times_then_by_its_count(tmp_path, caplog):
+    db = tmp_path / "j.db"
+    with caplog.at_level(logging.WARNING, logger="twin.alerts"):
+        run(ROOT / "scenarios" / "quantum_dots.yaml", journal=db, bus="memory",
+            overrides={"devices.synthesiser.faults.fail_p": 1.0, "campaign.budget": 60})
+    said = [r.getMessage() for r in caplog.records if r.name == "twin.alerts"]
+    journalled = [e for e in read_events(db) if e["kind"] == "devices.unavailable"]
+    assert len(journalled) >= 10  # every one is in the journal
+    assert len(said) == IN_FULL + (1 if len(journalled) >= 10 else 0) + (1 if len(journalled) >= 100 else 0), said
+    assert all(s.startswith("devices.unavailable synthesiser: no synthesiser is usable") for s in said)
+    assert said[IN_FULL].endswith("(the 10th time; said again at the 100th, and the journal has every one)")
+
+
+def test_on_a_live_clock_every_alert_is_said(caplog):
+    with caplog.at_level(logging.WARNING, logger="twin.alerts"):
+        live, virtual = AlertLog(virtual=False), AlertLog()
+        for t in range(12):
+            note = Note(float(t), "consumable.depleted", device="vials", detail={"item": "vials", "needed": 1})
+            live(note)
+            virtual(note)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 12 + IN_FULL + 1 and sum("vials is out" in s for s in said) == len(said)

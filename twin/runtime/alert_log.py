@@ -1,0 +1,44 @@
+"""Alerts said in the log. In virtual time, each kind on each device (or experiment) in full the first few times,
+then at the 10th, 100th, 1,000th, ... with its count, so that a lab whose steps all fail does not bury the terminal
+in the same warning (a device type quarantined again and again said it over 200 times in a campaign of a fraction
+of a second). On a live clock each one is said: a person may have to act on it (refill a stock, mend a device).
+The journal keeps every one."""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from typing import Any
+
+from twin.campaign.events import ALERT_LOGGER, alert_text
+
+log = logging.getLogger(ALERT_LOGGER)
+
+#: How many times an alert is said in full before only its 10th, 100th, ... are.
+IN_FULL = 3
+
+
+class AlertLog:
+    def __init__(self, virtual: bool = True) -> None:
+        self.virtual = virtual
+        self._said: Counter[tuple[str, Any, Any]] = Counter()
+
+    def __call__(self, note: Any) -> None:
+        key = (note.kind, note.device, None if note.device else note.experiment)
+        self._said[key] += 1
+        n = self._said[key]
+        if n <= IN_FULL or not self.virtual:
+            log.warning("%s", alert_text(note))
+        elif _power_of_ten(n):
+            log.warning("%s (the %s time; said again at the %s, and the journal has every one)", alert_text(note),
+                        _nth(n), _nth(10 * n))
+
+
+def _power_of_ten(n: int) -> bool:
+    while n % 10 == 0:
+        n //= 10
+    return n == 1
+
+
+def _nth(n: int) -> str:
+    return f"{n:,}th"
