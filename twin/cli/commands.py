@@ -209,7 +209,8 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
             observer, recording = open_observer(record, lab.recording_id(s))
             for message in recording.messages:
                 err.print(message, highlight=False)
-        progress = bar_progress(fields=("lab {task.fields[lab]}", "{task.fields[status]}"), disable=quiet or json_out)
+        progress = bar_progress(fields=("lab {task.fields[lab]}", "{task.fields[status]}"), disable=quiet or json_out,
+                                remaining=False)  # a campaign may end at its targets, long before its budget
         with progress:
             bar = progress.add_task(f"{s.name} ({s.clock.mode} clock, {s.bus.kind} bus)",
                                     total=s.campaign.budget, lab=lab_span(0.0), status="")

@@ -18,15 +18,20 @@ PLAIN_EVERY_S = 10.0
 
 
 def bar_progress(console: Console, transient: bool = False, fields: tuple[str, ...] = (), disable: bool = False,
-                 every_s: float = PLAIN_EVERY_S) -> Any:
+                 every_s: float = PLAIN_EVERY_S, remaining: bool = True) -> Any:
     """What a long command does, its bar, done of total and time taken, then ``fields``: rich format strings
-    such as ``"lab {task.fields[lab]}"`` (each task's own values, given to ``add_task`` and ``update``)."""
+    such as ``"lab {task.fields[lab]}"`` (each task's own values, given to ``add_task`` and ``update``).
+    ``remaining``: also the time left at the pace so far (not for work that may end before its total: a campaign
+    that stops when its targets are met)."""
     if not console.is_interactive and not disable:
-        return PlainProgress(console, fields, every_s)
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        return PlainProgress(console, fields, every_s, remaining=remaining)
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                               TimeRemainingColumn)
 
-    return Progress(TextColumn("{task.description}", style="bold", markup=False), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    *(TextColumn(f) for f in fields), console=console, transient=transient, disable=disable)
+    left = (TextColumn("left"), TimeRemainingColumn()) if remaining else ()
+    return Progress(TextColumn("{task.description}", style="bold", markup=False), BarColumn(), MofNCompleteColumn(),
+                    TimeElapsedColumn(), *left, *(TextColumn(f) for f in fields), console=console,
+                    transient=transient, disable=disable)
 
 
 class PlainProgress:
@@ -34,8 +39,8 @@ class PlainProgress:
 
     def __init__(self, console: Console, fields: tuple[str, ...] = (), every_s: float = PLAIN_EVERY_S,
                  clock: Callable[[], float] = time.monotonic,
-                 timer: Callable[[float, Callable[[], None]], Any] = threading.Timer) -> None:
-        self.console = console
+                 timer: Callable[[float, Callable[[], None]], Any] = threading.Timer, remaining: bool = False) -> None:
+        self.console, self.remaining = console, remaining
         self._fields, self._every_s, self._clock, self._timer = fields, every_s, clock, timer
         self._tasks: list[dict[str, Any]] = []
         self._lock = threading.RLock()  # the timer's thread says lines too
@@ -114,7 +119,10 @@ class PlainProgress:
         elapsed = int(now - task["started"])
         view = SimpleNamespace(fields=task["fields"], description=task["description"])
         extra = "  ".join(s for s in (Text.from_markup(f.format(task=view)).plain.strip() for f in self._fields) if s)
-        clock = f"{elapsed // 3600}:{elapsed // 60 % 60:02d}:{elapsed % 60:02d}"
+        clock = _hms(elapsed)
+        total, completed = task["total"], task["completed"]
+        if self.remaining and total and 0 < completed < total and elapsed > 0:  # at the pace so far
+            clock += f"  about {_hms(int(elapsed * (total - completed) / completed))} left"
         self.console.print("  ".join(s for s in (f"{task['description']}: {done}", extra, clock) if s),
                            highlight=False, markup=False)
         task["said"], task["said_what"] = now, (task["completed"], dict(task["fields"]))
@@ -122,3 +130,7 @@ class PlainProgress:
 
 def _count(x: float) -> str:
     return f"{x:.0f}" if float(x).is_integer() else f"{x:.1f}"
+
+
+def _hms(seconds: int) -> str:
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
