@@ -51,7 +51,10 @@ def parse(text: str, source: str = "<stock>") -> Stock:
     where_of: dict[str, int] = {}
     for (n, _), row in zip(lines[1:], rows[1:]):
         record = dict(zip(header, (c.strip() for c in row)))
-        smiles = canonical(record.get("smiles", ""))
+        try:
+            smiles = canonical(record.get("smiles", ""))
+        except ValueError as exc:
+            raise StockError(f"{source}:{n}: {exc}") from None
         if smiles is None:
             raise StockError(f"{source}:{n}: {record.get('smiles')!r} is not a SMILES RDKit can read")
         if smiles in items:

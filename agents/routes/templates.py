@@ -48,10 +48,18 @@ class Template:
         return self.forward.GetNumReactantTemplates()
 
 
+#: The longest SMILES read: RDKit's parser crashes the process (a stack overflow, not an error) on a chain of some
+#: 20,000 atoms, and a molecule a route is searched for is a few dozen atoms (aspirin's SMILES has 21 characters).
+MAX_SMILES_CHARS = 2000
+
+
 @lru_cache(maxsize=1 << 16)  # a search writes the same molecules again and again: each parse costs ~0.2 ms
 def canonical(smiles: str) -> str | None:
     """RDKit's canonical SMILES of ``smiles`` (None if it does not parse, or is no molecule: RDKit reads '' as one of
-    no atoms)."""
+    no atoms); a ValueError for one longer than ``MAX_SMILES_CHARS``."""
+    if len(smiles) > MAX_SMILES_CHARS:
+        raise ValueError(f"a SMILES of {len(smiles):,} characters ({smiles[:20]}...): the route search reads at most "
+                         f"{MAX_SMILES_CHARS:,}, far more than a molecule it can make has")
     mol = Chem.MolFromSmiles(smiles)
     return Chem.MolToSmiles(mol) if mol is not None and mol.GetNumAtoms() else None
 

@@ -137,3 +137,16 @@ def test_bench_routes_compares_methods_on_targets_of_known_length():
 def test_bench_routes_refuses_what_it_cannot_run(args, says):
     code, out = bench_in_process(*args)
     assert code == 2 and says in " ".join(out.split()) and "Traceback" not in out, out
+
+
+@pytest.mark.process  # its own process: RDKit's parser took the process down with it (SIGSEGV) before the bound
+@pytest.mark.parametrize("where", ["target", "stock"])
+def test_a_smiles_too_long_for_rdkit_is_refused_not_a_crash(tmp_path, where):
+    chain = "C" * 20_000
+    args = [chain] if where == "target" else ["CC(=O)Oc1ccccc1C(=O)O", "--stock", str(tmp_path / "stock.csv")]
+    (tmp_path / "stock.csv").write_text(f"smiles,name\nCCO,ethanol\n{chain},wax\n")
+    res = subprocess.run([sys.executable, "-m", "twin", "route", *args], capture_output=True, text=True, cwd=ROOT,
+                         timeout=120)
+    said = " ".join(res.stderr.split())
+    assert res.returncode == 2 and "a SMILES of 20,000 characters" in said and "reads at most 2,000" in said, said
+    assert where == "target" or f"{tmp_path / 'stock.csv'}:3:" in said
