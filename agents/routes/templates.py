@@ -236,7 +236,11 @@ def parse_retro_table(text: str, source: str = "<templates>") -> list[Template]:
     if not lines:
         raise TemplateError(f"{source}: empty; expected a header with a retro_template column, then a row each")
     dialect = "excel-tab" if lines[0].count("\t") > lines[0].count(",") else "excel"
-    rows = list(csv.DictReader(lines, dialect=dialect))
+    reader = csv.DictReader(lines, dialect=dialect)
+    try:
+        rows = list(reader)
+    except csv.Error as exc:  # a field over csv's 128 KiB, an unclosed quote
+        raise TemplateError(f"{source}: the table cannot be read past row {reader.line_num} ({exc})") from None
     if not rows or "retro_template" not in (rows[0].keys() if rows else ()):
         raise TemplateError(f"{source}: no retro_template column (header: {lines[0][:120]!r}); an AiZynthFinder "
                             "template table has one, with product>>reactants SMARTS")
@@ -247,6 +251,9 @@ def parse_retro_table(text: str, source: str = "<templates>") -> list[Template]:
         product, sep, reactants = retro_smarts.partition(">>")
         if not sep or not product or not reactants:
             raise TemplateError(f"{where}: retro_template {retro_smarts[:80]!r} is not product>>reactants SMARTS")
+        if len(retro_smarts) > MAX_SMILES_CHARS:  # RDKit's parsers crash the process on some that long
+            raise TemplateError(f"{where}: a retro_template of {len(retro_smarts):,} characters; a reaction's "
+                                f"SMARTS is a few hundred, and at most {MAX_SMILES_CHARS:,} are read")
         try:
             back = AllChem.ReactionFromSmarts(retro_smarts)
             back.Initialize()

@@ -70,6 +70,8 @@ def test_exit_codes_and_what_they_say(args, code, says):
 @pytest.mark.parametrize("damage,says", [
     ("stock not text", "stock.csv: not a text file (byte 17 is not UTF-8)"),
     ("templates not text", "templates.yaml: not UTF-8 text (byte 0)"),
+    ("templates a field over csv's limit", "templates.csv: the table cannot be read past row 1 (field larger than"),
+    ("templates a SMARTS too long", "templates.csv: row 2: a retro_template of 6,772 characters"),
     ("description not JSON", "prior.json: not a route prior's description"),
     ("description a list", "prior.json: not a route prior's description"),
     ("weights not torch's", "prior.pt: not this prior's weights"),
@@ -82,6 +84,10 @@ def test_damaged_files_are_one_line_errors_naming_them(tmp_path, damage, says):
     if damage == "stock not text":
         stock.write_bytes(b"smiles,name\nCCO,e\xff\xfe\n")
         args += ["--stock", str(stock)]
+    elif damage.startswith("templates a"):
+        mapped = "[C:1]" + "".join(f"[C:{i}]" for i in range(2, 30_000 if "limit" in damage else 500))
+        (tmp_path / "templates.csv").write_text(f'retro_template,classification\n"{mapped}>>{mapped}",x\n')
+        args += ["--templates", str(tmp_path / "templates.csv")]
     elif damage == "templates not text":
         (tmp_path / "templates.yaml").write_bytes(b"\xff\xfetemplates: []\n")
         args += ["--templates", str(tmp_path / "templates.yaml")]
