@@ -72,10 +72,19 @@ def parse(text: str, source: str = "<stock>") -> Stock:
     return Stock(items, source)
 
 
+#: The largest stock file read: each building block is parsed by RDKit (~0.2 ms), so a million take minutes.
+MAX_STOCK_BYTES = 64 << 20
+
+
 @lru_cache(maxsize=8)
 def load(path: Path = STOCK) -> Stock:
     try:
-        text = Path(path).read_text(encoding="utf-8-sig")  # a spreadsheet's "CSV UTF-8" starts with a byte-order mark
+        with Path(path).open("rb") as f:
+            data = f.read(MAX_STOCK_BYTES + 1)
+        if len(data) > MAX_STOCK_BYTES:
+            raise StockError(f"{path}: more than {MAX_STOCK_BYTES >> 20} MiB; a stock file here lists up to some "
+                             "hundred thousand building blocks (each is parsed with RDKit as the file is read)")
+        text = data.decode("utf-8-sig")  # a spreadsheet's "CSV UTF-8" starts with a byte-order mark
     except OSError as exc:
         raise StockError(f"{path}: cannot read the stock file ({exc.strerror})") from None
     except UnicodeDecodeError as exc:

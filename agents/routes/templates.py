@@ -274,6 +274,10 @@ def parse_retro_table(text: str, source: str = "<templates>") -> list[Template]:
     return out
 
 
+#: The most a template file may hold, uncompressed (AiZynthFinder's USPTO table is under half of it).
+MAX_TABLE_BYTES = 256 << 20
+
+
 @lru_cache(maxsize=8)
 def load(path: Path = TEMPLATES) -> tuple[Template, ...]:
     """The templates of a file (by default the shipped set), parsed once: this package's YAML, or an
@@ -283,9 +287,15 @@ def load(path: Path = TEMPLATES) -> tuple[Template, ...]:
         if path.name.endswith(".gz"):
             import gzip
 
-            text = gzip.decompress(path.read_bytes()).decode("utf-8-sig")
+            with gzip.open(path) as f:  # read up to the bound, not decompressed whole: a gzip bomb is a few KB
+                data = f.read(MAX_TABLE_BYTES + 1)
         else:
-            text = path.read_text(encoding="utf-8-sig")  # a byte-order mark first, as spreadsheets save CSV, is dropped
+            with path.open("rb") as f:
+                data = f.read(MAX_TABLE_BYTES + 1)
+        if len(data) > MAX_TABLE_BYTES:
+            raise TemplateError(f"{path}: more than {MAX_TABLE_BYTES >> 20} MiB of templates (uncompressed); a "
+                                "route search here reads tables of up to some hundred thousand templates")
+        text = data.decode("utf-8-sig")  # a byte-order mark first, as spreadsheets save CSV, is dropped
     except (OSError, EOFError) as exc:
         raise TemplateError(f"{path}: cannot read the template file ({getattr(exc, 'strerror', None) or exc})") from None
     except UnicodeDecodeError as exc:

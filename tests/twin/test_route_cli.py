@@ -163,3 +163,22 @@ def test_a_smiles_too_long_for_rdkit_is_refused_not_a_crash(tmp_path, where):
     said = " ".join(res.stderr.split())
     assert res.returncode == 2 and "a SMILES of 20,000 characters" in said and "reads at most 2,000" in said, said
     assert where == "target" or f"{tmp_path / 'stock.csv'}:3:" in said
+
+
+def test_a_compressed_table_is_read_only_up_to_its_bound_and_a_stock_too(tmp_path, monkeypatch):
+    """`gzip.decompress` of the whole file: a table of a few hundred KB that unpacks to gigabytes took the memory."""
+    import gzip
+
+    from agents.routes import stock, templates
+
+    bound = templates.MAX_TABLE_BYTES
+    monkeypatch.setattr(templates, "MAX_TABLE_BYTES", 4096)
+    with gzip.open(tmp_path / "t.csv.gz", "wb") as f:
+        f.write(b"retro_template\n" + b"x" * 100_000)
+    exit_code, out = in_process("CCO", "--templates", str(tmp_path / "t.csv.gz"))
+    assert exit_code == 2 and "t.csv.gz: more than 0 MiB of templates (uncompressed)" in out, out
+    monkeypatch.setattr(templates, "MAX_TABLE_BYTES", bound)  # the shipped templates, read for the stock's search
+    monkeypatch.setattr(stock, "MAX_STOCK_BYTES", 4096)
+    (tmp_path / "s.csv").write_text("smiles,name\n" + "CCO,ethanol\n" * 1000)
+    exit_code, out = in_process("CCO", "--stock", str(tmp_path / "s.csv"))
+    assert exit_code == 2 and "s.csv: more than 0 MiB" in out, out
