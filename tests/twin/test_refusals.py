@@ -156,3 +156,38 @@ def test_an_answer_to_a_refused_attempt_never_counts_for_the_next_one(scenario_o
     core.feed(msg(Kind.RESULT, "synthesiser", "e0s0", 2, outputs={}, sample={"t_made": 90.0}))
     out = core.advance(90.0)
     assert notes(out, "attempt.done") and "e0s1" in core.ready  # and one attempt allowed: the refusal did not count
+
+
+class Moody:
+    """A spectrometer that answers 'not now' to its 2nd-13th steps and 16th-26th, and measures the others."""
+
+    capabilities = frozenset({"measure"})
+    outputs = frozenset({"peak_nm"})
+
+    def __init__(self, setup):
+        self.calls = 0
+
+    async def run(self, step, params, sample, ctx):
+        self.calls += 1
+        if 2 <= self.calls <= 13 or 16 <= self.calls <= 26:
+            raise Refused("busy warming up", infeasible=False)
+        await ctx.clock.sleep(60)
+        return StepResult({"peak_nm": sample["peak_nm"]}, sample)
+
+    async def safe_state(self):
+        pass
+
+
+def test_a_device_that_keeps_saying_not_now_is_an_alert_once_per_streak(tmp_path, caplog):
+    """A stranger's MQTT instrument hung with its worker thread holding 'busy': 500 refusals and five experiments
+    abandoned, and not a word until the summary."""
+    lab = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_refusals:Moody",
+                          "devices.spectrometer.instances": 1, "campaign.budget": 5, "campaign.max_in_flight": 1,
+                          "chemistry.targets": []}))
+    with caplog.at_level("WARNING", logger="twin.alerts"):
+        s = run(lab, journal=tmp_path / "j.db")
+    alerts = read_events(tmp_path / "j.db", "device.refusing")
+    assert [json.loads(a["detail"])["refusals"] for a in alerts] == [10, 10]  # the 2nd to 13th, the 16th to 26th
+    assert all(a["device"] == "spectrometer" for a in alerts) and s.done == 5
+    said = [r.getMessage() for r in caplog.records if r.name == "twin.alerts"]
+    assert len(said) == 2 and "has answered 'not now' (busy warming up) to its last 10 steps" in said[0]

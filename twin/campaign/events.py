@@ -37,8 +37,8 @@ class Code(StrEnum):
 
 #: Notes a runtime also logs as warnings (``alert_text``), on the ``ALERT_LOGGER`` logger: the lab cannot go on as
 #: it is, or a device sends what the campaign cannot use.
-ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "device.stuck", "output.unscored",
-                    "scheduler.stalled", "consumable.depleted"})
+ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "device.stuck", "device.refusing",
+                    "output.unscored", "scheduler.stalled", "consumable.depleted"})
 ALERT_LOGGER = "twin.alerts"
 #: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, a device type gone, an
 #: operator's act
@@ -273,6 +273,11 @@ def _alert_words(n: Note) -> str:
     if n.kind == "device.flapping" and isinstance(d, dict):
         return (f"left the bus again within {d.get('within_s', 0):g} lab-s of its last loss (a bad link, or another "
                 f"process announcing its name); its running step keeps its deadline")
+    if n.kind == "device.refusing" and isinstance(d, dict):
+        return (f"has answered 'not now' ({str(d.get('reason', ''))[:200]}) to its last {d.get('refusals')} steps and "
+                f"finished none since: busy with work of its own, or hung? Each refused step is sent again after its "
+                f"back-off, to whichever instance is free, and abandoned after {d.get('max_refusals')} refusals; "
+                f"`twin device health` shows what the device reports, and restarting it ends whatever holds it")
     if n.kind == "device.stuck" and isinstance(d, dict):
         return (f"refused work ({d.get('reason', '')}) while still running {n.task} (attempt {n.attempt}), whose "
                 f"cancel it left unanswered for over {d.get('grace_s', 0):g} lab-s (orchestrator.cancel_grace_s): its "

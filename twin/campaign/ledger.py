@@ -81,6 +81,7 @@ class Device:
     unanswered: Attempt | None = None  # a cancel it never answered: a "not now" from it means it is still busy
     stuck: Attempt | None = None  # refused work with that cancel unanswered: quarantined until it answers (stuck.py)
     said_stuck: bool = False  # the alert device.stuck was given for it (once a campaign)
+    refusals_in_a_row: int = 0  # "not now" answers since it last finished a step (device.refusing)
     probing: bool = False  # stuck, and out of quarantine for a probe: back only once a step is done on it
     consecutive_failures: int = 0
     busy_s: float = 0.0

@@ -18,6 +18,8 @@ from twin.scenario.targets import scores, unscorable
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
 #: "not now" answers to one step before it is given up: a device that never says yes
 MAX_REFUSALS = 100
+#: "not now" answers from one device, with no step finished on it in between, before the alert device.refusing
+REFUSING_ALERT_AFTER = 10
 
 
 def resolve(core: CampaignCore, att: Attempt, code: str, body: dict[str, Any]) -> None:
@@ -38,7 +40,7 @@ def resolve(core: CampaignCore, att: Attempt, code: str, body: dict[str, Any]) -
         core._timer(TimerKey(TimerKind.CANCEL_GRACE, dev.name), core.s.orchestrator.cancel_grace_s)
         core._send(dev.name, Kind.CANCEL, task.id, att.n, {"reason": body["reason"]}, att.token)
     if code == Code.OK:
-        dev.consecutive_failures, dev.probing = 0, False
+        dev.consecutive_failures, dev.probing, dev.refusals_in_a_row = 0, False, 0
         advance(core, task, body)
     elif code == Code.REJECTED:
         if not body.get("began"):  # a step refused never ran: it used nothing, and costs nothing
@@ -61,6 +63,10 @@ def refused(core: CampaignCore, task: Task, dev: Device, reason: str, infeasible
     core.counts.refused_now += 1
     if dev.unanswered is not None:  # still running the step it was told to cancel: no work until it stops
         quarantine(core, dev, stuck.held(core, dev, reason))
+    dev.refusals_in_a_row += 1
+    if dev.refusals_in_a_row == REFUSING_ALERT_AFTER:  # busy with nothing the lab gave it: said once, until it works
+        core._note("device.refusing", e.id, task.id, task.attempts, dev.name,
+                   detail={"refusals": dev.refusals_in_a_row, "reason": reason, "max_refusals": MAX_REFUSALS})
     # "not now" does not use up one of the step's attempts; its number is not used again, so an answer that
     # comes later for the refused attempt can never count for the next one
     task.excused += 1
