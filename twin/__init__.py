@@ -48,7 +48,8 @@ __all__ = [
     "PluginError", "Proposal",
     "ReadyStep", "RecordOptions", "Refused", "RouteStep", "Scenario", "ScenarioError", "Scheduler", "StepContext", "StepResult",
     "SteppedCampaign", "SteppedLab", "Summary", "TwinError", "campaign_scenarios", "time_scale", "weighted_objective", "capable", "drawn_at_random", "driver_setup", "expected_duration", "jobshop_as_lab", "tells_progress",
-    "json_schema", "keyed_uniforms", "lab_span", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell", "parse_yaml",
+    "json_schema", "keyed_uniforms", "lab_span", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
+    "parse_yaml",
     "prepare", "random_jobshop", "random_lab", "read_meta", "resume", "run", "run_async", "run_lab", "run_scenario", "run_step",
     "save_policy", "score", "seeded", "sleep_wall", "stepped", "wall_on_loop", "why_runs_vary",
 ]

@@ -366,7 +366,8 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
         cells = []
         for n in others:
             diff, half = c.diffs[n]
-            cells.append("—" if n == c.best_rule else f"{diff / 3600:+.2f} ± {half / 3600:.2f}\n{verdict(diff, half)}")
+            said = f"{diff / 3600:+.2f} ± {half / 3600:.2f}\n{verdict(diff, half)}"  # laid out by _compared_table
+            cells.append("—" if n == c.best_rule else said)
             comparisons.append({"shape": c.shape, "scheduler": n, "by": by, "best_rule": c.best_rule,
                                 "best_rule_mean_h": c.best_mean_s / 3600, "diff_h": diff / 3600,
                                 "ci95_h": half / 3600, "verdict": verdict(diff, half)})
