@@ -174,7 +174,7 @@ def _range(value: Any, where: str, what: str) -> tuple[float, float]:
 def parse(text: str, source: str = "<templates>") -> list[Template]:
     """Templates from the YAML text of a template file (``source`` names it in errors)."""
     try:  # within bounds: a file of a few hundred bytes whose aliases expand to 10^8 values is refused, not read
-        doc = parse_yaml(text, source)
+        doc = parse_yaml(text, source, "a template file in YAML (a large set loads as a CSV table)")
     except ScenarioError as exc:
         raise TemplateError(f"{source}: {'; '.join(exc.problems)}") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("templates"), list):

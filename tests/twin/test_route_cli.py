@@ -73,6 +73,7 @@ def test_exit_codes_and_what_they_say(args, code, says):
     ("templates a field over csv's limit", "templates.csv: the table cannot be read past row 1 (field larger than"),
     ("templates a SMARTS too long", "templates.csv: row 2: a retro_template of 6,772 characters"),
     ("templates an alias bomb", "templates.yaml: its aliases expand to more than 100,000 values"),  # 47 s before
+    ("templates nested too deep", "templates.yaml: line 1: nested more than 32 levels deep; a template file in YAML"),
     ("description not JSON", "prior.json: not a route prior's description"),
     ("description a list", "prior.json: not a route prior's description"),
     ("weights not torch's", "prior.pt: not this prior's weights"),
@@ -85,6 +86,9 @@ def test_damaged_files_are_one_line_errors_naming_them(tmp_path, damage, says):
     if damage == "stock not text":
         stock.write_bytes(b"smiles,name\nCCO,e\xff\xfe\n")
         args += ["--stock", str(stock)]
+    elif damage == "templates nested too deep":
+        (tmp_path / "templates.yaml").write_text("a: " + "[" * 40 + "]" * 40 + "\n")
+        args += ["--templates", str(tmp_path / "templates.yaml")]
     elif damage == "templates an alias bomb":
         levels = [f"l0: &l0 [{', '.join(['x'] * 10)}]"] + [f"l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 10)}]"
                                                             for i in range(1, 8)]

@@ -95,12 +95,13 @@ def read_yaml(path: str | Path) -> Any:
     return parse_yaml(read_text(path), str(path))
 
 
-def parse_yaml(text: str, path: str = "<text>") -> Any:
-    """The YAML document ``text`` (a file's, or one sent over the bus), within the bounds above."""
+def parse_yaml(text: str, path: str = "<text>", what: str = "a scenario or campaign") -> Any:
+    """The YAML document ``text`` (a file's, or one sent over the bus), within the bounds above; ``what`` it is,
+    for the errors."""
     if len(text.encode()) > MAX_BYTES:
-        raise ScenarioError(path, [f"larger than {MAX_BYTES // 1024} KiB: a scenario or campaign is a few KB"])
+        raise ScenarioError(path, [f"larger than {MAX_BYTES // 1024} KiB, far more than {what} needs"])
     try:
-        loader = _BoundedLoader(text)
+        loader = _BoundedLoader(text, what)
         try:
             node = loader.get_single_node()
             if node is None:
@@ -133,8 +134,9 @@ def yaml_value(text: str) -> Any:
 
 
 class _BoundedLoader(NumbersLoader):
-    def __init__(self, stream: str) -> None:
+    def __init__(self, stream: str, what: str) -> None:
         super().__init__(stream)
+        self.what = what
         self._depth = 0
         self._aliases = 0
 
@@ -171,7 +173,7 @@ class _BoundedLoader(NumbersLoader):
 
 def _refused(loader: _BoundedLoader, why: str) -> ScenarioError:
     mark = loader.peek_event().start_mark
-    return ScenarioError("", [f"line {mark.line + 1}: {why}; a scenario does not need that"])
+    return ScenarioError("", [f"line {mark.line + 1}: {why}; {loader.what} does not need that"])
 
 
 def _count_values(root: Any, where: str) -> None:
