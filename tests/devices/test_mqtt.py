@@ -91,7 +91,7 @@ def test_an_instrument_killed_mid_step_and_started_again_takes_work_at_once(mosq
     """The adapter kept waiting for the dead instrument's answer: back on the bus, the device refused every step as
     "busy with" the lost one until a cancel nobody answered had waited out its 10 s of wall time."""
     topic = f"{prefix}/spectrometer"  # the one instance is named after its type
-    procs = [instrument(mosquitto, topic, seconds=1.0)]
+    procs = [instrument(mosquitto, topic, seconds=0.4)]
     lab = mqtt_lab(mosquitto, prefix, **{"campaign.budget": 3, "campaign.max_in_flight": 1})
     lab["devices"]["spectrometer"]["instances"] = 1
     s = prepare(parse(lab))
@@ -105,7 +105,7 @@ def test_an_instrument_killed_mid_step_and_started_again_takes_work_at_once(mosq
                 os.kill(procs[0].pid, signal.SIGKILL)
                 seen["killed"] = clock.now()
             elif "killed" in seen and "again" not in seen and dev is not None and not dev.online:
-                procs.append(await asyncio.to_thread(instrument, mosquitto, topic, 1.0))
+                procs.append(await asyncio.to_thread(instrument, mosquitto, topic, 0.4))
                 seen["again"] = clock.now()
             await clock.sleep(1)
         return await campaign
