@@ -30,7 +30,6 @@ def test_the_route_env_is_registered_too():
     assert "labtwin/SynthesisRoute-v0" in gym.registry
 
 
-@pytest.mark.process
 def test_worker_processes_make_the_env_from_the_module_qualified_id():
     """A vectorised env's spawned workers have not imported agents: the id that names the module (as README
     says) imports it there, and each worker's lab is the one a plain make gives."""

@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[2]
 TWIN = [sys.executable, "-m", "twin"]
 
 
-@pytest.mark.process  # the README's command as a user runs it: a process of its own, on Zenoh
+# the README's command as a user runs it: a process of its own, on Zenoh
 def test_run_prints_the_summary_and_report_prints_it_again(tmp_path):
     db = tmp_path / "qd.db"
     res = subprocess.run([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "6", "--journal", str(db)],

@@ -7,7 +7,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 from rich.console import Console
 
 from twin.cli.progress import PlainProgress, bar_progress
@@ -113,7 +112,7 @@ def test_a_terminal_gets_the_live_bar_and_a_pipe_the_lines():
     assert not isinstance(bar_progress(Console(file=io.StringIO()), disable=True), PlainProgress)
 
 
-@pytest.mark.process  # a real pipe
+# a real pipe, to a command in a process of its own
 def test_a_piped_campaign_reports_its_progress_on_stderr():
     env = {k: v for k, v in os.environ.items() if k not in ("FORCE_COLOR", "TTY_COMPATIBLE", "TTY_INTERACTIVE")}
     res = subprocess.run([sys.executable, "-m", "twin", "run", "scenarios/quantum_dots.yaml", "--bus", "memory"],

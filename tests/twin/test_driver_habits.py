@@ -57,7 +57,6 @@ class StuckSafe(Raises):
         await asyncio.Event().wait()
 
 
-@pytest.mark.process
 def test_a_safe_state_that_never_returns_does_not_keep_the_lab_from_ending(tmp_path):
     """The campaign abandoned the experiment and printed nothing more: the process hung at shutdown for ever, in
     the device's last safe_state()."""

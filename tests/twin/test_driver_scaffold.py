@@ -5,9 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
 
-pytestmark = pytest.mark.process
 ROOT = Path(__file__).resolve().parents[2]
 TWIN = [sys.executable, "-m", "twin"]
 PIP = [sys.executable, "-m", "pip", "--disable-pip-version-check", "--quiet"]

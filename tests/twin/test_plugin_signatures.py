@@ -5,8 +5,6 @@ import sys
 from importlib.metadata import EntryPoint
 from pathlib import Path
 
-import pytest
-
 from twin.core import plugins
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -87,7 +85,6 @@ def test_each_shipped_planners_source_names_what_its_signature_does():
         assert [n for n in named if n not in PLANNER_ARGUMENTS] == loaded and not takes_any, name
 
 
-@pytest.mark.process
 def test_a_scenarios_options_for_another_planner_import_none_of_the_planners():
     """quantum_dots' gp-bo options with `--planner random`: each installed planner was imported to see whether it
     takes n_init (scikit-learn, torch, RDKit: 2-3 s of a `twin run` that needs none of them)."""

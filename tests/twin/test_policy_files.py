@@ -153,7 +153,7 @@ def test_twin_run_with_a_hostile_policy_says_why_and_runs_nothing(tmp_path):
     assert not marker.exists()
 
 
-@pytest.mark.process  # a fresh interpreter, which has imported nothing yet
+# a fresh interpreter, which has imported nothing yet
 def test_a_policy_loaded_to_decide_leaves_torchs_compiler_unimported_and_its_optimizer_still_steps():
     """Loading builds the policy's optimizer; torch's first optimizer call imports torch._dynamo (seconds), which
     a policy that only decides does not need. Its optimizer still works: ``--init`` trains from a loaded policy."""

@@ -45,7 +45,6 @@ def in_process(*args):
     return res.exit_code, " ".join(res.output.split())
 
 
-@pytest.mark.process
 def test_a_bad_smiles_exits_2_from_a_real_process():
     res = twin_route("C1CC")
     assert res.returncode == 2 and "not a valid SMILES: 'C1CC'" in res.stderr and "Traceback" not in res.stderr
@@ -156,7 +155,7 @@ def test_bench_routes_refuses_what_it_cannot_run(args, says):
     assert code == 2 and says in " ".join(out.split()) and "Traceback" not in out, out
 
 
-@pytest.mark.process  # its own process: RDKit's parser took the process down with it (SIGSEGV) before the bound
+# its own process: RDKit's parser took the process down with it (SIGSEGV) before the bound
 @pytest.mark.parametrize("where", ["target", "stock"])
 def test_a_smiles_too_long_for_rdkit_is_refused_not_a_crash(tmp_path, where):
     chain = "C" * 20_000

@@ -162,7 +162,6 @@ def test_problems_across_fields_are_listed_one_each_under_their_own_field(tmp_pa
     assert [p.split(":")[0] for p in err.value.problems] == ["training.instances.hplc", "workflow.0.device"]
 
 
-@pytest.mark.process
 def test_cli_validate_exits_2_without_a_traceback(tmp_path):
     bad = write(tmp_path, qd_lab(**{"devices.synthesiser.driver": "robot9000", "campaign.budget": "x"}), "a.yaml")
     broken = write(tmp_path, "name: [unclosed\n", "b.yaml")

@@ -4,8 +4,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 from tests.conftest import qd_lab, twin_cli
 from twin.scenario import parse
 from twin.tools.shape_bench import shapes, variants, verdict
@@ -34,7 +32,7 @@ def test_the_cli_refuses_shapes_of_a_job_shop_and_says_what_to_use(tmp_path):
     assert out.exit_code == 2 and "--jobshop" in out.stderr
 
 
-@pytest.mark.process  # what the bench's own process logs, which the test's process would catch
+# what the bench's own process logs, which the test's process would catch
 def test_a_bench_keeps_device_alerts_out_of_its_output_that_a_single_run_prints(tmp_path, caplog):
     crashing = ["devices.spectrometer.instances=1", "devices.spectrometer.faults.mtbc_h=0.5"]
     from twin import run
@@ -62,7 +60,7 @@ def test_a_bench_keeps_device_alerts_out_of_its_output_that_a_single_run_prints(
     assert any(line.split()[:1] == ["fifo"] for line in raising.stdout.splitlines()), raising.stdout
 
 
-@pytest.mark.process  # the workers' own stderr
+# in a process of its own: the workers' own stderr
 def test_a_bench_of_several_shops_warns_of_a_policy_s_misfit_once_per_shop(tmp_path):
     """The workers made the scheduler again for each run and repeated the command's warning for every shop after
     the first (the first's they had inherited, forked after it)."""

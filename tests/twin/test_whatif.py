@@ -397,7 +397,6 @@ def test_a_policy_varied_beside_a_field_is_shown_whole_and_folds_only_when_the_t
     assert len(re.findall(r"\b\d+%", table)) == 9 and table.count("reactor") == 9, table
 
 
-@pytest.mark.process
 def test_a_plan_is_told_once_by_the_command_not_by_every_workers_run(tmp_path):
     """Each worker's run of an rl scheduler that plans (campaign.local_search, campaign.rollouts) printed its two
     planning lines: 2 variants × 3 seeds buried the progress bar under a dozen of them. (A real process: the
@@ -418,7 +417,6 @@ def test_a_plan_is_told_once_by_the_command_not_by_every_workers_run(tmp_path):
     assert "300 " in done.stdout and "lab-s" in done.stdout
 
 
-@pytest.mark.process
 def test_a_driver_the_fast_runtime_cannot_run_is_said_once_by_the_command_not_by_every_run(tmp_path):
     """Every worker's run of a lab whose driver calls an SDK in a thread said that the fast runtime could not run
     it and that the campaign ran again on the asyncio runtime: 2 variants × 3 seeds printed it six times. The
