@@ -22,6 +22,7 @@ def test_twin_devices_piped_keeps_every_name_whole_and_speaks_json_and_csv(tmp_p
     lines = {line.split()[0]: line for line in res.stdout.splitlines()[2:] if line.strip()}
     assert "devices.spectrometer:Spectrometer" in lines["spectrometer"] and "…" not in res.stdout
     assert "lcms, measure" in lines["spectrometer"]
+    assert "its device type's steps" in lines["machine"] and "its device type's steps" in lines["mqtt"]
     res = subprocess.run([sys.executable, "-m", "twin", "devices", "--json", "--csv", str(tmp_path / "d.csv")],
                          capture_output=True, text=True, cwd=ROOT, env=env, timeout=60)
     rows = {r["driver"]: r for r in json.loads(res.stdout)["rows"]}

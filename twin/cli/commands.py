@@ -419,8 +419,12 @@ def devices(
     drivers = []
     for name, ep in sorted(plugins.installed("devices").items()):
         try:
-            caps = getattr(ep.load(), "capabilities", None)
-            runs = ", ".join(sorted(caps)) if isinstance(caps, (set, frozenset)) else "what options.steps says"
+            driver = ep.load()
+            caps = getattr(driver, "capabilities", None)
+            runs = (", ".join(sorted(caps)) if isinstance(caps, (set, frozenset))
+                    # the lab gives a driver that takes `steps` its device type's (twin/runtime/assembly.py)
+                    else "its device type's steps" if "steps" in getattr(driver, "option_names", ())
+                    else "what its options say")
         except Exception as exc:  # a broken plugin is listed, not fatal
             runs = f"failed to load: {exc}"
         drivers.append([name, ep.value, ep.dist.name if ep.dist else "?", ep.dist.version if ep.dist else "?", runs])
