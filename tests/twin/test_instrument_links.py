@@ -134,3 +134,58 @@ def test_a_shared_lab_whose_instrument_cannot_connect_says_so_in_each_campaigns_
     for name in (c.name for c in s.campaigns):
         assert f"{tmp_path / 'lab' / name}.db: never started — spectrometer: its driver's connect() failed" in said
     assert "interrupted" not in said, said
+
+
+class Flickering(Raises):
+    """An instrument whose link drops during its second step and is back 300 lab-s later, its own task says."""
+
+    events: list = []
+
+    def __init__(self, setup):
+        self.name, self.steps, self.presence = setup.name, 0, None
+
+    async def connect(self, presence):
+        self.presence = presence
+        presence(True)
+
+    async def disconnect(self):
+        pass
+
+    async def run(self, step, params, sample, ctx):
+        import asyncio
+
+        self.steps += 1
+        if self.steps == 2:
+            asyncio.get_running_loop().create_task(self._back_in(300))
+            self.presence(False)
+            try:
+                await ctx.clock.sleep(1e6)  # what a driver that waits on its instrument's answer does
+            except asyncio.CancelledError:
+                Flickering.events.append((self.name, "cancelled"))
+                raise
+        await ctx.clock.sleep(60)
+        Flickering.events.append((self.name, "done"))
+        return StepResult({"peak_nm": 600.0}, sample)
+
+    async def _back_in(self, lab_s):
+        import asyncio
+
+        await asyncio.sleep(lab_s)  # the lab's event loop keeps lab time
+        self.presence(True)
+
+
+def test_a_step_running_when_the_instrument_goes_is_cancelled_and_the_device_is_back_when_its_driver_says(tmp_path):
+    """docs/drivers.md: presence(False) takes the device off the bus and cancels the step it runs, which moves
+    elsewhere; presence(True), from a task of the driver's own, brings it back to take work again."""
+    Flickering.events = []
+    lab = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_instrument_links:Flickering",
+                          "campaign.budget": 8}))
+    summary = run(lab, journal=tmp_path / "j.db", bus="memory", runtime="asyncio")
+    assert summary.done == 8 and summary.abandoned == 0
+    assert summary.devices_lost == 2 and summary.steps_lost >= 1
+    ev = Flickering.events
+    cancelled = [ev.index((name, "cancelled")) for name in ("spectrometer-1", "spectrometer-2")
+                 if (name, "cancelled") in ev]
+    assert cancelled and summary.steps_lost == len(cancelled) and summary.timed_out == 0  # lost, not timed out
+    for at in cancelled:  # the device took work again once its link was back
+        assert (ev[at][0], "done") in ev[at + 1:], ev
