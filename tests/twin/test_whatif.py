@@ -443,3 +443,18 @@ def test_a_driver_the_fast_runtime_cannot_run_is_said_once_by_the_command_not_by
         assert done.returncode == 0, done.stderr
         assert done.stderr.count("awaited an asyncio future") == 1, done.stderr
         assert "on the asyncio runtime" in done.stderr and "*: the scenario as written" in done.stdout
+    # an instrument whose link drops: each run on the asyncio runtime logged its device warnings ("instrument gone",
+    # 41 lines for 2 variants x 10 seeds), where the fast runtime's runs keep theirs in the workers
+    from tests.conftest import qd_lab
+
+    flickering = tmp_path / "flickering.yaml"
+    flickering.write_text(yaml.safe_dump(qd_lab(**{
+        "devices.spectrometer.driver": "tests.twin.test_instrument_links:Flickering"})))
+    done = subprocess.run([sys.executable, "-m", "twin", "whatif", str(flickering), "--vary",
+                           "devices.spectrometer.instances=2,3", "--seeds", "3"], capture_output=True, text=True,
+                          cwd=ROOT, timeout=180, env={**os.environ, "COLUMNS": "80"})
+    assert done.returncode == 0, done.stderr
+    assert "instrument gone" not in done.stderr and "*: the scenario as written" in done.stdout, done.stderr
+    said = " ".join(done.stderr.split())
+    assert said.count("connects to an instrument of its own") == 1, said
+    assert "devices.spectrometer.twin: {driver: NAME}" in said and "twin run --runtime asyncio starts there" in said

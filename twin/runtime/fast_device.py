@@ -44,6 +44,14 @@ class FastRuntimeRefused(DriverError):
             f", or give devices.{device_type}.twin: {{driver: NAME}}, a simulated driver that stands in for it "
             "on a virtual clock (docs/drivers.md)" if device_type else ""))
 
+    def running_again(self, what: str) -> str:
+        """What the auto runtime says as it runs ``what`` (the campaign, the lab) again on the asyncio runtime: a
+        bench or what-if runs it so too, and takes no --runtime."""
+        return (f"{self.why} — running the {what} again, from the start, on the asyncio runtime ("
+                + (f"give devices.{self.device_type}.twin: {{driver: NAME}}, a simulated driver that stands in for "
+                   "it on a virtual clock, to keep it on the fast one (docs/drivers.md); " if self.device_type else "")
+                + "twin run --runtime asyncio starts there)")
+
 
 class FastDevice:
     def __init__(self, name: str, device_type: str, spec: Any, driver: Driver, queue: EventQueue, seed: int,

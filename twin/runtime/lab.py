@@ -126,8 +126,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
             except FastRuntimeRefused as exc:
                 if runtime == "fast":
                     raise
-                logging.getLogger(FALLBACK_LOGGER).warning(
-                    "%s — running the campaign again, from the start, on the asyncio runtime", exc)
+                logging.getLogger(FALLBACK_LOGGER).warning("%s", exc.running_again("campaign"))
                 if recording is not None:  # the recording starts again with the campaign
                     recording.close()
                     recording.stop_serving()

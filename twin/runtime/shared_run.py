@@ -88,8 +88,7 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
         except FastRuntimeRefused as exc:
             if runtime == "fast":
                 raise
-            logging.getLogger(FALLBACK_LOGGER).warning(
-                "%s — running the lab again, from the start, on the asyncio runtime", exc)
+            logging.getLogger(FALLBACK_LOGGER).warning("%s", exc.running_again("lab"))
         for journal, _, _ in parts.values():
             journal.close()
         drivers, per_device, parts = assemble()  # the first run's drivers hold its state

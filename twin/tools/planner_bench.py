@@ -87,6 +87,7 @@ def quiet_alerts() -> None:
     logging.getLogger(ALERT_LOGGER).setLevel(logging.ERROR)
     logging.getLogger(CHECKS_LOGGER).setLevel(logging.ERROR)
     logging.getLogger("twin.runtime.fast_device").setLevel(logging.ERROR)
+    logging.getLogger("twin.device.actor").setLevel(logging.ERROR)  # the same, on the asyncio runtime
     quiet_progress()
 
 
