@@ -105,6 +105,22 @@ def test_what_remote_devices_report_is_inert_in_the_health_csv(tmp_path):
                     ["reader-1", "e1s0#1", "-2", '"+cmd"'], ["reader-2", "", "", "null"]]
 
 
+def test_a_table_without_rows_still_has_its_columns(flaky, tmp_path):
+    """flaky_lab has no consumables and no operator: both tables came out without a column (a CSV of one empty
+    line), and a script's `df["item"]` raised KeyError on a run that simply used none."""
+    from twin.tools.export import COLUMNS
+
+    for fmt in ("csv", "parquet"):
+        export(flaky, tmp_path / fmt, fmt, ["consumables", "operator", "devices"])
+    for name in ("consumables", "operator"):
+        with open(tmp_path / "csv" / f"{name}.csv") as f:
+            assert next(csv.reader(f)) == list(COLUMNS[name]) and not f.read()
+        table = pq.read_table(tmp_path / "parquet" / f"{name}.parquet")
+        assert table.column_names == list(COLUMNS[name]) and table.num_rows == 0
+    assert pq.read_table(tmp_path / "parquet" / "devices.parquet").column_names == list(COLUMNS["devices"])
+    assert set(WHAT) == set(COLUMNS)
+
+
 def test_provenance_names_the_scenario_hash_versions_and_operator_acts(flaky, tmp_path):
     export(flaky, tmp_path, "csv", ["operator"])
     record = json.loads((tmp_path / "provenance.json").read_text())
@@ -223,11 +239,11 @@ def test_an_export_interrupted_mid_table_leaves_the_earlier_tables_whole(flaky, 
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     write = module._write_table
 
-    def stopped_halfway(path, rows, fmt):
+    def stopped_halfway(path, rows, fmt, base):
         if path.name.startswith(".decisions"):
-            write(path, rows[: len(rows) // 2], fmt)
+            write(path, rows[: len(rows) // 2], fmt, base)
             raise KeyboardInterrupt
-        write(path, rows, fmt)
+        write(path, rows, fmt, base)
 
     monkeypatch.setattr(module, "_write_table", stopped_halfway)
     with pytest.raises(KeyboardInterrupt):

@@ -27,6 +27,16 @@ from twin.scenario.model import instance_names
 
 WHAT = ("experiments", "attempts", "devices", "consumables", "decisions", "operator")
 FORMATS = ("csv", "parquet", "jsonl")
+# each table's columns, written even when it has no rows (a run without consumables, without an operator), so that
+# a script reading `item` or `act` finds the column; experiments add param.*, output.* and score.* after theirs
+COLUMNS = {"experiments": ("experiment", "status", "reason", "attempts", "retries", "degraded", "t_proposed_s",
+                           "t_done_s", "route"),
+           "attempts": ("task", "experiment", "attempt", "device", "t_sent_s", "deadline_s", "t_accepted_s", "t_end_s",
+                        "outcome", "code", "reason"),
+           "devices": ("device", "type", "attempts", "failed", "done", "busy_share"),
+           "consumables": ("t_lab_s", "item", "unit", "level", "change", "why", "task", "who"),
+           "decisions": ("seq", "t_lab_s", "kind", "experiment", "task", "attempt", "device", "detail"),
+           "operator": ("t_lab_s", "act", "who", "experiment", "now", "reason", "refused")}
 _ENDS = {"attempt.done": "done", "attempt.failed": "failed", "attempt.cancelled": "cancelled"}
 
 
@@ -53,7 +63,7 @@ def export(journal: str | Path, out: str | Path, fmt: str = "csv", what: list[st
     except OSError as exc:
         raise TwinError(f"--out {out}: cannot make the directory ({exc.strerror}: {exc.filename}); give --out a "
                         "directory you can write") from None
-    written = [_write(out / f"{name}.{fmt}", tables[name](), fmt) for name in chosen]
+    written = [_write(out / f"{name}.{fmt}", tables[name](), fmt, COLUMNS[name]) for name in chosen]
     record = {**(run.get("provenance") or _older(run)), "operator_acts": operator_rows(events),
               "summary": run.get("summary"), "journal": str(path)}
     with written_whole(out / "provenance.json") as partial:
@@ -182,21 +192,21 @@ def operator_rows(events: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
-def _columns(rows: list[dict[str, Any]]) -> list[str]:
-    cols: dict[str, None] = {}
+def _columns(rows: list[dict[str, Any]], base: tuple[str, ...] = ()) -> list[str]:
+    cols: dict[str, None] = dict.fromkeys(base)
     for r in rows:
         cols.update(dict.fromkeys(r))
     return list(cols)
 
 
-def _write(path: Path, rows: list[dict[str, Any]], fmt: str) -> Path:
+def _write(path: Path, rows: list[dict[str, Any]], fmt: str, base: tuple[str, ...] = ()) -> Path:
     with written_whole(path) as partial:
-        _write_table(partial, rows, fmt)
+        _write_table(partial, rows, fmt, base)
     return path
 
 
-def _write_table(path: Path, rows: list[dict[str, Any]], fmt: str) -> None:
-    cols = _columns(rows)
+def _write_table(path: Path, rows: list[dict[str, Any]], fmt: str, base: tuple[str, ...] = ()) -> None:
+    cols = _columns(rows, base)
     if fmt == "csv":
         with open(path, "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=cols)
