@@ -69,19 +69,19 @@ def mcts(target: str, templates: tuple[Template, ...], stock: Stock, prior: Prio
     root = Node((smiles,), {})
     best: Node | None = None
     after = 0
-    why = "the tree was searched to the end: no route within the depth"
+    why = f"the tree was searched to the end: no route within {max_depth} steps from this stock and these templates"
     while not budget.spent():
         if best is not None:
             after += 1
             if after > extra:
                 break
         path, node = [root], root
-        while node.children:  # select
+        while node.children:  # select, among the children that are not dead ends (one at least: see below)
             total = math.sqrt(node.visits)
-            scores = [(c.value / c.visits if c.visits else 0.0) + c_puct * p * total / (1 + c.visits)
-                      for c, p in zip(node.children, node.priors)]
+            live = [(c, p) for c, p in zip(node.children, node.priors) if not _dead(c)]
+            scores = [(c.value / c.visits if c.visits else 0.0) + c_puct * p * total / (1 + c.visits) for c, p in live]
             top = max(scores)
-            node = node.children[rng.choice([i for i, s in enumerate(scores) if s == top])]
+            node = live[rng.choice([i for i, s in enumerate(scores) if s == top])][0]
             path.append(node)
         if node.children is None and not node.solved and len(node.made_by) < max_depth:  # expand
             reactions = expand(node.open[0])
@@ -99,7 +99,13 @@ def mcts(target: str, templates: tuple[Template, ...], stock: Stock, prior: Prio
         for n in path:  # back up
             n.visits += 1
             n.value += value
-        if root.children == [] or (root.children is not None and all(_dead(c) for c in root.children)):
+        # a node whose children are all dead ends is one too; the root one, and the tree is searched to the end
+        # (the search went round a finished tree until its budget ran out, and said it had stopped for time)
+        for parent in reversed(path[:-1]):
+            if not (parent.children and all(_dead(c) for c in parent.children)):
+                break
+            parent.children = []
+        if root.children == []:
             break
     return _result(smiles, best, stock, budget, budget.spent() or why)
 

@@ -57,6 +57,8 @@ def test_a_bad_smiles_exits_2_from_a_real_process():
     (["CCO", "--stock", "missing.csv"], 2, "missing.csv: cannot read the stock file"),
     (["CCO", "--prior", "missing"], 2, "python -m agents.routes.train --out missing"),
     (["C1CC2CCC1C2", "--seconds", "5"], 1, "no route to C1CC2CCC1C2"),
+    (["C1CC2CCC1C2", "--seconds", "5"], 1, "no template makes this molecule: give --templates a file"),
+    (["CCN(CC)CC(=O)Nc1c(C)cccc1C", "--seconds", "1e-9"], 1, "stopped after 1e-09 s; give it longer (--seconds 2)"),
     (["OC(=O)c1ccccc1O"], 0, "the target is in stock; nothing to make"),
     (["CCO", "--seconds", "-1"], 2, "--seconds -1: give the search a budget above 0"),  # was "no route", exit 1
     (["CCO", "--seconds", "nan"], 2, "--seconds nan: give the search a budget above 0"),

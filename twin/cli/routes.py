@@ -54,10 +54,21 @@ def route(
         raise typer.Exit(1)
 
 
+def _what_next(data: dict) -> str:
+    """What a person can change when no route was found: the budget, or what the search starts from."""
+    if data["why"].startswith("stopped after"):
+        return f"give it longer (--seconds {2 * max(data['seconds'], 1):.0f}), or another --method"
+    if data["expansions"] <= 1:  # the target itself: not one template's product matches it
+        return ("no template makes this molecule: give --templates a file with one that does, or --stock one that "
+                "holds it (docs/routes.md)")
+    return "give --stock the building blocks it lacks, or --templates more reactions (docs/routes.md)"
+
+
 def _show(data: dict, method: str) -> None:
     searched = f"{method}, {data['expansions']} expansions, {data['seconds']:.2f} s"
     if not data["solved"]:
-        console.print(f"no route to {data['target']} ({searched}): {data['why']}", highlight=False)
+        console.print(f"no route to {data['target']} ({searched}): {data['why']}; {_what_next(data)}",
+                      highlight=False)
         return
     if not data["steps"]:
         console.print(f"{data['target']}: {data['why'] or 'in stock'}; nothing to make", highlight=False)
