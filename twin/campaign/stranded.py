@@ -71,3 +71,15 @@ def cut_short(core: CampaignCore) -> str:
     lost = [t for t in dict.fromkeys(step.device for step in core._workflow) if t in core._availability.given_up]
     return (f"no usable {', '.join(lost)} for {c.give_up_after_s:g} lab-s (campaign.give_up_after_s), so "
             f"{c.budget + core.replaced - len(core.experiments)} experiment(s) of the budget were never proposed")
+
+
+def ran_out(core: CampaignCore) -> str:
+    """Why a campaign that ended on its own proposed less than its budget when its planner had nothing more to
+    propose (a route planner with no route, a design run through); '' otherwise. Not a stop: a bench counts the
+    run as it ended."""
+    c, targets = core.s.campaign, core.s.chemistry.targets
+    if (core.stopping or core.planner_failed or core.why_no_proposals() != "planner" or core.active
+            or (targets and len(core.met_at) == len(targets))):
+        return ""
+    return (f"the planner proposed no more experiments after {len(core.experiments)} of the budget's "
+            f"{c.budget + core.replaced}")

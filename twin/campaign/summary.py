@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from twin.campaign.ledger import UNRUNNABLE
-from twin.campaign.stranded import cut_short
+from twin.campaign.stranded import cut_short, ran_out
 
 
 EXAMPLE_CHARS = 240
@@ -46,6 +46,7 @@ class Summary:
     targets_met_after: dict[str, int] = field(default_factory=dict)
     targets_met_cost: dict[str, float] = field(default_factory=dict)
     stopped: str = ""
+    ended: str = ""  # why a campaign that was not stopped proposed less than its budget: its planner had no more
     resumable: bool = False  # stopped from outside (a signal, an operator): ``twin resume`` continues it
     cost: float = 0.0
     hours_cost: float = 0.0  # of ``cost``, what the instances' hours cost (devices.*.cost_per_hour)
@@ -148,6 +149,8 @@ def summary_markdown(s: dict[str, Any]) -> str:
         lines.append(f"| abandoned | {n} × {_cell(reason)} |")
     if s.get("stopped"):
         lines.append(f"| stopped | {_cell(s['stopped'])} |")
+    elif s.get("ended"):
+        lines.append(f"| ended | {_cell(s['ended'])} |")
     return "\n".join(lines)
 
 
@@ -184,6 +187,7 @@ def from_core(core: Any, journal: str, wall_s: float, events: int) -> Summary:
         targets_met_after=dict(core.met_after), targets_met_cost=dict(core.met_cost),
         stopped=core.stopping or (f"the planner failed ({core.planner_failed}); the experiments it had proposed "
                                   "were run to their end" if core.planner_failed else cut_short(core)),
+        ended=ran_out(core),
         resumable=core.resumable,
         cost=core.cost, hours_cost=core.hours_cost, wall_s=wall_s, events=events,
         decisions=len(core.decision_wall_s), decision_ms=_percentiles(core.decision_wall_s),

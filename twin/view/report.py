@@ -82,6 +82,8 @@ def render_summary(s: Summary, console: Console, resume_with: Any = None) -> Non
         t.add_row(f"target {escape(name)}", f"{status} — experiment {b['experiment']}: {shown}")
     if s.stopped:
         t.add_row("stopped", escape(s.stopped))
+    elif s.ended:
+        t.add_row("ended", escape(s.ended))
     console.print(t)
     more = f"; continue it with twin resume {resume_with or s.journal}" if s.resumable else ""
     console.print(f"journal: {s.journal}  (twin report {s.journal}{more})", soft_wrap=True, highlight=False,
