@@ -187,3 +187,13 @@ def test_a_compressed_table_is_read_only_up_to_its_bound_and_a_stock_too(tmp_pat
     (tmp_path / "s.csv").write_text("smiles,name\n" + "CCO,ethanol\n" * 1000)
     exit_code, out = in_process("CCO", "--stock", str(tmp_path / "s.csv"))
     assert exit_code == 2 and "s.csv: more than 0 MiB" in out, out
+
+
+def test_no_route_says_what_to_change_by_what_stopped_the_search():
+    from twin.cli.routes import _what_next
+
+    assert "--seconds 20" in _what_next({"why": "stopped after 10 s", "seconds": 10.0, "expansions": 40})
+    spent = _what_next({"why": "stopped after 2000 expansions", "seconds": 4.0, "expansions": 2000})
+    assert "--seconds" not in spent and "another --method" in spent  # more time would not have helped
+    assert "--stock the building blocks" in _what_next({"why": "no route within 6 steps", "seconds": 0.1,
+                                                        "expansions": 42})

@@ -56,8 +56,10 @@ def route(
 
 def _what_next(data: dict) -> str:
     """What a person can change when no route was found: the budget, or what the search starts from."""
-    if data["why"].startswith("stopped after"):
+    if data["why"].startswith("stopped after") and data["why"].endswith(" s"):
         return f"give it longer (--seconds {2 * max(data['seconds'], 1):.0f}), or another --method"
+    if data["why"].startswith("stopped after"):  # its expansions: as many as a search makes
+        return "try another --method (mcts with the shipped --prior expands the fewest molecules)"
     if data["expansions"] <= 1:  # the target itself: not one template's product matches it
         return ("no template makes this molecule: give --templates a file with one that does, or --stock one that "
                 "holds it (docs/routes.md)")
