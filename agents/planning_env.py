@@ -81,8 +81,12 @@ def move(u_best: np.ndarray, action: np.ndarray) -> np.ndarray:
 def target_shape(scenario: Scenario) -> tuple[str, ...]:
     """The conditions every target of the scenario must share for one policy to serve them all."""
     shapes = {tuple(t.outputs) for t in scenario.chemistry.targets}
+    if not shapes:
+        raise ValueError(f"{scenario.name}: the rl planner learns to reach the scenario's targets, and it has none: "
+                         "give chemistry.targets (e.g. [{name: best, outputs: {yield: {min: 90}}}])")
     if len(shapes) != 1:
-        raise ValueError(f"{scenario.name}: the rl planner needs targets on the same outputs; got {sorted(shapes)}")
+        raise ValueError(f"{scenario.name}: the rl planner needs every target on the same outputs, and these ask for "
+                         f"{' / '.join(', '.join(s) for s in sorted(shapes))}: train one planner per kind of target")
     return shapes.pop()
 
 

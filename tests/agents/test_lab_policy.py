@@ -219,3 +219,16 @@ def test_a_lab_policy_for_other_steps_is_refused_before_a_journal_is_made(tmp_pa
     with pytest.raises(PluginError, match=r"step type\(s\) \['anneal'\] never seen.*4 device types"):
         run_shared(lab, tmp_path / "j", handle_signals=False)
     assert not (tmp_path / "j").exists() or not list((tmp_path / "j").iterdir())
+
+
+def test_the_planning_environment_says_what_targets_it_needs():
+    """'the rl planner needs targets on the same outputs; got []' for a lab without targets."""
+    from agents.planning_env import target_shape
+
+    none = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"chemistry.targets": []})
+    with pytest.raises(ValueError, match=r"flaky_lab: the rl planner .* it has none: give chemistry.targets"):
+        target_shape(none)
+    mixed = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"chemistry.targets": [
+        {"name": "a", "outputs": {"yield": {"min": 90}}}, {"name": "b", "outputs": {"selectivity": {"min": 95}}}]})
+    with pytest.raises(ValueError, match=r"these ask for selectivity / yield: train one planner per kind of target"):
+        target_shape(mixed)
