@@ -12,6 +12,7 @@ import pytest
 import yaml
 
 from tests.conftest import qd_lab
+from tests.twin.shared_labs import lines_until
 from twin.campaign.journal import read_events
 from twin.runtime.lab import make_clock, prepare, run_async
 from twin.scenario import parse
@@ -115,6 +116,10 @@ def test_a_device_started_before_its_lab_waits_for_it_with_wait_and_says_how_whe
         s = prepare(path)
         clock = make_clock(s)
         summary = clock.run(run_async(s, clock, tmp_path / "j.db", {"spectrometer-2"}))
+        # the lab ended: the device says so, and that it serves on for a resume (it said nothing, and served on)
+        said = lines_until(device.stderr, {"left the bus"}, 30)
+        assert "lab t's campaign is on the bus" in "".join(said)
+        assert "`twin resume` brings it back); serving on until Ctrl-C" in said[-1], said
     finally:
         device.send_signal(signal.SIGTERM)
         device.wait(timeout=30)

@@ -142,6 +142,11 @@ class DeviceActor:
             self._orphan_timer = None
         if not alive:
             self._orphan_timer = self._clock.call_later(self.orphan_grace_s, self._orphaned)
+        # said where a device serves in a process of its own (`twin device serve` logs at info): a lab that ended
+        # left it serving without a word, and it serves on for a `twin resume`
+        log.info("%s: lab %s's campaign %s", self.name, self._lab,
+                 "is on the bus" if alive else "left the bus (it ended, or died: `twin resume` brings it back); "
+                                               "serving on until Ctrl-C")
 
     def _orphaned(self) -> None:
         self._orphan_timer = None
