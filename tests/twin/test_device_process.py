@@ -93,7 +93,7 @@ def test_virtual_clock_refuses_devices_in_other_processes(tmp_path):
         clock.run(run_async(s, clock, tmp_path / "j.db", {"spectrometer-2"}))
 
 
-def test_a_device_started_before_its_lab_waits_for_it_with_wait_and_says_how_when_nothing_answers(tmp_path):
+def test_a_device_started_before_its_lab_waits_for_it_with_wait_and_says_how_when_nothing_answers(tmp_path, caplog):
     port = free_port()
     raw = qd_lab(**{"campaign.budget": 4, "clock": {"mode": "scaled", "speed": SPEED},
                     "devices.spectrometer.duration": {"mean_s": 200, "cv": 0.0},  # both spectrometers needed
@@ -120,6 +120,13 @@ def test_a_device_started_before_its_lab_waits_for_it_with_wait_and_says_how_whe
         said = lines_until(device.stderr, {"left the bus"}, 30)
         assert "lab t's campaign is on the bus" in "".join(said)
         assert "`twin resume` brings it back); serving on until Ctrl-C" in said[-1], said
+        # the lab runs again, its time from 0: the device keeps it from the start (it kept the last run's time until
+        # the lab's next publication, 5 s of wall time on, and stamped this run's work thousands of lab-s off)
+        caplog.clear()
+        clock = make_clock(s)
+        again = clock.run(run_async(s, clock, tmp_path / "k.db", {"spectrometer-2"}))
+        assert again.done == 4 and "off the lab's time" not in caplog.text, caplog.text
+        assert any("moved -" in line for line in lines_until(device.stderr, {"moved -"}, 30))
     finally:
         device.send_signal(signal.SIGTERM)
         device.wait(timeout=30)

@@ -4,9 +4,9 @@ The lab (the process that runs the campaign) owns lab time. It answers queries o
 ``labtwin/<lab>/clock`` with its clock's anchor — mode, speed, and the lab time it
 read at a Unix time — and publishes the anchor when it starts and every few wall
 seconds. A process that joins the lab (``twin device serve``, ``twin scheduler
-serve``) asks for the anchor before it serves and re-anchors its own clock on
-every one it hears, so a lab that restarts (``twin resume``) carries its devices
-along. Both sides read the same Unix time: one host, or hosts kept in step by NTP.
+serve``) asks for the anchor before it serves, again whenever the lab's campaign
+comes on the bus, and re-anchors its own clock on every one it hears, so a lab
+that restarts (``twin resume``) or runs again carries its devices along. Both sides read the same Unix time: one host, or hosts kept in step by NTP.
 A device that has not heard the lab's clock refuses commands ("not now"); one
 whose operator asked for another mode or speed than the lab's stops, saying so.
 """
@@ -98,6 +98,8 @@ class LabTimeFollower:
         self._bus, self._lab, self._clock = bus, lab, clock
         self._mode, self._speed, self._on_error = mode, speed, on_error
         self._sub: Closable | None = None
+        self._campaigns: Closable | None = None
+        self._asking: asyncio.Future | None = None
         self.error = ""
         clock.anchored = False
 
@@ -105,6 +107,7 @@ class LabTimeFollower:
         """Ask the lab for its clock (up to ``wait_s`` wall seconds) and listen for it; whether it answered.
         Raises :class:`ClockError` if it runs a clock this process cannot follow."""
         self._sub = self._bus.subscribe(keys.clock(self._lab), self._on_anchor)
+        self._campaigns = self._bus.watch_tokens(keys.orchestrator(self._lab), self._on_campaign)
         try:
             payload = await self._bus.request(keys.clock(self._lab), b"", wait_s * self._clock.speed)
         except (NoReplyError, BusError):
@@ -115,8 +118,25 @@ class LabTimeFollower:
         return True
 
     def close(self) -> None:
-        if self._sub is not None:
-            self._sub.close()
+        for handle in (self._sub, self._campaigns):
+            if handle is not None:
+                handle.close()
+        if self._asking is not None:
+            self._asking.cancel()
+
+    def _on_campaign(self, key: str, alive: bool) -> None:
+        """The lab's campaign came on the bus: another run of the lab (its time starts again) or a resume. Its
+        time is asked at once: its first publication may have gone out before this process was linked to it again,
+        and until the next (REPUBLISH_WALL_S later) it stamped the new run's work in the last run's time."""
+        if alive and not self.error:
+            self._asking = asyncio.ensure_future(self._ask_again())
+
+    async def _ask_again(self) -> None:
+        try:
+            payload = await self._bus.request(keys.clock(self._lab), b"", 2.0 * self._clock.speed)
+        except (NoReplyError, BusError):
+            return  # gone again, or not answering yet: its publications still anchor us
+        self._on_anchor(keys.clock(self._lab), payload)
 
     def _on_anchor(self, key: str, payload: bytes) -> None:
         try:
