@@ -183,6 +183,10 @@ def test_the_policy_gives_each_device_only_its_own_keys():
     rules = {r["id"]: r for r in acl["rules"]}
     by_subject = {p["subjects"][0]: [k for r in p["rules"] for k in rules[r]["key_exprs"]] for p in acl["policies"]}
     assert all("/b/" not in k and "/b" != k[-2:] for k in by_subject["device0"])
+    # a scheduler agent follows the lab's clock, asked again when its campaign comes (twin.runtime.labtime)
+    assert {"labtwin/lab/clock", "labtwin/lab/orchestrator/alive"} <= set(by_subject["scheduler"])
+    assert all(k.startswith(("labtwin/lab/agent/", "labtwin/lab/clock", "labtwin/lab/orchestrator"))
+               for k in by_subject["scheduler"])
     assert {s["cert_common_names"][0] for s in acl["subjects"]} >= {"device.a.lab", "device.b.lab", "watcher.lab"}
 
 

@@ -10,8 +10,8 @@ config, whose access-control policy denies by default and allows
   liveliness token, watching the orchestrator's token, and hearing the lab's
   clock (``labtwin/<lab>/clock``, which only the orchestrator may publish);
 - the orchestrator: everything under ``labtwin/<lab>/`` (it is the lab);
-- a scheduler agent: serving ``labtwin/<lab>/agent/scheduler/**`` and hearing
-  the lab's clock;
+- a scheduler agent: serving ``labtwin/<lab>/agent/scheduler/**``, hearing
+  the lab's clock and watching the orchestrator's token;
 - a watcher: reading (subscribing, watching tokens, paging the history);
 - an operator: asking the campaign's control desk (``labtwin/<lab>/control/**``:
   ``twin ctl``), and nothing else.
@@ -154,6 +154,11 @@ def access_control(lab: str, devices: list[str]) -> dict[str, Any]:
         _rule("scheduler-out", ["query"], ["egress"], [f"{p}/agent/scheduler/**"]),
         _rule("clock-ask", ["declare_subscriber", "query"], ["ingress"], [keys.clock(lab)]),
         _rule("clock-told", ["put", "reply"], ["egress"], [keys.clock(lab)]),
+        # whether the lab's campaign is on the bus: a device stops a step it can no longer supervise, and a joining
+        # process asks for the lab's time again when a campaign comes (another run starts its time again)
+        _rule("campaign-watch", ["declare_liveliness_subscriber", "liveliness_query"], ["ingress"],
+              [keys.orchestrator(lab)]),
+        _rule("campaign-seen", ["liveliness_token", "reply"], ["egress"], [keys.orchestrator(lab)]),
         _rule("watcher-in", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"], ["ingress"],
               [f"{p}/**"]),
         _rule("watcher-history", ["query"], ["ingress"], [keys.campaign(lab, "*", "history")]),
@@ -164,7 +169,7 @@ def access_control(lab: str, devices: list[str]) -> dict[str, Any]:
     subjects = [{"id": role, "cert_common_names": [Identity(role, lab).common_name]}
                 for role in ("orchestrator", "scheduler", "watcher", "operator")]
     policies = [{"rules": ["orchestrator"], "subjects": ["orchestrator"]},
-                {"rules": ["scheduler-in", "scheduler-out", "clock-ask", "clock-told"], "subjects": ["scheduler"]},
+                {"rules": ["scheduler-in", "scheduler-out", *_JOINER], "subjects": ["scheduler"]},
                 {"rules": ["watcher-in", "watcher-history", "watcher-out"], "subjects": ["watcher"]},
                 {"rules": ["operator-ask", "operator-answered"], "subjects": ["operator"]}]
     for i, dev in enumerate(devices):
@@ -176,15 +181,16 @@ def access_control(lab: str, devices: list[str]) -> dict[str, Any]:
             _rule(f"{sid}-present", ["liveliness_token"], ["ingress"], [keys.alive(lab, dev)]),
             _rule(f"{sid}-health", ["declare_queryable", "reply"], ["ingress"], [keys.health(lab, dev)]),
             _rule(f"{sid}-asked", ["query"], ["egress"], [keys.health(lab, dev)]),
-            _rule(f"{sid}-boss", ["declare_liveliness_subscriber", "liveliness_query"], ["ingress"],
-                  [keys.orchestrator(lab)]),
-            _rule(f"{sid}-boss-seen", ["liveliness_token", "reply"], ["egress"], [keys.orchestrator(lab)]),
         ]
         rules += own
         subjects.append({"id": sid, "cert_common_names": [Identity("device", lab, dev).common_name]})
-        policies.append({"rules": [r["id"] for r in own] + ["clock-ask", "clock-told"], "subjects": [sid]})
+        policies.append({"rules": [r["id"] for r in own] + list(_JOINER), "subjects": [sid]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
             "policies": policies}
+
+
+#: what every process that joins the lab may do: follow its clock, and see whether its campaign is on the bus
+_JOINER = ("clock-ask", "clock-told", "campaign-watch", "campaign-seen")
 
 
 def _rule(rid: str, messages: list[str], flows: list[str], key_exprs: list[str]) -> dict[str, Any]:
