@@ -118,3 +118,33 @@ def test_the_documented_monitor_prints_what_a_person_should_hear_of_as_the_journ
     assert [(h["what"], h["t_lab"], h["experiment"]) for h in heard] == journalled
     ours = {json.loads(e["detail"])["campaign"] for e in read_events(db) if e["kind"] == "msg.result"}
     assert len(ours) == 1 and {h["campaign"] for h in heard} == ours  # the campaign its devices' messages name
+
+
+def test_the_documented_device_keeps_each_runs_time_when_its_lab_runs_again(tmp_path):
+    """A device started before its lab, and the lab run twice: each run's first clock anchor went out before the
+    device was linked to it, so until the next (5 s of wall time later) the device refused work for want of a clock
+    (first run) or stamped it in the last run's time (second). It now asks when the lab's campaign comes."""
+    port = free_port()
+    raw = qd_lab(**{"lab": f"wire{port}", "clock": {"mode": "scaled", "speed": SPEED},
+                    "bus": {"kind": "zenoh", "listen": [f"tcp/127.0.0.1:{port}"]}, "orchestrator.startup_s": 3000,
+                    "campaign.budget": 2, "devices.spectrometer.instances": 1,
+                    "devices.spectrometer.duration": {"mean_s": 50, "cv": 0.0},
+                    "devices.synthesiser.duration": {"mean_s": 30, "cv": 0.0}})
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    (tmp_path / "device.py").write_text(documented("device.py"))
+    s = prepare(path)
+    proc = subprocess.Popen([sys.executable, "device.py", s.lab, "spectrometer", f"tcp/127.0.0.1:{port}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        for run in ("first", "second"):
+            clock = make_clock(s)
+            summary = clock.run(run_async(s, clock, tmp_path / f"{run}.db", {"spectrometer"}))
+            assert summary.done == 2, (run, summary)
+            said = [e for e in read_events(tmp_path / f"{run}.db")
+                    if e["kind"].startswith("msg.") and e["device"] == "spectrometer"]
+            assert said and all(abs(json.loads(e["detail"])["t_lab"] - e["t_lab"]) < 0.2 * SPEED for e in said), \
+                (run, [(json.loads(e["detail"])["t_lab"], e["t_lab"]) for e in said])
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)
