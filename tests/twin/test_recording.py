@@ -323,9 +323,16 @@ def test_a_watched_lab_that_dies_ends_the_watch_by_its_presence_and_a_following_
         assert resumed.returncode == 0, resumed.stderr[-2000:]
         line = lines_until(following.stdout, {"campaign ended"}, 120)[-1]
         assert "campaign ended: 6 experiments finished" in line, line
-        following.send_signal(signal.SIGINT)
+        # the lab run again, a new run and not a resume: the watch ends there, where it drew the new run's
+        # decisions over the old one's (their message numbers start again, and were taken for repeats)
+        again = subprocess.run([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "2", "--planner", "random",
+                                "--clock", "scaled", "--speed", "1000", "--listen", f"tcp/127.0.0.1:{port}",
+                                "--journal", str(tmp_path / "again.db"), "--quiet"], capture_output=True, text=True,
+                               cwd=ROOT, timeout=180)
+        assert again.returncode == 0, again.stderr[-2000:]
         following.wait(timeout=60)
         err = rest_of(following.stderr)
+        assert "lab 'qd' came back with another run, not a resume of the one recorded" in err, err
     finally:
         for p in (lab, once, following):
             p.kill()

@@ -37,6 +37,7 @@ class DecisionStream:
         self._due = False  # a result among them: a message goes now
         self._batches = itertools.count(1)
         self.shared = False  # one campaign of a lab several share (a watcher then draws each on its own)
+        self.run = ""  # which run of the lab this is, the same across its resumes (a watcher tells a new run apart)
 
     def add(self, n: Note, seq: int) -> None:
         self._outbox.append({"id": decision_id(seq), "t_lab": n.t_lab, "what": n.kind, "detail": {
@@ -90,4 +91,4 @@ class DecisionStream:
             size += len(item)
         end += len(page)
         return json.dumps({"items": page, "next": end if len(rows) > len(page) else None,
-                           "campaign": self.campaign_id, "shared": self.shared}).encode()
+                           "campaign": self.campaign_id, "shared": self.shared, "run": self.run}).encode()

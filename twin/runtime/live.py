@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import hashlib
 import inspect
 import itertools
 import json
@@ -102,6 +103,8 @@ class LiveCampaign:
         self._shown: dict[bytes, dict[str, Any]] = {}  # of the messages the core handles now, what to draw
         self._fed: list[Any] = []
         self.decisions = DecisionStream(journal, bus, clock, scenario.lab, campaign_id)
+        # named by its attempt secret, which its resumes keep, through a one-way hash that gives none of it away
+        self.decisions.run = hashlib.sha256(self.core.secret).hexdigest()[:16]
         self.desk = ControlDesk(self.core, clock, self._feed, journal.flush)
         self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
         self._ids = itertools.count(1)

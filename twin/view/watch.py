@@ -212,6 +212,11 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
                         await shared.catch_up(name)
                 else:
                     again = await _first_page(bus, clock, lab, stop, presence)
+                    if again is not None and _another_run(first, again):
+                        log.warning("lab %r came back with another run, not a resume of the one recorded (its "
+                                    "message numbers start again): this watch records one run and ends here; start "
+                                    "another `twin watch` for the new one", lab)
+                        break
                     if again is not None:
                         await _read_history(bus, clock, lab, again, observer.on_message)
                 held: list = waiting or []
@@ -364,6 +369,12 @@ async def _pages(bus: Bus, clock: LabClock, key: str, page: dict, on_message) ->
                             after)
 
 
+def _another_run(first: dict | None, again: dict) -> bool:
+    """Whether the lab came back with another run than the one the watch began with (a resume keeps its run)."""
+    before, now = (first or {}).get("run"), again.get("run")
+    return bool(before) and bool(now) and before != now
+
+
 class MalformedPage(ValueError):
     """A history page that is not one a lab sends: a rogue or broken server answered for the lab."""
 
@@ -390,6 +401,8 @@ def history_page(raw: bytes, after: int) -> dict:
     if not isinstance(campaign, str) or not isinstance(page.get("shared", False), bool) or \
             (page.get("shared") and not re.match(NAME, campaign)):
         raise MalformedPage(f"its campaign ({str(campaign)[:40]!r}) is not a campaign's name")
+    if not isinstance(page.get("run", ""), str):
+        raise MalformedPage(f"its run ({str(page.get('run'))[:40]}) is not a run's name")
     return {**page, "items": items, "next": following}
 
 
