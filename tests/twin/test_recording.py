@@ -323,8 +323,8 @@ def test_a_watched_lab_that_dies_ends_the_watch_by_its_presence_and_a_following_
         assert resumed.returncode == 0, resumed.stderr[-2000:]
         line = lines_until(following.stdout, {"campaign ended"}, 120)[-1]
         assert "campaign ended: 6 experiments finished" in line, line
-        # the lab run again, a new run and not a resume: the watch ends there, where it drew the new run's
-        # decisions over the old one's (their message numbers start again, and were taken for repeats)
+        # the lab run again, a new run and not a resume: the watch ends there, where it drew the new run into the
+        # same recording as if resumed (a second summary, and a timeline that started again)
         again = subprocess.run([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "2", "--planner", "random",
                                 "--clock", "scaled", "--speed", "1000", "--listen", f"tcp/127.0.0.1:{port}",
                                 "--journal", str(tmp_path / "again.db"), "--quiet"], capture_output=True, text=True,
