@@ -6,7 +6,8 @@ read at a Unix time — and publishes the anchor when it starts and every few wa
 seconds. A process that joins the lab (``twin device serve``, ``twin scheduler
 serve``) asks for the anchor before it serves, again whenever the lab's campaign
 comes on the bus, and re-anchors its own clock on every one it hears, so a lab
-that restarts (``twin resume``) or runs again carries its devices along. Both sides read the same Unix time: one host, or hosts kept in step by NTP.
+that restarts (``twin resume``) or runs again carries its devices along. Both
+sides read the same Unix time: one host, or hosts kept in step by NTP.
 A device that has not heard the lab's clock refuses commands ("not now"); one
 whose operator asked for another mode or speed than the lab's stops, saying so.
 """
@@ -125,9 +126,10 @@ class LabTimeFollower:
             self._asking.cancel()
 
     def _on_campaign(self, key: str, alive: bool) -> None:
-        """The lab's campaign came on the bus: another run of the lab (its time starts again) or a resume. Its
-        time is asked at once: its first publication may have gone out before this process was linked to it again,
-        and until the next (REPUBLISH_WALL_S later) it stamped the new run's work in the last run's time."""
+        """The lab's campaign came on the bus: a lab started after this process, another run of it (its time starts
+        again) or a resume. Its time is asked at once: its first publication may have gone out before this process
+        was linked to it, and the next comes REPUBLISH_WALL_S later (meanwhile a device refused work for want of a
+        clock, or stamped the new run's work in the last run's time)."""
         if alive and not self.error:
             self._asking = asyncio.ensure_future(self._ask_again())
 
