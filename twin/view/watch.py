@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import heapq
-import json
 import logging
-import re
 import signal
 import sys
 from collections.abc import Callable
@@ -23,9 +21,9 @@ from twin.core.bus import Bus, Closable, NoReplyError
 from twin.core.clock import LabClock
 from twin.core.errors import TwinError
 from twin.campaign.journal import as_messages, no_such_journal, read_events, read_run
-from twin.scenario.spec import NAME
 from twin.view.lab_observer import SharedLabObserver
 from twin.view.observer import LabObserver
+from twin.view.history_pages import MalformedPage, another_run, history_page, pages, read_history
 from twin.view.vouched import Vouched
 
 log = logging.getLogger(__name__)
@@ -197,7 +195,7 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
         else:
             observer, recording = open_observer(options, f"watch-{lab}", dedupe=True)
             if first is not None:
-                await _read_history(bus, clock, lab, first, observer.on_message)
+                await read_history(bus, clock, lab, first, observer.on_message)
             feed = Vouched(observer.on_message)
         for key, payload in waiting:
             feed(key, payload)  # repeats of the history are dropped by id
@@ -212,13 +210,13 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
                         await shared.catch_up(name)
                 else:
                     again = await _first_page(bus, clock, lab, stop, presence)
-                    if again is not None and _another_run(first, again):
+                    if again is not None and another_run(first, again):
                         log.warning("lab %r came back with another run, not a resume of the one recorded (its "
                                     "message numbers start again): this watch records one run and ends here; start "
                                     "another `twin watch` for the new one", lab)
                         break
                     if again is not None:
-                        await _read_history(bus, clock, lab, again, observer.on_message)
+                        await read_history(bus, clock, lab, again, observer.on_message)
                 held: list = waiting or []
                 waiting = None
                 for key, payload in held:
@@ -299,7 +297,7 @@ class _SharedWatch:
         try:
             if first is None:
                 first = history_page(await self.bus.request(key, b"", timeout=2.0 * self.clock.speed), 0)
-            await _pages(self.bus, self.clock, key, first, self.observer.campaign(name).on_message)
+            await pages(self.bus, self.clock, key, first, self.observer.campaign(name).on_message)
         except (NoReplyError, ValueError, TwinError) as exc:
             log.warning("campaign %r of lab %r did not give its history (%s): recording it from now on", name,
                         self.lab, exc)
@@ -346,64 +344,6 @@ async def _first_page(bus: Bus, clock: LabClock, lab: str, stop: asyncio.Event, 
         await clock.sleep(0.5 * clock.speed)
     log.warning("lab %r did not answer for its history in %.0f s%s: recording from now on", lab, patience_s, why)
     return None
-
-
-async def _read_history(bus: Bus, clock: LabClock, lab: str, first: dict, on_message) -> None:
-    """A lab's history from its first page on; one that stops answering, or answers with a malformed page, is
-    recorded from now on."""
-    try:
-        await _pages(bus, clock, keys.campaign(lab, "*", "history"), first, on_message)
-    except (NoReplyError, ValueError, TwinError) as exc:
-        log.warning("lab %r did not give all of its history (%s): recording it from now on", lab, exc)
-
-
-async def _pages(bus: Bus, clock: LabClock, key: str, page: dict, on_message) -> None:
-    """Feed a history's items, page after page, from ``page`` on (a checked page: :func:`history_page`)."""
-    while True:
-        for payload in page["items"]:
-            on_message("", payload)
-        after = page["next"]
-        if after is None:
-            return
-        page = history_page(await bus.request(key, json.dumps({"after": after}).encode(), timeout=2.0 * clock.speed),
-                            after)
-
-
-def _another_run(first: dict | None, again: dict) -> bool:
-    """Whether the lab came back with another run than the one the watch began with (a resume keeps its run)."""
-    before, now = (first or {}).get("run"), again.get("run")
-    return bool(before) and bool(now) and before != now
-
-
-class MalformedPage(ValueError):
-    """A history page that is not one a lab sends: a rogue or broken server answered for the lab."""
-
-
-def history_page(raw: bytes, after: int) -> dict:
-    """A page of a campaign's history, as asked for with ``{"after": after}``, checked: its items are messages
-    (text), its ``next`` lies beyond ``after`` (a page that does not move on would be asked for forever), its
-    campaign is a name. Raises :class:`MalformedPage` saying what is wrong."""
-    try:
-        page = json.loads(raw)
-    except ValueError:
-        raise MalformedPage(f"not JSON: {bytes(raw[:40])!r}") from None
-    if not isinstance(page, dict):
-        raise MalformedPage(f"not a page but a {type(page).__name__}")
-    if "error" in page:
-        raise MalformedPage(f"an error: {str(page['error'])[:120]}")
-    items, following = page.get("items", []), page.get("next")
-    if not isinstance(items, list) or not all(isinstance(item, str) for item in items):
-        raise MalformedPage("its items are not a list of messages")
-    if following is not None and (isinstance(following, bool) or not isinstance(following, int)
-                                  or following <= after or not items):
-        raise MalformedPage(f"its next page ({str(following)[:40]}) does not follow page {after}")
-    campaign = page.get("campaign", "")
-    if not isinstance(campaign, str) or not isinstance(page.get("shared", False), bool) or \
-            (page.get("shared") and not re.match(NAME, campaign)):
-        raise MalformedPage(f"its campaign ({str(campaign)[:40]!r}) is not a campaign's name")
-    if not isinstance(page.get("run", ""), str):
-        raise MalformedPage(f"its run ({str(page.get('run'))[:40]}) is not a run's name")
-    return {**page, "items": items, "next": following}
 
 
 def watch(lab: str, options: RecordOptions, connect: list[str], listen: list[str], follow: bool = False,
