@@ -41,10 +41,15 @@ class FixedPlanner:
             )
             for p in proposals
         ]
+        self._given = len(self._queue)
 
     def propose(self, n: int, history: list[Outcome], pending: list[dict[str, Any]]) -> list[Proposal]:
         out, self._queue = self._queue[:n], self._queue[n:]
         return out
+
+    @property
+    def why_no_more(self) -> str:
+        return "" if self._queue else f"all {self._given} of campaign.planner_options.proposals were proposed"
 
 
 def _check_proposals(proposals: Any) -> None:
@@ -86,3 +91,8 @@ class LhsPlanner:
         rows = self._design[self._next : self._next + n]
         self._next += len(rows)
         return [Proposal({k: float(v) for k, v in zip(self._names, row)}) for row in rows]
+
+    @property
+    def why_no_more(self) -> str:
+        left = len(self._design) - self._next
+        return "" if left else f"its Latin-hypercube design of {len(self._design)} points (the budget) was all proposed"

@@ -80,7 +80,7 @@ class RoutePlanner:
         self.avoid: set[tuple[str, str]] = set()
         self.route: Route | None = None
         self.routes = 0  # routes planned so far (the first, then each alternative)
-        self.why = ""  # why there is no route, once there is none
+        self.why_no_more = ""  # why there is no route, once there is none (the campaign's summary says it)
         self.made = False  # a batch of the target met the targets
         self._seen = 0
         self._announce = False
@@ -90,7 +90,7 @@ class RoutePlanner:
         for outcome in history[self._seen:]:
             self._learn(outcome)
         self._seen = len(history)
-        if self.made or self.why:
+        if self.made or self.why_no_more:
             return []
         if self.route is None and not self._plan():
             return []
@@ -142,9 +142,9 @@ class RoutePlanner:
         result = search(self.method, self.target, self.templates, stock, self.prior, self.seconds,
                         frozenset(self.avoid))
         if result.route is None or not result.route.made_by:
-            self.why = (f"no route to {self.target}" + (f" avoiding {sorted(t for t, _ in self.avoid)}"
-                                                        if self.avoid else "") + f": {result.why or 'in stock'}")
-            log.warning("%s; the campaign ends", self.why)
+            avoiding = f" avoiding {sorted(t for t, _ in self.avoid)}" if self.avoid else ""
+            self.why_no_more = f"no route to {self.target}{avoiding}: {result.why or 'in stock'}"
+            log.warning("%s; the campaign ends", self.why_no_more)
             return False
         self.route, self._announce = result.route, True
         self.routes += 1

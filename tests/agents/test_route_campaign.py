@@ -165,14 +165,16 @@ def test_a_proposals_cost_survives_the_journal_a_resumed_core_is_rebuilt_from():
 
 def test_a_campaign_whose_planner_had_no_route_says_so_in_its_summary(tmp_path):
     """The campaign ended at once, and its summary (and `twin report`, later) said nothing of why: 0 experiments
-    of 0 proposed. It now says the planner proposed no more; a campaign that met its targets says nothing."""
+    of 0 proposed. It now says the planner proposed no more, and the planner's reason; a campaign that met its
+    targets says nothing."""
     from twin.campaign.journal import read_run
 
     (tmp_path / "none").mkdir()
     (tmp_path / "made").mkdir()
     none, _ = campaign(tmp_path / "none", **{"campaign.planner_options": {"molecule": "C1CC2CCC1C2[Si](C)(C)C",
                                                                            "method": "breadth-first", "seconds": 2}})
-    assert none.ended == "the planner proposed no more experiments after 0 of the budget's 20" and not none.stopped
+    assert none.ended.startswith("the planner proposed no more experiments after 0 of the budget's 20: no route to ")
+    assert none.ended.endswith(": no route within 6 steps from this stock and these templates") and not none.stopped
     assert read_run(tmp_path / "none" / "journal.db")["summary"]["ended"] == none.ended
     made, _ = campaign(tmp_path / "made")
     assert made.targets_met_h and made.ended == ""

@@ -75,6 +75,7 @@ class CampaignCore:
         self.decision_wall_s: list[float] = []
         self.planner_exhausted = False
         self.planner_failed = ""  # why the planner can propose no more: the campaign finishes what is in the lab
+        self.planner_why = ""  # the planner's own word on why it proposed nothing, the last time it did
         self.stopping = ""
         self.awaited: set[str] | None = None  # before the start: devices maybe still offline (device_events)
         self.resumable = False  # the stop came from outside (Stop.outside): twin resume continues the campaign
@@ -138,7 +139,7 @@ class CampaignCore:
             answer, self._answer, asked = self._answer, None, self._asking
             self._asking = None
             if isinstance(answer, Proposed) and asked is not None and asked.what == "plan":
-                self._proposed(answer.proposals[:asked.n], answer.failed)
+                self._proposed(answer.proposals[:asked.n], answer.failed, answer.why)
             elif isinstance(answer, Decided) and asked is not None and asked.what == "schedule":
                 answered.carry_out(self, answer)
         if self._running and self._asking is None:
@@ -316,7 +317,7 @@ class CampaignCore:
             return "targets"
         return stranded.GIVEN_UP if self._availability.blocks(step.device for step in self._workflow) else ""
 
-    def _proposed(self, proposals: list[Proposal], failed: str = "") -> None:
+    def _proposed(self, proposals: list[Proposal], failed: str = "", why: str = "") -> None:
         if failed:
             if not self.planner_failed:
                 self.planner_failed = failed
@@ -326,6 +327,7 @@ class CampaignCore:
         if not proposals:
             # nothing now: ask again when something finishes, or give up if nothing will
             self.planner_exhausted = not self.active
+            self.planner_why = why
             self._filled = True
             return
         for p in proposals:

@@ -38,6 +38,9 @@ class Outcome:
 
 
 class Planner(Protocol):
+    """``propose`` may answer fewer than ``n``, or none; a planner with nothing more may say why in an optional
+    ``why_no_more`` attribute of text, which the summary's ``ended`` then gives."""
+
     def propose(self, n: int, history: list[Outcome], pending: list[dict[str, Any]]) -> list[Proposal]: ...
 
 

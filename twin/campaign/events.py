@@ -145,10 +145,12 @@ OPERATOR_COMMANDS = ("pause", "resume", "abort", "retry", "stop", "answer", "ref
 @dataclass(frozen=True, slots=True)
 class Proposed:
     """The planner's answer to an ``Ask`` of kind ``plan``; ``failed``: why the planner can propose no more
-    (it raised, or answered something else than proposals)."""
+    (it raised, or answered something else than proposals); ``why``: with no proposals, the planner's own word on
+    why it has none (its ``why_no_more``)."""
 
     proposals: list[Proposal]
     failed: str = ""
+    why: str = ""
 
 
 @dataclass(frozen=True, slots=True)

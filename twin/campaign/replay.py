@@ -44,7 +44,7 @@ def encode(event: Any) -> list[Any]:
     if t is Proposed:
         return ["proposed", [[p.params, None if p.route is None else [[r.step, r.device, r.params] for r in p.route],
                               *([p.cost] if p.cost else [])] for p in event.proposals],
-                *([event.failed] if event.failed else [])]
+                *([event.failed] if event.failed or event.why else []), *([event.why] if event.why else [])]
     if t is Decided:
         return ["decided", [[a.task, a.device] for a in event.assignments], event.wall_s]
     raise TypeError(f"not a core input: {event!r}")
@@ -96,7 +96,7 @@ def decode_input(data: list[Any]) -> Any:
         return Operator(*data[1:12])
     if kind == "proposed":
         return Proposed([Proposal(item[0], None if item[1] is None else tuple(RouteStep(*r) for r in item[1]),
-                                  *item[2:3]) for item in data[1]], *data[2:3])
+                                  *item[2:3]) for item in data[1]], *data[2:4])
     if kind == "decided":
         return Decided([Assignment(task, device) for task, device in data[1]], data[2])
     raise ValueError(f"unknown input {kind!r} in the journal")

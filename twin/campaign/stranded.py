@@ -82,4 +82,4 @@ def ran_out(core: CampaignCore) -> str:
             or (targets and len(core.met_at) == len(targets))):
         return ""
     return (f"the planner proposed no more experiments after {len(core.experiments)} of the budget's "
-            f"{c.budget + core.replaced}")
+            f"{c.budget + core.replaced}" + (f": {core.planner_why}" if core.planner_why else ""))

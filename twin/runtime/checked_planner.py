@@ -54,7 +54,15 @@ class CheckedPlanner:
             wrong = _malformed(p)
             if wrong:
                 return self._fail(f"planner {self.name!r} answered a malformed proposal (item {i}): {wrong}")
-        return Proposed([_plain_values(p) for p in proposals])
+        return Proposed([_plain_values(p) for p in proposals], why="" if proposals else self._why_no_more())
+
+    def _why_no_more(self) -> str:
+        """The planner's own word on why it proposes nothing (its optional ``why_no_more``), if it is text."""
+        try:
+            why = getattr(self.inner, "why_no_more", "")
+        except PLUGIN_ERRORS:  # a property that raises says nothing
+            return ""
+        return " ".join(why.split())[:300] if isinstance(why, str) else ""
 
     def _fail(self, reason: str) -> Proposed:
         self.failed = reason
