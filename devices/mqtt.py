@@ -48,6 +48,7 @@ from twin import DriverError, DriverSetup, Refused, StepContext, StepResult, sle
 log = logging.getLogger(__name__)
 NODELAY = ((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),)  # without it p99 round trips were ~40 ms
 PING_EVERY_WALL_S = 2.0
+OFFLINE_PINGS = 3  # after an "offline": enough to hear a live instrument whose old session's will came late
 RECONNECT_EVERY_WALL_S = 1.0
 
 class MqttInstrument:
@@ -80,6 +81,7 @@ class MqttInstrument:
         self._issued: collections.deque[str] = collections.deque(maxlen=256)  # late answers are not strangers
         self._client: aiomqtt.Client | None = None
         self._tasks: list[asyncio.Task] = []
+        self._pinger: asyncio.Task | None = None  # what pings the instrument to learn whether it is there
         self._present: bool | None = None  # None: a retained "online" not yet confirmed by a ping
         self._presence: Callable[[bool], None] = lambda present: None
         self._instrument_health: Any = None
@@ -176,24 +178,37 @@ class MqttInstrument:
             self._set_present(False)
             if self._answer is not None and not self._answer.done():  # the command died with it: end the step now
                 self._answer.set_exception(DriverError(f"{self.name}: the instrument went offline during the step"))
+            # a late last will: an instrument back on a new session (another client id) before the broker saw its
+            # old one end says "online" first, and its old will "offline" after; a live instrument answers a ping
+            self._ping_while(lambda: self._present is False, OFFLINE_PINGS)
         elif text != "online":
             self._invalid("status", f"{text[:40]!r}, not online or offline")
         elif not retained:
             self._set_present(True)
         elif not self._present:  # a retained "online" may be a dead instrument's that exited without a will
             self._present = None
-            self._tasks.append(asyncio.ensure_future(self._ping_until_known()))
+            self._ping_while(lambda: self._present is None)
 
     def _set_present(self, present: bool) -> None:
         if self._present is not present:
             self._present = present
             self._presence(present)
 
-    async def _ping_until_known(self) -> None:
-        while self._present is None and self._client is not None:
-            with contextlib.suppress(aiomqtt.MqttError):
-                await self._client.publish(f"{self.topic}/command", proto.ping(self._new_id()), qos=self.qos)
-            await sleep_wall(PING_EVERY_WALL_S)
+    def _ping_while(self, still: Callable[[], bool], times: int | None = None) -> None:
+        """Ping the instrument every ``PING_EVERY_WALL_S`` while ``still()``, at most ``times`` times (one pinger at a
+        time: a new one replaces the last)."""
+        async def pings() -> None:
+            n = 0
+            while still() and self._client is not None and (times is None or n < times):
+                with contextlib.suppress(aiomqtt.MqttError):
+                    await self._client.publish(f"{self.topic}/command", proto.ping(self._new_id()), qos=self.qos)
+                n += 1
+                await sleep_wall(PING_EVERY_WALL_S)
+
+        if self._pinger is not None:
+            self._pinger.cancel()
+        self._pinger = asyncio.ensure_future(pings())
+        self._tasks = [t for t in self._tasks if not t.done()] + [self._pinger]
 
     def _on_result(self, payload: bytes, retained: bool) -> None:
         try:

@@ -176,3 +176,36 @@ def test_a_slow_instrument_is_given_nothing_until_it_has_acknowledged_the_cancel
     assert kinds.count("attempt.cancel_acknowledged") >= 3
     assert len(busy) <= kinds.count("attempt.cancel_unanswered")  # one "busy" per grace overrun, no retry storm
     assert summary.stuck == len(busy)  # each "busy" quarantined it until it answered the cancel
+
+
+def test_a_late_last_will_does_not_keep_a_live_instrument_off_the_bus(mosquitto, prefix):
+    """An instrument back on a new session (another client id) before the broker noticed its old one end: its old
+    last will, "offline", comes after its new "online". The device went off the bus for good, with the instrument
+    up and waiting for work; the adapter now pings after an "offline", and the instrument's answer brings it back."""
+    topic = f"{prefix}/spectrometer-1"
+    live = instrument(mosquitto, topic)
+
+    async def late_will():
+        driver = load_driver(parse(mqtt_lab(mosquitto, prefix)), "spectrometer", "spectrometer-1")
+        seen: list[bool] = []
+        await driver.connect(seen.append)
+        try:
+            t0 = time.monotonic()
+            while seen != [True] and time.monotonic() - t0 < 10:
+                await asyncio.sleep(0.05)
+            host, _, port = mosquitto.rpartition(":")
+            async with aiomqtt.Client(host, int(port)) as c:  # the broker giving out the old session's will
+                await c.publish(f"{topic}/status", "offline", qos=1, retain=True)
+            t0 = time.monotonic()
+            while seen != [True, False, True] and time.monotonic() - t0 < 10:
+                await asyncio.sleep(0.05)
+            return list(seen), (await driver.health())["present"]
+        finally:
+            await driver.disconnect()
+
+    try:
+        seen, present = asyncio.run(late_will())
+    finally:
+        live.terminate()
+        live.wait()
+    assert seen == [True, False, True] and present is True
