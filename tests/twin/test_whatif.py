@@ -69,6 +69,23 @@ def test_a_number_is_shown_as_the_scenario_and_the_variants_give_it():
     assert firsts[:2] == ["240*", "480.5"], out  # the model reads 240 as 240.0
 
 
+def test_a_list_or_mapping_is_shown_short_and_kept_whole_in_json():
+    """chemistry.targets as written filled thirteen lines of the table with its every field."""
+    code, out = whatif("scenarios/quantum_dots.yaml", "--vary", "chemistry.targets=[]", "--set", "campaign.budget=4",
+                       "--seeds", "1")
+    assert code == 0, out
+    firsts = [line.split()[0] for line in out.splitlines() if line.split()[:1] and line.split()[0][:1] == "["]
+    assert firsts == ["[R,", "[]"], out
+    assert "[R, G, B]*" in out and "'tol'" not in out
+    code, out = whatif("scenarios/quantum_dots.yaml", "--vary", 'campaign.planner_options={"n_init": 3, "candidates": '
+                       '1000, "refit_every": 1},{"n_init": 4}', "--set", "campaign.budget=4", "--seeds", "1", "--json")
+    assert code == 0, out
+    assert json.loads(out)["variants"][1]["changes"]["campaign.planner_options"]["refit_every"] == 1
+    code, out = whatif("scenarios/quantum_dots.yaml", "--vary", 'campaign.planner_options={"n_init": 3, "candidates": '
+                       '1000, "refit_every": 1},{"n_init": 4}', "--set", "campaign.budget=4", "--seeds", "1")
+    assert '{"n_init": 3, "candidates":' in out and "refit_every" not in out, out  # cut at 40 characters
+
+
 @pytest.mark.parametrize("args,says", [
     (["--vary", "devices.nope.instances=1,2"], "devices.nope"),
     (["--vary", "devices.reactor.instances"], "expected FIELD=V1,V2"),

@@ -10,6 +10,7 @@ as written, which always runs too.
 from __future__ import annotations
 
 import itertools
+import json
 import statistics
 import tempfile
 from collections.abc import Callable
@@ -367,12 +368,28 @@ def campaign_rows(summary: list[dict[str, Any]], axes: list[str], written: dict[
             for row in summary]
 
 
+SHOWN_WIDTH = 40  # a variant's value in the table, at most
+
+
 def _shown(value: Any) -> str:
     """A variant's value in the table: a policy by its file's name (``rl:jobshop_scheduler``; --json and --csv
     keep the path), a whole number as one (the scenario's 600 s, read as 600.0, beside a variant's 900)."""
     if type(value) is float and value.is_integer() and abs(value) < 1e15:
         return str(int(value))
+    if isinstance(value, (list, dict)):
+        return _compact(value)
     return "none" if value is None else short(value) if isinstance(value, str) else str(value)
+
+
+def _compact(value: list | dict, width: int = SHOWN_WIDTH) -> str:
+    """A list or mapping in a cell: a list of named things by their names (chemistry.targets as ``[R, G, B]``),
+    else as JSON, cut to ``width`` characters (--json and --csv keep it whole)."""
+    if isinstance(value, list) and value and all(isinstance(v, dict) and isinstance(v.get("name"), str)
+                                                 for v in value):
+        text = "[" + ", ".join(v["name"] for v in value) + "]"
+    else:
+        text = json.dumps(value, separators=(", ", ": "), default=str)
+    return text if len(text) <= width else text[:width - 1] + "…"
 
 
 def has_targets(s: Scenario) -> bool:
