@@ -8,7 +8,7 @@ import pytest
 from twin.campaign.journal import read_events
 from twin.runtime.lab import prepare
 
-from tests.twin.shared_labs import (LAB, ROOT, SMALL, busy_spells, kill_all, recorded_lab, states)
+from tests.twin.shared_labs import (LAB, ROOT, SMALL, busy_spells, kill_all, lines_until, recorded_lab, states)
 
 
 def test_a_shared_lab_is_recorded_with_its_devices_once_and_a_panel_per_campaign(tmp_path):
@@ -169,4 +169,52 @@ def test_twin_watch_without_follow_ends_by_itself_when_every_campaign_has_ended(
     assert "recorded" in err
     drawn = read_rrd(tmp_path / "w.rrd")
     for name in ("dots", "catalyst"):
+        assert len(drawn[f"campaigns/{name}/summary"]) == 1, name
+
+
+@pytest.mark.process
+def test_a_following_watch_of_a_shared_lab_ends_when_the_lab_comes_back_with_another_run(tmp_path):
+    """`twin watch --follow` on a lab of several campaigns took the lab's next run (the same file, `twin run`
+    again) for a resume and drew its campaigns into the same recording; each campaign's history names its run,
+    and the watch now ends there, saying so, with the first run recorded."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    from tests.rrd import read_rrd
+    from tests.twin.test_device_process import free_port
+
+    port = free_port()
+    raw = yaml.safe_load(LAB.read_text())
+    for c, budget in zip(raw["campaigns"], (3, 2)):
+        c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
+    watcher = subprocess.Popen([sys.executable, "-m", "twin", "watch", "--lab", "shared", "--connect",
+                                f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd"), "--wait", "60",
+                                "--follow"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
+
+    def lab_run(journal: str) -> subprocess.Popen:
+        return subprocess.Popen([sys.executable, "-m", "twin", "run", str(tmp_path / "lab.yaml"), "--clock", "scaled",
+                                 "--speed", "2000", "--listen", f"tcp/127.0.0.1:{port}", "--journal",
+                                 str(tmp_path / journal), "--quiet"], stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, cwd=ROOT)
+
+    first = second = None
+    try:
+        first = lab_run("first")
+        said = lines_until(watcher.stdout, {"is on the bus"}, 120)  # the watch has the first run
+        assert "lab 'shared' is on the bus" in said[-1], said
+        assert first.wait(timeout=120) == 0
+        second = lab_run("second")
+        assert second.wait(timeout=120) == 0
+        watcher.wait(timeout=60)  # it ends without being told to
+        err = watcher.stderr.read()
+    finally:
+        kill_all(watcher, first, second)
+    assert watcher.returncode == 0, err[-2000:]
+    said = " ".join(err.split())
+    assert "lab 'shared' came back with another run of campaign" in said and "start another `twin watch`" in said, err
+    drawn = read_rrd(tmp_path / "w.rrd")
+    for name in ("dots", "catalyst"):  # the first run's, and nothing of the second's
         assert len(drawn[f"campaigns/{name}/summary"]) == 1, name

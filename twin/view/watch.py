@@ -208,6 +208,11 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
                     shared.read.clear()
                     for name in names:
                         await shared.catch_up(name)
+                    if shared.another:
+                        log.warning("lab %r came back with another run of campaign %r, not a resume of the one "
+                                    "recorded: this watch records one run and ends here; start another `twin watch` "
+                                    "for the new one", lab, shared.another)
+                        break
                 else:
                     again = await _first_page(bus, clock, lab, stop, presence)
                     if again is not None and another_run(first, again):
@@ -287,6 +292,8 @@ class _SharedWatch:
         self.bus, self.clock, self.lab, self.observer = bus, clock, lab, observer
         self.read: set[str] = set()
         self.held: dict[str, list] = {}  # a campaign's live decisions while its history is read
+        self.runs: dict[str, dict] = {}  # each campaign's first page as first read: which run of it is recorded
+        self.another = ""  # a campaign that came back with another run, not a resume of the one recorded
 
     async def catch_up(self, name: str, first: dict | None = None) -> None:
         if name in self.read:
@@ -297,6 +304,12 @@ class _SharedWatch:
         try:
             if first is None:
                 first = history_page(await self.bus.request(key, b"", timeout=2.0 * self.clock.speed), 0)
+            if another_run(self.runs.get(name), first):
+                self.another = self.another or name
+                self.held.pop(name, None)
+                self.read.discard(name)  # nothing of the new run is drawn: its messages come here again
+                return
+            self.runs.setdefault(name, first)
             await pages(self.bus, self.clock, key, first, self.observer.campaign(name).on_message)
         except (NoReplyError, ValueError, TwinError) as exc:
             log.warning("campaign %r of lab %r did not give its history (%s): recording it from now on", name,
