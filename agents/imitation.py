@@ -321,12 +321,21 @@ def check_imitable(scenario: Scenario, init) -> None:
             f"training.teacher: best-rule, or training.method: ppo")
 
 
+class StartWorse(Exception):
+    """The policy training was to start from did worse than ``worse_above`` × the best rule at the start."""
+
+    def __init__(self, score: float) -> None:
+        super().__init__(f"the start scored {score:.3f} × the best rule")
+        self.score = score
+
+
 def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, workers: int = 2,
                        eval_every: int = 20_000, on_progress=None, eval_seeds=None, held_out_count: int | None = None,
                        max_samples: int | None = None, epochs: int = 3, learning_rate: float | None = None,
-                       init=None, encoding: str = ENCODING):
+                       init=None, encoding: str = ENCODING, worse_above: float | None = None):
     """Rounds of about ``eval_every`` labelled decisions each, ``steps`` in all; the policy is evaluated after every
-    round and the best kept (``agents.train_scheduler.Judge``). ``init``: a policy file to start from. The most
+    round and the best kept (``agents.train_scheduler.Judge``). ``init``: a policy file to start from; with
+    ``worse_above``, ``StartWorse`` is raised if it scores above that at the start. The most
     recent ``max_samples`` labels are trained on (by default 400,000 from a teacher; from the policy itself, the
     last three rounds', as older ones are an older policy's best)."""
     from sb3_contrib import MaskablePPO
@@ -371,7 +380,10 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
         except ValueError as exc:
             raise PluginError(str(exc)) from None
     if init is not None:
-        judge(model, 0, fits, "start (--init)")
+        shipped = worse_above is not None  # the lab says nothing of training: the general policy is the start
+        start = judge(model, 0, fits, f"start ({Path(init).name}, shipped)" if shipped else "start (--init)")
+        if shipped and start["score"] > worse_above:
+            raise StartWorse(start["score"])
     data: list[Sample] = []
     done, rnd, shop, per_shop, counted = 0, 0, seed * 1_000_000, 150.0, 0  # counted: lab runs whose labels were counted
     with workers_for(workers) as pool:

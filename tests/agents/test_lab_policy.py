@@ -136,7 +136,7 @@ def test_a_lab_is_trained_from_a_policy_by_its_own_best_runs_and_says_so_when_it
 
     lab = prepare(BUSY, overrides={"training.samples": 4})
     with pytest.raises(ValueError, match=r"busy_lab: .*own best runs.*--init P.zip"):
-        train_scheduler(lab, 100, tmp_path / "p.zip")
+        train_scheduler(prepare(BUSY, overrides={"training.teacher": "self"}), 100, tmp_path / "p.zip")
     with pytest.raises(ValueError, match=r"here candidates, ppo, "):
         train_scheduler(prepare(BUSY, overrides={"training.method": "ppo"}), 100, tmp_path / "p.zip", init=SHIPPED)
     # a worker's labels: variants of the lab, whose questions hold several campaigns' steps

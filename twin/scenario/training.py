@@ -57,8 +57,10 @@ class Training(Spec):
         "jobshop_sizes), best-rule (in each lab drawn from these ranges, the dispatching rule that does best there), "
         "self (the policy's own best of `samples` rollouts of each lab) or self-pg (a policy gradient: every one of "
         "`samples` sampled rollouts of each lab reinforced by how much better than their mean it ended); self and "
-        "self-pg start from a policy (--init); auto: cp-sat for a job shop with jobshop_sizes, self for a lab of "
-        "several campaigns, else best-rule")
+        "self-pg start from a policy (--init); auto: cp-sat for a job shop with jobshop_sizes; for a lab of the shapes "
+        "the shipped general policy (agents/policies/flaky_scheduler.zip) was trained on, self from it, unless it "
+        "does worse than the best rule at the start; else self for a lab of several campaigns (with --init), and "
+        "best-rule for any other lab")
     samples: int = Field(default=16, ge=2, le=256, description="teacher self: rollouts of each lab (one greedy, the "
                          "rest sampled), the best of which is imitated; self-pg: sampled rollouts of each lab")
 
