@@ -1,9 +1,12 @@
 """A lab of several campaigns recorded, watched from another process, replayed from its journals."""
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from twin.campaign.journal import read_events
 from twin.runtime.lab import prepare
@@ -136,29 +139,33 @@ def test_twin_replay_of_a_labs_journals_equals_its_live_recording_as_rerun_compa
 
 
 
-@pytest.mark.process
-def test_twin_watch_without_follow_ends_by_itself_when_every_campaign_has_ended(tmp_path):
-    import subprocess
-    import sys
+def _watcher(tmp_path: Path, port: int, *more: str) -> subprocess.Popen:
+    """`twin watch` of the shared lab at ``port``, recording to w.rrd."""
+    return subprocess.Popen([sys.executable, "-m", "twin", "watch", "--lab", "shared", "--connect",
+                             f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd"), "--wait", "60", *more],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
 
-    import yaml
 
-    from tests.rrd import read_rrd
-    from tests.twin.test_device_process import free_port
-
-    port = free_port()
+def _small_lab_run(tmp_path: Path, port: int, journal: str, output=subprocess.DEVNULL) -> subprocess.Popen:
+    """The shared lab with 3 and 2 random experiments, run on a scaled clock, listening at ``port``."""
     raw = yaml.safe_load(LAB.read_text())
     for c, budget in zip(raw["campaigns"], (3, 2)):
         c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
     (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
+    return subprocess.Popen([sys.executable, "-m", "twin", "run", str(tmp_path / "lab.yaml"), "--clock", "scaled",
+                             "--speed", "2000", "--listen", f"tcp/127.0.0.1:{port}", "--journal",
+                             str(tmp_path / journal), "--quiet"], stdout=output, stderr=output, cwd=ROOT, text=True)
+
+
+@pytest.mark.process
+def test_twin_watch_without_follow_ends_by_itself_when_every_campaign_has_ended(tmp_path):
+    from tests.rrd import read_rrd
+    from tests.twin.test_device_process import free_port
+
+    port = free_port()
     # the watcher first: it waits for the lab's endpoint to come up (--wait), however long the lab takes to start
-    watcher = subprocess.Popen([sys.executable, "-m", "twin", "watch", "--lab", "shared", "--connect",
-                                f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd"), "--wait", "60"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
-    lab = subprocess.Popen([sys.executable, "-m", "twin", "run", str(tmp_path / "lab.yaml"), "--clock", "scaled",
-                            "--speed", "2000", "--listen", f"tcp/127.0.0.1:{port}", "--journal",
-                            str(tmp_path / "runs"), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           cwd=ROOT, text=True)
+    watcher = _watcher(tmp_path, port)
+    lab = _small_lab_run(tmp_path, port, "runs", subprocess.PIPE)
     try:
         lab.communicate(timeout=120)
         out, err = watcher.communicate(timeout=60)  # it ends without being told to
@@ -177,36 +184,18 @@ def test_a_following_watch_of_a_shared_lab_ends_when_the_lab_comes_back_with_ano
     """`twin watch --follow` on a lab of several campaigns took the lab's next run (the same file, `twin run`
     again) for a resume and drew its campaigns into the same recording; each campaign's history names its run,
     and the watch now ends there, saying so, with the first run recorded."""
-    import subprocess
-    import sys
-
-    import yaml
-
     from tests.rrd import read_rrd
     from tests.twin.test_device_process import free_port
 
     port = free_port()
-    raw = yaml.safe_load(LAB.read_text())
-    for c, budget in zip(raw["campaigns"], (3, 2)):
-        c["campaign"].update(budget=budget, planner="random", stop_on_target=False)
-    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
-    watcher = subprocess.Popen([sys.executable, "-m", "twin", "watch", "--lab", "shared", "--connect",
-                                f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd"), "--wait", "60",
-                                "--follow"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)
-
-    def lab_run(journal: str) -> subprocess.Popen:
-        return subprocess.Popen([sys.executable, "-m", "twin", "run", str(tmp_path / "lab.yaml"), "--clock", "scaled",
-                                 "--speed", "2000", "--listen", f"tcp/127.0.0.1:{port}", "--journal",
-                                 str(tmp_path / journal), "--quiet"], stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, cwd=ROOT)
-
+    watcher = _watcher(tmp_path, port, "--follow")
     first = second = None
     try:
-        first = lab_run("first")
+        first = _small_lab_run(tmp_path, port, "first")
         said = lines_until(watcher.stdout, {"is on the bus"}, 120)  # the watch has the first run
         assert "lab 'shared' is on the bus" in said[-1], said
         assert first.wait(timeout=120) == 0
-        second = lab_run("second")
+        second = _small_lab_run(tmp_path, port, "second")
         assert second.wait(timeout=120) == 0
         watcher.wait(timeout=60)  # it ends without being told to
         err = watcher.stderr.read()
