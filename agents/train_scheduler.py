@@ -253,21 +253,8 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
     meaning, ``agents.candidates.trained_encoding``)."""
     general = general_start(scenario, encoding, init)
     if general is not None:
-        from agents.imitation import StartWorse, train_by_imitation
-
-        start = scenario.model_copy(update={"training": scenario.training.model_copy(update={"teacher": "self"})})
-        start = lab_training(start, encoding, general) if start.campaigns else start
-        try:
-            return train_by_imitation(start, steps, out, seed=seed, workers=envs, eval_every=eval_every,
-                                      on_progress=on_progress, eval_seeds=eval_seeds, held_out_count=held_out_count,
-                                      init=general, encoding=trained_encoding(general_encoding()),
-                                      worse_above=FALL_BACK_ABOVE)
-        except StartWorse as worse:
-            if on_progress:
-                on_progress(0, {"policy": f"the shipped general policy scores {worse.score:.3f} × the best rule "
-                                          "here: learning the best rule instead, from scratch"})
-        scenario = scenario.model_copy(update={"training": scenario.training.model_copy(update={"teacher":
-                                                                                                "best-rule"})})
+        return _from_general(scenario, general, steps, out, on_progress, seed=seed, envs=envs,
+                             eval_every=eval_every, eval_seeds=eval_seeds, held_out_count=held_out_count)
     scenario = with_teacher(scenario)
     if scenario.campaigns:
         scenario = lab_training(scenario, encoding, init)
@@ -320,6 +307,57 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
     finally:
         venv.close()  # stops the campaigns in the environments, also on Ctrl-C
     return out.with_suffix(".zip")
+
+
+def _from_general(scenario: Scenario, general: Path, steps: int, out: Path,
+                  on_progress: Callable[[int, dict | None], None] | None, **options: Any) -> Path:
+    """Training from the shipped general policy (``general_start``), improved on the lab's own best runs; where it
+    scores worse than the best rule at the start, the best rule learnt afresh instead — and the start kept if that
+    ends no better."""
+    import shutil
+    import tempfile
+
+    from agents.imitation import StartWorse, train_by_imitation
+
+    def say(text: str) -> None:
+        if on_progress:
+            on_progress(0, {"policy": text})
+
+    start = scenario.model_copy(update={"training": scenario.training.model_copy(update={"teacher": "self"})})
+    start = lab_training(start, "candidates", general) if start.campaigns else start
+    try:
+        return train_by_imitation(start, steps, out, seed=options["seed"], workers=options["envs"],
+                                  eval_every=options["eval_every"], on_progress=on_progress,
+                                  eval_seeds=options["eval_seeds"], held_out_count=options["held_out_count"],
+                                  init=general, encoding=trained_encoding(general_encoding()),
+                                  worse_above=FALL_BACK_ABOVE)
+    except StartWorse as worse:
+        began = worse.score
+    say(f"the shipped general policy scores {began:.3f} × the best rule here: learning the best rule instead, "
+        "from scratch")
+    rule = scenario.model_copy(update={"training": scenario.training.model_copy(update={"teacher": "best-rule"})})
+    files = [out.with_suffix(".zip"), out.with_suffix(".json")]  # the start, as its evaluation saved it
+    with tempfile.TemporaryDirectory() as aside:
+        for f in files:
+            shutil.copy(f, aside)
+        try:
+            return train_scheduler(rule, steps, out, on_progress=on_progress, **options)
+        finally:  # also when stopped: the best policy evaluated is the one left at --out
+            if _best_score(files[0]) > began:
+                for f in files:
+                    shutil.copy(Path(aside) / f.name, f)
+                say(f"kept the shipped general policy: its start ({began:.3f}) did better than the rule learnt")
+
+
+def _best_score(policy: Path) -> float:
+    """The best score on a policy file's curve (infinite for none, or no file)."""
+    from twin import read_meta
+
+    try:
+        scores = [c["score"] for c in read_meta(policy).get("curve", []) if isinstance(c.get("score"), (int, float))]
+    except (OSError, ValueError):
+        return float("inf")
+    return min(scores, default=float("inf"))
 
 
 def general_encoding() -> str | None:

@@ -160,6 +160,25 @@ def test_a_lab_is_trained_from_a_policy_by_its_own_best_runs_and_says_so_when_it
     assert all(c.done + c.abandoned == c.proposed > 0 for c in ran.campaigns.values())
 
 
+def test_a_lab_whose_rule_learnt_does_worse_than_the_shipped_policy_keeps_that_policy(tmp_path):
+    """busy_lab says nothing of its teacher: its training starts from the shipped policy, which scores 1.085 × the
+    turns there, so the best rule is learnt instead — and a short training of it ends at 1.42: the policy left at
+    --out is the best one evaluated, the shipped one, not the last training's."""
+    from agents.train_scheduler import FALL_BACK_ABOVE, GENERAL_POLICY, train_scheduler
+    from twin import read_meta
+
+    said: list[str] = []
+    out = train_scheduler(prepare(BUSY, overrides={"training.samples": 4}), 300, tmp_path / "p.zip", envs=1,
+                          eval_every=300, eval_seeds=(0,), held_out_count=2,
+                          on_progress=lambda done, result: said.append((result or {}).get("policy", "")))
+    meta = read_meta(out)
+    assert (meta["teacher"], meta["init"]) == ("self", str(GENERAL_POLICY))
+    assert [c["steps"] for c in meta["curve"]] == [0] and meta["curve"][0]["score"] > FALL_BACK_ABOVE
+    learnt = next(i for i, s in enumerate(said) if "learning the best rule instead, from scratch" in s)
+    assert any(s.startswith("best-rule teacher") for s in said[learnt:])  # it was learnt, and did worse
+    assert said[-1].startswith("kept the shipped general policy: its start (1.085)"), said
+
+
 def test_fair_share_serves_the_top_priority_then_the_campaign_furthest_below_its_share():
     fair = load_plugin("schedulers", "fair-share")()
     free = (FreeDevice("spectrometer", "spectrometer"),)
