@@ -35,7 +35,9 @@ def train(
     save: Annotated[Optional[Path], typer.Option(help="also record the evaluation curve to Rerun, e.g. curve.rrd")] = None,
     viewer: Annotated[bool, typer.Option(help="show the evaluation curve live in the Rerun viewer")] = False,
     init: Annotated[Optional[Path], typer.Option(help="start from this policy (the scheduler, needed by "
-                                                     "training.teacher: self; or a route prior, P.pt)")] = None,
+                                                     "training.teacher: self; without it a lab that names no teacher "
+                                                     "starts from the shipped general one where it fits; or a route "
+                                                     "prior, P.pt)")] = None,
     set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",
                                                       help="override a scenario field, e.g. "
                                                            "training.teacher=self; repeatable")] = None,
