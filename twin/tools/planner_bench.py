@@ -100,9 +100,11 @@ def bench_pool(workers: int) -> WorkerPool:
 def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str], seeds: int, workers: int,
                on_each: Callable[[Any], None] | None, pool: WorkerPool | None = None) -> dict[str, list[Any]]:
     """``one((scenario, name, seed))`` for every name and seed, in parallel processes (``pool``, or new ones),
-    grouped by name."""
+    grouped by name (each in seed order). The runs go seed by seed, every name in each, so that the progress a
+    caller shows from ``on_each`` is a fair share of the whole: name by name, ten runs of a slow one left last
+    (online CP-SAT, a minute each) took 8 of a bench's 10 minutes after its bar said a minute and a half was left."""
     results: dict[str, list[Any]] = {name: [] for name in names}
-    jobs = [(scenario, name, seed) for name in names for seed in range(seeds)]
+    jobs = [(scenario, name, seed) for seed in range(seeds) for name in names]
     with contextlib.ExitStack() as stack:
         if pool is None:
             pool = stack.enter_context(bench_pool(workers))
