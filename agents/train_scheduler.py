@@ -361,6 +361,7 @@ def _best_score(policy: Path) -> float:
 
 
 def general_encoding() -> str | None:
+    """The columns the shipped general policy reads (a training from it keeps them)."""
     from twin import read_meta
 
     return read_meta(GENERAL_POLICY).get("signature", {}).get("encoding")
