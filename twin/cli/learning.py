@@ -30,7 +30,8 @@ def train(
                                             "(the route search's expansion prior)")] = "scheduler",
     steps: Annotated[int, typer.Option(min=1, help="environment steps")] = 200_000,
     seed: Annotated[int, typer.Option(help="training seed")] = 0,
-    envs: Annotated[int, typer.Option(min=1, help="environments stepped together")] = 4,
+    envs: Annotated[int, typer.Option(min=1, help="environments stepped together (imitation: labs rolled out "
+                                                  "together, in up to one worker process per core)")] = 4,
     eval_every: Annotated[int, typer.Option(min=1, help="evaluate (and keep the best policy) every this many steps")] = 20_000,
     save: Annotated[Optional[Path], typer.Option(help="also record the evaluation curve to Rerun, e.g. curve.rrd")] = None,
     viewer: Annotated[bool, typer.Option(help="show the evaluation curve live in the Rerun viewer")] = False,
