@@ -131,6 +131,8 @@ class LabTimeFollower:
         was linked to it, and the next comes REPUBLISH_WALL_S later (meanwhile a device refused work for want of a
         clock, or stamped the new run's work in the last run's time)."""
         if alive and not self.error:
+            if self._asking is not None:  # a question still out is of an earlier campaign's coming
+                self._asking.cancel()
             self._asking = asyncio.ensure_future(self._ask_again())
 
     async def _ask_again(self) -> None:

@@ -209,16 +209,12 @@ async def watch_async(bus: Bus, clock: LabClock, lab: str, options: RecordOption
                     for name in names:
                         await shared.catch_up(name)
                     if shared.another:
-                        log.warning("lab %r came back with another run of campaign %r, not a resume of the one "
-                                    "recorded: this watch records one run and ends here; start another `twin watch` "
-                                    "for the new one", lab, shared.another)
+                        _another_run_said(lab, shared.another)
                         break
                 else:
                     again = await _first_page(bus, clock, lab, stop, presence)
                     if again is not None and another_run(first, again):
-                        log.warning("lab %r came back with another run, not a resume of the one recorded (its "
-                                    "message numbers start again): this watch records one run and ends here; start "
-                                    "another `twin watch` for the new one", lab)
+                        _another_run_said(lab)
                         break
                     if again is not None:
                         await read_history(bus, clock, lab, again, observer.on_message)
@@ -285,6 +281,13 @@ class _Presence:
         return self.gone_at is not None and clock.now() - self.gone_at > _GONE_GRACE_S * clock.speed
 
 
+def _another_run_said(lab: str, campaign: str = "") -> None:
+    """A following watch ends where its lab came back with another run (of ``campaign``, in a lab of several)."""
+    of = f" of campaign {campaign!r}" if campaign else ""
+    log.warning("lab %r came back with another run%s, not a resume of the one recorded (its message numbers start "
+                "again): this watch records one run and ends here; start another `twin watch` for the new one", lab, of)
+
+
 class _SharedWatch:
     """A watcher's side of a shared lab: each campaign's history read once, in order, before its live messages."""
 
@@ -292,7 +295,7 @@ class _SharedWatch:
         self.bus, self.clock, self.lab, self.observer = bus, clock, lab, observer
         self.read: set[str] = set()
         self.held: dict[str, list] = {}  # a campaign's live decisions while its history is read
-        self.runs: dict[str, dict] = {}  # each campaign's first page as first read: which run of it is recorded
+        self.runs: dict[str, dict] = {}  # which run of each campaign is recorded (its first page's "run")
         self.another = ""  # a campaign that came back with another run, not a resume of the one recorded
 
     async def catch_up(self, name: str, first: dict | None = None) -> None:
@@ -309,7 +312,7 @@ class _SharedWatch:
                 self.held.pop(name, None)
                 self.read.discard(name)  # nothing of the new run is drawn: its messages come here again
                 return
-            self.runs.setdefault(name, first)
+            self.runs.setdefault(name, {"run": first.get("run")})  # not the page: its items are drawn, not kept
             await pages(self.bus, self.clock, key, first, self.observer.campaign(name).on_message)
         except (NoReplyError, ValueError, TwinError) as exc:
             log.warning("campaign %r of lab %r did not give its history (%s): recording it from now on", name,
