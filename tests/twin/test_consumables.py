@@ -110,6 +110,7 @@ def test_a_short_step_waits_for_the_operators_refill_and_the_lab_goes_on(scenari
     (short,) = notes(out, "consumable.depleted")
     assert short.detail == {"item": "vials", "level": 0, "unit": "vials", "needed": 1.0} and short.task == "e1s1"
     assert "e1s1" in core.starved and "e1s1" not in core.ready
+    assert core.short_of == ["vials"]  # what the progress line says the lab waits for
     core.feed(Operator("refill", "alice", "r1", item="gold"))
     out = core.advance(130.0)
     assert "there is no consumable 'gold' (this lab's: precursor, vials)" in notes(out, "operator.refused")[0].detail["why"]
@@ -118,6 +119,7 @@ def test_a_short_step_waits_for_the_operators_refill_and_the_lab_goes_on(scenari
     assert notes(out, "consumable.refilled")[0].detail == {"item": "vials", "amount": 5, "level": 5.0,
                                                            "unit": "vials", "who": "alice"}
     assert "e1s1" in core.ready and not core.starved and not core.stocks.items["vials"].depleted
+    assert core.short_of == []
 
 
 @pytest.mark.parametrize("began", [False, True])

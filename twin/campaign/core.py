@@ -406,6 +406,12 @@ class CampaignCore:
         else:
             self._send(dev.name, Kind.COMMAND, task.id, att.n, body, att.token)
 
+    @property
+    def short_of(self) -> list[str]:
+        """The stocks (``ITEM`` or ``ITEM@INSTANCE``) that ready steps wait to be refilled."""
+        return sorted({item for t in self.starved.values()
+                       for item in self.stocks.short(self._needs(t), barred=t.barred)})
+
     def _needs(self, task: Task) -> dict[str, float]:
         return self.stocks.needs(task.step.step, {**task.experiment.params, **task.step.params}, task.step.device)
 

@@ -7,6 +7,7 @@ import json
 import logging
 import sys
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Annotated, Optional
 
 import typer
@@ -23,6 +24,7 @@ from twin.core import plugins
 from twin.core.whole_files import written_whole
 from twin.runtime import lab
 from twin.runtime.checks import checked, validate_file
+from twin.runtime.live import lab_elapsed
 from twin.core.errors import TwinError
 from twin.view.report import lab_span, render_summary
 from twin.scenario import json_schema
@@ -191,12 +193,14 @@ def _record(save: Path | None, viewer: bool, serve: bool, serve_port: int, web_p
     return RecordOptions(save, viewer, serve, serve_port, web_port)
 
 
-def waiting_for(device_types: list[str], paused_by: str = "") -> str:
-    """The progress line's word on an operator's pause and on device types that work waits for with no usable
-    instance."""
+def waiting_for(device_types: list[str], paused_by: str = "", stocks: Sequence[str] = ()) -> str:
+    """The progress line's word on an operator's pause, on device types that work waits for with no usable
+    instance, and on stocks that steps wait to be refilled."""
     words = [f"[yellow]paused by {escape(paused_by)} (twin ctl resume)[/]"] if paused_by else []
     if device_types:
         words.append(f"[red]waiting: no usable {', '.join(device_types)}[/]")
+    if stocks:
+        words.append(f"[red]waiting for a refill of {escape(', '.join(stocks))} (twin ctl refill)[/]")
     return "  ".join(words)
 
 
@@ -216,8 +220,8 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
                                     total=s.campaign.budget, lab=lab_span(0.0), status="")
 
             def on_progress(core) -> None:
-                progress.update(bar, completed=core.finished_count, lab=lab_span(core.elapsed_s, 1),
-                                status=waiting_for(core.unavailable, core.paused_by))
+                progress.update(bar, completed=core.finished_count, lab=lab_span(lab_elapsed(core), 1),
+                                status=waiting_for(core.unavailable, core.paused_by, core.short_of))
 
             summary = call(on_progress, observer)
     except TwinError as exc:

@@ -28,7 +28,7 @@ from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, No
 from twin.campaign import human, replay
 from twin.campaign.events import ALERTS, PROGRESS_KINDS, TimerKey
 from twin.campaign.replay import RESUMED, Rebuilt
-from twin.core.clock import LabClock
+from twin.core.clock import LabClock, LabEventLoop, sleep_wall
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.bus import NoReplyError
@@ -47,6 +47,17 @@ from twin.scenario import Scenario
 log = logging.getLogger(__name__)
 
 Progress = Callable[[CampaignCore], None]
+PROGRESS_TICK_S = 1.0  # wall seconds: a live campaign's progress is said this often, events or none
+
+
+def lab_elapsed(core: CampaignCore) -> float:
+    """The lab time ``core``'s campaign has run: on a live clock up to now, read on the lab's loop (a progress call
+    made there); the core's own ``elapsed_s`` is that of its last event, hours old during a long step."""
+    try:
+        loop = asyncio.get_running_loop()
+    except RuntimeError:  # the fast runtime's, or no loop: the core's time is the lab's
+        return core.elapsed_s
+    return max(core.elapsed_s, loop.time() - core.t0) if isinstance(loop, LabEventLoop) else core.elapsed_s
 
 
 def ask_scheduler(scheduler: Any, ask: Ask, answer: Callable[[Decided, bool], None],
@@ -166,6 +177,8 @@ class LiveCampaign:
             self.bus.declare_token(keys.orchestrator(lab)),
         ]
         remove_hook = self.clock.on_idle(self._on_idle)
+        ticking = None if self.clock.is_virtual or self.on_progress is None else \
+            loop.create_task(self._tick_progress())
         try:
             if self._rebuilt is None:
                 if self._recording:  # a resumed campaign needs the secret its tokens came from
@@ -178,11 +191,20 @@ class LiveCampaign:
             await self.desk.drain()
         finally:
             remove_hook()
+            if ticking is not None:
+                ticking.cancel()
             if self._deciding is not None:
                 self._deciding.cancel()
             if self._planning is not None:
                 self._planning.cancel()
             self._close()
+
+    async def _tick_progress(self) -> None:
+        """Between events too: a step of hours leaves the lab's time moving while nothing is said."""
+        assert self.on_progress is not None
+        while True:
+            await sleep_wall(PROGRESS_TICK_S)
+            self.on_progress(self.core)
 
     # -- events in --------------------------------------------------------------------
     def _on_event(self, key: str, payload: bytes) -> None:
