@@ -155,7 +155,8 @@ def test_the_progress_line_says_who_paused_the_campaign():
 
     assert "paused by alice (twin ctl resume)" in waiting_for([], "alice")
     assert "waiting: no usable reactor" in waiting_for(["reactor"], "alice") and waiting_for([]) == ""
-    assert "waiting for a refill of argon, jars@mill-1 (twin ctl refill)" in waiting_for([], "", ["argon", "jars@mill-1"])
+    said = waiting_for([], "", ["argon", "jars@mill-1"])
+    assert "waiting for a refill of argon, jars@mill-1 (twin ctl refill)" in said
 
 
 def test_retry_of_an_experiment_whose_step_is_short_of_stock_reopens_it_waiting(scenario_of):
