@@ -52,7 +52,7 @@ from agents.planned_labs import planned
 from agents.scheduling_env import randomised
 from agents.schedulers import rules_for
 from agents.teachers import PlanTeacher, RuleTeacher, solve_time, solve_workers
-from agents.train_scheduler import EVAL_SEEDS, Judge, campaign, initial_state, objective, started_from
+from agents.train_scheduler import EVAL_SEEDS, Judge, JudgeBasis, campaign, initial_state, objective, started_from
 from agents.training_workers import numbered, workers_for
 from twin import PluginError, Scenario, jobshop_as_lab, load_plugin, prepare, random_jobshop, stepped
 
@@ -324,18 +324,20 @@ def check_imitable(scenario: Scenario, init) -> None:
 class StartWorse(Exception):
     """The policy training was to start from did worse than ``worse_above`` × the best rule at the start."""
 
-    def __init__(self, score: float) -> None:
+    def __init__(self, score: float, basis: JudgeBasis) -> None:
         super().__init__(f"the start scored {score:.3f} × the best rule")
-        self.score = score
+        self.score, self.basis = score, basis  # basis: what the judge measured, for a training that follows
 
 
 def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, workers: int = 2,
                        eval_every: int = 20_000, on_progress=None, eval_seeds=None, held_out_count: int | None = None,
                        max_samples: int | None = None, epochs: int = 3, learning_rate: float | None = None,
-                       init=None, encoding: str = ENCODING, worse_above: float | None = None):
+                       init=None, encoding: str = ENCODING, worse_above: float | None = None,
+                       judged: JudgeBasis | None = None):
     """Rounds of about ``eval_every`` labelled decisions each, ``steps`` in all; the policy is evaluated after every
     round and the best kept (``agents.train_scheduler.Judge``). ``init``: a policy file to start from; with
-    ``worse_above``, ``StartWorse`` is raised if it scores above that at the start. The most
+    ``worse_above``, ``StartWorse`` is raised if it scores above that at the start. ``judged``: the Judge's
+    measures of the lab, made already. The most
     recent ``max_samples`` labels are trained on (by default 400,000 from a teacher; from the policy itself, the
     last three rounds', as older ones are an older policy's best)."""
     from sb3_contrib import MaskablePPO
@@ -365,7 +367,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
         except ValueError as exc:
             raise PluginError(str(exc)) from None
     optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
-    judge = Judge(scenario, out, encoding, eval_seeds or EVAL_SEEDS, held_out_count, on_progress,
+    judge = Judge(scenario, out, encoding, eval_seeds or EVAL_SEEDS, held_out_count, on_progress, judged,
                   method="imitate", teacher=scenario.training.teacher, **started_from(init))
     jobshop = bool(scenario.training.jobshop_sizes and not scenario.campaigns) if itself else \
         scenario.training.teacher == "cp-sat"
@@ -383,7 +385,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
         shipped = worse_above is not None  # the lab says nothing of training: the general policy is the start
         start = judge(model, 0, fits, f"start ({Path(init).name}, shipped)" if shipped else "start (--init)")
         if shipped and start["score"] > worse_above:
-            raise StartWorse(start["score"])
+            raise StartWorse(start["score"], judge.basis)
     data: list[Sample] = []
     done, rnd, shop, per_shop, counted = 0, 0, seed * 1_000_000, 150.0, 0  # counted: lab runs whose labels were counted
     with workers_for(workers) as pool:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import statistics
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -172,6 +173,17 @@ def initial_state(init: Path, scenario: Scenario, encoding: str, part: str = "")
     return {k.removeprefix(part + "."): v for k, v in state.items() if k.startswith(part + ".")}
 
 
+@dataclass(frozen=True)
+class JudgeBasis:
+    """What a Judge measures once, before any policy: the rules on the lab, the held-out labs and the best rule's
+    objective on each, and CP-SAT's reference."""
+
+    rules: dict[str, dict]
+    held_out: list[Scenario]
+    rule_spans: list[float]
+    solver: dict
+
+
 class Judge:
     """Evaluates a policy in training and keeps the best: its objective (what the reward sums to: makespan,
     degraded samples and abandoned experiments, weighted by ``training.weights``) relative to the best rule's,
@@ -182,26 +194,35 @@ class Judge:
 
     def __init__(self, scenario: Scenario, out: Path, encoding: str, eval_seeds=EVAL_SEEDS,
                  held_out_count: int | None = None, on_progress: Callable[[int, dict | None], None] | None = None,
-                 **extra: Any) -> None:
+                 basis: JudgeBasis | None = None, **extra: Any) -> None:
+        """``basis``: what another Judge of the same lab, seeds and held-out count measured (the rules, the
+        held-out labs, CP-SAT's reference), taken as it is rather than measured again."""
         self.scenario, self.out, self.encoding, self.eval_seeds = scenario, out, encoding, eval_seeds
         self.on_progress, self.extra = on_progress, extra
         self.sign = judge_signature(scenario, encoding)
-        self.rules = evaluate_rules(scenario, eval_seeds)
+        self.basis = basis or self._measured(scenario, eval_seeds, held_out_count, on_progress)
+        self.rules, self.held_out = self.basis.rules, self.basis.held_out
+        self.rule_spans, self.solver = self.basis.rule_spans, self.basis.solver
         self.best_rule = min(self.rules, key=lambda r: self.rules[r]["objective"])
-        if held_out_count is None:
-            held_out_count = max(6, 4 * len(scenario.training.jobshop_sizes))
-        self.held_out = held_out_labs(scenario, held_out_count)
-        self.rule_spans = [min(objective(campaign(lab, 0, decide), lab) for decide in baselines(lab).values())
-                           for lab in self.held_out]
-        note = reference_note(scenario, self.held_out)
-        if on_progress and note:
-            on_progress(0, {"policy": note})
-        self.solver = solver_reference(scenario, eval_seeds, self.held_out)
         self.best: float | None = None
         self.curve: list[dict] = []
         self.trained_on: Observed | None = None  # what a policy taught by labels saw in them (imitation adds it)
-        if on_progress:
+        if on_progress and basis is None:
             on_progress(0, {"policy": f"best rule: {self.best_rule}", **self.rules[self.best_rule]})
+
+    @staticmethod
+    def _measured(scenario: Scenario, eval_seeds, held_out_count: int | None,
+                  on_progress: Callable[[int, dict | None], None] | None) -> JudgeBasis:
+        rules = evaluate_rules(scenario, eval_seeds)
+        if held_out_count is None:
+            held_out_count = max(6, 4 * len(scenario.training.jobshop_sizes))
+        held_out = held_out_labs(scenario, held_out_count)
+        rule_spans = [min(objective(campaign(lab, 0, decide), lab) for decide in baselines(lab).values())
+                      for lab in held_out]
+        note = reference_note(scenario, held_out)
+        if on_progress and note:
+            on_progress(0, {"policy": note})
+        return JudgeBasis(rules, held_out, rule_spans, solver_reference(scenario, eval_seeds, held_out))
 
     def __call__(self, model: Any, done: int, fits: dict | None, policy: str, seen: dict | None = None) -> dict:
         """``seen``: what training itself measured, reported first."""
@@ -245,12 +266,13 @@ class Judge:
 def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs: int = 2,
                     eval_every: int = 20_000, on_progress: Callable[[int, dict | None], None] | None = None,
                     eval_seeds=EVAL_SEEDS, encoding: str = "candidates", held_out_count: int | None = None,
-                    init: Path | None = None) -> Path:
+                    init: Path | None = None, judged: JudgeBasis | None = None) -> Path:
     """Train by the scenario's ``training.method``: ``ppo`` (MaskablePPO in the environment) or ``imitate``
     (DAgger from ``training.teacher``, ``agents.imitation``). ``encoding``: ``candidates`` (the
     candidate-scoring policy) or ``slots`` (an MLP over the fixed grid, the baseline; PPO only). ``init``: a policy
     of the same encoding to start from (a candidate policy of an earlier version: trained on in its columns'
-    meaning, ``agents.candidates.trained_encoding``)."""
+    meaning, ``agents.candidates.trained_encoding``). ``judged``: the Judge's measures of this lab, made already
+    (``JudgeBasis``)."""
     general = general_start(scenario, encoding, init)
     if general is not None:
         return _from_general(scenario, general, steps, out, on_progress, seed=seed, envs=envs,
@@ -271,7 +293,7 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
 
         return train_by_imitation(scenario, steps, out, seed=seed, workers=envs, eval_every=eval_every,
                                   on_progress=on_progress, eval_seeds=eval_seeds, held_out_count=held_out_count,
-                                  init=init, encoding=encoding)
+                                  init=init, encoding=encoding, judged=judged)
     from sb3_contrib import MaskablePPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
@@ -292,7 +314,7 @@ def train_scheduler(scenario: Scenario, steps: int, out: Path, seed: int = 0, en
     without_log_dir(model)
     if init is not None:
         model.policy.load_state_dict(initial_state(init, scenario, encoding))
-    judge = Judge(scenario, out, encoding, eval_seeds, held_out_count, on_progress, method="ppo",
+    judge = Judge(scenario, out, encoding, eval_seeds, held_out_count, on_progress, judged, method="ppo",
                   **started_from(init))
     done = 0
     try:
@@ -332,7 +354,7 @@ def _from_general(scenario: Scenario, general: Path, steps: int, out: Path,
                                   init=general, encoding=trained_encoding(general_encoding()),
                                   worse_above=FALL_BACK_ABOVE)
     except StartWorse as worse:
-        began = worse.score
+        began, judged = worse.score, worse.basis
     say(f"the shipped general policy scores {began:.3f} × the best rule here: learning the best rule instead, "
         "from scratch")
     rule = scenario.model_copy(update={"training": scenario.training.model_copy(update={"teacher": "best-rule"})})
@@ -341,7 +363,7 @@ def _from_general(scenario: Scenario, general: Path, steps: int, out: Path,
         for f in files:
             shutil.copy(f, aside)
         try:
-            return train_scheduler(rule, steps, out, on_progress=on_progress, **options)
+            return train_scheduler(rule, steps, out, on_progress=on_progress, judged=judged, **options)
         finally:  # also when stopped: the best policy evaluated is the one left at --out
             if _best_score(files[0]) > began:
                 for f in files:

@@ -201,6 +201,8 @@ def test_a_lab_that_says_nothing_of_training_starts_from_the_shipped_policy_or_e
     assert (meta["method"], meta["teacher"]) == ("imitate", "best-rule") and "init" not in meta
     assert meta["signature"]["encoding"] == ENCODING and meta["curve"][0]["steps"] > 0  # afresh, its own curve
     assert any("learning the best rule instead, from scratch" in r.get("policy", "") for r in said)
+    # the rules, the held-out labs and the reference measured once, by the start's evaluation, for both trainings
+    assert sum(r.get("policy", "").startswith("best rule: ") for r in said) == 1, said
     # on the one evaluation lab mwkr takes 1.84 lab-h and the four other rules 1.90 (1.036): as good as the rules
     assert meta["curve"][-1]["objective vs best rule"] <= 1.04, meta["curve"]
 

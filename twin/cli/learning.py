@@ -73,7 +73,8 @@ def train(
 
     def report(done: int, result: dict | None) -> None:
         trained[0] = max(trained[0], done)
-        progress.update(bar, completed=done, total=max(steps, done))  # rounds of labels can end a little past it
+        if not (result and result.keys() == {"policy"}):  # a remark (a fall-back, a policy kept) leaves the bar
+            progress.update(bar, completed=done, total=max(steps, done))  # rounds of labels can end past it
         if result:
             fields = "  ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
                                for k, v in result.items() if k != "policy")
