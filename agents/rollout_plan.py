@@ -13,7 +13,8 @@ greedily. A campaign resumed part-way keeps to the plan with the steps it has no
 A pure job shop (every experiment a fixed route, all in the lab from the start, no set-up or cleaning, nothing that
 degrades or runs out) is also played backwards: every job's route reversed, the same shop in time reversed. A run of
 it, each device's order read backwards, is an order for the shop as written whose makespan is no longer (the longest
-path through the jobs' and devices' orders is the same either way), so half the runs search from the other end.
+path through the jobs' and devices' orders is the same either way), so half the runs search from the other end,
+the first of them greedy too: ``rollouts: 2`` is the greedy run each way, the better kept.
 
 Only a lab that runs as it was played can be planned: every experiment known before it starts (a job shop),
 durations without spread, no faults. The best of several runs of a lab with chance in it is its luckiest, not
@@ -124,19 +125,20 @@ def plan(s: Scenario, scorer: torch.nn.Module, rollouts: int, encoding: str,
     ways: list[int] = []  # each run's direction: 0 as written, 1 backwards
     for n, first in enumerate(range(0, rollouts, size)):
         way = n % len(labs)  # batches take turns: the shop as written, then backwards
+        greedy = n < len(labs)  # each direction's first run is its greedy one
         search = searches[way]
         batch: list[dict[str, list[str]]] = [{} for _ in range(min(size, rollouts - first))]
         if search:
             search.start(len(batch))
         played = lockstep(labs[way], search.net if search else scorer, len(batch), temperatures, encoding,
-                          seen=partial(_keep, batch, heartbeat, search), greedy_first=first == 0, generator=draws,
+                          seen=partial(_keep, batch, heartbeat, search), greedy_first=greedy, generator=draws,
                           held=held)
         summaries += played
         scores += [objective(summary, labs[way]) for summary in played]
         orders += batch
         ways += [way] * len(batch)
         if search and len(summaries) < rollouts:
-            search.learn(scores[first:], greedy_first=first == 0)
+            search.learn(scores[first:], greedy_first=greedy)
         if on_batch is not None and len(summaries) < rollouts and len(summaries) // BATCH > first // BATCH:
             on_batch(len(summaries), min(summary.lab_hours for summary in summaries))
     best = min(range(rollouts), key=scores.__getitem__)

@@ -200,6 +200,23 @@ def test_the_same_lab_and_seed_give_the_same_plan_in_batches_past_one(shop):
     assert other_seed.greedy == first.greedy  # the greedy run does not draw
 
 
+def test_two_rollouts_of_a_job_shop_are_its_greedy_run_each_way_the_shorter_kept(tmp_path):
+    """The shop played backwards starts with its greedy run too: two rollouts are two deterministic runs, one each
+    way (the second used to be sampled), and a seed changes nothing."""
+    from agents.rollout_plan import backwards
+
+    shop = jobshop_as_lab(prepare(ROOT / "scenarios" / "jobshop.yaml"),
+                          random_jobshop(8, 5, 1, 99, random.Random("rollouts:3")))  # shorter backwards, greedily
+    greedy = {way: campaign(lab, 0, RlScheduler(with_rollouts(lab, 1), POLICY[3:]).decide).lab_hours
+              for way, lab in (("as written", shop), ("backwards", backwards(shop)))}
+    assert greedy["backwards"] < greedy["as written"]
+    plans = [RlScheduler(with_rollouts(shop, 2, **{"campaign.seed": seed}), POLICY[3:]).follower.plan
+             for seed in (0, 7)]
+    assert [p.best_h for p in plans] == [min(greedy.values())] * 2 and plans[0].orders == plans[1].orders
+    assert plans[0].greedy_h == greedy["as written"] and plans[0].backwards == 1
+    assert makespan(with_rollouts(shop, 2), tmp_path) <= min(greedy.values()) * 3600 + 1e-6
+
+
 def test_on_a_shop_past_its_training_the_greedy_run_played_ahead_is_the_one_the_lab_runs(tmp_path):
     """A 40-job shop queues more than any the policy trained on: as it decides in a lab, what it sees is held at
     its trained range, and the runs played ahead must see it so too (they did not: 2,410 lab-s against 2,411)."""
