@@ -36,7 +36,8 @@ class Campaign(Spec):
     rollouts: int = Field(default=1, ge=1, le=4096, description="the rl scheduler on a lab that runs as planned (every "
                           "experiment known, as in a job shop; durations with cv 0; no faults): play the campaign "
                           "this many times in the twin before it starts (the greedy run and the rest sampled from "
-                          "the policy) and keep the best run's order of steps on each device; 1: decide greedily as "
+                          "the policy; a job shop's runs half backwards, beginning with their greedy run: 2 is the "
+                          "greedy run each way) and keep the best run's order of steps on each device; 1: decide greedily as "
                           "the lab goes")
     rollout_search: Literal["sample", "active"] = Field(default="sample", description="how the rl scheduler plays "
                                                          "campaign.rollouts: sample (every run from the policy as "
