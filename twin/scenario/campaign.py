@@ -37,8 +37,8 @@ class Campaign(Spec):
                           "experiment known, as in a job shop; durations with cv 0; no faults): play the campaign "
                           "this many times in the twin before it starts (the greedy run and the rest sampled from "
                           "the policy; a job shop's runs half backwards, beginning with their greedy run: 2 is the "
-                          "greedy run each way) and keep the best run's order of steps on each device; 1: decide greedily as "
-                          "the lab goes")
+                          "greedy run each way) and keep the best run's order of steps on each device; 1: decide "
+                          "greedily as the lab goes")
     rollout_search: Literal["sample", "active"] = Field(default="sample", description="how the rl scheduler plays "
                                                          "campaign.rollouts: sample (every run from the policy as "
                                                          "it is) or active (in rounds of 32, a copy of the policy "
