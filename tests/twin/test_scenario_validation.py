@@ -12,6 +12,7 @@ import yaml
 from tests.conftest import qd_lab, twin_cli
 from twin.core.errors import ScenarioError
 from twin.runtime.checks import check
+from twin.scenario import parse
 from twin.scenario import load
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -362,3 +363,18 @@ def test_errors_cross_a_process_pool_whole():
     again = pickle.loads(pickle.dumps(InvalidMessage("spectrometer-1", "no body")))
     assert (again.sender, again.reason, str(again)) == ("spectrometer-1", "no body",
                                                         "invalid message from spectrometer-1: no body")
+
+
+def test_faults_given_to_people_are_refused_naming_the_field_as_no_fault_would_ever_happen():
+    """The twin injects faults around a driver; people (driver: operator) have none, so `fail_p: 0.5` on a
+    technician was accepted and nothing ever failed (a bench's "technician flaky" shape ran the lab as written)."""
+    from twin.tools.shape_bench import variants
+
+    person = {"driver": "operator", "instances": 1, "steps": ["load"], "duration": {"mean_s": 60}}
+    with pytest.raises(ScenarioError) as err:
+        parse(qd_lab(**{"devices.technician": {**person, "faults": {"fail_p": 0.5}}}), "lab.yaml")
+    assert "devices.technician: faults: people (driver: operator) are not simulated to fail" in str(err.value)
+    lab = parse(qd_lab(**{"devices.technician": {**person, "faults": {"fail_p": 0}}}), "lab.yaml")  # none: fine
+    names = [name for name, _ in variants(lab)]
+    assert "technician bottleneck (×2 duration)" in names and "technician flaky (20 % fail)" not in names
+    assert "synthesiser flaky (20 % fail)" in names

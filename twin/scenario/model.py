@@ -91,6 +91,15 @@ class DeviceType(Spec):
                              "stand in for one: on a virtual clock the campaign confirms their steps itself")
         return self
 
+    @model_validator(mode="after")
+    def _faults_of_people(self) -> DeviceType:
+        # the twin injects faults around a driver, and people have none: such faults would never happen
+        if self.driver == "operator" and self.faults != Faults():
+            raise ValueError("faults: people (driver: operator) are not simulated to fail, crash or hang; a step "
+                             "of theirs fails when nobody confirms it before its deadline (duration, "
+                             "orchestrator.timeout_factor): remove faults here")
+        return self
+
 
 class Parameter(Spec):
     low: float = Field(ge=-MAX_VALUE, le=MAX_VALUE, description="the least value the planner may propose")

@@ -1,7 +1,7 @@
 """`twin bench schedulers --shapes`: schedulers on a family of variants of one lab, with paired seeds.
 
 The family: the lab as written; for each device type, twice its instances, a bottleneck (its steps twice as
-long) and a flaky stage (a fifth of its steps fail); and, when samples degrade, samples that keep a quarter as
+long) and a flaky stage (a fifth of its steps fail; not for people, ``driver: operator``); and, when samples degrade, samples that keep a quarter as
 long; with ``random_labs``, that many whole other labs drawn as ``training.random_labs`` draws them (on seeds
 no training run draws: ``twin.scenario.random_labs.held_out``). Every scheduler runs the same seeds on every variant; each one is compared with the variant's best rule
 (the rule with the lowest mean makespan there — or, with ``by="objective"``, the lowest objective as the
@@ -40,8 +40,9 @@ def variants(s: Scenario, random_labs: int = 0) -> list[tuple[str, Scenario]]:
         out.append((f"{name} ×2 instances", prepare(s, overrides={f"devices.{name}.instances": d.instances * 2})))
         out.append((f"{name} bottleneck (×2 duration)",
                     prepare(s, overrides={f"devices.{name}.duration.mean_s": d.duration.mean_s * 2})))
-        out.append((f"{name} flaky (20 % fail)",
-                    prepare(s, overrides={f"devices.{name}.faults.fail_p": max(d.faults.fail_p, 0.2)})))
+        if d.driver != "operator":  # people are not simulated to fail
+            out.append((f"{name} flaky (20 % fail)",
+                        prepare(s, overrides={f"devices.{name}.faults.fail_p": max(d.faults.fail_p, 0.2)})))
     if s.chemistry.stability_s:
         out.append(("samples keep ¼ as long", prepare(s, overrides={"chemistry.stability_s": s.chemistry.stability_s / 4})))
     if random_labs:
