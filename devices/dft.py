@@ -11,6 +11,7 @@ from twin import DriverSetup, StepContext, StepResult
 
 class DftCalculator:
     capabilities = frozenset({"compute"})
+    makes_sample: frozenset[str] = frozenset()  # a calculation: no sample in, none out
     outputs = frozenset({"band_gap_dft_ev"})
     chemistry_models = frozenset({"bandgap"})
     option_names: frozenset[str] = frozenset()  # it takes none

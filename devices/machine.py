@@ -13,6 +13,7 @@ from twin import DriverSetup, StepContext, StepResult
 class Machine:
     option_names = frozenset({"steps"})
     outputs: frozenset[str] = frozenset()
+    makes_sample: frozenset[str] = frozenset()  # it passes on the sample it was given
 
     def __init__(self, setup: DriverSetup) -> None:
         steps = setup.options.get("steps")

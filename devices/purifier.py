@@ -11,6 +11,7 @@ from twin import DriverSetup, Refused, StepContext, StepResult
 
 class Purifier:
     capabilities = frozenset({"purify"})
+    makes_sample = needs_sample = capabilities
     outputs: frozenset[str] = frozenset()
     chemistry_models = frozenset({"synthesis"})
     option_names: frozenset[str] = frozenset()  # it takes none

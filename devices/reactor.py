@@ -19,6 +19,7 @@ from twin import load_policy, read_meta
 
 class Reactor:
     capabilities = frozenset({"react"})
+    makes_sample = capabilities  # from the feed it is given, or from nothing
     outputs = frozenset({"max_temperature_k", "overshoot_k"})
     chemistry_models = frozenset({"catalyst"})
     option_names = frozenset({"kp", "ki", "kd", "telemetry_s", "dt_s", "controller"})

@@ -26,6 +26,8 @@ class Spectrometer:
                          "spectrum", "age_s", *synthesis.LCMS_OUTPUTS})
     chemistry_models = frozenset({"quantum_dots", "bandgap", "catalyst", "synthesis"})
     option_names: frozenset[str] = frozenset()  # it takes none
+    makes_sample: frozenset[str] = frozenset()
+    needs_sample = frozenset({"measure", "lcms"})
 
     def __init__(self, setup: DriverSetup) -> None:
         self.noise = setup.chemistry.noise

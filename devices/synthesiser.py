@@ -18,6 +18,7 @@ def need(params: dict[str, Any], *names: str) -> list[float]:
 
 class Synthesiser:
     capabilities = frozenset({"synthesise", "prepare", "react"})
+    makes_sample = capabilities
     outputs = frozenset({"diameter_nm"})
     chemistry_models = frozenset({"quantum_dots", "bandgap", "catalyst", "synthesis"})
     option_names = frozenset({"batch_sd_nm"})

@@ -11,7 +11,7 @@ import yaml
 
 from tests.conftest import qd_lab, twin_cli
 from twin.core.errors import ScenarioError
-from twin.runtime.checks import check
+from twin.runtime.checks import check, checked
 from twin.scenario import parse
 from twin.scenario import load
 
@@ -378,3 +378,34 @@ def test_faults_given_to_people_are_refused_naming_the_field_as_no_fault_would_e
     names = [name for name, _ in variants(lab)]
     assert "technician bottleneck (×2 duration)" in names and "technician flaky (20 % fail)" not in names
     assert "synthesiser flaky (20 % fail)" in names
+
+
+def test_a_workflow_that_measures_before_any_step_makes_a_sample_is_refused_naming_the_step(tmp_path):
+    """A spectrometer's measure after only a machine step (which passes on a sample, and makes none): every
+    experiment was abandoned at that step when it ran. Drivers now say which of their steps make a sample and
+    which need one, and validation refuses the workflow, naming the step and what makes one here."""
+    machine = {"driver": "machine", "steps": ["heat"], "options": {"steps": ["heat"]}, "duration": {"mean_s": 60}}
+    person = {"driver": "operator", "steps": ["load"], "duration": {"mean_s": 60}}
+    lab = qd_lab(**{"devices.oven": machine, "devices.tech": person,
+                    "workflow": [{"step": "load", "device": "tech"}, {"step": "heat", "device": "oven"},
+                                 {"step": "measure", "device": "spectrometer"}]})
+    with pytest.raises(ScenarioError) as err:
+        check(parse(lab, "lab.yaml"))
+    assert ("workflow.2: measure on spectrometer needs a sample, and no step before it makes one (synthesise on "
+            "synthesiser does): put a step that makes one first") in str(err.value)
+    made = {**lab, "workflow": [{"step": "synthesise", "device": "synthesiser"}, *lab["workflow"]]}
+    check(parse(made, "lab.yaml"))  # a sample made first, passed on by the person and the oven
+
+
+def test_a_driver_that_says_nothing_of_samples_may_make_one_and_a_bad_declaration_is_refused(monkeypatch):
+    from devices.machine import Machine
+
+    lab = qd_lab(**{"devices.oven": {"driver": "machine", "steps": ["heat"], "options": {"steps": ["heat"]},
+                                     "duration": {"mean_s": 60}},
+                    "workflow": [{"step": "heat", "device": "oven"}, {"step": "measure", "device": "spectrometer"}]})
+    monkeypatch.delattr(Machine, "makes_sample")  # a third party's driver, written before the feature
+    check(parse(lab, "lab.yaml"))
+    monkeypatch.setattr(Machine, "makes_sample", "heat", raising=False)
+    with pytest.raises(ScenarioError, match="(?s)lab.yaml: .*devices.oven.driver 'machine': makes_sample is 'heat', "
+                                            r"not a set of step names: write makes_sample = frozenset\(\{'heat'\}\)"):
+        checked(parse(lab, "lab.yaml"), "lab.yaml")

@@ -106,6 +106,10 @@ class DriverFeatures(Protocol):
     ``setup.options`` may hold (a misspelt one is then refused, naming the field). ``duration_param``: the
     experiment parameter (lab seconds) its steps last at least as long as, a hold time (a scenario whose
     duration model leaves it out, with deadlines shorter than its highest value, is then warned of).
+    ``makes_sample``: the steps after which the experiment has a sample (a synthesis; a step that only passes on
+    the sample it was given is not one); ``needs_sample``: the steps it refuses without one (a measurement).
+    A workflow with a step that needs a sample and, before it, only steps whose drivers say they make none is
+    then refused by ``twin validate``, naming the step.
     """
 
     labtwin_api: int
@@ -114,6 +118,8 @@ class DriverFeatures(Protocol):
     chemistry_models: frozenset[str]
     option_names: frozenset[str]
     duration_param: str
+    makes_sample: frozenset[str]
+    needs_sample: frozenset[str]
 
     async def connect(self, presence: Callable[[bool], None]) -> None: ...
 
@@ -123,7 +129,7 @@ class DriverFeatures(Protocol):
 
 
 FEATURES = frozenset({"labtwin_api", "realtime", "connect", "disconnect", "health", "outputs", "chemistry_models",
-                      "option_names", "duration_param"})
+                      "option_names", "duration_param", "makes_sample", "needs_sample"})
 
 
 def feature(driver: Any, name: str) -> Any:
@@ -145,6 +151,20 @@ def capabilities(driver: Any, who: str) -> frozenset[str]:
         raise DriverError(f"{who}: capabilities is {str(caps)[:60]!r}, not a set of step names: write "
                           f"capabilities = frozenset({example})")
     return frozenset(caps)
+
+
+def declared_steps(driver: Any, name: str, who: str) -> frozenset[str] | None:
+    """The step names a driver's optional feature ``name`` (``makes_sample``, ``needs_sample``) declares, or None
+    if it declares none; a declaration that is not a collection of step names is refused, saying why."""
+    steps = feature(driver, name)
+    if steps is None:
+        return None
+    if isinstance(steps, str) or not isinstance(steps, (set, frozenset, list, tuple)) or \
+            not all(isinstance(c, str) for c in steps):
+        example = f"{{{steps!r}}}" if isinstance(steps, str) else "{'measure', ...}"
+        raise DriverError(f"{who}: {name} is {str(steps)[:60]!r}, not a set of step names: write "
+                          f"{name} = frozenset({example})")
+    return frozenset(steps)
 
 
 #: said of a device whose driver went on after its step was cancelled, when the lab stops

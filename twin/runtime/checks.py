@@ -11,7 +11,7 @@ from twin.core.errors import ScenarioError, TwinError
 from twin.campaign.human import DRIVER as HUMAN
 from twin.campaign.human import OPTION_NAMES as HUMAN_OPTIONS
 from twin.campaign.policy import deadline_s
-from twin.device.driver import feature
+from twin.device.driver import declared_steps, feature
 from twin.runtime.assembly import load_driver, make_planner, make_scheduler
 from twin.scenario import Scenario, load
 from twin.scenario.model import expected_duration
@@ -62,7 +62,7 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
     if not benched:  # a bench runs the schedulers it names, not the scenario's (nor loads its policy to warn of it)
         _at("campaign.scheduler", make_scheduler, s)
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
-    problem = _unproduced(s, drivers, elsewhere)
+    problem = _unproduced(s, drivers, elsewhere) or _sampleless(s, drivers, elsewhere)
     if problem:
         raise ScenarioError(s.name, [problem])
     for dtype, driver in drivers.items():
@@ -124,6 +124,28 @@ def _unproduced(s: Scenario, drivers: dict[str, Any], elsewhere: set[str], how: 
                 if out not in produced:
                     return (f"chemistry.targets.{i}.outputs.{out}: no device of the workflow{how} produces {out!r} "
                             f"(they produce {sorted(produced)})")
+    return ""
+
+
+def _sampleless(s: Scenario, drivers: dict[str, Any], elsewhere: set[str]) -> str:
+    """A workflow step whose driver needs a sample (``needs_sample``) after only steps whose drivers say they make
+    none (``makes_sample``; people make none): every experiment would be abandoned there. A step whose driver
+    does not say, or served elsewhere, may make one."""
+    def steps(dtype: str, name: str) -> frozenset[str] | None:
+        return declared_steps(drivers[dtype], name, f"devices.{dtype}.driver {s.devices[dtype].driver!r}")
+
+    have = False
+    for i, w in enumerate(s.workflow):
+        if w.device in drivers and not have and w.step in (steps(w.device, "needs_sample") or ()):
+            makers = [f"{step} on {d}" for d in drivers for step in sorted(steps(d, "makes_sample") or ())
+                      if step in s.devices[d].steps]
+            return (f"workflow.{i}: {w.step} on {w.device} needs a sample, and no step before it makes one"
+                    f"{' (' + ', '.join(makers) + ' does)' if makers else ''}: put a step that makes one first")
+        if w.device in drivers:
+            makes = steps(w.device, "makes_sample")
+            have = have or makes is None or w.step in makes
+        elif w.device in elsewhere or s.devices[w.device].driver != HUMAN:
+            have = True
     return ""
 
 

@@ -21,6 +21,8 @@ class {cls}:
     labtwin_api = 1
     capabilities = frozenset({{"measure"}})
     option_names = frozenset({{"noise_nm"}})  # a misspelt option in a scenario is refused, naming the field
+    needs_sample = frozenset({{"measure"}})  # a workflow that measures before a step makes one is refused
+    makes_sample: frozenset[str] = frozenset()  # it passes on the sample it measured
 
     def __init__(self, setup: DriverSetup) -> None:
         self.name = setup.name
