@@ -145,26 +145,24 @@ def capabilities(driver: Any, who: str) -> frozenset[str]:
     if caps is None:
         raise DriverError(f"{who} declares no capabilities: give its class capabilities = "
                           "frozenset({'measure', ...}), the steps it runs")
-    if isinstance(caps, str) or not isinstance(caps, (set, frozenset, list, tuple)) or \
-            not all(isinstance(c, str) for c in caps):
-        example = f"{{{caps!r}}}" if isinstance(caps, str) else "{'measure', ...}"
-        raise DriverError(f"{who}: capabilities is {str(caps)[:60]!r}, not a set of step names: write "
-                          f"capabilities = frozenset({example})")
-    return frozenset(caps)
+    return _step_names(caps, "capabilities", who)
 
 
-def declared_steps(driver: Any, name: str, who: str) -> frozenset[str] | None:
-    """The step names a driver's optional feature ``name`` (``makes_sample``, ``needs_sample``) declares, or None
-    if it declares none; a declaration that is not a collection of step names is refused, saying why."""
-    steps = feature(driver, name)
-    if steps is None:
-        return None
+def _step_names(steps: Any, name: str, who: str) -> frozenset[str]:
+    """A driver's declaration ``name`` of step names as a frozenset; anything else is refused, saying why."""
     if isinstance(steps, str) or not isinstance(steps, (set, frozenset, list, tuple)) or \
             not all(isinstance(c, str) for c in steps):
         example = f"{{{steps!r}}}" if isinstance(steps, str) else "{'measure', ...}"
         raise DriverError(f"{who}: {name} is {str(steps)[:60]!r}, not a set of step names: write "
                           f"{name} = frozenset({example})")
     return frozenset(steps)
+
+
+def declared_steps(driver: Any, name: str, who: str) -> frozenset[str] | None:
+    """The step names a driver's optional feature ``name`` (``makes_sample``, ``needs_sample``) declares, or None
+    if it declares none; a declaration that is not a collection of step names is refused, saying why."""
+    steps = feature(driver, name)
+    return None if steps is None else _step_names(steps, name, who)
 
 
 #: said of a device whose driver went on after its step was cancelled, when the lab stops
