@@ -397,6 +397,23 @@ def test_a_workflow_that_measures_before_any_step_makes_a_sample_is_refused_nami
     check(parse(made, "lab.yaml"))  # a sample made first, passed on by the person and the oven
 
 
+def test_a_twin_that_makes_no_sample_for_a_driver_that_does_is_warned_of(caplog):
+    """On a virtual clock a twin that only keeps time stands in for the synthesiser: the measurement after it
+    would find no sample. Warned of (the twin still serves a what-if of device counts); on a scaled clock, where
+    the synthesiser itself runs, not."""
+    lab = qd_lab(**{"devices.synthesiser.twin": {"driver": "machine", "options": {"steps": ["synthesise"]}}})
+    with caplog.at_level(logging.WARNING):
+        check(parse(lab, "lab.yaml"))
+    said = [r.getMessage() for r in caplog.records if "needs a sample" in r.getMessage()]
+    assert said == ["with the twins (devices.*.twin) workflow.1: measure on spectrometer needs a sample, and no step "
+                    "before it makes one: put a step that makes one first: on a virtual clock every experiment is "
+                    "abandoned there"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        check(parse({**lab, "clock": {"mode": "scaled", "speed": 100}}, "lab.yaml"))
+    assert not [r for r in caplog.records if "needs a sample" in r.getMessage()]
+
+
 def test_a_driver_that_says_nothing_of_samples_may_make_one_and_a_bad_declaration_is_refused(monkeypatch):
     from devices.machine import Machine
 

@@ -74,6 +74,10 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
     if problem:  # a twin that only keeps time still serves a scheduler's training or a what-if of device counts
         log.warning("%s: on a virtual clock no experiment meets that target, and campaigns run their whole budget",
                     problem)
+    problem = _sampleless(s, {**drivers, **twins}, elsewhere) if simulated else ""
+    if problem:
+        log.warning("with the twins (devices.*.twin) %s: on a virtual clock every experiment is abandoned there",
+                    problem)
     if s.bus.zenoh:
         from twin.core.bus.zenoh_config import check_config
 
