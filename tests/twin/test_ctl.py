@@ -176,6 +176,7 @@ async def test_hostile_requests_are_refused_by_field_and_never_reach_the_journal
                    b'{"who": "a", "experiment": true}': "experiment:", b'{"who": "a", "now": "yes"}': "now:",
                    b'{"who": "a", "sudo": 1}': "unknown field", b"{" + b" " * 5000 + b"}": "at most 4096",
                    b'{"who": "a", "reason": "' + b"x" * 600 + b'"}': "reason:",
+                   b'{"who": "a", "amount": 1e308}': "amount: '1e+308' is not a positive number below 1e15",
                    # past SQLite's 64 bits: the refusal's journal row failed, and every write after it
                    b'{"who": "a", "experiment": 1180591620717411303424}': "experiment:"}
             for payload, words in bad.items():

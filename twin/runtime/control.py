@@ -132,7 +132,7 @@ def _request(payload: bytes) -> dict[str, Any]:
     amount = data.get("amount")
     if amount is not None and (isinstance(amount, bool) or not isinstance(amount, (int, float))
                                or not 0 < amount < 1e15):
-        raise ValueError(f"amount: {str(amount)[:80]!r} is not a positive number")
+        raise ValueError(f"amount: {str(amount)[:80]!r} is not a positive number below 1e15")
     for name in ("question", "option", "item", "task"):
         value = data.get(name, "")
         if not isinstance(value, str) or len(value) > 64:
