@@ -67,6 +67,11 @@ def test_a_killed_live_campaign_resumes_where_it_was(tmp_path):
     _killed(lab, db, measuring)
     before = read_events(db)
     done_before = {e["experiment"] for e in before if e["kind"] == "experiment.done"}
+    # its progress bar goes on from there (it started at 0/8, lab 0 s)
+    from twin.cli.commands import resumed_from
+    from twin.runtime.resume import recorded
+
+    assert resumed_from(db, recorded(db)[0]) == (len(done_before), pytest.approx(max(e["t_lab"] for e in before)))
 
     resumed = subprocess.run(TWIN + ["resume", str(db), "--json"], cwd=ROOT, capture_output=True, text=True,
                              timeout=120)

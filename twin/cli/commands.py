@@ -181,7 +181,7 @@ def resume(
         err.print(f"resuming {journal}: {how}", highlight=False)
     _campaign(s, record, quiet, json_out,
               lambda on_progress, observer: resume_journal(journal, on_progress=on_progress, observer=observer,
-                                                       runtime=runtime))
+                                                       runtime=runtime), resumed_from(journal, s))
 
 
 def _record(save: Path | None, viewer: bool, serve: bool, serve_port: int, web_port: int) -> RecordOptions:
@@ -204,8 +204,22 @@ def waiting_for(device_types: list[str], paused_by: str = "", stocks: Sequence[s
     return "  ".join(words)
 
 
-def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> None:
-    """Run ``call(on_progress, observer)`` under a progress bar and a recording, and print its summary."""
+def resumed_from(journal: Path, s) -> tuple[int, float]:
+    """Where a resumed campaign's progress starts: experiments finished and lab seconds run. A live campaign goes
+    on from where its journal got to; a virtual-time one re-runs from its start."""
+    if s.clock.mode == "virtual":
+        return 0, 0.0
+    from twin.runtime.resume import interrupted
+
+    got = interrupted(journal)
+    return sum(n for status, n in got["experiments"].items() if status in ("done", "abandoned")), \
+        got["lab_hours"] * 3600
+
+
+def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call,
+              start: tuple[int, float] = (0, 0.0)) -> None:
+    """Run ``call(on_progress, observer)`` under a progress bar and a recording, and print its summary. ``start``:
+    experiments finished and lab seconds run already (a live campaign resumed)."""
     recording = None
     try:
         observer = None
@@ -217,7 +231,7 @@ def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call) -> No
                                 remaining=False)  # a campaign may end at its targets, long before its budget
         with progress:
             bar = progress.add_task(f"{s.name} ({s.clock.mode} clock, {s.bus.kind} bus)",
-                                    total=s.campaign.budget, lab=lab_span(0.0), status="")
+                                    total=s.campaign.budget, completed=start[0], lab=lab_span(start[1], 1), status="")
 
             def on_progress(core) -> None:
                 progress.update(bar, completed=core.finished_count, lab=lab_span(lab_elapsed(core), 1),

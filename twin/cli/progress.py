@@ -52,10 +52,10 @@ class PlainProgress:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def add_task(self, description: str, total: float | None = None, **fields: Any) -> int:
+    def add_task(self, description: str, total: float | None = None, completed: float = 0, **fields: Any) -> int:
         with self._lock:
             now = self._clock()
-            self._tasks.append({"description": description, "total": total, "completed": 0, "fields": fields,
+            self._tasks.append({"description": description, "total": total, "completed": completed, "fields": fields,
                                 "started": now, "said": now, "said_what": None, "stopped": False})
             self._say(self._tasks[-1], now)
             return len(self._tasks) - 1
