@@ -154,3 +154,21 @@ def campaign_with_a_forger(s, clock, db, forger_on):
         return camp.core
 
     return clock.run(main())
+
+
+def test_a_drivers_outputs_that_json_cannot_hold_become_json_or_fail_naming_their_type():
+    """What docs/drivers.md says of outputs: numpy's, sets, datetimes and bytes are made JSON; another object fails
+    the step, naming its type."""
+    import datetime
+    import json
+
+    import numpy as np
+
+    def sent(value):
+        return json.loads(pack(Kind.RESULT, {"outputs": {"x": value}}, id="d:1", sender="d", t_lab=0.0))["body"][
+            "outputs"]["x"]
+
+    assert sent(np.float32(1.5)) == 1.5 and sent(np.arange(3)) == [0, 1, 2] and sorted(sent({2, 1})) == [1, 2]
+    assert sent(datetime.datetime(2026, 12, 6, 9, 30)) == "2026-12-06T09:30:00" and sent(b"ab") == "YWI="
+    with pytest.raises(TypeError, match="cannot send an object of type complex in a message"):
+        sent(1j)

@@ -157,7 +157,8 @@ def plain_value(obj: Any) -> Any:
         return tolist()
     if item is not None and callable(item):
         return item()
-    raise TypeError(f"cannot send a {type(obj).__name__} in a message: use numbers, strings, lists and dicts")
+    raise TypeError(f"cannot send an object of type {type(obj).__name__} in a message: use numbers, strings, "
+                    "lists and dicts")
 
 
 _encode = msgspec.json.Encoder(enc_hook=plain_value).encode
