@@ -27,7 +27,9 @@ def reactor_gains(scenario: Scenario) -> dict[str, float]:
         if spec.driver == "reactor":
             o = spec.options
             return {"kp": float(o.get("kp", 6.0)), "ki": float(o.get("ki", 0.04)), "kd": float(o.get("kd", 0.0))}
-    raise ValueError(f"{scenario.name} has no device with driver 'reactor' to train a controller for")
+    raise ValueError(f"{scenario.name} has no device type whose driver is 'reactor' (its device types: "
+                     f"{', '.join(scenario.devices) or 'none'}): --agent controller trains a reactor's heater loop; "
+                     "train it in a lab with one, e.g. scenarios/catalyst.yaml")
 
 
 def compare(controllers: dict[str, Callable[[float], Any]], setpoints=EVAL_SETPOINTS_K,

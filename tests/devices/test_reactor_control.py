@@ -59,3 +59,15 @@ def test_a_missing_controller_policy_names_the_file_and_the_fix():
     s = prepare(ROOT / "scenarios" / "catalyst.yaml", overrides={"devices.reactor.options.controller": "nope.zip"})
     with pytest.raises(DriverError, match="nope.zip.*twin train"):
         open_workcell(s)
+
+
+def test_training_a_controller_in_a_lab_without_a_reactor_says_what_it_needs():
+    from tests.conftest import twin_cli
+
+    res = twin_cli("train", ROOT / "scenarios" / "quantum_dots.yaml", "--agent", "controller", "--steps", "10",
+                   "--out", ROOT / "runs" / "never.zip")
+    assert res.exit_code == 2  # a usage error, as every refusal of twin's
+    assert ("quantum_dots has no device type whose driver is 'reactor' (its device types: synthesiser, "
+            "spectrometer): --agent controller trains a reactor's heater loop; train it in a lab with one, e.g. "
+            "scenarios/catalyst.yaml") in " ".join(res.stderr.split())
+    assert not (ROOT / "runs" / "never.zip").exists()
