@@ -249,3 +249,23 @@ def test_an_export_interrupted_mid_table_leaves_the_earlier_tables_whole(flaky, 
     with pytest.raises(KeyboardInterrupt):
         module.export(flaky, out)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # nothing half written, nothing left over
+
+
+def test_every_table_has_exactly_its_listed_columns_when_it_has_rows(tmp_path):
+    """The columns each table is written with (``COLUMNS``) are listed beside the functions that build its rows: a
+    key a row builder gains, or drops, must be listed too, or the empty table and the full one would differ."""
+    from twin.tools.export import COLUMNS
+
+    db = tmp_path / "staffed.db"
+    run(prepare(ROOT / "scenarios" / "staffed_lab.yaml", seed=1, overrides={"campaign.budget": 12}), journal=db)
+    export(db, tmp_path / "out", "csv")
+    for name in WHAT:
+        with open(tmp_path / "out" / f"{name}.csv", newline="") as f:
+            header, first = next(csv.reader(f)), next(csv.reader(f), None)
+        assert first is not None, f"{name}: no row to check its columns by"
+        listed = list(COLUMNS[name])
+        if name == "experiments":  # then each parameter, output and score
+            assert header[:len(listed)] == listed, header
+            assert all(c.startswith(("param.", "output.", "score.")) for c in header[len(listed):]), header
+        else:
+            assert header == listed, (name, header)
