@@ -223,3 +223,18 @@ def test_a_driver_fault_in_the_planning_env_is_taken_as_a_campaign_takes_it():
                                           "'anneal'"):
         for _ in range(10):
             broken.run({**at, "anneal_c": 920})
+
+
+def test_a_lab_with_people_trains_its_planner_their_steps_taking_their_expected_time():
+    """staffed_lab's technician loads each rack (driver: operator): the planning env's workcell loaded 'operator' as
+    a driver and `twin train scenarios/staffed_lab.yaml --agent planner` stopped with "unknown driver 'operator'"."""
+    from twin import open_workcell
+
+    lab = prepare(ROOT / "scenarios" / "staffed_lab.yaml")
+    params = {n: (p.low + p.high) / 2 for n, p in lab.chemistry.parameters.items()}
+    with_person = open_workcell(lab).run(params)
+    alone = prepare(lab, overrides={"workflow": [w.model_dump() for w in lab.workflow if w.device != "technician"]})
+    without = open_workcell(alone).run(params)
+    assert with_person.outputs and with_person.outputs == without.outputs  # the rack changes nothing measured
+    assert with_person.lab_s == pytest.approx(without.lab_s + lab.devices["technician"].duration.mean_s)
+    check_env(PlanningEnv(lab), skip_render_check=True)

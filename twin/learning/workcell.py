@@ -11,7 +11,8 @@ A driver's refusal is taken as a campaign takes it: ``Refused(infeasible=True)``
 outputs, marked ``infeasible``; a "not now" is asked again after the scenario's retry back-off, lab time
 passing, up to ``orchestrator.retry.max_attempts`` times. So is its fault (it raised, or returned what is not a
 ``StepResult``): the step is tried again, up to ``max_attempts`` times, and then the experiment ends with no
-outputs, marked ``failed``; a driver that has failed every experiment, ten of them, is named.
+outputs, marked ``failed``; a driver that has failed every experiment, ten of them, is named. People (``driver:
+operator``) confirm their step after its expected duration, as a virtual-time campaign's simulated operator does.
 """
 
 from __future__ import annotations
@@ -19,11 +20,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+from twin.campaign.human import DRIVER as HUMAN
 from twin.core.clock import ClockMode, lab_seconds
 from twin.core.streams import seeded
-from twin.device.driver import StepContext, step_result, talks_to_instrument
+from twin.device.driver import StepContext, StepResult, step_result, talks_to_instrument
 from twin.core.errors import DriverError, Refused
 from twin.scenario import Scenario
+from twin.scenario.model import DeviceType, expected_duration
 
 
 class SteppedClock:
@@ -137,13 +140,29 @@ def _complete(coro: Any, device: str) -> Any:
                       "for it (docs/drivers.md)")
 
 
+class _Person:
+    """People in a workcell: their step is confirmed after its expected duration, and the sample goes on as it was
+    (a campaign's people make no outputs)."""
+
+    def __init__(self, spec: DeviceType) -> None:
+        self.capabilities, self.duration = frozenset(spec.steps), spec.duration
+
+    async def run(self, step: str, params: dict[str, Any], sample: dict | None, ctx: StepContext) -> StepResult:
+        await ctx.clock.sleep(expected_duration(self.duration, params, 0.0, 0.0))
+        return StepResult({}, sample)
+
+    async def safe_state(self) -> None:
+        """Nothing to make safe."""
+
+
 def open_workcell(scenario: Scenario, seed: int = 0) -> Workcell:
     """A workcell with one driver of each device type the workflow uses: a type's twin where it has one, since a
-    workcell is simulated whatever the scenario's clock."""
+    workcell is simulated whatever the scenario's clock; people as their simulated selves (``_Person``)."""
     from twin.runtime.assembly import load_driver
 
     used = dict.fromkeys(w.device for w in scenario.workflow)
-    drivers = {d: load_driver(scenario, d, f"{d}-workcell", simulated=True) for d in used}
+    drivers = {d: _Person(scenario.devices[d]) if scenario.devices[d].driver == HUMAN else
+               load_driver(scenario, d, f"{d}-workcell", simulated=True) for d in used}
     real = [d for d, drv in drivers.items() if talks_to_instrument(drv)]
     if real:
         raise DriverError(f"devices.{real[0]}: its driver talks to an instrument, which a workcell (simulated) "
