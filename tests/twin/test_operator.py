@@ -167,3 +167,22 @@ def test_retry_of_an_experiment_whose_step_is_short_of_stock_reopens_it_waiting(
     out = op(core, "retry", 11.0, experiment=0)
     assert notes(out, "operator.retry") and core.experiments[0].status == "pending"
     assert "e0s0" in core.starved and core.starved["e0s0"].attempts == 1  # numbered on, waiting for a refill
+
+
+def test_people_are_not_devices_to_serve_or_to_ask_for_their_health(tmp_path):
+    """`twin device health` asked staffed_lab's technician too, who has no health key: "answered: no" and exit 1 on
+    a lab in good health; `twin device serve --id technician` said "no device instance 'technician'; the scenario
+    has ['technician', ...]"."""
+    from pathlib import Path
+
+    from tests.conftest import twin_cli
+    from twin.runtime.lab import prepare
+    from twin.runtime.serve import _devices
+
+    lab = Path(__file__).resolve().parents[2] / "scenarios" / "staffed_lab.yaml"
+    assert _devices(prepare(lab)) == ["synthesiser-1", "synthesiser-2", "spectrometer"]  # what health asks
+    res = twin_cli("device", "serve", lab, "--id", "technician", "--connect", "tcp/127.0.0.1:9")
+    assert res.exit_code != 0
+    said = " ".join(res.output.split())
+    assert "'technician' is people (driver: operator), not a device: the campaign serves their steps itself" in said
+    assert "the devices are ['synthesiser-1', 'synthesiser-2', 'spectrometer']" in said

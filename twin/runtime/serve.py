@@ -12,6 +12,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
+from twin.campaign.human import DRIVER as HUMAN
 from twin.core import keys
 from twin.core.bus import Bus, NoReplyError, security
 from twin.core.bus.endpoints import HOW, not_endpoints
@@ -100,8 +101,7 @@ def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str
     else:
         drivers = load_drivers(s, only={name})
     if not drivers:
-        known = [n for d in s.devices for n in s.instance_names(d)]
-        raise DriverError(f"{scenario}: no device instance {name!r}; the scenario has {known}")
+        raise DriverError(_not_a_device(s, scenario, [name]))
 
     async def start(bus: Bus, clock: LabClock):
         await refuse_if_taken(bus, s, [name], orchestrator=False)
@@ -123,10 +123,9 @@ def health(scenario: str | Path, ids: list[str], connect: list[str], security_di
     """``twin device health``: each device's health report (``None`` for one that did not answer in ``wait_s``).
     With security, asked as the lab's orchestrator (the identity that may ask devices)."""
     s = _joined(scenario, connect, "wall", 1.0, security_dir)
-    known = [n for d in s.devices for n in s.instance_names(d)]
-    unknown = [i for i in ids if i not in known]
-    if unknown:
-        raise DriverError(f"{scenario}: no device instance {unknown}; the scenario has {known}")
+    known = _devices(s)
+    if any(i not in known for i in ids):
+        raise DriverError(_not_a_device(s, scenario, [i for i in ids if i not in known]))
     clock = make_clock(s)
 
     async def ask() -> list[dict]:
@@ -138,6 +137,20 @@ def health(scenario: str | Path, ids: list[str], connect: list[str], security_di
             await bus.close()
 
     return clock.run(ask())
+
+
+def _devices(s: Scenario) -> list[str]:
+    """The scenario's device instances: not its people (``driver: operator``), whom the campaign serves itself."""
+    return [n for d, spec in s.devices.items() if spec.driver != HUMAN for n in s.instance_names(d)]
+
+
+def _not_a_device(s: Scenario, scenario: str | Path, names: list[str]) -> str:
+    people = [n for n in names if any(n in s.instance_names(d) for d, spec in s.devices.items()
+                                      if spec.driver == HUMAN)]
+    if people:
+        return (f"{scenario}: {people[0]!r} is people (driver: operator), not a device: the campaign serves their "
+                f"steps itself (`twin ctl pending`, `twin ctl confirm`); the devices are {_devices(s)}")
+    return f"{scenario}: no device instance {names if len(names) > 1 else names[0]!r}; the scenario has {_devices(s)}"
 
 
 def roster(lab: str, connect: list[str], security_dir: str | None = None, wait_s: float = 3.0,
