@@ -77,6 +77,9 @@ def test_a_lab_on_the_memory_bus_refuses_what_only_a_bus_with_sockets_could_do(t
     # a type's name, not its instances': both synthesisers ran in the lab's process as if it had not been given
     (["run", "scenarios/quantum_dots.yaml", "--clock", "scaled", "--external", "synthesiser"],
      "--external synthesiser: not a device of lab qd (its devices: synthesiser-1, synthesiser-2, spectrometer"),
+    # people: the campaign served their steps anyway, and --external said nothing
+    (["run", "scenarios/staffed_lab.yaml", "--clock", "scaled", "--bus", "zenoh", "--external", "technician"],
+     "--external technician: people (driver: operator), not devices: the campaign serves their steps itself"),
 ])
 def test_an_option_that_would_be_ignored_is_refused_before_anything_runs(args, says, tmp_path, monkeypatch):
     """Each ran as if the option had not been given (a bench of flaky_lab with --jobshop: six problems with its
