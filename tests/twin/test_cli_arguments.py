@@ -80,6 +80,9 @@ def test_a_lab_on_the_memory_bus_refuses_what_only_a_bus_with_sockets_could_do(t
     # people: the campaign served their steps anyway, and --external said nothing
     (["run", "scenarios/staffed_lab.yaml", "--clock", "scaled", "--bus", "zenoh", "--external", "technician"],
      "--external technician: people (driver: operator), not devices: the campaign serves their steps itself"),
+    # a lab that serves checked none of its --external names: a misspelt one served every device itself
+    (["lab", "serve", "scenarios/shared_lab.yaml", "--speed", "100", "--external", "synthesiser"],
+     "--external synthesiser: not a device of lab shared"),
 ])
 def test_an_option_that_would_be_ignored_is_refused_before_anything_runs(args, says, tmp_path, monkeypatch):
     """Each ran as if the option had not been given (a bench of flaky_lab with --jobshop: six problems with its

@@ -123,6 +123,7 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
     'package.module:Class' plugins the lab file does not."""
     if s.clock.mode == "virtual":
         raise ClockError(f"{s.name}: a lab that serves waits for campaigns in real time: use --clock scaled or wall")
+    refuse_external(s, external_devices)
     _lab_scheduler(s)  # a scheduler that cannot start is said before anything does
     wall0 = time.perf_counter()
     scenarios = campaign_scenarios(s, s.name)
