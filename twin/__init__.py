@@ -30,7 +30,7 @@ from twin.runtime.resume import resume
 from twin.runtime.shared_run import run_lab
 from twin.scenario import Scenario, expected_duration, json_schema, why_runs_vary
 from twin.scenario import load as load_scenario
-from twin.scenario.files import parse_yaml
+from twin.scenario.files import not_a_file, parse_yaml
 from twin.scenario.jobshop import as_lab as jobshop_as_lab
 from twin.scenario.jobshop import generate as random_jobshop
 from twin.scenario.sharing import campaign_scenarios
@@ -49,7 +49,7 @@ __all__ = [
     "ReadyStep", "RecordOptions", "Refused", "RouteStep", "Scenario", "ScenarioError", "Scheduler", "StepContext", "StepResult",
     "SteppedCampaign", "SteppedLab", "Summary", "TwinError", "campaign_scenarios", "time_scale", "weighted_objective", "capable", "drawn_at_random", "driver_setup", "expected_duration", "jobshop_as_lab", "tells_progress",
     "json_schema", "keyed_uniforms", "lab_span", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
-    "parse_yaml",
+    "not_a_file", "parse_yaml",
     "prepare", "random_jobshop", "random_lab", "read_meta", "resume", "run", "run_async", "run_lab", "run_scenario", "run_step",
     "save_policy", "score", "seeded", "sleep_wall", "stepped", "wall_on_loop", "why_runs_vary",
 ]

@@ -23,6 +23,7 @@ from torch import nn
 
 from agents.routes.search import Reaction
 from agents.routes.templates import Template
+from twin import not_a_file
 
 BITS = 2048
 HIDDEN = 256
@@ -127,6 +128,9 @@ def load_prior(path: Path, templates: tuple[Template, ...]) -> LearnedPrior:
     if not meta_file.exists() or not path.with_suffix(".pt").exists():
         raise FileNotFoundError(f"{path}: a route prior is a .pt file with a .json beside it; train one with "
                                 f"`python -m agents.routes.train --out {path}`")
+    for part in (meta_file, path.with_suffix(".pt")):
+        if not_a_file(part):
+            raise ValueError(f"{part} {not_a_file(part)}; a route prior is a .pt file with a .json beside it")
     try:
         if meta_file.stat().st_size > MAX_DESCRIPTION_BYTES:
             raise ValueError(f"{meta_file.stat().st_size:,} bytes, where training writes a few kB")

@@ -18,7 +18,7 @@ from typing import Any
 from rdkit import Chem, RDLogger
 from rdkit.Chem import AllChem
 
-from twin import ScenarioError, parse_yaml
+from twin import ScenarioError, not_a_file, parse_yaml
 
 RDLogger.DisableLog("rdApp.*")  # a failed sanitisation of a proposal is expected, and filtered, not news
 
@@ -283,6 +283,8 @@ def load(path: Path = TEMPLATES) -> tuple[Template, ...]:
     """The templates of a file (by default the shipped set), parsed once: this package's YAML, or an
     AiZynthFinder-style table (``.csv``, ``.tsv``, ``.csv.gz``)."""
     path = Path(path)
+    if not_a_file(path):
+        raise TemplateError(f"{path} {not_a_file(path)}; give a template file (YAML, or a .csv/.tsv table)")
     try:
         if path.name.endswith(".gz"):
             import gzip

@@ -202,3 +202,36 @@ def test_a_policy_description_of_gigabytes_is_refused_unread(tmp_path, monkeypat
     with pytest.raises(PluginError, match=r"bad\.json: not a policy description \([\d,]+ bytes, more than a "
                                           r"description has"):
         RlScheduler(load_scenario(ROOT / "scenarios" / "jobshop.yaml"), policy=str(bad))
+
+
+@pytest.mark.parametrize("piped", ["zip", "json"])
+def test_a_named_pipe_for_a_policy_is_refused_not_waited_on(tmp_path, piped):
+    """A named pipe nobody writes to, as a policy or its description: `twin run --scheduler rl:P.zip` blocked in
+    open() until killed."""
+    from agents.rl_scheduler import RlScheduler
+
+    src, policy = POLICIES / "jobshop_scheduler.zip", tmp_path / "p.zip"
+    for suffix in (".zip", ".json"):
+        if suffix == f".{piped}":
+            os.mkfifo(policy.with_suffix(suffix))
+        else:
+            shutil.copy(src.with_suffix(suffix), policy.with_suffix(suffix))
+    with pytest.raises(PluginError, match=rf"p\.{piped} is a named pipe, not a file; policies are saved by"):
+        RlScheduler(load_scenario(ROOT / "scenarios" / "jobshop.yaml"), policy=str(policy))
+
+
+def test_a_named_pipe_for_a_stock_a_template_table_or_a_route_prior_is_refused(tmp_path):
+    from agents.routes import stock, templates
+    from agents.routes.policy import load_prior
+
+    pipe = tmp_path / "pipe.csv"
+    os.mkfifo(pipe)
+    with pytest.raises(stock.StockError, match="pipe.csv is a named pipe, not a file; a stock file is CSV"):
+        stock.load(pipe)
+    with pytest.raises(templates.TemplateError, match="pipe.csv is a named pipe, not a file; give a template file"):
+        templates.load(pipe)
+    prior = tmp_path / "prior.pt"
+    os.mkfifo(prior)
+    prior.with_suffix(".json").write_text("{}")
+    with pytest.raises(ValueError, match=r"prior\.pt is a named pipe, not a file; a route prior is a \.pt file"):
+        load_prior(prior, templates.load())

@@ -14,6 +14,7 @@ from twin.core.errors import PluginError
 from twin.learning.policy_file import safe_objects
 from twin.runtime.run_record import versions
 from twin.scenario import Scenario
+from twin.scenario.files import not_a_file
 
 MAX_DESCRIPTION_BYTES = 16 * 2**20  # a policy's .json: a few kB as `twin train` writes it
 
@@ -40,6 +41,8 @@ def read_meta(path: str | Path) -> dict[str, Any]:
     side = path.with_suffix(".json")
     if not side.exists():
         raise PluginError(f"{path}: no {side.name} beside it; policies are saved by `twin train`")
+    if not_a_file(side):
+        raise PluginError(f"{side} {not_a_file(side)}; policies are saved by `twin train`")
     try:
         if side.stat().st_size > MAX_DESCRIPTION_BYTES:
             raise ValueError(f"{side.stat().st_size:,} bytes, more than a description has: `twin train` writes a "
@@ -58,6 +61,8 @@ def load_policy(path: str | Path, kind: str, signature: dict[str, Any]) -> Any:
     path = Path(path)
     if not path.exists():
         raise PluginError(f"policy {path} does not exist; train one with `twin train SCENARIO --agent {kind} --out {path}`")
+    if not_a_file(path):
+        raise PluginError(f"{path} {not_a_file(path)}; policies are saved by `twin train`")
     meta = read_meta(path)
     if meta.get("kind") != kind:
         raise PluginError(f"{path} is a {meta.get('kind')} policy, not a {kind} policy")

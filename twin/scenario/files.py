@@ -37,6 +37,19 @@ def _standard_input() -> bytes:
     return _STDIN["data"]
 
 
+def not_a_file(path: str | Path) -> str:
+    """Why ``path``, which exists, cannot be read as a file — a directory, a named pipe (which would block its
+    reader until someone writes), a device — or '' for a regular file or none at all."""
+    try:
+        mode = Path(path).stat().st_mode
+    except OSError:
+        return ""
+    if stat.S_ISREG(mode):
+        return ""
+    kind = "a directory" if stat.S_ISDIR(mode) else "a named pipe" if stat.S_ISFIFO(mode) else "a device or socket"
+    return f"is {kind}, not a file"
+
+
 def read_text(path: str | Path, what: str = "scenario") -> str:
     """The file's text: refused (with what to do) if missing, a directory, too large, or not UTF-8. ``-`` is
     standard input (its relative paths are then the current directory's)."""
