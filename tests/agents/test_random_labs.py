@@ -47,6 +47,19 @@ def test_random_labs_stay_in_their_ranges_and_visit_every_type(flaky):
     assert a == b  # the same seed draws the same lab
 
 
+def test_a_lab_with_stocks_and_questions_for_the_operator_draws_random_labs_without_them():
+    """staffed_lab's stocks are used by its steps and its operator is asked about its syntheses: a drawn lab, whose
+    stations run "op", copied them and failed validation — `twin bench schedulers scenarios/staffed_lab.yaml --shapes
+    --random-labs 2` ended in a traceback."""
+    staffed = prepare(ROOT / "scenarios" / "staffed_lab.yaml")
+    assert staffed.consumables and staffed.orchestrator.recovery
+    for seed in range(5):
+        lab = random_lab(staffed, random.Random(seed))
+        assert not lab.consumables and not lab.orchestrator.recovery
+        s = campaign(prepare(lab), 0, load_plugin("schedulers", "fifo")().decide)
+        assert s.done + s.abandoned == lab.campaign.budget
+
+
 def test_every_rule_runs_a_random_lab_to_the_end_and_nothing_is_lost(flaky):
     lab = randomised(flaky, 3)
     assert lab_shape(lab)["steps"] == ["*"]

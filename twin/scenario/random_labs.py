@@ -66,6 +66,8 @@ def random_lab(s: Scenario, rng: random.Random, duration: float = 1.0, fault: fl
                             max_in_flight=rng.randint(k, total + k))
     data["jobshop"] = None
     data["training"]["instances"] = {}  # the scenario's own device types are not this lab's
+    data["consumables"] = {}  # nor its stocks, used by its steps, nor the questions its steps put to the operator
+    data["orchestrator"]["recovery"] = []
     return Scenario.model_validate(data)
 
 
