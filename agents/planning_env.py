@@ -112,6 +112,11 @@ class PlanningEnv(gym.Env):
             raise ValueError(f"{scenario.name}: a lab of several campaigns ({', '.join(c.name for c in scenario.campaigns)})"
                              f"; this environment plans one campaign's experiments: give it one of "
                              f"twin.campaign_scenarios(twin.prepare(LAB)) (by name), with the lab's devices")
+        if scenario.campaign.planner == "route":  # its steps take a route's reaction and scale, not a box's point
+            raise ValueError(f"{scenario.name}: its experiments are synthesis routes, which its route planner plans "
+                             "(campaign.planner: route); this environment plans points in chemistry.parameters for "
+                             "the workflow as written. The route search learns its expansion prior instead: "
+                             "twin train SCENARIO --agent route (docs/routes.md)")
         target_shape(scenario)
         self.scenario, self.horizon, self.random_goals = scenario, horizon, random_goals
         self.box = UnitBox(scenario.chemistry.parameters)

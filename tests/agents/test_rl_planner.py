@@ -238,3 +238,11 @@ def test_a_lab_with_people_trains_its_planner_their_steps_taking_their_expected_
     assert with_person.outputs and with_person.outputs == without.outputs  # the rack changes nothing measured
     assert with_person.lab_s == pytest.approx(without.lab_s + lab.devices["technician"].duration.mean_s)
     check_env(PlanningEnv(lab), skip_render_check=True)
+
+
+def test_a_lab_whose_experiments_are_planned_routes_is_refused_with_the_trainer_it_needs():
+    """aspirin's synthesiser reacts the route its route planner gives: `twin train scenarios/aspirin.yaml --agent
+    planner` ran ten experiments without one, all failing, and then advised fixing the driver."""
+    with pytest.raises(ValueError, match=r"aspirin: its experiments are synthesis routes, which its route planner "
+                                         r"plans .* twin train SCENARIO --agent route"):
+        PlanningEnv(prepare(ROOT / "scenarios" / "aspirin.yaml"))
