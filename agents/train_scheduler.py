@@ -373,11 +373,11 @@ def _from_general(scenario: Scenario, general: Path, steps: int, out: Path,
 
 def _best_score(policy: Path) -> float:
     """The best score on a policy file's curve (infinite for none, or no file)."""
-    from twin import read_meta
+    from twin import TwinError, read_meta
 
     try:
         scores = [c["score"] for c in read_meta(policy).get("curve", []) if isinstance(c.get("score"), (int, float))]
-    except (OSError, ValueError):
+    except (OSError, ValueError, TwinError):  # read_meta's PluginError: none there, or not a description
         return float("inf")
     return min(scores, default=float("inf"))
 

@@ -331,3 +331,14 @@ def test_ctrl_c_while_the_training_waits_for_its_rollouts_stops_its_workers_and_
     except subprocess.TimeoutExpired as hung:
         raise AssertionError(f"the training never ended after Ctrl-C: {hung.stdout!r}") from None
     assert done.returncode == 0 and done.stdout == "interrupted\n", done
+
+
+def test_the_best_score_of_no_policy_file_is_none_rather_than_an_error(tmp_path):
+    """Read in a `finally` after the fall-back's training, also when it stopped before saving: read_meta's
+    PluginError there would have replaced the training's own exception."""
+    from agents.train_scheduler import _best_score
+
+    assert _best_score(tmp_path / "none.zip") == float("inf")
+    (tmp_path / "bad.zip").write_bytes(b"")
+    (tmp_path / "bad.json").write_text("[not a description")
+    assert _best_score(tmp_path / "bad.zip") == float("inf")

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.campaign import CampaignCore
-from twin.campaign.human import DRIVER as HUMAN
+from twin.campaign.human import people as people_of
 from twin.campaign.journal import Journal
 from twin.campaign.replay import Rebuilt
 from twin.campaign.summary import Summary, from_core
@@ -170,7 +170,7 @@ def refuse_external(s: Scenario, external_devices: Collection[str]) -> None:
     """Devices served by other processes need a lab they can reach and a clock that sees their messages."""
     if not external_devices:
         return
-    people = [name for dtype, spec in s.devices.items() if spec.driver == HUMAN for name in s.instance_names(dtype)]
+    people = people_of(s)
     devices = [name for dtype in s.devices for name in s.instance_names(dtype) if name not in people]
     served = sorted(set(external_devices) & set(people))
     if served:

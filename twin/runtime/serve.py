@@ -12,7 +12,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
-from twin.campaign.human import DRIVER as HUMAN
+from twin.campaign.human import people as people_of
 from twin.core import keys
 from twin.core.bus import Bus, NoReplyError, security
 from twin.core.bus.endpoints import HOW, not_endpoints
@@ -141,12 +141,12 @@ def health(scenario: str | Path, ids: list[str], connect: list[str], security_di
 
 def _devices(s: Scenario) -> list[str]:
     """The scenario's device instances: not its people (``driver: operator``), whom the campaign serves itself."""
-    return [n for d, spec in s.devices.items() if spec.driver != HUMAN for n in s.instance_names(d)]
+    people = people_of(s)
+    return [n for d in s.devices for n in s.instance_names(d) if n not in people]
 
 
 def _not_a_device(s: Scenario, scenario: str | Path, names: list[str]) -> str:
-    people = [n for n in names if any(n in s.instance_names(d) for d, spec in s.devices.items()
-                                      if spec.driver == HUMAN)]
+    people = [n for n in names if n in people_of(s)]
     if people:
         return (f"{scenario}: {people[0]!r} is people (driver: operator), not a device: the campaign serves their "
                 f"steps itself (`twin ctl pending`, `twin ctl confirm`); the devices are {_devices(s)}")
