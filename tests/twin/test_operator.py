@@ -151,7 +151,7 @@ async def test_a_virtual_time_campaign_answers_status_and_refuses_acts(scenario_
 
 
 def test_the_progress_line_says_who_paused_the_campaign():
-    from twin.cli.commands import waiting_for
+    from twin.cli.campaign_bar import waiting_for
 
     assert "paused by alice (twin ctl resume)" in waiting_for([], "alice")
     assert "waiting: no usable reactor" in waiting_for(["reactor"], "alice") and waiting_for([]) == ""

@@ -68,7 +68,7 @@ def test_a_killed_live_campaign_resumes_where_it_was(tmp_path):
     before = read_events(db)
     done_before = {e["experiment"] for e in before if e["kind"] == "experiment.done"}
     # its progress bar goes on from there (it started at 0/8, lab 0 s)
-    from twin.cli.commands import resumed_from
+    from twin.cli.campaign_bar import resumed_from
     from twin.runtime.resume import recorded
 
     assert resumed_from(db, recorded(db)[0]) == (len(done_before), pytest.approx(max(e["t_lab"] for e in before)))

@@ -7,16 +7,16 @@ import json
 import logging
 import sys
 from pathlib import Path
-from collections.abc import Sequence
 from typing import Annotated, Optional
 
 import typer
 from rich.markup import escape
 from rich.text import Text
 
-from twin.cli.common import (_fail, app, assignments, bar_progress, check_lab_name, console, err, exit_if_interrupted,
-                             exit_status, keep_serving, machine_output, narrow_table, recording_file, refuse_disagreeing,
-                             say_if_still_written, sigterm_unwinds, speed_heeded, stopped_by, writable)
+from twin.cli.common import (_fail, app, assignments, check_lab_name, console, err, exit_status, machine_output,
+                             narrow_table, recording_file, refuse_disagreeing, say_if_still_written, sigterm_unwinds,
+                             speed_heeded, stopped_by, writable)
+from twin.cli.campaign_bar import resumed_from, run_campaign
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
 from twin.cli.sharing import shared_lab
@@ -24,11 +24,9 @@ from twin.core import plugins
 from twin.core.whole_files import written_whole
 from twin.runtime import lab
 from twin.runtime.checks import checked, validate_file
-from twin.runtime.live import lab_elapsed
 from twin.core.errors import TwinError
-from twin.view.report import lab_span, render_summary
 from twin.scenario import json_schema
-from twin.view.watch import RecordOptions, open_observer
+from twin.view.watch import RecordOptions
 from twin.view.watch import replay as replay_journal
 from twin.view.watch import watch as watch_lab
 
@@ -134,7 +132,7 @@ def run(
                   f"{' and its scheduler planned it ahead' if s.campaign.plays_ahead else ''}: nothing ran, and no "
                   "journal was written", highlight=False)
         raise typer.Exit(exit_status(stop)) from None
-    _campaign(s, record, quiet, json_out, lambda on_progress, observer: lab.run(
+    run_campaign(s, record, quiet, json_out, lambda on_progress, observer: lab.run(
         s, journal=journal, external_devices=set(external or ()), on_progress=on_progress, observer=observer,
         runtime=runtime))
 
@@ -179,7 +177,7 @@ def resume(
                "had in the lab" if s.clock.mode != "virtual" else
                f"{len(prefix)} recorded events are checked as the campaign re-runs")
         err.print(f"resuming {journal}: {how}", highlight=False)
-    _campaign(s, record, quiet, json_out,
+    run_campaign(s, record, quiet, json_out,
               lambda on_progress, observer: resume_journal(journal, on_progress=on_progress, observer=observer,
                                                        runtime=runtime), resumed_from(journal, s))
 
@@ -191,71 +189,6 @@ def _record(save: Path | None, viewer: bool, serve: bool, serve_port: int, web_p
         _fail(TwinError(f"{' and '.join(ports)}: the port{'s' if len(ports) > 1 else ''} of --serve's server, and "
                         "nothing is served: add --serve"))
     return RecordOptions(save, viewer, serve, serve_port, web_port)
-
-
-def waiting_for(device_types: list[str], paused_by: str = "", stocks: Sequence[str] = ()) -> str:
-    """The progress line's word on an operator's pause, on device types that work waits for with no usable
-    instance, and on stocks that steps wait to be refilled."""
-    words = [f"[yellow]paused by {escape(paused_by)} (twin ctl resume)[/]"] if paused_by else []
-    if device_types:
-        words.append(f"[red]waiting: no usable {', '.join(device_types)}[/]")
-    if stocks:
-        words.append(f"[red]waiting for a refill of {escape(', '.join(stocks))} (twin ctl refill)[/]")
-    return "  ".join(words)
-
-
-def resumed_from(journal: Path, s) -> tuple[int, float]:
-    """Where a resumed campaign's progress starts: experiments finished and lab seconds run. A live campaign goes
-    on from where its journal got to; a virtual-time one re-runs from its start."""
-    if s.clock.mode == "virtual":
-        return 0, 0.0
-    from twin.runtime.resume import interrupted
-
-    got = interrupted(journal)
-    return sum(n for status, n in got["experiments"].items() if status in ("done", "abandoned")), \
-        got["lab_hours"] * 3600
-
-
-def _campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call,
-              start: tuple[int, float] = (0, 0.0)) -> None:
-    """Run ``call(on_progress, observer)`` under a progress bar and a recording, and print its summary. ``start``:
-    experiments finished and lab seconds run already (a live campaign resumed)."""
-    recording = None
-    try:
-        observer = None
-        if record.wanted:
-            observer, recording = open_observer(record, lab.recording_id(s))
-            for message in recording.messages:
-                err.print(message, highlight=False)
-        progress = bar_progress(fields=("lab {task.fields[lab]}", "{task.fields[status]}"), disable=quiet or json_out,
-                                remaining=False)  # a campaign may end at its targets, long before its budget
-        with progress:
-            bar = progress.add_task(f"{s.name} ({s.clock.mode} clock, {s.bus.kind} bus)",
-                                    total=s.campaign.budget, completed=start[0], lab=lab_span(start[1], 1), status="")
-
-            def on_progress(core) -> None:
-                progress.update(bar, completed=core.finished_count, lab=lab_span(lab_elapsed(core), 1),
-                                status=waiting_for(core.unavailable, core.paused_by, core.short_of))
-
-            summary = call(on_progress, observer)
-    except TwinError as exc:
-        if recording is not None:
-            recording.stop_serving()
-        _fail(exc)
-    if json_out:
-        print(json.dumps(summary.to_dict(), indent=2))
-    else:
-        render_summary(summary, console)
-    if recording is not None:
-        try:
-            recording.close()
-        except TwinError as exc:
-            recording.stop_serving()
-            _fail(TwinError(f"{exc} (twin replay {summary.journal} --save FILE)"))
-        if record.save:
-            err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
-        keep_serving(recording, summary.stopped)
-    exit_if_interrupted(summary.stopped)
 
 
 @app.command()

@@ -13,11 +13,9 @@ from __future__ import annotations
 import asyncio
 import functools
 import hashlib
-import inspect
 import itertools
 import json
 import logging
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -35,6 +33,7 @@ from twin.core.bus import NoReplyError
 from twin.core.errors import TwinError
 from twin.core.messages import Kind, pack
 from twin.runtime.alert_log import AlertLog
+from twin.runtime.asking import ask_scheduler
 from twin.runtime.checked_planner import covered
 from twin.runtime.checked_scheduler import fallbacks
 from twin.runtime.control import ControlDesk
@@ -58,30 +57,6 @@ def lab_elapsed(core: CampaignCore) -> float:
     except RuntimeError:  # the fast runtime's, or no loop: the core's time is the lab's
         return core.elapsed_s
     return max(core.elapsed_s, loop.time() - core.t0) if isinstance(loop, LabEventLoop) else core.elapsed_s
-
-
-def ask_scheduler(scheduler: Any, ask: Ask, answer: Callable[[Decided, bool], None],
-                  fail: Callable[[BaseException], None]) -> asyncio.Future | None:
-    """Ask ``scheduler`` the question: ``answer(decided, later)`` gets its answer — at once, or (``later``) when
-    an awaitable answer resolves — and ``fail(exc)`` its error. Returns the pending answer's future (cancel it to
-    drop the answer), or None."""
-    started = time.perf_counter()
-    decided = scheduler.decide(ask.view)
-    if not inspect.isawaitable(decided):
-        answer(Decided(list(decided), time.perf_counter() - started), False)
-        return None
-    pending = asyncio.ensure_future(decided)
-
-    def answered(fut: asyncio.Future) -> None:
-        if fut.cancelled():
-            return
-        if fut.exception() is not None:
-            fail(fut.exception())
-        else:
-            answer(Decided(list(fut.result()), time.perf_counter() - started), True)
-
-    pending.add_done_callback(answered)
-    return pending
 
 
 class LiveCampaign:

@@ -22,7 +22,8 @@ from twin.campaign import Presence
 from twin.core.errors import ScenarioError, TwinError
 from twin.runtime.lab_desk import LabDesk
 from twin.runtime.event_decoder import EventDecoder
-from twin.runtime.live import LiveCampaign, ask_scheduler
+from twin.runtime.asking import ask_scheduler
+from twin.runtime.live import LiveCampaign
 from twin.runtime.take_over import rearm
 from twin.scenario import Scenario
 from twin.scenario.files import parse_yaml

@@ -17,6 +17,7 @@ import statistics
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from twin.campaign.human import DRIVER as HUMAN
 from twin.core.errors import TwinError
 from twin.runtime.lab import prepare
 from twin.scenario import Scenario
@@ -40,7 +41,7 @@ def variants(s: Scenario, random_labs: int = 0) -> list[tuple[str, Scenario]]:
         out.append((f"{name} ×2 instances", prepare(s, overrides={f"devices.{name}.instances": d.instances * 2})))
         out.append((f"{name} bottleneck (×2 duration)",
                     prepare(s, overrides={f"devices.{name}.duration.mean_s": d.duration.mean_s * 2})))
-        if d.driver != "operator":  # people are not simulated to fail
+        if d.driver != HUMAN:  # people are not simulated to fail
             out.append((f"{name} flaky (20 % fail)",
                         prepare(s, overrides={f"devices.{name}.faults.fail_p": max(d.faults.fail_p, 0.2)})))
     if s.chemistry.stability_s:
