@@ -187,3 +187,24 @@ def test_numpy_numbers_from_a_planner_are_numbers(tmp_path):
     lab = parse(qd_lab(**{"campaign.planner": "tests.twin.test_bad_planners:NumpyPlanner", "campaign.budget": 3}))
     summary = run(lab, journal=tmp_path / "j.db")
     assert summary.done == 3 and summary.abandoned == 0 and summary.cost >= 3 * 2.5
+
+
+class AwaitableAnswer(Shapeless):
+    def propose(self, n, history, pending):
+        import asyncio
+
+        return asyncio.sleep(0, result=[])
+
+
+def test_an_awaitable_answer_is_the_planners_failure_without_a_never_awaited_warning(tmp_path):
+    import gc
+    import warnings
+
+    lab = parse(qd_lab(**{"campaign.planner": "tests.twin.test_bad_planners:AwaitableAnswer", "campaign.budget": 3}))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        summary = run(lab, journal=tmp_path / "j.db")
+        gc.collect()
+    assert summary.proposed == 0
+    assert "answered an awaitable (coroutine): propose() must answer at once" in summary.stopped
+    assert not [w for w in caught if "never awaited" in str(w.message)]

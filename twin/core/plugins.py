@@ -21,6 +21,13 @@ GROUPS = {"devices": "labtwin.devices", "planners": "labtwin.planners", "schedul
 _NAMES = {"devices": "driver", "routes": "route planner", "route_targets": "route target set"}  # in errors
 _DOCS = {"devices": "docs/drivers.md", "routes": "docs/routes.md", "route_targets": "docs/routes.md"}
 PROTOCOLS = {"devices": ("run", "safe_state"), "planners": ("propose",), "schedulers": ("decide",)}
+#: Plugins the lab calls for an answer there and then (a plain ``def``): what it does instead of awaiting one.
+_ANSWERS_AT_ONCE = {
+    "schedulers": "a scheduler's answer at once: make it a plain `def`; a scheduler that must wait on something "
+                  "elsewhere (a service, another process) is an agent on the bus (campaign.scheduler: remote, "
+                  "docs/wire.md)",
+    "planners": "a planner's answer at once: make it a plain `def` (on a scaled or wall clock the lab asks it in a "
+                "worker thread, so a slow fit or a blocking call there stalls nothing)"}
 #: The logger of what a plugin warns of when it is made for a lab (a policy trained on other labs). A command makes
 #: each plugin once to check it before its runs, and the warning is given then; a bench's or a what-if's workers,
 #: which make the plugin again for every run, keep it quiet rather than repeat it.
@@ -57,6 +64,9 @@ def load(kind: str, name: str) -> Any:
         if plain:
             raise DriverError(f"{name!r}: {' and '.join(m + '()' for m in plain)} must be `async def`: the lab "
                               f"awaits {'it' if len(plain) == 1 else 'them'} (see docs/drivers.md)")
+    elif kind in _ANSWERS_AT_ONCE and inspect.iscoroutinefunction(getattr(obj, PROTOCOLS[kind][0])):
+        raise PluginError(f"{name!r}: {PROTOCOLS[kind][0]}() is `async def`, and the lab takes {_ANSWERS_AT_ONCE[kind]}"
+                          " (see docs/plugins.md)")
     return obj
 
 

@@ -5,6 +5,7 @@ budget, never an experiment in the lab."""
 
 from __future__ import annotations
 
+import inspect
 import logging
 import time
 from dataclasses import replace
@@ -46,6 +47,10 @@ class CheckedPlanner:
             return self._fail(f"planner {self.name!r} raised {exc!r}"[:300])
 
     def _checked(self, answer: Any) -> Proposed:
+        if inspect.isawaitable(answer):
+            getattr(answer, "close", lambda: None)()  # never to be awaited: no "never awaited" warning
+            return self._fail(f"planner {self.name!r} answered an awaitable ({type(answer).__name__}): propose() "
+                              "must answer at once, a list of Proposal(params)")
         proposals = _proposals(answer)
         if proposals is None:
             return self._fail(f"planner {self.name!r} answered {str(answer)[:80]!r}, not a list of "

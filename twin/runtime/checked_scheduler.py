@@ -32,20 +32,23 @@ class CheckedScheduler:
     def __getattr__(self, attr: str) -> Any:  # the scheduler's own attributes (serve_on_bus, its policy, ...)
         return getattr(self.inner, attr)
 
-    def decide(self, view: LabView) -> Any:
+    def decide(self, view: LabView) -> list[Assignment]:
         try:
             held.holding(self.holder, time.perf_counter())
             decided = self.inner.decide(view)
+            awaited = inspect.isawaitable(decided)
+            if awaited:
+                getattr(decided, "close", lambda: None)()  # never to be awaited: no "never awaited" warning
+            items = None if awaited else assignments(decided)  # a generator's code runs here: covered too
         except PLUGIN_ERRORS as exc:
             return self.fallback.decide(view, "raised", f"scheduler {self.name!r} raised {exc!r}"[:300])
         finally:
             held.released()
-        if inspect.isawaitable(decided):  # an agent: its answer is checked where it arrives
-            return decided
-        items = assignments(decided)
         if items is None:
-            return self.fallback.decide(view, "invalid", f"scheduler {self.name!r} answered "
-                                        f"{str(decided)[:80]!r}, not a list of Assignment(task, device)")
+            answered = f"an awaitable ({type(decided).__name__}): decide() must answer at once" if awaited else \
+                f"{str(decided)[:80]!r}"
+            return self.fallback.decide(view, "invalid", f"scheduler {self.name!r} answered {answered}, not a list of "
+                                                         "Assignment(task, device)")
         why = impossible(view, items)
         if why:
             return self.fallback.decide(view, "impossible", f"scheduler {self.name!r} answered nothing that can "

@@ -118,10 +118,7 @@ class Seat:
             self.view = ask.view
         else:
             started = time.perf_counter()
-            decided = self.scheduler.decide(ask.view)
-            if hasattr(decided, "__await__"):
-                raise ClockError("the fast runtime needs a scheduler that answers at once; this one returns an "
-                                 "awaitable (an agent on the bus): run with --runtime asyncio")
+            decided = self.scheduler.decide(ask.view)  # covered (CheckedScheduler): a list of assignments
             self.core.feed(Decided(list(decided), time.perf_counter() - started))
 
 
