@@ -100,6 +100,10 @@ def test_a_list_or_mapping_is_shown_short_and_kept_whole_in_json():
     # seeds are the paired runs' own: a varied or set seed would be overwritten in every run, silently
     (["--vary", "campaign.seed=1,2"], "'campaign.seed=1,2': the runs' seeds are 0 to N−1 (--seeds N)"),
     (["--vary", "devices.reactor.instances=3", "--set", "campaign.seed=4"], "--set campaign.seed: the runs' seeds"),
+    # fields no run of a what-if reads: the variants ran alike and the table printed identical rows
+    (["--vary", "clock.mode=scaled,wall"], "'clock.mode=scaled,wall': a what-if runs every variant on a virtual clock"),
+    (["--vary", "bus.kind=memory,zenoh"], "every variant on a memory bus of its own"),
+    (["--vary", "lab=a,b"], "so every variant would run alike; vary what the lab is"),
     (["--vary", "devices.reactor.instances=1,,3"], "reactor.instances: Input should be a valid integer (got None)"),
     (["--vary", "campaigns.0.after=,,dots"], "an empty value (null) is given twice"),
     (["--vary", "devices.reactor.instances=3,3.0"], "3.0 is given twice"),

@@ -57,6 +57,15 @@ class Outcome:
     stock_out: dict[str, float] = field(default_factory=dict)  # per stock: lab-h it was out (found short, until a refill)
 
 
+#: Fields a what-if's runs do not read, and why: varying one would print identical rows.
+UNUSED_BY_WHATIF = {
+    "clock": "a what-if runs every variant on a virtual clock, whatever the scenario's clock",
+    "bus": "a what-if runs every variant on a memory bus of its own, whatever the scenario's bus",
+    "lab": "the lab's name only names it on a bus",
+    "name": "the scenario's name only names it",
+    "description": "the description only describes it"}
+
+
 def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
     """``["devices.spectrometer.instances=1,2,3"]`` → ``[("devices.spectrometer.instances", [1, 2, 3])]``; values
     are read as YAML (``2`` an int, ``0.1`` or ``1e3`` a float, ``true`` a bool, ``[0.5, 1.5]`` a list,
@@ -69,6 +78,9 @@ def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
             raise ScenarioError("--vary", [f"{item!r}: expected FIELD=V1,V2,... (e.g. devices.spectrometer.instances=1,2,3)"])
         if name == "campaign.seed":
             raise ScenarioError("--vary", [f"{item!r}: {SEEDS_PAIRED}"])
+        if name.split(".")[0] in UNUSED_BY_WHATIF:
+            raise ScenarioError("--vary", [f"{item!r}: {UNUSED_BY_WHATIF[name.split('.')[0]]}, so every variant would "
+                                           "run alike; vary what the lab is (devices, workflow, campaign, ...)"])
         parsed: list[Any] = []
         for v in _split_values(values):  # an empty value is YAML's null: `campaigns.1.after=,dots` unsets it first
             try:
