@@ -1,9 +1,12 @@
 """`twin driver new` makes a package that pip-installs, is discovered, passes its own tests and runs a campaign."""
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -42,3 +45,20 @@ def test_bad_names_and_existing_directories_are_refused(tmp_path):
     (tmp_path / "acme").mkdir()
     again = sh([*TWIN, "driver", "new", "acme", "--dir", str(tmp_path)], cwd=ROOT)
     assert again.returncode == 2 and "already exists" in again.stderr
+
+
+@pytest.mark.parametrize("name, says", [
+    ("twin", "its Python module would be twin, which is importable here already"),  # it shadowed labtwin's kernel
+    ("numpy", "the package numpy"),  # `pip install -e numpy` would have replaced numpy
+    ("labtwin", "`pip install` of this one would replace it"),
+    ("spectrometer", "an installed driver is called so"),  # two entry points of one name
+    ("operator", "`driver: operator` means people"),
+])
+def test_a_name_that_would_clash_with_what_is_installed_is_refused(tmp_path, name, says):
+    from twin.core.errors import TwinError
+    from twin.tools.scaffold import scaffold
+
+    with pytest.raises(TwinError, match=rf"driver name '{name}' is taken: .*{re.escape(says)}.*; choose another, "
+                                        rf"e.g. acme-{name}"):
+        scaffold(name, tmp_path)
+    assert not any(tmp_path.iterdir())  # nothing written

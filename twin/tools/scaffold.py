@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import keyword
 import re
 from pathlib import Path
@@ -114,6 +115,31 @@ A labtwin device driver. `pip install -e .` makes it known to labtwin
 '''
 
 
+def _taken(name: str, module: str) -> str:
+    """Why installing the package for ``name`` would clash with what is here ('' if it would not): its module
+    would shadow (or be shadowed by) an importable one, its distribution would replace an installed one, or its
+    entry point would be a driver name that is installed or reserved."""
+    from importlib.metadata import PackageNotFoundError, distribution
+
+    from twin.core import plugins
+
+    if name == "operator":
+        return "`driver: operator` means people in a scenario, not a driver"
+    if name in plugins.installed("devices"):
+        return "an installed driver is called so (`twin devices` lists it)"
+    try:
+        installed = distribution(name)
+    except PackageNotFoundError:
+        pass
+    else:
+        return f"the package {installed.metadata['Name']} {installed.version} is installed here, and `pip install` " \
+               "of this one would replace it"
+    spec = importlib.util.find_spec(module)
+    if spec is not None:
+        return f"its Python module would be {module}, which is importable here already ({spec.origin or 'a folder'})"
+    return ""
+
+
 def scaffold(name: str, where: Path) -> Path:
     """Write the package for driver ``name`` under ``where``; returns its directory."""
     if not re.fullmatch(r"[a-z][a-z0-9-]*[a-z0-9]", name):
@@ -121,6 +147,9 @@ def scaffold(name: str, where: Path) -> Path:
     module = name.replace("-", "_")
     if keyword.iskeyword(module):
         raise TwinError(f"driver name {name!r} is a Python keyword; choose another")
+    taken = _taken(name, module)
+    if taken:
+        raise TwinError(f"driver name {name!r} is taken: {taken}; choose another, e.g. acme-{name}")
     cls = "".join(part.capitalize() for part in name.split("-"))
     root = where / name
     if root.exists():
