@@ -211,3 +211,35 @@ def test_a_planner_that_fails_early_is_counted_at_the_budget_not_as_the_fastest(
     assert all(t.reached for t in results["gp-bo"])  # not censored: its ratio a bound only by random's
     first = table["gp-bo"][-1][0]
     assert (first == "≥") if random_censored else first.isdigit()
+
+
+def test_the_readmes_list_of_experiments_runs_as_given_and_a_lab_without_a_box_is_pointed_to_it(tmp_path):
+    """The `fixed` planner was undocumented: a lab with no parameter box was told only to give one."""
+    import json
+    import re
+
+    import yaml
+
+    from twin import ScenarioError
+    from twin.campaign.journal import read_events
+    from twin.runtime.checks import check
+    from twin.runtime.lab import run
+
+    readme = (ROOT / "README.md").read_text()
+    block = re.search(r"```yaml\n(campaign:\n  planner: fixed\n.*?)```", readme, re.S).group(1)
+    campaign = yaml.safe_load(block)["campaign"]
+    s = prepare(ROOT / "scenarios" / "quantum_dots.yaml", bus="memory",
+                overrides={f"campaign.{k}": v for k, v in campaign.items()})
+    summary = run(s, journal=tmp_path / "j.db")
+    given = [p["params"] for p in campaign["planner_options"]["proposals"]]
+    assert summary.proposed == summary.done == len(given) == 2 and "all 2 of" in summary.ended
+    proposed = [json.loads(e["detail"]) for e in read_events(tmp_path / "j.db", "experiment.proposed")]
+    assert proposed == given  # in order, as given
+
+    lab = {"name": "boxless", "lab": "boxless", "devices": {"oven": {"driver": "machine", "steps": ["bake"],
+                                                                     "duration": {"mean_s": 600}}},
+           "workflow": [{"step": "bake", "device": "oven"}], "campaign": {"planner": "random", "budget": 3}}
+    (tmp_path / "boxless.yaml").write_text(yaml.safe_dump(lab))
+    with pytest.raises(ScenarioError, match=r"give at least one parameter with low and high, or run a list of "
+                                            r"experiments as given \(campaign.planner: fixed"):
+        check(prepare(tmp_path / "boxless.yaml"))

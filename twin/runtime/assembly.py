@@ -228,7 +228,9 @@ def make_planner(s: Scenario) -> Any:
     cls = plugins.load("planners", name)
     if not s.chemistry.parameters and getattr(cls, "needs_parameters", True):
         raise PluginError(f"chemistry.parameters: empty, and planner {s.campaign.planner!r} proposes values for "
-                          "parameters: give at least one parameter with low and high")
+                          "parameters: give at least one parameter with low and high, or run a list of experiments "
+                          "as given (campaign.planner: fixed, with planner_options: {proposals: [{params: {...}}, "
+                          "...]})")
     if options and _options_not_taken(cls, options, PLANNER_ARGUMENTS)[0]:
         raise PluginError(f"campaign.planner: {s.campaign.planner!r}: planner {name!r} reads no policy file; a "
                           f"trained planner is rl:PATH (`--planner rl:{options['policy']}`)")
