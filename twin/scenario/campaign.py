@@ -13,8 +13,8 @@ from twin.scenario.spec import MAX_S, MAX_VALUE, Spec
 class Campaign(Spec):
     budget: int = Field(default=30, ge=1, le=1_000_000, description="experiments to propose at most")
     planner: str = Field(default="random", max_length=256, description="what proposes experiments: an installed "
-                         "planner (random, lhs, gp-bo, mf-gp-bo, ...; a wrong name lists them; fixed: the experiments of "
-                         "planner_options.proposals, in order), rl:POLICY.zip, or 'package.module:Class'")
+                         "planner (random, lhs, gp-bo, mf-gp-bo, ...; a wrong name lists them; fixed: the experiments "
+                         "of planner_options.proposals, in order), rl:POLICY.zip, or 'package.module:Class'")
     scheduler: str = Field(default="fifo", max_length=256, description="what decides which ready step runs on which "
                            "free device: a rule (fifo, spt, mwkr, least-loaded, oldest-sample), cp-sat, rl:POLICY.zip, "
                            "remote (an agent on the bus) or 'package.module:Class'")
