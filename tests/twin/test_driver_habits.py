@@ -123,3 +123,46 @@ def test_telemetry_or_progress_reported_in_a_loop_that_does_not_wait_is_named_on
         assert f"the last by ctx.{what}), in a loop that does not wait" in tight[0]
         assert "report between awaits of ctx.clock.sleep" in tight[0]
     assert said("Paced") == []  # as many readings, a lab-second apart
+
+
+class ForgetsAwait(Raises):
+    """Calls ctx.clock.sleep without ``await`` (``forgets``), or awaits a sleep it asked for earlier."""
+
+    forgets = True
+
+    async def run(self, step, params, sample, ctx):
+        if self.forgets:
+            ctx.clock.sleep(ctx.expected_s)
+        else:
+            later = ctx.clock.sleep(ctx.expected_s)
+            ctx.progress(0.5)
+            await later
+        return StepResult({"peak_nm": 500.0}, sample)
+
+
+class AwaitsLater(ForgetsAwait):
+    forgets = False
+
+
+def test_a_sleep_the_driver_did_not_await_is_named_once_per_device(tmp_path, caplog):
+    """`ctx.clock.sleep(s)` without await took no lab time and nothing said so on the fast runtime (on asyncio,
+    Python warns of the coroutine never awaited)."""
+    import logging
+
+    def run_with(driver):
+        lab = parse(qd_lab(**{
+            "devices.spectrometer": {"driver": f"tests.twin.test_driver_habits:{driver}", "instances": 2,
+                                     "steps": ["measure"], "duration": {"mean_s": 600, "cv": 0}},
+            "campaign.budget": 4, "bus.kind": "memory"}))  # two instances: a step that takes no time uses one
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            summary = run(lab, journal=tmp_path / f"{driver}.db", runtime="fast")
+        assert summary.done == 4
+        return summary, [r.getMessage() for r in caplog.records if "did not await it" in r.getMessage()]
+
+    forgot, said = run_with("ForgetsAwait")
+    assert len(said) == 1 and said[0].startswith("spectrometer-1: "), said  # once per device, not once per step
+    assert all("called ctx.clock.sleep(...) during measure and did not await it, so the step waited no lab time "
+               "for it: write `await ctx.clock.sleep(...)`" in m for m in said)
+    awaited, said = run_with("AwaitsLater")
+    assert said == [] and awaited.lab_hours > forgot.lab_hours + 600 / 3600  # the sleeps took lab time

@@ -9,6 +9,9 @@
 - **Chatter.** Telemetry or progress reported in a loop that does not wait: every report is a message and a
   journal row (100,000 readings in a step made a 97 MB journal for three experiments). The runtimes warn when
   ``SAME_INSTANT`` reports come at one lab instant.
+- **A sleep not awaited.** ``ctx.clock.sleep(s)`` without ``await`` waits nothing: the step takes no lab time, and
+  on a virtual clock nothing else says so. The fast runtime counts the sleeps a step asked for against those it
+  awaited (on the asyncio runtime Python itself warns of a coroutine never awaited).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ class Habits:
         self.holder = held.Holder(f"{device}'s driver", DRIVER_ADVICE)  # said blocking: once per device
         held.watch()
         self._chatter_said = False
+        self._unawaited_said = False
         self._instant: float | None = None
         self._readings = 0
 
@@ -49,6 +53,14 @@ class Habits:
                         "ctx.%s), in a loop that does not wait; each is a message and a journal row: report "
                         "between awaits of ctx.clock.sleep, every few lab-seconds (docs/drivers.md); said once per "
                         "device", self.device, SAME_INSTANT, t_lab, what)
+
+    def sleep_not_awaited(self, step: str) -> None:
+        """The driver asked the clock for a sleep during ``step`` and never awaited it: it waited no lab time."""
+        if not self._unawaited_said:
+            self._unawaited_said = True
+            log.warning("%s: its driver called ctx.clock.sleep(...) during %s and did not await it, so the step "
+                        "waited no lab time for it: write `await ctx.clock.sleep(...)` (docs/drivers.md); said once "
+                        "per device", self.device, step)
 
     def ran(self, since: float) -> None:
         """A driver's stretch that began at ``since`` (``time.perf_counter``) has ended."""

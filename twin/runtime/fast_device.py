@@ -69,6 +69,7 @@ class FastDevice:
         self._step_rngs = KeyedGenerator()
         self._ids = itertools.count(1)
         self._job: Any = None  # the running step's coroutine
+        self._slept = 0  # sleeps the driver loop was handed: awaited
         self._current: tuple[str, int] | None = None
         self._campaign = ""
         self._token = ""
@@ -189,6 +190,7 @@ class FastDevice:
                     watch.ran(since)
             exc = None
             if type(req) is Sleep:
+                self._slept += 1
                 if req.seconds > 0:
                     self._timer = self._q.call_later(req.seconds, self._resume)
                     return
@@ -241,7 +243,10 @@ class FastDevice:
             if hang:
                 await Park()  # only a cancel (a timeout) ends a hung step
             driver = self._shared.get(self._campaign, self.driver)
+            asked, slept = self._clock.made, self._slept
             result = step_result(await driver.run(step, cmd["params"], cmd["sample"], ctx), driver)
+            if self._clock.made - asked > self._slept - slept:
+                self._habits.sleep_not_awaited(step)
             await self._clock.sleep(spec.clean_s)
             if fail:
                 emit(Kind.FAULT, {"code": "failed", "reason": f"{step} failed on {self.name} (simulated)"})

@@ -101,14 +101,17 @@ class QueueClock:
 
     def __init__(self, queue: EventQueue) -> None:
         self._q = queue
+        self.made = 0  # sleeps asked for; the driver loop counts those awaited (one never awaited waited no time)
 
     def now(self) -> float:
         return self._q.now
 
     def sleep(self, seconds: float) -> Sleep:
+        self.made += 1
         return Sleep(lab_seconds(seconds))
 
     def sleep_until(self, t_lab: float) -> Sleep:
+        self.made += 1
         return Sleep(lab_seconds(t_lab, "sleep_until") - self._q.now)
 
     def timeout(self, seconds: float | None) -> Any:
