@@ -195,7 +195,8 @@ def load_driver(s: Scenario, device_type: str, name: str, simulated: bool | None
         instance = cls(setup)
     except PLUGIN_ERRORS as exc:
         said = str(exc) if isinstance(exc, TwinError) else f"{type(exc).__name__}: {exc}"  # KeyError: 'x', not 'x'
-        raise DriverError(f"driver {driver!r} for {name} failed to start: {said}") from exc
+        raise DriverError(f"driver {driver!r} for {name} failed to start: {said}{_takes_setup(cls, setup, exc)}"
+                          ) from exc
     caps = capabilities(instance, f"{field}.driver: {driver!r}")
     missing = set(spec.steps) - caps
     if missing:
@@ -263,6 +264,20 @@ def constructed(cls: Any, given: dict[str, Any], options: dict[str, Any]) -> Any
     if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
         given = {k: v for k, v in given.items() if k in params}
     return cls(**given, **options)
+
+
+def _takes_setup(cls: Any, setup: DriverSetup, exc: BaseException) -> str:
+    """For a driver's constructor that cannot take the one argument it is given: what that is (docs/drivers.md)."""
+    if not isinstance(exc, TypeError):
+        return ""
+    try:
+        inspect.signature(cls).bind(setup)
+    except TypeError:
+        return " (a driver's constructor is given one argument, its DriverSetup: `def __init__(self, setup)`; " \
+               "docs/drivers.md)"
+    except ValueError:  # no signature to read
+        pass
+    return ""
 
 
 def _given(exc: BaseException, what: str) -> str:
