@@ -31,6 +31,7 @@ from twin import Outcome, Proposal
 
 class GpBoPlanner:
     plans_routes = False  # every experiment runs the workflow as written
+    aims_at_targets = True  # chooses by the chance of meeting chemistry.targets: with none, it explores only
 
     def __init__(self, parameters: dict[str, Any], seed: int, targets: list[Any] = (), n_init: int = 6,
                  candidates: int = 2048, refit_every: int = 4, log_scale: bool = True, **_: Any) -> None:

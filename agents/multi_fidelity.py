@@ -29,6 +29,8 @@ PRIOR_CORRECTION_SD = 0.3  # eV: how far we believe DFT can be off before any ex
 
 
 class MultiFidelityPlanner:
+    aims_at_targets = True  # chooses by the chance of meeting chemistry.targets: with none, it explores only
+
     def __init__(self, parameters: dict[str, Any], seed: int, targets: list[Any] = (), n_dft: int = 12,
                  dft_step: str = "compute", dft_device: str = "dft", dft_output: str = "band_gap_dft_ev",
                  dft_inputs: tuple[str, ...] = ("indium_fraction",), candidates: int = 2048, **_: Any) -> None:

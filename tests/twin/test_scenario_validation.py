@@ -206,6 +206,20 @@ def test_a_device_type_no_step_runs_on_is_warned_of_when_the_planner_runs_the_wo
     assert "devices.dft: no workflow step runs on it" in routed.stderr  # gp-bo sends nothing to dft
 
 
+def test_a_planner_that_aims_at_targets_is_warned_of_in_a_lab_with_none():
+    """GP-BO with no targets only explores, silently; random and the fixed list are what such a lab means."""
+    qd = str(ROOT / "scenarios" / "quantum_dots.yaml")
+    for planner, lab in (("gp-bo", qd), ("mf-gp-bo", str(ROOT / "scenarios" / "bandgap.yaml"))):
+        res = twin_cli("validate", lab, "--set", "chemistry.targets=[]", "--set", f"campaign.planner={planner}")
+        assert res.exit_code == 0, res.stderr
+        said = " ".join(res.stderr.split())
+        assert f"chemistry.targets: none, and planner '{planner}' chooses each experiment by its chance of meeting a " \
+               "target, so it only explores" in said, said
+    for planner in ("random", "lhs"):
+        res = twin_cli("validate", qd, "--set", "chemistry.targets=[]", "--set", f"campaign.planner={planner}")
+        assert res.exit_code == 0 and "warning" not in res.stderr, res.stderr
+
+
 def test_validate_shows_each_warning_under_the_file_that_gave_it(tmp_path):
     """A lab whose measuring device only keeps time in the twin (the `machine` driver) can meet no target on a
     virtual clock: valid, warned of, and the warning names its file — not the other file checked beside it."""

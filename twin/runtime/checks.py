@@ -59,6 +59,10 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
     if types is None:
         for problem in _idle_types(s, planner):
             log.warning("%s", problem)
+    if not s.chemistry.targets and getattr(planner, "aims_at_targets", False):
+        log.warning("chemistry.targets: none, and planner %r chooses each experiment by its chance of meeting a "
+                    "target, so it only explores (as lhs or random would): give the targets, or name the planner that "
+                    "does what you mean", s.campaign.planner)
     if not benched:  # a bench runs the schedulers it names, not the scenario's (nor loads its policy to warn of it)
         _at("campaign.scheduler", make_scheduler, s)
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
