@@ -285,3 +285,31 @@ def test_a_health_report_says_the_step_runs_or_how_it_ended():
     assert reported({"recent": [["e0s0", 1, "x"], ["e0s1", 1, done]]}, "e0s1", 1) == (False, done)
     assert reported({"recent": [["e0s1", 1, cancelled]]}, "e0s1", 1) == (False, cancelled)  # killed: taken
     assert reported({"recent": [["e0s1", 1, cancelled]]}, "e0s1", 1, "interrupted (SIGINT)") == (False, None)
+
+
+@pytest.mark.process
+@pytest.mark.parametrize("planner", ["random", "fixed"])
+def test_a_resumed_live_campaigns_planner_goes_on_where_it_was_not_from_its_first_proposal(tmp_path, planner):
+    """A new planner made for the resume started again: random (and lhs) drew the first experiments again, the fixed
+    list proposed its first entries again — 12 experiments for a list of 8. Each proposal now is the one an
+    unbroken run makes (the same seed, in virtual time)."""
+    given = [{"params": {"x": 0.1 * i}} for i in range(8)]
+    lab = {"name": "ovens", "lab": "ovens", "chemistry": {"parameters": {"x": {"low": 0, "high": 1}}},
+           "devices": {"oven": {"driver": "machine", "steps": ["bake"], "instances": 2,
+                                "duration": {"mean_s": 600, "cv": 0.1}}},
+           "workflow": [{"step": "bake", "device": "oven"}],
+           "campaign": {"planner": planner, "budget": 8, "max_in_flight": 2,
+                        **({"planner_options": {"proposals": given}} if planner == "fixed" else {})},
+           "clock": {"mode": "scaled", "speed": 600}, "bus": {"kind": "memory"}}
+    db = tmp_path / "j.db"
+    _killed(lab, db, lambda: _count(db, "SELECT COUNT(*) FROM events WHERE kind='experiment.done'") >= 3)
+    resumed = subprocess.run(TWIN + ["resume", str(db), "--json"], cwd=ROOT, capture_output=True, text=True,
+                             timeout=120)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert json.loads(resumed.stdout)["proposed"] == 8
+    proposed = [json.loads(e["detail"]) for e in read_events(db) if e["kind"] == "experiment.proposed"]
+    unbroken = tmp_path / "unbroken.db"
+    subprocess.run(TWIN + ["run", str(db.with_name("lab.yaml")), "--clock", "virtual", "--journal", str(unbroken),
+                           "--quiet"], cwd=ROOT, check=True, capture_output=True, timeout=120)
+    assert proposed == [json.loads(e["detail"]) for e in read_events(unbroken) if e["kind"] == "experiment.proposed"]
+    assert len({p["x"] for p in proposed}) == 8  # none twice

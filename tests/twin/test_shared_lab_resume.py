@@ -147,6 +147,9 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
         assert len([e for e in events_now if e[2] == "campaign.resumed"]) == kills, name
         # the steps in the lab died with the process: lost and retried, no cancel left unanswered
         assert "attempt.cancel_unanswered" not in [e[2] for e in events_now[len(held[name][0]):]], name
+        # the resumed random planners went on drawing: a new one drew its first experiments again
+        proposed = [e[7] for e in events_now if e[2] == "experiment.proposed"]
+        assert len(set(proposed)) == len(proposed) == budget, (name, proposed)
         if "INT" in ends:  # the rebuilt journal has no stop: the steps it cancelled were sent again, no attempt used
             assert not [e for e in events_now if e[2] == "campaign.stopping" and "SIGINT" in (e[7] or "")], name
             assert not [e for e in events_now if e[2] == "attempt.failed" and '"cancelled"' in (e[7] or "")], name

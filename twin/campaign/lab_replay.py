@@ -40,6 +40,8 @@ class RebuiltLab:
     timers: dict[tuple[str, TimerKey], float] = field(default_factory=dict)  # (campaign or LAB, key) -> due
     asked: dict[str, Ask] = field(default_factory=dict)  # a question a campaign still waits on
     stopped: str = ""  # the stop (a Ctrl-C's) the lab ended with, left out: its steps in the lab were cancelled
+    planner_asks: dict[str, list[Ask]] = field(default_factory=dict)  # each campaign's planner's answered questions
+    plan_asked: dict[str, Ask] = field(default_factory=dict)  # a campaign's planner's question not answered yet
 
 
 def rebuild_lab(lab: Scenario, scenarios: dict[str, Scenario], batches: list[tuple[float, Any]],
@@ -88,6 +90,8 @@ def _replay(out: RebuiltLab, journals: dict[str, Journal], journal_for: Callable
                 out.timers.pop((name, event.key), None)
             if type(event) in (Proposed, Decided):
                 out.asked.pop(name, None)
+            if type(event) is Proposed and name in out.plan_asked:
+                out.planner_asks.setdefault(name, []).append(out.plan_asked.pop(name))
             shared.feed(name, event)
         elif what == "add":
             entry, scenario = SharedCampaign.model_validate(item[1]), Scenario.model_validate(item[2])
@@ -115,6 +119,8 @@ def _track(out: RebuiltLab, journals: dict[str, Journal], now: float, tagged: li
             out.timers.pop((name, a.key), None)
         elif t is Ask:
             out.asked[name] = a
+            if a.what == "plan":
+                out.plan_asked[name] = a
         elif t is Note:
             journals[name].note(a)
         elif t is RecordMessage:

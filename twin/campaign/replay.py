@@ -109,6 +109,8 @@ class Rebuilt:
     timers: dict[TimerKey, float] = field(default_factory=dict)  # pending timers: due lab time
     asked: Ask | None = None  # a question the core still waits on
     stopped: str = ""  # the stop the run ended with, left out (``unstopped``): its steps in the lab were cancelled
+    planner_asks: list[Ask] = field(default_factory=list)  # the planner's questions that were answered, in order
+    plan_asked: Ask | None = None  # the planner's question not answered yet
 
 
 class ReplayError(TwinError):
@@ -197,6 +199,9 @@ def _replay(out: Rebuilt, now: float, batch: dict[str, Any]) -> None:
                 out.timers.pop(event.key, None)
             if type(event) in (Proposed, Decided):
                 out.asked = None
+            if type(event) is Proposed and out.plan_asked is not None:
+                out.planner_asks.append(out.plan_asked)
+                out.plan_asked = None
             out.core.feed(event)
         actions = out.core.advance(now)
     for a in actions:
@@ -206,3 +211,5 @@ def _replay(out: Rebuilt, now: float, batch: dict[str, Any]) -> None:
             out.timers.pop(a.key, None)
         elif type(a) is Ask:
             out.asked = a
+            if a.what == "plan":
+                out.plan_asked = a

@@ -299,8 +299,9 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
                     on_progress: Callable[[CampaignCore], None] | None = None,
                     observer: LabObserver | None = None, scheduler: Any = None,
                     on_start: Callable[[LiveCampaign], None] | None = None, handle_signals: bool = True,
-                    make_journal: JournalFactory = Journal, rebuilt: Rebuilt | None = None) -> Summary:
-    """The campaign of ``s`` on the asyncio runtime; ``scheduler`` replaces the scenario's.
+                    make_journal: JournalFactory = Journal, rebuilt: Rebuilt | None = None,
+                    planner: Any = None) -> Summary:
+    """The campaign of ``s`` on the asyncio runtime; ``scheduler`` and ``planner`` replace the scenario's.
 
     ``handle_signals``: SIGINT/SIGTERM stop the campaign cleanly (off for the campaigns a training
     loop runs, where Ctrl-C must stop the training).
@@ -310,7 +311,7 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
     drivers = load_drivers(s, skip=set(external_devices))  # bad drivers fail before the bus opens
     if clock.is_virtual:
         refuse_realtime(drivers)
-    planner, scheduler = make_planner(s), scheduler or make_scheduler(s)
+    planner, scheduler = planner or make_planner(s), scheduler or make_scheduler(s)
     result: dict[str, Summary] = {}
     # each resource is released by the stack, in reverse order, however the campaign ends
     async with contextlib.AsyncExitStack() as stack:

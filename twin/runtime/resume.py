@@ -33,7 +33,8 @@ from twin.core.bus.presence import present
 from twin.core.clock import LabClock
 from twin.core.errors import TwinError
 from twin.core.numbers import finite
-from twin.runtime.lab import make_bus, run, run_async
+from twin.runtime.checked_planner import caught_up
+from twin.runtime.lab import make_bus, make_planner, run, run_async
 from twin.view.observer import LabObserver
 from twin.view.watch import RecordOptions
 from twin.scenario import Scenario, parse
@@ -182,11 +183,12 @@ def _resume_live(path: Path, s: Scenario, on_progress: Callable[[CampaignCore], 
         raise ResumeError(f"{path}: the campaign is still running ({running}); a second orchestrator would "
                           "dispatch the same steps. Stop it first, or watch it (twin watch); if it was killed just "
                           f"now, its token lasts one link lease ({s.bus.lease_ms} ms): try again then")
+    planner = caught_up(make_planner(s), s.campaign.planner, rebuilt.planner_asks)  # before the lab's time runs
     clock = LabClock(s.clock.mode, s.clock.speed, start=rebuilt.now)
     external = set(read_run(path).get("external") or ())
     log.info("resuming %s at %.0f lab-s: %d input batches replayed", path, rebuilt.now, len(batches))
     return clock.run(run_async(s, clock, path, external, on_progress, observer,
-                               make_journal=lambda p: Journal(p, append=True), rebuilt=rebuilt))
+                               make_journal=lambda p: Journal(p, append=True), rebuilt=rebuilt, planner=planner))
 
 
 async def _still_running(s: Scenario, clock: LabClock, wait_s: float = 1.0) -> str:
