@@ -5,7 +5,6 @@ budget, never an experiment in the lab."""
 
 from __future__ import annotations
 
-import inspect
 import logging
 import time
 from collections.abc import Sequence
@@ -17,7 +16,7 @@ from twin.campaign.events import Ask, Proposed
 from twin.core import held
 from twin.core.errors import PLUGIN_ERRORS
 from twin.core.messages import plain_value
-from twin.runtime.checked_scheduler import listed
+from twin.runtime.checked_scheduler import dropped_if_awaitable, listed
 
 log = logging.getLogger(__name__)
 #: what to do about a planner whose call has held the lab long
@@ -48,8 +47,7 @@ class CheckedPlanner:
             return self._fail(f"planner {self.name!r} raised {exc!r}"[:300])
 
     def _checked(self, answer: Any) -> Proposed:
-        if inspect.isawaitable(answer):
-            getattr(answer, "close", lambda: None)()  # never to be awaited: no "never awaited" warning
+        if dropped_if_awaitable(answer):
             return self._fail(f"planner {self.name!r} answered an awaitable ({type(answer).__name__}): propose() "
                               "must answer at once, a list of Proposal(params)")
         proposals = _proposals(answer)

@@ -36,9 +36,7 @@ class CheckedScheduler:
         try:
             held.holding(self.holder, time.perf_counter())
             decided = self.inner.decide(view)
-            awaited = inspect.isawaitable(decided)
-            if awaited:
-                getattr(decided, "close", lambda: None)()  # never to be awaited: no "never awaited" warning
+            awaited = dropped_if_awaitable(decided)
             items = None if awaited else assignments(decided)  # a generator's code runs here: covered too
         except PLUGIN_ERRORS as exc:
             return self.fallback.decide(view, "raised", f"scheduler {self.name!r} raised {exc!r}"[:300])
@@ -84,6 +82,15 @@ def assignments(decided: Any) -> list[Assignment] | None:
             return None
         out.append(a if type(a) is Assignment and type(task) is type(device) is str else Assignment(str(task), str(device)))
     return out
+
+
+def dropped_if_awaitable(answer: Any) -> bool:
+    """Whether a plugin's answer is an awaitable (a coroutine) where one is wanted at once: closed if so, as it
+    will never be awaited (no "never awaited" warning at exit)."""
+    if not inspect.isawaitable(answer):
+        return False
+    getattr(answer, "close", lambda: None)()
+    return True
 
 
 def listed(answer: Any) -> list[Any] | None:
