@@ -138,6 +138,19 @@ def test_the_cheapest_variant_within_the_hours_must_meet_every_target_in_every_r
     assert cheapest_within(shops, 8) is None and cheapest_within(shops, 8, targets=False)["variant"] == "two m0"
 
 
+def test_an_iqr_has_the_medians_decimals_below_100():
+    """A median of 15.7 stood beside an IQR of "16–16"."""
+    from twin.tools.whatif import AS_WRITTEN, rows
+
+    def row(lo, mid, hi):
+        return {"variant": AS_WRITTEN, "runs": 3, "reached": 3, "lab_hours": (lo, mid, hi), "lab_hours_change": None,
+                "cost_change": None, "changes": {}, "bottleneck": "", "utilisation": {}, "cost": (0, 0, 0)}
+
+    (narrow,), (wide,) = rows([row(15.62, 15.7, 15.81)], [], {}, True, frozenset()), \
+        rows([row(95.2, 140.3, 210.7)], [], {}, True, frozenset())
+    assert narrow[:2] == ["15.7", "15.6–15.8"] and wide[:2] == ["140.3", "95–211"]
+
+
 def test_each_instance_costs_its_hours_busy_or_not_and_the_cheapest_variant_weighs_them(tmp_path):
     from twin import run
 

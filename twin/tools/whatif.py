@@ -344,6 +344,12 @@ def costs_anything(summary: list[dict[str, Any]]) -> bool:
     return any(row["cost"][2] > 0 for row in summary)
 
 
+def _range(lo: float, hi: float, d: int) -> str:
+    """An IQR with the median's decimals, unless its ends reach 100 (narrow columns): "15.6–15.8", never "16–16"
+    beside a median of 15.7."""
+    return f"{lo:.{d}f}–{hi:.{d}f}" if hi < 100 else f"{lo:.0f}–{hi:.0f}"
+
+
 def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any], targets: bool,
          shown: frozenset[str] = frozenset({"cost", "abandoned"})) -> list[list[str]]:
     out = []
@@ -358,7 +364,7 @@ def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any]
         out.append([
             *[f"{_shown(written.get(name))}*" if base else _shown(row["changes"].get(name, written.get(name)))
               for name in axes],
-            f"{censored}{mid:.{d}f}", f"{lo:.{d}f}–{hi:.{d}f}" if hi < 10 else f"{lo:.0f}–{hi:.0f}",
+            f"{censored}{mid:.{d}f}", _range(lo, hi, d),
             "—" if base or change is None else f"{change[1]:+.{d}f}",
             *([f"{row['cost'][1]:,.0f}", "—" if base or cost_change is None else f"{cost_change[1]:+,.0f}"]
               if "cost" in shown else []),
