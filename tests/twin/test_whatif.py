@@ -138,7 +138,7 @@ def test_the_cheapest_variant_within_the_hours_must_meet_every_target_in_every_r
     assert cheapest_within(shops, 8) is None and cheapest_within(shops, 8, targets=False)["variant"] == "two m0"
 
 
-def test_an_iqr_has_the_medians_decimals_below_100():
+def test_an_iqr_has_the_medians_decimals_where_whole_numbers_would_hide_it():
     """A median of 15.7 stood beside an IQR of "16–16"."""
     from twin.tools.whatif import AS_WRITTEN, rows
 
@@ -149,6 +149,8 @@ def test_an_iqr_has_the_medians_decimals_below_100():
     (narrow,), (wide,) = rows([row(15.62, 15.7, 15.81)], [], {}, True, frozenset()), \
         rows([row(95.2, 140.3, 210.7)], [], {}, True, frozenset())
     assert narrow[:2] == ["15.7", "15.6–15.8"] and wide[:2] == ["140.3", "95–211"]
+    (some,) = rows([row(12.2, 14.3, 17.9)], [], {}, True, frozenset())
+    assert some[:2] == ["14.3", "12–18"]  # whole numbers where they show the spread: the table stays narrow
 
 
 def test_each_instance_costs_its_hours_busy_or_not_and_the_cheapest_variant_weighs_them(tmp_path):

@@ -345,9 +345,10 @@ def costs_anything(summary: list[dict[str, Any]]) -> bool:
 
 
 def _range(lo: float, hi: float, d: int) -> str:
-    """An IQR with the median's decimals, unless its ends reach 100 (narrow columns): "15.6–15.8", never "16–16"
-    beside a median of 15.7."""
-    return f"{lo:.{d}f}–{hi:.{d}f}" if hi < 100 else f"{lo:.0f}–{hi:.0f}"
+    """An IQR with the median's decimals below 10 or where whole numbers would hide it ("15.6–15.8", never "16–16"
+    beside a median of 15.7); else whole numbers, for a narrow column."""
+    whole = f"{lo:.0f}–{hi:.0f}"
+    return f"{lo:.{d}f}–{hi:.{d}f}" if hi < 10 or f"{lo:.0f}" == f"{hi:.0f}" else whole
 
 
 def rows(summary: list[dict[str, Any]], axes: list[str], written: dict[str, Any], targets: bool,
