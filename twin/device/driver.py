@@ -9,7 +9,7 @@ owns deadlines and cancels the step (an ``asyncio.CancelledError`` inside
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -75,9 +75,15 @@ class StepContext:
     expected_s: float = 0.0  # lab seconds the lab expects the step to take
     deadline_s: float | None = None  # lab seconds from dispatch after which the lab cancels the step
 
-    def draw_duration(self, params: dict[str, Any]) -> float:
-        """A lognormal draw around the scenario's mean, plus the parameter it names."""
+    def draw_duration(self, params: Mapping[str, Any] | None = None) -> float:
+        """A lognormal draw around the scenario's mean, plus the parameter it names (``duration.plus_param``: then
+        the step's ``params`` are needed)."""
         d = self.duration
+        if params is None:
+            if d.plus_param:
+                raise TypeError(f"draw_duration() needs the step's params: this device type's duration adds the "
+                                f"parameter {d.plus_param!r} (duration.plus_param); call ctx.draw_duration(params)")
+            params = {}
         base = d.mean_s
         if base > 0 and d.cv > 0:
             sigma = math.sqrt(math.log(1 + d.cv**2))
