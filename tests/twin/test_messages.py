@@ -31,6 +31,19 @@ def test_decode_names_sender_and_reason():
         decode(b'{"v":2,"kind":"result","id":"x","sender":"s","t_lab":0,"body":{}}')
 
 
+@pytest.mark.parametrize("readings, says", [
+    ({"lamp_c": 40.0, "trace": [1, 2]}, "telemetry body: readings['trace']: Expected `float`, got `array`"),
+    ({"ok": True}, "readings['ok']: Expected `float`, got `bool`"),
+    ({"t": float("nan")}, "readings['t']: Expected `float`, got `null`"),  # NaN goes on the wire as null
+    ({"t": "31.2"}, "readings['t']: Expected `float`, got `str`"),
+])
+def test_an_invalid_reading_is_named(readings, says):
+    """The reason said `readings[...]`: which of a driver's readings was wrong, it did not say."""
+    with pytest.raises(InvalidMessage) as info:
+        decode(pack(Kind.TELEMETRY, {"readings": readings}, id="x", sender="spec-1", t_lab=1.0))
+    assert says in info.value.reason, info.value.reason
+
+
 async def lab_on_a_memory_bus(s, clock):
     """A started memory bus with the scenario's device actors on it."""
     bus = MemoryBus(MemoryHub())

@@ -10,6 +10,7 @@ and the reason, so a receiver can log it and drop it without crashing.
 from __future__ import annotations
 
 import hashlib
+import math
 import re
 from enum import StrEnum
 from typing import Annotated, Any, Literal
@@ -223,8 +224,18 @@ def decode(payload: bytes, sender_hint: str = "?") -> tuple[Envelope, _Body]:
     try:
         body = msgspec.convert(env.body, BODIES[env.kind])
     except msgspec.ValidationError as exc:
-        raise InvalidMessage(env.sender, f"{env.kind} body: {_reason(exc)}") from None
+        raise InvalidMessage(env.sender, f"{env.kind} body: {_named(_reason(exc), env.body)}") from None
     return env, body
+
+
+def _named(reason: str, body: Any) -> str:
+    """``reason`` with the reading it is about named: msgspec says ``readings[...]`` of a mapping's value."""
+    readings = body.get("readings") if isinstance(body, dict) else None
+    if not reason.startswith("readings[...]") or not isinstance(readings, dict):
+        return reason
+    bad = next((k for k, v in readings.items()
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v)), None)
+    return reason if bad is None else f"readings[{str(bad)[:64]!r}]" + reason[len("readings[...]"):]
 
 
 def excerpt(payload: bytes, limit: int = 200) -> str:
