@@ -42,6 +42,9 @@ def test_an_invalid_reading_is_named(readings, says):
     with pytest.raises(InvalidMessage) as info:
         decode(pack(Kind.TELEMETRY, {"readings": readings}, id="x", sender="spec-1", t_lab=1.0))
     assert says in info.value.reason, info.value.reason
+    with pytest.raises(InvalidMessage, match=r"fraction: Expected `float` <= 1.0 \(a fraction of the step, 0 to 1: "
+                                              r"not a percentage\)"):
+        decode(pack(Kind.PROGRESS, {"fraction": 50, "note": ""}, id="x", sender="spec-1", t_lab=1.0))
 
 
 async def lab_on_a_memory_bus(s, clock):

@@ -229,7 +229,10 @@ def decode(payload: bytes, sender_hint: str = "?") -> tuple[Envelope, _Body]:
 
 
 def _named(reason: str, body: Any) -> str:
-    """``reason`` with the reading it is about named: msgspec says ``readings[...]`` of a mapping's value."""
+    """``reason`` with the reading it is about named (msgspec says ``readings[...]`` of a mapping's value), and a
+    progress given as a percentage said to be one."""
+    if reason.startswith("fraction: Expected `float` <= 1.0"):
+        return reason + " (a fraction of the step, 0 to 1: not a percentage)"
     readings = body.get("readings") if isinstance(body, dict) else None
     if not reason.startswith("readings[...]") or not isinstance(readings, dict):
         return reason
