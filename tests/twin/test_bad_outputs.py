@@ -129,28 +129,25 @@ class OddSample:
         pass
 
 
-def test_a_result_whose_sample_the_lab_cannot_carry_fails_its_attempt_alike_on_both_runtimes(tmp_path, caplog):
+def test_a_result_whose_sample_the_lab_cannot_carry_fails_its_attempt_alike_on_both_runtimes(tmp_path):
     """Once it stopped the campaign (float(None)); now each is a failed attempt naming the device and the field,
-    retried like any other, and the two runtimes agree to the attempt (a sample that is not an object is an
-    invalid message on a bus, so in the fast runtime too, where it is now logged as a bus receiver logs it)."""
-    import logging
-
+    retried like any other, and the two runtimes agree to the attempt. A sample that is no mapping (a number) was
+    an invalid message, dropped, and its step waited out its deadline: the driver's error now, at once."""
     lab = parse(qd_lab(**{"devices.synthesiser.driver": "tests.twin.test_bad_outputs:OddSample",
                           "campaign.budget": 6, "orchestrator.quarantine_after": 100}))
-    with caplog.at_level(logging.WARNING):
-        fast = run(lab, journal=tmp_path / "fast.db", runtime="auto")
-    assert any(r.getMessage().startswith("dropped a message from synthesiser: invalid message from synthesiser")
-               for r in caplog.records)
+    fast = run(lab, journal=tmp_path / "fast.db", runtime="auto")
     slow = run(lab, journal=tmp_path / "slow.db", runtime="asyncio")
     assert fast.done + fast.abandoned == 6 and fast.done >= 1
     for field in ("done", "abandoned", "attempts", "failed_attempts", "invalid_messages", "timed_out"):
         assert getattr(fast, field) == getattr(slow, field), field
-    assert fast.invalid_messages > 0  # the sample that is a number
+    assert fast.invalid_messages == 0 and fast.timed_out == 0
     reasons = [json.loads(e["detail"])["reason"] for e in read_events(tmp_path / "fast.db", "attempt.failed")
                if json.loads(e["detail"])["code"] == "driver_error"]
     assert {"'yesterday'", "'None'", "'[1]'", "after the lab's time now"} <= {
         w for r in reasons for w in ("'yesterday'", "'None'", "'[1]'", "after the lab's time now") if w in r}
-    assert all(r.startswith("synthesiser returned a result the lab cannot use") for r in reasons)
+    cannot_carry = [r for r in reasons if r.startswith("synthesiser returned a result the lab cannot use")]
+    no_mapping = [r for r in reasons if "OddSample.run() returned a sample of type int 5: a sample is a mapping" in r]
+    assert cannot_carry and no_mapping and len(cannot_carry) + len(no_mapping) == len(reasons)
 
 
 def test_what_a_result_must_hold():
@@ -163,3 +160,36 @@ def test_what_a_result_must_hold():
     assert "t_made" in problem({"outputs": {}, "sample": {"t_made": float("inf")}}, now=0.0)
     assert "after the lab's time" in problem({"outputs": {}, "sample": {"t_made": 100.0}}, now=20.0)
     assert "JSON object" in problem({"outputs": [1], "sample": None}, now=0.0)
+
+
+class ListedOutputs:
+    capabilities = frozenset({"measure"})
+
+    def __init__(self, setup):
+        pass
+
+    async def run(self, step, params, sample, ctx):
+        await ctx.clock.sleep(60)
+        return StepResult([sample["peak_nm"]] if sample else None, sample)
+
+    async def safe_state(self):
+        pass
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_outputs_that_are_no_mapping_fail_the_step_at_once_as_the_drivers_error(tmp_path, runtime):
+    """They were an invalid message, dropped: each step waited out its deadline, then was retried, until the
+    device was quarantined."""
+    from twin import driver_setup, run_step
+    from twin.core.errors import DriverError
+
+    with pytest.raises(DriverError, match=r"ListedOutputs.run\(\) returned outputs of type NoneType None: outputs "
+                                          r"are what was measured, by name: StepResult\(\{name: value, ...\}, sample\)"):
+        run_step(ListedOutputs(driver_setup()), "measure", {}, None)
+    lab = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_outputs:ListedOutputs",
+                          "campaign.budget": 2}))
+    summary = run(lab, journal=tmp_path / "j.db", runtime=runtime)
+    assert summary.timed_out == 0 and summary.invalid_messages == 0 and summary.abandoned == 2
+    failed = [json.loads(e["detail"]) for e in read_events(tmp_path / "j.db", "attempt.failed")]
+    assert failed and all(f["code"] == "driver_error" and "returned outputs of type list" in f["reason"]
+                          for f in failed)

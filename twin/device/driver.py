@@ -56,6 +56,15 @@ def step_result(result: Any, driver: Any) -> StepResult:
     """What ``driver.run`` returned, if it is a ``StepResult`` (or has its two fields); else the driver's error,
     saying what to return."""
     if isinstance(result, StepResult) or (hasattr(result, "outputs") and hasattr(result, "sample")):
+        name = type(driver).__name__
+        if not isinstance(result.outputs, Mapping):
+            raise DriverError(f"{name}.run() returned outputs of type {type(result.outputs).__name__} "
+                              f"{repr(result.outputs)[:60]}: outputs are what was measured, by name: "
+                              "StepResult({name: value, ...}, sample)")
+        if result.sample is not None and not isinstance(result.sample, Mapping):
+            raise DriverError(f"{name}.run() returned a sample of type {type(result.sample).__name__} "
+                              f"{repr(result.sample)[:60]}: a sample is a mapping of its fields (the one given, "
+                              "updated), or None to pass on the one given")
         return result
     hint = (": a tuple (outputs, sample)? return StepResult(outputs, sample)" if isinstance(result, tuple) else
             ": return StepResult(outputs, sample)")
