@@ -183,8 +183,9 @@ def test_outputs_that_are_no_mapping_fail_the_step_at_once_as_the_drivers_error(
     from twin import driver_setup, run_step
     from twin.core.errors import DriverError
 
-    with pytest.raises(DriverError, match=r"ListedOutputs.run\(\) returned outputs of type NoneType None: outputs "
-                                          r"are what was measured, by name: StepResult\(\{name: value, ...\}, sample\)"):
+    with pytest.raises(DriverError, match=r"ListedOutputs.run\(\) returned outputs of type NoneType None: "
+                                          r"outputs are what was measured, by name: "
+                                          r"StepResult\(\{name: value, ...\}, sample\)"):
         run_step(ListedOutputs(driver_setup()), "measure", {}, None)
     lab = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_outputs:ListedOutputs",
                           "campaign.budget": 2}))
