@@ -25,7 +25,7 @@ from typing import Any
 from twin.campaign.events import (Ask, CancelTimer, Decided, Note, Proposed, RecordExperiment, RecordMessage,
                                   SetTimer, TimerFired, TimerKey)
 from twin.campaign.journal import Journal
-from twin.campaign.replay import ReplayError, decode_input, encode, replay_batches, unstopped
+from twin.campaign.replay import PlannerAsk, ReplayError, decode_input, encode, replay_batches, unstopped
 from twin.campaign.sharing import LAB, SharedLab
 from twin.scenario.model import Scenario, SharedCampaign
 
@@ -40,7 +40,7 @@ class RebuiltLab:
     timers: dict[tuple[str, TimerKey], float] = field(default_factory=dict)  # (campaign or LAB, key) -> due
     asked: dict[str, Ask] = field(default_factory=dict)  # a question a campaign still waits on
     stopped: str = ""  # the stop (a Ctrl-C's) the lab ended with, left out: its steps in the lab were cancelled
-    planner_asks: dict[str, list[Ask]] = field(default_factory=dict)  # each campaign's planner's answered questions
+    planner_asks: dict[str, list[PlannerAsk]] = field(default_factory=dict)  # each campaign's planner's, answered
     plan_asked: dict[str, Ask] = field(default_factory=dict)  # a campaign's planner's question not answered yet
 
 
@@ -91,7 +91,7 @@ def _replay(out: RebuiltLab, journals: dict[str, Journal], journal_for: Callable
             if type(event) in (Proposed, Decided):
                 out.asked.pop(name, None)
             if type(event) is Proposed and name in out.plan_asked:
-                out.planner_asks.setdefault(name, []).append(out.plan_asked.pop(name))
+                out.planner_asks.setdefault(name, []).append(PlannerAsk.of(out.plan_asked.pop(name)))
             shared.feed(name, event)
         elif what == "add":
             entry, scenario = SharedCampaign.model_validate(item[1]), Scenario.model_validate(item[2])

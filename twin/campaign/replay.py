@@ -102,6 +102,20 @@ def decode_input(data: list[Any]) -> Any:
     raise ValueError(f"unknown input {kind!r} in the journal")
 
 
+@dataclass(frozen=True, slots=True)
+class PlannerAsk:
+    """A question the planner answered, kept small: its history was the first ``known`` outcomes of the core's
+    (which only grows), so a long campaign's rebuild does not hold a copy of it per question."""
+
+    n: int
+    known: int
+    pending: tuple[dict[str, Any], ...]
+
+    @staticmethod
+    def of(ask: Ask) -> PlannerAsk:
+        return PlannerAsk(ask.n, len(ask.history), ask.pending)
+
+
 @dataclass
 class Rebuilt:
     core: CampaignCore
@@ -109,7 +123,7 @@ class Rebuilt:
     timers: dict[TimerKey, float] = field(default_factory=dict)  # pending timers: due lab time
     asked: Ask | None = None  # a question the core still waits on
     stopped: str = ""  # the stop the run ended with, left out (``unstopped``): its steps in the lab were cancelled
-    planner_asks: list[Ask] = field(default_factory=list)  # the planner's questions that were answered, in order
+    planner_asks: list[PlannerAsk] = field(default_factory=list)  # the planner's questions answered, in order
     plan_asked: Ask | None = None  # the planner's question not answered yet
 
 
@@ -200,7 +214,7 @@ def _replay(out: Rebuilt, now: float, batch: dict[str, Any]) -> None:
             if type(event) in (Proposed, Decided):
                 out.asked = None
             if type(event) is Proposed and out.plan_asked is not None:
-                out.planner_asks.append(out.plan_asked)
+                out.planner_asks.append(PlannerAsk.of(out.plan_asked))
                 out.plan_asked = None
             out.core.feed(event)
         actions = out.core.advance(now)

@@ -12,7 +12,8 @@ from dataclasses import replace
 from typing import Any
 
 from twin.campaign.decisions import Outcome, Proposal, RouteStep
-from twin.campaign.events import Ask, Proposed
+from twin.campaign.events import Proposed
+from twin.campaign.replay import PlannerAsk
 from twin.core import held
 from twin.core.errors import PLUGIN_ERRORS
 from twin.core.messages import plain_value
@@ -79,16 +80,16 @@ def covered(planner: Any, name: str) -> CheckedPlanner:
     return planner if isinstance(planner, CheckedPlanner) else CheckedPlanner(planner, name)
 
 
-def caught_up(planner: Any, name: str, asks: Sequence[Ask]) -> CheckedPlanner:
-    """``planner`` (covered) asked again, in order, the questions a killed live campaign's planner had answered, its
-    answers dropped: a planner that keeps state (the fixed list's place in it, random's and lhs's draws, GP-BO's
-    fitted kernel) goes on where it was, where a new one would propose its first experiments again. A virtual-time
-    resume re-runs the whole campaign, planner included, and needs none of this."""
+def caught_up(planner: Any, name: str, asks: Sequence[PlannerAsk], history: Sequence[Outcome]) -> CheckedPlanner:
+    """``planner`` (covered) asked again, in order, the questions a killed live campaign's planner had answered
+    (``history``: the rebuilt core's), its answers dropped: a planner that keeps state (the fixed list's place in it,
+    random's and lhs's draws, GP-BO's fitted kernel) goes on where it was, where a new one would propose its first
+    experiments again. A virtual-time resume re-runs the whole campaign, planner included, and needs none of this."""
     checked = covered(planner, name)
     if asks:
         log.info("asking the planner again the %d question(s) it answered before the campaign stopped", len(asks))
     for ask in asks:
-        checked.answer(ask.n, list(ask.history), list(ask.pending))
+        checked.answer(ask.n, list(history[:ask.known]), list(ask.pending))
     return checked
 
 

@@ -183,7 +183,8 @@ def _resume_live(path: Path, s: Scenario, on_progress: Callable[[CampaignCore], 
         raise ResumeError(f"{path}: the campaign is still running ({running}); a second orchestrator would "
                           "dispatch the same steps. Stop it first, or watch it (twin watch); if it was killed just "
                           f"now, its token lasts one link lease ({s.bus.lease_ms} ms): try again then")
-    planner = caught_up(make_planner(s), s.campaign.planner, rebuilt.planner_asks)  # before the lab's time runs
+    # before the lab's time runs
+    planner = caught_up(make_planner(s), s.campaign.planner, rebuilt.planner_asks, rebuilt.core.history)
     clock = LabClock(s.clock.mode, s.clock.speed, start=rebuilt.now)
     external = set(read_run(path).get("external") or ())
     log.info("resuming %s at %.0f lab-s: %d input batches replayed", path, rebuilt.now, len(batches))

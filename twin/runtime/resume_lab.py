@@ -175,7 +175,8 @@ def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], han
     scenarios = rebuilt.scenarios
     drivers, per_device = shared_drivers(scenarios, skip=external) if scenarios else (
         _standby_drivers(s, external), {})
-    parts = {n: (Journal(where / f"{n}.db", append=True), *_parts_of(cs, rebuilt.planner_asks.get(n, [])))
+    parts = {n: (Journal(where / f"{n}.db", append=True),
+                 *_parts_of(cs, rebuilt.planner_asks.get(n, []), rebuilt.shared.cores[n].history))
              for n, cs in scenarios.items()}
     clock = LabClock(s.clock.mode, s.clock.speed, start=rebuilt.now)
     return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, time.perf_counter(),
@@ -184,9 +185,9 @@ def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], han
                            observer=observer, rebuilt=rebuilt, external=external))
 
 
-def _parts_of(cs: Scenario, asks: list) -> tuple:
+def _parts_of(cs: Scenario, asks: list, history: list) -> tuple:
     """A campaign's planner, caught up with the questions it had answered (``caught_up``), and scheduler."""
     from twin.runtime.checked_planner import caught_up
     from twin.runtime.lab import make_planner, make_scheduler
 
-    return caught_up(make_planner(cs), cs.campaign.planner, asks), make_scheduler(cs)
+    return caught_up(make_planner(cs), cs.campaign.planner, asks, history), make_scheduler(cs)
