@@ -161,3 +161,26 @@ def test_a_bench_runs_seed_by_seed_so_its_progress_is_a_fair_share_of_the_whole(
                          InOrder())
     assert [name for name, _ in done[:3]] == ["fifo", "cp-sat", "rl:p.zip"]  # a share of each in the first third
     assert results == {name: [(name, seed) for seed in range(3)] for name in ("fifo", "cp-sat", "rl:p.zip")}
+
+
+def test_a_scheduler_that_may_take_minutes_a_campaign_is_said_before_the_bench_runs(monkeypatch):
+    """cp-sat on a lab of 1,800 decisions a campaign (1 s each at most) sat behind a bar reading "about 0:00:30
+    left" (from the rules' quick runs) for half an hour a campaign, unannounced."""
+    from twin.runtime.lab import make_scheduler, prepare
+    from twin.tools.scheduler_bench import slow_schedulers
+
+    wide = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"campaign.budget": 600})
+    made = {name: make_scheduler(wide, name) for name in ("mwkr", "cp-sat")}
+    assert slow_schedulers(wide, made, 20) == ("cp-sat decides in up to 1 s of wall time, about 1,800 decisions a "
+                                               "campaign here: up to 30 min for each of its 20 campaign(s)")
+    small = prepare(ROOT / "scenarios" / "flaky_lab.yaml")  # 180 decisions: 3 min at most, said nothing
+    assert slow_schedulers(small, {n: make_scheduler(small, n) for n in ("mwkr", "cp-sat")}, 20) == ""
+    ft10 = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={"jobshop.file": "jobshop/ft10.txt"})
+    cp_sat = {"cp-sat": make_scheduler(ft10, "cp-sat")}
+    assert slow_schedulers(ft10, cp_sat, 1) == ""  # a job shop's decisions are its operations: 100, 100 s at most
+    monkeypatch.setattr("twin.tools.scheduler_bench.SLOW_RUN_S", 60.0)
+    assert "about 100 decisions a campaign here: up to 2 min for each of its 1 campaign(s)" in \
+        slow_schedulers(ft10, cp_sat, 1)
+    res = twin_cli("bench", "schedulers", str(ROOT / "scenarios" / "flaky_lab.yaml"), "--schedulers", "mwkr",
+                   "--seeds", "1", "--set", "campaign.budget=4")
+    assert res.exit_code == 0 and "decides in up to" not in res.stderr

@@ -270,7 +270,7 @@ def bench_schedulers(
 
     from twin.tools.planner_bench import bench_pool
     from twin.tools.scheduler_bench import (BOUND_S, COUNTS, HEADER, bench, bound, caption, deterministic,
-                                            load_variant, played_ahead, rows, shops)
+                                            load_variant, played_ahead, rows, shops, slow_schedulers)
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if not names:
@@ -294,10 +294,12 @@ def bench_schedulers(
             try:
                 s = one_campaign(checked(load_variant(scenario, file, budget, sets, instance), scenario, benched=True),
                                  scenario, "schedulers")
-                for name in names:
-                    lab.make_scheduler(s, name)
+                made = {name: lab.make_scheduler(s, name) for name in names}
             except TwinError as exc:
                 _fail(exc)
+            slow = slow_schedulers(s, made, 1 if deterministic(s) else seeds)
+            if slow and not as_json:
+                err.print(f"{slow} (workers share them out; Ctrl-C stops the bench)", highlight=False)
             title = instance or f"{Path(file).stem if file else s.name}"
             best = bound(s, on_long=None if as_json else lambda: err.print(
                 f"{title}: CP-SAT solving the shop for the bound (up to {BOUND_S:.0f} s) ...", highlight=False))
@@ -334,19 +336,21 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     from dataclasses import asdict
 
     from twin.tools.planner_bench import label
-    from twin.tools.scheduler_bench import load_variant
+    from twin.tools.scheduler_bench import load_variant, slow_schedulers
     from twin.tools.shape_bench import measure, shapes, variants, verdict
 
     try:
         s = one_campaign(checked(load_variant(scenario, None, budget, changes), scenario, benched=True), scenario,
                          "schedulers")
         measure(s, by)  # said before the progress bar
-        for name in names:
-            lab.make_scheduler(s, name)
+        made = {name: lab.make_scheduler(s, name) for name in names}
     except TwinError as exc:
         _fail(exc)
     if s.jobshop is not None:
         _fail(TwinError("--shapes varies a lab's devices and samples; for job shops use --jobshop FILES"))
+    slow = slow_schedulers(s, made, seeds * len(variants(s, random_labs)))
+    if slow and not as_json:
+        err.print(f"{slow} (workers share them out; Ctrl-C stops the bench)", highlight=False)
     others = list(names)
     header = ["shape", "best rule", "its mean h", *[label(n) for n in others]]
     what = "makespan lab-h" if by == "makespan" else (

@@ -138,6 +138,24 @@ def played_ahead(s: Scenario, names: list[str]) -> str:
             "policy deciding as the lab goes; the rules ran as they go")
 
 
+#: A campaign of a slow scheduler that may take longer than this (wall seconds) is said before the bench runs
+SLOW_RUN_S = 300.0
+
+
+def slow_schedulers(s: Scenario, made: dict[str, object], runs: int) -> str:
+    """What the bench may wait for, said before it starts ('' if little): schedulers with a time limit a decision
+    (``time_limit_s``, CP-SAT's) times about a decision a workflow step (a job shop: an operation) per campaign."""
+    proposals = s.campaign.planner_options.get("proposals") if s.jobshop is not None else None
+    decisions = sum(len(p.get("route") or ()) for p in proposals) if isinstance(proposals, list) else \
+        s.campaign.budget * max(1, len(s.workflow))
+    slow = {name: getattr(m, "time_limit_s") for name, m in made.items()
+            if isinstance(getattr(m, "time_limit_s", None), (int, float))
+            and decisions * getattr(m, "time_limit_s") > SLOW_RUN_S}
+    return "; ".join(f"{label(name)} decides in up to {limit:g} s of wall time, about {decisions:,} decisions a "
+                     f"campaign here: up to {decisions * limit / 60:,.0f} min for each of its {runs} campaign(s)"
+                     for name, limit in slow.items())
+
+
 def rows(results: dict[str, list[Run]], optimum: float | None, unit_s: float) -> list[list[str]]:
     """The table's rows; ``optimum``: the bound's makespan (lab-s)."""
     means = {k: statistics.mean(r.makespan_s for r in v) for k, v in results.items()}
