@@ -41,15 +41,17 @@ class FixedPlanner:
             )
             for p in proposals
         ]
-        self._given = len(self._queue)
+        self._given, self._next = len(self._queue), 0
 
     def propose(self, n: int, history: list[Outcome], pending: list[dict[str, Any]]) -> list[Proposal]:
-        out, self._queue = self._queue[:n], self._queue[n:]
+        out = self._queue[self._next:self._next + n]  # a place in the list: a resume asks again every question
+        self._next += len(out)
         return out
 
     @property
     def why_no_more(self) -> str:
-        return "" if self._queue else f"all {self._given} of campaign.planner_options.proposals were proposed"
+        left = self._next < len(self._queue)
+        return "" if left else f"all {self._given} of campaign.planner_options.proposals were proposed"
 
 
 def _check_proposals(proposals: Any) -> None:

@@ -313,3 +313,39 @@ def test_a_resumed_live_campaigns_planner_goes_on_where_it_was_not_from_its_firs
                            "--quiet"], cwd=ROOT, check=True, capture_output=True, timeout=120)
     assert proposed == [json.loads(e["detail"]) for e in read_events(unbroken) if e["kind"] == "experiment.proposed"]
     assert len({p["x"] for p in proposed}) == 8  # none twice
+
+
+class Remembers:
+    """A planner that notes what it was asked, and takes ``wait`` wall seconds a question."""
+
+    def __init__(self, wait=0.0):
+        self.asked, self.wait = [], wait
+
+    def propose(self, n, history, pending):
+        self.asked.append((n, [o.params["x"] for o in history], pending))
+        time.sleep(self.wait)
+        return []
+
+
+def test_a_resumed_planner_is_asked_its_questions_again_in_order_for_thirty_seconds_at_most(monkeypatch, caplog):
+    """Each question with the history it had (a prefix of the rebuilt core's) and its pending experiments; and not
+    for ever: GP-BO asked 400 questions again refits for many minutes, and its proposals follow from the history."""
+    import logging
+
+    from twin.campaign.decisions import Outcome
+    from twin.campaign.replay import PlannerAsk
+    from twin.runtime import checked_planner
+
+    history = [Outcome({"x": float(i)}, {"y": 1.0}, 1.0) for i in range(4)]
+    asks = [PlannerAsk(3, 0, ()), PlannerAsk(1, 2, ({"x": 2.0},)), PlannerAsk(2, 4, ())]
+    quick = checked_planner.caught_up(Remembers(), "remembers", asks, history)
+    assert quick.inner.asked == [(3, [], []), (1, [0.0, 1.0], [{"x": 2.0}]), (2, [0.0, 1.0, 2.0, 3.0], [])]
+    monkeypatch.setattr(checked_planner, "CATCH_UP_S", 0.2)
+    with caplog.at_level(logging.WARNING):
+        slow = checked_planner.caught_up(Remembers(wait=0.05), "slow", [PlannerAsk(1, 0, ())] * 100, [])
+    assert 2 <= len(slow.inner.asked) < 100
+    said = [r.getMessage() for r in caplog.records if "was asked again" in r.getMessage()]
+    assert said == [f"planner 'slow' was asked again {len(slow.inner.asked)} of the 100 questions it had answered "
+                    "before the campaign stopped, in 0.2 s, and not the rest: it goes on from the history it is given "
+                    "(a planner whose proposals follow from it, as GP-BO's do, proposes as it would have; one that "
+                    "keeps a place in a list of its own may propose an experiment again)"]

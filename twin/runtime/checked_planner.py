@@ -80,15 +80,26 @@ def covered(planner: Any, name: str) -> CheckedPlanner:
     return planner if isinstance(planner, CheckedPlanner) else CheckedPlanner(planner, name)
 
 
+#: Wall seconds a resumed campaign spends asking its planner again the questions it had answered, at most
+CATCH_UP_S = 30.0
+
+
 def caught_up(planner: Any, name: str, asks: Sequence[PlannerAsk], history: Sequence[Outcome]) -> CheckedPlanner:
     """``planner`` (covered) asked again, in order, the questions a killed live campaign's planner had answered
     (``history``: the rebuilt core's), its answers dropped: a planner that keeps state (the fixed list's place in it,
-    random's and lhs's draws, GP-BO's fitted kernel) goes on where it was, where a new one would propose its first
-    experiments again. A virtual-time resume re-runs the whole campaign, planner included, and needs none of this."""
+    random's and lhs's draws, GP-BO's design and fitted kernel) goes on where it was, where a new one would propose its
+    first experiments again. For ``CATCH_UP_S`` at most: GP-BO asked again 400 questions would refit for many minutes,
+    and what it proposes follows from the history it is given. A virtual-time resume re-runs the whole campaign,
+    planner included, and needs none of this."""
     checked = covered(planner, name)
-    if asks:
-        log.info("asking the planner again the %d question(s) it answered before the campaign stopped", len(asks))
-    for ask in asks:
+    started = time.perf_counter()
+    for i, ask in enumerate(asks):
+        if time.perf_counter() - started > CATCH_UP_S:
+            log.warning("planner %r was asked again %d of the %d questions it had answered before the campaign "
+                        "stopped, in %g s, and not the rest: it goes on from the history it is given (a planner whose "
+                        "proposals follow from it, as GP-BO's do, proposes as it would have; one that keeps a place "
+                        "in a list of its own may propose an experiment again)", name, i, len(asks), CATCH_UP_S)
+            break
         checked.answer(ask.n, list(history[:ask.known]), list(ask.pending))
     return checked
 
