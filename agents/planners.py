@@ -53,6 +53,11 @@ class FixedPlanner:
         left = self._next < len(self._queue)
         return "" if left else f"all {self._given} of campaign.planner_options.proposals were proposed"
 
+    @property
+    def known_in_advance(self) -> list[tuple[str, Proposal]]:
+        """Every experiment it will propose, with the field that gives it: `twin validate` checks them before a run."""
+        return [(f"campaign.planner_options.proposals.{i}", p) for i, p in enumerate(self._queue)]
+
 
 def _check_proposals(proposals: Any) -> None:
     """Refuse proposals not in the form the planner reads, naming the entry and the form."""

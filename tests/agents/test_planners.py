@@ -162,6 +162,12 @@ def test_bench_planners_leaves_out_a_cost_column_of_noughts_and_keeps_it_where_e
     ([{"params": {"temperature_k": 400}}, {"params": {}, "route": [{"step": "react"}]}],
      "proposals.1.route: a list of {step, device}"),
     ([], "proposals: the fixed planner proposes a list given there, and it is empty"),
+    # what the lab would abandon before sending anything: said by `twin validate`, naming the entry (was: at run time)
+    ([{"params": {"temperature_k": 400, "time_s": 900}}, {"params": {"temperature_k": 900, "time_s": 900}}],
+     "campaign.planner_options.proposals.1: temperature_k = 900 is outside chemistry.parameters.temperature_k"),
+    ([{"params": {"time_s": 900}}], "campaign.planner_options.proposals.0: temperature_k is missing"),
+    ([{"params": {"temperature_k": 400, "time_s": 900}, "route": [{"step": "react", "device": "furnace"}]}],
+     "campaign.planner_options.proposals.0: route step 0: no device type 'furnace' in the lab"),
 ])
 def test_fixed_proposals_in_another_form_are_refused_naming_the_entry_and_the_form(proposals, says):
     import re

@@ -10,7 +10,7 @@ from typing import Any
 from twin.core.errors import ScenarioError, TwinError
 from twin.campaign.human import DRIVER as HUMAN
 from twin.campaign.human import OPTION_NAMES as HUMAN_OPTIONS
-from twin.campaign.policy import deadline_s
+from twin.campaign.policy import deadline_s, unusable_params, unusable_route
 from twin.device.driver import declared_steps, feature
 from twin.runtime.assembly import load_driver, make_planner, make_scheduler
 from twin.scenario import Scenario, load
@@ -56,6 +56,9 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
     twins = {dtype: _at(f"devices.{dtype}.twin.driver", load_driver, s, dtype, s.instance_names(dtype)[0], True)
              for dtype in drivers if s.devices[dtype].twin is not None}
     planner = _at("campaign.planner", make_planner, s)
+    problem = _unrunnable_given(s, planner)
+    if problem:
+        raise ScenarioError(s.name, [problem])
     if types is None:
         for problem in _idle_types(s, planner):
             log.warning("%s", problem)
@@ -86,6 +89,18 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         from twin.core.bus.zenoh_config import check_config
 
         check_config(s.bus.zenoh)
+
+
+def _unrunnable_given(s: Scenario, planner: Any) -> str:
+    """The first experiment a planner that knows them in advance (``known_in_advance``: the fixed list) gives and
+    the lab would abandon before sending anything — a parameter missing or outside the box, a route it cannot
+    run — with the field that gives it ('' if none)."""
+    for where, proposal in getattr(planner, "known_in_advance", None) or ():
+        why = unusable_params(proposal.params, s.chemistry.parameters) or (
+            unusable_route(proposal.route, s.devices) if proposal.route is not None else "")
+        if why:
+            return f"{where}: {why}"
+    return ""
 
 
 def _idle_types(s: Scenario, planner: Any) -> list[str]:
