@@ -52,7 +52,8 @@ from agents.planned_labs import planned
 from agents.scheduling_env import randomised
 from agents.schedulers import rules_for
 from agents.teachers import PlanTeacher, RuleTeacher, solve_time, solve_workers
-from agents.train_scheduler import EVAL_SEEDS, Judge, JudgeBasis, campaign, initial_state, objective, started_from
+from agents.judging import EVAL_SEEDS, campaign, objective
+from agents.train_scheduler import Judge, JudgeBasis, initial_state, started_from
 from agents.training_workers import numbered, workers_for
 from twin import PluginError, Scenario, jobshop_as_lab, load_plugin, prepare, random_jobshop, stepped
 

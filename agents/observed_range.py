@@ -15,7 +15,7 @@ from pathlib import Path
 
 from agents.candidates import CandidateEncoder, Observed
 from agents.rl_scheduler import RlScheduler
-from agents.train_scheduler import EVAL_SEEDS, campaign, held_out_labs
+from agents.judging import EVAL_SEEDS, campaign, held_out_labs
 from twin import Scenario, prepare, read_meta
 
 

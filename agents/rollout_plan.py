@@ -36,7 +36,7 @@ import torch
 
 from agents.candidates import CandidateEncoder, Observed
 from agents.lockstep import SAMPLE_TEMPERATURES, lockstep
-from agents.train_scheduler import count, objective
+from agents.judging import count, objective
 from twin import Assignment, LabView, Scenario, lab_span, prepare, weighted_objective
 
 if TYPE_CHECKING:

@@ -32,7 +32,7 @@ sys.path.insert(0, str(ROOT))
 
 from agents.cpsat_scheduler import CpSatScheduler  # noqa: E402
 from agents.order_search import improve, shop_of  # noqa: E402
-from agents.train_scheduler import campaign  # noqa: E402
+from agents.judging import campaign  # noqa: E402
 from bench.tables import table  # noqa: E402
 from twin import jobshop_as_lab, random_jobshop  # noqa: E402
 from twin.runtime.lab import make_scheduler, prepare  # noqa: E402

@@ -27,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 from agents.rl_scheduler import RlScheduler  # noqa: E402
 from agents.scheduling_env import randomised  # noqa: E402
-from agents.train_scheduler import TURNS, baselines, campaign, objective  # noqa: E402
+from agents.judging import TURNS, baselines, campaign, objective  # noqa: E402
 from bench.tables import table  # noqa: E402
 from twin import prepare  # noqa: E402
 

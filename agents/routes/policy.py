@@ -129,8 +129,8 @@ def load_prior(path: Path, templates: tuple[Template, ...]) -> LearnedPrior:
         raise FileNotFoundError(f"{path}: a route prior is a .pt file with a .json beside it; train one with "
                                 f"`python -m agents.routes.train --out {path}`")
     for part in (meta_file, path.with_suffix(".pt")):
-        if not_a_file(part):
-            raise ValueError(f"{part} {not_a_file(part)}; a route prior is a .pt file with a .json beside it")
+        if why := not_a_file(part):
+            raise ValueError(f"{part} {why}; a route prior is a .pt file with a .json beside it")
     try:
         if meta_file.stat().st_size > MAX_DESCRIPTION_BYTES:
             raise ValueError(f"{meta_file.stat().st_size:,} bytes, where training writes a few kB")

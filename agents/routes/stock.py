@@ -79,8 +79,8 @@ MAX_STOCK_BYTES = 64 << 20
 
 @lru_cache(maxsize=8)
 def load(path: Path = STOCK) -> Stock:
-    if not_a_file(path):
-        raise StockError(f"{path} {not_a_file(path)}; a stock file is CSV: smiles[,name,eur_per_g]")
+    if why := not_a_file(path):
+        raise StockError(f"{path} {why}; a stock file is CSV: smiles[,name,eur_per_g]")
     try:
         with Path(path).open("rb") as f:
             data = f.read(MAX_STOCK_BYTES + 1)

@@ -283,8 +283,8 @@ def load(path: Path = TEMPLATES) -> tuple[Template, ...]:
     """The templates of a file (by default the shipped set), parsed once: this package's YAML, or an
     AiZynthFinder-style table (``.csv``, ``.tsv``, ``.csv.gz``)."""
     path = Path(path)
-    if not_a_file(path):
-        raise TemplateError(f"{path} {not_a_file(path)}; give a template file (YAML, or a .csv/.tsv table)")
+    if why := not_a_file(path):
+        raise TemplateError(f"{path} {why}; give a template file (YAML, or a .csv/.tsv table)")
     try:
         if path.name.endswith(".gz"):
             import gzip

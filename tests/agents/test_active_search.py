@@ -14,7 +14,7 @@ from agents.imitation import batch
 from agents.lockstep import lockstep
 from agents.rl_scheduler import RlScheduler
 from agents.rollout_plan import ROUND, plan
-from agents.train_scheduler import objective
+from agents.judging import objective
 from tests.agents.test_rollout_plan import POLICY, makespan, with_rollouts
 from twin import jobshop_as_lab, random_jobshop, read_meta
 from twin.runtime.lab import prepare

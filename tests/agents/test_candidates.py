@@ -11,7 +11,8 @@ import torch
 from agents.candidates import MAX_CANDIDATES, WAIT, CandidateEncoder
 from agents.rl_scheduler import RlScheduler
 from agents.scheduling_env import SchedulingEnv
-from agents.train_scheduler import campaign, train_scheduler
+from agents.judging import campaign
+from agents.train_scheduler import train_scheduler
 from tests.agents.test_scheduling import live_and_env
 from tests.conftest import qd_lab
 from twin import PluginError, jobshop_as_lab, random_jobshop

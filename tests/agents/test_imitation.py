@@ -18,7 +18,8 @@ from agents.imitation import follow_teacher, lab_task, rollout
 from agents.teachers import PlanTeacher, RuleTeacher
 from agents.schedulers import RULES
 from agents.rl_scheduler import RlScheduler
-from agents.train_scheduler import Judge, campaign, score, solver_reference, train_scheduler
+from agents.judging import campaign, score, solver_reference
+from agents.train_scheduler import Judge, train_scheduler
 from tests.agents.test_candidates import random_makespans
 from twin import SteppedCampaign, jobshop_as_lab, load_plugin, random_jobshop
 from twin.runtime.lab import prepare
@@ -118,9 +119,9 @@ def test_outside_a_job_shop_the_judge_measures_the_online_solver_on_the_lab_as_w
 def test_a_lab_whose_online_solver_reference_would_take_minutes_trains_without_it(tmp_path, monkeypatch):
     """A lab of 200 experiments through 8 stages spent five minutes on CP-SAT's reference (0.2 s for each of ~1,600
     decisions) before training one step, the progress bar at 0. The reference is given a time (here 1 s)."""
-    from agents import train_scheduler
+    from agents import judging
 
-    monkeypatch.setattr(train_scheduler, "REFERENCE_MAX_S", 1.0)
+    monkeypatch.setattr(judging, "REFERENCE_MAX_S", 1.0)
     flaky = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"campaign.budget": 200})
     started = time.perf_counter()
     assert solver_reference(flaky, (0, 1), []) == {"online_out_of_time": 1.0}

@@ -12,7 +12,8 @@ import torch
 from agents.candidates import GLOBALS, MAX_CANDIDATES, WIDTHS, Observed
 from agents.observed_range import observe
 from agents.rl_scheduler import RlScheduler
-from agents.train_scheduler import campaign, train_scheduler
+from agents.judging import campaign
+from agents.train_scheduler import train_scheduler
 from twin import PluginError, jobshop_as_lab, load_plugin, random_jobshop
 
 ROOT = Path(__file__).resolve().parents[2]

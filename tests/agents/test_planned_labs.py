@@ -4,7 +4,7 @@
 from tests.conftest import qd_lab
 from agents import planned_labs
 from agents.planned_labs import planned, record
-from agents.train_scheduler import campaign
+from agents.judging import campaign
 from twin import SteppedCampaign, load_plugin, prepare
 
 

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from agents.imitation import _reinforced, _scorer, batch, fit, sampled_runs
-from agents.train_scheduler import objective, train_scheduler
+from agents.judging import objective
+from agents.train_scheduler import train_scheduler
 from tests.agents.test_self_labelling import AS_SHIPPED, SHIPPED, replay
 from twin import jobshop_as_lab, random_jobshop
 from twin.runtime.lab import prepare

@@ -9,7 +9,7 @@ import pytest
 from agents.candidates import lab_shape, outside, widen
 from twin.scenario.random_labs import random_lab
 from agents.scheduling_env import randomised
-from agents.train_scheduler import campaign
+from agents.judging import campaign
 from agents.schedulers import RULES
 from twin import load_plugin
 from twin.runtime.lab import prepare

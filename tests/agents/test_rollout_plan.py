@@ -10,7 +10,7 @@ import torch
 
 from agents.rl_scheduler import RlScheduler
 from agents.rollout_plan import PlanFollower
-from agents.train_scheduler import campaign
+from agents.judging import campaign
 from twin import Assignment, LabView, ScenarioError, TwinError, jobshop_as_lab, random_jobshop, read_meta
 from twin.campaign.decisions import DeviceState, FreeDevice, ReadyStep
 from twin.runtime.lab import prepare, run

@@ -12,7 +12,8 @@ from agents.cpsat import jobshop as solve_jobshop
 from agents.rl_scheduler import RlScheduler
 from agents.scheduling_env import SchedulingEnv
 from agents.scheduling_features import INSTANCES, WAIT, Encoder
-from agents.train_scheduler import campaign, train_scheduler
+from agents.judging import campaign
+from agents.train_scheduler import train_scheduler
 from twin.scenario import jobshop
 from twin.campaign.decisions import capable
 from twin.campaign.journal import read_events

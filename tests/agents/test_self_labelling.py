@@ -11,7 +11,8 @@ import torch
 from agents.candidates import WAIT, CandidateEncoder, trained_encoding
 from agents.imitation import _scorer, sampled_runs, self_task
 from agents.rl_scheduler import RlScheduler
-from agents.train_scheduler import campaign, objective, train_scheduler
+from agents.judging import campaign, objective
+from agents.train_scheduler import train_scheduler
 from twin import SteppedCampaign, jobshop_as_lab, random_jobshop, read_meta
 from twin.runtime.lab import prepare
 from tests.conftest import twin_cli

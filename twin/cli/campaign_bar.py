@@ -41,7 +41,7 @@ def resumed_from(journal: Path, s) -> tuple[int, float]:
 
 
 def run_campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call,
-              start: tuple[int, float] = (0, 0.0)) -> None:
+                 start: tuple[int, float] = (0, 0.0)) -> None:
     """Run ``call(on_progress, observer)`` under a progress bar and a recording, and print its summary. ``start``:
     experiments finished and lab seconds run already (a live campaign resumed)."""
     recording = None

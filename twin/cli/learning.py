@@ -114,6 +114,12 @@ def train(
                   "or of PPO's rollouts on every environment), and a round begun is finished", highlight=False)
 
 
+def say_slow(slow: str) -> None:
+    """What a bench may wait for (``scheduler_bench.slow_schedulers``), said before its runs."""
+    if slow:
+        err.print(f"{slow} (workers share them out; Ctrl-C stops the bench)", highlight=False)
+
+
 def _compared_table(header: list[str], title: str, caption: str, rows: list[list[str]], first_compared: int) -> Table:
     """The shapes table with each comparison ("+0.30 ± 0.55\nsame") on one line, else over two, else the
     difference, its interval and the verdict each on a line of its own: the first that fits the terminal with no
@@ -297,9 +303,8 @@ def bench_schedulers(
                 made = {name: lab.make_scheduler(s, name) for name in names}
             except TwinError as exc:
                 _fail(exc)
-            slow = slow_schedulers(s, made, 1 if deterministic(s) else seeds)
-            if slow and not as_json:
-                err.print(f"{slow} (workers share them out; Ctrl-C stops the bench)", highlight=False)
+            if not as_json:
+                say_slow(slow_schedulers(s, made, 1 if deterministic(s) else seeds))
             title = instance or f"{Path(file).stem if file else s.name}"
             best = bound(s, on_long=None if as_json else lambda: err.print(
                 f"{title}: CP-SAT solving the shop for the bound (up to {BOUND_S:.0f} s) ...", highlight=False))
@@ -348,9 +353,8 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
         _fail(exc)
     if s.jobshop is not None:
         _fail(TwinError("--shapes varies a lab's devices and samples; for job shops use --jobshop FILES"))
-    slow = slow_schedulers(s, made, seeds * len(variants(s, random_labs)))
-    if slow and not as_json:
-        err.print(f"{slow} (workers share them out; Ctrl-C stops the bench)", highlight=False)
+    if not as_json:
+        say_slow(slow_schedulers(s, made, seeds * len(variants(s, random_labs))))
     others = list(names)
     header = ["shape", "best rule", "its mean h", *[label(n) for n in others]]
     what = "makespan lab-h" if by == "makespan" else (

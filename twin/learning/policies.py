@@ -41,8 +41,8 @@ def read_meta(path: str | Path) -> dict[str, Any]:
     side = path.with_suffix(".json")
     if not side.exists():
         raise PluginError(f"{path}: no {side.name} beside it; policies are saved by `twin train`")
-    if not_a_file(side):
-        raise PluginError(f"{side} {not_a_file(side)}; policies are saved by `twin train`")
+    if why := not_a_file(side):
+        raise PluginError(f"{side} {why}; policies are saved by `twin train`")
     try:
         if side.stat().st_size > MAX_DESCRIPTION_BYTES:
             raise ValueError(f"{side.stat().st_size:,} bytes, more than a description has: `twin train` writes a "
@@ -61,8 +61,8 @@ def load_policy(path: str | Path, kind: str, signature: dict[str, Any]) -> Any:
     path = Path(path)
     if not path.exists():
         raise PluginError(f"policy {path} does not exist; train one with `twin train SCENARIO --agent {kind} --out {path}`")
-    if not_a_file(path):
-        raise PluginError(f"{path} {not_a_file(path)}; policies are saved by `twin train`")
+    if why := not_a_file(path):
+        raise PluginError(f"{path} {why}; policies are saved by `twin train`")
     meta = read_meta(path)
     if meta.get("kind") != kind:
         raise PluginError(f"{path} is a {meta.get('kind')} policy, not a {kind} policy")
