@@ -25,6 +25,7 @@ def evaluate(scenario: Scenario, act: Callable[[np.ndarray, Any], np.ndarray], e
              seed: int = 10_000) -> dict[str, float]:
     """Success rate, median experiments to target and mean return on the scenario's targets (fixed seeds)."""
     env = PlanningEnv(scenario, random_goals=0.0, seed=seed)
+    env.action_space.seed(seed)  # random moves drawn alike in every run: a baseline that repeats
     targets = scenario.chemistry.targets
     met, used, returns = 0, [], []
     for i in range(episodes):
@@ -55,6 +56,8 @@ def train_planner(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs
     torch.set_num_threads(1)
     venv = DummyVecEnv([lambda i=i: PlanningEnv(scenario, seed=seed * 1000 + i) for i in range(envs)])
     model = without_log_dir(PPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS))
+    if on_progress:  # the lab is one it can train on: the bar starts
+        on_progress(0, None)
     baseline = evaluate(scenario, random_moves)
     if on_progress:
         on_progress(0, {"policy": "random moves", **baseline})

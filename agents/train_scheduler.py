@@ -102,6 +102,8 @@ class Judge:
         self.scenario, self.out, self.encoding, self.eval_seeds = scenario, out, encoding, eval_seeds
         self.on_progress, self.extra = on_progress, extra
         self.sign = judge_signature(scenario, encoding)
+        if on_progress:  # the lab is one it can train on: the bar starts before the rules are measured
+            on_progress(0, None)
         self.basis = basis or self._measured(scenario, eval_seeds, held_out_count, on_progress)
         self.rules, self.held_out = self.basis.rules, self.basis.held_out
         self.rule_spans, self.solver = self.basis.rule_spans, self.basis.solver

@@ -69,6 +69,8 @@ def train_controller(scenario: Scenario, steps: int, out: Path, seed: int = 0, e
 
     torch.set_num_threads(1)
     gains = reactor_gains(scenario)
+    if on_progress:  # the lab is one it can train on: the bar starts
+        on_progress(0, None)
     venv = DummyVecEnv([lambda: ReactorControlEnv(mode, gains, DT_S, HOLD_S) for _ in range(envs)])
     venv.seed(seed)
     settings = dict(PPO_SETTINGS)

@@ -103,6 +103,8 @@ def train_route(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs: 
     torch.set_num_threads(1)
     options = scenario.campaign.planner_options
     templates, stock = inputs(options.get("stock"), options.get("templates"))
+    if on_progress:  # the stock and templates are read: the bar starts
+        on_progress(0, None)
     train = target_set(templates, stock, targets)
     held = [t.smiles for t in target_set(templates, stock, eval_targets, held_out=True)]
     names = len(templates)

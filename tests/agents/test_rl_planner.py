@@ -48,6 +48,24 @@ def test_the_same_seed_gives_the_same_episode(qd):
     assert episode(3) != episode(4)
 
 
+def test_the_random_baseline_is_the_same_in_every_training(qd):
+    from agents.train_planner import random_moves
+
+    # the curve's first row is what PPO is measured against: drawn anew in each run it moved 0.23 - 0.33
+    assert evaluate(qd, random_moves, episodes=6) == evaluate(qd, random_moves, episodes=6)
+
+
+def test_a_lab_the_planner_cannot_learn_is_refused_before_any_progress_is_shown(tmp_path):
+    from tests.conftest import twin_cli
+
+    res = twin_cli("train", ROOT / "scenarios" / "jobshop.yaml", "--agent", "planner", "--steps", "10",
+                   "--out", tmp_path / "p.zip")
+    assert res.exit_code == 2
+    assert "the rl planner learns to reach the scenario's targets, and it has none" in " ".join(res.stderr.split())
+    assert "training the planner" not in res.stderr  # no bar at 0/10 for a training that never starts
+    assert not (tmp_path / "p.zip").exists()
+
+
 def test_short_ppo_training_improves_its_own_return_and_leaves_no_log_directory(qd, tmp_path, monkeypatch):
     from stable_baselines3 import PPO
 

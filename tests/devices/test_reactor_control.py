@@ -70,4 +70,5 @@ def test_training_a_controller_in_a_lab_without_a_reactor_says_what_it_needs():
     assert ("quantum_dots has no device type whose driver is 'reactor' (its device types: synthesiser, "
             "spectrometer): --agent controller trains a reactor's heater loop; train it in a lab with one, e.g. "
             "scenarios/catalyst.yaml") in " ".join(res.stderr.split())
+    assert "training the controller" not in res.stderr  # refused before its bar starts
     assert not (ROOT / "runs" / "never.zip").exists()

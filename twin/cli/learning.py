@@ -70,9 +70,13 @@ def train(
     progress = bar_progress()
 
     trained = [0]
+    bars: list = []  # the bar starts at the trainer's first word: a lab it refuses gets the reason and no bar
 
     def report(done: int, result: dict | None) -> None:
         trained[0] = max(trained[0], done)
+        if not bars:
+            bars.append(progress.add_task(f"training the {agent} on {s.name}", total=steps))
+        bar = bars[0]
         if not (result and result.keys() == {"policy"}):  # a remark (a fall-back, a policy kept) leaves the bar
             progress.update(bar, completed=done, total=max(steps, done))  # rounds of labels can end past it
         if result:
@@ -84,7 +88,6 @@ def train(
             progress.console.print(f"{done:>9,} steps  {result['policy']:14} {fields}", highlight=False)
 
     with progress, sigterm_unwinds():
-        bar = progress.add_task(f"training the {agent} on {s.name}", total=steps)
         try:
             path = trainer(s, steps, out, seed=seed, envs=envs, eval_every=eval_every, on_progress=report,
                            **({"init": init} if init is not None else {}))
