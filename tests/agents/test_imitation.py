@@ -111,7 +111,7 @@ def test_outside_a_job_shop_the_judge_measures_the_online_solver_on_the_lab_as_w
     assert set(ref) == {"online"} and 0.5 * fifo["objective"] < ref["online"] < 1.5 * fifo["objective"]
     # it takes a while (up to 0.2 s a decision), so a training says what it waits for before it starts
     told: list[dict] = []
-    Judge(flaky, tmp_path / "p.zip", ENCODING, (0, 1), 0, lambda done, result: told.append(result))
+    Judge(flaky, tmp_path / "p.zip", ENCODING, (0, 1), 0, lambda done, result: result and told.append(result))
     assert told[0]["policy"].startswith("the reference: CP-SAT schedules the lab as written once, online")
     assert told[1]["policy"].startswith("best rule: ") and "objective" in told[1]
 
@@ -127,7 +127,7 @@ def test_a_lab_whose_online_solver_reference_would_take_minutes_trains_without_i
     assert solver_reference(flaky, (0, 1), []) == {"online_out_of_time": 1.0}
     assert time.perf_counter() - started < 10  # the decision under way ends, then the campaign
     told: list[dict] = []
-    judge = Judge(flaky, tmp_path / "p.zip", ENCODING, (0,), 0, lambda done, result: told.append(result))
+    judge = Judge(flaky, tmp_path / "p.zip", ENCODING, (0,), 0, lambda done, result: result and told.append(result))
     assert told[0]["policy"].startswith("the reference: CP-SAT schedules the lab as written once, online (up to "
                                         "0.2 s for each of about 600 decisions, 1 s at most)")
     assert told[1]["policy"].startswith("the reference: none — CP-SAT online did not finish the lab in 1 s; the "

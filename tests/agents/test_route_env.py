@@ -89,7 +89,7 @@ def test_a_short_training_gives_a_prior_that_needs_fewer_expansions_than_a_unifo
     seen = []
     out = train_route(load_scenario("scenarios/aspirin.yaml"), 128, tmp_path / "prior", envs=1, eval_every=128,
                       targets=100, eval_targets=4, eval_mcts=4, eval_expansions=60,
-                      on_progress=lambda d, r: seen.append((d, r)))
+                      on_progress=lambda d, r: r and seen.append((d, r)))
     meta = json.loads(out.with_suffix(".json").read_text())
     assert [d for d, _ in seen] == [0, 0, 128] and seen[-1][1]["policy"] == "maskable-ppo"
     assert meta["kind"] == "route-prior" and meta["method"] == "imitation + MaskablePPO"

@@ -87,6 +87,69 @@ def test_an_agent_that_answers_nonsense_is_overruled_by_the_fallback(tmp_path):
     assert len(notes) == 1 and "invalid decision" in notes[0]["detail"] and "no-such-device" in notes[0]["detail"]
 
 
+class FailsEveryThird:
+    """An agent whose decision raises now and then (a model that cannot read a view, say)."""
+
+    serve_on_bus = True
+
+    def __init__(self, **_):
+        self.asked = 0
+
+    def decide(self, view):
+        self.asked += 1
+        if self.asked % 3 == 0:
+            raise RuntimeError("the model lost its weights")
+        return FirstFit().decide(view)
+
+
+@pytest.mark.parametrize("bus", ["memory", "zenoh"])
+def test_an_agent_that_raises_is_covered_by_the_fallback_and_the_campaign_goes_on(tmp_path, bus):
+    # it used to end the campaign: the memory bus passed the exception to the lab, Zenoh an error reply it did not take
+    raw = qd_lab(**{"campaign.budget": 6, "campaign.scheduler": "tests.twin.test_scheduler_agent:FailsEveryThird",
+                    "bus.kind": bus})
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    summary = run(path, journal=tmp_path / "j.db")
+    assert summary.done == 6 and summary.abandoned == 0
+    assert 0 < summary.scheduler_fallbacks < summary.decisions
+    notes = [e["detail"] for e in read_events(tmp_path / "j.db") if e["kind"] == "scheduler.fallback"]
+    assert notes and all("the scheduler agent failed: RuntimeError: the model lost its weights" in n for n in notes)
+
+
+def test_an_error_reply_on_the_bus_is_the_agents_failure_not_the_labs(virtual_clock):
+    from twin.campaign.decisions import FreeDevice, LabView, ReadyStep
+    from twin.core.bus import open_bus
+    from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, alive_key, decide_key
+
+    view = LabView(0.0, (ReadyStep("e0s0", 0, "measure", "spectrometer", 0.0, 0.0, 60.0, 60.0, frozenset(), ()),),
+                   (FreeDevice("spectrometer-1", "spectrometer"),), (), 0, 1, 1)
+
+    async def broken(key, payload):
+        raise ValueError("cannot parse the view")
+
+    async def main():
+        bus = open_bus("memory", virtual_clock)
+        await bus.start()
+        handles = [bus.serve(decide_key("t"), broken), bus.declare_token(alive_key("t"))]
+        fallback = Fallback(FirstFit(), "first-fit")
+        reasons = []
+        fallback.on_fallback = reasons.append
+        remote = RemoteScheduler(bus, "t", fallback, 5.0)
+        try:
+            await virtual_clock.sleep(1.0)
+            return await remote.decide(view), reasons
+        finally:
+            remote.close()
+            for h in handles:
+                h.close()
+            await bus.close()
+
+    decided, reasons = virtual_clock.run(main())
+    assert decided == [Assignment("e0s0", "spectrometer-1")]  # the fallback's
+    assert reasons == ["the scheduler agent failed: the replier for 'labtwin/t/agent/scheduler/decide' failed: "
+                       "cannot parse the view"]
+
+
 class FirstFit:
     def decide(self, view):
         free, out = list(view.free), []

@@ -245,9 +245,11 @@ class LabClock:
         try:
             asyncio.get_running_loop()
         except RuntimeError:
-            with asyncio.Runner(loop_factory=self.new_loop) as runner:
-                return runner.run(main)
-        return _in_own_thread(self.new_loop, main)
+            pass  # the campaign runs outside this handler: else every traceback of it says "during handling of" this
+        else:
+            return _in_own_thread(self.new_loop, main)
+        with asyncio.Runner(loop_factory=self.new_loop) as runner:
+            return runner.run(main)
 
     def now(self) -> float:
         return self._base.time()

@@ -29,8 +29,7 @@ from twin.campaign.replay import RESUMED, Rebuilt
 from twin.core.clock import LabClock, LabEventLoop, sleep_wall
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
-from twin.core.bus import NoReplyError
-from twin.core.errors import TwinError
+from twin.core.errors import BusError, TwinError
 from twin.core.messages import Kind, pack
 from twin.runtime.alert_log import AlertLog
 from twin.runtime.asking import ask_scheduler
@@ -274,7 +273,7 @@ class LiveCampaign:
         wait = 5.0 * (1.0 if self.clock.is_virtual else self.clock.speed)
         try:
             report = json.loads(await self.bus.request(keys.health(self.s.lab, device), b"", wait))
-        except (NoReplyError, ValueError) as exc:
+        except (BusError, ValueError) as exc:  # no answer, or a failure in its stead
             log.warning("resume: %s does not answer (%s); its step %s#%d is lost", device, exc, task, attempt)
             self._give(Presence(device, False))
             return

@@ -23,6 +23,7 @@ import msgspec
 
 from twin.core.bus import Bus
 from twin.core.bus.base import NoReplyError
+from twin.core.errors import BusError
 from twin.campaign.decisions import Assignment, LabView, capable, unfit
 from twin.core.keys import PREFIX
 
@@ -57,7 +58,10 @@ def decode_view(payload: bytes) -> LabView:
 def check(view: LabView, reply: bytes) -> tuple[list[Assignment], str]:
     """The assignments in ``reply``, or why they cannot be carried out on ``view``."""
     try:
-        items = [Assignment(str(a["task"]), str(a["device"])) for a in json.loads(reply)["assign"]]
+        answer = json.loads(reply)
+        if isinstance(answer, dict) and "assign" not in answer and isinstance(answer.get("error"), str):
+            return [], f"error: {answer['error'][:500]}"
+        items = [Assignment(str(a["task"]), str(a["device"])) for a in answer["assign"]]
     except (ValueError, KeyError, TypeError) as exc:
         return [], f"unreadable decision ({exc!r})"
     ready = {r.task: r for r in view.ready}
@@ -80,6 +84,7 @@ class SchedulerService:
     def __init__(self, bus: Bus, lab: str, scheduler: Any) -> None:
         self.bus, self.lab, self.scheduler = bus, lab, scheduler
         self._handles: list[Any] = []
+        self._shown: set[str] = set()  # failures logged with their traceback: each once (the lab journals them all)
 
     def start(self) -> None:
         self._handles = [self.bus.serve(decide_key(self.lab), self._reply), self.bus.declare_token(alive_key(self.lab))]
@@ -90,10 +95,20 @@ class SchedulerService:
         self._handles = []
 
     async def _reply(self, key: str, payload: bytes) -> bytes:
-        decided = self.scheduler.decide(decode_view(payload))
-        if inspect.isawaitable(decided):
-            decided = await decided
-        return json.dumps({"assign": [dataclasses.asdict(a) for a in decided]}).encode()
+        view = decode_view(payload)
+        try:
+            decided = self.scheduler.decide(view)
+            if inspect.isawaitable(decided):
+                decided = await decided
+            assign = [dataclasses.asdict(a) for a in decided]
+        except Exception as exc:  # the lab's fallback decides this time, told why; the agent stays up
+            why = f"{type(exc).__name__}: {exc}"
+            if why not in self._shown and len(self._shown) < 10:
+                log.exception("the scheduler failed (%s); the lab's fallback rule decides until it answers again",
+                              why)
+                self._shown.add(why)
+            return json.dumps({"error": why}).encode()
+        return json.dumps({"assign": assign}).encode()
 
 
 # -- the orchestrator's side -----------------------------------------------------------
@@ -161,7 +176,11 @@ class RemoteScheduler:
         except NoReplyError:
             return self.fallback.decide(view, "late",
                                         f"the scheduler agent did not answer within {self.deadline_s:g} lab-s")
+        except BusError as exc:  # it answered with an error (a Zenoh error reply)
+            return self.fallback.decide(view, "failed", f"the scheduler agent failed: {exc}")
         assignments, problem = check(view, reply)
+        if problem.startswith("error: "):
+            return self.fallback.decide(view, "failed", f"the scheduler agent failed: {problem[7:]}")
         if problem:
             return self.fallback.decide(view, "invalid", f"the scheduler agent sent an {problem}")
         self.fallback.recovered("scheduler agent is back; it decides again")

@@ -7,9 +7,13 @@ keeps the loop busy and the virtual clock never jumps past it.
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections import defaultdict
 
 from twin.core.bus.base import Closable, Handler, NoReplyError, Replier, TokenHandler, key_matches, keys_intersect
+from twin.core.errors import BusError
+
+log = logging.getLogger(__name__)
 
 
 class _Entry:
@@ -82,6 +86,9 @@ class MemoryBus:
                 return await repliers[0].fn(key, payload)
         except TimeoutError:
             raise NoReplyError(f"no reply to {key!r} within {timeout} lab-seconds") from None
+        except Exception as exc:  # as over Zenoh: the requester gets the replier's failure as the bus's error
+            log.error("replier for %s failed", key, exc_info=True)
+            raise BusError(f"the replier for {key!r} failed: {exc}") from exc
 
     def declare_token(self, key: str) -> Closable:
         hub = self._hub
