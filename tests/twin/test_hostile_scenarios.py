@@ -138,12 +138,15 @@ MUTATIONS = [
     ("name-absolute", setter(lambda r: "name", "/tmp/evil"), "name"),
     ("name-400-chars", setter(lambda r: "name", "n" * 400), "name"),
     ("lab-with-slash", setter(lambda r: "lab", "a/b"), "lab"),
-    ("planner-builtin", setter(lambda r: "campaign.planner", "builtins:dict"), "builtins:dict"),
+    ("planner-builtin", setter(lambda r: "campaign.planner", "builtins:dict"), "standard library"),
+    ("planner-relative-import", setter(lambda r: "campaign.planner", ".agents:X"), "not of the form"),
+    ("scheduler-stdlib-with-an-effect", setter(lambda r: "campaign.scheduler", "antigravity:X"), "standard library"),
+    ("driver-main-module", setter(dev("driver"), "__main__:app"), "main module"),
     ("planner-unknown", setter(lambda r: "campaign.planner", "no-such-planner"), "no-such-planner"),
     ("scheduler-unknown", setter(lambda r: "campaign.scheduler", "no-such-rule"), "no-such-rule"),
     ("fallback-unknown", setter(lambda r: "campaign.fallback_scheduler", "nope"), "nope"),
     ("driver-unknown", setter(dev("driver"), "no-such-driver"), "no-such-driver"),
-    ("driver-not-a-driver", setter(dev("driver"), "builtins:dict"), "builtins:dict"),
+    ("driver-not-a-driver", setter(dev("driver"), "twin:Scenario"), "not a driver"),
     ("bad-listen", setter(lambda r: "bus.listen", ["not an endpoint"]), "bus.listen"),
     ("bad-connect-port", setter(lambda r: "bus.connect", ["tcp/127.0.0.1:99999"]), "bus.connect"),
     ("bad-zenoh-path", setter(lambda r: "bus.zenoh", {"no/such/path": 1}), "bus.zenoh"),
@@ -276,6 +279,18 @@ def test_twin_validate_exits_2_with_no_traceback(cases):
                          text=True, cwd=ROOT, timeout=120)
     assert out.returncode == 2
     assert "Traceback" not in out.stderr and out.stderr.count("✗") == len(picked)
+
+
+def test_validating_a_scenario_runs_no_module_of_pythons_own_that_it_names(tmp_path):
+    # importing `this` prints the Zen of Python; `antigravity` opens a web browser; `idlelib.idle` starts IDLE
+    raw = shipped("quantum_dots")
+    raw["campaign"]["scheduler"] = "this:X"
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    out = subprocess.run([sys.executable, "-m", "twin", "validate", str(path)], capture_output=True, text=True,
+                         cwd=ROOT, timeout=120)
+    assert out.returncode == 2 and "'this' is Python's own standard library" in out.stderr
+    assert "Zen of Python" not in out.stdout + out.stderr
 
 
 def test_an_unsafe_name_is_explained_not_shown_as_a_regex(tmp_path):

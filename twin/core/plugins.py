@@ -9,6 +9,7 @@ import functools
 import importlib
 import importlib.util
 import inspect
+import sys
 from pathlib import Path
 from importlib.metadata import EntryPoint, entry_points
 from typing import Any
@@ -154,8 +155,15 @@ def _where_modules_come_from(exc: ImportError) -> str:
 
 def _import_string(spec: str, error: type[Exception]) -> Any:
     module_name, _, attr = spec.partition(":")
-    if not module_name or not attr:
+    if not all(p.isidentifier() for p in (*module_name.split("."), *attr.split("."))):
         raise error(f"{spec!r} is not of the form 'package.module:Class'")
+    top = module_name.partition(".")[0]
+    if top in sys.stdlib_module_names or top == "__main__":
+        # no plugin lives there, and a scenario (which may come from anyone) must not run this, antigravity or idlelib
+        # by naming them: importing some of them does something
+        own = "standard library" if top != "__main__" else "main module"
+        raise error(f"{spec!r}: {top!r} is Python's own {own}, which holds no labtwin plugin; name a class of an "
+                    "installed package (`twin driver new` writes one)")
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
