@@ -133,6 +133,13 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
         c["name"], c["campaign"][field] = name, spec
         return json.dumps({"file": json.dumps(c)}).encode()
 
+    def with_options(name: str, planner: str, options: dict) -> bytes:  # a campaign naming a file of the lab's host
+        c = load(LAB).campaigns[0].model_dump(mode="json", exclude_none=True)
+        c["name"], c["campaign"]["planner"], c["campaign"]["planner_options"] = name, planner, options
+        return json.dumps({"file": json.dumps(c)}).encode()
+
+    secret = tmp_path / "secret.txt"  # outside the folder the lab serves from (the tests' working directory)
+    secret.write_text("the-first-line-is-a-secret\n")
     bomb = "a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
         f"{k}: &{k} [*{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}, *{p}]\n"
         for p, k in zip("abcdefg", "bcdefgh"))
@@ -150,6 +157,9 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
             "campaign.scheduler: 'tests.twin.test_bad_schedulers:Patient' is a module path, which the lab would import",
         by_module("n", "planner", "antigravity:Planner"): "campaign.planner: 'antigravity:Planner' is a module path",
         b"{" + b" " * (1 << 21) + b"}": "bytes; at most",
+        with_options("p", f"rl:{secret}", {}): f"campaign.planner: '{secret}' is outside the folder the lab serves",
+        with_options("q", "route", {"stock": str(secret)}): "campaign.planner_options.stock: ",
+        with_options("r", "route", {"templates": "../../../../../../../../etc/hostname"}): "outside the folder",
     }
     answers: dict = {}
 
@@ -166,6 +176,7 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
     for payload, words in hostile.items():
         answer = answers[payload]
         assert answer["ok"] is False and words in answer["error"], (payload[:60], answer)
+        assert "the-first-line-is-a-secret" not in answer["error"]  # a route planner's stock said its first line
     assert list(out.campaigns) == ["dots"] and sorted(p.stem for p in tmp_path.glob("*.db")) == ["dots"]
 
 

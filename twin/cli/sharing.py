@@ -98,8 +98,10 @@ def lab_serve(
                                                           help="a device served by another process")] = None,
     json_out: Annotated[bool, typer.Option("--json", help="at the end, print the summary as JSON")] = False,
     trust_modules: Annotated[bool, typer.Option(help="let a submitted campaign name 'package.module:Class' "
-                                                     "planners and schedulers, which the lab imports (default: "
-                                                     "installed ones and those the lab file names)")] = False,
+                                                     "planners and schedulers, which the lab imports, and files "
+                                                     "outside the folder it serves from, which it opens (default: "
+                                                     "installed ones, files in that folder, and those the lab file "
+                                                     "names)")] = False,
 ) -> None:
     """Serve a lab that several campaigns share, until Ctrl-C or SIGTERM: its devices, the campaigns of its file,
     and those submitted with `twin submit`; then print each campaign's summary."""

@@ -120,7 +120,7 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
     """``twin lab serve``: the lab's devices and the campaigns of its file, taking more as they are submitted
     (``twin submit``), until it is stopped (Ctrl-C, SIGTERM). A lab file without campaigns gives the chemistry
     its simulated devices simulate by default. ``trust_modules``: a submitted campaign may name
-    'package.module:Class' plugins the lab file does not."""
+    'package.module:Class' plugins the lab file does not, and files outside the folder the lab serves from."""
     if s.clock.mode == "virtual":
         raise ClockError(f"{s.name}: a lab that serves waits for campaigns in real time: use --clock scaled or wall")
     refuse_external(s, external_devices)
@@ -204,6 +204,50 @@ def refuse_module_plugins(name: str, cs: Scenario, trusted: Collection[str]) -> 
                 "serve the lab with --trust-modules")
 
 
+def submitted_files(cs: Scenario) -> dict[str, str]:
+    """The campaign's strings a plugin may open as files: each ``rl:PATH``'s policy, and every string of
+    ``campaign.planner_options`` (a policy, a route planner's stock and templates), by field."""
+    out = {f"campaign.{field}": options["policy"] for field, kind in _PLUGIN_FIELDS
+           if "policy" in (options := plugins.with_policy(kind, getattr(cs.campaign, field))[1])}
+
+    def walk(field: str, value: Any) -> None:
+        if isinstance(value, str):
+            out[field] = value
+        elif isinstance(value, dict):
+            for key, item in value.items():
+                walk(f"{field}.{key}", item)
+        elif isinstance(value, (list, tuple)):
+            for i, item in enumerate(value):
+                walk(f"{field}.{i}", item)
+
+    walk("campaign.planner_options", cs.campaign.planner_options)
+    return out
+
+
+def _outside(value: str, root: Path) -> bool:
+    """Whether ``value``, read as a path from ``root`` (plugins open theirs from the working directory), leads
+    out of it: absolute elsewhere, up through ``..``, or through a link."""
+    try:
+        where = Path(value).expanduser()
+        return not (where if where.is_absolute() else root / where).resolve().is_relative_to(root)
+    except (ValueError, OSError, RuntimeError):  # a NUL in it, a loop of links: no file anyone opens
+        return False
+
+
+def refuse_outside_files(name: str, cs: Scenario, trusted: Collection[str]) -> None:
+    """A submitted campaign's files lie in the folder the lab serves from (or are the lab file's own): the lab
+    opens them for whoever submitted it, and what a file that is not one says in the refusal (a stock's first line,
+    a YAML error's excerpt) goes back to them."""
+    root = Path.cwd().resolve()
+    for field, value in submitted_files(cs).items():
+        if value not in trusted and _outside(value, root):
+            raise PluginError(
+                f"campaign {name}: {field}: {value[:200]!r} is outside the folder the lab serves from ({root}), which "
+                "the lab would open for whoever submitted it; a submitted campaign's files (a policy, a planner's "
+                "stock) lie in that folder, or are the ones the lab file names. Where everyone who can submit is "
+                "trusted, serve the lab with --trust-modules")
+
+
 def _parts(s: Scenario, path: Path, external: Collection[str], lab: Scenario | None = None,
            make_journal: JournalFactory = Journal) -> tuple:
     """A campaign's journal (with the lab file it ran in, for ``twin resume`` of the lab), planner and
@@ -247,11 +291,13 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
             return made[0], made[1], live_scheduler(cs, made[2], bus, clock)[0]
 
         trusted = {spec for cs in scenarios.values() for spec in module_plugins(cs).values()}
+        own_files = {value for cs in scenarios.values() for value in submitted_files(cs).values()}
 
         def adopt(name: str, cs: Scenario) -> tuple:
             _refuse_agents({name: cs})
             if not trust_modules:
                 refuse_module_plugins(name, cs, trusted)
+                refuse_outside_files(name, cs, own_files)
             check_campaign(cs)
             mine = {a.name for a in actors}
             _, per = shared_drivers({name: cs}, only=mine) if mine else ([], {})
