@@ -20,8 +20,14 @@ from twin import Assignment, LabView, capable
 
 class CpSatScheduler:
     runs_long = True  # a solve takes up to time_limit_s of wall time: the live lab asks it off the event loop
+
     def __init__(self, scenario: Any = None, time_limit_s: float = 1.0, **_: Any) -> None:
-        self.time_limit_s = time_limit_s
+        """``time_limit_s``: wall seconds a decision's solve may take (``campaign.scheduler_options``)."""
+        if isinstance(time_limit_s, bool) or not isinstance(time_limit_s, (int, float)) \
+                or not 0.01 <= time_limit_s <= 3600:
+            raise ValueError(f"time_limit_s: {str(time_limit_s)[:40]!r} is not a number of seconds from 0.01 to "
+                             "3600 (the wall time each decision's solve may take)")
+        self.time_limit_s = float(time_limit_s)
         self.unit = max(1.0, time_scale(scenario) / 50) if scenario is not None else 1.0  # lab-s per model tick
 
     @staticmethod

@@ -47,6 +47,35 @@ def test_a_misspelt_planner_option_is_named_and_another_planners_option_is_not_r
     assert make_planner(swapped).propose(1, [], [])  # gp-bo's option is not random's: not used, not refused
 
 
+class Weighted:
+    """A third party's scheduler with an option of its own."""
+
+    def __init__(self, weight: float = 1.0, **_):
+        self.weight = weight
+
+    def decide(self, view):
+        return []
+
+
+def test_scheduler_options_reach_the_schedulers_that_name_them_and_a_misspelt_one_is_named(tmp_path):
+    """cp-sat's time a decision (1 s) could not be set from a scenario: a wide lab's campaign took up to 30 min."""
+    from twin.runtime.lab import make_scheduler, prepare
+
+    opts = {"campaign.scheduler": "cp-sat", "campaign.scheduler_options": {"time_limit_s": 0.2}}
+    s = load(write(tmp_path, qd_lab(**opts)))
+    assert make_scheduler(s).time_limit_s == 0.2
+    assert make_scheduler(s, "fifo").decide  # a rule beside it (a bench's row, the fallback) is not given it
+    plugin = prepare(s, overrides={"campaign.scheduler_options": {"weight": 3.5}})
+    assert make_scheduler(plugin, "tests.twin.test_scenario_plugins:Weighted").weight == 3.5
+    typo = load(write(tmp_path, qd_lab(**{**opts, "campaign.scheduler_options": {"time_limt_s": 0.2}}), "t.yaml"))
+    with pytest.raises(ScenarioError, match=r"campaign\.scheduler_options\.time_limt_s: no installed scheduler takes "
+                                          r"an option 'time_limt_s' \('cp-sat' takes time_limit_s\); check its "):
+        check(typo)
+    for bad in ("fast", 0, True):
+        with pytest.raises(TwinError, match="time_limit_s: .* is not a number of seconds from 0.01 to 3600"):
+            make_scheduler(prepare(s, overrides={"campaign.scheduler_options": {"time_limit_s": bad}}))
+
+
 def test_a_policy_file_given_to_a_rule_is_refused_not_ignored():
     """`--scheduler mwkr:P.zip` ran MWKR and never read P.zip; `--planner lhs:P.zip` likewise."""
     from twin.runtime.lab import make_planner, make_scheduler, prepare

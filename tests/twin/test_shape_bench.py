@@ -172,7 +172,12 @@ def test_a_scheduler_that_may_take_minutes_a_campaign_is_said_before_the_bench_r
     wide = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"campaign.budget": 600})
     made = {name: make_scheduler(wide, name) for name in ("mwkr", "cp-sat")}
     assert slow_schedulers(wide, made, 20) == ("cp-sat decides in up to 1 s of wall time, about 1,800 decisions a "
-                                               "campaign here: up to 30 min for each of its 20 campaign(s)")
+                                               "campaign here: up to 30 min for each of its 20 campaign(s) (--set "
+                                               "campaign.scheduler_options.time_limit_s=S gives it less)")
+    quick = prepare(ROOT / "scenarios" / "flaky_lab.yaml",  # the rule beside it takes no such option
+                    overrides={"campaign.budget": 600, "campaign.scheduler_options": {"time_limit_s": 0.1}})
+    made = {name: make_scheduler(quick, name) for name in ("mwkr", "cp-sat")}
+    assert made["cp-sat"].time_limit_s == 0.1 and slow_schedulers(quick, made, 20) == ""  # 3 min at most
     small = prepare(ROOT / "scenarios" / "flaky_lab.yaml")  # 180 decisions: 3 min at most, said nothing
     assert slow_schedulers(small, {n: make_scheduler(small, n) for n in ("mwkr", "cp-sat")}, 20) == ""
     ft10 = prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={"jobshop.file": "jobshop/ft10.txt"})

@@ -236,7 +236,7 @@ def make_planner(s: Scenario) -> Any:
         raise PluginError(f"campaign.planner: {s.campaign.planner!r}: planner {name!r} reads no policy file; a "
                           f"trained planner is rl:PATH (`--planner rl:{options['policy']}`)")
     unknown, taken = _options_not_taken(cls, s.campaign.planner_options, PLANNER_ARGUMENTS)
-    typos = [k for k in unknown if not _another_planner_takes(k, name)]  # another's options: a swapped planner's
+    typos = [k for k in unknown if not _another_takes("planners", k, name, PLANNER_ARGUMENTS)]  # a swapped one's
     if typos:
         raise PluginError(f"campaign.planner_options.{typos[0]}: no installed planner takes an option {typos[0]!r} "
                           f"({name!r} takes {', '.join(taken) or 'none'}); check its spelling")
@@ -252,6 +252,7 @@ def make_planner(s: Scenario) -> Any:
 
 
 PLANNER_ARGUMENTS = frozenset({"parameters", "seed", "targets", "budget"})  # what every planner is given
+SCHEDULER_ARGUMENTS = frozenset({"scenario", "seed"})  # what every scheduler is given
 
 
 def constructed(cls: Any, given: dict[str, Any], options: dict[str, Any]) -> Any:
@@ -300,22 +301,22 @@ def _options_not_taken(cls: Any, options: dict[str, Any], given: frozenset[str])
     return [k for k in options if k not in named], named
 
 
-def _another_planner_takes(option: str, but: str) -> bool:
-    """Whether an installed planner other than ``but`` names ``option`` (or may read any): the scenario's options
-    may be for its own planner while a bench or ``--planner`` runs another. Each is read from its source, and
-    imported only where that does not say (importing all took seconds: scikit-learn, torch, RDKit)."""
-    for other in plugins.installed("planners"):
+def _another_takes(kind: str, option: str, but: str, given: frozenset[str]) -> bool:
+    """Whether an installed planner (scheduler) other than ``but`` names ``option`` (or may read any): the
+    scenario's options may be for its own while a bench or ``--planner`` runs another. Each is read from its source,
+    and imported only where that does not say (importing all took seconds: scikit-learn, torch, RDKit)."""
+    for other in plugins.installed(kind):
         if other == but:
             continue
-        read = plugins.parameters_unimported("planners", other)
+        read = plugins.parameters_unimported(kind, other)
         if read is not None:
             named, takes_any = read
-            if takes_any or (option in named and option not in PLANNER_ARGUMENTS):
+            if takes_any or (option in named and option not in given):
                 return True
             continue
         try:
-            unknown, _ = _options_not_taken(plugins.load("planners", other), {option: None}, PLANNER_ARGUMENTS)
-        except Exception:  # a planner that cannot be loaded here says nothing about this option
+            unknown, _ = _options_not_taken(plugins.load(kind, other), {option: None}, given)
+        except Exception:  # one that cannot be loaded here says nothing about this option
             continue
         if not unknown:
             return True
@@ -335,11 +336,17 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
         return REMOTE
     name, options = plugins.with_policy("schedulers", spec)
     cls = plugins.load("schedulers", name)
-    if options and _options_not_taken(cls, options, frozenset({"scenario", "seed"}))[0]:
+    if options and _options_not_taken(cls, options, SCHEDULER_ARGUMENTS)[0]:
         raise PluginError(f"scheduler {spec!r}: {name!r} reads no policy file; a trained scheduler is "
                           f"rl:PATH (`--scheduler rl:{options['policy']}`)")
+    unknown, taken = _options_not_taken(cls, s.campaign.scheduler_options, SCHEDULER_ARGUMENTS)
+    typos = [k for k in unknown if not _another_takes("schedulers", k, name, SCHEDULER_ARGUMENTS)]
+    if typos:
+        raise PluginError(f"campaign.scheduler_options.{typos[0]}: no installed scheduler takes an option "
+                          f"{typos[0]!r} ({name!r} takes {', '.join(taken) or 'none'}); check its spelling")
+    taken_here = {k: v for k, v in s.campaign.scheduler_options.items() if k not in unknown}  # a rule's: none
     try:
-        return constructed(cls, dict(scenario=s, seed=s.campaign.seed), options)
+        return constructed(cls, dict(scenario=s, seed=s.campaign.seed), {**taken_here, **options})
     except TwinError:
         raise
     except PLUGIN_ERRORS as exc:

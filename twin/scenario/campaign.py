@@ -29,6 +29,9 @@ class Campaign(Spec):
     planner_options: dict[str, Any] = Field(default_factory=dict, description="passed to the planner as keyword "
                                             "arguments (gp-bo: n_init, candidates, refit_every, log_scale; fixed: "
                                             "proposals, a list of {params: {...}} proposed in order)")
+    scheduler_options: dict[str, Any] = Field(default_factory=dict, description="passed as keyword arguments to "
+                                              "each scheduler whose constructor names them (cp-sat: time_limit_s, "
+                                              "its wall seconds a decision, default 1; a rule takes none)")
     fallback_scheduler: str = Field(default="fifo", max_length=256, description="decides when a scheduler agent "
                                     "on the bus is absent, late or wrong")
     policy_fit: Literal["warn", "refuse"] = Field(default="warn", description="a scheduler policy used on a lab "
