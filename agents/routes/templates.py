@@ -171,8 +171,9 @@ def _range(value: Any, where: str, what: str) -> tuple[float, float]:
     return float(value[0]), float(value[1])
 
 
-def parse(text: str, source: str = "<templates>") -> list[Template]:
-    """Templates from the YAML text of a template file (``source`` names it in errors)."""
+def parse(text: str, source: str = "<templates>", check_examples: bool = True) -> list[Template]:
+    """Templates from the YAML text of a template file (``source`` names it in errors), each checked against its
+    own example unless ``check_examples`` is off (the shipped file's, which the tests check)."""
     try:  # within bounds: a file of a few hundred bytes whose aliases expand to 10^8 values is refused, not read
         doc = parse_yaml(text, source, "a template file in YAML (a large set loads as a CSV table)")
     except ScenarioError as exc:
@@ -214,11 +215,21 @@ def parse(text: str, source: str = "<templates>") -> list[Template]:
                                 f"(reactant.reactant>>product)")
         example = raw["example"]
         if (not isinstance(example, dict) or not isinstance(example.get("reactants"), list)
+                or not example["reactants"] or not all(isinstance(r, str) for r in example["reactants"])
                 or not isinstance(example.get("product"), str)):
             raise TemplateError(f"{where}: example must be {{reactants: [SMILES, ...], product: SMILES}}")
-        out.append(Template(str(raw["name"]), str(raw["class"]), smarts, _range(raw["yield_pct"], where, "yield_pct"),
+        template = Template(str(raw["name"]), str(raw["class"]), smarts, _range(raw["yield_pct"], where, "yield_pct"),
                             _range(raw["hours"], where, "hours"), str(raw["conditions"]),
-                            "; ".join(sources[k] for k in cited), example, fwd, back))
+                            "; ".join(sources[k] for k in cited), example, fwd, back)
+        try:
+            wrong = check_example(template) if check_examples else []
+        except ValueError as exc:  # a SMILES too long to read
+            raise TemplateError(f"{where}: example: {exc}") from None
+        if wrong:  # the search would never use it where it was meant to be used
+            raise TemplateError(f"{where}: its example does not hold: {wrong[0].partition(': ')[2]}; its smarts (or "
+                                "an atom query it names) does not match the example's molecules as written: fix the "
+                                "one that is wrong")
+        out.append(template)
     return out
 
 
@@ -305,7 +316,7 @@ def load(path: Path = TEMPLATES) -> tuple[Template, ...]:
                             "or an AiZynthFinder-style CSV/TSV table, saved as UTF-8") from None
     if path.name.endswith((".csv", ".tsv", ".csv.gz", ".tsv.gz")):
         return tuple(parse_retro_table(text, str(path)))
-    return tuple(parse(text, str(path)))
+    return tuple(parse(text, str(path), check_examples=path.resolve() != TEMPLATES.resolve()))
 
 
 def check_example(template: Template) -> list[str]:

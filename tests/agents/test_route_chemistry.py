@@ -58,6 +58,13 @@ def test_the_stock_finds_a_molecule_however_it_is_written():
     (lambda t: t.replace("name: amide from acyl chloride", "name: amide coupling (acid + amine)"),
      "a second template named 'amide coupling (acid + amine)'"),
     (lambda t: t.replace("yield_pct: [60, 95]", "yield_pct: [95, 60]", 1), "yield_pct must be [low, high]"),
+    # a primary amine's query narrowed to secondary ones: the file read, and the template never disconnected an
+    # amide of a primary amine again, its own example included
+    (lambda t: t.replace('amine: "N;H2,H1;', 'amine: "N;H1;', 1),
+     "templates[0] ('amide coupling (acid + amine)'): its example does not hold: forwards, CC(=O)O.NCc1ccccc1 does "
+     "not give CC(=O)NCc1ccccc1"),
+    (lambda t: t.replace("example: {reactants: ['CC(=O)O', 'NCc1ccccc1']", "example: {reactants: ['CC(=O)O', 7]", 1),
+     "example must be {reactants: [SMILES, ...], product: SMILES}"),
 ])
 def test_a_broken_template_file_is_refused_naming_the_template_and_fault(change, says):
     text = template_file.TEMPLATES.read_text()
