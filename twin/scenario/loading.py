@@ -10,6 +10,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from twin.core.errors import ScenarioError
+from twin.scenario.beside import found_beside
 from twin.scenario.files import read_yaml
 from twin.scenario.model import Scenario
 from twin.scenario.spec import Spec
@@ -62,9 +63,9 @@ def _parsed(raw: dict[str, Any], overrides: dict[str, Any], source: str, lab_onl
         later = {**_leaves("devices", raw.pop("devices")), **later}
     scenario = _resolved(parse_overridden(raw, {k: v for k, v in overrides.items() if k not in later}, source,
                                           lab_only), base, source)
-    if not later:
-        return scenario
-    return parse_overridden(scenario.model_dump(exclude_unset=True), later, source, lab_only)
+    if later:
+        scenario = parse_overridden(scenario.model_dump(exclude_unset=True), later, source, lab_only)
+    return found_beside(scenario, base)
 
 
 def _leaves(prefix: str, tree: dict[str, Any]) -> dict[str, Any]:
