@@ -21,7 +21,8 @@ def test_a_plugins_files_beside_the_scenario_are_found_from_any_folder(tmp_path,
     raw = qd_lab(**{"campaign.planner_options": {"stock": "stock.csv", "solvent": "THF", "rounds": 3,
                                                  "more": ["mine.csv", "policies/p.zip"]},
                     "campaign.scheduler": "rl:policies/p.zip", "campaign.scheduler_options": {"model": "nope.pt"},
-                    "devices.spectrometer.options": {"tls": {"ca": "ca.pem"}}})
+                    "devices.spectrometer.options": {"tls": {"ca": "ca.pem"}},
+                    "chemistry.options": {"table": "stock.csv"}})
     (lab / "s.yaml").write_text(yaml.safe_dump(raw))
     monkeypatch.chdir(elsewhere)
     s = load(lab / "s.yaml")
@@ -31,6 +32,7 @@ def test_a_plugins_files_beside_the_scenario_are_found_from_any_folder(tmp_path,
     assert s.campaign.scheduler == f"rl:{lab / 'policies' / 'p.zip'}"
     assert s.campaign.scheduler_options == {"model": "nope.pt"}  # nowhere: the plugin says so, naming it
     assert s.devices["spectrometer"].options["tls"]["ca"] == str(lab / "ca.pem")
+    assert s.chemistry.options["table"] == str(lab / "stock.csv")
     assert load_mapping(raw).campaign.planner_options["stock"] == "stock.csv"  # a mapping's: the working folder's
 
 
@@ -49,3 +51,17 @@ def test_a_route_planners_stock_and_templates_beside_the_scenario_run_from_anoth
     res = twin_cli("run", "rt/aspirin.yaml", "--bus", "memory", "--journal", str(tmp_path / "j.db"))
     assert res.exit_code == 0, res.stderr
     assert "cannot read" not in res.stderr
+
+
+def test_each_campaign_of_a_shared_lab_finds_its_files_beside_the_lab_file(tmp_path, monkeypatch):
+    raw = yaml.safe_load((ROOT / "scenarios" / "shared_lab.yaml").read_text())
+    raw["campaigns"][0]["campaign"] = {**raw["campaigns"][0].get("campaign", {}), "scheduler": "rl:p.zip"}
+    raw["campaigns"][0]["chemistry"]["options"] = {"table": "data/t.csv"}
+    (tmp_path / "data").mkdir()
+    for name in ("p.zip", "data/t.csv"):
+        (tmp_path / name).write_text("x")
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
+    monkeypatch.chdir(ROOT)
+    first = load(tmp_path / "lab.yaml").campaigns[0]
+    assert first.campaign.scheduler == f"rl:{tmp_path / 'p.zip'}"
+    assert first.chemistry.options["table"] == str(tmp_path / "data" / "t.csv")

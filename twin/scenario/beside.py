@@ -1,5 +1,5 @@
-"""The files a scenario's plugins are given (a policy, a route planner's stock, a driver's certificate), found as
-its job-shop file is: beside the scenario first, else where the command runs.
+"""The files a scenario's plugins are given (a policy, a route planner's stock, a driver's certificate, a chemistry
+model's data), found as its job-shop file is: beside the scenario first, else where the command runs.
 
 The kernel does not know which option of a plugin is a file, so a string is taken for one only where it looks like
 a file's path (a suffix, or a folder in it) and such a file lies beside the scenario; it is then given as that
@@ -25,14 +25,29 @@ def found_beside(s: Scenario, base: Path) -> Scenario:
     campaign = _campaign(s.campaign, base)
     if campaign is not s.campaign:
         update["campaign"] = campaign
-    campaigns = [c if c.campaign is None or (cc := _campaign(c.campaign, base)) is c.campaign
-                 else c.model_copy(update={"campaign": cc}) for c in s.campaigns]
+    if (chemistry := _chemistry(s.chemistry, base)) is not s.chemistry:
+        update["chemistry"] = chemistry
+    campaigns = [_shared(c, base) for c in s.campaigns]
     if any(a is not b for a, b in zip(campaigns, s.campaigns)):
         update["campaigns"] = campaigns
     lab_scheduler = s.orchestrator.lab_scheduler
     if lab_scheduler and (spec := _spec(lab_scheduler, base)) != lab_scheduler:
         update["orchestrator"] = s.orchestrator.model_copy(update={"lab_scheduler": spec})
     return s.model_copy(update=update) if update else s
+
+
+def _shared(c: Any, base: Path) -> Any:
+    """One campaign of a lab several share: its own campaign section and chemistry."""
+    update: dict[str, Any] = {}
+    if c.campaign is not None and (campaign := _campaign(c.campaign, base)) is not c.campaign:
+        update["campaign"] = campaign
+    if c.chemistry is not None and (chemistry := _chemistry(c.chemistry, base)) is not c.chemistry:
+        update["chemistry"] = chemistry
+    return c.model_copy(update=update) if update else c
+
+
+def _chemistry(c: Any, base: Path) -> Any:
+    return c.model_copy(update={"options": options}) if (options := _walk(c.options, base)) != c.options else c
 
 
 def _device(d: Any, base: Path) -> Any:
