@@ -138,6 +138,11 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
         c["name"], c["campaign"]["planner"], c["campaign"]["planner_options"] = name, planner, options
         return json.dumps({"file": json.dumps(c)}).encode()
 
+    def with_chemistry(name: str, options: dict) -> bytes:  # a chemistry model given a file of the lab's host
+        c = load(LAB).campaigns[0].model_dump(mode="json", exclude_none=True)
+        c["name"], c["chemistry"]["options"] = name, options
+        return json.dumps({"file": json.dumps(c)}).encode()
+
     secret = tmp_path / "secret.txt"  # outside the folder the lab serves from (the tests' working directory)
     secret.write_text("the-first-line-is-a-secret\n")
     bomb = "a: &a [x, x, x, x, x, x, x, x, x, x]\n" + "".join(
@@ -160,6 +165,7 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
         with_options("p", f"rl:{secret}", {}): f"campaign.planner: '{secret}' is outside the folder the lab serves",
         with_options("q", "route", {"stock": str(secret)}): "campaign.planner_options.stock: ",
         with_options("r", "route", {"templates": "../../../../../../../../etc/hostname"}): "outside the folder",
+        with_chemistry("c", {"data": str(secret)}): "chemistry.options.data: ",
     }
     answers: dict = {}
 

@@ -206,8 +206,8 @@ def refuse_module_plugins(name: str, cs: Scenario, trusted: Collection[str]) -> 
 
 def submitted_files(cs: Scenario) -> dict[str, str]:
     """The campaign's strings a plugin may open as files: each ``rl:PATH``'s policy, and every string of
-    ``campaign.planner_options`` (a policy, a route planner's stock and templates) and ``scheduler_options``, by
-    field."""
+    ``campaign.planner_options`` (a policy, a route planner's stock and templates), ``scheduler_options`` and
+    ``chemistry.options``, by field."""
     out = {f"campaign.{field}": options["policy"] for field, kind in _PLUGIN_FIELDS
            if "policy" in (options := plugins.with_policy(kind, getattr(cs.campaign, field))[1])}
 
@@ -223,6 +223,7 @@ def submitted_files(cs: Scenario) -> dict[str, str]:
 
     walk("campaign.planner_options", cs.campaign.planner_options)
     walk("campaign.scheduler_options", cs.campaign.scheduler_options)
+    walk("chemistry.options", cs.chemistry.options)
     return out
 
 
