@@ -55,6 +55,14 @@ def test_the_documented_planner_takes_its_option_and_closes_in_on_the_best(docum
                    "2", "--budget", "12", "--planners", "random,my_planner:NearBest", "--json", columns=80)
     assert res.exit_code == 0, res.output
     assert {r["planner"] for r in json.loads(res.stdout)["rows"]} == {"random", "my_planner:NearBest"}
+    # its option benched beside the others, which take none of it: it was refused as a misspelling of gp-bo's
+    res = twin_cli("bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds", "1", "--budget",
+                   "6", "--planners", "random,my_planner:NearBest", "--set", "campaign.planner_options.radius=0.1",
+                   "--json", columns=80)
+    assert res.exit_code == 0, res.output
+    res = twin_cli("bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds", "1", "--budget",
+                   "6", "--planners", "random,my_planner:NearBest", "--set", "campaign.planner_options.radus=0.1")
+    assert res.exit_code == 2 and "'my_planner:NearBest' takes radius" in " ".join(res.stderr.split())
 
 
 class WantsALab:

@@ -65,12 +65,23 @@ def test_scheduler_options_reach_the_schedulers_that_name_them_and_a_misspelt_on
     s = load(write(tmp_path, qd_lab(**opts)))
     assert make_scheduler(s).time_limit_s == 0.2
     assert make_scheduler(s, "fifo").decide  # a rule beside it (a bench's row, the fallback) is not given it
-    plugin = prepare(s, overrides={"campaign.scheduler_options": {"weight": 3.5}})
-    assert make_scheduler(plugin, "tests.twin.test_scenario_plugins:Weighted").weight == 3.5
+    weighted = "tests.twin.test_scenario_plugins:Weighted"
+    plugin = prepare(s, overrides={"campaign.scheduler_options": {"weight": 3.5}, "campaign.scheduler": weighted})
+    assert make_scheduler(plugin).weight == 3.5
+    check(plugin)  # its option is no typo, though the fallback rule (fifo) takes none
+    benched = prepare(s, overrides={"campaign.scheduler_options": {"weight": 3.5}})  # cp-sat's lab, benched beside it
+    check(benched, schedulers=[weighted])
+    res = twin_cli("bench", "schedulers", write(tmp_path, qd_lab(**{"campaign.budget": 3}), "b.yaml"), "--seeds", "1",
+                   "--schedulers", f"fifo,{weighted}", "--set", "campaign.scheduler_options.weight=2")
+    assert res.exit_code == 0, res.stderr
     typo = load(write(tmp_path, qd_lab(**{**opts, "campaign.scheduler_options": {"time_limt_s": 0.2}}), "t.yaml"))
     with pytest.raises(ScenarioError, match=r"campaign\.scheduler_options\.time_limt_s: no installed scheduler takes "
-                                          r"an option 'time_limt_s' \('cp-sat' takes time_limit_s\); check its "):
+                                          r"an option 'time_limt_s' \('cp-sat' takes time_limit_s; 'fifo' takes "
+                                          r"none\); check its "):
         check(typo)
+    res = twin_cli("bench", "schedulers", write(tmp_path, qd_lab(**{"campaign.budget": 3}), "b.yaml"), "--seeds", "1",
+                   "--schedulers", f"fifo,{weighted}", "--set", "campaign.scheduler_options.wieght=2")
+    assert res.exit_code == 2 and "'wieght'" in res.stderr and f"'{weighted}' takes weight" in res.stderr
     for bad in ("fast", 0, True):
         with pytest.raises(TwinError, match="time_limit_s: .* is not a number of seconds from 0.01 to 3600"):
             make_scheduler(prepare(s, overrides={"campaign.scheduler_options": {"time_limit_s": bad}}))

@@ -117,6 +117,18 @@ def train(
                   "or of PPO's rollouts on every environment), and a round begun is finished", highlight=False)
 
 
+def _benched(s: Scenario, names: list[str]) -> dict[str, object]:
+    """The schedulers a bench runs, each made once to check it; an option of ``campaign.scheduler_options`` that
+    none of them (nor any installed scheduler) takes is refused as misspelt."""
+    from twin.runtime.assembly import untaken_option
+
+    made = {name: lab.make_scheduler(s, name) for name in names}
+    problem = untaken_option(s, "schedulers", names)
+    if problem:
+        raise TwinError(problem)
+    return made
+
+
 def say_slow(slow: str) -> None:
     """What a bench may wait for (``scheduler_bench.slow_schedulers``), said before its runs."""
     if slow:
@@ -210,7 +222,11 @@ def bench_planners(
     refuse_disagreeing(sets, {"campaign.budget": ("--budget", budget)})
     overrides = {**sets, **({"campaign.budget": budget} if budget else {})}
     try:
-        s = one_campaign(checked(lab.prepare(scenario, overrides=overrides), scenario), scenario, "planners")
+        parsed = [parse(name) for name in names]
+        s = one_campaign(checked(lab.prepare(scenario, overrides=overrides), scenario,
+                                 planners=[planner for planner, _, _ in parsed],
+                                 schedulers=[scheduler for _, scheduler, _ in parsed if scheduler]), scenario,
+                         "planners")
         for name in names:
             planner, scheduler, _ = parse(name)
             lab.make_planner(s.model_copy(update={"campaign": s.campaign.model_copy(update={"planner": planner})}))
@@ -303,7 +319,7 @@ def bench_schedulers(
             try:
                 s = one_campaign(checked(load_variant(scenario, file, budget, sets, instance), scenario, benched=True),
                                  scenario, "schedulers")
-                made = {name: lab.make_scheduler(s, name) for name in names}
+                made = _benched(s, names)
             except TwinError as exc:
                 _fail(exc)
             if not as_json:
@@ -351,7 +367,7 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
         s = one_campaign(checked(load_variant(scenario, None, budget, changes), scenario, benched=True), scenario,
                          "schedulers")
         measure(s, by)  # said before the progress bar
-        made = {name: lab.make_scheduler(s, name) for name in names}
+        made = _benched(s, names)
     except TwinError as exc:
         _fail(exc)
     if s.jobshop is not None:

@@ -114,7 +114,8 @@ def whatif(
 
     split = lambda text: [x.strip() for x in text.split(",") if x.strip()] if text else None  # noqa: E731
     try:
-        s = checked(lab.prepare(scenario, overrides=paired_assignments(set_ or [])), scenario)
+        s = checked(lab.prepare(scenario, overrides=paired_assignments(set_ or [])), scenario,
+                    planners=split(planners) or (), schedulers=split(schedulers) or ())
         varied = parse_vary(vary or [])
         chosen = variants(s, varied, split(schedulers), split(planners))
         axes = [name for name, _ in axes_of(varied, split(schedulers), split(planners))]

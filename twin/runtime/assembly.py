@@ -235,11 +235,9 @@ def make_planner(s: Scenario) -> Any:
     if options and _options_not_taken(cls, options, PLANNER_ARGUMENTS)[0]:
         raise PluginError(f"campaign.planner: {s.campaign.planner!r}: planner {name!r} reads no policy file; a "
                           f"trained planner is rl:PATH (`--planner rl:{options['policy']}`)")
-    unknown, taken = _options_not_taken(cls, s.campaign.planner_options, PLANNER_ARGUMENTS)
-    typos = [k for k in unknown if not _another_takes("planners", k, name, PLANNER_ARGUMENTS)]  # a swapped one's
-    if typos:
-        raise PluginError(f"campaign.planner_options.{typos[0]}: no installed planner takes an option {typos[0]!r} "
-                          f"({name!r} takes {', '.join(taken) or 'none'}); check its spelling")
+    # an option it does not take is another's (a bench row's) or misspelt, which the checks before a command runs
+    # say (untaken_option: they know every planner the command runs)
+    unknown, _ = _options_not_taken(cls, s.campaign.planner_options, PLANNER_ARGUMENTS)
     try:
         own = {k: v for k, v in s.campaign.planner_options.items() if k not in unknown}  # not a swapped one's
         return constructed(cls, dict(parameters=s.chemistry.parameters, seed=s.campaign.seed,
@@ -326,6 +324,26 @@ def _another_takes(kind: str, option: str, but: str, given: frozenset[str]) -> b
 REMOTE = "remote"  # campaign.scheduler: an agent served elsewhere (`twin scheduler serve`)
 
 
+def untaken_option(s: Scenario, kind: str, specs: list[str]) -> str:
+    """Why an option of ``campaign.planner_options`` (``kind`` "planners") or ``scheduler_options`` ("schedulers")
+    is likely misspelt: none of the plugins ``specs`` (those a command runs: the scenario's own, a bench's rows)
+    nor any installed one takes it ('' if each is taken)."""
+    field, given = (("planner_options", PLANNER_ARGUMENTS) if kind == "planners" else
+                    ("scheduler_options", SCHEDULER_ARGUMENTS))
+    classes = {name: plugins.load(kind, name) for name in
+               dict.fromkeys(plugins.with_policy(kind, spec)[0] for spec in specs if spec != REMOTE)}
+    for option in getattr(s.campaign, field):
+        if any(not _options_not_taken(cls, {option: None}, given)[0] for cls in classes.values()):
+            continue
+        if _another_takes(kind, option, "", given):
+            continue
+        takes = {name: _options_not_taken(cls, {}, given)[1] for name, cls in classes.items()}
+        said = "; ".join(f"{name!r} takes {', '.join(t) or 'none'}" for name, t in takes.items())
+        return (f"campaign.{field}.{option}: no installed {kind[:-1]} takes an option {option!r}"
+                f"{' (' + said + ')' if said else ''}; check its spelling")
+    return ""
+
+
 def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
     """The scheduler named by ``spec`` (default: the scenario's, which must play the lab ahead if
     ``campaign.rollouts`` asks it to; a bench's or a fallback's need not); ``REMOTE`` for an agent elsewhere."""
@@ -339,11 +357,9 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
     if options and _options_not_taken(cls, options, SCHEDULER_ARGUMENTS)[0]:
         raise PluginError(f"scheduler {spec!r}: {name!r} reads no policy file; a trained scheduler is "
                           f"rl:PATH (`--scheduler rl:{options['policy']}`)")
-    unknown, taken = _options_not_taken(cls, s.campaign.scheduler_options, SCHEDULER_ARGUMENTS)
-    typos = [k for k in unknown if not _another_takes("schedulers", k, name, SCHEDULER_ARGUMENTS)]
-    if typos:
-        raise PluginError(f"campaign.scheduler_options.{typos[0]}: no installed scheduler takes an option "
-                          f"{typos[0]!r} ({name!r} takes {', '.join(taken) or 'none'}); check its spelling")
+    # an option it does not take is another's (a fallback's, a bench row's) or misspelt, which the checks before a
+    # command runs say (untaken_option: they know every scheduler the command runs)
+    unknown, _ = _options_not_taken(cls, s.campaign.scheduler_options, SCHEDULER_ARGUMENTS)
     taken_here = {k: v for k, v in s.campaign.scheduler_options.items() if k not in unknown}  # a rule's: none
     try:
         return constructed(cls, dict(scenario=s, seed=s.campaign.seed), {**taken_here, **options})

@@ -12,7 +12,7 @@ from twin.campaign.human import DRIVER as HUMAN
 from twin.campaign.human import OPTION_NAMES as HUMAN_OPTIONS
 from twin.campaign.policy import deadline_s, unusable_params, unusable_route
 from twin.device.driver import declared_steps, feature
-from twin.runtime.assembly import load_driver, make_planner, make_scheduler
+from twin.runtime.assembly import load_driver, make_planner, make_scheduler, untaken_option
 from twin.scenario import Scenario, load
 from twin.scenario.model import expected_duration
 from twin.scenario.sharing import campaign_scenarios
@@ -20,15 +20,18 @@ from twin.scenario.sharing import campaign_scenarios
 log = logging.getLogger(__name__)
 
 
-def check(s: Scenario, external: Collection[str] = (), benched: bool = False) -> None:
+def check(s: Scenario, external: Collection[str] = (), benched: bool = False, planners: Collection[str] = (),
+          schedulers: Collection[str] = ()) -> None:
     """What only the installed plugins can tell about ``s`` (``twin validate`` and ``twin run`` both ask):
     its drivers, planner, scheduler and fallback load; its targets ask for outputs the workflow produces;
     its Zenoh settings make a config. A lab of several campaigns: each campaign's, on the device types its
     workflow uses. ``external``: instances served by other processes, whose drivers need not be installed here
     (a device type all of whose instances are external is not loaded). ``benched``: a bench names the schedulers
-    to run and checks them itself, and a scheduler's training makes one, so the scenario's own is not loaded."""
+    to run and checks them itself, and a scheduler's training makes one, so the scenario's own is not loaded.
+    ``planners``, ``schedulers``: the others the command runs (a bench's rows, ``twin whatif --schedulers``),
+    whose options ``campaign.planner_options`` and ``scheduler_options`` may hold."""
     if not s.campaigns:
-        _check(s, external=external, benched=benched)
+        _check(s, external=external, benched=benched, planners=planners, schedulers=schedulers)
         return
     for i, (name, cs) in enumerate(campaign_scenarios(s, s.name).items()):
         try:
@@ -43,7 +46,7 @@ def check_campaign(s: Scenario, external: Collection[str] = ()) -> None:
 
 
 def _check(s: Scenario, types: set[str] | None = None, external: Collection[str] = (),
-           benched: bool = False) -> None:
+           benched: bool = False, planners: Collection[str] = (), schedulers: Collection[str] = ()) -> None:
     elsewhere = {dtype for dtype in s.devices if set(s.instance_names(dtype)) <= set(external)}
     for dtype, spec in s.devices.items():
         stray = sorted(set(spec.options) - HUMAN_OPTIONS) if spec.driver == HUMAN else []
@@ -69,6 +72,12 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
     if not benched:  # a bench runs the schedulers it names, not the scenario's (nor loads its policy to warn of it)
         _at("campaign.scheduler", make_scheduler, s)
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
+    # options no plugin the command runs takes: likely misspelt (a scheduler bench checks against its own rows)
+    ours = [s.campaign.scheduler, s.campaign.fallback_scheduler, s.orchestrator.lab_scheduler]
+    problem = untaken_option(s, "planners", [s.campaign.planner, *planners]) or \
+        ("" if benched else untaken_option(s, "schedulers", [spec for spec in (*ours, *schedulers) if spec]))
+    if problem:
+        raise ScenarioError(s.name, [problem])
     problem = _unproduced(s, drivers, elsewhere) or _sampleless(s, drivers, elsewhere)
     if problem:
         raise ScenarioError(s.name, [problem])
@@ -189,12 +198,13 @@ def validate_file(path: str | Path, overrides: dict | None = None) -> Scenario:
     return checked(load(path, overrides), path)
 
 
-def checked(s: Scenario, path: str | Path, external: Collection[str] = (), benched: bool = False) -> Scenario:
+def checked(s: Scenario, path: str | Path, external: Collection[str] = (), benched: bool = False,
+            planners: Collection[str] = (), schedulers: Collection[str] = ()) -> Scenario:
     """``s`` (read from ``path``) checked against the installed plugins; its errors name the file. What `twin run`
     checks before its progress bar, and a bench, a what-if or a training before its workers start, so that a
     driver that cannot run the lab is one error naming the file and field, not a traceback from a worker."""
     try:
-        check(s, external, benched)
+        check(s, external, benched, planners, schedulers)
     except ScenarioError as exc:
         raise ScenarioError(str(path), exc.problems) from None
     except TwinError as exc:
