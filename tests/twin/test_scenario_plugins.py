@@ -82,6 +82,8 @@ def test_scheduler_options_reach_the_schedulers_that_name_them_and_a_misspelt_on
     res = twin_cli("bench", "schedulers", write(tmp_path, qd_lab(**{"campaign.budget": 3}), "b.yaml"), "--seeds", "1",
                    "--schedulers", f"fifo,{weighted}", "--set", "campaign.scheduler_options.wieght=2")
     assert res.exit_code == 2 and "'wieght'" in res.stderr and f"'{weighted}' takes weight" in res.stderr
+    res = twin_cli("scheduler", "serve", tmp_path / "t.yaml", "--scheduler", "cp-sat", "--connect", "tcp/127.0.0.1:9")
+    assert res.exit_code == 2 and "'time_limt_s'" in res.stderr  # an agent served elsewhere: said before it joins
     for bad in ("fast", 0, True):
         with pytest.raises(TwinError, match="time_limit_s: .* is not a number of seconds from 0.01 to 3600"):
             make_scheduler(prepare(s, overrides={"campaign.scheduler_options": {"time_limit_s": bad}}))

@@ -18,10 +18,11 @@ from twin.core.bus import Bus, NoReplyError, security
 from twin.core.bus.endpoints import HOW, not_endpoints
 from twin.core.bus.security import Identity
 from twin.core.clock import LabClock
-from twin.core.errors import BusError, ClockError, DriverError
+from twin.core.errors import BusError, ClockError, DriverError, PluginError
 from twin.core.messages import excerpt
 from twin.core.bus.presence import labs_on, present
 from twin.runtime.labtime import LabTimeFollower
+from twin.runtime.assembly import untaken_option
 from twin.runtime.lab_claim import refuse_if_taken
 from twin.runtime.lab import build_actors, load_drivers, make_bus, make_clock, make_scheduler, prepare
 from twin.runtime.shared_run import shared_drivers
@@ -208,6 +209,9 @@ def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: 
 
     s = _joined(scenario, connect, clock, speed, security_dir, wait_s)
     scheduler = make_scheduler(s, spec)
+    problem = untaken_option(s, "schedulers", [spec])  # its options: the lab file's campaign.scheduler_options
+    if problem:
+        raise PluginError(problem)
 
     async def start(bus: Bus, clock: LabClock):
         await refuse_if_taken(bus, s, [], orchestrator=False, agent=True)
