@@ -45,6 +45,11 @@ def test_a_misspelt_planner_option_is_named_and_another_planners_option_is_not_r
     assert make_planner(kept).n_init == 4
     swapped = prepare(kept, overrides={"campaign.planner": "random"})  # --planner random, or a bench's row
     assert make_planner(swapped).propose(1, [], [])  # gp-bo's option is not random's: not used, not refused
+    from twin import run  # from Python too, where no command checked it first
+    from twin.core.errors import PluginError
+
+    with pytest.raises(PluginError, match=r"campaign\.planner_options\.n_int: no installed planner takes"):
+        run(typo, journal=tmp_path / "j.db", bus="memory")
 
 
 class Weighted:

@@ -21,12 +21,13 @@ from twin.campaign.journal import Journal
 from twin.campaign.replay import Rebuilt
 from twin.campaign.summary import Summary, from_core
 from twin.core.clock import LabClock
-from twin.core.errors import ClockError, TwinError
+from twin.core.errors import ClockError, PluginError, TwinError
 from twin.core import held
 from twin.device.driver import feature
 from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_drivers,
-                                   make_bus, make_clock, make_planner, make_scheduler, prepare)
+                                   make_bus, make_clock, make_planner, make_scheduler, prepare,
+                                   untaken_option)
 from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.lab_claim import refuse_if_taken
 from twin.runtime.fast_device import FastRuntimeRefused
@@ -91,7 +92,7 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
         on_progress: Callable[[CampaignCore], None] | None = None,
         record: RecordOptions | None = None, observer: LabObserver | None = None, runtime: str = "auto",
         make_journal: JournalFactory = Journal, agent_in_process: bool = False, handle_signals: bool = True,
-        **overrides: Any) -> Summary:
+        options_checked: bool = False, **overrides: Any) -> Summary:
     """Run one campaign to its end and return its summary.
 
     ``overrides`` are ``seed``, ``clock``, ``speed``, ``bus`` or ``overrides``
@@ -104,13 +105,21 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
     ``agent_in_process``: a scheduler that is an agent on the bus (rl) is asked in this process instead, so the
     fast runtime can run the campaign: the same decisions without a bus round trip each (benches, what-if).
     ``handle_signals``: SIGINT and SIGTERM stop the campaign cleanly, its journal and summary written (off where
-    the caller handles them: a bench's worker, which its pool stops).
+    the caller handles them: a bench's worker, which its pool stops). ``options_checked``: the caller has checked
+    ``campaign.planner_options`` and ``scheduler_options`` against every plugin it runs (a bench's row holds
+    options meant for its others); else an option neither the campaign's planner nor its schedulers (nor any
+    installed one) take is refused as misspelt.
     """
     s = prepare(scenario, **overrides)
     if s.campaigns:  # its own sections are the campaigns' defaults, not a campaign: it failed on a missing model
         raise TwinError(f"{s.name} is a lab of {len(s.campaigns)} campaigns ({', '.join(c.name for c in s.campaigns)})"
                         f": twin.run runs one campaign; twin.run_lab runs the lab and returns its LabSummary (each "
                         f"campaign's Summary in .campaigns)")
+    if not options_checked:
+        schedulers = [x for x in (s.campaign.scheduler, s.campaign.fallback_scheduler) if x]
+        problem = untaken_option(s, "planners", [s.campaign.planner]) or untaken_option(s, "schedulers", schedulers)
+        if problem:
+            raise PluginError(problem)
     why_not = fast_refused(s, external_devices, agent_in_process)
     check_runtime(runtime, why_not)
     claimed = journal is None

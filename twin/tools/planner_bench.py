@@ -61,7 +61,8 @@ def trial(scenario: Scenario, planner: str, seed: int) -> Trial:
         overrides["campaign.max_in_flight"] = 1
     with tempfile.TemporaryDirectory() as d:
         s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual", overrides=overrides,
-                agent_in_process=True, handle_signals=False)
+                agent_in_process=True, handle_signals=False,
+                options_checked=True)
     targets = [t.name for t in scenario.chemistry.targets]
     reached = all(t in s.targets_met_h for t in targets)
     if reached:

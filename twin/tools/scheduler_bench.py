@@ -45,7 +45,8 @@ def one(scenario: Scenario, scheduler: str, seed: int) -> Run:
         # a rule runs as it goes
         rollouts = {} if plays_ahead(scheduler) else {"campaign.rollouts": 1, "campaign.local_search": 0}
         s = run(scenario, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual",
-                overrides={"campaign.scheduler": scheduler, **rollouts}, agent_in_process=True, handle_signals=False)
+                overrides={"campaign.scheduler": scheduler, **rollouts}, agent_in_process=True, handle_signals=False,
+                options_checked=True)
     util = statistics.mean(s.utilisation.values()) if s.utilisation else 0.0
     hours = s.hours_compared(scenario.campaign.max_lab_hours)
     return Run(scheduler, seed, hours * 3600, util, s.degraded_samples, s.abandoned, s.scheduler_fallbacks,

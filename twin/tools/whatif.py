@@ -186,7 +186,7 @@ def one(scenario: Scenario, variant: Variant, seed: int) -> Outcome:
         return _shared(lab, variant, seed)
     with tempfile.TemporaryDirectory() as d:
         s = run(lab, journal=Path(d) / "j.db", seed=seed, bus="memory", clock="virtual", agent_in_process=True,
-                handle_signals=False)
+                handle_signals=False, options_checked=True)
     targets = [t.name for t in lab.chemistry.targets]
     reached = bool(targets) and all(t in s.targets_met_h for t in targets)
     per_type = {}
