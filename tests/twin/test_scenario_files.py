@@ -65,3 +65,19 @@ def test_each_campaign_of_a_shared_lab_finds_its_files_beside_the_lab_file(tmp_p
     first = load(tmp_path / "lab.yaml").campaigns[0]
     assert first.campaign.scheduler == f"rl:{tmp_path / 'p.zip'}"
     assert first.chemistry.options["table"] == str(tmp_path / "data" / "t.csv")
+
+
+def test_a_file_found_nowhere_is_said_with_where_it_was_looked_for(tmp_path, monkeypatch):
+    import pytest
+
+    from twin.core.errors import ScenarioError
+    from twin.runtime.checks import validate_file
+
+    raw = yaml.safe_load((ROOT / "scenarios" / "aspirin.yaml").read_text())
+    raw["campaign"]["planner_options"]["templates"] = "nothere.yaml"
+    (tmp_path / "a.yaml").write_text(yaml.safe_dump(raw))
+    monkeypatch.chdir(ROOT)
+    with pytest.raises(ScenarioError, match=r"nothere\.yaml: cannot read the template file \(No such file or "
+                                            r"directory\) \(a file a scenario gives its plugins is looked for beside "
+                                            r"the scenario, then in the working directory\)"):
+        validate_file(tmp_path / "a.yaml")

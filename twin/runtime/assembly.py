@@ -196,7 +196,7 @@ def load_driver(s: Scenario, device_type: str, name: str, simulated: bool | None
     except PLUGIN_ERRORS as exc:
         said = str(exc) if isinstance(exc, TwinError) else f"{type(exc).__name__}: {exc}"  # KeyError: 'x', not 'x'
         raise DriverError(f"driver {driver!r} for {name} failed to start: {said}{_takes_setup(cls, setup, exc)}"
-                          ) from exc
+                          f"{_where_files_are(exc)}") from exc
     caps = capabilities(instance, f"{field}.driver: {driver!r}")
     missing = set(spec.steps) - caps
     if missing:
@@ -246,7 +246,8 @@ def make_planner(s: Scenario) -> Any:
         raise
     except PLUGIN_ERRORS as exc:
         raise PluginError(f"planner {s.campaign.planner!r} failed to start: {type(exc).__name__}: {exc}"
-                          + _given(exc, "parameters, seed, targets, budget and planner_options")) from exc
+                          + _given(exc, "parameters, seed, targets, budget and planner_options")
+                          + _where_files_are(exc)) from exc
 
 
 PLANNER_ARGUMENTS = frozenset({"parameters", "seed", "targets", "budget"})  # what every planner is given
@@ -277,6 +278,13 @@ def _takes_setup(cls: Any, setup: DriverSetup, exc: BaseException) -> str:
     except ValueError:  # no signature to read
         pass
     return ""
+
+
+def _where_files_are(exc: BaseException) -> str:
+    """For a plugin that did not find a file it was given: where a scenario's files are looked for."""
+    missing = isinstance(exc, FileNotFoundError) or "No such file or directory" in str(exc)
+    return (" (a file a scenario gives its plugins is looked for beside the scenario, then in the working "
+            "directory)" if missing else "")
 
 
 def _given(exc: BaseException, what: str) -> str:
@@ -367,7 +375,7 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
         raise
     except PLUGIN_ERRORS as exc:
         raise PluginError(f"scheduler {spec!r} failed to start: {type(exc).__name__}: {exc}"
-                          + _given(exc, "scenario and seed")) from exc
+                          + _given(exc, "scenario and seed") + _where_files_are(exc)) from exc
 
 
 def plays_ahead(spec: str) -> bool:
