@@ -409,6 +409,13 @@ def test_a_workflow_that_measures_before_any_step_makes_a_sample_is_refused_nami
             "synthesiser does): put a step that makes one first") in str(err.value)
     made = {**lab, "workflow": [{"step": "synthesise", "device": "synthesiser"}, *lab["workflow"]]}
     check(parse(made, "lab.yaml"))  # a sample made first, passed on by the person and the oven
+    # a campaign of a shared lab is checked on the device types its workflow uses: what makes a sample is another's
+    shared = yaml.safe_load((ROOT / "scenarios" / "shared_lab.yaml").read_text())
+    shared["campaigns"][0]["workflow"] = [{"step": "measure", "device": "spectrometer"}]
+    with pytest.raises(ScenarioError) as err:
+        check(parse(shared, "lab.yaml"))
+    assert ("campaigns.0 (dots): workflow.0: measure on spectrometer needs a sample, and no step before it makes one "
+            "(prepare on synthesiser, synthesise on synthesiser does)") in str(err.value)
 
 
 def test_a_twin_that_makes_no_sample_for_a_driver_that_does_is_warned_of(caplog):

@@ -169,8 +169,7 @@ def _sampleless(s: Scenario, drivers: dict[str, Any], elsewhere: set[str]) -> st
     have = False
     for i, w in enumerate(s.workflow):
         if w.device in drivers and not have and w.step in (steps(w.device, "needs_sample") or ()):
-            makers = [f"{step} on {d}" for d in drivers for step in sorted(steps(d, "makes_sample") or ())
-                      if step in s.devices[d].steps]
+            makers = _makers(s, drivers)
             return (f"workflow.{i}: {w.step} on {w.device} needs a sample, and no step before it makes one"
                     f"{' (' + ', '.join(makers) + ' does)' if makers else ''}: put a step that makes one first")
         if w.device in drivers:
@@ -179,6 +178,24 @@ def _sampleless(s: Scenario, drivers: dict[str, Any], elsewhere: set[str]) -> st
         elif w.device in elsewhere or s.devices[w.device].driver != HUMAN:
             have = True
     return ""
+
+
+def _makers(s: Scenario, drivers: dict[str, Any]) -> list[str]:
+    """The lab's steps that make a sample ("synthesise on synthesiser"): of the device types checked, else of the
+    lab's others (a campaign of a shared lab is checked on the types its workflow uses, and may need another)."""
+    def made(dtype: str, driver: Any) -> list[str]:
+        says = declared_steps(driver, "makes_sample", f"devices.{dtype}.driver {s.devices[dtype].driver!r}")
+        return [f"{step} on {dtype}" for step in sorted(says or ()) if step in s.devices[dtype].steps]
+
+    found = [m for dtype, driver in drivers.items() for m in made(dtype, driver)]
+    for dtype in s.devices:
+        if found or dtype in drivers or s.devices[dtype].driver == HUMAN:
+            continue
+        try:
+            found += made(dtype, load_driver(s, dtype, s.instance_names(dtype)[0], False))
+        except TwinError:  # a driver that cannot be loaded here names no step
+            continue
+    return found
 
 
 def _at(field: str, make: Callable[..., Any], *args: Any) -> Any:
