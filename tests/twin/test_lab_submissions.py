@@ -3,6 +3,7 @@ that name code for the lab to import."""
 
 import json
 import re
+from pathlib import Path
 
 import pytest
 
@@ -223,3 +224,36 @@ def test_a_submitted_campaign_names_a_module_only_if_the_lab_file_does_or_the_la
     from twin.campaign.journal import read_run
 
     assert read_run(tmp_path / "lab.inputs")["trust_modules"] is trust  # what `twin resume` serves on with
+
+
+def test_a_submitted_campaign_may_name_a_file_outside_the_labs_folder_that_the_lab_file_names(tmp_path):
+    """A policy outside the folder the lab serves from is the lab's own when its file names it: a submission may
+    name that one, and no other outside it."""
+    import asyncio
+    import shutil
+
+    from twin.runtime.shared_run import serve_lab
+
+    for name in ("qd.zip", "qd.json", "other.zip", "other.json"):  # outside the tests' working directory
+        shutil.copy(ROOT / "agents" / "policies" / f"quantum_dots{Path(name).suffix}", tmp_path / name)
+    first = load(LAB).campaigns[0].model_dump(mode="json", exclude_none=True)
+    first["campaign"].update(budget=1, planner=f"rl:{tmp_path / 'qd.zip'}")
+    s = prepare(LAB, clock="scaled", speed=50_000, bus="memory", overrides={"campaigns": [first]}, lab_only=True)
+
+    def submission(name: str, policy: str) -> bytes:
+        c = {**first, "name": name, "campaign": {**first["campaign"], "planner": f"rl:{policy}"}}
+        return json.dumps({"file": json.dumps(c)}).encode()
+
+    answers: dict = {}
+
+    def started(lab) -> None:
+        async def ask() -> None:
+            for name, policy in (("same", tmp_path / "qd.zip"), ("other", tmp_path / "other.zip")):
+                answers[name] = json.loads(await lab.desk.serve("labtwin/shared/control/submit",
+                                                                submission(name, str(policy))))
+            lab.stop("test over")
+        asyncio.ensure_future(ask())
+
+    serve_lab(s, tmp_path / "journals", handle_signals=False, on_start=started)
+    assert answers["same"]["ok"] is True, answers["same"]
+    assert answers["other"]["ok"] is False and "is outside the folder the lab serves from" in answers["other"]["error"]
