@@ -235,11 +235,8 @@ def make_planner(s: Scenario) -> Any:
     if options and _options_not_taken(cls, options, PLANNER_ARGUMENTS)[0]:
         raise PluginError(f"campaign.planner: {s.campaign.planner!r}: planner {name!r} reads no policy file; a "
                           f"trained planner is rl:PATH (`--planner rl:{options['policy']}`)")
-    # an option it does not take is another's (a bench row's) or misspelt, which the checks before a command runs
-    # say (untaken_option: they know every planner the command runs)
-    unknown, _ = _options_not_taken(cls, s.campaign.planner_options, PLANNER_ARGUMENTS)
     try:
-        own = {k: v for k, v in s.campaign.planner_options.items() if k not in unknown}  # not a swapped one's
+        own = _taken(cls, s.campaign.planner_options, PLANNER_ARGUMENTS)
         return constructed(cls, dict(parameters=s.chemistry.parameters, seed=s.campaign.seed,
                                      targets=s.chemistry.targets, budget=s.campaign.budget), {**options, **own})
     except TwinError:
@@ -293,6 +290,19 @@ def _given(exc: BaseException, what: str) -> str:
             if isinstance(exc, TypeError) else "")
 
 
+def _taken(cls: Any, options: dict[str, Any], given: frozenset[str]) -> dict[str, Any]:
+    """The scenario's ``options`` that ``cls`` takes. One it does not is another's (a bench row's, the fallback's)
+    or misspelt, which the checks before a command runs say (``untaken_option``: they know every plugin it runs)."""
+    unknown = _options_not_taken(cls, options, given)[0]
+    return {k: v for k, v in options.items() if k not in unknown}
+
+
+def named_schedulers(s: Scenario) -> list[str]:
+    """The schedulers a campaign names: its own, its fallback, its lab's one."""
+    return [spec for spec in (s.campaign.scheduler, s.campaign.fallback_scheduler, s.orchestrator.lab_scheduler)
+            if spec]
+
+
 def _options_not_taken(cls: Any, options: dict[str, Any], given: frozenset[str]) -> tuple[list[str], list[str]]:
     """The ``options`` a plugin's constructor has no parameter for, and the options it has: known only when its
     catch-all, if any, is ``**_`` (the kernel's arguments it does not use); a ``**kwargs`` of another name may read
@@ -307,13 +317,10 @@ def _options_not_taken(cls: Any, options: dict[str, Any], given: frozenset[str])
     return [k for k in options if k not in named], named
 
 
-def _another_takes(kind: str, option: str, but: str, given: frozenset[str]) -> bool:
-    """Whether an installed planner (scheduler) other than ``but`` names ``option`` (or may read any): the
-    scenario's options may be for its own while a bench or ``--planner`` runs another. Each is read from its source,
+def _installed_takes(kind: str, option: str, given: frozenset[str]) -> bool:
+    """Whether an installed planner (scheduler) names ``option`` (or may read any). Each is read from its source,
     and imported only where that does not say (importing all took seconds: scikit-learn, torch, RDKit)."""
     for other in plugins.installed(kind):
-        if other == but:
-            continue
         read = plugins.parameters_unimported(kind, other)
         if read is not None:
             named, takes_any = read
@@ -338,12 +345,15 @@ def untaken_option(s: Scenario, kind: str, specs: list[str]) -> str:
     nor any installed one takes it ('' if each is taken)."""
     field, given = (("planner_options", PLANNER_ARGUMENTS) if kind == "planners" else
                     ("scheduler_options", SCHEDULER_ARGUMENTS))
+    options = getattr(s.campaign, field)
+    if not options:  # the usual case, asked by every twin.run: nothing to load
+        return ""
     classes = {name: plugins.load(kind, name) for name in
-               dict.fromkeys(plugins.with_policy(kind, spec)[0] for spec in specs if spec != REMOTE)}
-    for option in getattr(s.campaign, field):
+               dict.fromkeys(plugins.with_policy(kind, spec)[0] for spec in specs if spec and spec != REMOTE)}
+    for option in options:
         if any(not _options_not_taken(cls, {option: None}, given)[0] for cls in classes.values()):
             continue
-        if _another_takes(kind, option, "", given):
+        if _installed_takes(kind, option, given):
             continue
         takes = {name: _options_not_taken(cls, {}, given)[1] for name, cls in classes.items()}
         said = "; ".join(f"{name!r} takes {', '.join(t) or 'none'}" for name, t in takes.items())
@@ -365,12 +375,9 @@ def make_scheduler(s: Scenario, spec: str | None = None) -> Any:
     if options and _options_not_taken(cls, options, SCHEDULER_ARGUMENTS)[0]:
         raise PluginError(f"scheduler {spec!r}: {name!r} reads no policy file; a trained scheduler is "
                           f"rl:PATH (`--scheduler rl:{options['policy']}`)")
-    # an option it does not take is another's (a fallback's, a bench row's) or misspelt, which the checks before a
-    # command runs say (untaken_option: they know every scheduler the command runs)
-    unknown, _ = _options_not_taken(cls, s.campaign.scheduler_options, SCHEDULER_ARGUMENTS)
-    taken_here = {k: v for k, v in s.campaign.scheduler_options.items() if k not in unknown}  # a rule's: none
     try:
-        return constructed(cls, dict(scenario=s, seed=s.campaign.seed), {**taken_here, **options})
+        return constructed(cls, dict(scenario=s, seed=s.campaign.seed),
+                           {**_taken(cls, s.campaign.scheduler_options, SCHEDULER_ARGUMENTS), **options})
     except TwinError:
         raise
     except PLUGIN_ERRORS as exc:

@@ -12,7 +12,7 @@ from twin.campaign.human import DRIVER as HUMAN
 from twin.campaign.human import OPTION_NAMES as HUMAN_OPTIONS
 from twin.campaign.policy import deadline_s, unusable_params, unusable_route
 from twin.device.driver import declared_steps, feature
-from twin.runtime.assembly import load_driver, make_planner, make_scheduler, untaken_option
+from twin.runtime.assembly import load_driver, make_planner, make_scheduler, named_schedulers, untaken_option
 from twin.scenario import Scenario, load
 from twin.scenario.model import expected_duration
 from twin.scenario.sharing import campaign_scenarios
@@ -73,9 +73,8 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         _at("campaign.scheduler", make_scheduler, s)
     _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
     # options no plugin the command runs takes: likely misspelt (a scheduler bench checks against its own rows)
-    ours = [s.campaign.scheduler, s.campaign.fallback_scheduler, s.orchestrator.lab_scheduler]
     problem = untaken_option(s, "planners", [s.campaign.planner, *planners]) or \
-        ("" if benched else untaken_option(s, "schedulers", [spec for spec in (*ours, *schedulers) if spec]))
+        ("" if benched else untaken_option(s, "schedulers", [*named_schedulers(s), *schedulers]))
     if problem:
         raise ScenarioError(s.name, [problem])
     problem = _unproduced(s, drivers, elsewhere) or _sampleless(s, drivers, elsewhere)

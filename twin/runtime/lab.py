@@ -26,8 +26,8 @@ from twin.core import held
 from twin.device.driver import feature
 from twin.runtime import FastCampaign, LiveCampaign
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_drivers,
-                                   make_bus, make_clock, make_planner, make_scheduler, prepare,
-                                   untaken_option)
+                                   make_bus, make_clock, make_planner, make_scheduler, named_schedulers,
+                                   prepare, untaken_option)
 from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.lab_claim import refuse_if_taken
 from twin.runtime.fast_device import FastRuntimeRefused
@@ -116,8 +116,8 @@ def run(scenario: str | Path | Scenario, *, journal: str | Path | None = None,
                         f": twin.run runs one campaign; twin.run_lab runs the lab and returns its LabSummary (each "
                         f"campaign's Summary in .campaigns)")
     if not options_checked:
-        schedulers = [x for x in (s.campaign.scheduler, s.campaign.fallback_scheduler) if x]
-        problem = untaken_option(s, "planners", [s.campaign.planner]) or untaken_option(s, "schedulers", schedulers)
+        problem = untaken_option(s, "planners", [s.campaign.planner]) or \
+            untaken_option(s, "schedulers", named_schedulers(s))
         if problem:
             raise PluginError(problem)
     why_not = fast_refused(s, external_devices, agent_in_process)

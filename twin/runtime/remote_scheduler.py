@@ -55,13 +55,20 @@ def decode_view(payload: bytes) -> LabView:
     return _VIEW_DECODER.decode(payload)
 
 
+def agent_error(reply: bytes) -> str:
+    """Why the agent could not decide, where its answer says so (``{"error": "why"}``), else ''."""
+    try:
+        answer = json.loads(reply)
+    except ValueError:
+        return ""
+    why = answer.get("error") if isinstance(answer, dict) and "assign" not in answer else None
+    return why[:500] if isinstance(why, str) else ""
+
+
 def check(view: LabView, reply: bytes) -> tuple[list[Assignment], str]:
     """The assignments in ``reply``, or why they cannot be carried out on ``view``."""
     try:
-        answer = json.loads(reply)
-        if isinstance(answer, dict) and "assign" not in answer and isinstance(answer.get("error"), str):
-            return [], f"error: {answer['error'][:500]}"
-        items = [Assignment(str(a["task"]), str(a["device"])) for a in answer["assign"]]
+        items = [Assignment(str(a["task"]), str(a["device"])) for a in json.loads(reply)["assign"]]
     except (ValueError, KeyError, TypeError) as exc:
         return [], f"unreadable decision ({exc!r})"
     ready = {r.task: r for r in view.ready}
@@ -178,9 +185,10 @@ class RemoteScheduler:
                                         f"the scheduler agent did not answer within {self.deadline_s:g} lab-s")
         except BusError as exc:  # it answered with an error (a Zenoh error reply)
             return self.fallback.decide(view, "failed", f"the scheduler agent failed: {exc}")
+        failed = agent_error(reply)
+        if failed:
+            return self.fallback.decide(view, "failed", f"the scheduler agent failed: {failed}")
         assignments, problem = check(view, reply)
-        if problem.startswith("error: "):
-            return self.fallback.decide(view, "failed", f"the scheduler agent failed: {problem[7:]}")
         if problem:
             return self.fallback.decide(view, "invalid", f"the scheduler agent sent an {problem}")
         self.fallback.recovered("scheduler agent is back; it decides again")
