@@ -16,7 +16,8 @@ import numpy as np
 import torch
 
 from agents.candidates import CandidateEncoder
-from agents.imitation import PG_BATCH, Sample, advantage_weighted, chosen, fit
+from agents.imitation import PG_BATCH, advantage_weighted, chosen
+from agents.label_fit import Sample, fit
 
 LEARNING_RATE = 1e-3  # ten times self-pg's: one lab, learnt for the few rounds it is played
 

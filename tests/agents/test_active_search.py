@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from agents.active_search import ActiveSearch
-from agents.imitation import batch
+from agents.label_fit import batch
 from agents.lockstep import lockstep
 from agents.rl_scheduler import RlScheduler
 from agents.rollout_plan import ROUND, plan

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from agents.imitation import _reinforced, _scorer, batch, fit, sampled_runs
+from agents.imitation import _reinforced, _scorer, sampled_runs
+from agents.label_fit import batch, fit
 from agents.judging import objective
 from agents.train_scheduler import train_scheduler
 from tests.agents.test_self_labelling import AS_SHIPPED, SHIPPED, replay
