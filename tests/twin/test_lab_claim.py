@@ -1,8 +1,9 @@
 """A second process that would serve a lab already on the router — its campaign, one of its devices, its
-scheduler agent — is refused naming what holds it, and the lab that was there first loses nothing; a watcher of a
-lab that is not there names the labs that are."""
+scheduler agent — is refused naming what holds it, and the lab that was there first loses nothing; so is one of
+two started at the same moment; a watcher of a lab that is not there names the labs that are."""
 
 import asyncio
+import json
 import os
 import subprocess
 import sys
@@ -15,8 +16,9 @@ import yaml
 from tests.conftest import qd_lab
 from tests.twin.test_device_process import free_port
 from tests.twin.test_distributed_lab import start
+from twin.runtime.assembly import make_bus
 from twin.runtime.lab import make_clock, prepare, run_async
-from twin.runtime.lab_claim import LabTaken
+from twin.runtime.lab_claim import Claims, LabTaken, refuse_if_taken
 
 pytestmark = pytest.mark.process
 ROOT = Path(__file__).resolve().parents[2]
@@ -110,3 +112,63 @@ def test_a_second_campaign_or_device_of_a_lab_on_the_bus_is_refused_and_the_firs
     assert stopping_s < 15, stopping_s  # it went on asking for the history for 30 s after SIGTERM
     # the first campaign saw nothing of the second: no foreign message, no attempt lost to it
     assert summary.rejected_messages == 0 and summary.failed_attempts == 0 and summary.abandoned == 0
+
+
+async def test_of_processes_taking_a_lab_at_the_same_moment_one_goes_ahead_and_a_later_one_waits_for_it(tmp_path):
+    router = f"tcp/127.0.0.1:{free_port()}"
+    s = prepare(_lab(tmp_path, router))
+    proc = start(["router", "--listen", router], "router")
+    buses = [make_bus(s, make_clock(s)) for _ in range(5)]
+    try:
+        for bus in buses:
+            await bus.start()
+        # three campaigns of lab t at once (none holds the lab's token yet: they are all about to take it)
+        got = await asyncio.gather(*(refuse_if_taken(bus, s, []) for bus in buses[:3]), return_exceptions=True)
+        ahead = [g for g in got if isinstance(g, Claims)]
+        assert len(ahead) == 1, got
+        for g in got:
+            if g is not ahead[0]:
+                assert isinstance(g, LabTaken), g
+                assert "lab 't': another process is starting its campaign on this bus at this same moment" in str(g)
+                assert "--set lab=t-2" in str(g)
+        # one that comes while the first is still starting is refused too, and one after it has gone is not
+        with pytest.raises(LabTaken, match="another process is starting its campaign"):
+            await refuse_if_taken(buses[3], s, [])
+        ahead[0].close()
+        await asyncio.sleep(0.5)  # the claim's undeclaration reaches the router (no lease: it was closed)
+        (await refuse_if_taken(buses[3], s, [])).close()
+        # a device served twice at once: one of the two serves it
+        got = await asyncio.gather(*(refuse_if_taken(bus, s, ["spectrometer-1"], orchestrator=False)
+                                     for bus in buses[3:]), return_exceptions=True)
+        assert sorted(type(g).__name__ for g in got) == ["Claims", "LabTaken"], got
+        assert "another process is starting device 'spectrometer-1'" in \
+            str(next(g for g in got if isinstance(g, LabTaken)))
+    finally:
+        for bus in buses:
+            await bus.close()
+        proc.terminate()
+        proc.wait()
+
+
+def test_two_runs_of_one_lab_started_together_one_runs_and_loses_nothing(tmp_path):
+    router = f"tcp/127.0.0.1:{free_port()}"
+    raw = yaml.safe_load(_lab(tmp_path, router).read_text())
+    raw["devices"]["spectrometer"]["duration"] = {"mean_s": 200, "cv": 0.0}
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    procs = [start(["router", "--listen", router], "router")]
+    try:
+        runs = [subprocess.Popen([sys.executable, "-m", "twin", "run", str(path), "--json", "-q", "--journal",
+                                  str(tmp_path / f"{k}.db")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                 text=True, cwd=ROOT) for k in range(2)]
+        procs += runs
+        outs = [r.communicate(timeout=120) for r in runs]
+    finally:
+        for p in procs:
+            p.terminate()
+            p.wait()
+    (ran, _), (_, refused) = (outs[k] for k in sorted(range(2), key=lambda k: runs[k].returncode))
+    assert sorted(r.returncode for r in runs) == [0, 2], outs
+    summary = json.loads(ran)
+    assert summary["done"] == 4 and summary["rejected_messages"] == 0 and summary["abandoned"] == 0, summary
+    assert "lab 't'" in refused and ("at this same moment" in refused or "already has a campaign" in refused), refused

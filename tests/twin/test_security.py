@@ -169,10 +169,15 @@ def test_a_campaign_with_an_external_device_runs_end_to_end_over_mutual_tls(secu
     try:
         line = device.stdout.readline().decode()
         assert line.startswith("ready spectrometer"), line + device.stderr.read().decode()
+        # the same device served again with its certificate: the policy lets it see the first one's token
+        again = subprocess.run([sys.executable, "-m", "twin", "device", "serve", str(path), "--id", "spectrometer",
+                                "--connect", endpoint, "--clock", "scaled", "--speed", str(SPEED)],
+                               capture_output=True, text=True, cwd=ROOT, timeout=60)
         summary = clock.run(run_async(spec, clock, tmp_path / "j.db", {"spectrometer"}))
     finally:
         device.terminate()
         device.wait(10)
+    assert again.returncode == 2 and "device(s) ['spectrometer'] of lab" in again.stderr, again.stderr
     assert summary.done == 3 and summary.rejected_messages == 0
     assert len(read_events(tmp_path / "j.db", "msg.result")) == 6
 
@@ -185,8 +190,8 @@ def test_the_policy_gives_each_device_only_its_own_keys():
     assert all("/b/" not in k and "/b" != k[-2:] for k in by_subject["device0"])
     # a scheduler agent follows the lab's clock, asked again when its campaign comes (twin.runtime.labtime)
     assert {"labtwin/lab/clock", "labtwin/lab/orchestrator/alive"} <= set(by_subject["scheduler"])
-    assert all(k.startswith(("labtwin/lab/agent/", "labtwin/lab/clock", "labtwin/lab/orchestrator"))
-               for k in by_subject["scheduler"])
+    assert all(k.startswith(("labtwin/lab/agent/", "labtwin/lab/clock", "labtwin/lab/orchestrator",
+                             "labtwin/lab/claim/agent/")) for k in by_subject["scheduler"])
     assert {s["cert_common_names"][0] for s in acl["subjects"]} >= {"device.a.lab", "device.b.lab", "watcher.lab"}
 
 

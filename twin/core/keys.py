@@ -29,6 +29,12 @@ def orchestrator(lab: str) -> str:
     return f"{PREFIX}/{lab}/orchestrator/alive"
 
 
+def claim(lab: str, part: str, stamp: str = "*") -> str:
+    """A process's claim on a part of a lab it is about to serve (twin/runtime/lab_claim.py); ``part``:
+    ``orchestrator``, ``agent`` or ``dev/<device>``."""
+    return f"{PREFIX}/{lab}/claim/{part}/{stamp}"
+
+
 def clock(lab: str) -> str:
     """The lab's clock: its anchor, answered and published (twin/runtime/labtime.py)."""
     return f"{PREFIX}/{lab}/clock"

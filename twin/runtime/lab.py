@@ -327,7 +327,7 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         bus = make_bus(s, clock)
         await bus.start()
         stack.push_async_callback(bus.close)
-        await refuse_if_taken(bus, s, [name for name, _, _ in drivers])
+        stack.callback((await refuse_if_taken(bus, s, [name for name, _, _ in drivers])).close)
         if s.bus.kind != "memory":  # before anything is dispatched: a joined device stamps in the lab's time
             source = LabTimeSource(bus, s.lab, clock)
             source.start()

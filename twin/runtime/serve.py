@@ -105,7 +105,7 @@ def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str
         raise DriverError(_not_a_device(s, scenario, [name]))
 
     async def start(bus: Bus, clock: LabClock):
-        await refuse_if_taken(bus, s, [name], orchestrator=False)
+        claims = await refuse_if_taken(bus, s, [name], orchestrator=False)
         actors = build_actors(s, drivers, bus, clock, per_device)
         for a in actors:
             await a.start()
@@ -113,6 +113,7 @@ def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str
         async def finish() -> None:
             for a in actors:
                 await a.stop()
+            claims.close()
 
         return finish
 
@@ -214,12 +215,13 @@ def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: 
         raise PluginError(problem)
 
     async def start(bus: Bus, clock: LabClock):
-        await refuse_if_taken(bus, s, [], orchestrator=False, agent=True)
+        claims = await refuse_if_taken(bus, s, [], orchestrator=False, agent=True)
         service = SchedulerService(bus, s.lab, scheduler)
         service.start()
 
         async def finish() -> None:
             service.stop()
+            claims.close()
 
         return finish
 

@@ -283,7 +283,7 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
         bus = make_bus(s, clock)
         await bus.start()
         stack.push_async_callback(bus.close)
-        await refuse_if_taken(bus, s, [name for name, _, _ in drivers])
+        stack.callback((await refuse_if_taken(bus, s, [name for name, _, _ in drivers])).close)
         if s.bus.kind != "memory":
             source = LabTimeSource(bus, s.lab, clock)
             source.start()

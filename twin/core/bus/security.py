@@ -9,9 +9,12 @@ config, whose access-control policy denies by default and allows
   its own ``cmd`` key, serving its own ``health`` key, declaring its own
   liveliness token, watching the orchestrator's token, and hearing the lab's
   clock (``labtwin/<lab>/clock``, which only the orchestrator may publish);
+  claiming itself before it starts (``labtwin/<lab>/claim/dev/<id>/*``) and
+  seeing another process's claim or token of the same device;
 - the orchestrator: everything under ``labtwin/<lab>/`` (it is the lab);
 - a scheduler agent: serving ``labtwin/<lab>/agent/scheduler/**``, hearing
-  the lab's clock and watching the orchestrator's token;
+  the lab's clock and watching the orchestrator's token; claiming the agent's
+  part (``labtwin/<lab>/claim/agent/*``) and seeing another agent's;
 - a watcher: reading (subscribing, watching tokens, paging the history);
 - an operator: asking the campaign's control desk (``labtwin/<lab>/control/**``:
   ``twin ctl``), and nothing else.
@@ -152,6 +155,7 @@ def access_control(lab: str, devices: list[str]) -> dict[str, Any]:
         _rule("scheduler-in", ["declare_queryable", "reply", "liveliness_token"], ["ingress"],
               [f"{p}/agent/scheduler/**"]),
         _rule("scheduler-out", ["query"], ["egress"], [f"{p}/agent/scheduler/**"]),
+        *_claiming("scheduler", [keys.claim(lab, "agent"), f"{p}/agent/scheduler/alive"]),
         _rule("clock-ask", ["declare_subscriber", "query"], ["ingress"], [keys.clock(lab)]),
         _rule("clock-told", ["put", "reply"], ["egress"], [keys.clock(lab)]),
         # whether the lab's campaign is on the bus: a device stops a step it can no longer supervise, and a joining
@@ -169,7 +173,8 @@ def access_control(lab: str, devices: list[str]) -> dict[str, Any]:
     subjects = [{"id": role, "cert_common_names": [Identity(role, lab).common_name]}
                 for role in ("orchestrator", "scheduler", "watcher", "operator")]
     policies = [{"rules": ["orchestrator"], "subjects": ["orchestrator"]},
-                {"rules": ["scheduler-in", "scheduler-out", *_JOINER], "subjects": ["scheduler"]},
+                {"rules": ["scheduler-in", "scheduler-out", "scheduler-claim", "scheduler-claim-seen", *_JOINER],
+                 "subjects": ["scheduler"]},
                 {"rules": ["watcher-in", "watcher-history", "watcher-out"], "subjects": ["watcher"]},
                 {"rules": ["operator-ask", "operator-answered"], "subjects": ["operator"]}]
     for i, dev in enumerate(devices):
@@ -181,6 +186,7 @@ def access_control(lab: str, devices: list[str]) -> dict[str, Any]:
             _rule(f"{sid}-present", ["liveliness_token"], ["ingress"], [keys.alive(lab, dev)]),
             _rule(f"{sid}-health", ["declare_queryable", "reply"], ["ingress"], [keys.health(lab, dev)]),
             _rule(f"{sid}-asked", ["query"], ["egress"], [keys.health(lab, dev)]),
+            *_claiming(sid, [keys.claim(lab, f"dev/{dev}"), keys.alive(lab, dev)]),
         ]
         rules += own
         subjects.append({"id": sid, "cert_common_names": [Identity("device", lab, dev).common_name]})
@@ -191,6 +197,14 @@ def access_control(lab: str, devices: list[str]) -> dict[str, Any]:
 
 #: what every process that joins the lab may do: follow its clock, and see whether its campaign is on the bus
 _JOINER = ("clock-ask", "clock-told", "campaign-watch", "campaign-seen")
+
+
+def _claiming(rid: str, key_exprs: list[str]) -> list[dict[str, Any]]:
+    """Claiming a part of the lab before serving it, and seeing whether another process holds or claims it too
+    (twin/runtime/lab_claim.py)."""
+    return [_rule(f"{rid}-claim", ["liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
+                  ["ingress"], key_exprs),
+            _rule(f"{rid}-claim-seen", ["liveliness_token", "reply"], ["egress"], key_exprs)]
 
 
 def _rule(rid: str, messages: list[str], flows: list[str], key_exprs: list[str]) -> dict[str, Any]:
