@@ -141,7 +141,7 @@ async def test_of_processes_taking_a_lab_at_the_same_moment_one_goes_ahead_and_a
         got = await asyncio.gather(*(refuse_if_taken(bus, s, ["spectrometer-1"], orchestrator=False)
                                      for bus in buses[3:]), return_exceptions=True)
         assert sorted(type(g).__name__ for g in got) == ["Claims", "LabTaken"], got
-        assert "another process is starting device 'spectrometer-1'" in \
+        assert "another process is starting device(s) ['spectrometer-1']" in \
             str(next(g for g in got if isinstance(g, LabTaken)))
     finally:
         for bus in buses:

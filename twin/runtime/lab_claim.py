@@ -101,11 +101,13 @@ def _part_of(key: str) -> str:
 
 def _starting(s: Scenario, claims: list[str]) -> str:
     lab = s.lab
-    parts = sorted({_part_of(k) for k in claims})
-    named = [("its campaign" if p == "orchestrator" else "its scheduler agent" if p == "agent" else
-              f"device {p.split('/', 1)[1]!r}") for p in parts]
-    return (f"lab {lab!r}: another process is starting {', '.join(named)} on this bus at this same moment "
-            f"({', '.join(sorted(claims))}): two processes serving one lab would dispatch to, or answer for, each "
+    parts = {_part_of(k) for k in claims}
+    devices = sorted(p.split("/", 1)[1] for p in parts if p.startswith("dev/"))
+    named = (["its campaign"] if "orchestrator" in parts else []) + \
+        (["its scheduler agent"] if "agent" in parts else []) + ([f"device(s) {devices}"] if devices else [])
+    more = f" and {len(claims) - 1} more" if len(claims) > 1 else ""
+    return (f"lab {lab!r}: another process is starting {' and '.join(named)} on this bus at this same moment "
+            f"(its claim {min(claims)}{more}): two processes serving one lab would dispatch to, or answer for, each "
             f"other. This one stands down; run it when that one has ended, or as another lab (--set lab={lab}-2)")
 
 
