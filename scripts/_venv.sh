@@ -3,6 +3,16 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 PY=${PYTHON:-python3}
+# one set-up at a time: scripts/run and scripts/test started together on a fresh clone each made and filled .venv
+# at once, and one of them failed ("No module named pip"); the other waits here, then finds it made
+mkdir -p .venv
+if command -v flock > /dev/null; then
+  exec 9> .venv/.setup.lock
+  if ! flock -n 9; then
+    echo "labtwin: waiting for another set-up of .venv to finish" >&2
+    flock 9
+  fi
+fi
 if [ ! -x .venv/bin/python ]; then
   echo "labtwin: creating .venv with $($PY --version)" >&2
   "$PY" -m venv .venv
@@ -31,4 +41,5 @@ fi
 # the project's own bytecode, where PYTHONDONTWRITEBYTECODE would have every process compile it again
 # (~0.25 s of each `twin` start); a file that does not compile is left for Python to report when imported
 .venv/bin/python -m compileall -q -j 0 twin agents devices bench > /dev/null 2>&1 || true
+exec 9>&-
 export PATH="$PWD/.venv/bin:$PATH"
