@@ -9,14 +9,13 @@ out from its ``training`` ranges, greedy — and adds what the policy saw to its
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 from agents.candidates import CandidateEncoder, Observed
 from agents.rl_scheduler import RlScheduler
 from agents.judging import EVAL_SEEDS, campaign, held_out_labs
-from twin import Scenario, prepare, read_meta
+from twin import Scenario, prepare, read_meta, write_description
 
 
 def observe(policy: Path, scenario: Scenario, held_out_count: int = 40) -> dict:
@@ -40,7 +39,7 @@ def main(argv: list[str]) -> None:
     policy, scenario = Path(argv[0]), prepare(argv[1])
     meta = read_meta(policy)
     meta["observed"] = observe(policy, scenario)
-    policy.with_suffix(".json").write_text(json.dumps(meta, indent=2) + "\n")
+    write_description(policy, meta)
     print(f"{policy.with_suffix('.json')}: observed range of {len(meta['observed']['rows'][0])} row columns and "
           f"{len(meta['observed']['globals'][0])} globals over {scenario.name}'s evaluation labs")
 

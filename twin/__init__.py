@@ -19,9 +19,10 @@ from twin.core.plugins import CHECKS_LOGGER as PLUGIN_CHECKS_LOGGER
 from twin.core.plugins import load as load_plugin
 from twin.core.streams import keyed_uniforms, seeded
 from twin.core.telling import tells_progress
+from twin.core.whole_files import written_whole
 from twin.device.actor import DeviceActor
 from twin.device.driver import Driver, DriverFeatures, DriverSetup, StepContext, StepResult
-from twin.learning.policies import load_policy, read_meta, save_policy
+from twin.learning.policies import load_policy, read_meta, save_policy, write_description
 from twin.learning.stepper import SteppedCampaign, SteppedLab, stepped
 from twin.learning.workcell import open_workcell
 from twin.runtime import FastCampaign, LiveCampaign
@@ -51,5 +52,6 @@ __all__ = [
     "json_schema", "keyed_uniforms", "lab_span", "load_plugin", "load_policy", "load_scenario", "open_bus", "open_workcell",
     "not_a_file", "parse_yaml",
     "prepare", "random_jobshop", "random_lab", "read_meta", "resume", "run", "run_async", "run_lab", "run_scenario", "run_step",
-    "save_policy", "score", "seeded", "sleep_wall", "stepped", "wall_on_loop", "why_runs_vary",
+    "save_policy", "score", "seeded", "sleep_wall", "stepped", "wall_on_loop", "why_runs_vary", "write_description",
+    "written_whole",
 ]

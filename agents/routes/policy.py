@@ -23,7 +23,7 @@ from torch import nn
 
 from agents.routes.search import Reaction
 from agents.routes.templates import Template
-from twin import not_a_file
+from twin import not_a_file, written_whole
 
 BITS = 2048
 HIDDEN = 256
@@ -108,9 +108,11 @@ def train_prior(templates: tuple[Template, ...], pairs: list[tuple[str, str]], e
 
 def save_prior(scorer: TemplateScorer, templates: tuple[Template, ...], path: Path, **meta) -> None:
     path = Path(path)
-    torch.save(scorer.state_dict(), path.with_suffix(".pt"))
-    path.with_suffix(".json").write_text(json.dumps(
-        {"kind": "route-prior", "templates": [t.name for t in templates], "bits": BITS, **meta}, indent=1))
+    with written_whole(path.with_suffix(".pt")) as partial:
+        torch.save(scorer.state_dict(), partial)
+    with written_whole(path.with_suffix(".json")) as partial:
+        partial.write_text(json.dumps({"kind": "route-prior", "templates": [t.name for t in templates], "bits": BITS,
+                                       **meta}, indent=1))
 
 
 def _unpacked_bytes(weights: Path) -> int:

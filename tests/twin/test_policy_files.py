@@ -235,3 +235,32 @@ def test_a_named_pipe_for_a_stock_a_template_table_or_a_route_prior_is_refused(t
     prior.with_suffix(".json").write_text("{}")
     with pytest.raises(ValueError, match=r"prior\.pt is a named pipe, not a file; a route prior is a \.pt file"):
         load_prior(prior, templates.load())
+
+
+class _KilledWhileSaving:
+    """A model whose save is cut short half-way, as a training killed (or a full disk) while it saves would be."""
+
+    def __init__(self, model) -> None:
+        self.model = model
+
+    def save(self, path) -> None:
+        self.model.save(path)
+        Path(path).write_bytes(Path(path).read_bytes()[:100])
+        raise KeyboardInterrupt
+
+
+def test_a_policy_save_cut_short_leaves_the_policy_saved_before_whole(tmp_path):
+    from agents.rl_scheduler import RlScheduler
+    from twin import read_meta, save_policy
+
+    s = load_scenario(ROOT / "scenarios" / "jobshop.yaml")
+    shipped = POLICIES / "jobshop_scheduler.zip"
+    meta = read_meta(shipped)
+    model = RlScheduler(s, policy=str(shipped)).model
+    best = save_policy(model, tmp_path / "best.zip", "scheduler", s, meta["signature"], round=1)
+    before = best.read_bytes(), best.with_suffix(".json").read_text()
+    with pytest.raises(KeyboardInterrupt):
+        save_policy(_KilledWhileSaving(model), best, "scheduler", s, meta["signature"], round=2)
+    assert (best.read_bytes(), best.with_suffix(".json").read_text()) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["best.json", "best.zip"]  # nothing half-written left
+    RlScheduler(s, policy=str(best))  # and it loads

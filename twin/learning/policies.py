@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.core.errors import PluginError
+from twin.core.whole_files import written_whole
 from twin.learning.policy_file import safe_objects
 from twin.runtime.run_record import versions
 from twin.scenario import Scenario
@@ -27,12 +28,21 @@ def save_policy(model: Any, path: Path, kind: str, scenario: Scenario, signature
     """Save ``model`` with what it was trained for; ``signature`` is what a user of it must match."""
     path = path.with_suffix(".zip")
     path.parent.mkdir(parents=True, exist_ok=True)
-    model.save(path)
     meta = {"kind": kind, "algorithm": type(model).__name__, "scenario": scenario.name,
             "scenario_hash": scenario_hash(scenario), "signature": signature,
             "saved": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "versions": versions(), **extra}
-    path.with_suffix(".json").write_text(json.dumps(meta, indent=2) + "\n")
+    # each whole or not at all: a training killed while it saves, or a lab loading the policy meanwhile, never
+    # meets half a file, and the best policy saved before stays
+    with written_whole(path) as partial:
+        model.save(partial)
+    write_description(path, meta)
     return path
+
+
+def write_description(policy: Path, meta: dict[str, Any]) -> None:
+    """The ``.json`` beside ``policy``, written whole."""
+    with written_whole(policy.with_suffix(".json")) as partial:
+        partial.write_text(json.dumps(meta, indent=2) + "\n")
 
 
 def read_meta(path: str | Path) -> dict[str, Any]:
