@@ -22,9 +22,10 @@ def free_bytes(path: Path) -> int:
 
 @contextlib.contextmanager
 def written_whole(path: Path) -> Iterator[Path]:
-    """Yields ``.<name>.partial`` beside ``path`` to write into; renamed to ``path`` when the block ends, removed if
-    it raises (Ctrl-C, a full disk): no half-written file is ever left under the name, nor over an earlier one."""
-    partial = path.with_name(f".{path.name}.partial")
+    """Yields ``.<name>.<pid>.partial`` beside ``path`` to write into; renamed to ``path`` when the block ends,
+    removed if it raises (Ctrl-C, a full disk): no half-written file is ever left under the name, nor over an earlier
+    one. The process's own: two writing one file at once each write theirs, and the last to end is the file."""
+    partial = path.with_name(f".{path.name}.{os.getpid()}.partial")
     try:
         yield partial
         os.replace(partial, path)

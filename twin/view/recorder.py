@@ -9,12 +9,13 @@ a file, a spawned viewer, a loopback web viewer (their processes:
 
 from __future__ import annotations
 
+import fcntl
 import itertools
 import logging
 import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import IO, Any, Callable
 
 import numpy as np
 import pyarrow as pa
@@ -298,8 +299,17 @@ class Recording:
     url: str = ""
     before_close: list[Callable[[], None]] = field(default_factory=list)  # what draws its last rows first
     save: str = ""  # the file it is saved to, if any
+    held: IO[bytes] | None = None  # that file, locked while this process writes it
 
     def close(self) -> None:
+        try:
+            self._close()
+        finally:
+            if self.held is not None:
+                self.held.close()
+                self.held = None
+
+    def _close(self) -> None:
         for draw in self.before_close:
             draw()
         self.canvas.flush()
@@ -333,6 +343,19 @@ def log_curve(out: Recording, steps: int, values: dict[str, float], prefix: str 
         out.rec.log(f"{prefix}/{name}", rr.Scalars(float(value)))
 
 
+def hold(path: Path) -> IO[bytes]:
+    """``path`` opened (not emptied) and locked while this process records to it: two runs given one ``--save``
+    wrote into one file at once, and both said it was saved when neither's could be read."""
+    f = open(path, "ab")
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.close()
+        raise TwinError(f"{path} is being recorded by another run: wait for that run to end, or --save another file "
+                        "(nothing has run yet)") from None
+    return f
+
+
 def open_recording(recording_id: str, save: str | Path | None = None, viewer: bool = False,
                    serve: bool = False, serve_port: int = 0, web_port: int = 0,
                    campaign_layout: bool = True, campaigns: list[str] | None = None) -> Recording:
@@ -341,10 +364,13 @@ def open_recording(recording_id: str, save: str | Path | None = None, viewer: bo
     rec = rr.RecordingStream("labtwin", recording_id=recording_id)
     rec.set_log_time_enabled(False)  # only lab time: a replay then equals the live recording
     rec.set_log_tick_enabled(False)
-    out = Recording(rec, RerunCanvas(rec), save=str(save or ""))
     sinks: list[Any] = []
+    held = None
     if save:
         Path(save).parent.mkdir(parents=True, exist_ok=True)
+        held = hold(Path(save))
+    out = Recording(rec, RerunCanvas(rec), save=str(save or ""), held=held)
+    if save:
         sinks.append(rr.FileSink(str(save)))
     if viewer:
         url = viewer_process.spawn_viewer(out.messages)
