@@ -9,7 +9,7 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any, Callable, Iterator, TypeVar
+from typing import TYPE_CHECKING, Annotated, Any, Callable, Iterator, NoReturn, TypeVar
 
 import typer
 from rich.markup import escape
@@ -130,6 +130,14 @@ def _terminated(*_: Any) -> None:
 
 def stopped_by(stop: BaseException) -> str:
     return "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
+
+
+def stopped_partway(stop: BaseException, shown: str) -> NoReturn:
+    """After the table of what a bench finished before Ctrl-C or SIGTERM stopped it: say so, and exit as the
+    signal would."""
+    err.print(f"{stopped_by(stop)}: the table is of {shown}; the runs still going were stopped, and no --csv, "
+              "--json or --save file was written", highlight=False)
+    raise typer.Exit(exit_status(stop))
 
 
 def exit_status(stop: BaseException) -> int:

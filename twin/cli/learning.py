@@ -14,11 +14,13 @@ from twin.runtime import lab
 from twin.runtime.checks import checked
 from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
                              exit_status, fitted_width, machine_output, narrow_table, paired_assignments, print_table,
-                             recording_file, refuse_disagreeing, say_ended_early, sigterm_unwinds, stopped_by, writable)
+                             recording_file, refuse_disagreeing, say_ended_early, sigterm_unwinds, stopped_by, stopped_partway,
+                             writable)
 from twin.core.errors import TwinError
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.scenario import Scenario
 from twin.tools.planner_bench import DEFAULT_PLANNERS
+from twin.tools.pool import done_before
 
 
 @app.command()
@@ -235,9 +237,16 @@ def bench_planners(
     except TwinError as exc:
         _fail(exc)
     progress = bar_progress(as_json)
+    cut = None
     with progress:
         bar = progress.add_task(f"{s.name}: {len(names)} planners × {seeds} seeds", total=len(names) * seeds)
-        results = bench(s, names, seeds, workers, on_trial=lambda t: progress.advance(bar))
+        try:
+            results = bench(s, names, seeds, workers, on_trial=lambda t: progress.advance(bar))
+        except KeyboardInterrupt as stop:  # the seeds every planner finished still make a table
+            results, cut = done_before(stop), stop
+            if results is None or as_json or csv_out:
+                raise
+    ran = len(next(iter(results.values())))
     table_rows = rows(results)
     runs = [asdict(t) for trials in results.values() for t in trials]
     if machine_output(as_json, csv_out, HEADER, table_rows, runs, scenario=s.name, seeds=seeds):
@@ -245,12 +254,14 @@ def bench_planners(
     # a lab where nothing costs has a cost column of noughts: its room goes to the planners' names
     costs = any(t.cost > 0 for trials in results.values() for t in trials)
     shown = [i for i, h in enumerate(HEADER) if costs or h != "cost"]
-    table = narrow_table([HEADER[i] for i in shown], f"{s.name} — {seeds} seeds, budget {s.campaign.budget}, "
-                         f"{s.campaign.max_in_flight} in the lab", caption(costs))
+    table = narrow_table([HEADER[i] for i in shown], f"{s.name} — {ran if cut is None else f'{ran} of {seeds}'} "
+                         f"seeds, budget {s.campaign.budget}, {s.campaign.max_in_flight} in the lab", caption(costs))
     for row in table_rows:
         table.add_row(*(row[i] for i in shown))
     print_table(table)
     say_ended_early([(t.planner, t.stopped) for trials in results.values() for t in trials])
+    if cut is not None:
+        stopped_partway(cut, f"the {ran} seed(s) every planner finished")
 
 
 BENCHED = ("campaign.scheduler", "--schedulers")  # what a scheduler bench runs each of
@@ -329,10 +340,16 @@ def bench_schedulers(
                 f"{title}: CP-SAT solving the shop for the bound (up to {BOUND_S:.0f} s) ...", highlight=False))
             optimum = best.lab_s if best else None
             progress = bar_progress(as_json)
+            cut = None
             with progress:
                 bar = progress.add_task(f"{title}: {len(names)} schedulers",
                                         total=len(names) * (1 if deterministic(s) else seeds))
-                results = bench(s, names, seeds, workers, on_run=lambda r: progress.advance(bar), pool=pool)
+                try:
+                    results = bench(s, names, seeds, workers, on_run=lambda r: progress.advance(bar), pool=pool)
+                except KeyboardInterrupt as stop:  # the seeds every scheduler finished still make a table
+                    results, cut = done_before(stop), stop
+                    if results is None or as_json or csv_out:
+                        raise
             runs = len(next(iter(results.values())))
             table_rows = rows(results, optimum, 1.0 if s.jobshop else 3600.0)
             all_runs += [{"lab": title, **asdict(r)} for v in results.values() for r in v]
@@ -344,13 +361,15 @@ def bench_schedulers(
             # no bound: no column; counts that are nought for every scheduler (a job shop's) leave the room to names
             silent = {h for i, h in enumerate(HEADER) if h in COUNTS and all(float(r[i]) == 0 for r in table_rows)}
             shown = [i for i, h in enumerate(HEADER) if (optimum or h != "vs bound") and h not in silent]
-            table = narrow_table([HEADER[i] for i in shown], f"{title} — {runs} run(s) per scheduler" +
-                                 (f"; {best.title()}" if best else ""),
+            table = narrow_table([HEADER[i] for i in shown], f"{title} — {runs}{'' if cut is None else f' of {seeds}'} "
+                                 "run(s) per scheduler" + (f"; {best.title()}" if best else ""),
                                  caption("lab-s" if s.jobshop else "lab-h", bound=best, silent=silent, ahead=ahead))
             for row in table_rows:
                 table.add_row(*(row[i] for i in shown))
             print_table(table)
             say_ended_early([(r.scheduler, r.stopped) for v in results.values() for r in v])
+            if cut is not None:
+                stopped_partway(cut, f"the {runs} seed(s) of {title} every scheduler finished")
     machine_output(as_json, csv_out, HEADER, [], all_runs, labs=tables)
 
 
@@ -388,10 +407,16 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
               if s.chemistry.targets and s.campaign.stop_on_target else "")
     title = f"{s.name}: each scheduler minus the shape's best rule, {what} (mean of {seeds} paired seeds ± 95 % CI)"
     progress = bar_progress(as_json)
+    cut, total = None, len(variants(s, random_labs))
     with progress:
-        bar = progress.add_task(f"{s.name}: shapes", total=len(variants(s, random_labs)))
-        results = shapes(s, names, seeds, workers, on_shape=lambda c: progress.advance(bar), random_labs=random_labs,
-                         by=by)
+        bar = progress.add_task(f"{s.name}: shapes", total=total)
+        try:
+            results = shapes(s, names, seeds, workers, on_shape=lambda c: progress.advance(bar),
+                             random_labs=random_labs, by=by)
+        except KeyboardInterrupt as stop:  # the shapes finished still make a table
+            results, cut = done_before(stop), stop
+            if results is None or as_json or csv_out:
+                raise
     table_rows, comparisons, runs = [], [], []
     for c in results:
         cells = []
@@ -407,5 +432,9 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     if machine_output(as_json, csv_out, header, [[cell.replace("\n", " ") for cell in row] for row in table_rows],
                       runs, scenario=s.name, seeds=seeds, comparisons=comparisons):
         return
+    if cut is not None:
+        title += f"; {len(results)} of {total} shapes"
     print_table(_compared_table(shown, title, chance, table_rows, first_compared=3))
     say_ended_early([(n, r.stopped) for c in results for n in others for r in c.runs[n]])
+    if cut is not None:
+        stopped_partway(cut, f"the {len(results)} shape(s) of {total} finished")

@@ -24,7 +24,7 @@ from twin.core.plugins import CHECKS_LOGGER
 from twin.core.telling import quiet_progress
 from twin.runtime.lab import FALLBACK_LOGGER, prepare, run
 from twin.scenario import Scenario
-from twin.tools.pool import WorkerPool
+from twin.tools.pool import WorkerPool, keep_done
 
 DEFAULT_PLANNERS = ("random", "lhs", "gp-bo~seq", "gp-bo")
 #: Why a bench or a what-if leaves the seed alone.
@@ -109,10 +109,15 @@ def over_seeds(one: Callable[[tuple], Any], scenario: Scenario, names: list[str]
     with contextlib.ExitStack() as stack:
         if pool is None:
             pool = stack.enter_context(bench_pool(workers))
-        for (_, name, _), r in zip(jobs, pool.map(one, jobs)):
-            results[name].append(r)
-            if on_each:
-                on_each(r)
+        try:
+            for (_, name, _), r in zip(jobs, pool.map(one, jobs)):
+                results[name].append(r)
+                if on_each:
+                    on_each(r)
+        except KeyboardInterrupt as stop:  # the seeds every name finished are kept for the table
+            finished = min(len(v) for v in results.values())
+            keep_done(stop, {name: v[:finished] for name, v in results.items()} if finished else None)
+            raise
     return results
 
 

@@ -250,3 +250,13 @@ def _leave() -> None:
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(143)
+
+
+def keep_done(stop: BaseException, done: Any) -> None:
+    """What a bench finished before Ctrl-C or SIGTERM stopped it, carried by the interrupt to the command that
+    shows it (``done_before``); ``done`` empty: nothing was."""
+    stop.done_before = done or None  # type: ignore[attr-defined]
+
+
+def done_before(stop: BaseException) -> Any:
+    return getattr(stop, "done_before", None)

@@ -24,6 +24,7 @@ from twin.scenario import Scenario
 from twin.scenario.objective import time_scale, weighted_objective
 from twin.scenario.random_labs import held_out
 from twin.tools.planner_bench import bench_pool
+from twin.tools.pool import keep_done
 from twin.tools.scheduler_bench import RULES, Run, bench
 
 #: two-sided 95 % quantiles of Student's t for n − 1 degrees of freedom (n paired seeds), then the normal's
@@ -101,10 +102,14 @@ def shapes(s: Scenario, schedulers: list[str], seeds: int, workers: int = 2,
     out = []
     measure(s, by)  # an unknown measure, or one the lab cannot give, is refused before any run
     with bench_pool(workers) as pool:
-        for shape, variant in variants(s, random_labs):
-            out.append(compare(bench(variant, schedulers, seeds, workers, pool=pool), shape, measure(variant, by)))
-            if on_shape is not None:
-                on_shape(out[-1])
+        try:
+            for shape, variant in variants(s, random_labs):
+                out.append(compare(bench(variant, schedulers, seeds, workers, pool=pool), shape, measure(variant, by)))
+                if on_shape is not None:
+                    on_shape(out[-1])
+        except KeyboardInterrupt as stop:  # the shapes finished are kept for the table
+            keep_done(stop, out)
+            raise
     return out
 
 
