@@ -103,6 +103,21 @@ def test_a_campaign_that_stopped_itself_is_not_resumed(tmp_path):
         resume(db)
 
 
+def test_a_campaign_stopped_by_a_labtwin_that_did_not_say_where_the_stop_came_from_is_not_resumed(tmp_path):
+    db = tmp_path / "j.db"
+    with ctrl_c_at(40):
+        run(scenario("flaky_lab", 1), journal=db)
+    with sqlite3.connect(db) as c:  # as a journal of 2026-12-04 or before: no 'resumable' in its summary
+        summary = json.loads(c.execute("SELECT value FROM run WHERE key='summary'").fetchone()[0])
+        del summary["resumable"]
+        c.execute("UPDATE run SET value=? WHERE key='summary'", (json.dumps(summary),))
+    before = tables(db)
+    with pytest.raises(ResumeError, match=r"stopped \(interrupted \(SIGINT\)\) by a labtwin older than the resume of "
+                                          r"a stopped campaign.*run it again \(twin run\)"):
+        resume(db)
+    assert tables(db) == before
+
+
 def test_a_resume_that_diverges_names_the_first_differing_event_and_keeps_the_journal(tmp_path):
     db = tmp_path / "j.db"
     run(scenario("flaky_lab", 1), journal=db)

@@ -376,6 +376,26 @@ def test_a_lab_that_ended_itself_is_not_resumed_and_says_why(tmp_path):
         resume_lab(tmp_path, handle_signals=False)
 
 
+def test_a_lab_stopped_by_a_labtwin_that_did_not_say_where_the_stop_came_from_is_not_resumed(tmp_path):
+    import sqlite3
+
+    from twin.runtime.resume import ResumeError
+    from twin.runtime.resume_lab import resume_lab
+
+    with ctrl_c_at(100):
+        run_shared(prepare(LAB, seed=3, overrides=SMALL), tmp_path)
+    for db in tmp_path.glob("*.db"):  # as the journals of 2026-12-04 or before: no 'resumable' in a summary
+        with sqlite3.connect(db) as c:
+            row = c.execute("SELECT value FROM run WHERE key='summary'").fetchone()
+            if row:
+                summary = json.loads(row[0])
+                del summary["resumable"]
+                c.execute("UPDATE run SET value=? WHERE key='summary'", (json.dumps(summary),))
+    with pytest.raises(ResumeError, match=r"stopped \(interrupted \(SIGINT\)\) by a labtwin older than the resume "
+                                          r"of a stopped lab.*run the lab again"):
+        resume_lab(tmp_path, handle_signals=False)
+
+
 @pytest.mark.process
 def test_an_operator_stopping_each_campaign_of_a_lab_is_answered_and_the_lab_is_not_resumed(tmp_path):
     """The last stop ends the lab, whose campaign journals close at once: the answer's flush had found the journal

@@ -85,6 +85,10 @@ def recorded(path: str | Path) -> tuple[Scenario, list[tuple]]:
     summary = data.get("summary")
     if summary is not None:
         stopped = summary.get("stopped") if isinstance(summary, dict) else None
+        if stopped and "resumable" not in summary:
+            raise ResumeError(f"{path}: the campaign was stopped ({stopped}) by a labtwin older than the resume of a "
+                              "stopped campaign, and its summary does not say whether the stop came from outside: "
+                              f"run it again (twin run); twin report {path} shows how far it got")
         if stopped and not summary.get("resumable"):
             raise ResumeError(f"{path}: the campaign ended ({stopped}), not stopped from outside (Ctrl-C, SIGTERM, "
                               f"twin ctl stop): resumed, it would end the same way; run it again (twin run) with what "

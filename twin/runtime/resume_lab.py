@@ -57,6 +57,10 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
         if summary is not None:
             ended.append(db.stem)
             why = str(summary.get("stopped") or "") if isinstance(summary, dict) else ""
+            if why and "resumable" not in summary:
+                raise ResumeError(f"{db}: the campaign was stopped ({why}) by a labtwin older than the resume of a "
+                                  "stopped lab, and its summary does not say whether the stop came from outside: run "
+                                  f"the lab again (twin run); twin report {db} shows how far it got")
             stopped = stopped or why
             resumable = resumable or (why if isinstance(summary, dict) and summary.get("resumable") else "")
     if len(ended) == len(dbs) and stopped and not resumable:
