@@ -15,7 +15,8 @@ from rich import box
 from rich.table import Table
 
 from twin.cli.common import (_fail, app, bar_progress, console, interruptible, paired_assignments, recording_file,
-                             say_ended_early, writable)
+                             say_ended_early, stopped_partway, writable)
+from twin.tools.pool import done_before
 from twin.core.errors import TwinError
 from twin.core.printable import inert
 from twin.runtime import lab
@@ -135,9 +136,18 @@ def whatif(
             console.print(f"{s.name} runs alike on every seed (no chance in its durations or faults): one run per "
                           "variant", highlight=False)
     progress = bar_progress(as_json)
+    cut = None
     with progress:
         bar = progress.add_task(f"{s.name}: {len(chosen)} variants × {seeds} seed(s)", total=len(chosen) * seeds)
-        results = run_whatif(s, chosen, seeds, workers, on_run=lambda o: progress.advance(bar))
+        try:
+            results = run_whatif(s, chosen, seeds, workers, on_run=lambda o: progress.advance(bar))
+        except KeyboardInterrupt as stop:  # the seeds every variant finished still make a table
+            results, cut = done_before(stop), stop
+            if not results or as_json:
+                raise
+    if cut is not None:  # a table only: no file of a part of the runs
+        csv_out = save = None
+    ran = len({o.seed for o in results})
     summary = summarise(results, chosen)
     best = cheapest_within(summary, budget_hours, any_targets(s)) if budget_hours is not None else None
     if csv_out is not None:
@@ -160,7 +170,8 @@ def whatif(
     has_targets, shown = any_targets(s), measures(summary)
     seconds = in_seconds(summary)
     # the title above the table, not in it: a narrow table would fold it ("2 variants × 20" over "seed(s)")
-    console.print(f"{s.name}: what if — {len(chosen)} variants × {seeds} seed(s)", highlight=False)
+    console.print(f"{s.name}: what if — {len(chosen)} variants × {ran if cut is None else f'{ran} of {seeds}'} "
+                  "seed(s)", highlight=False)
     table_rows = rows(summary, axes, written_values(s, axes), has_targets, shown)
     table, whole = _fitting_table(header(axes, shown, seconds), table_rows, len(axes))
     if not whole:  # the experiments' column gives its room to the values and the busiest type
@@ -168,7 +179,7 @@ def whatif(
         table_rows = rows(summary, axes, written_values(s, axes), has_targets, shown)
         table, _ = _fitting_table(header(axes, shown, seconds), table_rows, len(axes))
     console.print(table)
-    console.print(caption(has_targets, seeds, shown, seconds, alike), highlight=False)  # wrapped at the terminal, not the table
+    console.print(caption(has_targets, ran, shown, seconds, alike), highlight=False)  # wrapped at the terminal, not the table
     say_ended_early([(o.variant, o.stopped) for o in results])
     if s.campaigns:
         names = list(summary[0]["per_campaign"])
@@ -196,6 +207,8 @@ def whatif(
     for path in (csv_out, save):
         if path is not None:
             console.print(f"wrote {path}", highlight=False)
+    if cut is not None:
+        stopped_partway(cut, f"the {ran} seed(s) every variant finished")
 
 
 def _write_csv(path: Path, summary: list[dict]) -> None:

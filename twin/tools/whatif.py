@@ -25,6 +25,7 @@ from twin.runtime.checks import check
 from twin.runtime.lab import make_scheduler, prepare, run
 from twin.runtime.shared_run import run_shared
 from twin.tools.planner_bench import SEEDS_PAIRED, bench_pool, quartiles, short
+from twin.tools.pool import keep_done
 from twin.scenario import Scenario
 from twin.scenario.files import yaml_value
 from twin.scenario.sharing import campaign_scenario
@@ -254,13 +255,19 @@ def _one(job: tuple[Scenario, Variant, int]) -> Outcome:
 
 def whatif(scenario: Scenario, chosen: list[Variant], seeds: int, workers: int = 2,
            on_run: Callable[[Outcome], None] = lambda o: None) -> list[Outcome]:
-    jobs = [(scenario, v, seed) for v in chosen for seed in range(seeds)]
-    results = []
-    with bench_pool(workers) as pool:
-        for fut in pool.completed([pool.submit(_one, job) for job in jobs]):
-            results.append(fut.result())
-            on_run(results[-1])
+    jobs = [(scenario, v, seed) for seed in range(seeds) for v in chosen]  # seed by seed, as a bench's runs go
+    results: list[Outcome] = []
     order = {v.label: i for i, v in enumerate(chosen)}
+    with bench_pool(workers) as pool:
+        try:
+            for fut in pool.completed([pool.submit(_one, job) for job in jobs]):
+                results.append(fut.result())
+                on_run(results[-1])
+        except KeyboardInterrupt as stop:  # the seeds every variant finished are kept for the table
+            runs = {(o.variant, o.seed) for o in results}
+            whole = {seed for seed in range(seeds) if all((v.label, seed) in runs for v in chosen)}
+            keep_done(stop, sorted((o for o in results if o.seed in whole), key=lambda o: (order[o.variant], o.seed)))
+            raise
     return sorted(results, key=lambda o: (order[o.variant], o.seed))
 
 
