@@ -11,8 +11,9 @@ import typer
 from rich.table import Table
 
 from twin.cli.common import (_fail, app, bar_progress, bench_app, console, interruptible, machine_output,
-                             narrow_table, print_table, writable)
+                             narrow_table, print_table, stopped_partway, writable)
 from twin.core import plugins
+from twin.tools.pool import done_before
 from twin.core.errors import TwinError
 
 
@@ -122,16 +123,25 @@ def bench_routes(
     except TwinError as exc:
         _fail(exc)
     progress = bar_progress(as_json)
+    cut = None
     with progress:
         bar = progress.add_task(f"{len(names)} methods × {len(chosen)} targets", total=len(names) * len(chosen))
         try:
             results = bench(names, chosen, seconds, workers, on_done=lambda r: progress.advance(bar))
         except (ValueError, FileNotFoundError) as exc:
             _fail(TwinError(str(exc)))
+        except KeyboardInterrupt as stop:  # the targets every method finished still make a table
+            results, cut = done_before(stop), stop
+            if not results or as_json or csv_out:
+                raise
     table_rows = rows(results, names)
     if machine_output(as_json, csv_out, list(HEADER), table_rows, results, target_set=target_set, seconds=seconds):
         return
-    table = narrow_table(list(HEADER), f"{len(chosen)} {target_set} targets, {seconds:g} s each", CAPTION)
+    done = len({r["smiles"] for r in results})
+    table = narrow_table(list(HEADER), f"{done if cut is None else f'{done} of {len(chosen)}'} {target_set} targets, "
+                         f"{seconds:g} s each", CAPTION)
     for row in table_rows:
         table.add_row(*row)
     print_table(table)
+    if cut is not None:
+        stopped_partway(cut, f"the {done} target(s) every method finished")

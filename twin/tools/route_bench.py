@@ -13,7 +13,7 @@ from typing import Any, Callable
 
 from twin.core import plugins
 from twin.core.errors import PluginError
-from twin.tools.pool import WorkerPool
+from twin.tools.pool import WorkerPool, keep_done
 
 HEADER = ("method", "solved %", "≤known+1 %", "exp. mean", "exp. med", "s med", "s max")
 CAPTION = ("solved: a route within the budget; ≤known+1: of those solved, the share no longer than the target's "
@@ -56,13 +56,20 @@ def _single_threaded() -> None:
 
 def bench(methods: list[str], chosen: list[dict[str, Any]], seconds: float, workers: int,
           on_done: Callable[[dict[str, Any]], None] = lambda r: None) -> list[dict[str, Any]]:
-    jobs = [(m, t, seconds) for m in methods for t in chosen]
-    results = []
-    with WorkerPool(workers, initializer=_single_threaded) as pool:
-        for fut in pool.completed([pool.submit(_one, job) for job in jobs]):
-            results.append(fut.result())
-            on_done(results[-1])
+    jobs = [(m, t, seconds) for t in chosen for m in methods]  # target by target, every method in each
+    results: list[dict[str, Any]] = []
     order = {m: i for i, m in enumerate(methods)}
+    with WorkerPool(workers, initializer=_single_threaded) as pool:
+        try:
+            for fut in pool.completed([pool.submit(_one, job) for job in jobs]):
+                results.append(fut.result())
+                on_done(results[-1])
+        except KeyboardInterrupt as stop:  # the targets every method finished are kept for the table
+            runs = {(r["method"], r["smiles"]) for r in results}
+            whole = {t["smiles"] for t in chosen if all((m, t["smiles"]) in runs for m in methods)}
+            keep_done(stop, sorted((r for r in results if r["smiles"] in whole),
+                                   key=lambda r: (order[r["method"]], r["target"])))
+            raise
     return sorted(results, key=lambda r: (order[r["method"]], r["target"]))
 
 
