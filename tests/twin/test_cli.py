@@ -120,10 +120,15 @@ def test_train_an_unknown_agent_lists_what_is_installed(tmp_path):
 
 
 @pytest.mark.process
-@pytest.mark.parametrize("sig, code, said", [(signal.SIGINT, 130, "interrupted"),
-                                             (signal.SIGTERM, 143, "terminated (SIGTERM)")])
-def test_ctrl_c_or_sigterm_stops_training_and_says_what_was_kept(tmp_path, sig, code, said):
+@pytest.mark.parametrize("sig, code, said, earlier", [(signal.SIGINT, 130, "interrupted", False),
+                                                      (signal.SIGTERM, 143, "terminated (SIGTERM)", True)])
+def test_ctrl_c_or_sigterm_stops_training_and_says_what_was_kept(tmp_path, sig, code, said, earlier):
+    import shutil
+
     out = tmp_path / "s.zip"
+    if earlier:  # an earlier training's policy at --out: not this one's to call its best
+        shutil.copy(ROOT / "agents" / "policies" / "jobshop_scheduler.zip", out)
+        shutil.copy(ROOT / "agents" / "policies" / "jobshop_scheduler.json", out.with_suffix(".json"))
     proc = subprocess.Popen([*TWIN, "train", "scenarios/jobshop.yaml", "--steps", "1000000", "--eval-every", "512",
                              "--out", str(out), "--set", "training.jobshop_sizes=[[6,6]]"],  # small shops: CP-SAT is quick
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
@@ -139,7 +144,24 @@ def test_ctrl_c_or_sigterm_stops_training_and_says_what_was_kept(tmp_path, sig, 
     # so its own SIGINT handler, were it installed, would have killed the command without a word; SIGTERM
     # killed it so, its workers dying of broken pipes)
     assert f"{said}; no policy saved yet" in rest and "Traceback" not in rest
-    assert not out.exists()
+    if earlier:
+        assert f"no policy saved yet ({out} is an earlier training's)" in rest
+        assert out.read_bytes() == (ROOT / "agents" / "policies" / "jobshop_scheduler.zip").read_bytes()
+    else:
+        assert not out.exists()
+    assert not list(tmp_path.glob(".*.lock"))  # --out's lock went with the training
+
+
+def test_a_training_to_an_out_another_training_is_writing_is_refused_before_it_starts(tmp_path):
+    from twin.core.whole_files import kept_from_others
+
+    out = tmp_path / "p.zip"
+    with kept_from_others(out, "held"):  # as another `twin train --out p.zip` holds it while it runs
+        res = twin_cli("train", str(ROOT / "scenarios" / "jobshop.yaml"), "--steps", "100", "--out", str(out))
+    assert res.exit_code == 2, res.output
+    assert f"--out {out}: another training is writing it now: wait for it to end, or give --out another file" in \
+        " ".join(res.stderr.split())
+    assert not out.exists() and "training the scheduler" not in res.stderr
 
 
 @pytest.mark.parametrize("command", [

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Optional
@@ -17,6 +18,7 @@ from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, c
                              recording_file, refuse_disagreeing, say_ended_early, sigterm_unwinds, stopped_by, stopped_partway,
                              writable)
 from twin.core.errors import TwinError
+from twin.core.whole_files import kept_from_others
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.scenario import Scenario
 from twin.tools.planner_bench import DEFAULT_PLANNERS
@@ -62,11 +64,23 @@ def train(
             raise TwinError(f"--init {init}: no such policy file")
     except TwinError as exc:
         _fail(exc)
+    kept = out.with_suffix(".zip")
+    before = kept.stat().st_mtime_ns if kept.exists() else None
+    writing = contextlib.ExitStack()  # --out kept from another training until this one ends
+    try:
+        writing.enter_context(kept_from_others(kept, f"--out {kept}: another training is writing it now: wait for "
+                                                     "it to end, or give --out another file (nothing has run yet)"))
+    except TwinError as exc:
+        _fail(exc)
     recording = None
     if save or viewer:
         from twin.view.recorder import log_curve, open_recording
 
-        recording = open_recording(f"train-{agent}-{s.name}", save=save, viewer=viewer, campaign_layout=False)
+        try:
+            recording = open_recording(f"train-{agent}-{s.name}", save=save, viewer=viewer, campaign_layout=False)
+        except TwinError as exc:  # its file another run is recording
+            writing.close()
+            _fail(exc)
         for message in recording.messages:
             err.print(message, highlight=False)
     progress = bar_progress()
@@ -89,7 +103,7 @@ def train(
                 log_curve(recording, done, numbers, f"training/{result['policy'].split(':')[0].replace(' ', '_')}")
             progress.console.print(f"{done:>9,} steps  {result['policy']:14} {fields}", highlight=False)
 
-    with progress, sigterm_unwinds():
+    with writing, progress, sigterm_unwinds():
         try:
             path = trainer(s, steps, out, seed=seed, envs=envs, eval_every=eval_every, on_progress=report,
                            **({"init": init} if init is not None else {}))
@@ -102,9 +116,10 @@ def train(
             _fail(TwinError(str(exc)))
         except KeyboardInterrupt as stop:
             progress.stop()
-            kept = out.with_suffix(".zip")
-            err.print(f"{stopped_by(stop)}; "
-                      f"{'the best policy so far is ' + str(kept) if kept.exists() else 'no policy saved yet'}",
+            saved = kept.exists() and kept.stat().st_mtime_ns != before
+            err.print(f"{stopped_by(stop)}; " + (f"the best policy so far is {kept}" if saved else
+                                                 "no policy saved yet" + (f" ({kept} is an earlier training's)"
+                                                                          if kept.exists() else "")),
                       highlight=False)
             raise typer.Exit(exit_status(stop)) from None
         finally:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import os
 import shutil
 from collections.abc import Iterator
@@ -38,3 +39,22 @@ def written_whole(path: Path) -> Iterator[Path]:
     except BaseException:
         partial.unlink(missing_ok=True)
         raise
+
+
+@contextlib.contextmanager
+def kept_from_others(path: Path, refusal: str) -> Iterator[None]:
+    """While the block runs, every other process that asks the same of ``path`` is refused with ``refusal``, and so
+    is this one if another holds it now: a hidden ``.NAME.lock`` beside it, locked, and removed at the end (a
+    killed process's lock holds nothing)."""
+    lock_path = path.with_name(f".{path.name}.lock")
+    lock = open(lock_path, "a+")
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        lock.close()
+        raise TwinError(refusal) from None
+    try:
+        yield
+    finally:
+        lock_path.unlink(missing_ok=True)  # before unlocking: one waiting for the name then makes a new lock
+        lock.close()
