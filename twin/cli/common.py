@@ -132,6 +132,17 @@ def stopped_by(stop: BaseException) -> str:
     return "terminated (SIGTERM)" if isinstance(stop, Terminated) else "interrupted"
 
 
+def part_done(stop: KeyboardInterrupt, as_json: bool) -> Any:
+    """What a bench or what-if finished before Ctrl-C or SIGTERM (``stop``) ended it, for its table; ``stop`` raised
+    again if it finished nothing, or its output is JSON (no table to show)."""
+    from twin.tools.pool import done_before
+
+    done = done_before(stop)
+    if not done or as_json:
+        raise stop
+    return done
+
+
 def stopped_partway(stop: BaseException, shown: str) -> NoReturn:
     """After the table of what a bench finished before Ctrl-C or SIGTERM stopped it: say so, and exit as the
     signal would."""

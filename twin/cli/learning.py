@@ -15,14 +15,13 @@ from twin.runtime import lab
 from twin.runtime.checks import checked
 from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
                              exit_status, fitted_width, machine_output, narrow_table, paired_assignments, print_table,
-                             recording_file, refuse_disagreeing, say_ended_early, sigterm_unwinds, stopped_by, stopped_partway,
-                             writable)
+                             recording_file, refuse_disagreeing, say_ended_early, sigterm_unwinds, stopped_by,
+                             stopped_partway, part_done, writable)
 from twin.core.errors import TwinError
 from twin.core.whole_files import kept_from_others
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.scenario import Scenario
 from twin.tools.planner_bench import DEFAULT_PLANNERS
-from twin.tools.pool import done_before
 
 
 @app.command()
@@ -258,9 +257,7 @@ def bench_planners(
         try:
             results = bench(s, names, seeds, workers, on_trial=lambda t: progress.advance(bar))
         except KeyboardInterrupt as stop:  # the seeds every planner finished still make a table
-            results, cut = done_before(stop), stop
-            if results is None or as_json or csv_out:
-                raise
+            results, cut, csv_out = part_done(stop, as_json), stop, None  # a table, and no file of a part
     ran = len(next(iter(results.values())))
     table_rows = rows(results)
     runs = [asdict(t) for trials in results.values() for t in trials]
@@ -362,9 +359,7 @@ def bench_schedulers(
                 try:
                     results = bench(s, names, seeds, workers, on_run=lambda r: progress.advance(bar), pool=pool)
                 except KeyboardInterrupt as stop:  # the seeds every scheduler finished still make a table
-                    results, cut = done_before(stop), stop
-                    if results is None or as_json or csv_out:
-                        raise
+                    results, cut, csv_out = part_done(stop, as_json), stop, None  # a table, and no file of a part
             runs = len(next(iter(results.values())))
             table_rows = rows(results, optimum, 1.0 if s.jobshop else 3600.0)
             all_runs += [{"lab": title, **asdict(r)} for v in results.values() for r in v]
@@ -376,8 +371,9 @@ def bench_schedulers(
             # no bound: no column; counts that are nought for every scheduler (a job shop's) leave the room to names
             silent = {h for i, h in enumerate(HEADER) if h in COUNTS and all(float(r[i]) == 0 for r in table_rows)}
             shown = [i for i, h in enumerate(HEADER) if (optimum or h != "vs bound") and h not in silent]
-            table = narrow_table([HEADER[i] for i in shown], f"{title} — {runs}{'' if cut is None else f' of {seeds}'} "
-                                 "run(s) per scheduler" + (f"; {best.title()}" if best else ""),
+            table = narrow_table([HEADER[i] for i in shown],
+                                 f"{title} — {runs}{'' if cut is None else f' of {seeds}'} run(s) per scheduler" +
+                                 (f"; {best.title()}" if best else ""),
                                  caption("lab-s" if s.jobshop else "lab-h", bound=best, silent=silent, ahead=ahead))
             for row in table_rows:
                 table.add_row(*(row[i] for i in shown))
@@ -429,9 +425,7 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
             results = shapes(s, names, seeds, workers, on_shape=lambda c: progress.advance(bar),
                              random_labs=random_labs, by=by)
         except KeyboardInterrupt as stop:  # the shapes finished still make a table
-            results, cut = done_before(stop), stop
-            if results is None or as_json or csv_out:
-                raise
+            results, cut, csv_out = part_done(stop, as_json), stop, None  # a table, and no file of a part
     table_rows, comparisons, runs = [], [], []
     for c in results:
         cells = []

@@ -11,9 +11,8 @@ import typer
 from rich.table import Table
 
 from twin.cli.common import (_fail, app, bar_progress, bench_app, console, interruptible, machine_output,
-                             narrow_table, print_table, stopped_partway, writable)
+                             narrow_table, part_done, print_table, stopped_partway, writable)
 from twin.core import plugins
-from twin.tools.pool import done_before
 from twin.core.errors import TwinError
 
 
@@ -131,9 +130,7 @@ def bench_routes(
         except (ValueError, FileNotFoundError) as exc:
             _fail(TwinError(str(exc)))
         except KeyboardInterrupt as stop:  # the targets every method finished still make a table
-            results, cut = done_before(stop), stop
-            if not results or as_json or csv_out:
-                raise
+            results, cut, csv_out = part_done(stop, as_json), stop, None  # a table, and no file of a part
     table_rows = rows(results, names)
     if machine_output(as_json, csv_out, list(HEADER), table_rows, results, target_set=target_set, seconds=seconds):
         return

@@ -15,8 +15,7 @@ from rich import box
 from rich.table import Table
 
 from twin.cli.common import (_fail, app, bar_progress, console, interruptible, paired_assignments, recording_file,
-                             say_ended_early, stopped_partway, writable)
-from twin.tools.pool import done_before
+                             part_done, say_ended_early, stopped_partway, writable)
 from twin.core.errors import TwinError
 from twin.core.printable import inert
 from twin.runtime import lab
@@ -142,11 +141,7 @@ def whatif(
         try:
             results = run_whatif(s, chosen, seeds, workers, on_run=lambda o: progress.advance(bar))
         except KeyboardInterrupt as stop:  # the seeds every variant finished still make a table
-            results, cut = done_before(stop), stop
-            if not results or as_json:
-                raise
-    if cut is not None:  # a table only: no file of a part of the runs
-        csv_out = save = None
+            results, cut, csv_out, save = part_done(stop, as_json), stop, None, None  # a table, and no file of a part
     ran = len({o.seed for o in results})
     summary = summarise(results, chosen)
     best = cheapest_within(summary, budget_hours, any_targets(s)) if budget_hours is not None else None
@@ -179,7 +174,8 @@ def whatif(
         table_rows = rows(summary, axes, written_values(s, axes), has_targets, shown)
         table, _ = _fitting_table(header(axes, shown, seconds), table_rows, len(axes))
     console.print(table)
-    console.print(caption(has_targets, ran, shown, seconds, alike), highlight=False)  # wrapped at the terminal, not the table
+    # wrapped at the terminal, not the table
+    console.print(caption(has_targets, ran, shown, seconds, alike), highlight=False)
     say_ended_early([(o.variant, o.stopped) for o in results])
     if s.campaigns:
         names = list(summary[0]["per_campaign"])
