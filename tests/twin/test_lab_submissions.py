@@ -54,11 +54,16 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         with socket.socket() as sock:
             sock.bind(("127.0.0.1", 0))
             own = sock.getsockname()[1]
+        (tmp_path / "again").mkdir()  # an earlier lab's journals, where the second serve is told to write
+        (tmp_path / "again" / "lab.inputs").write_bytes(b"an earlier lab's inputs")
         second = subprocess.run([sys.executable, "-m", "twin", "lab", "serve", str(tmp_path / "lab.yaml"), "--listen",
                                  f"tcp/127.0.0.1:{own}", "--connect", f"tcp/127.0.0.1:{port}", "--journal",
                                  str(tmp_path / "again")],
                                 capture_output=True, text=True, cwd=ROOT, timeout=60)  # the same lab served twice
         assert second.returncode == 2 and "lab 'shared' already has a campaign running" in second.stderr, second.stderr
+        # refused before it wrote anything: the earlier journals stay as they were
+        assert [p.name for p in (tmp_path / "again").iterdir()] == ["lab.inputs"]
+        assert (tmp_path / "again" / "lab.inputs").read_bytes() == b"an earlier lab's inputs"
         watcher = subprocess.Popen([sys.executable, "-m", "twin", "watch", "--lab", "shared", "--connect",
                                     f"tcp/127.0.0.1:{port}", "--save", str(tmp_path / "w.rrd"), "--follow"],
                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT, text=True)

@@ -72,17 +72,22 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
     one = _lab_scheduler(s)  # a policy that does not fit the lab is said before a journal is made
     where = Path(journals) if journals is not None else default_journals(s)
 
-    def assemble() -> tuple[list, dict, dict]:
-        """The lab's drivers and each campaign's journal, planner and scheduler, made afresh."""
+    def lab_drivers() -> tuple[list, dict]:
+        """The lab's drivers, made afresh."""
         drivers, per_device = shared_drivers(scenarios, skip=external_devices)
         if s.clock.mode == "virtual":
             refuse_realtime(drivers)
-        where.mkdir(parents=True, exist_ok=True)
-        return drivers, per_device, {name: _parts(cs, where / f"{name}.db", external_devices, s, make_journal)
-                                     for name, cs in scenarios.items()}
+        return drivers, per_device
 
-    drivers, per_device, parts = assemble()
+    def campaign_parts() -> dict:
+        """Each campaign's journal, planner and scheduler."""
+        where.mkdir(parents=True, exist_ok=True)
+        return {name: _parts(cs, where / f"{name}.db", external_devices, s, make_journal)
+                for name, cs in scenarios.items()}
+
+    drivers, per_device = lab_drivers()
     if s.clock.mode == "virtual" and runtime != "asyncio":
+        parts = campaign_parts()
         try:
             return _fast(s, scenarios, drivers, per_device, parts, where, wall0, handle_signals, observer, one)
         except FastRuntimeRefused as exc:
@@ -91,11 +96,11 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
             logging.getLogger(FALLBACK_LOGGER).warning("%s", exc.running_again("lab"))
         for journal, _, _ in parts.values():
             journal.close()
-        drivers, per_device, parts = assemble()  # the first run's drivers hold its state
+        drivers, per_device = lab_drivers()  # the first run's drivers hold its state
         if observer is not None and reopen is not None:  # the recording starts again with the lab
             observer = reopen()
     clock = make_clock(s)
-    return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals,
+    return clock.run(_live(s, clock, scenarios, drivers, per_device, campaign_parts, where, wall0, handle_signals,
                            observer=observer, external=external_devices))
 
 
@@ -133,10 +138,13 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
     else:
         drivers, per_device = _standby_drivers(s, external_devices), {}
     where = Path(journals) if journals is not None else default_journals(s)
-    where.mkdir(parents=True, exist_ok=True)
-    parts = {name: _parts(cs, where / f"{name}.db", external_devices, s) for name, cs in scenarios.items()}
+
+    def campaign_parts() -> dict:
+        where.mkdir(parents=True, exist_ok=True)
+        return {name: _parts(cs, where / f"{name}.db", external_devices, s) for name, cs in scenarios.items()}
+
     clock = make_clock(s)
-    return clock.run(_live(s, clock, scenarios, drivers, per_device, parts, where, wall0, handle_signals,
+    return clock.run(_live(s, clock, scenarios, drivers, per_device, campaign_parts, where, wall0, handle_signals,
                            serving=external_devices, on_start=on_start, trust_modules=trust_modules))
 
 
@@ -266,13 +274,21 @@ def _parts(s: Scenario, path: Path, external: Collection[str], lab: Scenario | N
 
 
 async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], drivers: list, per_device: dict,
-                parts: dict, where: Path, wall0: float, handle_signals: bool,
+                parts: dict | Callable[[], dict], where: Path, wall0: float, handle_signals: bool,
                 serving: Collection[str] | None = None, on_start: Callable[[Any], None] | None = None,
                 observer: SharedLabObserver | None = None, rebuilt: RebuiltLab | None = None,
                 external: Collection[str] = (), trust_modules: bool = False) -> LabSummary:
     """``serving``: None, or the external devices of a lab that takes campaigns as they are submitted;
-    ``rebuilt``: a killed lab to take over (``twin resume``); ``trust_modules``: see ``serve_lab``."""
+    ``rebuilt``: a killed lab to take over (``twin resume``); ``trust_modules``: see ``serve_lab``; ``parts``: each
+    campaign's, or what makes them (their journals), made once the lab is this process's: a lab refused for
+    another process's had replaced the journals in its folder with ones of a run that never began."""
     async with contextlib.AsyncExitStack() as stack:
+        bus = make_bus(s, clock)
+        await bus.start()
+        stack.push_async_callback(bus.close)
+        stack.callback((await refuse_if_taken(bus, s, [name for name, _, _ in drivers])).close)
+        if callable(parts):
+            parts = parts()
         inputs = Journal(where / LAB_INPUTS, append=rebuilt is not None)
         stack.callback(inputs.close)
         if rebuilt is None:
@@ -280,10 +296,6 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
             inputs.set("serving", serving is not None)
             inputs.set("trust_modules", trust_modules)  # a resumed lab takes what it took
             inputs.set("external", sorted(serving if serving is not None else external))
-        bus = make_bus(s, clock)
-        await bus.start()
-        stack.push_async_callback(bus.close)
-        stack.callback((await refuse_if_taken(bus, s, [name for name, _, _ in drivers])).close)
         if s.bus.kind != "memory":
             source = LabTimeSource(bus, s.lab, clock)
             source.start()
