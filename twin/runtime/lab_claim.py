@@ -108,7 +108,12 @@ def _starting(s: Scenario, claims: list[str]) -> str:
     more = f" and {len(claims) - 1} more" if len(claims) > 1 else ""
     return (f"lab {lab!r}: another process is starting {' and '.join(named)} on this bus at this same moment "
             f"(its claim {min(claims)}{more}): two processes serving one lab would dispatch to, or answer for, each "
-            f"other. This one stands down; run it when that one has ended, or as another lab (--set lab={lab}-2)")
+            f"other. This one stands down; run it when that one has ended, or as another lab ({_another(lab)})")
+
+
+def _another(lab: str) -> str:
+    """How to name this one another lab: `twin lab serve` takes no --set."""
+    return f"--set lab={lab}-2, or lab: {lab}-2 in its file"
 
 
 def _refuse_held(s: Scenario, found: set[str], orchestrator: bool, agent: bool) -> None:
@@ -119,7 +124,7 @@ def _refuse_held(s: Scenario, found: set[str], orchestrator: bool, agent: bool) 
     if orchestrator and keys.orchestrator(lab) in found:
         raise LabTaken(f"lab {lab!r} already has a campaign running on this bus ({keys.orchestrator(lab)} is held by "
                        f"another process): two campaigns of one lab would dispatch to each other's devices. Stop "
-                       f"that one, run this one as another lab (--set lab={lab}-2), or share the lab's devices "
+                       f"that one, run this one as another lab ({_another(lab)}), or share the lab's devices "
                        "between campaigns (twin lab serve, then twin submit); if it stopped just now, its token "
                        f"lasts one link lease ({s.bus.lease_ms} ms): try again then")
     taken = sorted(keys.device_of(k) for k in found if k.startswith(keys.alive(lab, "")))
@@ -129,4 +134,4 @@ def _refuse_held(s: Scenario, found: set[str], orchestrator: bool, agent: bool) 
     if taken:
         raise LabTaken(f"device(s) {taken} of lab {lab!r} are already on this bus, served by another process: "
                        "stop that one, or let this run use them (twin run --external NAME for each) instead of "
-                       f"serving its own, or run this one as another lab (--set lab={lab}-2)")
+                       f"serving its own, or run this one as another lab ({_another(lab)})")
