@@ -388,3 +388,33 @@ def test_nothing_answering_over_tls_names_the_router_certificates_hosts_too(tmp_
         assert f"nothing answered at {endpoint}" in str(said.value)
         for words in (names, without):
             assert (words in str(said.value)) == (words == hint), (words, str(said.value))
+
+
+def test_a_second_security_init_of_a_directory_waits_for_the_first_and_signs_with_its_ca(tmp_path):
+    """Two started together on a new directory (a provisioning script, a device each) each made a CA, and the first
+    one's certificates were signed by a CA no longer on disk."""
+    import fcntl
+
+    from cryptography import x509
+
+    from twin.tools.security_init import _init  # what init does once it holds the directory
+
+    root = tmp_path / "lab"
+    root.mkdir()
+    with open(root / ".init.lock", "a+") as first:
+        fcntl.flock(first, fcntl.LOCK_EX)  # as a first `twin security init` of the directory holds it
+        second = subprocess.Popen([sys.executable, "-m", "twin", "security", "init", str(root), "--lab", LAB,
+                                   "--device", "b"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                  cwd=ROOT)
+        try:
+            assert second.stderr.readline() == f"waiting for another `twin security init` of {root} to finish\n"
+            _init(root, LAB, ["a"], ["localhost", "127.0.0.1"], 365, "tls/127.0.0.1:7447")  # the first one's work
+            assert second.poll() is None
+        finally:
+            fcntl.flock(first, fcntl.LOCK_UN)
+    out, err = second.communicate(timeout=60)
+    assert second.returncode == 0, err
+    ca = x509.load_pem_x509_certificate((root / "ca.pem").read_bytes())
+    for who in (Identity("device", LAB, "a"), Identity("device", LAB, "b"), Identity("router", LAB)):
+        x509.load_pem_x509_certificate((who.folder(root) / "cert.pem").read_bytes()).verify_directly_issued_by(ca)
+    assert json.loads((root / "labtwin-security.json").read_text())["devices"] == ["a", "b"]

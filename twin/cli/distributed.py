@@ -87,7 +87,8 @@ def security_init(
     from twin.tools.security_init import init
 
     try:
-        written = init(directory, lab, list(device or []), list(host or []), days, endpoint)
+        written = init(directory, lab, list(device or []), list(host or []), days, endpoint, on_wait=lambda: err.print(
+            f"waiting for another `twin security init` of {directory} to finish", highlight=False, markup=False))
     except TwinError as exc:
         _fail(exc)
     except OSError as exc:

@@ -10,9 +10,11 @@ that folder off the lab's machines once the certificates are issued).
 from __future__ import annotations
 
 import datetime
+import fcntl
 import ipaddress
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 from cryptography import x509
@@ -27,13 +29,27 @@ _NAME_OK = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-
 
 
 def init(root: str | Path, lab: str, devices: list[str], hosts: list[str] | None = None,
-         days: int = 365, endpoint: str = "tls/127.0.0.1:7447") -> list[Path]:
-    """Create or extend the security directory ``root`` of ``lab``; returns the files written."""
+         days: int = 365, endpoint: str = "tls/127.0.0.1:7447",
+         on_wait: Callable[[], None] = lambda: None) -> list[Path]:
+    """Create or extend the security directory ``root`` of ``lab``; returns the files written. One at a time: two
+    started together on a new directory (a device each) each made a CA, and the first one's certificates were then
+    signed by a CA no longer on disk; the second waits (``on_wait`` says so), then extends what the first made."""
     root = Path(root)
     hosts = list(hosts or []) or ["localhost", "127.0.0.1"]
     for name in [lab, *devices]:
         if not name or len(name) > 64 or not set(name) <= _NAME_OK:
             raise TwinError(f"{name!r}: lab and device names are 1-64 letters, digits, '_' or '-'")
+    root.mkdir(parents=True, exist_ok=True)
+    with open(root / ".init.lock", "a+") as lock:
+        try:
+            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            on_wait()
+            fcntl.flock(lock, fcntl.LOCK_EX)
+        return _init(root, lab, devices, hosts, days, endpoint)
+
+
+def _init(root: Path, lab: str, devices: list[str], hosts: list[str], days: int, endpoint: str) -> list[Path]:
     old = _read_manifest(root)
     if old and old.get("lab") != lab:
         raise TwinError(f"{root} holds the certificates of lab {old.get('lab')!r}: use another directory for {lab!r}")
