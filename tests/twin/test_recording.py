@@ -433,22 +433,3 @@ def test_twin_watch_log_prints_the_decisions_and_faults_as_the_journal_has_them_
     assert [float(line.split()[0]) for line in done] == [round(e["t_lab"] / 3600, 3) for e in journalled]
     assert not [line for line in lines if "attempt.dispatched" in line]  # each dispatch: a debug row, left out
     assert any("campaign quantum_dots started" in line for line in lines)
-
-
-
-def test_a_recording_another_run_is_writing_is_refused_before_anything_runs(tmp_path):
-    import fcntl
-
-    save, journal = tmp_path / "run.rrd", tmp_path / "j.db"
-    args = ("run", ROOT / "scenarios" / "quantum_dots.yaml", "--budget", "2", "--save", save, "--journal", journal)
-    save.write_bytes(b"a recording being written")
-    with open(save, "ab") as other:
-        fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as another run recording to it holds it
-        refused = twin_cli(*args)
-    assert refused.exit_code == 2, refused.output
-    assert f"{save} is being recorded by another run: wait for that run to end, or --save another file" in \
-        " ".join(refused.output.split())
-    assert save.read_bytes() == b"a recording being written" and not journal.exists()
-    ran = twin_cli(*args)  # and once that run has ended
-    assert ran.exit_code == 0, ran.output
-    assert rerun_verify(save).returncode == 0

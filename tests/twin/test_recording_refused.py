@@ -1,14 +1,16 @@
 """What a recording leaves out. What the lab refuses: a result or a reading forged on a device's key, refused for its
 provenance, appears in neither the live recording nor its replay, which draw each measurement the journal holds
-once. And what would swamp it: readings past a bound, said once in the log."""
+once. And what would swamp it: readings past a bound, said once in the log. And a recording file another run is
+writing, refused before anything runs."""
 
 import asyncio
 import json
+from pathlib import Path
 
 import zenoh
 
-from tests.conftest import qd_lab
-from tests.rrd import read_rrd
+from tests.conftest import qd_lab, twin_cli
+from tests.rrd import read_rrd, rerun_verify
 from tests.twin.test_device_process import free_port
 from tests.twin.zenoh_clients import open_session, until_answered
 from twin.campaign.journal import read_events
@@ -18,6 +20,7 @@ from twin.runtime.lab import make_clock, prepare, run_async
 from twin.scenario import parse
 from twin.view.watch import RecordOptions, open_observer, replay, watch_async
 
+ROOT = Path(__file__).resolve().parents[2]
 LAB = "forged"
 FORGED_Y = [7.0] * 50  # a spectrum no simulated measurement draws
 
@@ -185,3 +188,21 @@ def test_a_driver_naming_its_readings_afresh_draws_a_bounded_number_of_series_an
     said = [r.getMessage() for r in caplog.records if "telemetry series" in r.getMessage()]
     assert len(said) == 1 and "reactor's" in said[0] and "the journal has them all" in said[0]
     assert observer.undrawn_series == n - (MAX_TELEMETRY_SERIES - 1)
+
+
+def test_a_recording_another_run_is_writing_is_refused_before_anything_runs(tmp_path):
+    import fcntl
+
+    save, journal = tmp_path / "run.rrd", tmp_path / "j.db"
+    args = ("run", ROOT / "scenarios" / "quantum_dots.yaml", "--budget", "2", "--save", save, "--journal", journal)
+    save.write_bytes(b"a recording being written")
+    with open(save, "ab") as other:
+        fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)  # as another run recording to it holds it
+        refused = twin_cli(*args)
+    assert refused.exit_code == 2, refused.output
+    assert f"{save} is being recorded by another run: wait for that run to end, or --save another file" in \
+        " ".join(refused.output.split())
+    assert save.read_bytes() == b"a recording being written" and not journal.exists()
+    ran = twin_cli(*args)  # and once that run has ended
+    assert ran.exit_code == 0, ran.output
+    assert rerun_verify(save).returncode == 0

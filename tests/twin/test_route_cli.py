@@ -197,19 +197,3 @@ def test_no_route_says_what_to_change_by_what_stopped_the_search():
     assert "--seconds" not in spent and "another --method" in spent  # more time would not have helped
     assert "--stock the building blocks" in _what_next({"why": "no route within 6 steps", "seconds": 0.1,
                                                         "expansions": 42})
-
-
-@pytest.mark.process
-def test_a_route_bench_stopped_partway_shows_the_targets_every_method_finished():
-    import re
-    import signal
-
-    from tests.twin.test_shape_bench import _stopped_when
-
-    code, out, err = _stopped_when(["bench", "routes", "--targets", "100", "--seconds", "1", "--methods",
-                                    "breadth-first,random"], lambda done: done >= 4, signal.SIGINT)
-    assert code == 130, err
-    title = re.search(r"(\d+) of 100 held-out targets, 1 s each", out)
-    assert title and 1 <= int(title.group(1)) < 100, out
-    assert re.search(r"^breadth-first +\d+", out, re.M) and re.search(r"^random +\d+", out, re.M), out
-    assert f"interrupted: the table is of the {title.group(1)} target(s) every method finished" in err

@@ -4,8 +4,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 from tests.conftest import qd_lab, twin_cli
 from twin.scenario import parse
 from twin.tools.shape_bench import shapes, variants, verdict
@@ -191,61 +189,3 @@ def test_a_scheduler_that_may_take_minutes_a_campaign_is_said_before_the_bench_r
     res = twin_cli("bench", "schedulers", str(ROOT / "scenarios" / "flaky_lab.yaml"), "--schedulers", "mwkr",
                    "--seeds", "1", "--set", "campaign.budget=4")
     assert res.exit_code == 0 and "decides in up to" not in res.stderr
-
-
-def _stopped_when(args: list[str], enough, stop: int) -> tuple[int, str, str]:
-    """`twin ARGS` sent ``stop`` once its progress (stderr, a line at a time off a terminal) has a line that is
-    ``enough``: its exit status, stdout and stderr."""
-    import os
-    import re
-    import signal
-
-    proc = subprocess.Popen([sys.executable, "-m", "twin", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, cwd=ROOT, start_new_session=True, env={**os.environ, "COLUMNS": "120"})
-    said = []
-    try:
-        for line in proc.stderr:
-            said.append(line)
-            done = re.search(r" (\d+)/\d+ ", line)
-            if done and enough(int(done.group(1))):
-                break
-        if stop == signal.SIGINT:
-            os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C reaches the whole group
-        else:
-            proc.send_signal(stop)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-    return proc.returncode, out, "".join(said) + err
-
-
-@pytest.mark.process
-def test_a_bench_stopped_partway_shows_the_seeds_every_scheduler_finished(tmp_path):
-    import re
-    import signal
-
-    csv = tmp_path / "runs.csv"
-    code, out, err = _stopped_when(["bench", "schedulers", "scenarios/flaky_lab.yaml", "--seeds", "400",
-                                    "--schedulers", "fifo,spt", "--csv", str(csv)], lambda done: done >= 6,
-                                   signal.SIGINT)
-    assert code == 130, err
-    title = re.search(r"flaky_lab — (\d+) of 400 run\(s\) per scheduler", out)
-    assert title and 3 <= int(title.group(1)) < 400, out
-    assert re.search(r"^fifo +\d+\.\d+", out, re.M) and re.search(r"^spt +\d+\.\d+", out, re.M), out
-    assert f"interrupted: the table is of the {title.group(1)} seed(s) of flaky_lab every scheduler finished" in err
-    assert "Traceback" not in err and not csv.exists()  # no file of a part of the runs
-
-
-@pytest.mark.process
-def test_a_shapes_bench_stopped_partway_shows_the_shapes_it_finished():
-    import re
-    import signal
-
-    code, out, err = _stopped_when(["bench", "schedulers", "scenarios/flaky_lab.yaml", "--shapes", "--seeds", "40",
-                                    "--schedulers", "fifo,spt"], lambda done: done >= 1, signal.SIGTERM)
-    assert code == 143, err
-    shown = re.search(r"(\d+) of (\d+) shapes", out)
-    assert shown and 1 <= int(shown.group(1)) < int(shown.group(2)), out
-    assert "as written" in out
-    assert f"terminated (SIGTERM): the table is of the {shown.group(1)} shape(s) of {shown.group(2)} finished" in err

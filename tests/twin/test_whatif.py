@@ -431,21 +431,3 @@ def test_a_policy_varied_beside_a_field_is_shown_whole_and_folds_only_when_the_t
     rule = next(i for i, line in enumerate(lines) if line.strip().startswith("─"))
     table = "\n".join(lines[rule + 1:next(i for i, line in enumerate(lines) if line.startswith("*: the scenario"))])
     assert len(re.findall(r"\b\d+%", table)) == 9 and table.count("reactor") == 9, table
-
-
-@pytest.mark.process
-def test_a_whatif_stopped_partway_shows_the_seeds_every_variant_finished_and_writes_no_file(tmp_path):
-    import re
-    import signal
-
-    from tests.twin.test_shape_bench import _stopped_when
-
-    csv = tmp_path / "w.csv"
-    code, out, err = _stopped_when(["whatif", "scenarios/flaky_lab.yaml", "--vary", "devices.reactor.instances=2,3",
-                                    "--seeds", "300", "--csv", str(csv)], lambda done: done >= 4, signal.SIGINT)
-    assert code == 130, err
-    title = re.search(r"2 variants × (\d+) of 300 seed\(s\)", out)
-    assert title and 1 <= int(title.group(1)) < 300, out
-    assert f"Medians and IQR over {title.group(1)} paired seeds" in " ".join(out.split())
-    assert f"interrupted: the table is of the {title.group(1)} seed(s) every variant finished" in err
-    assert not csv.exists() and "Traceback" not in err
