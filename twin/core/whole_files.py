@@ -8,6 +8,7 @@ import fcntl
 import os
 import shutil
 from collections.abc import Iterator
+from typing import IO
 from pathlib import Path
 
 from twin.core.errors import TwinError
@@ -41,18 +42,25 @@ def written_whole(path: Path) -> Iterator[Path]:
         raise
 
 
+def locked(path: Path, refusal: str) -> IO[bytes]:
+    """``path`` opened (made if need be, never emptied) and locked by this process until closed; ``refusal`` raised
+    as a TwinError if another process holds it now."""
+    f = open(path, "ab")
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.close()
+        raise TwinError(refusal) from None
+    return f
+
+
 @contextlib.contextmanager
 def kept_from_others(path: Path, refusal: str) -> Iterator[None]:
     """While the block runs, every other process that asks the same of ``path`` is refused with ``refusal``, and so
     is this one if another holds it now: a hidden ``.NAME.lock`` beside it, locked, and removed at the end (a
     killed process's lock holds nothing)."""
     lock_path = path.with_name(f".{path.name}.lock")
-    lock = open(lock_path, "a+")
-    try:
-        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        lock.close()
-        raise TwinError(refusal) from None
+    lock = locked(lock_path, refusal)
     try:
         yield
     finally:

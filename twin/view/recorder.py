@@ -9,7 +9,6 @@ a file, a spawned viewer, a loopback web viewer (their processes:
 
 from __future__ import annotations
 
-import fcntl
 import itertools
 import logging
 import subprocess
@@ -23,7 +22,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from twin.core.errors import TwinError
-from twin.core.whole_files import FULL_BYTES, free_bytes
+from twin.core.whole_files import FULL_BYTES, free_bytes, locked
 from twin.view import viewer_process
 from twin.view.observer import STATES
 
@@ -343,19 +342,6 @@ def log_curve(out: Recording, steps: int, values: dict[str, float], prefix: str 
         out.rec.log(f"{prefix}/{name}", rr.Scalars(float(value)))
 
 
-def hold(path: Path) -> IO[bytes]:
-    """``path`` opened (not emptied) and locked while this process records to it: two runs given one ``--save``
-    wrote into one file at once, and both said it was saved when neither's could be read."""
-    f = open(path, "ab")
-    try:
-        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        f.close()
-        raise TwinError(f"{path} is being recorded by another run: wait for that run to end, or --save another file "
-                        "(nothing has run yet)") from None
-    return f
-
-
 def open_recording(recording_id: str, save: str | Path | None = None, viewer: bool = False,
                    serve: bool = False, serve_port: int = 0, web_port: int = 0,
                    campaign_layout: bool = True, campaigns: list[str] | None = None) -> Recording:
@@ -368,7 +354,9 @@ def open_recording(recording_id: str, save: str | Path | None = None, viewer: bo
     held = None
     if save:
         Path(save).parent.mkdir(parents=True, exist_ok=True)
-        held = hold(Path(save))
+        # two runs given one --save wrote into one file at once, and both said it was saved
+        held = locked(Path(save), f"{save} is being recorded by another run: wait for that run to end, or --save "
+                                  "another file (nothing has run yet)")
     out = Recording(rec, RerunCanvas(rec), save=str(save or ""), held=held)
     if save:
         sinks.append(rr.FileSink(str(save)))
