@@ -5,6 +5,12 @@ from pathlib import Path
 
 import pytest
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # xdist's workers are given COLUMNS=80 and LINES=24, which a console made at import keeps for good: the tables
+    # of commands run here were then 80 wide in a worker and as wide as each test asks in a plain run
+    for name in ("COLUMNS", "LINES"):
+        os.environ.pop(name, None)
+
 from twin.core.bus import open_bus
 from twin.core.clock import LabClock
 from twin.scenario import set_dotted

@@ -161,9 +161,10 @@ def test_a_lab_is_trained_from_a_policy_by_its_own_best_runs_and_says_so_when_it
 
 
 def test_a_lab_whose_rule_learnt_does_worse_than_the_shipped_policy_keeps_that_policy(tmp_path):
-    """busy_lab says nothing of its teacher: its training starts from the shipped policy, which scores 1.085 × the
-    turns there, so the best rule is learnt instead — and a short training of it ends at 1.42: the policy left at
-    --out is the best one evaluated, the shipped one, not the last training's."""
+    """busy_lab says nothing of its teacher: its training starts from the shipped policy, which scores about 1.08 ×
+    the turns there (1.076–1.085 on this machine's CPUs: torch's float kernels differ), so the best rule is learnt
+    instead — and a short training of it ends at 1.42: the policy left at --out is the best one evaluated, the
+    shipped one, not the last training's."""
     from agents.train_scheduler import FALL_BACK_ABOVE, GENERAL_POLICY, train_scheduler
     from twin import read_meta
 
@@ -176,7 +177,8 @@ def test_a_lab_whose_rule_learnt_does_worse_than_the_shipped_policy_keeps_that_p
     assert [c["steps"] for c in meta["curve"]] == [0] and meta["curve"][0]["score"] > FALL_BACK_ABOVE
     learnt = next(i for i, s in enumerate(said) if "learning the best rule instead, from scratch" in s)
     assert any(s.startswith("best-rule teacher") for s in said[learnt:])  # it was learnt, and did worse
-    assert said[-1].startswith("kept the shipped general policy: its start (1.085)"), said
+    began = meta["curve"][0]["score"]
+    assert said[-1] == f"kept the shipped general policy: its start ({began:.3f}) did better than the rule learnt", said
 
 
 def test_fair_share_serves_the_top_priority_then_the_campaign_furthest_below_its_share():

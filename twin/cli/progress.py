@@ -5,6 +5,8 @@ said when it is due, by a timer, not when the next update comes."""
 
 from __future__ import annotations
 
+import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -15,16 +17,35 @@ from rich.console import Console
 from rich.text import Text
 
 PLAIN_EVERY_S = 10.0
+EVERY_S_VARIABLE = "LABTWIN_PROGRESS_S"
+
+
+def plain_every_s() -> float:
+    """Seconds between progress lines off a terminal: ``LABTWIN_PROGRESS_S`` if set (a script that acts on the
+    first line of progress need not wait 10 s for it), else 10."""
+    given = os.environ.get(EVERY_S_VARIABLE)
+    if given is None:
+        return PLAIN_EVERY_S
+    try:
+        every = float(given)
+    except ValueError:
+        every = math.nan
+    if not math.isfinite(every) or every <= 0:
+        from twin.core.errors import TwinError
+
+        raise TwinError(f"{EVERY_S_VARIABLE}={given!r}: give the seconds between progress lines off a terminal as "
+                        f"a positive number (e.g. {EVERY_S_VARIABLE}=1), or unset it for every {PLAIN_EVERY_S:g} s")
+    return every
 
 
 def bar_progress(console: Console, transient: bool = False, fields: tuple[str, ...] = (), disable: bool = False,
-                 every_s: float = PLAIN_EVERY_S, remaining: bool = True) -> Any:
+                 every_s: float | None = None, remaining: bool = True) -> Any:
     """What a long command does, its bar, done of total and time taken, then ``fields``: rich format strings
     such as ``"lab {task.fields[lab]}"`` (each task's own values, given to ``add_task`` and ``update``).
     ``remaining``: also the time left at the pace so far (not for work that may end before its total: a campaign
-    that stops when its targets are met)."""
+    that stops when its targets are met). ``every_s``: between lines off a terminal (``plain_every_s()``)."""
     if not console.is_interactive and not disable:
-        return PlainProgress(console, fields, every_s, remaining=remaining)
+        return PlainProgress(console, fields, plain_every_s() if every_s is None else every_s, remaining=remaining)
     from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                TimeRemainingColumn)
 
