@@ -252,7 +252,8 @@ def test_a_short_training_of_a_lab_with_many_decisions_gathers_about_the_labels_
     shops, `--steps 3000`: 7,284). The first labs, one a worker, now count what a lab gives."""
     many = prepare(ROOT / "scenarios" / "quantum_dots.yaml", overrides={"campaign.budget": 200,
                                                                            "campaign.max_in_flight": 6, "campaign.stop_on_target": False,
-                                                                           "campaign.planner": "random"})
+                                                                           "campaign.planner": "random",
+                                                                           "training.samples": 2})  # labels: one run's
     out = train_scheduler(many, 800, tmp_path / "qd.zip", envs=1, eval_seeds=(0,), held_out_count=1)
     curve = json.loads(out.with_suffix(".json").read_text())["curve"]
     assert 0.75 * 800 <= curve[-1]["steps"] <= 1.25 * 800, curve  # ~410 a run: two runs
