@@ -145,18 +145,9 @@ def test_work_of_a_known_size_says_the_time_left_at_its_pace_and_a_campaign_does
     assert not bar_progress(Console(file=io.StringIO()), remaining=False).remaining
 
 
-def test_labtwin_progress_s_sets_the_interval_off_a_terminal_and_a_bad_one_is_refused_before_anything_runs(
-        monkeypatch, tmp_path):
-    from tests.conftest import twin_cli
 
+def test_labtwin_progress_s_sets_the_interval_off_a_terminal(monkeypatch):
     monkeypatch.setenv("LABTWIN_PROGRESS_S", "0.25")
     assert bar_progress(Console(file=io.StringIO()))._every_s == 0.25
     monkeypatch.delenv("LABTWIN_PROGRESS_S")
     assert bar_progress(Console(file=io.StringIO()))._every_s == 10
-    for bad in ("soon", "0", "-1", "nan", "inf"):
-        monkeypatch.setenv("LABTWIN_PROGRESS_S", bad)
-        res = twin_cli("run", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--journal", str(tmp_path / "j.db"))
-        assert res.exit_code == 2, res.output
-        assert f"LABTWIN_PROGRESS_S='{bad}': give the seconds between progress lines off a terminal as a positive " \
-               "number" in " ".join(res.stderr.split())
-        assert not (tmp_path / "j.db").exists()  # refused before anything ran

@@ -1,5 +1,5 @@
 """The command line on the machine around it: a full disk, a port another program holds, a path or a SMILES with
-brackets. Each is said with what to do, never a traceback or a hang."""
+brackets, a mistyped environment variable. Each is said with what to do, never a traceback or a hang."""
 
 from pathlib import Path
 
@@ -108,3 +108,23 @@ def test_a_port_another_program_listens_on_is_named_as_taken(command):
     said = " ".join(res.output.split())
     assert res.exit_code == 2 and f"{at} is taken: another lab, router or program listens there" in said, said
     assert "cargo" not in said
+
+
+@pytest.mark.parametrize("variable, says", [
+    ("LABTWIN_PROGRESS_S", "give the seconds between progress lines off a terminal as a positive number"),
+    ("LABTWIN_FLUSH_EVERY", "give the rows a journal buffers before a commit as a whole number of 1 or more")])
+def test_a_mistyped_labtwin_variable_is_refused_before_anything_runs(monkeypatch, tmp_path, variable, says):
+    """LABTWIN_FLUSH_EVERY=abc was a ValueError traceback from importing twin; both are said, naming the value."""
+    from twin import TwinError, prepare, run
+
+    for bad in ("soon", "0", "-1", "nan", "inf"):
+        if bad in ("nan", "inf") and variable == "LABTWIN_FLUSH_EVERY":
+            continue  # not whole numbers: "soon" covers them
+        monkeypatch.setenv(variable, bad)
+        res = twin_cli("run", ROOT / "scenarios" / "quantum_dots.yaml", "--journal", tmp_path / "j.db")
+        assert res.exit_code == 2, res.output
+        assert f"{variable}='{bad}': {says}" in " ".join(res.stderr.split())
+        assert not (tmp_path / "j.db").exists()  # refused before anything ran
+    if variable == "LABTWIN_FLUSH_EVERY":  # the Python API makes a journal without the command line
+        with pytest.raises(TwinError, match=f"{variable}='-1': {says}"):
+            run(prepare(ROOT / "scenarios" / "quantum_dots.yaml"), journal=tmp_path / "k.db")

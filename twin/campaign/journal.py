@@ -39,7 +39,23 @@ CREATE TABLE IF NOT EXISTS experiments (
 CREATE TABLE IF NOT EXISTS inputs (seq INTEGER PRIMARY KEY, t_lab REAL NOT NULL, batch TEXT NOT NULL);
 """
 # rows buffered before a commit; LABTWIN_FLUSH_EVERY sets it (a test that kills runs wants small batches)
-FLUSH_EVERY = int(os.environ.get("LABTWIN_FLUSH_EVERY", 2000))
+FLUSH_EVERY = 2000
+FLUSH_EVERY_VARIABLE = "LABTWIN_FLUSH_EVERY"
+
+
+def flush_every() -> int:
+    """The rows a journal buffers before a commit: ``LABTWIN_FLUSH_EVERY`` if set, else 2,000."""
+    given = os.environ.get(FLUSH_EVERY_VARIABLE)
+    if given is None:
+        return FLUSH_EVERY
+    try:
+        rows = int(given)
+    except ValueError:
+        rows = 0
+    if rows < 1:
+        raise TwinError(f"{FLUSH_EVERY_VARIABLE}={given!r}: give the rows a journal buffers before a commit as a "
+                        f"whole number of 1 or more, or unset it for {FLUSH_EVERY:,}")
+    return rows
 
 
 _encode_sorted = msgspec.json.Encoder(enc_hook=plain_value, order="sorted").encode
@@ -51,11 +67,12 @@ def _sorted(value: Any) -> str:
 
 
 class Journal:
-    FLUSH_EVERY = FLUSH_EVERY
+    FLUSH_EVERY: int | None = None  # None: flush_every()
 
     def __init__(self, path: str | Path, append: bool = False) -> None:
         """A new journal at ``path`` (one already there is replaced; an empty file there is a name claimed for it),
         or with ``append`` the one there, continued."""
+        self._flush_every = self.FLUSH_EVERY or flush_every()
         self.path = Path(path)
         self.label = str(path)  # how summaries name it
         try:
@@ -94,7 +111,7 @@ class Journal:
     def _append(self, *row: Any) -> None:
         self._seq += 1
         self._events.append((self._seq, *row))
-        if len(self._events) >= self.FLUSH_EVERY:
+        if len(self._events) >= self._flush_every:
             self.flush()
 
     def note(self, n: Any) -> int:

@@ -51,10 +51,12 @@ def _top(version: Annotated[bool, typer.Option("--version", callback=_say_versio
          = False) -> None:
     """labtwin: a digital twin of a self-driving lab."""
     _printable_anywhere()
+    from twin.campaign.journal import flush_every
     from twin.cli.progress import plain_every_s
 
-    try:
-        plain_every_s()  # a mistyped LABTWIN_PROGRESS_S is refused before anything runs, not at a long job's end
+    try:  # a mistyped LABTWIN_… is refused before anything runs, not when the first journal or bar is made
+        plain_every_s()
+        flush_every()
     except TwinError as exc:
         _fail(exc)
 
