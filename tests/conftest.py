@@ -166,3 +166,24 @@ def ctrl_c_at(row: int):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(Journal, "_append", interrupting)
         yield
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """A test whose source runs a lab on a scaled clock (``scaled`` in it, its parametrisation included) is marked
+    ``wall``: its margins are in wall time, so `scripts/test` runs it beside the ``process`` tests, at their
+    priority, not among the CPU-bound tests it lowers."""
+    import inspect
+
+    wall = pytest.mark.wall
+    sources: dict = {}
+    for item in items:
+        function = getattr(item, "function", None)
+        if function is None or item.get_closest_marker("process"):
+            continue
+        if function not in sources:
+            try:
+                sources[function] = "scaled" in inspect.getsource(function)
+            except (OSError, TypeError):
+                sources[function] = False
+        if sources[function]:
+            item.add_marker(wall)

@@ -8,7 +8,7 @@ from twin.runtime.lab import prepare, run
 from twin.runtime.live import lab_elapsed
 
 SPEED = 20_000.0
-LONG_S = 4_000.0  # lab seconds of the one step: 0.2 s of wall time
+LONG_S = 10_000.0  # lab seconds of the one step: 0.5 s of wall time, a tick each 0.02 s of it
 
 
 def test_progress_between_events_moves_with_the_lab_clock(tmp_path, monkeypatch):
