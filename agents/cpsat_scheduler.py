@@ -22,7 +22,8 @@ class CpSatScheduler:
     runs_long = True  # a solve takes up to time_limit_s of wall time: the live lab asks it off the event loop
 
     def __init__(self, scenario: Any = None, time_limit_s: float = 1.0, **_: Any) -> None:
-        """``time_limit_s``: wall seconds a decision's solve may take (``campaign.scheduler_options``)."""
+        """``time_limit_s``: wall seconds a decision's solve may take (``campaign.scheduler_options``; more on a
+        machine too busy to find a schedule in them: ``agents.cpsat.TRIES``)."""
         if isinstance(time_limit_s, bool) or not isinstance(time_limit_s, (int, float)) \
                 or not 0.01 <= time_limit_s <= 3600:
             raise ValueError(f"time_limit_s: {str(time_limit_s)[:40]!r} is not a number of seconds from 0.01 to "
