@@ -19,7 +19,8 @@ def _stopped_when(args: list[str], enough, stop: int) -> tuple[int, str, str]:
     import signal
 
     proc = subprocess.Popen([sys.executable, "-m", "twin", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, cwd=ROOT, start_new_session=True, env={**os.environ, "COLUMNS": "120", "LABTWIN_PROGRESS_S": "0.5"})
+                            text=True, cwd=ROOT, start_new_session=True,
+                            env={**os.environ, "COLUMNS": "120", "LABTWIN_PROGRESS_S": "0.5"})
     said = []
     try:
         for line in proc.stderr:
