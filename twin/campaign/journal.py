@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import os
 import shutil
 import sqlite3
 from collections.abc import Iterator
@@ -22,6 +21,7 @@ import msgspec
 
 from twin.campaign.events import Status
 from twin.campaign.journal_lock import claim, release
+from twin.core.environment import number_setting
 from twin.core.errors import TwinError
 from twin.core.numbers import finite
 from twin.core.messages import plain_value
@@ -40,22 +40,12 @@ CREATE TABLE IF NOT EXISTS inputs (seq INTEGER PRIMARY KEY, t_lab REAL NOT NULL,
 """
 # rows buffered before a commit; LABTWIN_FLUSH_EVERY sets it (a test that kills runs wants small batches)
 FLUSH_EVERY = 2000
-FLUSH_EVERY_VARIABLE = "LABTWIN_FLUSH_EVERY"
 
 
 def flush_every() -> int:
     """The rows a journal buffers before a commit: ``LABTWIN_FLUSH_EVERY`` if set, else 2,000."""
-    given = os.environ.get(FLUSH_EVERY_VARIABLE)
-    if given is None:
-        return FLUSH_EVERY
-    try:
-        rows = int(given)
-    except ValueError:
-        rows = 0
-    if rows < 1:
-        raise TwinError(f"{FLUSH_EVERY_VARIABLE}={given!r}: give the rows a journal buffers before a commit as a "
-                        f"whole number of 1 or more, or unset it for {FLUSH_EVERY:,}")
-    return rows
+    return number_setting("LABTWIN_FLUSH_EVERY", FLUSH_EVERY, int, lambda rows: rows >= 1,
+                          "the rows a journal buffers before a commit as a whole number of 1 or more", f"{FLUSH_EVERY:,}")
 
 
 _encode_sorted = msgspec.json.Encoder(enc_hook=plain_value, order="sorted").encode

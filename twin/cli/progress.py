@@ -6,7 +6,6 @@ said when it is due, by a timer, not when the next update comes."""
 from __future__ import annotations
 
 import math
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -16,26 +15,17 @@ from typing import Any
 from rich.console import Console
 from rich.text import Text
 
+from twin.core.environment import number_setting
+
 PLAIN_EVERY_S = 10.0
-EVERY_S_VARIABLE = "LABTWIN_PROGRESS_S"
 
 
 def plain_every_s() -> float:
     """Seconds between progress lines off a terminal: ``LABTWIN_PROGRESS_S`` if set (a script that acts on the
     first line of progress need not wait 10 s for it), else 10."""
-    given = os.environ.get(EVERY_S_VARIABLE)
-    if given is None:
-        return PLAIN_EVERY_S
-    try:
-        every = float(given)
-    except ValueError:
-        every = math.nan
-    if not math.isfinite(every) or every <= 0:
-        from twin.core.errors import TwinError
-
-        raise TwinError(f"{EVERY_S_VARIABLE}={given!r}: give the seconds between progress lines off a terminal as "
-                        f"a positive number (e.g. {EVERY_S_VARIABLE}=1), or unset it for every {PLAIN_EVERY_S:g} s")
-    return every
+    return number_setting("LABTWIN_PROGRESS_S", PLAIN_EVERY_S, float, lambda s: math.isfinite(s) and s > 0,
+                          "the seconds between progress lines off a terminal as a positive number "
+                          "(e.g. LABTWIN_PROGRESS_S=1)", f"every {PLAIN_EVERY_S:g} s")
 
 
 def bar_progress(console: Console, transient: bool = False, fields: tuple[str, ...] = (), disable: bool = False,

@@ -7,7 +7,7 @@ import errno
 import fcntl
 import os
 import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import IO
 from pathlib import Path
 
@@ -42,15 +42,18 @@ def written_whole(path: Path) -> Iterator[Path]:
         raise
 
 
-def locked(path: Path, refusal: str) -> IO[bytes]:
-    """``path`` opened (made if need be, never emptied) and locked by this process until closed; ``refusal`` raised
-    as a TwinError if another process holds it now."""
+def locked(path: Path, refusal: str, on_wait: Callable[[], None] | None = None) -> IO[bytes]:
+    """``path`` opened (made if need be, never emptied) and locked by this process until closed; if another process
+    holds it now, ``refusal`` raised as a TwinError — or, given ``on_wait``, that called and the lock waited for."""
     f = open(path, "ab")
     try:
         fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
-        f.close()
-        raise TwinError(refusal) from None
+        if on_wait is None:
+            f.close()
+            raise TwinError(refusal) from None
+        on_wait()
+        fcntl.flock(f, fcntl.LOCK_EX)
     return f
 
 

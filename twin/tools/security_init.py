@@ -10,7 +10,6 @@ that folder off the lab's machines once the certificates are issued).
 from __future__ import annotations
 
 import datetime
-import fcntl
 import ipaddress
 import json
 import os
@@ -24,6 +23,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from twin.core.bus.security import MANIFEST, Identity, router_config, session_config
 from twin.core.errors import TwinError
+from twin.core.whole_files import locked
 
 _NAME_OK = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-")
 
@@ -40,12 +40,7 @@ def init(root: str | Path, lab: str, devices: list[str], hosts: list[str] | None
         if not name or len(name) > 64 or not set(name) <= _NAME_OK:
             raise TwinError(f"{name!r}: lab and device names are 1-64 letters, digits, '_' or '-'")
     root.mkdir(parents=True, exist_ok=True)
-    with open(root / ".init.lock", "a+") as lock:
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            on_wait()
-            fcntl.flock(lock, fcntl.LOCK_EX)
+    with locked(root / ".init.lock", "", on_wait=on_wait):
         return _init(root, lab, devices, hosts, days, endpoint)
 
 
