@@ -23,7 +23,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.tables import table  # noqa: E402
-from twin.campaign.journal import Journal, as_messages  # noqa: E402
+from twin.campaign.journal import Journal  # noqa: E402
+from twin.campaign.journal_read import as_messages  # noqa: E402
 from twin.core.bus import MemoryBus  # noqa: E402
 from twin.core.clock import LabClock  # noqa: E402
 from twin.runtime import decision_stream  # noqa: E402

@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tests.twin.test_refusals import HOT_C, interlock_lab  # noqa: E402
-from twin.campaign.journal import read_events  # noqa: E402
+from twin.campaign.journal_read import read_events  # noqa: E402
 from twin.runtime.lab import run  # noqa: E402
 from bench.tables import table  # noqa: E402
 

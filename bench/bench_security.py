@@ -28,7 +28,7 @@ import zenoh
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from twin.campaign.journal import read_events  # noqa: E402
+from twin.campaign.journal_read import read_events  # noqa: E402
 from bench.tables import free_port, table  # noqa: E402
 from twin.core import keys  # noqa: E402
 from twin.core.bus.security import Identity, session_config  # noqa: E402

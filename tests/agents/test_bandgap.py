@@ -4,7 +4,7 @@ import json
 import statistics
 from pathlib import Path
 
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import prepare, run
 from twin.tools.planner_bench import trial
 

@@ -227,7 +227,7 @@ def test_the_readmes_list_of_experiments_runs_as_given_and_a_lab_without_a_box_i
     import yaml
 
     from twin import ScenarioError
-    from twin.campaign.journal import read_events
+    from twin.campaign.journal_read import read_events
     from twin.runtime.checks import check
     from twin.runtime.lab import run
 

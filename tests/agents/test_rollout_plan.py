@@ -301,7 +301,7 @@ def test_an_agent_on_the_bus_plays_the_lab_ahead_from_the_file_the_lab_runs(tmp_
         agent.kill()
         agent.communicate()
     assert summary.done == 10 and summary.scheduler_fallbacks == 0
-    from twin.campaign.journal import read_events
+    from twin.campaign.journal_read import read_events
 
     kept: dict[str, list[str]] = {}
     for row in read_events(tmp_path / "j.db", "attempt.dispatched"):

@@ -167,7 +167,7 @@ def test_a_campaign_whose_planner_had_no_route_says_so_in_its_summary(tmp_path):
     """The campaign ended at once, and its summary (and `twin report`, later) said nothing of why: 0 experiments
     of 0 proposed. It now says the planner proposed no more, and the planner's reason; a campaign that met its
     targets says nothing."""
-    from twin.campaign.journal import read_run
+    from twin.campaign.journal_read import read_run
 
     (tmp_path / "none").mkdir()
     (tmp_path / "made").mkdir()

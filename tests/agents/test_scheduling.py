@@ -16,7 +16,7 @@ from agents.judging import campaign
 from agents.train_scheduler import train_scheduler
 from twin.scenario import jobshop
 from twin.campaign.decisions import capable
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import prepare, run
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -13,7 +13,7 @@ import pytest
 
 from tests.conftest import qd_lab
 from twin.core.errors import ClockError
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import make_clock, prepare, run, run_async
 from twin.scenario import parse
 

@@ -9,7 +9,7 @@ import aiomqtt
 import pytest
 
 from tests.devices.test_mqtt import SPEED, instrument, mqtt_lab, prefix  # noqa: F401 (a fixture)
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.assembly import load_driver
 from twin.runtime.lab import make_clock, prepare, run_async
 from twin.scenario import parse

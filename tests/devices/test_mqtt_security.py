@@ -13,7 +13,7 @@ import pytest
 
 from tests.conftest import qd_lab, start_mosquitto
 from tests.devices.test_mqtt import SPEED
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.core.errors import DriverError
 from twin.runtime.assembly import load_driver
 from twin.runtime.lab import run

@@ -10,7 +10,7 @@ import pytest
 
 from tests.devices.test_mqtt import ROOT, mqtt_lab, prefix  # noqa: F401 (a fixture)
 from tests.devices.test_mqtt_protocol import _retained
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import run
 from twin.scenario import parse
 

@@ -5,7 +5,7 @@ import logging
 from pathlib import Path
 
 from twin.campaign.events import Note
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.alert_log import IN_FULL, AlertLog
 from twin.runtime.lab import run
 

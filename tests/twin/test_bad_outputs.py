@@ -8,7 +8,7 @@ import pytest
 
 from tests.conftest import qd_lab
 from twin.device.driver import StepResult
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import run
 from twin.scenario import parse
 

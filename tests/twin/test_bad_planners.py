@@ -4,7 +4,7 @@ import pytest
 
 from tests.conftest import qd_lab
 from twin.campaign.decisions import Proposal
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import run
 from twin.scenario import parse
 

@@ -5,7 +5,7 @@ import pytest
 
 from tests.conftest import qd_lab
 from twin.campaign.decisions import Assignment
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.checked_scheduler import assignments
 from twin.runtime.lab import run
 from twin.scenario import parse

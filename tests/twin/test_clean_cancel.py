@@ -12,7 +12,7 @@ from tests.conftest import qd_lab
 from tests.twin.test_device_process import free_port
 from tests.twin.test_distributed_lab import start
 from twin import DriverSetup, StepContext, StepResult
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import make_clock, prepare, run_async
 from twin.scenario import parse
 

@@ -32,7 +32,7 @@ def test_an_option_and_a_set_of_its_field_that_disagree_are_refused_and_agreeing
 
 def test_a_speed_alone_asks_for_a_scaled_clock_and_one_for_another_clock_is_refused(tmp_path):
     """--speed 100 on quantum_dots (a virtual clock) ran in virtual time without a word."""
-    from twin.campaign.journal import read_run
+    from twin.campaign.journal_read import read_run
 
     res = twin_cli("run", "scenarios/quantum_dots.yaml", "--speed", "200000", "--budget", "1", "--bus", "memory",
                    "--journal", str(tmp_path / "j.db"), "--json")

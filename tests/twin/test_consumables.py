@@ -13,7 +13,7 @@ from tests.twin.test_core import QD, msg, notes
 from tests.twin.test_operator import op, running
 from twin.campaign import Decided, Operator, Proposed
 from twin.campaign.decisions import Assignment, Proposal
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin import Refused
 from twin.core.errors import ScenarioError
 from twin.core.messages import Kind
@@ -167,7 +167,7 @@ def test_a_device_answering_not_now_uses_up_no_vials_and_costs_nothing(tmp_path,
     summary = run(s, journal=tmp_path / "j.db", runtime=runtime)
     assert summary.done == 5 and summary.refused_now == 3 and summary.cost == 5 * 7
     assert summary.consumables["vials"]["used"] == 5 and summary.consumables["vials"]["left"] == 5
-    from twin.campaign.journal import read_run
+    from twin.campaign.journal_read import read_run
     from twin.tools.export import consumable_rows
 
     db = tmp_path / "j.db"

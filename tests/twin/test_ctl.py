@@ -16,7 +16,7 @@ import yaml
 
 from tests.conftest import qd_lab, twin_cli
 from tests.twin.test_device_process import free_port
-from twin.campaign.journal import read_events, read_run
+from twin.campaign.journal_read import read_events, read_run
 from twin.core import keys
 from twin.core.bus import NoReplyError, open_bus
 from twin.core.clock import LabClock

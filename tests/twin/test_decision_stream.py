@@ -3,7 +3,8 @@
 import json
 
 from twin.campaign import Note
-from twin.campaign.journal import Journal, as_messages
+from twin.campaign.journal import Journal
+from twin.campaign.journal_read import as_messages
 from twin.core.bus import MemoryBus
 from twin.core.clock import LabClock
 from twin.runtime.decision_stream import PAGE_BYTES, PAGE_ROWS, DecisionStream

@@ -13,7 +13,7 @@ import yaml
 
 from tests.conftest import qd_lab
 from tests.twin.shared_labs import lines_until
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import make_clock, prepare, run_async
 from twin.scenario import parse
 

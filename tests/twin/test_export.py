@@ -9,7 +9,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from tests.conftest import twin_cli
-from twin.campaign.journal import Journal, read_events, read_experiments, read_run
+from twin.campaign.journal import Journal
+from twin.campaign.journal_read import read_events, read_experiments, read_run
 from twin.core.errors import TwinError
 from twin.runtime.lab import prepare, run
 from twin.runtime.run_record import scenario_hash

@@ -3,7 +3,7 @@
 import json
 
 from twin.core import keys
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import run
 from twin.core.messages import Kind, pack
 

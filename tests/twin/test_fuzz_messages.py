@@ -11,7 +11,7 @@ from tests.conftest import qd_lab
 from tests.twin.test_device_process import free_port
 from tests.twin.zenoh_clients import open_session, until_answered
 from twin.campaign import floods
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.core import keys
 from twin.core.messages import MAX_MESSAGE_BYTES, Kind, pack
 from twin.runtime.lab import make_clock, prepare, run_async

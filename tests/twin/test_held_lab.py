@@ -11,7 +11,7 @@ import threading
 import pytest
 
 from tests.conftest import qd_lab
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.core import held
 from twin.campaign.decisions import Assignment, Proposal
 from twin.device.driver import StepResult

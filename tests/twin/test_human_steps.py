@@ -18,7 +18,7 @@ from tests.twin.test_core import notes, of
 from twin.campaign import CampaignCore, Decided, Operator, Presence, Proposed, Send, TimerFired
 from twin.campaign.decisions import Assignment, Proposal
 from twin.campaign.events import TimerKey, TimerKind
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.core.errors import TwinError
 from twin.runtime.checks import check
 from twin.runtime.lab import run

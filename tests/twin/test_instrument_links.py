@@ -104,7 +104,7 @@ def test_an_instrument_that_cannot_connect_or_disconnect_is_named_not_a_tracebac
     with pytest.raises(DriverError, match=r"inst: its driver's connect\(\) failed: ConnectionRefusedError: "
                                           r"\[Errno 111\] Connection refused; it did not start"):
         run(lab("BadConnect"), journal=tmp_path / "c.db", bus="memory")
-    from twin.campaign.journal import read_run
+    from twin.campaign.journal_read import read_run
     from twin.runtime.resume import ResumeError, resume
 
     stopped = read_run(tmp_path / "c.db")["summary"]["stopped"]  # `twin report` said nothing of why

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from twin.scenario.jobshop import read
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import run
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import twin_cli
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime import lab
 from twin.runtime.lab import run
 from twin.runtime.shared_run import run_shared

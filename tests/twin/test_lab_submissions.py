@@ -26,7 +26,7 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
 
     import yaml
     from tests.rrd import read_rrd
-    from twin.campaign.journal import read_run
+    from twin.campaign.journal_read import read_run
 
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -226,7 +226,7 @@ def test_a_submitted_campaign_names_a_module_only_if_the_lab_file_does_or_the_la
     else:
         assert answers["other"]["ok"] is False and "--trust-modules" in answers["other"]["error"]
     assert (tmp_path / "other.db").exists() == trust
-    from twin.campaign.journal import read_run
+    from twin.campaign.journal_read import read_run
 
     assert read_run(tmp_path / "lab.inputs")["trust_modules"] is trust  # what `twin resume` serves on with
 

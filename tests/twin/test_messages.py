@@ -8,7 +8,8 @@ import pytest
 from twin.core import keys
 from twin.core.bus import MemoryBus, MemoryHub
 from twin.core.clock import LabClock
-from twin.campaign.journal import Journal, read_events
+from twin.campaign.journal import Journal
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import build_actors, load_drivers, make_planner, make_scheduler
 from twin.core.messages import InvalidMessage, Kind, decode, pack
 from twin.runtime import LiveCampaign

@@ -5,7 +5,7 @@ import pytest
 
 from tests.conftest import qd_lab
 from twin.campaign.decisions import Proposal
-from twin.campaign.journal import read_run
+from twin.campaign.journal_read import read_run
 from twin.campaign.events import Proposed
 from twin.campaign.replay import decode_input, encode
 from twin.runtime.lab import run

@@ -9,7 +9,7 @@ import pytest
 from twin.campaign import Decided, Operator, TimerFired
 from twin.campaign.decisions import Assignment
 from twin.campaign.events import TimerKey, TimerKind
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.core.errors import ScenarioError
 from twin.core.messages import Kind
 from twin.runtime.lab import prepare, run

@@ -15,7 +15,7 @@ import pytest
 from tests.conftest import twin_cli
 from tests.rrd import read_rrd, rerun_verify, series
 from tests.twin.shared_labs import lines_until, rest_of
-from twin.campaign.journal import NotAJournal, read_events, read_experiments
+from twin.campaign.journal_read import NotAJournal, read_events, read_experiments
 from twin.runtime.lab import run
 from twin.view.watch import RecordOptions
 
@@ -37,7 +37,7 @@ def measurements(db):
 
 def measured_yet(db) -> bool:
     """Whether a journal another process is writing holds a measurement yet (it may still be making its tables)."""
-    from twin.campaign.journal import NotAJournal
+    from twin.campaign.journal_read import NotAJournal
 
     try:
         return db.exists() and db.stat().st_size > 0 and bool(measurements(db))
@@ -371,7 +371,7 @@ class _Rows:
 
 
 def test_a_watcher_that_reads_a_history_three_times_draws_it_once_and_remembers_a_bounded_number(live):
-    from twin.campaign.journal import as_messages
+    from twin.campaign.journal_read import as_messages
     from twin.view.observer import LabObserver
     from twin.view.repeats import Repeats
 

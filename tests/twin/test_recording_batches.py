@@ -45,7 +45,7 @@ def test_an_observer_that_raises_when_its_calls_are_made_leaves_the_journal_whol
     caller's own; the shipped one draws what it can and logs the rest) is raised after the summary is written."""
     import pytest
 
-    from twin.campaign.journal import read_run
+    from twin.campaign.journal_read import read_run
     from twin.view.log_canvas import LogCanvas
     from twin.view.observer import LabObserver
 

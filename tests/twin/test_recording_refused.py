@@ -13,7 +13,7 @@ from tests.conftest import qd_lab, twin_cli
 from tests.rrd import read_rrd, rerun_verify
 from tests.twin.test_device_process import free_port
 from tests.twin.zenoh_clients import open_session, until_answered
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.core import keys
 from twin.core.messages import Kind, pack
 from twin.runtime.lab import make_clock, prepare, run_async

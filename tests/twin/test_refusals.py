@@ -9,7 +9,7 @@ from rich.console import Console
 
 from tests.conftest import qd_lab
 from twin import Refused, StepResult
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.cli.campaign_bar import waiting_for
 from twin.core.errors import ScenarioError
 from twin.runtime.lab import run

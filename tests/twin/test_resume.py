@@ -16,7 +16,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tests.conftest import ctrl_c_at, twin_cli
-from twin.campaign.journal import Journal, read_run
+from twin.campaign.journal import Journal
+from twin.campaign.journal_read import read_run
 from twin.runtime.lab import prepare, run
 from twin.runtime.resume import ResumeError, resume
 

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from tests.conftest import assert_adopted_once, qd_lab
-from twin.campaign.journal import read_events, read_run
+from twin.campaign.journal_read import read_events, read_run
 from twin.runtime.resume import resume
 
 ROOT = Path(__file__).resolve().parents[2]

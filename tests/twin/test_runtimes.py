@@ -11,7 +11,7 @@ from tests.conftest import qd_lab
 from twin.device.driver import StepResult
 from twin.core.errors import DriverError
 from twin.runtime.lab import run
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.scenario import parse
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -13,7 +13,7 @@ import yaml
 from tests.conftest import qd_lab
 from tests.twin.test_device_process import free_port
 from twin.campaign.decisions import Assignment
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import make_clock, prepare, run, run_async
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -5,7 +5,7 @@ generator), or that is an awaitable, is the fallback rule's decision (a planner'
 import pytest
 
 from tests.conftest import qd_lab
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import run
 from twin.scenario import parse
 

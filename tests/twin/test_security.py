@@ -12,7 +12,7 @@ import zenoh
 
 from tests.conftest import qd_lab
 from tests.twin.test_device_process import free_port
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.core import keys
 from twin.core.bus.security import Identity, access_control, check_listen, session_config
 from twin.core.errors import BusError, TwinError

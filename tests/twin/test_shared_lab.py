@@ -244,7 +244,7 @@ def test_one_scheduler_for_the_lab_chooses_among_every_campaigns_steps(tmp_path,
 def test_one_scheduler_for_the_lab_on_a_live_clock_answers_every_campaign_and_is_journalled(tmp_path):
     """On a scaled clock the lab's one scheduler (the RL policy) is asked in-process with every campaign's steps;
     its answers are the lab's inputs, journalled before anything they dispatch (`twin resume` replays them)."""
-    from twin.campaign.journal import read_inputs
+    from twin.campaign.journal_read import read_inputs
     from twin.campaign.replay import decode_input
     from twin.campaign.events import Decided
 

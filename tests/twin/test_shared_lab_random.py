@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tests.twin.shared_labs import LAB, assert_accounted, assert_one_step_at_a_time, events
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import prepare
 from twin.runtime.shared_run import run_shared
 from twin.scenario import load

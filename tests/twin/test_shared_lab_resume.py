@@ -9,7 +9,7 @@ import pytest
 from twin.runtime.lab import prepare
 from twin.runtime.shared_run import run_shared
 
-from twin.campaign.journal import read_run
+from twin.campaign.journal_read import read_run
 from tests.twin.shared_labs import (LAB, ROOT, SMALL, assert_one_step_at_a_time, journal_tables, kill_all, wait_until_ended)
 from tests.conftest import assert_adopted_once, ctrl_c_at, twin_cli
 
@@ -157,7 +157,7 @@ def test_a_live_lab_sigkilled_and_resumed_finishes_every_campaign_and_keeps_what
         sent_again = [e for n in ("dots", "catalyst") for e in journal_tables(where)[n][0]
                       if e[2] == "task.refused" and "campaign was stopped" in e[7]]
         assert sent_again, "the steps the stop cancelled are sent again"
-        from twin.campaign.journal import read_inputs
+        from twin.campaign.journal_read import read_inputs
 
         stopped_at = next(t for t, b in read_inputs(where / "lab.inputs") if ["stop", "interrupted (SIGINT)"] in
                           b.get("items", []))
@@ -179,7 +179,7 @@ def test_a_shared_lab_killed_with_a_step_on_a_device_of_another_process_adopts_i
 
     import yaml
 
-    from twin.campaign.journal import read_events
+    from twin.campaign.journal_read import read_events
     from tests.twin.test_device_process import free_port
     from tests.twin.test_distributed_lab import start
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import prepare
 
 from tests.twin.shared_labs import (LAB, ROOT, SMALL, busy_spells, kill_all, lines_until, recorded_lab, states)

@@ -5,7 +5,7 @@ import time
 
 from tests.conftest import qd_lab
 from twin.campaign.decisions import Proposal
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import run
 from twin.scenario import parse
 

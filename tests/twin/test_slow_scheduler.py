@@ -7,7 +7,7 @@ import pytest
 
 from agents.schedulers import FifoScheduler
 from tests.conftest import qd_lab
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import run
 from twin.scenario import parse
 

@@ -4,7 +4,7 @@ import json
 
 from tests.conftest import qd_lab
 from twin import DriverSetup, StepContext, StepResult
-from twin.campaign.journal import read_events
+from twin.campaign.journal_read import read_events
 from twin.runtime.lab import run
 from twin.scenario import parse
 

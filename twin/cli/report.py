@@ -10,7 +10,7 @@ from typing import Annotated, Any
 import typer
 from rich.markup import escape
 
-from twin.campaign.journal import no_such_journal, read_events, read_run
+from twin.campaign.journal_read import no_such_journal, read_events, read_run
 from twin.campaign.journal_lock import writer
 from twin.campaign.summary import Summary
 from twin.cli.common import _fail, app, console

@@ -19,7 +19,8 @@ from twin.core import keys
 from twin.core.bus import Bus
 from twin.campaign import Note
 from twin.core.clock import LabClock
-from twin.campaign.journal import Journal, as_messages, decision_id
+from twin.campaign.journal import Journal
+from twin.campaign.journal_read import as_messages, decision_id
 from twin.core.messages import Kind, fingerprint, pack
 
 SENDER = "orchestrator"

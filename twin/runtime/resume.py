@@ -24,7 +24,8 @@ from pathlib import Path
 from typing import Any
 
 from twin.campaign import CampaignCore
-from twin.campaign.journal import Journal, read_events, read_inputs, read_run, reading
+from twin.campaign.journal import Journal
+from twin.campaign.journal_read import read_events, read_inputs, read_run, reading
 from twin.campaign.journal_lock import held
 from twin.campaign.replay import rebuild
 from twin.campaign.summary import Summary

@@ -19,7 +19,8 @@ import shutil
 import time
 from pathlib import Path
 
-from twin.campaign.journal import Journal, read_events, read_inputs, read_run
+from twin.campaign.journal import Journal
+from twin.campaign.journal_read import read_events, read_inputs, read_run
 from twin.campaign.lab_replay import rebuild_lab
 from twin.campaign.summary import LabSummary
 from twin.runtime.resume import CheckedJournal, ResumeError, before_stop, replace

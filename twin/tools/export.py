@@ -19,7 +19,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from twin.campaign.journal import no_such_journal, read_events, read_experiments, read_run
+from twin.campaign.journal_read import no_such_journal, read_events, read_experiments, read_run
 from twin.core.errors import TwinError
 from twin.core.printable import inert
 from twin.core.whole_files import written_whole

@@ -20,7 +20,7 @@ from twin.core import keys
 from twin.core.bus import Bus, Closable, NoReplyError
 from twin.core.clock import LabClock
 from twin.core.errors import TwinError
-from twin.campaign.journal import as_messages, no_such_journal, read_events, read_run
+from twin.campaign.journal_read import as_messages, no_such_journal, read_events, read_run
 from twin.view.lab_observer import SharedLabObserver
 from twin.view.observer import LabObserver
 from twin.view.history_pages import MalformedPage, another_run, history_page, pages, read_history
