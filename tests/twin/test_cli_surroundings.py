@@ -1,6 +1,7 @@
 """The command line on the machine around it: a full disk, a port another program holds, a path or a SMILES with
 brackets, a mistyped environment variable. Each is said with what to do, never a traceback or a hang."""
 
+import os
 from pathlib import Path
 
 import pytest
@@ -125,6 +126,12 @@ def test_a_mistyped_labtwin_variable_is_refused_before_anything_runs(monkeypatch
         assert res.exit_code == 2, res.output
         assert f"{variable}='{bad}': {says}" in " ".join(res.stderr.split())
         assert not (tmp_path / "j.db").exists()  # refused before anything ran
+    import subprocess
+    import sys
+
+    helped = subprocess.run([sys.executable, "-m", "twin", "run", "--help"], capture_output=True, text=True,
+                            cwd=ROOT, env={**os.environ, variable: "soon"}, timeout=60)
+    assert helped.returncode == 0 and "Usage: twin run" in helped.stdout, helped.stderr  # help whatever the settings
     if variable == "LABTWIN_FLUSH_EVERY":  # the Python API makes a journal without the command line
         with pytest.raises(TwinError, match=f"{variable}='-1': {says}"):
             run(prepare(ROOT / "scenarios" / "quantum_dots.yaml"), journal=tmp_path / "k.db")

@@ -51,10 +51,17 @@ def _top(version: Annotated[bool, typer.Option("--version", callback=_say_versio
          = False) -> None:
     """labtwin: a digital twin of a self-driving lab."""
     _printable_anywhere()
+    if not {"--help", "-h"} & set(sys.argv[1:]):  # a command's help is shown whatever the settings (click has
+        # taken the command's arguments from its context by now)
+        _settings_checked()
+
+
+def _settings_checked() -> None:
+    """A mistyped LABTWIN_… is refused before anything runs, not when the first journal or bar is made."""
     from twin.campaign.journal import flush_every
     from twin.cli.progress import plain_every_s
 
-    try:  # a mistyped LABTWIN_… is refused before anything runs, not when the first journal or bar is made
+    try:
         plain_every_s()
         flush_every()
     except TwinError as exc:
