@@ -8,6 +8,11 @@ shop is the special case of one instance per type and every job ready at 0.
 Such a model always has a schedule, and CP-SAT finds one in milliseconds when it has the CPU; on a machine too busy
 to give it any within its time, the solve is tried again with twice the time, up to ``TRIES`` times in all, before
 it fails.
+
+A time limit in wall seconds ends a solve wherever the CPU it got left it: the same model may end with another
+plan on a busier machine. ``work_limit`` ends it after an amount of CP-SAT's own deterministic work instead (its
+``max_deterministic_time``; roughly 0.15 of a unit a second on one core of the machine these notes were written
+on), and one thread so stopped ends with the same plan on any machine under any load.
 """
 
 from __future__ import annotations
@@ -34,7 +39,8 @@ TRIES = 4
 
 
 def solve(jobs: list[list[Op]], capacity: dict[str, int], time_limit_s: float = 10.0, workers: int = 2,
-          busy: dict[str, list[int]] | None = None, left_shift: bool = False) -> Solution:
+          busy: dict[str, list[int]] | None = None, left_shift: bool = False,
+          work_limit: float | None = None) -> Solution:
     """Minimum makespan; ``busy[type]`` lists when each busy instance of ``type`` frees up.
 
     ``left_shift`` also minimises the sum of start times (below the makespan), so that
@@ -85,19 +91,22 @@ def solve(jobs: list[list[Op]], capacity: dict[str, int], time_limit_s: float = 
     given = 0.0
     for attempt in range(TRIES):
         solver.parameters.max_time_in_seconds = time_limit_s * 2 ** attempt
+        if work_limit is not None:
+            solver.parameters.max_deterministic_time = work_limit * 2 ** attempt
         given += solver.parameters.max_time_in_seconds
         status = solver.solve(model)
         if status in (cp_model.OPTIMAL, cp_model.FEASIBLE):
             break
     else:
-        raise RuntimeError(f"CP-SAT found no schedule in {TRIES} tries ({given:g} s of wall time in all): the "
-                           "machine gave it no CPU, or the model is far larger than a lab's")
+        raise RuntimeError(f"CP-SAT found no schedule in {TRIES} tries ({given:g} s of wall time in all"
+                           f"{'' if work_limit is None else f', {work_limit * (2 ** TRIES - 1):g} units of work'}): "
+                           "the machine gave it no CPU, or the model is far larger than a lab's")
     return Solution(int(solver.value(makespan)), status == cp_model.OPTIMAL,
                     [[int(solver.value(s)) for s in row] for row in starts])
 
 
 def jobshop(jobs: list[list[tuple[int, int]]], machines: int, time_limit_s: float = 60.0,
-            workers: int = 2) -> Solution:
+            workers: int = 2, work_limit: float | None = None) -> Solution:
     """A job-shop instance (per job: (machine, duration) in order), machines numbered 0..machines-1."""
     return solve([[Op(f"m{m}", d) for m, d in job] for job in jobs], {f"m{m}": 1 for m in range(machines)},
-                 time_limit_s, workers)
+                 time_limit_s, workers, work_limit=work_limit)

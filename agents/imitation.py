@@ -50,7 +50,7 @@ from agents.lockstep import SAMPLE_TEMPERATURES, lockstep
 from agents.planned_labs import planned
 from agents.scheduling_env import randomised
 from agents.schedulers import rules_for
-from agents.teachers import PlanTeacher, RuleTeacher, solve_time, solve_workers
+from agents.teachers import PlanTeacher, RuleTeacher, solve_settings
 from agents.judging import EVAL_SEEDS, campaign, objective
 from agents.label_fit import Sample, fit
 from agents.train_scheduler import Judge, JudgeBasis, initial_state, started_from
@@ -119,8 +119,7 @@ def shop_task(args: tuple) -> tuple[list[Sample], dict]:
     low, high = (int(x) for x in (base.training.operation_s or (1, 10)))
     inst = random_jobshop(n_jobs, n_machines, low, high, rng)
     lab = prepare(jobshop_as_lab(base, inst), seed=0)
-    plan = jobshop(inst.jobs, inst.machines, time_limit_s=solve_time(n_jobs, n_machines),
-                   workers=solve_workers(n_jobs, n_machines))
+    plan = jobshop(inst.jobs, inst.machines, **solve_settings(n_jobs, n_machines))
     samples, spans = _rollouts(lab, PlanTeacher(inst.jobs, plan.starts), modes, _scorer(state, seed), beta, rng,
                                lambda summary: summary.lab_hours * 3600 / plan.makespan, encoding)
     return samples, {"size": f"{n_jobs}x{n_machines}", "plan": plan.makespan, "optimal": plan.optimal, **spans}

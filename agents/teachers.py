@@ -3,21 +3,36 @@ each labels any state of its lab with the candidates it would choose (and waitin
 
 from __future__ import annotations
 
+from typing import TypedDict
+
 import numpy as np
 
 from twin import SteppedCampaign, load_plugin
 
 
-def solve_time(jobs: int, machines: int) -> float:
-    """CP-SAT's time for one training shop: enough to be near the optimum on these sizes."""
-    return min(6.0, 0.2 + jobs * machines / 60)
+#: the wall seconds a training shop's solve is given when its work is what limits it: a guard against a solve that
+#: never ends, far beyond what the work takes on any machine (4 s on the slowest seen here)
+WORK_GUARD_S = 120.0
 
 
-def solve_workers(jobs: int, machines: int) -> int:
-    """CP-SAT's threads for one training shop. Up to 10×10 it proves the optimum in its time with one, and one
-    thread finds the same optimal plan each time (two race to one of several), so a seed trains the same policy.
-    Larger shops end at the time limit either way; two threads' plans were 1.8 % shorter on 20×15 (ten shops)."""
-    return 1 if jobs * machines <= 100 else 2
+class SolveSettings(TypedDict, total=False):
+    time_limit_s: float
+    workers: int
+    work_limit: float
+
+
+def solve_settings(jobs: int, machines: int) -> SolveSettings:
+    """CP-SAT's ``jobshop`` settings for one training shop, enough to be near the optimum on these sizes. Up to
+    10×10 one thread, stopped by an amount of work (``agents.cpsat``): the same plan each time on any machine,
+    however busy, so a seed trains the same policy (stopped in wall time, a busy CI's plans differed, and its
+    policies with them; two threads race to one of several optima). There, with durations of 1-99 s, it proved
+    the optimum on 6×6 and 10×5 shops always and on ~90 % of 10×10 ones (60 shops: the median needed 0.09 units of
+    work, the 90th percentile 0.53, the slowest 4.2). Larger shops end at their time limit either way, and two
+    threads' plans were 1.8 % shorter on 20×15 (ten shops)."""
+    seconds = min(6.0, 0.2 + jobs * machines / 60)
+    if jobs * machines <= 100:
+        return {"time_limit_s": WORK_GUARD_S, "workers": 1, "work_limit": 0.3 * seconds}
+    return {"time_limit_s": seconds, "workers": 2}
 
 
 class PlanTeacher:

@@ -147,6 +147,32 @@ def test_a_solve_with_no_time_to_find_a_schedule_is_tried_again_with_more_then_f
     assert solve_jobshop(jobs[:6], 20, time_limit_s=0.5).makespan > 0
 
 
+def test_a_solve_stopped_by_its_work_ends_with_the_same_plan_however_busy_the_machine():
+    """A training shop's plan, stopped in wall time, was another plan on a busier machine (a CI's policy differed
+    from the same seed's). Stopped by an amount of work, it is the same: here with three processes spinning beside
+    it (stopped in its wall time instead, six of six shops' plans differed so)."""
+    import random
+    import subprocess
+    import sys
+
+    from agents.teachers import solve_settings
+
+    rng = random.Random(3)
+    jobs = [[(m, rng.randint(1, 99)) for m in rng.sample(range(10), 10)] for _ in range(10)]
+    alone = solve_jobshop(jobs, 10, workers=1, work_limit=0.05)
+    assert not alone.optimal  # the work, not the proof of the optimum, ended it
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(3)]
+    try:
+        busy = solve_jobshop(jobs, 10, workers=1, work_limit=0.05)
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+    assert busy.starts == alone.starts and busy.makespan == alone.makespan
+    assert all("work_limit" in solve_settings(*size) and solve_settings(*size)["workers"] == 1
+               for size in ((6, 6), (10, 5), (10, 10)))  # the training shops one thread solves
+
+
 def test_online_cp_sat_and_the_rules_give_valid_schedules_and_cp_sat_is_optimal_on_ft06(ft06, tmp_path):
     makespans = {}
     for name in ("fifo", "spt", "mwkr", "least-loaded", "oldest-sample", "cp-sat"):
