@@ -148,7 +148,7 @@ def test_the_shapes_bench_at_80_columns_never_breaks_a_comparison_inside_a_line(
     """Six schedulers at 80 columns folded each "+2.84 ± 2.77 worse" into "+2.84 ±" over "2.77" over "worse": the
     comparisons now go on one line, on two, or with the difference, its interval and the verdict on a line each."""
     args = ["bench", "schedulers", "scenarios/flaky_lab.yaml", "--shapes", "--seeds", "2", "--workers", "1",
-            "--schedulers", schedulers, "--set", "campaign.budget=8"]
+            "--schedulers", schedulers, "--set", "campaign.budget=4"]
     shown = twin_cli(*args, columns=80)
     data = json.loads(twin_cli(*args, "--json").stdout)
     assert shown.exit_code == 0, shown.stderr

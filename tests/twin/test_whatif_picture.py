@@ -63,5 +63,5 @@ def test_the_picture_rings_the_variant_budget_hours_names(tmp_path):
         return int((np.asarray(Image.open(path).convert("RGB")) == red).all(axis=2).sum())
 
     assert reds(tmp_path / "w.png") > 50  # the ring and its line
-    code, _ = whatif(qd, "--vary", "devices.synthesiser.instances=3", "--seeds", "2", "--save", str(tmp_path / "n.png"))
+    code, _ = whatif(qd, "--vary", "devices.synthesiser.instances=3", "--seeds", "1", "--save", str(tmp_path / "n.png"))
     assert code == 0 and reds(tmp_path / "n.png") == 0
