@@ -3,6 +3,8 @@ for a route, no route, and bad input."""
 
 import json
 import os
+import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +14,7 @@ import pytest
 from tests.conftest import twin_cli
 
 ROOT = Path(__file__).resolve().parents[2]
+UNMADE = "CC(=O)Nc1ccc(O)cc1C(=O)OCCN"  # no route in the shipped stock: the search goes on to its --seconds
 
 
 def twin_route(*args):
@@ -48,6 +51,27 @@ def in_process(*args):
 def test_a_bad_smiles_exits_2_from_a_real_process():
     res = twin_route("C1CC")
     assert res.returncode == 2 and "not a valid SMILES: 'C1CC'" in res.stderr and "Traceback" not in res.stderr
+
+
+@pytest.mark.process
+@pytest.mark.parametrize("sig, code, said", [(signal.SIGINT, 130, "interrupted"),
+                                             (signal.SIGTERM, 143, "terminated (SIGTERM)")])
+def test_ctrl_c_or_sigterm_stops_a_search_and_says_so(tmp_path, sig, code, said):
+    """Ctrl-C of a 10-s search exited 130 without a word (and SIGTERM killed it at once); a search says it has
+    started, and stopped, it says what became of it."""
+    drawn = tmp_path / "route.svg"
+    proc = subprocess.Popen([sys.executable, "-m", "twin", "route", UNMADE, "--seconds", "60", "--save", str(drawn)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            env={**os.environ, "COLUMNS": "200"})
+    assert proc.stderr is not None
+    first = proc.stderr.readline()
+    assert first.startswith(f"searching for a route to {UNMADE} (mcts, up to 60 s; Ctrl-C stops it)"), first
+    proc.send_signal(sig)
+    out, rest = proc.communicate(timeout=60)
+    assert proc.returncode == code, rest
+    assert re.search(rf"^{re.escape(said)} after \d+\.\d s of the search, before it found a route: nothing shown or "
+                     r"drawn; --seconds sets how long it searches", rest, re.M), rest
+    assert "Traceback" not in rest and not out and not drawn.exists()
 
 
 @pytest.mark.parametrize("args,code,says", [

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
 from rich.table import Table
 
-from twin.cli.common import (_fail, app, bar_progress, bench_app, console, interruptible, machine_output,
-                             narrow_table, part_done, print_table, stopped_partway, writable)
+from twin.cli.common import (_fail, app, bar_progress, bench_app, console, err, exit_status, interruptible,
+                             machine_output, narrow_table, part_done, print_table, sigterm_unwinds, stopped_by,
+                             stopped_partway, writable)
 from twin.core import plugins
 from twin.core.errors import TwinError
 
@@ -31,6 +33,7 @@ def route(
     """A route to SMILES from the stock: its steps in the order the lab runs them, what it buys, estimates.
     Exit 0: a route (or the target is in stock); 1: no route within the budget; 2: bad input."""
     writable("--save", save)
+    started = time.perf_counter()
     try:
         planner = plugins.load("routes", method)
     except TwinError as exc:
@@ -40,10 +43,20 @@ def route(
             raise ValueError(f"--seconds {seconds:g}: give the search a budget above 0, in wall seconds (e.g. 10)")
         if save is not None and save.suffix.lower() not in (".svg", ".png"):
             raise ValueError(f"--save {save}: a route is drawn as SVG or PNG; give a file name ending in .svg or .png")
-        data = planner(smiles, stock=stock, templates=templates, prior=prior, seconds=seconds,
-                       **({"save": save} if save is not None else {}))
+        shown = smiles if len(smiles) <= 60 else smiles[:57] + "…"
+        with sigterm_unwinds():  # before the line that says Ctrl-C (or SIGTERM) stops it
+            err.print(f"searching for a route to {shown} ({method}, up to {seconds:g} s; Ctrl-C stops it) …",
+                      highlight=False)
+            started = time.perf_counter()
+            data = planner(smiles, stock=stock, templates=templates, prior=prior, seconds=seconds,
+                           **({"save": save} if save is not None else {}))
     except (ValueError, FileNotFoundError) as exc:
         _fail(TwinError(str(exc)))
+    except KeyboardInterrupt as stop:  # was a silent exit 130
+        err.print(f"{stopped_by(stop)} after {time.perf_counter() - started:.1f} s of the search, before it found a "
+                  f"route: nothing shown{' or drawn' if save is not None else ''}; --seconds sets how long it "
+                  "searches before it gives up by itself", highlight=False)
+        raise typer.Exit(exit_status(stop)) from None
     if as_json:
         console.print_json(json.dumps(data))
     else:
