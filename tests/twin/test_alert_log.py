@@ -34,3 +34,17 @@ def test_on_a_live_clock_every_alert_is_said(caplog):
             virtual(note)
     said = [r.getMessage() for r in caplog.records]
     assert len(said) == 12 + IN_FULL + 1 and sum("vials is out" in s for s in said) == len(said)
+
+
+def test_on_a_live_clock_a_device_gone_from_the_bus_is_said_and_its_return_with_how_long_it_was_away(caplog):
+    """A device whose process died was said nowhere until the summary (the journal had it): on a live clock a
+    person may have a process to restart. Its first arrival is no news, and in virtual time a crash is the model's."""
+    with caplog.at_level(logging.WARNING, logger="twin.alerts"):
+        for log in (AlertLog(virtual=False), AlertLog()):
+            log.presence(Note(0.0, "device.online", device="kiln-2"))
+            log.presence(Note(100.0, "device.lost", device="kiln-2"))
+            log.presence(Note(160.0, "device.online", device="kiln-2"))
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 2, said
+    assert said[0].startswith("device.lost kiln-2: left the bus") and "start its `twin device serve` again" in said[0]
+    assert said[1] == "device.online kiln-2: back on the bus after 60 lab-s away; it is given work again"

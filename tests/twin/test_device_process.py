@@ -1,6 +1,7 @@
 """A device actor in its own OS process, killed with SIGKILL mid-task: loss is seen, work moves on."""
 
 import asyncio
+import logging
 import os
 import signal
 import socket
@@ -28,7 +29,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_sigkilled_device_process_is_detected_and_its_work_moves(tmp_path):
+def test_sigkilled_device_process_is_detected_and_its_work_moves(tmp_path, caplog):
     port = free_port()
     raw = qd_lab(**{
         "campaign.budget": 6,
@@ -67,11 +68,14 @@ def test_sigkilled_device_process_is_detected_and_its_work_moves(tmp_path):
         return await campaign
 
     try:
-        summary = clock.run(main())
+        with caplog.at_level(logging.WARNING, logger="twin.alerts"):
+            summary = clock.run(main())
     finally:
         device.kill()
         device.wait()
     assert "t" in killed, "the remote spectrometer never got a step"
+    said = [r.getMessage() for r in caplog.records if r.name == "twin.alerts"]  # a person may have one to restart
+    assert any(m.startswith("device.lost spectrometer-2: left the bus") and "twin device serve" in m for m in said), said
     events = read_events(db)
     lost = [e for e in events if e["kind"] == "device.lost" and e["device"] == "spectrometer-2"]
     assert lost, "the kill must be seen through liveliness"

@@ -40,6 +40,8 @@ class Code(StrEnum):
 ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "device.stuck", "device.refusing",
                     "output.unscored", "scheduler.stalled", "consumable.depleted"})
 ALERT_LOGGER = "twin.alerts"
+#: notes a runtime on a live clock also logs (``AlertLog.presence``): a device gone from the bus, and back
+PRESENCE = frozenset({"device.lost", "device.online"})
 #: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, a device type gone, an
 #: operator's act
 PROGRESS_KINDS = ("attempt.done", "attempt.failed", "devices.", "operator.")

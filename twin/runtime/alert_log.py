@@ -22,6 +22,24 @@ class AlertLog:
     def __init__(self, virtual: bool = True) -> None:
         self.virtual = virtual
         self._said: Counter[tuple[str, Any, Any]] = Counter()
+        self._away: dict[str, float] = {}  # devices that left the bus: when
+
+    def presence(self, note: Any) -> None:
+        """On a live clock, a device that left the bus, and one that came back (its first arrival is no news): a
+        person may have a process to restart or a host to mend. In virtual time a crash is the model's, counted in
+        the summary."""
+        if self.virtual or note.device is None:
+            return
+        if note.kind == "device.lost":
+            self._away[note.device] = note.t_lab
+            log.warning("device.lost %s: left the bus (its process ended, or its host or link is down); a step it was "
+                        "running fails as lost and is retried as orchestrator.retry allows, and the device is given "
+                        "work again once it is back (one in another process: start its `twin device serve` again)",
+                        note.device)
+        elif note.kind == "device.online" and note.device in self._away:
+            away = note.t_lab - self._away.pop(note.device)
+            log.warning("device.online %s: back on the bus after %.0f lab-s away; it is given work again", note.device,
+                        away)
 
     def __call__(self, note: Any) -> None:
         key = (note.kind, note.device, None if note.device else note.experiment)

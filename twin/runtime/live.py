@@ -24,7 +24,7 @@ from twin.core.bus import Bus
 from twin.campaign import (Ask, CampaignCore, CancelTimer, Decided, Finished, Note, Presence, Proposed,
                            RecordExperiment, RecordMessage, Send, SetTimer, Stop, TimerFired)
 from twin.campaign import human, replay
-from twin.campaign.events import ALERTS, PROGRESS_KINDS, TimerKey
+from twin.campaign.events import ALERTS, PRESENCE, PROGRESS_KINDS, TimerKey
 from twin.campaign.replay import RESUMED, Rebuilt
 from twin.core.clock import LabClock, LabEventLoop, sleep_wall
 from twin.campaign.decisions import Planner, Scheduler
@@ -311,6 +311,8 @@ class LiveCampaign:
                     self.desk.noted(a)
                 if a.kind in ALERTS:
                     self.alert_log(a)
+                elif a.kind in PRESENCE:
+                    self.alert_log.presence(a)
                 elif a.kind == "message.rejected":  # a device of your own echoes tokens? the first ten, then sparingly
                     rejected = self.core.counts.rejected
                     if rejected <= 10 or a.detail.get("left_out"):
