@@ -75,7 +75,8 @@ def test_sigkilled_device_process_is_detected_and_its_work_moves(tmp_path, caplo
         device.wait()
     assert "t" in killed, "the remote spectrometer never got a step"
     said = [r.getMessage() for r in caplog.records if r.name == "twin.alerts"]  # a person may have one to restart
-    assert any(m.startswith("device.lost spectrometer-2: left the bus") and "twin device serve" in m for m in said), said
+    assert any(m.startswith("device.lost spectrometer-2: left the bus") and "twin device serve" in m
+               for m in said), said
     events = read_events(db)
     lost = [e for e in events if e["kind"] == "device.lost" and e["device"] == "spectrometer-2"]
     assert lost, "the kill must be seen through liveliness"
