@@ -34,8 +34,8 @@ class AlertLog:
             self._away[note.device] = note.t_lab
             log.warning("device.lost %s: left the bus (its process ended, or its host or link is down); a step it was "
                         "running fails as lost and is retried as orchestrator.retry allows, and the device is given "
-                        "work again once it is back (one in another process: start its `twin device serve` again)",
-                        note.device)
+                        "work again once it is back (a `twin device serve` that ended must be started again; one "
+                        "cut off by its router or network rejoins by itself)", note.device)
         elif note.kind == "device.online" and note.device in self._away:
             away = note.t_lab - self._away.pop(note.device)
             log.warning("device.online %s: back on the bus after %.0f lab-s away; it is given work again", note.device,
