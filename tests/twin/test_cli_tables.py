@@ -164,3 +164,24 @@ def test_the_shapes_bench_at_80_columns_never_breaks_a_comparison_inside_a_line(
             assert f"{diff} ± {ci} {said}" in shown.stdout, (c, shown.stdout)
         else:
             assert f"± {ci}" in shown.stdout and diff in words and said in words, c
+
+
+def test_a_narrow_tables_title_and_caption_wrap_at_the_terminals_width_not_the_tables(monkeypatch):
+    """A shapes bench stopped after one shape titled its narrow table "… the table is of 1" over "of 11 shapes":
+    rich wraps a title at the table's width."""
+    import io
+
+    from rich.console import Console
+
+    from twin.cli import common
+
+    out = io.StringIO()
+    monkeypatch.setattr(common, "console", Console(file=out, width=80))
+    title = "flaky_lab: each scheduler minus the shape's best rule, 1 of 11 shapes"
+    caption = "campaigns end when every target is met, and chance weighs on every row"
+    table = common.narrow_table(["shape", "best", "h"], title=title, caption=caption)
+    table.add_row("as written", "mwkr", "4.2")
+    common.print_table(table)
+    lines = out.getvalue().splitlines()
+    assert lines[0] == title and lines[-1] == caption, lines
+    assert max(len(line) for line in lines[1:-1]) < 30  # the table itself as narrow as before

@@ -353,7 +353,14 @@ def print_table(table: Table) -> None:
         for column, name, text, least in zip(table.columns, headers, contents, numbers_only):
             column.header, column._cells, column.min_width = name, text, least
         width = fitted_width(table) or console.width
+    # the title and caption at the terminal's width: rich wraps them at the table's, mid-phrase when it is narrow
+    # ("1" over "of 11 shapes" above a table of one shape's rows)
+    title, caption, table.title, table.caption = table.title, table.caption, None, None
+    if title:
+        console.print(title, highlight=False)
     console.print(table, width=width)
+    if caption:
+        console.print(caption, highlight=False)
 
 
 def _broken(text: Any) -> Any:
