@@ -138,9 +138,10 @@ def test_a_lab_of_machines_needs_no_chemistry_model_and_one_that_simulates_names
     simulating["chemistry"] = {k: v for k, v in simulating["chemistry"].items() if k != "model"}
     res = twin_cli("validate", write(tmp_path, simulating))
     said = " ".join(res.output.split())
-    assert res.exit_code == 2 and "bad.yaml: 1 problem(s)" in said, said
-    assert "chemistry.model: none given, and the 'spectrometer' driver of devices.spectrometer simulates a " \
-           "chemistry: give chemistry.model, one of ['bandgap', 'catalyst', 'quantum_dots', 'synthesis']" in said
+    assert res.exit_code == 2 and "bad.yaml: 2 problem(s)" in said, said  # each driver that simulates one
+    for dtype in ("spectrometer", "synthesiser"):
+        assert f"chemistry.model: none given, and the '{dtype}' driver of devices.{dtype} simulates a chemistry: " \
+               "give chemistry.model, one of ['bandgap', 'catalyst', 'quantum_dots', 'synthesis']" in said
 
 
 @pytest.mark.parametrize("changes, says", [
@@ -447,3 +448,15 @@ def test_a_driver_that_says_nothing_of_samples_may_make_one_and_a_bad_declaratio
     with pytest.raises(ScenarioError, match="(?s)lab.yaml: .*devices.oven.driver 'machine': makes_sample is 'heat', "
                                             r"not a set of step names: write makes_sample = frozenset\(\{'heat'\}\)"):
         checked(parse(lab, "lab.yaml"), "lab.yaml")
+
+
+def test_every_plugin_that_does_not_load_is_named_at_once(tmp_path):
+    """A driver, a planner and a scheduler misspelt were three tries of `twin validate`, one error each."""
+    res = twin_cli("validate", write(tmp_path, qd_lab(**{"devices.spectrometer.driver": "spectrometr",
+                                                         "campaign.planner": "gp_bo", "campaign.scheduler": "nope",
+                                                         "campaign.fallback_scheduler": "fifo"})))
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and "bad.yaml: 3 problem(s)" in said, said
+    for field, what in (("devices.spectrometer.driver", "spectrometr"), ("campaign.planner", "gp_bo"),
+                        ("campaign.scheduler", "nope")):
+        assert f"- {field}: " in said and repr(what) in said, (field, said)

@@ -53,12 +53,26 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         if stray:
             raise ScenarioError(s.name, [f"devices.{dtype}.options.{stray[0]}: people ('{HUMAN}') take only "
                                          f"{', '.join(sorted(HUMAN_OPTIONS))}; check its spelling"])
-    drivers = {dtype: _at(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0], False)
+    problems: list[str] = []  # every plugin that does not load, at once: not one per try
+
+    def loaded(field: str, make: Callable[..., Any], *args: Any) -> Any:
+        try:
+            return _at(field, make, *args)
+        except ScenarioError as exc:
+            problems.extend(exc.problems)
+            return None
+
+    drivers = {dtype: loaded(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0], False)
                for dtype in s.devices if s.devices[dtype].driver != HUMAN and (types is None or dtype in types)
                and dtype not in elsewhere}
-    twins = {dtype: _at(f"devices.{dtype}.twin.driver", load_driver, s, dtype, s.instance_names(dtype)[0], True)
+    twins = {dtype: loaded(f"devices.{dtype}.twin.driver", load_driver, s, dtype, s.instance_names(dtype)[0], True)
              for dtype in drivers if s.devices[dtype].twin is not None}
-    planner = _at("campaign.planner", make_planner, s)
+    planner = loaded("campaign.planner", make_planner, s)
+    if not benched:  # a bench runs the schedulers it names, not the scenario's (nor loads its policy to warn of it)
+        loaded("campaign.scheduler", make_scheduler, s)
+    loaded("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
+    if problems:
+        raise ScenarioError("", problems)  # as ``_at`` raises each: the caller names the file or campaign
     problem = _unrunnable_given(s, planner)
     if problem:
         raise ScenarioError(s.name, [problem])
@@ -69,9 +83,6 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         log.warning("chemistry.targets: none, and planner %r chooses each experiment by its chance of meeting a "
                     "target, so it only explores (as lhs or random would): give the targets, or name the planner that "
                     "does what you mean", s.campaign.planner)
-    if not benched:  # a bench runs the schedulers it names, not the scenario's (nor loads its policy to warn of it)
-        _at("campaign.scheduler", make_scheduler, s)
-    _at("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
     # options no plugin the command runs takes: likely misspelt (a scheduler bench checks against its own rows)
     problem = untaken_option(s, "planners", [s.campaign.planner, *planners]) or \
         ("" if benched else untaken_option(s, "schedulers", [*named_schedulers(s), *schedulers]))
