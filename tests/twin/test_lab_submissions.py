@@ -232,6 +232,36 @@ def test_a_submitted_campaign_names_a_module_only_if_the_lab_file_does_or_the_la
     assert read_run(tmp_path / "lab.inputs")["trust_modules"] is trust  # what `twin resume` serves on with
 
 
+def test_a_module_the_lab_files_own_campaign_section_names_is_the_lab_files_too(tmp_path):
+    """A lab of no campaigns whose `campaign:` section names a scheduler by module path refused every submitted
+    campaign that inherited it, saying it takes "the ones the lab file names" — which it was."""
+    import asyncio
+
+    from twin.runtime.shared_run import serve_lab
+
+    first = load(LAB).campaigns[0].model_dump(mode="json", exclude_none=True)
+    first["campaign"].update(budget=2, planner="random")
+    first["campaign"].pop("scheduler", None)
+    s = prepare(LAB, clock="scaled", speed=50_000, bus="memory", lab_only=True,
+                overrides={"campaigns": [], "campaign.scheduler": "agents.schedulers:MwkrScheduler"})
+    answers: dict = {}
+
+    def started(lab) -> None:
+        async def ask() -> None:
+            for name, scheduler in (("inherits", None), ("names", "agents.schedulers:MwkrScheduler"),
+                                    ("other", "agents.schedulers:SptScheduler")):
+                c = {**first, "name": name, "campaign": {**first["campaign"],
+                                                         **({"scheduler": scheduler} if scheduler else {})}}
+                answers[name] = json.loads(await lab.desk.serve("labtwin/shared/control/submit",
+                                                                json.dumps({"file": json.dumps(c)}).encode()))
+            lab.stop("test over")
+        asyncio.ensure_future(ask())
+
+    serve_lab(s, tmp_path, handle_signals=False, on_start=started)
+    assert answers["inherits"]["ok"] is True and answers["names"]["ok"] is True, answers
+    assert answers["other"]["ok"] is False and "--trust-modules" in answers["other"]["error"]
+
+
 def test_a_submitted_campaign_may_name_a_file_outside_the_labs_folder_that_the_lab_file_names(tmp_path):
     """A policy outside the folder the lab serves from is the lab's own when its file names it: a submission may
     name that one, and no other outside it."""

@@ -305,8 +305,9 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
         def seat_parts(name: str, cs: Scenario, made: tuple) -> tuple:
             return made[0], made[1], live_scheduler(cs, made[2], bus, clock)[0]
 
-        trusted = {spec for cs in scenarios.values() for spec in module_plugins(cs).values()}
-        own_files = {value for cs in scenarios.values() for value in submitted_files(cs).values()}
+        # the lab file's: its campaigns', and its own campaign section's, which a submitted campaign inherits
+        trusted = {spec for cs in [s, *scenarios.values()] for spec in module_plugins(cs).values()}
+        own_files = {value for cs in [s, *scenarios.values()] for value in submitted_files(cs).values()}
 
         def adopt(name: str, cs: Scenario) -> tuple:
             _refuse_agents({name: cs})
