@@ -460,3 +460,14 @@ def test_every_plugin_that_does_not_load_is_named_at_once(tmp_path):
     for field, what in (("devices.spectrometer.driver", "spectrometr"), ("campaign.planner", "gp_bo"),
                         ("campaign.scheduler", "nope")):
         assert f"- {field}: " in said and repr(what) in said, (field, said)
+
+
+def test_what_the_loaded_plugins_tell_is_said_at_once_too(tmp_path):
+    """An option no planner takes and a target no device can meet were two tries, one error each."""
+    lab = qd_lab(**{"campaign.planner_options": {"n_inti": 3}})
+    lab["chemistry"]["targets"][0]["outputs"] = {"hue_deg": {"value": 120, "tol": 5}}
+    res = twin_cli("validate", write(tmp_path, lab))
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and "bad.yaml: 2 problem(s)" in said, said
+    assert "campaign.planner_options.n_inti: no installed planner takes an option 'n_inti'" in said, said
+    assert "chemistry.targets.0.outputs.hue_deg: no device of the workflow produces 'hue_deg'" in said, said

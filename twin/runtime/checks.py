@@ -73,9 +73,14 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
     loaded("campaign.fallback_scheduler", make_scheduler, s, s.campaign.fallback_scheduler)
     if problems:
         raise ScenarioError("", problems)  # as ``_at`` raises each: the caller names the file or campaign
-    problem = _unrunnable_given(s, planner)
-    if problem:
-        raise ScenarioError(s.name, [problem])
+    # what the plugins tell, each at once too: the checks take the plugins loaded, so they come after those load
+    found = [_unrunnable_given(s, planner),
+             # options no plugin the command runs takes: likely misspelt (a scheduler bench checks its own rows)
+             untaken_option(s, "planners", [s.campaign.planner, *planners]),
+             "" if benched else untaken_option(s, "schedulers", [*named_schedulers(s), *schedulers]),
+             _unproduced(s, drivers, elsewhere), _sampleless(s, drivers, elsewhere)]
+    if any(found):
+        raise ScenarioError(s.name, [problem for problem in found if problem])
     if types is None:
         for problem in _idle_types(s, planner):
             log.warning("%s", problem)
@@ -83,14 +88,6 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         log.warning("chemistry.targets: none, and planner %r chooses each experiment by its chance of meeting a "
                     "target, so it only explores (as lhs or random would): give the targets, or name the planner that "
                     "does what you mean", s.campaign.planner)
-    # options no plugin the command runs takes: likely misspelt (a scheduler bench checks against its own rows)
-    problem = untaken_option(s, "planners", [s.campaign.planner, *planners]) or \
-        ("" if benched else untaken_option(s, "schedulers", [*named_schedulers(s), *schedulers]))
-    if problem:
-        raise ScenarioError(s.name, [problem])
-    problem = _unproduced(s, drivers, elsewhere) or _sampleless(s, drivers, elsewhere)
-    if problem:
-        raise ScenarioError(s.name, [problem])
     for dtype, driver in drivers.items():
         problem = _short_deadline(s, dtype, driver)
         if problem:
