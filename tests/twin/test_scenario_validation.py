@@ -11,7 +11,7 @@ import yaml
 
 from tests.conftest import qd_lab, twin_cli
 from twin.core.errors import ScenarioError
-from twin.runtime.checks import check, checked
+from twin.runtime.checks import check
 from twin.scenario import parse
 from twin.scenario import load
 
@@ -121,27 +121,6 @@ def test_a_lab_without_devices_says_so_and_a_device_type_it_lacks_says_there_are
         load(path)
     assert err.value.problems[0].startswith("devices: none; a lab needs at least one device type")
     assert err.value.problems[1] == "workflow.0.device: 'robot' is not a device type of this lab (it has none)"
-
-
-def test_a_lab_of_machines_needs_no_chemistry_model_and_one_that_simulates_names_it(tmp_path):
-    """A parameter box for a lab whose devices only keep time was "chemistry.model: required field is missing",
-    with no word of the model ('none') such a lab has; and a machine ran only "op" unless its options listed the
-    steps the scenario had just given it."""
-    from twin.runtime.lab import run
-
-    machine = {"driver": "machine", "steps": ["mix"], "duration": {"mean_s": 300}}
-    lab = {"name": "mixing", "devices": {"mixer": machine}, "workflow": [{"step": "mix", "device": "mixer"}],
-           "chemistry": {"parameters": {"x": {"low": 0, "high": 1}}},
-           "campaign": {"budget": 3, "planner": "random", "scheduler": "fifo"}}
-    assert run(write(tmp_path, lab), journal=tmp_path / "j.db").done == 3
-    simulating = qd_lab()
-    simulating["chemistry"] = {k: v for k, v in simulating["chemistry"].items() if k != "model"}
-    res = twin_cli("validate", write(tmp_path, simulating))
-    said = " ".join(res.output.split())
-    assert res.exit_code == 2 and "bad.yaml: 2 problem(s)" in said, said  # each driver that simulates one
-    for dtype in ("spectrometer", "synthesiser"):
-        assert f"chemistry.model: none given, and the '{dtype}' driver of devices.{dtype} simulates a chemistry: " \
-               "give chemistry.model, one of ['bandgap', 'catalyst', 'quantum_dots', 'synthesis']" in said
 
 
 @pytest.mark.parametrize("changes, says", [
@@ -393,81 +372,3 @@ def test_faults_given_to_people_are_refused_naming_the_field_as_no_fault_would_e
     names = [name for name, _ in variants(lab)]
     assert "technician bottleneck (×2 duration)" in names and "technician flaky (20 % fail)" not in names
     assert "synthesiser flaky (20 % fail)" in names
-
-
-def test_a_workflow_that_measures_before_any_step_makes_a_sample_is_refused_naming_the_step(tmp_path):
-    """A spectrometer's measure after only a machine step (which passes on a sample, and makes none): every
-    experiment was abandoned at that step when it ran. Drivers now say which of their steps make a sample and
-    which need one, and validation refuses the workflow, naming the step and what makes one here."""
-    machine = {"driver": "machine", "steps": ["heat"], "options": {"steps": ["heat"]}, "duration": {"mean_s": 60}}
-    person = {"driver": "operator", "steps": ["load"], "duration": {"mean_s": 60}}
-    lab = qd_lab(**{"devices.oven": machine, "devices.tech": person,
-                    "workflow": [{"step": "load", "device": "tech"}, {"step": "heat", "device": "oven"},
-                                 {"step": "measure", "device": "spectrometer"}]})
-    with pytest.raises(ScenarioError) as err:
-        check(parse(lab, "lab.yaml"))
-    assert ("workflow.2: measure on spectrometer needs a sample, and no step before it makes one (synthesise on "
-            "synthesiser does): put a step that makes one first") in str(err.value)
-    made = {**lab, "workflow": [{"step": "synthesise", "device": "synthesiser"}, *lab["workflow"]]}
-    check(parse(made, "lab.yaml"))  # a sample made first, passed on by the person and the oven
-    # a campaign of a shared lab is checked on the device types its workflow uses: what makes a sample is another's
-    shared = yaml.safe_load((ROOT / "scenarios" / "shared_lab.yaml").read_text())
-    shared["campaigns"][0]["workflow"] = [{"step": "measure", "device": "spectrometer"}]
-    with pytest.raises(ScenarioError) as err:
-        check(parse(shared, "lab.yaml"))
-    assert ("campaigns.0 (dots): workflow.0: measure on spectrometer needs a sample, and no step before it makes one "
-            "(prepare on synthesiser, synthesise on synthesiser does)") in str(err.value)
-
-
-def test_a_twin_that_makes_no_sample_for_a_driver_that_does_is_warned_of(caplog):
-    """On a virtual clock a twin that only keeps time stands in for the synthesiser: the measurement after it
-    would find no sample. Warned of (the twin still serves a what-if of device counts); on a scaled clock, where
-    the synthesiser itself runs, not."""
-    lab = qd_lab(**{"devices.synthesiser.twin": {"driver": "machine", "options": {"steps": ["synthesise"]}}})
-    with caplog.at_level(logging.WARNING):
-        check(parse(lab, "lab.yaml"))
-    said = [r.getMessage() for r in caplog.records if "needs a sample" in r.getMessage()]
-    assert said == ["with the twins (devices.*.twin) workflow.1: measure on spectrometer needs a sample, and no step "
-                    "before it makes one: put a step that makes one first: on a virtual clock every experiment is "
-                    "abandoned there"]
-    caplog.clear()
-    with caplog.at_level(logging.WARNING):
-        check(parse({**lab, "clock": {"mode": "scaled", "speed": 100}}, "lab.yaml"))
-    assert not [r for r in caplog.records if "needs a sample" in r.getMessage()]
-
-
-def test_a_driver_that_says_nothing_of_samples_may_make_one_and_a_bad_declaration_is_refused(monkeypatch):
-    from devices.machine import Machine
-
-    lab = qd_lab(**{"devices.oven": {"driver": "machine", "steps": ["heat"], "options": {"steps": ["heat"]},
-                                     "duration": {"mean_s": 60}},
-                    "workflow": [{"step": "heat", "device": "oven"}, {"step": "measure", "device": "spectrometer"}]})
-    monkeypatch.delattr(Machine, "makes_sample")  # a third party's driver, written before the feature
-    check(parse(lab, "lab.yaml"))
-    monkeypatch.setattr(Machine, "makes_sample", "heat", raising=False)
-    with pytest.raises(ScenarioError, match="(?s)lab.yaml: .*devices.oven.driver 'machine': makes_sample is 'heat', "
-                                            r"not a set of step names: write makes_sample = frozenset\(\{'heat'\}\)"):
-        checked(parse(lab, "lab.yaml"), "lab.yaml")
-
-
-def test_every_plugin_that_does_not_load_is_named_at_once(tmp_path):
-    """A driver, a planner and a scheduler misspelt were three tries of `twin validate`, one error each."""
-    res = twin_cli("validate", write(tmp_path, qd_lab(**{"devices.spectrometer.driver": "spectrometr",
-                                                         "campaign.planner": "gp_bo", "campaign.scheduler": "nope",
-                                                         "campaign.fallback_scheduler": "fifo"})))
-    said = " ".join(res.output.split())
-    assert res.exit_code == 2 and "bad.yaml: 3 problem(s)" in said, said
-    for field, what in (("devices.spectrometer.driver", "spectrometr"), ("campaign.planner", "gp_bo"),
-                        ("campaign.scheduler", "nope")):
-        assert f"- {field}: " in said and repr(what) in said, (field, said)
-
-
-def test_what_the_loaded_plugins_tell_is_said_at_once_too(tmp_path):
-    """An option no planner takes and a target no device can meet were two tries, one error each."""
-    lab = qd_lab(**{"campaign.planner_options": {"n_inti": 3}})
-    lab["chemistry"]["targets"][0]["outputs"] = {"hue_deg": {"value": 120, "tol": 5}}
-    res = twin_cli("validate", write(tmp_path, lab))
-    said = " ".join(res.output.split())
-    assert res.exit_code == 2 and "bad.yaml: 2 problem(s)" in said, said
-    assert "campaign.planner_options.n_inti: no installed planner takes an option 'n_inti'" in said, said
-    assert "chemistry.targets.0.outputs.hue_deg: no device of the workflow produces 'hue_deg'" in said, said

@@ -33,12 +33,12 @@ def route(
     """A route to SMILES from the stock: its steps in the order the lab runs them, what it buys, estimates.
     Exit 0: a route (or the target is in stock); 1: no route within the budget; 2: bad input."""
     writable("--save", save)
-    started = time.perf_counter()
     try:
         planner = plugins.load("routes", method)
     except TwinError as exc:
         _fail(exc)
     try:
+        started = time.perf_counter()
         if not 0 < seconds < math.inf:
             raise ValueError(f"--seconds {seconds:g}: give the search a budget above 0, in wall seconds (e.g. 10)")
         if save is not None and save.suffix.lower() not in (".svg", ".png"):
@@ -47,7 +47,6 @@ def route(
         with sigterm_unwinds():  # before the line that says Ctrl-C (or SIGTERM) stops it
             err.print(f"searching for a route to {shown} ({method}, up to {seconds:g} s; Ctrl-C stops it) …",
                       highlight=False)
-            started = time.perf_counter()
             data = planner(smiles, stock=stock, templates=templates, prior=prior, seconds=seconds,
                            **({"save": save} if save is not None else {}))
     except (ValueError, FileNotFoundError) as exc:
