@@ -213,6 +213,7 @@ def router(
             extra[path] = _json.loads(value)
         except ValueError:
             extra[path] = value
+    log_to_stderr(logging.INFO)
     try:
         run_router(listen, lease_ms, extra, ready=lambda line: print(line, flush=True),
                    security_dir=str(security) if security else None, insecure=insecure)

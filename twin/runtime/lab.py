@@ -20,6 +20,7 @@ from twin.campaign.human import people as people_of
 from twin.campaign.journal import Journal
 from twin.campaign.replay import Rebuilt
 from twin.campaign.summary import Summary, from_core
+from twin.core.bus import security
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, PluginError, TwinError
 from twin.core import held
@@ -190,12 +191,26 @@ def refuse_external(s: Scenario, external_devices: Collection[str]) -> None:
         raise TwinError(f"--external {', '.join(unknown)}: not {'a device' if len(unknown) == 1 else 'devices'} of "
                         f"lab {s.lab} (its devices: {', '.join(devices)}; a type of several instances is named by "
                         "each instance)")
+    if s.bus.security:
+        _refuse_uncertified(s, external_devices)
     if s.clock.mode == "virtual":
         raise ClockError(f"devices {sorted(external_devices)} run in other processes, where a virtual clock cannot "
                          "see messages in flight: use --clock scaled or --clock wall")
     if s.bus.kind == "memory":
         raise TwinError(f"devices {sorted(external_devices)} run in other processes, and the bus is memory (no "
                         "sockets): none of them could join; use --bus zenoh")
+
+
+def _refuse_uncertified(s: Scenario, external_devices: Collection[str]) -> None:
+    """A device the security directory has no certificate for is one the lab's router admits no process serving."""
+    root = str(s.bus.security)
+    absent = sorted(set(external_devices) - set(security.manifest(root, s.lab).get("devices") or ()))
+    if absent:
+        them = "it" if len(absent) == 1 else "them"
+        raise TwinError(f"--external {', '.join(absent)}: {root} has no certificate for {them}, so the lab's router "
+                        f"admits no process serving {them}. Add {them} with `twin security init {root} --lab {s.lab} "
+                        f"{' '.join('--device ' + d for d in absent)}`, copy the device folders to their hosts, and "
+                        f"restart `twin router`, which reads whom it admits when it starts")
 
 
 def recording_id(s: Scenario) -> str:

@@ -23,7 +23,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from twin.core.bus.security import MANIFEST, Identity, router_config, session_config
 from twin.core.errors import TwinError
-from twin.core.whole_files import locked
+from twin.core.whole_files import locked, written_whole
 
 _NAME_OK = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-")
 
@@ -129,7 +129,8 @@ def _pem(cert: x509.Certificate) -> bytes:
 
 
 def _write(path: Path, data: bytes) -> Path:
-    path.write_bytes(data)
+    with written_whole(path) as partial:  # a router re-reads the manifest while it runs: never half of one
+        partial.write_bytes(data)
     return path
 
 
