@@ -4,7 +4,8 @@ One file per table, in a directory:
 
 - ``experiments``: one row per proposed experiment, as the journal's ``experiments`` table has it, its JSON
   columns spread out (``param.<name>``, ``output.<name>``, ``score.<target>``; a nested value stays JSON text);
-- ``attempts``: one row per attempt of a step: device, when it was sent, accepted and ended, how it ended;
+- ``attempts``: one row per attempt of a step: device, when it was sent, accepted and ended (lab times), its
+  deadline (``deadline_s``: lab seconds after it was sent, as the command said), how it ended;
 - ``devices``: one row per device: type, attempts, failures, busy share;
 - ``consumables``: each item's level over time: its start, every step that used some, every refill;
 - ``decisions``: every state change the campaign journalled (``detail`` as JSON text);
