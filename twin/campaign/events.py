@@ -38,7 +38,7 @@ class Code(StrEnum):
 #: Notes a runtime also logs as warnings (``alert_text``), on the ``ALERT_LOGGER`` logger: the lab cannot go on as
 #: it is, or a device sends what the campaign cannot use.
 ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "device.stuck", "device.refusing",
-                    "output.unscored", "scheduler.stalled", "consumable.depleted"})
+                    "output.unscored", "scheduler.stalled", "consumable.depleted", "device.mismatch"})
 ALERT_LOGGER = "twin.alerts"
 #: notes a runtime on a live clock also logs (``AlertLog.presence``): a device gone from the bus, and back
 PRESENCE = frozenset({"device.lost", "device.online"})
@@ -274,6 +274,11 @@ def _alert_words(n: Note) -> str:
         return (f"{', '.join(map(str, d))} not on the bus within orchestrator.startup_s: the campaign starts without "
                 f"them, and each takes work once its driver joins the bus (one in another process: `twin device "
                 f"serve`, connected to the lab's address)")
+    if n.kind == "device.mismatch" and isinstance(d, dict):
+        found = "; ".join(map(str, d.get("differences", ()))) + (f"; and {d.get('more')} more" if d.get("more") else "")
+        return (f"served by a process whose scenario differs from this lab's: {found}. The lab expects its steps, "
+                f"and sets their deadlines, by this lab's file, and the device runs them by its own: serve it from the "
+                f"same file (`twin device serve LAB.yaml --id {n.device}`)")
     if n.kind == "device.flapping" and isinstance(d, dict):
         return (f"left the bus again within {d.get('within_s', 0):g} lab-s of its last loss (a bad link, or another "
                 f"process announcing its name); its running step keeps its deadline")

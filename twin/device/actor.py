@@ -32,11 +32,13 @@ log = logging.getLogger(__name__)
 class DeviceActor:
     def __init__(self, name: str, spec: Any, driver: Driver, bus: Bus, clock: LabClock, lab: str, seed: int,
                  orphan_grace_s: float = 300.0, shared: dict[str, Driver] | None = None,
-                 stop_grace_s: float = 60.0) -> None:
+                 stop_grace_s: float = 60.0, served_as: dict[str, Any] | None = None) -> None:
         """``shared``: the device serves several campaigns — campaign -> the driver that simulates its chemistry;
         their steps draw faults and durations by campaign too (their task ids repeat). ``stop_grace_s``: lab
-        seconds ``safe_state`` has at shutdown before the lab stops without it (``orchestrator.cancel_grace_s``)."""
-        self.name, self.spec, self.driver = name, spec, driver
+        seconds ``safe_state`` has at shutdown before the lab stops without it (``orchestrator.cancel_grace_s``).
+        ``served_as``: the parts of its scenario it runs by, in its health answer (a lab compares them with its own:
+        twin/runtime/served_devices.py)."""
+        self.name, self.spec, self.driver, self.served_as = name, spec, driver, served_as
         self._shared = shared or {}
         self.orphan_grace_s, self.stop_grace_s = orphan_grace_s, stop_grace_s
         self._boss: Closable | None = None
@@ -123,6 +125,8 @@ class DeviceActor:
                                                               "in_lab_time": self._clock.anchored},
                         "running": list(self._current) if self._current else None,
                         "recent": [[t, n, p.decode()] for t, n, p in self._recent]}
+        if self.served_as is not None:
+            report["scenario"] = self.served_as
         check = feature(self.driver, "health")
         if check is not None:
             try:

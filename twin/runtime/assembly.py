@@ -23,6 +23,7 @@ from twin.device.actor import DeviceActor
 from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature, talks_to_instrument
 from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
+from twin.runtime.served_devices import served_as
 from twin.scenario import Scenario, load, load_mapping, parse_overridden
 from twin.scenario.loading import disagreeing, model_of
 from twin.scenario.objective import typical_step
@@ -220,7 +221,8 @@ def build_actors(s: Scenario, drivers: list[tuple[str, str, Any]], bus: Bus, clo
                  per_campaign: dict[str, dict[str, Any]] | None = None) -> list[DeviceActor]:
     """``per_campaign``: a lab of several campaigns — each instance's driver for each campaign's chemistry."""
     return [DeviceActor(name, s.devices[dtype], drv, bus, clock, s.lab, s.campaign.seed, s.orchestrator.orphan_grace_s,
-                        (per_campaign or {}).get(name), stop_grace_s=s.orchestrator.cancel_grace_s)
+                        (per_campaign or {}).get(name), stop_grace_s=s.orchestrator.cancel_grace_s,
+                        served_as=served_as(s, dtype))
             for name, dtype, drv in drivers]
 
 

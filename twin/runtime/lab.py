@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import itertools
 import logging
 import os
@@ -36,6 +37,7 @@ from twin.runtime.labtime import LabTimeSource
 from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import RemoteScheduler
 from twin.runtime.run_record import provenance
+from twin.runtime.served_devices import ServedCheck
 from twin.scenario import Scenario
 from twin.view.lab_observer import SharedLabObserver
 from twin.view.observer import LabObserver
@@ -368,6 +370,10 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         except TwinError as exc:  # the journal's summary says why the lab never ran
             camp.never_started(str(exc))
             raise
+        if external_devices:
+            mismatch = functools.partial(camp.note, "device.mismatch")
+            stack.callback(ServedCheck(bus, s, clock, external_devices,
+                                       lambda device, detail: mismatch(detail, device)).start().close)
         if handle_signals:
             stack.enter_context(stop_on_loop_signals(camp.stop))
         if observer is not None and not clock.is_virtual:

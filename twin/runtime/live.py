@@ -122,10 +122,10 @@ class LiveCampaign:
         else:
             self._loop.call_soon_threadsafe(self.note, kind, detail)
 
-    def note(self, kind: str, detail: Any = None) -> None:
+    def note(self, kind: str, detail: Any = None, device: str | None = None) -> None:
         """A runtime's own remark (a scheduler agent missing, say): journalled and published like the core's, and
         logged if it is an alert."""
-        n = Note(self.clock.now(), kind, detail=detail)
+        n = Note(self.clock.now(), kind, device=device, detail=detail)
         self._remark(n)
         if kind in ALERTS:
             self.alert_log(n)

@@ -10,6 +10,7 @@ from collections.abc import Callable, Collection
 from typing import Any
 from pathlib import Path
 
+from twin.campaign.events import ALERT_LOGGER, Note, alert_text
 from twin.campaign.sharing import SharedLab
 from twin.campaign.summary import LabSummary, Summary
 from twin.core.clock import LabClock
@@ -28,6 +29,7 @@ from twin.runtime.checks import check_campaign
 from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.live_lab import LiveLab
+from twin.runtime.served_devices import ServedCheck
 from twin.campaign.human import DRIVER as HUMAN
 from twin.core import plugins
 from twin.device.driver import feature
@@ -339,6 +341,13 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
             lab.shared.stop(str(exc))
             lab_summaries(lab.shared, lab.parts, wall0, clock.now())
             raise
+        served = serving if serving is not None else external
+        if served:  # a lab's device is every campaign's: said in the log, not in one campaign's journal
+            def mismatch(device: str, detail: dict[str, Any]) -> None:
+                note = Note(clock.now(), "device.mismatch", device=device, detail=detail)
+                logging.getLogger(ALERT_LOGGER).warning("%s", alert_text(note))
+
+            stack.callback(ServedCheck(bus, s, clock, served, mismatch).start().close)
         if handle_signals:
             stack.enter_context(stop_on_loop_signals(lab.stop))
         if on_start is not None:

@@ -1,0 +1,118 @@
+"""A device served by another process runs by its own copy of the scenario: the lab names what differs from its
+own when the device joins (its durations, faults, options, the chemistry it simulates), and nothing when nothing
+does."""
+
+import json
+import logging
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.conftest import qd_lab
+from tests.twin.test_device_process import free_port
+from tests.twin.test_distributed_lab import start
+from twin import DeviceActor, StepResult
+from twin.campaign.journal_read import read_events
+from twin.core.bus import open_bus
+from twin.runtime.lab import make_clock, prepare, run_async
+from twin.runtime.served_devices import ServedCheck, differences, served_as
+from twin.scenario import parse
+
+SPEED = 400.0
+
+
+class Reader:
+    capabilities = frozenset({"measure"})
+
+    async def run(self, step, params, sample, ctx):
+        return StepResult({"peak_nm": 600.0}, sample)
+
+    async def safe_state(self):
+        pass
+
+
+def test_differences_name_the_fields_and_a_files_folder_is_not_one():
+    lab = parse(qd_lab(**{"devices.spectrometer.options": {"stock": "/lab/host/stock.csv", "lamp": "uv"}}))
+    theirs = parse(qd_lab(**{"devices.spectrometer.options": {"stock": "/device/host/stock.csv", "lamp": "vis"},
+                             "devices.spectrometer.duration": {"mean_s": 5000, "cv": 0.1},
+                             "devices.spectrometer.faults": {"fail_p": 0.2},
+                             "devices.spectrometer.cost": 99, "chemistry.noise": 0.5}))
+    found = differences(served_as(lab, "spectrometer"), served_as(theirs, "spectrometer"), "spectrometer")
+    assert found == ["devices.spectrometer.duration.mean_s: 5000.0 there, 60.0 here",
+                     "devices.spectrometer.faults.fail_p: 0.2 there, 0.0 here",
+                     'devices.spectrometer.options.lamp: "vis" there, "uv" here',
+                     "chemistry.noise: 0.5 there, 0.01 here"]  # cost is the lab's books, not the device's doing
+    assert differences(served_as(lab, "spectrometer"), served_as(lab, "spectrometer"), "spectrometer") == []
+    # a device of another make reports no scenario: nothing to compare
+    assert differences(served_as(lab, "spectrometer"), {}, "spectrometer") == []
+
+
+def test_a_lab_of_several_campaigns_compares_the_devices_alone():
+    shared = parse(yaml.safe_load((Path(__file__).resolve().parents[2] / "scenarios/shared_lab.yaml").read_text()))
+    dtype = next(iter(shared.devices))
+    assert set(served_as(shared, dtype)) == {"device_type"}
+
+
+def test_each_external_device_that_joins_is_asked_once_and_one_served_alike_is_not_named(virtual_clock):
+    lab = parse(qd_lab())
+    theirs = parse(qd_lab(**{"devices.spectrometer.duration.mean_s": 600}))
+    told: list = []
+
+    async def main():
+        bus = open_bus("memory", virtual_clock)
+        await bus.start()
+        check = ServedCheck(bus, lab, virtual_clock, {"spectrometer-1", "spectrometer-2"},
+                            lambda device, detail: told.append((device, detail))).start()
+        actors = [DeviceActor("spectrometer-1", theirs.devices["spectrometer"], Reader(), bus, virtual_clock, lab.lab,
+                              0, served_as=served_as(theirs, "spectrometer")),
+                  DeviceActor("spectrometer-2", lab.devices["spectrometer"], Reader(), bus, virtual_clock, lab.lab, 0,
+                              served_as=served_as(lab, "spectrometer")),
+                  DeviceActor("synthesiser", theirs.devices["synthesiser"], Reader(), bus, virtual_clock, lab.lab, 0,
+                              served_as=served_as(theirs, "synthesiser"))]  # in this process: not asked
+        for a in actors:
+            await a.start()
+        await virtual_clock.sleep(60)
+        await actors[0].stop()  # leaves and joins again: said once
+        await actors[0].start()
+        await virtual_clock.sleep(60)
+        for a in actors:
+            await a.stop()
+        check.close()
+        await bus.close()
+
+    virtual_clock.run(main())
+    assert told == [("spectrometer-1", {"type": "spectrometer", "more": 0, "differences": [
+        "devices.spectrometer.duration.mean_s: 600.0 there, 60.0 here"]})]
+
+
+@pytest.mark.process
+def test_a_device_served_from_an_edited_copy_of_the_lab_file_is_named_when_it_joins(tmp_path, caplog):
+    router = f"tcp/127.0.0.1:{free_port()}"
+    raw = qd_lab(**{"campaign.budget": 2, "devices.spectrometer.instances": 1,
+                    "clock": {"mode": "scaled", "speed": SPEED}, "orchestrator.startup_s": 4000,
+                    "bus": {"kind": "zenoh", "listen": [], "connect": [router]}})
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    (tmp_path / "device_host").mkdir()
+    edited = tmp_path / "device_host" / "lab.yaml"  # the copy on the device's host, edited since
+    raw["devices"]["spectrometer"]["duration"]["mean_s"] = 90
+    edited.write_text(yaml.safe_dump(raw))
+    s = prepare(path)
+    clock = make_clock(s)
+    procs = [start(["router", "--listen", router], "router"),
+             start(["device", "serve", str(edited), "--id", "spectrometer", "--connect", router], "ready spectrometer")]
+    try:
+        with caplog.at_level(logging.WARNING, logger="twin.alerts"):
+            summary = clock.run(run_async(s, clock, tmp_path / "j.db", {"spectrometer"}))
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+    assert summary.done == 2
+    (event,) = read_events(tmp_path / "j.db", "device.mismatch")
+    assert event["device"] == "spectrometer"
+    assert json.loads(event["detail"])["differences"] == ["devices.spectrometer.duration.mean_s: 90.0 there, 60.0 here"]
+    said = [r.getMessage() for r in caplog.records if r.name == "twin.alerts"]
+    assert any(m.startswith("device.mismatch spectrometer: served by a process whose scenario differs") and
+               "twin device serve LAB.yaml --id spectrometer" in m for m in said), said

@@ -1,0 +1,117 @@
+"""Does a device served by another process (`twin device serve`) run as this lab's file says?
+
+A served device reads its own copy of the scenario: its durations, faults, options and (for a simulated one) the
+chemistry it measures come from there, while the lab plans and sets each step's deadline by its own copy. Copies
+that drifted apart (the lab's file edited on one host, not the other) give steps that time out attempt after
+attempt, or results from another model, with nothing to say why. So each device reports, in its health answer, the
+parts of its scenario it runs by; the lab asks every external device that joins and names what differs.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Callable, Collection
+from pathlib import PurePath
+from typing import Any
+
+from twin.core import keys
+from twin.core.bus.base import Bus, Closable
+from twin.core.clock import LabClock
+from twin.core.errors import BusError
+from twin.scenario import Scenario
+
+#: what of a device type decides how a served device behaves (cost, envelope and instances are the lab's concern)
+DEVICE_FIELDS = ("driver", "steps", "duration", "setup_s", "clean_s", "faults", "options")
+CHEMISTRY_FIELDS = ("model", "noise", "stability_s", "options")
+#: wall seconds a joining device has to answer the lab's health request
+ASK_WALL_S = 5.0
+SHOWN = 6
+
+
+def served_as(s: Scenario, device_type: str) -> dict[str, Any]:
+    """The parts of ``s`` a device of ``device_type`` runs by, as JSON: its device type's and (a lab of one
+    campaign, whose drivers simulate that campaign's chemistry) the chemistry's."""
+    spec = s.devices[device_type].model_dump(mode="json")
+    out: dict[str, Any] = {"device_type": {k: spec[k] for k in DEVICE_FIELDS}}
+    if not s.campaigns:
+        chemistry = s.chemistry.model_dump(mode="json")
+        out["chemistry"] = {k: chemistry[k] for k in CHEMISTRY_FIELDS}
+    return out
+
+
+def differences(ours: dict[str, Any], theirs: dict[str, Any], device_type: str) -> list[str]:
+    """What ``theirs`` (a device's report) says otherwise than ``ours``, as the scenario's fields: ``devices.
+    spectrometer.duration.mean_s: 5000 there, 300 here``. A path differs only by its file's name (each host's copy
+    names files beside it by its own absolute path)."""
+    prefix = {"device_type": f"devices.{device_type}", "chemistry": "chemistry"}
+    out: list[str] = []
+    for part, name in prefix.items():
+        if part in ours and isinstance(theirs.get(part), dict):
+            _compare(ours[part], theirs[part], name, out)
+    return out
+
+
+def _compare(ours: Any, theirs: Any, where: str, out: list[str]) -> None:
+    if isinstance(ours, dict) and isinstance(theirs, dict):
+        for key in sorted(set(ours) | set(theirs), key=str):
+            _compare(ours.get(key), theirs.get(key), f"{where}.{key}", out)
+    elif ours != theirs and not _same_file(ours, theirs):
+        out.append(f"{where}: {_shown(theirs)} there, {_shown(ours)} here")
+
+
+def _same_file(a: Any, b: Any) -> bool:
+    return isinstance(a, str) and isinstance(b, str) and "/" in a + b and PurePath(a).name == PurePath(b).name
+
+
+def _shown(value: Any) -> str:
+    text = "(not set)" if value is None else json.dumps(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+class ServedCheck:
+    """Asks each of ``external`` devices, as it joins the bus, how it is served; ``report(device, detail)`` is told
+    of one that runs by another scenario (``detail``: its type and the differences)."""
+
+    def __init__(self, bus: Bus, s: Scenario, clock: LabClock, external: Collection[str],
+                 report: Callable[[str, dict[str, Any]], None]) -> None:
+        self._bus, self._s, self._clock, self._report = bus, s, clock, report
+        self._type = {name: dtype for dtype in s.devices for name in s.instance_names(dtype) if name in external}
+        self._ours = {dtype: served_as(s, dtype) for dtype in set(self._type.values())}
+        self._told: set[str] = set()
+        self._asking: set[asyncio.Task] = set()
+
+    def start(self) -> Closable:
+        watch = self._bus.watch_tokens(keys.alive(self._s.lab), self._on_presence)
+        outer = self
+
+        class Stop:
+            def close(self) -> None:
+                watch.close()
+                for task in outer._asking:
+                    task.cancel()
+
+        return Stop()
+
+    def _on_presence(self, key: str, alive: bool) -> None:
+        device = keys.device_of(key)
+        if alive and device in self._type and device not in self._told:
+            task = asyncio.get_running_loop().create_task(self._ask(device))
+            self._asking.add(task)
+            task.add_done_callback(self._asking.discard)
+
+    async def _ask(self, device: str) -> None:
+        try:
+            answer = await self._bus.request(keys.health(self._s.lab, device), b"",
+                                             ASK_WALL_S * self._clock.speed)
+            report = json.loads(answer)
+        except (BusError, ValueError):
+            return  # no answer now: the campaign's own deadlines and presence say what matters
+        theirs = report.get("scenario") if isinstance(report, dict) else None
+        if not isinstance(theirs, dict):
+            return  # a device of another make (its own client on the bus): it has no scenario to compare
+        dtype = self._type[device]
+        found = differences(self._ours[dtype], theirs, dtype)
+        if found:
+            self._told.add(device)
+            self._report(device, {"type": dtype, "differences": found[:SHOWN], "more": max(0, len(found) - SHOWN)})
