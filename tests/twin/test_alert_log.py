@@ -49,3 +49,12 @@ def test_on_a_live_clock_a_device_gone_from_the_bus_is_said_and_its_return_with_
     assert said[0].startswith("device.lost kiln-2: left the bus")
     assert "serve` that ended must be started again" in said[0]
     assert said[1] == "device.online kiln-2: back on the bus after 60 lab-s away; it is given work again"
+
+
+def test_on_a_live_clock_a_device_type_said_unusable_is_said_usable_again(caplog):
+    """A quarantined spectrometer probed back to work had been said unusable again and again, and never usable."""
+    with caplog.at_level(logging.WARNING, logger="twin.alerts"):
+        for log in (AlertLog(virtual=False), AlertLog()):
+            log.presence(Note(500.0, "devices.available", device="spectrometer", detail={"type": "spectrometer"}))
+    said = [r.getMessage() for r in caplog.records]
+    assert said == ["devices.available spectrometer: one is usable again, and the work waiting for it goes on"]

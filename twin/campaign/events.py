@@ -40,8 +40,9 @@ class Code(StrEnum):
 ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "device.stuck", "device.refusing",
                     "output.unscored", "scheduler.stalled", "consumable.depleted", "device.mismatch"})
 ALERT_LOGGER = "twin.alerts"
-#: notes a runtime on a live clock also logs (``AlertLog.presence``): a device gone from the bus, and back
-PRESENCE = frozenset({"device.lost", "device.online"})
+#: notes a runtime on a live clock also logs (``AlertLog.presence``): a device gone from the bus, and back; a
+#: device type said unusable (``devices.unavailable``) usable again
+PRESENCE = frozenset({"device.lost", "device.online", "devices.available"})
 #: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, a device type gone, an
 #: operator's act
 PROGRESS_KINDS = ("attempt.done", "attempt.failed", "devices.", "operator.")

@@ -26,8 +26,8 @@ class AlertLog:
 
     def presence(self, note: Any) -> None:
         """On a live clock, a device that left the bus, and one that came back (its first arrival is no news): a
-        person may have a process to restart or a host to mend. In virtual time a crash is the model's, counted in
-        the summary."""
+        person may have a process to restart or a host to mend; and a device type usable again after it was said to
+        be unusable. In virtual time a crash is the model's, counted in the summary."""
         if self.virtual or note.device is None:
             return
         if note.kind == "device.lost":
@@ -36,6 +36,9 @@ class AlertLog:
                         "running fails as lost and is retried as orchestrator.retry allows, and the device is given "
                         "work again once it is back (a `twin device serve` that ended must be started again; one "
                         "cut off by its router or network rejoins by itself)", note.device)
+        elif note.kind == "devices.available":  # said after devices.unavailable, which on a live clock is logged
+            log.warning("devices.available %s: one is usable again, and the work waiting for it goes on",
+                        note.device)
         elif note.kind == "device.online" and note.device in self._away:
             away = note.t_lab - self._away.pop(note.device)
             log.warning("device.online %s: back on the bus after %.0f lab-s away; it is given work again", note.device,
