@@ -13,6 +13,7 @@ from tests.conftest import qd_lab
 from tests.twin.test_device_process import free_port
 from tests.twin.test_distributed_lab import start
 from twin import DeviceActor, StepResult
+from twin.campaign.events import Note, alert_text
 from twin.campaign.journal_read import read_events
 from twin.core.bus import open_bus
 from twin.runtime.lab import make_clock, prepare, run_async
@@ -63,7 +64,7 @@ def test_each_external_device_that_joins_is_asked_once_and_one_served_alike_is_n
         bus = open_bus("memory", virtual_clock)
         await bus.start()
         check = ServedCheck(bus, lab, virtual_clock, {"spectrometer-1", "spectrometer-2"},
-                            lambda device, detail: told.append((device, detail))).start()
+                            lambda kind, device, detail: told.append((kind, device, detail))).start()
         actors = [DeviceActor("spectrometer-1", theirs.devices["spectrometer"], Reader(), bus, virtual_clock, lab.lab,
                               0, served_as=served_as(theirs, "spectrometer")),
                   DeviceActor("spectrometer-2", lab.devices["spectrometer"], Reader(), bus, virtual_clock, lab.lab, 0,
@@ -82,8 +83,38 @@ def test_each_external_device_that_joins_is_asked_once_and_one_served_alike_is_n
         await bus.close()
 
     virtual_clock.run(main())
-    assert told == [("spectrometer-1", {"type": "spectrometer", "more": 0, "differences": [
+    assert told == [("device.mismatch", "spectrometer-1", {"type": "spectrometer", "more": 0, "differences": [
         "devices.spectrometer.duration.mean_s: 600.0 there, 60.0 here"]})]
+
+
+def test_a_device_missing_here_and_on_the_bus_as_another_labs_is_named_when_the_lab_starts(virtual_clock):
+    """A device served with a copy of the lab file whose `lab:` differs joins that lab: the lab only said it was
+    missing. Another lab's device of the same name is no news while this lab's is here too."""
+    lab = parse(qd_lab(**{"devices.spectrometer.instances": 3}))
+    told: list = []
+
+    async def main():
+        bus = open_bus("memory", virtual_clock)
+        await bus.start()
+        check = ServedCheck(bus, lab, virtual_clock, {"spectrometer-1", "spectrometer-2", "spectrometer-3"},
+                            lambda kind, device, detail: told.append((kind, device, detail)), 100.0).start()
+        spec = lab.devices["spectrometer"]
+        actors = [DeviceActor("spectrometer-1", spec, Reader(), bus, virtual_clock, "t2", 0),  # the other lab's
+                  DeviceActor("spectrometer-2", spec, Reader(), bus, virtual_clock, "t2", 0),
+                  DeviceActor("spectrometer-2", spec, Reader(), bus, virtual_clock, lab.lab, 0)]  # and this one's
+        for a in actors:
+            await a.start()
+        await virtual_clock.sleep(200)
+        for a in actors:
+            await a.stop()
+        check.close()
+        await bus.close()
+
+    virtual_clock.run(main())
+    assert told == [("device.elsewhere", "spectrometer-1", {"labs": ["t2"], "lab": "t"})]
+    said = alert_text(Note(100.0, "device.elsewhere", device="spectrometer-1", detail=told[0][2]))
+    assert said.startswith("device.elsewhere spectrometer-1: not on the bus as a device of lab 't', but on it as a "
+                           "device of lab 't2'")
 
 
 @pytest.mark.process

@@ -38,7 +38,8 @@ class Code(StrEnum):
 #: Notes a runtime also logs as warnings (``alert_text``), on the ``ALERT_LOGGER`` logger: the lab cannot go on as
 #: it is, or a device sends what the campaign cannot use.
 ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "device.stuck", "device.refusing",
-                    "output.unscored", "scheduler.stalled", "consumable.depleted", "device.mismatch"})
+                    "output.unscored", "scheduler.stalled", "consumable.depleted", "device.mismatch",
+                    "device.elsewhere"})
 ALERT_LOGGER = "twin.alerts"
 #: notes a runtime on a live clock also logs (``AlertLog.presence``): a device gone from the bus, and back; a
 #: device type said unusable (``devices.unavailable``) usable again
@@ -280,6 +281,11 @@ def _alert_words(n: Note) -> str:
         return (f"served by a process whose scenario differs from this lab's: {found}. The lab expects its steps, "
                 f"and sets their deadlines, by this lab's file, and the device runs them by its own: serve it from the "
                 f"same file (`twin device serve LAB.yaml --id {n.device}`)")
+    if n.kind == "device.elsewhere" and isinstance(d, dict):
+        labs = ", ".join(repr(lab) for lab in d.get("labs", ()))
+        return (f"not on the bus as a device of lab {d.get('lab')!r}, but on it as a device of lab {labs}: its process "
+                f"was given another lab file (its `lab:` field) or --set lab=…; serve it with this lab's file "
+                f"(`twin device serve LAB.yaml --id {n.device}`)")
     if n.kind == "device.flapping" and isinstance(d, dict):
         return (f"left the bus again within {d.get('within_s', 0):g} lab-s of its last loss (a bad link, or another "
                 f"process announcing its name); its running step keeps its deadline")

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
 import itertools
 import logging
 import os
@@ -371,9 +370,9 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
             camp.never_started(str(exc))
             raise
         if external_devices:
-            mismatch = functools.partial(camp.note, "device.mismatch")
             stack.callback(ServedCheck(bus, s, clock, external_devices,
-                                       lambda device, detail: mismatch(detail, device)).start().close)
+                                       lambda kind, device, detail: camp.note(kind, detail, device),
+                                       s.orchestrator.startup_s).start().close)
         if handle_signals:
             stack.enter_context(stop_on_loop_signals(camp.stop))
         if observer is not None and not clock.is_virtual:

@@ -4,7 +4,8 @@ A served device reads its own copy of the scenario: its durations, faults, optio
 chemistry it measures come from there, while the lab plans and sets each step's deadline by its own copy. Copies
 that drifted apart (the lab's file edited on one host, not the other) give steps that time out attempt after
 attempt, or results from another model, with nothing to say why. So each device reports, in its health answer, the
-parts of its scenario it runs by; the lab asks every external device that joins and names what differs.
+parts of its scenario it runs by; the lab asks every external device that joins and names what differs. And a
+device served with another lab file's ``lab`` joins that lab, not this one: the lab names it if it sees it there.
 """
 
 from __future__ import annotations
@@ -70,35 +71,58 @@ def _shown(value: Any) -> str:
 
 
 class ServedCheck:
-    """Asks each of ``external`` devices, as it joins the bus, how it is served; ``report(device, detail)`` is told
-    of one that runs by another scenario (``detail``: its type and the differences)."""
+    """Asks each of ``external`` devices, as it joins the bus, how it is served, and ``report(kind, device,
+    detail)`` tells of one that runs by another scenario (``device.mismatch``; ``detail``: its type and the
+    differences) and, ``missing_after_s`` lab seconds after the start, of one still not on this lab's bus that is on
+    another lab's (``device.elsewhere``: served with another lab file's ``lab``)."""
 
     def __init__(self, bus: Bus, s: Scenario, clock: LabClock, external: Collection[str],
-                 report: Callable[[str, dict[str, Any]], None]) -> None:
+                 report: Callable[[str, str, dict[str, Any]], None], missing_after_s: float | None = None) -> None:
         self._bus, self._s, self._clock, self._report = bus, s, clock, report
         self._type = {name: dtype for dtype in s.devices for name in s.instance_names(dtype) if name in external}
         self._ours = {dtype: served_as(s, dtype) for dtype in set(self._type.values())}
         self._told: set[str] = set()
         self._asking: set[asyncio.Task] = set()
+        self._here: set[str] = set()
+        self._there: dict[str, set[str]] = {}  # a device -> the other labs it is on the bus as a device of
+        self._missing_after_s = missing_after_s
 
     def start(self) -> Closable:
-        watch = self._bus.watch_tokens(keys.alive(self._s.lab), self._on_presence)
+        # this lab's tokens on a watch of their own: a secure router lets the lab see no other lab's
+        handles: list[Any] = [self._bus.watch_tokens(keys.alive(self._s.lab), self._on_presence),
+                              self._bus.watch_tokens(keys.alive("*"), self._on_any_lab)]
+        if self._missing_after_s is not None:
+            handles.append(self._clock.call_later(self._missing_after_s, self._elsewhere))
         outer = self
 
         class Stop:
             def close(self) -> None:
-                watch.close()
+                for h in handles:
+                    getattr(h, "close", getattr(h, "cancel", None))()
                 for task in outer._asking:
                     task.cancel()
 
         return Stop()
 
+    def _on_any_lab(self, key: str, alive: bool) -> None:
+        device, lab = keys.device_of(key), key.split("/")[1]
+        if device in self._type and lab != self._s.lab:
+            (self._there.setdefault(device, set()).add if alive else self._there.get(device, set()).discard)(lab)
+
     def _on_presence(self, key: str, alive: bool) -> None:
         device = keys.device_of(key)
-        if alive and device in self._type and device not in self._told:
+        if device not in self._type:
+            return
+        (self._here.add if alive else self._here.discard)(device)
+        if alive and device not in self._told:
             task = asyncio.get_running_loop().create_task(self._ask(device))
             self._asking.add(task)
             task.add_done_callback(self._asking.discard)
+
+    def _elsewhere(self) -> None:
+        for device in sorted(self._type):
+            if device not in self._here and self._there.get(device):
+                self._report("device.elsewhere", device, {"labs": sorted(self._there[device]), "lab": self._s.lab})
 
     async def _ask(self, device: str) -> None:
         try:
@@ -114,4 +138,5 @@ class ServedCheck:
         found = differences(self._ours[dtype], theirs, dtype)
         if found:
             self._told.add(device)
-            self._report(device, {"type": dtype, "differences": found[:SHOWN], "more": max(0, len(found) - SHOWN)})
+            self._report("device.mismatch", device,
+                         {"type": dtype, "differences": found[:SHOWN], "more": max(0, len(found) - SHOWN)})

@@ -343,11 +343,11 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
             raise
         served = serving if serving is not None else external
         if served:  # a lab's device is every campaign's: said in the log, not in one campaign's journal
-            def mismatch(device: str, detail: dict[str, Any]) -> None:
-                note = Note(clock.now(), "device.mismatch", device=device, detail=detail)
-                logging.getLogger(ALERT_LOGGER).warning("%s", alert_text(note))
+            def said(kind: str, device: str, detail: dict[str, Any]) -> None:
+                logging.getLogger(ALERT_LOGGER).warning("%s", alert_text(Note(clock.now(), kind, device=device,
+                                                                              detail=detail)))
 
-            stack.callback(ServedCheck(bus, s, clock, served, mismatch).start().close)
+            stack.callback(ServedCheck(bus, s, clock, served, said, s.orchestrator.startup_s).start().close)
         if handle_signals:
             stack.enter_context(stop_on_loop_signals(lab.stop))
         if on_start is not None:

@@ -24,7 +24,8 @@ WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.inva
               "device.flapping", "devices.unavailable", "devices.missing", "campaign.stopping", "attempt.cancelled",
               "operator.pause", "operator.abort", "operator.stop", "operator.refused", "question.asked",
               "question.withdrawn", "consumable.low", "output.unscored", "planner.invalid", "device.clock_off",
-              "scheduler.stalled", "device.refusing", "device.mismatch"}
+              "scheduler.stalled", "device.refusing", "device.mismatch",
+              "device.elsewhere"}
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.stuck", "device.lost", "experiment.abandoned",
                "consumable.depleted", "planner.failed"}
 log = logging.getLogger(__name__)
