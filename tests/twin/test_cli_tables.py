@@ -55,9 +55,12 @@ def test_a_health_answer_of_any_shape_is_shown_not_fatal(capsys):
     assert reports[1] == {"driver": [1, 2]} and reports[4] == {"driver": "ok"}
     assert reports[2]["driver"]["ok"] is False and "not JSON" in reports[2]["driver"]["error"]
     render_health([{"device": f"dev[{i}]", "report": r} for i, r in enumerate(reports)]
-                  + [{"device": "gone", "report": None}])
+                  + [{"device": "gone", "report": None},
+                     {"device": "edited", "report": reports[0], "differs": ["devices.x.setup_s: 9 there, 0 here"]}])
     out = capsys.readouterr().out
     assert "e1s2#1" in out and "[bold]fine[/bold]" in out and "dev[4]" in out and "not JSON" in out
+    assert "edited runs by a scenario that differs from this file: devices.x.setup_s: 9 there, 0 here" in \
+        " ".join(out.split())  # wrapped at the terminal's width
 
 
 def test_a_narrow_table_keeps_numbers_whole_and_fits_80_columns(monkeypatch):

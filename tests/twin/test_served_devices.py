@@ -17,6 +17,7 @@ from twin.campaign.events import Note, alert_text
 from twin.campaign.journal_read import read_events
 from twin.core.bus import open_bus
 from twin.runtime.lab import make_clock, prepare, run_async
+from twin.runtime.serve import health
 from twin.runtime.served_devices import ServedCheck, differences, served_as
 from twin.scenario import parse
 
@@ -136,6 +137,7 @@ def test_a_device_served_from_an_edited_copy_of_the_lab_file_is_named_when_it_jo
     try:
         with caplog.at_level(logging.WARNING, logger="twin.alerts"):
             summary = clock.run(run_async(s, clock, tmp_path / "j.db", {"spectrometer"}))
+        (asked,) = health(path, ["spectrometer"], [router])  # `twin device health lab.yaml` says so too
     finally:
         for p in procs:
             p.kill()
@@ -144,6 +146,7 @@ def test_a_device_served_from_an_edited_copy_of_the_lab_file_is_named_when_it_jo
     (event,) = read_events(tmp_path / "j.db", "device.mismatch")
     assert event["device"] == "spectrometer"
     assert json.loads(event["detail"])["differences"] == ["devices.spectrometer.duration.mean_s: 90.0 there, 60.0 here"]
+    assert asked["differs"] == ["devices.spectrometer.duration.mean_s: 90.0 there, 60.0 here"]
     said = [r.getMessage() for r in caplog.records if r.name == "twin.alerts"]
     assert any(m.startswith("device.mismatch spectrometer: served by a process whose scenario differs") and
                "twin device serve LAB.yaml --id spectrometer" in m for m in said), said

@@ -143,7 +143,9 @@ def show_health(answers: list[dict], as_json: bool = False, csv_out: Path | None
         err.print(f"wrote {csv_out} ({len(answers)} devices)", highlight=False)
     if as_json:
         console.print_json(json.dumps({"devices": [{"device": a["device"], "answered": a["report"] is not None,
-                                                    "report": a["report"]} for a in answers]}, default=str))
+                                                    "report": a["report"],
+                                                    **({"differs": a["differs"]} if "differs" in a else {})}
+                                                   for a in answers]}, default=str))
     else:
         render_health(answers)
     if any(a["report"] is None for a in answers):
@@ -168,6 +170,10 @@ def render_health(answers: list[dict]) -> None:
         shown = Text(printable(str(driver)[:60]), style="red" if ok is False else "")
         table.add_row(a["device"], "yes", running, str(r.get("dropped", ""))[:12], shown)
     console.print(table)
+    for a in answers:
+        if a.get("differs"):
+            console.print(Text(printable(f"{a['device']} runs by a scenario that differs from this file: "
+                                         f"{'; '.join(a['differs'])} (serve it from this file)"), style="yellow"))
 
 
 @driver_app.command("new")
