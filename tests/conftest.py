@@ -77,14 +77,15 @@ def qd_lab(**changes) -> dict:
     return raw
 
 
-def twin_cli(*args, columns: int = 200):
+def twin_cli(*args, columns: int = 200, input: str | None = None):
     """`twin ARGS` run in this process (typer's CliRunner): its exit code, stdout and stderr, without a new
-    interpreter importing it all again. An uncaught exception, a traceback in a real process, fails the test."""
+    interpreter importing it all again. An uncaught exception, a traceback in a real process, fails the test.
+    ``input``: its standard input."""
     from typer.testing import CliRunner
 
     from twin.cli import app
 
-    res = CliRunner().invoke(app, [str(a) for a in args], env={"COLUMNS": str(columns)})
+    res = CliRunner().invoke(app, [str(a) for a in args], input=input, env={"COLUMNS": str(columns)})
     if res.exception is not None and not isinstance(res.exception, SystemExit):
         res.exception.add_note(f"`twin {' '.join(map(str, args))}` printed before it:\n{res.output[-2000:]}")
         raise res.exception

@@ -27,11 +27,11 @@ def test_run_prints_the_summary_and_report_prints_it_again(tmp_path):
     for words in ("experiments", "6 done", "spectrometer", "% busy", "target R", str(db)):
         assert words in res.stdout
     assert "6/6" in res.stderr  # the progress bar reached the budget
-    again = subprocess.run([*TWIN, "report", str(db)], capture_output=True, text=True, cwd=ROOT, timeout=60)
-    assert again.returncode == 0
+    again = twin_cli("report", db, columns=80)  # in this process: the run's own interpreter was the check above
+    assert again.exit_code == 0
     assert again.stdout.split("journal")[0] == res.stdout.split("journal")[0]
     moved = db.rename(tmp_path / "kept.db")  # the report names the file it read, not where the run wrote it
-    again = subprocess.run([*TWIN, "report", str(moved)], capture_output=True, text=True, cwd=ROOT, timeout=60)
+    again = twin_cli("report", moved, columns=80)
     assert f"journal: {moved}  (twin report {moved})" in again.stdout and str(db) not in again.stdout
 
 

@@ -60,7 +60,7 @@ def _killed_at(s, db, row, flush_every):
     run(s, journal=db)
 
 
-@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=7, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(name=st.sampled_from(sorted(CAMPAIGNS)), seed=st.integers(0, 3), at=st.floats(0.0, 1.0),
        flush_every=st.integers(5, 400))
 def test_killed_anywhere_and_resumed_the_journal_is_the_unkilled_one(tmp_path_factory, name, seed, at, flush_every):

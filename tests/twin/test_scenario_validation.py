@@ -295,24 +295,23 @@ def test_a_json_schema_validator_takes_every_shipped_scenario_by_twin_schema_and
                                                                    ("campaign", "budget")}
 
 
-def test_a_scenario_given_as_dash_is_read_from_standard_input_and_its_paths_from_the_current_directory(tmp_path):
+def test_a_scenario_given_as_dash_is_read_from_standard_input_and_its_paths_from_the_current_directory(
+        tmp_path, monkeypatch):
     """`cat lab.yaml | twin run -` said "-: file not found"."""
-    def twin(*args, text, cwd=ROOT):
-        return subprocess.run([sys.executable, "-m", "twin", *args], input=text, capture_output=True, text=True,
-                              timeout=120, cwd=cwd)
-
-    ok = twin("validate", "-", text=(ROOT / "scenarios" / "quantum_dots.yaml").read_text())
-    assert ok.returncode == 0 and ok.stdout.startswith("✓ -"), ok.stdout + ok.stderr
-    bad = twin("validate", "-", text="lab: x\n")
-    assert bad.returncode == 2 and "-: 1 problem(s)" in bad.stderr and "name: required field is missing" in bad.stderr
-    shop = twin("run", "-", "--bus", "memory", "--json", "--journal", str(tmp_path / "j.db"),
-                text=(ROOT / "scenarios" / "jobshop.yaml").read_text(), cwd=ROOT / "scenarios")  # jobshop/ft06.txt
-    assert shop.returncode == 0, shop.stderr
+    monkeypatch.chdir(ROOT)
+    ok = twin_cli("validate", "-", input=(ROOT / "scenarios" / "quantum_dots.yaml").read_text())
+    assert ok.exit_code == 0 and ok.stdout.startswith("✓ -"), ok.stdout + ok.stderr
+    bad = twin_cli("validate", "-", input="lab: x\n")
+    assert bad.exit_code == 2 and "-: 1 problem(s)" in bad.stderr and "name: required field is missing" in bad.stderr
+    monkeypatch.chdir(ROOT / "scenarios")  # jobshop/ft06.txt
+    shop = twin_cli("run", "-", "--bus", "memory", "--json", "--journal", str(tmp_path / "j.db"),
+                    input=(ROOT / "scenarios" / "jobshop.yaml").read_text())
+    assert shop.exit_code == 0, shop.stderr
     assert json.loads(shop.stdout)["scenario"] == "jobshop_ft06"
     # a bench loads its scenario once per shop: the second load read an empty stream ("-: 1 problem(s)")
-    shops = twin("bench", "schedulers", "-", "--jobshop", "jobshop/ft06.txt,jobshop/la01.txt", "--schedulers", "mwkr",
-                 "--json", text=(ROOT / "scenarios" / "jobshop.yaml").read_text(), cwd=ROOT / "scenarios")
-    assert shops.returncode == 0, shops.stderr
+    shops = twin_cli("bench", "schedulers", "-", "--jobshop", "jobshop/ft06.txt,jobshop/la01.txt", "--schedulers",
+                     "mwkr", "--json", input=(ROOT / "scenarios" / "jobshop.yaml").read_text())
+    assert shops.exit_code == 0, shops.stderr
     assert [t["lab"] for t in json.loads(shops.stdout)["labs"]] == ["ft06", "la01"]
 
 
