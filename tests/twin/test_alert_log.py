@@ -7,7 +7,10 @@ from pathlib import Path
 from twin.campaign.events import Note
 from twin.campaign.journal_read import read_events
 from twin.runtime.alert_log import IN_FULL, AlertLog
-from twin.runtime.lab import run
+from twin.runtime.lab import make_clock, run, run_async
+from twin.scenario import parse
+
+from tests.conftest import qd_lab
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -58,3 +61,30 @@ def test_on_a_live_clock_a_device_type_said_unusable_is_said_usable_again(caplog
             log.presence(Note(500.0, "devices.available", device="spectrometer", detail={"type": "spectrometer"}))
     said = [r.getMessage() for r in caplog.records]
     assert said == ["devices.available spectrometer: one is usable again, and the work waiting for it goes on"]
+
+
+def test_on_a_live_clock_a_device_whose_type_simulates_crashes_is_said_to_have_crashed(caplog):
+    """flaky_lab on a scaled clock said of each simulated crash that a `twin device serve` may need starting again."""
+    with caplog.at_level(logging.WARNING, logger="twin.alerts"):
+        log = AlertLog(virtual=False, crashing={"reactor-1": ("reactor", 3600.0)})
+        log.presence(Note(100.0, "device.lost", device="reactor-1"))
+        log.presence(Note(3700.0, "device.online", device="reactor-1"))
+    said = [r.getMessage() for r in caplog.records]
+    assert said[0].startswith("device.lost reactor-1: crashed, as devices.reactor.faults.mtbc_h simulates (back after "
+                              "faults.restart_s, 3600 lab-s)") and "twin device serve" not in said[0]
+    assert said[1] == "device.online reactor-1: back on the bus after 3600 lab-s away; it is given work again"
+
+
+def test_a_simulated_crash_on_a_scaled_clock_is_said_as_one_and_counted_as_one(tmp_path, caplog):
+    s = parse(qd_lab(**{"devices.synthesiser.faults": {"mtbc_h": 0.05, "restart_s": 100},
+                        "clock": {"mode": "scaled", "speed": 2000.0}}))
+    clock = make_clock(s)
+    with caplog.at_level(logging.WARNING, logger="twin.alerts"):
+        summary = clock.run(run_async(s, clock, tmp_path / "j.db"))
+    lost = [r.getMessage() for r in caplog.records if r.getMessage().startswith("device.lost")]
+    assert summary.devices_lost and len(lost) == len(read_events(tmp_path / "j.db", "device.lost"))
+    # each a loss: the memory bus has no links to flap (at 2000x a lease is 2,000 lab-s, and crashes 100 lab-s
+    # apart were taken for flaps, their steps left to time out)
+    assert summary.devices_lost == len(lost) and not read_events(tmp_path / "j.db", "device.flapping")
+    assert all(m.startswith("device.lost synthesiser: crashed, as devices.synthesiser.faults.mtbc_h simulates")
+               for m in lost), lost

@@ -242,7 +242,7 @@ def test_a_device_cannot_hand_back_another_experiments_sample(scenario_of):
 
 
 def test_presence_that_flaps_within_a_lease_does_not_fail_a_second_attempt(scenario_of):
-    core, _ = running_step(scenario_of)
+    core, _ = running_step(lambda **changes: scenario_of(**changes, bus={"kind": "zenoh"}))
     core.feed(Presence("synthesiser", False))
     out = core.advance(10.0)
     assert notes(out, "device.lost") and notes(out, "attempt.failed")  # the first loss counts

@@ -51,7 +51,9 @@ class CampaignCore:
         the dead one's, so that its devices' answers still count). Tokens never enter the journal's events."""
         self.s, self.campaign_id = scenario, campaign_id
         self.secret = secret if secret is not None else secrets.token_bytes(32)
-        self._flap_s = scenario.bus.lease_ms / 1000 * (scenario.clock.speed if scenario.clock.mode == "scaled" else 1)
+        # a device lost again within a lease is a bad link or an impostor's token; the memory bus has neither
+        self._flap_s = 0.0 if scenario.bus.kind == "memory" else \
+            scenario.bus.lease_ms / 1000 * (scenario.clock.speed if scenario.clock.mode == "scaled" else 1)
         self.seed = scenario.campaign.seed
         self.devices = {
             name: Device(name, dtype) for dtype in scenario.devices for name in scenario.instance_names(dtype)

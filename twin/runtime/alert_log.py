@@ -19,8 +19,11 @@ IN_FULL = 3
 
 
 class AlertLog:
-    def __init__(self, virtual: bool = True) -> None:
+    def __init__(self, virtual: bool = True, crashing: dict[str, tuple[str, float]] | None = None) -> None:
+        """``crashing``: the devices whose type simulates crashes (``faults.mtbc_h``) -> (type, ``faults.restart_s``):
+        one of them gone from the bus is said as the crash it most likely is."""
         self.virtual = virtual
+        self.crashing = crashing or {}
         self._said: Counter[tuple[str, Any, Any]] = Counter()
         self._away: dict[str, float] = {}  # devices that left the bus: when
 
@@ -32,6 +35,12 @@ class AlertLog:
             return
         if note.kind == "device.lost":
             self._away[note.device] = note.t_lab
+            if note.device in self.crashing:
+                dtype, restart_s = self.crashing[note.device]
+                log.warning("device.lost %s: crashed, as devices.%s.faults.mtbc_h simulates (back after "
+                            "faults.restart_s, %g lab-s), or its process or link is down; a step it was running fails "
+                            "as lost and is retried as orchestrator.retry allows", note.device, dtype, restart_s)
+                return
             log.warning("device.lost %s: left the bus (its process ended, or its host or link is down); a step it was "
                         "running fails as lost and is retried as orchestrator.retry allows, and the device is given "
                         "work again once it is back (a `twin device serve` that ended must be started again; one "
