@@ -226,3 +226,13 @@ def test_a_bench_refuses_a_set_of_the_field_it_compares_or_of_the_budget_its_opt
         assert res.exit_code == 2 and f"--set {field}: this bench runs each of {option} in its place" in said, said
         budget = twin_cli("bench", *args, "--set", "campaign.budget=5", "--budget", "6", "--seeds", "2")
         assert budget.exit_code == 2 and "--budget 6 and --set campaign.budget=5 disagree" in budget.output
+
+
+def test_twin_lab_serve_takes_security_and_insecure_as_twin_run_does(tmp_path):
+    """A secure shared lab: `twin lab serve` had no --security, and its refusal to listen beyond loopback told it to
+    "pass --security DIR … or pass --insecure", neither of which it took."""
+    lab = str(ROOT / "scenarios" / "shared_lab.yaml")
+    res = twin_cli("lab", "serve", lab, "--connect", "tls/127.0.0.1:1", "--security", tmp_path / "nosuch")
+    assert res.exit_code == 2 and f"{tmp_path / 'nosuch'} is not a lab security directory" in res.stderr, res.output
+    exposed = twin_cli("lab", "serve", lab, "--listen", "tcp/0.0.0.0:1")
+    assert exposed.exit_code == 2 and "pass --security DIR" in " ".join(exposed.stderr.split()), exposed.output

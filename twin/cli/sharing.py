@@ -91,6 +91,9 @@ def lab_serve(
                                                              "tcp/127.0.0.1:7447")] = None,
     connect: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT",
                                                          help="the lab's router, e.g. tls/127.0.0.1:7447")] = None,
+    security: Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
+                                                          "join the router with the orchestrator's certificate")] = None,
+    insecure: Annotated[bool, typer.Option(help="allow --listen beyond loopback without security")] = False,
     clock: Annotated[str, typer.Option(help="scaled | wall")] = "scaled",
     speed: Annotated[Optional[float], typer.Option(help="lab seconds per wall second (scaled clock)")] = None,
     journal: Annotated[Optional[Path], typer.Option(help="the directory of the campaigns' journals")] = None,
@@ -114,6 +117,10 @@ def lab_serve(
         overrides["bus.listen"] = list(listen)
     if connect:
         overrides["bus.connect"] = list(connect)
+    if security:
+        overrides["bus.security"] = str(security.resolve())
+    if insecure:
+        overrides["bus.insecure"] = True
     try:
         s = lab.prepare(lab_file, clock=clock, speed=speed, bus="zenoh", overrides=overrides, lab_only=True)
         speed_heeded(speed, s.clock.mode)
