@@ -1,7 +1,6 @@
 """Whom a secure router admits: the devices its security directory named when it started, and what is said of the
 others — by the router when `twin security init` adds one while it runs, and by a lab told to wait for one."""
 
-import json
 import subprocess
 import sys
 import time
@@ -9,11 +8,11 @@ from pathlib import Path
 
 import pytest
 import yaml
-import zenoh
 
 from tests.conftest import qd_lab
 from tests.twin.shared_labs import lines_until
 from tests.twin.test_device_process import free_port
+from tests.twin.test_security import session
 from twin.core import keys
 from twin.core.bus.router import AdmittedDevices
 from twin.core.bus.security import Identity, session_config
@@ -51,16 +50,6 @@ def test_a_lab_refuses_to_wait_for_an_external_device_its_router_would_not_admit
         refuse_external(s, {"synthesiser", "spectrometer-1", "spectrometer-2"})
 
 
-def _session(endpoint: str, root: Path, who: Identity) -> zenoh.Session:
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"client"')
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    for path, value in session_config(root, who).items():
-        cfg.insert_json5(path, json.dumps(value))
-    return zenoh.open(cfg)
-
-
 @pytest.mark.process
 def test_a_running_router_names_a_device_added_since_it_started_and_admits_it_only_once_restarted(tmp_path):
     init(tmp_path, LAB, ["synthesiser"])
@@ -92,8 +81,8 @@ def test_a_running_router_names_a_device_added_since_it_started_and_admits_it_on
 def _heard(endpoint: str, root: Path) -> bool:
     """Whether the lab's orchestrator hears an event the spectrometer puts on its own key through the router."""
     heard: list[bytes] = []
-    lab = _session(endpoint, root, Identity("orchestrator", LAB))
-    device = _session(endpoint, root, Identity("device", LAB, "spectrometer"))
+    lab = session(endpoint, session_config(root, Identity("orchestrator", LAB)))
+    device = session(endpoint, session_config(root, Identity("device", LAB, "spectrometer")))
     try:
         sub = lab.declare_subscriber(keys.evt(LAB, "spectrometer"), lambda sample: heard.append(sample.payload.to_bytes()))
         deadline = time.monotonic() + 3.0
