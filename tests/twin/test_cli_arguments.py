@@ -228,11 +228,13 @@ def test_a_bench_refuses_a_set_of_the_field_it_compares_or_of_the_budget_its_opt
         assert budget.exit_code == 2 and "--budget 6 and --set campaign.budget=5 disagree" in budget.output
 
 
-def test_twin_lab_serve_takes_security_and_insecure_as_twin_run_does(tmp_path):
+def test_twin_lab_serve_takes_security_and_insecure_as_twin_run_does(tmp_path, monkeypatch):
     """A secure shared lab: `twin lab serve` had no --security, and its refusal to listen beyond loopback told it to
     "pass --security DIR … or pass --insecure", neither of which it took."""
     lab = str(ROOT / "scenarios" / "shared_lab.yaml")
+    monkeypatch.chdir(tmp_path)
     res = twin_cli("lab", "serve", lab, "--connect", "tls/127.0.0.1:1", "--security", tmp_path / "nosuch")
     assert res.exit_code == 2 and f"{tmp_path / 'nosuch'} is not a lab security directory" in res.stderr, res.output
+    assert not any((tmp_path / "runs").iterdir())  # the journals' directory it claimed, given back
     exposed = twin_cli("lab", "serve", lab, "--listen", "tcp/0.0.0.0:1")
     assert exposed.exit_code == 2 and "pass --security DIR" in " ".join(exposed.stderr.split()), exposed.output

@@ -63,6 +63,19 @@ def default_journals(s: Scenario) -> Path:
     return claim(_default_stem(s), "", os.mkdir)
 
 
+@contextlib.contextmanager
+def given_back(journals: Path, claimed: bool) -> Iterator[None]:
+    """A lab's journals' directory, claimed for it (``default_journals``), given back if the lab fails before it
+    wrote anything there: a lab refused at its start left an empty ``runs/<lab>-seed0-<time>/`` behind."""
+    try:
+        yield
+    except BaseException:
+        if claimed:
+            with contextlib.suppress(OSError):  # not empty: a journal in it, kept
+                journals.rmdir()
+        raise
+
+
 def _default_stem(s: Scenario) -> Path:
     return Path("runs") / f"{s.name}-seed{s.campaign.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 

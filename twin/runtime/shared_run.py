@@ -23,8 +23,8 @@ from twin.campaign.lab_replay import RebuiltLab
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_driver,
                                    load_drivers, make_bus, make_clock, make_planner, make_scheduler)
 from twin.runtime.lab import (FALLBACK_LOGGER, JournalFactory, check_runtime, default_journals, finish, flush_live,
-                              noted, open_journal, prepare, refuse_external, refuse_realtime, stop_on_loop_signals,
-                              stop_on_signals)
+                              given_back, noted, open_journal, prepare, refuse_external, refuse_realtime,
+                              stop_on_loop_signals, stop_on_signals)
 from twin.runtime.checks import check_campaign
 from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.labtime import LabTimeSource
@@ -73,6 +73,14 @@ def run_shared(s: Scenario, journals: str | Path | None = None, handle_signals: 
         _refuse_agents(scenarios)
     one = _lab_scheduler(s)  # a policy that does not fit the lab is said before a journal is made
     where = Path(journals) if journals is not None else default_journals(s)
+    with given_back(where, journals is None):
+        return _run_shared(s, scenarios, where, wall0, handle_signals, external_devices, observer, make_journal,
+                           runtime, reopen, one)
+
+
+def _run_shared(s: Scenario, scenarios: dict[str, Scenario], where: Path, wall0: float, handle_signals: bool,
+                external_devices: Collection[str], observer: SharedLabObserver | None, make_journal: JournalFactory,
+                runtime: str, reopen: Callable[[], SharedLabObserver] | None, one: Any) -> LabSummary:
 
     def lab_drivers() -> tuple[list, dict]:
         """The lab's drivers, made afresh."""
@@ -146,8 +154,9 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
         return {name: _parts(cs, where / f"{name}.db", external_devices, s) for name, cs in scenarios.items()}
 
     clock = make_clock(s)
-    return clock.run(_live(s, clock, scenarios, drivers, per_device, campaign_parts, where, wall0, handle_signals,
-                           serving=external_devices, on_start=on_start, trust_modules=trust_modules))
+    with given_back(where, journals is None):
+        return clock.run(_live(s, clock, scenarios, drivers, per_device, campaign_parts, where, wall0, handle_signals,
+                               serving=external_devices, on_start=on_start, trust_modules=trust_modules))
 
 
 def _standby_drivers(s: Scenario, skip: Collection[str]) -> list[tuple[str, str, Any]]:
