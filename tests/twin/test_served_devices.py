@@ -48,6 +48,11 @@ def test_differences_name_the_fields_and_a_files_folder_is_not_one():
     assert differences(served_as(lab, "spectrometer"), served_as(lab, "spectrometer"), "spectrometer") == []
     # a device of another make reports no scenario: nothing to compare
     assert differences(served_as(lab, "spectrometer"), {}, "spectrometer") == []
+    # a real instrument's options name what its host reaches it by (a broker, a port): not compared
+    instrument = served_as(theirs, "spectrometer", instrument=True)
+    assert "options" not in instrument["device_type"]
+    assert not any(".options." in line for line in differences(served_as(lab, "spectrometer"), instrument,
+                                                                  "spectrometer"))
 
 
 def test_a_lab_of_several_campaigns_compares_the_devices_alone():

@@ -222,7 +222,7 @@ def build_actors(s: Scenario, drivers: list[tuple[str, str, Any]], bus: Bus, clo
     """``per_campaign``: a lab of several campaigns — each instance's driver for each campaign's chemistry."""
     return [DeviceActor(name, s.devices[dtype], drv, bus, clock, s.lab, s.campaign.seed, s.orchestrator.orphan_grace_s,
                         (per_campaign or {}).get(name), stop_grace_s=s.orchestrator.cancel_grace_s,
-                        served_as=served_as(s, dtype))
+                        served_as=served_as(s, dtype, instrument=talks_to_instrument(drv)))
             for name, dtype, drv in drivers]
 
 

@@ -30,11 +30,13 @@ ASK_WALL_S = 5.0
 SHOWN = 6
 
 
-def served_as(s: Scenario, device_type: str) -> dict[str, Any]:
+def served_as(s: Scenario, device_type: str, instrument: bool = False) -> dict[str, Any]:
     """The parts of ``s`` a device of ``device_type`` runs by, as JSON: its device type's and (a lab of one
-    campaign, whose drivers simulate that campaign's chemistry) the chemistry's."""
+    campaign, whose drivers simulate that campaign's chemistry) the chemistry's. ``instrument``: its driver talks to
+    a real instrument, whose options (a broker, a port) name what this host reaches it by, and may differ from the
+    lab host's on purpose: they are left out, and so not compared."""
     spec = s.devices[device_type].model_dump(mode="json")
-    out: dict[str, Any] = {"device_type": {k: spec[k] for k in DEVICE_FIELDS}}
+    out: dict[str, Any] = {"device_type": {k: spec[k] for k in DEVICE_FIELDS if not (instrument and k == "options")}}
     if not s.campaigns:
         chemistry = s.chemistry.model_dump(mode="json")
         out["chemistry"] = {k: chemistry[k] for k in CHEMISTRY_FIELDS}
@@ -49,8 +51,9 @@ def differences(ours: dict[str, Any], theirs: dict[str, Any], device_type: str) 
     out: list[str] = []
     for part, name in prefix.items():
         if part in ours and isinstance(theirs.get(part), dict):
-            _compare(ours[part], theirs[part], name, out)
-    return out
+            for field in theirs[part].keys() & ours[part].keys():  # what the device left out is not compared
+                _compare(ours[part][field], theirs[part][field], f"{name}.{field}", out)
+    return sorted(out, key=lambda line: (not line.startswith("devices."), line))
 
 
 def _compare(ours: Any, theirs: Any, where: str, out: list[str]) -> None:
