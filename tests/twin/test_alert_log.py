@@ -60,7 +60,8 @@ def test_on_a_live_clock_a_device_type_said_unusable_is_said_usable_again(caplog
         for log in (AlertLog(virtual=False), AlertLog()):
             log.presence(Note(500.0, "devices.available", device="spectrometer", detail={"type": "spectrometer"}))
     said = [r.getMessage() for r in caplog.records]
-    assert said == ["devices.available spectrometer: one is usable again, and the work waiting for it goes on"]
+    assert said == ["devices.available spectrometer: one can take work again (back on the bus, or a quarantined one "
+                    "given a step to try it), and the work waiting for it goes on"]
 
 
 def test_on_a_live_clock_a_device_whose_type_simulates_crashes_is_said_to_have_crashed(caplog):

@@ -46,8 +46,8 @@ class AlertLog:
                         "work again once it is back (a `twin device serve` that ended must be started again; one "
                         "cut off by its router or network rejoins by itself)", note.device)
         elif note.kind == "devices.available":  # said after devices.unavailable, which on a live clock is logged
-            log.warning("devices.available %s: one is usable again, and the work waiting for it goes on",
-                        note.device)
+            log.warning("devices.available %s: one can take work again (back on the bus, or a quarantined one given "
+                        "a step to try it), and the work waiting for it goes on", note.device)
         elif note.kind == "device.online" and note.device in self._away:
             away = note.t_lab - self._away.pop(note.device)
             log.warning("device.online %s: back on the bus after %.0f lab-s away; it is given work again", note.device,
