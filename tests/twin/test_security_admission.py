@@ -84,7 +84,8 @@ def _heard(endpoint: str, root: Path) -> bool:
     lab = session(endpoint, session_config(root, Identity("orchestrator", LAB)))
     device = session(endpoint, session_config(root, Identity("device", LAB, "spectrometer")))
     try:
-        sub = lab.declare_subscriber(keys.evt(LAB, "spectrometer"), lambda sample: heard.append(sample.payload.to_bytes()))
+        sub = lab.declare_subscriber(keys.evt(LAB, "spectrometer"),
+                                     lambda sample: heard.append(sample.payload.to_bytes()))
         deadline = time.monotonic() + 3.0
         while not heard and time.monotonic() < deadline:
             device.put(keys.evt(LAB, "spectrometer"), b"{}")

@@ -91,8 +91,9 @@ def lab_serve(
                                                              "tcp/127.0.0.1:7447")] = None,
     connect: Annotated[Optional[list[str]], typer.Option(metavar="ENDPOINT",
                                                          help="the lab's router, e.g. tls/127.0.0.1:7447")] = None,
-    security: Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
-                                                          "join the router with the orchestrator's certificate")] = None,
+    security: Annotated[Optional[Path], typer.Option(
+        help="the lab's security directory (twin security init): join the router with the orchestrator's "
+             "certificate")] = None,
     insecure: Annotated[bool, typer.Option(help="allow --listen beyond loopback without security")] = False,
     clock: Annotated[str, typer.Option(help="scaled | wall")] = "scaled",
     speed: Annotated[Optional[float], typer.Option(help="lab seconds per wall second (scaled clock)")] = None,
