@@ -89,3 +89,14 @@ def test_a_simulated_crash_on_a_scaled_clock_is_said_as_one_and_counted_as_one(t
     assert summary.devices_lost == len(lost) and not read_events(tmp_path / "j.db", "device.flapping")
     assert all(m.startswith("device.lost synthesiser: crashed, as devices.synthesiser.faults.mtbc_h simulates")
                for m in lost), lost
+
+
+def test_on_a_live_clock_a_device_set_aside_for_failing_is_said(caplog):
+    """One of four reactors quarantined was said nowhere on a live clock (only all four out was): a person may have
+    it to mend."""
+    with caplog.at_level(logging.WARNING, logger="twin.alerts"):
+        for log in (AlertLog(virtual=False), AlertLog()):
+            log.presence(Note(100.0, "device.quarantined", device="reactor-2", detail={"probe_after_s": 3600.0}))
+    (said,) = [r.getMessage() for r in caplog.records]
+    assert said.startswith("device.quarantined reactor-2: set aside after failing step after step "
+                           "(orchestrator.quarantine_after)") and said.endswith("probe_after_s, 3600 lab-s")

@@ -41,9 +41,9 @@ ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping",
                     "output.unscored", "scheduler.stalled", "consumable.depleted", "device.mismatch",
                     "device.elsewhere"})
 ALERT_LOGGER = "twin.alerts"
-#: notes a runtime on a live clock also logs (``AlertLog.presence``): a device gone from the bus, and back; a
-#: device type said unusable (``devices.unavailable``) usable again
-PRESENCE = frozenset({"device.lost", "device.online", "devices.available"})
+#: notes a runtime on a live clock also logs (``AlertLog.presence``): a device gone from the bus, and back; one set
+#: aside for failing; a device type said unusable (``devices.unavailable``) usable again
+PRESENCE = frozenset({"device.lost", "device.online", "device.quarantined", "devices.available"})
 #: notes after which a runtime tells its ``on_progress`` (a progress line): work finished, a device type gone, an
 #: operator's act
 PROGRESS_KINDS = ("attempt.done", "attempt.failed", "devices.", "operator.")

@@ -45,6 +45,13 @@ class AlertLog:
                         "running fails as lost and is retried as orchestrator.retry allows, and the device is given "
                         "work again once it is back (a `twin device serve` that ended must be started again; one "
                         "cut off by its router or network rejoins by itself)", note.device)
+        elif note.kind == "device.quarantined":  # a person may have a device to mend
+            d = note.detail if isinstance(note.detail, dict) else {}
+            why = f" ({str(d['reason'])[:200]})" if d.get("reason") else ""
+            log.warning("device.quarantined %s: set aside after failing step after step%s (orchestrator."
+                        "quarantine_after); its steps go to the other instances of its type, if any, and it is given "
+                        "a step to try it after orchestrator.probe_after_s, %g lab-s", note.device, why,
+                        d.get("probe_after_s", 0))
         elif note.kind == "devices.available":  # said after devices.unavailable, which on a live clock is logged
             log.warning("devices.available %s: one can take work again (back on the bus, or a quarantined one given "
                         "a step to try it), and the work waiting for it goes on", note.device)
