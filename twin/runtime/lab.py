@@ -218,7 +218,7 @@ def refuse_external(s: Scenario, external_devices: Collection[str]) -> None:
 def _refuse_uncertified(s: Scenario, external_devices: Collection[str]) -> None:
     """A device the security directory has no certificate for is one the lab's router admits no process serving."""
     root = str(s.bus.security)
-    absent = sorted(set(external_devices) - set(security.manifest(root, s.lab).get("devices") or ()))
+    absent = sorted(set(external_devices) - security.devices_of(root, s.lab))
     if absent:
         them = "it" if len(absent) == 1 else "them"
         raise TwinError(f"--external {', '.join(absent)}: {root} has no certificate for {them}, so the lab's router "

@@ -24,7 +24,7 @@ from twin.core.bus.presence import labs_on, present
 from twin.runtime.labtime import LabTimeFollower
 from twin.runtime.assembly import untaken_option
 from twin.runtime.lab_claim import refuse_if_taken
-from twin.runtime.served_devices import differences, served_as
+from twin.runtime.served_devices import reported_differences
 from twin.runtime.lab import build_actors, load_drivers, make_bus, make_clock, make_scheduler, prepare
 from twin.runtime.shared_run import shared_drivers
 from twin.scenario import BusSpec, Scenario
@@ -145,12 +145,9 @@ def health(scenario: str | Path, ids: list[str], connect: list[str], security_di
 def _compared(s: Scenario, answer: dict) -> dict:
     """A device's answer with ``differs``: what of the scenario it reports running by differs from ``s`` (a device of
     another make reports none: nothing to compare)."""
-    report = answer.get("report")
-    theirs = report.get("scenario") if isinstance(report, dict) else None
-    if not isinstance(theirs, dict):
-        return answer
     dtype = next(d for d in s.devices if answer["device"] in s.instance_names(d))
-    return {**answer, "differs": differences(served_as(s, dtype), theirs, dtype)}
+    found = reported_differences(s, dtype, answer.get("report"))
+    return answer if found is None else {**answer, "differs": found}
 
 
 def _devices(s: Scenario) -> list[str]:

@@ -56,6 +56,13 @@ def differences(ours: dict[str, Any], theirs: dict[str, Any], device_type: str) 
     return sorted(out, key=lambda line: (not line.startswith("devices."), line))
 
 
+def reported_differences(s: Scenario, device_type: str, report: Any) -> list[str] | None:
+    """What a device's health ``report`` says it runs by otherwise than ``s``; None for a device of another make,
+    which reports no scenario."""
+    theirs = report.get("scenario") if isinstance(report, dict) else None
+    return differences(served_as(s, device_type), theirs, device_type) if isinstance(theirs, dict) else None
+
+
 def _compare(ours: Any, theirs: Any, where: str, out: list[str]) -> None:
     if isinstance(ours, dict) and isinstance(theirs, dict):
         for key in sorted(set(ours) | set(theirs), key=str):
@@ -83,29 +90,29 @@ class ServedCheck:
                  report: Callable[[str, str, dict[str, Any]], None], missing_after_s: float | None = None) -> None:
         self._bus, self._s, self._clock, self._report = bus, s, clock, report
         self._type = {name: dtype for dtype in s.devices for name in s.instance_names(dtype) if name in external}
-        self._ours = {dtype: served_as(s, dtype) for dtype in set(self._type.values())}
         self._told: set[str] = set()
         self._asking: set[asyncio.Task] = set()
         self._here: set[str] = set()
         self._there: dict[str, set[str]] = {}  # a device -> the other labs it is on the bus as a device of
         self._missing_after_s = missing_after_s
+        self._watches: list[Closable] = []
+        self._timer: asyncio.TimerHandle | None = None
 
-    def start(self) -> Closable:
+    def start(self) -> ServedCheck:
         # this lab's tokens on a watch of their own: a secure router lets the lab see no other lab's
-        handles: list[Any] = [self._bus.watch_tokens(keys.alive(self._s.lab), self._on_presence),
-                              self._bus.watch_tokens(keys.alive("*"), self._on_any_lab)]
+        self._watches = [self._bus.watch_tokens(keys.alive(self._s.lab), self._on_presence),
+                         self._bus.watch_tokens(keys.alive("*"), self._on_any_lab)]
         if self._missing_after_s is not None:
-            handles.append(self._clock.call_later(self._missing_after_s, self._elsewhere))
-        outer = self
+            self._timer = self._clock.call_later(self._missing_after_s, self._elsewhere)
+        return self
 
-        class Stop:
-            def close(self) -> None:
-                for h in handles:
-                    getattr(h, "close", getattr(h, "cancel", None))()
-                for task in outer._asking:
-                    task.cancel()
-
-        return Stop()
+    def close(self) -> None:
+        for watch in self._watches:
+            watch.close()
+        if self._timer is not None:
+            self._timer.cancel()
+        for task in self._asking:
+            task.cancel()
 
     def _on_any_lab(self, key: str, alive: bool) -> None:
         device, lab = keys.device_of(key), key.split("/")[1]
@@ -134,12 +141,9 @@ class ServedCheck:
             report = json.loads(answer)
         except (BusError, ValueError):
             return  # no answer now: the campaign's own deadlines and presence say what matters
-        theirs = report.get("scenario") if isinstance(report, dict) else None
-        if not isinstance(theirs, dict):
-            return  # a device of another make (its own client on the bus): it has no scenario to compare
         dtype = self._type[device]
-        found = differences(self._ours[dtype], theirs, dtype)
-        if found:
+        found = reported_differences(self._s, dtype, report)
+        if found:  # None: a device of another make (its own client on the bus), with no scenario to compare
             self._told.add(device)
             self._report("device.mismatch", device,
                          {"type": dtype, "differences": found[:SHOWN], "more": max(0, len(found) - SHOWN)})

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 import signal
 import threading
@@ -31,7 +30,7 @@ class AdmittedDevices:
         self._root = Path(root)
         self._manifest = self._root / security.MANIFEST
         self.lab = security.lab_of(root)
-        self.devices = frozenset(security.manifest(root, self.lab).get("devices") or ())
+        self.devices = security.devices_of(root, self.lab)
         self._told = set(self.devices)
         self._seen = self._stat()
 
@@ -46,9 +45,9 @@ class AdmittedDevices:
         if seen == self._seen:
             return []
         try:
-            named = set(json.loads(self._manifest.read_text()).get("devices") or ())
-        except (OSError, ValueError, AttributeError):
-            return []  # being rewritten, or gone: look again at the next check
+            named = security.devices_of(self._root, self.lab)
+        except BusError:
+            return []  # gone, or another lab's now: look again at the next check
         self._seen = seen
         new = sorted(named - self._told)
         self._told |= named

@@ -74,6 +74,11 @@ def manifest(root: str | Path, lab: str) -> dict[str, Any]:
     return data
 
 
+def devices_of(root: str | Path, lab: str) -> frozenset[str]:
+    """The devices a security directory has certificates for (its manifest's)."""
+    return frozenset(manifest(root, lab).get("devices") or ())
+
+
 def lab_of(root: str | Path) -> str:
     """The lab a security directory was made for."""
     try:
