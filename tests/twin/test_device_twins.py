@@ -149,3 +149,31 @@ def test_the_planners_workcell_is_simulated_whatever_the_scenarios_clock():
     with pytest.raises(DriverError, match=r"devices.reader: its driver talks to an instrument, which a workcell "
                                           r"\(simulated\) cannot: give devices.reader.twin"):
         open_workcell(prepare(MQTT_LAB, overrides={"devices.reader.twin": None}))
+
+
+@pytest.mark.parametrize("driver", ["labtwin_acme_absent:Reader", "acme-reader"])
+def test_a_driver_not_installed_here_is_said_where_its_twin_stands_in_and_refused_where_it_runs(tmp_path, caplog,
+                                                                                                 driver):
+    """A laptop without the instrument's package (its vendor's SDK) could not ask `twin whatif` of the lab: the lab's
+    own driver was loaded to check it, though on a virtual clock its twin runs every one of its steps."""
+    raw = {**sdk_lab({"driver": "spectrometer"}), "clock": {"mode": "scaled", "speed": 100}}
+    raw["devices"]["reader"]["driver"] = driver
+    (tmp_path / "lab.yaml").write_text(yaml.safe_dump(raw))
+    with pytest.raises(ScenarioError, match="devices.reader.driver: .*(labtwin_acme_absent|acme-reader)"):
+        checked(parse(raw), "lab.yaml")  # on its own clock the lab runs its own driver
+    checked(parse(raw), "lab.yaml", virtual=True)
+    said = [r.getMessage() for r in caplog.records if "devices.reader.driver" in r.getMessage()]
+    assert len(said) == 1 and "On this virtual clock its twin (spectrometer) runs its steps" in said[0], said
+    if driver == "acme-reader":
+        return
+    caplog.clear()
+    code, out, said_too = invoke("whatif", str(tmp_path / "lab.yaml"), "--vary", "devices.synthesiser.instances=1,2",
+                                 "--seeds", "1")
+    assert code == 0, said_too
+    assert "*: the scenario as written" in said_too
+    assert sum("its twin (spectrometer)" in r.getMessage() for r in caplog.records) == 1  # not once per variant
+    code, _, said_too = invoke("run", str(tmp_path / "lab.yaml"), "--clock", "virtual", "--budget", "2",
+                               "--journal", str(tmp_path / "v.db"))
+    assert code == 0 and "twins stand in: reader by spectrometer" in said_too, said_too
+    code, _, said_too = invoke("run", str(tmp_path / "lab.yaml"), "--journal", str(tmp_path / "s.db"))
+    assert code == 2 and "devices.reader.driver" in said_too and "labtwin_acme_absent" in said_too

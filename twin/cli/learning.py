@@ -54,7 +54,8 @@ def train(
     try:
         # a scheduler's training makes a new policy: the scenario's own scheduler (say a policy that does not fit
         # this lab, which the misfit message tells the user to train) is not loaded
-        s = checked(lab.prepare(scenario, overrides=assignments(set_ or [])), scenario, benched=agent == "scheduler")
+        s = checked(lab.prepare(scenario, overrides=assignments(set_ or [])), scenario, benched=agent == "scheduler",
+                    virtual=True)
         trainer = plugins.load("trainers", agent)
         if init is not None and agent not in ("scheduler", "route"):
             raise TwinError(f"--init starts the scheduler's or the route prior's training from a policy; the {agent} "
@@ -241,7 +242,8 @@ def bench_planners(
         parsed = [parse(name) for name in names]
         s = one_campaign(checked(lab.prepare(scenario, overrides=overrides), scenario,
                                  planners=[planner for planner, _, _ in parsed],
-                                 schedulers=[scheduler for _, scheduler, _ in parsed if scheduler]), scenario,
+                                 schedulers=[scheduler for _, scheduler, _ in parsed if scheduler], virtual=True),
+                         scenario,
                          "planners")
         for name in names:
             planner, scheduler, _ = parse(name)
@@ -340,7 +342,8 @@ def bench_schedulers(
     with bench_pool(workers) as pool:  # one set of workers for every shop
         for file, instance in files:
             try:
-                s = one_campaign(checked(load_variant(scenario, file, budget, sets, instance), scenario, benched=True),
+                s = one_campaign(checked(load_variant(scenario, file, budget, sets, instance), scenario, benched=True,
+                                         virtual=True),
                                  scenario, "schedulers")
                 made = _benched(s, names)
             except TwinError as exc:
@@ -394,7 +397,8 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     from twin.tools.shape_bench import measure, shapes, variants, verdict
 
     try:
-        s = one_campaign(checked(load_variant(scenario, None, budget, changes), scenario, benched=True), scenario,
+        s = one_campaign(checked(load_variant(scenario, None, budget, changes), scenario, benched=True,
+                                         virtual=True), scenario,
                          "schedulers")
         measure(s, by)  # said before the progress bar
         made = _benched(s, names)

@@ -19,7 +19,7 @@ from twin.cli.common import (_fail, app, bar_progress, console, interruptible, p
 from twin.core.errors import TwinError
 from twin.core.printable import inert
 from twin.runtime import lab
-from twin.runtime.checks import checked
+from twin.runtime.checks import checked, said_once
 
 
 def _variants_table(head: list[str], table_rows: list[list[str]], axes: int, whole_values: int) -> Table:
@@ -114,17 +114,18 @@ def whatif(
 
     split = lambda text: [x.strip() for x in text.split(",") if x.strip()] if text else None  # noqa: E731
     try:
-        s = checked(lab.prepare(scenario, overrides=paired_assignments(set_ or [])), scenario,
-                    planners=split(planners) or (), schedulers=split(schedulers) or ())
-        varied = parse_vary(vary or [])
-        chosen = variants(s, varied, split(schedulers), split(planners))
-        axes = [name for name, _ in axes_of(varied, split(schedulers), split(planners))]
-        for name in split(schedulers) or []:
-            lab.make_scheduler(s, name)
-        if len(chosen) == 1:
-            raise TwinError("nothing to compare: give --vary FIELD=V1,V2 (or --schedulers / --planners) with a value "
-                            "other than the scenario's")
-        alike = runs_alike(s, chosen)
+        with said_once():  # a problem the variants share with the scenario as written: said once
+            s = checked(lab.prepare(scenario, overrides=paired_assignments(set_ or [])), scenario,
+                        planners=split(planners) or (), schedulers=split(schedulers) or (), virtual=True)
+            varied = parse_vary(vary or [])
+            chosen = variants(s, varied, split(schedulers), split(planners))
+            axes = [name for name, _ in axes_of(varied, split(schedulers), split(planners))]
+            for name in split(schedulers) or []:
+                lab.make_scheduler(s, name)
+            if len(chosen) == 1:
+                raise TwinError("nothing to compare: give --vary FIELD=V1,V2 (or --schedulers / --planners) with a "
+                                "value other than the scenario's")
+            alike = runs_alike(s, chosen)
     except TwinError as exc:
         _fail(exc)
     if set_ and not as_json:

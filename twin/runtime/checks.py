@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import Any
 
+from twin.core import plugins
 from twin.core.errors import ScenarioError, TwinError
 from twin.campaign.human import DRIVER as HUMAN
 from twin.campaign.human import OPTION_NAMES as HUMAN_OPTIONS
@@ -21,7 +23,7 @@ log = logging.getLogger(__name__)
 
 
 def check(s: Scenario, external: Collection[str] = (), benched: bool = False, planners: Collection[str] = (),
-          schedulers: Collection[str] = ()) -> None:
+          schedulers: Collection[str] = (), virtual: bool = False) -> None:
     """What only the installed plugins can tell about ``s`` (``twin validate`` and ``twin run`` both ask):
     its drivers, planner, scheduler and fallback load; its targets ask for outputs the workflow produces;
     its Zenoh settings make a config. A lab of several campaigns: each campaign's, on the device types its
@@ -29,9 +31,10 @@ def check(s: Scenario, external: Collection[str] = (), benched: bool = False, pl
     (a device type all of whose instances are external is not loaded). ``benched``: a bench names the schedulers
     to run and checks them itself, and a scheduler's training makes one, so the scenario's own is not loaded.
     ``planners``, ``schedulers``: the others the command runs (a bench's rows, ``twin whatif --schedulers``),
-    whose options ``campaign.planner_options`` and ``scheduler_options`` may hold."""
+    whose options ``campaign.planner_options`` and ``scheduler_options`` may hold. ``virtual``: the command runs
+    the lab on a virtual clock whatever its file says (a what-if, a bench, a training), so the twins stand in."""
     if not s.campaigns:
-        _check(s, external=external, benched=benched, planners=planners, schedulers=schedulers)
+        _check(s, external=external, benched=benched, planners=planners, schedulers=schedulers, virtual=virtual)
         return
     for i, (name, cs) in enumerate(campaign_scenarios(s, s.name).items()):
         try:
@@ -46,7 +49,9 @@ def check_campaign(s: Scenario, external: Collection[str] = ()) -> None:
 
 
 def _check(s: Scenario, types: set[str] | None = None, external: Collection[str] = (),
-           benched: bool = False, planners: Collection[str] = (), schedulers: Collection[str] = ()) -> None:
+           benched: bool = False, planners: Collection[str] = (), schedulers: Collection[str] = (),
+           virtual: bool = False) -> None:
+    virtual = virtual or s.clock.mode == "virtual"  # on a scaled or wall clock the lab's own drivers run
     elsewhere = {dtype for dtype in s.devices if set(s.instance_names(dtype)) <= set(external)}
     for dtype, spec in s.devices.items():
         stray = sorted(set(spec.options) - HUMAN_OPTIONS) if spec.driver == HUMAN else []
@@ -62,11 +67,13 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
             problems.extend(exc.problems)
             return None
 
+    served = [dtype for dtype in s.devices if s.devices[dtype].driver != HUMAN and (types is None or dtype in types)
+              and dtype not in elsewhere]
+    absent = _absent_behind_twins(s, served) if virtual else set()
     drivers = {dtype: loaded(f"devices.{dtype}.driver", load_driver, s, dtype, s.instance_names(dtype)[0], False)
-               for dtype in s.devices if s.devices[dtype].driver != HUMAN and (types is None or dtype in types)
-               and dtype not in elsewhere}
+               for dtype in served if dtype not in absent}
     twins = {dtype: loaded(f"devices.{dtype}.twin.driver", load_driver, s, dtype, s.instance_names(dtype)[0], True)
-             for dtype in drivers if s.devices[dtype].twin is not None}
+             for dtype in served if s.devices[dtype].twin is not None}
     planner = loaded("campaign.planner", make_planner, s)
     if not benched:  # a bench runs the schedulers it names, not the scenario's (nor loads its policy to warn of it)
         loaded("campaign.scheduler", make_scheduler, s)
@@ -78,7 +85,7 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
              # options no plugin the command runs takes: likely misspelt (a scheduler bench checks its own rows)
              untaken_option(s, "planners", [s.campaign.planner, *planners]),
              "" if benched else untaken_option(s, "schedulers", [*named_schedulers(s), *schedulers]),
-             _unproduced(s, drivers, elsewhere), _sampleless(s, drivers, elsewhere)]
+             _unproduced(s, drivers, elsewhere | absent), _sampleless(s, drivers, elsewhere | absent)]
     if any(found):
         raise ScenarioError(s.name, [problem for problem in found if problem])
     if types is None:
@@ -92,7 +99,7 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         problem = _short_deadline(s, dtype, driver)
         if problem:
             log.warning("%s", problem)
-    simulated = twins and s.clock.mode == "virtual"  # on a scaled or wall clock the lab's own drivers run
+    simulated = twins and virtual
     problem = _unproduced(s, {**drivers, **twins}, elsewhere, " with their twins (devices.*.twin)") if simulated else ""
     if problem:  # a twin that only keeps time still serves a scheduler's training or a what-if of device counts
         log.warning("%s: on a virtual clock no experiment meets that target, and campaigns run their whole budget",
@@ -105,6 +112,44 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         from twin.core.bus.zenoh_config import check_config
 
         check_config(s.bus.zenoh)
+
+
+@contextlib.contextmanager
+def said_once() -> Iterator[None]:
+    """Within it, each warning of these checks is said once: a command that checks its scenario and then each of
+    its variants (a what-if) says a problem they share once."""
+    said: set[str] = set()
+
+    def first(record: logging.LogRecord) -> bool:
+        text = record.getMessage()
+        fresh = text not in said
+        said.add(text)
+        return fresh
+
+    log.addFilter(first)
+    try:
+        yield
+    finally:
+        log.removeFilter(first)
+
+
+def _absent_behind_twins(s: Scenario, types: list[str]) -> set[str]:
+    """The device types whose own driver does not load here (its package not installed, say, on a laptop away
+    from the instrument) but which, on a virtual clock, a twin stands in for: said, not refused, since what runs
+    here is the twin (checked as any driver)."""
+    absent = set()
+    for dtype in types:
+        spec = s.devices[dtype]
+        if spec.twin is None:
+            continue
+        try:
+            plugins.load("devices", spec.driver)
+        except TwinError as exc:
+            absent.add(dtype)
+            log.warning("devices.%s.driver: %s. On this virtual clock its twin (%s) runs its steps, so this goes on; "
+                        "on a scaled or wall clock the lab runs its own driver, and stops here", dtype, exc,
+                        spec.twin.driver)
+    return absent
 
 
 def _unrunnable_given(s: Scenario, planner: Any) -> str:
@@ -223,12 +268,12 @@ def validate_file(path: str | Path, overrides: dict | None = None) -> Scenario:
 
 
 def checked(s: Scenario, path: str | Path, external: Collection[str] = (), benched: bool = False,
-            planners: Collection[str] = (), schedulers: Collection[str] = ()) -> Scenario:
+            planners: Collection[str] = (), schedulers: Collection[str] = (), virtual: bool = False) -> Scenario:
     """``s`` (read from ``path``) checked against the installed plugins; its errors name the file. What `twin run`
     checks before its progress bar, and a bench, a what-if or a training before its workers start, so that a
     driver that cannot run the lab is one error naming the file and field, not a traceback from a worker."""
     try:
-        check(s, external, benched, planners, schedulers)
+        check(s, external, benched, planners, schedulers, virtual)
     except ScenarioError as exc:
         raise ScenarioError(str(path), exc.problems) from None
     except TwinError as exc:

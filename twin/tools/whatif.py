@@ -170,7 +170,7 @@ def variants(scenario: Scenario, vary: list[tuple[str, list[Any]]], schedulers: 
         label = ", ".join(f"{name}={v}" for name, v in combo)
         lab = prepare(scenario, overrides=dict(combo))  # a field that does not exist or a value it refuses: said now
         try:  # another driver, steps, model, planner or scheduler: what only the installed plugins can refuse
-            check(lab, planners=planners or (), schedulers=schedulers or ())
+            check(lab, planners=planners or (), schedulers=schedulers or (), virtual=True)
             for name, value in combo:  # the one scheduler check() does not make: a shared lab's own
                 if name.endswith("lab_scheduler") and value:
                     make_scheduler(lab, str(value))
