@@ -120,6 +120,9 @@ def test_a_table_without_rows_still_has_its_columns(flaky, tmp_path):
         assert table.column_names == list(COLUMNS[name]) and table.num_rows == 0
     assert pq.read_table(tmp_path / "parquet" / "devices.parquet").column_names == list(COLUMNS["devices"])
     assert set(WHAT) == set(COLUMNS)
+    from twin.cli.export import ALL_TABLES
+
+    assert ALL_TABLES.split(",") == list(WHAT)  # `twin export`'s default: every table
 
 
 def test_provenance_names_the_scenario_hash_versions_and_operator_acts(flaky, tmp_path):

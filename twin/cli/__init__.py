@@ -7,7 +7,8 @@ import inspect
 
 import typer
 
-from twin.cli import commands, control, distributed, export, learning, report, routes, whatif  # noqa: F401  (they register their commands)
+from twin.cli import (commands, control, distributed, export, learning, report, routes,  # noqa: F401  (they
+                      sharing, whatif)  # register their commands)
 from twin.cli.common import app
 
 __all__ = ["app"]

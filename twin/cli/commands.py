@@ -7,7 +7,7 @@ import json
 import logging
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 from rich.markup import escape
@@ -16,19 +16,14 @@ from rich.text import Text
 from twin.cli.common import (_fail, app, assignments, check_lab_name, console, err, exit_status, machine_output,
                              narrow_table, recording_file, refuse_disagreeing, say_if_still_written, sigterm_unwinds,
                              speed_heeded, stopped_by, writable)
-from twin.cli.campaign_bar import resumed_from, run_campaign
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
-from twin.cli.sharing import shared_lab
 from twin.core import plugins
 from twin.core.whole_files import written_whole
-from twin.runtime import lab
-from twin.runtime.checks import checked, validate_file
 from twin.core.errors import TwinError
-from twin.scenario import json_schema
-from twin.view.watch import RecordOptions
-from twin.view.watch import replay as replay_journal
-from twin.view.watch import watch as watch_lab
+
+if TYPE_CHECKING:  # the commands import the runtime and the viewer when they run: twin ctl or router need neither
+    from twin.view.watch import RecordOptions
 
 # the output options `twin run` and `twin resume` share
 SaveOpt = Annotated[Optional[Path], typer.Option(help="save a Rerun recording, e.g. run.rrd")]
@@ -41,6 +36,8 @@ JsonOpt = Annotated[bool, typer.Option("--json", help="print the summary as JSON
 
 
 def _runtime(value: str) -> str:
+    from twin.runtime import lab
+
     if value not in lab.RUNTIMES:
         raise typer.BadParameter(f"{value[:40]!r} is not a runtime: use one of {', '.join(lab.RUNTIMES)}")
     return value
@@ -84,6 +81,11 @@ def run(
     runtime: RuntimeOpt = "auto",
 ) -> None:
     """Run a campaign and print its summary."""
+    from twin.cli.campaign_bar import run_campaign
+    from twin.cli.sharing import shared_lab
+    from twin.runtime import lab
+    from twin.runtime.checks import checked
+
     log_to_stderr(logging.WARNING)
     overrides: dict = assignments(set_ or [])
     if speed is not None and clock is None and "clock.mode" not in overrides:
@@ -153,6 +155,8 @@ def resume(
 ) -> None:
     """Continue a killed campaign, or one stopped by Ctrl-C, SIGTERM or twin ctl stop, from its journal (virtual
     time: re-run and checked; live: rebuilt)."""
+    from twin.cli.campaign_bar import resumed_from, run_campaign
+    from twin.cli.sharing import shared_lab
     from twin.runtime.resume import recorded
     from twin.runtime.resume import resume as resume_journal
     from twin.runtime.resume_lab import recorded_lab
@@ -184,6 +188,8 @@ def resume(
 
 def _record(save: Path | None, viewer: bool, serve: bool, serve_port: int, web_port: int) -> RecordOptions:
     """What to record; a port of --serve's server given without --serve would be ignored, so it is refused."""
+    from twin.view.watch import RecordOptions
+
     ports = [f"--{name} {port}" for name, port in (("serve-port", serve_port), ("web-port", web_port)) if port]
     if ports and not serve:
         _fail(TwinError(f"{' and '.join(ports)}: the port{'s' if len(ports) > 1 else ''} of --serve's server, and "
@@ -214,6 +220,9 @@ def watch(
                                                     "with no display; with or without a recording")] = False,
 ) -> None:
     """Attach to a lab running in another process and record what it does (or print its log)."""
+    from twin.view.watch import RecordOptions
+    from twin.view.watch import watch as watch_lab
+
     recording_file("--save", save)
     if not (connect or listen):
         _fail(TwinError("give --connect ENDPOINT (where the lab listens: twin run --listen ...) or --listen ENDPOINT"))
@@ -264,6 +273,9 @@ def replay(
     serve: Annotated[bool, typer.Option(help="serve a web viewer on 127.0.0.1")] = False,
 ) -> None:
     """Rebuild a run's Rerun recording from its journal alone."""
+    from twin.view.watch import RecordOptions
+    from twin.view.watch import replay as replay_journal
+
     recording_file("--save", save)
     if not (save or viewer or serve):
         _fail(TwinError("nothing to do: give --save FILE, --viewer or --serve"))
@@ -289,6 +301,8 @@ def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="s
                                                                     "`twin run --set` would run them; repeatable")]
              = None) -> None:
     """Check scenario files; every problem names its file, field and value, and every warning its file."""
+    from twin.runtime.checks import validate_file
+
     overrides = assignments(set_ or [])
     warned = _Warnings()
     logging.getLogger().addHandler(warned)
@@ -327,6 +341,8 @@ class _Warnings(logging.Handler):
 @app.command()
 def schema() -> None:
     """Print the JSON Schema of scenario files (for editors)."""
+    from twin.scenario import json_schema
+
     print(json.dumps(json_schema(), indent=2))
 
 

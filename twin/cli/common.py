@@ -20,7 +20,6 @@ from twin.core import keys
 from twin.core.errors import TwinError
 from twin.core.printable import inert
 from twin.core.whole_files import FULL_BYTES, free_bytes
-from twin.scenario.loading import disagreeing
 
 if TYPE_CHECKING:
     from rich.table import Table
@@ -254,6 +253,8 @@ def refuse_disagreeing(sets: dict, options: dict[str, tuple[str, Any]]) -> None:
         if isinstance(value, list):
             return joiner.join(map(str, value))
         return f"{value:g}" if isinstance(value, float) else str(value)
+
+    from twin.scenario.loading import disagreeing
 
     for field in disagreeing({field: value for field, (_, value) in options.items()}, sets)[:1]:
         (option, value), said = options[field], sets[field]

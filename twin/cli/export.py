@@ -9,7 +9,10 @@ import typer
 
 from twin.cli.common import _fail, app, say_if_still_written
 from twin.core.errors import TwinError
-from twin.tools.export import WHAT
+
+
+#: twin.tools.export.WHAT, here as text: the export's module imports the journal's readers, when the command runs
+ALL_TABLES = "experiments,attempts,devices,consumables,decisions,operator"
 
 
 @app.command("export")
@@ -18,7 +21,7 @@ def export_run(
                                                  "directory of journals: each campaign's, to OUT/<campaign>)")],
     fmt: Annotated[str, typer.Option("--format", help="csv | parquet | jsonl")] = "csv",
     what: Annotated[str, typer.Option(help="the tables, comma-separated: experiments, attempts, devices, "
-                                           "consumables, decisions, operator")] = ",".join(WHAT),
+                                           "consumables, decisions, operator")] = ALL_TABLES,
     out: Annotated[Optional[Path], typer.Option(help="the directory to write (default: beside the journal, "
                                                      "<journal>-export)")] = None,
 ) -> None:

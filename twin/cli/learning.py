@@ -5,23 +5,24 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 from rich.table import Table
 
 from twin.core import plugins
-from twin.runtime import lab
-from twin.runtime.checks import checked
 from twin.cli.common import (_fail, app, assignments, bar_progress, bench_app, console, err, interruptible,
                              exit_status, fitted_width, machine_output, narrow_table, paired_assignments, print_table,
                              recording_file, refuse_disagreeing, say_ended_early, sigterm_unwinds, stopped_by,
                              stopped_partway, part_done, writable)
 from twin.core.errors import TwinError
 from twin.core.whole_files import kept_from_others
-from twin.runtime.fast_device import FastRuntimeRefused
-from twin.scenario import Scenario
-from twin.tools.planner_bench import DEFAULT_PLANNERS
+
+if TYPE_CHECKING:  # the commands import the runtime when they run: twin ctl or router need none of it
+    from twin.scenario import Scenario
+
+#: What `twin bench planners` compares unless told.
+DEFAULT_PLANNERS = "random,lhs,gp-bo~seq,gp-bo"
 
 
 @app.command()
@@ -47,6 +48,10 @@ def train(
                                                            "training.teacher=self; repeatable")] = None,
 ) -> None:
     """Train an agent in the twin; the evaluation curve is printed as it goes (and recorded to Rerun if asked)."""
+    from twin.runtime import lab
+    from twin.runtime.checks import checked
+    from twin.runtime.fast_device import FastRuntimeRefused
+
     if out.is_dir():  # its name would get the suffix: --out runs saved runs.zip beside the directory
         _fail(TwinError(f"--out {out} is a directory: give the policy's file, e.g. {out / 'policy.zip'}"))
     writable("--out", out.with_suffix(".zip"), out.with_suffix(".json"))
@@ -137,6 +142,7 @@ def train(
 def _benched(s: Scenario, names: list[str]) -> dict[str, object]:
     """The schedulers a bench runs, each made once to check it; an option of ``campaign.scheduler_options`` that
     none of them (nor any installed scheduler) takes is refused as misspelt."""
+    from twin.runtime import lab
     from twin.runtime.assembly import untaken_option
 
     made = {name: lab.make_scheduler(s, name) for name in names}
@@ -216,7 +222,7 @@ def bench_planners(
     scenario: Annotated[Path, typer.Argument(help="a scenario with targets, e.g. scenarios/quantum_dots.yaml")],
     seeds: Annotated[int, typer.Option(min=1, help="seeds per planner")] = 20,
     planners: Annotated[str, typer.Option(help="comma-separated; name~seq runs one experiment at a time, "
-                                                "name@SCHEDULER with another scheduler (gp-bo@fifo~seq)")] = ",".join(DEFAULT_PLANNERS),
+                                                "name@SCHEDULER with another scheduler (gp-bo@fifo~seq)")] = DEFAULT_PLANNERS,
     workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
     budget: Annotated[Optional[int], typer.Option(min=1, help="override the scenario's budget (a larger one censors "
                                                               "less)")] = None,
@@ -230,6 +236,8 @@ def bench_planners(
     writable("--csv", csv_out)
     from dataclasses import asdict
 
+    from twin.runtime import lab
+    from twin.runtime.checks import checked
     from twin.tools.planner_bench import HEADER, bench, caption, parse, rows
 
     names = [p.strip() for p in planners.split(",") if p.strip()]
@@ -318,6 +326,8 @@ def bench_schedulers(
     writable("--csv", csv_out)
     from dataclasses import asdict
 
+    from twin.runtime import lab
+    from twin.runtime.checks import checked
     from twin.tools.planner_bench import bench_pool
     from twin.tools.scheduler_bench import (BOUND_S, COUNTS, HEADER, bench, bound, caption, deterministic,
                                             load_variant, played_ahead, rows, shops, slow_schedulers)
@@ -392,6 +402,7 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
                   by: str = "makespan") -> None:
     from dataclasses import asdict
 
+    from twin.runtime.checks import checked
     from twin.tools.planner_bench import label
     from twin.tools.scheduler_bench import load_variant, slow_schedulers
     from twin.tools.shape_bench import measure, shapes, variants, verdict

@@ -10,12 +10,8 @@ from typing import Annotated, Any
 import typer
 from rich.markup import escape
 
-from twin.campaign.journal_read import no_such_journal, read_events, read_run
-from twin.campaign.journal_lock import writer
-from twin.campaign.summary import Summary
 from twin.cli.common import _fail, app, console
 from twin.core.errors import TwinError
-from twin.view.report import render_summary
 
 
 @app.command()
@@ -25,6 +21,8 @@ def report(journal: Annotated[Path, typer.Argument(help="a run's journal, runs/<
                                                                 "interrupted, never_started) and the summary or how "
                                                                 "far it got, for a script")] = False) -> None:
     """Print a run's summary again from its journal (a killed run: how far it got, and how to resume it)."""
+    from twin.campaign.journal_read import no_such_journal  # the journal's readers, when the command runs
+
     if not journal.exists():
         _fail(no_such_journal(journal))
     if journal.is_dir():  # a lab of several campaigns: each campaign's journal, and how to resume the lab
@@ -57,6 +55,9 @@ def _state(journal: Path) -> dict[str, Any]:
     ``so_far``), or never_started (with ``why``); ``resume_with``: what `twin resume` takes to go on with it — the
     journal, or for a campaign of a lab of several, the lab's directory (a directory of other journals is not
     one)."""
+    from twin.campaign.journal_lock import writer
+    from twin.campaign.journal_read import read_events, read_run
+    from twin.campaign.summary import Summary
     from twin.runtime.resume import interrupted
 
     try:
@@ -107,4 +108,6 @@ def _render(state: dict[str, Any]) -> None:
                       f"to {so_far}. Continue it with: twin resume {state['resume_with']}",
                       highlight=False, soft_wrap=True)
         return
+    from twin.view.report import render_summary
+
     render_summary(state["summary"], console, state["resume_with"])

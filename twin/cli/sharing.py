@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 from rich.markup import escape
@@ -15,18 +15,21 @@ from twin.cli.common import (_fail, app, check_lab_name, console, err, exit_if_i
                              speed_heeded)
 from twin.cli.printable import log_to_stderr
 from twin.core.errors import TwinError
-from twin.runtime.checks import check
-from twin.runtime.lab import recording_id
-from twin.runtime.resume_lab import resume_lab
-from twin.runtime.shared_run import run_shared
-from twin.scenario import Scenario
-from twin.view.report import render_lab_summary
-from twin.view.watch import RecordOptions, open_lab_observer
+
+if TYPE_CHECKING:  # the commands import the runtime and the viewer when they run: twin submit needs neither
+    from twin.scenario import Scenario
+    from twin.view.watch import RecordOptions
 
 
 def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: bool, json_out: bool,
                external: list[str] | None, resuming: Path | None = None, runtime: str = "auto") -> None:
     """``twin run LAB.yaml`` (or, with ``resuming``, ``twin resume`` of its journals' directory)."""
+    from twin.runtime.checks import check
+    from twin.runtime.lab import recording_id
+    from twin.runtime.resume_lab import resume_lab
+    from twin.runtime.shared_run import run_shared
+    from twin.view.watch import open_lab_observer
+
     log_to_stderr(logging.WARNING)
     recording = None
 
@@ -81,6 +84,8 @@ def _show(summary, json_out: bool) -> None:
     if json_out:
         print(json.dumps(summary.to_dict(), indent=2))
     else:
+        from twin.view.report import render_lab_summary
+
         render_lab_summary(summary, console)
 
 
@@ -110,6 +115,7 @@ def lab_serve(
     """Serve a lab that several campaigns share, until Ctrl-C or SIGTERM: its devices, the campaigns of its file,
     and those submitted with `twin submit`; then print each campaign's summary."""
     from twin.runtime import lab
+    from twin.runtime.checks import check
     from twin.runtime.shared_run import serve_lab
 
     log_to_stderr(logging.WARNING)

@@ -18,8 +18,6 @@ from twin.cli.common import (_fail, app, bar_progress, console, interruptible, p
                              part_done, say_ended_early, stopped_partway, writable)
 from twin.core.errors import TwinError
 from twin.core.printable import inert
-from twin.runtime import lab
-from twin.runtime.checks import checked, said_once
 
 
 def _variants_table(head: list[str], table_rows: list[list[str]], axes: int, whole_values: int) -> Table:
@@ -111,6 +109,8 @@ def whatif(
                                    has_targets as any_targets, header, in_seconds, measures, parse_vary, rows,
                                    runs_alike, summarise, variants, written_values)
     from twin.tools.whatif import whatif as run_whatif
+    from twin.runtime import lab
+    from twin.runtime.checks import checked, said_once
 
     split = lambda text: [x.strip() for x in text.split(",") if x.strip()] if text else None  # noqa: E731
     try:

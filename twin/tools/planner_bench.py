@@ -26,7 +26,6 @@ from twin.runtime.lab import FALLBACK_LOGGER, prepare, run
 from twin.scenario import Scenario
 from twin.tools.pool import WorkerPool, keep_done
 
-DEFAULT_PLANNERS = ("random", "lhs", "gp-bo~seq", "gp-bo")
 #: Why a bench or a what-if leaves the seed alone.
 SEEDS_PAIRED = ("the runs' seeds are 0 to N−1 (--seeds N), the same for everything compared, so that each run has "
                 "a pair to be compared with; leave campaign.seed out, and give --seeds")
