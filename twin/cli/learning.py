@@ -222,7 +222,8 @@ def bench_planners(
     scenario: Annotated[Path, typer.Argument(help="a scenario with targets, e.g. scenarios/quantum_dots.yaml")],
     seeds: Annotated[int, typer.Option(min=1, help="seeds per planner")] = 20,
     planners: Annotated[str, typer.Option(help="comma-separated; name~seq runs one experiment at a time, "
-                                                "name@SCHEDULER with another scheduler (gp-bo@fifo~seq)")] = DEFAULT_PLANNERS,
+                                                "name@SCHEDULER with another scheduler (gp-bo@fifo~seq)")]
+    = DEFAULT_PLANNERS,
     workers: Annotated[int, typer.Option(min=1, help="campaigns run in parallel")] = 2,
     budget: Annotated[Optional[int], typer.Option(min=1, help="override the scenario's budget (a larger one censors "
                                                               "less)")] = None,
