@@ -1,7 +1,8 @@
 """`twin bench schedulers --shapes`: schedulers on a family of variants of one lab, with paired seeds.
 
-The family: the lab as written; for each device type, twice its instances, a bottleneck (its steps twice as
-long) and a flaky stage (a fifth of its steps fail; not for people, ``driver: operator``); and, when samples
+The family: the lab as written; for each device type, twice its instances, a bottleneck (its steps made at
+least twice as long, and long enough that it takes a quarter more lab time per experiment than any other stage:
+``bottleneck``) and a flaky stage (a fifth of its steps fail; not for people, ``driver: operator``); and, when samples
 degrade, samples that keep a quarter as long; with ``random_labs``, that many whole other labs drawn as ``training.random_labs`` draws them (on seeds
 no training run draws: ``twin.scenario.random_labs.held_out``). Every scheduler runs the same seeds on every variant; each one is compared with the variant's best rule
 (the rule with the lowest mean makespan there — or, with ``by="objective"``, the lowest objective as the
@@ -21,6 +22,7 @@ from twin.campaign.human import DRIVER as HUMAN
 from twin.core.errors import TwinError
 from twin.runtime.lab import prepare
 from twin.scenario import Scenario
+from twin.scenario.model import expected_duration
 from twin.scenario.objective import time_scale, weighted_objective
 from twin.scenario.random_labs import held_out
 from twin.tools.planner_bench import bench_pool
@@ -40,8 +42,10 @@ def variants(s: Scenario, random_labs: int = 0) -> list[tuple[str, Scenario]]:
     out = [("as written", s)]
     for name, d in s.devices.items():
         out.append((f"{name} ×2 instances", prepare(s, overrides={f"devices.{name}.instances": d.instances * 2})))
-        out.append((f"{name} bottleneck (×2 duration)",
-                    prepare(s, overrides={f"devices.{name}.duration.mean_s": d.duration.mean_s * 2})))
+        factor = bottleneck(s, name)
+        if factor:
+            out.append((f"{name} bottleneck (×{factor:g} duration)",
+                        prepare(s, overrides={f"devices.{name}.duration.mean_s": d.duration.mean_s * factor})))
         if d.driver != HUMAN:  # people are not simulated to fail
             out.append((f"{name} flaky (20 % fail)",
                         prepare(s, overrides={f"devices.{name}.faults.fail_p": max(d.faults.fail_p, 0.2)})))
@@ -50,6 +54,41 @@ def variants(s: Scenario, random_labs: int = 0) -> list[tuple[str, Scenario]]:
     if random_labs:
         out += [(name, prepare(lab)) for name, lab in held_out(s, random_labs)]
     return out
+
+
+#: How much more lab time per experiment a bottleneck stage takes than the busiest other stage.
+MARGIN = 1.25
+
+
+def stage_loads(s: Scenario) -> dict[str, float]:
+    """Lab seconds each device type's instance spends on one experiment of the workflow: its steps' mean durations
+    (a parameter a duration adds, at the step's value or its box's middle), setup and clean, ÷ its instances."""
+    loads: dict[str, float] = {}
+    for w in s.workflow:
+        d = s.devices[w.device]
+        param = d.duration.plus_param
+        box = s.chemistry.parameters.get(param) if param else None
+        given = {param: w.params.get(param, (box.low + box.high) / 2 if box is not None else 0.0)} if param else {}
+        loads[w.device] = loads.get(w.device, 0.0) + expected_duration(d.duration, given, d.setup_s,
+                                                                       d.clean_s) / d.instances
+    return loads
+
+
+def bottleneck(s: Scenario, name: str) -> float:
+    """What to multiply ``name``'s ``duration.mean_s`` by to make it the lab's bottleneck: 2, or more where twice
+    as long still leaves another stage busier (a spectrometer twice as slow behind a reactor three times as busy);
+    0 where no factor can (its steps' duration is all a parameter's, ``mean_s: 0``)."""
+    d = s.devices[name]
+    if d.duration.mean_s <= 0:
+        return 0.0
+    loads = stage_loads(s)
+    others = max((load for other, load in loads.items() if other != name), default=0.0)
+    steps = sum(1 for w in s.workflow if w.device == name)
+    scaled = steps * d.duration.mean_s / d.instances  # the part of its load the factor multiplies
+    if not scaled or not others:
+        return 2.0  # not in the workflow (a planner's routes use it), or the only stage: twice as long
+    needed = (MARGIN * others - (loads[name] - scaled)) / scaled
+    return max(2.0, math.ceil(needed * 10) / 10)
 
 
 @dataclass
