@@ -370,3 +370,21 @@ def test_what_a_training_kept_is_said_with_the_comparison_that_fits_the_lab():
         assert f"score {best:.3f}" in said and verdict in said and compare in said, said
     assert kept_round(policies / "quantum_dots.zip", prepare(ROOT / "scenarios" / "quantum_dots.yaml"),
                       ROOT / "scenarios" / "quantum_dots.yaml") == ""  # a planner's policy: no rule to beat
+
+
+def test_a_training_level_with_its_rule_where_cp_sat_does_better_says_so(tmp_path):
+    """A lab of my own (a hot plate behind two spin coaters, GP-BO to a target): the training kept a policy level
+    with FIFO, and its curve said "vs cp-sat 1.1" — CP-SAT online 9 % better — which the closing line left out."""
+    from twin.cli.learning import kept_round
+    from twin.runtime.lab import prepare
+
+    meta = json.loads((ROOT / "agents" / "policies" / "flaky_scheduler.json").read_text())
+    flaky = prepare(ROOT / "scenarios" / "flaky_lab.yaml")
+    assert min(meta["curve"], key=lambda c: c["score"])["vs cp-sat"] < 1  # the shipped one beat CP-SAT: not said
+    assert "CP-SAT" not in kept_round(ROOT / "agents" / "policies" / "flaky_scheduler.zip", flaky, Path("lab.yaml"))
+    for c in meta["curve"]:
+        c["vs cp-sat"] = 1.10
+    (tmp_path / "p.json").write_text(json.dumps(meta))
+    said = kept_round(tmp_path / "p.zip", flaky, Path("lab.yaml"))
+    assert "CP-SAT, scheduling the lab online, did 9 % better than it" in said
+    assert "--schedulers spt,cp-sat,rl:" in said and "campaign.scheduler: cp-sat" in said
