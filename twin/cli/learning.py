@@ -205,8 +205,8 @@ def kept_round(path: Path, s: Scenario, scenario: Path) -> str:
     solver = best.get("vs cp-sat")
     if isinstance(solver, (int, float)) and solver > 1.03 and not s.campaigns and s.jobshop is None:
         # a learnt policy imitates a rule there (cp-sat teaches job shops only): the better schedules exist
-        said += (f". CP-SAT, scheduling the lab online, did {100 * (1 - 1 / solver):.0f} % better than it on the evaluation "
-                 f"run (vs cp-sat {solver:.2f}): compare it too (--schedulers {rule},cp-sat,rl:{path}), or run the "
+        said += (f". CP-SAT, scheduling the lab online, did {100 * (1 - 1 / solver):.0f} % better than it on the "
+                 f"evaluation run (vs cp-sat {solver:.2f}): compare it too (--schedulers {rule},cp-sat,rl:{path}), or run the "
                  "lab with campaign.scheduler: cp-sat (up to campaign.scheduler_options.time_limit_s of wall time "
                  "a decision)")
     return said
