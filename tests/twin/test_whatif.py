@@ -234,6 +234,27 @@ def test_a_lab_of_several_campaigns_shows_each_campaigns_hours_one_after_the_oth
     assert all(len(line) <= 80 for line in out.splitlines())
 
 
+def test_a_lab_of_several_campaigns_on_a_scaled_clock_is_asked_in_virtual_time_with_its_twins(tmp_path):
+    """A lab of one campaign is asked on a virtual clock whatever its file says; a lab of several ran on its file's
+    own: a scaled clock waited out its lab time in wall time, with its real drivers (one not installed here, behind
+    a twin, stopped it), and gave other numbers than the same lab's file on a virtual clock."""
+    import yaml
+
+    raw = yaml.safe_load((ROOT / "scenarios" / "shared_lab.yaml").read_text())
+    for c in raw["campaigns"]:
+        c["campaign"]["budget"] = 4
+    (tmp_path / "virtual.yaml").write_text(yaml.safe_dump(raw))
+    raw["clock"] = {"mode": "scaled", "speed": 3600}
+    raw["devices"]["spectrometer"].update(driver="labtwin_acme_absent:Reader", twin={"driver": "spectrometer"})
+    (tmp_path / "scaled.yaml").write_text(yaml.safe_dump(raw))
+    hours = []
+    for lab in ("virtual.yaml", "scaled.yaml"):
+        code, out = whatif(str(tmp_path / lab), "--vary", "devices.reactor.instances=1,2", "--seeds", "2", "--json")
+        assert code == 0, out
+        hours.append([v["lab_hours"] for v in json.loads(out[out.index("{"):])["variants"]])
+    assert hours[0] == hours[1]
+
+
 def test_a_lab_whose_scheduler_stalls_counts_at_the_campaigns_limit_not_as_the_shortest(tmp_path):
     """A shared lab's stall ends it at once in virtual time: `twin whatif` showed such a variant at 0.0 lab-h, the
     best of the table. As a bench does for a campaign on its own, each stalled campaign counts at its limit."""

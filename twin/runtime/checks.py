@@ -38,14 +38,14 @@ def check(s: Scenario, external: Collection[str] = (), benched: bool = False, pl
         return
     for i, (name, cs) in enumerate(campaign_scenarios(s, s.name).items()):
         try:
-            check_campaign(cs, external)
+            check_campaign(cs, external, virtual)
         except ScenarioError as exc:
             raise ScenarioError(exc.source or s.name, [f"campaigns.{i} ({name}): {p}" for p in exc.problems]) from None
 
 
-def check_campaign(s: Scenario, external: Collection[str] = ()) -> None:
+def check_campaign(s: Scenario, external: Collection[str] = (), virtual: bool = False) -> None:
     """What the installed plugins tell about one campaign of a shared lab, on the device types it uses."""
-    _check(s, {w.device for w in s.workflow}, external)
+    _check(s, {w.device for w in s.workflow}, external, virtual=virtual)
 
 
 def _check(s: Scenario, types: set[str] | None = None, external: Collection[str] = (),

@@ -206,7 +206,9 @@ def _shared(lab: Scenario, variant: Variant, seed: int) -> Outcome:
     start) until the last of them, else until the last campaign ended (one that stalled: at its max_lab_hours);
     cost, experiments and losses summed."""
     with tempfile.TemporaryDirectory() as d:
-        out = run_shared(prepare(lab, seed=seed), Path(d), handle_signals=False, agent_in_process=True)
+        # on a virtual clock and the memory bus whatever the lab file says, as a lab of one campaign runs here
+        out = run_shared(prepare(lab, seed=seed, clock="virtual", bus="memory"), Path(d), handle_signals=False,
+                         agent_in_process=True)
     reached, last, hours, spans = True, 0.0, out.lab_hours, {}
     for c in lab.campaigns:
         summary = out.campaigns.get(c.name)
