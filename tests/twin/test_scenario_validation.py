@@ -369,5 +369,5 @@ def test_faults_given_to_people_are_refused_naming_the_field_as_no_fault_would_e
     assert "devices.technician: faults: people (driver: operator) are not simulated to fail" in str(err.value)
     lab = parse(qd_lab(**{"devices.technician": {**person, "faults": {"fail_p": 0}}}), "lab.yaml")  # none: fine
     names = [name for name, _ in variants(lab)]
-    assert "technician bottleneck (×2 duration)" in names and "technician flaky (20 % fail)" not in names
+    assert "technician bottleneck (mean_s ×2)" in names and "technician flaky (20 % fail)" not in names
     assert "synthesiser flaky (20 % fail)" in names

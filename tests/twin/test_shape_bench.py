@@ -16,10 +16,10 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_each_shape_compares_every_scheduler_with_its_best_rule_on_paired_seeds():
     s = parse(qd_lab(**{"campaign.budget": 4, "chemistry.stability_s": 3600}))
     names = [n for n, _ in variants(s)]
-    assert names[0] == "as written" and "synthesiser bottleneck (×2 duration)" in names
+    assert names[0] == "as written" and "synthesiser bottleneck (mean_s ×2)" in names
     assert "samples keep ¼ as long" in names and len(names) == 1 + 3 * 2 + 1
     # two spectrometers behind one synthesiser: twice as long would still leave them waiting on it
-    assert "spectrometer bottleneck (×2.5 duration)" in names
+    assert "spectrometer bottleneck (mean_s ×2.5)" in names
     results = shapes(s, ["fifo", "spt"], seeds=3)
     assert [c.shape for c in results] == names
     for c in results:
@@ -45,7 +45,7 @@ def test_a_bottleneck_shape_makes_its_stage_the_busiest_of_the_lab_whatever_the_
             continue
         stage = name.split(" bottleneck")[0]
         factor = bottleneck(lab, stage)
-        assert name.endswith(f"(×{factor:g} duration)") and factor >= 2
+        assert name.endswith(f"(mean_s ×{factor:g})") and factor >= 2
         loads = stage_loads(variant)
         assert all(loads[stage] >= MARGIN * load * 0.999 for other, load in loads.items() if other != stage), loads
         used = run(variant, journal=tmp_path / f"{stage}.db").utilisation

@@ -1,8 +1,8 @@
 """`twin bench schedulers --shapes`: schedulers on a family of variants of one lab, with paired seeds.
 
-The family: the lab as written; for each device type, twice its instances, a bottleneck (its steps made at
-least twice as long, and long enough that it takes a quarter more lab time per experiment than any other stage:
-``bottleneck``) and a flaky stage (a fifth of its steps fail; not for people, ``driver: operator``); and, when samples
+The family: the lab as written; for each device type, twice its instances, a bottleneck (its steps' mean
+duration, ``duration.mean_s``, made at least twice as long, and long enough that the stage takes a quarter more lab
+time per experiment than any other: ``bottleneck``) and a flaky stage (a fifth of its steps fail; not for people, ``driver: operator``); and, when samples
 degrade, samples that keep a quarter as long; with ``random_labs``, that many whole other labs drawn as ``training.random_labs`` draws them (on seeds
 no training run draws: ``twin.scenario.random_labs.held_out``). Every scheduler runs the same seeds on every variant; each one is compared with the variant's best rule
 (the rule with the lowest mean makespan there — or, with ``by="objective"``, the lowest objective as the
@@ -44,7 +44,7 @@ def variants(s: Scenario, random_labs: int = 0) -> list[tuple[str, Scenario]]:
         out.append((f"{name} ×2 instances", prepare(s, overrides={f"devices.{name}.instances": d.instances * 2})))
         factor = bottleneck(s, name)
         if factor:
-            out.append((f"{name} bottleneck (×{factor:g} duration)",
+            out.append((f"{name} bottleneck (mean_s ×{factor:g})",
                         prepare(s, overrides={f"devices.{name}.duration.mean_s": d.duration.mean_s * factor})))
         if d.driver != HUMAN:  # people are not simulated to fail
             out.append((f"{name} flaky (20 % fail)",
