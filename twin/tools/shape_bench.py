@@ -1,14 +1,15 @@
 """`twin bench schedulers --shapes`: schedulers on a family of variants of one lab, with paired seeds.
 
-The family: the lab as written; for each device type, twice its instances, a bottleneck (its steps' mean
-duration, ``duration.mean_s``, made at least twice as long, and long enough that the stage takes a quarter more lab
-time per experiment than any other: ``bottleneck``) and a flaky stage (a fifth of its steps fail; not for people, ``driver: operator``); and, when samples
-degrade, samples that keep a quarter as long; with ``random_labs``, that many whole other labs drawn as ``training.random_labs`` draws them (on seeds
-no training run draws: ``twin.scenario.random_labs.held_out``). Every scheduler runs the same seeds on every variant; each one is compared with the variant's best rule
-(the rule with the lowest mean makespan there — or, with ``by="objective"``, the lowest objective as the
-scenario's ``training.weights`` weigh makespan, degraded samples and abandoned experiments) seed by seed, as a
-mean difference with a 95 % confidence interval — so "better" and "worse" mean outside the noise, not a lucky
-seed.
+The family: the lab as written; for each device type, twice its instances, a bottleneck (its steps' mean duration,
+``duration.mean_s``, made at least twice as long, and long enough that the stage takes a quarter more lab time per
+experiment than any other: ``bottleneck``) and a flaky stage (a fifth of its steps fail; not for people,
+``driver: operator``); and, when samples degrade, samples that keep a quarter as long; with ``random_labs``, that
+many whole other labs drawn as ``training.random_labs`` draws them (on seeds no training run draws:
+``twin.scenario.random_labs.held_out``). Every scheduler runs the same seeds on every variant; each one is compared
+with the variant's best rule (the rule with the lowest mean makespan there — or, with ``by="objective"``, the lowest
+objective as the scenario's ``training.weights`` weigh makespan, degraded samples and abandoned experiments) seed by
+seed, as a mean difference with a 95 % confidence interval — so "better" and "worse" mean outside the noise, not a
+lucky seed.
 """
 
 from __future__ import annotations
