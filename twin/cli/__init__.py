@@ -7,7 +7,7 @@ import inspect
 
 import typer
 
-from twin.cli import (commands, control, distributed, export, learning, report, routes,  # noqa: F401  (they
+from twin.cli import (benches, commands, control, distributed, export, learning, report, routes,  # noqa: F401 (they
                       sharing, whatif)  # register their commands)
 from twin.cli.common import app
 
