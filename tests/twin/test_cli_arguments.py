@@ -238,3 +238,26 @@ def test_twin_lab_serve_takes_security_and_insecure_as_twin_run_does(tmp_path, m
     assert not any((tmp_path / "runs").iterdir())  # the journals' directory it claimed, given back
     exposed = twin_cli("lab", "serve", lab, "--listen", "tcp/0.0.0.0:1")
     assert exposed.exit_code == 2 and "pass --security DIR" in " ".join(exposed.stderr.split()), exposed.output
+
+
+def test_a_process_joining_a_lab_connects_where_its_lab_file_says_unless_told_otherwise(tmp_path):
+    """`twin device serve lab.yaml --id hotplate` of a lab file whose bus.connect names its router stopped with
+    "Missing option '--connect'", though the lab itself connects there from the same file."""
+    import yaml
+
+    from tests.conftest import qd_lab
+    from twin.core.errors import BusError
+    from twin.runtime.serve import _joined
+
+    (tmp_path / "routed.yaml").write_text(yaml.safe_dump(qd_lab(**{"bus.connect": ["tcp/127.0.0.1:7950"]})))
+    (tmp_path / "alone.yaml").write_text(yaml.safe_dump(qd_lab()))
+    assert _joined(tmp_path / "routed.yaml", None, None, None).bus.connect == ["tcp/127.0.0.1:7950"]
+    assert _joined(tmp_path / "routed.yaml", ["tcp/127.0.0.1:7951"], None, None).bus.connect == ["tcp/127.0.0.1:7951"]
+    with pytest.raises(BusError, match="give --connect ENDPOINT: where the lab listens"):
+        _joined(tmp_path / "alone.yaml", None, None, None)
+    for args in (["device", "serve", tmp_path / "alone.yaml", "--id", "spectrometer-1"],
+                 ["device", "health", tmp_path / "alone.yaml"],
+                 ["scheduler", "serve", tmp_path / "alone.yaml", "--scheduler", "fifo"]):
+        res = twin_cli(*args)
+        said = " ".join(res.output.split())
+        assert res.exit_code == 2 and "give --connect ENDPOINT" in said and "(bus.connect)" in said, said

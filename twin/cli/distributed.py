@@ -18,8 +18,10 @@ from twin.core.errors import TwinError
 SecurityOpt = Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
                                                           "join through its router with this process's certificate")]
 # what a process serving one part of a lab (a device, the scheduler agent) is given
-LabEndpoints = Annotated[list[str], typer.Option("--connect", metavar="ENDPOINT",
-                                                 help="a Zenoh endpoint of the lab, e.g. tcp/127.0.0.1:7447")]
+LabEndpoints = Annotated[Optional[list[str]], typer.Option("--connect", metavar="ENDPOINT",
+                                                           help="a Zenoh endpoint of the lab or its router, e.g. "
+                                                                "tcp/127.0.0.1:7447 (default: the scenario's "
+                                                                "bus.connect)")]
 ClockInsisted = Annotated[Optional[str], typer.Option(help="scaled | wall: insist on this clock (default: follow "
                                                            "the lab's, whatever it is)")]
 def _pace(value: float | None) -> float | None:
@@ -56,7 +58,7 @@ def _serving(serve, *args) -> None:
 def device_serve(
     scenario: Annotated[Path, typer.Argument(help="the scenario the device belongs to")],
     name: Annotated[str, typer.Option("--id", help="the device instance, e.g. spectrometer-2")],
-    connect: LabEndpoints,
+    connect: LabEndpoints = None,
     clock: ClockInsisted = None,
     speed: SpeedInsisted = None,
     security: SecurityOpt = None,
@@ -105,7 +107,7 @@ def security_init(
 @device_app.command("health")
 def device_health(
     scenario: Annotated[Path, typer.Argument(help="the scenario the devices belong to")],
-    connect: LabEndpoints,
+    connect: LabEndpoints = None,
     ids: Annotated[Optional[list[str]], typer.Option("--id", metavar="DEVICE",
                                                      help="a device instance (repeat; default: all)")] = None,
     security: SecurityOpt = None,
@@ -231,7 +233,7 @@ def router(
 def scheduler_serve(
     scenario: Annotated[Path, typer.Argument(help="the scenario of the lab to schedule")],
     scheduler: Annotated[str, typer.Option(help="rl:POLICY.zip or a rule (fifo, spt, mwkr, least-loaded, ...)")],
-    connect: LabEndpoints,
+    connect: LabEndpoints = None,
     clock: ClockInsisted = None,
     speed: SpeedInsisted = None,
     security: SecurityOpt = None,

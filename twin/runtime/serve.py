@@ -33,18 +33,23 @@ from twin.scenario.sharing import campaign_scenarios
 log = logging.getLogger(__name__)
 
 
-def _joined(scenario: str | Path, connect: list[str], clock: str | None, speed: float | None,
+def _joined(scenario: str | Path, connect: list[str] | None, clock: str | None, speed: float | None,
             security_dir: str | None = None, wait_s: float | None = None) -> Scenario:
-    """The scenario as seen from a process that joins the lab at ``connect`` (through its router, with
+    """The scenario as seen from a process that joins the lab at ``connect`` (by default the scenario's
+    ``bus.connect``: the lab's router, which the lab file names for the lab too) (through its router, with
     ``security_dir`` or the scenario's ``bus.security``), waiting ``wait_s`` (default: the scenario's
     ``bus.connect_timeout_ms``) for it to answer. Its clock is a wall clock until the lab's is heard."""
     if clock == "virtual":
         raise ClockError("a process joining a lab cannot follow a virtual clock: run the lab with --clock scaled "
                          "or wall, and start this process without --clock to follow it")
+    s = prepare(scenario, clock=clock or "wall", speed=speed or 1.0, lab_only=True)
+    connect = list(connect or s.bus.connect)
+    if not connect:
+        raise BusError(f"give --connect ENDPOINT: where the lab listens (twin run --listen …) or its router, e.g. "
+                       f"tcp/127.0.0.1:7447; {scenario} names none (bus.connect)")
     bad = not_endpoints(connect)
     if bad:
         raise BusError(f"--connect: {', '.join(map(repr, bad))} is not a Zenoh endpoint: {HOW}")
-    s = prepare(scenario, clock=clock or "wall", speed=speed or 1.0, lab_only=True)
     return s.model_copy(update={"bus": BusSpec(kind="zenoh", listen=[], connect=connect, lease_ms=s.bus.lease_ms,
                                                zenoh=s.bus.zenoh, security=security_dir or s.bus.security,
                                                connect_timeout_ms=(s.bus.connect_timeout_ms if wait_s is None
@@ -93,7 +98,7 @@ def _serve(s: Scenario, start: Callable[[Bus, LabClock], Awaitable[Callable[[], 
         raise ClockError(problems[0])
 
 
-def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str | None = None,
+def serve_device(scenario: str | Path, name: str, connect: list[str] | None, clock: str | None = None,
                  speed: float | None = None,
                  security_dir: str | None = None, wait_s: float | None = None) -> None:
     s = _joined(scenario, connect, clock, speed, security_dir, wait_s)
@@ -121,7 +126,7 @@ def serve_device(scenario: str | Path, name: str, connect: list[str], clock: str
     _serve(s, start, f"ready {name}", Identity("device", s.lab, name), clock, speed)
 
 
-def health(scenario: str | Path, ids: list[str], connect: list[str], security_dir: str | None = None,
+def health(scenario: str | Path, ids: list[str], connect: list[str] | None, security_dir: str | None = None,
            wait_s: float = 3.0) -> list[dict]:
     """``twin device health``: each device's health report (``None`` for one that did not answer in ``wait_s``).
     With security, asked as the lab's orchestrator (the identity that may ask devices)."""
@@ -211,7 +216,7 @@ def health_report(answer: bytes) -> dict:
     return report if isinstance(report, dict) else {"driver": report}
 
 
-def serve_scheduler(scenario: str | Path, spec: str, connect: list[str], clock: str | None = None,
+def serve_scheduler(scenario: str | Path, spec: str, connect: list[str] | None, clock: str | None = None,
                     speed: float | None = None,
                     security_dir: str | None = None, wait_s: float | None = None) -> None:
     """A scheduler (a rule or ``rl:PATH``) as an agent on a lab's bus."""
