@@ -50,6 +50,7 @@ NODELAY = ((socket.IPPROTO_TCP, socket.TCP_NODELAY, 1),)  # without it p99 round
 PING_EVERY_WALL_S = 2.0
 OFFLINE_PINGS = 3  # after an "offline": enough to hear a live instrument whose old session's will came late
 RECONNECT_EVERY_WALL_S = 1.0
+SILENT_SAY_AFTER_WALL_S = 5.0  # an instrument not present by then is said once, with where the adapter listens
 
 class MqttInstrument:
     labtwin_api = 1
@@ -64,7 +65,8 @@ class MqttInstrument:
         host, _, port = str(o.get("broker", "127.0.0.1:1883")).rpartition(":")
         self.host, self.port = host or "127.0.0.1", int(port)
         # "{name}" in the topic is the device instance: one instrument per instance
-        self.topic = str(o["topic"]).replace("{name}", setup.name).rstrip("/")
+        self.topic_option = str(o["topic"])
+        self.topic = self.topic_option.replace("{name}", setup.name).rstrip("/")
         self.qos, self.name = int(o.get("qos", 1)), setup.name
         self.cancel_wait_s = float(o.get("cancel_wait_s", 10.0))
         self.connect_timeout_s = float(o.get("connect_timeout_s", 10.0))
@@ -83,6 +85,7 @@ class MqttInstrument:
         self._tasks: list[asyncio.Task] = []
         self._pinger: asyncio.Task | None = None  # what pings the instrument to learn whether it is there
         self._present: bool | None = None  # None: a retained "online" not yet confirmed by a ping
+        self._heard: str | None = None  # the last status heard: "online", "retained online" or "offline"
         self._presence: Callable[[bool], None] = lambda present: None
         self._instrument_health: Any = None
         self._telemetry: dict[str, float] = {}
@@ -91,7 +94,22 @@ class MqttInstrument:
     async def connect(self, presence: Callable[[bool], None]) -> None:
         self._presence = presence
         await self._open()
-        self._tasks = [asyncio.ensure_future(self._receive())]
+        self._tasks = [asyncio.ensure_future(self._receive()), asyncio.ensure_future(self._say_if_absent())]
+
+    async def _say_if_absent(self) -> None:
+        """Once, a while after connecting: where the adapter waits for an instrument that is not there, and what it
+        last heard, so that a topic that is not the instrument's is seen in the log rather than guessed at."""
+        await sleep_wall(SILENT_SAY_AFTER_WALL_S)
+        if self._present is True:
+            return
+        heard = {None: "nothing has been said there", "offline": "the last word there was offline",
+                 "retained online": "the only word there is an old retained online, and no ping has been answered "
+                 "since (the instrument that left it has gone)"}.get(self._heard, f"the last word was {self._heard}")
+        named = f"; {{name}} is this device's name, {self.name!r}" if "{name}" in self.topic_option else ""
+        log.warning("%s: no instrument present on %s/status at the MQTT broker %s:%d after %g s of wall time: %s. The "
+                    "device stays off the lab's bus until its instrument says online there: is it running, on this "
+                    "broker and topic (options.topic %r%s)?", self.name, self.topic, self.host, self.port,
+                    SILENT_SAY_AFTER_WALL_S, heard, self.topic_option, named)
 
     async def _open(self) -> None:
         """A session with the broker, subscribed to the instrument's topics; a DriverError says why not."""
@@ -174,6 +192,8 @@ class MqttInstrument:
     # -- what the instrument says ------------------------------------------------------
     def _on_status(self, payload: bytes, retained: bool) -> None:
         text = payload.decode(errors="replace").strip().strip('"')
+        if text in ("online", "offline"):
+            self._heard = "retained online" if text == "online" and retained else text
         if text == "offline":
             self._set_present(False)
             if self._answer is not None and not self._answer.done():  # the command died with it: end the step now

@@ -209,3 +209,49 @@ def test_a_late_last_will_does_not_keep_a_live_instrument_off_the_bus(mosquitto,
         live.terminate()
         live.wait()
     assert seen == [True, False, True] and present is True
+
+
+def test_an_instrument_not_present_is_said_once_with_the_topic_the_adapter_waits_on(mosquitto, prefix, monkeypatch,
+                                                                                   caplog):
+    """A lab whose instrument listens on another topic ({name} is "reader" for a type of one instance, not
+    "reader-1") waited with the device "not on the bus" and no word of where it looked; now the adapter says, once,
+    the topic, the broker and what it last heard there. A present instrument is not warned of."""
+    import logging
+
+    import devices.mqtt
+
+    monkeypatch.setattr(devices.mqtt, "SILENT_SAY_AFTER_WALL_S", 0.3)
+    live = instrument(mosquitto, f"{prefix}/spectrometer-3")
+
+    async def three():
+        host, _, port = mosquitto.rpartition(":")
+        async with aiomqtt.Client(host, int(port)) as c:  # a dead instrument's "online", left retained
+            await c.publish(f"{prefix}/spectrometer-2/status", "online", qos=1, retain=True)
+        lab = parse(mqtt_lab(mosquitto, prefix, **{"devices.spectrometer.instances": 3}))
+        drivers = [load_driver(lab, "spectrometer", f"spectrometer-{i}") for i in (1, 2, 3)]
+        for d in drivers:
+            await d.connect(lambda present: None)
+        try:
+            t0 = time.monotonic()
+            while len([r for r in caplog.records if "no instrument present" in r.getMessage()]) < 2 \
+                    and time.monotonic() - t0 < 10:
+                await asyncio.sleep(0.05)
+            await asyncio.sleep(0.5)  # a third would come by now
+        finally:
+            for d in drivers:
+                await d.disconnect()
+
+    try:
+        with caplog.at_level(logging.WARNING, logger="devices.mqtt"):
+            asyncio.run(three())
+    finally:
+        live.terminate()
+        live.wait()
+    said = {r.getMessage().split(":")[0]: r.getMessage() for r in caplog.records
+            if "no instrument present" in r.getMessage()}
+    assert sorted(said) == ["spectrometer-1", "spectrometer-2"]
+    assert f"on {prefix}/spectrometer-1/status at the MQTT broker {mosquitto}" in said["spectrometer-1"]
+    assert "nothing has been said there" in said["spectrometer-1"]
+    named = f"options.topic '{prefix}/{{name}}'; {{name}} is this device's name, 'spectrometer-1'"
+    assert named in said["spectrometer-1"]
+    assert "an old retained online, and no ping has been answered" in said["spectrometer-2"]

@@ -194,3 +194,50 @@ def test_outputs_that_are_no_mapping_fail_the_step_at_once_as_the_drivers_error(
     failed = [json.loads(e["detail"]) for e in read_events(tmp_path / "j.db", "attempt.failed")]
     assert failed and all(f["code"] == "driver_error" and "returned outputs of type list" in f["reason"]
                           for f in failed)
+
+
+class RenamedPeak:
+    """A spectrometer whose driver calls the peak "peak", where the targets read peak_nm."""
+
+    capabilities = frozenset({"measure"})
+
+    def __init__(self, setup):
+        pass
+
+    async def run(self, step, params, sample, ctx):
+        await ctx.clock.sleep(60)
+        return StepResult({"peak": 630.0, "fwhm_nm": 30.0}, sample)
+
+    async def safe_state(self):
+        pass
+
+
+class SynthesisOnly:
+    """Proposes experiments whose route only synthesises: they measure nothing, on purpose."""
+
+    def __init__(self, seed):
+        import random
+        self.rng = random.Random(seed)
+
+    def propose(self, n, history, pending):
+        from twin import Proposal, RouteStep
+
+        return [Proposal({"concentration_mm": 10.0, "temperature_c": self.rng.uniform(220, 320), "time_s": 60.0},
+                         route=[RouteStep("synthesise", "synthesiser")]) for _ in range(n)]
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_a_target_output_the_workflow_never_brings_is_said_once_with_what_it_brought(tmp_path, runtime):
+    """An instrument that names its peak otherwise ran a whole campaign to "best score inf" without a word; an
+    experiment that ran the workflow as written without a target's output is now noted once, naming the output and
+    what the steps gave. A route the planner chose that measures nothing is not."""
+    renamed = parse(qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_outputs:RenamedPeak",
+                              "campaign.budget": 4}))
+    summary = run(renamed, journal=tmp_path / "renamed.db", runtime=runtime)
+    assert summary.done == 4 and not summary.targets_met_h
+    noted = [e["detail"] for e in read_events(tmp_path / "renamed.db", "output.unscored")]
+    assert len(noted) == 1 and "peak_nm, which a target reads, is not among the outputs" in noted[0]
+    assert "(they gave: diameter_nm, fwhm_nm, peak)" in noted[0]
+    routed = parse(qd_lab(**{"campaign.planner": "tests.twin.test_bad_outputs:SynthesisOnly", "campaign.budget": 3}))
+    assert run(routed, journal=tmp_path / "routed.db", runtime=runtime).done == 3
+    assert read_events(tmp_path / "routed.db", "output.unscored") == []

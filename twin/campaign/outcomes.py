@@ -13,7 +13,7 @@ from twin.campaign.decisions import Outcome
 from twin.campaign.events import Code, RecordExperiment, Status, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt, Device, Experiment, Task
 from twin.core.messages import Kind
-from twin.scenario.targets import scores, unscorable
+from twin.scenario.targets import missing_outputs, scores, unscorable
 
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
 #: "not now" answers to one step before it is given up: a device that never says yes
@@ -178,10 +178,21 @@ def finish(core: CampaignCore, e: Experiment, status: Status, reason: str = "") 
 
 
 def _note_unscorable(core: CampaignCore, e: Experiment) -> None:
-    """A target's output that came as something other than a number: said once per output per campaign."""
+    """A target's output that came as something other than a number, or that an experiment which ran the workflow
+    as written did not bring at all: said once per output per campaign."""
     for name, value in unscorable(e.outputs, core.s.chemistry.targets).items():
         if name not in core._unscorable:
             core._unscorable.add(name)
             core._note("output.unscored", e.id, detail=f"{name} = {json.dumps(value)[:60]} is not a number, so no "
                        "target can be scored on it (a device sent it; a NaN arrives as null). Fix the driver; "
                        "later experiments like this are not noted again")
+    if e.route is not core._workflow:  # a route the planner chose may measure less, on purpose
+        return
+    for name in missing_outputs(e.outputs, core.s.chemistry.targets):
+        if name not in core._unscorable:
+            core._unscorable.add(name)
+            had = ", ".join(sorted(e.outputs)[:12]) or "none"
+            core._note("output.unscored", e.id, detail=f"{name}, which a target reads, is not among the outputs of "
+                       f"the workflow's steps (they gave: {had}), so no target can be scored on it. A driver that "
+                       "names it otherwise, or a step that does not measure it? Later experiments like this are not "
+                       "noted again")

@@ -39,3 +39,8 @@ def unscorable(outputs: dict[str, Any], targets: list[Any]) -> dict[str, Any]:
     listed: some workflows do not measure everything)."""
     return {name: outputs[name] for t in targets for name in t.outputs
             if name in outputs and not measured(outputs[name])}
+
+
+def missing_outputs(outputs: dict[str, Any], targets: list[Any]) -> list[str]:
+    """The outputs targets read that ``outputs`` lacks altogether, each once, in the targets' order."""
+    return list(dict.fromkeys(name for t in targets for name in t.outputs if name not in outputs))
