@@ -95,6 +95,9 @@ class MqttInstrument:
         self._presence = presence
         await self._open()
         self._tasks = [asyncio.ensure_future(self._receive()), asyncio.ensure_future(self._say_if_absent())]
+        # nothing retained there: an instrument that said online before this session began, without retain (or to a
+        # broker that has since forgotten it), is found by its answer to a ping
+        self._ping_while(lambda: self._heard is None)
 
     async def _say_if_absent(self) -> None:
         """Once, a while after connecting: where the adapter waits for an instrument that is not there, and what it
@@ -102,7 +105,8 @@ class MqttInstrument:
         await sleep_wall(SILENT_SAY_AFTER_WALL_S)
         if self._present is True:
             return
-        heard = {None: "nothing has been said there", "offline": "the last word there was offline",
+        heard = {None: "nothing has been said there, and no ping has been answered",
+                 "offline": "the last word there was offline",
                  "retained online": "the only word there is an old retained online, and no ping has been answered "
                  "since (the instrument that left it has gone)"}.get(self._heard, f"the last word was {self._heard}")
         named = f"; {{name}} is this device's name, {self.name!r}" if "{name}" in self.topic_option else ""

@@ -255,3 +255,39 @@ def test_an_instrument_not_present_is_said_once_with_the_topic_the_adapter_waits
     named = f"options.topic '{prefix}/{{name}}'; {{name}} is this device's name, 'spectrometer-1'"
     assert named in said["spectrometer-1"]
     assert "an old retained online, and no ping has been answered" in said["spectrometer-2"]
+
+
+def test_an_instrument_that_said_online_without_retain_before_the_lab_came_is_found_by_a_ping(mosquitto, prefix):
+    """Its one "online" went by before the adapter subscribed, and nothing was retained: the device stayed off the
+    bus for the whole campaign. The adapter now pings while it has heard nothing, and the answer brings it in."""
+    topic = f"{prefix}/spectrometer-1"
+    host, _, port = mosquitto.rpartition(":")
+
+    async def unretained():
+        ready, pinged = asyncio.Event(), asyncio.Event()
+
+        async def instrument_without_retain():
+            async with aiomqtt.Client(host, int(port)) as c:
+                await c.subscribe(f"{topic}/command", qos=1)
+                await c.publish(f"{topic}/status", "online", qos=1)  # not retained: nobody hears it
+                ready.set()
+                async for m in c.messages:
+                    if json.loads(m.payload).get("ping"):
+                        pinged.set()
+                        await c.publish(f"{topic}/status", "online", qos=1)
+
+        task = asyncio.ensure_future(instrument_without_retain())
+        await ready.wait()
+        driver = load_driver(parse(mqtt_lab(mosquitto, prefix)), "spectrometer", "spectrometer-1")
+        seen: list[bool] = []
+        await driver.connect(seen.append)
+        try:
+            t0 = time.monotonic()
+            while seen != [True] and time.monotonic() - t0 < 10:
+                await asyncio.sleep(0.05)
+            return list(seen), pinged.is_set(), (await driver.health())["present"]
+        finally:
+            await driver.disconnect()
+            task.cancel()
+
+    assert asyncio.run(unretained()) == ([True], True, True)
