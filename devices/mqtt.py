@@ -68,6 +68,8 @@ class MqttInstrument:
         self.topic_option = str(o["topic"])
         self.topic = self.topic_option.replace("{name}", setup.name).rstrip("/")
         self.qos, self.name = int(o.get("qos", 1)), setup.name
+        self.claims = (f"the MQTT topic {self.topic} at {self.host}:{self.port} (options.topic; {{name}} in it gives "
+                       "each instance its own)")
         self.cancel_wait_s = float(o.get("cancel_wait_s", 10.0))
         self.connect_timeout_s = float(o.get("connect_timeout_s", 10.0))
         self.capabilities = frozenset(o.get("steps") or ())

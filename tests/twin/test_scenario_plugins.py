@@ -280,3 +280,45 @@ def test_what_the_loaded_plugins_tell_is_said_at_once_too(tmp_path):
     assert res.exit_code == 2 and "bad.yaml: 2 problem(s)" in said, said
     assert "campaign.planner_options.n_inti: no installed planner takes an option 'n_inti'" in said, said
     assert "chemistry.targets.0.outputs.hue_deg: no device of the workflow produces 'hue_deg'" in said, said
+
+
+class SerialPump:
+    """A third party's driver on a serial port: one device holds a port alone."""
+
+    capabilities = frozenset({"synthesise"})
+    option_names = frozenset({"port"})
+
+    def __init__(self, setup):
+        self.claims = f"serial port {setup.options.get('port', '/dev/ttyUSB0')}"
+
+    async def run(self, step, params, sample, ctx):
+        raise NotImplementedError
+
+    async def safe_state(self):
+        pass
+
+
+def test_two_devices_that_claim_one_topic_or_port_are_refused_naming_both():
+    """Two MQTT instances on one topic (no {name} in it) both drove one instrument: each took the other's results
+    as strangers' and failed its step. A driver's ``claims`` now says what an instance holds alone, and two devices
+    claiming the same are refused before anything runs — on the lab's own clock; on a virtual one the twins run."""
+    mqtt = {"driver": "mqtt", "instances": 2, "steps": ["measure"], "duration": {"mean_s": 60},
+            "options": {"broker": "127.0.0.1:1883", "topic": "lab/reader", "steps": ["measure"]},
+            "twin": {"driver": "spectrometer"}}
+    scaled = {"clock": {"mode": "scaled", "speed": 100}}
+    with pytest.raises(ScenarioError) as err:
+        check(parse(qd_lab(**{"devices.spectrometer": mqtt, **scaled}), "lab.yaml"))
+    assert ("devices.spectrometer: spectrometer-1 and spectrometer-2 both hold the MQTT topic lab/reader at "
+            "127.0.0.1:1883 (options.topic; {name} in it gives each instance its own), which only one device can "
+            "hold") in str(err.value)
+    named = {**mqtt, "options": {**mqtt["options"], "topic": "lab/{name}"}}
+    check(parse(qd_lab(**{"devices.spectrometer": named, **scaled}), "lab.yaml"))
+    check(parse(qd_lab(**{"devices.spectrometer": mqtt, **scaled}), "lab.yaml"), external=["spectrometer-2"])
+    check(parse(qd_lab(**{"devices.spectrometer": mqtt}), "lab.yaml"))  # virtual: the twins stand in
+    pump = {"driver": "tests.twin.test_scenario_plugins:SerialPump", "options": {"port": "/dev/ttyUSB0"},
+            "steps": ["synthesise"], "duration": {"mean_s": 60}}
+    lab = qd_lab(**{"devices.synthesiser": pump, "devices.mixer": pump, **scaled,
+                    "devices.spectrometer.driver": "spectrometer"})
+    with pytest.raises(ScenarioError) as err:
+        check(parse(lab, "lab.yaml"))
+    assert "devices.mixer: synthesiser and mixer both hold serial port /dev/ttyUSB0, which only" in str(err.value)

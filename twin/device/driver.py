@@ -124,7 +124,9 @@ class DriverFeatures(Protocol):
     ``makes_sample``: the steps after which the experiment has a sample (a synthesis; a step that only passes on
     the sample it was given is not one); ``needs_sample``: the steps it refuses without one (a measurement).
     A workflow with a step that needs a sample and, before it, only steps whose drivers say they make none is
-    then refused by ``twin validate``, naming the step.
+    then refused by ``twin validate``, naming the step. ``claims``: what this instance holds alone, as text (an
+    MQTT topic on a broker, a serial port); two devices of a lab that claim the same are refused by ``twin
+    validate``, naming both.
     """
 
     labtwin_api: int
@@ -135,6 +137,7 @@ class DriverFeatures(Protocol):
     duration_param: str
     makes_sample: frozenset[str]
     needs_sample: frozenset[str]
+    claims: str
 
     async def connect(self, presence: Callable[[bool], None]) -> None: ...
 
@@ -144,7 +147,7 @@ class DriverFeatures(Protocol):
 
 
 FEATURES = frozenset({"labtwin_api", "realtime", "connect", "disconnect", "health", "outputs", "chemistry_models",
-                      "option_names", "duration_param", "makes_sample", "needs_sample"})
+                      "option_names", "duration_param", "makes_sample", "needs_sample", "claims"})
 
 
 def feature(driver: Any, name: str) -> Any:

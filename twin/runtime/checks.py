@@ -85,7 +85,8 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
              # options no plugin the command runs takes: likely misspelt (a scheduler bench checks its own rows)
              untaken_option(s, "planners", [s.campaign.planner, *planners]),
              "" if benched else untaken_option(s, "schedulers", [*named_schedulers(s), *schedulers]),
-             _unproduced(s, drivers, elsewhere | absent), _sampleless(s, drivers, elsewhere | absent)]
+             _unproduced(s, drivers, elsewhere | absent), _sampleless(s, drivers, elsewhere | absent),
+             "" if virtual else _claimed_twice(s, drivers, external)]
     if any(found):
         raise ScenarioError(s.name, [problem for problem in found if problem])
     if types is None:
@@ -248,6 +249,26 @@ def _makers(s: Scenario, drivers: dict[str, Any]) -> list[str]:
         except TwinError:  # a driver that cannot be loaded here names no step
             continue
     return found
+
+
+def _claimed_twice(s: Scenario, drivers: dict[str, Any], external: Collection[str]) -> str:
+    """The first thing two devices claim to hold alone (``claims``: an MQTT topic on a broker, a serial port), or ''.
+    Each instance of a type whose driver claims is made to read its claim (a constructor sends nothing)."""
+    holders: dict[str, str] = {}
+    for dtype, first in drivers.items():
+        if first is None or feature(first, "claims") is None:
+            continue
+        for name in s.instance_names(dtype):
+            if name in external:
+                continue
+            driver = first if name == s.instance_names(dtype)[0] else _at(f"devices.{dtype}.driver", load_driver,
+                                                                           s, dtype, name, False)
+            claim = str(feature(driver, "claims"))
+            if claim in holders:
+                return (f"devices.{dtype}: {holders[claim]} and {name} both hold {claim}, which only one device "
+                        "can hold")
+            holders[claim] = name
+    return ""
 
 
 def _at(field: str, make: Callable[..., Any], *args: Any) -> Any:
