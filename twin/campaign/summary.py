@@ -113,16 +113,22 @@ def cost_text(cost: float, hours_cost: float) -> str:
     return f"{cost:,.0f}" + (f" ({hours_cost:,.0f} of it the devices' hours)" if hours_cost else "")
 
 
+def counted(n: Any, one: str, many: str) -> str:
+    """``n`` and the noun for it: 1 device loss, 2 device losses (anything but 1 takes ``many``)."""
+    return f"{n} {one if n == 1 else many}"
+
+
 def losses_text(devices_lost: Any, steps_lost: Any) -> str:
     """How often devices left the bus, and how many running steps failed with them."""
-    lost = f"{devices_lost} device losses"
-    return lost + (f" ({steps_lost} running steps lost with them)" if devices_lost and steps_lost is not None else "")
+    lost = counted(devices_lost, "device loss", "device losses")
+    return lost + (f" ({counted(steps_lost, 'running step', 'running steps')} lost with them)"
+                   if devices_lost and steps_lost is not None else "")
 
 
 def quarantines_text(quarantines: Any, stuck: Any) -> str:
     """How often devices were quarantined, and how often for a step they did not stop when cancelled."""
-    return f"{quarantines} quarantines" + (f" ({stuck} of a device still running a step it was told to cancel)"
-                                           if stuck else "")
+    return counted(quarantines, "quarantine", "quarantines") + (
+        f" ({stuck} of a device still running a step it was told to cancel)" if stuck else "")
 
 
 def summary_markdown(s: dict[str, Any]) -> str:

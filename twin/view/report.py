@@ -9,7 +9,7 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text, losses_text, quarantines_text
+from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text, counted, losses_text, quarantines_text
 from twin.core.printable import printable
 
 
@@ -55,16 +55,18 @@ def render_summary(s: Summary, console: Console, resume_with: Any = None) -> Non
                             "for a time parameter): a deadline is the expected duration × "
                             "orchestrator.timeout_factor + orchestrator.timeout_slack_s")
     t.add_row("faults", f"{losses_text(s.devices_lost, s.steps_lost)}, {quarantines_text(s.quarantines, s.stuck)}, "
-                        f"{s.invalid_messages} invalid messages, {s.late_results} late results")
+                        f"{counted(s.invalid_messages, 'invalid message', 'invalid messages')}, "
+                        f"{counted(s.late_results, 'late result', 'late results')}")
     if s.rejected_messages or s.presence_flaps:
-        t.add_row("refused", f"{s.rejected_messages} messages without the attempt's provenance (message.rejected), "
-                             f"{s.presence_flaps} presence flaps")
+        flaps = counted(s.presence_flaps, "presence flap", "presence flaps")
+        t.add_row("refused", f"{counted(s.rejected_messages, 'message', 'messages')} without the attempt's "
+                             f"provenance (message.rejected), {flaps}")
     t.add_row("samples degraded", degraded(s))
     if s.decisions:
         ms = s.decision_ms
         fallback = f"; {s.scheduler_fallbacks} made by the fallback rule" if s.scheduler_fallbacks else ""
-        t.add_row("scheduling", f"{s.decisions} decisions, {ms.get('p50', 0):.2f} / {ms.get('p99', 0):.2f} ms "
-                                f"(p50 / p99 wall){fallback}")
+        t.add_row("scheduling", f"{counted(s.decisions, 'decision', 'decisions')}, {ms.get('p50', 0):.2f} / "
+                                f"{ms.get('p99', 0):.2f} ms (p50 / p99 wall){fallback}")
     if s.cost:
         t.add_row("cost", cost_text(s.cost, s.hours_cost))
     hours = f"{s.lab_hours:.3f} h; " if s.lab_hours < 1 else ""
