@@ -385,5 +385,6 @@ def test_work_waiting_for_the_only_instance_still_running_a_cancelled_step_is_gi
     # the rest of the budget was never proposed: said, and a bench counts the run as one that ended early
     left = 6 - summary.proposed
     assert left >= 1 and summary.stopped == (f"no usable spectrometer for 7200 lab-s (campaign.give_up_after_s), "
-                                             f"so {left} experiment(s) of the budget were never proposed")
+                                             f"so {left} experiment{'s' * (left > 1)} of the budget "
+                                             f"{'were' if left > 1 else 'was'} never proposed")
     assert summary.hours_compared(50.0) == 50.0

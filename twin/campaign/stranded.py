@@ -10,6 +10,7 @@ from typing import Any
 from twin.campaign import outcomes
 from twin.campaign.events import UNUSABLE, Status, TimerKey, TimerKind
 from twin.campaign.human import DRIVER as PERSON
+from twin.core.counts import counted
 
 CampaignCore = Any  # the core calls in here with itself (an import of it would be a cycle)
 GIVEN_UP = "given up"  # CampaignCore.why_no_proposals: a device type the workflow needs was given up on
@@ -69,8 +70,10 @@ def cut_short(core: CampaignCore) -> str:
         return ""
     c = core.s.campaign
     lost = [t for t in dict.fromkeys(step.device for step in core._workflow) if t in core._availability.given_up]
+    left = c.budget + core.replaced - len(core.experiments)
     return (f"no usable {', '.join(lost)} for {c.give_up_after_s:g} lab-s (campaign.give_up_after_s), so "
-            f"{c.budget + core.replaced - len(core.experiments)} experiment(s) of the budget were never proposed")
+            f"{counted(left, 'experiment', 'experiments')} of the budget {'was' if left == 1 else 'were'} never "
+            "proposed")
 
 
 def ran_out(core: CampaignCore) -> str:

@@ -8,6 +8,7 @@ from typing import Any
 
 from twin.campaign.ledger import UNRUNNABLE
 from twin.campaign.stranded import cut_short, ran_out
+from twin.core.counts import counted
 
 
 EXAMPLE_CHARS = 240
@@ -111,11 +112,6 @@ def _cell(value: Any) -> str:
 def cost_text(cost: float, hours_cost: float) -> str:
     """A campaign's cost, with the part its instances' hours make (``devices.*.cost_per_hour``) if any."""
     return f"{cost:,.0f}" + (f" ({hours_cost:,.0f} of it the devices' hours)" if hours_cost else "")
-
-
-def counted(n: Any, one: str, many: str) -> str:
-    """``n`` and the noun for it: 1 device loss, 2 device losses (anything but 1 takes ``many``)."""
-    return f"{n} {one if n == 1 else many}"
 
 
 def losses_text(devices_lost: Any, steps_lost: Any) -> str:

@@ -9,7 +9,8 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text, counted, losses_text, quarantines_text
+from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text, losses_text, quarantines_text
+from twin.core.counts import counted
 from twin.core.printable import printable
 
 
