@@ -274,7 +274,10 @@ def refuse_realtime(drivers: list[tuple[str, str, Any]]) -> None:
     realtime = {name: dtype for name, dtype, drv in drivers if feature(drv, "realtime")}
     if realtime:
         dtype = next(iter(realtime.values()))
-        raise ClockError(f"devices {sorted(realtime)} talk to real instruments, which keep wall time: use --clock "
+        names = sorted(realtime)
+        who = f"{names[0]} talks to a real instrument, which keeps" if len(names) == 1 else \
+            f"{', '.join(names)} talk to real instruments, which keep"
+        raise ClockError(f"{who} wall time: use --clock "
                          f"scaled (or wall), or give devices.{dtype}.twin: {{driver: NAME}}, a simulated driver "
                          "that stands in for it on a virtual clock (docs/drivers.md)")
 
