@@ -26,6 +26,21 @@ async def _retained(broker: str, topic: str) -> str:
                 return m.payload.decode()
 
 
+async def _adapter(mosquitto: str, prefix: str):
+    """The adapter of spectrometer-1, connected; and the presence it has reported, in order."""
+    driver = load_driver(parse(mqtt_lab(mosquitto, prefix)), "spectrometer", "spectrometer-1")
+    seen: list[bool] = []
+    await driver.connect(seen.append)
+    return driver, seen
+
+
+async def _until(done, seconds: float = 10.0) -> None:
+    """Wait (wall time: the instrument keeps it) until ``done()``, at most ``seconds``."""
+    t0 = time.monotonic()
+    while not done() and time.monotonic() - t0 < seconds:
+        await asyncio.sleep(0.05)
+
+
 def test_a_clean_exit_says_offline_and_a_stale_online_is_not_trusted_until_a_ping_is_answered(mosquitto, prefix):
     topic = f"{prefix}/spectrometer-1"
     proc = instrument(mosquitto, topic)
@@ -37,16 +52,12 @@ def test_a_clean_exit_says_offline_and_a_stale_online_is_not_trusted_until_a_pin
         host, _, port = mosquitto.rpartition(":")
         async with aiomqtt.Client(host, int(port)) as c:  # a dead instrument's "online", left retained
             await c.publish(f"{topic}/status", "online", qos=1, retain=True)
-        driver = load_driver(parse(mqtt_lab(mosquitto, prefix)), "spectrometer", "spectrometer-1")
-        seen: list[bool] = []
-        await driver.connect(seen.append)
+        driver, seen = await _adapter(mosquitto, prefix)
         try:
             await asyncio.sleep(3.0)  # the adapter pings twice; nobody answers
             stale = (list(seen), (await driver.health())["present"])
             live = await asyncio.to_thread(instrument, mosquitto, topic)
-            t0 = time.monotonic()
-            while True not in seen and time.monotonic() - t0 < 10:
-                await asyncio.sleep(0.05)
+            await _until(lambda: True in seen)
             return stale, list(seen), live
         finally:
             await driver.disconnect()
@@ -186,19 +197,13 @@ def test_a_late_last_will_does_not_keep_a_live_instrument_off_the_bus(mosquitto,
     live = instrument(mosquitto, topic)
 
     async def late_will():
-        driver = load_driver(parse(mqtt_lab(mosquitto, prefix)), "spectrometer", "spectrometer-1")
-        seen: list[bool] = []
-        await driver.connect(seen.append)
+        driver, seen = await _adapter(mosquitto, prefix)
         try:
-            t0 = time.monotonic()
-            while seen != [True] and time.monotonic() - t0 < 10:
-                await asyncio.sleep(0.05)
+            await _until(lambda: seen == [True])
             host, _, port = mosquitto.rpartition(":")
             async with aiomqtt.Client(host, int(port)) as c:  # the broker giving out the old session's will
                 await c.publish(f"{topic}/status", "offline", qos=1, retain=True)
-            t0 = time.monotonic()
-            while seen != [True, False, True] and time.monotonic() - t0 < 10:
-                await asyncio.sleep(0.05)
+            await _until(lambda: seen == [True, False, True])
             return list(seen), (await driver.health())["present"]
         finally:
             await driver.disconnect()
@@ -232,10 +237,7 @@ def test_an_instrument_not_present_is_said_once_with_the_topic_the_adapter_waits
         for d in drivers:
             await d.connect(lambda present: None)
         try:
-            t0 = time.monotonic()
-            while len([r for r in caplog.records if "no instrument present" in r.getMessage()]) < 2 \
-                    and time.monotonic() - t0 < 10:
-                await asyncio.sleep(0.05)
+            await _until(lambda: len([r for r in caplog.records if "no instrument present" in r.getMessage()]) == 2)
             await asyncio.sleep(0.5)  # a third would come by now
         finally:
             for d in drivers:
@@ -278,13 +280,9 @@ def test_an_instrument_that_said_online_without_retain_before_the_lab_came_is_fo
 
         task = asyncio.ensure_future(instrument_without_retain())
         await ready.wait()
-        driver = load_driver(parse(mqtt_lab(mosquitto, prefix)), "spectrometer", "spectrometer-1")
-        seen: list[bool] = []
-        await driver.connect(seen.append)
+        driver, seen = await _adapter(mosquitto, prefix)
         try:
-            t0 = time.monotonic()
-            while seen != [True] and time.monotonic() - t0 < 10:
-                await asyncio.sleep(0.05)
+            await _until(lambda: seen == [True])
             return list(seen), pinged.is_set(), (await driver.health())["present"]
         finally:
             await driver.disconnect()
