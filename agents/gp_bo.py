@@ -19,10 +19,6 @@ import warnings
 from typing import Any
 
 import numpy as np
-from scipy.stats import norm
-from sklearn.exceptions import ConvergenceWarning
-from sklearn.gaussian_process import GaussianProcessRegressor
-from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
 
 from agents.box import UnitBox
 from agents.planners import LhsPlanner
@@ -41,7 +37,8 @@ class GpBoPlanner:
         self.outputs = sorted({o for t in self.targets for o in t.outputs})
         self.n_init, self.n_candidates, self.refit_every = n_init, candidates, refit_every
         self.rng = np.random.default_rng(random.Random(f"gp-bo:{seed}").getrandbits(64))
-        self.design = LhsPlanner(parameters, seed, budget=n_init)
+        self._parameters, self._seed = parameters, seed
+        self._design: LhsPlanner | None = None  # made when first asked: a planner only checked never imports scipy
         self._kernels: dict[str, Any] = {}
         self._fitted_at = -1
         self._turn = 0
@@ -52,7 +49,9 @@ class GpBoPlanner:
         x, ys = self._data(done) if self.targets else (np.empty((0, 0)), {})
         # too few experiments that measured what the targets name (none, if no device outputs it): keep exploring
         if len(x) < self.n_init:
-            return self.design.propose(n, history, pending) or self._random(n)
+            if self._design is None:
+                self._design = LhsPlanner(self._parameters, self._seed, budget=self.n_init)
+            return self._design.propose(n, history, pending) or self._random(n)
         # where a device refused (infeasible): a candidate whose nearest tried point was refused is not proposed
         self._refused = np.array([self._unit(h.params) for h in history if getattr(h, "infeasible", False)])
         self._tried = np.vstack([x, self._refused]) if len(self._refused) else x
@@ -81,6 +80,8 @@ class GpBoPlanner:
         return x, {o: np.array([h.outputs[o] for h in rows], dtype=float) for o in self.outputs}
 
     def _fit(self, x: np.ndarray, ys: dict[str, np.ndarray], believers: list[np.ndarray], refit: bool):
+        from sklearn.gaussian_process import GaussianProcessRegressor  # scipy and sklearn take seconds to import:
+        # a planner made to be checked (twin validate) or that never fits need not wait for them
         gps = {}
         for o, y in ys.items():
             kernel = self._kernels.get(o)
@@ -96,6 +97,10 @@ class GpBoPlanner:
         return gps
 
     def _fit_kernel(self, x: np.ndarray, y: np.ndarray):
+        from sklearn.exceptions import ConvergenceWarning
+        from sklearn.gaussian_process import GaussianProcessRegressor
+        from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
         d = x.shape[1]
         kernel = ConstantKernel(1.0, (1e-3, 1e3)) * Matern([0.3] * d, (1e-2, 10.0), nu=2.5) + WhiteKernel(1e-3, (1e-6, 1e-1))
         with warnings.catch_warnings():
@@ -137,6 +142,8 @@ class GpBoPlanner:
         return dist
 
     def _p_meets(self, gps: dict[str, Any], cand: np.ndarray, target: Any) -> np.ndarray:
+        from scipy.stats import norm
+
         p = np.ones(len(cand))
         for o, c in target.outputs.items():
             mu, sd = gps[o].predict(cand, return_std=True)

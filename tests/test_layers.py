@@ -55,3 +55,15 @@ def test_a_command_line_or_a_driver_imports_only_what_it_uses_and_every_public_n
     imported = {alias.asname or alias.name: (node.module, alias.name) for node in guarded.body
                 for alias in node.names}
     assert imported == twin._WHERE
+
+
+def test_checking_a_lab_that_plans_by_gp_bo_leaves_scipy_and_sklearn_unimported():
+    """`twin validate` of quantum_dots took ~3 s, two of them importing scipy.stats and scikit-learn for a planner
+    made only to be checked: GP-BO imports them when it first designs or fits, and the checked lab is the same."""
+    probe = ("import sys\n"
+             "from twin.runtime.checks import validate_file\n"
+             "s = validate_file('scenarios/quantum_dots.yaml')\n"
+             "print(s.campaign.planner, sorted(m for m in ('scipy.stats', 'sklearn') if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["gp-bo", "[]"], out.stdout
