@@ -17,10 +17,6 @@ import warnings
 from typing import Any
 
 import numpy as np
-from scipy.stats import norm
-from sklearn.exceptions import ConvergenceWarning
-from sklearn.gaussian_process import GaussianProcessRegressor
-from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
 
 from agents.box import UnitBox
 from twin import Outcome, Proposal, RouteStep
@@ -69,6 +65,9 @@ class MultiFidelityPlanner:
         return out
 
     def _p_hit(self, dft_gp, x, resid, believers, cand):
+        from scipy.stats import norm  # here, as sklearn below: seconds of imports a lab only checked never needs
+        from sklearn.gaussian_process import GaussianProcessRegressor
+
         mu_d, sd_d = dft_gp.predict(cand[:, self.dft_idx], return_std=True)
         if len(x) >= 2:
             xb = np.vstack([x, np.array(believers).reshape(-1, x.shape[1])]) if believers else x
@@ -92,7 +91,11 @@ class MultiFidelityPlanner:
                 p *= norm.cdf((c.max - mu) / sd)
         return p, corr
 
-    def _gp(self, x: np.ndarray, y: np.ndarray, normalize: bool = True) -> GaussianProcessRegressor:
+    def _gp(self, x: np.ndarray, y: np.ndarray, normalize: bool = True) -> Any:
+        from sklearn.exceptions import ConvergenceWarning
+        from sklearn.gaussian_process import GaussianProcessRegressor
+        from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
         kernel = (ConstantKernel(1.0, (1e-3, 1e3)) * Matern([0.3] * x.shape[1], (1e-2, 10.0), nu=2.5)
                   + WhiteKernel(1e-3, (1e-6, 1e-1)))
         with warnings.catch_warnings():

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import grimp
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -57,13 +58,14 @@ def test_a_command_line_or_a_driver_imports_only_what_it_uses_and_every_public_n
     assert imported == twin._WHERE
 
 
-def test_checking_a_lab_that_plans_by_gp_bo_leaves_scipy_and_sklearn_unimported():
+@pytest.mark.parametrize("lab, planner", [("quantum_dots", "gp-bo"), ("bandgap", "mf-gp-bo")])
+def test_checking_a_lab_that_plans_by_a_gp_leaves_scipy_and_sklearn_unimported(lab, planner):
     """`twin validate` of quantum_dots took ~3 s, two of them importing scipy.stats and scikit-learn for a planner
-    made only to be checked: GP-BO imports them when it first designs or fits, and the checked lab is the same."""
+    made only to be checked: the GP planners import them when they first design or fit."""
     probe = ("import sys\n"
              "from twin.runtime.checks import validate_file\n"
-             "s = validate_file('scenarios/quantum_dots.yaml')\n"
+             f"s = validate_file('scenarios/{lab}.yaml')\n"
              "print(s.campaign.planner, sorted(m for m in ('scipy.stats', 'sklearn') if m in sys.modules))\n")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["gp-bo", "[]"], out.stdout
+    assert out.stdout.split() == [planner, "[]"], out.stdout
