@@ -132,11 +132,33 @@ def lab_task(args: tuple) -> tuple[list[Sample], dict]:
     torch.set_num_threads(1)
     rng = random.Random(f"imitate:{seed}")
     lab = planned(prepare(randomised(base, seed), seed=seed))
-    scores = {r: objective(campaign(lab, seed, load_plugin("schedulers", r)().decide), lab) for r in rules_for(lab)}
-    rule = min(scores, key=scores.get)
+    rule, scores = teaching_rule(lab, seed, base.training)
     samples, ratios = _rollouts(lab, RuleTeacher(rule), modes, _scorer(state, seed), beta, rng,
                                 lambda summary: objective(summary, lab) / scores[rule], encoding)
     return samples, {"rule": rule, "shape": lab_shape(lab), **ratios}
+
+
+def teaching_rule(lab: Scenario, seed: int, t: Any) -> tuple[str, dict[str, float]]:
+    """The rule that teaches ``lab`` (``training.teacher_seeds``, ``teacher_margin``, ``teacher_default``), and every
+    rule's objective there, on the first of its runs (what the rollouts' ratios are measured against)."""
+    seeds = [seed + 7_919 * k for k in range(t.teacher_seeds)]  # the first is the lab's own: one seed as before
+    runs = {r: [objective(campaign(lab, sd, load_plugin("schedulers", r)().decide), lab) for sd in seeds]
+            for r in rules_for(lab)}
+    mean = {r: statistics.mean(v) for r, v in runs.items()}
+    rule = min(mean, key=mean.get)
+    default = t.teacher_default
+    if t.teacher_margin > 0 and default in mean and mean[rule] > (1 - t.teacher_margin) * mean[default]:
+        rule = default
+    return rule, {r: v[0] for r, v in runs.items()}
+
+
+def with_teacher_default(scenario: Scenario, best_rule: str) -> Scenario:
+    """``scenario`` whose labs' teacher defaults to ``best_rule`` (the best on the lab as written, which training
+    is judged against) where a margin is asked and no default given."""
+    t = scenario.training
+    if t.teacher_margin <= 0 or t.teacher_default is not None:
+        return scenario
+    return scenario.model_copy(update={"training": t.model_copy(update={"teacher_default": best_rule})})
 
 
 def sampled_runs(lab: Scenario, scorer: torch.nn.Module, k: int,
@@ -265,6 +287,10 @@ def check_imitable(scenario: Scenario, init) -> None:
             f"{scenario.name}: training.teacher 'cp-sat' learns from CP-SAT's schedules of random job shops, so it "
             f"needs a job-shop scenario (jobshop: file) with training.jobshop_sizes; for any other lab use "
             f"training.teacher: best-rule, or training.method: ppo")
+    default = scenario.training.teacher_default
+    if default is not None and default not in rules_for(scenario):
+        raise ValueError(f"{scenario.name}: training.teacher_default {default!r} is not one of the rules that teach "
+                         f"({', '.join(rules_for(scenario))})")
 
 
 class StartWorse(Exception):
@@ -315,6 +341,7 @@ def train_by_imitation(scenario: Scenario, steps: int, out, seed: int = 0, worke
     optimizer = torch.optim.Adam(net.parameters(), lr=learning_rate)
     judge = Judge(scenario, out, encoding, eval_seeds or EVAL_SEEDS, held_out_count, on_progress, judged,
                   method="imitate", teacher=scenario.training.teacher, **started_from(init))
+    scenario = with_teacher_default(scenario, judge.best_rule)
     jobshop = bool(scenario.training.jobshop_sizes and not scenario.campaigns) if itself else \
         scenario.training.teacher == "cp-sat"
     task = self_task if itself else shop_task if jobshop else lab_task

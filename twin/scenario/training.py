@@ -63,6 +63,16 @@ class Training(Spec):
         "best-rule for any other lab")
     samples: int = Field(default=16, ge=2, le=256, description="teacher self: rollouts of each lab (one greedy, the "
                          "rest sampled), the best of which is imitated; self-pg: sampled rollouts of each lab")
+    teacher_seeds: int = Field(default=1, ge=1, le=16, description="teacher best-rule: each lab drawn is run this "
+                               "many times by every rule, its faults drawn anew each time, and the rules compared on "
+                               "the mean")
+    teacher_margin: float = Field(default=0.0, ge=0, le=1, description="teacher best-rule: another rule teaches a "
+                                  "lab only where it beats the scenario's best rule as written by more than this share "
+                                  "of the objective (0.02: 2 %), so that rules a seed's noise apart do not take turns "
+                                  "teaching labs alike")
+    teacher_default: str | None = Field(default=None, description="teacher best-rule with teacher_margin: the rule "
+                                        "that teaches unless another beats it by the margin; by default the best rule "
+                                        "on the scenario as written (the one training is judged against)")
 
     duration_scale: Range = Field(default=(1.0, 1.0), description="multiplies every mean duration")
     fault_scale: Range = Field(default=(1.0, 1.0), description="multiplies fail/hang probabilities and crash rates")
