@@ -28,7 +28,7 @@ import numpy as np
 
 from agents import candidates, default_scenario, lab_scheduling, scheduling_features
 from agents.rendering import METADATA, Spans, render_mode_of
-from twin import jobshop_as_lab, random_jobshop, random_lab
+from twin import bottleneck, jobshop_as_lab, random_jobshop, random_lab
 from twin import prepare
 from twin import Scenario
 from twin import SteppedCampaign
@@ -56,6 +56,8 @@ def randomised(s: Scenario, seed: int) -> Scenario:
         over[f"devices.{name}.faults.mtbc_h"] = d.faults.mtbc_h / (fault * d_fault) if d.faults.mtbc_h else 0.0
         if name in t.instances:
             over[f"devices.{name}.instances"] = rng.randint(*t.instances[name])
+    if t.bottleneck_share and s.jobshop is None and not s.campaigns and rng.random() < t.bottleneck_share:
+        over = _with_bottleneck(s, over, rng)
     if s.jobshop is not None and t.jobshop_sizes:
         n_jobs, n_machines = rng.choice(t.jobshop_sizes)
         low, high = (int(x) for x in (t.operation_s or (1, 10)))
@@ -66,6 +68,15 @@ def randomised(s: Scenario, seed: int) -> Scenario:
     if s.campaigns:  # a lab of several: its campaigns' priorities and shares too
         over = lab_scheduling.variant(s, over, rng)
     return prepare(s, overrides=over)
+
+
+def _with_bottleneck(s: Scenario, over: dict[str, Any], rng: random.Random) -> dict[str, Any]:
+    """``over`` with one device type of the workflow, drawn, made the lab's bottleneck (``twin.bottleneck``), and
+    up to half as long again."""
+    lab = prepare(s, overrides=over)
+    name = rng.choice(sorted({w.device for w in lab.workflow}))
+    factor = bottleneck(lab, name) * rng.uniform(1.0, 1.5)
+    return {**over, f"devices.{name}.duration.mean_s": lab.devices[name].duration.mean_s * factor} if factor else over
 
 
 def _redraw(job: dict, t: Any, rng: random.Random) -> dict:

@@ -45,6 +45,7 @@ if TYPE_CHECKING:
     from twin.scenario.jobshop import generate as random_jobshop
     from twin.scenario.sharing import campaign_scenarios
     from twin.scenario.objective import time_scale, weighted_objective
+    from twin.scenario.bottleneck import bottleneck
     from twin.scenario.random_labs import ANY_WORKFLOW, drawn_at_random, random_lab
     from twin.scenario.targets import score
     from twin.tools.testing import driver_setup, run_scenario, run_step
@@ -95,6 +96,7 @@ _WHERE = {
     "TwinError": ("twin.core.errors", "TwinError"),
     "campaign_scenarios": ("twin.scenario.sharing", "campaign_scenarios"),
     "capable": ("twin.campaign.decisions", "capable"),
+    "bottleneck": ("twin.scenario.bottleneck", "bottleneck"),
     "drawn_at_random": ("twin.scenario.random_labs", "drawn_at_random"),
     "driver_setup": ("twin.tools.testing", "driver_setup"),
     "expected_duration": ("twin.scenario", "expected_duration"),

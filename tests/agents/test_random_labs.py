@@ -123,3 +123,23 @@ def test_each_device_type_draws_its_own_stage_scale_and_samples_their_own_stabil
     lab = randomised(unscaled, 5)
     assert lab.chemistry.stability_s == written.chemistry.stability_s
     assert len({round(lab.devices[n].duration.mean_s / d.duration.mean_s, 9) for n, d in written.devices.items()}) == 1
+
+
+def test_a_share_of_the_labs_drawn_make_one_stage_the_bottleneck_and_the_rest_are_drawn_as_before():
+    """flaky_lab's stages drawn up to 2.5× slower never made its synthesiser or spectrometer the bottleneck (the
+    bench's bottleneck shapes need ×8.2 and ×20.7); with ``bottleneck_share`` that share of the labs drawn have one
+    workflow stage, drawn, the busiest by the bench's margin. Without it, every lab is drawn as before."""
+    from twin.scenario.bottleneck import MARGIN, stage_loads
+
+    written = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"training.random_labs": None})
+    shared = prepare(written, overrides={"training.bottleneck_share": 1.0})
+    made = set()
+    for seed in range(12):
+        loads = stage_loads(randomised(shared, seed))
+        busiest, *rest = sorted(loads, key=loads.get, reverse=True)
+        assert loads[busiest] >= MARGIN * loads[rest[0]] * 0.999, loads
+        made.add(busiest)
+    assert made == {"synthesiser", "reactor", "spectrometer"}
+    for seed in range(5):  # the share left at 0: the same labs, draw for draw
+        assert randomised(written, seed) == randomised(prepare(written, overrides={"training.bottleneck_share": 0}),
+                                                       seed)

@@ -37,7 +37,7 @@ def test_a_bottleneck_shape_makes_its_stage_the_busiest_of_the_lab_whatever_the_
     import random
 
     from twin import random_lab, run
-    from twin.tools.shape_bench import MARGIN, bottleneck, stage_loads
+    from twin.scenario.bottleneck import MARGIN, bottleneck, stage_loads
 
     lab = random_lab(parse(qd_lab(**{"campaign.budget": 12})), random.Random(seed))
     for name, variant in variants(lab):

@@ -81,6 +81,11 @@ class Training(Spec):
                               "the rest (a bottleneck, a flaky stage)")
     stability_scale: Range = Field(default=(1.0, 1.0), description="multiplies how long samples keep "
                                    "(chemistry.stability_s)")
+    bottleneck_share: float = Field(default=0.0, ge=0, le=1, description="the share of the scenario's own labs drawn "
+                                    "in which one device type of the workflow, at random, is made the bottleneck: its "
+                                    "steps made long enough that it takes a quarter more lab time per experiment than "
+                                    "any other, and up to half as long again (as `twin bench schedulers --shapes` "
+                                    "makes its bottleneck shapes)")
     instances: dict[str, IntRange] = Field(default_factory=dict, description="device type -> [min, max] instances")
     operation_s: Range | None = Field(
         default=None, description="job shops: draw every operation's duration from [low, high] lab-s")
