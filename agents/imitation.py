@@ -10,8 +10,9 @@ a schedule within a few percent of the optimum. So the candidate policy can lear
   order runs first, unless the order's next operation there is not ready yet and that candidate would still be
   running when it could start (then: wait). Following it reproduces the plan;
 - ``best-rule`` (any lab, faults and all): in each lab drawn from the ``training`` ranges, the dispatching rule
-  with the best objective there (makespan, degraded, abandoned, weighted) is the teacher, so the policy learns
-  which rule's choice fits which state and lab;
+  with the best objective there (makespan, degraded, abandoned, weighted; the mean of ``teacher_seeds`` runs) is
+  the teacher, so the policy learns which rule's choice fits which state and lab; with ``teacher_margin``, a rule
+  other than the lab's best as written teaches only where it beats that one by the margin;
 - ``self`` (any lab; self-labelling, Corsini et al., 2024): each lab drawn is rolled out ``training.samples``
   times by the policy itself in lockstep (one greedy, the rest sampled) and the best run's choices are the
   labels, so the greedy policy learns what its own best samples do; it starts from a policy (``--init``), such
