@@ -6,8 +6,10 @@ import contextlib
 import functools
 import re
 import signal
+import os
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Callable, Iterator, NoReturn, TypeVar
 
@@ -124,22 +126,47 @@ class Terminated(KeyboardInterrupt):
     waiting for work that would never come."""
 
 
+#: how soon a Ctrl-C or SIGTERM that nothing acted on is delivered again (``sigterm_unwinds(redeliver=True)``)
+REDELIVER_S = 0.5
+
+
 @contextlib.contextmanager
-def sigterm_unwinds() -> Iterator[None]:
-    """SIGTERM raises ``Terminated`` while inside (unless something else already handles it)."""
+def sigterm_unwinds(redeliver: bool = False) -> Iterator[None]:
+    """SIGTERM raises ``Terminated`` while inside (unless something else already handles it). ``redeliver``: for a
+    block that does not catch the interrupt itself, Ctrl-C or SIGTERM is raised again every ``REDELIVER_S`` until
+    it leaves the block — Python drops an exception raised in a weakref callback or a destructor ("Exception
+    ignored in …"), and a Ctrl-C that landed in one while a module was being imported was lost: the route search
+    it meant to stop ran its whole budget."""
     if threading.current_thread() is not threading.main_thread() or \
             signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
         yield
         return
-    signal.signal(signal.SIGTERM, _terminated)
+    inside, started = threading.Event(), threading.Event()
+    inside.set()
+
+    def again(signum: int) -> None:
+        while True:
+            time.sleep(REDELIVER_S)
+            if not inside.is_set():
+                return
+            os.kill(os.getpid(), signum)
+
+    def raised(signum: int, _frame: Any) -> None:
+        if redeliver and not started.is_set():
+            started.set()
+            threading.Thread(target=again, args=(signum,), daemon=True).start()
+        raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+    interrupt = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGTERM, raised)
+    if redeliver and interrupt is signal.default_int_handler:
+        signal.signal(signal.SIGINT, raised)
     try:
         yield
     finally:
+        inside.clear()
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
-
-
-def _terminated(*_: Any) -> None:
-    raise Terminated
+        signal.signal(signal.SIGINT, interrupt)
 
 
 def stopped_by(stop: BaseException) -> str:

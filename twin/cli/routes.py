@@ -44,7 +44,7 @@ def route(
         if save is not None and save.suffix.lower() not in (".svg", ".png"):
             raise ValueError(f"--save {save}: a route is drawn as SVG or PNG; give a file name ending in .svg or .png")
         shown = smiles if len(smiles) <= 60 else smiles[:57] + "…"
-        with sigterm_unwinds():  # before the line that says Ctrl-C (or SIGTERM) stops it
+        with sigterm_unwinds(redeliver=True):  # before the line that says Ctrl-C (or SIGTERM) stops it
             err.print(f"searching for a route to {shown} ({method}, up to {seconds:g} s; Ctrl-C stops it) …",
                       highlight=False)
             data = planner(smiles, stock=stock, templates=templates, prior=prior, seconds=seconds,
