@@ -307,7 +307,7 @@ def test_ctrl_c_or_sigterm_while_the_training_workers_start_lets_them_start_then
     import signal
 
     from agents import training_workers
-    from twin.cli.common import Terminated, sigterm_unwinds
+    from twin.cli.stopping import Terminated, sigterm_unwinds
 
     kind = type(multiprocessing.get_context("spawn"))
     real, built = kind.Pool, []

@@ -110,7 +110,7 @@ def test_a_signal_while_the_pool_is_open_is_raised_where_the_runs_are_waited_for
     import os
     import signal
 
-    from twin.cli.common import Terminated, sigterm_unwinds
+    from twin.cli.stopping import Terminated, sigterm_unwinds
 
     expected = Terminated if raised == "Terminated" else raised
     reached: list[str] = []

@@ -229,7 +229,7 @@ def test_a_ctrl_c_that_python_dropped_is_raised_again_until_the_search_has_stopp
     `sigterm_unwinds(redeliver=True)` it is raised again until it leaves the block; outside, Ctrl-C is Python's."""
     import time
 
-    from twin.cli.common import REDELIVER_S, sigterm_unwinds
+    from twin.cli.stopping import REDELIVER_S, sigterm_unwinds
 
     dropped, started = 0, time.monotonic()
     with pytest.raises(KeyboardInterrupt):

@@ -9,9 +9,9 @@ from typing import TYPE_CHECKING, Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import (bar_progress, bench_app, err, _fail, fitted_width, interruptible, machine_output,
-                             narrow_table, paired_assignments, part_done, print_table, refuse_disagreeing,
-                             say_ended_early, stopped_partway, writable)
+from twin.cli.common import (bar_progress, bench_app, err, _fail, fitted_width, machine_output, narrow_table,
+                             paired_assignments, print_table, refuse_disagreeing, say_ended_early, writable)
+from twin.cli.stopping import interruptible, part_done, stopped_partway
 from twin.core.errors import TwinError
 
 if TYPE_CHECKING:  # the commands import the runtime when they run: twin ctl or router need none of it

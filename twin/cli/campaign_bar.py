@@ -9,7 +9,8 @@ from pathlib import Path
 
 from rich.markup import escape
 
-from twin.cli.common import _fail, bar_progress, console, err, exit_if_interrupted, keep_serving
+from twin.cli.common import _fail, bar_progress, console, err, keep_serving
+from twin.cli.stopping import exit_if_interrupted
 from twin.core.errors import TwinError
 from twin.runtime import lab
 from twin.runtime.live import lab_elapsed

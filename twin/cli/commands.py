@@ -13,9 +13,9 @@ import typer
 from rich.markup import escape
 from rich.text import Text
 
-from twin.cli.common import (_fail, app, assignments, check_lab_name, console, err, exit_status, machine_output,
-                             narrow_table, recording_file, refuse_disagreeing, say_if_still_written, sigterm_unwinds,
-                             speed_heeded, stopped_by, writable)
+from twin.cli.common import (_fail, app, assignments, check_lab_name, console, err, machine_output, narrow_table,
+                             recording_file, refuse_disagreeing, say_if_still_written, speed_heeded, writable)
+from twin.cli.stopping import exit_status, sigterm_unwinds, stopped_by
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
 from twin.core import plugins

@@ -9,8 +9,8 @@ from typing import Annotated, Optional
 
 import typer
 
-from twin.cli.common import (_fail, app, console, device_app, driver_app, err, exit_status, scheduler_app,
-                             security_app, sigterm_unwinds, stopped_by, writable)
+from twin.cli.common import _fail, app, console, device_app, driver_app, err, scheduler_app, security_app, writable
+from twin.cli.stopping import exit_status, sigterm_unwinds, stopped_by
 from twin.cli.printable import log_to_stderr
 from twin.core.printable import inert, printable
 from twin.core.errors import TwinError

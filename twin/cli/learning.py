@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING, Annotated, Optional
 import typer
 
 from twin.core import plugins
-from twin.cli.common import (app, assignments, bar_progress, console, err, exit_status, _fail, recording_file,
-                             sigterm_unwinds, stopped_by, writable)
+from twin.cli.common import app, assignments, bar_progress, console, err, _fail, recording_file, writable
+from twin.cli.stopping import exit_status, sigterm_unwinds, stopped_by
 from twin.core.errors import TwinError
 from twin.core.whole_files import kept_from_others
 

@@ -11,9 +11,9 @@ from typing import Annotated, Optional
 import typer
 from rich.table import Table
 
-from twin.cli.common import (_fail, app, bar_progress, bench_app, console, err, exit_status, interruptible,
-                             machine_output, narrow_table, part_done, print_table, sigterm_unwinds, stopped_by,
-                             stopped_partway, writable)
+from twin.cli.common import (_fail, app, bar_progress, bench_app, console, err, machine_output, narrow_table,
+                             print_table, writable)
+from twin.cli.stopping import exit_status, interruptible, part_done, sigterm_unwinds, stopped_by, stopped_partway
 from twin.core import plugins
 from twin.core.errors import TwinError
 

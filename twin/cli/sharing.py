@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING, Annotated, Optional
 import typer
 from rich.markup import escape
 
-from twin.cli.common import (_fail, app, check_lab_name, console, err, exit_if_interrupted, keep_serving, lab_app,
-                             speed_heeded)
+from twin.cli.common import _fail, app, check_lab_name, console, err, keep_serving, lab_app, speed_heeded
+from twin.cli.stopping import exit_if_interrupted
 from twin.cli.printable import log_to_stderr
 from twin.core.errors import TwinError
 

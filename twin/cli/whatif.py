@@ -14,8 +14,9 @@ import typer
 from rich import box
 from rich.table import Table
 
-from twin.cli.common import (_fail, app, bar_progress, console, interruptible, paired_assignments, recording_file,
-                             part_done, say_ended_early, stopped_partway, writable)
+from twin.cli.common import (_fail, app, bar_progress, console, paired_assignments, recording_file, say_ended_early,
+                             writable)
+from twin.cli.stopping import interruptible, part_done, stopped_partway
 from twin.core.errors import TwinError
 from twin.core.printable import inert
 
