@@ -4,6 +4,7 @@ until a refill), a refill — an operator's, or a simulated one in virtual time 
 import json
 
 import pytest
+import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -12,6 +13,7 @@ from tests.conftest import qd_lab
 from tests.twin.test_core import QD, msg, notes
 from tests.twin.test_operator import op, running
 from twin.campaign import Decided, Operator, Proposed
+from twin.campaign.consumables import amount
 from twin.campaign.decisions import Assignment, Proposal
 from twin.campaign.journal_read import read_events
 from twin import Refused
@@ -19,6 +21,7 @@ from twin.core.errors import ScenarioError
 from twin.core.messages import Kind
 from twin.runtime.lab import run
 from twin.scenario import parse
+from twin.scenario.sharing import campaign_scenarios
 
 P = {"concentration_mm": 5, "temperature_c": 250, "time_s": 60}
 
@@ -268,10 +271,38 @@ def test_crossing_the_reorder_point_says_when_it_runs_out(scenario_of):
      "consumables.x.device: 'oven' is not a device type"),
     ({"consumables": {"x": {"level": 5, "device": "synthesiser", "used_by": {"measure": 1}}}},
      "consumables.x.used_by.measure: 'measure' does not run on a synthesiser"),
+    ({"consumables": {"x": {"level": 5, "used_by": {"synthesise": {"fixed": 1, "per": {"temperature_c": -0.1}}}}}},
+     r"consumables.x.used_by.synthesise: at temperature_c = 320 a step would use -31 units .*raise fixed to at "
+     r"least 32"),
+    ({"consumables": {"x": {"level": 5, "used_by": {"synthesise": {"per": {"stir_rpm": 0.1}}}}}},
+     r"consumables.x.used_by.synthesise.per.stir_rpm: 'stir_rpm' is no parameter of the chemistry \(concentration_mm, "
+     r"temperature_c, time_s\)"),
 ])
 def test_a_consumable_that_cannot_work_is_refused_with_its_field(change, words):
     with pytest.raises(ScenarioError, match=words):
         parse(qd_lab(**change), "lab.yaml")
+
+
+def test_an_amount_per_parameter_may_fall_with_it_while_no_step_uses_less_than_nothing():
+    use = {"fixed": 7, "per": {"concentration_mm": 0.1, "time_s": -0.01}}  # at least 7 + 0.1 - 6 = 1.1
+    lab = parse(qd_lab(consumables={"x": {"level": 50, "used_by": {"synthesise": use}}}), "lab.yaml")
+    assert amount(lab.consumables["x"].used_by["synthesise"], {"concentration_mm": 1, "time_s": 600}) == \
+        pytest.approx(1.1)
+
+
+def test_a_shared_lab_takes_an_amount_per_parameter_only_from_the_campaigns_that_have_it():
+    raw = yaml.safe_load(open("scenarios/shared_lab.yaml"))
+    raw["consumables"] = {"precursor": {"level": 500, "used_by": {
+        "synthesise": {"fixed": 2, "per": {"concentration_mm": 0.2}},  # only the dots campaign has it
+        "prepare": {"fixed": 1, "per": {"temperature_k": 0.01}}}}}  # only the catalyst campaign
+    per = {name: {step: dict(use.per) for step, use in s.consumables["precursor"].used_by.items()}
+           for name, s in campaign_scenarios(parse(raw, "shared.yaml")).items()}
+    assert per == {"dots": {"synthesise": {"concentration_mm": 0.2}, "prepare": {}},
+                   "catalyst": {"synthesise": {}, "prepare": {"temperature_k": 0.01}}}
+    raw["consumables"]["precursor"]["used_by"]["prepare"]["per"] = {"temperature_kk": 0.01}
+    with pytest.raises(ScenarioError, match="per.temperature_kk: 'temperature_kk' is no parameter of the chemistry "
+                                            r"\(concentration_mm, temperature_c, temperature_k, time_s\)"):
+        parse(raw, "shared.yaml")
 
 
 def test_fail_over_never_avoids_the_only_instance_with_stock_left(scenario_of):

@@ -16,7 +16,7 @@ from pydantic import Field, StringConstraints, ValidationInfo, field_validator, 
 from twin.core import keys
 from twin.core.bus.endpoints import HOW, not_endpoints
 from twin.scenario.campaign import Campaign
-from twin.scenario.operations import Consumable, Orchestration
+from twin.scenario.operations import Consumable, Orchestration, usage_problems
 from twin.scenario.spec import MAX_S, MAX_VALUE, Label, Name, Spec
 from twin.scenario.training import Training
 
@@ -260,6 +260,15 @@ class Scenario(Spec):
     def _types(self) -> str:
         return ", ".join(self.devices) or "it has none"
 
+    def _parameter_ranges(self) -> dict[str, tuple[float, float]]:
+        """Each experiment parameter's lowest low and highest high over the lab's chemistry and its campaigns'."""
+        ranges: dict[str, tuple[float, float]] = {}
+        for chem in [self.chemistry, *(c.chemistry for c in self.campaigns if c.chemistry is not None)]:
+            for p, r in chem.parameters.items():
+                low, high = ranges.get(p, (r.low, r.high))
+                ranges[p] = (min(low, r.low), max(high, r.high))
+        return ranges
+
     @model_validator(mode="after")
     def _consistent(self, info: ValidationInfo) -> Scenario:
         problems = [f"training.instances.{k}: {k!r} is not a device type of this lab ({self._types()})"
@@ -268,7 +277,10 @@ class Scenario(Spec):
             problems.append("devices: none; a lab needs at least one device type (`twin devices` lists the drivers, "
                             "`twin schema` the fields)")
         steps = {st for dev in self.devices.values() for st in dev.steps}
+        lab_only = bool(info.context and info.context.get("lab_only"))  # `twin lab serve`: campaigns come later
+        ranges = None if lab_only else self._parameter_ranges()
         for name, c in self.consumables.items():
+            problems += usage_problems(name, c, ranges)
             holder = self.devices.get(c.device) if c.device is not None else None
             if c.device is not None and holder is None:
                 problems.append(f"consumables.{name}.device: {c.device!r} is not a device type of this lab "
@@ -294,7 +306,6 @@ class Scenario(Spec):
                                 f"({self._types()})")
             elif ws.step not in dev.steps:
                 problems.append(f"workflow.{i}.step: device type {ws.device!r} does not run {ws.step!r} (it runs {dev.steps})")
-        lab_only = bool(info.context and info.context.get("lab_only"))  # `twin lab serve`: campaigns come later
         if not self.workflow and self.jobshop is None and not self.campaigns and not lab_only:
             problems.append("workflow: empty; give the steps of an experiment, or a jobshop file, or campaigns: (a "
                             "lab file for `twin lab serve`, which takes its campaigns later, needs none of them)")

@@ -77,6 +77,30 @@ class Usage(Spec):
                                     "used per unit of it")
 
 
+def usage_problems(item: str, stock: Consumable, ranges: dict[str, tuple[float, float]] | None) -> list[str]:
+    """What is wrong with the amounts ``stock`` takes per parameter: a parameter no chemistry of the file has (its
+    amount would never be taken), or amounts that make a step use less than nothing somewhere in the parameters'
+    ranges. ``ranges``: each parameter's lowest low and highest high over the file's chemistries; None when the
+    campaigns come later (`twin lab serve`), and nothing can be checked yet."""
+    problems = []
+    for step, use in stock.used_by.items():
+        if not isinstance(use, Usage) or ranges is None:
+            continue
+        field = f"consumables.{item}.used_by.{step}"
+        unknown = [p for p in use.per if p not in ranges]
+        known = ", ".join(sorted(ranges)) or "it has none"
+        problems += [f"{field}.per.{p}: {p!r} is no parameter of the chemistry ({known}), so this amount would never "
+                     f"be taken" for p in unknown]
+        ends = {p: (ranges[p][0] if coef > 0 else ranges[p][1]) for p, coef in use.per.items() if p not in unknown}
+        least = use.fixed + sum(use.per[p] * v for p, v in ends.items())
+        if least < 0:
+            at = ", ".join(f"{p} = {v:g}" for p, v in ends.items())
+            problems.append(f"{field}: at {at} a step would use {least:g} {stock.unit} (fixed {use.fixed:g} plus "
+                            f"per unit of each), less than nothing; raise fixed to at least {use.fixed - least:g}, "
+                            f"or correct the sign of an amount in per")
+    return problems
+
+
 class SimulatedRefill(Spec):
     """Virtual time: the operator refills the item (to its starting level) this long after it runs short."""
 

@@ -24,6 +24,11 @@ def campaign_scenario(lab: Scenario, c: SharedCampaign, index: int, source: str 
     data = lab.model_dump(exclude={"campaigns"})
     own = c.model_dump(include=set(_OWN), exclude_none=True)
     data.update(own)
+    params = data["chemistry"]["parameters"]
+    for item in data["consumables"].values():  # an amount per a parameter this campaign has not is never taken
+        for use in item["used_by"].values():
+            if isinstance(use, dict):
+                use["per"] = {p: amount for p, amount in use["per"].items() if p in params}
     used = {w["device"] for w in data["workflow"]}
     for dtype, spec in data["devices"].items():
         if used and dtype not in used:  # never sent this campaign's steps: its chemistry need not fit them
