@@ -134,6 +134,20 @@ def test_a_section_given_as_a_value_says_which_fields_it_takes(tmp_path, changes
     assert err.value.problems[0].startswith(says), err.value.problems
 
 
+@pytest.mark.parametrize("use, problems", [
+    ({"fixed": -2}, ["consumables.x.used_by.measure.fixed: Input should be greater than or equal to 0 (got -2)"]),
+    ("one", ["consumables.x.used_by.measure: Input should be a valid number (got 'one')",
+             "consumables.x.used_by.measure: should be a mapping of its fields: fixed, per (`twin schema` says what "
+             "each means) (got 'one')"]),
+])
+def test_a_field_of_a_number_or_a_section_names_the_field_not_the_members_of_the_union(tmp_path, use, problems):
+    """``used_by``'s ``float | Usage``: pydantic names each member (``measure.Usage.fixed``, ``measure.float``) and
+    says a mapping is no number; the file's reader wants the field, and a mapping's own problems only."""
+    with pytest.raises(ScenarioError) as err:
+        load(write(tmp_path, qd_lab(consumables={"x": {"level": 5, "used_by": {"measure": use}}})))
+    assert err.value.problems == problems
+
+
 def test_problems_across_fields_are_listed_one_each_under_their_own_field(tmp_path):
     path = write(tmp_path, qd_lab(**{"workflow": [{"step": "synthesise", "device": "robot"},
                                                   {"step": "measure", "device": "spectrometer"}],

@@ -247,7 +247,27 @@ def parse(raw: dict[str, Any], source: str = "<scenario>", lab_only: bool = Fals
 
 def problems_of(exc: ValidationError, raw: Any, root: Any = None) -> list[str]:
     """One line per problem, each naming its field; ``root``: the model validated (a scenario by default)."""
-    return [line for e in exc.errors() for line in describe(e, raw, root).split("\n")]
+    errors: list[dict[str, Any]] = [{**e, "loc": _untagged(e, raw)} for e in exc.errors()]
+    inside = [e["loc"] for e in errors]
+    errors = [e for e in errors if not (isinstance(e.get("input"), dict) and e["type"].endswith(("_type", "_parsing"))
+                                        and any(loc[:len(e["loc"])] == e["loc"] != loc for loc in inside))]
+    return [line for e in errors for line in describe(e, raw, root).split("\n")]
+
+
+def _untagged(err: Any, raw: Any) -> tuple[Any, ...]:
+    """``err``'s location without the names pydantic gives the members of a union (``used_by.measure.Usage.fixed``,
+    ``used_by.measure.float``): a part that is no key or index of the file where it stands (but the field a
+    ``missing`` error names). A mapping where a number or a section goes then keeps only its section's problems."""
+    loc, node, kept = err["loc"], raw, []
+    for i, part in enumerate(loc):
+        here = isinstance(node, dict) and part in node or isinstance(node, list) and isinstance(part, int) \
+            and -len(node) <= part < len(node)
+        if here:
+            node = node[part]
+        elif part != "[key]" and not (err["type"] == "missing" and i == len(loc) - 1):
+            continue
+        kept.append(part)
+    return tuple(kept)
 
 
 def describe(err: Any, raw: dict[str, Any], root: Any = None) -> str:
