@@ -236,7 +236,8 @@ class Lab:
 
     def finished(self) -> dict:
         out, errs = self.proc.communicate(timeout=60)
-        assert self.proc.returncode == 0, errs.decode()[-2000:]
+        self.log = errs.decode()
+        assert self.proc.returncode == 0, self.log[-2000:]
         return json.loads(out)
 
 
@@ -339,6 +340,10 @@ def test_a_human_step_waits_for_twin_ctl_confirm(tmp_path):
         assert lab.finished()["done"] == 1
     confirmed = [json.loads(e["detail"]) for e in read_events(lab.db) if e["kind"] == "attempt.confirmed"]
     assert confirmed == [{"who": "alice"}]
+    # and the person running the lab was told, with the command that reaches it
+    said = " ".join(lab.log.split())
+    assert ("operator.step e0s0: load_rack on operator waits for a person — load the precursor rack into bay 2. "
+            f"Done: twin ctl confirm e0s0 --lab t --connect {lab.endpoint}; unconfirmed within ") in said, lab.log
 
 
 def test_the_answers_being_written_get_their_wall_seconds_before_a_fast_campaign_closes_its_bus():

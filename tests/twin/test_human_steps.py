@@ -99,6 +99,21 @@ def test_a_misspelt_option_for_people_is_named():
         check(parse(qd_lab(**misspelt), "lab.yaml"))
 
 
+@pytest.mark.parametrize("clock, bus, warned", [("scaled", "memory", True), ("wall", "memory", True),
+                                                ("scaled", "zenoh", False), ("virtual", "memory", False)])
+def test_people_a_live_lab_cannot_hear_from_are_warned_of(caplog, clock, bus, warned):
+    """On a memory bus nothing outside the process reaches the campaign: `twin ctl confirm` cannot, and every step
+    of theirs would time out with nobody told why."""
+    lab = parse(qd_lab(**{**HUMAN, "clock": {"mode": clock, "speed": 20}, "bus": {"kind": bus}}), "lab.yaml")
+    with caplog.at_level("WARNING", logger="twin.runtime.checks"):
+        check(lab)
+    said = [r.getMessage() for r in caplog.records if "people (driver: operator)" in r.getMessage()]
+    assert said == ([f"devices.operator: people (driver: operator) on a {clock} clock and a memory bus: their steps "
+                     "wait for `twin ctl confirm`, which reaches a campaign over Zenoh only, so nobody can confirm one "
+                     "and each times out. Run it with --bus zenoh --listen tcp/127.0.0.1:7447 (and twin ctl … "
+                     "--connect there)"] if warned else [])
+
+
 @pytest.mark.process
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
 def test_a_human_step_waiting_when_the_campaign_died_or_stopped_still_waits_for_its_person_when_resumed(tmp_path, sig):
@@ -116,6 +131,10 @@ def test_a_human_step_waiting_when_the_campaign_died_or_stopped_still_waits_for_
     proc.send_signal(sig)
     proc.wait()
     assert proc.returncode in (-signal.SIGKILL, 130)
+    said = " ".join(proc.stderr.read().decode().split())  # the lab is on a memory bus: no twin ctl reaches it
+    assert ("operator.step e0s0: load_rack on operator waits for a person — load the precursor rack into bay 2. "
+            "Nobody can say it is done: twin ctl reaches a campaign over Zenoh, and this lab's bus is memory; "
+            "unconfirmed within ") in said, said
     assert not any(e["kind"] == "attempt.failed" for e in _events(db)), "the step ended before the campaign did"
     resumed = subprocess.run([sys.executable, "-m", "twin", "resume", str(db), "--json"], cwd=ROOT,
                              capture_output=True, text=True, timeout=120)
@@ -129,6 +148,8 @@ def test_a_human_step_waiting_when_the_campaign_died_or_stopped_still_waits_for_
     assert len(said) == 2 and said[0][:2] == said[1][:2] and "again" not in said[0][2], said
     assert said[1][2]["again"].startswith("the campaign was resumed") and said[1][2]["step"] == said[0][2]["step"]
     assert said[1][2]["instructions"] == said[0][2]["instructions"] and said[1][2]["params"] == said[0][2]["params"]
+    assert ("operator.step e0s0: load_rack on operator waits for a person (again: the campaign was resumed; the step "
+            "still waits for twin ctl confirm) — load the precursor rack") in " ".join(resumed.stderr.split())
 
 
 def _events(db):

@@ -89,6 +89,12 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
              "" if virtual else _claimed_twice(s, drivers, external)]
     if any(found):
         raise ScenarioError(s.name, [problem for problem in found if problem])
+    people = [dtype for dtype, spec in s.devices.items() if spec.driver == HUMAN and (types is None or dtype in types)]
+    if people and not virtual and s.bus.kind == "memory":
+        log.warning("devices.%s: people (driver: %s) on a %s clock and a memory bus: their steps wait for `twin ctl "
+                    "confirm`, which reaches a campaign over Zenoh only, so nobody can confirm one and each times out. "
+                    "Run it with --bus zenoh --listen tcp/127.0.0.1:7447 (and twin ctl … --connect there)", people[0],
+                    HUMAN, s.clock.mode)
     if types is None:
         for problem in _idle_types(s, planner):
             log.warning("%s", problem)

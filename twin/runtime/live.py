@@ -58,6 +58,17 @@ def lab_elapsed(core: CampaignCore) -> float:
     return max(core.elapsed_s, loop.time() - core.t0) if isinstance(loop, LabEventLoop) else core.elapsed_s
 
 
+def ctl_options(s: Scenario, campaign: str | None) -> str | None:
+    """The options of a ``twin ctl`` that reaches this lab (``campaign``: one of a lab's several), as far as the
+    scenario knows them; None on a memory bus, which nothing outside the process reaches."""
+    if s.bus.kind == "memory":
+        return None
+    where = [*s.bus.connect, *(e for e in s.bus.listen if not e.endswith(":0"))][:1]
+    return " ".join([f"--lab {s.lab}", *(["--campaign", campaign] if campaign else []),
+                     f"--connect {where[0] if where else 'ENDPOINT'}",
+                     *(["--security", str(s.bus.security)] if s.bus.security else [])])
+
+
 class LiveCampaign:
     """One campaign of ``scenario`` on ``bus`` and ``clock``; ``await run()`` drives it to its end."""
 
@@ -93,6 +104,7 @@ class LiveCampaign:
         # named by its attempt secret, which its resumes keep, through a one-way hash that gives none of it away
         self.decisions.run = hashlib.sha256(self.core.secret).hexdigest()[:16]
         self.desk = ControlDesk(self.core, clock, self._feed, journal.flush)
+        self._ctl = ctl_options(scenario, campaign_id if core is not None else None)
         self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
         self._ids = itertools.count(1)
         self._handles: list[Any] = []
@@ -269,8 +281,10 @@ class LiveCampaign:
         have no health key, and their step still waits for its confirmation."""
         if device in self.core.people:  # said again, for whoever tells people what waits for them
             att = self.core.attempts[(task, attempt)]
-            self._remark(human.said_again(self.core, att, self.clock.now(), "the campaign was resumed; the step "
-                                                                            "still waits for twin ctl confirm"))
+            note = human.said_again(self.core, att, self.clock.now(), "the campaign was resumed; the step still "
+                                                                     "waits for twin ctl confirm")
+            self._remark(note)
+            self.alert_log.person(note, self._ctl, self.clock.speed)
             return
         wait = 5.0 * (1.0 if self.clock.is_virtual else self.clock.speed)
         try:
@@ -311,6 +325,7 @@ class LiveCampaign:
                 self._decided(a)
                 if a.kind.startswith("operator."):
                     self.desk.noted(a)
+                    self.alert_log.person(a, self._ctl, self.clock.speed)
                 if a.kind in ALERTS:
                     self.alert_log(a)
                 elif a.kind in PRESENCE:
