@@ -294,6 +294,10 @@ def test_an_operator_lists_the_pending_question_and_answers_it(tmp_path):
         assert res.exit_code == 0 and "operator.answer by alice" in res.output, res.output
         assert lab.ctl("stop", "--as", "alice").exit_code == 0
         lab.finished()
+    said = " ".join(lab.log.split())  # and the person running the lab was told, with the command that answers
+    assert "question.asked q1: synthesise of experiment 0 failed on synthesiser" in said, lab.log
+    assert (f"what now? Options retry, abandon. Answer: twin ctl answer q1 OPTION --lab t --connect "
+            f"{lab.endpoint}; unanswered within 100,000 lab-s (333 s of wall time) abandon applies") in said, lab.log
     events = read_events(lab.db)
     answered = [json.loads(e["detail"]) for e in events if e["kind"] == "question.answered"]
     assert answered[0] == {"id": "q1", "option": "abandon", "who": "alice"}

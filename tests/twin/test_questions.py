@@ -12,6 +12,7 @@ from twin.campaign.events import TimerKey, TimerKind
 from twin.campaign.journal_read import read_events
 from twin.core.errors import ScenarioError
 from twin.core.messages import Kind
+from twin.runtime import asked_of_people
 from twin.runtime.lab import prepare, run
 from twin.scenario import parse
 
@@ -55,6 +56,19 @@ def test_spent_retries_ask_the_operator_instead_of_abandoning(scenario_of):
     out = answer(core, "q2", "abandon", 40.0, who="bob")
     (gone,) = notes(out, "experiment.abandoned")
     assert gone.detail["reason"].endswith("; bob chose to abandon it") and not core.questions
+
+
+def test_a_question_no_twin_ctl_can_reach_says_so_with_what_applies_when(scenario_of, caplog):
+    """A live lab on a memory bus asks; the log says what and that nobody can answer (with Zenoh: the command,
+    tests/twin/test_ctl.py)."""
+    (asked,) = notes(failed(running(scenario_of, **ASK)), "question.asked")
+    with caplog.at_level("WARNING", logger="twin.alerts"):
+        asked_of_people.tell(asked, None, speed=20.0)
+    assert caplog.messages == ["question.asked q1: synthesise of experiment 0 failed on synthesiser (failed; step "
+                               "'synthesise' failed 1 time(s); last: failed on synthesiser: clogged): what now? "
+                               "Options retry, skip, abandon. Nobody can answer: twin ctl reaches a campaign "
+                               "over Zenoh, and this lab's bus is memory; unanswered within 600 lab-s (30 s of wall "
+                               "time) abandon applies"]
 
 
 def test_skip_moves_the_experiment_on_without_the_steps_outputs(scenario_of):

@@ -60,22 +60,6 @@ class AlertLog:
             log.warning("device.online %s: back on the bus after %.0f lab-s away; it is given work again", note.device,
                         away)
 
-    def person(self, note: Any, ctl: str | None, speed: float) -> None:
-        """On a live clock, a step given to people (``operator.step``): what to do, and how to say it is done (``ctl``:
-        the ``twin ctl`` options that reach this campaign; None: nothing can) before its deadline (``speed``: lab-s
-        per wall second). In virtual time the simulated operator does it."""
-        if self.virtual or note.kind != "operator.step":
-            return
-        d = note.detail if isinstance(note.detail, dict) else {}
-        again = f" (again: {str(d['again'])[:200]})" if d.get("again") else ""
-        what = f" — {d['instructions']}" if d.get("instructions") else ""
-        deadline = f"; unconfirmed within {d['deadline_s']:,.0f} lab-s ({d['deadline_s'] / speed:,.0f} s of wall " \
-            "time) it times out and is retried" if isinstance(d.get("deadline_s"), (int, float)) and speed > 0 else ""
-        done = f"Done: twin ctl confirm {note.task} {ctl}" if ctl is not None else \
-            "Nobody can say it is done: twin ctl reaches a campaign over Zenoh, and this lab's bus is memory"
-        log.warning("operator.step %s: %s on %s waits for a person%s%s. %s%s", note.task, d.get("step", "a step"),
-                    note.device, again, what, done, deadline)
-
     def __call__(self, note: Any) -> None:
         key = (note.kind, note.device, None if note.device else note.experiment)
         self._said[key] += 1

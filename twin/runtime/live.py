@@ -31,7 +31,9 @@ from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.errors import BusError, TwinError
 from twin.core.messages import Kind, pack
+from twin.runtime import asked_of_people
 from twin.runtime.alert_log import AlertLog
+from twin.runtime.asked_of_people import ASKED
 from twin.runtime.asking import ask_scheduler
 from twin.runtime.checked_planner import covered
 from twin.runtime.checked_scheduler import fallbacks
@@ -284,7 +286,8 @@ class LiveCampaign:
             note = human.said_again(self.core, att, self.clock.now(), "the campaign was resumed; the step still "
                                                                      "waits for twin ctl confirm")
             self._remark(note)
-            self.alert_log.person(note, self._ctl, self.clock.speed)
+            if not self.clock.is_virtual:
+                asked_of_people.tell(note, self._ctl, self.clock.speed)
             return
         wait = 5.0 * (1.0 if self.clock.is_virtual else self.clock.speed)
         try:
@@ -325,7 +328,8 @@ class LiveCampaign:
                 self._decided(a)
                 if a.kind.startswith("operator."):
                     self.desk.noted(a)
-                    self.alert_log.person(a, self._ctl, self.clock.speed)
+                if a.kind in ASKED and not self.clock.is_virtual:
+                    asked_of_people.tell(a, self._ctl, self.clock.speed)
                 if a.kind in ALERTS:
                     self.alert_log(a)
                 elif a.kind in PRESENCE:

@@ -1,0 +1,43 @@
+"""What a lab on a live clock asks of the person running it, said on its log as it asks: a step given to people
+(``operator.step``) and a question on a failed step (``question.asked``), each with the ``twin ctl`` command that
+answers it and the time left before the campaign goes on without it. In virtual time the scenario's simulated
+operator answers, and nothing is said."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from twin.campaign.events import ALERT_LOGGER
+
+log = logging.getLogger(ALERT_LOGGER)
+
+ASKED = frozenset({"operator.step", "question.asked"})
+NO_CTL = "twin ctl reaches a campaign over Zenoh, and this lab's bus is memory"
+
+
+def tell(note: Any, ctl: str | None, speed: float) -> None:
+    """Say ``note`` if it asks something of a person. ``ctl``: the ``twin ctl`` options that reach this campaign
+    (None: nothing can); ``speed``: lab-s per wall second."""
+    d = note.detail if isinstance(note.detail, dict) else {}
+    if note.kind == "operator.step":
+        again = f" (again: {str(d['again'])[:200]})" if d.get("again") else ""
+        what = f" — {str(d['instructions'])[:500]}" if d.get("instructions") else ""
+        done = f"Done: twin ctl confirm {note.task} {ctl}" if ctl is not None else f"Nobody can say it is done: {NO_CTL}"
+        log.warning("operator.step %s: %s on %s waits for a person%s%s. %s%s", note.task, d.get("step", "a step"),
+                    note.device, again, what, done, _within(d.get("deadline_s"), speed, "unconfirmed",
+                                                            "it times out and is retried"))
+    elif note.kind == "question.asked":
+        why = "; ".join(str(d[k])[:200] for k in ("fault", "reason") if d.get(k))
+        options = ", ".join(str(o) for o in d.get("options", []))
+        answer = f"Answer: twin ctl answer {d.get('id')} OPTION {ctl}" if ctl is not None else \
+            f"Nobody can answer: {NO_CTL}"
+        log.warning("question.asked %s: %s of experiment %s failed on %s (%s): what now? Options %s. %s%s",
+                    d.get("id"), d.get("step", "a step"), note.experiment, note.device, why, options, answer,
+                    _within(d.get("timeout_s"), speed, "unanswered", f"{d.get('default')} applies"))
+
+
+def _within(lab_s: Any, speed: float, unheard: str, then: str) -> str:
+    if not isinstance(lab_s, (int, float)) or speed <= 0:
+        return ""
+    return f"; {unheard} within {lab_s:,.0f} lab-s ({lab_s / speed:,.0f} s of wall time) {then}"
