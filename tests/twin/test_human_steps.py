@@ -22,6 +22,7 @@ from twin.campaign.journal_read import read_events
 from twin.core.errors import TwinError
 from twin.runtime.checks import check
 from twin.runtime.lab import run
+from twin.runtime.live import ctl_options
 from twin.scenario import parse
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -157,3 +158,15 @@ def _events(db):
         return read_events(db)
     except (TwinError, sqlite3.Error):  # not written yet
         return []
+
+
+@pytest.mark.parametrize("bus, campaign, options", [
+    ({"kind": "zenoh", "listen": ["tcp/127.0.0.1:7447"]}, None, "--lab t --connect tcp/127.0.0.1:7447"),
+    ({"kind": "zenoh", "connect": ["tcp/10.0.0.1:7447"], "listen": []}, "dots",
+     "--lab t --campaign dots --connect tcp/10.0.0.1:7447"),  # a lab behind a router: where its operator goes too
+    ({"kind": "zenoh"}, None, "--lab t --connect ENDPOINT (a port the lab chose: give it --listen tcp/127.0.0.1:PORT "
+                              "to know it)"),
+    ({"kind": "memory"}, None, None),
+])
+def test_the_twin_ctl_a_person_is_told_to_run_reaches_the_lab_as_its_scenario_says(bus, campaign, options):
+    assert ctl_options(parse(qd_lab(bus=bus), "lab.yaml"), campaign) == options

@@ -67,7 +67,8 @@ def ctl_options(s: Scenario, campaign: str | None) -> str | None:
         return None
     where = [*s.bus.connect, *(e for e in s.bus.listen if not e.endswith(":0"))][:1]
     return " ".join([f"--lab {s.lab}", *(["--campaign", campaign] if campaign else []),
-                     f"--connect {where[0] if where else 'ENDPOINT'}",
+                     f"--connect {where[0]}" if where else "--connect ENDPOINT (a port the lab chose: give it --listen "
+                     "tcp/127.0.0.1:PORT to know it)",
                      *(["--security", str(s.bus.security)] if s.bus.security else [])])
 
 
