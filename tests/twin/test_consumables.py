@@ -19,6 +19,7 @@ from twin.campaign.journal_read import read_events
 from twin import Refused
 from twin.core.errors import ScenarioError
 from twin.core.messages import Kind
+from twin.runtime.checks import check
 from twin.runtime.lab import run
 from twin.scenario import parse
 from twin.scenario.sharing import campaign_scenarios
@@ -371,3 +372,13 @@ def test_a_stock_that_runs_out_is_said_on_the_log_with_the_refill_to_make(tmp_pa
     assert len(said) == len(read_events(tmp_path / "j.db", "consumable.depleted")) > 0
     assert said[0].startswith("vials is out (0 vials left, 1 needed by e") and "`twin ctl refill vials`" in said[0]
     assert "another instance" not in said[0]  # the lab's one stock: no instance has its own
+
+
+def test_stock_a_live_lab_on_a_memory_bus_cannot_have_refilled_is_warned_of(caplog):
+    lab = parse(qd_lab(consumables=stocked(10, 5), clock={"mode": "wall"}), "lab.yaml")
+    with caplog.at_level("WARNING", logger="twin.runtime.checks"):
+        check(lab)
+    assert [m for m in caplog.messages if "memory bus" in m] == [
+        "on a wall clock and a memory bus, which twin ctl cannot reach (it reaches a campaign over Zenoh only): "
+        "consumables precursor, vials may run out, and the steps that need one would wait to the end for a `twin ctl "
+        "refill`. Run it with --bus zenoh --listen tcp/127.0.0.1:7447 (and twin ctl … --connect there)"]

@@ -89,12 +89,10 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
              "" if virtual else _claimed_twice(s, drivers, external)]
     if any(found):
         raise ScenarioError(s.name, [problem for problem in found if problem])
-    people = [dtype for dtype, spec in s.devices.items() if spec.driver == HUMAN and (types is None or dtype in types)]
-    if people and not virtual and s.bus.kind == "memory":
-        log.warning("devices.%s: people (driver: %s) on a %s clock and a memory bus: their steps wait for `twin ctl "
-                    "confirm`, which reaches a campaign over Zenoh only, so nobody can confirm one and each times out. "
-                    "Run it with --bus zenoh --listen tcp/127.0.0.1:7447 (and twin ctl … --connect there)", people[0],
-                    HUMAN, s.clock.mode)
+    if not virtual and s.bus.kind == "memory":
+        problem = _out_of_ctl_reach(s, types)
+        if problem:
+            log.warning("%s", problem)
     if types is None:
         for problem in _idle_types(s, planner):
             log.warning("%s", problem)
@@ -255,6 +253,21 @@ def _makers(s: Scenario, drivers: dict[str, Any]) -> list[str]:
         except TwinError:  # a driver that cannot be loaded here names no step
             continue
     return found
+
+
+def _out_of_ctl_reach(s: Scenario, types: set[str] | None) -> str:
+    """On a live clock and a memory bus, what waits for a `twin ctl` that cannot reach the campaign, or ''."""
+    people = [dtype for dtype, spec in s.devices.items() if spec.driver == HUMAN and (types is None or dtype in types)]
+    stocks = sorted(s.consumables)
+    waits = ([f"devices.{people[0]} is people (driver: {HUMAN}), whose steps wait for `twin ctl confirm` and would "
+              "each time out"] if people else []) + \
+        ([f"consumables {', '.join(stocks)} may run out, and the steps that need one would wait to the end for a "
+          "`twin ctl refill`"] if stocks else [])
+    if not waits:
+        return ""
+    return (f"on a {s.clock.mode} clock and a memory bus, which twin ctl cannot reach (it reaches a campaign over "
+            f"Zenoh only): {'; '.join(waits)}. Run it with --bus zenoh --listen tcp/127.0.0.1:7447 (and twin ctl … "
+            "--connect there)")
 
 
 def _claimed_twice(s: Scenario, drivers: dict[str, Any], external: Collection[str]) -> str:
