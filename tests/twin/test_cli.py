@@ -178,7 +178,7 @@ def test_a_lab_its_drivers_cannot_run_is_one_error_before_any_worker_starts(tmp_
                    *command[2 if command[0] == "bench" else 1:])
     out = " ".join(res.output.split())
     assert res.exit_code == 2 and "Traceback" not in out, out
-    assert f"{lab}: 1 problem(s)" in out and "devices.spectrometer.driver: 'spectrometer' runs" in out
+    assert f"{lab}: 1 problem" in out and "devices.spectrometer.driver: 'spectrometer' runs" in out
     assert "asks it for ['wash']" in out
 
 

@@ -128,16 +128,16 @@ def test_work_of_a_known_size_says_the_time_left_at_its_pace_and_a_campaign_does
     out, clock = io.StringIO(), Clock()
     progress = PlainProgress(Console(file=out, width=200), every_s=10, clock=clock, remaining=True)
     with progress:
-        task = progress.add_task("flaky_lab: 3 variants × 20 seed(s)", total=60)
+        task = progress.add_task("flaky_lab: 3 variants × 20 seeds", total=60)
         clock.now, done = 110, 15
         progress.update(task, completed=done)
         clock.now = 130
         progress.update(task, completed=60)
     lines = out.getvalue().splitlines()
-    assert lines == ["flaky_lab: 3 variants × 20 seed(s): 0/60  0:00:00",
+    assert lines == ["flaky_lab: 3 variants × 20 seeds: 0/60  0:00:00",
                      # 45 more at 1.5 a second
-                     "flaky_lab: 3 variants × 20 seed(s): 15/60  0:00:10  about 0:00:30 left",
-                     "flaky_lab: 3 variants × 20 seed(s): 60/60  0:00:30"]
+                     "flaky_lab: 3 variants × 20 seeds: 15/60  0:00:10  about 0:00:30 left",
+                     "flaky_lab: 3 variants × 20 seeds: 60/60  0:00:30"]
     live = bar_progress(Console(file=io.StringIO(), force_terminal=True, force_interactive=True))
     assert any(type(c).__name__ == "TimeRemainingColumn" for c in live.columns)
     campaign = bar_progress(Console(file=io.StringIO(), force_terminal=True, force_interactive=True), remaining=False)

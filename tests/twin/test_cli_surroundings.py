@@ -19,7 +19,7 @@ def test_paths_and_smiles_print_as_they_are_never_as_rich_markup(tmp_path):
     odd.write_text((ROOT / "scenarios" / "quantum_dots.yaml").read_text().replace("budget:", "budget: x #"))
     for command in ("validate", "run"):
         res = twin_cli(command, odd)
-        assert res.exit_code == 2 and f"{odd}: 1 problem(s)" in res.output, res.output
+        assert res.exit_code == 2 and f"{odd}: 1 problem" in res.output, res.output
     res = twin_cli("route", "c1ccc2[nH]ccc2c1")
     assert res.exit_code == 0 and "c1ccc2[nH]ccc2c1:" in res.output, res.output
 

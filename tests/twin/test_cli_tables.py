@@ -76,7 +76,7 @@ def test_a_narrow_table_keeps_numbers_whole_and_fits_80_columns(monkeypatch):
     out = io.StringIO()
     monkeypatch.setattr(common, "console", Console(file=out, width=80))
     header = [h for h in HEADER if h != "vs bound"]  # a lab with no CP-SAT bound, as `twin bench schedulers` shows it
-    table = common.narrow_table(header, "five_stage — 4 run(s) per scheduler", caption("lab-h", bound=False))
+    table = common.narrow_table(header, "five_stage — 4 runs per scheduler", caption("lab-h", bound=False))
     numbers = [["least-loaded", "39.89", "39.89", "+1.2%", "28%", "48.5", "0.0", "0.0", "0.01/0.33"],
                ["rl:flaky_scheduler", "139.18", "39.18", "-10.6%", "29%", "18.0", "0.1", "0.0", "10.30/14.51"]]
     for row in numbers:

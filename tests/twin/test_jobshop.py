@@ -101,7 +101,7 @@ def test_taillard_and_or_library_layouts_read_as_the_standard_one(tmp_path, name
     ("x\n2 2\nMachines\n1 2\n2 1\nTimes\n1 2\n3 4\n", "this one has 'Machines' then 'Times'"),
     ("just words\n", "no line of numbers"),
     ("2 2\n0 5 2 3\n1 3 0 4\n", "job 0: machine 2 is outside 0..1 (the header says 2 machines, numbered from 0)"),
-    ("2 2\n0 5 1 3\n", "the header says 2 jobs and 1 job line(s) follow it"),
+    ("2 2\n0 5 1 3\n", "the header says 2 jobs and 1 job line follows it"),
 ])
 def test_a_malformed_layout_is_refused_naming_the_line(tmp_path, text, says):
     from twin.core.errors import ScenarioError

@@ -101,7 +101,7 @@ _KILLED = "DELETE FROM run WHERE key = 'summary'; "  # as a run killed before it
      "event 5 is damaged (its lab time is 'noon'"),
     (_KILLED + "DELETE FROM events WHERE seq = 9", ["resume", "report"], "event 9 is missing (the next is 10)"),
     (_KILLED + "UPDATE run SET value = '{\"name\": 5}' WHERE key = 'scenario'", ["resume"],
-     "the journal's scenario: 1 problem(s) - name: Input should be a valid string"),
+     "the journal's scenario: 1 problem - name: Input should be a valid string"),
 ])
 def test_a_journal_altered_in_its_run_or_experiments_is_refused_naming_what(tmp_path, damage, commands, says):
     """Not a traceback from whichever reader met the damage first: export, replay, resume and report name it."""

@@ -76,7 +76,7 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         (tmp_path / "bare.yaml").write_text("name: bare\nworkflow: [{step: measure, device: spectrometer}]\n")
         bare = ctl("submit", str(tmp_path / "bare.yaml"))  # no chemistry, and the lab file has none either
         said = " ".join(bare.output.split())
-        assert bare.exit_code == 1 and "refused: campaign bare: 2 problem(s)" in said, said  # both at once
+        assert bare.exit_code == 1 and "refused: campaign bare: 2 problems" in said, said  # both at once
         assert "chemistry.model: none given" in said and "give chemistry.model, one of ['bandgap'" in said, said
         assert "campaign.planner: chemistry.parameters: empty, and planner 'random' proposes values" in said, said
         listed = ctl("ctl", "status")

@@ -97,7 +97,7 @@ def test_a_bench_says_which_rows_ended_early_and_why(tmp_path):
                    "--budget", "6", "--planners", "random,tests.twin.test_plugin_docs:Boom")
     assert res.exit_code == 0, res.output
     said = " ".join(res.output.split())
-    assert ("tests.twin.test_plugin_docs:Boom: 2 of 2 run(s) ended early — the planner failed (planner "
+    assert ("tests.twin.test_plugin_docs:Boom: 2 of 2 runs ended early — the planner failed (planner "
             "'tests.twin.test_plugin_docs:Boom' raised RuntimeError('out of ideas'))") in said
     assert "random:" not in said  # its runs ended as they should
     res = twin_cli("bench", "planners", str(ROOT / "scenarios" / "quantum_dots.yaml"), "--seeds", "2",

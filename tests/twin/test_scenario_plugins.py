@@ -151,7 +151,7 @@ def test_twin_run_names_the_file_and_field_of_a_driver_it_cannot_load_before_run
     journal = tmp_path / "j.db"
     res = twin_cli("run", path, "--bus", "memory", "--journal", journal)
     assert res.exit_code == 2
-    assert f"{path}: 1 problem(s)" in res.stderr and "devices.spectrometer.driver: unknown driver 'robot9000'" in (
+    assert f"{path}: 1 problem" in res.stderr and "devices.spectrometer.driver: unknown driver 'robot9000'" in (
         res.stderr)
     assert "lab 0 s" not in res.stderr and not journal.exists()  # refused before the progress bar, the journal
 
@@ -198,7 +198,7 @@ def test_a_lab_of_machines_needs_no_chemistry_model_and_one_that_simulates_names
     simulating["chemistry"] = {k: v for k, v in simulating["chemistry"].items() if k != "model"}
     res = twin_cli("validate", write(tmp_path, simulating))
     said = " ".join(res.output.split())
-    assert res.exit_code == 2 and "bad.yaml: 2 problem(s)" in said, said  # each driver that simulates one
+    assert res.exit_code == 2 and "bad.yaml: 2 problems" in said, said  # each driver that simulates one
     for dtype in ("spectrometer", "synthesiser"):
         assert f"chemistry.model: none given, and the '{dtype}' driver of devices.{dtype} simulates a chemistry: " \
                "give chemistry.model, one of ['bandgap', 'catalyst', 'quantum_dots', 'synthesis']" in said
@@ -265,7 +265,7 @@ def test_every_plugin_that_does_not_load_is_named_at_once(tmp_path):
                                                          "campaign.planner": "gp_bo", "campaign.scheduler": "nope",
                                                          "campaign.fallback_scheduler": "fifo"})))
     said = " ".join(res.output.split())
-    assert res.exit_code == 2 and "bad.yaml: 3 problem(s)" in said, said
+    assert res.exit_code == 2 and "bad.yaml: 3 problems" in said, said
     for field, what in (("devices.spectrometer.driver", "spectrometr"), ("campaign.planner", "gp_bo"),
                         ("campaign.scheduler", "nope")):
         assert f"- {field}: " in said and repr(what) in said, (field, said)
@@ -277,7 +277,7 @@ def test_what_the_loaded_plugins_tell_is_said_at_once_too(tmp_path):
     lab["chemistry"]["targets"][0]["outputs"] = {"hue_deg": {"value": 120, "tol": 5}}
     res = twin_cli("validate", write(tmp_path, lab))
     said = " ".join(res.output.split())
-    assert res.exit_code == 2 and "bad.yaml: 2 problem(s)" in said, said
+    assert res.exit_code == 2 and "bad.yaml: 2 problems" in said, said
     assert "campaign.planner_options.n_inti: no installed planner takes an option 'n_inti'" in said, said
     assert "chemistry.targets.0.outputs.hue_deg: no device of the workflow produces 'hue_deg'" in said, said
 

@@ -195,7 +195,7 @@ def test_a_device_type_no_step_runs_on_is_warned_of_when_the_planner_runs_the_wo
     assert res.exit_code == 0, res.stderr
     warnings = [line for line in res.stderr.splitlines() if "warning:" in line]
     assert len(warnings) == 1 and "devices.spare: no workflow step runs on it" in warnings[0], res.stderr
-    assert "its 2 instance(s) will stay idle" in warnings[0] and str(lab) in warnings[0]
+    assert "its 2 instances will stay idle" in warnings[0] and str(lab) in warnings[0]
     routed = twin_cli("validate", str(ROOT / "scenarios" / "bandgap.yaml"), "--set", "campaign.planner=gp-bo")
     assert "devices.dft: no workflow step runs on it" in routed.stderr  # gp-bo sends nothing to dft
 
@@ -222,7 +222,7 @@ def test_validate_shows_each_warning_under_the_file_that_gave_it(tmp_path):
     plain = write(tmp_path, qd_lab(), "plain.yaml")
     res = twin_cli("validate", twinned, plain)
     assert res.exit_code == 0, res.stderr
-    assert f"✓ {twinned} (1 warning(s))" in res.stdout and f"✓ {plain}\n" in res.stdout
+    assert f"✓ {twinned} (1 warning)" in res.stdout and f"✓ {plain}\n" in res.stdout
     warnings = [line for line in res.stderr.splitlines() if "warning:" in line]
     assert len(warnings) == 1 and warnings[0].startswith(f"! {twinned}: warning: ")
     assert "no experiment meets that target" in warnings[0]
@@ -316,13 +316,13 @@ def test_a_scenario_given_as_dash_is_read_from_standard_input_and_its_paths_from
     ok = twin_cli("validate", "-", input=(ROOT / "scenarios" / "quantum_dots.yaml").read_text())
     assert ok.exit_code == 0 and ok.stdout.startswith("✓ -"), ok.stdout + ok.stderr
     bad = twin_cli("validate", "-", input="lab: x\n")
-    assert bad.exit_code == 2 and "-: 1 problem(s)" in bad.stderr and "name: required field is missing" in bad.stderr
+    assert bad.exit_code == 2 and "-: 1 problem" in bad.stderr and "name: required field is missing" in bad.stderr
     monkeypatch.chdir(ROOT / "scenarios")  # jobshop/ft06.txt
     shop = twin_cli("run", "-", "--bus", "memory", "--json", "--journal", str(tmp_path / "j.db"),
                     input=(ROOT / "scenarios" / "jobshop.yaml").read_text())
     assert shop.exit_code == 0, shop.stderr
     assert json.loads(shop.stdout)["scenario"] == "jobshop_ft06"
-    # a bench loads its scenario once per shop: the second load read an empty stream ("-: 1 problem(s)")
+    # a bench loads its scenario once per shop: the second load read an empty stream ("-: 1 problem")
     shops = twin_cli("bench", "schedulers", "-", "--jobshop", "jobshop/ft06.txt,jobshop/la01.txt", "--schedulers",
                      "mwkr", "--json", input=(ROOT / "scenarios" / "jobshop.yaml").read_text())
     assert shops.exit_code == 0, shops.stderr

@@ -30,7 +30,7 @@ def test_a_device_added_to_the_directory_is_named_once_as_not_admitted(tmp_path)
     assert "devices: synthesiser (" in admitted.said() and admitted.news() == []
     init(tmp_path, LAB, ["spectrometer-1", "spectrometer-2"])
     (warning,) = admitted.news()
-    assert "names device(s) spectrometer-1, spectrometer-2 of lab t, which this router does not admit" in warning
+    assert "names devices spectrometer-1, spectrometer-2 of lab t, which this router does not admit" in warning
     assert "Restart this `twin router`" in warning
     init(tmp_path, LAB, ["spectrometer-1"])  # rewritten, nothing new
     assert admitted.news() == [] and admitted.devices == {"synthesiser"}
@@ -64,7 +64,7 @@ def test_a_running_router_names_a_device_added_since_it_started_and_admits_it_on
         lines_until(first.stderr, {"lab t: admitting its orchestrator, scheduler agent, watchers, operators and "
                                    "devices: synthesiser ("})
         init(tmp_path, LAB, ["spectrometer"])
-        lines_until(first.stderr, {"names device(s) spectrometer of lab t, which this router does not admit"})
+        lines_until(first.stderr, {"names device spectrometer of lab t, which this router does not admit"})
         assert _heard(endpoint, tmp_path) is False  # connected, and refused: as the warning says
     finally:
         first.terminate()

@@ -102,7 +102,7 @@ def test_a_bench_of_several_shops_warns_of_a_policy_s_misfit_once_per_shop(tmp_p
     assert res.returncode == 0, res.stderr
     for name in ("two_a", "two_b", "two_c"):
         assert res.stderr.count(f"trained on labs unlike 'jobshop_{name}'") == 1, res.stderr
-        assert f"{name} — 1 run(s) per scheduler; CP-SAT optimum 8 lab-s" in res.stdout, res.stdout
+        assert f"{name} — 1 run per scheduler; CP-SAT optimum 8 lab-s" in res.stdout, res.stdout
 
 
 def test_shapes_give_every_run_and_every_comparison_to_machines(tmp_path):
@@ -199,7 +199,7 @@ def test_a_scheduler_that_may_take_minutes_a_campaign_is_said_before_the_bench_r
     wide = prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"campaign.budget": 600})
     made = {name: make_scheduler(wide, name) for name in ("mwkr", "cp-sat")}
     assert slow_schedulers(wide, made, 20) == ("cp-sat decides in up to 1 s of wall time, about 1,800 decisions a "
-                                               "campaign here: up to 30 min for each of its 20 campaign(s) (--set "
+                                               "campaign here: up to 30 min for each of its 20 campaigns (--set "
                                                "campaign.scheduler_options.time_limit_s=S gives it less)")
     quick = prepare(ROOT / "scenarios" / "flaky_lab.yaml",  # the rule beside it takes no such option
                     overrides={"campaign.budget": 600, "campaign.scheduler_options": {"time_limit_s": 0.1}})
@@ -211,7 +211,7 @@ def test_a_scheduler_that_may_take_minutes_a_campaign_is_said_before_the_bench_r
     cp_sat = {"cp-sat": make_scheduler(ft10, "cp-sat")}
     assert slow_schedulers(ft10, cp_sat, 1) == ""  # a job shop's decisions are its operations: 100, 100 s at most
     monkeypatch.setattr("twin.tools.scheduler_bench.SLOW_RUN_S", 60.0)
-    assert "about 100 decisions a campaign here: up to 2 min for each of its 1 campaign(s)" in \
+    assert "about 100 decisions a campaign here: up to 2 min for each of its 1 campaign" in \
         slow_schedulers(ft10, cp_sat, 1)
     res = twin_cli("bench", "schedulers", str(ROOT / "scenarios" / "flaky_lab.yaml"), "--schedulers", "mwkr",
                    "--seeds", "1", "--set", "campaign.budget=4")

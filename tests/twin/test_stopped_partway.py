@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from twin.core.counts import counted
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -49,10 +51,10 @@ def test_a_bench_stopped_partway_shows_the_seeds_every_scheduler_finished(tmp_pa
                                     "--schedulers", "fifo,spt", "--csv", str(csv)], lambda done: done >= 6,
                                    signal.SIGINT)
     assert code == 130, err
-    title = re.search(r"flaky_lab —\s+(\d+)\s+of\s+400\s+run\(s\)\s+per\s+scheduler", out)
+    title = re.search(r"flaky_lab —\s+(\d+)\s+of\s+400\s+runs\s+per\s+scheduler", out)
     assert title and 3 <= int(title.group(1)) < 400, out
     assert re.search(r"^fifo +\d+\.\d+", out, re.M) and re.search(r"^spt +\d+\.\d+", out, re.M), out
-    assert f"interrupted: the table is of the {title.group(1)} seed(s) of flaky_lab every scheduler finished" in err
+    assert f"interrupted: the table is of the {_seeds(title)} of flaky_lab every scheduler finished" in err
     assert "Traceback" not in err and not csv.exists()  # no file of a part of the runs
 
 
@@ -67,7 +69,8 @@ def test_a_shapes_bench_stopped_partway_shows_the_shapes_it_finished():
     shown = re.search(r"(\d+)\s+of\s+(\d+)\s+shapes", out)  # the title wraps to a table of one shape's width
     assert shown and 1 <= int(shown.group(1)) < int(shown.group(2)), out
     assert "as written" in out
-    assert f"terminated (SIGTERM): the table is of the {shown.group(1)} shape(s) of {shown.group(2)} finished" in err
+    assert (f"terminated (SIGTERM): the table is of the {counted(int(shown.group(1)), 'shape', 'shapes')} of "
+            f"{shown.group(2)} finished") in err
 
 
 @pytest.mark.process
@@ -80,10 +83,10 @@ def test_a_whatif_stopped_partway_shows_the_seeds_every_variant_finished_and_wri
     code, out, err = _stopped_when(["whatif", "scenarios/flaky_lab.yaml", "--vary", "devices.reactor.instances=2,3",
                                     "--seeds", "300", "--csv", str(csv)], lambda done: done >= 4, signal.SIGINT)
     assert code == 130, err
-    title = re.search(r"2\s+variants\s+×\s+(\d+)\s+of\s+300\s+seed\(s\)", out)
+    title = re.search(r"2\s+variants\s+×\s+(\d+)\s+of\s+300\s+seeds", out)
     assert title and 1 <= int(title.group(1)) < 300, out
     assert f"Medians and IQR over {title.group(1)} paired seeds" in " ".join(out.split())
-    assert f"interrupted: the table is of the {title.group(1)} seed(s) every variant finished" in err
+    assert f"interrupted: the table is of the {_seeds(title)} every variant finished" in err
     assert not csv.exists() and "Traceback" not in err
 
 
@@ -99,4 +102,9 @@ def test_a_route_bench_stopped_partway_shows_the_targets_every_method_finished()
     title = re.search(r"(\d+)\s+of\s+100\s+held-out\s+targets,\s+1\s+s\s+each", out)
     assert title and 1 <= int(title.group(1)) < 100, out
     assert re.search(r"^breadth-first +\d+", out, re.M) and re.search(r"^random +\d+", out, re.M), out
-    assert f"interrupted: the table is of the {title.group(1)} target(s) every method finished" in err
+    assert (f"interrupted: the table is of the {counted(int(title.group(1)), 'target', 'targets')} every method "
+            "finished") in err
+
+
+def _seeds(title):
+    return counted(int(title.group(1)), "seed", "seeds")

@@ -95,7 +95,7 @@ def test_a_list_or_mapping_is_shown_short_and_kept_whole_in_json():
     (["--vary", "campaign.scheduler=fifo,rl:missing.zip"], "policy missing.zip does not exist"),
     (["--vary", "devices.reactor.instances=3", "--seeds", "0"], "Invalid value for '--seeds'"),
     (["--vary", "devices.spectrometer.driver=spectrometer,reactor"],
-     "--vary devices.spectrometer.driver=reactor: 1 problem(s) - devices.spectrometer.driver: 'reactor' runs"),
+     "--vary devices.spectrometer.driver=reactor: 1 problem - devices.spectrometer.driver: 'reactor' runs"),
     (["--vary", "campaign.planner=random,nope"], "--vary campaign.planner=nope"),
     # seeds are the paired runs' own: a varied or set seed would be overwritten in every run, silently
     (["--vary", "campaign.seed=1,2"], "'campaign.seed=1,2': the runs' seeds are 0 to N−1 (--seeds N)"),

@@ -12,6 +12,7 @@ from rich.table import Table
 from twin.cli.common import (bar_progress, bench_app, err, _fail, fitted_width, machine_output, narrow_table,
                              paired_assignments, print_table, refuse_disagreeing, say_ended_early, writable)
 from twin.cli.stopping import interruptible, part_done, stopped_partway
+from twin.core.counts import counted
 from twin.core.errors import TwinError
 
 if TYPE_CHECKING:  # the commands import the runtime when they run: twin ctl or router need none of it
@@ -142,7 +143,7 @@ def bench_planners(
     print_table(table)
     say_ended_early([(t.planner, t.stopped) for trials in results.values() for t in trials])
     if cut is not None:
-        stopped_partway(cut, f"the {ran} seed(s) every planner finished")
+        stopped_partway(cut, f"the {counted(ran, 'seed', 'seeds')} every planner finished")
 
 
 BENCHED = ("campaign.scheduler", "--schedulers")  # what a scheduler bench runs each of
@@ -244,7 +245,8 @@ def bench_schedulers(
             silent = {h for i, h in enumerate(HEADER) if h in COUNTS and all(float(r[i]) == 0 for r in table_rows)}
             shown = [i for i, h in enumerate(HEADER) if (optimum or h != "vs bound") and h not in silent]
             table = narrow_table([HEADER[i] for i in shown],
-                                 f"{title} — {runs}{'' if cut is None else f' of {seeds}'} run(s) per scheduler" +
+                                 f"{title} — {runs}{'' if cut is None else f' of {seeds}'} "
+                                 f"{'run' if (runs if cut is None else seeds) == 1 else 'runs'} per scheduler" +
                                  (f"; {best.title()}" if best else ""),
                                  caption("lab-s" if s.jobshop else "lab-h", bound=best, silent=silent, ahead=ahead))
             for row in table_rows:
@@ -252,7 +254,7 @@ def bench_schedulers(
             print_table(table)
             say_ended_early([(r.scheduler, r.stopped) for v in results.values() for r in v])
             if cut is not None:
-                stopped_partway(cut, f"the {runs} seed(s) of {title} every scheduler finished")
+                stopped_partway(cut, f"the {counted(runs, 'seed', 'seeds')} of {title} every scheduler finished")
     machine_output(as_json, csv_out, HEADER, [], all_runs, labs=tables)
 
 
@@ -320,4 +322,4 @@ def _bench_shapes(scenario: Path, names: list[str], seeds: int, workers: int, bu
     print_table(_compared_table(shown, title, chance, table_rows, first_compared=3))
     say_ended_early([(n, r.stopped) for c in results for n in others for r in c.runs[n]])
     if cut is not None:
-        stopped_partway(cut, f"the {len(results)} shape(s) of {total} finished")
+        stopped_partway(cut, f"the {counted(len(results), 'shape', 'shapes')} of {total} finished")

@@ -20,6 +20,7 @@ from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
 from twin.core import plugins
 from twin.core.whole_files import written_whole
+from twin.core.counts import counted
 from twin.core.errors import TwinError
 
 if TYPE_CHECKING:  # the commands import the runtime and the viewer when they run: twin ctl or router need neither
@@ -316,7 +317,7 @@ def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="s
                 bad += 1
                 err.print(f"[red]✗[/] {escape(str(exc))}", highlight=False, markup=True)
             else:
-                said = f" ({len(warned.said)} warning(s))" if warned.said else ""
+                said = f" ({counted(len(warned.said), 'warning', 'warnings')})" if warned.said else ""
                 console.print(f"[green]✓[/] {escape(str(f))}{said}", highlight=False, soft_wrap=True, markup=True)
             for text in warned.said:
                 err.print(f"[yellow]![/] {escape(str(f))}: warning: {escape(text)}", highlight=False, soft_wrap=True,

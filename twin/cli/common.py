@@ -14,6 +14,7 @@ from rich.markup import escape
 from rich.segment import Segment
 
 from twin.cli.printable import PrintableConsole
+from twin.core.counts import counted
 from twin.core import keys
 from twin.core.errors import TwinError
 from twin.core.printable import inert
@@ -312,7 +313,8 @@ def say_ended_early(runs: list[tuple[str, str]]) -> None:
     for label, whys in counts.items():
         early = [w for w in whys if w]
         if early:
-            err.print(f"{label}: {len(early)} of {len(whys)} run(s) ended early — {early[0]}", highlight=False,
+            err.print(f"{label}: {len(early)} of {counted(len(whys), 'run', 'runs')} ended early — {early[0]}",
+                      highlight=False,
                       markup=False)
 
 

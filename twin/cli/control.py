@@ -11,6 +11,7 @@ import typer
 from rich.markup import escape
 
 from twin.cli.common import _fail, app, check_lab_name, command_group, console, err, narrow_table, print_table
+from twin.core.counts import counted
 from twin.core.errors import TwinError
 
 ctl_app = command_group("Operate a running campaign: status, pause, resume, abort, retry, stop; answer its "
@@ -68,7 +69,8 @@ def _acted(answer: dict, as_json: bool) -> None:
 def _lab_status(answer: dict) -> None:
     """A lab that several campaigns share: a row per campaign."""
     one = answer.get("scheduler")
-    console.print(f"lab {answer['lab']} at lab {answer['lab_hours']:.2f} h: {len(answer['campaigns'])} campaign(s)"
+    console.print(f"lab {answer['lab']} at lab {answer['lab_hours']:.2f} h: "
+                  f"{counted(len(answer['campaigns']), 'campaign', 'campaigns')}"
                   f"{'; it takes more (twin submit)' if answer['serving'] else ''}; "
                   f"{f'one scheduler for the lab: {one}' if one else 'each campaign schedules its own steps, in turns'}",
                   highlight=False, markup=False)

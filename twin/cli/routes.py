@@ -14,6 +14,7 @@ from rich.table import Table
 from twin.cli.common import (_fail, app, bar_progress, bench_app, console, err, machine_output, narrow_table,
                              print_table, writable)
 from twin.cli.stopping import exit_status, interruptible, part_done, sigterm_unwinds, stopped_by, stopped_partway
+from twin.core.counts import counted
 from twin.core import plugins
 from twin.core.errors import TwinError
 
@@ -153,4 +154,4 @@ def bench_routes(
         table.add_row(*row)
     print_table(table)
     if cut is not None:
-        stopped_partway(cut, f"the {done} target(s) every method finished")
+        stopped_partway(cut, f"the {counted(done, 'target', 'targets')} every method finished")

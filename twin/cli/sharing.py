@@ -14,6 +14,7 @@ from rich.markup import escape
 from twin.cli.common import _fail, app, check_lab_name, console, err, keep_serving, lab_app, speed_heeded
 from twin.cli.stopping import exit_if_interrupted
 from twin.cli.printable import log_to_stderr
+from twin.core.counts import counted
 from twin.core.errors import TwinError
 
 if TYPE_CHECKING:  # the commands import the runtime and the viewer when they run: twin submit needs neither
@@ -137,7 +138,8 @@ def lab_serve(
         def started(live) -> None:
             err.print(f"serving lab {s.lab} ({s.clock.mode} clock"
                       f"{f', {s.clock.speed:g}x' if s.clock.mode == 'scaled' else ''}) with "
-                      f"{len(s.campaigns)} campaign(s); `twin submit CAMPAIGN.yaml --lab {s.lab} --connect ...` adds "
+                      f"{counted(len(s.campaigns), 'campaign', 'campaigns')}; `twin submit CAMPAIGN.yaml --lab {s.lab} "
+                      "--connect ...` adds "
                       "one, Ctrl-C stops", highlight=False)
         summary = serve_lab(s, journal, set(external or ()), on_start=started, trust_modules=trust_modules)
     except TwinError as exc:

@@ -17,6 +17,7 @@ from rich.table import Table
 from twin.cli.common import (_fail, app, bar_progress, console, paired_assignments, recording_file, say_ended_early,
                              writable)
 from twin.cli.stopping import interruptible, part_done, stopped_partway
+from twin.core.counts import counted
 from twin.core.errors import TwinError
 from twin.core.printable import inert
 
@@ -139,7 +140,8 @@ def whatif(
     progress = bar_progress(as_json)
     cut = None
     with progress:
-        bar = progress.add_task(f"{s.name}: {len(chosen)} variants × {seeds} seed(s)", total=len(chosen) * seeds)
+        bar = progress.add_task(f"{s.name}: {len(chosen)} variants × {counted(seeds, 'seed', 'seeds')}",
+                                total=len(chosen) * seeds)
         try:
             results = run_whatif(s, chosen, seeds, workers, on_run=lambda o: progress.advance(bar))
         except KeyboardInterrupt as stop:  # the seeds every variant finished still make a table
@@ -166,9 +168,9 @@ def whatif(
         return
     has_targets, shown = any_targets(s), measures(summary)
     seconds = in_seconds(summary)
-    # the title above the table, not in it: a narrow table would fold it ("2 variants × 20" over "seed(s)")
+    # the title above the table, not in it: a narrow table would fold it ("2 variants × 20" over "seeds")
     console.print(f"{s.name}: what if — {len(chosen)} variants × {ran if cut is None else f'{ran} of {seeds}'} "
-                  "seed(s)", highlight=False)
+                  f"{'seed' if seeds == 1 else 'seeds'}", highlight=False)
     table_rows = rows(summary, axes, written_values(s, axes), has_targets, shown)
     table, whole = _fitting_table(header(axes, shown, seconds), table_rows, len(axes))
     if not whole:  # the experiments' column gives its room to the values and the busiest type
@@ -206,7 +208,7 @@ def whatif(
         if path is not None:
             console.print(f"wrote {path}", highlight=False)
     if cut is not None:
-        stopped_partway(cut, f"the {ran} seed(s) every variant finished")
+        stopped_partway(cut, f"the {counted(ran, 'seed', 'seeds')} every variant finished")
 
 
 def _write_csv(path: Path, summary: list[dict]) -> None:

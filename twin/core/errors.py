@@ -6,6 +6,8 @@ Every message says what went wrong and what to do next.
 
 from typing import Any
 
+from twin.core.counts import counted
+
 
 class Interrupted(BaseException):
     """Raised inside a plugin's call that holds the lab by SIGINT or SIGTERM (``twin.core.held``): the lab is
@@ -46,7 +48,7 @@ class ScenarioError(TwinError):
         if len(problems) > 20:
             shown.append(f"… and {len(problems) - 20} more")
         lines = "\n".join(f"  - {p}" for p in shown)
-        super().__init__(f"{source}: {len(problems)} problem(s)\n{lines}")
+        super().__init__(f"{source}: {counted(len(problems), 'problem', 'problems')}\n{lines}")
 
 
 class DriverError(TwinError):

@@ -8,6 +8,7 @@ from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import Any
 
+from twin.core.counts import counted
 from twin.core import plugins
 from twin.core.errors import ScenarioError, TwinError
 from twin.campaign.human import DRIVER as HUMAN
@@ -176,7 +177,8 @@ def _idle_types(s: Scenario, planner: Any) -> list[str]:
         return []
     used = {w.device for w in s.workflow}
     return [f"devices.{dtype}: no workflow step runs on it (each step runs on the device type its `device:` names), "
-            f"so its {len(s.instance_names(dtype))} instance(s) will stay idle; name it in a step, or leave it out"
+            f"so its {counted(len(s.instance_names(dtype)), 'instance', 'instances')} will stay idle; name it in a "
+            "step, or leave it out"
             for dtype, spec in s.devices.items() if dtype not in used and spec.driver != HUMAN]
 
 

@@ -104,11 +104,15 @@ def _starting(s: Scenario, claims: list[str]) -> str:
     parts = {_part_of(k) for k in claims}
     devices = sorted(p.split("/", 1)[1] for p in parts if p.startswith("dev/"))
     named = (["its campaign"] if "orchestrator" in parts else []) + \
-        (["its scheduler agent"] if "agent" in parts else []) + ([f"device(s) {devices}"] if devices else [])
+        (["its scheduler agent"] if "agent" in parts else []) + ([_devices(devices)] if devices else [])
     more = f" and {len(claims) - 1} more" if len(claims) > 1 else ""
     return (f"lab {lab!r}: another process is starting {' and '.join(named)} on this bus at this same moment "
             f"(its claim {min(claims)}{more}): two processes serving one lab would dispatch to, or answer for, each "
             f"other. This one stands down; run it when that one has ended, or as another lab ({_another(lab)})")
+
+
+def _devices(names: list[str]) -> str:
+    return f"{'device' if len(names) == 1 else 'devices'} {', '.join(names)}"
 
 
 def _another(lab: str) -> str:
@@ -129,9 +133,10 @@ def _refuse_held(s: Scenario, found: set[str], orchestrator: bool, agent: bool) 
                        f"lasts one link lease ({s.bus.lease_ms} ms): try again then")
     taken = sorted(keys.device_of(k) for k in found if k.startswith(keys.alive(lab, "")))
     if taken and not orchestrator:  # twin device serve: the device is someone else's already
-        raise LabTaken(f"device(s) {taken} of lab {lab!r} are already on this bus, served by another process: stop "
-                       "that one first")
+        raise LabTaken(f"{_devices(taken)} of lab {lab!r} {'is' if len(taken) == 1 else 'are'} already on this bus, "
+                       "served by another process: stop that one first")
     if taken:
-        raise LabTaken(f"device(s) {taken} of lab {lab!r} are already on this bus, served by another process: "
+        raise LabTaken(f"{_devices(taken)} of lab {lab!r} {'is' if len(taken) == 1 else 'are'} already on this bus, "
+                       "served by another process: "
                        "stop that one, or let this run use them (twin run --external NAME for each) instead of "
                        f"serving its own, or run this one as another lab ({_another(lab)})")

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from twin.core.counts import counted
 from twin.core.errors import ScenarioError
 from twin.scenario.files import read_text
 from twin.scenario.model import Scenario
@@ -110,8 +111,8 @@ def read(path: str | Path, instance: str | None = None) -> Instance:
         raise ScenarioError(where, [f"{n_jobs} jobs on {n_machines} machines; expected 1-{MAX_JOBS} jobs "
                                     f"on 1-{MAX_MACHINES} machines"])
     if len(jobs) != n_jobs:
-        raise ScenarioError(where, [f"the header says {n_jobs} jobs and {len(jobs)} job line(s) follow it: one line "
-                                    "per job"])
+        follow = counted(len(jobs), "job line follows", "job lines follow")
+        raise ScenarioError(where, [f"the header says {n_jobs} jobs and {follow} it: one line per job"])
     empty = [j for j, job in enumerate(jobs) if not job]
     if empty:
         raise ScenarioError(where, [f"job {empty[0]} has no operations: each job line holds 'machine duration' pairs"])

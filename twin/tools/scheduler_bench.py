@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from twin.core import plugins
+from twin.core.counts import counted
 from twin.core.errors import TwinError
 from twin.runtime.assembly import plays_ahead
 from twin.runtime.lab import prepare, run
@@ -153,7 +154,8 @@ def slow_schedulers(s: Scenario, made: dict[str, object], runs: int) -> str:
             if isinstance(getattr(m, "time_limit_s", None), (int, float))
             and decisions * getattr(m, "time_limit_s") > SLOW_RUN_S}
     return "; ".join(f"{label(name)} decides in up to {limit:g} s of wall time, about {decisions:,} decisions a "
-                     f"campaign here: up to {decisions * limit / 60:,.0f} min for each of its {runs} campaign(s) "
+                     f"campaign here: up to {decisions * limit / 60:,.0f} min for each of its "
+                     f"{counted(runs, 'campaign', 'campaigns')} "
                      "(--set campaign.scheduler_options.time_limit_s=S gives it less)"
                      for name, limit in slow.items())
 

@@ -101,8 +101,9 @@ def _measured(value: float) -> str:
 def render_lab_summary(s: LabSummary, console: Console) -> None:
     """A lab that served several campaigns: one row per campaign (times are lab hours from the lab's start),
     then the lab's devices."""
-    t = _Marked(title=f"{s.lab} — seed {s.seed}: {len(s.campaigns)} campaign(s) sharing the lab", title_justify="left",
-              caption="times in lab hours from the lab's start; targets: when met", caption_justify="left")
+    campaigns = counted(len(s.campaigns), "campaign", "campaigns")
+    t = _Marked(title=f"{s.lab} — seed {s.seed}: {campaigns} sharing the lab", title_justify="left",
+                caption="times in lab hours from the lab's start; targets: when met", caption_justify="left")
     for header in ("campaign", "prio", "from", "to", "done", "aband.", "pend.", "targets met"):
         t.add_column(header, overflow="fold", justify="right" if header not in ("campaign", "targets met") else "left")
     for name, c in s.campaigns.items():

@@ -15,6 +15,8 @@ from typing import Any
 
 from PIL import Image, ImageDraw, ImageFont
 
+from twin.core.counts import counted
+
 WIDTH, PANEL_H, LINE_H, MARGIN = 1200, 440, 20, 60
 CHOSEN = "#E45756"
 PALETTE = ["#4C78A8", "#F58518", "#54A24B", "#E45756", "#72B7B2", "#B279A2", "#FF9DA6", "#9D755D", "#BAB0AC",
@@ -85,8 +87,8 @@ def save_whatif_png(path: str | Path, scenario: str, summary: list[dict[str, Any
     font, small = ImageFont.load_default(size=15), ImageFont.load_default(size=12)
     image = Image.new("RGB", (WIDTH, MARGIN + PANEL_H + 30 + LINE_H * (len(summary) + 3)), "white")
     draw = ImageDraw.Draw(image)
-    draw.text((MARGIN, 12), f"{scenario}: what if - {len(summary)} variants x {seeds} seed(s), medians [IQR]",
-              fill="black", font=font)
+    draw.text((MARGIN, 12), f"{scenario}: what if - {len(summary)} variants x {counted(seeds, 'seed', 'seeds')}, "
+              "medians [IQR]", fill="black", font=font)
     unit, scale = ("lab-s", 3600.0) if seconds else ("lab-h", 1.0)
     half = (WIDTH - 3 * MARGIN) // 2
     left = (MARGIN + 10, MARGIN + 30, MARGIN + 10 + half - 10, MARGIN + 30 + PANEL_H - 60)

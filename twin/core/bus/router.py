@@ -54,7 +54,8 @@ class AdmittedDevices:
         if not new:
             return []
         them = "it" if len(new) == 1 else "them"
-        return [f"{self._manifest} now names device(s) {', '.join(new)} of lab {self.lab}, which this router does "
+        return [f"{self._manifest} now names {'device' if len(new) == 1 else 'devices'} {', '.join(new)} of lab "
+                f"{self.lab}, which this router does "
                 f"not admit: it reads whom it admits when it starts. A process serving {them} connects, but the "
                 f"router refuses all it sends, and the lab never sees {them}. Restart this `twin router` to admit "
                 f"{them}: the lab and its devices connect again by themselves (steps running meanwhile fail as "
