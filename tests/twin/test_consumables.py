@@ -382,3 +382,14 @@ def test_stock_a_live_lab_on_a_memory_bus_cannot_have_refilled_is_warned_of(capl
         "on a wall clock and a memory bus, which twin ctl cannot reach (it reaches a campaign over Zenoh only): "
         "consumables precursor, vials may run out, and the steps that need one would wait to the end for a `twin ctl "
         "refill`. Run it with --bus zenoh --listen tcp/127.0.0.1:7447 (and twin ctl … --connect there)"]
+
+
+def test_a_reorder_point_not_below_the_level_is_warned_of(caplog):
+    """Taken for a typo (a reorder point of 500 for a 250 mL stock): low from the first step, never news again."""
+    lab = parse(qd_lab(consumables={"precursor": {"unit": "mL", "level": 250, "reorder_at": 250,
+                                                  "used_by": {"synthesise": 1}}}), "lab.yaml")
+    with caplog.at_level("WARNING", logger="twin.runtime.checks"):
+        check(lab)
+    assert [m for m in caplog.messages if "reorder_at" in m] == [
+        "consumables.precursor.reorder_at: 250 is not below its level, 250 mL, so consumable.low says it is low at its "
+        "first step and never after a refill; give the level at which to reorder, below the starting one"]

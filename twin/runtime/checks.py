@@ -94,6 +94,12 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         problem = _out_of_ctl_reach(s, types)
         if problem:
             log.warning("%s", problem)
+    for item, stock in s.consumables.items() if types is None else ():
+        if stock.reorder_at >= stock.level:
+            log.warning("consumables.%s.reorder_at: %g is not below its level, %g %s, so consumable.low says it is "
+                        "low at its first step and never after a refill; give the level at which to reorder, below "
+                        "the starting one", item,
+                        stock.reorder_at, stock.level, stock.unit)
     if types is None:
         for problem in _idle_types(s, planner):
             log.warning("%s", problem)
