@@ -385,3 +385,21 @@ def test_faults_given_to_people_are_refused_naming_the_field_as_no_fault_would_e
     names = [name for name, _ in variants(lab)]
     assert "technician bottleneck (mean_s ×2)" in names and "technician flaky (20 % fail)" not in names
     assert "synthesiser flaky (20 % fail)" in names
+
+
+def test_a_lab_file_for_twin_lab_serve_is_checked_with_serve(tmp_path):
+    """A lab that takes its campaigns later has no workflow: plain validate refused it, and pointed nowhere."""
+    lab = {k: v for k, v in qd_lab().items() if k not in ("workflow", "campaign")}
+    path = write(tmp_path, lab)
+    plain = twin_cli("validate", path)
+    assert plain.exit_code == 2 and "needs none of them: `twin validate --serve` checks one" in plain.output
+    assert twin_cli("validate", "--serve", path).exit_code == 0
+    lab["devices"]["spectrometer"]["driver"] = "spectromter"  # each device's driver is made, standing by
+    lab["devices"]["synthesiser"]["driver"] = "synthesizer"
+    bad = twin_cli("validate", "--serve", write(tmp_path, lab))
+    said = " ".join(bad.output.split())
+    assert bad.exit_code == 2 and "2 problems" in said, said
+    assert "devices.spectrometer.driver: unknown driver 'spectromter' (did you mean 'spectrometer'?)" in said
+    assert "devices.synthesiser.driver: unknown driver 'synthesizer'" in said
+    shared = twin_cli("validate", "--serve", ROOT / "scenarios" / "shared_lab.yaml")  # campaigns: each checked
+    assert shared.exit_code == 0, shared.output

@@ -300,7 +300,10 @@ def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="s
              set_: Annotated[Optional[list[str]], typer.Option("--set", metavar="FIELD=VALUE",
                                                                help="check the files with a field overridden, as "
                                                                     "`twin run --set` would run them; repeatable")]
-             = None) -> None:
+             = None,
+             serve: Annotated[bool, typer.Option("--serve", help="check them as `twin lab serve` reads a lab "
+                                                 "file: its campaigns may come later (twin submit), so it needs no "
+                                                 "workflow")] = False) -> None:
     """Check scenario files; every problem names its file, field and value, and every warning its file."""
     from twin.runtime.checks import validate_file
 
@@ -312,7 +315,7 @@ def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="s
         for f in files:
             warned.said.clear()
             try:
-                validate_file(f, overrides)
+                validate_file(f, overrides, serve)
             except TwinError as exc:
                 bad += 1
                 err.print(f"[red]✗[/] {escape(str(exc))}", highlight=False, markup=True)

@@ -309,10 +309,27 @@ def _at(field: str, make: Callable[..., Any], *args: Any) -> Any:
         raise ScenarioError("", [text if text.startswith(field.split(".")[0]) else f"{field}: {text}"]) from None
 
 
-def validate_file(path: str | Path, overrides: dict | None = None) -> Scenario:
+def validate_file(path: str | Path, overrides: dict | None = None, served: bool = False) -> Scenario:
     """``twin validate``: the scenario file read (with the command line's ``--set`` overrides), checked field by
-    field, and against the installed plugins."""
-    return checked(load(path, overrides), path)
+    field, and against the installed plugins. ``served``: read as ``twin lab serve`` reads it, a lab whose
+    campaigns may come later: without campaigns, its devices' drivers are made as they stand by."""
+    if not served:
+        return checked(load(path, overrides), path)
+    s = load(path, overrides, lab_only=True)
+    if s.campaigns:
+        return checked(s, path)
+    from twin.runtime.shared_run import standby_drivers
+
+    problems = []
+    for dtype in s.devices:  # each type's drivers alone, so that each problem names its field, and all are said
+        others = [name for other in s.devices if other != dtype for name in s.instance_names(other)]
+        try:
+            _at(f"devices.{dtype}.driver", standby_drivers, s, others)
+        except ScenarioError as exc:
+            problems += exc.problems
+    if problems:
+        raise ScenarioError(str(path), problems)
+    return s
 
 
 def checked(s: Scenario, path: str | Path, external: Collection[str] = (), benched: bool = False,

@@ -132,7 +132,7 @@ def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], han
     there, and the steps it had in the lab are asked after."""
     from twin.core.clock import LabClock
     from twin.runtime.resume import _still_running
-    from twin.runtime.shared_run import LAB_INPUTS, _live, _parts, _standby_drivers, shared_drivers
+    from twin.runtime.shared_run import LAB_INPUTS, _live, _parts, standby_drivers, shared_drivers
 
     inputs = where / LAB_INPUTS
     if not inputs.exists():
@@ -179,7 +179,7 @@ def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], han
     log.info("resuming lab %s at %.0f lab-s: %d input batches replayed", where, rebuilt.now, len(batches))
     scenarios = rebuilt.scenarios
     drivers, per_device = shared_drivers(scenarios, skip=external) if scenarios else (
-        _standby_drivers(s, external), {})
+        standby_drivers(s, external), {})
     parts = {n: (Journal(where / f"{n}.db", append=True),
                  *_parts_of(cs, rebuilt.planner_asks.get(n, []), rebuilt.shared.cores[n].history))
              for n, cs in scenarios.items()}

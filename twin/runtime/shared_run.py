@@ -146,7 +146,7 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
     if scenarios:
         drivers, per_device = shared_drivers(scenarios, skip=external_devices)
     else:
-        drivers, per_device = _standby_drivers(s, external_devices), {}
+        drivers, per_device = standby_drivers(s, external_devices), {}
     where = Path(journals) if journals is not None else default_journals(s)
 
     def campaign_parts() -> dict:
@@ -159,7 +159,7 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
                                serving=external_devices, on_start=on_start, trust_modules=trust_modules))
 
 
-def _standby_drivers(s: Scenario, skip: Collection[str]) -> list[tuple[str, str, Any]]:
+def standby_drivers(s: Scenario, skip: Collection[str]) -> list[tuple[str, str, Any]]:
     """A lab that serves with no campaign yet: each device's driver for the lab file's chemistry, or else for the
     first one it simulates (it answers health checks; each campaign submitted brings its own)."""
     out = []

@@ -308,7 +308,8 @@ class Scenario(Spec):
                 problems.append(f"workflow.{i}.step: device type {ws.device!r} does not run {ws.step!r} (it runs {dev.steps})")
         if not self.workflow and self.jobshop is None and not self.campaigns and not lab_only:
             problems.append("workflow: empty; give the steps of an experiment, or a jobshop file, or campaigns: (a "
-                            "lab file for `twin lab serve`, which takes its campaigns later, needs none of them)")
+                            "lab file for `twin lab serve`, which takes its campaigns later, needs none of them: "
+                            "`twin validate --serve` checks one)")
         problems += self._instance_clashes() + self._sharing()
         if not self.campaigns and not lab_only:  # a lab of several campaigns: checked with each one's chemistry
             problems += self._plus_params() + self._envelopes()
