@@ -73,8 +73,8 @@ class Usage(Spec):
     unit of the parameter (never below 0)."""
 
     fixed: float = Field(default=0.0, ge=0, le=MAX_VALUE, description="used by every step")
-    per: dict[Label, float] = Field(default_factory=dict, max_length=64, description="experiment parameter -> "
-                                    "used per unit of it")
+    per: dict[Label, float] = Field(default_factory=dict, max_length=64, description="a parameter of the "
+                                    "chemistry -> used per unit of it (below 0 only where fixed covers it)")
 
 
 def usage_problems(item: str, stock: Consumable, ranges: dict[str, tuple[float, float]] | None) -> list[str]:
