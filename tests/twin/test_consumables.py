@@ -112,7 +112,8 @@ def test_a_short_step_waits_for_the_operators_refill_and_the_lab_goes_on(scenari
     core.feed(msg(Kind.RESULT, "synthesiser", "e1s0", 1, outputs={}, sample={"t_made": 120.0}))
     out = core.advance(120.0)
     (short,) = notes(out, "consumable.depleted")
-    assert short.detail == {"item": "vials", "level": 0, "unit": "vials", "needed": 1.0} and short.task == "e1s1"
+    assert short.detail == {"item": "vials", "level": 0, "unit": "vials", "needed": 1.0, "stocks": 1}
+    assert short.task == "e1s1"
     assert "e1s1" in core.starved and "e1s1" not in core.ready
     assert core.short_of == ["vials"]  # what the progress line says the lab waits for
     core.feed(Operator("refill", "alice", "r1", item="gold"))
@@ -393,3 +394,16 @@ def test_a_reorder_point_not_below_the_level_is_warned_of(caplog):
     assert [m for m in caplog.messages if "reorder_at" in m] == [
         "consumables.precursor.reorder_at: 250 is not below its level, 250 mL, so consumable.low says it is low at its "
         "first step and never after a refill; give the level at which to reorder, below the starting one"]
+
+
+@pytest.mark.parametrize("holders, elsewhere", [(1, False), (2, True)])
+def test_a_stock_of_an_only_instance_that_runs_out_is_not_said_to_send_its_steps_elsewhere(tmp_path, holders,
+                                                                                            elsewhere, caplog):
+    """A technician's own gloves: 'its steps go to another instance that has some' where there is none."""
+    lab = qd_lab(**{"campaign.budget": 3, "devices.spectrometer.instances": holders,
+                    "consumables": {"vials": {"unit": "vials", "level": 1, "device": "spectrometer",
+                                              "used_by": {"measure": 1}, "simulate_refill": {"after_s": 600}}}})
+    with caplog.at_level("WARNING", logger="twin.alerts"):
+        run(parse(lab, "lab.yaml"), journal=tmp_path / "j.db")
+    said = [m for m in caplog.messages if " is out (" in m]
+    assert said and all(("go to another instance that has some, or wait" in m) == elsewhere for m in said), said

@@ -242,7 +242,7 @@ def _depleted(core: CampaignCore, task: Task, short: list[str], needs: dict[str,
         stock.out_since = core.now
         core._note("consumable.depleted", task.experiment.id, task.id,
                    detail={"item": name, "level": round(stock.level, 6), "unit": stock.unit,
-                           "needed": round(needs[stock.item], 6)})
+                           "needed": round(needs[stock.item], 6), "stocks": len(core.stocks.of[stock.item])})
         sim = core.s.consumables[stock.item].simulate_refill
         if sim is not None and core.s.clock.mode == "virtual":
             core._timer(TimerKey(TimerKind.REFILL, name), sim.after_s)

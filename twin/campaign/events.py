@@ -247,7 +247,8 @@ def alert_text(n: Note) -> str:
     """An alert's line in the log: what, on which device or experiment, and the detail."""
     if n.kind == "consumable.depleted" and isinstance(n.detail, dict):  # on a live clock, a person must refill it
         d = n.detail
-        elsewhere = "go to another instance that has some, or " if "@" in str(d.get("item")) else ""  # its own stock
+        others = "@" in str(d.get("item")) and d.get("stocks", 2) > 1  # an instance's own stock, and others have one
+        elsewhere = "go to another instance that has some, or " if others else ""
         return (f"{d.get('item')} is out ({d.get('level', 0):g} {d.get('unit', '')} left, {d.get('needed', 0):g} needed "
                 f"by {n.task}): its steps {elsewhere}wait for `twin ctl refill {d.get('item')}` (in virtual time, its "
                 "simulate_refill)")
