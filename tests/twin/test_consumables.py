@@ -407,3 +407,16 @@ def test_a_stock_of_an_only_instance_that_runs_out_is_not_said_to_send_its_steps
         run(parse(lab, "lab.yaml"), journal=tmp_path / "j.db")
     said = [m for m in caplog.messages if " is out (" in m]
     assert said and all(("go to another instance that has some, or wait" in m) == elsewhere for m in said), said
+
+
+def test_a_stock_crossing_its_reorder_point_on_a_live_clock_says_when_it_runs_out_and_who_can_refill_it(caplog):
+    from twin.campaign import Note
+    from twin.runtime.asked_of_people import tell
+
+    low = Note(600.0, "consumable.low", detail={"item": "vials", "level": 3, "unit": "vials", "reorder_at": 4,
+                                                "runs_out_in_s": 4320.0})
+    with caplog.at_level("WARNING", logger="twin.alerts"):
+        tell(low, None, speed=20.0)  # a memory bus: nothing outside reaches the campaign
+    assert caplog.messages == ["consumable.low vials: 3 vials left, below its reorder point (4); at the rate so far "
+                               "it runs out in 4,320 lab-s (216 s of wall time): reorder it; nobody can say it is "
+                               "refilled: twin ctl reaches a campaign over Zenoh, and this lab's bus is memory"]

@@ -309,7 +309,8 @@ def test_an_operator_lists_the_pending_question_and_answers_it(tmp_path):
 @pytest.mark.parametrize("held_by", [None, "spectrometer"])
 def test_a_short_consumable_waits_for_the_operators_refill(tmp_path, held_by):
     """A lab's stock of vials, or each of the two spectrometers' own: the third sample waits for a refill."""
-    vials = {"unit": "vials", "level": 1, "used_by": {"measure": 1}, **({"device": held_by} if held_by else {})}
+    vials = {"unit": "vials", "level": 1, "reorder_at": 0.5, "used_by": {"measure": 1},
+             **({"device": held_by} if held_by else {})}
     stocks = ["vials"] if held_by is None else ["vials@spectrometer-1", "vials@spectrometer-2"]
     with Lab(tmp_path, **{"campaign.budget": 3, "consumables": {"vials": vials}}) as lab:
         lab.until(lambda st: all(st["consumables"][k]["depleted"] for k in stocks))
@@ -318,7 +319,7 @@ def test_a_short_consumable_waits_for_the_operators_refill(tmp_path, held_by):
         assert all(f"twin ctl refill {k}" in res.output for k in stocks)
         res = lab.ctl("status")  # the levels, and what waits for which
         rows = [line.split() for line in res.output.splitlines() if line.split()[:1] and line.split()[0] in stocks]
-        assert sorted(r[0] for r in rows) == stocks and all(r[1:4] == ["0", "vials", "0"] for r in rows), res.output
+        assert sorted(r[0] for r in rows) == stocks and all(r[1:4] == ["0", "vials", "0.5"] for r in rows), res.output
         assert all("short" in r for r in rows) and sum(any(x.startswith("e") for x in r[5:]) for r in rows) >= 1
         res = lab.ctl("refill", "vials", "--amount", "5", "--as", "alice")
         assert res.exit_code == 0 and "operator.refill by alice" in res.output, res.output
@@ -329,6 +330,9 @@ def test_a_short_consumable_waits_for_the_operators_refill(tmp_path, held_by):
     assert not any(c["short"] for c in summary["consumables"].values())
     kinds = [e["kind"] for e in read_events(lab.db)]
     assert kinds.count("consumable.depleted") == len(stocks) and kinds.count("consumable.refilled") == len(stocks)
+    said = " ".join(lab.log.split())  # and the person running the lab was told to reorder, with the command
+    assert all(f"consumable.low {k}: 0 vials left, below its reorder point (0.5): reorder it; when it is refilled, "
+               f"twin ctl refill {k} --lab t --connect {lab.endpoint}" in said for k in stocks), lab.log
 
 
 @pytest.mark.process

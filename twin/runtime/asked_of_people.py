@@ -1,7 +1,7 @@
 """What a lab on a live clock asks of the person running it, said on its log as it asks: a step given to people
-(``operator.step``) and a question on a failed step (``question.asked``), each with the ``twin ctl`` command that
-answers it and the time left before the campaign goes on without it. In virtual time the scenario's simulated
-operator answers, and nothing is said."""
+(``operator.step``), a question on a failed step (``question.asked``) and a stock to reorder (``consumable.low``),
+each with the ``twin ctl`` command that answers it and the time left before the campaign goes on without it (or
+the stock runs out). In virtual time the scenario's simulated operator answers, and nothing is said."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from twin.campaign.events import ALERT_LOGGER
 
 log = logging.getLogger(ALERT_LOGGER)
 
-ASKED = frozenset({"operator.step", "question.asked"})
+ASKED = frozenset({"operator.step", "question.asked", "consumable.low"})
 NO_CTL = "twin ctl reaches a campaign over Zenoh, and this lab's bus is memory"
 
 
@@ -35,9 +35,22 @@ def tell(note: Any, ctl: str | None, speed: float) -> None:
         log.warning("question.asked %s: %s of experiment %s failed on %s (%s): what now? Options %s. %s%s",
                     d.get("id"), d.get("step", "a step"), note.experiment, note.device, why, options, answer,
                     _within(d.get("timeout_s"), speed, "unanswered", f"{d.get('default')} applies"))
+    elif note.kind == "consumable.low":
+        refill = f"when it is refilled, twin ctl refill {d.get('item')} {ctl}" if ctl is not None else \
+            f"nobody can say it is refilled: {NO_CTL}"
+        when = _span(d.get("runs_out_in_s"), speed) if d.get("level", 0) > 0 else ""  # none left: its steps say so
+        log.warning("consumable.low %s: %g %s left, below its reorder point (%g)%s: reorder it; %s", d.get("item"),
+                    d.get("level", 0), d.get("unit", ""), d.get("reorder_at", 0),
+                    f"; at the rate so far it runs out in {when}" if when else "", refill)
 
 
 def _within(lab_s: Any, speed: float, unheard: str, then: str) -> str:
+    span = _span(lab_s, speed)
+    return f"; {unheard} within {span} {then}" if span else ""
+
+
+def _span(lab_s: Any, speed: float) -> str:
+    """``lab_s`` lab seconds, and the wall time they take at ``speed``; '' if unknown."""
     if not isinstance(lab_s, (int, float)) or speed <= 0:
         return ""
-    return f"; {unheard} within {lab_s:,.0f} lab-s ({lab_s / speed:,.0f} s of wall time) {then}"
+    return f"{lab_s:,.0f} lab-s ({lab_s / speed:,.0f} s of wall time)"

@@ -16,6 +16,7 @@ from twin.campaign.human import OPTION_NAMES as HUMAN_OPTIONS
 from twin.campaign.policy import deadline_s, unusable_params, unusable_route
 from twin.device.driver import declared_steps, feature
 from twin.runtime.assembly import load_driver, make_planner, make_scheduler, named_schedulers, untaken_option
+from twin.runtime.standby import standby_drivers
 from twin.scenario import Scenario, load
 from twin.scenario.model import expected_duration
 from twin.scenario.sharing import campaign_scenarios
@@ -318,8 +319,6 @@ def validate_file(path: str | Path, overrides: dict | None = None, served: bool 
     s = load(path, overrides, lab_only=True)
     if s.campaigns:
         return checked(s, path)
-    from twin.runtime.shared_run import standby_drivers
-
     problems = []
     for dtype in s.devices:  # each type's drivers alone, so that each problem names its field, and all are said
         others = [name for other in s.devices if other != dtype for name in s.instance_names(other)]

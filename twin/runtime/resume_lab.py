@@ -132,7 +132,8 @@ def _resume_live(where: Path, s: Scenario, prefixes: dict[str, list[tuple]], han
     there, and the steps it had in the lab are asked after."""
     from twin.core.clock import LabClock
     from twin.runtime.resume import _still_running
-    from twin.runtime.shared_run import LAB_INPUTS, _live, _parts, standby_drivers, shared_drivers
+    from twin.runtime.shared_run import LAB_INPUTS, _live, _parts, shared_drivers
+    from twin.runtime.standby import standby_drivers
 
     inputs = where / LAB_INPUTS
     if not inputs.exists():

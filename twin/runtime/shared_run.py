@@ -20,8 +20,8 @@ from twin.runtime.fast_lab import FastLab
 from twin.runtime.lab_claim import refuse_if_taken
 from twin.campaign.journal import Journal
 from twin.campaign.lab_replay import RebuiltLab
-from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_driver,
-                                   load_drivers, make_bus, make_clock, make_planner, make_scheduler)
+from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_drivers,
+                                   make_bus, make_clock, make_planner, make_scheduler)
 from twin.runtime.lab import (FALLBACK_LOGGER, JournalFactory, check_runtime, default_journals, finish, flush_live,
                               given_back, noted, open_journal, prepare, refuse_external, refuse_realtime,
                               stop_on_loop_signals, stop_on_signals)
@@ -30,10 +30,9 @@ from twin.runtime.checked_scheduler import CheckedScheduler, fallbacks
 from twin.runtime.labtime import LabTimeSource
 from twin.runtime.live_lab import LiveLab
 from twin.runtime.served_devices import ServedCheck
-from twin.campaign.human import DRIVER as HUMAN
+from twin.runtime.standby import standby_drivers
 from twin.core import plugins
-from twin.device.driver import feature
-from twin.scenario import Chemistry, Scenario
+from twin.scenario import Scenario
 from twin.scenario.sharing import campaign_scenarios
 from twin.view.lab_observer import SharedLabObserver
 
@@ -157,25 +156,6 @@ def serve_lab(s: Scenario, journals: str | Path | None = None, external_devices:
     with given_back(where, journals is None):
         return clock.run(_live(s, clock, scenarios, drivers, per_device, campaign_parts, where, wall0, handle_signals,
                                serving=external_devices, on_start=on_start, trust_modules=trust_modules))
-
-
-def standby_drivers(s: Scenario, skip: Collection[str]) -> list[tuple[str, str, Any]]:
-    """A lab that serves with no campaign yet: each device's driver for the lab file's chemistry, or else for the
-    first one it simulates (it answers health checks; each campaign submitted brings its own)."""
-    out = []
-    for dtype, spec in s.devices.items():
-        for name in s.instance_names(dtype):
-            if name in skip or spec.driver == HUMAN:
-                continue
-            try:
-                out.append((name, dtype, load_driver(s, dtype, name)))
-            except DriverError:
-                models = feature(plugins.load("devices", spec.driver), "chemistry_models")
-                if not models:
-                    raise
-                alt = s.model_copy(update={"chemistry": Chemistry(model=sorted(models)[0])})
-                out.append((name, dtype, load_driver(alt, dtype, name)))
-    return out
 
 
 def _lab_scheduler(s: Scenario) -> Any:
