@@ -22,7 +22,7 @@ from twin.campaign.journal_read import read_events
 from twin.core.errors import TwinError
 from twin.runtime.checks import check
 from twin.runtime.lab import run
-from twin.runtime.live import ctl_options
+from twin.runtime.asked_of_people import ctl_options
 from twin.scenario import parse
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -9,11 +9,37 @@ import logging
 from typing import Any
 
 from twin.campaign.events import ALERT_LOGGER
+from twin.core.clock import LabClock
+from twin.scenario import Scenario
 
 log = logging.getLogger(ALERT_LOGGER)
 
 ASKED = frozenset({"operator.step", "question.asked", "consumable.low"})
 NO_CTL = "twin ctl reaches a campaign over Zenoh, and this lab's bus is memory"
+
+
+def ctl_options(s: Scenario, campaign: str | None) -> str | None:
+    """The options of a ``twin ctl`` that reaches this lab (``campaign``: one of a lab's several), as far as the
+    scenario knows them; None on a memory bus, which nothing outside the process reaches."""
+    if s.bus.kind == "memory":
+        return None
+    where = [*s.bus.connect, *(e for e in s.bus.listen if not e.endswith(":0"))][:1]
+    return " ".join([f"--lab {s.lab}", *(["--campaign", campaign] if campaign else []),
+                     f"--connect {where[0]}" if where else "--connect ENDPOINT (a port the lab chose: give it --listen "
+                     "tcp/127.0.0.1:PORT to know it)",
+                     *(["--security", str(s.bus.security)] if s.bus.security else [])])
+
+
+class AskedOfPeople:
+    """A live campaign's: says what it asks of a person (``tell``) with the ``twin ctl`` that reaches it; in
+    virtual time nothing (the scenario's simulated operator answers)."""
+
+    def __init__(self, s: Scenario, clock: LabClock, campaign: str | None) -> None:
+        self.ctl, self.clock = ctl_options(s, campaign), clock
+
+    def __call__(self, note: Any) -> None:
+        if note.kind in ASKED and not self.clock.is_virtual:
+            tell(note, self.ctl, self.clock.speed)
 
 
 def tell(note: Any, ctl: str | None, speed: float) -> None:

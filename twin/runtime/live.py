@@ -31,9 +31,8 @@ from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.errors import BusError, TwinError
 from twin.core.messages import Kind, pack
-from twin.runtime import asked_of_people
 from twin.runtime.alert_log import AlertLog
-from twin.runtime.asked_of_people import ASKED
+from twin.runtime.asked_of_people import AskedOfPeople
 from twin.runtime.asking import ask_scheduler
 from twin.runtime.checked_planner import covered
 from twin.runtime.checked_scheduler import fallbacks
@@ -58,18 +57,6 @@ def lab_elapsed(core: CampaignCore) -> float:
     except RuntimeError:  # the fast runtime's, or no loop: the core's time is the lab's
         return core.elapsed_s
     return max(core.elapsed_s, loop.time() - core.t0) if isinstance(loop, LabEventLoop) else core.elapsed_s
-
-
-def ctl_options(s: Scenario, campaign: str | None) -> str | None:
-    """The options of a ``twin ctl`` that reaches this lab (``campaign``: one of a lab's several), as far as the
-    scenario knows them; None on a memory bus, which nothing outside the process reaches."""
-    if s.bus.kind == "memory":
-        return None
-    where = [*s.bus.connect, *(e for e in s.bus.listen if not e.endswith(":0"))][:1]
-    return " ".join([f"--lab {s.lab}", *(["--campaign", campaign] if campaign else []),
-                     f"--connect {where[0]}" if where else "--connect ENDPOINT (a port the lab chose: give it --listen "
-                     "tcp/127.0.0.1:PORT to know it)",
-                     *(["--security", str(s.bus.security)] if s.bus.security else [])])
 
 
 class LiveCampaign:
@@ -107,7 +94,7 @@ class LiveCampaign:
         # named by its attempt secret, which its resumes keep, through a one-way hash that gives none of it away
         self.decisions.run = hashlib.sha256(self.core.secret).hexdigest()[:16]
         self.desk = ControlDesk(self.core, clock, self._feed, journal.flush)
-        self._ctl = ctl_options(scenario, campaign_id if core is not None else None)
+        self.tell_people = AskedOfPeople(scenario, clock, campaign_id if core is not None else None)
         self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
         self._ids = itertools.count(1)
         self._handles: list[Any] = []
@@ -287,8 +274,7 @@ class LiveCampaign:
             note = human.said_again(self.core, att, self.clock.now(), "the campaign was resumed; the step still "
                                                                      "waits for twin ctl confirm")
             self._remark(note)
-            if not self.clock.is_virtual:
-                asked_of_people.tell(note, self._ctl, self.clock.speed)
+            self.tell_people(note)
             return
         wait = 5.0 * (1.0 if self.clock.is_virtual else self.clock.speed)
         try:
@@ -329,8 +315,7 @@ class LiveCampaign:
                 self._decided(a)
                 if a.kind.startswith("operator."):
                     self.desk.noted(a)
-                if a.kind in ASKED and not self.clock.is_virtual:
-                    asked_of_people.tell(a, self._ctl, self.clock.speed)
+                self.tell_people(a)
                 if a.kind in ALERTS:
                     self.alert_log(a)
                 elif a.kind in PRESENCE:
