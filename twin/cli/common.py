@@ -314,8 +314,7 @@ def say_ended_early(runs: list[tuple[str, str]]) -> None:
         early = [w for w in whys if w]
         if early:
             err.print(f"{label}: {len(early)} of {counted(len(whys), 'run', 'runs')} ended early — {early[0]}",
-                      highlight=False,
-                      markup=False)
+                      highlight=False, markup=False)
 
 
 def machine_output(as_json: bool, csv_path: Path | None, header: list[str], rows: list[list[str]],

@@ -95,14 +95,8 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         problem = _out_of_ctl_reach(s, types)
         if problem:
             log.warning("%s", problem)
-    for item, stock in s.consumables.items() if types is None else ():
-        if stock.reorder_at >= stock.level:
-            log.warning("consumables.%s.reorder_at: %g is not below its level, %g %s, so consumable.low says it is "
-                        "low at its first step and never after a refill; give the level at which to reorder, below "
-                        "the starting one", item,
-                        stock.reorder_at, stock.level, stock.unit)
     if types is None:
-        for problem in _idle_types(s, planner):
+        for problem in [*_idle_types(s, planner), *_reorder_points(s)]:
             log.warning("%s", problem)
     if not s.chemistry.targets and getattr(planner, "aims_at_targets", False):
         log.warning("chemistry.targets: none, and planner %r chooses each experiment by its chance of meeting a "
@@ -262,6 +256,12 @@ def _makers(s: Scenario, drivers: dict[str, Any]) -> list[str]:
         except TwinError:  # a driver that cannot be loaded here names no step
             continue
     return found
+
+
+def _reorder_points(s: Scenario) -> list[str]:
+    return [f"consumables.{item}.reorder_at: {c.reorder_at:g} is not below its level, {c.level:g} {c.unit}, so "
+            "consumable.low says it is low at its first step and never after a refill; give the level at which to "
+            "reorder, below the starting one" for item, c in s.consumables.items() if c.reorder_at >= c.level]
 
 
 def _out_of_ctl_reach(s: Scenario, types: set[str] | None) -> str:

@@ -115,6 +115,11 @@ def _devices(names: list[str]) -> str:
     return f"{'device' if len(names) == 1 else 'devices'} {', '.join(names)}"
 
 
+def _are_held(names: list[str], lab: str) -> str:
+    return (f"{_devices(names)} of lab {lab!r} {'is' if len(names) == 1 else 'are'} already on this bus, served by "
+            "another process")
+
+
 def _another(lab: str) -> str:
     """How to name this one another lab: `twin lab serve` takes no --set."""
     return f"--set lab={lab}-2, or lab: {lab}-2 in its file"
@@ -133,10 +138,8 @@ def _refuse_held(s: Scenario, found: set[str], orchestrator: bool, agent: bool) 
                        f"lasts one link lease ({s.bus.lease_ms} ms): try again then")
     taken = sorted(keys.device_of(k) for k in found if k.startswith(keys.alive(lab, "")))
     if taken and not orchestrator:  # twin device serve: the device is someone else's already
-        raise LabTaken(f"{_devices(taken)} of lab {lab!r} {'is' if len(taken) == 1 else 'are'} already on this bus, "
-                       "served by another process: stop that one first")
+        raise LabTaken(f"{_are_held(taken, lab)}: stop that one first")
     if taken:
-        raise LabTaken(f"{_devices(taken)} of lab {lab!r} {'is' if len(taken) == 1 else 'are'} already on this bus, "
-                       "served by another process: "
-                       "stop that one, or let this run use them (twin run --external NAME for each) instead of "
+        raise LabTaken(f"{_are_held(taken, lab)}: stop that one, or let this run use them (twin run --external NAME "
+                       "for each) instead of "
                        f"serving its own, or run this one as another lab ({_another(lab)})")

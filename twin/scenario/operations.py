@@ -82,13 +82,14 @@ def usage_problems(item: str, stock: Consumable, ranges: dict[str, tuple[float, 
     amount would never be taken), or amounts that make a step use less than nothing somewhere in the parameters'
     ranges. ``ranges``: each parameter's lowest low and highest high over the file's chemistries; None when the
     campaigns come later (`twin lab serve`), and nothing can be checked yet."""
-    problems = []
+    if ranges is None:
+        return []
+    problems, known = [], ", ".join(sorted(ranges)) or "it has none"
     for step, use in stock.used_by.items():
-        if not isinstance(use, Usage) or ranges is None:
+        if not isinstance(use, Usage):
             continue
         field = f"consumables.{item}.used_by.{step}"
         unknown = [p for p in use.per if p not in ranges]
-        known = ", ".join(sorted(ranges)) or "it has none"
         problems += [f"{field}.per.{p}: {p!r} is no parameter of the chemistry ({known}), so this amount would never "
                      f"be taken" for p in unknown]
         ends = {p: (ranges[p][0] if coef > 0 else ranges[p][1]) for p, coef in use.per.items() if p not in unknown}
