@@ -18,6 +18,8 @@ FEED_NM, PRODUCT_NM, BYPRODUCT_NM, BAND_NM = 450.0, 540.0, 640.0, 40.0
 HC_EV_NM = 1239.84  # photon energy (eV) × wavelength (nm)
 EDGE_WIDTH_NM = 4.0
 MEASURED = frozenset({"qd", "film", "reaction", "crude", "purified"})  # the kinds of sample the models make
+#: kinds the models make that are not measured, and what makes them measurable
+UNMEASURED = {"feed": "a catalyst's feed, which a reactor's react makes a reaction"}
 
 
 class Spectrometer:
@@ -38,8 +40,10 @@ class Spectrometer:
         if not sample:
             raise Refused("measure needs a sample: the workflow must make one first", infeasible=True)
         if sample.get("kind") not in MEASURED:
-            raise Refused(f"the spectrometer cannot measure a sample of kind {str(sample.get('kind'))[:40]!r} (it "
-                          f"measures {', '.join(sorted(MEASURED))}): check the workflow's order", infeasible=True)
+            kind = str(sample.get("kind"))
+            what = f"{UNMEASURED[kind]}; " if kind in UNMEASURED else ""
+            raise Refused(f"the spectrometer cannot measure a sample of kind {kind[:40]!r} ({what}it measures "
+                          f"{', '.join(sorted(MEASURED))}): check the workflow's order", infeasible=True)
         await ctx.clock.sleep(ctx.draw_duration(params))
         if sample.get("kind") in ("crude", "purified"):  # a route's reaction: LC-MS
             return StepResult(synthesis.lcms(sample, params, ctx.clock.now(), self.stability_s, self.noise, ctx.rng),

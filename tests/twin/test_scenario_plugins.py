@@ -225,7 +225,14 @@ def test_a_workflow_that_measures_before_any_step_makes_a_sample_is_refused_nami
     with pytest.raises(ScenarioError) as err:
         check(parse(shared, "lab.yaml"))
     assert ("campaigns.0 (dots): workflow.0: measure on spectrometer needs a sample, and no step before it makes one "
-            "(prepare on synthesiser, synthesise on synthesiser does)") in str(err.value)
+            "(prepare on synthesiser and synthesise on synthesiser do)") in str(err.value)
+    # a lab where nothing makes one (a coater that only keeps time): the installed drivers that do are named
+    coater = {**lab, "devices": {k: v for k, v in lab["devices"].items() if k != "synthesiser"}}
+    with pytest.raises(ScenarioError) as err:
+        check(parse(coater, "lab.yaml"))
+    assert ("workflow.2: measure on spectrometer needs a sample, and no step before it makes one, nor does any "
+            "device of the lab: put first a step on a device whose driver makes one (installed: ") in str(err.value)
+    assert "synthesiser), or a driver of yours that declares makes_sample (docs/drivers.md)" in str(err.value)
 
 
 def test_a_twin_that_makes_no_sample_for_a_driver_that_does_is_warned_of(caplog):
@@ -280,6 +287,13 @@ def test_what_the_loaded_plugins_tell_is_said_at_once_too(tmp_path):
     assert res.exit_code == 2 and "bad.yaml: 2 problems" in said, said
     assert "campaign.planner_options.n_inti: no installed planner takes an option 'n_inti'" in said, said
     assert "chemistry.targets.0.outputs.hue_deg: no device of the workflow produces 'hue_deg'" in said, said
+    # a target only one installed driver measures, in a lab of machines that measure nothing: it is named
+    machines = qd_lab(**{"devices": {"oven": {"driver": "machine", "steps": ["heat"], "duration": {"mean_s": 60}}},
+                         "workflow": [{"step": "heat", "device": "oven"}]})
+    res = twin_cli("validate", write(tmp_path, machines))
+    assert ("chemistry.targets.0.outputs.peak_nm: no device of the workflow produces 'peak_nm' (oven declares no "
+            "outputs): measure it with a step on a device whose driver does (installed: spectrometer), or drop the "
+            "target") in " ".join(res.output.split()), res.output
 
 
 class SerialPump:

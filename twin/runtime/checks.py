@@ -17,6 +17,7 @@ from twin.campaign.policy import deadline_s, unusable_params, unusable_route
 from twin.device.driver import declared_steps, feature
 from twin.runtime.assembly import load_driver, make_planner, make_scheduler, named_schedulers, untaken_option
 from twin.runtime.standby import standby_drivers
+from twin.runtime.trial import trial_warnings
 from twin.scenario import Scenario, load
 from twin.scenario.model import expected_duration
 from twin.scenario.sharing import campaign_scenarios
@@ -111,7 +112,7 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
     if problem:  # a twin that only keeps time still serves a scheduler's training or a what-if of device counts
         log.warning("%s: on a virtual clock no experiment meets that target, and campaigns run their whole budget",
                     problem)
-    problem = _sampleless(s, {**drivers, **twins}, elsewhere) if simulated else ""
+    problem = _sampleless(s, {**drivers, **twins}, elsewhere, twinned=True) if simulated else ""
     if problem:
         log.warning("with the twins (devices.*.twin) %s: on a virtual clock every experiment is abandoned there",
                     problem)
@@ -214,15 +215,38 @@ def _unproduced(s: Scenario, drivers: dict[str, Any], elsewhere: set[str], how: 
         for i, t in enumerate(s.chemistry.targets):
             for out in t.outputs:
                 if out not in produced:
+                    they = f"they produce {', '.join(sorted(produced))}" if produced else \
+                        f"{_listed(sorted(used))} declare{'s' if len(used) == 1 else ''} no outputs"
+                    able = _installed_that(lambda d: out in (feature(d, "outputs") or ()))
                     return (f"chemistry.targets.{i}.outputs.{out}: no device of the workflow{how} produces {out!r} "
-                            f"(they produce {sorted(produced)})")
+                            f"({they}): measure it with a step on a device whose driver does"
+                            f"{f' (installed: {_listed(able)})' if able else ''}, or drop the target")
     return ""
 
 
-def _sampleless(s: Scenario, drivers: dict[str, Any], elsewhere: set[str]) -> str:
+def _listed(names: list[str]) -> str:
+    return names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+
+
+def _installed_that(has: Callable[[Any], bool]) -> list[str]:
+    """The installed drivers whose class has it; for a refusal's advice only, since it imports each of them."""
+    names = []
+    for name in sorted(plugins.installed("devices")):
+        try:
+            driver = plugins.load("devices", name)
+        except Exception:  # a plugin that does not load here is named by the look-up that needs it
+            continue
+        with contextlib.suppress(TwinError):
+            if has(driver):
+                names.append(name)
+    return names
+
+
+def _sampleless(s: Scenario, drivers: dict[str, Any], elsewhere: set[str], twinned: bool = False) -> str:
     """A workflow step whose driver needs a sample (``needs_sample``) after only steps whose drivers say they make
     none (``makes_sample``; people make none): every experiment would be abandoned there. A step whose driver
-    does not say, or served elsewhere, may make one."""
+    does not say, or served elsewhere, may make one. ``twinned``: the drivers are the twins where there are any
+    (the installed drivers that make one are no advice there: the lab's own does)."""
     def steps(dtype: str, name: str) -> frozenset[str] | None:
         return declared_steps(drivers[dtype], name, f"devices.{dtype}.driver {s.devices[dtype].driver!r}")
 
@@ -230,8 +254,15 @@ def _sampleless(s: Scenario, drivers: dict[str, Any], elsewhere: set[str]) -> st
     for i, w in enumerate(s.workflow):
         if w.device in drivers and not have and w.step in (steps(w.device, "needs_sample") or ()):
             makers = _makers(s, drivers)
-            return (f"workflow.{i}: {w.step} on {w.device} needs a sample, and no step before it makes one"
-                    f"{' (' + ', '.join(makers) + ' does)' if makers else ''}: put a step that makes one first")
+            if makers or twinned:
+                doing = f" ({_listed(makers)} {'does' if len(makers) == 1 else 'do'})" if makers else ""
+                return (f"workflow.{i}: {w.step} on {w.device} needs a sample, and no step before it makes one"
+                        f"{doing}: put a step that makes one first")
+            able = _installed_that(lambda d: bool(declared_steps(d, "makes_sample", "")))
+            return (f"workflow.{i}: {w.step} on {w.device} needs a sample, and no step before it makes one, nor "
+                    f"does any device of the lab: put first a step on a device whose driver makes one"
+                    f"{f' (installed: {_listed(able)})' if able else ''}, or a driver of yours that declares "
+                    "makes_sample (docs/drivers.md)")
         if w.device in drivers:
             makes = steps(w.device, "makes_sample")
             have = have or makes is None or w.step in makes
@@ -315,7 +346,10 @@ def validate_file(path: str | Path, overrides: dict | None = None, served: bool 
     field, and against the installed plugins. ``served``: read as ``twin lab serve`` reads it, a lab whose
     campaigns may come later: without campaigns, its devices' drivers are made as they stand by."""
     if not served:
-        return checked(load(path, overrides), path)
+        s = checked(load(path, overrides), path)
+        for warning in trial_warnings(s, path):
+            log.warning(warning)
+        return s
     s = load(path, overrides, lab_only=True)
     if s.campaigns:
         return checked(s, path)

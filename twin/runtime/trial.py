@@ -1,0 +1,70 @@
+"""A few trial experiments on the twin before a file is trusted: a workflow that every experiment fails in (a
+sample of a kind the next device cannot take, a driver that raises on every step) passes each field's check, and
+would otherwise be found a whole campaign later — on a live lab, after its first experiment's last step."""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from twin.core.counts import counted
+from twin.scenario import Scenario
+
+TRIALS = 3
+log = logging.getLogger(__name__)
+#: planners that propose points of the chemistry's parameter box, for which the trial's random ones stand in
+BOX_PLANNERS = frozenset({"random", "lhs", "gp-bo", "mf-gp-bo", "rl", "fixed"})
+
+
+def trial_warnings(s: Scenario, path: str | Path) -> list[str]:
+    """What a few trial experiments of each campaign of ``s`` (read from ``path``) warn of: none where one got
+    through (see ``trial_warning``)."""
+    if not s.campaigns:
+        return [w for w in [trial_warning(s, path)] if w]
+    from twin.scenario.sharing import campaign_scenarios
+    each = campaign_scenarios(s, str(path))
+    return [w for i, (name, c) in enumerate(each.items()) if (w := trial_warning(c, path, f"campaigns.{i} ({name}): "))]
+
+
+def trial_warning(s: Scenario, path: str | Path, where: str = "") -> str:
+    """'' if a trial experiment of ``s`` got through, or none was run (a job shop, a planner of its own kind, a
+    driver that needs its instrument and has no twin); else what stopped all of them, as a warning about the file
+    at ``path``. ``where``: the campaign's place in a shared lab ("campaigns.0 (dots): ")."""
+    if s.jobshop is not None or s.campaign.planner.partition(":")[0] not in BOX_PLANNERS:
+        return ""
+    from twin.runtime.assembly import prepare
+    from twin.runtime.lab import run
+
+    faultless: dict[str, Any] = {f"devices.{dtype}.faults": {} for dtype in s.devices}
+    try:
+        trial = prepare(s, overrides={
+            "campaign.budget": TRIALS, "campaign.max_in_flight": TRIALS, "campaign.stop_on_target": False,
+            "campaign.planner": "random", "campaign.scheduler": "fifo", "clock.mode": "virtual", "bus.kind": "memory",
+            **faultless})
+        with tempfile.TemporaryDirectory(prefix="labtwin-trial-") as tmp, _quiet():
+            summary = run(trial, journal=Path(tmp) / "trial.db", handle_signals=False, options_checked=True,
+                          runtime="fast")
+    except Exception as exc:  # the fast twin cannot run it (a real instrument, I/O in a driver): the checks and
+        log.debug("no trial of %s: %s", s.name, exc)  # the run itself say what is wrong, not a trial
+        return ""
+    if not summary.proposed or summary.abandoned < summary.proposed:
+        return ""
+    example = next(iter(summary.abandoned_examples.values()), "")
+    return (f"{where}workflow: {counted(summary.proposed, 'trial experiment', 'trial experiments')} on the twin "
+            "(random parameters from the chemistry's ranges, faults off, virtual clock) "
+            f"{'was' if summary.proposed == 1 else 'were all'} abandoned ({example}), so every experiment of the "
+            f"campaign may be: `twin run {path} --clock virtual` shows where")
+
+
+@contextlib.contextmanager
+def _quiet() -> Iterator[None]:
+    """What the trial's run logs (a device refused, an experiment abandoned) is the trial's to sum up."""
+    logging.disable(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        logging.disable(logging.NOTSET)
