@@ -2,6 +2,7 @@
 answer (or the default at the timeout, or a simulated operator in virtual time) decides, and it is journalled."""
 
 import json
+import logging
 from pathlib import Path
 
 import pytest
@@ -201,3 +202,22 @@ def test_a_simulated_operator_asking_for_alternatives_gets_the_budget_done(tmp_p
     assert replaced and summary.abandoned == len(replaced)
     assert summary.done == 8 and summary.proposed == 8 + len(replaced)
     assert summary.done + summary.abandoned + summary.pending == summary.proposed
+
+
+def test_a_simulated_operator_slower_than_the_timeout_is_warned_of(tmp_path, caplog):
+    """simulate.after_s past timeout_s: the simulated operator never answered, the default applied to every
+    question, and nothing said so. A what-if of a slow operator may mean it: warned of, not refused."""
+    from twin.runtime.checks import check
+
+    for after_s, warned in ((900, False), (7200, True), (9000, True)):
+        rules = [{"device": "reactor", "options": ["retry", "abandon"], "default": "abandon", "timeout_s": 7200,
+                  "simulate": {"after_s": after_s, "answer": "retry"}}]
+        caplog.clear()
+        with caplog.at_level(logging.WARNING):
+            check(prepare(ROOT / "scenarios" / "flaky_lab.yaml", overrides={"orchestrator.recovery": rules}))
+        said = [r.getMessage() for r in caplog.records if "simulate.after_s" in r.getMessage()]
+        assert bool(said) == warned, (after_s, said)
+        if warned:
+            assert said == [f"orchestrator.recovery.0.simulate.after_s: {after_s} lab-s is not below its timeout_s, "
+                            "7200, so the simulated operator never answers and the default (abandon) applies to "
+                            "every question; give an after_s below 7200 for it to answer retry"]

@@ -97,7 +97,7 @@ def _check(s: Scenario, types: set[str] | None = None, external: Collection[str]
         if problem:
             log.warning("%s", problem)
     if types is None:
-        for problem in [*_idle_types(s, planner), *_reorder_points(s)]:
+        for problem in [*_idle_types(s, planner), *_reorder_points(s), *_unanswered(s)]:
             log.warning("%s", problem)
     if not s.chemistry.targets and getattr(planner, "aims_at_targets", False):
         log.warning("chemistry.targets: none, and planner %r chooses each experiment by its chance of meeting a "
@@ -293,6 +293,16 @@ def _reorder_points(s: Scenario) -> list[str]:
     return [f"consumables.{item}.reorder_at: {c.reorder_at:g} is not below its level, {c.level:g} {c.unit}, so "
             "consumable.low says it is low at its first step and never after a refill; give the level at which to "
             "reorder, below the starting one" for item, c in s.consumables.items() if c.reorder_at >= c.level]
+
+
+def _unanswered(s: Scenario) -> list[str]:
+    """A simulated operator slower than the question's timeout: the default answers every question instead (a
+    what-if of a slow operator may mean it, so it is said, not refused)."""
+    return [f"orchestrator.recovery.{i}.simulate.after_s: {r.simulate.after_s:g} lab-s is not below its timeout_s, "
+            f"{r.timeout_s:g}, so the simulated operator never answers and the default ({r.default}) applies to "
+            f"every question; give an after_s below {r.timeout_s:g} for it to answer {r.simulate.answer}"
+            for i, r in enumerate(s.orchestrator.recovery)
+            if r.simulate is not None and r.simulate.after_s >= r.timeout_s]
 
 
 def _out_of_ctl_reach(s: Scenario, types: set[str] | None) -> str:
