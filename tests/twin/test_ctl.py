@@ -208,8 +208,8 @@ async def test_hostile_requests_are_refused_by_field_and_never_reach_the_journal
 class Lab:
     """A live campaign in another process, driven by `twin ctl` in this one (in-process, through typer)."""
 
-    def __init__(self, tmp_path, **changes):
-        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+    def __init__(self, tmp_path, endpoint=None, **changes):
+        self.endpoint = endpoint or f"tcp/127.0.0.1:{free_port()}"
         self.db = tmp_path / "j.db"
         path = live_lab(tmp_path, self.endpoint, **changes)
         self.proc = subprocess.Popen(TWIN + ["run", str(path), "--journal", str(self.db), "--quiet", "--json"],
@@ -352,6 +352,29 @@ def test_a_human_step_waits_for_twin_ctl_confirm(tmp_path):
     said = " ".join(lab.log.split())
     assert ("operator.step e0s0: load_rack on operator waits for a person — load the precursor rack into bay 2. "
             f"Done: twin ctl confirm e0s0 --lab t --connect {lab.endpoint}; unconfirmed within ") in said, lab.log
+
+
+def test_a_lab_listening_on_a_port_it_chose_names_that_port_to_its_operator(tmp_path):
+    """Without --listen a lab listens on a free port (tcp/127.0.0.1:0), which Zenoh does not say: the line for its
+    operator said `--connect ENDPOINT (a port the lab chose …)`, and nothing could reach it. The lab chooses the
+    port itself now, and the line's command reaches it."""
+    import queue
+    import re
+    import threading
+    from tests.twin.test_human_steps import HUMAN
+
+    with Lab(tmp_path, endpoint="tcp/127.0.0.1:0", **{**HUMAN, "campaign.budget": 1}) as lab:
+        lines: queue.Queue = queue.Queue()
+        threading.Thread(target=lambda: [lines.put(b.decode()) for b in lab.proc.stderr], daemon=True).start()
+        deadline, said = time.monotonic() + 60, ""
+        while "operator.step" not in said:
+            said = lines.get(timeout=max(0.1, deadline - time.monotonic()))
+        m = re.search(r"Done: twin ctl confirm e0s0 --lab t --connect (tcp/127\.0\.0\.1:(\d+));", said)
+        assert m and m.group(2) != "0", said
+        res = twin_cli("ctl", "confirm", "e0s0", "--lab", "t", "--connect", m.group(1), "--as", "alice")
+        assert res.exit_code == 0 and "operator.confirm by alice" in res.output, res.output
+        assert lab.proc.wait(timeout=60) == 0
+        assert json.loads(lab.proc.stdout.read())["done"] == 1
 
 
 def test_the_answers_being_written_get_their_wall_seconds_before_a_fast_campaign_closes_its_bus():

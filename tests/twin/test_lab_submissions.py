@@ -50,6 +50,7 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
     try:
         line = lab.stderr.readline()
         assert "serving lab shared" in line, line + lab.stderr.read() if lab.poll() is not None else line
+        assert f"`twin submit CAMPAIGN.yaml --lab shared --connect tcp/127.0.0.1:{port}` adds one" in line, line
         assert ctl("submit", str(tmp_path / "dots.yaml"), "--as", "qd-group").exit_code == 0
         with socket.socket() as sock:
             sock.bind(("127.0.0.1", 0))

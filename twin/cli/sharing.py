@@ -136,11 +136,12 @@ def lab_serve(
             check(s, external or ())
 
         def started(live) -> None:
+            where = [*s.bus.connect, *live.bus.listening][:1] or ["..."]
+            secured = f" --security {s.bus.security}" if s.bus.security else ""
             err.print(f"serving lab {s.lab} ({s.clock.mode} clock"
                       f"{f', {s.clock.speed:g}x' if s.clock.mode == 'scaled' else ''}) with "
                       f"{counted(len(s.campaigns), 'campaign', 'campaigns')}; `twin submit CAMPAIGN.yaml --lab {s.lab} "
-                      "--connect ...` adds "
-                      "one, Ctrl-C stops", highlight=False)
+                      f"--connect {where[0]}{secured}` adds one, Ctrl-C stops", highlight=False)
         summary = serve_lab(s, journal, set(external or ()), on_start=started, trust_modules=trust_modules)
     except TwinError as exc:
         _fail(exc)

@@ -18,12 +18,14 @@ ASKED = frozenset({"operator.step", "question.asked", "consumable.low"})
 NO_CTL = "twin ctl reaches a campaign over Zenoh, and this lab's bus is memory"
 
 
-def ctl_options(s: Scenario, campaign: str | None) -> str | None:
+def ctl_options(s: Scenario, campaign: str | None, listening: list[str] | None = None) -> str | None:
     """The options of a ``twin ctl`` that reaches this lab (``campaign``: one of a lab's several), as far as the
-    scenario knows them; None on a memory bus, which nothing outside the process reaches."""
+    scenario knows them, or its bus (``listening``: where it listens, the ports it chose among them); None on a
+    memory bus, which nothing outside the process reaches."""
     if s.bus.kind == "memory":
         return None
-    where = [*s.bus.connect, *(e for e in s.bus.listen if not e.endswith(":0"))][:1]
+    where = [*s.bus.connect, *(e for e in (s.bus.listen if listening is None else listening)
+                               if not e.endswith(":0"))][:1]
     return " ".join([f"--lab {s.lab}", *(["--campaign", campaign] if campaign else []),
                      f"--connect {where[0]}" if where else "--connect ENDPOINT (a port the lab chose: give it --listen "
                      "tcp/127.0.0.1:PORT to know it)",
@@ -34,8 +36,8 @@ class AskedOfPeople:
     """A live campaign's: says what it asks of a person (``tell``) with the ``twin ctl`` that reaches it; in
     virtual time nothing (the scenario's simulated operator answers)."""
 
-    def __init__(self, s: Scenario, clock: LabClock, campaign: str | None) -> None:
-        self.ctl, self.clock = ctl_options(s, campaign), clock
+    def __init__(self, s: Scenario, clock: LabClock, campaign: str | None, listening: list[str] | None = None) -> None:
+        self.ctl, self.clock = ctl_options(s, campaign, listening), clock
 
     def __call__(self, note: Any) -> None:
         if note.kind in ASKED and not self.clock.is_virtual:

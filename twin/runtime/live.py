@@ -94,7 +94,7 @@ class LiveCampaign:
         # named by its attempt secret, which its resumes keep, through a one-way hash that gives none of it away
         self.decisions.run = hashlib.sha256(self.core.secret).hexdigest()[:16]
         self.desk = ControlDesk(self.core, clock, self._feed, journal.flush)
-        self.tell_people = AskedOfPeople(scenario, clock, campaign_id if core is not None else None)
+        self.tell_people = AskedOfPeople(scenario, clock, campaign_id if core is not None else None, bus.listening)
         self._timers: dict[TimerKey, asyncio.TimerHandle] = {}
         self._ids = itertools.count(1)
         self._handles: list[Any] = []

@@ -31,6 +31,11 @@ class NoReplyError(BusError):
 class Bus(Protocol):
     """Publish/subscribe with wildcards, request/reply, and presence tokens."""
 
+    @property
+    def listening(self) -> list[str]:
+        """The endpoints another process reaches this bus on, each with its port (none for one in-process)."""
+        ...
+
     async def start(self) -> None: ...
 
     async def close(self) -> None: ...

@@ -45,6 +45,10 @@ class MemoryBus:
     def __init__(self, hub: MemoryHub | None = None) -> None:
         self._hub = hub or MemoryHub()
 
+    @property
+    def listening(self) -> list[str]:
+        return []
+
     async def start(self) -> None:
         self._hub.loop = asyncio.get_running_loop()
 

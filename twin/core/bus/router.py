@@ -91,11 +91,11 @@ def run_router(listen: list[str], lease_ms: int = 1000, extra: dict[str, object]
     except Exception as exc:
         if taken(exc):
             raise BusError(f"the router could not listen: {taken(exc)}") from None
-        raise BusError(f"the router could not listen on {listen}: {exc}") from exc
+        raise BusError(f"the router could not listen on {options.listen}: {exc}") from exc
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        ready(f"router {session.zid()} listening on {', '.join(listen)}")
+        ready(f"router {session.zid()} listening on {', '.join(options.listen)}")
         if admitted is not None:
             log.info("%s", admitted.said())
         ticks = 0

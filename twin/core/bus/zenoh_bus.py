@@ -132,6 +132,10 @@ class ZenohBus:
         self._pending_requests: set[asyncio.Future] = set()
         self._remove_idle_hook: Callable[[], object] = lambda: None
 
+    @property
+    def listening(self) -> list[str]:
+        return [] if self.options.is_client else list(self.options.listen)
+
     # -- life cycle -------------------------------------------------------
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()

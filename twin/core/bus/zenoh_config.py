@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import zenoh
 
-from twin.core.bus.endpoints import HOW, not_endpoints
+from twin.core.bus.endpoints import HOW, not_endpoints, with_ports_chosen
 from twin.core.errors import BusError
 
 CONNECT_TIMEOUT_MS = 5_000  # a client waits this long for its router or lab; a typo shows in seconds
@@ -40,6 +40,7 @@ class ZenohOptions:
             bad = not_endpoints(endpoints)
             if bad:
                 raise BusError(f"{flag}: {', '.join(map(repr, bad))} is not a Zenoh endpoint: {HOW}")
+        self.listen = with_ports_chosen(self.listen)
 
     def config(self, connect_timeout_ms: int | None = None) -> zenoh.Config:
         cfg = zenoh.Config()
