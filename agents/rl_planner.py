@@ -36,8 +36,8 @@ class RlPlanner:
                  n_init: int = 3, horizon: int = 30, **_: Any) -> None:
         if not policy:
             raise PluginError("the rl planner needs a trained policy: train one with "
-                              "`twin train SCENARIO --agent planner --out P.zip`, then use --planner rl:P.zip "
-                              "(or campaign.planner_options.policy)")
+                              "`twin train SCENARIO --agent planner --out P.zip`, then name it rl:P.zip (--planner, "
+                              "--planners, campaign.planner) or give campaign.planner_options.policy")
         torch.set_num_threads(1)
         self.box = UnitBox(parameters)
         self.targets = list(targets)

@@ -70,8 +70,9 @@ class RlScheduler:
         if not policy or scenario is None:
             general = Path(__file__).parent / "policies" / "flaky_scheduler.zip"
             raise PluginError("the rl scheduler needs a trained policy: train one for this lab with `twin train "
-                              "SCENARIO --out P.zip` (a few minutes) and use --scheduler rl:P.zip, or try the shipped "
-                              f"one trained on random labs of 2-5 device types: --scheduler rl:{general}")
+                              "SCENARIO --out P.zip` (a few minutes) and name it rl:P.zip (--scheduler, --schedulers, "
+                              "campaign.scheduler), or try the shipped one trained on random labs of 2-5 device types: "
+                              f"rl:{general}")
         torch.set_num_threads(1)
         path = Path(policy)
         meta = read_meta(path) if path.exists() else {}

@@ -336,3 +336,12 @@ def test_two_devices_that_claim_one_topic_or_port_are_refused_naming_both():
     with pytest.raises(ScenarioError) as err:
         check(parse(lab, "lab.yaml"))
     assert "devices.mixer: synthesiser and mixer both hold serial port /dev/ttyUSB0, which only" in str(err.value)
+
+
+def test_a_misspelt_class_of_a_module_is_named_with_the_class_meant(tmp_path):
+    """`module 'devices.synthesiser' has no attribute 'Synth'` said nothing of what the module has."""
+    for given, said in (("devices.synthesiser:Synth", " (did you mean devices.synthesiser:Synthesiser?)"),
+                        ("tests.twin.test_scenario_plugins:Zzz", "; its classes: SerialPump, Weighted")):
+        res = twin_cli("validate", write(tmp_path, qd_lab(**{"devices.synthesiser.driver": given})))
+        assert res.exit_code == 2, res.output
+        assert f"has no attribute {given.partition(':')[2]!r} (from {given!r}){said}" in " ".join(res.output.split())
