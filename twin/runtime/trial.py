@@ -12,9 +12,11 @@ from pathlib import Path
 from typing import Any
 
 from twin.core.counts import counted
+from twin.core.held import log as held_log
 from twin.scenario import Scenario
 
 TRIALS = 3
+HELD_LOGGER = held_log.name
 log = logging.getLogger(__name__)
 #: planners that propose points of the chemistry's parameter box, for which the trial's random ones stand in
 BOX_PLANNERS = frozenset({"random", "lhs", "gp-bo", "mf-gp-bo", "rl", "fixed"})
@@ -62,9 +64,16 @@ def trial_warning(s: Scenario, path: str | Path, where: str = "") -> str:
 
 @contextlib.contextmanager
 def _quiet() -> Iterator[None]:
-    """What the trial's run logs (a device refused, an experiment abandoned) is the trial's to sum up."""
-    logging.disable(logging.CRITICAL)
+    """What the trial's run logs (a device refused, an experiment abandoned) is the trial's to sum up; only a driver
+    or plugin that holds the lab (held.py: a call that does not return) is said as it happens."""
+    def passes(record: logging.LogRecord) -> bool:
+        return record.name == HELD_LOGGER
+
+    handlers = logging.getLogger().handlers
+    for handler in handlers:
+        handler.addFilter(passes)
     try:
         yield
     finally:
-        logging.disable(logging.NOTSET)
+        for handler in handlers:
+            handler.removeFilter(passes)
