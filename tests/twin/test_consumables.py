@@ -371,7 +371,7 @@ def test_a_stock_that_runs_out_is_said_on_the_log_with_the_refill_to_make(tmp_pa
         run(lab, journal=tmp_path / "j.db")
     said = [r.getMessage() for r in caplog.records if r.name == "twin.alerts"]
     assert len(said) == len(read_events(tmp_path / "j.db", "consumable.depleted")) > 0
-    assert said[0].startswith("vials is out (0 vials left, 1 needed by e") and "`twin ctl refill vials`" in said[0]
+    assert said[0].startswith("vials is out (0 vials left, 1 vial needed by e") and "`twin ctl refill vials`" in said[0]
     assert "another instance" not in said[0]  # the lab's one stock: no instance has its own
 
 
@@ -420,3 +420,14 @@ def test_a_stock_crossing_its_reorder_point_on_a_live_clock_says_when_it_runs_ou
     assert caplog.messages == ["consumable.low vials: 3 vials left, below its reorder point (4); at the rate so far "
                                "it runs out in 4,320 lab-s (216 s of wall time): reorder it; nobody can say it is "
                                "refilled: twin ctl reaches a campaign over Zenoh, and this lab's bus is memory"]
+
+
+def test_a_quantity_of_one_takes_its_units_singular():
+    """"1 tiles left" and "1 vials needed": a unit written as a plural now takes its singular for exactly one."""
+    from twin.core.counts import quantity
+
+    said = [quantity(v, u) for v, u in ((1, "vials"), (2, "vials"), (0, "vials"), (1.0, "tiles"), (1, "boxes"),
+                                        (1, "glasses"), (1, "mL"), (1, "pcs"), (1, "kits"), (1, "s"), (1, ""),
+                                        (0.5, "L"), (1, "Vials"))]
+    assert said == ["1 vial", "2 vials", "0 vials", "1 tile", "1 box", "1 glass", "1 mL", "1 pc", "1 kit", "1 s", "1",
+                    "0.5 L", "1 Vials"]

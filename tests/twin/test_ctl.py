@@ -366,11 +366,16 @@ def test_a_lab_listening_on_a_port_it_chose_names_that_port_to_its_operator(tmp_
     with Lab(tmp_path, endpoint="tcp/127.0.0.1:0", **{**HUMAN, "campaign.budget": 1}) as lab:
         lines: queue.Queue = queue.Queue()
         threading.Thread(target=lambda: [lines.put(b.decode()) for b in lab.proc.stderr], daemon=True).start()
-        deadline, said = time.monotonic() + 60, ""
+        deadline, said, before = time.monotonic() + 60, "", []
         while "operator.step" not in said:
             said = lines.get(timeout=max(0.1, deadline - time.monotonic()))
+            before.append(said)
         m = re.search(r"Done: twin ctl confirm e0s0 --lab t --connect (tcp/127\.0\.0\.1:(\d+));", said)
         assert m and m.group(2) != "0", said
+        # and said once at the start, for a person to look at the lab
+        assert [line for line in before if "is on the bus" in line] == [
+            f"WARNING twin.alerts: lab t is on the bus: twin ctl status --lab t --connect {m.group(1)}, twin watch "
+            f"--lab t --connect {m.group(1)}\n"], before
         res = twin_cli("ctl", "confirm", "e0s0", "--lab", "t", "--connect", m.group(1), "--as", "alice")
         assert res.exit_code == 0 and "operator.confirm by alice" in res.output, res.output
         assert lab.proc.wait(timeout=60) == 0

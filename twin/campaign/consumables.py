@@ -18,6 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from twin.core.counts import quantity
 from twin.campaign.events import Status, TimerKey, TimerKind
 from twin.campaign.ledger import Attempt, Task
 
@@ -219,7 +220,7 @@ def starve(core: CampaignCore, task: Task, short: list[str]) -> None:
         core.counts.infeasible += 1
         core.experiments[task.experiment.id].infeasible = True
         core._finish(task.experiment, Status.ABANDONED, "infeasible: " + "; ".join(
-            f"step {task.step.step!r} needs {needs[n]:g} {items[core.stocks.of[n][0]].unit} of {n}, more than "
+            f"step {task.step.step!r} needs {quantity(needs[n], items[core.stocks.of[n][0]].unit)} of {n}, more than "
             f"{'a ' + core.stocks.holder_type[n] if n in core.stocks.holder_type else 'the lab'} holds "
             f"(consumables.{n}.level: {items[core.stocks.of[n][0]].full:g})" for n in beyond))
         return

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Any
 
+from twin.core.counts import quantity
 from twin.campaign.decisions import Assignment, LabView, Outcome, Proposal
 from twin.core.messages import Kind
 
@@ -249,7 +250,8 @@ def alert_text(n: Note) -> str:
         d = n.detail
         others = "@" in str(d.get("item")) and d.get("stocks", 2) > 1  # an instance's own stock, and others have one
         elsewhere = "go to another instance that has some, or " if others else ""
-        return (f"{d.get('item')} is out ({d.get('level', 0):g} {d.get('unit', '')} left, {d.get('needed', 0):g} needed "
+        return (f"{d.get('item')} is out ({quantity(d.get('level', 0), str(d.get('unit', '')))} left, "
+                f"{quantity(d.get('needed', 0), str(d.get('unit', '')))} needed "
                 f"by {n.task}): its steps {elsewhere}wait for `twin ctl refill {d.get('item')}` (in virtual time, its "
                 "simulate_refill)")
     where = f" {n.device}" if n.device else f" (experiment {n.experiment})" if n.experiment is not None else ""

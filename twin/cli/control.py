@@ -11,7 +11,7 @@ import typer
 from rich.markup import escape
 
 from twin.cli.common import _fail, app, check_lab_name, command_group, console, err, narrow_table, print_table
-from twin.core.counts import counted
+from twin.core.counts import counted, quantity
 from twin.core.errors import TwinError
 
 ctl_app = command_group("Operate a running campaign: status, pause, resume, abort, retry, stop; answer its "
@@ -127,7 +127,7 @@ def _stock_table(stocks: dict[str, dict]) -> Any:
         out = c.get("runs_out_in_s")
         when = "short" if c["depleted"] else "empty" if c["level"] <= 0 else \
             f"{out / 3600:.1f} lab-h" if out is not None else "-"
-        table.add_row(name, f"{c['level']:g} {c['unit']}", f"{c['reorder_at']:g}", when,
+        table.add_row(name, quantity(c['level'], c['unit']), f"{c['reorder_at']:g}", when,
                       ", ".join(c["waiting"]) or "")
     return table
 
@@ -201,7 +201,7 @@ def ctl_pending(lab: Lab, connect: Connect, security: Security = None, campaign:
     for name, c in short.items():
         who = f"{', '.join(c['waiting'])} wait" if len(c["waiting"]) > 1 else f"{c['waiting'][0]} waits" \
             if c["waiting"] else "nothing waits"
-        console.print(f"{name} is short ({c['level']:g} {c['unit']} left): {who} for it (twin ctl refill {name} "
+        console.print(f"{name} is short ({quantity(c['level'], c['unit'])} left): {who} for it (twin ctl refill {name} "
                       "[--amount X])", highlight=False, markup=False)
     for q in pending:
         console.print(f"{q['id']}: experiment {q['experiment']}, {q['why']}\n"

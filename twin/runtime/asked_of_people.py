@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+from twin.core.counts import quantity
 from twin.campaign.events import ALERT_LOGGER
 from twin.core.clock import LabClock
 from twin.scenario import Scenario
@@ -30,6 +31,14 @@ def ctl_options(s: Scenario, campaign: str | None, listening: list[str] | None =
                      f"--connect {where[0]}" if where else "--connect ENDPOINT (a port the lab chose: give it --listen "
                      "tcp/127.0.0.1:PORT to know it)",
                      *(["--security", str(s.bus.security)] if s.bus.security else [])])
+
+
+def say_where(s: Scenario, listening: list[str], clock: LabClock) -> None:
+    """A live lab on Zenoh says once where `twin ctl` and `twin watch` reach it (the port it chose, without
+    --listen)."""
+    options = None if clock.is_virtual else ctl_options(s, None, listening)
+    if options is not None and "ENDPOINT" not in options:
+        log.warning("lab %s is on the bus: twin ctl status %s, twin watch %s", s.lab, options, options)
 
 
 class AskedOfPeople:
@@ -67,8 +76,8 @@ def tell(note: Any, ctl: str | None, speed: float) -> None:
         refill = f"when it is refilled, twin ctl refill {d.get('item')} {ctl}" if ctl is not None else \
             f"nobody can say it is refilled: {NO_CTL}"
         when = _span(d.get("runs_out_in_s"), speed) if d.get("level", 0) > 0 else ""  # none left: its steps say so
-        log.warning("consumable.low %s: %g %s left, below its reorder point (%g)%s: reorder it; %s", d.get("item"),
-                    d.get("level", 0), d.get("unit", ""), d.get("reorder_at", 0),
+        log.warning("consumable.low %s: %s left, below its reorder point (%g)%s: reorder it; %s", d.get("item"),
+                    quantity(d.get("level", 0), str(d.get("unit", ""))), d.get("reorder_at", 0),
                     f"; at the rate so far it runs out in {when}" if when else "", refill)
 
 

@@ -8,7 +8,7 @@ from collections.abc import Callable, Collection, Iterator
 from pathlib import Path
 from typing import Any
 
-from twin.core.counts import counted
+from twin.core.counts import counted, quantity
 from twin.core import plugins
 from twin.core.errors import ScenarioError, TwinError
 from twin.campaign.human import DRIVER as HUMAN
@@ -290,7 +290,7 @@ def _makers(s: Scenario, drivers: dict[str, Any]) -> list[str]:
 
 
 def _reorder_points(s: Scenario) -> list[str]:
-    return [f"consumables.{item}.reorder_at: {c.reorder_at:g} is not below its level, {c.level:g} {c.unit}, so "
+    return [f"consumables.{item}.reorder_at: {c.reorder_at:g} is not below its level, {quantity(c.level, c.unit)}, so "
             "consumable.low says it is low at its first step and never after a refill; give the level at which to "
             "reorder, below the starting one" for item, c in s.consumables.items() if c.reorder_at >= c.level]
 

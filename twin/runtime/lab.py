@@ -26,6 +26,7 @@ from twin.core.errors import ClockError, PluginError, TwinError
 from twin.core import held
 from twin.device.driver import feature
 from twin.runtime import FastCampaign, LiveCampaign
+from twin.runtime.asked_of_people import say_where
 from twin.runtime.assembly import (REMOTE, agent_on_bus, build_actors, fallback_for, live_scheduler, load_drivers,
                                    make_bus, make_clock, make_planner, make_scheduler, named_schedulers,
                                    prepare, untaken_option)
@@ -360,6 +361,7 @@ async def run_async(s: Scenario, clock: LabClock, journal_path: str | Path,
         await bus.start()
         stack.push_async_callback(bus.close)
         stack.callback((await refuse_if_taken(bus, s, [name for name, _, _ in drivers])).close)
+        say_where(s, bus.listening, clock)
         if s.bus.kind != "memory":  # before anything is dispatched: a joined device stamps in the lab's time
             source = LabTimeSource(bus, s.lab, clock)
             source.start()

@@ -15,6 +15,7 @@ from twin.campaign.sharing import SharedLab
 from twin.campaign.summary import LabSummary, Summary
 from twin.core.clock import LabClock
 from twin.core.errors import ClockError, DriverError, PluginError, TwinError
+from twin.runtime.asked_of_people import say_where
 from twin.runtime.fast_device import FastRuntimeRefused
 from twin.runtime.fast_lab import FastLab
 from twin.runtime.lab_claim import refuse_if_taken
@@ -278,6 +279,8 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
         await bus.start()
         stack.push_async_callback(bus.close)
         stack.callback((await refuse_if_taken(bus, s, [name for name, _, _ in drivers])).close)
+        if serving is None:  # a served lab says it with how to submit a campaign
+            say_where(s, bus.listening, clock)
         if callable(parts):
             parts = parts()
         inputs = Journal(where / LAB_INPUTS, append=rebuilt is not None)

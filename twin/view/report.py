@@ -10,7 +10,7 @@ from rich.table import Table
 from rich.text import Text
 
 from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text, losses_text, quarantines_text
-from twin.core.counts import counted
+from twin.core.counts import counted, quantity
 from twin.core.printable import printable
 
 
@@ -77,7 +77,7 @@ def render_summary(s: Summary, console: Console, resume_with: Any = None) -> Non
     for name, c in s.consumables.items():
         short = " [red](short: work waits for a refill)[/]" if c.get("short") else ""
         out = f", out {lab_span(c['out_h'] * 3600)}" if c.get("out_h") else ""
-        t.add_row(f"  {escape(name)}", f"{c['left']:g} {escape(c['unit'])} left, {c['used']:g} used{out}{short}")
+        t.add_row(f"  {escape(name)}", f"{escape(quantity(c['left'], c['unit']))} left, {c['used']:g} used{out}{short}")
     for name, b in s.best.items():
         shown = ", ".join(f"{escape(k)}={_measured(v)}" for k, v in b["outputs"].items())
         met = s.targets_met_h.get(name)
