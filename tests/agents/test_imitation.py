@@ -292,7 +292,7 @@ def test_rl_without_a_policy_says_how_to_train_one_and_names_a_shipped_one_that_
     lab = prepare(ROOT / "scenarios" / "quantum_dots.yaml", overrides={"campaign.budget": 4})
     with pytest.raises(PluginError, match="twin train SCENARIO --out P.zip") as refused:
         RlScheduler(lab, None)
-    named = Path(str(refused.value).rsplit("--scheduler rl:", 1)[1])
+    named = Path(str(refused.value).rsplit("2-5 device types: rl:", 1)[1])
     agent = RlScheduler(lab, str(named))
     assert agent.misfit == ""
     assert campaign(lab, 0, agent.decide).done == 4
