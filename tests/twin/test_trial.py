@@ -95,3 +95,31 @@ def test_a_shared_labs_campaign_is_tried_on_its_own_and_named(tmp_path):
     assert len(warnings) == 1 and warnings[0].startswith("campaigns.1 (catalyst): workflow: 3 trial experiments"), \
         warnings
     assert trial_warnings(load(ROOT / "scenarios" / "shared_lab.yaml"), path) == []
+
+
+class Midpoints:
+    """A third party's planner whose experiments run the workflow as written, and which says so."""
+
+    plans_routes = False
+
+    def __init__(self, parameters):
+        self.box = parameters
+
+    def propose(self, n, history, pending):
+        from twin import Proposal
+
+        return [Proposal({k: (p.low + p.high) / 2 for k, p in self.box.items()}) for _ in range(n)]
+
+
+class Unsaid(Midpoints):
+    """The same planner, not saying whether it plans routes of its own: the trial cannot stand in for it."""
+
+    plans_routes = None
+
+
+def test_a_planner_of_its_own_is_tried_where_it_says_it_runs_the_workflow_as_written(tmp_path):
+    text = (ROOT / "scenarios" / "flaky_lab.yaml").read_text().replace(REACT, "")
+    for planner, tried in (("Midpoints", True), ("Unsaid", False)):
+        path = tmp_path / f"{planner}.yaml"
+        path.write_text(text.replace("planner: random", f"planner: tests.twin.test_trial:{planner}"))
+        assert bool(trial_warnings(load(path), path)) == tried, planner

@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from twin.core import plugins
 from twin.core.counts import counted
 from twin.core.held import log as held_log
 from twin.scenario import Scenario
@@ -18,7 +19,9 @@ from twin.scenario import Scenario
 TRIALS = 3
 HELD_LOGGER = held_log.name
 log = logging.getLogger(__name__)
-#: planners that propose points of the chemistry's parameter box, for which the trial's random ones stand in
+#: the shipped planners whose experiments run the workflow as written, with points of the chemistry's parameter box
+#: (mf-gp-bo's are those it does not send to its DFT route), for which the trial's random ones stand in; any other
+#: that says so (``plans_routes = False``) is loaded to be asked
 BOX_PLANNERS = frozenset({"random", "lhs", "gp-bo", "mf-gp-bo", "rl", "fixed"})
 
 
@@ -36,7 +39,7 @@ def trial_warning(s: Scenario, path: str | Path, where: str = "") -> str:
     """'' if a trial experiment of ``s`` got through, or none was run (a job shop, a planner of its own kind, a
     driver that needs its instrument and has no twin); else what stopped all of them, as a warning about the file
     at ``path``. ``where``: the campaign's place in a shared lab ("campaigns.0 (dots): ")."""
-    if s.jobshop is not None or s.campaign.planner.partition(":")[0] not in BOX_PLANNERS:
+    if s.jobshop is not None or not _plans_the_box(s.campaign.planner):
         return ""
     from twin.runtime.assembly import prepare
     from twin.runtime.lab import run
@@ -60,6 +63,16 @@ def trial_warning(s: Scenario, path: str | Path, where: str = "") -> str:
             "(random parameters from the chemistry's ranges, faults off, virtual clock) "
             f"{'was' if summary.proposed == 1 else 'were all'} abandoned ({example}), so every experiment of the "
             f"campaign may be: `twin run {path} --clock virtual` shows where")
+
+
+def _plans_the_box(planner: str) -> bool:
+    name, _ = plugins.with_policy("planners", planner)
+    if name in BOX_PLANNERS:
+        return True
+    try:
+        return getattr(plugins.load("planners", name), "plans_routes", None) is False
+    except Exception:  # the checks name a planner that does not load
+        return False
 
 
 @contextlib.contextmanager
