@@ -173,10 +173,10 @@ def _import_string(spec: str, error: type[Exception]) -> Any:
         try:
             obj = getattr(obj, part)
         except AttributeError:
-            classes = [name for name, value in vars(obj).items() if inspect.isclass(value)
-                       and getattr(value, "__module__", None) == getattr(obj, "__name__", module_name)]
+            classes = [name for name, value in vars(module).items() if inspect.isclass(value)
+                       and value.__module__ == module.__name__] if part == attr else []
             near = difflib.get_close_matches(part, classes, n=1)
-            hint = f" (did you mean {module_name}:{near[0]}?)" if near and part == attr else \
-                f"; its classes: {', '.join(sorted(classes)[:10])}" if classes and part == attr else ""
+            hint = f" (did you mean {module_name}:{near[0]}?)" if near else \
+                f"; its classes: {', '.join(sorted(classes)[:10])}" if classes else ""
             raise error(f"module {module_name!r} has no attribute {attr!r} (from {spec!r}){hint}") from None
     return obj
