@@ -403,3 +403,23 @@ def test_a_lab_file_for_twin_lab_serve_is_checked_with_serve(tmp_path):
     assert "devices.synthesiser.driver: unknown driver 'synthesizer'" in said
     shared = twin_cli("validate", "--serve", ROOT / "scenarios" / "shared_lab.yaml")  # campaigns: each checked
     assert shared.exit_code == 0, shared.output
+
+
+def test_validate_json_gives_each_files_problems_and_warnings_and_strict_fails_on_warnings(tmp_path):
+    """A CI that keeps scenario files clean read ✓/✗ lines and had no way to fail on a warning."""
+    (tmp_path / "clean.yaml").write_text(yaml.safe_dump(qd_lab()))
+    (tmp_path / "warned.yaml").write_text(yaml.safe_dump(qd_lab(**{"devices.oven": {
+        "driver": "machine", "steps": ["heat"], "duration": {"mean_s": 60}}})))  # no workflow step runs on it
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(qd_lab(**{"campaign.budget": -1})))
+    files = [tmp_path / n for n in ("clean.yaml", "warned.yaml", "bad.yaml")]
+    res = twin_cli("validate", *files, "--json")
+    out = json.loads(res.stdout)
+    assert res.exit_code == 2 and out["ok"] is False
+    assert [(c["ok"], len(c["problems"]), len(c["warnings"])) for c in out["files"]] == [(True, 0, 0), (True, 0, 1),
+                                                                                         (False, 1, 0)]
+    assert out["files"][2]["problems"][0].startswith("campaign.budget: ")
+    assert "devices.oven: no workflow step runs on it" in out["files"][1]["warnings"][0]
+    assert twin_cli("validate", *files[:2]).exit_code == 0
+    strict = twin_cli("validate", *files[:2], "--strict")
+    assert strict.exit_code == 2 and "warned.yaml (1 warning): --strict fails it" in strict.stdout, strict.stdout
+    assert json.loads(twin_cli("validate", files[0], "--json", "--strict").stdout)["ok"] is True

@@ -21,7 +21,7 @@ from twin.core.printable import printable
 from twin.core import plugins
 from twin.core.whole_files import written_whole
 from twin.core.counts import counted
-from twin.core.errors import TwinError
+from twin.core.errors import ScenarioError, TwinError
 
 if TYPE_CHECKING:  # the commands import the runtime and the viewer when they run: twin ctl or router need neither
     from twin.scenario import Scenario
@@ -316,32 +316,51 @@ def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="s
              = None,
              serve: Annotated[bool, typer.Option("--serve", help="check them as `twin lab serve` reads a lab "
                                                  "file: its campaigns may come later (twin submit), so it needs no "
-                                                 "workflow")] = False) -> None:
+                                                 "workflow")] = False,
+             strict: Annotated[bool, typer.Option("--strict", help="a file with warnings fails too (exit 2): for a "
+                                                  "CI that keeps scenario files clean")] = False,
+             json_out: Annotated[bool, typer.Option("--json", help="print each file's problems and warnings as one "
+                                                    "JSON document")] = False) -> None:
     """Check scenario files; every problem names its file, field and value, and every warning its file."""
     from twin.runtime.checks import validate_file
 
     overrides = assignments(set_ or [])
     warned = _Warnings()
     logging.getLogger().addHandler(warned)
-    bad = 0
+    checked: list[dict] = []
     try:
         for f in files:
             warned.said.clear()
+            refusal = None
             try:
                 validate_file(f, overrides, serve)
             except TwinError as exc:
-                bad += 1
-                err.print(f"[red]✗[/] {escape(str(exc))}", highlight=False, markup=True)
-            else:
-                said = f" ({counted(len(warned.said), 'warning', 'warnings')})" if warned.said else ""
-                console.print(f"[green]✓[/] {escape(str(f))}{said}", highlight=False, soft_wrap=True, markup=True)
-            for text in warned.said:
-                err.print(f"[yellow]![/] {escape(str(f))}: warning: {escape(text)}", highlight=False, soft_wrap=True,
-                          markup=True)
+                refusal = exc
+            problems = [] if refusal is None else list(refusal.problems) if isinstance(refusal, ScenarioError) \
+                else [str(refusal)]
+            checked.append({"file": str(f), "ok": not problems and not (strict and warned.said),
+                            "problems": problems, "warnings": list(warned.said)})
+            if not json_out:
+                _say_checked(f, refusal, checked[-1]["warnings"], strict)
     finally:  # in-process callers (tests, a notebook) keep no handler of this command's
         logging.getLogger().removeHandler(warned)
-    if bad:
+    if json_out:
+        console.print_json(json.dumps({"ok": all(c["ok"] for c in checked), "files": checked}))
+    if not all(c["ok"] for c in checked):
         raise typer.Exit(2)
+
+
+def _say_checked(f: Path, refusal: TwinError | None, warnings: list[str], strict: bool) -> None:
+    if refusal is not None:
+        err.print(f"[red]✗[/] {escape(str(refusal))}", highlight=False, markup=True)
+    else:
+        said = f" ({counted(len(warnings), 'warning', 'warnings')})" if warnings else ""
+        failed = strict and warnings
+        console.print(f"{'[red]✗[/]' if failed else '[green]✓[/]'} {escape(str(f))}{said}"
+                      f"{': --strict fails it' if failed else ''}", highlight=False, soft_wrap=True, markup=True)
+    for text in warnings:
+        err.print(f"[yellow]![/] {escape(str(f))}: warning: {escape(text)}", highlight=False, soft_wrap=True,
+                  markup=True)
 
 
 class _Warnings(logging.Handler):
