@@ -355,14 +355,12 @@ def validate_file(path: str | Path, overrides: dict | None = None, served: bool 
     """``twin validate``: the scenario file read (with the command line's ``--set`` overrides), checked field by
     field, and against the installed plugins. ``served``: read as ``twin lab serve`` reads it, a lab whose
     campaigns may come later: without campaigns, its devices' drivers are made as they stand by."""
-    if not served:
-        s = checked(load(path, overrides), path)
+    s = load(path, overrides, lab_only=served)
+    if not served or s.campaigns:
+        checked(s, path)
         for warning in trial_warnings(s, path):
             log.warning(warning)
         return s
-    s = load(path, overrides, lab_only=True)
-    if s.campaigns:
-        return checked(s, path)
     problems = []
     for dtype in s.devices:  # each type's drivers alone, so that each problem names its field, and all are said
         others = [name for other in s.devices if other != dtype for name in s.instance_names(other)]
