@@ -123,3 +123,29 @@ def test_a_planner_of_its_own_is_tried_where_it_says_it_runs_the_workflow_as_wri
         path = tmp_path / f"{planner}.yaml"
         path.write_text(text.replace("planner: random", f"planner: tests.twin.test_trial:{planner}"))
         assert bool(trial_warnings(load(path), path)) == tried, planner
+
+
+class Chatty(Dispenser):
+    """A third party's driver that prints as it is made and as it runs (a stranger's debugging)."""
+
+    def __init__(self, setup):
+        print("dispenser ready")
+
+    async def run(self, step, params, sample, ctx):
+        print("dispensing", params)
+        return await super().run(step, params, sample, ctx)
+
+
+def test_validate_json_stays_one_document_when_a_driver_prints(tmp_path):
+    import json
+
+    lab = qd_lab(**{"devices.synthesiser.driver": "tests.twin.test_trial:Chatty",
+                    "devices.synthesiser.steps": ["dispense"],
+                    "workflow": [{"step": "dispense", "device": "synthesiser"},
+                                 {"step": "measure", "device": "spectrometer"}]})
+    path = tmp_path / "chatty.yaml"
+    path.write_text(yaml.safe_dump(lab))
+    res = twin_cli("validate", path, "--json")
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.stdout)["files"][0]["ok"] is True, res.stdout
+    assert "dispensing" not in res.stdout and "dispenser ready" not in res.stdout

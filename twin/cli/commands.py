@@ -332,8 +332,9 @@ def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="s
         for f in files:
             warned.said.clear()
             refusal = None
-            try:
-                validate_file(f, overrides, serve)
+            try:  # what a plugin prints as it is made goes to stderr: --json's output is one JSON document
+                with contextlib.redirect_stdout(sys.stderr) if json_out else contextlib.nullcontext():
+                    validate_file(f, overrides, serve)
             except TwinError as exc:
                 refusal = exc
             problems = [] if refusal is None else list(refusal.problems) if isinstance(refusal, ScenarioError) \

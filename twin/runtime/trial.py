@@ -5,6 +5,7 @@ would otherwise be found a whole campaign later — on a live lab, after its fir
 from __future__ import annotations
 
 import contextlib
+import io
 import logging
 import tempfile
 from collections.abc import Iterator
@@ -78,7 +79,8 @@ def _plans_the_box(planner: str) -> bool:
 @contextlib.contextmanager
 def _quiet() -> Iterator[None]:
     """What the trial's run logs (a device refused, an experiment abandoned) is the trial's to sum up; only a driver
-    or plugin that holds the lab (held.py: a call that does not return) is said as it happens."""
+    or plugin that holds the lab (held.py: a call that does not return) is said as it happens. What a plugin
+    prints is dropped: `twin validate --json`'s output is one JSON document."""
     def passes(record: logging.LogRecord) -> bool:
         return record.name == HELD_LOGGER
 
@@ -86,7 +88,8 @@ def _quiet() -> Iterator[None]:
     for handler in handlers:
         handler.addFilter(passes)
     try:
-        yield
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            yield
     finally:
         for handler in handlers:
             handler.removeFilter(passes)
