@@ -274,7 +274,9 @@ def test_a_device_not_on_the_bus_at_the_end_of_startup_is_named_and_the_campaign
     (missing,) = notes(out, "devices.missing")
     assert missing.detail == ["spectrometer-2"] and of(out, Ask)[0].what == "plan"  # it starts without it
     assert alert_text(missing).startswith("devices.missing: spectrometer-2 not on the bus within "
-                                          "orchestrator.startup_s: the campaign starts without them")
+                                          "orchestrator.startup_s: the campaign starts without it, and it takes "
+                                          "work once its driver joins the bus")
+    assert "one whose driver connects to its instrument: once the instrument answers" in alert_text(missing)
 
 
 def test_work_with_no_usable_instance_left_is_said_at_once_and_given_up_after_a_while(scenario_of):

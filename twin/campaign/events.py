@@ -276,9 +276,11 @@ def _alert_words(n: Note) -> str:
                 f"is back within {d.get('give_up_after_s', 0):g} lab-s (campaign.give_up_after_s); a quarantined "
                 f"one is given work again after orchestrator.probe_after_s")
     if n.kind == "devices.missing" and isinstance(d, list):
+        one = len(d) == 1
         return (f"{', '.join(map(str, d))} not on the bus within orchestrator.startup_s: the campaign starts without "
-                f"them, and each takes work once its driver joins the bus (one in another process: `twin device "
-                f"serve`, connected to the lab's address)")
+                f"{'it' if one else 'them'}, and {'it' if one else 'each'} takes work once its driver joins the bus "
+                "(one in another process: `twin device serve`, connected to the lab's address; one whose driver "
+                "connects to its instrument: once the instrument answers, as the driver's own lines say)")
     if n.kind == "device.mismatch" and isinstance(d, dict):
         found = "; ".join(map(str, d.get("differences", ()))) + (f"; and {d.get('more')} more" if d.get("more") else "")
         return (f"served by a process whose scenario differs from this lab's: {found}. The lab expects its steps, "
