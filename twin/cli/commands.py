@@ -24,7 +24,6 @@ from twin.core.counts import counted
 from twin.core.errors import ScenarioError, TwinError
 
 if TYPE_CHECKING:  # the commands import the runtime and the viewer when they run: twin ctl or router need neither
-    from twin.scenario import Scenario
     from twin.view.watch import RecordOptions
 
 # the output options `twin run` and `twin resume` share
@@ -87,6 +86,7 @@ def run(
     from twin.cli.sharing import shared_lab
     from twin.runtime import lab
     from twin.runtime.checks import checked
+    from twin.runtime.trial import warn_before_live
 
     log_to_stderr(logging.WARNING)
     overrides: dict = assignments(set_ or [])
@@ -124,7 +124,7 @@ def run(
         err.print(f"the clock is virtual, so twins stand in: {', '.join(twins)} (devices.*.twin; --clock scaled "
                   "runs the lab's own drivers)", highlight=False)
     if s.campaigns:
-        _tried_first(s, scenario)
+        warn_before_live(s, scenario)
         shared_lab(s, journal, record, quiet, json_out, external, runtime=runtime)
         return
     try:
@@ -137,20 +137,10 @@ def run(
                   f"{' and its scheduler planned it ahead' if s.campaign.plays_ahead else ''}: nothing ran, and no "
                   "journal was written", highlight=False)
         raise typer.Exit(exit_status(stop)) from None
-    _tried_first(s, scenario)
+    warn_before_live(s, scenario)
     run_campaign(s, record, quiet, json_out, lambda on_progress, observer: lab.run(
         s, journal=journal, external_devices=set(external or ()), on_progress=on_progress, observer=observer,
         runtime=runtime))
-
-
-def _tried_first(s: Scenario, path: Path) -> None:
-    """A live lab's file is tried on the twin first: a workflow no experiment gets through would otherwise be found
-    an experiment's length of the lab's time later (a virtual run is itself the trial)."""
-    from twin.runtime.trial import trial_warnings
-
-    if s.clock.mode != "virtual":
-        for warning in trial_warnings(s, path):
-            logging.getLogger("twin.run").warning(warning)
 
 
 @app.command()

@@ -118,7 +118,7 @@ def lab_serve(
     from twin.runtime import lab
     from twin.runtime.checks import check
     from twin.runtime.shared_run import serve_lab
-    from twin.runtime.trial import trial_warnings
+    from twin.runtime.trial import warn_before_live
 
     log_to_stderr(logging.WARNING)
     overrides: dict = {}
@@ -135,8 +135,7 @@ def lab_serve(
         speed_heeded(speed, s.clock.mode)
         if s.campaigns:
             check(s, external or ())
-            for warning in trial_warnings(s, lab_file) if s.clock.mode != "virtual" else ():
-                logging.getLogger("twin.run").warning(warning)
+            warn_before_live(s, lab_file)
 
         def started(live) -> None:
             where = [*s.bus.connect, *live.bus.listening][:1] or ["..."]

@@ -25,19 +25,23 @@ def ctl_options(s: Scenario, campaign: str | None, listening: list[str] | None =
     memory bus, which nothing outside the process reaches."""
     if s.bus.kind == "memory":
         return None
-    where = [*s.bus.connect, *(e for e in (s.bus.listen if listening is None else listening)
-                               if not e.endswith(":0"))][:1]
+    where = _reached_at(s, s.bus.listen if listening is None else listening)
     return " ".join([f"--lab {s.lab}", *(["--campaign", campaign] if campaign else []),
-                     f"--connect {where[0]}" if where else "--connect ENDPOINT (a port the lab chose: give it --listen "
+                     f"--connect {where}" if where else "--connect ENDPOINT (a port the lab chose: give it --listen "
                      "tcp/127.0.0.1:PORT to know it)",
                      *(["--security", str(s.bus.security)] if s.bus.security else [])])
+
+
+def _reached_at(s: Scenario, listening: list[str]) -> str:
+    """The endpoint another process reaches the lab at: its router, or where it listens with a port known; ''."""
+    return next(iter([*s.bus.connect, *(e for e in listening if not e.endswith(":0"))]), "")
 
 
 def say_where(s: Scenario, listening: list[str], clock: LabClock) -> None:
     """A live lab on Zenoh says once where `twin ctl` and `twin watch` reach it (the port it chose, without
     --listen)."""
-    options = None if clock.is_virtual else ctl_options(s, None, listening)
-    if options is not None and "ENDPOINT" not in options:
+    if not clock.is_virtual and s.bus.kind != "memory" and _reached_at(s, listening):
+        options = ctl_options(s, None, listening)
         log.warning("lab %s is on the bus: twin ctl status %s, twin watch %s", s.lab, options, options)
 
 

@@ -20,10 +20,14 @@ from twin.scenario import Scenario
 TRIALS = 3
 HELD_LOGGER = held_log.name
 log = logging.getLogger(__name__)
-#: the shipped planners whose experiments run the workflow as written, with points of the chemistry's parameter box
-#: (mf-gp-bo's are those it does not send to its DFT route), for which the trial's random ones stand in; any other
-#: that says so (``plans_routes = False``) is loaded to be asked
-BOX_PLANNERS = frozenset({"random", "lhs", "gp-bo", "mf-gp-bo", "rl", "fixed"})
+
+
+def warn_before_live(s: Scenario, path: str | Path) -> None:
+    """A live lab's file is tried on the twin before the lab starts: a workflow no experiment gets through would
+    otherwise be found an experiment's length of the lab's time later (a virtual run is itself the trial)."""
+    if s.clock.mode != "virtual":
+        for warning in trial_warnings(s, path):
+            logging.getLogger("twin.run").warning(warning)
 
 
 def trial_warnings(s: Scenario, path: str | Path) -> list[str]:
@@ -37,10 +41,10 @@ def trial_warnings(s: Scenario, path: str | Path) -> list[str]:
 
 
 def trial_warning(s: Scenario, path: str | Path, where: str = "") -> str:
-    """'' if a trial experiment of ``s`` got through, or none was run (a job shop, a planner of its own kind, a
-    driver that needs its instrument and has no twin); else what stopped all of them, as a warning about the file
+    """'' if a trial experiment of ``s`` got through, or none was run (a job shop, a planner that may plan routes of
+    its own, a driver that needs its instrument and has no twin); else what stopped all of them, as a warning about the file
     at ``path``. ``where``: the campaign's place in a shared lab ("campaigns.0 (dots): ")."""
-    if s.jobshop is not None or not _plans_the_box(s.campaign.planner):
+    if s.jobshop is not None or not _runs_the_workflow(s.campaign.planner):
         return ""
     from twin.runtime.assembly import prepare
     from twin.runtime.lab import run
@@ -66,12 +70,12 @@ def trial_warning(s: Scenario, path: str | Path, where: str = "") -> str:
             f"campaign may be: `twin run {path} --clock virtual` shows where")
 
 
-def _plans_the_box(planner: str) -> bool:
-    name, _ = plugins.with_policy("planners", planner)
-    if name in BOX_PLANNERS:
-        return True
+def _runs_the_workflow(planner: str) -> bool:
+    """Whether every experiment of ``planner`` runs the workflow as written (``plans_routes = False``, as the shipped
+    random, lhs, gp-bo and rl say): random parameters then stand in for its own."""
     try:
-        return getattr(plugins.load("planners", name), "plans_routes", None) is False
+        return getattr(plugins.load("planners", plugins.with_policy("planners", planner)[0]), "plans_routes",
+                       None) is False
     except Exception:  # the checks name a planner that does not load
         return False
 
