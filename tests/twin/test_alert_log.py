@@ -100,3 +100,14 @@ def test_on_a_live_clock_a_device_set_aside_for_failing_is_said(caplog):
     (said,) = [r.getMessage() for r in caplog.records]
     assert said.startswith("device.quarantined reactor-2: set aside after failing step after step "
                            "(orchestrator.quarantine_after)") and said.endswith("probe_after_s, 3600 lab-s")
+
+
+def test_a_person_set_aside_is_said_to_be_so_for_steps_nobody_confirmed(caplog):
+    """A technician quarantined because nobody confirmed their steps was said to have failed "step after step", as a
+    broken instrument is: found running a lab with a person on a scaled clock."""
+    with caplog.at_level(logging.WARNING, logger="twin.alerts"):
+        AlertLog(virtual=False, people=frozenset({"tech"})).presence(
+            Note(100.0, "device.quarantined", device="tech", detail={"probe_after_s": 3600.0}))
+    (said,) = [r.getMessage() for r in caplog.records]
+    assert said.startswith("device.quarantined tech: set aside after its steps went unconfirmed in time, one after "
+                           "another (orchestrator.quarantine_after)"), said

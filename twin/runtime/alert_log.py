@@ -19,11 +19,14 @@ IN_FULL = 3
 
 
 class AlertLog:
-    def __init__(self, virtual: bool = True, crashing: dict[str, tuple[str, float]] | None = None) -> None:
+    def __init__(self, virtual: bool = True, crashing: dict[str, tuple[str, float]] | None = None,
+                 people: frozenset[str] = frozenset()) -> None:
         """``crashing``: the devices whose type simulates crashes (``faults.mtbc_h``) -> (type, ``faults.restart_s``):
-        one of them gone from the bus is said as the crash it most likely is."""
+        one of them gone from the bus is said as the crash it most likely is. ``people``: the instances that are
+        people, whose steps fail by going unconfirmed."""
         self.virtual = virtual
         self.crashing = crashing or {}
+        self.people = people
         self._said: Counter[tuple[str, Any, Any]] = Counter()
         self._away: dict[str, float] = {}  # devices that left the bus: when
 
@@ -48,10 +51,11 @@ class AlertLog:
         elif note.kind == "device.quarantined":  # a person may have a device to mend
             d = note.detail if isinstance(note.detail, dict) else {}
             why = f" ({str(d['reason'])[:200]})" if d.get("reason") else ""
-            log.warning("device.quarantined %s: set aside after failing step after step%s (orchestrator."
-                        "quarantine_after); its steps go to the other instances of its type, if any, and it is given "
-                        "a step to try it after orchestrator.probe_after_s, %g lab-s", note.device, why,
-                        d.get("probe_after_s", 0))
+            failed = "its steps went unconfirmed in time, one after another" if note.device in self.people else \
+                "failing step after step"
+            log.warning("device.quarantined %s: set aside after %s%s (orchestrator.quarantine_after); its steps go "
+                        "to the other instances of its type, if any, and it is given a step to try it after "
+                        "orchestrator.probe_after_s, %g lab-s", note.device, failed, why, d.get("probe_after_s", 0))
         elif note.kind == "devices.available":  # said after devices.unavailable, which on a live clock is logged
             log.warning("devices.available %s: one can take work again (back on the bus, or a quarantined one given "
                         "a step to try it), and the work waiting for it goes on", note.device)

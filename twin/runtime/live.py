@@ -79,7 +79,7 @@ class LiveCampaign:
         self.scheduler, self.on_progress = scheduler, on_progress
         self.alert_log = AlertLog(virtual=clock.is_virtual, crashing={
             name: (dtype, spec.faults.restart_s) for dtype, spec in scenario.devices.items() if spec.faults.mtbc_h > 0
-            for name in scenario.instance_names(dtype)})
+            for name in scenario.instance_names(dtype)}, people=frozenset(human.people(scenario)))
         for rule in fallbacks(scheduler):  # a scheduler's mistakes covered: journalled when the reason changes
             rule.on_fallback = lambda reason: self._note_from_any_thread("scheduler.fallback", reason)
             rule.on_recovered = lambda message: self._note_from_any_thread("scheduler.recovered", message)
