@@ -69,3 +69,49 @@ def test_serve_binds_loopback_and_keeps_serving_until_ctrl_c_or_sigterm(tmp_path
             assert s.connect_ex(("127.0.0.1", web_port)) != 0, "the server must stop with the command"
     finally:
         proc.kill()
+
+
+@pytest.mark.process
+def test_ctrl_c_stops_the_served_campaign_when_another_thread_receives_it():
+    """The kernel may hand a process's SIGINT to any of its threads (Zenoh's, Rerun's): Python then only sets a
+    flag, and a main thread blocked in waitpid never looked at it, so `twin run --serve` kept serving."""
+    import sys as _sys
+    import threading
+
+    import rerun as rr
+
+    from twin.cli.common import keep_serving
+    from twin.view import viewer_process
+    from twin.view.recorder import Recording, RerunCanvas
+
+    messages: list[str] = []
+    served = viewer_process.serve(0, 0, messages)
+    assert served is not None, messages
+    server, url, _ = served
+    rec = rr.RecordingStream("labtwin-test")
+    recording = Recording(rec, RerunCanvas(rec), server=server, url=url)
+    main, still_serving = threading.main_thread().ident, []
+
+    def interrupt_from_another_thread():
+        while True:  # until the main thread waits on the server, past saying where it is served
+            frame, names = _sys._current_frames().get(main), []
+            while frame is not None:
+                names.append(frame.f_code.co_name)
+                frame = frame.f_back
+            if "keep_serving" in names and "print" not in names:
+                break
+        signal.pthread_kill(threading.get_ident(), signal.SIGINT)
+        try:
+            server.wait(timeout=20)
+        except subprocess.TimeoutExpired:  # still serving: stop it, so that the test fails instead of hanging
+            still_serving.append(True)
+            viewer_process.stop(server)
+
+    helper = threading.Thread(target=interrupt_from_another_thread)
+    helper.start()
+    try:
+        keep_serving(recording, stopped="")
+    finally:
+        helper.join()
+    assert not still_serving, "the interrupt must stop the server, not the test's timeout"
+    assert recording.server is None and server.poll() is not None

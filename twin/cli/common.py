@@ -6,6 +6,7 @@ import contextlib
 import re
 import signal
 import sys
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -348,7 +349,8 @@ def keep_serving(recording, stopped: str) -> None:
     previous = signal.signal(signal.SIGTERM, _interrupt)
     try:  # said inside: a Ctrl-C or SIGTERM the moment it is read must still stop the server and exit cleanly
         err.print(f"the finished campaign is served at {recording.url} — Ctrl-C to stop", highlight=False)
-        recording.server.wait()
+        while recording.server.poll() is None:  # not wait(): a SIGINT the kernel hands another thread (Zenoh's,
+            time.sleep(0.2)                     # Rerun's) only sets a flag, which a blocked waitpid never reads
     except KeyboardInterrupt:
         pass
     finally:
