@@ -24,6 +24,25 @@ def test_a_scenario_given_as_the_mapping_its_file_holds_runs_as_the_file_does(tm
     assert raw == kept  # the overrides went into a copy
 
 
+def test_numbers_and_paths_a_notebook_computes_are_taken_as_the_file_would_give_them():
+    """numpy's integers are no ``int``: `devices.reactor.instances: Input should be a valid integer (got
+    np.int64(2))` refused a lab built with numpy, and a path to a job shop was no text."""
+    import numpy as np
+
+    raw = yaml.safe_load(FLAKY.read_text())
+    kept = copy.deepcopy(raw)
+    raw["devices"]["reactor"]["instances"] = np.int64(2)
+    raw["chemistry"]["parameters"]["temperature_k"]["low"] = np.float32(raw["chemistry"]["parameters"][
+        "temperature_k"]["low"])
+    raw["workflow"] = tuple(raw["workflow"])
+    given = twin.prepare(raw, seed=np.int64(4), overrides={"campaign.budget": np.int64(8)})
+    assert (given.devices["reactor"].instances, given.campaign.seed, given.campaign.budget) == (2, 4, 8)
+    assert type(given.devices["reactor"].instances) is int and len(given.workflow) == len(kept["workflow"])
+    assert raw["devices"]["reactor"]["instances"] == np.int64(2)  # the caller's mapping is left as it was
+    shop = twin.prepare({"name": "shop", "jobshop": {"file": ROOT / "scenarios" / "jobshop" / "la01.txt"}})
+    assert sorted(shop.devices) == [f"m{i}" for i in range(5)]
+
+
 def test_a_mapping_with_a_problem_is_named_as_a_mapping_with_the_field():
     raw = yaml.safe_load(FLAKY.read_text())
     raw["devices"]["reactor"]["instances"] = "two"

@@ -24,7 +24,7 @@ from twin.device.driver import DRIVER_API, DriverSetup, capabilities, feature, t
 from twin.runtime.off_loop import OffLoopScheduler
 from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, SchedulerService
 from twin.runtime.served_devices import served_as
-from twin.scenario import Scenario, load, load_mapping, parse_overridden
+from twin.scenario import Scenario, load, load_mapping, parse_overridden, plain
 from twin.scenario.loading import disagreeing, model_of
 from twin.scenario.objective import typical_step
 
@@ -56,6 +56,7 @@ def prepare(scenario: str | Path | Scenario | dict[str, Any], *, seed: int | Non
         extra["clock.speed"] = speed
     if bus is not None:
         extra["bus.kind"] = bus
+    extra = plain(extra)
     if isinstance(scenario, Scenario):
         if not extra:
             return scenario

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import os
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +32,7 @@ def load(path: str | Path, overrides: dict[str, Any] | None = None, lab_only: bo
     if not isinstance(raw, dict):
         raise ScenarioError(str(path), ["the file must be a mapping with at least name, devices and workflow"
                                         + _if_a_shop(raw, path)])
-    return _parsed(raw, _named_after_its_shop(raw, overrides or {}), str(path), lab_only, path.parent)
+    return _parsed(raw, _named_after_its_shop(raw, plain(overrides or {})), str(path), lab_only, path.parent)
 
 
 def _if_a_shop(raw: Any, path: Path) -> str:
@@ -49,8 +50,22 @@ def load_mapping(raw: dict[str, Any], overrides: dict[str, Any] | None = None, l
     is left as it was."""
     source = f"the scenario {raw.get('name')!r} (a mapping)" if isinstance(raw.get("name"), str) else \
         "the scenario (a mapping)"
-    raw = copy.deepcopy(raw)
-    return _parsed(raw, _named_after_its_shop(raw, overrides or {}), source, lab_only, Path.cwd())
+    raw = plain(raw)
+    return _parsed(raw, _named_after_its_shop(raw, plain(overrides or {})), source, lab_only, Path.cwd())
+
+
+def plain(value: Any) -> Any:
+    """A copy of a value built in Python as its YAML would read: numpy's numbers and arrays (a budget of
+    ``np.int64(20)``, a list of proposals from ``np.linspace``) as Python's, tuples as lists, paths as text."""
+    if isinstance(value, dict):
+        return {key: plain(v) for key, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if type(value).__module__ == "numpy" and hasattr(value, "tolist"):
+        return plain(value.tolist())
+    return copy.deepcopy(value)
 
 
 def _parsed(raw: dict[str, Any], overrides: dict[str, Any], source: str, lab_only: bool, base: Path) -> Scenario:
