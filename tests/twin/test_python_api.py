@@ -41,6 +41,9 @@ def test_numbers_and_paths_a_notebook_computes_are_taken_as_the_file_would_give_
     assert raw["devices"]["reactor"]["instances"] == np.int64(2)  # the caller's mapping is left as it was
     shop = twin.prepare({"name": "shop", "jobshop": {"file": ROOT / "scenarios" / "jobshop" / "la01.txt"}})
     assert sorted(shop.devices) == [f"m{i}" for i in range(5)]
+    raw["campaign"]["planner_options"] = {"box": raw}
+    with pytest.raises(ScenarioError, match="it holds itself"):  # RecursionError deep inside, before
+        twin.prepare(raw)
 
 
 def test_a_mapping_with_a_problem_is_named_as_a_mapping_with_the_field():

@@ -54,13 +54,17 @@ def load_mapping(raw: dict[str, Any], overrides: dict[str, Any] | None = None, l
     return _parsed(raw, _named_after_its_shop(raw, plain(overrides or {})), source, lab_only, Path.cwd())
 
 
-def plain(value: Any) -> Any:
+def plain(value: Any, _within: tuple[int, ...] = ()) -> Any:
     """A copy of a value built in Python as its YAML would read: numpy's numbers and arrays (a budget of
     ``np.int64(20)``, a list of proposals from ``np.linspace``) as Python's, tuples as lists, paths as text."""
-    if isinstance(value, dict):
-        return {key: plain(v) for key, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [plain(v) for v in value]
+    if isinstance(value, (dict, list, tuple)):
+        if id(value) in _within:
+            raise ScenarioError("the scenario (a mapping)", ["it holds itself (a dict or list inside itself), which "
+                                                              "no file can: give each part once"])
+        within = (*_within, id(value))
+        if isinstance(value, dict):
+            return {key: plain(v, within) for key, v in value.items()}
+        return [plain(v, within) for v in value]
     if isinstance(value, os.PathLike):
         return os.fspath(value)
     if type(value).__module__ == "numpy" and hasattr(value, "tolist"):
