@@ -96,10 +96,14 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         assert {c["state"] for c in json.loads(ctl("ctl", "status", "--json").output)["campaigns"]} == {"ended"}
         late = yaml.safe_load((tmp_path / "catalyst.yaml").read_text())
         late["name"], late["campaign"]["budget"] = "late", 1
+        late["workflow"] = [w for w in late["workflow"] if w["step"] != "react"]  # no experiment gets through
         (tmp_path / "late.yaml").write_text(yaml.safe_dump(late))
         waited = ctl("submit", str(tmp_path / "late.yaml"), "--wait")  # submitted, and its end waited for
         assert waited.exit_code == 0 and "campaign late ended: " in waited.stdout, waited.output
         assert "campaign late: 0 done" in waited.stderr
+        said = " ".join(waited.stderr.split())  # the trial's warning, with the command that stops it
+        assert "! campaign late: warning: workflow: 3 trial experiments on the twin" in said, said
+        assert f"`twin ctl stop --lab shared --campaign late --connect tcp/127.0.0.1:{port}` stops it" in said, said
         lab.send_signal(signal.SIGTERM)
         out, err = lab.communicate(timeout=60)
         lines_until(watcher.stdout, {"campaign dots ended: 4 experiments", "campaign catalyst ended: 3 experiments"})
@@ -294,3 +298,35 @@ def test_a_submitted_campaign_may_name_a_file_outside_the_labs_folder_that_the_l
     serve_lab(s, tmp_path / "journals", handle_signals=False, on_start=started)
     assert answers["same"]["ok"] is True, answers["same"]
     assert answers["other"]["ok"] is False and "is outside the folder the lab serves from" in answers["other"]["error"]
+
+
+def test_a_submitted_campaign_no_experiment_gets_through_is_warned_of_in_the_answer(tmp_path):
+    """A live lab's own file is tried on the twin before the lab starts; a campaign submitted to it was not, and
+    its every experiment was abandoned at its last step, unseen by whoever submitted it. The answer to `twin submit`
+    now says what `twin validate` would: the trial's warning, with the command that stops the campaign."""
+    import asyncio
+
+    from twin.runtime.shared_run import serve_lab
+
+    first = load(LAB).campaigns[1].model_dump(mode="json", exclude_none=True)  # catalyst: prepare, react, measure
+    first["campaign"].update(budget=2, planner="random")
+    s = prepare(LAB, clock="scaled", speed=50_000, bus="memory", overrides={"campaigns": [first]}, lab_only=True)
+    unreacted = {**first, "name": "unreacted", "workflow": [w for w in first["workflow"] if w["step"] != "react"]}
+    fine = {**first, "name": "fine"}
+    answers: dict = {}
+
+    def started(lab) -> None:
+        async def ask() -> None:
+            for c in (unreacted, fine):
+                answers[c["name"]] = json.loads(await lab.desk.serve("labtwin/shared/control/submit",
+                                                                     json.dumps({"file": json.dumps(c)}).encode()))
+            lab.stop("test over")
+        asyncio.ensure_future(ask())
+
+    serve_lab(s, tmp_path, handle_signals=False, on_start=started)
+    warned = answers["unreacted"]
+    assert warned["ok"] is True and len(warned["warnings"]) == 1, warned
+    assert "3 trial experiments on the twin" in warned["warnings"][0]
+    assert "cannot measure a sample of kind 'feed'" in warned["warnings"][0]
+    assert warned["warnings"][0].endswith("`twin ctl stop --campaign unreacted` stops it")
+    assert answers["fine"]["ok"] is True and answers["fine"]["warnings"] == []

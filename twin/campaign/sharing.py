@@ -109,13 +109,20 @@ class SharedLab:
         if core is not None:
             core.feed(event)
 
+    def refusal(self, name: str) -> str:
+        """Why a campaign of this name cannot be added now; '' if it can."""
+        if name in self.entries:
+            return f"name: the lab has a campaign {name!r} already: give the new one another name"
+        if self._stopping:
+            return f"the lab is stopping ({self._stopping}): it takes no more campaigns"
+        return ""
+
     def add(self, entry: SharedCampaign, scenario: Scenario, secret: bytes | None = None) -> CampaignCore:
         """A campaign submitted now (``twin submit``); it starts at the next turn. ``secret``: what its attempt
         tokens come from (random by default; a rebuilt lab passes the one it had)."""
-        if entry.name in self.entries:
-            raise ValueError(f"the lab has a campaign {entry.name!r} already: give the new one another name")
-        if self._stopping:
-            raise ValueError(f"the lab is stopping ({self._stopping}): it takes no more campaigns")
+        refusal = self.refusal(entry.name)
+        if refusal:
+            raise ValueError(refusal)
         core = CampaignCore(scenario, entry.name, secret)
         core.stocks, core.alone = self.stocks, False
         self.entries[entry.name] = entry

@@ -20,6 +20,7 @@ from twin.cli.printable import log_to_stderr
 from twin.core.printable import printable
 from twin.core import plugins
 from twin.core.whole_files import written_whole
+from twin.core.warnings_said import warnings_said
 from twin.core.counts import counted
 from twin.core.errors import ScenarioError, TwinError
 
@@ -315,10 +316,8 @@ def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="s
     from twin.runtime.checks import validate_file
 
     overrides = assignments(set_ or [])
-    warned = _Warnings()
-    logging.getLogger().addHandler(warned)
     checked: list[dict] = []
-    try:
+    with warnings_said() as warned:
         for f in files:
             warned.said.clear()
             refusal = None
@@ -333,8 +332,6 @@ def validate(files: Annotated[list[Path], typer.Argument(metavar="FILE", help="s
                             "problems": problems, "warnings": list(warned.said)})
             if not json_out:
                 _say_checked(f, refusal, checked[-1]["warnings"], strict)
-    finally:  # in-process callers (tests, a notebook) keep no handler of this command's
-        logging.getLogger().removeHandler(warned)
     if json_out:
         console.print_json(json.dumps({"ok": all(c["ok"] for c in checked), "files": checked}))
     if not all(c["ok"] for c in checked):
@@ -352,17 +349,6 @@ def _say_checked(f: Path, refusal: TwinError | None, warnings: list[str], strict
     for text in warnings:
         err.print(f"[yellow]![/] {escape(str(f))}: warning: {escape(text)}", highlight=False, soft_wrap=True,
                   markup=True)
-
-
-class _Warnings(logging.Handler):
-    """What checking one file warned of, to be shown under its name (several files: which one said it)."""
-
-    def __init__(self) -> None:
-        super().__init__(logging.WARNING)
-        self.said: list[str] = []
-
-    def emit(self, record: logging.LogRecord) -> None:
-        self.said.append(record.getMessage())
 
 
 @app.command()

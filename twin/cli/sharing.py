@@ -167,13 +167,14 @@ def submit(
     from twin.cli.control import _who
     from twin.scenario.files import parse_yaml, read_text
     from twin.scenario.sharing import parse_campaign
+    from twin.runtime.trial import SUBMITTED_WAIT_S
     from twin.tools.control import request
 
     try:
         text = read_text(campaign_file)  # once: `-` is standard input
         entry = parse_campaign(parse_yaml(text, str(campaign_file)), str(campaign_file))  # a bad file named here
         answer = request(lab_name, "submit", {"file": text, "who": _who(who)}, list(connect),
-                         str(security) if security else None)
+                         str(security) if security else None, wait_s=SUBMITTED_WAIT_S + 10)
     except TwinError as exc:
         _fail(exc)
     if not answer.get("ok"):
@@ -181,6 +182,9 @@ def submit(
         raise typer.Exit(1)
     console.print(f"campaign {entry.name} started on lab {lab_name} at lab {answer['lab_hours']:.2f} h; its journal: "
                   f"{answer['journal']}", highlight=False, markup=False)
+    for warning in answer.get("warnings") or ():
+        err.print(f"[yellow]![/] campaign {escape(entry.name)}: warning: {escape(str(warning))}", highlight=False,
+                  soft_wrap=True, markup=True)
     if wait:
         from twin.cli.control import until_ended
 

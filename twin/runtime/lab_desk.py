@@ -1,7 +1,7 @@
 """A shared lab's control desk: ``labtwin/<lab>/control/<command>`` for a lab of several campaigns.
 
 ``status`` without a campaign lists the lab's campaigns; ``submit`` adds one (the text of a campaign file,
-``twin submit``); any other command names its campaign (the ``campaign`` field, which may be left out when the
+``twin submit``) and answers with what `twin validate` would warn of it, its trial experiments' among them; any other command names its campaign (the ``campaign`` field, which may be left out when the
 lab has one) and goes to that campaign's own desk (twin/runtime/control.py), which journals it there.
 """
 
@@ -36,7 +36,7 @@ class LabDesk:
         if not isinstance(body, dict):
             raise ValueError("the request is not a JSON object")
         if command == "submit":
-            return self.lab.submit(body)
+            return await self.lab.submit(body)
         name = body.pop("campaign", None)
         if command == "status" and name is None:
             return self.lab.status()

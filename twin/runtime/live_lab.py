@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -22,15 +23,20 @@ from twin.campaign import Presence
 from twin.core.errors import ScenarioError, TwinError
 from twin.runtime.lab_desk import LabDesk
 from twin.runtime.event_decoder import EventDecoder
+from twin.runtime.asked_of_people import ctl_options
 from twin.runtime.asking import ask_scheduler
 from twin.runtime.live import LiveCampaign
 from twin.runtime.take_over import rearm
+from twin.runtime.trial import submitted_warnings
 from twin.scenario import Scenario
 from twin.scenario.files import parse_yaml
 from twin.scenario.sharing import campaign_scenario, parse_campaign
 from twin.view.lab_observer import SharedLabObserver
 
 SeatParts = tuple[Journal, Planner, Scheduler]
+
+
+log = logging.getLogger(__name__)
 
 
 class LiveSeat(LiveCampaign):
@@ -73,6 +79,7 @@ class LiveSeat(LiveCampaign):
 class LiveLab:
     def __init__(self, lab: Scenario, scenarios: dict[str, Scenario], bus: Bus, clock: LabClock,
                  parts: dict[str, SeatParts], adopt: Callable[[str, Scenario], SeatParts] | None = None,
+                 admit: Callable[[str, Scenario], None] | None = None,
                  observer: SharedLabObserver | None = None, inputs: Journal | None = None,
                  rebuilt: RebuiltLab | None = None, lab_scheduler: Any = None) -> None:
         """``adopt``: a lab that serves (``twin lab serve``) takes campaigns as they are submitted; ``adopt(name,
@@ -87,7 +94,7 @@ class LiveLab:
         self._rebuilt, self._inputs = rebuilt, inputs
         self._fed: list[Any] = []
         self.parts = dict(parts)
-        self._adopt = adopt
+        self._adopt, self._admit = adopt, admit
         self.observer = observer
         self.seats = {name: LiveSeat(self, scenarios[name], bus, clock, *parts[name], campaign_id=name,
                                      core=self.shared.cores[name], observer=self._feed(name))
@@ -181,9 +188,11 @@ class LiveLab:
                 handle.cancel()
 
     # -- the desk's side ------------------------------------------------------------------
-    def submit(self, body: dict[str, Any]) -> dict[str, Any]:
-        """``twin submit``: a campaign file's text in ``file``; the answer names its journal, or why not."""
-        if self._adopt is None:
+    async def submit(self, body: dict[str, Any]) -> dict[str, Any]:
+        """``twin submit``: a campaign file's text in ``file``; the answer names its journal and what the checks
+        and a few trial experiments on the twin warn of it (a live lab's own file is tried before the lab starts:
+        twin/runtime/trial.py), or why it is refused. It starts once tried."""
+        if self._adopt is None or self._admit is None:
             raise ValueError(f"lab {self.lab.lab} runs the campaigns of its file; to take more, serve it with "
                              "`twin lab serve`")
         text, who = body.get("file"), str(body.get("who", ""))[:64]
@@ -196,10 +205,12 @@ class LiveLab:
             if entry.after is not None or entry.start_h:
                 raise ScenarioError(entry.name, ["after / start_h: a submitted campaign starts when it is "
                                                  "submitted; leave them out"])
-            if entry.name in self.shared.entries:
-                raise ScenarioError(entry.name, [f"name: the lab has a campaign {entry.name!r} already: give the "
-                                                 "new one another name"])
-            scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), f"campaign {entry.name}")
+            self._refuse_taken(entry.name)
+            scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), label)
+            self._admit(entry.name, scenario)  # refused before any of its code is imported or tried
+            warnings = await self._tried(entry.name, scenario)
+            self._refuse_taken(entry.name)  # submitted by another, or the lab stopped, while it was tried
+            scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), label)
             parts = self._adopt(entry.name, scenario)
         except ScenarioError as exc:
             return {"ok": False, "error": str(ScenarioError(exc.source or label, exc.problems))}
@@ -215,7 +226,24 @@ class LiveLab:
         self._handles += seat.on_bus()
         seat.note("campaign.submitted", {"who": who, "priority": entry.priority, "owner": entry.owner})
         self.kick_soon()
-        return {"ok": True, "campaign": entry.name, "journal": parts[0].label, "lab_hours": self.clock.now() / 3600}
+        return {"ok": True, "campaign": entry.name, "journal": parts[0].label, "lab_hours": self.clock.now() / 3600,
+                "warnings": warnings}
+
+    def _refuse_taken(self, name: str) -> None:
+        refusal = self.shared.refusal(name)
+        if refusal:
+            raise ScenarioError(name, [refusal])
+
+    async def _tried(self, name: str, scenario: Scenario) -> list[str]:
+        """What the checks and a few trial experiments on the twin warn of campaign ``name``, each said on the lab's
+        log too; nothing on a virtual clock, where the campaign is its own trial."""
+        if self.clock.is_virtual:
+            return []
+        stop = f"`twin ctl stop {ctl_options(self.lab, name, self.bus.listening) or f'--campaign {name}'}` stops it"
+        warnings = await submitted_warnings(scenario, name, stop)
+        for warning in warnings:
+            log.warning("campaign %s: %s", name, warning)
+        return warnings
 
     def status(self) -> dict[str, Any]:
         """The lab's campaigns: each one's state, experiments and priority; and its one scheduler ("": each

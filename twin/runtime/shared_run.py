@@ -303,12 +303,15 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
         trusted = {spec for cs in [s, *scenarios.values()] for spec in module_plugins(cs).values()}
         own_files = {value for cs in [s, *scenarios.values()] for value in submitted_files(cs).values()}
 
-        def adopt(name: str, cs: Scenario) -> tuple:
+        def admit(name: str, cs: Scenario) -> None:
             _refuse_agents({name: cs})
             if not trust_modules:
                 refuse_module_plugins(name, cs, trusted)
                 refuse_outside_files(name, cs, own_files)
             check_campaign(cs)
+
+        def adopt(name: str, cs: Scenario) -> tuple:
+            admit(name, cs)
             mine = {a.name for a in actors}
             _, per = shared_drivers({name: cs}, only=mine) if mine else ([], {})
             for actor in actors:
@@ -322,7 +325,8 @@ async def _live(s: Scenario, clock: LabClock, scenarios: dict[str, Scenario], dr
             if hasattr(one, "close"):
                 stack.callback(one.close)
         lab = LiveLab(s, scenarios, bus, clock, {n: seat_parts(n, scenarios[n], p) for n, p in parts.items()},
-                      adopt if serving is not None else None, observer, inputs, rebuilt, one)
+                      adopt if serving is not None else None, admit if serving is not None else None, observer,
+                      inputs, rebuilt, one)
         if observer is not None and not clock.is_virtual:  # a virtual clock has no live viewer to keep up with
             stack.callback(asyncio.ensure_future(flush_live(clock, observer)).cancel)
         try:

@@ -4,20 +4,25 @@ would otherwise be found a whole campaign later — on a live lab, after its fir
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import io
+import json
 import logging
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from twin.core import plugins
+from twin.core.clock import wall_on_loop
 from twin.core.counts import counted
 from twin.core.held import log as held_log
 from twin.scenario import Scenario
 
 TRIALS = 3
+SUBMITTED_WAIT_S = 60.0  # a child process importing the lab's plugins and running the trial: ~1 s here
 HELD_LOGGER = held_log.name
 log = logging.getLogger(__name__)
 
@@ -40,10 +45,11 @@ def trial_warnings(s: Scenario, path: str | Path) -> list[str]:
     return [w for i, (name, c) in enumerate(each.items()) if (w := trial_warning(c, path, f"campaigns.{i} ({name}): "))]
 
 
-def trial_warning(s: Scenario, path: str | Path, where: str = "") -> str:
+def trial_warning(s: Scenario, path: str | Path, where: str = "", then: str | None = None) -> str:
     """'' if a trial experiment of ``s`` got through, or none was run (a job shop, a planner that may plan routes of
     its own, a driver that needs its instrument and has no twin); else what stopped all of them, as a warning about the file
-    at ``path``. ``where``: the campaign's place in a shared lab ("campaigns.0 (dots): ")."""
+    at ``path``. ``where``: the campaign's place in a shared lab ("campaigns.0 (dots): "); ``then``: what to do
+    (by default, run the file on a virtual clock to see where)."""
     if s.jobshop is not None or not _runs_the_workflow(s.campaign.planner):
         return ""
     from twin.runtime.assembly import prepare
@@ -67,7 +73,35 @@ def trial_warning(s: Scenario, path: str | Path, where: str = "") -> str:
     return (f"{where}workflow: {counted(summary.proposed, 'trial experiment', 'trial experiments')} on the twin "
             "(random parameters from the chemistry's ranges, faults off, virtual clock) "
             f"{'was' if summary.proposed == 1 else 'were all'} abandoned ({example}), so every experiment of the "
-            f"campaign may be: `twin run {path} --clock virtual` shows where")
+            f"campaign may be: {f'`twin run {path} --clock virtual` shows where' if then is None else then}")
+
+
+async def submitted_warnings(s: Scenario, name: str, then: str) -> list[str]:
+    """What `twin validate` would warn of campaign ``name`` submitted to a served lab (``s``, what it runs): the
+    checks' warnings and the trial's, found in a child process — the trial's logging and output are the process's
+    own, and the lab's loop goes on meanwhile. None after ``SUBMITTED_WAIT_S``, or from a child that failed."""
+    child = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "twin.runtime.trial_child", then, stdin=asyncio.subprocess.PIPE,
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL)
+    out: bytes | None = None
+    try:  # wall time: an OS process's, not the lab's
+        out, _ = await asyncio.wait_for(child.communicate(s.model_dump_json().encode()),
+                                        wall_on_loop(SUBMITTED_WAIT_S))
+    except asyncio.TimeoutError:
+        log.warning("campaign %s was not tried on the twin: its trial took more than %g s", name, SUBMITTED_WAIT_S)
+        return []
+    finally:
+        if child.returncode is None:  # timed out, or the lab stopped meanwhile
+            with contextlib.suppress(ProcessLookupError):
+                child.kill()
+    try:
+        said = json.loads(out)
+    except ValueError:
+        said = None
+    if child.returncode != 0 or not isinstance(said, list):
+        log.warning("campaign %s was not tried on the twin: its trial failed (exit %s)", name, child.returncode)
+        return []
+    return [str(w) for w in said]
 
 
 def _runs_the_workflow(planner: str) -> bool:
