@@ -46,6 +46,19 @@ def test_numbers_and_paths_a_notebook_computes_are_taken_as_the_file_would_give_
         twin.prepare(raw)
 
 
+def test_a_field_set_from_python_is_checked_as_the_files_would_be():
+    """`s.campaign.budget = -3` on a loaded scenario was taken as it was, and the run proposed nothing."""
+    from pydantic import ValidationError
+
+    s = twin.load_scenario(FLAKY)
+    with pytest.raises(ValidationError, match=r"budget\n.*greater than"):
+        s.campaign.budget = -3
+    with pytest.raises(ValidationError, match=r"instances"):
+        s.devices["reactor"].instances = "two"
+    s.campaign.budget = 3
+    assert twin.run(s, bus="memory").proposed == 3
+
+
 def test_a_mapping_with_a_problem_is_named_as_a_mapping_with_the_field():
     raw = yaml.safe_load(FLAKY.read_text())
     raw["devices"]["reactor"]["instances"] = "two"

@@ -19,5 +19,7 @@ IntRange = Annotated[tuple[int, int], Strict(False)]
 
 
 class Spec(BaseModel):
-    # strict: `budget: true` or `instances: "2"` is a mistake, not a number; no infinities or NaNs anywhere
-    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, validate_default=True)
+    # strict: `budget: true` or `instances: "2"` is a mistake, not a number; no infinities or NaNs anywhere; a
+    # field set from Python (`s.campaign.budget = -3` in a notebook) is checked as the file's would be
+    model_config = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False, validate_default=True,
+                              validate_assignment=True)
