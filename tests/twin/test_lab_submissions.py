@@ -316,10 +316,13 @@ def test_a_submitted_campaign_no_experiment_gets_through_is_warned_of_in_the_ans
     answers: dict = {}
 
     def started(lab) -> None:
-        async def ask() -> None:
-            for c in (unreacted, fine):
-                answers[c["name"]] = json.loads(await lab.desk.serve("labtwin/shared/control/submit",
-                                                                     json.dumps({"file": json.dumps(c)}).encode()))
+        async def submit(c: dict) -> dict:
+            return json.loads(await lab.desk.serve("labtwin/shared/control/submit",
+                                                   json.dumps({"file": json.dumps(c)}).encode()))
+
+        async def ask() -> None:  # at once: the second 'fine' is told the name is taken once it has been tried
+            said = await asyncio.gather(*(submit(c) for c in (unreacted, fine, fine)))
+            answers.update(zip(("unreacted", "fine", "fine again"), said))
             lab.stop("test over")
         asyncio.ensure_future(ask())
 
@@ -330,3 +333,6 @@ def test_a_submitted_campaign_no_experiment_gets_through_is_warned_of_in_the_ans
     assert "cannot measure a sample of kind 'feed'" in warned["warnings"][0]
     assert warned["warnings"][0].endswith("`twin ctl stop --campaign unreacted` stops it")
     assert answers["fine"]["ok"] is True and answers["fine"]["warnings"] == []
+    again = answers["fine again"]
+    assert again["ok"] is False and "the lab has a campaign 'fine' already" in again["error"], again
+    assert sorted(p.stem for p in tmp_path.glob("*.db")) == ["catalyst", "fine", "unreacted"]

@@ -95,6 +95,7 @@ class LiveLab:
         self._fed: list[Any] = []
         self.parts = dict(parts)
         self._adopt, self._admit = adopt, admit
+        self._trying = asyncio.Lock()
         self.observer = observer
         self.seats = {name: LiveSeat(self, scenarios[name], bus, clock, *parts[name], campaign_id=name,
                                      core=self.shared.cores[name], observer=self._feed(name))
@@ -240,7 +241,8 @@ class LiveLab:
         if self.clock.is_virtual:
             return []
         stop = f"`twin ctl stop {ctl_options(self.lab, name, self.bus.listening) or f'--campaign {name}'}` stops it"
-        warnings = await submitted_warnings(scenario, name, stop)
+        async with self._trying:  # one child process at a time, however many submit at once
+            warnings = await submitted_warnings(scenario, name, stop)
         for warning in warnings:
             log.warning("campaign %s: %s", name, warning)
         return warnings
