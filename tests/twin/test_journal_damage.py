@@ -1,6 +1,7 @@
 """A journal that is missing, not one, cut short or altered by hand: `twin report`, `resume`, `replay` and `export`
 name what is wrong (the file, the row, the run-table entry) and exit 2, never a traceback."""
 
+import json
 import sqlite3
 from pathlib import Path
 
@@ -116,3 +117,18 @@ def test_a_journal_altered_in_its_run_or_experiments_is_refused_naming_what(tmp_
         res = twin_cli(command, str(db), *args.get(command, []))
         out = " ".join(res.output.split())
         assert res.exit_code == 2 and says in out, (command, out)  # a traceback exits 1
+
+
+@pytest.mark.parametrize("name", ["run.db", "run #1.db", "run%20a.db", "what?.db"])
+def test_reading_a_journal_leaves_nothing_beside_it_whatever_its_name(tmp_path, name):
+    """Read-only connections cannot remove the -wal and -shm files they make: `twin report` left both beside every
+    journal it read. And the name went into an SQLite URI unquoted: 'run #1.db' opened (and made) an empty 'run ',
+    'run%20a.db' was 'unable to open'."""
+    from twin.runtime.lab import run
+
+    journal = tmp_path / name
+    run(ROOT / "scenarios" / "quantum_dots.yaml", journal=journal, overrides={"campaign.budget": 3})
+    assert [p.name for p in tmp_path.iterdir()] == [name]
+    res = twin_cli("report", journal, "--json")
+    assert res.exit_code == 0 and json.loads(res.stdout)["summary"]["done"] == 3, res.stderr
+    assert [p.name for p in tmp_path.iterdir()] == [name]

@@ -4,8 +4,10 @@ the rows after."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sqlite3
+import urllib.parse
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -32,8 +34,12 @@ def reading(path: str | Path) -> Iterator[sqlite3.Connection]:
     if not Path(path).stat().st_size:
         raise NotAJournal(f"{path}: empty — the name a run claimed for its journal, and the run was stopped before it "
                           "wrote anything (or the file is not a journal); nothing to report, resume or export")
+    # read-write opened, and read-only asked: a connection opened read-only cannot remove the -wal and -shm files it
+    # makes beside a finished run's journal, and left them there; the name quoted, or '#' or '%20' in it misread
+    uri = f"file:{urllib.parse.quote(str(path))}?mode=rw"
     try:
-        with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as db:
+        with contextlib.closing(sqlite3.connect(uri, uri=True)) as db:
+            db.execute("PRAGMA query_only = 1")
             yield db
     except sqlite3.DatabaseError as exc:  # not SQLite, or not ours
         raise _not_ours(path, exc) from None
