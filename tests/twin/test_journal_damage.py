@@ -132,3 +132,21 @@ def test_reading_a_journal_leaves_nothing_beside_it_whatever_its_name(tmp_path, 
     res = twin_cli("report", journal, "--json")
     assert res.exit_code == 0 and json.loads(res.stdout)["summary"]["done"] == 3, res.stderr
     assert [p.name for p in tmp_path.iterdir()] == [name]
+
+
+def test_the_commands_a_run_names_for_its_files_run_as_pasted(tmp_path):
+    """`journal: runs/j #1.db  (twin report runs/j #1.db)`: pasted into a shell, '#' began a comment."""
+    import re
+    import shlex
+
+    journal, saved = tmp_path / "j #1.db", tmp_path / "r #1.rrd"
+    res = twin_cli("run", ROOT / "scenarios" / "quantum_dots.yaml", "--budget", "2", "--journal", journal, "--save",
+                   saved, columns=400)
+    assert res.exit_code == 0, res.stderr
+    report = re.search(r"\((twin report [^)]+)\)", res.stdout)
+    viewer = re.search(r"open it with: (rerun .+)\)$", res.stderr, re.M)
+    assert report and viewer, (res.stdout[-300:], res.stderr[-300:])
+    assert shlex.split(viewer[1]) == ["rerun", str(saved)]
+    words = shlex.split(report[1])
+    assert words == ["twin", "report", str(journal)]
+    assert twin_cli(*words[1:]).exit_code == 0

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Annotated, Optional
 import typer
 from rich.table import Table
 
+from twin.core.printable import shell_word
 from twin.cli.common import (bar_progress, bench_app, err, _fail, fitted_width, machine_output, narrow_table,
                              paired_assignments, print_table, refuse_disagreeing, say_ended_early, writable)
 from twin.cli.stopping import interruptible, part_done, stopped_partway
@@ -70,7 +71,8 @@ def one_campaign(s: Scenario, path: Path, what: str) -> Scenario:
         return s
     names = ", ".join(c.name for c in s.campaigns)
     raise TwinError(f"{path}: a lab of {len(s.campaigns)} campaigns ({names}), and `twin bench {what}` compares "
-                    f"{what} on one campaign; `twin whatif {path} --{what} A,B` runs the lab with each (in every "
+                    f"{what} on one campaign; `twin whatif {shell_word(path)} --{what} A,B` runs the lab with each "
+                    "(in every "
                     f"campaign) and gives each campaign's lab-hours, or bench one campaign's own scenario (its "
                     f"chemistry, workflow and campaign with the lab's devices)")
 

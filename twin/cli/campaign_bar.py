@@ -9,6 +9,7 @@ from pathlib import Path
 
 from rich.markup import escape
 
+from twin.core.printable import shell_word
 from twin.cli.common import _fail, bar_progress, console, err, keep_serving
 from twin.cli.stopping import exit_if_interrupted
 from twin.core.errors import TwinError
@@ -76,8 +77,9 @@ def run_campaign(s, record: RecordOptions, quiet: bool, json_out: bool, call,
             recording.close()
         except TwinError as exc:
             recording.stop_serving()
-            _fail(TwinError(f"{exc} (twin replay {summary.journal} --save FILE)"))
+            _fail(TwinError(f"{exc} (twin replay {shell_word(summary.journal)} --save FILE)"))
         if record.save:
-            err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
+            err.print(f"recording saved: {record.save}  (open it with: rerun {shell_word(record.save)})",
+                      highlight=False)
         keep_serving(recording, summary.stopped)
     exit_if_interrupted(summary.stopped)

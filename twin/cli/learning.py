@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 
+from twin.core.printable import shell_word
 from twin.core import plugins
 from twin.cli.common import app, assignments, bar_progress, console, err, _fail, recording_file, writable
 from twin.cli.stopping import exit_status, sigterm_unwinds, stopped_by
@@ -145,21 +146,22 @@ def kept_round(path: Path, s: Scenario, scenario: Path) -> str:
     best = min(scored, key=lambda c: c["score"])
     verdict = ("it did better than the rule" if best["score"] < 0.995 else "level with the rule"
                if best["score"] <= 1.005 else "the rule did better (train longer, or keep the rule)")
+    where, policy = shell_word(scenario), shell_word(f"{rule},rl:{path}")
     if s.campaigns:
-        compare = f"in each campaign of the lab: twin whatif {scenario} --schedulers {rule},rl:{path}"
+        compare = f"in each campaign of the lab: twin whatif {where} --schedulers {policy}"
     elif s.jobshop is not None:
-        compare = f"on shops it never trained on: twin bench schedulers {scenario} --jobshop DIR --schedulers " \
-                  f"{rule},rl:{path}"
+        compare = f"on shops it never trained on: twin bench schedulers {where} --jobshop DIR --schedulers {policy}"
     else:
-        compare = (f"on the lab's variants, 40 paired seeds: twin bench schedulers {scenario} --shapes --seeds 40 "
-                   f"--schedulers {rule},rl:{path}")
+        compare = (f"on the lab's variants, 40 paired seeds: twin bench schedulers {where} --shapes --seeds 40 "
+                   f"--schedulers {policy}")
     said = (f"kept the round at {best['steps']:,} steps: score {best['score']:.3f}, its objective ÷ the best rule's "
             f"({rule}) on the evaluation runs (below 1 is better): {verdict}. Compare them {compare}")
     solver = best.get("vs cp-sat")
     if isinstance(solver, (int, float)) and solver > 1.03 and not s.campaigns and s.jobshop is None:
         # a learnt policy imitates a rule there (cp-sat teaches job shops only): the better schedules exist
         said += (f". CP-SAT, scheduling the lab online, did {100 * (1 - 1 / solver):.0f} % better than it on the "
-                 f"evaluation run (vs cp-sat {solver:.2f}): compare it too (--schedulers {rule},cp-sat,rl:{path}), or run the "
+                 f"evaluation run (vs cp-sat {solver:.2f}): compare it too (--schedulers "
+                 f"{shell_word(f'{rule},cp-sat,rl:{path}')}), or run the "
                  "lab with campaign.scheduler: cp-sat (up to campaign.scheduler_options.time_limit_s of wall time "
                  "a decision)")
     return said

@@ -10,6 +10,7 @@ from typing import Annotated, Any
 import typer
 from rich.markup import escape
 
+from twin.core.printable import shell_word
 from twin.cli.common import _fail, app, console
 from twin.core.errors import TwinError
 
@@ -105,7 +106,7 @@ def _render(state: dict[str, Any]) -> None:
                           highlight=False, soft_wrap=True)
             return
         console.print(f"{journal}: interrupted — the run of {got['scenario']} was killed before it finished. It got "
-                      f"to {so_far}. Continue it with: twin resume {state['resume_with']}",
+                      f"to {so_far}. Continue it with: twin resume {shell_word(state['resume_with'])}",
                       highlight=False, soft_wrap=True)
         return
     from twin.view.report import render_summary

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Annotated, Optional
 import typer
 from rich.markup import escape
 
+from twin.core.printable import shell_word
 from twin.cli.common import _fail, app, check_lab_name, console, err, keep_serving, lab_app, speed_heeded
 from twin.cli.stopping import exit_if_interrupted
 from twin.cli.printable import log_to_stderr
@@ -70,7 +71,8 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
     if recording is not None:
         recording.close()
         if record.save:
-            err.print(f"recording saved: {record.save}  (open it with: rerun {record.save})", highlight=False)
+            err.print(f"recording saved: {record.save}  (open it with: rerun {shell_word(record.save)})",
+                      highlight=False)
         keep_serving(recording, " ".join(c.stopped for c in summary.campaigns.values()))
     exit_if_interrupted(*(c.stopped for c in summary.campaigns.values()))
 

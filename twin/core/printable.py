@@ -5,10 +5,13 @@ Written raw, a control character in it would act on the terminal: ``ESC [2J`` cl
 retitles the window, ``CR`` overwrites the line it is on, a bidirectional override reorders what follows.
 ``printable`` shows each as its escape (``\\x1b``) instead; newlines and tabs stay. In a CSV cell, text starting
 with =, +, -, @, a tab or a carriage return runs as a formula when a spreadsheet opens the file: ``inert`` puts a '
-before it.
+before it. A file named in a command a person is told to run is a ``shell_word``: `rerun 'r #1.rrd'`, pasted as it
+is shown, opens that file.
 """
 
 from __future__ import annotations
+
+import shlex
 
 _ESCAPED = {c: f"\\x{c:02x}" for c in (*range(0x20), 0x7F, *range(0x80, 0xA0)) if chr(c) not in "\n\t"}
 _ESCAPED |= {c: f"\\u{c:04x}" for c in (*range(0x202A, 0x202F), *range(0x2066, 0x206A))}
@@ -27,3 +30,8 @@ def inert(value: object) -> object:
         except ValueError:
             return "'" + value
     return value
+
+
+def shell_word(value: object) -> str:
+    """``value`` as one word of a shell command: as it is, or quoted where it has a space, '#', '?', a quote..."""
+    return shlex.quote(str(value))

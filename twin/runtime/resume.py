@@ -23,6 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from twin.core.printable import shell_word
 from twin.campaign import CampaignCore
 from twin.campaign.journal import Journal
 from twin.campaign.journal_read import read_events, read_inputs, read_run, reading
@@ -82,20 +83,22 @@ def recorded(path: str | Path) -> tuple[Scenario, list[tuple]]:
     path = Path(path)
     data = read_run(path)
     if "lab" in data:
-        raise ResumeError(f"{path}: a campaign of a lab of several, which resumes as one: twin resume {path.parent}")
+        raise ResumeError(f"{path}: a campaign of a lab of several, which resumes as one: twin resume "
+                          f"{shell_word(path.parent)}")
     summary = data.get("summary")
     if summary is not None:
         stopped = summary.get("stopped") if isinstance(summary, dict) else None
         if stopped and "resumable" not in summary:
             raise ResumeError(f"{path}: the campaign was stopped ({stopped}) by a labtwin older than the resume of a "
                               "stopped campaign, and its summary does not say whether the stop came from outside: "
-                              f"run it again (twin run); twin report {path} shows how far it got")
+                              f"run it again (twin run); twin report {shell_word(path)} shows how far it got")
         if stopped and not summary.get("resumable"):
             raise ResumeError(f"{path}: the campaign ended ({stopped}), not stopped from outside (Ctrl-C, SIGTERM, "
                               f"twin ctl stop): resumed, it would end the same way; run it again (twin run) with what "
-                              f"it lacked, and twin report {path} shows how far it got")
+                              f"it lacked, and twin report {shell_word(path)} shows how far it got")
         if not stopped:
-            raise ResumeError(f"{path}: the campaign finished; nothing to resume (twin report {path} shows it)")
+            raise ResumeError(f"{path}: the campaign finished; nothing to resume (twin report {shell_word(path)} "
+                              "shows it)")
     if "scenario" not in data:
         raise ResumeError(f"{path}: the journal holds no scenario; it was killed before it began")
     prefix = [tuple(row.values()) for row in read_events(path)]  # in the table's column order; damage is named

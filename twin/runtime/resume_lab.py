@@ -19,6 +19,7 @@ import shutil
 import time
 from pathlib import Path
 
+from twin.core.printable import shell_word
 from twin.campaign.journal import Journal
 from twin.campaign.journal_read import read_events, read_inputs, read_run
 from twin.campaign.lab_replay import rebuild_lab
@@ -51,7 +52,7 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
         prefixes[db.stem] = [tuple(row.values()) for row in read_events(db)]  # damage is named
         if "lab" not in data:
             raise ResumeError(f"{db}: the journal does not say which lab file it ran in (a campaign run on its own: "
-                              f"twin resume {db}; or a lab run before labs journalled it: run it again)")
+                              f"twin resume {shell_word(db)}; or a lab run before labs journalled it: run it again)")
         lab = lab or data["lab"]
         scenarios[db.stem] = data.get("scenario")
         summary = data.get("summary")
@@ -61,16 +62,17 @@ def recorded_lab(path: str | Path) -> tuple[Scenario, dict[str, list[tuple]]]:
             if why and "resumable" not in summary:
                 raise ResumeError(f"{db}: the campaign was stopped ({why}) by a labtwin older than the resume of a "
                                   "stopped lab, and its summary does not say whether the stop came from outside: run "
-                                  f"the lab again (twin run); twin report {db} shows how far it got")
+                                  f"the lab again (twin run); twin report {shell_word(db)} shows how far it got")
             stopped = stopped or why
             resumable = resumable or (why if isinstance(summary, dict) and summary.get("resumable") else "")
     if len(ended) == len(dbs) and stopped and not resumable:
         raise ResumeError(f"{where}: the lab ended ({stopped}): its campaigns ended on their own or their operators "
                           "stopped them, not the lab as a whole by Ctrl-C or SIGTERM, and resumed it would end the "
-                          f"same way; run it again (twin run), and twin report {dbs[0]} shows how far one got")
+                          f"same way; run it again (twin run), and twin report {shell_word(dbs[0])} shows how far one "
+                          "got")
     if len(ended) == len(dbs) and not resumable:
         raise ResumeError(f"{where}: every campaign of the lab finished; nothing to resume (twin report "
-                          f"{dbs[0]} shows one)")
+                          f"{shell_word(dbs[0])} shows one)")
     s = parse(lab, f"{dbs[0]}: the journal's lab file", lab_only=True)  # a served lab's file may have no workflow
     for name, cs in campaign_scenarios(s, s.name).items():
         if name in scenarios and parse(scenarios[name], f"{where / (name + '.db')}: the journal's scenario"

@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from twin.core.printable import shell_word
 from twin.core import plugins
 from twin.core.clock import wall_on_loop
 from twin.core.counts import counted
@@ -70,10 +71,11 @@ def trial_warning(s: Scenario, path: str | Path, where: str = "", then: str | No
     if not summary.proposed or summary.abandoned < summary.proposed:
         return ""
     example = next(iter(summary.abandoned_examples.values()), "")
+    then = f"`twin run {shell_word(path)} --clock virtual` shows where" if then is None else then
     return (f"{where}workflow: {counted(summary.proposed, 'trial experiment', 'trial experiments')} on the twin "
             "(random parameters from the chemistry's ranges, faults off, virtual clock) "
             f"{'was' if summary.proposed == 1 else 'were all'} abandoned ({example}), so every experiment of the "
-            f"campaign may be: {f'`twin run {path} --clock virtual` shows where' if then is None else then}")
+            f"campaign may be: {then}")
 
 
 async def submitted_warnings(s: Scenario, name: str, then: str) -> list[str]:

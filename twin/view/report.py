@@ -11,7 +11,7 @@ from rich.text import Text
 
 from twin.campaign.summary import LabSummary, Summary, busy_rows, cost_text, losses_text, quarantines_text
 from twin.core.counts import counted, quantity
-from twin.core.printable import printable
+from twin.core.printable import printable, shell_word
 
 
 def lab_span(seconds: float, digits: int = 2, prefix: str = "") -> str:
@@ -88,8 +88,8 @@ def render_summary(s: Summary, console: Console, resume_with: Any = None) -> Non
     elif s.ended:
         t.add_row("ended", escape(s.ended))
     console.print(t)
-    more = f"; continue it with twin resume {resume_with or s.journal}" if s.resumable else ""
-    console.print(f"journal: {s.journal}  (twin report {s.journal}{more})", soft_wrap=True, highlight=False,
+    more = f"; continue it with twin resume {shell_word(resume_with or s.journal)}" if s.resumable else ""
+    console.print(f"journal: {s.journal}  (twin report {shell_word(s.journal)}{more})", soft_wrap=True, highlight=False,
                   markup=False)
 
 
@@ -119,6 +119,7 @@ def render_lab_summary(s: LabSummary, console: Console) -> None:
     busy = ", ".join(f"{d} {100 * u:.0f} %" for d, u in s.utilisation.items())
     console.print(f"lab time {s.lab_hours:.2f} h ({s.wall_s:.2f} s wall); devices busy: {busy}", highlight=False,
                   soft_wrap=True, markup=False)
-    more = f"; continue it with twin resume {s.journals}" if any(c.resumable for c in s.campaigns.values()) else ""
-    console.print(f"journals: {s.journals}/<campaign>.db  (twin report {s.journals}{more})", highlight=False,
-                  soft_wrap=True, markup=False)
+    resumable = any(c.resumable for c in s.campaigns.values())
+    more = f"; continue it with twin resume {shell_word(s.journals)}" if resumable else ""
+    console.print(f"journals: {s.journals}/<campaign>.db  (twin report {shell_word(s.journals)}{more})",
+                  highlight=False, soft_wrap=True, markup=False)
