@@ -12,7 +12,7 @@ import typer
 from twin.cli.common import _fail, app, console, device_app, driver_app, err, scheduler_app, security_app, writable
 from twin.cli.stopping import exit_status, sigterm_unwinds, stopped_by
 from twin.cli.printable import log_to_stderr
-from twin.core.printable import inert, printable
+from twin.core.printable import inert, printable, shell_word
 from twin.core.errors import TwinError
 
 SecurityOpt = Annotated[Optional[Path], typer.Option(help="the lab's security directory (twin security init): "
@@ -96,11 +96,12 @@ def security_init(
     except OSError as exc:
         _fail(TwinError(f"{directory}: cannot write the security directory there ({exc.strerror or exc}): give a "
                         "directory you can write"))
+    secured = f"--connect {endpoint} --security {shell_word(directory)}"
     console.print(f"wrote {len(written)} files to {directory}\n"
-                  f"  router:  twin router --listen {endpoint} --security {directory}\n"
+                  f"  router:  twin router --listen {endpoint} --security {shell_word(directory)}\n"
                   f"  lab:     bus: {{kind: zenoh, connect: [{endpoint}], security: {directory}}} in the scenario\n"
-                  f"  device:  twin device serve SCENARIO --id ID --connect {endpoint} --security {directory}\n"
-                  f"  watcher: twin watch --lab {lab} --connect {endpoint} --security {directory} --save w.rrd\n"
+                  f"  device:  twin device serve SCENARIO --id ID {secured}\n"
+                  f"  watcher: twin watch --lab {lab} {secured} --save w.rrd\n"
                   f"  keep {directory / 'private'} (the CA's key) off the lab's machines", highlight=False, markup=False)
 
 

@@ -141,7 +141,7 @@ def lab_serve(
 
         def started(live) -> None:
             where = [*s.bus.connect, *live.bus.listening][:1] or ["..."]
-            secured = f" --security {s.bus.security}" if s.bus.security else ""
+            secured = f" --security {shell_word(s.bus.security)}" if s.bus.security else ""
             err.print(f"serving lab {s.lab} ({s.clock.mode} clock"
                       f"{f', {s.clock.speed:g}x' if s.clock.mode == 'scaled' else ''}) with "
                       f"{counted(len(s.campaigns), 'campaign', 'campaigns')}; `twin submit CAMPAIGN.yaml --lab {s.lab} "

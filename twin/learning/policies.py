@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from twin.core.printable import shell_word
 from twin.core.errors import PluginError
 from twin.core.whole_files import written_whole
 from twin.learning.policy_file import safe_objects
@@ -70,7 +71,8 @@ def load_policy(path: str | Path, kind: str, signature: dict[str, Any]) -> Any:
     """The policy at ``path``, checked to be a ``kind`` policy trained for a lab of this ``signature``."""
     path = Path(path)
     if not path.exists():
-        raise PluginError(f"policy {path} does not exist; train one with `twin train SCENARIO --agent {kind} --out {path}`")
+        raise PluginError(f"policy {path} does not exist; train one with `twin train SCENARIO --agent {kind} --out "
+                          f"{shell_word(path)}`")
     if why := not_a_file(path):
         raise PluginError(f"{path} {why}; policies are saved by `twin train`")
     meta = read_meta(path)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+from twin.core.printable import shell_word
 from twin.core.counts import quantity
 from twin.campaign.events import ALERT_LOGGER
 from twin.core.clock import LabClock
@@ -29,7 +30,7 @@ def ctl_options(s: Scenario, campaign: str | None, listening: list[str] | None =
     return " ".join([f"--lab {s.lab}", *(["--campaign", campaign] if campaign else []),
                      f"--connect {where}" if where else "--connect ENDPOINT (a port the lab chose: give it --listen "
                      "tcp/127.0.0.1:PORT to know it)",
-                     *(["--security", str(s.bus.security)] if s.bus.security else [])])
+                     *(["--security", shell_word(s.bus.security)] if s.bus.security else [])])
 
 
 def _reached_at(s: Scenario, listening: list[str]) -> str:
