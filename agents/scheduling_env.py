@@ -138,6 +138,9 @@ class SchedulingEnv(gym.Env):
         c = self.campaign
         t0, (deg0, ab0) = c.now, self._marks
         penalty = 0.0
+        if not 0 <= int(action) < len(self._mask):  # -1 read the last entry, 10**6 an IndexError from numpy
+            raise ValueError(f"action {action} is outside the action space {self.action_space} (0 to "
+                             f"{len(self._mask) - 1}; action_masks() says which of them may be taken now)")
         if not self._mask[int(action)]:  # unmasked sampling (a plain PPO, the env checker): never stall the lab
             action, penalty = int(np.flatnonzero(self._mask)[0]), INVALID_PENALTY
         c.answer(self.encoder.decode(c.view, action))

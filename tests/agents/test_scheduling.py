@@ -73,6 +73,20 @@ def test_masks_allow_exactly_the_valid_pairs_under_faults(flaky):
     assert checked > 100
 
 
+def test_an_action_outside_the_space_is_refused_and_a_masked_one_costs_a_penalty(flaky):
+    env = SchedulingEnv(flaky)
+    try:
+        env.reset(seed=0)
+        mask = env.action_masks()
+        for action in (-1, len(mask), 10**6):  # -1 took the last action, silently
+            with pytest.raises(ValueError, match=rf"action {action} is outside the action space Discrete"):
+                env.step(action)
+        _, reward, _, _, _ = env.step(int(np.flatnonzero(~mask)[0]))  # a plain PPO's: the lab goes on
+        assert reward <= -1.0
+    finally:
+        env.close()
+
+
 def test_the_same_seed_gives_the_same_episode(flaky):
     def episode(seed):
         env = SchedulingEnv(flaky)
