@@ -140,6 +140,9 @@ class PlanningEnv(gym.Env):
         return self._obs(), {"distance": self._best.distance}
 
     def step(self, action):
+        if np.isnan(np.asarray(action, dtype=float)).any():  # it proposed NaN parameters to the chemistry
+            raise ValueError(f"action {action} holds NaN (a policy whose weights or inputs diverged?): each entry "
+                             "is a move from -1 to 1 along one parameter")
         before = self._best.distance
         self._last = self._experiment(move(self._best.u, np.asarray(action, dtype=float)))
         if self._last.distance < self._best.distance:

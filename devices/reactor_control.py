@@ -11,6 +11,8 @@ selectivity and cannot be undone, while running cold only costs time.
 
 from __future__ import annotations
 
+import math
+
 from typing import Any
 
 import gymnasium as gym
@@ -52,6 +54,9 @@ class PolicyController:
 
 
 def command(mode: str, action: float, pid: thermal.Pid, error: float, dt: float) -> float:
+    if math.isnan(action):  # it passed the clip and heated with NaN from then on (infinities are clipped)
+        raise ValueError("the heater's action is NaN (a policy whose weights or inputs diverged?): a number from -1 "
+                         "to 1 is the heater's command")
     action = min(max(action, -1.0), 1.0)
     if mode == "pure":
         return (action + 1.0) / 2.0 * thermal.U_MAX_K

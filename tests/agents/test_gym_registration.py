@@ -103,3 +103,22 @@ def test_the_reactor_picture_draws_the_temperature_where_it_is():
     red = np.flatnonzero((column == np.array([228, 87, 86], np.uint8)).all(axis=1))
     assert len(red) and abs(red.mean() - y) <= 3, (red, y)
     env.close()
+
+
+@pytest.mark.parametrize("env_id", ["labtwin/Planning-v0", "labtwin/ReactorControl-v0"])
+def test_a_nan_action_is_refused_before_it_reaches_the_lab(env_id):
+    """A diverged policy's NaN went on to the chemistry as parameters (Planning) or to the heater, whose temperature
+    was NaN from then on (ReactorControl): every reward after it NaN."""
+    import numpy as np
+
+    env = gym.make(env_id).unwrapped
+    try:
+        env.reset(seed=0)
+        with pytest.raises(ValueError, match="NaN"):
+            env.step(np.full(env.action_space.shape, np.nan, dtype=np.float32))
+        _, reward, *_ = env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+        assert np.isfinite(reward)
+        _, reward, *_ = env.step(np.full(env.action_space.shape, np.inf, dtype=np.float32))  # clipped, as before
+        assert np.isfinite(reward)
+    finally:
+        env.close()
