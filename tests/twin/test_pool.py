@@ -239,3 +239,41 @@ def test_a_worker_ends_with_its_pool_even_when_that_is_killed(tmp_path):
     while alive() and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not alive(), "the worker outlived its pool"
+
+
+STOPPED_IN_A_CALLBACK = """
+import os, signal, sys, weakref
+from twin.tools import pool
+
+pool._start_worker(None, sys.argv[1], os.getppid(), (), None)  # as the pool starts each worker
+pool._running = True  # in a run
+
+
+class Held:
+    pass
+
+
+def freed(_):  # as importlib's module locks are freed: Python prints what such a callback raises, and goes on
+    os.kill(os.getpid(), signal.SIGTERM)
+    for _ in range(1000):  # the handler runs here
+        pass
+
+
+held = Held()
+ref = weakref.ref(held, freed)
+del held
+print("went on")
+"""
+
+
+@pytest.mark.process
+def test_a_stop_that_lands_in_a_callback_python_cannot_raise_from_ends_the_worker_quietly(tmp_path):
+    """A whatif stopped by SIGTERM printed `Exception ignored in: <function _get_module_lock.<locals>.cb ...>` and a
+    traceback from a worker whose stop landed as a module lock was freed; and that worker's run went on."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", STOPPED_IN_A_CALLBACK, str(tmp_path)], capture_output=True, text=True,
+                          timeout=60, cwd=Path(__file__).resolve().parents[2])
+    assert done.returncode == 143 and "went on" not in done.stdout, done
+    assert "Exception ignored" not in done.stderr and "Traceback" not in done.stderr, done.stderr

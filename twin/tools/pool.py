@@ -202,6 +202,7 @@ class _SaidOnce(threading.Thread):
 def _start_worker(then: Callable[[], None] | None, scratch: str, pool: int, once: tuple[str, ...], said: Any) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _exit)
+    sys.unraisablehook = _unraisable
     _ends_with(pool)
     tempfile.tempdir = os.environ["TMPDIR"] = scratch  # SQLite's own temporary files too
     for name in once:
@@ -244,6 +245,15 @@ def _exit(*_: Any) -> None:
     if not _running:  # starting (the executor would print the interrupt as a failed initializer) or between runs
         _leave()
     raise KeyboardInterrupt
+
+
+def _unraisable(what: Any) -> None:
+    """A SIGTERM that lands in code Python cannot raise from (a weakref's callback, as an import's module lock is
+    freed) was printed as 'Exception ignored in ...' with a traceback, and the run went on: the worker leaves at once
+    instead (the pool removes the run's files)."""
+    if _stopped and isinstance(what.exc_value, KeyboardInterrupt):
+        _leave()
+    sys.__unraisablehook__(what)
 
 
 def _leave() -> None:
