@@ -1,5 +1,6 @@
 """A viewer that cannot start never costs the run; --serve binds loopback and serves until Ctrl-C."""
 
+import contextlib
 import os
 import re
 import signal
@@ -115,3 +116,46 @@ def test_ctrl_c_stops_the_served_campaign_when_another_thread_receives_it():
         helper.join()
     assert not still_serving, "the interrupt must stop the server, not the test's timeout"
     assert recording.server is None and server.poll() is not None
+
+
+@pytest.mark.process
+def test_the_server_ends_with_a_lab_killed_with_sigkill(tmp_path):
+    """The `rerun` command is a Python wrapper whose child, the binary, serves: a `twin run --serve` killed with
+    SIGKILL (an OOM kill, a CI's timeout) left it serving, its ports held, for good."""
+    import time
+
+    proc = subprocess.Popen([*TWIN, "run", "scenarios/quantum_dots.yaml", "--budget", "3", "--serve", "--quiet",
+                             "--journal", str(tmp_path / "j.db")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    children: list[int] = []
+    try:
+        url, line = None, "-"
+        while url is None and line:
+            line = proc.stderr.readline()
+            m = re.search(r"the finished campaign is served at (http://\S+)", line)
+            url = m.group(1) if m else None
+        assert url, proc.stderr.read()
+        for task in Path(f"/proc/{proc.pid}/task").iterdir():
+            children += [int(p) for p in (task / "children").read_text().split()]
+        assert children
+        web_port = int(url.split(":")[2].split("/")[0])
+        proc.kill()
+        proc.wait(timeout=30)
+        deadline = time.monotonic() + 20  # wall time: the OS delivering a signal to another process
+        while any(Path(f"/proc/{pid}").exists() and "zombie" not in _state(pid) for pid in children):
+            assert time.monotonic() < deadline, f"the server outlived the lab: {children}"
+            time.sleep(0.1)
+        with socket.socket() as s:
+            assert s.connect_ex(("127.0.0.1", web_port)) != 0
+    finally:
+        proc.kill()
+        for pid in children:  # what a failure would leave
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(pid, signal.SIGKILL)
+
+
+def _state(pid: int) -> str:
+    try:
+        return Path(f"/proc/{pid}/status").read_text().split("State:")[1].splitlines()[0]
+    except (OSError, IndexError):
+        return "zombie"

@@ -1,10 +1,11 @@
-"""The Rerun viewer and web server as child processes of the lab: started on loopback through the `rerun`
-command, each in its own session, and stopped with its whole process group (SIGTERM of `twin run --serve`
-leaves no orphan)."""
+"""The Rerun viewer and web server as child processes of the lab: started on loopback, each in its own session;
+the server is stopped with its whole process group (SIGTERM of `twin run --serve` leaves no orphan), and ends
+with the lab however the lab ends (SIGKILL too). The native viewer is left open for a person to go on looking."""
 
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import os
 import select
 import shutil
@@ -31,6 +32,31 @@ def stop(proc: subprocess.Popen) -> None:
 def _rerun_cli() -> str | None:
     here = Path(sys.executable).parent / "rerun"
     return str(here) if here.exists() else shutil.which("rerun")
+
+
+#: Started in place of Rerun's binary: it is made to get SIGTERM when the thread that started it ends (Linux's
+#: PR_SET_PDEATHSIG, which outlives the exec), unless that has happened already, then becomes the binary.
+_DIES_WITH_US = ("import ctypes, os, signal, sys\n"
+                 "ctypes.CDLL(None).prctl(1, signal.SIGTERM)\n"
+                 "if os.getppid() != int(sys.argv[1]):\n"
+                 "    sys.exit(0)\n"
+                 "os.execv(sys.argv[2], sys.argv[2:])\n")
+
+
+def _serving_command() -> list[str] | None:
+    """The command that starts Rerun's server so that it ends with this process, however that ends: the `rerun`
+    script is a Python wrapper that starts the binary as a child of its own and forwards no signal, and a lab
+    killed with SIGKILL left the binary serving, its ports held, for good. Where the binary cannot be found (or not
+    on Linux), the `rerun` command, stopped with its process group as before."""
+    binary = os.environ.get("RERUN_CLI_PATH")  # as the wrapper itself honours it
+    if binary is None:
+        spec = importlib.util.find_spec("rerun_cli")
+        places = [Path(p) / "rerun" for p in (spec.submodule_search_locations or [])] if spec else []
+        binary = next((str(p) for p in places if p.is_file()), None)
+    if binary is not None and sys.platform.startswith("linux"):
+        return [sys.executable, "-c", _DIES_WITH_US, str(os.getpid()), binary]
+    cli = _rerun_cli()
+    return [cli] if cli else None
 
 
 def _free(port: int) -> int | None:
@@ -62,7 +88,7 @@ def spawn_viewer(messages: list[str]) -> str | None:
 def serve(grpc_port: int, web_port: int, messages: list[str]) -> tuple[subprocess.Popen, str, str] | None:
     """A loopback web viewer and gRPC server: (its process, the web URL, the gRPC URL), or None (and why, in
     ``messages``)."""
-    cli = _rerun_cli()
+    cli = _serving_command()
     grpc, web = _free(grpc_port), _free(web_port)
     if cli is None:
         messages.append("serve: the rerun command is not installed; the campaign runs without serving")
@@ -73,7 +99,7 @@ def serve(grpc_port: int, web_port: int, messages: list[str]) -> tuple[subproces
                         "The campaign runs without serving.")
         return None
     server = subprocess.Popen(
-        [cli, "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc), "--web-viewer-port", str(web)],
+        [*cli, "--serve-web", "--bind", "127.0.0.1", "--port", str(grpc), "--web-viewer-port", str(web)],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     if not _wait_listening(server, grpc, web):
         stop(server)
