@@ -333,6 +333,10 @@ def test_a_submitted_campaign_no_experiment_gets_through_is_warned_of_in_the_ans
     assert "cannot measure a sample of kind 'feed'" in warned["warnings"][0]
     assert warned["warnings"][0].endswith("`twin ctl stop --campaign unreacted` stops it")
     assert answers["fine"]["ok"] is True and answers["fine"]["warnings"] == []
+    from twin.campaign.journal_read import read_events
+
+    submitted = [e for e in read_events(tmp_path / "unreacted.db") if e["kind"] == "campaign.submitted"]
+    assert json.loads(submitted[0]["detail"])["warnings"] == warned["warnings"]  # kept in its journal too
     again = answers["fine again"]
     assert again["ok"] is False and "the lab has a campaign 'fine' already" in again["error"], again
     assert sorted(p.stem for p in tmp_path.glob("*.db")) == ["catalyst", "fine", "unreacted"]

@@ -225,7 +225,8 @@ class LiveLab:
         seat._done = self._done
         self.seats[entry.name] = seat
         self._handles += seat.on_bus()
-        seat.note("campaign.submitted", {"who": who, "priority": entry.priority, "owner": entry.owner})
+        seat.note("campaign.submitted", {"who": who, "priority": entry.priority, "owner": entry.owner,
+                                         "warnings": warnings})
         self.kick_soon()
         return {"ok": True, "campaign": entry.name, "journal": parts[0].label, "lab_hours": self.clock.now() / 3600,
                 "warnings": warnings}
