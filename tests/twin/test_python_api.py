@@ -44,6 +44,12 @@ def test_numbers_and_paths_a_notebook_computes_are_taken_as_the_file_would_give_
     raw["campaign"]["planner_options"] = {"box": raw}
     with pytest.raises(ScenarioError, match="it holds itself"):  # RecursionError deep inside, before
         twin.prepare(raw)
+    deep: dict = {}
+    raw["campaign"]["planner_options"] = deep
+    for _ in range(5000):
+        deep["a"] = deep = {}
+    with pytest.raises(ScenarioError, match="nested more than 32 levels deep"):  # as a file is
+        twin.prepare(raw)
 
 
 def test_a_field_set_from_python_is_checked_as_the_files_would_be():

@@ -12,7 +12,7 @@ from pydantic import ValidationError
 
 from twin.core.errors import ScenarioError
 from twin.scenario.beside import found_beside
-from twin.scenario.files import read_yaml
+from twin.scenario.files import MAX_DEPTH, read_yaml
 from twin.scenario.model import Scenario
 from twin.scenario.spec import Spec
 
@@ -61,6 +61,9 @@ def plain(value: Any, _within: tuple[int, ...] = ()) -> Any:
         if id(value) in _within:
             raise ScenarioError("the scenario (a mapping)", ["it holds itself (a dict or list inside itself), which "
                                                               "no file can: give each part once"])
+        if len(_within) > MAX_DEPTH:  # as a file is refused; thousands deep, a RecursionError
+            raise ScenarioError("the scenario (a mapping)", [f"nested more than {MAX_DEPTH} levels deep; a scenario "
+                                                              "or campaign does not need that"])
         within = (*_within, id(value))
         if isinstance(value, dict):
             return {key: plain(v, within) for key, v in value.items()}
