@@ -178,6 +178,9 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
         with_options("q", "route", {"stock": str(secret)}): "campaign.planner_options.stock: ",
         with_options("r", "route", {"templates": "../../../../../../../../etc/hostname"}): "outside the folder",
         with_chemistry("c", {"data": str(secret)}): "chemistry.options.data: ",
+        with_options("plate", "fixed", {"proposals": [{"params": {"concentration_mm": 1000, "temperature_c": 250,
+                                                                  "time_s": 100}}]}):
+            "campaign plate: 1 problem\n  - campaign.planner_options.proposals.0: concentration_mm = 1000 is outside",
     }
     answers: dict = {}
 

@@ -214,7 +214,8 @@ class LiveLab:
             scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), label)
             parts = self._adopt(entry.name, scenario)
         except ScenarioError as exc:
-            return {"ok": False, "error": str(ScenarioError(exc.source or label, exc.problems))}
+            named = label if exc.source in ("", self.lab.name) else exc.source  # the checks name the lab's scenario
+            return {"ok": False, "error": str(ScenarioError(named, exc.problems))}
         except TwinError as exc:
             return {"ok": False, "error": str(exc)}
         core = self.shared.add(entry, scenario)
