@@ -284,3 +284,21 @@ def test_a_target_named_with_brackets_is_printed_as_named(tmp_path):
     assert res.exit_code == 0, res.output
     row = next(line for line in res.output.splitlines() if line.startswith("│ dots"))
     assert "[red]R " in row, row
+
+
+@pytest.mark.parametrize("command", [["run", "FILE", "--quiet"],
+                                     ["lab", "serve", "FILE", "--listen", "tcp/127.0.0.1:0"]])
+def test_what_the_checks_refuse_in_a_lab_file_names_the_file(tmp_path, command):
+    """`twin run LAB.yaml` and `twin lab serve` named the lab's scenario (`error: shared_lab: 1 problem`) where a
+    lone campaign's file is named; `twin validate` named the file."""
+    import yaml
+
+    raw = yaml.safe_load(LAB.read_text())
+    raw["campaigns"][1]["campaign"] = {"budget": 2, "planner": "fixed", "planner_options": {"proposals": [
+        {"params": {"temperature_k": 1000, "time_s": 1000}}]}}
+    path = tmp_path / "plates.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    res = twin_cli(*[path if a == "FILE" else a for a in command], "--journal", tmp_path / "runs")
+    said = " ".join(res.stderr.split())
+    assert res.exit_code == 2 and f"{path}: 1 problem" in said, said
+    assert "campaigns.1 (catalyst): campaign.planner_options.proposals.0: temperature_k = 1000 is outside" in said

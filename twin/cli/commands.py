@@ -126,7 +126,7 @@ def run(
                   "runs the lab's own drivers)", highlight=False)
     if s.campaigns:
         warn_before_live(s, scenario)
-        shared_lab(s, journal, record, quiet, json_out, external, runtime=runtime)
+        shared_lab(s, journal, record, quiet, json_out, external, runtime=runtime, path=scenario)
         return
     try:
         with sigterm_unwinds():  # the check makes the scheduler, which may plan the lab ahead for a while

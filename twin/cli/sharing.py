@@ -24,9 +24,11 @@ if TYPE_CHECKING:  # the commands import the runtime and the viewer when they ru
 
 
 def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: bool, json_out: bool,
-               external: list[str] | None, resuming: Path | None = None, runtime: str = "auto") -> None:
-    """``twin run LAB.yaml`` (or, with ``resuming``, ``twin resume`` of its journals' directory)."""
-    from twin.runtime.checks import check
+               external: list[str] | None, resuming: Path | None = None, runtime: str = "auto",
+               path: str | Path = "") -> None:
+    """``twin run LAB.yaml`` (read from ``path``; or, with ``resuming``, ``twin resume`` of its journals'
+    directory)."""
+    from twin.runtime.checks import checked
     from twin.runtime.lab import recording_id
     from twin.runtime.resume_lab import resume_lab
     from twin.runtime.shared_run import run_shared
@@ -49,7 +51,7 @@ def shared_lab(s: Scenario, journal: Path | None, record: RecordOptions, quiet: 
 
     try:
         if s.campaigns or resuming is None:  # a served lab resumed may have had none yet
-            check(s, external or ())
+            checked(s, resuming or path or s.name, external or ())
         observer = reopen() if record.wanted else None
         if not quiet and not json_out:
             how = (f"{s.name}: {len(s.campaigns)} campaigns sharing the lab" if resuming is None else
@@ -118,7 +120,7 @@ def lab_serve(
     """Serve a lab that several campaigns share, until Ctrl-C or SIGTERM: its devices, the campaigns of its file,
     and those submitted with `twin submit`; then print each campaign's summary."""
     from twin.runtime import lab
-    from twin.runtime.checks import check
+    from twin.runtime.checks import checked
     from twin.runtime.shared_run import serve_lab
     from twin.runtime.trial import warn_before_live
 
@@ -136,7 +138,7 @@ def lab_serve(
         s = lab.prepare(lab_file, clock=clock, speed=speed, bus="zenoh", overrides=overrides, lab_only=True)
         speed_heeded(speed, s.clock.mode)
         if s.campaigns:
-            check(s, external or ())
+            checked(s, lab_file, external or ())
             warn_before_live(s, lab_file)
 
         def started(live) -> None:
