@@ -108,3 +108,36 @@ def test_a_route_bench_stopped_partway_shows_the_targets_every_method_finished()
 
 def _seeds(title):
     return counted(int(title.group(1)), "seed", "seeds")
+
+
+@pytest.mark.process
+def test_a_stop_while_cp_sat_solves_a_shops_bound_ends_the_bench_at_once(tmp_path):
+    """The bound was solved in the command's own process, where CP-SAT's C++ does not look at signals: a SIGTERM
+    waited up to the solve's 120 s. Sent to the whole group (`timeout`, a CI runner), as here, it also ended the
+    idle workers first, and the next run's submission was a BrokenProcessPool traceback."""
+    import os
+    import random
+    import signal
+    import time
+
+    rng = random.Random(3)
+    rows = [" ".join(f"{m} {rng.randint(1, 99)}" for m in rng.sample(range(20), 20)) for _ in range(30)]
+    (tmp_path / "big.txt").write_text("30 20\n" + "\n".join(rows) + "\n")  # a proof takes hours
+    proc = subprocess.Popen([sys.executable, "-m", "twin", "bench", "schedulers", "scenarios/jobshop.yaml",
+                             "--jobshop", str(tmp_path / "big.txt"), "--schedulers", "mwkr"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                            start_new_session=True)
+    try:
+        for line in proc.stderr:
+            if "CP-SAT solving the shop for the bound" in line:
+                break
+        time.sleep(1)  # wall time, in another process: the solve under way
+        stopped = time.monotonic()
+        os.killpg(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+        took = time.monotonic() - stopped
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 143 and "terminated (SIGTERM)" in err and "Traceback" not in err, err
+    assert took < 30, took  # the pool's STOP_S for a worker inside the solve, not the solve's 120 s

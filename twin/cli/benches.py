@@ -191,7 +191,7 @@ def bench_schedulers(
     from twin.runtime import lab
     from twin.runtime.checks import checked
     from twin.tools.planner_bench import bench_pool
-    from twin.tools.scheduler_bench import (BOUND_S, COUNTS, HEADER, bench, bound, caption, deterministic,
+    from twin.tools.scheduler_bench import (BOUND_S, COUNTS, HEADER, bench, bound_in, caption, deterministic,
                                             load_variant, played_ahead, rows, shops, slow_schedulers)
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
@@ -223,7 +223,7 @@ def bench_schedulers(
             if not as_json:
                 say_slow(slow_schedulers(s, made, 1 if deterministic(s) else seeds))
             title = instance or f"{Path(file).stem if file else s.name}"
-            best = bound(s, on_long=None if as_json else lambda: err.print(
+            best = bound_in(pool, s, on_long=None if as_json else lambda: err.print(
                 f"{title}: CP-SAT solving the shop for the bound (up to {BOUND_S:.0f} s) ...", highlight=False))
             optimum = best.lab_s if best else None
             progress = bar_progress(as_json)

@@ -41,6 +41,7 @@ import threading
 import time
 from collections.abc import Callable, Collection, Iterable, Iterator
 from concurrent.futures import ALL_COMPLETED, FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from logging.handlers import QueueHandler
 from types import FrameType
 from typing import Any
@@ -59,7 +60,11 @@ class WorkerPool(ProcessPoolExecutor):
         self._listener = _SaidOnce(self._said) if once else None
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
-        return super().submit(_run, fn, *args, **kwargs)
+        try:
+            return super().submit(_run, fn, *args, **kwargs)
+        except BrokenProcessPool:  # a stop sent to the whole process group (`timeout`, `kill -TERM -PGID`) ended
+            self._signals.raise_noted()  # the idle workers before this process raised its own: raise that
+            raise
 
     def completed(self, futures: Iterable[Future]) -> Iterator[Future]:
         """``concurrent.futures.as_completed``, raising a Ctrl-C or SIGTERM noted while it waits."""

@@ -83,17 +83,27 @@ class Bound:
                 "(the gap to the optimum is at least this); ")
 
 
-def bound(s: Scenario, seconds: float = BOUND_S, on_long: Callable[[], None] | None = None) -> Bound | None:
+def bound_in(pool: WorkerPool, s: Scenario, on_long: Callable[[], None] | None = None) -> Bound | None:
+    """``bound(s)``, solved in one of the bench's workers: CP-SAT's C++ does not look at Python's signals, so a
+    Ctrl-C or SIGTERM during a solve in this process waited for its end (up to ``BOUND_S``); a worker is stopped
+    with the pool. ``on_long`` is called first for a shop of more than 100 operations, whose solve may take a
+    while."""
+    if on_long is not None and sum(len(p.get("route") or ()) for p in s.campaign.planner_options.get(
+            "proposals", [])) > 100:
+        on_long()
+    (solved,) = pool.completed([pool.submit(bound, s)])
+    return solved.result()
+
+
+def bound(s: Scenario, seconds: float = BOUND_S) -> Bound | None:
     """CP-SAT's optimum makespan (lab-s) for a deterministic job shop, or its best in ``seconds``; None without
     OR-Tools or a job shop, or for a shop whose jobs may not all be in the lab at once (its optimum is another
-    problem's). ``on_long`` is called first for a shop of more than 100 operations, whose solve may take a while."""
+    problem's)."""
     if not deterministic(s) or "cp-sat" not in plugins.installed("schedulers"):
         return None
     jobs = s.campaign.planner_options.get("proposals", [])
     if s.campaign.max_in_flight < len(jobs):
         return None
-    if on_long is not None and sum(len(p["route"]) for p in jobs) > 100:
-        on_long()
     try:
         best = plugins.load("schedulers", "cp-sat").offline_solution(s, seconds)
     except (ImportError, RuntimeError):  # RuntimeError: no schedule found in the time (a shop of thousands of steps)
