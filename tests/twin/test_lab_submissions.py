@@ -316,6 +316,8 @@ def test_a_submitted_campaign_no_experiment_gets_through_is_warned_of_in_the_ans
     s = prepare(LAB, clock="scaled", speed=50_000, bus="memory", overrides={"campaigns": [first]}, lab_only=True)
     unreacted = {**first, "name": "unreacted", "workflow": [w for w in first["workflow"] if w["step"] != "react"]}
     fine = {**first, "name": "fine"}
+    aimless = {**first, "name": "aimless", "chemistry": {**first["chemistry"], "targets": []},
+               "campaign": {**first["campaign"], "planner": "gp-bo"}}  # what the checks warn of comes back too
     answers: dict = {}
 
     def started(lab) -> None:
@@ -326,6 +328,7 @@ def test_a_submitted_campaign_no_experiment_gets_through_is_warned_of_in_the_ans
         async def ask() -> None:  # at once: the second 'fine' is told the name is taken once it has been tried
             said = await asyncio.gather(*(submit(c) for c in (unreacted, fine, fine)))
             answers.update(zip(("unreacted", "fine", "fine again"), said))
+            answers["aimless"] = await submit(aimless)
             lab.stop("test over")
         asyncio.ensure_future(ask())
 
@@ -342,4 +345,7 @@ def test_a_submitted_campaign_no_experiment_gets_through_is_warned_of_in_the_ans
     assert json.loads(submitted[0]["detail"])["warnings"] == warned["warnings"]  # kept in its journal too
     again = answers["fine again"]
     assert again["ok"] is False and "the lab has a campaign 'fine' already" in again["error"], again
-    assert sorted(p.stem for p in tmp_path.glob("*.db")) == ["catalyst", "fine", "unreacted"]
+    aimed = answers["aimless"]
+    assert aimed["ok"] is True and len(aimed["warnings"]) == 1, aimed
+    assert aimed["warnings"][0].startswith("chemistry.targets: none, and planner 'gp-bo' chooses each experiment")
+    assert sorted(p.stem for p in tmp_path.glob("*.db")) == ["aimless", "catalyst", "fine", "unreacted"]

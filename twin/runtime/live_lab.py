@@ -21,13 +21,14 @@ from twin.core.bus import Bus
 from twin.core.clock import LabClock
 from twin.campaign import Presence
 from twin.core.errors import ScenarioError, TwinError
+from twin.core.warnings_said import warnings_said
 from twin.runtime.lab_desk import LabDesk
 from twin.runtime.event_decoder import EventDecoder
 from twin.runtime.asked_of_people import ctl_options
 from twin.runtime.asking import ask_scheduler
 from twin.runtime.live import LiveCampaign
 from twin.runtime.take_over import rearm
-from twin.runtime.trial import submitted_warnings
+from twin.runtime.trial import submitted_warning
 from twin.scenario import Scenario
 from twin.scenario.files import parse_yaml
 from twin.scenario.sharing import campaign_scenario, parse_campaign
@@ -208,8 +209,9 @@ class LiveLab:
                                                  "submitted; leave them out"])
             self._refuse_taken(entry.name)
             scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), label)
-            self._admit(entry.name, scenario)  # refused before any of its code is imported or tried
-            warnings = await self._tried(entry.name, scenario)
+            with warnings_said() as checks:  # said on the lab's log as they come, and kept for the answer
+                self._admit(entry.name, scenario)  # refused before any of its code is imported or tried
+            warnings = [*checks.said, *await self._tried(entry.name, scenario)]
             self._refuse_taken(entry.name)  # submitted by another, or the lab stopped, while it was tried
             scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), label)
             parts = self._adopt(entry.name, scenario)
@@ -238,16 +240,16 @@ class LiveLab:
             raise ScenarioError(name, [refusal])
 
     async def _tried(self, name: str, scenario: Scenario) -> list[str]:
-        """What the checks and a few trial experiments on the twin warn of campaign ``name``, each said on the lab's
-        log too; nothing on a virtual clock, where the campaign is its own trial."""
+        """What a few trial experiments on the twin warn of campaign ``name``, said on the lab's log too; nothing on a
+        virtual clock, where the campaign is its own trial."""
         if self.clock.is_virtual:
             return []
         stop = f"`twin ctl stop {ctl_options(self.lab, name, self.bus.listening) or f'--campaign {name}'}` stops it"
         async with self._trying:  # one child process at a time, however many submit at once
-            warnings = await submitted_warnings(scenario, name, stop)
-        for warning in warnings:
+            warning = await submitted_warning(scenario, name, stop)
+        if warning:
             log.warning("campaign %s: %s", name, warning)
-        return warnings
+        return [warning] if warning else []
 
     def status(self) -> dict[str, Any]:
         """The lab's campaigns: each one's state, experiments and priority; and its one scheduler ("": each

@@ -23,7 +23,7 @@ from twin.core.held import log as held_log
 from twin.scenario import Scenario
 
 TRIALS = 3
-SUBMITTED_WAIT_S = 60.0  # a child process importing the lab's plugins and running the trial: ~1 s here
+SUBMITTED_WAIT_S = 60.0  # a child process importing the lab's plugins and running the trial: ~0.6 s here
 HELD_LOGGER = held_log.name
 log = logging.getLogger(__name__)
 
@@ -78,20 +78,19 @@ def trial_warning(s: Scenario, path: str | Path, where: str = "", then: str | No
             f"campaign may be: {then}")
 
 
-async def submitted_warnings(s: Scenario, name: str, then: str) -> list[str]:
-    """What `twin validate` would warn of campaign ``name`` submitted to a served lab (``s``, what it runs): the
-    checks' warnings and the trial's, found in a child process — the trial's logging and output are the process's
-    own, and the lab's loop goes on meanwhile. None after ``SUBMITTED_WAIT_S``, or from a child that failed."""
+async def submitted_warning(s: Scenario, name: str, then: str) -> str:
+    """``trial_warning`` of campaign ``name`` submitted to a served lab (``s``, what it runs), found in a child
+    process: the trial quiets the process's logging and output, which a live lab's threads share, and the lab's loop
+    goes on meanwhile. '' after ``SUBMITTED_WAIT_S``, or from a child that failed (said on the log)."""
     child = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "twin.runtime.trial_child", then, stdin=asyncio.subprocess.PIPE,
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL)
-    out: bytes | None = None
     try:  # wall time: an OS process's, not the lab's
         out, _ = await asyncio.wait_for(child.communicate(s.model_dump_json().encode()),
                                         wall_on_loop(SUBMITTED_WAIT_S))
     except asyncio.TimeoutError:
         log.warning("campaign %s was not tried on the twin: its trial took more than %g s", name, SUBMITTED_WAIT_S)
-        return []
+        return ""
     finally:
         if child.returncode is None:  # timed out, or the lab stopped meanwhile
             with contextlib.suppress(ProcessLookupError):
@@ -100,10 +99,10 @@ async def submitted_warnings(s: Scenario, name: str, then: str) -> list[str]:
         said = json.loads(out)
     except ValueError:
         said = None
-    if child.returncode != 0 or not isinstance(said, list):
+    if child.returncode != 0 or not isinstance(said, str):
         log.warning("campaign %s was not tried on the twin: its trial failed (exit %s)", name, child.returncode)
-        return []
-    return [str(w) for w in said]
+        return ""
+    return said
 
 
 def _runs_the_workflow(planner: str) -> bool:
