@@ -28,7 +28,6 @@ in a few hundred did it: a whatif said it had stopped and never ended).
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import multiprocessing
 import os
@@ -45,6 +44,8 @@ from concurrent.futures.process import BrokenProcessPool
 from logging.handlers import QueueHandler
 from types import FrameType
 from typing import Any
+
+from twin.core.parent_death import ends_with_parent
 
 STOP_S = 10.0  # how long the stopped workers have to clean up before they are killed
 CHECK_S = 0.1  # how often a wait for runs looks for a Ctrl-C or SIGTERM noted meanwhile
@@ -221,11 +222,7 @@ def _start_worker(then: Callable[[], None] | None, scratch: str, pool: int, once
 def _ends_with(pool: int) -> None:
     """SIGTERM when the pool's process dies, even by SIGKILL (Linux): the worker holds a copy of its work queue's
     write end, so the queue never tells it, and an orphaned worker waited for work for good."""
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):  # not Linux: left as it was
-        return
-    if os.getppid() != pool:  # it died before that was set
+    if not ends_with_parent(pool):  # it died before that was set
         _leave()
 
 

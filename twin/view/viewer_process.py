@@ -34,13 +34,12 @@ def _rerun_cli() -> str | None:
     return str(here) if here.exists() else shutil.which("rerun")
 
 
-#: Started in place of Rerun's binary: it is made to get SIGTERM when the thread that started it ends (Linux's
-#: PR_SET_PDEATHSIG, which outlives the exec), unless that has happened already, then becomes the binary.
-_DIES_WITH_US = ("import ctypes, os, signal, sys\n"
-                 "ctypes.CDLL(None).prctl(1, signal.SIGTERM)\n"
-                 "if os.getppid() != int(sys.argv[1]):\n"
-                 "    sys.exit(0)\n"
-                 "os.execv(sys.argv[2], sys.argv[2:])\n")
+#: Started in place of Rerun's binary: made to end with the thread that started it, unless that has ended already,
+#: then it becomes the binary.
+_DIES_WITH_US = ("import os, sys\n"
+                 "from twin.core.parent_death import ends_with_parent\n"
+                 "if ends_with_parent(int(sys.argv[1])):\n"
+                 "    os.execv(sys.argv[2], sys.argv[2:])\n")
 
 
 def _serving_command() -> list[str] | None:
