@@ -87,9 +87,6 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         assert both.exit_code == 1 and "name one with --campaign" in both.output
         paused = ctl("ctl", "pause", "--campaign", "catalyst", "--as", "alice")
         assert paused.exit_code == 0 and "paused" in paused.output, paused.output
-        started_h = float(re.search(r"started on lab shared at lab ([\d.]+) h", sub.stdout)[1])
-        paused_h = float(re.search(r"operator.pause by alice at lab ([\d.]+) h", paused.output)[1])
-        assert paused_h >= started_h, (sub.stdout, paused.output)  # the lab's time, not the campaign's own
         assert ctl("ctl", "resume", "--campaign", "catalyst").exit_code == 0
         assert "name one with --campaign (dots, catalyst)" in ctl("ctl", "wait").output
         for name, budget in (("catalyst", 3), ("dots", 4)):  # a script's way to wait for a campaign's end

@@ -94,7 +94,7 @@ class ControlDesk:
             raise ValueError(f"the campaign did not take the {command} within {ANSWER_S:.0f} s; "
                              "is it stuck? `twin ctl status` shows what it is doing") from None
         self._flush()  # on disk before the operator hears it: a kill now cannot undo it
-        detail, lab_hours = dict(note.detail), round(note.t_lab / 3600, 4)  # the lab's time, as `status` says it
+        detail, lab_hours = dict(note.detail), round((note.t_lab - self.core.t0) / 3600, 4)
         if note.kind == "operator.refused":
             return {"ok": False, "error": detail["why"], "lab_hours": lab_hours}
         return {"ok": True, "done": note.kind, "who": detail["who"], "lab_hours": lab_hours,
