@@ -87,6 +87,10 @@ def test_twin_lab_serve_takes_campaigns_from_twin_submit_and_lists_them(tmp_path
         assert both.exit_code == 1 and "name one with --campaign" in both.output
         paused = ctl("ctl", "pause", "--campaign", "catalyst", "--as", "alice")
         assert paused.exit_code == 0 and "paused" in paused.output, paused.output
+        # the campaign's own hours, and the lab's: it started later than the lab
+        started = float(re.search(r"started on lab shared at lab ([\d.]+) h", sub.stdout)[1])
+        own, at = map(float, re.search(r"at ([\d.]+) h into the campaign \(lab ([\d.]+) h\)", paused.stdout).groups())
+        assert at - own == pytest.approx(started, abs=0.05) and started > 0.01, (sub.stdout, paused.stdout)
         assert ctl("ctl", "resume", "--campaign", "catalyst").exit_code == 0
         assert "name one with --campaign (dots, catalyst)" in ctl("ctl", "wait").output
         for name, budget in (("catalyst", 3), ("dots", 4)):  # a script's way to wait for a campaign's end

@@ -59,10 +59,18 @@ def _send(command: str, lab: str, connect: list[str], security: Path | None, as_
     return answer
 
 
+def _when(hours: float, status: dict) -> str:
+    """'lab 0.44 h', or for a campaign that started after its lab did, its own hours and the lab's."""
+    started = status.get("started_lab_hours") or 0.0
+    if started < 0.005:
+        return f"lab {hours:.2f} h"
+    return f"{hours:.2f} h into the campaign (lab {started + hours:.2f} h)"
+
+
 def _acted(answer: dict, as_json: bool) -> None:
     if not as_json:
         st = answer["status"]
-        console.print(f"{answer['done']} by {answer['who']} at lab {answer['lab_hours']:.2f} h — the campaign is "
+        console.print(f"{answer['done']} by {answer['who']} at {_when(answer['lab_hours'], st)} — the campaign is "
                       f"{st['state']}", highlight=False, markup=False)
 
 
@@ -94,8 +102,8 @@ def ctl_status(lab: Lab, connect: Connect, security: Security = None,
         return
     st = answer["status"]
     paused = f" by {st['paused_by']}" if st["paused_by"] else ""
-    console.print(f"{st['scenario']} (campaign {st['campaign']}, lab {st['lab']}): {st['state']}{paused} at lab "
-                  f"{st['lab_hours']:.2f} h", highlight=False, markup=False)
+    console.print(f"{st['scenario']} (campaign {st['campaign']}, lab {st['lab']}): {st['state']}{paused} at "
+                  f"{_when(st['lab_hours'], st)}", highlight=False, markup=False)
     if st.get("stalled"):
         console.print(f"stalled: {st['stalled']} (the lab waits; twin ctl stop, and run it with another scheduler)",
                       style="yellow", highlight=False, markup=False)
