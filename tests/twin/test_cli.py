@@ -210,7 +210,7 @@ def test_experiments_abandoned_by_deadlines_say_which_fields_set_them(tmp_path, 
         # the run's warnings are logged: on stderr in a process of its own, in caplog here
         outs[name], warned[name] = " ".join(res.stdout.split()), " ".join((res.stderr + caplog.text).split())
     # 300 + setup 120 + clean 600 = 1020 lab-s expected; × 1.5 + 600 = 2130; time_s goes up to 5400
-    assert ("devices.reactor.duration: a reactor step lasts at least time_s (up to 5400 lab-s here), which the "
+    assert ("devices.reactor.duration: a step of reactor lasts at least time_s (up to 5400 lab-s here), which the "
             "duration model leaves out, so its deadline is 2130 lab-s") in warned["short"]
     assert "give devices.reactor.duration.plus_param: time_s" in warned["short"]
     assert "devices.reactor.duration" not in warned["as written"]

@@ -240,8 +240,37 @@ def test_a_hold_time_the_workflow_gives_is_weighed_against_the_deadline(tmp_path
     with caplog.at_level("WARNING"):
         check(s)
     text = " ".join(r.getMessage() for r in caplog.records)
-    assert (f"devices.reactor.duration: a reactor step lasts at least time_s (up to {hold_s} lab-s here)" in text) \
+    assert (f"devices.reactor.duration: a step of reactor lasts at least time_s (up to {hold_s} lab-s here)" in text) \
         is warned, text
+
+
+def test_the_advice_taken_the_hold_the_workflow_gives_is_in_the_steps_duration(tmp_path, caplog):
+    """The warning above says to give `duration.plus_param: time_s`, and a parameter the workflow's step gives (not
+    the planner's box) was refused there as "not a parameter of chemistry.parameters". Taken now: no warning, and
+    every step lasts its hold with no attempt timed out; a hold that is not lab seconds is refused by its field."""
+    import twin
+
+    raw = yaml.safe_load((ROOT / "scenarios" / "flaky_lab.yaml").read_text())
+    del raw["chemistry"]["parameters"]["time_s"]
+    raw["workflow"][1]["params"] = {"time_s": 20000}
+    for spec in raw["devices"].values():
+        spec.pop("faults", None)
+    raw["campaign"].update(budget=3, planner="random")
+    s = load(write(tmp_path, raw))
+    with caplog.at_level("WARNING"):
+        check(s)
+    assert "lasts at least time_s" not in caplog.text, caplog.text
+    out = twin.run(s)
+    assert out.done == 3 and out.timed_out == 0 and out.lab_hours > 20000 / 3600, out
+    for bad in (-5, "long", True):
+        raw["workflow"][1]["params"] = {"time_s": bad}
+        with pytest.raises(ScenarioError) as refused:
+            load(write(tmp_path, raw))
+        assert "workflow.1.params.time_s" in str(refused.value) and "a number ≥ 0" in str(refused.value)
+    raw["workflow"][1]["params"] = {}
+    with pytest.raises(ScenarioError) as refused:
+        load(write(tmp_path, raw))
+    assert "nor one a workflow step on reactor gives" in str(refused.value), refused.value
 
 
 @pytest.mark.parametrize("dotted, says", [

@@ -199,7 +199,7 @@ def _short_deadline(s: Scenario, dtype: str, driver: Any) -> str:
     deadline = deadline_s(expected, s.orchestrator)
     if longest <= deadline:
         return ""
-    return (f"devices.{dtype}.duration: a {spec.driver} step lasts at least {param} (up to {longest:g} lab-s "
+    return (f"devices.{dtype}.duration: a step of {spec.driver} lasts at least {param} (up to {longest:g} lab-s "
             f"here), which the duration model leaves out, so its deadline is {deadline:.0f} lab-s ({expected:.0f} "
             f"expected × orchestrator.timeout_factor + timeout_slack_s) and longer ones will time out: give "
             f"devices.{dtype}.duration.plus_param: {param}")

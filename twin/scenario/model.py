@@ -28,7 +28,8 @@ class Duration(Spec):
     mean_s: float = Field(ge=0, le=MAX_S, description="mean duration of the step itself")
     cv: float = Field(default=0.1, ge=0, le=2, description="coefficient of variation")
     plus_param: str | None = Field(
-        default=None, description="add this experiment parameter (seconds) to the duration"
+        default=None, description="add this parameter (seconds) to the duration: one of chemistry.parameters, "
+        "or one the workflow's step gives (the step's value wins)"
     )
 
 
@@ -369,13 +370,21 @@ class Scenario(Spec):
         problems = []
         for dtype, spec in self.devices.items():
             p = spec.duration.plus_param
-            box = self.chemistry.parameters.get(p) if p else None
-            if p and box is None:
-                problems.append(f"devices.{dtype}.duration.plus_param: {p!r} is not a parameter of "
-                                f"chemistry.parameters ({', '.join(self.chemistry.parameters) or 'none'})")
+            if not p:
+                continue
+            box = self.chemistry.parameters.get(p)
+            given = [(i, ws.params[p]) for i, ws in enumerate(self.workflow) if ws.device == dtype and p in ws.params]
+            if box is None and not given:
+                problems.append(f"devices.{dtype}.duration.plus_param: {p!r} is neither a parameter of "
+                                f"chemistry.parameters ({', '.join(self.chemistry.parameters) or 'none'}) nor one "
+                                f"a workflow step on {dtype} gives (params: {{{p}: SECONDS}})")
             elif box is not None and box.low < 0:
                 problems.append(f"devices.{dtype}.duration.plus_param: {p!r} can be negative (low {box.low}), "
                                 "which would make the step's duration negative: its low must be ≥ 0")
+            for i, value in given:  # the step's own value wins over the experiment's
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+                    problems.append(f"workflow.{i}.params.{p}: {value!r} is what devices.{dtype}.duration."
+                                    f"plus_param adds to the step's duration: give it lab seconds, a number ≥ 0")
         return problems
 
     def instance_names(self, device_type: str) -> list[str]:
