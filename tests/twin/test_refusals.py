@@ -113,7 +113,7 @@ def test_a_step_refused_until_it_gives_up_is_counted_as_refused_and_says_by_whom
 def test_a_box_that_misses_the_envelope_is_a_validation_error():
     with pytest.raises(ScenarioError, match=r"devices.spectrometer.envelope.temperature_c: .* does not overlap"):
         parse(qd_lab(**{"devices.spectrometer.envelope": {"temperature_c": {"low": 400, "high": 500}}}))
-    with pytest.raises(ScenarioError, match=r"devices.spectrometer.envelope.pressure_bar: .* not a parameter"):
+    with pytest.raises(ScenarioError, match=r"devices.spectrometer.envelope.pressure_bar: .* neither a parameter"):
         parse(qd_lab(**{"devices.spectrometer.envelope": {"pressure_bar": {"low": 1, "high": 2}}}))
 
 

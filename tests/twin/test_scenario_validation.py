@@ -273,6 +273,24 @@ def test_the_advice_taken_the_hold_the_workflow_gives_is_in_the_steps_duration(t
     assert "nor one a workflow step on reactor gives" in str(refused.value), refused.value
 
 
+@pytest.mark.parametrize("hold_s, refused", [(3000, ""), (20000, "workflow.1.params.time_s: 20000 is outside "
+                                                            "devices.reactor.envelope.time_s [0, 7200]")])
+def test_an_envelope_may_bound_what_the_workflows_step_gives(tmp_path, hold_s, refused):
+    """An envelope on a parameter the step gives (the planner's box has none) was refused as "not a parameter of
+    chemistry.parameters"; it is checked against the step's value, which the lab checks before it sends a step."""
+    raw = yaml.safe_load((ROOT / "scenarios" / "flaky_lab.yaml").read_text())
+    del raw["chemistry"]["parameters"]["time_s"]
+    raw["devices"]["reactor"]["duration"].pop("plus_param")
+    raw["devices"]["reactor"]["envelope"] = {"time_s": {"low": 0, "high": 7200}}
+    raw["workflow"][1]["params"] = {"time_s": hold_s}
+    if not refused:
+        assert load(write(tmp_path, raw)).devices["reactor"].envelope["time_s"].high == 7200
+        return
+    with pytest.raises(ScenarioError) as said:
+        load(write(tmp_path, raw))
+    assert refused in str(said.value), said.value
+
+
 @pytest.mark.parametrize("dotted, says", [
     ("devices.spectrometr.instances", "devices.spectrometr: not in the scenario; did you mean devices.spectrometer?"),
     ("devices.spectrometer.durration.mean_s", "did you mean devices.spectrometer.duration?"),

@@ -356,12 +356,19 @@ class Scenario(Spec):
             for name, safe in spec.envelope.items():
                 box = self.chemistry.parameters.get(name)
                 where = f"devices.{dtype}.envelope.{name}"
-                if box is None:
-                    problems.append(f"{where}: {name!r} is not a parameter of chemistry.parameters "
-                                    f"({', '.join(self.chemistry.parameters) or 'none'})")
-                elif box.high < safe.low or safe.high < box.low:
+                given = [(i, ws.params[name]) for i, ws in enumerate(self.workflow)
+                         if ws.device == dtype and name in ws.params]
+                if box is None and not given:
+                    problems.append(f"{where}: {name!r} is neither a parameter of chemistry.parameters "
+                                    f"({', '.join(self.chemistry.parameters) or 'none'}) nor one a workflow step on "
+                                    f"{dtype} gives")
+                elif box is not None and (box.high < safe.low or safe.high < box.low):
                     problems.append(f"{where}: [{safe.low:g}, {safe.high:g}] does not overlap the planner's box "
                                     f"[{box.low:g}, {box.high:g}]: no experiment could run")
+                for i, value in given:
+                    if isinstance(value, (int, float)) and not safe.low <= value <= safe.high:
+                        problems.append(f"workflow.{i}.params.{name}: {value:g} is outside {where} [{safe.low:g}, "
+                                        f"{safe.high:g}]: every experiment would be refused at this step")
         return problems
 
     def _plus_params(self) -> list[str]:
