@@ -262,12 +262,22 @@ class Scenario(Spec):
         return ", ".join(self.devices) or "it has none"
 
     def _parameter_ranges(self) -> dict[str, tuple[float, float]]:
-        """Each experiment parameter's lowest low and highest high over the lab's chemistry and its campaigns'."""
+        """Each parameter's lowest low and highest high over the lab's chemistry and its campaigns', and the
+        values their workflows' steps give."""
         ranges: dict[str, tuple[float, float]] = {}
+
+        def widen(p: str, low: float, high: float) -> None:
+            was = ranges.get(p, (low, high))
+            ranges[p] = (min(was[0], low), max(was[1], high))
+
         for chem in [self.chemistry, *(c.chemistry for c in self.campaigns if c.chemistry is not None)]:
             for p, r in chem.parameters.items():
-                low, high = ranges.get(p, (r.low, r.high))
-                ranges[p] = (min(low, r.low), max(high, r.high))
+                widen(p, r.low, r.high)
+        for flow in [self.workflow, *(c.workflow for c in self.campaigns if c.workflow is not None)]:
+            for ws in flow:
+                for p, v in ws.params.items():
+                    if isinstance(v, (int, float)) and not isinstance(v, bool):
+                        widen(p, float(v), float(v))
         return ranges
 
     @model_validator(mode="after")

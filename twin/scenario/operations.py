@@ -74,7 +74,8 @@ class Usage(Spec):
 
     fixed: float = Field(default=0.0, ge=0, le=MAX_VALUE, description="used by every step")
     per: dict[Label, float] = Field(default_factory=dict, max_length=64, description="a parameter of the "
-                                    "chemistry -> used per unit of it (below 0 only where fixed covers it)")
+                                    "chemistry, or one a workflow step gives -> used per unit of it (below 0 only "
+                                    "where fixed covers it)")
 
 
 def usage_problems(item: str, stock: Consumable, ranges: dict[str, tuple[float, float]] | None) -> list[str]:
@@ -90,8 +91,8 @@ def usage_problems(item: str, stock: Consumable, ranges: dict[str, tuple[float, 
             continue
         field = f"consumables.{item}.used_by.{step}"
         unknown = [p for p in use.per if p not in ranges]
-        problems += [f"{field}.per.{p}: {p!r} is no parameter of the chemistry ({known}), so this amount would never "
-                     f"be taken" for p in unknown]
+        problems += [f"{field}.per.{p}: {p!r} is no parameter of the chemistry nor of a workflow step ({known}), so "
+                     f"this amount would never be taken" for p in unknown]
         ends = {p: (ranges[p][0] if coef > 0 else ranges[p][1]) for p, coef in use.per.items() if p not in unknown}
         least = use.fixed + sum(use.per[p] * v for p, v in ends.items())
         if least < 0:

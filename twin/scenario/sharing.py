@@ -24,7 +24,7 @@ def campaign_scenario(lab: Scenario, c: SharedCampaign, index: int, source: str 
     data = lab.model_dump(exclude={"campaigns"})
     own = c.model_dump(include=set(_OWN), exclude_none=True)
     data.update(own)
-    params = data["chemistry"]["parameters"]
+    params = {*data["chemistry"]["parameters"], *(p for w in data["workflow"] for p in w.get("params", {}))}
     for item in data["consumables"].values():  # an amount per a parameter this campaign has not is never taken
         for use in item["used_by"].values():
             if isinstance(use, dict):
