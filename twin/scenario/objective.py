@@ -34,10 +34,10 @@ def typical_step(s: Scenario) -> float | None:
             except (AttributeError, TypeError, ValueError):  # a step the planner's checks refuse, by name
                 continue
     if not durations:
+        mid = {k: (p.low + p.high) / 2 for k, p in s.chemistry.parameters.items()}
         for w in s.workflow:
             d = s.devices[w.device]
-            mid = {k: (p.low + p.high) / 2 for k, p in s.chemistry.parameters.items()}
-            durations.append(expected_duration(d.duration, mid, d.setup_s, d.clean_s))
+            durations.append(expected_duration(d.duration, {**mid, **w.params}, d.setup_s, d.clean_s))
     return max(statistics.mean(durations), 1e-6) if durations else None
 
 
