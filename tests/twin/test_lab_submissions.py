@@ -174,6 +174,8 @@ def test_hostile_submissions_are_refused_with_the_reason_and_the_lab_goes_on(tmp
         json.dumps({"file": "name: dots\n"}).encode(): "has a campaign 'dots' already",
         json.dumps({"file": "name: y\nafter: dots\n"}).encode(): "after / start_h",
         json.dumps({"file": "name: z\nworkflow: [{step: melt, device: furnace}]\n"}).encode(): "furnace",
+        json.dumps({"file": "name: w\nworkflow: [{step: melt, device: synthesiser}]\n"}).encode():
+            "campaign w: 1 problem\n  - workflow.0.step: device type 'synthesiser' does not run 'melt'",
         by_module("m", "scheduler", "tests.twin.test_bad_schedulers:Patient"):
             "campaign.scheduler: 'tests.twin.test_bad_schedulers:Patient' is a module path, which the lab would import",
         by_module("n", "planner", "antigravity:Planner"): "campaign.planner: 'antigravity:Planner' is a module path",

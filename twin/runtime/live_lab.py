@@ -208,12 +208,12 @@ class LiveLab:
                 raise ScenarioError(entry.name, ["after / start_h: a submitted campaign starts when it is "
                                                  "submitted; leave them out"])
             self._refuse_taken(entry.name)
-            scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), label)
+            scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), named=label)
             with warnings_said() as checks:  # said on the lab's log as they come, and kept for the answer
                 self._admit(entry.name, scenario)  # refused before any of its code is imported or tried
             warnings = [*checks.said, *await self._tried(entry.name, scenario)]
             self._refuse_taken(entry.name)  # submitted by another, or the lab stopped, while it was tried
-            scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), label)
+            scenario = campaign_scenario(self.lab, entry, len(self.shared.entries), named=label)
             parts = self._adopt(entry.name, scenario)
         except ScenarioError as exc:
             named = label if exc.source in ("", self.lab.name) else exc.source  # the checks name the lab's scenario

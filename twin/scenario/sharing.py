@@ -19,8 +19,11 @@ from twin.scenario.model import Scenario, SharedCampaign
 _OWN = ("chemistry", "workflow", "campaign")
 
 
-def campaign_scenario(lab: Scenario, c: SharedCampaign, index: int, source: str = "<lab>") -> Scenario:
-    """The scenario campaign ``c`` (the ``index``-th of the lab) runs: the lab's, with ``c``'s own sections."""
+def campaign_scenario(lab: Scenario, c: SharedCampaign, index: int, source: str = "<lab>",
+                      named: str = "") -> Scenario:
+    """The scenario campaign ``c`` (the ``index``-th of the lab) runs: the lab's, with ``c``'s own sections.
+    Its problems name ``named`` (a campaign submitted later, which is no entry of the lab's file), else its place in
+    ``source``."""
     data = lab.model_dump(exclude={"campaigns"})
     own = c.model_dump(include=set(_OWN), exclude_none=True)
     data.update(own)
@@ -36,7 +39,7 @@ def campaign_scenario(lab: Scenario, c: SharedCampaign, index: int, source: str 
             spec["envelope"] = {}
     seeded = c.campaign is not None and "seed" in c.campaign.model_fields_set
     data["campaign"]["seed"] = data["campaign"]["seed"] if seeded else (lab.campaign.seed + index) % 2**63
-    return parse(data, f"{source}: campaigns.{index} ({c.name})")
+    return parse(data, named or f"{source}: campaigns.{index} ({c.name})")
 
 
 def campaign_scenarios(lab: Scenario, source: str = "<lab>") -> dict[str, Scenario]:
