@@ -186,6 +186,60 @@ def test_a_refusal_in_the_planning_env_is_taken_as_a_campaign_takes_it():
     assert all(r == r and abs(r) < 100 for r in rewards)  # finite, though some experiments measured nothing
 
 
+class Balance:
+    """Weighs the sample and hands it on as it was: `StepResult(outputs, None)`, as docs/drivers.md allows."""
+
+    labtwin_api = 1
+    capabilities = frozenset({"weigh"})
+    needs_sample = frozenset({"weigh"})
+    makes_sample: frozenset = frozenset()
+
+    def __init__(self, setup):
+        pass
+
+    async def run(self, step, params, sample, ctx):
+        from twin import Refused, StepResult
+
+        if not sample:
+            raise Refused("nothing on the balance", infeasible=True)
+        await ctx.clock.sleep(params["settle_s"])
+        return StepResult({"mass_mg": 12.5}, None)
+
+    async def safe_state(self):
+        pass
+
+
+def test_a_workcell_runs_an_experiment_as_a_campaign_does():
+    """The planning env's workcell kept only the last step's outputs (a rinse after the measurement left the planner
+    nothing to learn from: `twin train --agent planner` scored every experiment as measuring nothing), gave each
+    step the experiment's parameters without the step's own, lost the sample after a step that hands it on as
+    given (`None`), and sent a device what its envelope keeps it from."""
+    from twin import open_workcell
+
+    box = {n: p.model_dump() for n, p in kiln_lab().chemistry.parameters.items() if n != "anneal_c"}
+    lab = prepare(kiln_lab(), overrides={
+        "chemistry.parameters": box,
+        "devices.balance": {"driver": "tests.agents.test_rl_planner:Balance", "steps": ["weigh"],
+                            "duration": {"mean_s": 0, "plus_param": "settle_s"}},
+        "devices.washer": {"driver": "machine", "steps": ["rinse"], "duration": {"mean_s": 300}},
+        "workflow": [{"step": "synthesise", "device": "synthesiser"},
+                     {"step": "anneal", "device": "kiln", "params": {"anneal_c": 700}},
+                     {"step": "weigh", "device": "balance", "params": {"settle_s": 45}},
+                     {"step": "measure", "device": "spectrometer"}, {"step": "rinse", "device": "washer"}]})
+    at = {n: p.low for n, p in lab.chemistry.parameters.items()}
+    cell = open_workcell(lab)
+    cell.run(at)  # the kiln warms up
+    measured = cell.run(at)
+    assert not measured.infeasible and not measured.failed, measured
+    assert measured.outputs["anneal_c"] == 700 and measured.outputs["mass_mg"] == 12.5, measured
+    assert set(measured.outputs) >= {"band_gap_ev", "edge_nm"} and "spectrum" not in measured.outputs, measured
+    fenced = open_workcell(prepare(kiln_lab(), overrides={"devices.kiln.envelope": {"anneal_c": {"low": 0,
+                                                                                              "high": 800}}}))
+    HotKiln.asked.clear()
+    over = fenced.run({**{n: p.low for n, p in kiln_lab().chemistry.parameters.items()}, "anneal_c": 820})
+    assert over.infeasible == "anneal_c 820 is outside devices.kiln.envelope.anneal_c [0, 800]" and not HotKiln.asked
+
+
 def test_a_driver_that_is_never_ready_is_named_in_a_workcell():
     from twin import DriverError, open_workcell
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from twin.campaign.human import DRIVER as HUMAN
+from twin.campaign.policy import outside_envelope
 from twin.core.clock import ClockMode, lab_seconds
 from twin.core.streams import seeded
 from twin.device.driver import StepContext, StepResult, step_result, talks_to_instrument
@@ -52,7 +53,7 @@ class SteppedClock:
 
 @dataclass
 class Measured:
-    outputs: dict[str, Any]  # the last step's outputs, as a planner would see them
+    outputs: dict[str, Any]  # every step's outputs, as a planner would see them
     lab_s: float  # lab time the workflow took
     infeasible: str = ""  # why a device refused these parameters for good (then no outputs)
     failed: str = ""  # the driver's fault, each attempt failing (then no outputs)
@@ -80,14 +81,20 @@ class Workcell:
         self._rngs = {dtype: seeded(seed, "workcell", dtype)[1] for dtype in self.drivers}
 
     def run(self, params: dict[str, Any]) -> Measured:
+        """One experiment: each step given the experiment's parameters with its own (its own win, as in a
+        campaign); its outputs are every step's numbers and texts, a later step's winning, as a campaign keeps
+        them (a spectrum or a trace is left out)."""
         start = self.clock.t
+        outside = outside_envelope(self.scenario.workflow, params, self.scenario.devices)
+        if outside:  # a campaign refuses it before anything is sent
+            return Measured({}, 0.0, infeasible=outside)
         sample, outputs = None, {}
         for w in self.scenario.workflow:
             spec = self.scenario.devices[w.device]
             ctx = StepContext(clock=self.clock, rng=self._rngs[w.device], duration=spec.duration,
                               progress=lambda *_: None, telemetry=lambda _: None)
             try:
-                result = self._step(w, params, sample, ctx)
+                result = self._step(w, {**params, **w.params}, sample, ctx)
             except Refused as refused:
                 return Measured({}, self.clock.t - start, infeasible=f"{w.device} refused {w.step!r}: {refused.reason}")
             except _Failed as failed:
@@ -97,9 +104,11 @@ class Workcell:
                                       f"{failed}. Fix the driver, or give devices.{w.device}.twin a simulated "
                                       "driver that stands in for it") from None
                 return Measured({}, self.clock.t - start, failed=str(failed))
-            sample, outputs = result.sample, result.outputs
+            if result.sample is not None:  # None passes on the sample it was given
+                sample = result.sample
+            outputs.update((k, v) for k, v in (result.outputs or {}).items() if not isinstance(v, (list, dict)))
         self._measured = True
-        return Measured({k: v for k, v in outputs.items() if k != "spectrum"}, self.clock.t - start)
+        return Measured(outputs, self.clock.t - start)
 
     def _step(self, w: Any, params: dict[str, Any], sample: Any, ctx: StepContext) -> Any:
         """The step's result; a "not now" asked again later. Raises ``Refused`` only for good."""
