@@ -88,7 +88,8 @@ class Workcell:
         outside = outside_envelope(self.scenario.workflow, params, self.scenario.devices)
         if outside:  # a campaign refuses it before anything is sent
             return Measured({}, 0.0, infeasible=outside)
-        sample, outputs = None, {}
+        sample: Any = None
+        outputs: dict[str, Any] = {}
         for w in self.scenario.workflow:
             spec = self.scenario.devices[w.device]
             ctx = StepContext(clock=self.clock, rng=self._rngs[w.device], duration=spec.duration,
