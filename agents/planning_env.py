@@ -128,6 +128,7 @@ class PlanningEnv(gym.Env):
         self.target = self.targets[0]
         self._best = self._last = None
         self._n = 0
+        self.last_measured: Any = None  # the workcell's last Measured: its outputs, or why it measured nothing
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -163,7 +164,8 @@ class PlanningEnv(gym.Env):
     # -- internals -------------------------------------------------------------
     def _experiment(self, u: np.ndarray) -> _Point:
         self._n += 1
-        outputs = self.workcell.run(self.box.params(u)).outputs
+        self.last_measured = self.workcell.run(self.box.params(u))
+        outputs = self.last_measured.outputs
         point = _Point(u, outputs, score(outputs, self.target))
         if self.render_mode is not None:
             self._tried.append(point)

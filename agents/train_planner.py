@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import statistics
 from collections.abc import Callable
 from pathlib import Path
@@ -43,6 +44,32 @@ def evaluate(scenario: Scenario, act: Callable[[np.ndarray, Any], np.ndarray], e
             "return": float(statistics.mean(returns))}
 
 
+def nothing_scored(scenario: Scenario, episodes: int = 3, seed: int = 10_000) -> str:
+    """Why a planner could learn nothing in this lab — no experiment of a few episodes at random measured what the
+    targets read, so every reward is the same — or ''."""
+    env = PlanningEnv(scenario, random_goals=0.0, seed=seed)
+    env.action_space.seed(seed)
+    seen: set[str] = set()
+    for i in range(episodes):
+        env.reset(seed=seed + i)
+        while True:
+            _, _, terminated, truncated, info = env.step(env.action_space.sample())
+            seen |= set(env.last_measured.outputs)
+            if math.isfinite(info["distance"]):
+                return ""
+            if terminated or truncated:
+                break
+    reads = sorted({name for t in scenario.chemistry.targets for name in t.outputs})
+    last = env.last_measured
+    why = (f"the last was {'refused' if last.infeasible else 'failed'}: {last.infeasible or last.failed}"
+           if last.infeasible or last.failed else
+           f"their steps gave {', '.join(sorted(seen)) or 'no outputs'}")
+    return (f"{scenario.name}: none of {env.horizon * episodes} experiments at random measured what the targets "
+            f"read ({', '.join(reads)}) as a finite number, so the planner would learn nothing ({why}); check the "
+            "targets' output names against the drivers' outputs, and the box against the devices' envelopes "
+            "(`twin run` of the scenario says which outputs go unscored)")
+
+
 def random_moves(obs: np.ndarray, env: PlanningEnv) -> np.ndarray:
     return env.action_space.sample()
 
@@ -56,6 +83,9 @@ def train_planner(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs
     torch.set_num_threads(1)
     venv = DummyVecEnv([lambda i=i: PlanningEnv(scenario, seed=seed * 1000 + i) for i in range(envs)])
     model = without_log_dir(PPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS))
+    unlearnable = nothing_scored(scenario)
+    if unlearnable:
+        raise ValueError(unlearnable)
     if on_progress:  # the lab is one it can train on: the bar starts
         on_progress(0, None)
     baseline = evaluate(scenario, random_moves)

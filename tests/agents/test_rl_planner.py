@@ -66,6 +66,34 @@ def test_a_lab_the_planner_cannot_learn_is_refused_before_any_progress_is_shown(
     assert not (tmp_path / "p.zip").exists()
 
 
+@pytest.mark.parametrize("change, says", [
+    ({"chemistry.targets": [{"name": "heavy", "outputs": {"mass_mgg": {"min": 10}}}]},  # the balance declares none
+     "read (mass_mgg) as a finite number, so the planner would learn nothing (their steps gave "),
+    ({"devices.synthesiser.envelope": {"temperature_c": {"low": 220, "high": 221},
+                                       "concentration_mm": {"low": 1, "high": 1.2}}},
+     "(the last was refused: "),
+])
+def test_a_lab_where_no_experiment_is_scored_is_refused_before_training(tmp_path, change, says):
+    """A target on an output no step gives (a typo), or a box the devices refuse nearly everywhere: every reward was
+    the same, and `twin train --agent planner` went on for all its steps to a policy that learnt nothing, printing
+    "success 0" with no word of why."""
+    import yaml
+    from tests.conftest import twin_cli
+
+    raw = yaml.safe_load((ROOT / "scenarios" / "quantum_dots.yaml").read_text())
+    raw["devices"]["balance"] = {"driver": "tests.agents.test_rl_planner:Balance", "steps": ["weigh"],
+                                 "duration": {"mean_s": 60}}
+    raw["workflow"].insert(1, {"step": "weigh", "device": "balance", "params": {"settle_s": 30}})
+    path = tmp_path / "lab.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    lab = prepare(path, overrides=change)
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(lab.model_dump(mode="json", exclude_none=True)))
+    res = twin_cli("train", tmp_path / "bad.yaml", "--agent", "planner", "--steps", "1000", "--out", tmp_path / "p.zip")
+    said = " ".join(res.stderr.split())
+    assert res.exit_code != 0 and says in said, said
+    assert "training the planner" not in res.stderr and not (tmp_path / "p.zip").exists()
+
+
 def test_short_ppo_training_improves_its_own_return_and_leaves_no_log_directory(qd, tmp_path, monkeypatch):
     from stable_baselines3 import PPO
 
