@@ -228,8 +228,8 @@ class Balance:
     async def run(self, step, params, sample, ctx):
         from twin import Refused, StepResult
 
-        if not sample:
-            raise Refused("nothing on the balance", infeasible=True)
+        if not sample or "id" not in sample:  # the lab names each sample it carries (docs/drivers.md)
+            raise Refused(f"nothing on the balance, or not the lab's: {sample!r:.60}", infeasible=True)
         await ctx.clock.sleep(params["settle_s"])
         return StepResult({"mass_mg": 12.5}, None)
 
@@ -241,7 +241,7 @@ def test_a_workcell_runs_an_experiment_as_a_campaign_does():
     """The planning env's workcell kept only the last step's outputs (a rinse after the measurement left the planner
     nothing to learn from: `twin train --agent planner` scored every experiment as measuring nothing), gave each
     step the experiment's parameters without the step's own, lost the sample after a step that hands it on as
-    given (`None`), and sent a device what its envelope keeps it from."""
+    given (`None`), gave a sample no id, and sent a device what its envelope keeps it from."""
     from twin import open_workcell
 
     box = {n: p.model_dump() for n, p in kiln_lab().chemistry.parameters.items() if n != "anneal_c"}

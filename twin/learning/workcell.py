@@ -73,7 +73,7 @@ class Workcell:
     def __init__(self, scenario: Scenario, drivers: dict[str, Any], seed: int = 0) -> None:
         self.scenario, self.drivers = scenario, drivers
         self.clock = SteppedClock()
-        self._failed, self._measured = 0, False
+        self._failed, self._measured, self._runs = 0, False, 0
         self.reseed(seed)
 
     def reseed(self, seed: int) -> None:
@@ -90,6 +90,7 @@ class Workcell:
             return Measured({}, 0.0, infeasible=outside)
         sample: Any = None
         outputs: dict[str, Any] = {}
+        self._runs += 1
         for w in self.scenario.workflow:
             spec = self.scenario.devices[w.device]
             ctx = StepContext(clock=self.clock, rng=self._rngs[w.device], duration=spec.duration,
@@ -105,8 +106,8 @@ class Workcell:
                                       f"{failed}. Fix the driver, or give devices.{w.device}.twin a simulated "
                                       "driver that stands in for it") from None
                 return Measured({}, self.clock.t - start, failed=str(failed))
-            if result.sample is not None:  # None passes on the sample it was given
-                sample = result.sample
+            if result.sample is not None:  # None passes on the one given; its id is the lab's, as in a campaign
+                sample = {**result.sample, "id": sample["id"] if sample is not None else f"workcell/e{self._runs}"}
             outputs.update((k, v) for k, v in (result.outputs or {}).items() if not isinstance(v, (list, dict)))
         self._measured = True
         return Measured(outputs, self.clock.t - start)
