@@ -74,6 +74,7 @@ class Workcell:
         self.scenario, self.drivers = scenario, drivers
         self.clock = SteppedClock()
         self._failed, self._measured, self._runs = 0, False, 0
+        self._fenced = any(scenario.devices[w.device].envelope for w in scenario.workflow)
         self.reseed(seed)
 
     def reseed(self, seed: int) -> None:
@@ -85,7 +86,7 @@ class Workcell:
         campaign); its outputs are every step's numbers and texts, a later step's winning, as a campaign keeps
         them (a spectrum or a trace is left out)."""
         start = self.clock.t
-        outside = outside_envelope(self.scenario.workflow, params, self.scenario.devices)
+        outside = self._fenced and outside_envelope(self.scenario.workflow, params, self.scenario.devices)
         if outside:  # a campaign refuses it before anything is sent
             return Measured({}, 0.0, infeasible=outside)
         sample: Any = None
@@ -96,7 +97,7 @@ class Workcell:
             ctx = StepContext(clock=self.clock, rng=self._rngs[w.device], duration=spec.duration,
                               progress=lambda *_: None, telemetry=lambda _: None)
             try:
-                result = self._step(w, {**params, **w.params}, sample, ctx)
+                result = self._step(w, {**params, **w.params} if w.params else params, sample, ctx)
             except Refused as refused:
                 return Measured({}, self.clock.t - start, infeasible=f"{w.device} refused {w.step!r}: {refused.reason}")
             except _Failed as failed:
@@ -108,7 +109,9 @@ class Workcell:
                 return Measured({}, self.clock.t - start, failed=str(failed))
             if result.sample is not None:  # None passes on the one given; its id is the lab's, as in a campaign
                 sample = {**result.sample, "id": sample["id"] if sample is not None else f"workcell/e{self._runs}"}
-            outputs.update((k, v) for k, v in (result.outputs or {}).items() if not isinstance(v, (list, dict)))
+            for k, v in result.outputs.items():
+                if not isinstance(v, (list, dict)):
+                    outputs[k] = v
         self._measured = True
         return Measured(outputs, self.clock.t - start)
 
