@@ -7,7 +7,6 @@ steps}]``. Each (method, target) is one search with the same wall-time budget, i
 
 from __future__ import annotations
 
-import os
 import statistics
 from typing import Any, Callable
 
@@ -50,16 +49,12 @@ def _one(job: tuple[str, dict[str, Any], float]) -> dict[str, Any]:
             "expansions": int(data.get("expansions", 0)), "seconds": float(data.get("seconds", 0.0))}
 
 
-def _single_threaded() -> None:
-    os.environ["OMP_NUM_THREADS"] = "1"  # torch, imported by a worker, then uses one thread: two cores, two workers
-
-
 def bench(methods: list[str], chosen: list[dict[str, Any]], seconds: float, workers: int,
           on_done: Callable[[dict[str, Any]], None] = lambda r: None) -> list[dict[str, Any]]:
     jobs = [(m, t, seconds) for t in chosen for m in methods]  # target by target, every method in each
     results: list[dict[str, Any]] = []
     order = {m: i for i, m in enumerate(methods)}
-    with WorkerPool(workers, initializer=_single_threaded) as pool:
+    with WorkerPool(workers) as pool:  # one thread each, torch's too (OMP_NUM_THREADS)
         try:
             for fut in pool.completed([pool.submit(_one, job) for job in jobs]):
                 results.append(fut.result())
