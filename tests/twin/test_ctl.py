@@ -374,7 +374,7 @@ def test_a_lab_listening_on_a_port_it_chose_names_that_port_to_its_operator(tmp_
         assert m and m.group(2) != "0", said
         # and said once at the start, for a person to look at the lab
         assert [line for line in before if "is on the bus" in line] == [
-            f"WARNING twin.alerts: lab t is on the bus: twin ctl status --lab t --connect {m.group(1)}, twin watch "
+            f"INFO twin.where: lab t is on the bus: twin ctl status --lab t --connect {m.group(1)}, twin watch "
             f"--lab t --connect {m.group(1)}\n"], before
         res = twin_cli("ctl", "confirm", "e0s0", "--lab", "t", "--connect", m.group(1), "--as", "alice")
         assert res.exit_code == 0 and "operator.confirm by alice" in res.output, res.output

@@ -15,6 +15,8 @@ from twin.core.clock import LabClock
 from twin.scenario import Scenario
 
 log = logging.getLogger(ALERT_LOGGER)
+where = logging.getLogger("twin.where")  # where a person reaches the lab: news, not a warning, yet said at start
+where.setLevel(logging.INFO)
 
 ASKED = frozenset({"operator.step", "question.asked", "consumable.low"})
 NO_CTL = "twin ctl reaches a campaign over Zenoh, and this lab's bus is memory"
@@ -43,7 +45,7 @@ def say_where(s: Scenario, listening: list[str], clock: LabClock) -> None:
     --listen)."""
     if not clock.is_virtual and s.bus.kind != "memory" and _reached_at(s, listening):
         options = ctl_options(s, None, listening)
-        log.warning("lab %s is on the bus: twin ctl status %s, twin watch %s", s.lab, options, options)
+        where.info("lab %s is on the bus: twin ctl status %s, twin watch %s", s.lab, options, options)
 
 
 class AskedOfPeople:
