@@ -178,7 +178,7 @@ def status(core: CampaignCore, now: float | None = None) -> dict[str, Any]:
              else "running" if core._running else "starting")
     return {"campaign": core.campaign_id, "scenario": core.s.name, "lab": core.s.lab, "state": state,
             "paused_by": core.paused_by, "stopping": core.stopping, "stalled": core.stalled, "lab_hours": round((now - core.t0) / 3600, 4),
-            "started_lab_hours": round(core.t0 / 3600, 4),
+            "started_lab_hours": None if core.alone else round(core.t0 / 3600, 4),  # one of a lab's campaigns
             "budget": core.s.campaign.budget, "experiments": counts, "in_lab": in_lab,
             "ready": sorted(core.ready), "retrying": sorted(core._retrying),
             "consumables": {name: {"level": round(st.level, 6), "unit": st.unit, "reorder_at": st.reorder_at,

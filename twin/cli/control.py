@@ -60,9 +60,10 @@ def _send(command: str, lab: str, connect: list[str], security: Path | None, as_
 
 
 def _when(hours: float, status: dict) -> str:
-    """'lab 0.44 h', or for a campaign that started after its lab did, its own hours and the lab's."""
-    started = status.get("started_lab_hours") or 0.0
-    if started < 0.005:
+    """'lab 0.44 h' for a campaign alone on its lab; for one of a lab's campaigns, which may have started at any
+    time of the lab's, its own hours and the lab's."""
+    started = status.get("started_lab_hours")
+    if started is None:
         return f"lab {hours:.2f} h"
     return f"{hours:.2f} h into the campaign (lab {started + hours:.2f} h)"
 
