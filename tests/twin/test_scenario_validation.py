@@ -262,15 +262,18 @@ def test_the_advice_taken_the_hold_the_workflow_gives_is_in_the_steps_duration(t
     assert "lasts at least time_s" not in caplog.text, caplog.text
     out = twin.run(s)
     assert out.done == 3 and out.timed_out == 0 and out.lab_hours > 20000 / 3600, out
-    for bad in (-5, "long", True):
+    for bad in (-5, "long", True, 1e12):  # 1e12: the campaign ran to max_lab_hours, its steps never ending
         raw["workflow"][1]["params"] = {"time_s": bad}
         with pytest.raises(ScenarioError) as refused:
             load(write(tmp_path, raw))
-        assert "workflow.1.params.time_s" in str(refused.value) and "a number ≥ 0" in str(refused.value)
+        assert "workflow.1.params.time_s" in str(refused.value) and "lab seconds, from 0 to 1e+07" in str(refused.value)
     raw["workflow"][1]["params"] = {}
     with pytest.raises(ScenarioError) as refused:
         load(write(tmp_path, raw))
     assert "nor one a workflow step on reactor gives" in str(refused.value), refused.value
+    with pytest.raises(ScenarioError, match=r"plus_param: 'time_s' reaches 2e\+07 lab-s \(its high\)"):
+        parse(qd_lab(**{"chemistry.parameters.time_s": {"low": 10, "high": 2e7},
+                        "devices.synthesiser.duration.plus_param": "time_s"}))
 
 
 @pytest.mark.parametrize("hold_s, refused", [(3000, ""), (20000, "workflow.1.params.time_s: 20000 is outside "

@@ -398,10 +398,14 @@ class Scenario(Spec):
             elif box is not None and box.low < 0:
                 problems.append(f"devices.{dtype}.duration.plus_param: {p!r} can be negative (low {box.low}), "
                                 "which would make the step's duration negative: its low must be ≥ 0")
+            elif box is not None and box.high > MAX_S:
+                problems.append(f"devices.{dtype}.duration.plus_param: {p!r} reaches {box.high:g} lab-s (its "
+                                f"high), more than a step may last ({MAX_S:g}, as duration.mean_s): lower its high")
             for i, value in given:  # the step's own value wins over the experiment's
-                if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value <= MAX_S:
                     problems.append(f"workflow.{i}.params.{p}: {value!r} is what devices.{dtype}.duration."
-                                    f"plus_param adds to the step's duration: give it lab seconds, a number ≥ 0")
+                                    f"plus_param adds to the step's duration: give it lab seconds, from 0 to "
+                                    f"{MAX_S:g} (as duration.mean_s)")
         return problems
 
     def instance_names(self, device_type: str) -> list[str]:
