@@ -10,6 +10,7 @@ import pytest
 
 from tests.devices.test_mqtt import SPEED, instrument, mqtt_lab, prefix  # noqa: F401 (a fixture)
 from twin.campaign.journal_read import read_events
+from twin.core.clock import wall_on_loop
 from twin.runtime.assembly import load_driver
 from twin.runtime.lab import make_clock, prepare, run_async
 from twin.scenario import parse
@@ -17,9 +18,16 @@ from twin.scenario import parse
 pytestmark = pytest.mark.process
 
 
+def _client(host: str, port: str) -> aiomqtt.Client:
+    """A fake instrument's session. Those here run on the lab's loop, whose time is lab time: aiomqtt's own 10 s
+    for a publish was 0.1 s of wall time at 100×, and on a loaded machine the fake died of it mid-campaign (its
+    commands unanswered, a cancel never acknowledged; CI failed so once)."""
+    return aiomqtt.Client(host, int(port), timeout=wall_on_loop(10.0))
+
+
 async def _retained(broker: str, topic: str) -> str:
     host, _, port = broker.rpartition(":")
-    async with aiomqtt.Client(host, int(port)) as c:
+    async with _client(host, port) as c:
         await c.subscribe(topic, qos=1)
         async with asyncio.timeout(5):
             async for m in c.messages:
@@ -50,7 +58,7 @@ def test_a_clean_exit_says_offline_and_a_stale_online_is_not_trusted_until_a_pin
 
     async def stale_then_live():
         host, _, port = mosquitto.rpartition(":")
-        async with aiomqtt.Client(host, int(port)) as c:  # a dead instrument's "online", left retained
+        async with _client(host, port) as c:  # a dead instrument's "online", left retained
             await c.publish(f"{topic}/status", "online", qos=1, retain=True)
         driver, seen = await _adapter(mosquitto, prefix)
         try:
@@ -79,7 +87,7 @@ def _hostile_lab(mosquitto: str, prefix: str):
 async def _hostile_instrument(broker: str, topic: str, answers: list, ready: asyncio.Event) -> None:
     """Answers its n-th command with ``answers[n](cmd)`` (then properly), as a broken instrument would."""
     host, _, port = broker.rpartition(":")
-    async with aiomqtt.Client(host, int(port)) as c:
+    async with _client(host, port) as c:
         await c.subscribe(f"{topic}/command", qos=1)
         await c.publish(f"{topic}/status", "online", qos=1, retain=True)
         ready.set()
@@ -201,7 +209,7 @@ def test_a_late_last_will_does_not_keep_a_live_instrument_off_the_bus(mosquitto,
         try:
             await _until(lambda: seen == [True])
             host, _, port = mosquitto.rpartition(":")
-            async with aiomqtt.Client(host, int(port)) as c:  # the broker giving out the old session's will
+            async with _client(host, port) as c:  # the broker giving out the old session's will
                 await c.publish(f"{topic}/status", "offline", qos=1, retain=True)
             await _until(lambda: seen == [True, False, True])
             return list(seen), (await driver.health())["present"]
@@ -230,7 +238,7 @@ def test_an_instrument_not_present_is_said_once_with_the_topic_the_adapter_waits
 
     async def three():
         host, _, port = mosquitto.rpartition(":")
-        async with aiomqtt.Client(host, int(port)) as c:  # a dead instrument's "online", left retained
+        async with _client(host, port) as c:  # a dead instrument's "online", left retained
             await c.publish(f"{prefix}/spectrometer-2/status", "online", qos=1, retain=True)
         lab = parse(mqtt_lab(mosquitto, prefix, **{"devices.spectrometer.instances": 3}))
         drivers = [load_driver(lab, "spectrometer", f"spectrometer-{i}") for i in (1, 2, 3)]
@@ -269,7 +277,7 @@ def test_an_instrument_that_said_online_without_retain_before_the_lab_came_is_fo
         ready, pinged = asyncio.Event(), asyncio.Event()
 
         async def instrument_without_retain():
-            async with aiomqtt.Client(host, int(port)) as c:
+            async with _client(host, port) as c:
                 await c.subscribe(f"{topic}/command", qos=1)
                 await c.publish(f"{topic}/status", "online", qos=1)  # not retained: nobody hears it
                 ready.set()
