@@ -51,14 +51,15 @@ def nothing_scored(scenario: Scenario, episodes: int = 3, seed: int = 10_000) ->
     env.action_space.seed(seed)
     seen: set[str] = set()
     for i in range(episodes):
-        env.reset(seed=seed + i)
+        _, info = env.reset(seed=seed + i)  # the episode's first experiment, at random
+        terminated = truncated = False
         while True:
-            _, _, terminated, truncated, info = env.step(env.action_space.sample())
             seen |= set(env.last_measured.outputs)
             if math.isfinite(info["distance"]):
                 return ""
             if terminated or truncated:
                 break
+            _, _, terminated, truncated, info = env.step(env.action_space.sample())
     reads = sorted({name for t in scenario.chemistry.targets for name in t.outputs})
     last = env.last_measured
     why = (f"the last was {'refused' if last.infeasible else 'failed'}: {last.infeasible or last.failed}"
@@ -80,12 +81,12 @@ def train_planner(scenario: Scenario, steps: int, out: Path, seed: int = 0, envs
     from stable_baselines3 import PPO
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    torch.set_num_threads(1)
-    venv = DummyVecEnv([lambda i=i: PlanningEnv(scenario, seed=seed * 1000 + i) for i in range(envs)])
-    model = without_log_dir(PPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS))
     unlearnable = nothing_scored(scenario)
     if unlearnable:
         raise ValueError(unlearnable)
+    torch.set_num_threads(1)
+    venv = DummyVecEnv([lambda i=i: PlanningEnv(scenario, seed=seed * 1000 + i) for i in range(envs)])
+    model = without_log_dir(PPO("MlpPolicy", venv, seed=seed, verbose=0, device="cpu", **PPO_SETTINGS))
     if on_progress:  # the lab is one it can train on: the bar starts
         on_progress(0, None)
     baseline = evaluate(scenario, random_moves)

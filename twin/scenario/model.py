@@ -366,8 +366,7 @@ class Scenario(Spec):
             for name, safe in spec.envelope.items():
                 box = self.chemistry.parameters.get(name)
                 where = f"devices.{dtype}.envelope.{name}"
-                given = [(i, ws.params[name]) for i, ws in enumerate(self.workflow)
-                         if ws.device == dtype and name in ws.params]
+                given = self._step_given(dtype, name)
                 if box is None and not given:
                     problems.append(f"{where}: {name!r} is neither a parameter of chemistry.parameters "
                                     f"({', '.join(self.chemistry.parameters) or 'none'}) nor one a workflow step on "
@@ -381,6 +380,10 @@ class Scenario(Spec):
                                         f"{safe.high:g}]: every experiment would be refused at this step")
         return problems
 
+    def _step_given(self, dtype: str, name: str) -> list[tuple[int, Any]]:
+        """(index, value) of each workflow step on ``dtype`` that gives parameter ``name`` itself."""
+        return [(i, ws.params[name]) for i, ws in enumerate(self.workflow) if ws.device == dtype and name in ws.params]
+
     def _plus_params(self) -> list[str]:
         if self.jobshop is not None:
             return []  # a job shop's operations carry their own durations
@@ -390,7 +393,7 @@ class Scenario(Spec):
             if not p:
                 continue
             box = self.chemistry.parameters.get(p)
-            given = [(i, ws.params[p]) for i, ws in enumerate(self.workflow) if ws.device == dtype and p in ws.params]
+            given = self._step_given(dtype, p)
             if box is None and not given:
                 problems.append(f"devices.{dtype}.duration.plus_param: {p!r} is neither a parameter of "
                                 f"chemistry.parameters ({', '.join(self.chemistry.parameters) or 'none'}) nor one "
