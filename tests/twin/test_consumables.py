@@ -292,29 +292,6 @@ def test_an_amount_per_parameter_may_fall_with_it_while_no_step_uses_less_than_n
         pytest.approx(1.1)
 
 
-@pytest.mark.parametrize("shared", [False, True])
-def test_an_amount_per_a_parameter_the_workflows_step_gives_is_taken(shared):
-    """`per: {volume_ml: 1}` where the step gives `params: {volume_ml: 4}` (not the planner's box) was refused as "no
-    parameter of the chemistry" (and, in a shared lab, dropped from the campaign's amounts), though a step's own
-    parameters are what the lab takes amounts by."""
-    from twin.scenario.sharing import campaign_scenarios
-
-    raw = yaml.safe_load(open("scenarios/shared_lab.yaml"))
-    raw["consumables"] = {"solvent": {"unit": "mL", "level": 500, "used_by": {
-        "synthesise": {"fixed": 1, "per": {"volume_ml": 1}}}}}
-    dots = next(c for c in raw["campaigns"] if c["name"] == "dots")
-    next(w for w in dots["workflow"] if w["step"] == "synthesise")["params"] = {"volume_ml": 4}
-    if not shared:
-        raw.update(chemistry=dots["chemistry"], workflow=dots["workflow"])
-        del raw["campaigns"]
-        lab = parse(raw, "lab.yaml")
-        assert amount(lab.consumables["solvent"].used_by["synthesise"], {"volume_ml": 4}) == 5
-        return
-    per = {name: dict(s.consumables["solvent"].used_by["synthesise"].per)
-           for name, s in campaign_scenarios(parse(raw, "shared.yaml")).items()}
-    assert per[dots["name"]] == {"volume_ml": 1}, per
-
-
 def test_a_shared_lab_takes_an_amount_per_parameter_only_from_the_campaigns_that_have_it():
     raw = yaml.safe_load(open("scenarios/shared_lab.yaml"))
     raw["consumables"] = {"precursor": {"level": 500, "used_by": {

@@ -11,7 +11,6 @@ import yaml
 
 from tests.conftest import qd_lab, twin_cli
 from twin.core.errors import ScenarioError
-from twin.runtime.checks import check
 from twin.scenario import parse
 from twin.scenario import load
 
@@ -226,72 +225,6 @@ def test_validate_shows_each_warning_under_the_file_that_gave_it(tmp_path):
     warnings = [line for line in res.stderr.splitlines() if "warning:" in line]
     assert len(warnings) == 1 and warnings[0].startswith(f"! {twinned}: warning: ")
     assert "no experiment meets that target" in warnings[0]
-
-
-@pytest.mark.parametrize("hold_s, warned", [(20000, True), (600, False)])
-def test_a_hold_time_the_workflow_gives_is_weighed_against_the_deadline(tmp_path, caplog, hold_s, warned):
-    """The reactor's steps last time_s; here the workflow gives it (not the planner's box) and the duration model
-    leaves it out: a hold longer than the deadline is warned of, naming the field to give; a shorter one is not."""
-    raw = yaml.safe_load((ROOT / "scenarios" / "flaky_lab.yaml").read_text())
-    raw["devices"]["reactor"]["duration"].pop("plus_param")
-    del raw["chemistry"]["parameters"]["time_s"]
-    raw["workflow"][1]["params"] = {"time_s": hold_s}
-    s = load(write(tmp_path, raw))
-    with caplog.at_level("WARNING"):
-        check(s)
-    text = " ".join(r.getMessage() for r in caplog.records)
-    assert (f"devices.reactor.duration: a step of reactor lasts at least time_s (up to {hold_s} lab-s here)" in text) \
-        is warned, text
-
-
-def test_the_advice_taken_the_hold_the_workflow_gives_is_in_the_steps_duration(tmp_path, caplog):
-    """The warning above says to give `duration.plus_param: time_s`, and a parameter the workflow's step gives (not
-    the planner's box) was refused there as "not a parameter of chemistry.parameters". Taken now: no warning, and
-    every step lasts its hold with no attempt timed out; a hold that is not lab seconds is refused by its field."""
-    import twin
-
-    raw = yaml.safe_load((ROOT / "scenarios" / "flaky_lab.yaml").read_text())
-    del raw["chemistry"]["parameters"]["time_s"]
-    raw["workflow"][1]["params"] = {"time_s": 20000}
-    for spec in raw["devices"].values():
-        spec.pop("faults", None)
-    raw["campaign"].update(budget=3, planner="random")
-    s = load(write(tmp_path, raw))
-    with caplog.at_level("WARNING"):
-        check(s)
-    assert "lasts at least time_s" not in caplog.text, caplog.text
-    out = twin.run(s)
-    assert out.done == 3 and out.timed_out == 0 and out.lab_hours > 20000 / 3600, out
-    for bad in (-5, "long", True, 1e12):  # 1e12: the campaign ran to max_lab_hours, its steps never ending
-        raw["workflow"][1]["params"] = {"time_s": bad}
-        with pytest.raises(ScenarioError) as refused:
-            load(write(tmp_path, raw))
-        assert "workflow.1.params.time_s" in str(refused.value) and "lab seconds, from 0 to 1e+07" in str(refused.value)
-    raw["workflow"][1]["params"] = {}
-    with pytest.raises(ScenarioError) as refused:
-        load(write(tmp_path, raw))
-    assert "nor one a workflow step on reactor gives" in str(refused.value), refused.value
-    with pytest.raises(ScenarioError, match=r"plus_param: 'time_s' reaches 2e\+07 lab-s \(its high\)"):
-        parse(qd_lab(**{"chemistry.parameters.time_s": {"low": 10, "high": 2e7},
-                        "devices.synthesiser.duration.plus_param": "time_s"}))
-
-
-@pytest.mark.parametrize("hold_s, refused", [(3000, ""), (20000, "workflow.1.params.time_s: 20000 is outside "
-                                                            "devices.reactor.envelope.time_s [0, 7200]")])
-def test_an_envelope_may_bound_what_the_workflows_step_gives(tmp_path, hold_s, refused):
-    """An envelope on a parameter the step gives (the planner's box has none) was refused as "not a parameter of
-    chemistry.parameters"; it is checked against the step's value, which the lab checks before it sends a step."""
-    raw = yaml.safe_load((ROOT / "scenarios" / "flaky_lab.yaml").read_text())
-    del raw["chemistry"]["parameters"]["time_s"]
-    raw["devices"]["reactor"]["duration"].pop("plus_param")
-    raw["devices"]["reactor"]["envelope"] = {"time_s": {"low": 0, "high": 7200}}
-    raw["workflow"][1]["params"] = {"time_s": hold_s}
-    if not refused:
-        assert load(write(tmp_path, raw)).devices["reactor"].envelope["time_s"].high == 7200
-        return
-    with pytest.raises(ScenarioError) as said:
-        load(write(tmp_path, raw))
-    assert refused in str(said.value), said.value
 
 
 @pytest.mark.parametrize("dotted, says", [

@@ -216,17 +216,3 @@ def test_a_scheduler_that_may_take_minutes_a_campaign_is_said_before_the_bench_r
     res = twin_cli("bench", "schedulers", str(ROOT / "scenarios" / "flaky_lab.yaml"), "--schedulers", "mwkr",
                    "--seeds", "1", "--set", "campaign.budget=4")
     assert res.exit_code == 0 and "decides in up to" not in res.stderr
-
-
-def test_the_typical_step_counts_a_duration_the_workflows_step_gives():
-    """`plus_param: time_s` given by the workflow's step (not the planner's box): the objective's time unit added
-    nothing for it, and weighed a lab of 2-hour holds as one of 25-minute steps."""
-    import yaml
-    from twin import time_scale
-
-    raw = yaml.safe_load((Path(__file__).resolve().parents[2] / "scenarios" / "flaky_lab.yaml").read_text())
-    del raw["chemistry"]["parameters"]["time_s"]
-    raw["workflow"][1]["params"] = {"time_s": 7200}
-    held = time_scale(parse(raw))
-    raw["workflow"][1]["params"] = {"time_s": 0}
-    assert held - time_scale(parse(raw)) == pytest.approx(7200 / len(raw["workflow"]))
