@@ -148,3 +148,20 @@ def test_the_documented_device_keeps_each_runs_time_when_its_lab_runs_again(tmp_
     finally:
         proc.terminate()
         proc.communicate(timeout=30)
+
+
+@pytest.mark.parametrize("script, args", [("device.py", ["spectrometer"]), ("agent.py", []), ("monitor.py", [])])
+def test_a_sigterm_as_the_documented_programs_declare_ends_them(tmp_path, script, args):
+    """Their SIGTERM handler raises; it was set before the declarations and the `try` came after them, so a SIGTERM
+    while they declared (a lab that ended as the monitor joined, in CI) escaped the `try` and left the Zenoh session
+    open — the program died of the interrupt, or, with a callback declared already, hung (the monitor did not end
+    within 30 s). Here the SIGTERM comes just before the first declaration."""
+    text = documented(script)
+    after = text.index("signal.signal(signal.SIGTERM, stop)")
+    first = re.compile(r"^( *)\w+ = session\.(declare_|liveliness)", re.M).search(text, after)  # its first declaration
+    assert first, text
+    text = text[:first.start()] + f"{first.group(1)}signal.raise_signal(signal.SIGTERM)\n" + text[first.start():]
+    (tmp_path / script).write_text(text)
+    done = subprocess.run([sys.executable, script, "nolab", *args, f"tcp/127.0.0.1:{free_port()}"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr[-2000:]
