@@ -211,6 +211,7 @@ def holds(path):
     time.sleep(60)
 
 with WorkerPool(1) as pool:
+    Path(sys.argv[1] + ".scratch").write_text(pool.scratch)
     pool.submit(holds, sys.argv[1])
     while not Path(sys.argv[1]).exists() or not Path(sys.argv[1]).read_text():
         time.sleep(0.01)
@@ -220,7 +221,8 @@ with WorkerPool(1) as pool:
 
 @pytest.mark.process
 def test_a_worker_ends_with_its_pool_even_when_that_is_killed(tmp_path):
-    """SIGKILL cannot be handled: the worker was orphaned and, once its run ended, waited for work for good."""
+    """SIGKILL cannot be handled: the worker was orphaned and, once its run ended, waited for work for good; and the
+    runs' directory, which the pool removes as it ends, was left in /tmp."""
     import subprocess
     import sys
 
@@ -239,6 +241,7 @@ def test_a_worker_ends_with_its_pool_even_when_that_is_killed(tmp_path):
     while alive() and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not alive(), "the worker outlived its pool"
+    assert not Path((tmp_path / "run.scratch").read_text()).exists(), "the runs' directory outlived its pool"
 
 
 STOPPED_IN_A_CALLBACK = """

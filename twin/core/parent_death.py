@@ -11,11 +11,11 @@ import signal
 PR_SET_PDEATHSIG = 1
 
 
-def ends_with_parent(parent: int) -> bool:
-    """SIGTERM for this process when ``parent`` (its parent's pid, as the parent knew it) ends; False if it has
+def ends_with_parent(parent: int, sig: int = signal.SIGTERM) -> bool:
+    """``sig`` for this process when ``parent`` (its parent's pid, as the parent knew it) ends; False if it has
     ended already (this process then has another parent). Not Linux: left as it was, and True."""
     try:
-        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, sig)
     except (OSError, AttributeError):
         return True
     return os.getppid() == parent

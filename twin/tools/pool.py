@@ -18,6 +18,8 @@ pool's process, which logs each distinct message once, where each worker would h
 A run's temporary files go in a directory the pool makes and removes when it ends, whatever its workers were
 doing: a stop that lands inside ``tempfile.TemporaryDirectory()`` itself (the directory made, its removal not yet
 arranged) or during that removal, or a worker killed when ``STOP_S`` ran out, would otherwise leave them behind.
+A pool's process killed by SIGKILL cannot remove it: its workers, told by a signal of their own (SIGUSR1, where the
+pool's stop is SIGTERM), do as they leave.
 
 While the pool is open, Ctrl-C and SIGTERM are only noted, and raised where the command waits for its runs
 (``completed``, ``map``). Raised wherever the main thread happened to be, they could land inside the executor's
@@ -208,7 +210,10 @@ class _SaidOnce(threading.Thread):
 def _start_worker(then: Callable[[], None] | None, scratch: str, pool: int, once: tuple[str, ...], said: Any) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _exit)
+    signal.signal(signal.SIGUSR1, _orphaned)
     sys.unraisablehook = _unraisable
+    global _scratch
+    _scratch = scratch
     _ends_with(pool)
     tempfile.tempdir = os.environ["TMPDIR"] = scratch  # SQLite's own temporary files too
     _one_thread_each()
@@ -235,12 +240,14 @@ def _one_thread_each() -> None:
 
 
 def _ends_with(pool: int) -> None:
-    """SIGTERM when the pool's process dies, even by SIGKILL (Linux): the worker holds a copy of its work queue's
+    """SIGUSR1 when the pool's process dies, even by SIGKILL (Linux): the worker holds a copy of its work queue's
     write end, so the queue never tells it, and an orphaned worker waited for work for good."""
-    if not ends_with_parent(pool):  # it died before that was set
-        _leave()
+    if not ends_with_parent(pool, signal.SIGUSR1):  # it died before that was set
+        _orphaned()
 
 
+_scratch = ""  # the pool's directory for its runs' files
+_pool_gone = False  # the pool's process ended (its directory is the workers' to remove)
 _stopped = False  # this worker was sent SIGTERM
 _running = False  # this worker is in a run (a SIGTERM unwinds it)
 
@@ -264,6 +271,12 @@ def _exit(*_: Any) -> None:
     raise KeyboardInterrupt
 
 
+def _orphaned(*_: Any) -> None:
+    global _pool_gone
+    _pool_gone = True
+    _exit()
+
+
 def _unraisable(what: Any) -> None:
     """A SIGTERM that lands in code Python cannot raise from (a weakref's callback, as an import's module lock is
     freed) was printed as 'Exception ignored in ...' with a traceback, and the run went on: the worker leaves at once
@@ -274,6 +287,8 @@ def _unraisable(what: Any) -> None:
 
 
 def _leave() -> None:
+    if _pool_gone:  # each worker tries, as its run has unwound; another's may still be ending
+        shutil.rmtree(_scratch, ignore_errors=True)
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(143)
