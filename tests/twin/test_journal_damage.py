@@ -91,7 +91,7 @@ _KILLED = "DELETE FROM run WHERE key = 'summary'; "  # as a run killed before it
      "experiment 1 is damaged (its attempts is 'many', not a whole number of them)"),
     ("UPDATE experiments SET t_done = -1e300 WHERE id = 1", ["export"],
      "experiment 1 is damaged (its t_done is '-1e+300', not a lab time)"),
-    ("ALTER TABLE experiments RENAME TO old; CREATE VIEW experiments AS SELECT id, params FROM old", ["export"],
+    ("ALTER TABLE experiments RENAME TO old; CREATE TABLE experiments AS SELECT id, params FROM old", ["export"],
      "its experiments table has no route, status, reason"),
     ("UPDATE experiments SET route = '[[1, 2]]' WHERE id = 1", ["export"],
      "experiment 1 is damaged (its route is '[[1, 2]]', not a list of [step, device type, params])"),
@@ -117,6 +117,36 @@ def test_a_journal_altered_in_its_run_or_experiments_is_refused_naming_what(tmp_
         res = twin_cli(command, str(db), *args.get(command, []))
         out = " ".join(res.output.split())
         assert res.exit_code == 2 and says in out, (command, out)  # a traceback exits 1
+
+
+_ENDLESS = "WITH RECURSIVE n(x) AS (SELECT 1 UNION ALL SELECT x + 1 FROM n LIMIT 3)"  # without LIMIT: for good
+
+
+@pytest.mark.parametrize("change,says", [
+    (f"ALTER TABLE run RENAME TO kept; CREATE VIEW run AS {_ENDLESS} SELECT 'k' || x AS key, '1' AS value FROM n",
+     "holds a view ('run')"),
+    (f"CREATE TRIGGER more AFTER INSERT ON events BEGIN INSERT INTO run {_ENDLESS} SELECT x, x FROM n; END",
+     "holds a trigger ('more')"),
+    ("ALTER TABLE run RENAME TO kept; CREATE VIRTUAL TABLE run USING fts5(key, value); "
+     "INSERT INTO run SELECT * FROM kept", "holds a virtual table ('run')"),
+    ("ALTER TABLE experiments ADD COLUMN big TEXT GENERATED ALWAYS AS (printf('%.*c', 100000000, 'x')) VIRTUAL",
+     "holds a computed column ('experiments.big')"),
+])
+def test_a_journal_that_would_run_a_query_of_its_own_is_refused_before_any_read(tmp_path, change, says):
+    """A journal someone sends is read as data: a view, a virtual table or a computed column runs the sender's
+    query at every read (a view of an endless recursive query held `twin report` for good, its memory growing)."""
+    from twin.runtime.lab import run
+
+    db = tmp_path / "qd.db"
+    run(ROOT / "scenarios" / "quantum_dots.yaml", journal=db, bus="memory", overrides={"campaign.budget": 3})
+    with sqlite3.connect(db) as conn:
+        conn.executescript(_KILLED + change)  # resumable, as far as the run table says
+    args = {"replay": ["--save", str(tmp_path / "r.rrd")], "export": ["--out", str(tmp_path / "out")]}
+    for command in ("report", "replay", "export", "resume"):
+        res = twin_cli(command, str(db), *args.get(command, []))
+        out = " ".join(res.output.split())
+        assert res.exit_code == 2 and says in out and "labtwin never writes" in out, (command, out)
+        assert "nothing was read from it" in out
 
 
 @pytest.mark.parametrize("name", ["run.db", "run #1.db", "run%20a.db", "what?.db"])

@@ -40,9 +40,32 @@ def reading(path: str | Path) -> Iterator[sqlite3.Connection]:
     try:
         with contextlib.closing(sqlite3.connect(uri, uri=True)) as db:
             db.execute("PRAGMA query_only = 1")
+            db.execute("PRAGMA trusted_schema = 0")
+            _only_tables(path, db)
             yield db
     except sqlite3.DatabaseError as exc:  # not SQLite, or not ours
         raise _not_ours(path, exc) from None
+
+
+def _only_tables(path: str | Path, db: sqlite3.Connection) -> None:
+    """A journal holds tables of plain columns, as labtwin writes them: a view, a virtual table or a computed column
+    runs a query of someone else's on every read (a view of an endless recursive query held `twin report` for good,
+    its memory growing), and a trigger on every write."""
+    schema = db.execute("SELECT type, name, sql FROM sqlite_master WHERE type IN ('table', 'view', 'trigger')")
+    for kind, name, sql in schema.fetchall():
+        if kind == "table" and str(sql or "").upper().startswith("CREATE VIRTUAL"):
+            kind = "virtual table"
+        elif kind == "table":
+            computed = [c[1] for c in db.execute(f"PRAGMA table_xinfo({_quoted(name)})") if c[6]]
+            if not computed:
+                continue
+            kind, name = "computed column", f"{name}.{computed[0]}"
+        raise NotAJournal(f"{path}: holds a {kind} ({str(name)[:60]!r}), which labtwin never writes: the journal was "
+                          "altered, or is another program's database; nothing was read from it")
+
+
+def _quoted(name: str) -> str:
+    return '"' + str(name).replace('"', '""') + '"'
 
 
 def _not_ours(path: str | Path, exc: Exception) -> NotAJournal:
