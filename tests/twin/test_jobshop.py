@@ -363,3 +363,5 @@ def test_a_shop_named_from_the_current_directory_or_a_directory_of_shops_is_foun
     with pytest.raises(ScenarioError, match=r"file not found, neither beside the scenario \(.*scenarios/nosuch.txt\) "
                                             r"nor in the current directory \(.*/nosuch.txt\)"):
         prepare(scenario, overrides={"jobshop.file": "nosuch.txt"})
+    with pytest.raises(ScenarioError, match=r"did you mean .*scenarios/jobshop/ft06.txt\?"):
+        prepare(scenario, overrides={"jobshop.file": "jobshop/ft6.txt"})

@@ -406,3 +406,15 @@ def test_validate_json_gives_each_files_problems_and_warnings_and_strict_fails_o
     strict = twin_cli("validate", *files[:2], "--strict")
     assert strict.exit_code == 2 and "warned.yaml (1 warning): --strict fails it" in strict.stdout, strict.stdout
     assert json.loads(twin_cli("validate", files[0], "--json", "--strict").stdout)["ok"] is True
+
+
+@pytest.mark.parametrize("given,meant", [("quantum_dot.yaml", "quantum_dots.yaml"), ("flaky.yml", "flaky_lab.yaml"),
+                                         ("Catalyst.yaml", "catalyst.yaml"), ("nothing_like_it.yaml", None)])
+def test_a_missing_scenario_names_the_file_beside_it_likely_meant(given, meant):
+    res = twin_cli("validate", str(ROOT / "scenarios" / given))
+    assert res.exit_code == 2 and "file not found" in res.stderr
+    said = " ".join(res.stderr.split())
+    if meant is None:
+        assert "check the path" in said and "did you mean" not in said
+    else:
+        assert f"did you mean {ROOT / 'scenarios' / meant}?" in said

@@ -9,6 +9,8 @@ file, and the line where there is one.
 
 from __future__ import annotations
 
+import difflib
+import itertools
 import os
 import re
 import select
@@ -66,7 +68,8 @@ def read_text(path: str | Path, what: str = "scenario") -> str:
             with path.open("rb") as f:
                 data = f.read(MAX_BYTES + 1)
     except FileNotFoundError:
-        raise ScenarioError(where, [f"file not found: check the path ({what} files are usually in scenarios/)"]) from None
+        raise ScenarioError(where, [f"file not found: {nearest_file(path) or 'check the path'} ({what} files are usually "
+                                    "in scenarios/)"]) from None
     except OSError as exc:
         raise ScenarioError(where, [f"cannot be read: {exc.strerror or exc}"]) from None
     if len(data) > MAX_BYTES:
@@ -79,6 +82,17 @@ def read_text(path: str | Path, what: str = "scenario") -> str:
         raise ScenarioError(where, [f"not UTF-8 text (byte {exc.start} is {data[exc.start]:#04x}; it looks like {kind}): "
                                     "save it as UTF-8"]) from None
     return text.removeprefix("\ufeff")  # the byte-order mark Windows editors put first
+
+
+def nearest_file(path: Path) -> str:
+    """'did you mean X?' for a file beside where ``path`` points whose name is close to its (a letter off, another
+    extension), or ''."""
+    try:
+        names = [p.name for p in itertools.islice(path.parent.iterdir(), 1000) if p.is_file()]
+    except OSError:  # its directory is missing too, or cannot be listed
+        return ""
+    close = difflib.get_close_matches(path.name, names, n=1, cutoff=0.75)
+    return f"did you mean {path.parent / close[0]}?" if close else ""
 
 
 def _from_pipe(path: Path, where: str, what: str) -> bytes:

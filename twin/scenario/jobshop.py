@@ -28,7 +28,7 @@ from typing import Any
 
 from twin.core.counts import counted
 from twin.core.errors import ScenarioError
-from twin.scenario.files import read_text
+from twin.scenario.files import nearest_file, read_text
 from twin.scenario.model import Scenario
 
 
@@ -250,8 +250,9 @@ def shop_path(base_dir: Path, file: str | Path) -> Path:
     here = Path(file)
     if here.exists():
         return here
+    guess = nearest_file(beside) or nearest_file(here) or "check the path"
     raise ScenarioError(str(file), [f"file not found, neither beside the scenario ({beside}) nor in the current "
-                                    f"directory ({Path.cwd() / file}): check the path"])
+                                    f"directory ({Path.cwd() / file}): {guess}"])
 
 
 def expand(scenario: Scenario, base_dir: Path, source: str = "") -> Scenario:
