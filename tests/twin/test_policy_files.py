@@ -264,3 +264,11 @@ def test_a_policy_save_cut_short_leaves_the_policy_saved_before_whole(tmp_path):
     assert (best.read_bytes(), best.with_suffix(".json").read_text()) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["best.json", "best.zip"]  # nothing half-written left
     RlScheduler(s, policy=str(best))  # and it loads
+
+
+def test_a_policy_not_found_names_the_one_beside_it_likely_meant(monkeypatch):
+    monkeypatch.chdir(ROOT)
+    res = twin_cli("validate", "scenarios/flaky_lab.yaml", "--set", "campaign.scheduler=rl:agents/policies/flaky.zip")
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and ("policy agents/policies/flaky.zip does not exist (did you mean "
+                                   "agents/policies/flaky_scheduler.zip?); train one") in said, said

@@ -16,7 +16,7 @@ from twin.core.whole_files import written_whole
 from twin.learning.policy_file import safe_objects
 from twin.runtime.run_record import versions
 from twin.scenario import Scenario
-from twin.scenario.files import not_a_file
+from twin.scenario.files import nearest_file, not_a_file
 
 MAX_DESCRIPTION_BYTES = 16 * 2**20  # a policy's .json: a few kB as `twin train` writes it
 
@@ -71,8 +71,9 @@ def load_policy(path: str | Path, kind: str, signature: dict[str, Any]) -> Any:
     """The policy at ``path``, checked to be a ``kind`` policy trained for a lab of this ``signature``."""
     path = Path(path)
     if not path.exists():
-        raise PluginError(f"policy {path} does not exist; train one with `twin train SCENARIO --agent {kind} --out "
-                          f"{shell_word(path)}`")
+        meant = nearest_file(path)
+        raise PluginError(f"policy {path} does not exist{f' ({meant})' if meant else ''}; train one with `twin train SCENARIO --agent {kind} "
+                          f"--out {shell_word(path)}`")
     if why := not_a_file(path):
         raise PluginError(f"{path} {why}; policies are saved by `twin train`")
     meta = read_meta(path)

@@ -86,13 +86,15 @@ def read_text(path: str | Path, what: str = "scenario") -> str:
 
 def nearest_file(path: Path) -> str:
     """'did you mean X?' for a file beside where ``path`` points whose name is close to its (a letter off, another
-    extension), or ''."""
+    extension) or the one that begins with its (flaky.zip: flaky_scheduler.zip), or ''."""
     try:
-        names = [p.name for p in itertools.islice(path.parent.iterdir(), 1000) if p.is_file()]
+        files = [p for p in itertools.islice(path.parent.iterdir(), 1000) if p.is_file()]
     except OSError:  # its directory is missing too, or cannot be listed
         return ""
-    close = difflib.get_close_matches(path.name, names, n=1, cutoff=0.75)
-    return f"did you mean {path.parent / close[0]}?" if close else ""
+    close = difflib.get_close_matches(path.name, [p.name for p in files], n=1, cutoff=0.75)
+    longer = [p.name for p in files if p.suffix == path.suffix and p.stem.startswith(path.stem)]
+    meant = close[0] if close else longer[0] if len(longer) == 1 else ""
+    return f"did you mean {path.parent / meant}?" if meant else ""
 
 
 def _from_pipe(path: Path, where: str, what: str) -> bytes:
