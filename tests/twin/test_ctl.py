@@ -175,6 +175,7 @@ async def test_hostile_requests_are_refused_by_field_and_never_reach_the_journal
             bad = {b"not json": "not JSON", b"[1, 2]": "JSON object", b'{"who": "x; rm -rf /"}': "who:",
                    b'{"who": "a", "experiment": true}': "experiment:", b'{"who": "a", "now": "yes"}': "now:",
                    b'{"who": "a", "sudo": 1}': "unknown field", b"{" + b" " * 5000 + b"}": "at most 4096",
+                   b"[" * 4000: "not JSON (JSON nested too deep)",  # json.loads raises RecursionError
                    b'{"who": "a", "reason": "' + b"x" * 600 + b'"}': "reason:",
                    b'{"who": "a", "amount": 1e308}': "amount: '1e+308' is not a positive number below 1e15",
                    # past SQLite's 64 bits: the refusal's journal row failed, and every write after it
@@ -404,3 +405,28 @@ def test_the_answers_being_written_get_their_wall_seconds_before_a_fast_campaign
         return answer.done()
 
     assert clock.run(stop_then_drain())
+
+
+@pytest.mark.parametrize("answer", [b"<html>a web server</html>", b"[" * 5000, b'{"status": "fine"}', b"[1, 2]"])
+def test_twin_ctl_answered_by_what_is_no_campaign_says_so_not_a_traceback(answer):
+    """Any program on an open bus can serve a lab's control key: `twin ctl` read its answer as JSON unchecked."""
+    import zenoh
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"peer"')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    session = zenoh.open(cfg)
+    try:
+        def impostor(query):
+            with query:
+                query.reply(query.key_expr, answer)
+        queryable = session.declare_queryable("labtwin/imp/control/**", impostor)
+        res = twin_cli("ctl", "status", "--lab", "imp", "--connect", endpoint)
+        queryable.undeclare()
+    finally:
+        session.close()
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and "what answered for lab 'imp'" in said and "is not a campaign's answer" in said, said
+    assert "Traceback" not in said

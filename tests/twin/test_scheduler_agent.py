@@ -150,6 +150,46 @@ def test_an_error_reply_on_the_bus_is_the_agents_failure_not_the_labs(virtual_cl
                        "cannot parse the view"]
 
 
+@pytest.mark.parametrize("reply,says", [
+    (b"[" * 100_000, "JSON nested too deep"),  # json.loads raises RecursionError: it failed the lab's decision
+    (b'{"error": ' + b"[" * 100_000, "JSON nested too deep"), (b"\xff\xfe", "JSONDecodeError"),
+    (b'{"assign": 5}', "not iterable"), (b'{"assign": [[1, 2]]}', "list indices"),
+    (b'{"assign": [{"task": 1}]}', "KeyError('device')"),
+])
+def test_an_agent_whose_answer_cannot_be_read_is_overruled_by_the_fallback(virtual_clock, reply, says):
+    from twin.campaign.decisions import FreeDevice, LabView, ReadyStep
+    from twin.core.bus import open_bus
+    from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, alive_key, decide_key
+
+    view = LabView(0.0, (ReadyStep("e0s0", 0, "measure", "spectrometer", 0.0, 0.0, 60.0, 60.0, frozenset(), ()),),
+                   (FreeDevice("spectrometer-1", "spectrometer"),), (), 0, 1, 1)
+
+    async def hostile(key, payload):
+        return reply
+
+    async def main():
+        bus = open_bus("memory", virtual_clock)
+        await bus.start()
+        handles = [bus.serve(decide_key("t"), hostile), bus.declare_token(alive_key("t"))]
+        fallback = Fallback(FirstFit(), "first-fit")
+        reasons = []
+        fallback.on_fallback = reasons.append
+        remote = RemoteScheduler(bus, "t", fallback, 5.0)
+        try:
+            await virtual_clock.sleep(1.0)
+            return await remote.decide(view), reasons
+        finally:
+            remote.close()
+            for h in handles:
+                h.close()
+            await bus.close()
+
+    decided, reasons = virtual_clock.run(main())
+    assert decided == [Assignment("e0s0", "spectrometer-1")]  # the fallback's
+    assert len(reasons) == 1 and reasons[0].startswith("the scheduler agent sent an unreadable decision")
+    assert says in reasons[0]
+
+
 class FirstFit:
     def decide(self, view):
         free, out = list(view.free), []

@@ -10,6 +10,7 @@ and the reason, so a receiver can log it and drop it without crashing.
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import re
 from enum import StrEnum
@@ -226,6 +227,16 @@ def decode(payload: bytes, sender_hint: str = "?") -> tuple[Envelope, _Body]:
     except msgspec.ValidationError as exc:
         raise InvalidMessage(env.sender, f"{env.kind} body: {_named(_reason(exc), env.body)}") from None
     return env, body
+
+
+def json_from_wire(payload: bytes | str) -> Any:
+    """JSON from another process (a reply, a request, a report); whatever cannot be read raises ``ValueError`` —
+    JSON nested deeper than Python recurses too, which ``json.loads`` raises as ``RecursionError`` (a reply of
+    100,000 ``[`` from a scheduler agent failed the lab's decision instead of being overruled)."""
+    try:
+        return json.loads(payload)
+    except RecursionError:
+        raise ValueError("JSON nested too deep") from None
 
 
 def _named(reason: str, body: Any) -> str:

@@ -20,6 +20,7 @@ from twin.campaign import CampaignCore, Note, Operator
 from twin.campaign.events import OPERATOR_COMMANDS
 from twin.campaign.operator import status
 from twin.core.clock import LabClock, wall_on_loop
+from twin.core.messages import json_from_wire
 
 MAX_REQUEST = 4096
 MAX_EXPERIMENT = 2**31  # the journal keeps an experiment in a 64-bit column: a larger one failed every later write
@@ -106,7 +107,7 @@ def _request(payload: bytes) -> dict[str, Any]:
     if len(payload) > MAX_REQUEST:
         raise ValueError(f"a request of {len(payload)} bytes: at most {MAX_REQUEST}")
     try:
-        data = json.loads(payload or b"{}")
+        data = json_from_wire(payload or b"{}")
     except ValueError as exc:
         raise ValueError(f"the request is not JSON ({exc})") from None
     if not isinstance(data, dict):

@@ -21,7 +21,7 @@ from twin.campaign import Note
 from twin.core.clock import LabClock
 from twin.campaign.journal import Journal
 from twin.campaign.journal_read import as_messages, decision_id
-from twin.core.messages import Kind, fingerprint, pack
+from twin.core.messages import Kind, fingerprint, json_from_wire, pack
 
 SENDER = "orchestrator"
 PAGE_ROWS = 500
@@ -71,7 +71,7 @@ class DecisionStream:
     async def history(self, key: str, payload: bytes) -> bytes:
         """A page of what was observed so far, for a watcher that joins late (``twin watch``)."""
         try:
-            after = int(json.loads(payload or b"{}").get("after", 0))
+            after = int(json_from_wire(payload or b"{}").get("after", 0))
         except (ValueError, TypeError, AttributeError):
             return json.dumps({"error": 'ask with {"after": N}, N a whole number'}).encode()
         if after == 0:

@@ -10,6 +10,8 @@ from __future__ import annotations
 import json
 from typing import Any
 
+from twin.core.messages import json_from_wire
+
 MAX_REQUEST = 1 << 20  # a campaign file is a few KB; scenario files are bounded at 1 MiB
 
 
@@ -30,7 +32,7 @@ class LabDesk:
         if len(payload) > MAX_REQUEST:
             raise ValueError(f"a request of {len(payload)} bytes; at most {MAX_REQUEST}")
         try:
-            body = json.loads(payload or b"{}")
+            body = json_from_wire(payload or b"{}")
         except ValueError:
             raise ValueError("the request is not JSON") from None
         if not isinstance(body, dict):

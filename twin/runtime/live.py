@@ -14,7 +14,6 @@ import asyncio
 import functools
 import hashlib
 import itertools
-import json
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -30,7 +29,7 @@ from twin.core.clock import LabClock, LabEventLoop, sleep_wall
 from twin.campaign.decisions import Planner, Scheduler
 from twin.campaign.journal import Journal
 from twin.core.errors import BusError, TwinError
-from twin.core.messages import Kind, pack
+from twin.core.messages import Kind, json_from_wire, pack
 from twin.runtime.alert_log import AlertLog
 from twin.runtime.asked_of_people import AskedOfPeople
 from twin.runtime.asking import ask_scheduler
@@ -278,7 +277,7 @@ class LiveCampaign:
             return
         wait = 5.0 * (1.0 if self.clock.is_virtual else self.clock.speed)
         try:
-            report = json.loads(await self.bus.request(keys.health(self.s.lab, device), b"", wait))
+            report = json_from_wire(await self.bus.request(keys.health(self.s.lab, device), b"", wait))
         except (BusError, ValueError) as exc:  # no answer, or a failure in its stead
             log.warning("resume: %s does not answer (%s); its step %s#%d is lost", device, exc, task, attempt)
             self._give(Presence(device, False))

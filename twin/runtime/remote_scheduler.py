@@ -26,6 +26,7 @@ from twin.core.bus.base import NoReplyError
 from twin.core.errors import BusError
 from twin.campaign.decisions import Assignment, LabView, capable, unfit
 from twin.core.keys import PREFIX
+from twin.core.messages import json_from_wire
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ def decode_view(payload: bytes) -> LabView:
 def agent_error(reply: bytes) -> str:
     """Why the agent could not decide, where its answer says so (``{"error": "why"}``), else ''."""
     try:
-        answer = json.loads(reply)
+        answer = json_from_wire(reply)
     except ValueError:
         return ""
     why = answer.get("error") if isinstance(answer, dict) and "assign" not in answer else None
@@ -68,7 +69,7 @@ def agent_error(reply: bytes) -> str:
 def check(view: LabView, reply: bytes) -> tuple[list[Assignment], str]:
     """The assignments in ``reply``, or why they cannot be carried out on ``view``."""
     try:
-        items = [Assignment(str(a["task"]), str(a["device"])) for a in json.loads(reply)["assign"]]
+        items = [Assignment(str(a["task"]), str(a["device"])) for a in json_from_wire(reply)["assign"]]
     except (ValueError, KeyError, TypeError) as exc:
         return [], f"unreadable decision ({exc!r})"
     ready = {r.task: r for r in view.ready}

@@ -20,6 +20,7 @@ from twin.core import keys
 from twin.core.bus.base import Bus, Closable
 from twin.core.clock import LabClock
 from twin.core.errors import BusError
+from twin.core.messages import json_from_wire
 from twin.scenario import Scenario
 
 #: what of a device type decides how a served device behaves (cost, envelope and instances are the lab's concern)
@@ -138,7 +139,7 @@ class ServedCheck:
         try:
             answer = await self._bus.request(keys.health(self._s.lab, device), b"",
                                              ASK_WALL_S * self._clock.speed)
-            report = json.loads(answer)
+            report = json_from_wire(answer)
         except (BusError, ValueError):
             return  # no answer now: the campaign's own deadlines and presence say what matters
         dtype = self._type[device]

@@ -4,13 +4,12 @@ the lab, and the timers it left pending."""
 from __future__ import annotations
 
 import functools
-import json
 from collections.abc import Callable
 from typing import Any
 
 from twin.campaign.events import TimerKey
 from twin.core.clock import LabClock
-from twin.core.messages import Kind
+from twin.core.messages import Kind, json_from_wire
 
 
 def reported(report: Any, task: str, attempt: int, stopped: str = "") -> tuple[bool, str | None]:
@@ -32,7 +31,7 @@ def reported(report: Any, task: str, attempt: int, stopped: str = "") -> tuple[b
 def _cancelled(payload: str) -> bool:
     """A device's answer that it cancelled its step (the stop's cancel): not a result to adopt."""
     try:
-        env = json.loads(payload)
+        env = json_from_wire(payload)
         return env.get("kind") == Kind.FAULT and env.get("body", {}).get("code") == "cancelled"
     except (ValueError, AttributeError):
         return False

@@ -11,6 +11,8 @@ from twin.core.bus.presence import elsewhere, labs_on
 from twin.core.bus.security import Identity, session_config
 from twin.core.clock import LabClock
 from twin.core.errors import TwinError
+from twin.core.messages import json_from_wire
+from twin.core.printable import printable
 
 
 def request(lab: str, command: str, body: dict[str, Any], connect: list[str], security_dir: str | None = None,
@@ -25,12 +27,21 @@ def request(lab: str, command: str, body: dict[str, Any], connect: list[str], se
                        connect_timeout_ms=connect_timeout_ms, wait_longer="")
         await bus.start()
         try:
-            return json.loads(await bus.request(keys.control(lab, command), json.dumps(body).encode(), wait_s))
+            reply = await bus.request(keys.control(lab, command), json.dumps(body).encode(), wait_s)
         except NoReplyError:
             raise TwinError(f"no campaign of lab {lab!r} answered at {', '.join(connect)} "
                             f"({elsewhere(await labs_on(bus))}): is it running on a Zenoh bus that listens there "
                             f"(twin run --listen ...), and is its scenario's lab {lab!r}?") from None
         finally:
             await bus.close()
+        try:
+            answer = json_from_wire(reply)
+        except ValueError as exc:
+            answer = exc
+        if not isinstance(answer, dict) or not isinstance(answer.get("ok"), bool):
+            raise TwinError(f"what answered for lab {lab!r} at {', '.join(connect)} is not a campaign's answer "
+                            f"({printable(str(answer)[:80])}): is another program serving the lab's control key? "
+                            "`twin security init` lets only the lab answer")
+        return answer
 
     return clock.run(ask())

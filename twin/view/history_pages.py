@@ -11,6 +11,7 @@ from twin.core import keys
 from twin.core.bus import Bus, NoReplyError
 from twin.core.clock import LabClock
 from twin.core.errors import TwinError
+from twin.core.messages import json_from_wire
 from twin.scenario.spec import NAME
 
 log = logging.getLogger("twin.view.watch")  # what the watch says, under the name it has always had
@@ -52,7 +53,7 @@ def history_page(raw: bytes, after: int) -> dict:
     (text), its ``next`` lies beyond ``after`` (a page that does not move on would be asked for forever), its
     campaign is a name. Raises :class:`MalformedPage` saying what is wrong."""
     try:
-        page = json.loads(raw)
+        page = json_from_wire(raw)
     except ValueError:
         raise MalformedPage(f"not JSON: {bytes(raw[:40])!r}") from None
     if not isinstance(page, dict):

@@ -9,13 +9,13 @@ recorder implements it) and imports nothing of Rerun itself.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from typing import Any, Protocol
 
 from twin.campaign.events import Note
 from twin.campaign.summary import summary_markdown
+from twin.core.messages import json_from_wire
 from twin.view.repeats import Repeats
 
 #: A device's states, in the order the viewer lists them.
@@ -77,7 +77,7 @@ def drawable(payload: bytes | str) -> dict[str, Any] | None:
     if isinstance(head, bytes) and (b'"kind":"accepted"' in head or b'"kind":"progress"' in head):
         return None
     try:
-        env = json.loads(payload)
+        env = json_from_wire(payload)
         float(env["t_lab"])
     except (ValueError, KeyError, TypeError):
         return None

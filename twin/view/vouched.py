@@ -13,10 +13,9 @@ without security, where anyone can publish on the campaign's keys) changes nothi
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 
-from twin.core.messages import InvalidMessage, decode, fingerprint, kept
+from twin.core.messages import InvalidMessage, decode, fingerprint, json_from_wire, kept
 
 #: What waits to be named, and names not yet heard, kept at most (the oldest go first): forged messages never named
 #: would otherwise pile up.
@@ -50,7 +49,7 @@ class Vouched:
     def _names(self, payload: bytes) -> None:
         """The results a decisions message names: drawn now if heard, else remembered."""
         try:
-            env = json.loads(payload)
+            env = json_from_wire(payload)
             detail = env["body"]["detail"] if env.get("kind") == "decision" else None
         except (ValueError, KeyError, TypeError, AttributeError):
             return
@@ -83,7 +82,7 @@ def _held_as(payload: bytes) -> str | None:
         env, _ = decode(payload)
     except InvalidMessage:
         try:
-            claimed = json.loads(payload)
+            claimed = json_from_wire(payload)
         except ValueError:
             return None  # not a message: the observer skips it
         return "" if isinstance(claimed, dict) and claimed.get("kind") in HELD else None
