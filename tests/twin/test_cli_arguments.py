@@ -261,3 +261,19 @@ def test_a_process_joining_a_lab_connects_where_its_lab_file_says_unless_told_ot
         res = twin_cli(*args)
         said = " ".join(res.output.split())
         assert res.exit_code == 2 and "give --connect ENDPOINT" in said and "(bus.connect)" in said, said
+
+
+@pytest.mark.parametrize("args,says", [
+    (["validate", "scenarios/quantum_dots.yaml", "--set", "campaign.planner_options=" + "[" * 3000 + "]" * 3000],
+     "nested more than 32 levels deep; a value given on the command line does not need that"),
+    (["validate", "scenarios/quantum_dots.yaml", "--set", "campaign.planner_options={n_init: 3, n_init: 4}"],
+     "line 1, column 13: key 'n_init' is given twice (first at column 2)"),
+    (["validate", "scenarios/quantum_dots.yaml", "--set", "campaign.budget=[1, 2"], "not valid YAML"),
+    (["whatif", "scenarios/quantum_dots.yaml", "--vary", "campaign.budget=" + "[" * 3000]
+     + ["--seeds", "1"], "campaign.budget: Input should be a valid integer"),
+])
+def test_a_value_on_the_command_line_is_read_within_a_files_bounds(args, says):
+    """3,000 '[' in a --set or --vary value was a RecursionError's traceback; a key given twice on one line, the last."""
+    res = twin_cli(*args)
+    said = " ".join(res.output.split())
+    assert res.exit_code == 2 and says in said and "Traceback" not in said, said

@@ -186,6 +186,8 @@ def raw_cases(tmp):
             for i in range(8)), "alias"),
         "duplicate-keys.yaml": (qd.replace("campaign:\n", "campaign:\n  budget: 3\n", 1).encode(), "twice"),
         "duplicate-device.yaml": (qd.replace("  spectrometer:\n", "  synthesiser:\n", 1).encode(), "twice"),
+        "duplicate-on-a-line.yaml": (qd.replace("campaign:\n", "campaign: {budget: 3, budget: 4}\nx:\n", 1).encode(),
+                                     "column"),  # one line's were let be: YAML kept the last
         "not-yaml.yaml": (b"name: [unclosed\n", "line"),
         "huge.yaml": (b"name: x\n" + b"# " + b"x" * (2 << 20) + b"\n", "KiB"),
         "tabs.yaml": (b"name:\n\t- x\n", "line"),

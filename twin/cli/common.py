@@ -17,7 +17,7 @@ from rich.segment import Segment
 from twin.cli.printable import PrintableConsole
 from twin.core.counts import counted
 from twin.core import keys
-from twin.core.errors import TwinError
+from twin.core.errors import ScenarioError, TwinError
 from twin.core.printable import inert
 from twin.core.whole_files import FULL_BYTES, free_bytes
 
@@ -147,8 +147,6 @@ def check_lab_name(value: str | None) -> str | None:
 
 def assignments(items: list[str]) -> dict:
     """``--set`` options, ``["a.b=1", "c=x"]`` → ``{"a.b": 1, "c": "x"}`` (values read as YAML)."""
-    import yaml
-
     from twin.scenario.files import yaml_value
 
     out = {}
@@ -158,8 +156,9 @@ def assignments(items: list[str]) -> dict:
             _fail(TwinError(f"--set {item!r}: expected FIELD=VALUE, e.g. devices.reactor.instances=1"))
         try:
             out[key.strip()] = yaml_value(value)
-        except yaml.YAMLError as exc:
-            _fail(TwinError(f"--set {item!r}: the value is not YAML ({str(exc).splitlines()[0]})"))
+        except ScenarioError as exc:
+            shown = item if len(item) <= 80 else item[:77] + "…"
+            _fail(TwinError(f"--set {shown!r}: {exc.problems[0]}"))
     return out
 
 

@@ -18,7 +18,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
 
 from twin.core.errors import ScenarioError, TwinError
 from twin.runtime.checks import check
@@ -86,7 +85,7 @@ def parse_vary(items: list[str]) -> list[tuple[str, list[Any]]]:
         for v in _split_values(values):  # an empty value is YAML's null: `campaigns.1.after=,dots` unsets it first
             try:
                 value = yaml_value(v.strip())
-            except yaml.YAMLError:
+            except ScenarioError:  # read as text, which the field then refuses or takes
                 value = v.strip()
             if value in parsed:
                 raise ScenarioError("--vary", [f"{item!r}: {v.strip() or 'an empty value (null)'} is given twice (each "
