@@ -190,6 +190,28 @@ def test_a_driver_naming_its_readings_afresh_draws_a_bounded_number_of_series_an
     assert observer.undrawn_series == n - (MAX_TELEMETRY_SERIES - 1)
 
 
+ODD_NAMES = ("a/b", "../up", "", "sp ace", "\x1b[2J", "é∂", "[0]", "#", "x" * 64)
+
+
+def test_a_reading_of_any_name_is_one_series_of_its_device_drawn_as_named(tmp_path):
+    """A driver (or a remote device) names its readings: 'a/b' was drawn as an entity b inside a, '' on the device's
+    own entity, and 'sp ace' had Rerun warn on the terminal."""
+    import rerun as rr
+
+    from twin.view.observer import part
+
+    observer, recording = open_observer(RecordOptions(save=tmp_path / "r.rrd"), "odd-names")
+    for i in range(3):
+        observer.on_message("", pack(Kind.TELEMETRY, {"readings": {name: float(i) for name in ODD_NAMES}},
+                                     id=f"r:{i}", sender="reactor", t_lab=float(i)))
+    recording.close()
+    rrd = read_rrd(tmp_path / "r.rrd")
+    drawn = {p for p in rrd if p.startswith("telemetry/")}
+    assert drawn == {f"telemetry/reactor/{rr.escape_entity_path_part(n) or part(n)}" for n in ODD_NAMES}
+    assert all(len(rrd[p]) == 3 for p in drawn)
+    assert all(part(n) == rr.escape_entity_path_part(n) for n in ODD_NAMES if n)
+
+
 def test_a_recording_another_run_is_writing_is_refused_before_anything_runs(tmp_path):
     import fcntl
 

@@ -43,6 +43,16 @@ UNDRAWN = frozenset({"attempt.running"})
 DEBUG_KINDS = {"task.ready", "attempt.dispatched", "attempt.running", "attempt.done"}
 
 
+def part(name: str) -> str:
+    """``name`` as one part of an entity path, escaped as Rerun escapes it (``rr.escape_entity_path_part``, which this
+    module does without Rerun): a driver's reading named 'a/b' was drawn as an entity b inside a, one named 'sp ace'
+    had Rerun warn on the terminal, and one named '' was drawn on the device's own entity."""
+    if not name:
+        return '\\"\\"'  # "", as text
+    return "".join(c if c.isalnum() or c in "_-." else "\\" + c if c.isascii() and c.isprintable()
+                   else f"\\u{{{ord(c):04X}}}" for c in name)
+
+
 class Canvas(Protocol):
     def scalar(self, path: str, t: float, value: float, seq: int | None = None) -> None: ...
 
@@ -188,7 +198,7 @@ class LabObserver:
                         self._too_many_series(sender, name)
                         continue
                     self._series_of[sender] = drawn + 1
-                    path = paths[sender, name] = f"telemetry/{sender}/{name}"
+                    path = paths[sender, name] = f"telemetry/{sender}/{part(name)}"
                 self.c.scalar(path, t, float(value))
         elif kind == "result":
             self._spectrum(t, env)
@@ -353,11 +363,11 @@ class LabObserver:
             if s is None or not math.isfinite(s):
                 continue
             self.best_by_target[name] = min(self.best_by_target.get(name, math.inf), s)
-            self.c.scalar(f"objective/targets/{name}/score", t, s, seq=seq)
-            self.c.scalar(f"objective/targets/{name}/best", t, self.best_by_target[name], seq=seq)
+            self.c.scalar(f"objective/targets/{part(name)}/score", t, s, seq=seq)
+            self.c.scalar(f"objective/targets/{part(name)}/best", t, self.best_by_target[name], seq=seq)
         for name, value in ((info or {}).get("outputs") or {}).items():
             if name in self._target_outputs:
-                self.c.scalar(f"objective/outputs/{name}", t, float(value), seq=seq)
+                self.c.scalar(f"objective/outputs/{part(name)}", t, float(value), seq=seq)
         self.c.scalar("campaign/finished", t, float(self.finished), seq=seq)
 
     def _experiment_abandoned(self, t: float, n: Note, info: Any) -> None:
