@@ -116,7 +116,9 @@ def test_an_agent_that_raises_is_covered_by_the_fallback_and_the_campaign_goes_o
     assert notes and all("the scheduler agent failed: RuntimeError: the model lost its weights" in n for n in notes)
 
 
-def test_an_error_reply_on_the_bus_is_the_agents_failure_not_the_labs(virtual_clock):
+def decided_by_replier(virtual_clock, replier):
+    """What the lab's side of a remote scheduler decides for one ready step, the agent's side served by
+    ``replier``, and the fallback's reasons."""
     from twin.campaign.decisions import FreeDevice, LabView, ReadyStep
     from twin.core.bus import open_bus
     from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, alive_key, decide_key
@@ -124,13 +126,10 @@ def test_an_error_reply_on_the_bus_is_the_agents_failure_not_the_labs(virtual_cl
     view = LabView(0.0, (ReadyStep("e0s0", 0, "measure", "spectrometer", 0.0, 0.0, 60.0, 60.0, frozenset(), ()),),
                    (FreeDevice("spectrometer-1", "spectrometer"),), (), 0, 1, 1)
 
-    async def broken(key, payload):
-        raise ValueError("cannot parse the view")
-
     async def main():
         bus = open_bus("memory", virtual_clock)
         await bus.start()
-        handles = [bus.serve(decide_key("t"), broken), bus.declare_token(alive_key("t"))]
+        handles = [bus.serve(decide_key("t"), replier), bus.declare_token(alive_key("t"))]
         fallback = Fallback(FirstFit(), "first-fit")
         reasons = []
         fallback.on_fallback = reasons.append
@@ -144,7 +143,14 @@ def test_an_error_reply_on_the_bus_is_the_agents_failure_not_the_labs(virtual_cl
                 h.close()
             await bus.close()
 
-    decided, reasons = virtual_clock.run(main())
+    return virtual_clock.run(main())
+
+
+def test_an_error_reply_on_the_bus_is_the_agents_failure_not_the_labs(virtual_clock):
+    async def broken(key, payload):
+        raise ValueError("cannot parse the view")
+
+    decided, reasons = decided_by_replier(virtual_clock, broken)
     assert decided == [Assignment("e0s0", "spectrometer-1")]  # the fallback's
     assert reasons == ["the scheduler agent failed: the replier for 'labtwin/t/agent/scheduler/decide' failed: "
                        "cannot parse the view"]
@@ -157,34 +163,10 @@ def test_an_error_reply_on_the_bus_is_the_agents_failure_not_the_labs(virtual_cl
     (b'{"assign": [{"task": 1}]}', "KeyError('device')"),
 ])
 def test_an_agent_whose_answer_cannot_be_read_is_overruled_by_the_fallback(virtual_clock, reply, says):
-    from twin.campaign.decisions import FreeDevice, LabView, ReadyStep
-    from twin.core.bus import open_bus
-    from twin.runtime.remote_scheduler import Fallback, RemoteScheduler, alive_key, decide_key
-
-    view = LabView(0.0, (ReadyStep("e0s0", 0, "measure", "spectrometer", 0.0, 0.0, 60.0, 60.0, frozenset(), ()),),
-                   (FreeDevice("spectrometer-1", "spectrometer"),), (), 0, 1, 1)
-
     async def hostile(key, payload):
         return reply
 
-    async def main():
-        bus = open_bus("memory", virtual_clock)
-        await bus.start()
-        handles = [bus.serve(decide_key("t"), hostile), bus.declare_token(alive_key("t"))]
-        fallback = Fallback(FirstFit(), "first-fit")
-        reasons = []
-        fallback.on_fallback = reasons.append
-        remote = RemoteScheduler(bus, "t", fallback, 5.0)
-        try:
-            await virtual_clock.sleep(1.0)
-            return await remote.decide(view), reasons
-        finally:
-            remote.close()
-            for h in handles:
-                h.close()
-            await bus.close()
-
-    decided, reasons = virtual_clock.run(main())
+    decided, reasons = decided_by_replier(virtual_clock, hostile)
     assert decided == [Assignment("e0s0", "spectrometer-1")]  # the fallback's
     assert len(reasons) == 1 and reasons[0].startswith("the scheduler agent sent an unreadable decision")
     assert says in reasons[0]
