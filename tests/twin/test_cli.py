@@ -247,7 +247,7 @@ def test_run_set_changes_any_field_and_a_bad_one_is_named(tmp_path):
     assert sorted(d for d in summary["utilisation"] if d.startswith("spectrometer")) == [
         "spectrometer-1", "spectrometer-2", "spectrometer-3"]
     for item, says in (("campaign.budget=-4", "campaign.budget"), ("budget", "expected FIELD=VALUE"),
-                       ("campaign.budget=[", "not YAML")):
+                       ("campaign.budget=[", "not valid YAML")):
         bad = twin_cli("run", "scenarios/flaky_lab.yaml", "--set", item, "-q")
         assert bad.exit_code == 2 and says in bad.output, bad.output
 
