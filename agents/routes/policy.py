@@ -137,7 +137,7 @@ def load_prior(path: Path, templates: tuple[Template, ...]) -> LearnedPrior:
         if meta_file.stat().st_size > MAX_DESCRIPTION_BYTES:
             raise ValueError(f"{meta_file.stat().st_size:,} bytes, where training writes a few kB")
         meta = json.loads(meta_file.read_text())
-    except (UnicodeDecodeError, ValueError) as exc:
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:  # the last: JSON nested too deep
         raise ValueError(f"{meta_file}: not a route prior's description ({exc})") from None
     if not isinstance(meta, dict) or not isinstance(meta.get("templates", []), list):
         raise ValueError(f"{meta_file}: not a route prior's description (an object naming its templates)")

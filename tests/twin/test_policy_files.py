@@ -95,7 +95,8 @@ def test_every_shipped_policy_still_loads_and_decides_as_before():
             assert repr(value) == repr(theirs[key]), (path.name, key)
 
 
-@pytest.mark.parametrize("damage", ["not a zip", "no data", "garbled pickle", "description not an object"])
+@pytest.mark.parametrize("damage", ["not a zip", "no data", "garbled pickle", "description not an object",
+                                    "description nested too deep", "data nested too deep"])
 def test_a_damaged_policy_file_is_a_clear_error(tmp_path, damage):
     from agents.rl_scheduler import RlScheduler
 
@@ -110,9 +111,13 @@ def test_a_damaged_policy_file_is_a_clear_error(tmp_path, damage):
                     zout.writestr(item, zin.read(item.filename))
     elif damage == "garbled pickle":
         _rewritten(src, bad, lambda d: d["action_space"].update({":serialized:": "gASV////"}))
+    elif damage == "data nested too deep":  # json.loads raises RecursionError, not ValueError
+        with zipfile.ZipFile(src) as zin, zipfile.ZipFile(bad, "w") as zout:
+            for item in zin.infolist():
+                zout.writestr(item, b"[" * 100_000 if item.filename == "data" else zin.read(item.filename))
     else:
         shutil.copy(src, bad)
-        bad.with_suffix(".json").write_text("[1, 2]")
+        bad.with_suffix(".json").write_text("[" * 100_000 if damage == "description nested too deep" else "[1, 2]")
     with pytest.raises(PluginError, match=r"bad\.(zip|json): not an SB3 policy file|bad.json: not a policy "
                                           r"description|bad.zip: its 'action_space' cannot be read"):
         RlScheduler(load_scenario(ROOT / "scenarios" / "jobshop.yaml"), policy=str(bad))

@@ -101,6 +101,7 @@ def test_exit_codes_and_what_they_say(args, code, says):
     ("templates nested too deep", "templates.yaml: line 1: nested more than 32 levels deep; a template file in YAML"),
     ("description not JSON", "prior.json: not a route prior's description"),
     ("description a list", "prior.json: not a route prior's description"),
+    ("description nested too deep", "prior.json: not a route prior's description (maximum recursion depth"),
     ("weights not torch's", "prior.pt: not this prior's weights"),
 ])
 def test_damaged_files_are_one_line_errors_naming_them(tmp_path, damage, says):
@@ -131,6 +132,8 @@ def test_damaged_files_are_one_line_errors_naming_them(tmp_path, damage, says):
         (tmp_path / "prior.json").write_text('{"kind": ')
     elif damage == "description a list":
         (tmp_path / "prior.json").write_text("[1]")
+    elif damage == "description nested too deep":  # json.loads raises RecursionError, not ValueError
+        (tmp_path / "prior.json").write_text("[" * 100_000)
     else:
         (tmp_path / "prior.pt").write_bytes(b"not weights")
     exit_code, out = in_process(*args)

@@ -59,7 +59,7 @@ def read_meta(path: str | Path) -> dict[str, Any]:
             raise ValueError(f"{side.stat().st_size:,} bytes, more than a description has: `twin train` writes a "
                              f"few kB, and {MAX_DESCRIPTION_BYTES:,} is the most read")
         meta = json.loads(side.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:  # the last: JSON nested too deep
         raise PluginError(f"{side}: not a policy description ({exc}); policies are saved by `twin train`") from exc
     if not isinstance(meta, dict) or not isinstance(meta.get("signature", {}), dict):
         raise PluginError(f"{side}: not a policy description (not an object with a signature); "

@@ -99,7 +99,7 @@ def safe_objects(path: Path) -> dict[str, Any]:
                                   f"does ({MAX_UNPACKED_BYTES / 2**20:,.0f} MB at most; a zip bomb?); nothing was "
                                   "loaded. Use a policy saved by `twin train`")
             data = json.loads(archive.read("data"))
-    except (zipfile.BadZipFile, KeyError, OSError, UnicodeDecodeError, ValueError) as exc:
+    except (zipfile.BadZipFile, KeyError, OSError, UnicodeDecodeError, ValueError, RecursionError) as exc:
         raise PluginError(f"{path}: not an SB3 policy file ({exc}); policies are saved by `twin train`") from exc
     if not isinstance(data, dict):
         raise PluginError(f"{path}: not an SB3 policy file (its data is not an object)")
