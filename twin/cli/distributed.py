@@ -220,7 +220,7 @@ def router(
             _fail(TwinError(f"--config {item!r}: expected PATH=JSON5, e.g. transport/link/tx/lease=2000"))
         try:
             extra[path] = _json.loads(value)
-        except ValueError:
+        except (ValueError, RecursionError):  # text, then, which Zenoh's config refuses or takes
             extra[path] = value
     log_to_stderr(logging.INFO)
     try:
