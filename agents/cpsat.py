@@ -40,11 +40,12 @@ TRIES = 4
 
 def solve(jobs: list[list[Op]], capacity: dict[str, int], time_limit_s: float = 10.0, workers: int = 2,
           busy: dict[str, list[int]] | None = None, left_shift: bool = False,
-          work_limit: float | None = None) -> Solution:
+          work_limit: float | None = None, tries: int = TRIES) -> Solution:
     """Minimum makespan; ``busy[type]`` lists when each busy instance of ``type`` frees up.
 
     ``left_shift`` also minimises the sum of start times (below the makespan), so that
-    operations off the critical path start as early as they can.
+    operations off the critical path start as early as they can. ``tries``: how many solves, each with twice the
+    time, before it fails (1: ``time_limit_s`` is all it takes).
     """
     try:
         from ortools.sat.python import cp_model
@@ -89,7 +90,7 @@ def solve(jobs: list[list[Op]], capacity: dict[str, int], time_limit_s: float = 
     solver.parameters.num_workers = workers
     solver.parameters.catch_sigint_signal = False  # its own handler left Ctrl-C killing `twin train` unannounced
     given = 0.0
-    for attempt in range(TRIES):
+    for attempt in range(tries):
         solver.parameters.max_time_in_seconds = time_limit_s * 2 ** attempt
         if work_limit is not None:
             solver.parameters.max_deterministic_time = work_limit * 2 ** attempt
@@ -98,8 +99,9 @@ def solve(jobs: list[list[Op]], capacity: dict[str, int], time_limit_s: float = 
         if status in (cp_model.OPTIMAL, cp_model.FEASIBLE):
             break
     else:
-        raise RuntimeError(f"CP-SAT found no schedule in {TRIES} tries ({given:g} s of wall time in all"
-                           f"{'' if work_limit is None else f', {work_limit * (2 ** TRIES - 1):g} units of work'}): "
+        raise RuntimeError(f"CP-SAT found no schedule in {tries} {'try' if tries == 1 else 'tries'} ({given:g} s of "
+                           f"wall time in all"
+                           f"{'' if work_limit is None else f', {work_limit * (2 ** tries - 1):g} units of work'}): "
                            "the machine gave it no CPU, or the model is far larger than a lab's")
     return Solution(int(solver.value(makespan)), status == cp_model.OPTIMAL,
                     [[int(solver.value(s)) for s in row] for row in starts])

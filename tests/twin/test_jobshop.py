@@ -300,6 +300,27 @@ def test_a_bound_cp_sat_did_not_prove_is_not_called_the_optimum(tmp_path):
     assert "which it did not prove optimal (the gap to the optimum is at least this)" in caption("lab-s", big)
 
 
+def test_a_shop_cp_sat_finds_no_schedule_for_in_the_bounds_time_has_no_bound_after_that_time(tmp_path, monkeypatch):
+    """The bound's solve was tried again with twice the time, three times: a 300x50 shop, on which CP-SAT finds no
+    schedule in minutes, held `twin bench` 30 minutes after it said "up to 120 s"."""
+    import random
+
+    from ortools.sat.python import cp_model
+
+    from twin.runtime.lab import prepare
+    from twin.tools.scheduler_bench import bound
+
+    solves = []
+    real = cp_model.CpSolver.solve
+    monkeypatch.setattr(cp_model.CpSolver, "solve", lambda self, *a, **k: solves.append(1) or real(self, *a, **k))
+    rng = random.Random(3)
+    rows = [" ".join(f"{m} {rng.randint(1, 99)}" for m in rng.sample(range(50), 50)) for _ in range(300)]
+    (tmp_path / "huge.txt").write_text("300 50\n" + "\n".join(rows) + "\n")
+    assert bound(prepare(ROOT / "scenarios" / "jobshop.yaml", overrides={"jobshop.file": str(tmp_path / "huge.txt")}),
+                 seconds=1) is None
+    assert len(solves) == 1
+
+
 def _taillard_file(tmp_path, shops: list[list[tuple[int, int]]], n_machines: int) -> Path:
     """Instances as Taillard's own files hold them (tai15_15.txt: ten), each under its header line, machines
     numbered from 1."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Optional
@@ -41,6 +42,10 @@ def say_slow(slow: str) -> None:
     """What a bench may wait for (``scheduler_bench.slow_schedulers``), said before its runs."""
     if slow:
         err.print(f"{slow} (workers share them out; Ctrl-C stops the bench)", highlight=False)
+
+
+def _said_of(title: str, text: str) -> None:
+    err.print(f"{title}: {text}", highlight=False)
 
 
 def _compared_table(header: list[str], title: str, caption: str, rows: list[list[str]], first_compared: int) -> Table:
@@ -191,8 +196,8 @@ def bench_schedulers(
     from twin.runtime import lab
     from twin.runtime.checks import checked
     from twin.tools.planner_bench import bench_pool
-    from twin.tools.scheduler_bench import (BOUND_S, COUNTS, HEADER, bench, bound_in, caption, deterministic,
-                                            load_variant, played_ahead, rows, shops, slow_schedulers)
+    from twin.tools.scheduler_bench import (COUNTS, HEADER, bench, bound_in, caption, deterministic, load_variant,
+                                            played_ahead, rows, shops, slow_schedulers)
 
     names = [p.strip() for p in schedulers.split(",") if p.strip()]
     if not names:
@@ -223,8 +228,7 @@ def bench_schedulers(
             if not as_json:
                 say_slow(slow_schedulers(s, made, 1 if deterministic(s) else seeds))
             title = instance or f"{Path(file).stem if file else s.name}"
-            best = bound_in(pool, s, on_long=None if as_json else lambda: err.print(
-                f"{title}: CP-SAT solving the shop for the bound (up to {BOUND_S:.0f} s) ...", highlight=False))
+            best = bound_in(pool, s, say=None if as_json else functools.partial(_said_of, title))
             optimum = best.lab_s if best else None
             progress = bar_progress(as_json)
             cut = None

@@ -83,16 +83,19 @@ class Bound:
                 "(the gap to the optimum is at least this); ")
 
 
-def bound_in(pool: WorkerPool, s: Scenario, on_long: Callable[[], None] | None = None) -> Bound | None:
+def bound_in(pool: WorkerPool, s: Scenario, say: Callable[[str], None] | None = None) -> Bound | None:
     """``bound(s)``, solved in one of the bench's workers: CP-SAT's C++ does not look at Python's signals, so a
     Ctrl-C or SIGTERM during a solve in this process waited for its end (up to ``BOUND_S``); a worker is stopped
-    with the pool. ``on_long`` is called first for a shop of more than 100 operations, whose solve may take a
-    while."""
-    if on_long is not None and sum(len(p.get("route") or ()) for p in s.campaign.planner_options.get(
-            "proposals", [])) > 100:
-        on_long()
+    with the pool. ``say`` is told of a shop of more than 100 operations, whose solve may take a while, as it
+    starts, and if it ends with no schedule."""
+    long = sum(len(p.get("route") or ()) for p in s.campaign.planner_options.get("proposals", [])) > 100
+    if say is not None and long:
+        say(f"CP-SAT solving the shop for the bound (up to {BOUND_S:.0f} s) ...")
     (solved,) = pool.completed([pool.submit(bound, s)])
-    return solved.result()
+    best = solved.result()
+    if say is not None and long and best is None and deterministic(s) and "cp-sat" in plugins.installed("schedulers"):
+        say(f"CP-SAT found no schedule in {BOUND_S:.0f} s: the table has no bound")
+    return best
 
 
 def bound(s: Scenario, seconds: float = BOUND_S) -> Bound | None:
