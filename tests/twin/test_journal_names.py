@@ -73,7 +73,8 @@ def test_a_journal_that_cannot_be_written_is_a_clear_error_before_anything_runs(
         run(ROOT / "scenarios" / "quantum_dots.yaml", journal=tmp_path / "a_file" / "j.db", bus="memory")
     monkeypatch.chdir(tmp_path)
     (tmp_path / "runs").write_text("a file where the runs directory goes")
-    with pytest.raises(TwinError, match=r"cannot write a journal in runs/: .*give --journal FILE"):
+    with pytest.raises(TwinError, match=r"cannot write a journal in runs/: runs is a file, not a directory; move it "
+                                        r"away, or give --journal FILE"):
         run(ROOT / "scenarios" / "quantum_dots.yaml", bus="memory")
 
 

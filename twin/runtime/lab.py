@@ -93,6 +93,9 @@ def claim(stem: Path, suffix: str, make: Callable[[Path], None]) -> Path:
             except FileExistsError:
                 continue
             return path
+    except FileExistsError:  # from mkdir: a file where the directory should be
+        raise TwinError(f"cannot write a journal in {stem.parent}/: {stem.parent} is a file, not a directory; move "
+                        "it away, or give --journal FILE (nothing has run yet)") from None
     except OSError as exc:
         raise TwinError(f"cannot write a journal in {stem.parent}/: {exc}; run from a directory you can write, or "
                         "give --journal FILE (nothing has run yet)") from None
