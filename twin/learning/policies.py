@@ -72,8 +72,8 @@ def load_policy(path: str | Path, kind: str, signature: dict[str, Any]) -> Any:
     path = Path(path)
     if not path.exists():
         meant = nearest_file(path)
-        raise PluginError(f"policy {path} does not exist{f' ({meant})' if meant else ''}; train one with `twin train SCENARIO --agent {kind} "
-                          f"--out {shell_word(path)}`")
+        raise PluginError(f"policy {path} does not exist{f' ({meant})' if meant else ''}; train one with `twin train "
+                          f"SCENARIO --agent {kind} --out {shell_word(path)}`")
     if why := not_a_file(path):
         raise PluginError(f"{path} {why}; policies are saved by `twin train`")
     meta = read_meta(path)

@@ -68,8 +68,8 @@ def read_text(path: str | Path, what: str = "scenario") -> str:
             with path.open("rb") as f:
                 data = f.read(MAX_BYTES + 1)
     except FileNotFoundError:
-        raise ScenarioError(where, [f"file not found: {nearest_file(path) or 'check the path'} ({what} files are usually "
-                                    "in scenarios/)"]) from None
+        raise ScenarioError(where, [f"file not found: {nearest_file(path) or 'check the path'} ({what} files are "
+                                    "usually in scenarios/)"]) from None
     except OSError as exc:
         raise ScenarioError(where, [f"cannot be read: {exc.strerror or exc}"]) from None
     if len(data) > MAX_BYTES:

@@ -37,7 +37,7 @@ def request(lab: str, command: str, body: dict[str, Any], connect: list[str], se
         try:
             answer = json_from_wire(reply)
         except ValueError as exc:
-            answer = exc
+            answer = str(exc)
         if not isinstance(answer, dict) or not isinstance(answer.get("ok"), bool):
             raise TwinError(f"what answered for lab {lab!r} at {', '.join(connect)} is not a campaign's answer "
                             f"({printable(str(answer)[:80])}): is another program serving the lab's control key? "
