@@ -281,3 +281,30 @@ def test_another_processs_requests_and_messages_leave_a_virtual_clock_alone(virt
         in_flight = virtual_clock.run(body())
     assert answers == [f"page {i}".encode() for i in range(5)]
     assert in_flight == 0 and not [r for r in caplog.records if "in flight" in r.getMessage()]
+
+
+def test_a_replier_still_at_work_when_the_bus_closes_is_ended_with_it(make_bus, caplog):
+    """A reply still being made when its bus closed (a driver's health() that never returns, asked by `twin device
+    health`) was left to the garbage collector: "Task was destroyed but it is pending!" at the end of the run."""
+    import gc
+
+    clock = LabClock("scaled", speed=100.0)
+    ended = []
+
+    async def body(bus):
+        async def never(key, payload):
+            try:
+                await asyncio.Event().wait()
+            finally:
+                ended.append(key)
+
+        bus.serve("lab/svc/never", never)
+        await settle(clock)
+        with pytest.raises(NoReplyError):
+            await bus.request("lab/svc/never", b"", timeout=1)
+        gc.collect()
+
+    with caplog.at_level(logging.ERROR, logger="asyncio"):
+        run(clock, make_bus, body)
+        gc.collect()
+    assert ended == ["lab/svc/never"] and "destroyed" not in caplog.text

@@ -70,6 +70,45 @@ async def test_a_health_report_of_numpy_numbers_or_what_is_not_json_is_an_answer
     await bus.close()
 
 
+class HangingHealth(Raises):
+    async def health(self):
+        import asyncio
+
+        await asyncio.Event().wait()  # an SDK's status call that never returns
+
+
+def test_a_health_report_the_driver_never_finishes_is_the_devices_answer_with_that_said(monkeypatch):
+    """It was no answer at all: `twin device health` said "answered: no" of a device on the bus, running a step."""
+    import time
+
+    from twin.core import keys
+    from twin.core.bus import open_bus
+    from twin.core.clock import LabClock, wall_on_loop
+    from twin.device import actor as actors
+
+    monkeypatch.setattr(actors, "HEALTH_WALL_S", 0.3)
+    clock = LabClock("scaled", speed=50.0)
+    s = parse(qd_lab())
+
+    async def ask():
+        bus = open_bus("memory", clock)
+        await bus.start()
+        actor = actors.DeviceActor("spectrometer-1", s.devices["spectrometer"], HangingHealth(None), bus, clock,
+                                   s.lab, 0)
+        await actor.start()
+        started = time.perf_counter()
+        try:
+            said = json.loads(await bus.request(keys.health(s.lab, "spectrometer-1"), b"", timeout=wall_on_loop(3)))
+            return said, time.perf_counter() - started
+        finally:
+            await actor.stop()
+            await bus.close()
+
+    said, took = clock.run(ask())
+    assert said["on_bus"] and said["driver"] == {"ok": False, "error": "health() did not return within 0.3 s"}
+    assert 0.3 <= took < 3  # wall seconds, on a lab clock 50 times as fast
+
+
 class BadConnect(Raises):
     async def connect(self, presence):
         raise ConnectionRefusedError(111, "Connection refused")

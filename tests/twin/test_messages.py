@@ -189,3 +189,7 @@ def test_a_drivers_outputs_that_json_cannot_hold_become_json_or_fail_naming_thei
     assert sent(datetime.datetime(2026, 12, 6, 9, 30)) == "2026-12-06T09:30:00" and sent(b"ab") == "YWI="
     with pytest.raises(TypeError, match="cannot send an object of type complex in a message"):
         sent(1j)
+    assert sent({1: 2, 1.5: 3}) == {"1": 2, "1.5": 3}
+    for key in (None, True):  # was "cannot send an object of type NoneType", where None is a value it sends
+        with pytest.raises(TypeError, match=f"cannot send a mapping whose key is {key} in a message: keys are text"):
+            sent({key: 1})

@@ -159,6 +159,9 @@ def plain_value(obj: Any) -> Any:
         return tolist()
     if item is not None and callable(item):
         return item()
+    if obj is None or isinstance(obj, bool):  # values msgspec writes itself: here only as a mapping's key
+        raise TypeError(f"cannot send a mapping whose key is {obj!r} in a message: keys are text (or numbers, "
+                        "written as text)")
     raise TypeError(f"cannot send an object of type {type(obj).__name__} in a message: use numbers, strings, "
                     "lists and dicts")
 

@@ -18,7 +18,7 @@ from typing import Any
 
 from twin.core import keys, log_floods
 from twin.core.bus import Bus, Closable
-from twin.core.clock import LabClock, end_by_force, wait_cancelled
+from twin.core.clock import LabClock, end_by_force, wait_cancelled, wall_on_loop
 from twin.core.streams import KeyedGenerator, seeded
 from twin.device.habits import Habits, timed
 from twin.device.driver import (SWALLOWED, Driver, StepContext, busy_with, fault_text, feature,
@@ -27,6 +27,9 @@ from twin.core.errors import PLUGIN_ERRORS, DriverError, Refused
 from twin.core.messages import CommandBody, InvalidMessage, Kind, decode, pack, to_wire, within_limit
 
 log = logging.getLogger(__name__)
+# a driver's health() is given this much wall time: whoever asks waits 3 s (twin device health) to 5 s, and hears
+# the rest of the device's report rather than nothing
+HEALTH_WALL_S = 2.0
 
 
 class DeviceActor:
@@ -130,7 +133,10 @@ class DeviceActor:
         check = feature(self.driver, "health")
         if check is not None:
             try:
-                report["driver"] = await check()
+                async with asyncio.timeout(wall_on_loop(HEALTH_WALL_S)):
+                    report["driver"] = await check()
+            except TimeoutError:  # the device answers still: its driver's part is what is missing
+                report["driver"] = {"ok": False, "error": f"health() did not return within {HEALTH_WALL_S:g} s"}
             except PLUGIN_ERRORS as exc:  # a failing health check is itself the answer
                 report["driver"] = {"ok": False, "error": fault_text(exc)}
         try:

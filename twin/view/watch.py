@@ -295,6 +295,7 @@ class _SharedWatch:
         self.bus, self.clock, self.lab, self.observer = bus, clock, lab, observer
         self.read: set[str] = set()
         self.held: dict[str, list] = {}  # a campaign's live decisions while its history is read
+        self._catching_up: set[asyncio.Task] = set()
         self.runs: dict[str, dict] = {}  # which run of each campaign is recorded (its first page's "run")
         self.another = ""  # a campaign that came back with another run, not a resume of the one recorded
 
@@ -330,7 +331,9 @@ class _SharedWatch:
                 self.observer.campaign(name).on_message(key, payload)
             else:  # a campaign whose token has not come yet: its history first, then this
                 self.held[name] = [(key, payload)]
-                asyncio.ensure_future(self.catch_up(name))
+                task = asyncio.ensure_future(self.catch_up(name))  # kept: a task nothing refers to may be collected
+                self._catching_up.add(task)
+                task.add_done_callback(self._catching_up.discard)
         else:
             self.observer.on_message(key, payload)
 

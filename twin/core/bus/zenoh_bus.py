@@ -130,6 +130,7 @@ class ZenohBus:
         self._routes: dict[str, int] = {}
         self._foreign_attachments = 0
         self._pending_requests: set[asyncio.Future] = set()
+        self._answering: set[asyncio.Task] = set()  # replies being made
         self._remove_idle_hook: Callable[[], object] = lambda: None
 
     @property
@@ -194,6 +195,8 @@ class ZenohBus:
         for fut in self._pending_requests:
             if not fut.done():
                 fut.set_exception(BusError("the bus closed before the reply came"))
+        for task in self._answering:  # a replier still at work when the bus closes answers no one
+            task.cancel()
 
     @property
     def session(self) -> zenoh.Session:
@@ -349,7 +352,9 @@ class ZenohBus:
                     query.reply_err(reply)
 
         def dispatch(key: str, asked: tuple[zenoh.Query, bool]) -> None:
-            asyncio.ensure_future(answer(key, *asked))
+            task = asyncio.ensure_future(answer(key, *asked))  # kept: a task nothing refers to may be collected
+            self._answering.add(task)
+            task.add_done_callback(self._answering.discard)
 
         entry = _Declared(self, keyexpr, dispatch, next(self._ids), self._queryables)
         entry._zobj = self.session.declare_queryable(keyexpr, on_query)
