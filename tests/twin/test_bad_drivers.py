@@ -368,6 +368,43 @@ def test_a_device_still_running_a_cancelled_step_is_quarantined_and_its_work_goe
     assert len(said) == 1 and "e0s1" in said[0] and "orchestrator.cancel_grace_s" in said[0] and "re-raise" in said[0]
 
 
+class SlowToSafety(Raises):
+    """The first instance's first step never ends; cancelled, it stops, and its safe_state() then takes 5 lab-h."""
+
+    def __init__(self, setup):
+        self.name, self.n, self.clock = setup.name, 0, None
+
+    async def run(self, step, params, sample, ctx):
+        self.n += 1
+        self.clock = ctx.clock
+        if self.name == "spectrometer-1" and self.n == 1:
+            await ctx.clock.sleep(1e9)
+        await ctx.clock.sleep(30)
+        return StepResult({"peak_nm": 600.0}, sample)
+
+    async def safe_state(self):
+        if self.name == "spectrometer-1" and self.n == 1:
+            await self.clock.sleep(5 * 3600)
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_a_device_whose_safe_state_has_not_returned_is_said_to_be_making_itself_safe(tmp_path, runtime, caplog):
+    """Its step had stopped, and the lab's advice was to re-raise the cancel: what had not returned was its
+    safe_state(), and that is what the device's "busy" and the lab's warning now say."""
+    import logging
+
+    lab = qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_drivers:SlowToSafety",
+                    "devices.spectrometer.instances": 2, "campaign.budget": 8, "campaign.stop_on_target": False})
+    with caplog.at_level(logging.WARNING):
+        summary = run(parse(lab), journal=tmp_path / "j.db", runtime=runtime)
+    assert summary.done == summary.proposed == 8
+    stuck = [json.loads(e["detail"]) for e in read_events(tmp_path / "j.db", "device.stuck")]
+    assert [s["reason"] for s in stuck] == ["busy with e0s1 (attempt 1): its safe_state() has not returned"]
+    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith("device.stuck spectrometer-1")]
+    assert len(said) == 1 and "its driver has not made the instrument safe" in said[0], said
+    assert "safe_state() must return once the instrument is safe" in said[0] and "re-raise" not in said[0]
+
+
 @pytest.mark.parametrize("runtime", ["auto", "asyncio"])
 def test_work_waiting_for_the_only_instance_still_running_a_cancelled_step_is_given_up_on_in_time(tmp_path, runtime):
     lab = qd_lab(**{"devices.spectrometer.driver": "tests.twin.test_bad_drivers:StuckOnce",

@@ -64,9 +64,10 @@ def _check(db, summary) -> None:
     assert {t: len(ns) for t, ns in per_step.items()} == {f"e{i}s1": 2 for i in range(3)}
     assert summary.abandoned == 3 and summary.timed_out == 6
     assert busy, "the device was never asked while stopping: the grace is longer than the test means"
-    # says what it is still running, in words (it read "busy with ('e0s1', 1)")
+    # says what it is still running, in words (it read "busy with ('e0s1', 1)"), and that it is making it safe
     reasons = [json.loads(e["detail"])["body"]["reason"] for e in busy]
-    assert all(re.fullmatch(r"busy with e\d+s1 \(attempt \d+\)", r) for r in reasons), reasons
+    assert all(re.fullmatch(r"busy with e\d+s1 \(attempt \d+\): its safe_state\(\) has not returned", r)
+               for r in reasons), reasons
     # a "busy" after the grace quarantined the device until it answered (device.stuck said once), so no step
     # was offered to it again before: one "busy" per cancel left unanswered at most
     assert len(busy) == summary.stuck <= kinds.count("attempt.cancel_unanswered")

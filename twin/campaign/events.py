@@ -14,7 +14,7 @@ from typing import Any
 
 from twin.core.counts import quantity
 from twin.campaign.decisions import Assignment, LabView, Outcome, Proposal
-from twin.core.messages import Kind
+from twin.core.messages import SAFING, Kind
 
 
 class Status(StrEnum):
@@ -300,10 +300,16 @@ def _alert_words(n: Note) -> str:
                 f"back-off, to whichever instance is free, and abandoned after {d.get('max_refusals')} refusals; "
                 f"`twin device health` shows what the device reports, and restarting it ends whatever holds it")
     if n.kind == "device.stuck" and isinstance(d, dict):
-        return (f"refused work ({d.get('reason', '')}) while still running {n.task} (attempt {n.attempt}), whose "
-                f"cancel it left unanswered for over {d.get('grace_s', 0):g} lab-s (orchestrator.cancel_grace_s): its "
-                f"driver did not stop. It is quarantined until it answers the cancel, and asked again every "
-                f"{d.get('probe_after_s', 0):g} lab-s (orchestrator.probe_after_s). A driver must re-raise "
-                f"asyncio.CancelledError once the instrument is stopped (docs/drivers.md); one that only needs longer "
-                f"to stop needs a larger orchestrator.cancel_grace_s; restarting the device ends the step")
+        reason = str(d.get('reason', ''))
+        safing = reason.endswith(SAFING)  # the step ended; the driver's safe_state() is what has not
+        return (f"refused work ({reason}) while still running {n.task} (attempt {n.attempt}), whose "
+                f"cancel it left unanswered for over {d.get('grace_s', 0):g} lab-s (orchestrator.cancel_grace_s): "
+                f"{'its driver has not made the instrument safe' if safing else 'its driver did not stop'}. It is "
+                f"quarantined until it answers the cancel, and asked again every "
+                f"{d.get('probe_after_s', 0):g} lab-s (orchestrator.probe_after_s). "
+                + ("A driver's safe_state() must return once the instrument is safe (docs/drivers.md); "
+                   if safing else "A driver must re-raise asyncio.CancelledError once the instrument is stopped "
+                   "(docs/drivers.md); ")
+                + "one that only needs longer to stop needs a larger orchestrator.cancel_grace_s; restarting the "
+                "device ends the step")
     return str(d)

@@ -120,6 +120,10 @@ class _Sender(Struct):
     sender: Any = None
 
 
+#: How a device's "busy" ends while its driver's safe_state() runs after a step (the lab's advice differs)
+SAFING = ": its safe_state() has not returned"
+
+
 class InvalidMessage(TwinError):
     def __init__(self, sender: str, reason: str) -> None:
         self.sender, self.reason = sender, reason

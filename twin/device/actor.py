@@ -55,6 +55,7 @@ class DeviceActor:
         self._evt_key = keys.evt(lab, name)
         self._job: asyncio.Task | None = None
         self._current: tuple[str, int] | None = None
+        self._safing = False  # the step has ended; the driver's safe_state() has not returned
         self._token_of_current = ""
         self._cancel_reason = ""
         self._forced: asyncio.Future | None = None  # a step ended by force (its driver swallowed the cancel)
@@ -222,7 +223,8 @@ class DeviceActor:
                            env.task, env.attempt, env.campaign, env.token)
                 return
             if self._job is not None:
-                self._emit(Kind.REJECTED, busy_with(self._current), env.task, env.attempt, env.campaign, env.token)
+                self._emit(Kind.REJECTED, busy_with(self._current, self._safing), env.task, env.attempt, env.campaign,
+                           env.token)
                 return
             self._current, self._token_of_current = (env.task, env.attempt), env.token
             self._job = asyncio.ensure_future(self._run(env.task, env.attempt, env.campaign, env.token, body))  # type: ignore[arg-type]
@@ -308,9 +310,11 @@ class DeviceActor:
                 emit(Kind.RESULT, {"outputs": result.outputs, "sample": result.sample})
         except asyncio.CancelledError:
             if self._cancel_reason == "cancel":
+                self._safing = True
                 await timed(self.driver.safe_state(), self._habits)
                 emit(Kind.FAULT, {"code": "cancelled", "reason": f"{cmd.step} cancelled on {self.name}"})
             elif self._cancel_reason == "orphaned":
+                self._safing = True
                 await timed(self.driver.safe_state(), self._habits)
                 emit(Kind.FAULT, {"code": "cancelled", "reason": f"{cmd.step} stopped on {self.name}: the "
                                   f"orchestrator was gone for {self.orphan_grace_s:.0f} lab-s"})
@@ -320,7 +324,8 @@ class DeviceActor:
             emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
         except PLUGIN_ERRORS as exc:  # a driver bug must never take the actor down
             log.warning("%s: driver raised during %s: %s", self.name, cmd.step, fault_text(exc))
+            self._safing = True
             await timed(self.driver.safe_state(), self._habits)
             emit(Kind.FAULT, {"code": "driver_error", "reason": fault_text(exc)})
         finally:
-            self._job, self._current, self._cancel_reason = None, None, ""
+            self._job, self._current, self._cancel_reason, self._safing = None, None, "", False

@@ -17,6 +17,7 @@ import numpy as np
 
 from twin.core.clock import Clock
 from twin.core.errors import DriverError
+from twin.core.messages import SAFING
 from twin.core.streams import keyed_uniforms
 
 DRIVER_API = 1  # a driver may say which it was written for: ``labtwin_api = 1``
@@ -189,10 +190,12 @@ SWALLOWED = ("its driver went on after the lab cancelled its step (run() caught 
              "`except CancelledError:` and re-raise (docs/drivers.md)")
 
 
-def busy_with(running: tuple[str, int]) -> dict[str, str]:
-    """The "not now" a device answers while it runs a step (one at a time: the lab retries it later)."""
+def busy_with(running: tuple[str, int], safing: bool = False) -> dict[str, str]:
+    """The "not now" a device answers while it runs a step (one at a time: the lab retries it later); ``safing``:
+    the step has ended, and its driver's ``safe_state`` has not returned."""
     task, attempt = running
-    return {"reason": f"busy with {task} (attempt {attempt})"}
+    return {"reason": f"busy with {task} (attempt {attempt}){SAFING if safing else ''}"}
+
 
 
 def simulated_faults(seed: int, task: str, attempt: int, faults: Any) -> tuple[bool, bool]:

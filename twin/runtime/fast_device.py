@@ -74,6 +74,7 @@ class FastDevice:
         self._campaign = ""
         self._token = ""
         self._cancel_reason = ""
+        self._safing = False  # the step has ended; the driver's safe_state() has not returned
         self._timer: Timer | None = None
         self._shared = shared or {}
         self._habits = Habits(name)
@@ -154,7 +155,7 @@ class FastDevice:
         if not self.online:
             return  # off the bus: the command is lost, as it would be
         if self._job is not None:
-            self._emit(Kind.REJECTED, busy_with(self._current), task, attempt, token, campaign)
+            self._emit(Kind.REJECTED, busy_with(self._current, self._safing), task, attempt, token, campaign)
             return
         self._campaign = campaign
         self._current, self._token = (task, attempt), token
@@ -254,6 +255,7 @@ class FastDevice:
                 emit(Kind.RESULT, {"outputs": result.outputs, "sample": result.sample})
         except asyncio.CancelledError:
             if self._cancel_reason == "cancel":
+                self._safing = True
                 await self.driver.safe_state()
                 emit(Kind.FAULT, {"code": "cancelled", "reason": f"{step} cancelled on {self.name}"})
             else:
@@ -262,11 +264,12 @@ class FastDevice:
             emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
         except PLUGIN_ERRORS as exc:  # a driver bug must never take the lab down
             self._log_raised("%s: driver raised during %s: %s", self.name, step, fault_text(exc))
+            self._safing = True
             await self.driver.safe_state()
             emit(Kind.FAULT, {"code": "driver_error", "reason": fault_text(exc)})
         finally:
             self._job = self._current = None
-            self._cancel_reason = ""
+            self._cancel_reason, self._safing = "", False
 
 
 def _complete(coro: Any, name: str, device_type: str) -> Any:
