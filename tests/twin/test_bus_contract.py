@@ -308,3 +308,58 @@ def test_a_replier_still_at_work_when_the_bus_closes_is_ended_with_it(make_bus, 
         run(clock, make_bus, body)
         gc.collect()
     assert ended == ["lab/svc/never"] and "destroyed" not in caplog.text
+
+
+def test_a_token_another_process_declares_and_drops_under_a_name_this_bus_holds_leaves_it_present():
+    """Zenoh says a token left when another session's token of the same name goes, though this session still holds
+    its own (two remote tokens of one name are counted; a local and a remote one are not): a lab whose device runs
+    in its process saw that device lost, and never back, when a stranger's process (or a duplicate of the device)
+    came and went under its name."""
+    import json as _json
+    import socket
+
+    import zenoh
+
+    from twin.core.bus import open_bus
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    clock = LabClock("scaled", speed=1.0)
+
+    async def body():
+        bus = open_bus("zenoh", clock, listen=[endpoint])
+        await bus.start()
+        seen: list[tuple[str, bool]] = []
+        own = bus.declare_token("lab/alive/dev1")
+        watch = bus.watch_tokens("lab/alive/*", lambda key, alive: seen.append((key, alive)))
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", '"peer"')
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        cfg.insert_json5("connect/endpoints", _json.dumps([endpoint]))
+        outsider = zenoh.open(cfg)
+        try:
+            async def until(what):
+                for _ in range(500):  # wall time for the outsider's tokens to cross the link, bounded
+                    if what in seen:
+                        return
+                    await asyncio.sleep(0.01)
+                raise AssertionError(f"{what} never came: {seen}")
+
+            twin = outsider.liveliness().declare_token("lab/alive/dev1")
+            marker = outsider.liveliness().declare_token("lab/alive/marker")
+            await until(("lab/alive/marker", True))
+            twin.undeclare()
+            marker.undeclare()  # after the duplicate's going, on the same link
+            await until(("lab/alive/marker", False))
+            assert ("lab/alive/dev1", False) not in seen, seen
+            own.close()  # this session's own token going is a loss as before
+            await until(("lab/alive/dev1", False))
+        finally:
+            watch.close()
+            outsider.close()
+            await bus.close()
+        return seen
+
+    assert clock.run(body()) == [("lab/alive/dev1", True), ("lab/alive/marker", True), ("lab/alive/marker", False),
+                                 ("lab/alive/dev1", False)]

@@ -84,6 +84,7 @@ class LiveCampaign:
             rule.on_recovered = lambda message: self._note_from_any_thread("scheduler.recovered", message)
         self.core = rebuilt.core if rebuilt is not None else core or CampaignCore(scenario, campaign_id)
         self._rebuilt = rebuilt
+        self._rejected = self.core.counts.rejected  # messages rejected, as the notes said so far
         # a live campaign journals its core's inputs, so that a killed one can be rebuilt (virtual time re-runs)
         self._recording = not clock.is_virtual and core is None
         self._decoder = EventDecoder(observer, clock, lambda detail: self.note("device.clock_off", detail))
@@ -320,7 +321,9 @@ class LiveCampaign:
                 elif a.kind in PRESENCE:
                     self.alert_log.presence(a)
                 elif a.kind == "message.rejected":  # a device of your own echoes tokens? the first ten, then sparingly
-                    rejected = self.core.counts.rejected
+                    # counted note by note: a batch of messages is performed after the core has counted them all
+                    self._rejected += 1 + a.detail.get("left_out", 0)
+                    rejected = self._rejected
                     if rejected <= 10 or a.detail.get("left_out"):
                         log.warning("rejected a message on %s: %s (%d so far; the journal has the first 1,000, then "
                                     "one row in 1,000)", a.detail["key"], a.detail["reason"], rejected)

@@ -426,6 +426,10 @@ class ZenohBus:
         state: dict[str, bool] = {}
 
         def deliver_changes(key: str, alive: bool) -> None:
+            if not alive and key in self._local_tokens:
+                # Zenoh counts two remote tokens of one name, but not a local and a remote one: another
+                # process's token of this name went, and this session's own is still declared
+                return
             if state.get(key) != alive:
                 state[key] = alive
                 handler(key, alive)
