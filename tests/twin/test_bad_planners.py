@@ -208,3 +208,30 @@ def test_an_awaitable_answer_is_the_planners_failure_without_a_never_awaited_war
     assert summary.proposed == 0
     assert "answered an awaitable (coroutine): propose() must answer at once" in summary.stopped
     assert not [w for w in caught if "never awaited" in str(w.message)]
+
+
+class WholeBatch:
+    """Answers every question with a batch of 50, whatever it is asked for."""
+
+    def __init__(self, seed):
+        self.made = 0
+
+    def propose(self, n, history, pending):
+        self.made += 50
+        return [Proposal({**GOOD, "time_s": 10 + (self.made + i) % 500}) for i in range(50)]
+
+
+@pytest.mark.parametrize("runtime", ["auto", "asyncio"])
+def test_more_proposals_than_asked_for_run_the_first_and_the_rest_are_said_once_to_be_dropped(tmp_path, runtime,
+                                                                                             caplog):
+    """The extras were dropped without a word: a planner answering a whole batch thought the rest were queued."""
+    import logging
+
+    lab = parse(qd_lab(**{"campaign.planner": "tests.twin.test_bad_planners:WholeBatch", "campaign.budget": 8,
+                          "campaign.max_in_flight": 3, "campaign.stop_on_target": False}))
+    with caplog.at_level(logging.WARNING):
+        summary = run(lab, journal=tmp_path / "j.db", runtime=runtime)
+    assert summary.done == summary.proposed == 8
+    said = [r.getMessage() for r in caplog.records if "were asked for" in r.getMessage()]
+    assert said == ["planner 'tests.twin.test_bad_planners:WholeBatch' proposed 50 experiments where 3 were asked "
+                    "for: the first 3 run, the rest are dropped (it is asked again as experiments finish; said once)"]

@@ -30,6 +30,7 @@ class CheckedPlanner:
     def __init__(self, inner: Any, name: str) -> None:
         self.inner, self.name = inner, name
         self.failed = ""
+        self.said_extra = False  # more proposals than asked for: said once
         self.holder = held.Holder(f"planner {name!r}", PROPOSAL_ADVICE)
         held.watch()
 
@@ -43,7 +44,7 @@ class CheckedPlanner:
                 answer = self.inner.propose(n, history, pending)
             finally:
                 held.released()
-            return self._checked(answer)
+            return self._at_most(n, self._checked(answer))
         except PLUGIN_ERRORS as exc:
             return self._fail(f"planner {self.name!r} raised {exc!r}"[:300])
 
@@ -60,6 +61,18 @@ class CheckedPlanner:
             if wrong:
                 return self._fail(f"planner {self.name!r} answered a malformed proposal (item {i}): {wrong}")
         return Proposed([_plain_values(p) for p in proposals], why="" if proposals else self._why_no_more())
+
+    def _at_most(self, n: int, answer: Proposed) -> Proposed:
+        """The first ``n`` of more proposals than were asked for, said once: a planner that answers a whole batch
+        each time may think the rest are queued; it is asked again when something finishes."""
+        if len(answer.proposals) <= n:
+            return answer
+        if not self.said_extra:
+            self.said_extra = True
+            log.warning("planner %r proposed %d experiments where %d were asked for: the first %d run, the rest are "
+                        "dropped (it is asked again as experiments finish; said once)", self.name,
+                        len(answer.proposals), n, n)
+        return replace(answer, proposals=answer.proposals[:n])
 
     def _why_no_more(self) -> str:
         """The planner's own word on why it proposes nothing (its optional ``why_no_more``), if it is text."""
