@@ -228,3 +228,37 @@ def test_a_step_running_when_the_instrument_goes_is_cancelled_and_the_device_is_
     assert cancelled and summary.steps_lost == len(cancelled) and summary.timed_out == 0  # lost, not timed out
     for at in cancelled:  # the device took work again once its link was back
         assert (ev[at][0], "done") in ev[at + 1:], ev
+
+
+def test_a_labs_devices_are_asked_for_their_health_at_once(monkeypatch):
+    """One after another, `twin devices --connect` of a lab whose drivers' health() hung took the wait once per
+    device."""
+    from twin.core.bus import open_bus
+    from twin.core.clock import LabClock
+    from twin.device import actor as actors
+    from twin.runtime.serve import _ask_health
+
+    monkeypatch.setattr(actors, "HEALTH_WALL_S", 0.3)
+    clock = LabClock("virtual")  # a health() cut at 0.3 lab-s: the lab time the asking took tells how
+    s = parse(qd_lab(**{"devices.spectrometer.instances": 3}))
+    names = [f"spectrometer-{i}" for i in (1, 2, 3)]
+
+    async def ask():
+        bus = open_bus("memory", clock)
+        await bus.start()
+        running = [actors.DeviceActor(name, s.devices["spectrometer"], HangingHealth(None), bus, clock, s.lab, 0)
+                   for name in names]
+        for a in running:
+            await a.start()
+        started = clock.now()
+        try:
+            return await _ask_health(bus, s.lab, names, 5.0), clock.now() - started
+        finally:
+            for a in running:
+                await a.stop()
+            await bus.close()
+
+    answers, took = clock.run(ask())
+    assert [a["device"] for a in answers] == names
+    assert all(a["report"]["driver"]["error"] == "health() did not return within 0.3 s" for a in answers)
+    assert took == pytest.approx(0.3)
