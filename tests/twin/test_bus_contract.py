@@ -315,11 +315,9 @@ def test_a_token_another_process_declares_and_drops_under_a_name_this_bus_holds_
     its own (two remote tokens of one name are counted; a local and a remote one are not): a lab whose device runs
     in its process saw that device lost, and never back, when a stranger's process (or a duplicate of the device)
     came and went under its name."""
-    import json as _json
     import socket
 
-    import zenoh
-
+    from tests.twin.zenoh_clients import open_session
     from twin.core.bus import open_bus
 
     with socket.socket() as s:
@@ -333,11 +331,7 @@ def test_a_token_another_process_declares_and_drops_under_a_name_this_bus_holds_
         seen: list[tuple[str, bool]] = []
         own = bus.declare_token("lab/alive/dev1")
         watch = bus.watch_tokens("lab/alive/*", lambda key, alive: seen.append((key, alive)))
-        cfg = zenoh.Config()
-        cfg.insert_json5("mode", '"peer"')
-        cfg.insert_json5("scouting/multicast/enabled", "false")
-        cfg.insert_json5("connect/endpoints", _json.dumps([endpoint]))
-        outsider = zenoh.open(cfg)
+        outsider = open_session(connect=endpoint)
         try:
             async def until(what):
                 for _ in range(500):  # wall time for the outsider's tokens to cross the link, bounded

@@ -410,14 +410,10 @@ def test_the_answers_being_written_get_their_wall_seconds_before_a_fast_campaign
 @pytest.mark.parametrize("answer", [b"<html>a web server</html>", b"[" * 5000, b'{"status": "fine"}', b"[1, 2]"])
 def test_twin_ctl_answered_by_what_is_no_campaign_says_so_not_a_traceback(answer):
     """Any program on an open bus can serve a lab's control key: `twin ctl` read its answer as JSON unchecked."""
-    import zenoh
+    from tests.twin.zenoh_clients import open_session
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"peer"')
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    session = zenoh.open(cfg)
+    session = open_session(listen=endpoint)
     try:
         def impostor(query):
             with query:
