@@ -230,6 +230,45 @@ def test_a_step_running_when_the_instrument_goes_is_cancelled_and_the_device_is_
         assert (ev[at][0], "done") in ev[at + 1:], ev
 
 
+class BlockingHealth(Raises):
+    async def health(self):
+        import time
+
+        time.sleep(0.2)  # an SDK's synchronous status call, in an async def
+        return {"ok": True}
+
+
+def test_a_health_report_that_blocks_the_lab_is_said_as_a_blocking_step_is(virtual_clock, monkeypatch, caplog):
+    """It held the whole lab, unsaid: run() and safe_state() were timed between their awaits, health() was not."""
+    import logging
+
+    from twin.core import keys
+    from twin.core.bus import open_bus
+    from twin.device import habits
+    from twin.device.actor import DeviceActor
+
+    monkeypatch.setattr(habits, "BLOCKING_S", 0.1)
+    s = parse(qd_lab())
+
+    async def ask():
+        bus = open_bus("memory", virtual_clock)
+        await bus.start()
+        actor = DeviceActor("spectrometer-1", s.devices["spectrometer"], BlockingHealth(None), bus, virtual_clock,
+                            s.lab, 0)
+        await actor.start()
+        try:
+            return json.loads(await bus.request(keys.health(s.lab, "spectrometer-1"), b"", timeout=5))
+        finally:
+            await actor.stop()
+            await bus.close()
+
+    with caplog.at_level(logging.WARNING):
+        said = virtual_clock.run(ask())
+    assert said["driver"] == {"ok": True}
+    assert any(r.getMessage().startswith("spectrometer-1: its driver ran ") and "without awaiting" in r.getMessage()
+               for r in caplog.records), caplog.text
+
+
 def test_a_labs_devices_are_asked_for_their_health_at_once(monkeypatch):
     """One after another, `twin devices --connect` of a lab whose drivers' health() hung took the wait once per
     device."""

@@ -135,7 +135,7 @@ class DeviceActor:
         if check is not None:
             try:
                 async with asyncio.timeout(wall_on_loop(HEALTH_WALL_S)):
-                    report["driver"] = await check()
+                    report["driver"] = await timed(check(), self._habits)  # a blocking one is said, as run's
             except TimeoutError:  # the device answers still: its driver's part is what is missing
                 report["driver"] = {"ok": False, "error": f"health() did not return within {HEALTH_WALL_S:g} s"}
             except PLUGIN_ERRORS as exc:  # a failing health check is itself the answer
