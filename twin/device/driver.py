@@ -197,7 +197,6 @@ def busy_with(running: tuple[str, int], safing: bool = False) -> dict[str, str]:
     return {"reason": f"busy with {task} (attempt {attempt}){SAFING if safing else ''}"}
 
 
-
 def simulated_faults(seed: int, task: str, attempt: int, faults: Any) -> tuple[bool, bool]:
     """Whether this attempt hangs, and whether it fails: drawn from the (seed, task, attempt) stream,
     so the draw does not depend on which device runs it or what ran before."""
