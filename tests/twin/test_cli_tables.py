@@ -110,6 +110,16 @@ def test_a_job_shop_bench_at_80_columns_keeps_the_policy_name_whole_and_leaves_o
     assert "no run degraded a sample, abandoned an experiment or needed the fallback rule (not shown)" in caption
 
 
+def test_a_shop_whose_optimum_is_0_s_has_no_bound_column_and_its_caption_says_none(tmp_path):
+    """The gap to a 0-s optimum is no number: the column was left out, and the caption still explained it."""
+    shop = tmp_path / "instant.txt"
+    shop.write_text("2 2\n0 0 1 0\n1 0 0 0\n")  # every operation takes no time
+    res = twin_cli("bench", "schedulers", "scenarios/jobshop.yaml", "--jobshop", shop, "--schedulers", "fifo,mwkr",
+                   columns=120)
+    assert res.exit_code == 0, res.stderr
+    assert "CP-SAT optimum 0 lab-s" in res.stdout and "vs bound" not in " ".join(res.stdout.split())
+
+
 def test_the_shapes_bench_at_80_columns_heads_a_policys_column_with_its_name_whole():
     """It was headed 'rl:flaky_schedu' over 'ler' with room to spare: the name now breaks after 'rl:', and a
     header's words are kept whole when the table still fits."""

@@ -254,7 +254,8 @@ def bench_schedulers(
                                  f"{title} — {runs}{'' if cut is None else f' of {seeds}'} "
                                  f"{'run' if (runs if cut is None else seeds) == 1 else 'runs'} per scheduler" +
                                  (f"; {best.title()}" if best else ""),
-                                 caption("lab-s" if s.jobshop else "lab-h", bound=best, silent=silent, ahead=ahead))
+                                 caption("lab-s" if s.jobshop else "lab-h", bound=best if optimum else None,
+                                         silent=silent, ahead=ahead))  # a 0-s optimum: no gap, no column
             for row in table_rows:
                 table.add_row(*(row[i] for i in shown))
             print_table(table)
