@@ -271,6 +271,11 @@ class DeviceActor:
                       f"lab file's), not campaign {campaign!r}'s: serve it again with a lab file that lists "
                       f"{campaign!r} (twin device serve LAB.yaml --id {self.name})", infeasible=False)
 
+    async def _to_safety(self) -> None:
+        """The driver's ``safe_state`` after a step; until it returns the device says so when it is offered one."""
+        self._safing = True
+        await timed(self.driver.safe_state(), self._habits)
+
     async def _run(self, task: str, attempt: int, campaign: str, token: str, cmd: CommandBody) -> None:
         spec, faults = self.spec, self.spec.faults
 
@@ -310,12 +315,10 @@ class DeviceActor:
                 emit(Kind.RESULT, {"outputs": result.outputs, "sample": result.sample})
         except asyncio.CancelledError:
             if self._cancel_reason == "cancel":
-                self._safing = True
-                await timed(self.driver.safe_state(), self._habits)
+                await self._to_safety()
                 emit(Kind.FAULT, {"code": "cancelled", "reason": f"{cmd.step} cancelled on {self.name}"})
             elif self._cancel_reason == "orphaned":
-                self._safing = True
-                await timed(self.driver.safe_state(), self._habits)
+                await self._to_safety()
                 emit(Kind.FAULT, {"code": "cancelled", "reason": f"{cmd.step} stopped on {self.name}: the "
                                   f"orchestrator was gone for {self.orphan_grace_s:.0f} lab-s"})
             else:
@@ -324,8 +327,7 @@ class DeviceActor:
             emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
         except PLUGIN_ERRORS as exc:  # a driver bug must never take the actor down
             log.warning("%s: driver raised during %s: %s", self.name, cmd.step, fault_text(exc))
-            self._safing = True
-            await timed(self.driver.safe_state(), self._habits)
+            await self._to_safety()
             emit(Kind.FAULT, {"code": "driver_error", "reason": fault_text(exc)})
         finally:
             self._job, self._current, self._cancel_reason, self._safing = None, None, "", False

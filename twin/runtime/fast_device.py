@@ -212,6 +212,11 @@ class FastDevice:
             self._timer.cancel()
         self._resume(asyncio.CancelledError())
 
+    async def _to_safety(self) -> None:
+        """The driver's ``safe_state`` after a step; until it returns the device says so when it is offered one."""
+        self._safing = True
+        await self.driver.safe_state()
+
     async def _run(self, task: str, attempt: int, token: str, cmd: dict) -> None:
         spec, faults = self.spec, self.spec.faults
         step = cmd["step"]
@@ -255,8 +260,7 @@ class FastDevice:
                 emit(Kind.RESULT, {"outputs": result.outputs, "sample": result.sample})
         except asyncio.CancelledError:
             if self._cancel_reason == "cancel":
-                self._safing = True
-                await self.driver.safe_state()
+                await self._to_safety()
                 emit(Kind.FAULT, {"code": "cancelled", "reason": f"{step} cancelled on {self.name}"})
             else:
                 raise
@@ -264,8 +268,7 @@ class FastDevice:
             emit(Kind.REJECTED, {"reason": str(no.reason)[:500], "infeasible": bool(no.infeasible)})
         except PLUGIN_ERRORS as exc:  # a driver bug must never take the lab down
             self._log_raised("%s: driver raised during %s: %s", self.name, step, fault_text(exc))
-            self._safing = True
-            await self.driver.safe_state()
+            await self._to_safety()
             emit(Kind.FAULT, {"code": "driver_error", "reason": fault_text(exc)})
         finally:
             self._job = self._current = None

@@ -19,6 +19,7 @@ from typing import Any
 from twin.core import keys
 from twin.core.bus.base import Bus, Closable
 from twin.core.clock import LabClock
+from twin.core.tasks import kept
 from twin.core.errors import BusError
 from twin.core.messages import json_from_wire
 from twin.scenario import Scenario
@@ -126,9 +127,7 @@ class ServedCheck:
             return
         (self._here.add if alive else self._here.discard)(device)
         if alive and device not in self._told:
-            task = asyncio.get_running_loop().create_task(self._ask(device))
-            self._asking.add(task)
-            task.add_done_callback(self._asking.discard)
+            kept(self._asking, self._ask(device))
 
     def _elsewhere(self) -> None:
         for device in sorted(self._type):

@@ -9,6 +9,7 @@ recorder implements it) and imports nothing of Rerun itself.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from typing import Any, Protocol
@@ -43,6 +44,7 @@ UNDRAWN = frozenset({"attempt.running"})
 DEBUG_KINDS = {"task.ready", "attempt.dispatched", "attempt.running", "attempt.done"}
 
 
+@functools.lru_cache(maxsize=4096)  # per output and target of every result drawn: the names are few
 def part(name: str) -> str:
     """``name`` as one part of an entity path, escaped as Rerun escapes it (``rr.escape_entity_path_part``, which this
     module does without Rerun): a driver's reading named 'a/b' was drawn as an entity b inside a, one named 'sp ace'

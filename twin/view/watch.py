@@ -19,6 +19,7 @@ from typing import Any
 from twin.core import keys
 from twin.core.bus import Bus, Closable, NoReplyError
 from twin.core.clock import LabClock
+from twin.core.tasks import kept
 from twin.core.errors import TwinError
 from twin.campaign.journal_read import as_messages, no_such_journal, read_events, read_run
 from twin.view.lab_observer import SharedLabObserver
@@ -331,9 +332,7 @@ class _SharedWatch:
                 self.observer.campaign(name).on_message(key, payload)
             else:  # a campaign whose token has not come yet: its history first, then this
                 self.held[name] = [(key, payload)]
-                task = asyncio.ensure_future(self.catch_up(name))  # kept: a task nothing refers to may be collected
-                self._catching_up.add(task)
-                task.add_done_callback(self._catching_up.discard)
+                kept(self._catching_up, self.catch_up(name))
         else:
             self.observer.on_message(key, payload)
 

@@ -31,6 +31,7 @@ from twin.core.bus.endpoints import taken
 from twin.core.bus.zenoh_config import ZenohOptions
 from twin.core import log_floods
 from twin.core.clock import LabClock
+from twin.core.tasks import kept
 from twin.core.errors import BusError, ClockError
 
 log = logging.getLogger(__name__)
@@ -352,9 +353,7 @@ class ZenohBus:
                     query.reply_err(reply)
 
         def dispatch(key: str, asked: tuple[zenoh.Query, bool]) -> None:
-            task = asyncio.ensure_future(answer(key, *asked))  # kept: a task nothing refers to may be collected
-            self._answering.add(task)
-            task.add_done_callback(self._answering.discard)
+            kept(self._answering, answer(key, *asked))
 
         entry = _Declared(self, keyexpr, dispatch, next(self._ids), self._queryables)
         entry._zobj = self.session.declare_queryable(keyexpr, on_query)
