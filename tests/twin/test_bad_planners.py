@@ -235,3 +235,26 @@ def test_more_proposals_than_asked_for_run_the_first_and_the_rest_are_said_once_
     said = [r.getMessage() for r in caplog.records if "were asked for" in r.getMessage()]
     assert said == ["planner 'tests.twin.test_bad_planners:WholeBatch' proposed 50 experiments where 3 were asked "
                     "for: the first 3 run, the rest are dropped (it is asked again as experiments finish; said once)"]
+
+
+class BoxAsMapping:
+    """Reads its box as the scenario writes it, `{low: 1, high: 50, unit: mM}`: it raised "'Parameter' object is not
+    subscriptable" at its first proposal, and the campaign ran nothing."""
+
+    def __init__(self, parameters, seed):
+        import random
+
+        self.rng, self.box = random.Random(seed), parameters
+
+    def propose(self, n, history, pending):
+        return [Proposal({k: self.rng.uniform(v["low"], v["high"]) for k, v in self.box.items()}) for _ in range(n)]
+
+
+def test_a_planner_may_read_each_parameter_as_a_mapping_or_by_its_attributes(tmp_path):
+    lab = parse(qd_lab(**{"campaign.planner": "tests.twin.test_bad_planners:BoxAsMapping", "campaign.budget": 4}))
+    summary = run(lab, journal=tmp_path / "j.db")
+    assert summary.done == summary.proposed == 4 and not summary.stopped
+    box = lab.chemistry.parameters["time_s"]
+    assert (box["low"], box["high"], box["unit"]) == (box.low, box.high, box.unit) == (10, 600, "")
+    with pytest.raises(KeyError, match="a parameter has low, high and unit"):
+        box["lo"]

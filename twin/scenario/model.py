@@ -107,6 +107,12 @@ class Parameter(Spec):
     high: float = Field(ge=-MAX_VALUE, le=MAX_VALUE, description="the most (above low)")
     unit: str = Field(default="", max_length=32, description="shown with the value; not converted")
 
+    def __getitem__(self, name: str) -> Any:
+        """``p["low"]`` as ``p.low``: a planner may read its box as the mapping the scenario writes it as."""
+        if name in ("low", "high", "unit"):
+            return getattr(self, name)
+        raise KeyError(f"{name!r}: a parameter has low, high and unit")
+
     @model_validator(mode="after")
     def _ordered(self) -> Parameter:
         if not self.low < self.high:
