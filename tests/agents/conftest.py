@@ -22,3 +22,12 @@ def state(ft06):
     from agents.train_scheduler import initial_state
 
     return initial_state(SHIPPED_JOBSHOP, ft06, "candidates", part="action_net")
+
+
+@pytest.fixture
+def rollouts_in_process(monkeypatch):
+    """A training's rollouts in the test's own process, as on a machine of one core: what is learnt is the same
+    (agents.training_workers), without two spawned workers' seconds of imports. For the tests not about the pool."""
+    from agents import training_workers
+
+    monkeypatch.setattr(training_workers.os, "cpu_count", lambda: 1)

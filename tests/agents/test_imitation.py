@@ -69,7 +69,7 @@ def test_off_the_plan_every_state_still_gets_one_choice_per_free_machine_or_wait
     assert waited, "the teacher never waited for its plan's next operation"
 
 
-def test_a_short_imitation_beats_random_dispatching_and_says_how_it_learnt(ft06, tmp_path):
+def test_a_short_imitation_beats_random_dispatching_and_says_how_it_learnt(ft06, tmp_path, rollouts_in_process):
     small = prepare(ft06, overrides={"training.jobshop_sizes": [[6, 6], [8, 5]]})
     out = tmp_path / "imitated.zip"
     seen = []

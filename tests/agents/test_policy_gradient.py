@@ -61,7 +61,7 @@ def test_a_positive_weight_makes_a_choice_likelier_and_a_negative_one_less_likel
         assert moved(p_taught(net, sample)), (weight, before, p_taught(net, sample))
 
 
-def test_self_pg_starts_from_a_policy_and_its_training_says_what_it_did(ft06, tmp_path):
+def test_self_pg_starts_from_a_policy_and_its_training_says_what_it_did(ft06, tmp_path, rollouts_in_process):
     pg = prepare(ft06, overrides={"training.teacher": "self-pg", "training.jobshop_sizes": [[6, 6]],
                                   "training.samples": 4})
     with pytest.raises(ValueError, match="training.teacher 'self-pg' improves a policy on its own rollouts, so it "

@@ -68,7 +68,7 @@ def test_self_labelling_needs_a_policy_to_start_from(ft06, tmp_path):
         train_scheduler(own, 100, tmp_path / "x.zip")
 
 
-def test_a_training_starts_where_init_left_off(ft06, tmp_path):
+def test_a_training_starts_where_init_left_off(ft06, tmp_path, rollouts_in_process):
     own = prepare(ft06, overrides={"training.teacher": "self", "training.jobshop_sizes": [[6, 6]],
                                    "training.samples": 4})
     out, seen = tmp_path / "tuned.zip", []
