@@ -58,7 +58,7 @@ class MultiFidelityPlanner:
         exp_pending = [self._unit(p) for p in pending if p]
         for _ in range(n - len(out)):
             cand = self.rng.random((self.n_candidates, len(self.names)))
-            p_hit, corr_gp = self._p_hit(dft_gp, x, resid, exp_pending, cand)
+            p_hit = self._p_hit(dft_gp, x, resid, exp_pending, cand)
             best = cand[int(np.argmax(p_hit))]
             exp_pending.append(best)
             out.append(Proposal(self._params(best)))
@@ -76,7 +76,6 @@ class MultiFidelityPlanner:
             corr = GaussianProcessRegressor(corr.kernel_, optimizer=None).fit(xb, rb)
             mu_c, sd_c = corr.predict(cand, return_std=True)
         else:
-            corr = None
             mu_c = np.full(len(cand), resid.mean() if len(resid) else 0.0)
             sd_c = np.full(len(cand), PRIOR_CORRECTION_SD)
         mu, sd = mu_d + mu_c, np.sqrt(sd_d**2 + sd_c**2) + 1e-9
@@ -89,7 +88,7 @@ class MultiFidelityPlanner:
                 p *= norm.sf((c.min - mu) / sd)
             if c.max is not None:
                 p *= norm.cdf((c.max - mu) / sd)
-        return p, corr
+        return p
 
     def _gp(self, x: np.ndarray, y: np.ndarray, normalize: bool = True) -> Any:
         from sklearn.exceptions import ConvergenceWarning

@@ -35,7 +35,6 @@ from twin.core import keys
 from twin.core.errors import BusError
 
 MANIFEST = "labtwin-security.json"
-ROLES = ("router", "orchestrator", "scheduler", "watcher", "operator", "device")
 _ALL = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
         "liveliness_query", "declare_liveliness_subscriber"]
 
