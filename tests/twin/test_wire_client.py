@@ -79,6 +79,22 @@ def test_the_documented_device_measures_every_experiment_of_a_live_campaign(tmp_
     assert len(accepted) == 4
 
 
+def in_client_mode(script: str) -> str:
+    """A stranger's choice the page allows: the session in Zenoh's client mode, as the page says to set it."""
+    peer = """config.insert_json5("mode", '"peer"')"""
+    assert script.count(peer) == 1
+    return script.replace(peer, """config.insert_json5("mode", '"client"')\nconfig.insert_json5("connect/timeout_ms", "-1")""")
+
+
+def test_the_documented_device_in_client_mode_started_before_its_lab_serves_it(tmp_path):
+    """Without ``connect/timeout_ms: -1`` a client's session failed to open, the lab not being up yet."""
+    summary, _, _ = run_with(tmp_path, "device.py", ["spectrometer"], {"spectrometer"}, edit=in_client_mode, **{
+        "campaign.budget": 2, "devices.spectrometer.instances": 1,
+        "devices.spectrometer.duration": {"mean_s": 50, "cv": 0.0},
+        "devices.synthesiser.duration": {"mean_s": 30, "cv": 0.0}})
+    assert summary.done == 2 and summary.abandoned == 0 and summary.failed_attempts == 0, summary
+
+
 def test_the_documented_agent_schedules_a_live_campaign_and_the_lab_does_what_it_said(tmp_path):
     summary, db, out = run_with(tmp_path, "agent.py", [], **{
         "campaign.budget": 6, "campaign.max_in_flight": 3,
