@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 
 import pytest
 import yaml
@@ -14,6 +15,7 @@ import yaml
 from tests.conftest import qd_lab
 from tests.twin.test_distributed_lab import ROOT, start
 from tests.twin.test_device_process import free_port
+from tests.twin.zenoh_clients import open_session
 from twin.campaign.journal_read import read_events
 from twin.runtime.lab import make_clock, prepare, run_async
 
@@ -115,3 +117,50 @@ def test_a_device_that_insists_on_another_speed_refuses_to_serve(tmp_path):
     assert dev.returncode == 2, err.decode()  # the CLI's exit code for a clear error
     assert "200" in err.decode() and "without --clock" in err.decode(), err.decode()
     assert b"ready" not in out
+
+
+@pytest.mark.parametrize("forged,said", [
+    ({"mode": "virtual", "speed": 1.0, "lab_s": 0.0}, "a virtual clock at 1×, where it runs a scaled one at 200×"),
+    ({"mode": "scaled", "speed": SPEED, "lab_s": 86400.0}, "lab time moved by +86")])
+def test_a_clock_message_that_cannot_be_the_running_labs_is_ignored_by_its_devices(tmp_path, forged, said):
+    """Another process on a bus without security put a clock anchor on the lab's key: `{"mode": "virtual"}` ended
+    every device served in another process ("cannot follow a virtual clock") and the campaign abandoned what waited
+    for them; one a day ahead made them stamp their work a day ahead. While the lab's campaign stays on the bus,
+    neither can be its own."""
+    router = f"tcp/127.0.0.1:{free_port()}"
+    path, s = _lab_file(tmp_path, router, **{"campaign.budget": 4})
+    clock, db = make_clock(s), tmp_path / "j.db"
+    procs = {"router": start(["router", "--listen", router], "router"),
+             "synth": start(["device", "serve", str(path), "--id", "synthesiser", "--connect", router],
+                            "ready synthesiser")}
+    stranger = open_session(connect=router)
+    marks: dict = {}
+
+    async def main():
+        campaign = asyncio.ensure_future(run_async(s, clock, db, {"synthesiser"},
+                                                   on_start=lambda c: marks.setdefault("core", c.core)))
+        while not campaign.done():
+            att = marks["core"].devices["synthesiser"].attempt if "core" in marks else None
+            if "forged" not in marks and att is not None and att.t_accepted is not None:
+                marks["forged"] = clock.now()
+                anchor = {**forged, "lab_s": clock.now() + forged["lab_s"], "wall_s": time.time()}
+                stranger.put(f"labtwin/{s.lab}/clock", json.dumps(anchor))
+            await clock.sleep(2)
+        return await campaign
+
+    try:
+        summary = clock.run(main())
+        alive = procs["synth"].poll() is None
+    finally:
+        stranger.close()
+        for p in procs.values():
+            p.kill()
+            p.wait()
+    err = procs["synth"].stderr.read().decode()
+    assert "forged" in marks and alive, err
+    assert summary.done == 4 and summary.abandoned == 0 and summary.devices_lost == 0, summary
+    tol = TOLERANCE_WALL_S * SPEED
+    for e in read_events(db, "msg.result"):
+        if e["device"] == "synthesiser":  # stamped in the lab's time, forged anchors or not
+            assert abs(e["t_lab"] - json.loads(e["detail"])["body"]["sample"]["t_made"]) <= tol, e
+    assert "ignored a clock message for lab" in err and said in err, err

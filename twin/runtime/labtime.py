@@ -10,6 +10,10 @@ that restarts (``twin resume``) or runs again carries its devices along. Both
 sides read the same Unix time: one host, or hosts kept in step by NTP.
 A device that has not heard the lab's clock refuses commands ("not now"); one
 whose operator asked for another mode or speed than the lab's stops, saying so.
+While the campaign whose time a process keeps stays on the bus, its time runs on as
+it began: an anchor then of another mode or speed, or one that would move lab time
+further than a device may stamp from it, cannot be that lab's (another process's on a
+bus without security, docs/security.md) and is ignored, said once.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import asyncio
 import json
 import logging
 import math
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -26,6 +31,7 @@ from twin.core.bus import Bus, Closable, NoReplyError
 from twin.core.clock import LabClock
 from twin.core.numbers import finite
 from twin.core.errors import BusError, ClockError
+from twin.runtime.event_decoder import CLOCK_OFF_S, CLOCK_OFF_WALL_S
 
 log = logging.getLogger(__name__)
 
@@ -103,6 +109,9 @@ class LabTimeFollower:
         self._asking: asyncio.Future | None = None
         self.error = ""
         clock.anchored = False
+        self._lab_on_bus = False  # the campaign's token, as last heard
+        self._steady = False  # anchored while the campaign was on the bus, and it has stayed on since
+        self._ignored = 0
 
     async def start(self, wait_s: float) -> bool:
         """Ask the lab for its clock (up to ``wait_s`` wall seconds) and listen for it; whether it answered.
@@ -130,6 +139,7 @@ class LabTimeFollower:
         again) or a resume. Its time is asked at once: its first publication may have gone out before this process
         was linked to it, and the next comes REPUBLISH_WALL_S later (meanwhile a device refused work for want of a
         clock, or stamped the new run's work in the last run's time)."""
+        self._lab_on_bus, self._steady = alive, False
         if alive and not self.error:
             if self._asking is not None:  # a question still out is of an earlier campaign's coming
                 self._asking.cancel()
@@ -151,6 +161,15 @@ class LabTimeFollower:
     def _adopt(self, a: dict[str, Any]) -> None:
         if self.error:
             return
+        if self._steady:
+            unlike = self._unlike_running(a)
+            if unlike:
+                self._ignored += 1
+                if self._ignored == 1 or self._ignored % 100 == 0:
+                    log.warning("ignored a clock message for lab %s: %s, while its campaign has been on the bus "
+                                "since this process took its time; not the lab's own (another process on a bus "
+                                "without security?) (%d so far)", self._lab, unlike, self._ignored)
+                return
         problem = self._cannot_follow(a)
         if problem:
             self.error = problem
@@ -159,9 +178,20 @@ class LabTimeFollower:
             return
         first = not self._clock.anchored
         jump = self._clock.follow(a["mode"], a["speed"], a["lab_s"], a["wall_s"])
+        self._steady = self._lab_on_bus
         if first or abs(jump) > NOTICEABLE_WALL_S * a["speed"]:
             log.info("following lab %s's %s clock at %g×: lab time %.1f s (moved %+.1f lab-s)", self._lab,
                      a["mode"], a["speed"], self._clock.now(), jump)
+
+    def _unlike_running(self, a: dict[str, Any]) -> str:
+        """How anchor ``a`` differs from the time of the campaign still running ('' where it does not)."""
+        clock = self._clock
+        if a["mode"] != clock.mode or (a["mode"] == "scaled" and not math.isclose(a["speed"], clock.speed)):
+            return f"a {a['mode']} clock at {a['speed']:g}×, where it runs a {clock.mode} one at {clock.speed:g}×"
+        jump = a["lab_s"] + (time.time() - a["wall_s"]) * a["speed"] - clock.now()
+        if abs(jump) > max(CLOCK_OFF_S, CLOCK_OFF_WALL_S * clock.speed):
+            return f"lab time moved by {jump:+.1f} s"
+        return ""
 
     def _cannot_follow(self, a: dict[str, Any]) -> str:
         lab = self._lab
