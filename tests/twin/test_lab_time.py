@@ -38,35 +38,48 @@ def _lab_file(tmp_path, router: str, **changes) -> tuple:
     return path, prepare(path)
 
 
-def test_a_remote_synthesiser_stamps_its_samples_in_lab_time_across_a_restart(tmp_path):
+def _with_served_synthesiser(tmp_path, each, **changes):
+    """A campaign on `_lab_file`'s lab whose synthesiser `twin device serve` serves beside it, through a router;
+    ``each(accepted, clock, procs, marks)`` every 2 lab-s, ``accepted`` the synthesiser's attempt once it accepted
+    it (else None). Returns the summary, the journal, the processes (ended; "synth" alive at the campaign's end
+    in ``marks["alive"]``) and the marks."""
     router = f"tcp/127.0.0.1:{free_port()}"
-    path, s = _lab_file(tmp_path, router)
+    path, s = _lab_file(tmp_path, router, **changes)
     clock, db = make_clock(s), tmp_path / "j.db"
     synth = ["device", "serve", str(path), "--id", "synthesiser", "--connect", router]  # no --clock: the lab's
     procs = {"router": start(["router", "--listen", router], "router"), "synth": start(synth, "ready synthesiser")}
-    marks: dict = {}
+    marks: dict = {"serve": synth, "router": router, "lab": s.lab}
 
     async def main():
         campaign = asyncio.ensure_future(run_async(s, clock, db, {"synthesiser"},
                                                    on_start=lambda c: marks.setdefault("core", c.core)))
         while not campaign.done():
             att = marks["core"].devices["synthesiser"].attempt if "core" in marks else None
-            task = att.task.id if att is not None and att.t_accepted is not None else None
-            marks.setdefault("first", task)
-            if "killed" not in marks and task not in (None, marks["first"]):  # one sample made, the next under way
-                marks["killed"] = clock.now()
-                os.kill(procs["synth"].pid, signal.SIGKILL)
-                procs["synth"].wait()
-                procs["synth"] = start(synth, None)
+            each(att if att is not None and att.t_accepted is not None else None, clock, procs, marks)
             await clock.sleep(2)
         return await campaign
 
     try:
         summary = clock.run(main())
+        marks["alive"] = procs["synth"].poll() is None
     finally:
         for p in procs.values():
             p.kill()
             p.wait()
+    return summary, db, procs, marks
+
+
+def test_a_remote_synthesiser_stamps_its_samples_in_lab_time_across_a_restart(tmp_path):
+    def kill_and_restart(accepted, clock, procs, marks):
+        task = accepted.task.id if accepted is not None else None
+        marks.setdefault("first", task)
+        if "killed" not in marks and task not in (None, marks["first"]):  # one sample made, the next under way
+            marks["killed"] = clock.now()
+            os.kill(procs["synth"].pid, signal.SIGKILL)
+            procs["synth"].wait()
+            procs["synth"] = start(marks["serve"], None)
+
+    summary, db, _, marks = _with_served_synthesiser(tmp_path, kill_and_restart)
     assert "killed" in marks and summary.done == 6 and summary.abandoned == 0
     events = read_events(db, "msg.result")
     made = {}  # task -> (lab time the result arrived, the sample's t_made stamped by the remote synthesiser)
@@ -127,37 +140,23 @@ def test_a_clock_message_that_cannot_be_the_running_labs_is_ignored_by_its_devic
     every device served in another process ("cannot follow a virtual clock") and the campaign abandoned what waited
     for them; one a day ahead made them stamp their work a day ahead. While the lab's campaign stays on the bus,
     neither can be its own."""
-    router = f"tcp/127.0.0.1:{free_port()}"
-    path, s = _lab_file(tmp_path, router, **{"campaign.budget": 4})
-    clock, db = make_clock(s), tmp_path / "j.db"
-    procs = {"router": start(["router", "--listen", router], "router"),
-             "synth": start(["device", "serve", str(path), "--id", "synthesiser", "--connect", router],
-                            "ready synthesiser")}
-    stranger = open_session(connect=router)
-    marks: dict = {}
+    stranger: list = []
 
-    async def main():
-        campaign = asyncio.ensure_future(run_async(s, clock, db, {"synthesiser"},
-                                                   on_start=lambda c: marks.setdefault("core", c.core)))
-        while not campaign.done():
-            att = marks["core"].devices["synthesiser"].attempt if "core" in marks else None
-            if "forged" not in marks and att is not None and att.t_accepted is not None:
-                marks["forged"] = clock.now()
-                anchor = {**forged, "lab_s": clock.now() + forged["lab_s"], "wall_s": time.time()}
-                stranger.put(f"labtwin/{s.lab}/clock", json.dumps(anchor))
-            await clock.sleep(2)
-        return await campaign
+    def forge(accepted, clock, procs, marks):
+        if not stranger:
+            stranger.append(open_session(connect=marks["router"]))
+        if "forged" not in marks and accepted is not None:
+            marks["forged"] = clock.now()
+            anchor = {**forged, "lab_s": clock.now() + forged["lab_s"], "wall_s": time.time()}
+            stranger[0].put(f"labtwin/{marks['lab']}/clock", json.dumps(anchor))
 
     try:
-        summary = clock.run(main())
-        alive = procs["synth"].poll() is None
+        summary, db, procs, marks = _with_served_synthesiser(tmp_path, forge, **{"campaign.budget": 4})
     finally:
-        stranger.close()
-        for p in procs.values():
-            p.kill()
-            p.wait()
+        for session in stranger:
+            session.close()
     err = procs["synth"].stderr.read().decode()
-    assert "forged" in marks and alive, err
+    assert "forged" in marks and marks["alive"], err
     assert summary.done == 4 and summary.abandoned == 0 and summary.devices_lost == 0, summary
     tol = TOLERANCE_WALL_S * SPEED
     for e in read_events(db, "msg.result"):
