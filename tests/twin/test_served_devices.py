@@ -123,6 +123,38 @@ def test_a_device_missing_here_and_on_the_bus_as_another_labs_is_named_when_the_
                            "device of lab 't2'")
 
 
+@pytest.mark.parametrize("external,on_bus,told", [
+    ({"spectrometer"}, ["spectrometer-1", "ghost"], {"spectrometer": ["spectrometer-1"]}),  # docs/mqtt.md's naming
+    ({"spectrometer-1", "spectrometer-2"}, ["spectrometer-2", "spectromter-1"], {"spectrometer-1": ["spectromter-1"]}),
+    ({"spectrometer"}, ["spectrometer", "spectrometer-1"], {})])  # the device is here: no news
+def test_a_device_missing_while_a_name_like_its_own_is_on_the_labs_bus_is_named_with_it(virtual_clock, external,
+                                                                                        on_bus, told):
+    """A device of a stranger's, written from docs/wire.md for a lab of one spectrometer, declared
+    `labtwin/t/alive/spectrometer-1`: the lab only said `spectrometer` was missing, and sent it nothing."""
+    lab = parse(qd_lab(**{"devices.spectrometer.instances": len(external)}))
+    said: list = []
+
+    async def main():
+        bus = open_bus("memory", virtual_clock)
+        await bus.start()
+        check = ServedCheck(bus, lab, virtual_clock, external,
+                            lambda kind, device, detail: said.append((kind, device, detail)), 100.0).start()
+        tokens = [bus.declare_token(f"labtwin/{lab.lab}/alive/{name}") for name in on_bus]
+        await virtual_clock.sleep(200)
+        for token in tokens:
+            token.close()
+        check.close()
+        await bus.close()
+
+    virtual_clock.run(main())
+    assert said == [("device.misnamed", device, {"names": names, "lab": "t", "type": "spectrometer"})
+                    for device, names in told.items()]
+    if told:
+        words = alert_text(Note(100.0, "device.misnamed", device=said[0][1], detail=said[0][2]))
+        assert "no device of lab 't': a device of lab 't' named spectrometer" in words, words
+        assert "declares labtwin/t/alive/spectrometer" in words and "docs/wire.md" in words, words
+
+
 @pytest.mark.process
 def test_a_device_served_from_an_edited_copy_of_the_lab_file_is_named_when_it_joins(tmp_path, caplog):
     router = f"tcp/127.0.0.1:{free_port()}"

@@ -40,7 +40,7 @@ class Code(StrEnum):
 #: it is, or a device sends what the campaign cannot use.
 ALERTS = frozenset({"devices.unavailable", "devices.missing", "device.flapping", "device.stuck", "device.refusing",
                     "output.unscored", "scheduler.stalled", "consumable.depleted", "device.mismatch",
-                    "device.elsewhere"})
+                    "device.elsewhere", "device.misnamed"})
 ALERT_LOGGER = "twin.alerts"
 #: notes a runtime on a live clock also logs (``AlertLog.presence``): a device gone from the bus, and back; one set
 #: aside for failing; a device type said unusable (``devices.unavailable``) usable again
@@ -291,6 +291,13 @@ def _alert_words(n: Note) -> str:
         return (f"not on the bus as a device of lab {d.get('lab')!r}, but on it as a device of lab {labs}: its process "
                 f"was given another lab file (its `lab:` field) or --set lab=…; serve it with this lab's file "
                 f"(`twin device serve LAB.yaml --id {n.device}`)")
+    if n.kind == "device.misnamed" and isinstance(d, dict):
+        names, lab = [str(x) for x in d.get("names", ())], d.get("lab")
+        which = (f"{names[0]} is, which is" if len(names) == 1 else f"{', '.join(names)} are, which are")
+        return (f"not on the bus, but {which} no device of lab {lab!r}: a device of lab {lab!r} named {n.device} "
+                f"declares labtwin/{lab}/alive/{n.device} and takes its commands on labtwin/{lab}/dev/{n.device}/cmd "
+                f"(a type of one instance is named by its type, one of several by its type and -1, -2, …: "
+                f"docs/wire.md)")
     if n.kind == "device.flapping" and isinstance(d, dict):
         return (f"left the bus again within {d.get('within_s', 0):g} lab-s of its last loss (a bad link, or another "
                 f"process announcing its name); its running step keeps its deadline")

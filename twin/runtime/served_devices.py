@@ -11,7 +11,9 @@ device served with another lab file's ``lab`` joins that lab, not this one: the 
 from __future__ import annotations
 
 import asyncio
+import difflib
 import json
+import re
 from collections.abc import Callable, Collection
 from pathlib import PurePath
 from typing import Any
@@ -86,7 +88,9 @@ class ServedCheck:
     """Asks each of ``external`` devices, as it joins the bus, how it is served, and ``report(kind, device,
     detail)`` tells of one that runs by another scenario (``device.mismatch``; ``detail``: its type and the
     differences) and, ``missing_after_s`` lab seconds after the start, of one still not on this lab's bus that is on
-    another lab's (``device.elsewhere``: served with another lab file's ``lab``)."""
+    another lab's (``device.elsewhere``: served with another lab file's ``lab``) or whose name is like one on this
+    lab's bus that is no device of the lab (``device.misnamed``: a device of a stranger's, named ``spectrometer-1``
+    where the lab's one spectrometer is ``spectrometer``)."""
 
     def __init__(self, bus: Bus, s: Scenario, clock: LabClock, external: Collection[str],
                  report: Callable[[str, str, dict[str, Any]], None], missing_after_s: float | None = None) -> None:
@@ -96,6 +100,8 @@ class ServedCheck:
         self._asking: set[asyncio.Task] = set()
         self._here: set[str] = set()
         self._there: dict[str, set[str]] = {}  # a device -> the other labs it is on the bus as a device of
+        self._known = {name for dtype in s.devices for name in s.instance_names(dtype)}
+        self._strangers: set[str] = set()  # names on this lab's bus that are none of its devices'
         self._missing_after_s = missing_after_s
         self._watches: list[Closable] = []
         self._timer: asyncio.TimerHandle | None = None
@@ -123,6 +129,8 @@ class ServedCheck:
 
     def _on_presence(self, key: str, alive: bool) -> None:
         device = keys.device_of(key)
+        if device not in self._known and len(self._strangers) < 1000 or device in self._strangers:
+            (self._strangers.add if alive else self._strangers.discard)(device)
         if device not in self._type:
             return
         (self._here.add if alive else self._here.discard)(device)
@@ -133,6 +141,17 @@ class ServedCheck:
         for device in sorted(self._type):
             if device not in self._here and self._there.get(device):
                 self._report("device.elsewhere", device, {"labs": sorted(self._there[device]), "lab": self._s.lab})
+            elif device not in self._here and self._like(device):
+                self._report("device.misnamed", device, {"names": self._like(device), "lab": self._s.lab,
+                                                         "type": self._type[device]})
+
+    def _like(self, device: str) -> list[str]:
+        """The names on this lab's bus that are no device of it and look meant for ``device``: of its type (with
+        or without an instance number), or close to its name."""
+        dtype = self._type[device]
+        typed = {n for n in self._strangers if re.sub(r"-\d+$", "", n) == dtype}
+        close = difflib.get_close_matches(device, sorted(self._strangers), n=SHOWN, cutoff=0.75)
+        return sorted(typed | set(close))[:SHOWN]
 
     async def _ask(self, device: str) -> None:
         try:

@@ -26,7 +26,7 @@ WARN_KINDS = {"attempt.failed", "task.retry", "scheduler.invalid", "message.inva
               "operator.pause", "operator.abort", "operator.stop", "operator.refused", "question.asked",
               "question.withdrawn", "consumable.low", "output.unscored", "planner.invalid", "device.clock_off",
               "scheduler.stalled", "device.refusing", "device.mismatch",
-              "device.elsewhere"}
+              "device.elsewhere", "device.misnamed"}
 ERROR_KINDS = {"message.rejected", "device.quarantined", "device.stuck", "device.lost", "experiment.abandoned",
                "consumable.depleted", "planner.failed"}
 log = logging.getLogger(__name__)
