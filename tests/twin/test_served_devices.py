@@ -120,7 +120,8 @@ def test_a_device_missing_here_and_on_the_bus_as_another_labs_is_named_when_the_
     assert told == [("device.elsewhere", "spectrometer-1", {"labs": ["t2"], "lab": "t"})]
     said = alert_text(Note(100.0, "device.elsewhere", device="spectrometer-1", detail=told[0][2]))
     assert said.startswith("device.elsewhere spectrometer-1: not on the bus as a device of lab 't', but on it as a "
-                           "device of lab 't2'")
+                           "device of lab 't2'") and said.endswith("a device of your own puts lab 't' in its keys "
+                                                                  "(docs/wire.md)"), said
 
 
 @pytest.mark.parametrize("external,on_bus,told", [

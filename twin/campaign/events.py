@@ -290,7 +290,8 @@ def _alert_words(n: Note) -> str:
         labs = ", ".join(repr(lab) for lab in d.get("labs", ()))
         return (f"not on the bus as a device of lab {d.get('lab')!r}, but on it as a device of lab {labs}: its process "
                 f"was given another lab file (its `lab:` field) or --set lab=…; serve it with this lab's file "
-                f"(`twin device serve LAB.yaml --id {n.device}`)")
+                f"(`twin device serve LAB.yaml --id {n.device}`); a device of your own puts lab {d.get('lab')!r} in "
+                f"its keys (docs/wire.md)")
     if n.kind == "device.misnamed" and isinstance(d, dict):
         names, lab = [str(x) for x in d.get("names", ())], d.get("lab")
         which = (f"{names[0]} is, which is" if len(names) == 1 else f"{', '.join(names)} are, which are")
