@@ -138,11 +138,12 @@ class ServedCheck:
             kept(self._asking, self._ask(device))
 
     def _elsewhere(self) -> None:
-        for device in sorted(self._type):
-            if device not in self._here and self._there.get(device):
+        for device in sorted(set(self._type) - self._here):
+            like = self._like(device)
+            if self._there.get(device):
                 self._report("device.elsewhere", device, {"labs": sorted(self._there[device]), "lab": self._s.lab})
-            elif device not in self._here and self._like(device):
-                self._report("device.misnamed", device, {"names": self._like(device), "lab": self._s.lab,
+            elif like:
+                self._report("device.misnamed", device, {"names": like, "lab": self._s.lab,
                                                          "type": self._type[device]})
 
     def _like(self, device: str) -> list[str]:
@@ -151,7 +152,7 @@ class ServedCheck:
         dtype = self._type[device]
         typed = {n for n in self._strangers if re.sub(r"-\d+$", "", n) == dtype}
         close = difflib.get_close_matches(device, sorted(self._strangers), n=SHOWN, cutoff=0.75)
-        return sorted(typed | set(close))[:SHOWN]
+        return [name[:80] for name in sorted(typed | set(close))[:SHOWN]]
 
     async def _ask(self, device: str) -> None:
         try:
