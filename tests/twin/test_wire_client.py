@@ -105,6 +105,19 @@ def test_the_documented_agent_schedules_a_live_campaign_and_the_lab_does_what_it
     assert dispatched and sorted(dispatched) == sorted(said)  # every pair it gave was carried out, and no other
 
 
+def test_an_agent_of_ones_own_that_puts_another_lab_in_its_keys_is_named_when_the_lab_gives_up_waiting(tmp_path,
+                                                                                                       caplog):
+    """The agent of docs/wire.md started for lab 'other': the lab said only "no scheduler agent on the bus"."""
+    elsewhere = "lab, endpoint = 'other', sys.argv[2]"
+    summary, _, _ = run_with(tmp_path, "agent.py", [], edit=lambda text: text.replace(
+        "lab, endpoint = sys.argv[1:3]", elsewhere, 1), **{
+        "campaign.budget": 2, "campaign.scheduler": "remote", "campaign.fallback_scheduler": "fifo",
+        "orchestrator.startup_s": 300})
+    assert summary.done == 2, summary  # fifo decided
+    said = [r.getMessage() for r in caplog.records if "no scheduler agent on the bus" in r.getMessage()]
+    assert len(said) == 1 and "fifo decides (one is on it for lab 'other': " in said[0], said
+
+
 def test_a_device_that_stamps_unix_time_is_named_once_and_its_results_still_count(tmp_path, caplog):
     """The likeliest mistake in a device written from docs/wire.md: t_lab as time.time(). The lab said nothing,
     and the viewer drew its results 56 years into the campaign."""

@@ -434,8 +434,11 @@ def stop_on_loop_signals(stop: Callable[[str], None]) -> Iterator[None]:
 
 async def _await_agent(remote: RemoteScheduler, s: Scenario, camp: LiveCampaign) -> None:
     if not await remote.wait_present(s.orchestrator.startup_s):
-        log.warning("no scheduler agent on the bus after %.0f lab-s: %s decides", s.orchestrator.startup_s,
-                    s.campaign.fallback_scheduler)
+        there = ", ".join(repr(lab) for lab in sorted(remote.elsewhere)[:6])
+        log.warning("no scheduler agent on the bus after %.0f lab-s: %s decides%s", s.orchestrator.startup_s,
+                    s.campaign.fallback_scheduler,
+                    f" (one is on it for lab {there}: an agent served with another lab file, or one of your own "
+                    f"that puts another lab than {s.lab!r} in its keys, docs/wire.md)" if there else "")
         camp.note("scheduler.missing", s.campaign.fallback_scheduler)
 
 

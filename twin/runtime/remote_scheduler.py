@@ -155,9 +155,19 @@ class RemoteScheduler:
         self.answered = 0  # decisions the agent made
         self._arrived = asyncio.Event()
         self._watch = bus.watch_tokens(alive_key(lab), self._presence)
+        #: the labs another agent is on the bus for (its process given another lab file; an agent of one's own
+        #: putting another lab in its keys): a secure router shows a lab no other lab's
+        self.elsewhere: set[str] = set()
+        self._others = bus.watch_tokens(alive_key("*"), self._other_lab)
 
     def close(self) -> None:
         self._watch.close()
+        self._others.close()
+
+    def _other_lab(self, key: str, alive: bool) -> None:
+        lab = key.split("/")[1]
+        if lab != self.lab and (len(self.elsewhere) < 100 or not alive):
+            (self.elsewhere.add if alive else self.elsewhere.discard)(lab[:80])
 
     def _presence(self, key: str, alive: bool) -> None:
         self.present = alive
