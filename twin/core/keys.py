@@ -49,6 +49,11 @@ def campaign(lab: str, campaign_id: str, topic: str = "**") -> str:
     return f"{PREFIX}/{lab}/campaign/{campaign_id}/{topic}"
 
 
+def lab_of(key: str) -> str:
+    """The lab in any ``labtwin/<lab>/...`` key."""
+    return key.split("/")[1]
+
+
 def device_of(key: str) -> str:
     """The device name in a ``.../dev/<device>/...`` or ``.../alive/<device>`` key."""
     parts = key.split("/")

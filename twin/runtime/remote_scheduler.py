@@ -25,7 +25,7 @@ from twin.core.bus import Bus
 from twin.core.bus.base import NoReplyError
 from twin.core.errors import BusError
 from twin.campaign.decisions import Assignment, LabView, capable, unfit
-from twin.core.keys import PREFIX
+from twin.core.keys import PREFIX, lab_of
 from twin.core.messages import json_from_wire
 
 log = logging.getLogger(__name__)
@@ -165,7 +165,7 @@ class RemoteScheduler:
         self._others.close()
 
     def _other_lab(self, key: str, alive: bool) -> None:
-        lab = key.split("/")[1]
+        lab = lab_of(key)
         if lab != self.lab and (len(self.elsewhere) < 100 or not alive):
             (self.elsewhere.add if alive else self.elsewhere.discard)(lab[:80])
 

@@ -123,7 +123,7 @@ class ServedCheck:
             task.cancel()
 
     def _on_any_lab(self, key: str, alive: bool) -> None:
-        device, lab = keys.device_of(key), key.split("/")[1]
+        device, lab = keys.device_of(key), keys.lab_of(key)
         if device in self._type and lab != self._s.lab:
             (self._there.setdefault(device, set()).add if alive else self._there.get(device, set()).discard)(lab)
 

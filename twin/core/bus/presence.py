@@ -33,7 +33,7 @@ async def present(bus: Bus, keyexprs: Iterable[str], wait_s: float = SETTLE_S) -
 async def labs_on(bus: Bus, wait_s: float = SETTLE_S) -> list[str]:
     """The labs with a campaign or a device on ``bus`` now (by their tokens)."""
     found = await present(bus, [keys.orchestrator("*"), keys.alive("*")], wait_s)
-    return sorted({key.split("/")[1] for key in found})
+    return sorted({keys.lab_of(key) for key in found})
 
 
 def elsewhere(labs: list[str]) -> str:
