@@ -223,6 +223,11 @@ class LabClock:
         """What another process needs to keep this clock's time: mode, speed, and a lab time at a Unix time."""
         return {"mode": self.mode, "speed": self.speed, "lab_s": self.now(), "wall_s": time.time()}
 
+    @staticmethod
+    def now_by(speed: float, lab_s: float, wall_s: float) -> float:
+        """The lab time now by another process's anchor (it read ``lab_s`` at Unix time ``wall_s``)."""
+        return lab_s + (time.time() - wall_s) * speed
+
     def follow(self, mode: ClockMode, speed: float, lab_s: float, wall_s: float) -> float:
         """Keep the time of a clock whose :meth:`anchor` this is (both processes read the same Unix time: one
         host, or hosts kept in step by NTP). Returns how far lab time jumped, in lab seconds."""

@@ -22,7 +22,6 @@ import asyncio
 import json
 import logging
 import math
-import time
 from collections.abc import Callable
 from typing import Any
 
@@ -188,7 +187,7 @@ class LabTimeFollower:
         clock = self._clock
         if a["mode"] != clock.mode or (a["mode"] == "scaled" and not math.isclose(a["speed"], clock.speed)):
             return f"a {a['mode']} clock at {a['speed']:g}×, where it runs a {clock.mode} one at {clock.speed:g}×"
-        jump = a["lab_s"] + (time.time() - a["wall_s"]) * a["speed"] - clock.now()
+        jump = clock.now_by(a["speed"], a["lab_s"], a["wall_s"]) - clock.now()
         if abs(jump) > max(CLOCK_OFF_S, CLOCK_OFF_WALL_S * clock.speed):
             return f"lab time moved by {jump:+.1f} s"
         return ""
